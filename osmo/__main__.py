@@ -1,0 +1,5 @@
+"""``python -m osmo`` runs the CLI."""
+
+from osmo.cli.main import entry
+
+entry()

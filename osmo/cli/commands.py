@@ -1,0 +1,199 @@
+"""The CLI verbs: each turns parsed arguments into SDK calls and prints the result."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Callable
+from typing import Any
+
+from rich.live import Live
+from rich.text import Text
+
+from osmo.cli.render import (
+    console,
+    err_console,
+    format_log,
+    info_dict,
+    print_json,
+    task_table,
+    workflow_header,
+    workflows_table,
+)
+from osmo.errors import WorkflowFailed
+from osmo.sdk.client import Client, WorkflowInfo
+from osmo.sdk.connect import server_status, start_server, stop_server
+
+__all__ = ["run"]
+
+
+def _client(args: argparse.Namespace) -> Client:
+    return Client(args.server)
+
+
+def _submit(args: argparse.Namespace) -> int:
+    from osmo.spec import load_spec, render_spec
+
+    if args.dry_run:
+        sys.stdout.write(render_spec(args.file, set_values=args.set_values,
+                                     set_strings=args.set_strings))
+        load_spec(args.file, set_values=args.set_values, set_strings=args.set_strings,
+                  set_env=args.set_env)
+        return 0
+    with _client(args) as client:
+        wf_id = client.submit(args.file, set_values=args.set_values,
+                              set_strings=args.set_strings, set_env=args.set_env, pool=args.pool)
+        if args.format == "json" and not args.wait:
+            print_json({"workflow_id": wf_id})
+            return 0
+        console.print(f"Workflow ID - {wf_id}", markup=False)
+        return _wait(client, wf_id, args.format) if args.wait else 0
+
+
+def _wait(client: Client, wf_id: str, fmt: str = "text") -> int:
+    """Follow a workflow to its end with live progress; 0 iff COMPLETED."""
+    if console.is_terminal and fmt == "text":
+        with Live(console=console, refresh_per_second=8, transient=False) as live:
+            info = client.wait(wf_id, on_update=lambda i: live.update(_progress(i)))
+    else:
+        seen: dict[str, str] = {}
+
+        def show(i: WorkflowInfo) -> None:
+            for t in i.tasks:
+                if seen.get(t.name) != t.status.name and fmt == "text":
+                    seen[t.name] = t.status.name
+                    console.print(f"{t.name}: {t.status.name}", markup=False)
+
+        info = client.wait(wf_id, on_update=show)
+        if fmt == "text":
+            console.print(workflow_header(info), markup=False)
+            console.print(task_table(info.tasks))
+    if fmt == "json":
+        print_json(info_dict(info))
+    if not info.ok:
+        raise WorkflowFailed(info.id, info.status.name)
+    return 0
+
+
+def _progress(info: WorkflowInfo) -> Any:
+    from rich.console import Group
+
+    done = sum(t.status.terminal for t in info.tasks)
+    head = Text(f"{info.id}  {info.status.name}  {done}/{len(info.tasks)} tasks done")
+    return Group(head, task_table(info.tasks))
+
+
+def _validate(args: argparse.Namespace) -> int:
+    from osmo.spec import load_spec
+
+    spec = load_spec(args.file, set_values=args.set_values, set_strings=args.set_strings,
+                     set_env=args.set_env)
+    console.print(f"{args.file}: valid workflow '{spec.name}' with "
+                  f"{len(spec.all_tasks())} task(s) in {len(spec.groups)} group(s)", markup=False)
+    return 0
+
+
+def _query(args: argparse.Namespace) -> int:
+    with _client(args) as client:
+        info = client.get(args.workflow_id)
+    if args.format == "json":
+        print_json(info_dict(info))
+    else:
+        console.print(workflow_header(info), markup=False)
+        console.print()
+        console.print(task_table(info.tasks, verbose=args.verbose))
+    return 0
+
+
+def _list(args: argparse.Namespace) -> int:
+    statuses = [s.upper() for s in args.status]
+    with _client(args) as client:
+        rows = client.list(statuses=statuses, name=args.name, limit=args.count)
+    if args.format == "json":
+        print_json([info_dict(r) for r in rows])
+    elif rows:
+        console.print(workflows_table(rows))
+    else:
+        console.print("no workflows", markup=False)
+    return 0
+
+
+def _logs(args: argparse.Namespace) -> int:
+    with _client(args) as client:
+        if args.follow:
+            records = client.follow_logs(args.workflow_id, task=args.task, retry=args.retry)
+        else:
+            records = iter(client.logs(args.workflow_id, task=args.task, retry=args.retry,
+                                       tail=args.lines))
+        for record in records:
+            sys.stdout.write(format_log(record) + "\n")
+            sys.stdout.flush()
+    return 0
+
+
+def _cancel(args: argparse.Namespace) -> int:
+    with _client(args) as client:
+        status = client.cancel(args.workflow_id)
+    console.print(f"Workflow {args.workflow_id}: {status.name}", markup=False)
+    return 0
+
+
+def _restart(args: argparse.Namespace) -> int:
+    with _client(args) as client:
+        wf_id = client.restart(args.workflow_id)
+        console.print(f"Workflow ID - {wf_id}", markup=False)
+        return _wait(client, wf_id) if args.wait else 0
+
+
+def _spec(args: argparse.Namespace) -> int:
+    from osmo.spec import dump_yaml, spec_from_dict
+
+    with _client(args) as client:
+        data = client.spec(args.workflow_id)
+    sys.stdout.write(dump_yaml(spec_from_dict(data)))
+    return 0
+
+
+def _server(args: argparse.Namespace) -> int:
+    if args.action == "run":
+        from osmo.server.app import serve
+
+        console.print("osmo server running in the foreground (Ctrl-C to stop)", markup=False)
+        serve(listen=args.listen, cpus=args.cpus, gpus=args.gpus)
+        return 0
+    if args.action == "start":
+        info = start_server(listen=args.listen, cpus=args.cpus)
+        console.print(f"osmo server running: pid {info.pid}, {info.endpoint}", markup=False)
+        return 0
+    if args.action == "stop":
+        pid = stop_server()
+        console.print(f"stopped osmo server (pid {pid})" if pid else "no osmo server running",
+                      markup=False)
+        return 0
+    info = server_status()
+    if args.format == "json":
+        print_json(info.__dict__ if info else None)
+    else:
+        console.print(f"running: pid {info.pid}, {info.endpoint}" if info
+                      else "not running", markup=False)
+    return 0 if info else 3
+
+
+_VERBS: dict[str, Callable[[argparse.Namespace], int]] = {
+    "submit": _submit,
+    "validate": _validate,
+    "query": _query,
+    "status": _query,
+    "list": _list,
+    "logs": _logs,
+    "cancel": _cancel,
+    "restart": _restart,
+    "spec": _spec,
+    "server": _server,
+}
+
+
+def run(verb: str, args: argparse.Namespace) -> int:
+    """Run one verb; OsmoError propagates to ``main`` for its exit code."""
+    _ = err_console
+    return _VERBS[verb](args)

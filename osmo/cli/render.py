@@ -1,0 +1,122 @@
+"""Turns SDK results into text: tables, OSMO-style log lines, JSON.
+
+The one CLI module that imports ``rich``. Output to a non-terminal is plain text (no colour,
+no live redraw) so scripts and tests read it.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from dataclasses import asdict
+from typing import Any
+
+from rich.console import Console
+from rich.table import Table
+
+from osmo.sdk.client import LogRecord, TaskInfo, WorkflowInfo
+
+__all__ = ["console", "err_console", "format_log", "print_json", "task_table", "workflow_header",
+           "workflows_table"]
+
+console = Console(highlight=False, width=None if sys.stdout.isatty() else 160)
+err_console = Console(stderr=True, highlight=False, soft_wrap=True)
+
+
+def _when(ts: float | None) -> str:
+    return time.strftime("%Y/%m/%d %H:%M:%S", time.localtime(ts)) if ts else "-"
+
+
+def _dur(seconds: float | None) -> str:
+    if seconds is None:
+        return "-"
+    if seconds < 60:
+        return f"{seconds:.1f}s"
+    minutes, sec = divmod(int(seconds), 60)
+    hours, minutes = divmod(minutes, 60)
+    return f"{hours}h{minutes:02d}m{sec:02d}s" if hours else f"{minutes}m{sec:02d}s"
+
+
+def _style(status: str) -> str:
+    if status == "COMPLETED":
+        return "green"
+    if status.startswith("FAILED"):
+        return "red"
+    return "yellow" if status in ("RUNNING", "INITIALIZING") else ""
+
+
+def workflow_header(info: WorkflowInfo) -> str:
+    """The lines above a task table: id, status, pool, times."""
+    lines = [
+        f"Workflow ID : {info.id}",
+        f"Status      : {info.status.name}",
+        f"Pool        : {info.pool or '-'}",
+        f"Submitted   : {_when(info.submitted_at)}",
+        f"Duration    : {_dur((info.ended_at or time.time()) - info.started_at) if info.started_at else '-'}",
+    ]
+    if info.reused_from:
+        lines.append(f"Restart of  : {info.reused_from}")
+    return "\n".join(lines)
+
+
+def task_table(tasks: list[TaskInfo], verbose: bool = False) -> Table:
+    """A table of tasks: name, retry, status, start, duration, exit code (+ message)."""
+    table = Table(box=None, pad_edge=False)
+    for col in ("Task", "Retry", "Status", "Start", "Duration", "Exit Code"):
+        table.add_column(col)
+    if verbose:
+        table.add_column("Group")
+        table.add_column("Message")
+    for t in tasks:
+        status = t.status.name + (" (reused)" if t.reused else "")
+        row = [t.name, str(t.retry), f"[{_style(t.status.name)}]{status}[/]" if _style(
+            t.status.name) else status, _when(t.started_at), _dur(t.duration),
+            "-" if t.exit_code is None else str(t.exit_code)]
+        if verbose:
+            row += [t.group, t.message or ""]
+        table.add_row(*row)
+    return table
+
+
+def workflows_table(rows: list[WorkflowInfo]) -> Table:
+    """A table of workflows for ``osmo list``."""
+    table = Table(box=None, pad_edge=False)
+    for col in ("Workflow ID", "Status", "Submitted", "Duration", "Pool"):
+        table.add_column(col)
+    for w in rows:
+        dur = (w.ended_at or time.time()) - w.started_at if w.started_at else None
+        table.add_row(w.id, w.status.name, _when(w.submitted_at), _dur(dur), w.pool or "-")
+    return table
+
+
+def format_log(r: LogRecord) -> str:
+    """OSMO's log line: ``YYYY/MM/DD HH:MM:SS [task] text`` (retries, osmo lines marked)."""
+    who = r.task or "workflow"
+    if r.retry:
+        who += f" retry-{r.retry}"
+    tag = f"[{who}][osmo]" if r.stream == "osmo" else f"[{who}]"
+    return f"{_when(r.ts)} {tag} {r.text}"
+
+
+def print_json(data: Any) -> None:
+    """Print JSON (dataclasses and enums converted) to stdout."""
+
+    def default(o: Any) -> Any:
+        if hasattr(o, "__dataclass_fields__"):
+            return asdict(o)
+        if hasattr(o, "name"):
+            return o.name
+        raise TypeError(type(o).__name__)
+
+    sys.stdout.write(json.dumps(data, default=default, indent=2) + "\n")
+
+
+def info_dict(info: WorkflowInfo) -> dict[str, Any]:
+    """A JSON-ready dict of a workflow with its tasks."""
+    out = asdict(info)
+    out["status"] = info.status.name
+    for t, src in zip(out["tasks"], info.tasks):
+        t["status"] = src.status.name
+        t["duration"] = src.duration
+    return out

@@ -1,0 +1,239 @@
+"""The process runtime: runs an attempt's command as a host process in its own process group.
+
+What it owns:
+
+- spawning: the command starts in a new session (``start_new_session=True``, so its process
+  group id is its pid), with the given working folder and environment, stdin from
+  ``/dev/null``, stdout and stderr as non-blocking pipes. No ``preexec_fn``, so CPython can
+  use ``vfork`` and spawning stays cheap.
+- waiting without polling: a ``pidfd`` (``os.pidfd_open``) becomes readable when the process
+  ends, so a caller's selector watches exits and pipes together.
+- killing: a signal always goes to the whole process group (grandchildren included). The
+  caller sends ``SIGTERM`` first and ``SIGKILL`` after its grace period.
+- exit codes: killed by signal N → ``128 + N`` (the shell's convention).
+- crash clean-up: ``kill_stale`` kills a process group left over by a crashed server, only if
+  the pid still belongs to the process that was started (its start time matches).
+
+When the main process ends, whatever is left of its group is killed: like a container, an
+attempt ends when its main process does, and background children do not outlive it.
+
+It must not know about attempts, logs or the scheduler; the worker pool drives it.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Protocol
+
+from osmo.errors import OsmoError
+
+__all__ = [
+    "ProcessHandle",
+    "ProcessRuntime",
+    "Runtime",
+    "StartError",
+    "exit_code_of",
+    "kill_stale",
+    "process_start_time",
+]
+
+
+class StartError(OsmoError):
+    """A command could not be started (not found, not executable, bad working folder)."""
+
+
+@dataclass(eq=False)
+class ProcessHandle:
+    """A started command.
+
+    Attributes:
+        pid: the main process id (also its process group id).
+        exit_fd: a file descriptor that becomes readable when the main process has ended.
+        stdout_fd: read end of the stdout pipe (non-blocking).
+        stderr_fd: read end of the stderr pipe (non-blocking).
+    """
+
+    pid: int
+    exit_fd: int
+    stdout_fd: int
+    stderr_fd: int
+    popen: subprocess.Popen[bytes]
+
+
+class Runtime(Protocol):
+    """How attempts' commands are run (process today; a container runtime can follow)."""
+
+    def start(self, argv: Sequence[str], *, cwd: Path, env: Mapping[str, str]) -> ProcessHandle:
+        """Start ``argv`` in ``cwd`` with exactly ``env``. Raises StartError."""
+        ...
+
+    def kill(self, handle: ProcessHandle, *, force: bool = False) -> None:
+        """Signal the whole command (SIGTERM; SIGKILL when ``force``). Never raises."""
+        ...
+
+    def reap(self, handle: ProcessHandle) -> int:
+        """After ``exit_fd`` became readable: the exit code; kills what is left of the group."""
+        ...
+
+    def release(self, handle: ProcessHandle) -> None:
+        """Close the handle's file descriptors."""
+        ...
+
+
+def exit_code_of(returncode: int) -> int:
+    """Normalise a ``Popen.returncode``: killed by signal N (``-N``) → ``128 + N``."""
+    return 128 - returncode if returncode < 0 else returncode
+
+
+class ProcessRuntime:
+    """Runs commands as host processes, one process group each (see the module docstring)."""
+
+    def start(self, argv: Sequence[str], *, cwd: Path, env: Mapping[str, str]) -> ProcessHandle:
+        """Start ``argv`` in its own session. Raises StartError with a user-facing message."""
+        if not argv:
+            raise StartError("empty command")
+        try:
+            popen = subprocess.Popen(
+                list(argv),
+                cwd=cwd,
+                env=dict(env),
+                stdin=subprocess.DEVNULL,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                start_new_session=True,
+            )
+        except OSError as exc:
+            raise StartError(_start_message(argv[0], cwd, exc)) from exc
+        try:
+            return _handle(popen)
+        except OSError as exc:  # e.g. out of file descriptors: do not leave it running
+            os.killpg(popen.pid, signal.SIGKILL)
+            popen.wait()
+            _close_pipes(popen)
+            raise StartError(f"cannot watch '{argv[0]}': {exc.strerror or exc}") from exc
+
+    def kill(self, handle: ProcessHandle, *, force: bool = False) -> None:
+        """Send SIGTERM (SIGKILL when ``force``) to the handle's process group."""
+        if handle.popen.returncode is not None:
+            return  # reaped: the group id may name someone else's group now
+        try:
+            os.killpg(handle.pid, signal.SIGKILL if force else signal.SIGTERM)
+        except (ProcessLookupError, PermissionError):
+            pass
+
+    def reap(self, handle: ProcessHandle) -> int:
+        """Kill what is left of the group, then collect the main process's exit code.
+
+        The main process is a zombie until collected, so its group id is still ours.
+        """
+        self.kill(handle, force=True)
+        return exit_code_of(handle.popen.wait())
+
+    def release(self, handle: ProcessHandle) -> None:
+        """Close the pidfd and both pipes (idempotent)."""
+        _close_pipes(handle.popen)
+        if handle.exit_fd >= 0:
+            os.close(handle.exit_fd)
+            handle.exit_fd = -1
+
+
+def _close_pipes(popen: subprocess.Popen[bytes]) -> None:
+    for pipe in (popen.stdout, popen.stderr):
+        if pipe is not None:
+            pipe.close()
+
+
+def _handle(popen: subprocess.Popen[bytes]) -> ProcessHandle:
+    assert popen.stdout is not None and popen.stderr is not None
+    out, err = popen.stdout.fileno(), popen.stderr.fileno()
+    os.set_blocking(out, False)
+    os.set_blocking(err, False)
+    return ProcessHandle(popen.pid, os.pidfd_open(popen.pid), out, err, popen)
+
+
+def _start_message(program: str, cwd: Path, exc: OSError) -> str:
+    if isinstance(exc, FileNotFoundError):
+        if exc.filename is not None and os.fsdecode(exc.filename) == os.fsdecode(cwd):
+            return f"working folder not found: '{cwd}'"
+        return f"command not found: '{program}'"
+    if isinstance(exc, PermissionError):
+        return f"command not executable: '{program}' (permission denied)"
+    return f"cannot start '{program}': {exc.strerror or exc}"
+
+
+# ---------------------------------------------------------------- crash clean-up
+
+
+def _stat_fields(pid: int) -> list[str] | None:
+    """Fields of ``/proc/<pid>/stat`` after the command name (field 3 onwards)."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            data = f.read().decode("ascii", "replace")
+    except OSError:
+        return None
+    return data[data.rfind(")") + 2 :].split()
+
+
+def _boot_time() -> float:
+    with open("/proc/stat") as f:
+        for line in f:
+            if line.startswith("btime "):
+                return float(line.split()[1])
+    return 0.0
+
+
+def process_start_time(pid: int) -> float | None:
+    """When process ``pid`` started, in seconds since the epoch (``None`` if it is gone).
+
+    Computed from ``/proc/<pid>/stat`` (clock ticks since boot) and the boot time, so the
+    same process always gives the same value; store it beside the pid to check later.
+    """
+    fields = _stat_fields(pid)
+    if fields is None:
+        return None
+    ticks = int(fields[19])  # field 22 of stat(5), counted from field 3
+    return _boot_time() + ticks / os.sysconf("SC_CLK_TCK")
+
+
+def _group_members(pgid: int) -> list[int]:
+    members = []
+    for name in os.listdir("/proc"):
+        if name.isdigit():
+            fields = _stat_fields(int(name))
+            if fields is not None and int(fields[2]) == pgid:
+                members.append(int(name))
+    return members
+
+
+def kill_stale(pid: int, started_at: float, *, tolerance: float = 0.5) -> bool:
+    """Kill the process group a crashed server left behind, if it is still the same one.
+
+    The group is killed (SIGKILL) only when process ``pid`` is still running with the start
+    time recorded (``started_at``, from ``process_start_time``) and leads its group; or,
+    when ``pid`` itself is gone, when every remaining member of group ``pid`` started after
+    ``started_at`` (a group id stays reserved while members live, so those are its
+    leftovers). Never kills by name.
+
+    Returns:
+        True if a group was signalled.
+    """
+    now_start = process_start_time(pid)
+    if now_start is not None:
+        fields = _stat_fields(pid)
+        if abs(now_start - started_at) > tolerance or fields is None or int(fields[2]) != pid:
+            return False
+    else:
+        members = _group_members(pid)
+        starts = [process_start_time(m) for m in members]
+        if not members or any(s is None or s < started_at - tolerance for s in starts):
+            return False
+    try:
+        os.killpg(pid, signal.SIGKILL)
+    except (ProcessLookupError, PermissionError):
+        return False
+    return True

@@ -1,0 +1,132 @@
+"""Attempt reports: prepared, started, exited, start-failed, lost (and node loss).
+
+This module owns fencing and the per-task outcome of an attempt (documented behaviour):
+
+- Fencing: a report applies only when its attempt is the task's *current* attempt and the
+  task is still active (INITIALIZING/RUNNING). Anything else changes no state, except that
+  an attempt's *final* report (Exited, StartFailed, Lost) always releases what that attempt
+  holds, exactly once — this is how a killed attempt gives its resources back.
+- Exit actions: ``task.exit_action(code)``. COMPLETE needs an output reference (None means
+  promotion failed: FAILED with ``ExitCode.OUTPUT_ERROR``). RESCHEDULE retries while the
+  task's ``user_retries`` < the workflow's ``max_retries``, else FAILED "retry cap N reached".
+- A lost attempt (worker gone, node down) is RESCHEDULED without using a user retry, up to
+  ``max_lost_retries`` times, then FAILED_SERVER_ERROR with ``ExitCode.LOST``.
+- A retried task is queued alone; it is not held by its group's barrier.
+"""
+
+from __future__ import annotations
+
+from osmo.scheduler.engine import Engine
+from osmo.scheduler.groups import settle, start_exec_clock
+from osmo.scheduler.placement import enqueue
+from osmo.scheduler.runs import Run
+from osmo.scheduler.state import TaskState
+from osmo.scheduler.types import (
+    AttemptExited,
+    AttemptLost,
+    AttemptPrepared,
+    AttemptStarted,
+    AttemptStartFailed,
+    RunAttempt,
+)
+from osmo.spec.model import ExitAction
+from osmo.status import ExitCode, TaskStatus
+
+__all__ = ["Report", "lose", "on_report"]
+
+Report = AttemptPrepared | AttemptStarted | AttemptExited | AttemptStartFailed | AttemptLost
+_FINAL = (AttemptExited, AttemptStartFailed, AttemptLost)
+
+
+def on_report(eng: Engine, report: Report) -> None:
+    """Apply one attempt report (see the module docstring for fencing)."""
+    aid = report.attempt_id
+    if isinstance(report, _FINAL) and eng.ledger.release(aid):
+        eng.queue.capacity_grew = True
+    found = eng.attempts.get(aid)
+    if found is None:
+        return
+    run, name = found
+    task = run.tasks[name]
+    if task.attempt_id != aid or not task.status.active:
+        return
+    if isinstance(report, AttemptPrepared):
+        _prepared(eng, run, task)
+    elif isinstance(report, AttemptStarted):
+        _started(eng, run, task)
+    elif isinstance(report, AttemptExited):
+        _exited(eng, run, task, report)
+    elif isinstance(report, AttemptStartFailed):
+        _finish(eng, run, task, TaskStatus.FAILED_START_ERROR, ExitCode.START_ERROR,
+                report.message)
+    else:
+        lose(eng, run, task, report.message)
+
+
+def _prepared(eng: Engine, run: Run, task: TaskState) -> None:
+    group = run.group_of(task)
+    if task.status is not TaskStatus.INITIALIZING or task.name in group.prepared:
+        return
+    group.prepared.add(task.name)
+    batch = group.batch
+    if batch is not None and not batch.released and task.name in batch.members:
+        eng.release_barrier(run, group)
+    else:
+        assert task.attempt_id is not None
+        eng.out.append(RunAttempt(task.attempt_id))
+
+
+def _started(eng: Engine, run: Run, task: TaskState) -> None:
+    if task.status is not TaskStatus.INITIALIZING:
+        return
+    task.started_at = eng.now
+    eng.set_status(run, task, TaskStatus.RUNNING, "")
+    start_exec_clock(eng, run, run.group_of(task))
+
+
+def _exited(eng: Engine, run: Run, task: TaskState, report: AttemptExited) -> None:
+    code = report.exit_code
+    action = run.task_specs[task.name].exit_action(code)
+    if action is ExitAction.COMPLETE:
+        if report.output is None:
+            _finish(eng, run, task, TaskStatus.FAILED, ExitCode.OUTPUT_ERROR,
+                    report.message or f"exit code {code} but outputs could not be promoted")
+            return
+        task.output = report.output
+        _finish(eng, run, task, TaskStatus.COMPLETED, code, report.message)
+    elif action is ExitAction.RESCHEDULE and task.user_retries < run.max_retries:
+        task.user_retries += 1
+        _retry(eng, run, task, report.message or f"exit code {code}: RESCHEDULE")
+    elif action is ExitAction.RESCHEDULE:
+        _finish(eng, run, task, TaskStatus.FAILED, code,
+                f"exit code {code}: retry cap {run.max_retries} reached")
+    else:
+        _finish(eng, run, task, TaskStatus.FAILED, code, report.message or f"exit code {code}")
+
+
+def lose(eng: Engine, run: Run, task: TaskState, message: str) -> None:
+    """The current attempt of active ``task`` is lost: retry it, or fail past the cap."""
+    if task.lost_retries < eng.max_lost_retries:
+        task.lost_retries += 1
+        _retry(eng, run, task, message)
+    else:
+        _finish(eng, run, task, TaskStatus.FAILED_SERVER_ERROR, ExitCode.LOST,
+                f"{message}; lost-attempt cap {eng.max_lost_retries} reached")
+
+
+def _finish(eng: Engine, run: Run, task: TaskState, status: TaskStatus, code: int,
+            message: str) -> None:
+    eng.end_task(run, task, status, code, message)
+    settle(eng, run, task)
+
+
+def _retry(eng: Engine, run: Run, task: TaskState, reason: str) -> None:
+    eng.set_status(run, task, TaskStatus.RESCHEDULED, reason)
+    if task.attempt_id is not None:
+        eng.attempts.pop(task.attempt_id, None)
+    task.retry += 1
+    task.attempt_id = task.node_id = task.exit_code = task.output = None
+    task.started_at = task.ended_at = None
+    task.scheduling_at = eng.now
+    eng.set_status(run, task, TaskStatus.SCHEDULING, f"retry {task.retry} after: {reason}")
+    enqueue(eng, run, run.group_of(task), (task.name,), gang=False)

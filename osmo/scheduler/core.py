@@ -1,0 +1,293 @@
+"""The scheduler: a pure, event-driven state machine over workflows, tasks and nodes.
+
+This module owns the public facade (:class:`Scheduler`), event dispatch, submit and restore.
+It performs no I/O, starts no threads, never sleeps and never reads the clock: ``now`` comes
+with every event. Each ``handle()`` does only the work that event enables — it fires due
+timeouts, applies the event, places what now fits, cascades and aggregates — in time
+proportional to what it touches (tasks are indexed by attempt id, groups keep counters,
+placement scans only the queue of waiting requests).
+
+Order inside one ``handle(event, now)``: due timeouts fire first (a deadline at or before
+``now`` wins over a report arriving at the same time), then the event, then placement, then
+workflow statuses are re-derived.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+
+from osmo.scheduler import attempts, groups
+from osmo.scheduler.engine import Engine
+from osmo.scheduler.fit import check_fit
+from osmo.scheduler.placement import enqueue, place_pending
+from osmo.scheduler.runs import Run, group_outcome
+from osmo.scheduler.state import TaskState, WorkflowState
+from osmo.scheduler.types import (
+    AttemptExited,
+    AttemptLost,
+    AttemptPrepared,
+    AttemptStarted,
+    AttemptStartFailed,
+    CancelWorkflow,
+    Capacity,
+    Changes,
+    Command,
+    Event,
+    Node,
+    NodeDown,
+    NodeUp,
+    Tick,
+    WorkflowSubmitted,
+)
+from osmo.spec.model import WorkflowSpec
+from osmo.status import TaskStatus
+
+__all__ = ["Scheduler"]
+
+_REPORTS = (AttemptPrepared, AttemptStarted, AttemptExited, AttemptStartFailed, AttemptLost)
+
+
+class Scheduler:
+    """Owns statuses, retries, timeouts, gang placement, cascades and cancel.
+
+    Usage: feed events with :meth:`handle`, execute the returned commands *after* persisting
+    :meth:`take_changes`, and send a ``Tick`` at :meth:`next_deadline`.
+
+    Args:
+        default_max_retries: RESCHEDULE cap for restored workflows whose state has none
+            (submits carry their own cap in ``WorkflowSubmitted.max_retries``).
+        max_lost_retries: how many times a task is retried after lost attempts.
+    """
+
+    def __init__(self, *, default_max_retries: int = 3, max_lost_retries: int = 5) -> None:
+        self._eng = Engine(default_max_retries=default_max_retries,
+                           max_lost_retries=max_lost_retries)
+
+    # ------------------------------------------------------------------ events
+
+    def handle(self, event: Event, now: float) -> list[Command]:
+        """Apply ``event`` at time ``now``; return the commands to execute, in order.
+
+        Raises:
+            ValueError: a WorkflowSubmitted reuses a known workflow id.
+            TypeError: a WorkflowSubmitted carries no WorkflowSpec.
+        """
+        eng = self._eng
+        eng.now, eng.out = now, []
+        self._fire_due()
+        if isinstance(event, _REPORTS):
+            attempts.on_report(eng, event)
+        elif isinstance(event, WorkflowSubmitted):
+            self._submit(event)
+        elif isinstance(event, CancelWorkflow):
+            run = eng.runs.get(event.workflow_id)
+            if run is not None:
+                groups.cancel(eng, run)
+        elif isinstance(event, NodeUp):
+            eng.ledger.up(event.node)
+            eng.queue.capacity_grew = True
+        elif isinstance(event, NodeDown):
+            self._node_down(event.node_id)
+        else:
+            assert isinstance(event, Tick), event
+        place_pending(eng)
+        eng.refresh()
+        out, eng.out = eng.out, []
+        return out
+
+    def _fire_due(self) -> None:
+        eng = self._eng
+        while (due := eng.deadlines.pop_due(eng.now)) is not None:
+            if due.request is not None:
+                groups.expire_queue(eng, due.request)
+            else:
+                assert due.run is not None and due.group is not None
+                groups.expire_exec(eng, due.run, due.group)
+
+    def _node_down(self, node_id: str) -> None:
+        eng = self._eng
+        lost: list[tuple[Run, TaskState]] = []
+        for aid in eng.ledger.down(node_id):
+            found = eng.attempts.get(aid)
+            if found is None:
+                continue
+            run, name = found
+            task = run.tasks[name]
+            if task.attempt_id == aid and task.status.active:
+                run.group_of(task).prepared.discard(name)  # never release it at a barrier
+                lost.append((run, task))
+        for run, task in lost:
+            attempts.lose(eng, run, task, f"node '{node_id}' down")
+
+    def _submit(self, event: WorkflowSubmitted) -> None:
+        eng, spec = self._eng, event.spec
+        if not isinstance(spec, WorkflowSpec):
+            raise TypeError(f"WorkflowSubmitted.spec must be a WorkflowSpec, not "
+                            f"{type(spec).__name__}")
+        if event.workflow_id in eng.runs:
+            raise ValueError(f"workflow '{event.workflow_id}' is already known")
+        state = WorkflowState(event.workflow_id, spec.name, pool=event.pool,
+                              max_retries=event.max_retries, submitted_at=eng.now)
+        run = Run.build(spec, state, next(eng.seq), event.max_retries)
+        eng.runs[run.id] = run
+        eng.note_workflow(run)
+        eng.touch(run)
+        eng.log(run, None, state.status.name, "")
+        for spec_task in spec.all_tasks():
+            name = spec_task.name
+            run.tasks[name] = TaskState(run.id, name, run.graph.group_of(name),
+                                        created_at=eng.now)
+        for name in run.graph.topological_order():
+            self._start_group(run, name, event.reused)
+
+    def _start_group(self, run: Run, name: str, reused: dict[str, str]) -> None:
+        """Set a new group's first status (topological order: its upstream are settled)."""
+        eng, group = self._eng, run.groups[name]
+        if all(t.name in reused for t in group.spec.tasks):
+            for spec in group.spec.tasks:
+                task = run.tasks[spec.name]
+                task.output, task.reused, task.exit_code = reused[spec.name], True, 0
+                eng.set_status(run, task, TaskStatus.COMPLETED, "reused")
+            group.closing, group.outcome = True, TaskStatus.COMPLETED
+            run.open_groups -= 1
+            for child in run.graph.children(name):
+                run.groups[child].waiting_on -= 1
+        elif group.waiting_on == 0:
+            groups.open_group(eng, run, group)
+        else:
+            for spec in group.spec.tasks:
+                eng.set_status(run, run.tasks[spec.name], TaskStatus.WAITING)
+
+    # ------------------------------------------------------------------ queries
+
+    def take_changes(self) -> Changes:
+        """Copies of workflows and tasks changed since the last call, plus transitions."""
+        return self._eng.take_changes()
+
+    def next_deadline(self) -> float | None:
+        """The earliest time a ``Tick`` could change something (a timeout), or None."""
+        return self._eng.deadlines.earliest()
+
+    def check_fit(self, spec: WorkflowSpec, pool: str | None) -> list[str]:
+        """Reasons ``spec`` can never be placed in ``pool`` on the known nodes; [] = ok."""
+        return check_fit(spec, pool, self._eng.ledger.nodes())
+
+    def workflow(self, workflow_id: str) -> WorkflowState:
+        """A copy of the workflow's state. Raises KeyError if unknown."""
+        return self._eng.runs[workflow_id].state.copy()
+
+    def tasks(self, workflow_id: str) -> list[TaskState]:
+        """Copies of the workflow's tasks in spec order. Raises KeyError if unknown."""
+        return [t.copy() for t in self._eng.runs[workflow_id].tasks.values()]
+
+    def attempt(self, attempt_id: str) -> TaskState | None:
+        """A copy of the task whose current attempt is ``attempt_id``, if any."""
+        found = self._eng.attempts.get(attempt_id)
+        if found is None:
+            return None
+        task = found[0].tasks[found[1]]
+        return task.copy() if task.attempt_id == attempt_id else None
+
+    def nodes(self) -> list[Node]:
+        """Known nodes, sorted by id."""
+        return self._eng.ledger.nodes()
+
+    def used(self, node_id: str) -> Capacity:
+        """Resources held on ``node_id`` by attempts that have not sent their final report."""
+        return self._eng.ledger.used(node_id)
+
+    def forget(self, workflow_id: str) -> None:
+        """Drop a terminal workflow from memory (unknown ids are ignored).
+
+        Reservations of its killed attempts stay until their final reports arrive.
+
+        Raises:
+            ValueError: the workflow is not terminal.
+        """
+        eng = self._eng
+        run = eng.runs.get(workflow_id)
+        if run is None:
+            return
+        if not run.state.status.terminal:
+            raise ValueError(f"workflow '{workflow_id}' is {run.state.status.name}, "
+                             f"not terminal")
+        del eng.runs[workflow_id]
+        for task in run.tasks.values():
+            if task.attempt_id is not None:
+                eng.attempts.pop(task.attempt_id, None)
+
+    # ------------------------------------------------------------------ restore
+
+    def restore(self, spec_by_id: dict[str, WorkflowSpec], workflows: list[WorkflowState],
+                tasks: list[TaskState]) -> None:
+        """Rebuild memory from persisted states (call on a fresh scheduler, before events).
+
+        Active tasks keep their attempt and re-reserve its resources on its node id, even
+        if that node is not known yet: nodes may be re-announced with ``NodeUp`` before or
+        after this call. The caller is expected to report every restored active attempt
+        (``AttemptLost`` when its worker is gone) right after. Timeouts resume from the
+        persisted times (exec: the earliest ``started_at`` in the group; queue: each
+        waiting request's ``scheduling_at``).
+
+        Raises:
+            KeyError: a workflow has no spec in ``spec_by_id``.
+            ValueError: a workflow is already known or its tasks do not match its spec.
+        """
+        by_workflow: dict[str, list[TaskState]] = defaultdict(list)
+        for task in tasks:
+            by_workflow[task.workflow_id].append(task)
+        for state in sorted(workflows, key=lambda w: (w.submitted_at, w.id)):
+            self._restore_run(spec_by_id[state.id], state, by_workflow[state.id])
+        self._eng.queue.capacity_grew = True
+
+    def _restore_run(self, spec: WorkflowSpec, state: WorkflowState,
+                     tasks: list[TaskState]) -> None:
+        eng = self._eng
+        if state.id in eng.runs:
+            raise ValueError(f"workflow '{state.id}' is already known")
+        cap = state.max_retries if state.max_retries is not None else eng.default_max_retries
+        run = Run.build(spec, state.copy(), next(eng.seq), cap)
+        given = {t.name: t for t in tasks}
+        if given.keys() != run.task_specs.keys():
+            raise ValueError(f"workflow '{state.id}': persisted tasks do not match its spec")
+        for name in run.task_specs:
+            run.tasks[name] = task = given[name].copy()
+            self._restore_task(run, task)
+        for name in run.graph.topological_order():
+            self._restore_group(run, name)
+        eng.runs[run.id] = run
+        eng.touch(run)
+
+    def _restore_task(self, run: Run, task: TaskState) -> None:
+        eng = self._eng
+        if task.status is TaskStatus.RESCHEDULED:  # never persisted by us; be lenient
+            task.status = TaskStatus.SCHEDULING
+        if task.attempt_id is not None:
+            eng.attempts[task.attempt_id] = (run, task.name)
+        if task.status.active:
+            run.active += 1
+            run.running += task.status is TaskStatus.RUNNING
+            if task.attempt_id is not None and task.node_id is not None:
+                eng.ledger.reserve(task.attempt_id, task.node_id,
+                                   run.requests[task.name].capacity)
+
+    def _restore_group(self, run: Run, name: str) -> None:
+        eng, group = self._eng, run.groups[name]
+        members = [run.tasks[t.name] for t in group.spec.tasks]
+        if all(t.status.terminal for t in members):
+            group.closing, group.outcome = True, group_outcome(group.spec, run.tasks)
+            run.open_groups -= 1
+            return
+        group.waiting_on = sum(run.groups[up].outcome is not TaskStatus.COMPLETED
+                               for up in run.graph.upstream(name))
+        started = [t.started_at for t in members if t.started_at is not None]
+        if started:
+            groups.start_exec_clock_at(eng, run, group, min(started))
+        waiting = [t for t in members if t.status is TaskStatus.SCHEDULING]
+        if len(waiting) == len(members) and all(t.retry == 0 for t in members):
+            since = min(t.scheduling_at or run.state.submitted_at for t in waiting)
+            enqueue(eng, run, group, tuple(t.name for t in waiting), gang=True, since=since)
+            return
+        for task in waiting:
+            enqueue(eng, run, group, (task.name,), gang=False,
+                    since=task.scheduling_at or run.state.submitted_at)

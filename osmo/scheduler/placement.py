@@ -1,0 +1,102 @@
+"""Gang placement: turn queued requests into reserved attempts and PrepareAttempt commands.
+
+This module owns the placement pass. Requests are tried in FIFO order (workflow submit
+order, then group order, then enqueue order); a request that does not fit is skipped, so it
+does not block smaller requests behind it. That keeps the cluster busy but can starve a big
+group while small ones keep arriving: a known trade-off, bounded by ``queue_timeout``.
+
+Within one pass, a request whose *shape* (pool and per-task requests) already failed is
+skipped without trying: placements only consume room, so it would fail again. With that and
+the queue's "only fresh requests unless capacity grew" rule, a pass costs O(queue) cheap
+checks plus O(nodes) per actual placement attempt.
+"""
+
+from __future__ import annotations
+
+from osmo.scheduler.engine import Engine
+from osmo.scheduler.queue import Deadline
+from osmo.scheduler.runs import Batch, Group, Queued, Run
+from osmo.scheduler.types import PrepareAttempt, attempt_id
+from osmo.status import TaskStatus
+
+__all__ = ["enqueue", "place_pending"]
+
+
+def enqueue(eng: Engine, run: Run, group: Group, names: tuple[str, ...], *, gang: bool,
+            since: float | None = None) -> None:
+    """Queue ``names`` of ``group`` (already SCHEDULING) for placement all at once.
+
+    Args:
+        gang: True for the group's first placement (barrier applies); False for a retry.
+        since: when the request started waiting (defaults to now), for ``queue_timeout``.
+    """
+    tasks = run.tasks
+    shape = (run.state.pool, tuple(run.requests[n] for n in names))
+    request = Queued(run, group, names, tuple(tasks[n].retry for n in names),
+                     (run.seq, group.index, next(eng.seq)), shape, gang)
+    eng.queue.push(request)
+    timeout = run.spec.timeout.queue_timeout
+    if timeout is not None:
+        start = eng.now if since is None else since
+        eng.deadlines.push(Deadline(start + timeout, request=request))
+
+
+def place_pending(eng: Engine) -> None:
+    """Place every queued request that fits now, in FIFO order."""
+    failed: set[object] = set()
+    for request in eng.queue.take_candidates():
+        if not request.live:
+            continue
+        if not request.valid():
+            eng.queue.done(request)
+            continue
+        if request.shape in failed:
+            continue
+        run = request.run
+        plan = eng.ledger.place([(n, run.requests[n]) for n in request.tasks], run.state.pool)
+        if plan is None:
+            failed.add(request.shape)
+            continue
+        eng.queue.done(request)
+        _commit(eng, request, plan)
+    eng.queue.compact()
+
+
+def _commit(eng: Engine, request: Queued, plan: dict[str, str]) -> None:
+    run, group = request.run, request.group
+    for name in request.tasks:
+        task = run.tasks[name]
+        aid = attempt_id(run.id, name, task.retry)
+        task.attempt_id, task.node_id = aid, plan[name]
+        eng.ledger.reserve(aid, plan[name], run.requests[name].capacity)
+        eng.attempts[aid] = (run, name)
+        eng.set_status(run, task, TaskStatus.INITIALIZING, "")
+    if request.gang and group.spec.barrier and len(request.tasks) > 1:
+        group.batch = Batch(list(request.tasks))
+    hosts = _hosts(eng, run, group)
+    for name in request.tasks:
+        task = run.tasks[name]
+        assert task.attempt_id is not None and task.node_id is not None
+        eng.out.append(PrepareAttempt(
+            attempt_id=task.attempt_id, workflow_id=run.id, task=name, retry=task.retry,
+            node_id=task.node_id, inputs=_inputs(run, name), hosts=hosts))
+
+
+def _hosts(eng: Engine, run: Run, group: Group) -> dict[str, str]:
+    hosts: dict[str, str] = {}
+    for spec in group.spec.tasks:
+        node_id = run.tasks[spec.name].node_id
+        node = eng.ledger.node(node_id) if node_id is not None else None
+        if node is not None:
+            hosts[spec.name] = node.address
+    return hosts
+
+
+def _inputs(run: Run, name: str) -> dict[str, str]:
+    """Upstream task → output ref. A stopped non-lead upstream has no output: left out."""
+    found: dict[str, str] = {}
+    for upstream in run.task_specs[name].upstream_tasks():
+        output = run.tasks[upstream].output
+        if output is not None:
+            found[upstream] = output
+    return found

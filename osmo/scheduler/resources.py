@@ -1,0 +1,165 @@
+"""Resource requests, the node ledger and first-fit gang placement.
+
+This module owns *where things fit*: what a task asks for, which nodes exist, what each
+attempt holds on which node, and the packing rule. It knows nothing of statuses or events.
+
+Rules (documented behaviour):
+    - A task's request is its resource spec with ``cpu`` defaulting to 1 and ``gpu``,
+      ``memory``, ``storage`` to 0 when unset.
+    - A node is eligible when it is in the target pool (``None`` = any pool), matches the
+      requested ``platform`` (if any) and is not in ``nodesExcluded``.
+    - Packing is *first-fit decreasing*: the tasks of a gang are taken largest first
+      (gpu, cpu, memory, storage), each onto the first eligible node (by id) with room.
+      There is no backtracking, so a packing that exists may be missed; ``check_fit`` uses
+      the same rule on empty nodes, so a group it accepts always fits an idle cluster.
+    - Reservations are kept per attempt and per node *id*, also for nodes not (yet) known,
+      so state restored before its nodes are re-announced stays accounted for.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+
+from osmo.scheduler.types import Capacity, Node
+from osmo.spec.model import TaskSpec, WorkflowSpec
+
+__all__ = ["ZERO", "Ledger", "Request", "first_fit", "request_for", "total"]
+
+ZERO = Capacity()
+
+
+@dataclass(frozen=True)
+class Request:
+    """What one task needs from a node."""
+
+    capacity: Capacity
+    platform: str | None = None
+    excluded: frozenset[str] = frozenset()
+
+    def allows(self, node: Node) -> bool:
+        """True if ``node``'s platform and id are acceptable (capacity not checked)."""
+        if self.platform is not None and node.platform != self.platform:
+            return False
+        return node.id not in self.excluded
+
+
+def request_for(spec: WorkflowSpec, task: TaskSpec) -> Request:
+    """The request of ``task``: its resource spec with the documented defaults."""
+    res = spec.resource_for(task)
+    capacity = Capacity(
+        cpu=float(res.cpu if res.cpu is not None else 1),
+        gpu=res.gpu or 0,
+        memory=res.memory or 0,
+        storage=res.storage or 0,
+    )
+    return Request(capacity, res.platform, frozenset(res.nodes_excluded))
+
+
+def _size(item: tuple[str, Request]) -> tuple[float, ...]:
+    cap = item[1].capacity
+    return (cap.gpu, cap.cpu, cap.memory, cap.storage)
+
+
+def first_fit(tasks: Sequence[tuple[str, Request]], nodes: Sequence[Node],
+              used: Mapping[str, Capacity]) -> dict[str, str] | None:
+    """Place every task at once (first-fit decreasing), or return None.
+
+    Args:
+        tasks: (task name, request) pairs of one gang.
+        nodes: eligible-pool nodes, sorted by id.
+        used: node id → capacity already reserved there.
+
+    Returns:
+        task name → node id for every task, or None when the gang does not fit.
+    """
+    extra: dict[str, Capacity] = {}
+    plan: dict[str, str] = {}
+    for name, req in sorted(tasks, key=_size, reverse=True):  # sorted() is stable
+        for node in nodes:
+            if not req.allows(node):
+                continue
+            taken = used.get(node.id, ZERO) + extra.get(node.id, ZERO)
+            if req.capacity.fits_in(node.capacity - taken):
+                plan[name] = node.id
+                extra[node.id] = extra.get(node.id, ZERO) + req.capacity
+                break
+        else:
+            return None
+    return plan
+
+
+class Ledger:
+    """Known nodes and what each attempt holds on which node."""
+
+    def __init__(self) -> None:
+        self._nodes: dict[str, Node] = {}
+        self._used: dict[str, Capacity] = {}
+        self._held: dict[str, tuple[str, Capacity]] = {}  # attempt id → (node id, amount)
+        self._on_node: dict[str, set[str]] = {}  # node id → attempt ids held there
+        self._by_pool: dict[str | None, list[Node]] = {}  # cache, reset on node changes
+
+    def nodes(self) -> list[Node]:
+        """Known nodes, sorted by id."""
+        return [self._nodes[k] for k in sorted(self._nodes)]
+
+    def node(self, node_id: str) -> Node | None:
+        """The node called ``node_id``, if known."""
+        return self._nodes.get(node_id)
+
+    def used(self, node_id: str) -> Capacity:
+        """What attempts hold on ``node_id`` (zero when nothing)."""
+        return self._used.get(node_id, ZERO)
+
+    def up(self, node: Node) -> None:
+        """Add or replace a node (its reservations are kept)."""
+        self._nodes[node.id] = node
+        self._by_pool.clear()
+
+    def down(self, node_id: str) -> list[str]:
+        """Remove a node and drop its reservations; return the attempt ids it held."""
+        self._nodes.pop(node_id, None)
+        self._by_pool.clear()
+        held = sorted(self._on_node.pop(node_id, ()))
+        for aid in held:
+            del self._held[aid]
+        self._used.pop(node_id, None)
+        return held
+
+    def reserve(self, attempt: str, node_id: str, amount: Capacity) -> None:
+        """Hold ``amount`` on ``node_id`` for ``attempt`` (idempotent per attempt)."""
+        if attempt in self._held:
+            return
+        self._held[attempt] = (node_id, amount)
+        self._on_node.setdefault(node_id, set()).add(attempt)
+        self._used[node_id] = self._used.get(node_id, ZERO) + amount
+
+    def release(self, attempt: str) -> bool:
+        """Free what ``attempt`` holds; False when it held nothing."""
+        found = self._held.pop(attempt, None)
+        if found is None:
+            return False
+        node_id, amount = found
+        self._on_node[node_id].discard(attempt)
+        self._used[node_id] = self._used[node_id] - amount
+        return True
+
+    def candidates(self, pool: str | None) -> list[Node]:
+        """Nodes of ``pool`` (any pool when None), sorted by id."""
+        found = self._by_pool.get(pool)
+        if found is None:
+            found = [n for n in self.nodes() if pool is None or n.pool == pool]
+            self._by_pool[pool] = found
+        return found
+
+    def place(self, tasks: Sequence[tuple[str, Request]], pool: str | None) -> dict[str, str] | None:
+        """First-fit the gang ``tasks`` into what is free now (nothing is reserved)."""
+        return first_fit(tasks, self.candidates(pool), self._used)
+
+
+def total(amounts: Iterable[Capacity]) -> Capacity:
+    """The sum of ``amounts``."""
+    result = ZERO
+    for amount in amounts:
+        result = result + amount
+    return result

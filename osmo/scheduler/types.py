@@ -1,0 +1,279 @@
+"""Typed inputs and outputs of the scheduler: resources, nodes, events, commands, changes.
+
+The scheduler is a pure state machine: ``Scheduler.handle(event, now) -> list[Command]``.
+Events are facts that happened (a submit, an attempt exited, a clock tick); commands are
+side effects the shell around it must perform (prepare, run or kill an attempt). State
+changes to persist are taken with ``Scheduler.take_changes()`` after each batch of events and
+committed *before* the commands are executed.
+
+Attempt ids are derived, never random: ``"<workflow_id>:<task>:<retry>"``. A report for an
+attempt id that is not the task's current attempt is ignored (fencing).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from osmo.status import TaskStatus, WorkflowStatus
+
+__all__ = [
+    "AttemptExited",
+    "AttemptLost",
+    "AttemptPrepared",
+    "AttemptStarted",
+    "AttemptStartFailed",
+    "CancelWorkflow",
+    "Capacity",
+    "Changes",
+    "Command",
+    "Event",
+    "KillAttempt",
+    "Node",
+    "NodeDown",
+    "NodeUp",
+    "PrepareAttempt",
+    "RunAttempt",
+    "Tick",
+    "Transition",
+    "WorkflowSubmitted",
+    "attempt_id",
+]
+
+
+def attempt_id(workflow_id: str, task: str, retry: int) -> str:
+    """The id of retry ``retry`` of ``task`` in ``workflow_id``."""
+    return f"{workflow_id}:{task}:{retry}"
+
+
+@dataclass(frozen=True)
+class Capacity:
+    """An amount of resources (a request or a node's total). Memory and storage in bytes."""
+
+    cpu: float = 0.0
+    gpu: int = 0
+    memory: int = 0
+    storage: int = 0
+
+    def fits_in(self, other: Capacity) -> bool:
+        """True if this amount is ≤ ``other`` in every dimension."""
+        return (
+            self.cpu <= other.cpu + 1e-9
+            and self.gpu <= other.gpu
+            and self.memory <= other.memory
+            and self.storage <= other.storage
+        )
+
+    def __add__(self, other: Capacity) -> Capacity:
+        return Capacity(
+            self.cpu + other.cpu,
+            self.gpu + other.gpu,
+            self.memory + other.memory,
+            self.storage + other.storage,
+        )
+
+    def __sub__(self, other: Capacity) -> Capacity:
+        return Capacity(
+            self.cpu - other.cpu,
+            self.gpu - other.gpu,
+            self.memory - other.memory,
+            self.storage - other.storage,
+        )
+
+
+@dataclass(frozen=True)
+class Node:
+    """A place tasks can run: the local pool's host, or (later) one remote worker.
+
+    Attributes:
+        id: unique node id (``"local"`` for the server's own pool).
+        pool: the pool this node belongs to.
+        capacity: total resources it offers.
+        platform: platform name (matched against a resource spec's ``platform``).
+        address: where its tasks can be reached by peers (``{{host:task}}``).
+    """
+
+    id: str
+    pool: str
+    capacity: Capacity
+    platform: str | None = None
+    address: str = "127.0.0.1"
+    labels: dict[str, str] = field(default_factory=dict)
+
+
+# ---------------------------------------------------------------- events (facts, inputs)
+
+
+@dataclass(frozen=True)
+class WorkflowSubmitted:
+    """A validated workflow was accepted.
+
+    Attributes:
+        reused: task name → output reference of an earlier successful attempt to reuse
+            instead of running (``osmo restart``); such tasks complete at once.
+        max_retries: the RESCHEDULE cap for this workflow (spec's value or server default).
+        pool: the target pool (``--pool`` or ``workflow.pool``); ``None`` = any pool.
+    """
+
+    workflow_id: str
+    spec: object  # osmo.spec.model.WorkflowSpec (typed loosely to keep this module light)
+    max_retries: int = 3
+    pool: str | None = None
+    reused: dict[str, str] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class AttemptPrepared:
+    """The worker finished INITIALIZING an attempt (private folder, files, inputs ready)."""
+
+    attempt_id: str
+
+
+@dataclass(frozen=True)
+class AttemptStarted:
+    """The attempt's command (process) is running."""
+
+    attempt_id: str
+
+
+@dataclass(frozen=True)
+class AttemptExited:
+    """The attempt's command ended.
+
+    Attributes:
+        exit_code: the command's code (128+N when killed by signal N).
+        output: reference to the promoted output folder when the outputs were promoted
+            (only after a COMPLETE exit), else ``None``.
+        message: optional detail (e.g. why outputs could not be promoted).
+    """
+
+    attempt_id: str
+    exit_code: int
+    output: str | None = None
+    message: str = ""
+
+
+@dataclass(frozen=True)
+class AttemptStartFailed:
+    """Preparing or spawning the attempt failed (bad command, unwritable file...)."""
+
+    attempt_id: str
+    message: str
+
+
+@dataclass(frozen=True)
+class AttemptLost:
+    """The attempt's worker (or the server that ran it) went away; outcome unknown."""
+
+    attempt_id: str
+    message: str = "worker lost"
+
+
+@dataclass(frozen=True)
+class CancelWorkflow:
+    """A user asked to cancel a workflow."""
+
+    workflow_id: str
+
+
+@dataclass(frozen=True)
+class NodeUp:
+    """A node joined (or changed capacity)."""
+
+    node: Node
+
+
+@dataclass(frozen=True)
+class NodeDown:
+    """A node left; its active attempts are lost."""
+
+    node_id: str
+
+
+@dataclass(frozen=True)
+class Tick:
+    """Time passed; lets timeouts fire. Carries nothing: ``now`` comes with every event."""
+
+
+Event = (
+    WorkflowSubmitted
+    | AttemptPrepared
+    | AttemptStarted
+    | AttemptExited
+    | AttemptStartFailed
+    | AttemptLost
+    | CancelWorkflow
+    | NodeUp
+    | NodeDown
+    | Tick
+)
+
+# ---------------------------------------------------------------- commands (side effects)
+
+
+@dataclass(frozen=True)
+class PrepareAttempt:
+    """Place an attempt on a node and prepare it (status INITIALIZING).
+
+    Attributes:
+        inputs: upstream task name → output reference, for every ``- task:`` input.
+        hosts: task name → address, for every task of the same group (``{{host:x}}``).
+    """
+
+    attempt_id: str
+    workflow_id: str
+    task: str
+    retry: int
+    node_id: str
+    inputs: dict[str, str]
+    hosts: dict[str, str]
+
+
+@dataclass(frozen=True)
+class RunAttempt:
+    """Start a prepared attempt's command (the group's barrier, if any, is released)."""
+
+    attempt_id: str
+
+
+@dataclass(frozen=True)
+class KillAttempt:
+    """Stop an attempt (its whole process group). Its exit report is still expected."""
+
+    attempt_id: str
+    reason: str
+
+
+Command = PrepareAttempt | RunAttempt | KillAttempt
+
+# ---------------------------------------------------------------- changes (to persist)
+
+
+@dataclass(frozen=True)
+class Transition:
+    """One status change, for the event log, ``osmo logs`` [osmo] lines and the run record."""
+
+    at: float
+    workflow_id: str
+    task: str | None  # None: a workflow-level transition
+    retry: int | None
+    status: str  # a TaskStatus or WorkflowStatus name
+    message: str = ""
+
+
+@dataclass
+class Changes:
+    """What changed since the last ``take_changes()``: snapshots to upsert, transitions to log.
+
+    ``workflows``/``tasks`` hold the *current* snapshot of each changed workflow and task
+    (see ``osmo.scheduler.state``); the store writes them and appends ``transitions``.
+    """
+
+    workflows: list[object] = field(default_factory=list)
+    tasks: list[object] = field(default_factory=list)
+    transitions: list[Transition] = field(default_factory=list)
+
+    def __bool__(self) -> bool:
+        return bool(self.workflows or self.tasks or self.transitions)
+
+
+_ = (TaskStatus, WorkflowStatus)  # re-exported names used in docs of this contract

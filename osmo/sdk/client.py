@@ -1,0 +1,256 @@
+"""``osmo.Client``: submit, inspect, follow and control workflows from Python.
+
+The client validates and renders specs locally (so ``localpath`` files are read where the
+spec lives), sends the model as a plain dict, and talks to the server over zenoh. It is
+what the CLI uses too; every CLI verb is a thin layer over a method here.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import threading
+import time
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from osmo.errors import UsageError
+from osmo.sdk.connect import Connection, connect
+from osmo.spec import Workflow, load_spec, spec_to_dict
+from osmo.spec.model import WorkflowSpec
+from osmo.status import TaskStatus, WorkflowStatus
+
+__all__ = ["Client", "LogRecord", "TaskInfo", "WorkflowInfo"]
+
+SpecLike = str | os.PathLike[str] | dict[str, Any] | WorkflowSpec | Workflow
+
+
+@dataclass(frozen=True)
+class TaskInfo:
+    """One task of a workflow as the server sees it now (its latest retry)."""
+
+    name: str
+    group: str
+    status: TaskStatus
+    retry: int
+    exit_code: int | None
+    started_at: float | None
+    ended_at: float | None
+    output: str | None
+    message: str
+    reused: bool
+
+    @property
+    def duration(self) -> float | None:
+        """Seconds from RUNNING to end (or until now while running)."""
+        if self.started_at is None:
+            return None
+        return (self.ended_at or time.time()) - self.started_at
+
+
+@dataclass(frozen=True)
+class WorkflowInfo:
+    """A workflow's status and its tasks."""
+
+    id: str
+    name: str
+    status: WorkflowStatus
+    submitted_at: float
+    started_at: float | None
+    ended_at: float | None
+    pool: str | None
+    tasks: list[TaskInfo] = field(default_factory=list)
+    reused_from: str | None = None
+
+    @property
+    def ok(self) -> bool:
+        """True iff the workflow COMPLETED."""
+        return self.status is WorkflowStatus.COMPLETED
+
+    def task(self, name: str) -> TaskInfo:
+        """The task called ``name`` (KeyError if absent)."""
+        for t in self.tasks:
+            if t.name == name:
+                return t
+        raise KeyError(name)
+
+
+@dataclass(frozen=True)
+class LogRecord:
+    """One log line: time, task, retry, stream (stdout/stderr/osmo) and text."""
+
+    ts: float
+    task: str | None
+    retry: int | None
+    stream: str
+    text: str
+
+
+def _task_info(d: dict[str, Any]) -> TaskInfo:
+    return TaskInfo(d["name"], d.get("group", d["name"]), TaskStatus[d["status"]],
+                    d.get("retry", 0), d.get("exit_code"), d.get("started_at"),
+                    d.get("ended_at"), d.get("output"), d.get("message", ""),
+                    bool(d.get("reused")))
+
+
+def _workflow_info(wf: dict[str, Any], tasks: list[dict[str, Any]] = ()) -> WorkflowInfo:  # type: ignore[assignment]
+    return WorkflowInfo(wf["id"], wf["name"], WorkflowStatus[wf["status"]],
+                        wf.get("submitted_at", 0.0), wf.get("started_at"), wf.get("ended_at"),
+                        wf.get("pool"), [_task_info(t) for t in tasks], wf.get("reused_from"))
+
+
+class Client:
+    """A connection to an osmo server.
+
+    Args:
+        server: zenoh endpoint of a server (``tcp/host:7447``); default: ``OSMO_SERVER`` or
+            the local server of ``home``, started in the background if needed.
+        home: the osmo home of the local server (default ``OSMO_HOME``).
+        autostart: start a local server when none runs (default True).
+    """
+
+    def __init__(self, server: str | None = None, *, home: str | os.PathLike[str] | None = None,
+                 autostart: bool = True) -> None:
+        self._conn: Connection = connect(server, home, autostart=autostart)
+
+    def close(self) -> None:
+        """Close the connection."""
+        self._conn.close()
+
+    def __enter__(self) -> Client:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _call(self, verb: str, **request: Any) -> Any:
+        return self._conn.api.call(verb, request)
+
+    # ------------------------------------------------------------------ submit & control
+
+    def submit(self, spec: SpecLike, *, set_values: Sequence[str] = (),
+               set_strings: Sequence[str] = (), set_env: Sequence[str] = (),
+               pool: str | None = None) -> str:
+        """Validate ``spec`` (a path, a dict, a model or a builder) and submit it.
+
+        Returns:
+            the new workflow's id (``<name>-<N>``).
+
+        Raises:
+            SpecError: the spec is invalid (nothing was created).
+            SubmitError: the server cannot run it (e.g. no pool fits a task).
+        """
+        model, filename = _to_model(spec, set_values, set_strings, set_env)
+        result = self._call("submit", spec=spec_to_dict(model), pool=pool, filename=filename)
+        return str(result["workflow_id"])
+
+    def cancel(self, workflow_id: str) -> WorkflowStatus:
+        """Cancel a workflow; returns its status after the cancel was committed."""
+        return WorkflowStatus[self._call("cancel", workflow_id=workflow_id)["status"]]
+
+    def restart(self, workflow_id: str) -> str:
+        """Submit a finished workflow again, reusing outputs of its completed tasks."""
+        return str(self._call("restart", workflow_id=workflow_id)["workflow_id"])
+
+    # ------------------------------------------------------------------ read
+
+    def get(self, workflow_id: str) -> WorkflowInfo:
+        """The workflow's current status and tasks."""
+        reply = self._call("get", workflow_id=workflow_id)
+        return _workflow_info(reply["workflow"], reply["tasks"])
+
+    def list(self, *, statuses: Sequence[str] = (), name: str | None = None,
+             limit: int | None = None) -> list[WorkflowInfo]:
+        """Workflows, newest first."""
+        rows = self._call("list", statuses=list(statuses) or None, name=name, limit=limit)
+        return [_workflow_info(r) for r in rows]
+
+    def spec(self, workflow_id: str) -> dict[str, Any]:
+        """The rendered spec the workflow was submitted with."""
+        return dict(self._call("spec", workflow_id=workflow_id)["spec"])
+
+    def pools(self) -> list[dict[str, Any]]:
+        """Nodes of the server's pools with capacity used/total."""
+        return list(self._call("pools"))
+
+    def logs(self, workflow_id: str, *, task: str | None = None, retry: int | None = None,
+             tail: int | None = None) -> list[LogRecord]:
+        """All log records of a workflow so far (optionally of one task/retry, last N)."""
+        records = [_record(r) for r in self._call("logs", workflow_id=workflow_id, task=task,
+                                                  retry=retry)["records"]]
+        return records[-tail:] if tail else records
+
+    def follow_logs(self, workflow_id: str, *, task: str | None = None,
+                    retry: int | None = None, interval: float = 0.25) -> Iterator[LogRecord]:
+        """Yield log records as they are written, until the workflow has ended."""
+        cursor: dict[str, Any] | None = None
+        while True:
+            reply = self._call("logs", workflow_id=workflow_id, task=task, retry=retry,
+                               cursor=cursor)
+            cursor = reply["cursor"]
+            yield from (_record(r) for r in reply["records"])
+            if reply["done"]:
+                return
+            self._wait_change(workflow_id, interval)
+
+    def wait(self, workflow_id: str, *, timeout: float | None = None,
+             on_update: Callable[[WorkflowInfo], None] | None = None) -> WorkflowInfo:
+        """Block until the workflow is terminal; returns its final info.
+
+        Wakes on the server's change notices (zenoh subscription) and re-reads the status;
+        also re-reads at least every second in case a notice was missed.
+
+        Raises:
+            TimeoutError: ``timeout`` seconds passed first.
+        """
+        changed = threading.Event()
+        sub = self._conn.link.subscribe(self._conn.link.key("events", workflow_id),
+                                        lambda _m: changed.set())
+        deadline = None if timeout is None else time.monotonic() + timeout
+        try:
+            while True:
+                changed.clear()
+                info = self.get(workflow_id)
+                if on_update is not None:
+                    on_update(info)
+                if info.status.terminal:
+                    return info
+                if deadline is not None and time.monotonic() > deadline:
+                    raise TimeoutError(f"workflow {workflow_id} still {info.status.name}")
+                changed.wait(timeout=1.0)
+        finally:
+            sub.undeclare()
+
+    def _wait_change(self, workflow_id: str, interval: float) -> None:
+        time.sleep(interval)
+
+    def ping(self) -> dict[str, Any]:
+        """The server's info (endpoint, pid, home)."""
+        return dict(self._call("ping"))
+
+    def shutdown(self) -> None:
+        """Ask the server to stop."""
+        self._call("shutdown")
+
+
+def _record(r: dict[str, Any]) -> LogRecord:
+    return LogRecord(r["ts"], r.get("task"), r.get("retry"), r["stream"], r["text"])
+
+
+def _to_model(spec: SpecLike, set_values: Sequence[str], set_strings: Sequence[str],
+              set_env: Sequence[str]) -> tuple[WorkflowSpec, str]:
+    if isinstance(spec, WorkflowSpec):
+        return spec, "<model>"
+    if isinstance(spec, Workflow):
+        return spec.build(), "<builder>"
+    if isinstance(spec, dict):
+        text = json.dumps(spec)  # JSON is YAML: the one loader validates dicts too
+        return load_spec(text=text, filename="<dict>", set_values=set_values,
+                         set_strings=set_strings, set_env=set_env), "<dict>"
+    if isinstance(spec, (str, os.PathLike)):
+        path = Path(spec)
+        return load_spec(path, set_values=set_values, set_strings=set_strings,
+                         set_env=set_env), str(path)
+    raise UsageError(f"cannot submit a {type(spec).__name__}; pass a path, dict or Workflow")

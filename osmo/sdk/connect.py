@@ -1,0 +1,106 @@
+"""Finding, starting and stopping the local server; opening an API connection to a server.
+
+The endpoint used: an explicit ``server`` argument > ``OSMO_SERVER`` > the home's
+``server.json``. With none of them and ``autostart`` on, a server is started in the
+background for the home (``python -m osmo.server.app``, its own session, output in
+``server.log``) and the call waits until it answers.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from osmo.config import ServerInfo, home_dir, lock_is_held, read_server_info
+from osmo.errors import InfrastructureError, ServerUnreachable
+from osmo.transport.zenoh_link import ApiClient, Link
+
+__all__ = ["Connection", "server_status", "start_server", "stop_server"]
+
+START_TIMEOUT = 20.0
+
+
+class Connection:
+    """An open API connection (a zenoh client session plus the request helper)."""
+
+    def __init__(self, endpoint: str, cluster: str = "local") -> None:
+        self.endpoint = endpoint
+        self.link = Link.client([endpoint], cluster)
+        self.api = ApiClient(self.link)
+
+    def close(self) -> None:
+        """Close the session."""
+        self.link.close()
+
+
+def _wait_ready(home: Path, proc: subprocess.Popen[bytes] | None, timeout: float) -> ServerInfo:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        info = read_server_info(home)
+        if info is not None and (proc is None or info.pid == proc.pid) and lock_is_held(home):
+            return info
+        if proc is not None and proc.poll() is not None:
+            log = (home / "server.log").read_text(errors="replace")[-2000:]
+            raise InfrastructureError(f"the osmo server exited at start:\n{log}")
+        time.sleep(0.02)  # start-up only: waiting for another process to write its file
+    raise InfrastructureError(f"the osmo server did not become ready within {timeout:.0f}s; "
+                              f"see {home / 'server.log'}")
+
+
+def start_server(home: str | os.PathLike[str] | None = None, *, listen: str | None = None,
+                 cpus: float | None = None) -> ServerInfo:
+    """Start a background server for ``home`` unless one runs; return its info."""
+    home_path = home_dir(home)
+    if lock_is_held(home_path):
+        return _wait_ready(home_path, None, START_TIMEOUT)
+    args = [sys.executable, "-m", "osmo.server.app", "--home", str(home_path)]
+    if listen:
+        args += ["--listen", listen]
+    if cpus:
+        args += ["--cpus", str(cpus)]
+    with open(home_path / "server.log", "ab") as out:
+        proc = subprocess.Popen(args, stdin=subprocess.DEVNULL, stdout=out, stderr=out,
+                                start_new_session=True, close_fds=True)
+    return _wait_ready(home_path, proc, START_TIMEOUT)
+
+
+def server_status(home: str | os.PathLike[str] | None = None) -> ServerInfo | None:
+    """The running local server's info, or None if none runs for ``home``."""
+    home_path = home_dir(home)
+    if not lock_is_held(home_path):
+        return None
+    return read_server_info(home_path)
+
+
+def stop_server(home: str | os.PathLike[str] | None = None, timeout: float = 30.0) -> int | None:
+    """Stop the local server of ``home`` (SIGTERM to its pid); return the pid or None."""
+    import signal
+
+    info = server_status(home)
+    if info is None:
+        return None
+    os.kill(info.pid, signal.SIGTERM)
+    home_path = home_dir(home)
+    deadline = time.monotonic() + timeout
+    while lock_is_held(home_path) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return info.pid
+
+
+def connect(server: str | None = None, home: str | os.PathLike[str] | None = None,
+            *, autostart: bool = True) -> Connection:
+    """Open a connection to the server chosen as described in the module docstring."""
+    endpoint = server or os.environ.get("OSMO_SERVER")
+    if endpoint:
+        return Connection(endpoint)
+    home_path = home_dir(home)
+    info = server_status(home_path)
+    if info is None:
+        if not autostart:
+            raise ServerUnreachable(f"no osmo server running for {home_path} "
+                                    "(start one with `osmo server start`)")
+        info = start_server(home_path)
+    return Connection(info.endpoint, info.cluster)

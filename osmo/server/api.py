@@ -1,0 +1,182 @@
+"""The server's request handlers: one function per API verb, JSON in and JSON out.
+
+Mutating verbs (submit, cancel, restart) run on the engine thread through ``Engine.call`` and
+reply only after their changes are committed. Read verbs read the store directly from the
+calling API thread. Handlers raise ``OsmoError`` subclasses for the client's mistakes.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from osmo.errors import NotFoundError, SubmitError, UsageError
+from osmo.scheduler.types import CancelWorkflow, WorkflowSubmitted
+from osmo.server.engine import Engine, _Batch
+from osmo.server.logview import read_logs
+from osmo.spec import spec_from_dict
+from osmo.status import WorkflowStatus
+from osmo.store.sqlite import WorkflowRow
+
+__all__ = ["Api"]
+
+DEFAULT_MAX_RETRIES = 3
+
+
+class Api:
+    """Dispatches ``verb`` → handler. ``info`` is returned by ``ping``."""
+
+    def __init__(self, engine: Engine, home: Path, info: dict[str, Any],
+                 on_shutdown: Callable[[], None]) -> None:
+        self._engine = engine
+        self._store = engine.store
+        self._home = home
+        self._info = info
+        self._on_shutdown = on_shutdown
+        self._verbs: dict[str, Callable[[dict[str, Any]], Any]] = {
+            "ping": lambda _r: self._info,
+            "submit": self.submit,
+            "cancel": self.cancel,
+            "restart": self.restart,
+            "get": self.get,
+            "list": self.list,
+            "logs": self.logs,
+            "spec": self.spec,
+            "pools": self.pools,
+            "shutdown": self.shutdown,
+        }
+
+    def handle(self, verb: str, request: dict[str, Any]) -> Any:
+        """Run the handler for ``verb``; UsageError for an unknown verb."""
+        handler = self._verbs.get(verb)
+        if handler is None:
+            raise UsageError(f"unknown API verb '{verb}'")
+        return handler(request)
+
+    # ------------------------------------------------------------------ mutating verbs
+
+    def submit(self, request: dict[str, Any]) -> dict[str, Any]:
+        """Create a workflow from a spec dict. Request: spec, pool?, options?."""
+        spec = spec_from_dict(request["spec"], filename=request.get("filename", "<submitted>"))
+        _check_credentials(spec)
+        pool = request.get("pool") or spec.pool
+        options = {"pool": pool, "filename": request.get("filename"),
+                   "reused_from": request.get("reused_from")}
+        reused = request.get("reused") or {}
+
+        def do(engine: Engine, batch: _Batch, now: float) -> str:
+            reasons = engine.scheduler.check_fit(spec, pool)
+            if reasons:
+                raise SubmitError("cannot run this workflow:\n  " + "\n  ".join(reasons))
+            n = engine.next_number(spec.name)
+            wf_id = f"{spec.name}-{n}"
+            max_retries = spec.max_retries if spec.max_retries is not None else DEFAULT_MAX_RETRIES
+            batch.commands += engine.scheduler.handle(
+                WorkflowSubmitted(wf_id, spec, max_retries, pool, reused), now)
+            engine.specs[wf_id] = spec
+            batch.new_workflows.append((wf_id, spec.name, n, now, request["spec"], options))
+            return wf_id
+
+        return {"workflow_id": self._engine.call(do)}
+
+    def cancel(self, request: dict[str, Any]) -> dict[str, Any]:
+        """Cancel a workflow; a no-op for one already ended."""
+        row = self._row(request["workflow_id"])
+
+        def do(engine: Engine, batch: _Batch, now: float) -> None:
+            try:
+                engine.scheduler.workflow(row.id)
+            except KeyError:
+                return  # already terminal and forgotten
+            batch.commands += engine.scheduler.handle(CancelWorkflow(row.id), now)
+
+        self._engine.call(do)
+        return {"workflow_id": row.id, "status": self._row(row.id).status}
+
+    def restart(self, request: dict[str, Any]) -> dict[str, Any]:
+        """Submit the same spec again, reusing the outputs of tasks that completed."""
+        row = self._row(request["workflow_id"])
+        if not WorkflowStatus[row.status].terminal:
+            raise UsageError(f"workflow {row.id} is still {row.status}; "
+                             f"cancel it first (`osmo cancel {row.id}`)")
+        reused = {t["name"]: t["output"] for t in self._store.tasks(row.id)
+                  if t["status"] == "COMPLETED" and t.get("output")}
+        return self.submit({"spec": row.spec, "pool": row.options.get("pool"),
+                            "filename": row.options.get("filename"), "reused": reused,
+                            "reused_from": row.id})
+
+    def shutdown(self, _request: dict[str, Any]) -> dict[str, Any]:
+        """Stop the server (after replying)."""
+        self._on_shutdown()
+        return {"pid": os.getpid()}
+
+    # ------------------------------------------------------------------ read verbs
+
+    def get(self, request: dict[str, Any]) -> dict[str, Any]:
+        """A workflow's state and its tasks' states."""
+        row = self._row(request["workflow_id"])
+        return {"workflow": _workflow_dict(row), "tasks": _ordered_tasks(row, self._store.tasks(row.id))}
+
+    def list(self, request: dict[str, Any]) -> list[dict[str, Any]]:
+        """Workflows newest first; filters: statuses, name, limit."""
+        rows = self._store.workflows(statuses=request.get("statuses"), name=request.get("name"),
+                                     limit=request.get("limit"))
+        return [_workflow_dict(r) for r in rows]
+
+    def logs(self, request: dict[str, Any]) -> dict[str, Any]:
+        """Log records of a workflow since a cursor; see ``osmo.server.logview``."""
+        row = self._row(request["workflow_id"])
+        return read_logs(self._store, row, task=request.get("task"), retry=request.get("retry"),
+                         cursor=request.get("cursor"))
+
+    def spec(self, request: dict[str, Any]) -> dict[str, Any]:
+        """The stored (rendered) spec of a workflow, as a dict."""
+        return {"spec": self._row(request["workflow_id"]).spec}
+
+    def pools(self, _request: dict[str, Any]) -> list[dict[str, Any]]:
+        """Known nodes with their pool, platform and capacity used/total."""
+        sched = self._engine.scheduler
+        out = []
+        for node in sched.nodes():
+            used = sched.used(node.id)
+            out.append({"node": node.id, "pool": node.pool, "platform": node.platform,
+                        "total": vars(node.capacity), "used": vars(used)})
+        return out
+
+    def _row(self, workflow_id: str) -> WorkflowRow:
+        row = self._store.workflow(workflow_id)
+        if row is None:
+            near = [r.id for r in self._store.workflows(name=workflow_id.rsplit("-", 1)[0],
+                                                        limit=5)]
+            hint = f" (did you mean {', '.join(near)}?)" if near else ""
+            raise NotFoundError(f"no workflow '{workflow_id}'{hint}")
+        return row
+
+
+def _check_credentials(spec: Any) -> None:
+    for task in spec.all_tasks():
+        for name in task.credentials:
+            raise SubmitError(
+                f"task '{task.name}' uses credential '{name}', but this server stores no "
+                "credentials yet (credential support arrives with remote workers)")
+
+
+def _workflow_dict(row: WorkflowRow) -> dict[str, Any]:
+    state = dict(row.state) or {"id": row.id, "name": row.name, "status": row.status,
+                                "submitted_at": row.submitted_at}
+    state["pool"] = row.options.get("pool")
+    state["reused_from"] = row.options.get("reused_from")
+    return state
+
+
+def _ordered_tasks(row: WorkflowRow, tasks: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Tasks in spec order (groups, then tasks within a group)."""
+    order: dict[str, int] = {}
+    wf = row.spec.get("workflow", {})
+    names = [t["name"] for t in wf.get("tasks", [])]
+    names += [t["name"] for g in wf.get("groups", []) for t in g.get("tasks", [])]
+    for i, name in enumerate(names):
+        order[name] = i
+    return sorted(tasks, key=lambda t: order.get(t["name"], len(order)))

@@ -1,0 +1,156 @@
+"""Composes the server: store + scheduler + local pool + engine + zenoh API, and recovery.
+
+``serve()`` runs one server for one ``OSMO_HOME`` in the foreground until SIGTERM/SIGINT or
+an API ``shutdown``. Only one server runs per home: it holds ``server.lock`` for its life.
+
+Recovery after a crash (kill -9): workflows that were not terminal are restored into the
+scheduler from the store; attempts that were placed or running on the local pool died with
+the server (their leftover processes are killed by pid, after checking the pid still names
+the same process), so each is reported lost and rescheduled as a new retry. Completed tasks
+are never re-run; the lost attempt's id is fenced, so it can never be committed.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import logging
+import os
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+from osmo.config import free_port, home_dir, write_json_atomic
+from osmo.errors import InfrastructureError
+from osmo.scheduler import Scheduler, TaskState, WorkflowState
+from osmo.scheduler.types import AttemptLost, NodeUp
+from osmo.server.api import Api
+from osmo.server.engine import Engine
+from osmo.spec import spec_from_dict
+from osmo.spec.model import WorkflowSpec
+from osmo.store.sqlite import Store
+from osmo.transport.zenoh_link import ApiServer, Link
+from osmo.runtime.process import kill_stale
+from osmo.worker.pool import LocalPool
+
+__all__ = ["serve"]
+
+log = logging.getLogger("osmo.server")
+
+
+def _take_lock(home: Path) -> int:
+    fd = os.open(home / "server.lock", os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        os.close(fd)
+        raise InfrastructureError(f"another osmo server is already running for {home}") from None
+    return fd
+
+
+def _restore(store: Store, scheduler: Scheduler) -> tuple[dict[str, WorkflowSpec], list[Any]]:
+    """Load unfinished workflows into the scheduler; return specs and lost attempts."""
+    specs: dict[str, WorkflowSpec] = {}
+    workflows, tasks = [], []
+    for row in store.workflows(active_only=True):
+        specs[row.id] = spec_from_dict(row.spec, filename=row.options.get("filename") or row.id)
+        workflows.append(WorkflowState.from_dict(row.state))
+        tasks += [TaskState.from_dict(t) for t in store.tasks(row.id)]
+    scheduler.restore(specs, workflows, tasks)
+    lost = [t for t in tasks if t.status.active and t.attempt_id]
+    return specs, lost
+
+
+def _kill_leftovers(store: Store, lost: list[Any]) -> None:
+    for task in lost:
+        for row in store.attempts(task.workflow_id, task.name):
+            if row.id == task.attempt_id and row.pid and row.pid_start is not None:
+                kill_stale(row.pid, row.pid_start)
+
+
+def serve(home: str | os.PathLike[str] | None = None, *, listen: str | None = None,
+          cluster: str = "local", cpus: float | None = None, gpus: int | None = None,
+          memory: int | None = None, ready: threading.Event | None = None) -> None:
+    """Run the server in the foreground until stopped.
+
+    Args:
+        home: the osmo home (default: ``OSMO_HOME`` / XDG data folder).
+        listen: zenoh endpoint, default ``tcp/127.0.0.1:7447`` (another free port if taken).
+        cpus/gpus/memory: override the local pool's detected capacity.
+    """
+    home_path = home_dir(home)
+    lock_fd = _take_lock(home_path)
+    (home_path / "server.json").unlink(missing_ok=True)  # a crashed server's stale address
+    endpoint = listen or f"tcp/127.0.0.1:{free_port()}"
+    store = Store(home_path / "state.db")
+    scheduler = Scheduler(default_max_retries=3)
+    specs, lost = _restore(store, scheduler)
+    _kill_leftovers(store, lost)
+
+    link = Link.router([endpoint], cluster)
+    stopping = threading.Event()
+
+    def on_changed(ids: set[str]) -> None:
+        for wf_id in ids:
+            link.publish(link.key("events", wf_id), {"workflow_id": wf_id})
+
+    engine_box: list[Engine] = []
+    pool = LocalPool(home=home_path, emit=lambda ev: engine_box[0].post(ev),
+                     cpus=cpus, gpus=gpus, memory=memory)
+    engine = Engine(store=store, scheduler=scheduler, executor=pool, specs=specs,
+                    on_changed=on_changed, home=home_path)
+    engine_box.append(engine)
+    engine.post(NodeUp(pool.node()))
+    for task in lost:
+        engine.post(AttemptLost(task.attempt_id, "server restarted; attempt lost"))
+    engine.start()
+
+    info = {"endpoint": endpoint, "pid": os.getpid(), "cluster": cluster,
+            "started_at": time.time(), "home": str(home_path)}
+    api = Api(engine, home_path, info, on_shutdown=stopping.set)
+    api_server = ApiServer(link, api.handle,
+                           on_crash=lambda exc: log.error("API handler crashed", exc_info=exc))
+    write_json_atomic(home_path / "server.json", info)
+    log.info("osmo server %s listening on %s (home %s)", os.getpid(), endpoint, home_path)
+
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda *_: stopping.set())
+    if ready is not None:
+        ready.set()
+    try:
+        while not stopping.wait(timeout=3600):
+            pass
+    finally:
+        time.sleep(0.05)  # let the reply to a `shutdown` request leave
+        (home_path / "server.json").unlink(missing_ok=True)
+        api_server.close()
+        engine.stop()
+        pool.close()
+        link.close()
+        store.close()
+        os.close(lock_fd)
+
+
+def main() -> None:
+    """Entry point of the background server process (``python -m osmo.server.app``)."""
+    logging.basicConfig(level=logging.INFO, stream=sys.stderr,
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    import argparse
+
+    parser = argparse.ArgumentParser(prog="osmo-server")
+    parser.add_argument("--home")
+    parser.add_argument("--listen")
+    parser.add_argument("--cpus", type=float)
+    parser.add_argument("--gpus", type=int)
+    args = parser.parse_args()
+    try:
+        serve(args.home, listen=args.listen, cpus=args.cpus, gpus=args.gpus)
+    except InfrastructureError as exc:
+        print(f"osmo server: {exc}", file=sys.stderr)
+        sys.exit(3)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,223 @@
+"""The engine: the one thread that feeds events to the scheduler and carries out its commands.
+
+Owns the loop ``events → Scheduler.handle → commit to the store → execute commands``. Every
+batch of state changes is committed in one transaction *before* any command of that batch is
+executed, so a server killed at any instant restarts into a consistent state. Events from
+workers and calls from API threads arrive on one queue; the loop blocks on it until an event
+arrives or the scheduler's next deadline (a timeout) is due — no polling.
+
+It must not parse specs, talk zenoh or format output; those belong to other layers.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from collections.abc import Callable
+from concurrent.futures import Future
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+from osmo.scheduler import Scheduler
+from osmo.scheduler.types import (
+    AttemptStarted,
+    Command,
+    Event,
+    KillAttempt,
+    Node,
+    PrepareAttempt,
+    RunAttempt,
+    Tick,
+)
+from osmo.spec.model import TaskSpec, WorkflowSpec
+from osmo.store.sqlite import AttemptRow, Store
+
+__all__ = ["Engine", "Executor"]
+
+log = logging.getLogger("osmo.server")
+
+
+class Executor(Protocol):
+    """What the engine needs from a pool of workers (the local pool, later remote ones)."""
+
+    def prepare(self, cmd: PrepareAttempt, task: TaskSpec) -> None: ...
+    def run(self, attempt_id: str) -> None: ...
+    def kill(self, attempt_id: str, reason: str) -> None: ...
+    def node(self) -> Node: ...
+    def running(self) -> dict[str, int]: ...
+
+
+@dataclass
+class _Batch:
+    """What one loop iteration accumulates before committing."""
+
+    commands: list[Command] = field(default_factory=list)
+    new_workflows: list[tuple[str, str, int, float, dict[str, Any], dict[str, Any]]] = field(
+        default_factory=list)
+    attempts: list[AttemptRow] = field(default_factory=list)
+    replies: list[tuple[Future[Any], Any]] = field(default_factory=list)
+
+
+@dataclass
+class _Call:
+    fn: Callable[[Engine, _Batch, float], Any]
+    future: Future[Any]
+
+
+_STOP = object()
+
+
+class Engine:
+    """Runs the scheduler on its own thread.
+
+    Args:
+        store: the state store (the engine is its only writer).
+        scheduler: the scheduler, already restored from the store if recovering.
+        executor: the pool that runs attempts.
+        specs: workflow id → spec for every workflow the scheduler holds.
+        on_changed: called with the ids of workflows whose state changed (after commit).
+        clock: time source (injectable for tests).
+    """
+
+    def __init__(self, *, store: Store, scheduler: Scheduler, executor: Executor,
+                 specs: dict[str, WorkflowSpec], on_changed: Callable[[set[str]], None],
+                 home: Any, clock: Callable[[], float] = time.time) -> None:
+        self.store = store
+        self.scheduler = scheduler
+        self.executor = executor
+        self.specs = specs
+        self._on_changed = on_changed
+        self._clock = clock
+        self._home = home
+        self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self._numbers: dict[str, int] = {}
+        self._thread = threading.Thread(target=self._loop, name="osmo-engine", daemon=True)
+
+    # ------------------------------------------------------------------ public API
+
+    def start(self) -> None:
+        """Start the engine thread."""
+        self._thread.start()
+
+    def stop(self) -> None:
+        """Ask the loop to finish the current batch and exit; wait for it."""
+        self._queue.put(_STOP)
+        self._thread.join(timeout=30)
+
+    def post(self, event: Event) -> None:
+        """Queue an event (thread-safe; called by workers' threads)."""
+        self._queue.put(event)
+
+    def call(self, fn: Callable[[Engine, _Batch, float], Any], timeout: float = 60) -> Any:
+        """Run ``fn(engine, batch, now)`` on the engine thread; return its result after commit.
+
+        Exceptions raised by ``fn`` propagate to the caller and nothing of it is committed
+        (``fn`` must raise before mutating the scheduler).
+        """
+        future: Future[Any] = Future()
+        self._queue.put(_Call(fn, future))
+        return future.result(timeout=timeout)
+
+    def next_number(self, name: str) -> int:
+        """Allocate the next ``N`` for a workflow called ``name`` (engine thread only)."""
+        n = max(self._numbers.get(name, 0), self.store.next_number(name) - 1) + 1
+        self._numbers[name] = n
+        return n
+
+    # ------------------------------------------------------------------ the loop
+
+    def _loop(self) -> None:
+        while True:
+            items = self._wait()
+            if not self._run_batch(items):
+                return
+
+    def _wait(self) -> list[Any]:
+        deadline = self.scheduler.next_deadline()
+        timeout = None if deadline is None else max(0.0, deadline - self._clock())
+        items: list[Any] = []
+        try:
+            items.append(self._queue.get(timeout=timeout))
+        except queue.Empty:
+            return [Tick()]
+        while len(items) < 4096:
+            try:
+                items.append(self._queue.get_nowait())
+            except queue.Empty:
+                break
+        return items
+
+    def _run_batch(self, items: list[Any]) -> bool:
+        batch = _Batch()
+        keep_going = True
+        now = self._clock()
+        for item in items:
+            if item is _STOP:
+                keep_going = False
+            elif isinstance(item, _Call):
+                self._run_call(item, batch, now)
+            else:
+                batch.commands += self.scheduler.handle(item, now)
+                if isinstance(item, AttemptStarted):
+                    self._note_pid(item.attempt_id, batch)
+        deadline = self.scheduler.next_deadline()
+        if deadline is not None and deadline <= now:
+            batch.commands += self.scheduler.handle(Tick(), now)
+        self._commit_and_execute(batch)
+        return keep_going
+
+    def _run_call(self, call: _Call, batch: _Batch, now: float) -> None:
+        try:
+            batch.replies.append((call.future, call.fn(self, batch, now)))
+        except BaseException as exc:  # noqa: BLE001 - handed to the caller's thread
+            call.future.set_exception(exc)
+
+    def _commit_and_execute(self, batch: _Batch) -> None:
+        changes = self.scheduler.take_changes()
+        for cmd in batch.commands:
+            if isinstance(cmd, PrepareAttempt):
+                batch.attempts.append(AttemptRow(
+                    cmd.attempt_id, cmd.workflow_id, cmd.task, cmd.retry, cmd.node_id,
+                    str(self._home / "runs" / cmd.workflow_id / cmd.task / str(cmd.retry)),
+                    None, None))
+        if changes or batch.new_workflows or batch.attempts:
+            self.store.commit(changes, new_workflows=batch.new_workflows,
+                              attempts=batch.attempts)
+        for future, result in batch.replies:
+            future.set_result(result)
+        for cmd in batch.commands:
+            self._execute(cmd)
+        changed = {w.id for w in changes.workflows}  # type: ignore[attr-defined]
+        changed |= {t.workflow_id for t in changes.tasks}  # type: ignore[attr-defined]
+        if changed:
+            self._on_changed(changed)
+        for wf in changes.workflows:
+            if wf.status.terminal:  # type: ignore[attr-defined]
+                self.scheduler.forget(wf.id)  # type: ignore[attr-defined]
+                self.specs.pop(wf.id, None)  # type: ignore[attr-defined]
+
+    def _execute(self, cmd: Command) -> None:
+        try:
+            if isinstance(cmd, PrepareAttempt):
+                self.executor.prepare(cmd, self.specs[cmd.workflow_id].task(cmd.task))
+            elif isinstance(cmd, RunAttempt):
+                self.executor.run(cmd.attempt_id)
+            elif isinstance(cmd, KillAttempt):
+                self.executor.kill(cmd.attempt_id, cmd.reason)
+        except Exception:  # noqa: BLE001 - a worker bug must not stop the engine
+            log.exception("executing %r failed", cmd)
+
+    def _note_pid(self, attempt_id: str, batch: _Batch) -> None:
+        """Record the attempt's pid so a restarted server can kill a leftover process."""
+        from osmo.runtime.process import process_start_time
+
+        pid = self.executor.running().get(attempt_id)
+        task = self.scheduler.attempt(attempt_id)
+        if pid is None or task is None:
+            return
+        batch.attempts.append(AttemptRow(
+            attempt_id, task.workflow_id, task.name, task.retry, task.node_id,
+            str(self._home / "runs" / task.workflow_id / task.name / str(task.retry)),
+            pid, process_start_time(pid)))

@@ -1,0 +1,48 @@
+"""Merges a workflow's attempt logs and its status transitions into one time-ordered stream.
+
+A cursor (attempt id → byte offset, plus the last event-log sequence number) lets a client
+follow the stream: each call returns only what is new since the cursor.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from osmo.status import WorkflowStatus
+from osmo.store.sqlite import Store, WorkflowRow
+from osmo.worker.logs import read_log
+
+__all__ = ["read_logs"]
+
+
+def read_logs(store: Store, row: WorkflowRow, *, task: str | None = None,
+              retry: int | None = None, cursor: dict[str, Any] | None = None) -> dict[str, Any]:
+    """New log records of a workflow since ``cursor``.
+
+    Returns:
+        ``{"records": [{ts, task, retry, stream, text}], "cursor": {...}, "done": bool}``;
+        ``done`` is true once the workflow is terminal and everything was returned.
+    """
+    cursor = {"files": dict((cursor or {}).get("files", {})), "seq": (cursor or {}).get("seq", 0)}
+    terminal = WorkflowStatus[row.status].terminal
+    records: list[dict[str, Any]] = []
+    for attempt in store.attempts(row.id, task):
+        if retry is not None and attempt.retry != retry or not attempt.dir:
+            continue
+        offset = int(cursor["files"].get(attempt.id, 0))
+        lines, new_offset = read_log(Path(attempt.dir) / "log.txt", offset)
+        cursor["files"][attempt.id] = new_offset
+        records += [{"ts": r.ts, "task": attempt.task, "retry": attempt.retry,
+                     "stream": r.stream, "text": r.text} for r in lines]
+    for event in store.transitions(row.id, cursor["seq"]):
+        cursor["seq"] = event["seq"]
+        if task is not None and event["task"] != task:
+            continue
+        if retry is not None and event["retry"] not in (retry, None):
+            continue
+        text = event["status"] + (f": {event['message']}" if event["message"] else "")
+        records.append({"ts": event["at"], "task": event["task"], "retry": event["retry"],
+                        "stream": "osmo", "text": text})
+    records.sort(key=lambda r: r["ts"])
+    return {"records": records, "cursor": cursor, "done": terminal}

@@ -1,0 +1,61 @@
+"""Workflow specs: OSMO v2 YAML (with Jinja templating) or the Python builder → a validated,
+frozen :class:`WorkflowSpec`, and back to plain data/YAML.
+
+Public API::
+
+    load_spec(path | text=..., set_values=, set_strings=, set_env=) -> WorkflowSpec
+    render_spec(path | text=..., set_values=, set_strings=) -> str     # --dry-run
+    spec_to_dict(spec) -> dict;  dump_yaml(spec) -> str
+    spec_from_dict(d) -> WorkflowSpec                                  # stored specs
+    Workflow(name, ...).resource(...).task(...).group(name, [Task(...)]).build()
+
+Every problem is reported at once as a :class:`osmo.errors.SpecError` whose ``diagnostics``
+read ``file:line:col: message``. Module map: ``yamlnodes`` (the only ``yaml`` import),
+``template`` (the only ``jinja2`` import), ``units``, ``reader`` (typed node access),
+``parse``/``parse_task``/``parse_io`` (one document → model), ``validate`` (cross-references),
+``support`` (what is not supported yet), ``dump``, ``builder``, ``loader`` (the pipeline).
+"""
+
+from __future__ import annotations
+
+from osmo.spec.builder import Task, Workflow
+from osmo.spec.dump import dump_yaml, spec_to_dict
+from osmo.spec.loader import load_spec, render_spec, spec_from_dict
+from osmo.spec.model import (
+    DEFAULT_RESOURCE,
+    ExitAction,
+    ExitRule,
+    FileSpec,
+    GroupSpec,
+    InputSpec,
+    OutputSpec,
+    Pos,
+    ResourceSpec,
+    TaskSpec,
+    Timeouts,
+    TopologySpec,
+    WorkflowSpec,
+)
+
+__all__ = [
+    "DEFAULT_RESOURCE",
+    "ExitAction",
+    "ExitRule",
+    "FileSpec",
+    "GroupSpec",
+    "InputSpec",
+    "OutputSpec",
+    "Pos",
+    "ResourceSpec",
+    "Task",
+    "TaskSpec",
+    "Timeouts",
+    "TopologySpec",
+    "Workflow",
+    "WorkflowSpec",
+    "dump_yaml",
+    "load_spec",
+    "render_spec",
+    "spec_from_dict",
+    "spec_to_dict",
+]

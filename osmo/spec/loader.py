@@ -1,0 +1,151 @@
+"""The spec pipeline: read → render (Jinja) → YAML nodes → parse → validate → model.
+
+Owns ``load_spec``, ``render_spec`` and ``spec_from_dict``. Every problem found on the way is
+collected and raised as one :class:`SpecError`; no foreign exception escapes. Positions refer
+to the rendered document, which is line-for-line the source when no ``{% %}`` block is used.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from osmo.errors import Diagnostic, SpecError
+from osmo.spec import template, yamlnodes
+from osmo.spec.model import WorkflowSpec
+from osmo.spec.parse import parse_document
+from osmo.spec.reader import Ctx
+from osmo.spec.validate import validate
+
+__all__ = ["load_spec", "render_spec", "spec_from_dict"]
+
+_STRING = "<string>"
+
+
+def _source(path: str | os.PathLike[str] | None, text: str | None,
+            filename: str | None) -> tuple[str, str, Path]:
+    """(text, file name for messages, folder that ``localpath`` is relative to)."""
+    if path is None:
+        if text is None:
+            raise SpecError([Diagnostic(filename or _STRING, 0, 0, "no spec given: pass a "
+                                        "file path or text")])
+        name = filename or _STRING
+        base = Path(filename).parent if filename and not filename.startswith("<") else Path()
+        return text, name, base
+    name = filename or os.fspath(path)
+    try:
+        return Path(path).read_text(encoding="utf-8"), name, Path(path).parent
+    except FileNotFoundError:
+        message = "spec file not found; check the path"
+    except IsADirectoryError:
+        message = "is a folder; pass the spec file inside it"
+    except UnicodeDecodeError as exc:
+        message = f"is not UTF-8 text ({exc.reason} at byte {exc.start})"
+    except OSError as exc:
+        message = f"cannot read the spec file: {exc.strerror or exc}"
+    raise SpecError([Diagnostic(name, 0, 0, message)])
+
+
+def _render(text: str, file: str, set_values: Sequence[str], set_strings: Sequence[str],
+            extra: list[Diagnostic]) -> str:
+    context, diags = template.build_context(text, file, set_values, set_strings)
+    if diags:
+        raise SpecError(diags + extra)
+    rendered, diags = template.render(text, file, context)
+    if rendered is None or extra:
+        raise SpecError(diags + extra)
+    return rendered
+
+
+def _env_items(file: str, items: Sequence[str]) -> tuple[dict[str, str], list[Diagnostic]]:
+    env: dict[str, str] = {}
+    diags = []
+    for item in items:
+        name, eq, value = item.partition("=")
+        if not eq or not name.strip():
+            diags.append(Diagnostic(file, 0, 0, f"--set-env {item!r}: expected NAME=VALUE"))
+        else:
+            env[name.strip()] = value
+    return env, diags
+
+
+def _with_env(spec: WorkflowSpec, env: dict[str, str]) -> WorkflowSpec:
+    """``--set-env``: add/override variables in every task's environment."""
+    if not env:
+        return spec
+    groups = tuple(
+        dataclasses.replace(g, tasks=tuple(
+            dataclasses.replace(t, environment={**t.environment, **env}) for t in g.tasks))
+        for g in spec.groups)
+    return dataclasses.replace(spec, groups=groups)
+
+
+def _build(text: str, file: str, base_dir: Path, env: dict[str, str]) -> WorkflowSpec:
+    """Rendered YAML text → validated model (raises SpecError with every problem)."""
+    root, diags = yamlnodes.load_nodes(text, file)
+    if root is None and diags:
+        raise SpecError(diags)
+    ctx = Ctx(file, diags)
+    parsed = parse_document(ctx, root, base_dir)
+    if parsed is not None:
+        validate(ctx, parsed)
+    if ctx.diags or parsed is None:
+        raise SpecError(ctx.diags)
+    return _with_env(parsed.spec, env)
+
+
+def load_spec(path: str | os.PathLike[str] | None = None, *, text: str | None = None,
+              filename: str | None = None, set_values: Sequence[str] = (),
+              set_strings: Sequence[str] = (), set_env: Sequence[str] = ()) -> WorkflowSpec:
+    """Read, render, parse and validate a workflow spec.
+
+    Args:
+        path: the spec file; ``localpath`` entries are relative to its folder.
+        text: the spec's text instead of a file (``localpath`` then relative to the folder of
+            ``filename`` if it is a path, else the current folder).
+        filename: the name used in diagnostics (defaults to ``path`` or ``<string>``).
+        set_values: ``NAME=VALUE`` template overrides (``--set``), cast to int, float or str.
+        set_strings: ``NAME=VALUE`` template overrides kept as strings (``--set-string``).
+        set_env: ``NAME=VALUE`` added to every task's environment (``--set-env``).
+
+    Returns:
+        the validated model.
+
+    Raises:
+        SpecError: with every problem found, each as ``file:line:col: message``. Positions
+            refer to the rendered document (identical to the source without ``{% %}`` blocks).
+    """
+    source, file, base_dir = _source(path, text, filename)
+    env, env_diags = _env_items(file, set_env)
+    rendered = _render(source, file, set_values, set_strings, env_diags)
+    return _build(rendered, file, base_dir, env)
+
+
+def render_spec(path: str | os.PathLike[str] | None = None, *, text: str | None = None,
+                filename: str | None = None, set_values: Sequence[str] = (),
+                set_strings: Sequence[str] = ()) -> str:
+    """The spec after templating (what ``osmo submit --dry-run`` prints).
+
+    Raises:
+        SpecError: when the file cannot be read or the template fails.
+    """
+    source, file, _ = _source(path, text, filename)
+    return _render(source, file, set_values, set_strings, [])
+
+
+def spec_from_dict(d: dict[str, Any], *, filename: str = "<stored>") -> WorkflowSpec:
+    """The model from plain data such as ``spec_to_dict`` returns (no templating).
+
+    Raises:
+        SpecError: if the data is not a valid spec.
+    """
+    if not isinstance(d, dict):
+        raise SpecError([Diagnostic(filename, 0, 0, "a stored spec must be a mapping")])
+    try:
+        text = yamlnodes.dump(d)
+    except TypeError as exc:
+        raise SpecError([Diagnostic(filename, 0, 0, str(exc))]) from None
+    return _build(text, filename, Path(), {})

@@ -1,0 +1,200 @@
+"""Parsing of a task's data fields: ``files``, ``inputs``, ``outputs`` and ``checkpoint``.
+
+Reads ``files[].localpath`` (relative to the spec's folder) into ``FileSpec.contents``;
+otherwise pure. Cross-task checks (does an input task exist?) belong to ``validate``.
+"""
+
+from __future__ import annotations
+
+import base64
+import binascii
+import re
+from pathlib import Path, PurePosixPath
+from typing import Any
+
+from osmo.spec.model import FileSpec, InputSpec, OutputSpec
+from osmo.spec.reader import Ctx, read_bool, read_fields, read_list, read_map, read_str
+from osmo.spec.support import UNSUPPORTED
+from osmo.spec.yamlnodes import Map, Node, to_plain
+
+__all__ = ["MAX_LOCAL_FILE", "parse_checkpoint", "parse_files", "parse_inputs", "parse_outputs"]
+
+MAX_LOCAL_FILE = 16 * 1024 * 1024  # bytes read from one ``localpath``
+
+_FILE_KEYS = ("path", "contents", "base64", "localpath")
+_INPUT_KINDS = ("task", "url", "dataset")
+_CHECKPOINT_KEYS = ("path", "url", "frequency", "regex")
+
+
+def _read_regex(ctx: Ctx, fields: dict[str, Node], what: str) -> str | None:
+    node = fields.get("regex")
+    if node is None:
+        return None
+    pattern = read_str(ctx, node, f"'regex' of {what}")
+    if pattern is not None:
+        try:
+            re.compile(pattern)
+        except re.error as exc:
+            ctx.error(node, f"'regex' of {what} is not a valid regular expression: {exc}")
+    return pattern
+
+
+def _read_local(ctx: Ctx, node: Node, base_dir: Path, where: str) -> tuple[str, bool] | None:
+    """The contents of a ``localpath`` file: text, or base64 for binary/non-UTF-8 data."""
+    name = read_str(ctx, node, f"'localpath' in {where}")
+    if name is None:
+        return None
+    path = base_dir / name
+    if not path.exists():
+        ctx.error(node, f"localpath '{name}' in {where} does not exist (looked for {path})")
+        return None
+    if not path.is_file():
+        ctx.error(node, f"localpath '{name}' in {where} is a folder; it must name a file")
+        return None
+    try:
+        if path.stat().st_size > MAX_LOCAL_FILE:
+            ctx.error(node, f"localpath '{name}' is larger than {MAX_LOCAL_FILE // 2**20} MiB")
+            return None
+        data = path.read_bytes()
+    except OSError as exc:
+        ctx.error(node, f"cannot read localpath '{name}' in {where}: {exc.strerror or exc}")
+        return None
+    try:
+        return data.decode("utf-8"), False
+    except UnicodeDecodeError:
+        return base64.b64encode(data).decode("ascii"), True
+
+
+def _file(ctx: Ctx, node: Node, base_dir: Path, where: str) -> FileSpec | None:
+    fields = read_fields(ctx, node, _FILE_KEYS, f"a file of {where}", required=("path",))
+    if fields is None or "path" not in fields:
+        return None
+    path = read_str(ctx, fields["path"], f"'path' of a file in {where}")
+    if path is not None and ".." in PurePosixPath(path).parts:
+        ctx.error(fields["path"], f"file path '{path}' in {where} must not contain '..'")
+    has_contents, has_local = "contents" in fields, "localpath" in fields
+    if has_contents == has_local:
+        if not (ctx.hinted(node, "contents") or ctx.hinted(node, "localpath")):
+            ctx.error(node, f"a file of {where} needs exactly one of 'contents' or 'localpath'")
+        return None
+    if has_local:
+        if "base64" in fields:
+            ctx.error(fields["base64"], "'base64' applies to 'contents', not to 'localpath'")
+        local = _read_local(ctx, fields["localpath"], base_dir, where)
+        if local is None or path is None:
+            return None
+        return FileSpec(path, local[0], local[1], pos=node.pos)
+    contents = read_str(ctx, fields["contents"], f"'contents' of file '{path}'", allow_empty=True)
+    encoded = read_bool(ctx, fields["base64"], "'base64'") if "base64" in fields else False
+    if encoded and contents is not None:
+        try:
+            base64.b64decode(contents, validate=True)
+        except binascii.Error:
+            ctx.error(fields["contents"], f"contents of file '{path}' are not valid base64")
+    if path is None or contents is None:
+        return None
+    return FileSpec(path, contents, bool(encoded), pos=node.pos)
+
+
+def parse_files(ctx: Ctx, node: Node, base_dir: Path, where: str) -> tuple[FileSpec, ...]:
+    """``files:`` entries; duplicate paths within the task are reported."""
+    out: list[FileSpec] = []
+    for item in read_list(ctx, node, f"'files' of {where}"):
+        spec = _file(ctx, item, base_dir, where)
+        if spec is None:
+            continue
+        first = next((f for f in out if f.path == spec.path), None)
+        if first is not None and first.pos is not None:
+            ctx.error(item, f"file path '{spec.path}' appears twice in {where} (first at line "
+                            f"{first.pos.line}); paths must be unique per task")
+            continue
+        out.append(spec)
+    return tuple(out)
+
+
+def _unsupported(ctx: Ctx, node: Node, key: str, where: str) -> None:
+    ctx.error(node, f"{where}: {UNSUPPORTED[key]}")
+
+
+def _dataset(ctx: Ctx, node: Node, keys: tuple[str, ...], what: str) -> dict[str, Node]:
+    fields = read_fields(ctx, node, keys, what, required=("name",))
+    return fields or {}
+
+
+def _input(ctx: Ctx, node: Node, where: str) -> InputSpec | None:
+    what = f"an input of {where}"
+    fields = read_fields(ctx, node, (*_INPUT_KINDS, "regex"), what)
+    if fields is None:
+        return None
+    kinds = [k for k in _INPUT_KINDS if k in fields]
+    if not kinds and any(ctx.hinted(node, k) for k in _INPUT_KINDS):
+        return None
+    if len(kinds) != 1:
+        ctx.error(node, f"{what} needs exactly one of 'task', 'url' or 'dataset'")
+        return None
+    kind = kinds[0]
+    if f"inputs.{kind}" in UNSUPPORTED:
+        _unsupported(ctx, node, f"inputs.{kind}", where)
+    regex = _read_regex(ctx, fields, what)
+    if kind == "dataset":
+        ds = _dataset(ctx, fields["dataset"], ("name", "regex"), f"'dataset' of {what}")
+        name = read_str(ctx, ds["name"], "dataset 'name'") if "name" in ds else None
+        return InputSpec(dataset=name, regex=_read_regex(ctx, ds, what) or regex, pos=node.pos)
+    value = read_str(ctx, fields[kind], f"'{kind}' of {what}")
+    if value is None:
+        return None
+    if kind == "url":
+        return InputSpec(url=value, regex=regex, pos=node.pos)
+    workflow, _, task = value.rpartition(":")
+    if ":" in value and not (workflow and task):
+        ctx.error(fields["task"], f"'{value}' in {where} must be NAME or WORKFLOW_ID:NAME")
+        return None
+    return InputSpec(task=task, workflow=workflow or None, regex=regex, pos=node.pos)
+
+
+def parse_inputs(ctx: Ctx, node: Node, where: str) -> tuple[InputSpec, ...]:
+    """``inputs:`` entries (``task``, ``url``, [ext] ``dataset``), in list order."""
+    items = read_list(ctx, node, f"'inputs' of {where}")
+    return tuple(i for i in (_input(ctx, item, where) for item in items) if i is not None)
+
+
+def _output(ctx: Ctx, node: Node, where: str) -> OutputSpec | None:
+    what = f"an output of {where}"
+    fields = read_fields(ctx, node, ("url", "dataset", "regex"), what)
+    if fields is None:
+        return None
+    kinds = [k for k in ("url", "dataset") if k in fields]
+    if len(kinds) != 1:
+        ctx.error(node, f"{what} needs exactly one of 'url' or 'dataset'")
+        return None
+    _unsupported(ctx, node, f"outputs.{kinds[0]}", where)
+    regex = _read_regex(ctx, fields, what)
+    if kinds[0] == "url":
+        url = read_str(ctx, fields["url"], f"'url' of {what}")
+        return OutputSpec(url=url, regex=regex, pos=node.pos)
+    ds = _dataset(ctx, fields["dataset"], ("name", "path", "regex", "metadata"), what)
+    name = read_str(ctx, ds["name"], "dataset 'name'") if "name" in ds else None
+    path = read_str(ctx, ds["path"], "dataset 'path'") if "path" in ds else None
+    metadata = ds.get("metadata")
+    meta = None
+    if metadata is not None and read_map(ctx, metadata, "dataset 'metadata'") is not None:
+        meta = to_plain(metadata) if isinstance(metadata, Map) else {}
+    return OutputSpec(dataset=name, path=path, regex=_read_regex(ctx, ds, what) or regex,
+                      metadata=meta, pos=node.pos)
+
+
+def parse_outputs(ctx: Ctx, node: Node, where: str) -> tuple[OutputSpec, ...]:
+    """``outputs:`` entries (``url``, [ext] ``dataset``)."""
+    items = read_list(ctx, node, f"'outputs' of {where}")
+    return tuple(o for o in (_output(ctx, item, where) for item in items) if o is not None)
+
+
+def parse_checkpoint(ctx: Ctx, node: Node, where: str) -> tuple[dict[str, Any], ...]:
+    """``checkpoint:`` entries as plain dicts (``path``, ``url``, ``frequency``, ``regex``)."""
+    out = []
+    for item in read_list(ctx, node, f"'checkpoint' of {where}"):
+        fields = read_fields(ctx, item, _CHECKPOINT_KEYS, f"a checkpoint of {where}",
+                             required=("path", "url"))
+        if fields is not None and isinstance(item, Map):
+            out.append(to_plain(item))
+    return tuple(out)

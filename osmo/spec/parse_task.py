@@ -1,0 +1,174 @@
+"""Parsing of one task mapping into a :class:`TaskSpec`.
+
+Owns the task's field table, its scalar/list/map fields and ``exitActions``. Data fields
+(files, inputs, outputs, checkpoint) are read by ``parse_io``. Checks that need other tasks
+(names, inputs, resources, tokens) belong to ``validate``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from osmo.spec.model import DEFAULT_RESOURCE, ExitAction, ExitRule, TaskSpec
+from osmo.spec.parse_io import parse_checkpoint, parse_files, parse_inputs, parse_outputs
+from osmo.spec.reader import (
+    Ctx,
+    did_you_mean,
+    is_empty,
+    read_bool,
+    read_fields,
+    read_map,
+    read_name,
+    read_str,
+    read_str_list,
+    scalar_text,
+)
+from osmo.spec.support import UNSUPPORTED
+from osmo.spec.units import overlap, parse_exit_codes
+from osmo.spec.yamlnodes import Map, Node, Scalar, Seq, to_plain
+
+__all__ = ["TASK_KEYS", "parse_task"]
+
+TASK_KEYS = ("name", "image", "command", "args", "environment", "files", "inputs", "outputs",
+             "credentials", "resource", "lead", "exitActions", "checkpoint", "volumeMounts",
+             "privileged", "hostNetwork", "type", "params", "cache")
+_ACTIONS = [a.value for a in ExitAction]
+
+
+def _str_map(ctx: Ctx, node: Node, what: str) -> dict[str, str]:
+    """A map whose scalar values are stringified (``true`` → ``"true"``, ``1.0`` → ``"1.0"``)."""
+    out: dict[str, str] = {}
+    for key, value in read_map(ctx, node, what) or []:
+        text = scalar_text(value)
+        if text is None:
+            ctx.error(value, f"{what} '{key.text}' needs a plain value (write \"\" for empty)")
+        else:
+            out[key.text] = text
+    return out
+
+
+def _credentials(ctx: Ctx, node: Node, where: str) -> dict[str, Any]:
+    """``NAME: /path`` (mount as files) or ``NAME: {ENV: key}`` (inject as env vars)."""
+    out: dict[str, Any] = {}
+    for key, value in read_map(ctx, node, f"'credentials' of {where}") or []:
+        if isinstance(value, Map):
+            out[key.text] = _str_map(ctx, value, f"credential '{key.text}' variable")
+        elif isinstance(value, Scalar) and isinstance(value.value, str) and value.value:
+            out[key.text] = value.value
+        else:
+            ctx.error(value, f"credential '{key.text}' of {where} must be a mount path or a "
+                             "mapping ENV_NAME: secret_key")
+    return out
+
+
+def _codes_value(ctx: Ctx, node: Node, what: str) -> Any:
+    if isinstance(node, Scalar):
+        return node.value
+    if isinstance(node, Seq) and all(isinstance(n, Scalar) for n in node.items):
+        return [n.value for n in node.items if isinstance(n, Scalar)]
+    ctx.error(node, f"{what} must be exit codes like '0,1-10,16'")
+    return None
+
+
+def _exit_actions(ctx: Ctx, node: Node, where: str) -> tuple[ExitRule, ...]:
+    """``exitActions``: action names are case-insensitive; ranges may not overlap anywhere."""
+    rules: list[ExitRule] = []
+    for key, value in read_map(ctx, node, f"'exitActions' of {where}") or []:
+        name = key.text.upper()
+        if name not in _ACTIONS:
+            hint = did_you_mean(name, _ACTIONS)
+            ctx.error(key, f"unknown exit action '{key.text}' in {where}{hint}; use "
+                           "COMPLETE, FAIL or RESCHEDULE")
+            continue
+        action = ExitAction(name)
+        if any(r.action is action for r in rules):
+            ctx.error(key, f"exit action {name} appears twice in {where}")
+            continue
+        raw = _codes_value(ctx, value, f"exit action {name}")
+        if raw is None:
+            continue
+        try:
+            ranges = parse_exit_codes(raw)
+        except ValueError as exc:
+            ctx.error(value, f"exit action {name} of {where}: {exc}")
+            continue
+        clashes = [(r.action.value, overlap(r.ranges, ranges)) for r in rules]
+        clash = next(((a, c) for a, c in clashes if c), None)
+        if clash:
+            ctx.error(value, f"exit codes {clash[1]} of {where} are in both {clash[0]} and "
+                             f"{name}; each code may have one action")
+            continue
+        rules.append(ExitRule(action, ranges))
+    return tuple(rules)
+
+
+def _command(ctx: Ctx, fields: dict[str, Node], node: Node, where: str) -> tuple[str, ...]:
+    has_type = "type" in fields
+    if "command" not in fields:
+        if not has_type and not ctx.hinted(node, "command"):
+            ctx.error(node, f"{where} has no 'command'; add one, e.g. command: [python, run.py]")
+        return ()
+    if has_type:
+        ctx.error(fields["command"], f"{where} has both 'command' and 'type'; keep one")
+    value = fields["command"]
+    if isinstance(value, Scalar) and isinstance(value.value, str):
+        words = ", ".join(value.value.split()[:3]) or "python, run.py"
+        ctx.error(value, f"'command' of {where} must be a list of words, e.g. [{words}]")
+        return ()
+    command = read_str_list(ctx, value, f"'command' of {where}")
+    if is_empty(value):
+        ctx.error(value, f"'command' of {where} must not be empty")
+    return command
+
+
+def _optional(ctx: Ctx, fields: dict[str, Node], key: str, reader: Any, *args: Any) -> Any:
+    node = fields.get(key)
+    return None if node is None else reader(ctx, node, *args)
+
+
+def task_name(node: Node) -> str:
+    """The name written in a task/group mapping (for messages), or ``""``."""
+    name = node.get("name") if isinstance(node, Map) else None
+    return name.value if isinstance(name, Scalar) and isinstance(name.value, str) else ""
+
+
+def parse_task(ctx: Ctx, node: Node, base_dir: Path) -> TaskSpec | None:
+    """One task mapping → ``TaskSpec`` (None if it is not a mapping). A missing name is
+    reported and kept as ``""`` so positions stay aligned; validation skips empty names."""
+    label = task_name(node)
+    where = f"task '{label}'" if label else "a task"
+    fields = read_fields(ctx, node, TASK_KEYS, where, required=("name",))
+    if fields is None:
+        return None
+    for key in fields:
+        if f"task.{key}" in UNSUPPORTED:
+            ctx.error(fields[key], f"{where}: {UNSUPPORTED['task.' + key]}")
+    name = _optional(ctx, fields, "name", read_name, "task name")
+    f = fields  # short alias: the constructor call below reads one field per line
+    return TaskSpec(
+        name=name or "",
+        image=_optional(ctx, f, "image", read_str, f"'image' of {where}"),
+        command=_command(ctx, f, node, where),
+        args=_optional(ctx, f, "args", read_str_list, f"'args' of {where}") or (),
+        environment=_optional(ctx, f, "environment", _str_map, "environment variable") or {},
+        files=_optional(ctx, f, "files", parse_files, base_dir, where) or (),
+        inputs=_optional(ctx, f, "inputs", parse_inputs, where) or (),
+        outputs=_optional(ctx, f, "outputs", parse_outputs, where) or (),
+        credentials=_optional(ctx, f, "credentials", _credentials, where) or {},
+        resource=_optional(ctx, f, "resource", read_str, f"'resource' of {where}")
+        or DEFAULT_RESOURCE,
+        lead=bool(_optional(ctx, f, "lead", read_bool, f"'lead' of {where}")),
+        exit_actions=_optional(ctx, f, "exitActions", _exit_actions, where) or (),
+        checkpoint=_optional(ctx, f, "checkpoint", parse_checkpoint, where) or (),
+        type=_optional(ctx, f, "type", read_str, f"'type' of {where}"),
+        params=_params(ctx, f.get("params"), where),
+        cache=_optional(ctx, f, "cache", read_bool, f"'cache' of {where}") is not False,
+        pos=node.pos,
+    )
+
+
+def _params(ctx: Ctx, node: Node | None, where: str) -> dict[str, Any]:
+    if node is None or read_map(ctx, node, f"'params' of {where}") is None:
+        return {}
+    return to_plain(node) if isinstance(node, Map) else {}

@@ -1,0 +1,26 @@
+"""What this release of osmo does not support yet: one table, so later work removes entries.
+
+Each key names a spec feature (``task.<field>``, ``inputs.<kind>``, ``outputs.<kind>``); its
+value is the message shown when a spec uses it. The parsers still read the feature's shape into
+the model where the model has room for it; validation then rejects it with this message.
+"""
+
+from __future__ import annotations
+
+__all__ = ["UNSUPPORTED"]
+
+_PLATFORM = "is not supported by osmo's process runtime; remove it"
+_KEPT = "results written under {{output}} are kept by osmo"
+
+UNSUPPORTED: dict[str, str] = {
+    "task.volumeMounts": f"'volumeMounts' {_PLATFORM}",
+    "task.privileged": f"'privileged' {_PLATFORM}",
+    "task.hostNetwork": f"'hostNetwork' {_PLATFORM}",
+    "task.checkpoint": "'checkpoint' is not supported yet; write checkpoints under {{output}}",
+    "task.type": "plugin task types ('type') are not supported yet; use 'command' instead",
+    "task.params": "'params' (of plugin task types) are not supported yet; remove them",
+    "inputs.url": "'url' inputs are not supported yet; download inside the command instead",
+    "inputs.dataset": "'dataset' inputs are not supported yet; use a task input instead",
+    "outputs.url": f"'url' outputs are not supported yet; {_KEPT}",
+    "outputs.dataset": f"'dataset' outputs are not supported yet; {_KEPT}",
+}

@@ -1,0 +1,288 @@
+"""Durable state in one SQLite file (WAL): workflows, tasks, attempts and the event log.
+
+The only module that imports ``sqlite3``; its errors become ``InfrastructureError``.
+
+Rows hold JSON payloads (``state``) beside the few columns that queries filter on, so the
+schema stays small and inspectable with the ``sqlite3`` shell. No pickle. One writer (the
+server's engine thread) commits each batch of scheduler changes in one transaction *before*
+the matching commands are executed; readers (API threads) use their own connections.
+
+Schema migrations are forward-only functions keyed by version in ``_MIGRATIONS``.
+"""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+import threading
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from osmo.errors import InfrastructureError
+from osmo.scheduler.types import Changes
+
+__all__ = ["AttemptRow", "Store", "WorkflowRow"]
+
+
+def _v1(db: sqlite3.Connection) -> None:
+    _run_script(
+        db,
+        """
+        CREATE TABLE workflows (
+            id TEXT PRIMARY KEY, name TEXT NOT NULL, n INTEGER NOT NULL,
+            status TEXT NOT NULL, submitted_at REAL NOT NULL,
+            spec TEXT NOT NULL, options TEXT NOT NULL, state TEXT NOT NULL,
+            UNIQUE(name, n));
+        CREATE INDEX workflows_status ON workflows(status);
+        CREATE TABLE tasks (
+            workflow_id TEXT NOT NULL, name TEXT NOT NULL, status TEXT NOT NULL,
+            state TEXT NOT NULL, PRIMARY KEY (workflow_id, name));
+        CREATE TABLE attempts (
+            id TEXT PRIMARY KEY, workflow_id TEXT NOT NULL, task TEXT NOT NULL,
+            retry INTEGER NOT NULL, node_id TEXT, dir TEXT, pid INTEGER, pid_start REAL);
+        CREATE INDEX attempts_task ON attempts(workflow_id, task);
+        CREATE TABLE events (
+            seq INTEGER PRIMARY KEY AUTOINCREMENT, at REAL NOT NULL, workflow_id TEXT NOT NULL,
+            task TEXT, retry INTEGER, status TEXT NOT NULL, message TEXT NOT NULL);
+        CREATE INDEX events_workflow ON events(workflow_id, seq);
+        """
+    )
+
+
+def _run_script(db: sqlite3.Connection, script: str) -> None:
+    """Run ``;``-separated DDL inside the caller's transaction (``executescript`` would commit)."""
+    for statement in script.split(";"):
+        if statement.strip():
+            db.execute(statement)
+
+
+_MIGRATIONS: dict[int, Callable[[sqlite3.Connection], None]] = {1: _v1}
+SCHEMA_VERSION = max(_MIGRATIONS)
+
+
+@dataclass(frozen=True)
+class WorkflowRow:
+    """A stored workflow: its state payload, the spec as a dict, and submit options."""
+
+    id: str
+    name: str
+    status: str
+    submitted_at: float
+    spec: dict[str, Any]
+    options: dict[str, Any]
+    state: dict[str, Any]
+
+
+@dataclass(frozen=True)
+class AttemptRow:
+    """Where an attempt ran and, for local attempts, which process to clean up after a crash."""
+
+    id: str
+    workflow_id: str
+    task: str
+    retry: int
+    node_id: str | None
+    dir: str | None
+    pid: int | None
+    pid_start: float | None
+
+
+class Store:
+    """The SQLite state store under ``OSMO_HOME``.
+
+    Args:
+        path: the database file; created (with parents) and migrated on open.
+    """
+
+    def __init__(self, path: Path) -> None:
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._local = threading.local()
+        with self._tx() as db:
+            self._migrate(db)
+
+    # -------------------------------------------------------------- connection plumbing
+
+    def _db(self) -> sqlite3.Connection:
+        db: sqlite3.Connection | None = getattr(self._local, "db", None)
+        if db is None:
+            try:
+                db = sqlite3.connect(self.path, timeout=30, isolation_level=None)
+                db.execute("PRAGMA journal_mode=WAL")
+                # NORMAL in WAL mode survives a process crash (kill -9); only power loss can
+                # lose the last commits, which is the usual trade for orchestrator state.
+                db.execute("PRAGMA synchronous=NORMAL")
+            except sqlite3.Error as exc:
+                raise InfrastructureError(f"cannot open state store {self.path}: {exc}") from exc
+            self._local.db = db
+        return db
+
+    @contextmanager
+    def _tx(self) -> Iterator[sqlite3.Connection]:
+        db = self._db()
+        try:
+            db.execute("BEGIN IMMEDIATE")
+            yield db
+            db.execute("COMMIT")
+        except sqlite3.Error as exc:
+            db.execute("ROLLBACK") if db.in_transaction else None
+            raise InfrastructureError(f"state store {self.path}: {exc}") from exc
+        except BaseException:
+            if db.in_transaction:
+                db.execute("ROLLBACK")
+            raise
+
+    def _read(self, sql: str, args: tuple[Any, ...] = ()) -> list[sqlite3.Row]:
+        db = self._db()
+        db.row_factory = sqlite3.Row
+        try:
+            return db.execute(sql, args).fetchall()
+        except sqlite3.Error as exc:
+            raise InfrastructureError(f"state store {self.path}: {exc}") from exc
+
+    def _migrate(self, db: sqlite3.Connection) -> None:
+        db.execute("CREATE TABLE IF NOT EXISTS schema_version (version INTEGER NOT NULL)")
+        row = db.execute("SELECT version FROM schema_version").fetchone()
+        current = row[0] if row else 0
+        if current > SCHEMA_VERSION:
+            raise InfrastructureError(
+                f"state store {self.path} has schema {current}, newer than this osmo "
+                f"({SCHEMA_VERSION}); upgrade osmo"
+            )
+        for version in range(current + 1, SCHEMA_VERSION + 1):
+            _MIGRATIONS[version](db)
+        if row is None:
+            db.execute("INSERT INTO schema_version VALUES (?)", (SCHEMA_VERSION,))
+        else:
+            db.execute("UPDATE schema_version SET version = ?", (SCHEMA_VERSION,))
+
+    def close(self) -> None:
+        """Close this thread's connection."""
+        db = getattr(self._local, "db", None)
+        if db is not None:
+            db.close()
+            self._local.db = None
+
+    # -------------------------------------------------------------- writes (engine thread)
+
+    def next_number(self, name: str) -> int:
+        """1 + the highest N used by a workflow called ``name`` (the id is ``name-N``)."""
+        rows = self._read("SELECT MAX(n) FROM workflows WHERE name = ?", (name,))
+        return int(rows[0][0] or 0) + 1
+
+    def commit(
+        self,
+        changes: Changes,
+        *,
+        new_workflows: list[tuple[str, str, int, float, dict[str, Any], dict[str, Any]]] = (),  # type: ignore[assignment]
+        attempts: list[AttemptRow] = (),  # type: ignore[assignment]
+    ) -> None:
+        """Write one batch atomically.
+
+        Args:
+            changes: scheduler snapshots and transitions.
+            new_workflows: ``(id, name, n, submitted_at, spec_dict, options)`` rows to create.
+            attempts: attempt rows to insert or replace (placement, pid).
+        """
+        with self._tx() as db:
+            for wf_id, name, n, at, spec, options in new_workflows:
+                db.execute(
+                    "INSERT INTO workflows VALUES (?,?,?,?,?,?,?,?)",
+                    (wf_id, name, n, "PENDING", at, json.dumps(spec), json.dumps(options), "{}"),
+                )
+            for wf in changes.workflows:
+                state = wf.to_dict()  # type: ignore[attr-defined]
+                db.execute(
+                    "UPDATE workflows SET status = ?, state = ? WHERE id = ?",
+                    (state["status"], json.dumps(state), state["id"]),
+                )
+            db.executemany(
+                "INSERT OR REPLACE INTO tasks VALUES (?,?,?,?)",
+                [
+                    (s["workflow_id"], s["name"], s["status"], json.dumps(s))
+                    for s in (t.to_dict() for t in changes.tasks)  # type: ignore[attr-defined]
+                ],
+            )
+            db.executemany(
+                "INSERT INTO events (at, workflow_id, task, retry, status, message) "
+                "VALUES (?,?,?,?,?,?)",
+                [
+                    (t.at, t.workflow_id, t.task, t.retry, t.status, t.message)
+                    for t in changes.transitions
+                ],
+            )
+            db.executemany(
+                "INSERT OR REPLACE INTO attempts VALUES (?,?,?,?,?,?,?,?)",
+                [
+                    (a.id, a.workflow_id, a.task, a.retry, a.node_id, a.dir, a.pid, a.pid_start)
+                    for a in attempts
+                ],
+            )
+
+    # -------------------------------------------------------------- reads (any thread)
+
+    def workflow(self, workflow_id: str) -> WorkflowRow | None:
+        """One workflow, or None."""
+        rows = self._read("SELECT * FROM workflows WHERE id = ?", (workflow_id,))
+        return _workflow_row(rows[0]) if rows else None
+
+    def workflows(
+        self,
+        *,
+        statuses: list[str] | None = None,
+        name: str | None = None,
+        limit: int | None = None,
+        active_only: bool = False,
+    ) -> list[WorkflowRow]:
+        """Workflows, newest first, filtered by status names and/or a name substring."""
+        sql, args = "SELECT * FROM workflows WHERE 1=1", []
+        if statuses:
+            sql += f" AND status IN ({','.join('?' * len(statuses))})"
+            args += statuses
+        if active_only:
+            sql += " AND status IN ('PENDING', 'RUNNING', 'WAITING')"
+        if name:
+            sql += " AND (name LIKE ? OR id LIKE ?)"
+            args += [f"%{name}%", f"%{name}%"]
+        sql += " ORDER BY submitted_at DESC, rowid DESC"
+        if limit:
+            sql += " LIMIT ?"
+            args.append(limit)
+        return [_workflow_row(r) for r in self._read(sql, tuple(args))]
+
+    def tasks(self, workflow_id: str) -> list[dict[str, Any]]:
+        """Task state payloads of a workflow (unordered)."""
+        rows = self._read("SELECT state FROM tasks WHERE workflow_id = ?", (workflow_id,))
+        return [json.loads(r[0]) for r in rows]
+
+    def transitions(self, workflow_id: str, after_seq: int = 0) -> list[dict[str, Any]]:
+        """The workflow's event log (status transitions), oldest first, with ``seq``."""
+        rows = self._read(
+            "SELECT * FROM events WHERE workflow_id = ? AND seq > ? ORDER BY seq",
+            (workflow_id, after_seq),
+        )
+        return [dict(r) for r in rows]
+
+    def attempts(self, workflow_id: str, task: str | None = None) -> list[AttemptRow]:
+        """Attempt rows of a workflow (optionally one task), by task then retry."""
+        sql, args = "SELECT * FROM attempts WHERE workflow_id = ?", [workflow_id]
+        if task is not None:
+            sql += " AND task = ?"
+            args.append(task)
+        rows = self._read(sql + " ORDER BY task, retry", tuple(args))
+        return [AttemptRow(**dict(r)) for r in rows]
+
+
+def _workflow_row(r: sqlite3.Row) -> WorkflowRow:
+    return WorkflowRow(
+        id=r["id"],
+        name=r["name"],
+        status=r["status"],
+        submitted_at=r["submitted_at"],
+        spec=json.loads(r["spec"]),
+        options=json.loads(r["options"]),
+        state=json.loads(r["state"]),
+    )

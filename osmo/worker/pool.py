@@ -1,0 +1,371 @@
+"""The local pool: runs attempts as host processes on this machine, within its capacity.
+
+``LocalPool`` turns the scheduler's commands into processes and reports what happened as
+events (``AttemptPrepared``, ``AttemptStarted``, ``AttemptExited``, ``AttemptStartFailed``)
+through ``emit``. Every ``prepare`` gets exactly one final report — ``AttemptStartFailed`` or
+``AttemptExited`` — whatever happens (kill before start, spawn failure, promotion failure).
+
+Threading: public methods may be called from any thread; they only queue work for the pool's
+single I/O thread (``osmo.worker.reactor``), which prepares folders, spawns, reads pipes,
+watches exits through pidfds, runs kill grace timers and calls ``emit``. So ``emit`` must be
+cheap (put the event on a queue). Attempt state lives on that thread only.
+
+Kill: ``SIGTERM`` to the attempt's process group, ``SIGKILL`` after ``kill_grace`` seconds.
+A killed attempt's outputs are never promoted; a prepared attempt killed before it started
+reports ``AttemptExited(exit_code=137)``. ``close()`` kills what still runs and reports
+nothing more (the server is shutting down; on restart those attempts are recovered from the
+store, see ``kill_stale``).
+
+The ``image`` field is recorded in the log and otherwise ignored by the process runtime.
+Creating a pool lifts the process's soft open-files limit (each running attempt holds four
+descriptors).
+"""
+
+from __future__ import annotations
+
+import collections
+import enum
+import glob
+import logging
+import os
+import resource
+import shutil
+import signal
+import threading
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from osmo.runtime.process import (
+    ProcessHandle,
+    ProcessRuntime,
+    Runtime,
+    StartError,
+    kill_stale,
+    process_start_time,
+)
+from osmo.scheduler.types import (
+    AttemptExited,
+    AttemptPrepared,
+    AttemptStarted,
+    AttemptStartFailed,
+    Capacity,
+    Event,
+    Node,
+    PrepareAttempt,
+)
+from osmo.spec.model import ExitAction, TaskSpec
+from osmo.worker.logs import LogWriter
+from osmo.worker.reactor import Reactor, Timer
+from osmo.worker.workdir import AttemptDirs, Launch, PrepareError, prepare, promote
+
+__all__ = ["LocalPool", "kill_stale", "process_start_time"]
+
+_log = logging.getLogger(__name__)
+
+KILLED_BEFORE_START = 128 + signal.SIGKILL
+_READ_SIZE = 65536
+_DRAIN_READS = 64  # at exit, read at most this many chunks more per pipe
+_REMEMBER_FINISHED = 4096  # finished ids kept to ignore late run()/kill() for them
+
+
+class _State(enum.Enum):
+    PREPARED = "prepared"
+    RUNNING = "running"
+    DONE = "done"
+
+
+@dataclass(eq=False)
+class _Attempt:
+    """One attempt's live state (reactor thread only)."""
+
+    id: str
+    task: TaskSpec
+    dirs: AttemptDirs
+    launch: Launch
+    log: LogWriter
+    state: _State = _State.PREPARED
+    handle: ProcessHandle | None = None
+    open_fds: set[int] = field(default_factory=set)
+    kill_reason: str | None = None
+    escalation: Timer | None = None
+
+
+def _image_note(image: str) -> str:
+    return f"image '{image}' recorded; the process runtime runs commands on the host"
+
+
+def _exit_note(code: int) -> str:
+    if code > 128 and code - 128 in signal.Signals._value2member_map_:
+        return f"exit code {code} ({signal.Signals(code - 128).name})"
+    return f"exit code {code}"
+
+
+class LocalPool:
+    """A resource-aware pool of host processes on this machine (see the module docstring).
+
+    Args:
+        home: osmo's home folder; attempts live under ``home/runs``.
+        emit: receives every event, on the pool's thread; must be cheap.
+        node_id: the node id this pool reports as.
+        pool: the pool name.
+        cpus, gpus, memory: capacity to advertise (default: what the machine has).
+        kill_grace: seconds between SIGTERM and SIGKILL when killing an attempt.
+        runtime: how commands run (default: ``ProcessRuntime``).
+        env: the base environment of every command (default: this process's environment).
+    """
+
+    def __init__(
+        self,
+        *,
+        home: Path,
+        emit: Callable[[Event], None],
+        node_id: str = "local",
+        pool: str = "local",
+        cpus: float | None = None,
+        gpus: int | None = None,
+        memory: int | None = None,
+        kill_grace: float = 3.0,
+        runtime: Runtime | None = None,
+        env: Mapping[str, str] | None = None,
+    ) -> None:
+        self.home = Path(home).absolute()
+        self.home.mkdir(parents=True, exist_ok=True)
+        _raise_fd_limit()
+        self._emit = emit
+        self._node_id, self._pool = node_id, pool
+        self._cpus, self._gpus, self._memory = cpus, gpus, memory
+        self._grace = kill_grace
+        self._runtime: Runtime = runtime or ProcessRuntime()
+        self._env = dict(os.environ if env is None else env)
+        self._attempts: dict[str, _Attempt] = {}
+        self._finished: collections.OrderedDict[str, None] = collections.OrderedDict()
+        self._pids: dict[str, int] = {}
+        self._pids_lock = threading.Lock()
+        self._reactor = Reactor(f"osmo-pool-{pool}")
+
+    # -------------------------------------------------------------- public (any thread)
+
+    def node(self) -> Node:
+        """This machine as a scheduler node, with its (or the configured) capacity."""
+        capacity = Capacity(
+            cpu=float(self._cpus if self._cpus is not None else os.cpu_count() or 1),
+            gpu=self._gpus if self._gpus is not None else len(glob.glob("/dev/nvidia[0-9]*")),
+            memory=self._memory if self._memory is not None else _mem_total(),
+            storage=shutil.disk_usage(self.home).free,
+        )
+        return Node(id=self._node_id, pool=self._pool, capacity=capacity)
+
+    def prepare(self, cmd: PrepareAttempt, task: TaskSpec) -> None:
+        """Prepare an attempt's folder; later emits AttemptPrepared or AttemptStartFailed."""
+        self._reactor.call_soon(self._prepare, cmd, task)
+
+    def run(self, attempt_id: str) -> None:
+        """Start a prepared attempt: AttemptStarted, then one AttemptExited.
+
+        AttemptStartFailed instead if the command cannot be spawned.
+        """
+        self._reactor.call_soon(self._run, attempt_id)
+
+    def kill(self, attempt_id: str, reason: str) -> None:
+        """Kill an attempt's process group (SIGTERM, SIGKILL after the grace period)."""
+        self._reactor.call_soon(self._kill, attempt_id, reason)
+
+    def attempt_dir(self, attempt_id: str) -> Path | None:
+        """The folder of an attempt (live or finished on this node), or None."""
+        attempt = self._attempts.get(attempt_id)
+        if attempt is not None:
+            return attempt.dirs.root
+        parts = attempt_id.rsplit(":", 2)
+        if len(parts) != 3 or not parts[2].isdigit():
+            return None
+        try:
+            root = AttemptDirs.at(self.home, parts[0], parts[1], int(parts[2])).root
+        except PrepareError:
+            return None
+        return root if root.is_dir() else None
+
+    def running(self) -> dict[str, int]:
+        """Map attempt id → pid (= process group id) of every running attempt."""
+        with self._pids_lock:
+            return dict(self._pids)
+
+    def close(self) -> None:
+        """Kill every running process group and stop the I/O thread (no more events)."""
+        self._reactor.stop(self._shutdown)
+
+    # -------------------------------------------------------------- reactor thread
+
+    def _prepare(self, cmd: PrepareAttempt, task: TaskSpec) -> None:
+        if cmd.attempt_id in self._attempts:
+            _log.warning("attempt %s is already active; prepare ignored", cmd.attempt_id)
+            return
+        self._finished.pop(cmd.attempt_id, None)
+        try:
+            dirs = AttemptDirs.at(self.home, cmd.workflow_id, cmd.task, cmd.retry)
+            launch = prepare(dirs, cmd, task, self._env)
+        except Exception as exc:  # every prepare must get its one final report
+            message = str(exc) if isinstance(exc, PrepareError) else f"cannot prepare: {exc!r}"
+            self._remember(cmd.attempt_id)
+            self._emit(AttemptStartFailed(cmd.attempt_id, message))
+            return
+        attempt = _Attempt(cmd.attempt_id, task, dirs, launch, LogWriter(dirs.log))
+        if task.image:
+            attempt.log.line("osmo", _image_note(task.image))
+        self._attempts[attempt.id] = attempt
+        self._emit(AttemptPrepared(attempt.id))
+
+    def _run(self, attempt_id: str) -> None:
+        attempt = self._attempts.get(attempt_id)
+        if attempt is None:
+            if attempt_id not in self._finished:
+                self._remember(attempt_id)
+                self._emit(AttemptStartFailed(attempt_id, "attempt was not prepared here"))
+            return
+        if attempt.state is not _State.PREPARED:
+            return
+        launch = attempt.launch
+        try:
+            handle = self._runtime.start(launch.argv, cwd=launch.cwd, env=launch.env)
+        except (StartError, OSError) as exc:
+            attempt.log.line("osmo", f"start failed: {exc}")
+            self._finish(attempt, AttemptStartFailed(attempt_id, str(exc)))
+            return
+        self._watch(attempt, handle)
+        self._emit(AttemptStarted(attempt_id))
+
+    def _watch(self, attempt: _Attempt, handle: ProcessHandle) -> None:
+        attempt.handle, attempt.state = handle, _State.RUNNING
+        with self._pids_lock:
+            self._pids[attempt.id] = handle.pid
+        for fd, stream in ((handle.stdout_fd, "stdout"), (handle.stderr_fd, "stderr")):
+            attempt.open_fds.add(fd)
+            self._reactor.add_reader(fd, lambda a=attempt, f=fd, s=stream: self._read(a, f, s))
+        self._reactor.add_reader(handle.exit_fd, lambda a=attempt: self._exited(a))
+
+    def _kill(self, attempt_id: str, reason: str) -> None:
+        attempt = self._attempts.get(attempt_id)
+        if attempt is None or attempt.kill_reason is not None:
+            return
+        attempt.kill_reason = reason
+        attempt.log.line("osmo", f"killed: {reason}")
+        if attempt.state is _State.PREPARED:
+            event = AttemptExited(attempt_id, KILLED_BEFORE_START, None, f"killed: {reason}")
+            self._finish(attempt, event)
+        elif attempt.handle is not None:
+            self._runtime.kill(attempt.handle)
+            attempt.escalation = self._reactor.call_later(self._grace, self._escalate, attempt)
+
+    def _escalate(self, attempt: _Attempt) -> None:
+        if attempt.state is _State.RUNNING and attempt.handle is not None:
+            attempt.log.line("osmo", f"still running {self._grace:g}s after SIGTERM: SIGKILL")
+            self._runtime.kill(attempt.handle, force=True)
+
+    def _read(self, attempt: _Attempt, fd: int, stream: str) -> bool:
+        """Log one chunk from a pipe; False when nothing was there (closed at EOF)."""
+        if fd not in attempt.open_fds:
+            return False
+        try:
+            data = os.read(fd, _READ_SIZE)
+        except BlockingIOError:
+            return False
+        if data:
+            attempt.log.write(stream, data)
+        else:
+            self._unwatch(attempt, fd)
+        return bool(data)
+
+    def _unwatch(self, attempt: _Attempt, fd: int) -> None:
+        attempt.open_fds.discard(fd)
+        self._reactor.remove_reader(fd)
+
+    def _drain(self, attempt: _Attempt, handle: ProcessHandle) -> None:
+        """Read what the pipes still hold, then stop watching them.
+
+        Bounded: a process that escaped the group (``setsid``) and keeps writing to an
+        inherited pipe is not waited for.
+        """
+        for fd, stream in ((handle.stdout_fd, "stdout"), (handle.stderr_fd, "stderr")):
+            for _ in range(_DRAIN_READS):
+                if not self._read(attempt, fd, stream):
+                    break
+            self._unwatch(attempt, fd)
+
+    def _exited(self, attempt: _Attempt) -> None:
+        handle = attempt.handle
+        assert handle is not None
+        self._reactor.remove_reader(handle.exit_fd)
+        code = self._runtime.reap(handle)
+        self._drain(attempt, handle)
+        self._runtime.release(handle)
+        if attempt.escalation is not None:
+            attempt.escalation.cancel()
+        attempt.log.flush_partial()
+        attempt.log.line("osmo", _exit_note(code))
+        self._finish(attempt, self._exit_report(attempt, code))
+
+    def _exit_report(self, attempt: _Attempt, code: int) -> AttemptExited:
+        if attempt.kill_reason is not None:
+            return AttemptExited(attempt.id, code, None, f"killed: {attempt.kill_reason}")
+        if attempt.task.exit_action(code) is not ExitAction.COMPLETE:
+            return AttemptExited(attempt.id, code)
+        try:
+            return AttemptExited(attempt.id, code, promote(attempt.dirs))
+        except OSError as exc:
+            message = f"outputs could not be promoted: {exc}"
+            attempt.log.line("osmo", message)
+            return AttemptExited(attempt.id, code, None, message)
+
+    def _finish(self, attempt: _Attempt, event: AttemptExited | AttemptStartFailed) -> None:
+        attempt.state = _State.DONE
+        attempt.log.close()
+        self._attempts.pop(attempt.id, None)
+        with self._pids_lock:
+            self._pids.pop(attempt.id, None)
+        self._remember(attempt.id)
+        self._emit(event)
+
+    def _remember(self, attempt_id: str) -> None:
+        self._finished[attempt_id] = None
+        while len(self._finished) > _REMEMBER_FINISHED:
+            self._finished.popitem(last=False)
+
+    def _shutdown(self) -> None:
+        for attempt in list(self._attempts.values()):
+            handle = attempt.handle
+            if attempt.state is _State.RUNNING and handle is not None:
+                attempt.log.line("osmo", "killed: pool closed")
+                self._runtime.kill(handle, force=True)
+                self._runtime.reap(handle)
+                self._runtime.release(handle)
+            attempt.log.close()
+        self._attempts.clear()
+        with self._pids_lock:
+            self._pids.clear()
+
+
+def _raise_fd_limit(wanted: int = 65536) -> None:
+    """Lift this process's soft open-files limit toward the hard one.
+
+    Each running attempt holds four descriptors (two pipes, a pidfd, its log), so the usual
+    soft limit of 1024 would cap the pool near 250 concurrent attempts.
+    """
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    target = wanted if hard == resource.RLIM_INFINITY else min(wanted, hard)
+    if soft != resource.RLIM_INFINITY and soft < target:
+        try:
+            resource.setrlimit(resource.RLIMIT_NOFILE, (target, hard))
+        except (ValueError, OSError):
+            pass  # keep the limit we have; starts then fail with a clear message
+
+
+def _mem_total() -> int:
+    """MemTotal from /proc/meminfo, in bytes (0 if unknown)."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemTotal:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return 0

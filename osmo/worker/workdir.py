@@ -1,0 +1,273 @@
+"""An attempt's private folder: its layout, its preparation, and output promotion.
+
+Layout, one folder per attempt::
+
+    <home>/runs/<workflow_id>/<task>/<retry>/
+        work/            the command's working folder (cwd)
+        files/           private root for absolute ``files:`` paths (``OSMO_FILES_ROOT``)
+        output.partial/  what ``{{output}}`` and ``OSMO_OUTPUT`` point to while running
+        output/          the same folder after promotion (success only)
+        log.txt          the attempt's log records (see ``osmo.worker.logs``)
+
+File mapping — how two parallel tasks that both declare ``/tmp/run.sh`` never see each
+other's file, without containers:
+
+- a declared absolute path ``/a/b`` is written to ``files/a/b``; a relative path ``p`` to
+  ``work/p`` (a relative path may not leave ``work/``);
+- every occurrence of a declared absolute path in the command, the args, the environment
+  values and the contents of the declared (text) files is rewritten to its private location.
+  An occurrence counts only as a whole path: not preceded by a word character, ``.``, ``-``
+  or ``/``, and not followed by a word character, ``.`` or ``-`` (so ``/tmp/run`` does not
+  rewrite ``/tmp/run.sh`` nor ``/x/tmp/run``). Paths built at run time (``$DIR/run.sh``)
+  are not rewritten: use ``$OSMO_FILES_ROOT``;
+- ``files[].path`` is taken literally (tokens are not substituted in it);
+- base64 files are decoded and written as they are (no rewriting, no tokens); a file whose
+  content starts with ``#!`` is made executable (0o755), any other is 0o644.
+
+Tokens (``osmo.spec.tokens``), substituted after the rewriting, in command, args, environment
+values and text file contents: ``{{output}}`` → ``output.partial``; ``{{input:N}}`` → the
+output reference of the N-th ``inputs:`` entry; ``{{input:NAME}}`` → upstream task NAME's
+output reference; ``{{workflow_id}}``; ``{{host:NAME}}`` → the address of group member NAME;
+``{{uuid}}`` → one random uuid4 hex per attempt. An unknown token fails the preparation.
+
+Environment: the server's environment, then the task's ``environment`` (tokens substituted),
+then osmo's own variables, which a task cannot override: ``OSMO_WORKFLOW_ID``, ``OSMO_TASK``,
+``OSMO_RETRY``, ``OSMO_OUTPUT``, ``OSMO_FILES_ROOT``.
+
+Promotion: after a COMPLETE exit of an attempt that was not killed, ``output.partial`` is
+renamed to ``output`` (atomic) and the attempt folder is fsynced; the output reference is the
+absolute path of ``output``. A failed or killed attempt's ``output.partial`` stays where
+nobody references it.
+
+This module does file-system work only; it spawns nothing and reports nothing.
+"""
+
+from __future__ import annotations
+
+import base64
+import binascii
+import os
+import posixpath
+import re
+import shutil
+import uuid
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+from osmo.errors import OsmoError
+from osmo.scheduler.types import PrepareAttempt
+from osmo.spec.model import InputSpec, TaskSpec
+from osmo.spec.tokens import substitute
+
+__all__ = ["AttemptDirs", "Launch", "PrepareError", "prepare", "promote"]
+
+
+class PrepareError(OsmoError):
+    """An attempt's folder, files or tokens could not be prepared (message says which)."""
+
+
+@dataclass(frozen=True)
+class AttemptDirs:
+    """The paths of one attempt's folder (see the module docstring for the layout)."""
+
+    root: Path
+
+    @classmethod
+    def at(cls, home: Path, workflow_id: str, task: str, retry: int) -> AttemptDirs:
+        """The folder of retry ``retry`` of ``task`` in ``workflow_id`` under ``home``."""
+        for name in (workflow_id, task):
+            if not name or "/" in name or name in (".", ".."):
+                raise PrepareError(f"unusable name for a folder: {name!r}")
+        return cls(Path(home).absolute() / "runs" / workflow_id / task / str(retry))
+
+    @property
+    def work(self) -> Path:
+        """The command's working folder."""
+        return self.root / "work"
+
+    @property
+    def files(self) -> Path:
+        """Private root of absolute ``files:`` paths."""
+        return self.root / "files"
+
+    @property
+    def output_partial(self) -> Path:
+        """The output folder while the command runs."""
+        return self.root / "output.partial"
+
+    @property
+    def output(self) -> Path:
+        """The output folder after promotion."""
+        return self.root / "output"
+
+    @property
+    def log(self) -> Path:
+        """The attempt's log file."""
+        return self.root / "log.txt"
+
+
+@dataclass(frozen=True)
+class Launch:
+    """What to run for a prepared attempt: argv, working folder and complete environment."""
+
+    argv: tuple[str, ...]
+    cwd: Path
+    env: dict[str, str]
+
+
+def prepare(
+    dirs: AttemptDirs, cmd: PrepareAttempt, task: TaskSpec, base_env: Mapping[str, str]
+) -> Launch:
+    """Create the attempt's folder, write its files and resolve its command.
+
+    Raises:
+        PrepareError: a token cannot be resolved, a file path is unusable, or the folder
+            cannot be written (the message names the path).
+    """
+    if not task.command:
+        raise PrepareError(f"task '{task.name}' has no command to run")
+    mapping = _file_mapping(dirs, task)
+    rewrite = _rewriter(mapping)
+    resolve = _resolver(dirs, cmd, task)
+
+    def text(value: str) -> str:
+        return substitute(rewrite(value), resolve)
+
+    argv = tuple(text(word) for word in (*task.command, *task.args))
+    env = dict(base_env)
+    env.update({key: text(str(value)) for key, value in task.environment.items()})
+    env.update(_osmo_env(dirs, cmd))
+    try:
+        _make_folders(dirs)
+        _write_files(mapping, task, text)
+    except OSError as exc:
+        raise PrepareError(f"cannot prepare {exc.filename or dirs.root}: {exc.strerror}") from exc
+    return Launch(argv, dirs.work, env)
+
+
+def promote(dirs: AttemptDirs) -> str:
+    """Rename ``output.partial`` to ``output`` and make the rename durable.
+
+    Returns:
+        the output reference (absolute path of ``output``).
+
+    Raises:
+        OSError: the rename or the fsync failed.
+    """
+    os.rename(dirs.output_partial, dirs.output)
+    fd = os.open(dirs.root, os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+    return str(dirs.output)
+
+
+# ---------------------------------------------------------------- helpers
+
+
+def _osmo_env(dirs: AttemptDirs, cmd: PrepareAttempt) -> dict[str, str]:
+    return {
+        "OSMO_WORKFLOW_ID": cmd.workflow_id,
+        "OSMO_TASK": cmd.task,
+        "OSMO_RETRY": str(cmd.retry),
+        "OSMO_OUTPUT": str(dirs.output_partial),
+        "OSMO_FILES_ROOT": str(dirs.files),
+    }
+
+
+def _make_folders(dirs: AttemptDirs) -> None:
+    if dirs.root.exists():  # the same attempt prepared again (e.g. after a server restart)
+        shutil.rmtree(dirs.root)
+    dirs.root.parent.mkdir(parents=True, exist_ok=True)
+    dirs.root.mkdir()
+    for folder in (dirs.work, dirs.files, dirs.output_partial):
+        folder.mkdir()
+
+
+def _file_mapping(dirs: AttemptDirs, task: TaskSpec) -> dict[str, Path]:
+    """Declared path → private location, for every file of the task."""
+    mapping: dict[str, Path] = {}
+    for spec in task.files:
+        normal = posixpath.normpath(spec.path)
+        if not spec.path or normal == "/":
+            raise PrepareError(f"file path {spec.path!r} names no file")
+        if normal.startswith("/"):
+            mapping[spec.path] = dirs.files / normal.lstrip("/")
+        elif normal == ".." or normal.startswith("../"):
+            raise PrepareError(f"file path {spec.path!r} leaves the working folder")
+        else:
+            mapping[spec.path] = dirs.work / normal
+    return mapping
+
+
+def _rewriter(mapping: Mapping[str, Path]) -> Callable[[str], str]:
+    """A function that rewrites whole occurrences of declared absolute paths."""
+    absolute = {p: str(target) for p, target in mapping.items() if p.startswith("/")}
+    if not absolute:
+        return lambda value: value
+    alternatives = "|".join(re.escape(p) for p in sorted(absolute, key=len, reverse=True))
+    pattern = re.compile(rf"(?<![\w./-])(?:{alternatives})(?![\w.-])")
+    return lambda value: pattern.sub(lambda m: absolute[m.group(0)], value)
+
+
+def _write_files(mapping: Mapping[str, Path], task: TaskSpec, text: Callable[[str], str]) -> None:
+    for spec in task.files:
+        data = _decode(spec.contents, spec.path) if spec.base64 else text(spec.contents).encode()
+        target = mapping[spec.path]
+        target.parent.mkdir(parents=True, exist_ok=True)
+        mode = 0o755 if data.startswith(b"#!") else 0o644
+        fd = os.open(target, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_CLOEXEC, mode)
+        try:
+            os.write(fd, data)
+            os.fchmod(fd, mode)  # the umask must not strip the executable bit
+        finally:
+            os.close(fd)
+
+
+def _decode(contents: str, path: str) -> bytes:
+    try:
+        return base64.b64decode(contents, validate=False)
+    except (binascii.Error, ValueError) as exc:
+        raise PrepareError(f"file {path!r}: invalid base64 contents ({exc})") from exc
+
+
+def _input_ref(index: int, spec: InputSpec, inputs: Mapping[str, str]) -> str | None:
+    """The reference of one ``inputs:`` entry, looked up by its most specific key."""
+    keys: list[str | None]
+    if spec.task is not None:
+        keys = [f"{spec.workflow}:{spec.task}" if spec.workflow else None, spec.task]
+    else:
+        keys = [spec.url, spec.dataset]
+    for key in [*keys, str(index)]:
+        if key is not None and key in inputs:
+            return inputs[key]
+    return None
+
+
+def _resolver(dirs: AttemptDirs, cmd: PrepareAttempt, task: TaskSpec) -> Callable[[str], str]:
+    attempt_uuid = uuid.uuid4().hex
+
+    def resolve(token: str) -> str:
+        kind, _, arg = token.partition(":")
+        value: str | None = None
+        if kind == "output":
+            value = str(dirs.output_partial)
+        elif kind == "workflow_id":
+            value = cmd.workflow_id
+        elif kind == "uuid":
+            value = attempt_uuid
+        elif kind == "host":
+            value = cmd.hosts.get(arg)
+        elif kind == "input" and arg.isdigit():
+            index = int(arg)
+            if index < len(task.inputs):
+                value = _input_ref(index, task.inputs[index], cmd.inputs)
+        elif kind == "input":
+            value = cmd.inputs.get(arg)
+        if value is None:
+            raise PrepareError(f"task '{task.name}': cannot resolve {{{{{token}}}}}")
+        return value
+
+    return resolve

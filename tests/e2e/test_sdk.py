@@ -1,0 +1,71 @@
+"""The Python SDK end to end: builder → Client.submit → wait → logs, against a real server."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+import osmo
+from tests.conftest import Osmo
+
+
+def test_builder_submit_wait_and_logs(shared_osmo: Osmo) -> None:
+    wf = osmo.Workflow("sdk-chain")
+    wf.task("make", ["sh", "-c", "echo 20 > {{output}}/n; echo made"])
+    wf.task("double", ["sh", "-c", "echo $(( $(cat {{input:make}}/n) * 2 ))"], inputs=["make"])
+    with osmo.Client(home=shared_osmo.home) as client:
+        wf_id = client.submit(wf)
+        result = client.wait(wf_id, timeout=120)
+        assert result.ok and result.status is osmo.WorkflowStatus.COMPLETED
+        assert [t.name for t in result.tasks] == ["make", "double"]
+        assert all(t.exit_code == 0 and t.duration is not None for t in result.tasks)
+        texts = [r.text for r in client.logs(wf_id, task="double") if r.stream == "stdout"]
+        assert texts == ["40"]
+        assert wf_id in [w.id for w in client.list(name="sdk-chain")]
+
+
+def test_submit_dict_and_failure_result(shared_osmo: Osmo) -> None:
+    spec = {"workflow": {"name": "sdk-dict", "tasks": [
+        {"name": "bad", "command": ["sh", "-c", "echo oops >&2; exit 5"]}]}}
+    with osmo.Client(home=shared_osmo.home) as client:
+        result = client.wait(client.submit(spec), timeout=120)
+        assert not result.ok and result.status is osmo.WorkflowStatus.FAILED
+        assert result.task("bad").exit_code == 5
+        assert result.task("bad").status is osmo.TaskStatus.FAILED
+
+
+def test_invalid_builder_raises_spec_error(shared_osmo: Osmo) -> None:
+    wf = osmo.Workflow("sdk-bad")
+    wf.task("a", ["true"], inputs=["missing"])
+    with osmo.Client(home=shared_osmo.home) as client, pytest.raises(osmo.SpecError) as err:
+        client.submit(wf)
+    assert "missing" in str(err.value)
+    assert isinstance(err.value, osmo.OsmoError)
+
+
+def test_unknown_workflow_is_not_found(shared_osmo: Osmo) -> None:
+    with osmo.Client(home=shared_osmo.home) as client, pytest.raises(osmo.NotFoundError):
+        client.get("nothing-1")
+
+
+def test_public_api_is_curated() -> None:
+    exported = set(osmo.__all__)
+    assert {"Client", "Workflow", "load_spec", "OsmoError", "SpecError", "WorkflowStatus",
+            "TaskStatus"} <= exported
+    for name in exported:
+        assert getattr(osmo, name) is not None
+    errors = [getattr(osmo, n) for n in exported
+              if isinstance(getattr(osmo, n), type) and issubclass(getattr(osmo, n), Exception)]
+    assert errors and all(issubclass(e, osmo.OsmoError) for e in errors)
+
+
+def test_import_osmo_is_light() -> None:
+    import subprocess
+    import sys
+
+    code = ("import sys, osmo; heavy = [m for m in ('zenoh', 'rich', 'jinja2', 'sqlite3', "
+            "'mujoco', 'torch', 'lerobot') if m in sys.modules]; print(heavy)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True, cwd=Path(__file__).parents[2]).stdout.strip()
+    assert out == "[]"

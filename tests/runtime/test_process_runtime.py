@@ -1,0 +1,243 @@
+"""The process runtime with real processes: spawn, exit codes, group kill, stale clean-up."""
+
+from __future__ import annotations
+
+import os
+import select
+import signal
+import subprocess
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import pytest
+
+from osmo.runtime import (
+    ProcessHandle,
+    ProcessRuntime,
+    StartError,
+    exit_code_of,
+    kill_stale,
+    process_start_time,
+)
+
+TIMEOUT = 30.0
+
+
+def alive(pid: int) -> bool:
+    """True if ``pid`` exists and is not a zombie (orphans may wait for a lazy init)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            state = f.read().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state not in ("Z", "X")
+
+
+def wait_until(condition: Callable[[], bool], timeout: float = TIMEOUT) -> None:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        assert time.monotonic() < deadline, "condition not met in time"
+        time.sleep(0.01)
+
+
+def wait_exit(handle: ProcessHandle) -> None:
+    readable, _, _ = select.select([handle.exit_fd], [], [], TIMEOUT)
+    assert readable, "process did not exit in time"
+
+
+def read_all(fd: int) -> bytes:
+    chunks: list[bytes] = []
+    while True:
+        readable, _, _ = select.select([fd], [], [], TIMEOUT)
+        assert readable
+        data = os.read(fd, 65536)
+        if not data:
+            return b"".join(chunks)
+        chunks.append(data)
+
+
+@pytest.fixture
+def runtime() -> Iterator[ProcessRuntime]:
+    yield ProcessRuntime()
+
+
+def start(runtime: ProcessRuntime, script: str, cwd: Path) -> ProcessHandle:
+    return runtime.start(["sh", "-c", script], cwd=cwd, env={"PATH": os.environ["PATH"]})
+
+
+@pytest.mark.parametrize(
+    ("script", "code"),
+    [("true", 0), ("exit 3", 3), ("exit 255", 255), ("kill -TERM $$", 143), ("kill -KILL $$", 137)],
+)
+def test_exit_codes_are_normalised(
+    runtime: ProcessRuntime, tmp_path: Path, script: str, code: int
+) -> None:
+    handle = start(runtime, script, tmp_path)
+    wait_exit(handle)
+    assert runtime.reap(handle) == code
+    runtime.release(handle)
+
+
+def test_exit_code_of() -> None:
+    assert exit_code_of(0) == 0
+    assert exit_code_of(-9) == 137
+    assert exit_code_of(2) == 2
+
+
+def test_cwd_env_and_pipes(runtime: ProcessRuntime, tmp_path: Path) -> None:
+    handle = runtime.start(
+        ["sh", "-c", 'pwd; echo "$ONLY"; echo err >&2'],
+        cwd=tmp_path,
+        env={"PATH": os.environ["PATH"], "ONLY": "this"},
+    )
+    out, err = read_all(handle.stdout_fd), read_all(handle.stderr_fd)
+    wait_exit(handle)
+    assert runtime.reap(handle) == 0
+    runtime.release(handle)
+    assert out.decode().splitlines() == [str(tmp_path), "this"]
+    assert err == b"err\n"
+
+
+def test_runs_in_its_own_process_group(runtime: ProcessRuntime, tmp_path: Path) -> None:
+    handle = start(runtime, "sleep 100", tmp_path)
+    try:
+        assert os.getpgid(handle.pid) == handle.pid
+        assert os.getsid(handle.pid) == handle.pid
+    finally:
+        runtime.kill(handle, force=True)
+        wait_exit(handle)
+        runtime.reap(handle)
+        runtime.release(handle)
+
+
+def test_kill_reaches_grandchildren(runtime: ProcessRuntime, tmp_path: Path) -> None:
+    handle = start(runtime, "sleep 100 & echo $!; sleep 100", tmp_path)
+    line = b""
+    while not line.endswith(b"\n"):
+        select.select([handle.stdout_fd], [], [], TIMEOUT)
+        line += os.read(handle.stdout_fd, 100)
+    grandchild = int(line)
+    assert alive(grandchild)
+    runtime.kill(handle)
+    wait_exit(handle)
+    assert runtime.reap(handle) == 128 + signal.SIGTERM
+    runtime.release(handle)
+    wait_until(lambda: not alive(grandchild))
+
+
+def test_reap_kills_leftover_background_children(runtime: ProcessRuntime, tmp_path: Path) -> None:
+    pid_file = tmp_path / "bg.pid"
+    handle = start(runtime, f"sleep 100 & echo $! > {pid_file}", tmp_path)
+    wait_exit(handle)
+    assert runtime.reap(handle) == 0
+    runtime.release(handle)
+    wait_until(lambda: not alive(int(pid_file.read_text())))
+
+
+def test_kill_after_reap_is_harmless(runtime: ProcessRuntime, tmp_path: Path) -> None:
+    handle = start(runtime, "true", tmp_path)
+    wait_exit(handle)
+    runtime.reap(handle)
+    runtime.kill(handle, force=True)
+    runtime.release(handle)
+    runtime.release(handle)
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["no-such-command-osmo"], "command not found: 'no-such-command-osmo'"),
+        (["/no/such/path/tool"], "command not found: '/no/such/path/tool'"),
+        ([], "empty command"),
+    ],
+)
+def test_start_errors(
+    runtime: ProcessRuntime, tmp_path: Path, argv: list[str], message: str
+) -> None:
+    with pytest.raises(StartError) as info:
+        runtime.start(argv, cwd=tmp_path, env={"PATH": os.environ["PATH"]})
+    assert str(info.value) == message
+
+
+def test_start_error_not_executable(runtime: ProcessRuntime, tmp_path: Path) -> None:
+    script = tmp_path / "script.sh"
+    script.write_text("#!/bin/sh\ntrue\n")
+    script.chmod(0o644)
+    with pytest.raises(StartError, match="not executable"):
+        runtime.start([str(script)], cwd=tmp_path, env={})
+
+
+def test_start_error_missing_cwd(runtime: ProcessRuntime, tmp_path: Path) -> None:
+    with pytest.raises(StartError, match="working folder not found"):
+        runtime.start(["true"], cwd=tmp_path / "gone", env={"PATH": os.environ["PATH"]})
+
+
+# ---------------------------------------------------------------- stale clean-up
+
+
+def spawn_group(script: str) -> subprocess.Popen[bytes]:
+    return subprocess.Popen(["sh", "-c", script], start_new_session=True, stdout=subprocess.PIPE)
+
+
+def test_process_start_time_is_stable() -> None:
+    proc = spawn_group("sleep 100")
+    try:
+        first = process_start_time(proc.pid)
+        assert first is not None
+        assert abs(first - time.time()) < 3600
+        assert process_start_time(proc.pid) == first
+    finally:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+        assert proc.stdout is not None
+        proc.stdout.close()
+    assert process_start_time(proc.pid) is None
+
+
+def test_kill_stale_refuses_a_different_process() -> None:
+    proc = spawn_group("sleep 100")
+    try:
+        started = process_start_time(proc.pid)
+        assert started is not None
+        assert not kill_stale(proc.pid, started - 1000)
+        assert alive(proc.pid)
+    finally:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+        assert proc.stdout is not None
+        proc.stdout.close()
+
+
+def test_kill_stale_kills_the_same_group_with_grandchildren() -> None:
+    proc = spawn_group("sleep 100 & echo $!; sleep 100")
+    assert proc.stdout is not None
+    grandchild = int(proc.stdout.readline())
+    started = process_start_time(proc.pid)
+    assert started is not None
+    assert kill_stale(proc.pid, started)
+    assert proc.wait() == -signal.SIGKILL
+    proc.stdout.close()
+    wait_until(lambda: not alive(grandchild))
+
+
+def test_kill_stale_kills_orphans_of_a_dead_leader() -> None:
+    proc = spawn_group("sleep 100 & echo $!")
+    assert proc.stdout is not None
+    grandchild = int(proc.stdout.readline())
+    started = process_start_time(proc.pid)
+    assert started is not None
+    assert proc.wait() == 0  # the leader is gone; its background child keeps the group
+    proc.stdout.close()
+    assert alive(grandchild)
+    assert kill_stale(proc.pid, started)
+    wait_until(lambda: not alive(grandchild))
+
+
+def test_kill_stale_of_a_gone_group_is_false() -> None:
+    proc = spawn_group("true")
+    started = process_start_time(proc.pid) or time.time()
+    proc.wait()
+    assert proc.stdout is not None
+    proc.stdout.close()
+    assert not kill_stale(proc.pid, started)

@@ -1,0 +1,134 @@
+"""Attempt reports: exit actions and retry caps, lost attempts, fencing."""
+
+from __future__ import annotations
+
+import pytest
+
+from osmo.scheduler import (
+    AttemptExited,
+    AttemptLost,
+    AttemptPrepared,
+    AttemptStarted,
+    NodeUp,
+    PrepareAttempt,
+)
+from osmo.status import ExitCode
+
+from .sim import Sim, node, play, task, workflow
+
+RETRY_ON_3 = [("RESCHEDULE", [(3, 3)]), ("COMPLETE", [(0, 0), (10, 10)])]
+
+
+@pytest.mark.parametrize(("codes", "max_retries", "status", "retry", "exit_code", "message"), [
+    ([0], 3, "COMPLETED", 0, 0, ""),
+    ([10], 3, "COMPLETED", 0, 10, ""),  # a COMPLETE rule on a non-zero code
+    ([1], 3, "FAILED", 0, 1, "exit code 1"),
+    ([3, 0], 3, "COMPLETED", 1, 0, ""),
+    ([3, 3, 3, 0], 3, "COMPLETED", 3, 0, ""),
+    ([3, 3, 3, 3], 3, "FAILED", 3, 3, "exit code 3: retry cap 3 reached"),
+    ([3], 0, "FAILED", 0, 3, "exit code 3: retry cap 0 reached"),
+    ([3, 1], 3, "FAILED", 1, 1, "exit code 1"),
+])
+def test_exit_actions_and_retry_cap(codes: list[int], max_retries: int, status: str,
+                                    retry: int, exit_code: int, message: str) -> None:
+    sim = Sim()
+    sim.submit(workflow(task("t", rules=RETRY_ON_3)), max_retries=max_retries)
+    for code in codes:
+        play(sim, f"run t={code}")
+    t = sim.task("t")
+    assert (t.status.name, t.retry, t.exit_code, t.message) == (
+        status, retry, exit_code, message)
+    assert t.user_retries == retry and t.lost_retries == 0
+    assert sim.wf() == status
+
+
+def test_reschedule_logs_both_retries_and_uses_a_new_attempt_id() -> None:
+    sim = Sim()
+    sim.submit(workflow(task("t", rules=RETRY_ON_3)))
+    emitted = play(sim, "run t=3")
+    assert [(t.status, t.retry) for t in sim.transitions if t.task == "t"][-3:] == [
+        ("RESCHEDULED", 0), ("SCHEDULING", 1), ("INITIALIZING", 1)]
+    [prepare] = [c for c in emitted if isinstance(c, PrepareAttempt)]
+    assert (prepare.attempt_id, prepare.retry) == ("wf-1:t:1", 1)
+
+
+def test_complete_without_output_is_an_output_error() -> None:
+    sim = Sim()
+    sim.submit(workflow(task("t")))
+    play(sim, "prepare t; start t")
+    sim.send(AttemptExited(sim.aid("t"), 0, None, "disk full"))
+    t = sim.task("t")
+    assert (t.status.name, t.exit_code, t.message) == ("FAILED", ExitCode.OUTPUT_ERROR,
+                                                       "disk full")
+
+
+def test_start_failure() -> None:
+    sim = Sim()
+    sim.submit(workflow(task("t"), task("u", "t")))
+    play(sim, "startfail t")
+    t = sim.task("t")
+    assert (t.status.name, t.exit_code, t.message) == (
+        "FAILED_START_ERROR", ExitCode.START_ERROR, "boom")
+    assert sim.status("u") == "FAILED_UPSTREAM"
+    assert sim.s.used("n1").cpu == 0
+
+
+@pytest.mark.parametrize(("losses", "cap", "status", "retry"), [
+    (1, 5, "INITIALIZING", 1),
+    (2, 2, "INITIALIZING", 2),
+    (3, 2, "FAILED_SERVER_ERROR", 2),
+])
+def test_lost_attempts_retry_without_using_user_retries(losses: int, cap: int, status: str,
+                                                       retry: int) -> None:
+    sim = Sim(max_lost_retries=cap)
+    sim.submit(workflow(task("t")), max_retries=0)
+    for _ in range(losses):
+        play(sim, "prepare t; start t; lost t")
+    t = sim.task("t")
+    assert (t.status.name, t.retry, t.user_retries, t.lost_retries) == (
+        status, retry, 0, min(losses, cap))
+    if status == "FAILED_SERVER_ERROR":
+        assert t.exit_code == ExitCode.LOST and "cap 2 reached" in t.message
+        assert sim.wf() == "FAILED_SERVER_ERROR"
+
+
+def test_node_down_loses_its_attempts_and_they_move_to_another_node() -> None:
+    sim = Sim(node("n1", cpu=1), node("n2", cpu=1))
+    sim.submit(workflow(task("a"), task("b")))
+    assert {sim.task("a").node_id, sim.task("b").node_id} == {"n1", "n2"}
+    play(sim, "prepare a; start a; down n1")
+    assert (sim.status("a"), sim.task("a").retry) == ("SCHEDULING", 1)
+    assert sim.task("a").message == "retry 1 after: node 'n1' down"
+    sim.send(NodeUp(node("n3", cpu=1)))
+    assert (sim.status("a"), sim.task("a").node_id) == ("INITIALIZING", "n3")
+    assert [n.id for n in sim.s.nodes()] == ["n2", "n3"]
+
+
+@pytest.mark.parametrize("report", [
+    AttemptPrepared("wf-1:t:0"),
+    AttemptStarted("wf-1:t:0"),
+    AttemptExited("wf-1:t:0", 0, "late-output"),
+    AttemptLost("wf-1:t:0"),
+    AttemptExited("wf-1:t:7", 0, "never-existed"),
+    AttemptExited("nope", 0, "unknown"),
+])
+def test_reports_of_superseded_attempts_are_ignored(report: object) -> None:
+    sim = Sim()
+    sim.submit(workflow(task("t", rules=RETRY_ON_3)))
+    play(sim, "run t=3; prepare t; start t")  # retry 1 is running
+    before = sim.task("t")
+    assert sim.send(report) == []  # type: ignore[arg-type]
+    assert sim.task("t") == before
+    assert not sim.changes
+    assert sim.s.used("n1").cpu == 1
+
+
+def test_a_terminal_task_is_never_committed_twice() -> None:
+    sim = Sim()
+    sim.submit(workflow(task("t")))
+    play(sim, "run t")
+    sim.send(AttemptExited("wf-1:t:0", 1, None))
+    t = sim.task("t")
+    assert (t.status.name, t.exit_code, t.output) == ("COMPLETED", 0, "out:t")
+    assert sim.s.attempt("wf-1:t:0") == t
+    assert sim.s.attempt("wf-1:x:0") is None

@@ -1,0 +1,208 @@
+"""Attempt folders: layout, private file mapping, tokens, environment, promotion."""
+
+from __future__ import annotations
+
+import base64
+import os
+from pathlib import Path
+
+import pytest
+
+from osmo.scheduler.types import PrepareAttempt
+from osmo.spec.model import FileSpec, InputSpec, TaskSpec
+from osmo.worker.workdir import AttemptDirs, PrepareError, prepare, promote
+
+
+def command(
+    task: str = "t",
+    retry: int = 0,
+    inputs: dict[str, str] | None = None,
+    hosts: dict[str, str] | None = None,
+) -> PrepareAttempt:
+    return PrepareAttempt(
+        f"wf-1:{task}:{retry}", "wf-1", task, retry, "local", inputs or {}, hosts or {}
+    )
+
+
+def prep(
+    home: Path, task: TaskSpec, cmd: PrepareAttempt | None = None, env: dict[str, str] | None = None
+):
+    cmd = cmd or command(task.name)
+    dirs = AttemptDirs.at(home, cmd.workflow_id, cmd.task, cmd.retry)
+    return dirs, prepare(dirs, cmd, task, env or {"BASE": "1"})
+
+
+def test_layout(tmp_path: Path) -> None:
+    dirs, launch = prep(tmp_path, TaskSpec(name="t", command=("true",)), command("t", 2))
+    assert dirs.root == tmp_path / "runs" / "wf-1" / "t" / "2"
+    for folder in (dirs.work, dirs.files, dirs.output_partial):
+        assert folder.is_dir()
+    assert not dirs.output.exists()
+    assert dirs.log == dirs.root / "log.txt"
+    assert launch.cwd == dirs.work
+    assert launch.argv == ("true",)
+
+
+def test_environment(tmp_path: Path) -> None:
+    task = TaskSpec(
+        name="t",
+        command=("true",),
+        environment={"A": "x", "OUT": "{{output}}/f", "OSMO_TASK": "override", "BASE": "task"},
+    )
+    dirs, launch = prep(tmp_path, task, command("t", 1), {"BASE": "server", "KEEP": "k"})
+    env = launch.env
+    assert env["KEEP"] == "k"
+    assert env["BASE"] == "task"
+    assert env["A"] == "x"
+    assert env["OUT"] == f"{dirs.output_partial}/f"
+    assert env["OSMO_WORKFLOW_ID"] == "wf-1"
+    assert env["OSMO_TASK"] == "t"  # osmo's variables cannot be overridden
+    assert env["OSMO_RETRY"] == "1"
+    assert env["OSMO_OUTPUT"] == str(dirs.output_partial)
+    assert env["OSMO_FILES_ROOT"] == str(dirs.files)
+
+
+def test_tokens(tmp_path: Path) -> None:
+    task = TaskSpec(
+        name="t",
+        command=("echo", "{{ output }}", "{{input:0}}", "{{input:1}}", "{{input:b}}"),
+        args=("{{workflow_id}}", "{{host:peer}}", "{{uuid}}", "{{uuid}}"),
+        inputs=(InputSpec(task="a"), InputSpec(task="b")),
+    )
+    cmd = command(inputs={"a": "/ref/a", "b": "/ref/b"}, hosts={"peer": "10.0.0.7"})
+    dirs, launch = prep(tmp_path, task, cmd)
+    argv = launch.argv
+    assert argv[:5] == ("echo", str(dirs.output_partial), "/ref/a", "/ref/b", "/ref/b")
+    assert argv[5:7] == ("wf-1", "10.0.0.7")
+    assert len(argv[7]) == 32 and int(argv[7], 16) >= 0
+    assert argv[7] == argv[8]  # one uuid per attempt
+
+
+def test_input_of_another_workflow(tmp_path: Path) -> None:
+    task = TaskSpec(
+        name="t", command=("echo", "{{input:0}}"), inputs=(InputSpec(task="a", workflow="old-3"),)
+    )
+    _, launch = prep(tmp_path, task, command(inputs={"old-3:a": "/ref/old"}))
+    assert launch.argv[1] == "/ref/old"
+
+
+@pytest.mark.parametrize("token", ["{{input:5}}", "{{input:zz}}", "{{host:nobody}}"])
+def test_unresolvable_token_fails(tmp_path: Path, token: str) -> None:
+    task = TaskSpec(name="t", command=("echo", token), inputs=(InputSpec(task="a"),))
+    with pytest.raises(PrepareError, match="cannot resolve"):
+        prep(tmp_path, task, command(inputs={"a": "/ref/a"}))
+
+
+def test_files_are_private_and_paths_rewritten(tmp_path: Path) -> None:
+    task = TaskSpec(
+        name="t",
+        command=("/tmp/run.sh", "--config=/tmp/conf.yaml"),
+        args=("/tmp/run.sh.bak", "/x/tmp/run.sh", "/tmp/run.sh/", "/tmp/run"),
+        environment={"CONF": "/tmp/conf.yaml"},
+        files=(
+            FileSpec("/tmp/run.sh", "#!/bin/sh\ncat /tmp/conf.yaml\n"),
+            FileSpec("/tmp/conf.yaml", "out: {{output}}\n"),
+            FileSpec("rel/data.txt", "x"),
+        ),
+    )
+    dirs, launch = prep(tmp_path, task)
+    run = dirs.files / "tmp" / "run.sh"
+    conf = dirs.files / "tmp" / "conf.yaml"
+    assert launch.argv == (
+        str(run),
+        f"--config={conf}",
+        "/tmp/run.sh.bak",
+        "/x/tmp/run.sh",
+        f"{run}/",
+        "/tmp/run",
+    )
+    assert launch.env["CONF"] == str(conf)
+    assert run.read_text() == f"#!/bin/sh\ncat {conf}\n"
+    assert conf.read_text() == f"out: {dirs.output_partial}\n"
+    assert (dirs.work / "rel" / "data.txt").read_text() == "x"
+    assert run.stat().st_mode & 0o777 == 0o755
+    assert conf.stat().st_mode & 0o777 == 0o644
+
+
+def test_longest_declared_path_wins(tmp_path: Path) -> None:
+    task = TaskSpec(
+        name="t",
+        command=("cat", "/a/b", "/a/b/c"),
+        files=(FileSpec("/a/b/c", "1"), FileSpec("/a/b", "2")),
+    )
+    with pytest.raises(PrepareError):  # /a/b cannot be both a file and a folder
+        prep(tmp_path, task)
+    task = TaskSpec(
+        name="t",
+        command=("cat", "/a/b", "/a/bc"),
+        files=(FileSpec("/a/bc", "1"), FileSpec("/a/b", "2")),
+    )
+    dirs, launch = prep(tmp_path, task)
+    assert launch.argv[1:] == (str(dirs.files / "a/b"), str(dirs.files / "a/bc"))
+
+
+def test_base64_files_are_decoded_verbatim(tmp_path: Path) -> None:
+    script = b"#!/bin/sh\necho /tmp/x {{output}}\n"
+    blob = bytes(range(256))
+    task = TaskSpec(
+        name="t",
+        command=("true",),
+        files=(
+            FileSpec("/tmp/x", base64.b64encode(script).decode(), base64=True),
+            FileSpec("blob.bin", base64.b64encode(blob).decode(), base64=True),
+        ),
+    )
+    dirs, _ = prep(tmp_path, task)
+    written = dirs.files / "tmp" / "x"
+    assert written.read_bytes() == script
+    assert written.stat().st_mode & 0o777 == 0o755
+    assert (dirs.work / "blob.bin").read_bytes() == blob
+
+
+def test_invalid_base64_fails(tmp_path: Path) -> None:
+    task = TaskSpec(name="t", command=("true",), files=(FileSpec("/x", "a", base64=True),))
+    with pytest.raises(PrepareError, match="base64"):
+        prep(tmp_path, task)
+
+
+@pytest.mark.parametrize("path", ["../escape", "a/../../escape", "/", ""])
+def test_unusable_file_paths_fail(tmp_path: Path, path: str) -> None:
+    task = TaskSpec(name="t", command=("true",), files=(FileSpec(path, "x"),))
+    with pytest.raises(PrepareError):
+        prep(tmp_path, task)
+
+
+def test_absolute_dotdot_stays_inside_files_root(tmp_path: Path) -> None:
+    task = TaskSpec(name="t", command=("true",), files=(FileSpec("/../../etc/x", "x"),))
+    dirs, _ = prep(tmp_path, task)
+    assert (dirs.files / "etc" / "x").read_text() == "x"
+
+
+def test_task_without_command_fails(tmp_path: Path) -> None:
+    with pytest.raises(PrepareError, match="no command"):
+        prep(tmp_path, TaskSpec(name="t", type="sim"))
+
+
+@pytest.mark.parametrize("name", ["a/b", "..", ""])
+def test_unusable_names_fail(tmp_path: Path, name: str) -> None:
+    with pytest.raises(PrepareError):
+        AttemptDirs.at(tmp_path, "wf-1", name, 0)
+
+
+def test_preparing_again_starts_clean(tmp_path: Path) -> None:
+    task = TaskSpec(name="t", command=("true",))
+    dirs, _ = prep(tmp_path, task)
+    (dirs.output_partial / "stale").write_text("old")
+    dirs, _ = prep(tmp_path, task)
+    assert list(dirs.output_partial.iterdir()) == []
+
+
+def test_promote(tmp_path: Path) -> None:
+    dirs, _ = prep(tmp_path, TaskSpec(name="t", command=("true",)))
+    (dirs.output_partial / "result.txt").write_text("42")
+    ref = promote(dirs)
+    assert ref == str(dirs.output) and os.path.isabs(ref)
+    assert (dirs.output / "result.txt").read_text() == "42"
+    assert not dirs.output_partial.exists()
+    with pytest.raises(OSError):
+        promote(dirs)  # nothing left to promote
