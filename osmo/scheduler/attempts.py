@@ -42,7 +42,7 @@ def on_report(eng: Engine, report: Report) -> None:
     """Apply one attempt report (see the module docstring for fencing)."""
     aid = report.attempt_id
     if isinstance(report, _FINAL) and eng.ledger.release(aid):
-        eng.queue.capacity_grew = True
+        eng.queue.capacity_grew()
     found = eng.attempts.get(aid)
     if found is None:
         return

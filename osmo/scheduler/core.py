@@ -9,7 +9,12 @@ placement scans only the queue of waiting requests).
 
 Order inside one ``handle(event, now)``: due timeouts fire first (a deadline at or before
 ``now`` wins over a report arriving at the same time), then the event, then placement, then
-workflow statuses are re-derived.
+workflow statuses are re-derived. ``handle`` raises only for a malformed submit, and does so
+before changing anything.
+
+Reuse (``WorkflowSubmitted.reused``) is per group: a group completes at once, its tasks
+COMPLETED with ``reused=True`` and the given output refs, only when *every* task of it has
+an entry; otherwise the whole group runs (a gang is never half reused).
 """
 
 from __future__ import annotations
@@ -74,18 +79,20 @@ class Scheduler:
         """
         eng = self._eng
         eng.now, eng.out = now, []
+        submit = event if isinstance(event, WorkflowSubmitted) else None
+        new_run = self._new_run(submit) if submit is not None else None
         self._fire_due()
         if isinstance(event, _REPORTS):
             attempts.on_report(eng, event)
-        elif isinstance(event, WorkflowSubmitted):
-            self._submit(event)
+        elif submit is not None and new_run is not None:
+            self._submit(new_run, submit.reused)
         elif isinstance(event, CancelWorkflow):
             run = eng.runs.get(event.workflow_id)
             if run is not None:
                 groups.cancel(eng, run)
         elif isinstance(event, NodeUp):
             eng.ledger.up(event.node)
-            eng.queue.capacity_grew = True
+            eng.queue.capacity_grew()
         elif isinstance(event, NodeDown):
             self._node_down(event.node_id)
         else:
@@ -117,28 +124,34 @@ class Scheduler:
                 run.group_of(task).prepared.discard(name)  # never release it at a barrier
                 lost.append((run, task))
         for run, task in lost:
-            attempts.lose(eng, run, task, f"node '{node_id}' down")
+            if task.status.active:  # an earlier loss may have ended its group
+                attempts.lose(eng, run, task, f"node '{node_id}' down")
 
-    def _submit(self, event: WorkflowSubmitted) -> None:
-        eng, spec = self._eng, event.spec
+    def _new_run(self, event: WorkflowSubmitted) -> Run:
+        """Validate a submit and build its records; changes nothing (raises first)."""
+        spec = event.spec
         if not isinstance(spec, WorkflowSpec):
             raise TypeError(f"WorkflowSubmitted.spec must be a WorkflowSpec, not "
                             f"{type(spec).__name__}")
-        if event.workflow_id in eng.runs:
+        if event.workflow_id in self._eng.runs:
             raise ValueError(f"workflow '{event.workflow_id}' is already known")
         state = WorkflowState(event.workflow_id, spec.name, pool=event.pool,
-                              max_retries=event.max_retries, submitted_at=eng.now)
-        run = Run.build(spec, state, next(eng.seq), event.max_retries)
-        eng.runs[run.id] = run
-        eng.note_workflow(run)
-        eng.touch(run)
-        eng.log(run, None, state.status.name, "")
+                              max_retries=event.max_retries, submitted_at=self._eng.now)
+        run = Run.build(spec, state, next(self._eng.seq), event.max_retries)
         for spec_task in spec.all_tasks():
             name = spec_task.name
             run.tasks[name] = TaskState(run.id, name, run.graph.group_of(name),
-                                        created_at=eng.now)
+                                        created_at=self._eng.now)
+        return run
+
+    def _submit(self, run: Run, reused: dict[str, str]) -> None:
+        eng = self._eng
+        eng.runs[run.id] = run
+        eng.note_workflow(run)
+        eng.touch(run)
+        eng.log(run, None, run.state.status.name, "")
         for name in run.graph.topological_order():
-            self._start_group(run, name, event.reused)
+            self._start_group(run, name, reused)
 
     def _start_group(self, run: Run, name: str, reused: dict[str, str]) -> None:
         """Set a new group's first status (topological order: its upstream are settled)."""
@@ -238,7 +251,7 @@ class Scheduler:
             by_workflow[task.workflow_id].append(task)
         for state in sorted(workflows, key=lambda w: (w.submitted_at, w.id)):
             self._restore_run(spec_by_id[state.id], state, by_workflow[state.id])
-        self._eng.queue.capacity_grew = True
+        self._eng.queue.capacity_grew()
 
     def _restore_run(self, spec: WorkflowSpec, state: WorkflowState,
                      tasks: list[TaskState]) -> None:

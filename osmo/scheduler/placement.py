@@ -5,10 +5,9 @@ order, then group order, then enqueue order); a request that does not fit is ski
 does not block smaller requests behind it. That keeps the cluster busy but can starve a big
 group while small ones keep arriving: a known trade-off, bounded by ``queue_timeout``.
 
-Within one pass, a request whose *shape* (pool and per-task requests) already failed is
-skipped without trying: placements only consume room, so it would fail again. With that and
-the queue's "only fresh requests unless capacity grew" rule, a pass costs O(queue) cheap
-checks plus O(nodes) per actual placement attempt.
+Requests of a *shape* (pool and per-task requests) that failed are not tried again until
+capacity grows (see ``queue.PlacementQueue``), so a pass costs O(shapes) plus O(nodes) per
+placement attempt, not O(queue).
 """
 
 from __future__ import annotations
@@ -27,6 +26,10 @@ def enqueue(eng: Engine, run: Run, group: Group, names: tuple[str, ...], *, gang
     """Queue ``names`` of ``group`` (already SCHEDULING) for placement all at once.
 
     Args:
+        eng: the engine.
+        run: the workflow.
+        group: the tasks' group.
+        names: tasks to place together, in group order.
         gang: True for the group's first placement (barrier applies); False for a retry.
         since: when the request started waiting (defaults to now), for ``queue_timeout``.
     """
@@ -43,23 +46,18 @@ def enqueue(eng: Engine, run: Run, group: Group, names: tuple[str, ...], *, gang
 
 def place_pending(eng: Engine) -> None:
     """Place every queued request that fits now, in FIFO order."""
-    failed: set[object] = set()
-    for request in eng.queue.take_candidates():
-        if not request.live:
-            continue
+    queue = eng.queue
+    for request in queue.pending():
         if not request.valid():
-            eng.queue.done(request)
-            continue
-        if request.shape in failed:
+            queue.done(request)
             continue
         run = request.run
         plan = eng.ledger.place([(n, run.requests[n]) for n in request.tasks], run.state.pool)
         if plan is None:
-            failed.add(request.shape)
+            queue.block(request.shape)
             continue
-        eng.queue.done(request)
+        queue.done(request)
         _commit(eng, request, plan)
-    eng.queue.compact()
 
 
 def _commit(eng: Engine, request: Queued, plan: dict[str, str]) -> None:

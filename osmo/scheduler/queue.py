@@ -7,9 +7,9 @@ Both drop stale entries lazily, so removing a request or a deadline is O(1).
 
 from __future__ import annotations
 
-import bisect
 import heapq
 import itertools
+from collections.abc import Hashable, Iterator
 from dataclasses import dataclass
 
 from osmo.scheduler.runs import Group, Queued, Run
@@ -18,52 +18,64 @@ __all__ = ["Deadline", "Deadlines", "PlacementQueue"]
 
 
 class PlacementQueue:
-    """Requests waiting for resources.
+    """Requests waiting for resources, kept per *shape* (pool + per-task requests).
 
-    A placement pass only needs to revisit *old* requests when capacity grew (an attempt
-    released its resources or a node joined): otherwise they failed against at least as much
-    free room before, so only the requests added since the last pass are tried.
+    Requests of one shape fit or fail alike, and placements only consume room, so once a
+    shape fails it is *blocked* until capacity grows (an attempt released its resources or a
+    node joined). A pass therefore visits only the head of each unblocked shape, in global
+    FIFO order: O(shapes + placements), however long the queue is.
     """
 
     def __init__(self) -> None:
-        self._items: list[Queued] = []  # sorted by key; may hold dead entries
-        self._fresh: list[Queued] = []
-        self._dead = 0
-        self.capacity_grew = False
-
-    def __len__(self) -> int:
-        return len(self._items) - self._dead
+        self._by_shape: dict[Hashable, list[tuple[tuple[int, int, int], Queued]]] = {}
+        self._blocked: set[Hashable] = set()
 
     def push(self, request: Queued) -> None:
         """Queue ``request`` in FIFO position."""
-        bisect.insort(self._items, request, key=_key)
-        self._fresh.append(request)
+        heapq.heappush(self._by_shape.setdefault(request.shape, []), (request.key, request))
 
-    def take_candidates(self) -> list[Queued]:
-        """The requests a placement pass should try, in FIFO order (may include stale ones)."""
-        if self.capacity_grew:
-            found = self._items
-        else:
-            found = sorted(self._fresh, key=_key) if len(self._fresh) > 1 else self._fresh
-        self.capacity_grew = False
-        self._fresh = []
-        return found
+    def capacity_grew(self) -> None:
+        """Room was freed or added: every shape may fit again."""
+        self._blocked.clear()
+
+    def block(self, shape: Hashable) -> None:
+        """``shape`` does not fit now; skip it until capacity grows."""
+        self._blocked.add(shape)
 
     def done(self, request: Queued) -> None:
-        """Mark ``request`` placed or stale; it is dropped at the next compaction."""
-        if request.live:
-            request.live = False
-            self._dead += 1
+        """Mark ``request`` placed or stale; it leaves the queue lazily."""
+        request.live = False
 
-    def compact(self) -> None:
-        """Drop dead entries when they make up half the queue."""
-        if self._dead * 2 >= len(self._items):
-            self._items = [q for q in self._items if q.live]
-            self._dead = 0
+    def pending(self) -> Iterator[Queued]:
+        """Heads of unblocked shapes in FIFO order, until every shape is blocked or empty.
 
+        For each request yielded, the caller must call :meth:`done` (placed or stale) or
+        :meth:`block` with its shape before asking for the next one.
+        """
+        heads = [(h[0][0], i, shape) for i, shape in enumerate(list(self._by_shape))
+                 if shape not in self._blocked and (h := self._head(shape))]
+        heapq.heapify(heads)
+        while heads:
+            _, i, shape = heapq.heappop(heads)
+            items = self._by_shape[shape]
+            request = items[0][1]
+            yield request
+            if shape in self._blocked:
+                continue
+            assert not request.live, "pending(): request neither done nor blocked"
+            head = self._head(shape)
+            if head:
+                heapq.heappush(heads, (head[0][0], i, shape))
 
-def _key(request: Queued) -> tuple[int, int, int]:
-    return request.key
+    def _head(self, shape: Hashable) -> list[tuple[tuple[int, int, int], Queued]]:
+        """The shape's heap with dead heads dropped (emptied shapes are forgotten)."""
+        items = self._by_shape[shape]
+        while items and not items[0][1].live:
+            heapq.heappop(items)
+        if not items:
+            del self._by_shape[shape]
+            self._blocked.discard(shape)
+        return items
 
 
 @dataclass(frozen=True, eq=False)

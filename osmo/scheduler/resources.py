@@ -152,7 +152,8 @@ class Ledger:
             self._by_pool[pool] = found
         return found
 
-    def place(self, tasks: Sequence[tuple[str, Request]], pool: str | None) -> dict[str, str] | None:
+    def place(self, tasks: Sequence[tuple[str, Request]],
+              pool: str | None) -> dict[str, str] | None:
         """First-fit the gang ``tasks`` into what is free now (nothing is reserved)."""
         return first_fit(tasks, self.candidates(pool), self._used)
 

@@ -196,11 +196,14 @@ class Client:
             self._wait_change(workflow_id, interval)
 
     def wait(self, workflow_id: str, *, timeout: float | None = None,
-             on_update: Callable[[WorkflowInfo], None] | None = None) -> WorkflowInfo:
+             on_update: Callable[[WorkflowInfo], None] | None = None,
+             min_interval: float = 0.05) -> WorkflowInfo:
         """Block until the workflow is terminal; returns its final info.
 
-        Wakes on the server's change notices (zenoh subscription) and re-reads the status;
-        also re-reads at least every second in case a notice was missed.
+        Wakes on the server's change notices (zenoh subscription) and re-reads the status
+        (at most every ``min_interval`` seconds, so a busy workflow costs the server little);
+        also re-reads at least every second in case a notice was missed. ``on_update`` gets
+        the full workflow (with tasks) at each wake.
 
         Raises:
             TimeoutError: ``timeout`` seconds passed first.
@@ -212,14 +215,15 @@ class Client:
         try:
             while True:
                 changed.clear()
-                info = self.get(workflow_id)
                 if on_update is not None:
-                    on_update(info)
-                if info.status.terminal:
-                    return info
+                    on_update(self.get(workflow_id))
+                status = WorkflowStatus[self._call("status", workflow_id=workflow_id)["status"]]
+                if status.terminal:
+                    return self.get(workflow_id)
                 if deadline is not None and time.monotonic() > deadline:
-                    raise TimeoutError(f"workflow {workflow_id} still {info.status.name}")
+                    raise TimeoutError(f"workflow {workflow_id} still {status.name}")
                 changed.wait(timeout=1.0)
+                time.sleep(min_interval)  # coalesce bursts of notices into one re-read
         finally:
             sub.undeclare()
 

@@ -41,6 +41,7 @@ class Api:
             "cancel": self.cancel,
             "restart": self.restart,
             "get": self.get,
+            "status": self.status,
             "list": self.list,
             "logs": self.logs,
             "spec": self.spec,
@@ -97,7 +98,7 @@ class Api:
 
     def restart(self, request: dict[str, Any]) -> dict[str, Any]:
         """Submit the same spec again, reusing the outputs of tasks that completed."""
-        row = self._row(request["workflow_id"])
+        row = self._row(request["workflow_id"], with_spec=True)
         if not WorkflowStatus[row.status].terminal:
             raise UsageError(f"workflow {row.id} is still {row.status}; "
                              f"cancel it first (`osmo cancel {row.id}`)")
@@ -116,8 +117,12 @@ class Api:
 
     def get(self, request: dict[str, Any]) -> dict[str, Any]:
         """A workflow's state and its tasks' states."""
-        row = self._row(request["workflow_id"])
+        row = self._row(request["workflow_id"], with_spec=True)
         return {"workflow": _workflow_dict(row), "tasks": _ordered_tasks(row, self._store.tasks(row.id))}
+
+    def status(self, request: dict[str, Any]) -> dict[str, Any]:
+        """Only the workflow's own state (cheap: for waiting on big workflows)."""
+        return _workflow_dict(self._row(request["workflow_id"]))
 
     def list(self, request: dict[str, Any]) -> list[dict[str, Any]]:
         """Workflows newest first; filters: statuses, name, limit."""
@@ -133,7 +138,7 @@ class Api:
 
     def spec(self, request: dict[str, Any]) -> dict[str, Any]:
         """The stored (rendered) spec of a workflow, as a dict."""
-        return {"spec": self._row(request["workflow_id"]).spec}
+        return {"spec": self._row(request["workflow_id"], with_spec=True).spec}
 
     def pools(self, _request: dict[str, Any]) -> list[dict[str, Any]]:
         """Known nodes with their pool, platform and capacity used/total."""
@@ -145,8 +150,8 @@ class Api:
                         "total": vars(node.capacity), "used": vars(used)})
         return out
 
-    def _row(self, workflow_id: str) -> WorkflowRow:
-        row = self._store.workflow(workflow_id)
+    def _row(self, workflow_id: str, *, with_spec: bool = False) -> WorkflowRow:
+        row = self._store.workflow(workflow_id, with_spec=with_spec)
         if row is None:
             near = [r.id for r in self._store.workflows(name=workflow_id.rsplit("-", 1)[0],
                                                         limit=5)]

@@ -54,7 +54,9 @@ def _restore(store: Store, scheduler: Scheduler) -> tuple[dict[str, WorkflowSpec
     """Load unfinished workflows into the scheduler; return specs and lost attempts."""
     specs: dict[str, WorkflowSpec] = {}
     workflows, tasks = [], []
-    for row in store.workflows(active_only=True):
+    for listed in store.workflows(active_only=True):
+        row = store.workflow(listed.id)
+        assert row is not None
         specs[row.id] = spec_from_dict(row.spec, filename=row.options.get("filename") or row.id)
         workflows.append(WorkflowState.from_dict(row.state))
         tasks += [TaskState.from_dict(t) for t in store.tasks(row.id)]

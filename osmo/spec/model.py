@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Any
 
 __all__ = [
@@ -220,11 +221,14 @@ class WorkflowSpec:
         return tuple(t for g in self.groups for t in g.tasks)
 
     def task(self, name: str) -> TaskSpec:
-        """The task called ``name``; KeyError if absent."""
-        for t in self.all_tasks():
-            if t.name == name:
-                return t
-        raise KeyError(name)
+        """The task called ``name``; KeyError if absent. O(1) after the first call."""
+        return self._task_index[name]
+
+    @cached_property
+    def _task_index(self) -> dict[str, TaskSpec]:
+        # cached_property writes the instance __dict__ directly, so it works on a frozen
+        # dataclass and does not take part in equality.
+        return {t.name: t for t in self.all_tasks()}
 
     def resource_for(self, task: TaskSpec) -> ResourceSpec:
         """The resource spec a task requests (an empty spec if the workflow defines none)."""

@@ -224,9 +224,10 @@ class Store:
 
     # -------------------------------------------------------------- reads (any thread)
 
-    def workflow(self, workflow_id: str) -> WorkflowRow | None:
-        """One workflow, or None."""
-        rows = self._read("SELECT * FROM workflows WHERE id = ?", (workflow_id,))
+    def workflow(self, workflow_id: str, *, with_spec: bool = True) -> WorkflowRow | None:
+        """One workflow, or None. ``with_spec=False`` skips decoding the (large) spec."""
+        columns = "*" if with_spec else "id, name, status, submitted_at, '{}' AS spec, options, state"
+        rows = self._read(f"SELECT {columns} FROM workflows WHERE id = ?", (workflow_id,))
         return _workflow_row(rows[0]) if rows else None
 
     def workflows(
@@ -237,8 +238,13 @@ class Store:
         limit: int | None = None,
         active_only: bool = False,
     ) -> list[WorkflowRow]:
-        """Workflows, newest first, filtered by status names and/or a name substring."""
-        sql, args = "SELECT * FROM workflows WHERE 1=1", []
+        """Workflows, newest first, filtered by status names and/or a name substring.
+
+        Rows come without their spec (``spec == {}``); use ``workflow()`` for it.
+        """
+        sql = ("SELECT id, name, status, submitted_at, '{}' AS spec, options, state "
+               "FROM workflows WHERE 1=1")
+        args: list[Any] = []
         if statuses:
             sql += f" AND status IN ({','.join('?' * len(statuses))})"
             args += statuses

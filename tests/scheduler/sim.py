@@ -10,17 +10,20 @@ from osmo.scheduler import (
     AttemptPrepared,
     AttemptStarted,
     AttemptStartFailed,
+    CancelWorkflow,
     Capacity,
     Changes,
     Command,
     Event,
     KillAttempt,
     Node,
+    NodeDown,
     NodeUp,
     PrepareAttempt,
     RunAttempt,
     Scheduler,
     TaskState,
+    Tick,
     Transition,
     WorkflowState,
     WorkflowSubmitted,
@@ -121,7 +124,7 @@ class Sim:
         return self.send(WorkflowSubmitted(wid, spec, **kw))  # type: ignore[arg-type]
 
     # -- reading
-    def task(self, name: str, wid: str = "wf-1"):  # noqa: ANN201
+    def task(self, name: str, wid: str = "wf-1"):
         return next(t for t in self.s.tasks(wid) if t.name == name)
 
     def status(self, name: str, wid: str = "wf-1") -> str:
@@ -180,8 +183,6 @@ def play(sim: Sim, script: str, wid: str = "wf-1") -> list[Command]:
     ``prepare a``, ``start a``, ``exit a=3``, ``lost a``, ``startfail a``, ``cancel``,
     ``tick 12.5`` (advance the clock to 12.5 and tick), ``down n1``.
     """
-    from osmo.scheduler import CancelWorkflow, NodeDown, Tick
-
     emitted: list[Command] = []
     for step in filter(None, (s.strip() for s in script.split(";"))):
         verb, _, arg = step.partition(" ")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from osmo.scheduler import PrepareAttempt, RunAttempt
+from osmo.scheduler import PrepareAttempt, RunAttempt, TaskState, WorkflowState
 from osmo.spec.model import ResourceSpec
 from osmo.status import ExitCode
 
@@ -131,10 +131,10 @@ def test_fully_reused_workflow_completes_on_submit() -> None:
 def test_changes_hold_copies_once_per_take() -> None:
     sim = Sim()
     sim.submit(CHAIN)
-    changes = sim.changes
-    assert sorted(t.name for t in changes.tasks) == ["a", "b", "c"]
-    assert [w.id for w in changes.workflows] == ["wf-1"]
-    snapshot = next(t for t in changes.tasks if t.name == "a")
+    tasks = [t for t in sim.changes.tasks if isinstance(t, TaskState)]
+    assert sorted(t.name for t in tasks) == ["a", "b", "c"]
+    assert [w.id for w in sim.changes.workflows if isinstance(w, WorkflowState)] == ["wf-1"]
+    snapshot = next(t for t in tasks if t.name == "a")
     play(sim, "prepare a; start a")
     assert snapshot.status.name == "INITIALIZING"  # not mutated later
     assert sim.s.take_changes().tasks == []  # already taken

@@ -5,13 +5,13 @@ from __future__ import annotations
 import pytest
 
 from osmo.scheduler import KillAttempt, PrepareAttempt, RunAttempt
-from osmo.spec.model import ResourceSpec
+from osmo.spec.model import GroupSpec, ResourceSpec
 from osmo.status import ExitCode
 
 from .sim import Sim, group, node, parse_statuses, play, task, workflow
 
 
-def trio(*, barrier: bool = True, ignore: bool = True, after: str | None = None) -> object:
+def trio(*, barrier: bool = True, ignore: bool = True, after: str | None = None) -> GroupSpec:
     inputs = (after,) if after else ()
     return group("g", task("lead", *inputs, lead=True), task("w1"), task("w2"),
                  barrier=barrier, ignore=ignore)

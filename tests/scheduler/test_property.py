@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
 from osmo.scheduler import (
@@ -29,8 +29,9 @@ from osmo.scheduler import (
     RunAttempt,
     Scheduler,
     Tick,
+    WorkflowSubmitted,
 )
-from osmo.spec.model import ResourceSpec, WorkflowSpec
+from osmo.spec.model import GroupSpec, ResourceSpec, WorkflowSpec
 
 from .sim import group, node, task, workflow
 
@@ -40,7 +41,8 @@ RULES = [("RESCHEDULE", [(3, 3)])]
 @st.composite
 def workflows(draw: st.DrawFn) -> WorkflowSpec:
     n_groups = draw(st.integers(1, 6))
-    groups, names = [], []
+    groups: list[GroupSpec] = []
+    names: list[list[str]] = []
     for g in range(n_groups):
         size = draw(st.integers(1, 3))
         ups = draw(st.lists(st.integers(0, g - 1), max_size=2, unique=True)) if g else []
@@ -194,15 +196,16 @@ def test_random_workflows_end_terminal_without_breaking_invariants(
     for n in nodes.values():
         world.send(NodeUp(n))
     if world.s.check_fit(spec, "local"):
+        event("refused")
         return  # the server would refuse it
-    world.send(__import__("osmo.scheduler", fromlist=["WorkflowSubmitted"]).WorkflowSubmitted(
-        "wf-1", spec, max_retries=1))
+    world.send(WorkflowSubmitted("wf-1", spec, max_retries=1))
     for _ in range(data.draw(st.integers(0, 120))):
         step(world, data)
     drain(world)
     tasks = world.s.tasks("wf-1")
-    assert all(t.status.terminal for t in tasks), [(t.name, t.status.name, t.message, t.retry) for t in tasks]
-    assert all(world.s.used(n).cpu == 0 for n in nodes), (world.s._eng.ledger._held, world.phase, tasks)
+    assert all(t.status.terminal for t in tasks), tasks
+    assert all(world.s.used(n).cpu == 0 for n in nodes)
+    event(world.s.workflow("wf-1").status.name)
     completed = world.s.workflow("wf-1").status.name == "COMPLETED"
     leads_ok = all(t.status.name == "COMPLETED" for t in tasks if t.name.endswith("t0"))
     assert completed == leads_ok

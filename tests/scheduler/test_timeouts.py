@@ -5,14 +5,15 @@ from __future__ import annotations
 import pytest
 
 from osmo.scheduler import CancelWorkflow, KillAttempt, PrepareAttempt, Tick
-from osmo.spec.model import ResourceSpec
+from osmo.spec.model import ResourceSpec, WorkflowSpec
 from osmo.status import ExitCode
 
 from .sim import Sim, group, node, parse_statuses, play, task, workflow
 
 
-def pair_then_c(**timeouts: float) -> object:
-    return workflow(group("g", task("a", lead=True), task("b")), task("c", "a"), **timeouts)
+def pair_then_c(exec_timeout: float | None = None) -> WorkflowSpec:
+    return workflow(group("g", task("a", lead=True), task("b")), task("c", "a"),
+                    exec_timeout=exec_timeout)
 
 
 def test_exec_timeout_runs_from_the_groups_first_running() -> None:

@@ -1,0 +1,87 @@
+"""The SQLite store on real files: migrations, atomic batches, reads from other threads."""
+
+from __future__ import annotations
+
+import sqlite3
+import threading
+from pathlib import Path
+
+import pytest
+
+from osmo.errors import InfrastructureError
+from osmo.scheduler import TaskState, WorkflowState
+from osmo.scheduler.types import Changes, Transition
+from osmo.status import TaskStatus, WorkflowStatus
+from osmo.store.sqlite import SCHEMA_VERSION, AttemptRow, Store
+
+
+def _wf(status: WorkflowStatus = WorkflowStatus.PENDING) -> WorkflowState:
+    return WorkflowState(id="w-1", name="w", status=status, pool=None, max_retries=3,
+                         submitted_at=1.0, started_at=None, ended_at=None, message="")
+
+
+def _task(name: str, status: TaskStatus) -> TaskState:
+    return TaskState(workflow_id="w-1", name=name, group=name, status=status, retry=0,
+                     attempt_id=None, node_id=None, exit_code=None, output=None, message="",
+                     reused=False, user_retries=0, lost_retries=0, created_at=1.0,
+                     scheduling_at=None, started_at=None, ended_at=None)
+
+
+def _submit(store: Store) -> None:
+    changes = Changes(workflows=[_wf()], tasks=[_task("a", TaskStatus.SCHEDULING)],
+                      transitions=[Transition(1.0, "w-1", "a", 0, "SCHEDULING")])
+    store.commit(changes, new_workflows=[("w-1", "w", 1, 1.0, {"workflow": {"name": "w"}}, {})])
+
+
+def test_schema_is_created_and_versioned(tmp_path: Path) -> None:
+    Store(tmp_path / "s.db").close()
+    db = sqlite3.connect(tmp_path / "s.db")
+    assert db.execute("SELECT version FROM schema_version").fetchone() == (SCHEMA_VERSION,)
+    assert db.execute("PRAGMA journal_mode").fetchone() == ("wal",)
+
+
+def test_newer_schema_is_refused(tmp_path: Path) -> None:
+    Store(tmp_path / "s.db").close()
+    db = sqlite3.connect(tmp_path / "s.db")
+    db.execute("UPDATE schema_version SET version = 999")
+    db.commit()
+    with pytest.raises(InfrastructureError, match="newer than this osmo"):
+        Store(tmp_path / "s.db")
+
+
+def test_commit_round_trips_and_numbers_grow(tmp_path: Path) -> None:
+    store = Store(tmp_path / "s.db")
+    assert store.next_number("w") == 1
+    _submit(store)
+    assert store.next_number("w") == 2
+    reopened = Store(tmp_path / "s.db")
+    row = reopened.workflow("w-1")
+    assert row is not None and row.spec == {"workflow": {"name": "w"}}
+    assert WorkflowState.from_dict(row.state) == _wf()
+    assert [TaskState.from_dict(t) for t in reopened.tasks("w-1")] == [
+        _task("a", TaskStatus.SCHEDULING)]
+    assert [e["status"] for e in reopened.transitions("w-1")] == ["SCHEDULING"]
+    assert reopened.workflows(active_only=True)[0].id == "w-1"
+
+
+def test_a_failing_batch_leaves_nothing_behind(tmp_path: Path) -> None:
+    store = Store(tmp_path / "s.db")
+    _submit(store)
+    duplicate = Changes(workflows=[_wf(WorkflowStatus.RUNNING)],
+                        tasks=[_task("a", TaskStatus.RUNNING)])
+    with pytest.raises(InfrastructureError):  # same id again violates the primary key
+        store.commit(duplicate, new_workflows=[("w-1", "w", 1, 1.0, {}, {})])
+    assert store.workflow("w-1").status == "PENDING"  # type: ignore[union-attr]
+    assert store.tasks("w-1")[0]["status"] == "SCHEDULING"
+
+
+def test_attempt_rows_and_reads_from_another_thread(tmp_path: Path) -> None:
+    store = Store(tmp_path / "s.db")
+    _submit(store)
+    row = AttemptRow("w-1:a:0", "w-1", "a", 0, "local", "/tmp/x", 42, 123.5)
+    store.commit(Changes(), attempts=[row])
+    seen: list[object] = []
+    t = threading.Thread(target=lambda: seen.append(store.attempts("w-1", "a")))
+    t.start()
+    t.join()
+    assert seen == [[row]]
