@@ -27,7 +27,6 @@ from osmo.scheduler.types import (
     AttemptPrepared,
     AttemptStarted,
     AttemptStartFailed,
-    RunAttempt,
 )
 from osmo.spec.model import ExitAction
 from osmo.status import ExitCode, TaskStatus
@@ -71,9 +70,8 @@ def _prepared(eng: Engine, run: Run, task: TaskState) -> None:
     batch = group.batch
     if batch is not None and not batch.released and task.name in batch.members:
         eng.release_barrier(run, group)
-    else:
-        assert task.attempt_id is not None
-        eng.out.append(RunAttempt(task.attempt_id))
+    # Otherwise no barrier holds it: it was placed with PrepareAttempt(run=True) and the
+    # worker starts it by itself.
 
 
 def _started(eng: Engine, run: Run, task: TaskState) -> None:

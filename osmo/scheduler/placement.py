@@ -69,7 +69,8 @@ def _commit(eng: Engine, request: Queued, plan: dict[str, str]) -> None:
         eng.ledger.reserve(aid, plan[name], run.requests[name].capacity)
         eng.attempts[aid] = (run, name)
         eng.set_status(run, task, TaskStatus.INITIALIZING, "")
-    if request.gang and group.spec.barrier and len(request.tasks) > 1:
+    held = request.gang and group.spec.barrier and len(request.tasks) > 1
+    if held:
         group.batch = Batch(list(request.tasks))
     hosts = _hosts(eng, run, group)
     for name in request.tasks:
@@ -77,7 +78,7 @@ def _commit(eng: Engine, request: Queued, plan: dict[str, str]) -> None:
         assert task.attempt_id is not None and task.node_id is not None
         eng.out.append(PrepareAttempt(
             attempt_id=task.attempt_id, workflow_id=run.id, task=name, retry=task.retry,
-            node_id=task.node_id, inputs=_inputs(run, name), hosts=hosts))
+            node_id=task.node_id, inputs=_inputs(run, name), hosts=hosts, run=not held))
 
 
 def _hosts(eng: Engine, run: Run, group: Group) -> dict[str, str]:

@@ -217,6 +217,9 @@ class PrepareAttempt:
     Attributes:
         inputs: upstream task name → output reference, for every ``- task:`` input.
         hosts: task name → address, for every task of the same group (``{{host:x}}``).
+        run: True when no barrier holds this attempt: the worker starts the command as
+            soon as it is prepared and no ``RunAttempt`` follows (saves a round trip per
+            task). False: wait for ``RunAttempt`` (the group's barrier).
     """
 
     attempt_id: str
@@ -226,6 +229,7 @@ class PrepareAttempt:
     node_id: str
     inputs: dict[str, str]
     hosts: dict[str, str]
+    run: bool = False
 
 
 @dataclass(frozen=True)

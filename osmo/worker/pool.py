@@ -214,6 +214,8 @@ class LocalPool:
             attempt.log.line("osmo", _image_note(task.image))
         self._attempts[attempt.id] = attempt
         self._emit(AttemptPrepared(attempt.id))
+        if cmd.run:  # no barrier holds it: start now, no RunAttempt will come
+            self._run(attempt.id)
 
     def _run(self, attempt_id: str) -> None:
         attempt = self._attempts.get(attempt_id)

@@ -84,6 +84,7 @@ class Sim:
         self.s = Scheduler(**options)
         self.now = 0.0
         self.commands: list[Command] = []
+        self.self_started: set[str] = set()
         self.transitions: list[Transition] = []
         self.last: list[Command] = []
         self.stored_tasks: dict[tuple[str, str], dict[str, object]] = {}  # a fake store
@@ -112,6 +113,7 @@ class Sim:
         sim = Sim.__new__(Sim)
         sim.s = Scheduler(**options)
         sim.now, sim.commands, sim.transitions, sim.last = self.now, [], [], []
+        sim.self_started = set()
         sim.stored_tasks, sim.stored_workflows = dict(self.stored_tasks), dict(
             self.stored_workflows)
         sim.s.restore(specs, [WorkflowState.from_dict(w) for w in self.stored_workflows.values()],
@@ -152,7 +154,18 @@ class Sim:
 
     # -- acting as the worker
     def prepare(self, name: str, wid: str = "wf-1") -> list[Command]:
-        return self.send(AttemptPrepared(self.aid(name, wid)))
+        """Report prepared. An attempt placed with ``run=True`` starts by itself then; the
+        returned commands show that as a ``RunAttempt`` so tables read the same either way."""
+        aid = self.aid(name, wid)
+        placed = [c for c in self.commands if isinstance(c, PrepareAttempt) and c.attempt_id == aid]
+        out = self.send(AttemptPrepared(aid))
+        if (placed and placed[-1].run and aid not in self.self_started
+                and self.task(name, wid).status.name == "INITIALIZING"):
+            self.self_started.add(aid)
+            assert not [c for c in out if isinstance(c, RunAttempt) and c.attempt_id == aid]
+            out = [*out, RunAttempt(aid)]
+            self.last = out
+        return out
 
     def start(self, name: str, wid: str = "wf-1") -> list[Command]:
         return self.send(AttemptStarted(self.aid(name, wid)))

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from osmo.scheduler import PrepareAttempt, RunAttempt, TaskState, WorkflowState
+from osmo.scheduler import AttemptPrepared, PrepareAttempt, RunAttempt, TaskState, WorkflowState
 from osmo.spec.model import ResourceSpec
 from osmo.status import ExitCode
 
@@ -144,5 +144,7 @@ def test_changes_hold_copies_once_per_take() -> None:
 def test_barrier_free_single_task_runs_right_after_prepared() -> None:
     sim = Sim()
     sim.submit(CHAIN)
-    assert sim.prepare("a") == [RunAttempt("wf-1:a:0")]
-    assert sim.prepare("a") == []  # duplicate report: no second RunAttempt
+    [placed] = [c for c in sim.commands if isinstance(c, PrepareAttempt)]
+    assert placed.run  # no barrier: the worker starts it as soon as it is prepared
+    assert sim.s.handle(AttemptPrepared("wf-1:a:0"), sim.now) == []  # no RunAttempt needed
+    assert sim.s.handle(AttemptPrepared("wf-1:a:0"), sim.now) == []  # duplicate: nothing

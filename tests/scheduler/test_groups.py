@@ -143,3 +143,12 @@ def test_group_that_does_not_fit_waits_without_blocking_smaller_ones() -> None:
     assert set(sim.statuses("wf-2").values()) == {"SCHEDULING"}
     assert sim.status("small", "wf-3") == "INITIALIZING"
     assert sim.s.used("n1").cpu == 2
+
+
+@pytest.mark.parametrize(("barrier", "held"), [(True, True), (False, False)])
+def test_only_barrier_members_wait_for_run_attempt(barrier: bool, held: bool) -> None:
+    sim = Sim()
+    sim.submit(workflow(trio(barrier=barrier)))
+    prepares = [c for c in sim.last if isinstance(c, PrepareAttempt)]
+    assert len(prepares) == 3
+    assert all(c.run is not held for c in prepares)

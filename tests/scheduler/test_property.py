@@ -73,6 +73,7 @@ class World:
     finished: list[tuple[Event, bool]] = field(default_factory=list)
     ran: set[str] = field(default_factory=set)
     down: set[str] = field(default_factory=set)
+    self_start: set[str] = field(default_factory=set)  # placed with PrepareAttempt(run=True)
 
     def send(self, event: Event) -> None:
         commands = self.s.handle(event, self.now)
@@ -85,6 +86,8 @@ class World:
         if isinstance(command, PrepareAttempt):
             self.phase[command.attempt_id] = "placed"
             self.where[command.attempt_id] = command.node_id
+            if command.run:
+                self.self_start.add(command.attempt_id)
         elif isinstance(command, RunAttempt):
             self.phase[command.attempt_id] = "run"
         elif isinstance(command, KillAttempt) and command.attempt_id in self.phase:
@@ -97,6 +100,7 @@ class World:
             if isinstance(command, PrepareAttempt):
                 self.check_upstream(command)
             elif isinstance(command, RunAttempt):
+                assert command.attempt_id not in self.self_start, command
                 assert self.phase.get(command.attempt_id) == "prepared", command
                 assert command.attempt_id not in self.ran
                 self.ran.add(command.attempt_id)
@@ -161,6 +165,8 @@ def act(world: World, aid: str, roll: int) -> None:
         else:
             world.phase[aid] = "prepared"
             world.send(AttemptPrepared(aid))
+            if aid in world.self_start and world.phase.get(aid) == "prepared":
+                world.phase[aid] = "run"  # placed with run=True: the worker starts it
     elif phase == "run":
         world.phase[aid] = "started"
         world.send(AttemptStarted(aid))

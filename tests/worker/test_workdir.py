@@ -35,8 +35,9 @@ def prep(
 def test_layout(tmp_path: Path) -> None:
     dirs, launch = prep(tmp_path, TaskSpec(name="t", command=("true",)), command("t", 2))
     assert dirs.root == tmp_path / "runs" / "wf-1" / "t" / "2"
-    for folder in (dirs.work, dirs.files, dirs.output_partial):
+    for folder in (dirs.work, dirs.output_partial):
         assert folder.is_dir()
+    assert not dirs.files.exists()  # made only for a task that declares files
     assert not dirs.output.exists()
     assert dirs.log == dirs.root / "log.txt"
     assert launch.cwd == dirs.work
