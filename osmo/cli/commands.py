@@ -5,15 +5,11 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Callable
-from typing import Any
-
-from rich.live import Live
-from rich.text import Text
 
 from osmo.cli.render import (
     console,
-    err_console,
     format_log,
+    live_progress,
     info_dict,
     print_json,
     task_table,
@@ -53,8 +49,8 @@ def _submit(args: argparse.Namespace) -> int:
 def _wait(client: Client, wf_id: str, fmt: str = "text") -> int:
     """Follow a workflow to its end with live progress; 0 iff COMPLETED."""
     if console.is_terminal and fmt == "text":
-        with Live(console=console, refresh_per_second=8, transient=False) as live:
-            info = client.wait(wf_id, on_update=lambda i: live.update(_progress(i)))
+        with live_progress() as update:
+            info = client.wait(wf_id, on_update=update, min_interval=0.2)
     else:
         seen: dict[str, str] = {}
 
@@ -64,7 +60,7 @@ def _wait(client: Client, wf_id: str, fmt: str = "text") -> int:
                     seen[t.name] = t.status.name
                     console.print(f"{t.name}: {t.status.name}", markup=False)
 
-        info = client.wait(wf_id, on_update=show)
+        info = client.wait(wf_id, on_update=show, min_interval=0.2)
         if fmt == "text":
             console.print(workflow_header(info), markup=False)
             console.print(task_table(info.tasks))
@@ -73,14 +69,6 @@ def _wait(client: Client, wf_id: str, fmt: str = "text") -> int:
     if not info.ok:
         raise WorkflowFailed(info.id, info.status.name)
     return 0
-
-
-def _progress(info: WorkflowInfo) -> Any:
-    from rich.console import Group
-
-    done = sum(t.status.terminal for t in info.tasks)
-    head = Text(f"{info.id}  {info.status.name}  {done}/{len(info.tasks)} tasks done")
-    return Group(head, task_table(info.tasks))
 
 
 def _validate(args: argparse.Namespace) -> int:
@@ -195,5 +183,4 @@ _VERBS: dict[str, Callable[[argparse.Namespace], int]] = {
 
 def run(verb: str, args: argparse.Namespace) -> int:
     """Run one verb; OsmoError propagates to ``main`` for its exit code."""
-    _ = err_console
     return _VERBS[verb](args)

@@ -100,7 +100,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the CLI; returns (and, as a console script, exits with) the exit code."""
     from osmo.cli import commands
-    from osmo.cli.render import err_console
+    from osmo.cli.render import print_error
 
     parser = build_parser()
     try:
@@ -114,9 +114,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return commands.run(verb, args)
     except OsmoError as exc:
-        from rich.text import Text
-
-        err_console.print(Text("error: ", style="red") + Text(str(exc) or type(exc).__name__))
+        print_error(str(exc) or type(exc).__name__)
         return exc.exit_code
     except KeyboardInterrupt:
         return 130

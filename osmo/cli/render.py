@@ -12,13 +12,18 @@ import time
 from dataclasses import asdict
 from typing import Any
 
-from rich.console import Console
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+
+from rich.console import Console, Group
+from rich.live import Live
 from rich.table import Table
+from rich.text import Text
 
 from osmo.sdk.client import LogRecord, TaskInfo, WorkflowInfo
 
-__all__ = ["console", "err_console", "format_log", "print_json", "task_table", "workflow_header",
-           "workflows_table"]
+__all__ = ["console", "err_console", "format_log", "info_dict", "live_progress", "print_error",
+           "print_json", "task_table", "workflow_header", "workflows_table"]
 
 console = Console(highlight=False, width=None if sys.stdout.isatty() else 160)
 err_console = Console(stderr=True, highlight=False, soft_wrap=True)
@@ -46,6 +51,10 @@ def _style(status: str) -> str:
     return "yellow" if status in ("RUNNING", "INITIALIZING") else ""
 
 
+def _elapsed(info: WorkflowInfo) -> float | None:
+    return (info.ended_at or time.time()) - info.started_at if info.started_at else None
+
+
 def workflow_header(info: WorkflowInfo) -> str:
     """The lines above a task table: id, status, pool, times."""
     lines = [
@@ -53,7 +62,7 @@ def workflow_header(info: WorkflowInfo) -> str:
         f"Status      : {info.status.name}",
         f"Pool        : {info.pool or '-'}",
         f"Submitted   : {_when(info.submitted_at)}",
-        f"Duration    : {_dur((info.ended_at or time.time()) - info.started_at) if info.started_at else '-'}",
+        f"Duration    : {_dur(_elapsed(info))}",
     ]
     if info.reused_from:
         lines.append(f"Restart of  : {info.reused_from}")
@@ -85,8 +94,8 @@ def workflows_table(rows: list[WorkflowInfo]) -> Table:
     for col in ("Workflow ID", "Status", "Submitted", "Duration", "Pool"):
         table.add_column(col)
     for w in rows:
-        dur = (w.ended_at or time.time()) - w.started_at if w.started_at else None
-        table.add_row(w.id, w.status.name, _when(w.submitted_at), _dur(dur), w.pool or "-")
+        table.add_row(w.id, w.status.name, _when(w.submitted_at), _dur(_elapsed(w)),
+                      w.pool or "-")
     return table
 
 
@@ -116,7 +125,25 @@ def info_dict(info: WorkflowInfo) -> dict[str, Any]:
     """A JSON-ready dict of a workflow with its tasks."""
     out = asdict(info)
     out["status"] = info.status.name
-    for t, src in zip(out["tasks"], info.tasks):
+    for t, src in zip(out["tasks"], info.tasks, strict=True):
         t["status"] = src.status.name
         t["duration"] = src.duration
     return out
+
+
+def print_error(message: str) -> None:
+    """``error: message`` on stderr (the message is printed literally, never as markup)."""
+    err_console.print(Text("error: ", style="red") + Text(message))
+
+
+@contextmanager
+def live_progress() -> Iterator[Callable[[WorkflowInfo], None]]:
+    """A live-redrawn progress view on a terminal; yields the function that updates it."""
+    with Live(console=console, refresh_per_second=8, transient=False) as live:
+
+        def update(info: WorkflowInfo) -> None:
+            done = sum(t.status.terminal for t in info.tasks)
+            head = Text(f"{info.id}  {info.status.name}  {done}/{len(info.tasks)} tasks done")
+            live.update(Group(head, task_table(info.tasks)))
+
+        yield update

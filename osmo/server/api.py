@@ -118,7 +118,8 @@ class Api:
     def get(self, request: dict[str, Any]) -> dict[str, Any]:
         """A workflow's state and its tasks' states."""
         row = self._row(request["workflow_id"], with_spec=True)
-        return {"workflow": _workflow_dict(row), "tasks": _ordered_tasks(row, self._store.tasks(row.id))}
+        tasks = _ordered_tasks(row, self._store.tasks(row.id))
+        return {"workflow": _workflow_dict(row), "tasks": tasks}
 
     def status(self, request: dict[str, Any]) -> dict[str, Any]:
         """Only the workflow's own state (cheap: for waiting on big workflows)."""

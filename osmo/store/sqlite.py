@@ -59,6 +59,8 @@ def _run_script(db: sqlite3.Connection, script: str) -> None:
             db.execute(statement)
 
 
+_NO_SPEC = "id, name, status, submitted_at, '{}' AS spec, options, state"
+
 _MIGRATIONS: dict[int, Callable[[sqlite3.Connection], None]] = {1: _v1}
 SCHEMA_VERSION = max(_MIGRATIONS)
 
@@ -226,7 +228,7 @@ class Store:
 
     def workflow(self, workflow_id: str, *, with_spec: bool = True) -> WorkflowRow | None:
         """One workflow, or None. ``with_spec=False`` skips decoding the (large) spec."""
-        columns = "*" if with_spec else "id, name, status, submitted_at, '{}' AS spec, options, state"
+        columns = "*" if with_spec else _NO_SPEC
         rows = self._read(f"SELECT {columns} FROM workflows WHERE id = ?", (workflow_id,))
         return _workflow_row(rows[0]) if rows else None
 
@@ -242,8 +244,7 @@ class Store:
 
         Rows come without their spec (``spec == {}``); use ``workflow()`` for it.
         """
-        sql = ("SELECT id, name, status, submitted_at, '{}' AS spec, options, state "
-               "FROM workflows WHERE 1=1")
+        sql = f"SELECT {_NO_SPEC} FROM workflows WHERE 1=1"
         args: list[Any] = []
         if statuses:
             sql += f" AND status IN ({','.join('?' * len(statuses))})"

@@ -250,3 +250,20 @@ def test_workflow_verbs_and_json(shared_osmo: Osmo, tmp_path: Path) -> None:
     text = shared_osmo("status", wf_id, check=True).out
     assert "COMPLETED" in text and "hi" in text
     assert shared_osmo("query", "nope-1").code == 2
+
+
+def test_logs_follow_streams_until_the_workflow_ends(shared_osmo: Osmo, tmp_path: Path) -> None:
+    spec = write(tmp_path / "follow.yaml", """
+workflow:
+  name: follow
+  tasks:
+  - name: talk
+    command: [sh, -c, "for i in 1 2 3; do echo line $i; sleep 0.2; done; echo oops >&2"]
+""")
+    r = shared_osmo("submit", str(spec), "--format", "json", check=True)
+    wf_id = r.json()["workflow_id"]  # type: ignore[index]
+    followed = shared_osmo("logs", wf_id, "-f", timeout=120)
+    assert followed.code == 0
+    lines = [ln for ln in followed.out.splitlines() if "[talk] " in ln]
+    assert [ln.split("[talk] ")[1] for ln in lines] == ["line 1", "line 2", "line 3", "oops"]
+    assert "[workflow][osmo] COMPLETED" in followed.out

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from osmo.scheduler import AttemptPrepared, PrepareAttempt, RunAttempt, TaskState, WorkflowState
+from osmo.scheduler import AttemptPrepared, PrepareAttempt, TaskState, WorkflowState
 from osmo.spec.model import ResourceSpec
 from osmo.status import ExitCode
 
