@@ -6,7 +6,11 @@ submit to the workflow's COMPLETED. Prints the median of N runs (min/max), tasks
 per-task overhead, plus the "limit": spawning `true` as many times with the same
 parallelism and no orchestrator.
 
-Usage: python bench/bench_engine.py [--runs 3] [--tasks 1000] [--json out.json]
+Usage: python bench/bench_engine.py [--runs 3] [--tasks 1000] [--base DIR] [--json out.json]
+
+The numbers depend heavily on the filesystem under the homes (each attempt makes folders
+and renames its output): the script prints the median mkdir cost there. Compare with
+``--base /dev/shm`` (tmpfs) to see the engine without the disk.
 """
 
 from __future__ import annotations
@@ -47,8 +51,8 @@ def chain(n: int) -> osmo.Workflow:
     return wf
 
 
-def run_once(spec: osmo.WorkflowSpec) -> float:
-    with tempfile.TemporaryDirectory(prefix="osmo-bench-") as home:
+def run_once(spec: osmo.WorkflowSpec, base: str | None) -> float:
+    with tempfile.TemporaryDirectory(prefix="osmo-bench-", dir=base) as home:
         start_server(home)
         try:
             with osmo.Client(home=home) as client:
@@ -59,6 +63,7 @@ def run_once(spec: osmo.WorkflowSpec) -> float:
                     raise SystemExit(f"benchmark workflow ended {result.status.name}")
         finally:
             stop_server(home)
+    os.sync()  # flush this run's writeback now, not during the next run
     return elapsed
 
 
@@ -67,6 +72,17 @@ def spawn_limit(n: int, parallel: int) -> float:
     with ThreadPoolExecutor(parallel) as pool:
         list(pool.map(lambda _i: subprocess.run(["true"], check=True), range(n)))
     return time.perf_counter() - t0
+
+
+def mkdir_us(base: str | None, n: int = 500) -> float:
+    """Median cost of one mkdir where the homes live: attempt folders are mostly this."""
+    with tempfile.TemporaryDirectory(dir=base) as d:
+        times = []
+        for i in range(n):
+            t0 = time.perf_counter()
+            os.mkdir(f"{d}/{i}")
+            times.append(time.perf_counter() - t0)
+    return statistics.median(times) * 1e6
 
 
 def machine() -> str:
@@ -79,14 +95,16 @@ def main() -> None:
     parser.add_argument("--runs", type=int, default=3)
     parser.add_argument("--tasks", type=int, default=1000)
     parser.add_argument("--json")
+    parser.add_argument("--base", help="folder for the OSMO_HOMEs (default: system temp)")
     args = parser.parse_args()
     print(f"machine: {machine()}")
+    print(f"homes under {args.base or tempfile.gettempdir()}: mkdir {mkdir_us(args.base):.0f} µs")
     cores = os.cpu_count() or 1
     results = {}
     limit = [spawn_limit(args.tasks, cores) for _ in range(args.runs)]
     shapes = {"fan-out/join": fan_out(args.tasks).build(), "chain": chain(args.tasks).build()}
     for name, spec in shapes.items():
-        times = [run_once(spec) for _ in range(args.runs)]
+        times = [run_once(spec, args.base) for _ in range(args.runs)]
         med = statistics.median(times)
         results[name] = {"median_s": med, "min_s": min(times), "max_s": max(times),
                          "tasks_per_s": args.tasks / med, "per_task_ms": 1000 * med / args.tasks}
@@ -98,7 +116,8 @@ def main() -> None:
     print(f"{'limit':14s} spawn `true` x{args.tasks}, {cores} parallel, no orchestrator: "
           f"{lim:.2f}s → {args.tasks / lim:.0f}/s")
     if args.json:
-        Path(args.json).write_text(json.dumps({"machine": machine(), **results}, indent=2))
+        Path(args.json).write_text(json.dumps(
+            {"machine": machine(), "base": args.base, **results}, indent=2))
 
 
 if __name__ == "__main__":

@@ -6,9 +6,12 @@ through ``emit``. Every ``prepare`` gets exactly one final report — ``AttemptS
 ``AttemptExited`` — whatever happens (kill before start, spawn failure, promotion failure).
 
 Threading: public methods may be called from any thread; they only queue work for the pool's
-single I/O thread (``osmo.worker.reactor``), which prepares folders, spawns, reads pipes,
-watches exits through pidfds, runs kill grace timers and calls ``emit``. So ``emit`` must be
-cheap (put the event on a queue). Attempt state lives on that thread only.
+reactor thread (``osmo.worker.reactor``), which spawns, reads pipes, watches exits through
+pidfds, runs kill grace timers and calls ``emit``. So ``emit`` must be cheap (put the event
+on a queue). Attempt state lives on that thread only. Filesystem work that waits on the
+disk — making an attempt's folders and promoting its outputs — runs on a few I/O threads and
+hands its result back to the reactor, so a slow disk never stalls pipes and spawns, and the
+waits of several attempts overlap.
 
 Kill: ``SIGTERM`` to the attempt's process group, ``SIGKILL`` after ``kill_grace`` seconds.
 A killed attempt's outputs are never promoted; a prepared attempt killed before it started
@@ -25,14 +28,12 @@ from __future__ import annotations
 
 import collections
 import enum
-import glob
 import logging
 import os
-import resource
-import shutil
 import signal
 import threading
 from collections.abc import Callable, Mapping
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -49,13 +50,13 @@ from osmo.scheduler.types import (
     AttemptPrepared,
     AttemptStarted,
     AttemptStartFailed,
-    Capacity,
     Event,
     Node,
     PrepareAttempt,
 )
 from osmo.spec.model import ExitAction, TaskSpec
 from osmo.worker.logs import LogWriter
+from osmo.worker.machine import detect_capacity, raise_fd_limit
 from osmo.worker.reactor import Reactor, Timer
 from osmo.worker.workdir import AttemptDirs, Launch, PrepareError, prepare, promote
 
@@ -67,11 +68,13 @@ KILLED_BEFORE_START = 128 + signal.SIGKILL
 _READ_SIZE = 65536
 _DRAIN_READS = 64  # at exit, read at most this many chunks more per pipe
 _REMEMBER_FINISHED = 4096  # finished ids kept to ignore late run()/kill() for them
+_IO_THREADS = 4
 
 
 class _State(enum.Enum):
     PREPARED = "prepared"
     RUNNING = "running"
+    FINISHING = "finishing"  # exited; outputs being promoted on an I/O thread
     DONE = "done"
 
 
@@ -131,7 +134,7 @@ class LocalPool:
     ) -> None:
         self.home = Path(home).absolute()
         self.home.mkdir(parents=True, exist_ok=True)
-        _raise_fd_limit()
+        raise_fd_limit()
         self._emit = emit
         self._node_id, self._pool = node_id, pool
         self._cpus, self._gpus, self._memory = cpus, gpus, memory
@@ -143,17 +146,16 @@ class LocalPool:
         self._pids: dict[str, int] = {}
         self._pids_lock = threading.Lock()
         self._reactor = Reactor(f"osmo-pool-{pool}")
+        self._io = ThreadPoolExecutor(_IO_THREADS, thread_name_prefix=f"osmo-io-{pool}")
+        self._preparing: dict[str, str | None] = {}  # attempt id → kill reason, if killed
+        self._run_pending: set[str] = set()  # run() came while its folders were being made
 
     # -------------------------------------------------------------- public (any thread)
 
     def node(self) -> Node:
         """This machine as a scheduler node, with its (or the configured) capacity."""
-        capacity = Capacity(
-            cpu=float(self._cpus if self._cpus is not None else os.cpu_count() or 1),
-            gpu=self._gpus if self._gpus is not None else len(glob.glob("/dev/nvidia[0-9]*")),
-            memory=self._memory if self._memory is not None else _mem_total(),
-            storage=shutil.disk_usage(self.home).free,
-        )
+        capacity = detect_capacity(self.home, cpus=self._cpus, gpus=self._gpus,
+                                   memory=self._memory)
         return Node(id=self._node_id, pool=self._pool, capacity=capacity)
 
     def prepare(self, cmd: PrepareAttempt, task: TaskSpec) -> None:
@@ -191,33 +193,55 @@ class LocalPool:
             return dict(self._pids)
 
     def close(self) -> None:
-        """Kill every running process group and stop the I/O thread (no more events)."""
+        """Kill every running process group and stop the threads (no more events)."""
         self._reactor.stop(self._shutdown)
+        self._io.shutdown(wait=True, cancel_futures=True)
 
     # -------------------------------------------------------------- reactor thread
 
     def _prepare(self, cmd: PrepareAttempt, task: TaskSpec) -> None:
-        if cmd.attempt_id in self._attempts:
+        if cmd.attempt_id in self._attempts or cmd.attempt_id in self._preparing:
             _log.warning("attempt %s is already active; prepare ignored", cmd.attempt_id)
             return
         self._finished.pop(cmd.attempt_id, None)
+        self._preparing[cmd.attempt_id] = None
+        self._io.submit(self._prepare_io, cmd, task)
+
+    def _prepare_io(self, cmd: PrepareAttempt, task: TaskSpec) -> None:
+        """I/O thread: make the folders and files; hand the outcome back to the reactor."""
         try:
             dirs = AttemptDirs.at(self.home, cmd.workflow_id, cmd.task, cmd.retry)
             launch = prepare(dirs, cmd, task, self._env)
         except Exception as exc:  # every prepare must get its one final report
             message = str(exc) if isinstance(exc, PrepareError) else f"cannot prepare: {exc!r}"
+            self._reactor.call_soon(self._prepared, cmd, task, None, None, message)
+        else:
+            self._reactor.call_soon(self._prepared, cmd, task, dirs, launch, None)
+
+    def _prepared(self, cmd: PrepareAttempt, task: TaskSpec, dirs: AttemptDirs | None,
+                  launch: Launch | None, error: str | None) -> None:
+        kill_reason = self._preparing.pop(cmd.attempt_id, None)
+        run_now = cmd.run or cmd.attempt_id in self._run_pending
+        self._run_pending.discard(cmd.attempt_id)
+        if error is not None or dirs is None or launch is None:
             self._remember(cmd.attempt_id)
-            self._emit(AttemptStartFailed(cmd.attempt_id, message))
+            self._emit(AttemptStartFailed(cmd.attempt_id, error or "cannot prepare"))
             return
         attempt = _Attempt(cmd.attempt_id, task, dirs, launch, LogWriter(dirs.log))
         if task.image:
             attempt.log.line("osmo", _image_note(task.image))
         self._attempts[attempt.id] = attempt
+        if kill_reason is not None:  # killed while its folders were being made
+            self._kill(attempt.id, kill_reason)
+            return
         self._emit(AttemptPrepared(attempt.id))
-        if cmd.run:  # no barrier holds it: start now, no RunAttempt will come
+        if run_now:  # no barrier holds it (or run() already came): start now
             self._run(attempt.id)
 
     def _run(self, attempt_id: str) -> None:
+        if attempt_id in self._preparing:
+            self._run_pending.add(attempt_id)
+            return
         attempt = self._attempts.get(attempt_id)
         if attempt is None:
             if attempt_id not in self._finished:
@@ -246,9 +270,14 @@ class LocalPool:
         self._reactor.add_reader(handle.exit_fd, lambda a=attempt: self._exited(a))
 
     def _kill(self, attempt_id: str, reason: str) -> None:
+        if attempt_id in self._preparing:  # acted on when its folders are ready
+            self._preparing[attempt_id] = self._preparing[attempt_id] or reason
+            return
         attempt = self._attempts.get(attempt_id)
         if attempt is None or attempt.kill_reason is not None:
             return
+        if attempt.state is _State.FINISHING:
+            return  # it already exited; its report is on the way
         attempt.kill_reason = reason
         attempt.log.line("osmo", f"killed: {reason}")
         if attempt.state is _State.PREPARED:
@@ -304,19 +333,27 @@ class LocalPool:
             attempt.escalation.cancel()
         attempt.log.flush_partial()
         attempt.log.line("osmo", _exit_note(code))
-        self._finish(attempt, self._exit_report(attempt, code))
-
-    def _exit_report(self, attempt: _Attempt, code: int) -> AttemptExited:
         if attempt.kill_reason is not None:
-            return AttemptExited(attempt.id, code, None, f"killed: {attempt.kill_reason}")
-        if attempt.task.exit_action(code) is not ExitAction.COMPLETE:
-            return AttemptExited(attempt.id, code)
+            self._finish(attempt, AttemptExited(attempt.id, code, None,
+                                                f"killed: {attempt.kill_reason}"))
+        elif attempt.task.exit_action(code) is not ExitAction.COMPLETE:
+            self._finish(attempt, AttemptExited(attempt.id, code))
+        else:
+            attempt.state = _State.FINISHING
+            self._io.submit(self._promote_io, attempt, code)
+
+    def _promote_io(self, attempt: _Attempt, code: int) -> None:
+        """I/O thread: promote the outputs; the reactor then reports the exit."""
         try:
-            return AttemptExited(attempt.id, code, promote(attempt.dirs))
+            event = AttemptExited(attempt.id, code, promote(attempt.dirs))
         except OSError as exc:
-            message = f"outputs could not be promoted: {exc}"
-            attempt.log.line("osmo", message)
-            return AttemptExited(attempt.id, code, None, message)
+            event = AttemptExited(attempt.id, code, None, f"outputs could not be promoted: {exc}")
+        self._reactor.call_soon(self._promoted, attempt, event)
+
+    def _promoted(self, attempt: _Attempt, event: AttemptExited) -> None:
+        if event.message:
+            attempt.log.line("osmo", event.message)
+        self._finish(attempt, event)
 
     def _finish(self, attempt: _Attempt, event: AttemptExited | AttemptStartFailed) -> None:
         attempt.state = _State.DONE
@@ -344,30 +381,3 @@ class LocalPool:
         self._attempts.clear()
         with self._pids_lock:
             self._pids.clear()
-
-
-def _raise_fd_limit(wanted: int = 65536) -> None:
-    """Lift this process's soft open-files limit toward the hard one.
-
-    Each running attempt holds four descriptors (two pipes, a pidfd, its log), so the usual
-    soft limit of 1024 would cap the pool near 250 concurrent attempts.
-    """
-    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
-    target = wanted if hard == resource.RLIM_INFINITY else min(wanted, hard)
-    if soft != resource.RLIM_INFINITY and soft < target:
-        try:
-            resource.setrlimit(resource.RLIMIT_NOFILE, (target, hard))
-        except (ValueError, OSError):
-            pass  # keep the limit we have; starts then fail with a clear message
-
-
-def _mem_total() -> int:
-    """MemTotal from /proc/meminfo, in bytes (0 if unknown)."""
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemTotal:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    return 0
