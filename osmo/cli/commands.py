@@ -158,13 +158,13 @@ def _server(args: argparse.Namespace) -> int:
         console.print(f"stopped osmo server (pid {pid})" if pid else "no osmo server running",
                       markup=False)
         return 0
-    info = server_status()
+    status = server_status()
     if args.format == "json":
-        print_json(info.__dict__ if info else None)
+        print_json(status.__dict__ if status else None)
     else:
-        console.print(f"running: pid {info.pid}, {info.endpoint}" if info
+        console.print(f"running: pid {status.pid}, {status.endpoint}" if status
                       else "not running", markup=False)
-    return 0 if info else 3
+    return 0 if status else 3
 
 
 _VERBS: dict[str, Callable[[argparse.Namespace], int]] = {

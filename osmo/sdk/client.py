@@ -7,6 +7,7 @@ what the CLI uses too; every CLI verb is a thin layer over a method here.
 
 from __future__ import annotations
 
+import builtins
 import json
 import os
 import threading
@@ -171,12 +172,12 @@ class Client:
         """The rendered spec the workflow was submitted with."""
         return dict(self._call("spec", workflow_id=workflow_id)["spec"])
 
-    def pools(self) -> list[dict[str, Any]]:
+    def pools(self) -> builtins.list[dict[str, Any]]:
         """Nodes of the server's pools with capacity used/total."""
-        return list(self._call("pools"))
+        return builtins.list(self._call("pools"))
 
     def logs(self, workflow_id: str, *, task: str | None = None, retry: int | None = None,
-             tail: int | None = None) -> list[LogRecord]:
+             tail: int | None = None) -> builtins.list[LogRecord]:
         """All log records of a workflow so far (optionally of one task/retry, last N)."""
         records = [_record(r) for r in self._call("logs", workflow_id=workflow_id, task=task,
                                                   retry=retry)["records"]]

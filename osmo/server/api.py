@@ -7,6 +7,7 @@ calling API thread. Handlers raise ``OsmoError`` subclasses for the client's mis
 
 from __future__ import annotations
 
+import builtins
 import os
 from collections.abc import Callable
 from pathlib import Path
@@ -141,7 +142,7 @@ class Api:
         """The stored (rendered) spec of a workflow, as a dict."""
         return {"spec": self._row(request["workflow_id"], with_spec=True).spec}
 
-    def pools(self, _request: dict[str, Any]) -> list[dict[str, Any]]:
+    def pools(self, _request: dict[str, Any]) -> builtins.list[dict[str, Any]]:
         """Known nodes with their pool, platform and capacity used/total."""
         sched = self._engine.scheduler
         out = []

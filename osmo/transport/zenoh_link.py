@@ -105,7 +105,7 @@ class Link:
     def close(self) -> None:
         """Close the session (idempotent)."""
         try:
-            self._session.close()
+            self._session.close()  # type: ignore[no-untyped-call]
         except zenoh.ZError:
             pass
 
@@ -152,11 +152,11 @@ class ApiServer:
         except zenoh.ZError:
             pass  # the client went away
         finally:
-            query.drop()
+            query.drop()  # type: ignore[no-untyped-call]
 
     def close(self) -> None:
         """Stop serving and wait for in-flight handlers."""
-        self._queryable.undeclare()
+        self._queryable.undeclare()  # type: ignore[no-untyped-call]
         self._pool.shutdown(wait=True)
 
 
