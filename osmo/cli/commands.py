@@ -6,6 +6,7 @@ import argparse
 import sys
 from collections.abc import Callable
 
+from osmo.cli.artifacts import run_artifacts, run_lineage
 from osmo.cli.render import (
     console,
     format_log,
@@ -178,6 +179,8 @@ _VERBS: dict[str, Callable[[argparse.Namespace], int]] = {
     "restart": _restart,
     "spec": _spec,
     "server": _server,
+    "artifacts": run_artifacts,
+    "lineage": run_lineage,
 }
 
 

@@ -144,12 +144,16 @@ class AttemptExited:
         output: reference to the promoted output folder when the outputs were promoted
             (only after a COMPLETE exit), else ``None``.
         message: optional detail (e.g. why outputs could not be promoted).
+        manifest: JSON of the promoted output's manifest (``osmo.artifacts.Manifest``)
+            when the worker ingested it into the artifact store; the scheduler ignores it,
+            the server records it with the attempt's lineage.
     """
 
     attempt_id: str
     exit_code: int
     output: str | None = None
     message: str = ""
+    manifest: str | None = None
 
 
 @dataclass(frozen=True)

@@ -231,6 +231,28 @@ class Client:
     def _wait_change(self, workflow_id: str, interval: float) -> None:
         time.sleep(interval)
 
+    # ------------------------------------------------------------------ artifacts & lineage
+
+    def lineage(self, target: str, *, downstream: bool = False) -> dict[str, Any]:
+        """The lineage graph of an artifact: ``sha256:<digest>`` (a file or a whole output)
+        or ``WORKFLOW_ID:TASK[:PATH]``. See ``osmo.server.lineage_query`` for its shape."""
+        return dict(self._call("lineage", target=target, downstream=downstream))
+
+    def artifacts(self, workflow_id: str, task: str | None = None) -> builtins.list[dict[str, Any]]:
+        """Promoted outputs of a workflow with their files (path, digest, size)."""
+        return builtins.list(self._call("artifacts_list", workflow_id=workflow_id, task=task))
+
+    def get_artifact(self, target: str, dest: str | os.PathLike[str]) -> builtins.list[str]:
+        """Write a target's files, verified, into ``dest`` (the server's machine: local
+        servers only until remote transfer lands). Returns the written paths."""
+        dest_path = str(Path(dest).absolute())
+        return builtins.list(self._call("artifacts_get", target=target, dest=dest_path)["files"])
+
+    def gc_artifacts(self) -> tuple[int, int]:
+        """Remove unreferenced blobs; returns (count, bytes)."""
+        reply = self._call("artifacts_gc")
+        return int(reply["removed"]), int(reply["bytes"])
+
     def ping(self) -> dict[str, Any]:
         """The server's info (endpoint, pid, home)."""
         return dict(self._call("ping"))

@@ -13,9 +13,11 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from osmo.artifacts import ArtifactStore, Manifest
 from osmo.errors import NotFoundError, SubmitError, UsageError
 from osmo.scheduler.types import CancelWorkflow, WorkflowSubmitted
 from osmo.server.engine import Engine, _Batch
+from osmo.server.lineage_query import lineage_graph, resolve_target
 from osmo.server.logview import read_logs
 from osmo.spec import spec_from_dict
 from osmo.status import WorkflowStatus
@@ -36,6 +38,7 @@ class Api:
         self._home = home
         self._info = info
         self._on_shutdown = on_shutdown
+        self._artifacts = ArtifactStore(home / "artifacts")
         self._verbs: dict[str, Callable[[dict[str, Any]], Any]] = {
             "ping": lambda _r: self._info,
             "submit": self.submit,
@@ -47,6 +50,10 @@ class Api:
             "logs": self.logs,
             "spec": self.spec,
             "pools": self.pools,
+            "lineage": self.lineage,
+            "artifacts_list": self.artifacts_list,
+            "artifacts_get": self.artifacts_get,
+            "artifacts_gc": self.artifacts_gc,
             "shutdown": self.shutdown,
         }
 
@@ -151,6 +158,40 @@ class Api:
             out.append({"node": node.id, "pool": node.pool, "platform": node.platform,
                         "total": vars(node.capacity), "used": vars(used)})
         return out
+
+    # ------------------------------------------------------------------ artifacts & lineage
+
+    def lineage(self, request: dict[str, Any]) -> dict[str, Any]:
+        """The lineage graph of a target (see ``osmo.server.lineage_query``)."""
+        return lineage_graph(self._store, request["target"],
+                             downstream=bool(request.get("downstream")))
+
+    def artifacts_list(self, request: dict[str, Any]) -> builtins.list[dict[str, Any]]:
+        """Promoted outputs of a workflow (optionally one task) with their files."""
+        row = self._row(request["workflow_id"])
+        out = []
+        for output in self._store.outputs(row.id, request.get("task")):
+            body = self._store.manifest_body(output["manifest"]) or '{"entries": []}'
+            files = [vars(e) for e in Manifest.from_json(body).entries]
+            out.append({**output, "files": files})
+        if request.get("task") and not out:
+            raise NotFoundError(f"task '{request['task']}' of {row.id} has no recorded output")
+        return out
+
+    def artifacts_get(self, request: dict[str, Any]) -> dict[str, Any]:
+        """Write a target's files (verified) into ``dest`` on the server's machine."""
+        manifests, blob = resolve_target(self._store, request["target"])
+        body = self._store.manifest_body(manifests[0])
+        assert body is not None
+        manifest = Manifest.from_json(body)
+        only = next((e.path for e in manifest.entries if e.digest == blob), None) if blob else None
+        written = self._artifacts.materialize(manifest, Path(request["dest"]), only=only)
+        return {"files": [str(p) for p in written], "manifest": manifests[0]}
+
+    def artifacts_gc(self, _request: dict[str, Any]) -> dict[str, Any]:
+        """Remove blobs no recorded manifest references (recent blobs are kept)."""
+        count, size = self._artifacts.gc(self._store.all_blob_digests())
+        return {"removed": count, "bytes": size}
 
     def _row(self, workflow_id: str, *, with_spec: bool = False) -> WorkflowRow:
         row = self._store.workflow(workflow_id, with_spec=with_spec)

@@ -22,12 +22,14 @@ import time
 from pathlib import Path
 from typing import Any
 
+from osmo.artifacts import ArtifactStore
 from osmo.config import free_port, home_dir, write_json_atomic
 from osmo.errors import InfrastructureError
 from osmo.scheduler import Scheduler, TaskState, WorkflowState
 from osmo.scheduler.types import AttemptLost, NodeUp
 from osmo.server.api import Api
 from osmo.server.engine import Engine
+from osmo.server.records import RunRecords
 from osmo.spec import spec_from_dict
 from osmo.spec.model import WorkflowSpec
 from osmo.store.sqlite import Store
@@ -100,9 +102,11 @@ def serve(home: str | os.PathLike[str] | None = None, *, listen: str | None = No
 
     engine_box: list[Engine] = []
     pool = LocalPool(home=home_path, emit=lambda ev: engine_box[0].post(ev),
-                     cpus=cpus, gpus=gpus, memory=memory)
+                     cpus=cpus, gpus=gpus, memory=memory,
+                     artifacts=ArtifactStore(home_path / "artifacts"))
+    records = RunRecords(store, home_path)
     engine = Engine(store=store, scheduler=scheduler, executor=pool, specs=specs,
-                    on_changed=on_changed, home=home_path)
+                    on_changed=on_changed, home=home_path, on_finished=records.finished)
     engine_box.append(engine)
     engine.post(NodeUp(pool.node()))
     for task in lost:
@@ -130,6 +134,7 @@ def serve(home: str | os.PathLike[str] | None = None, *, listen: str | None = No
         api_server.close()
         engine.stop()
         pool.close()
+        records.close()
         link.close()
         store.close()
         os.close(lock_fd)

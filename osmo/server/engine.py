@@ -22,7 +22,10 @@ from typing import Any, Protocol
 
 from osmo.scheduler import Scheduler
 from osmo.scheduler.types import (
+    AttemptExited,
+    AttemptLost,
     AttemptStarted,
+    AttemptStartFailed,
     Command,
     Event,
     KillAttempt,
@@ -32,7 +35,8 @@ from osmo.scheduler.types import (
     Tick,
 )
 from osmo.spec.model import TaskSpec, WorkflowSpec
-from osmo.store.sqlite import AttemptRow, Store
+from osmo.server.provenance import Provenance
+from osmo.store.sqlite import AttemptRow, LineageRow, Store
 
 __all__ = ["Engine", "Executor"]
 
@@ -57,6 +61,7 @@ class _Batch:
     new_workflows: list[tuple[str, str, int, float, dict[str, Any], dict[str, Any]]] = field(
         default_factory=list)
     attempts: list[AttemptRow] = field(default_factory=list)
+    lineage: list[LineageRow] = field(default_factory=list)
     replies: list[tuple[Future[Any], Any]] = field(default_factory=list)
 
 
@@ -78,17 +83,21 @@ class Engine:
         executor: the pool that runs attempts.
         specs: workflow id → spec for every workflow the scheduler holds.
         on_changed: called with the ids of workflows whose state changed (after commit).
+        on_finished: called with the id of each workflow that ended (after commit).
         clock: time source (injectable for tests).
     """
 
     def __init__(self, *, store: Store, scheduler: Scheduler, executor: Executor,
                  specs: dict[str, WorkflowSpec], on_changed: Callable[[set[str]], None],
-                 home: Any, clock: Callable[[], float] = time.time) -> None:
+                 home: Any, on_finished: Callable[[str], None] = lambda _wf: None,
+                 clock: Callable[[], float] = time.time) -> None:
         self.store = store
         self.scheduler = scheduler
         self.executor = executor
         self.specs = specs
         self._on_changed = on_changed
+        self._on_finished = on_finished
+        self.provenance = Provenance(store)
         self._clock = clock
         self._home = home
         self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
@@ -159,14 +168,32 @@ class Engine:
             elif isinstance(item, _Call):
                 self._run_call(item, batch, now)
             else:
-                batch.commands += self.scheduler.handle(item, now)
-                if isinstance(item, AttemptStarted):
-                    self._note_pid(item.attempt_id, batch)
+                self._handle(item, batch, now)
         deadline = self.scheduler.next_deadline()
         if deadline is not None and deadline <= now:
             batch.commands += self.scheduler.handle(Tick(), now)
         self._commit_and_execute(batch)
         return keep_going
+
+    def _handle(self, event: Event, batch: _Batch, now: float) -> None:
+        if not isinstance(event, (AttemptExited, AttemptStartFailed, AttemptLost)):
+            batch.commands += self.scheduler.handle(event, now)
+            if isinstance(event, AttemptStarted):
+                self._note_pid(event.attempt_id, batch)
+            return
+        before = self.scheduler.attempt(event.attempt_id)
+        batch.commands += self.scheduler.handle(event, now)
+        after = self.scheduler.attempt(event.attempt_id)
+        completed = (isinstance(event, AttemptExited) and before is not None
+                     and before.status.active and after is not None
+                     and after.status.name == "COMPLETED")
+        if not completed or before is None or not isinstance(event, AttemptExited):
+            self.provenance.forget(event.attempt_id)
+            return
+        task = self.specs[before.workflow_id].task(before.name)
+        row = self.provenance.exited(event, task, started_at=before.started_at, now=now)
+        if row is not None:
+            batch.lineage.append(row)
 
     def _run_call(self, call: _Call, batch: _Batch, now: float) -> None:
         try:
@@ -178,13 +205,14 @@ class Engine:
         changes = self.scheduler.take_changes()
         for cmd in batch.commands:
             if isinstance(cmd, PrepareAttempt):
+                self.provenance.placed(cmd, cmd.hosts.get(cmd.task, cmd.node_id))
                 batch.attempts.append(AttemptRow(
                     cmd.attempt_id, cmd.workflow_id, cmd.task, cmd.retry, cmd.node_id,
                     str(self._home / "runs" / cmd.workflow_id / cmd.task / str(cmd.retry)),
                     None, None))
-        if changes or batch.new_workflows or batch.attempts:
+        if changes or batch.new_workflows or batch.attempts or batch.lineage:
             self.store.commit(changes, new_workflows=batch.new_workflows,
-                              attempts=batch.attempts)
+                              attempts=batch.attempts, lineage=batch.lineage)
         for future, result in batch.replies:
             future.set_result(result)
         for cmd in batch.commands:
@@ -197,6 +225,7 @@ class Engine:
             if wf.status.terminal:  # type: ignore[attr-defined]
                 self.scheduler.forget(wf.id)  # type: ignore[attr-defined]
                 self.specs.pop(wf.id, None)  # type: ignore[attr-defined]
+                self._on_finished(wf.id)  # type: ignore[attr-defined]
 
     def _execute(self, cmd: Command) -> None:
         try:

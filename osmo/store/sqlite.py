@@ -23,8 +23,9 @@ from typing import Any
 
 from osmo.errors import InfrastructureError
 from osmo.scheduler.types import Changes
+from osmo.store.lineage import LineageQueries
 
-__all__ = ["AttemptRow", "Store", "WorkflowRow"]
+__all__ = ["AttemptRow", "LineageRow", "Store", "WorkflowRow"]
 
 
 def _v1(db: sqlite3.Connection) -> None:
@@ -52,6 +53,31 @@ def _v1(db: sqlite3.Connection) -> None:
     )
 
 
+def _v2(db: sqlite3.Connection) -> None:
+    """Artifacts and lineage: manifests, which blobs they hold, who made and used them."""
+    _run_script(
+        db,
+        """
+        CREATE TABLE manifests (digest TEXT PRIMARY KEY, body TEXT NOT NULL);
+        CREATE TABLE manifest_blobs (
+            manifest TEXT NOT NULL, path TEXT NOT NULL, digest TEXT NOT NULL, size INTEGER,
+            PRIMARY KEY (manifest, path));
+        CREATE INDEX manifest_blobs_digest ON manifest_blobs(digest);
+        CREATE TABLE outputs (
+            workflow_id TEXT NOT NULL, task TEXT NOT NULL, attempt_id TEXT NOT NULL,
+            manifest TEXT NOT NULL, path TEXT NOT NULL, PRIMARY KEY (workflow_id, task));
+        CREATE INDEX outputs_manifest ON outputs(manifest);
+        CREATE INDEX outputs_path ON outputs(path);
+        CREATE TABLE lineage (
+            attempt_id TEXT PRIMARY KEY, workflow_id TEXT NOT NULL, task TEXT NOT NULL,
+            manifest TEXT, record TEXT NOT NULL);
+        CREATE INDEX lineage_manifest ON lineage(manifest);
+        CREATE TABLE consumed (
+            manifest TEXT NOT NULL, attempt_id TEXT NOT NULL, PRIMARY KEY (manifest, attempt_id));
+        """,
+    )
+
+
 def _run_script(db: sqlite3.Connection, script: str) -> None:
     """Run ``;``-separated DDL inside the caller's transaction (``executescript`` would commit)."""
     for statement in script.split(";"):
@@ -61,7 +87,7 @@ def _run_script(db: sqlite3.Connection, script: str) -> None:
 
 _NO_SPEC = "id, name, status, submitted_at, '{}' AS spec, options, state"
 
-_MIGRATIONS: dict[int, Callable[[sqlite3.Connection], None]] = {1: _v1}
+_MIGRATIONS: dict[int, Callable[[sqlite3.Connection], None]] = {1: _v1, 2: _v2}
 SCHEMA_VERSION = max(_MIGRATIONS)
 
 
@@ -92,7 +118,30 @@ class AttemptRow:
     pid_start: float | None
 
 
-class Store:
+@dataclass(frozen=True)
+class LineageRow:
+    """What one successful attempt made and used, written with the batch that completes it.
+
+    Attributes:
+        manifest: digest of the attempt's output manifest; ``manifest_body`` its JSON.
+        entries: ``(path, blob digest, size)`` of every file in the manifest.
+        output_path: the promoted output folder (how downstream tasks receive it).
+        record: the lineage record as JSON (``osmo.record.Lineage.to_dict``).
+        consumed: manifest digests of the inputs it read.
+    """
+
+    attempt_id: str
+    workflow_id: str
+    task: str
+    manifest: str
+    manifest_body: str
+    entries: tuple[tuple[str, str, int], ...]
+    output_path: str
+    record: str
+    consumed: tuple[str, ...]
+
+
+class Store(LineageQueries):
     """The SQLite state store under ``OSMO_HOME``.
 
     Args:
@@ -181,6 +230,7 @@ class Store:
         *,
         new_workflows: list[tuple[str, str, int, float, dict[str, Any], dict[str, Any]]] = (),  # type: ignore[assignment]
         attempts: list[AttemptRow] = (),  # type: ignore[assignment]
+        lineage: list[LineageRow] = (),  # type: ignore[assignment]
     ) -> None:
         """Write one batch atomically.
 
@@ -188,6 +238,7 @@ class Store:
             changes: scheduler snapshots and transitions.
             new_workflows: ``(id, name, n, submitted_at, spec_dict, options)`` rows to create.
             attempts: attempt rows to insert or replace (placement, pid).
+            lineage: outputs and lineage of attempts that completed in this batch.
         """
         with self._tx() as db:
             for wf_id, name, n, at, spec, options in new_workflows:
@@ -223,6 +274,8 @@ class Store:
                     for a in attempts
                 ],
             )
+            for row in lineage:
+                _write_lineage(db, row)
 
     # -------------------------------------------------------------- reads (any thread)
 
@@ -281,6 +334,18 @@ class Store:
             args.append(task)
         rows = self._read(sql + " ORDER BY task, retry", tuple(args))
         return [AttemptRow(**dict(r)) for r in rows]
+
+
+def _write_lineage(db: sqlite3.Connection, row: LineageRow) -> None:
+    db.execute("INSERT OR IGNORE INTO manifests VALUES (?,?)", (row.manifest, row.manifest_body))
+    db.executemany("INSERT OR IGNORE INTO manifest_blobs VALUES (?,?,?,?)",
+                   [(row.manifest, path, digest, size) for path, digest, size in row.entries])
+    db.execute("INSERT OR REPLACE INTO outputs VALUES (?,?,?,?,?)",
+               (row.workflow_id, row.task, row.attempt_id, row.manifest, row.output_path))
+    db.execute("INSERT OR REPLACE INTO lineage VALUES (?,?,?,?,?)",
+               (row.attempt_id, row.workflow_id, row.task, row.manifest, row.record))
+    db.executemany("INSERT OR IGNORE INTO consumed VALUES (?,?)",
+                   [(m, row.attempt_id) for m in row.consumed])
 
 
 def _workflow_row(r: sqlite3.Row) -> WorkflowRow:

@@ -37,6 +37,8 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from osmo.artifacts import ArtifactStore
+from osmo.errors import OsmoError
 from osmo.runtime.process import (
     ProcessHandle,
     ProcessRuntime,
@@ -116,6 +118,8 @@ class LocalPool:
         kill_grace: seconds between SIGTERM and SIGKILL when killing an attempt.
         runtime: how commands run (default: ``ProcessRuntime``).
         env: the base environment of every command (default: this process's environment).
+        artifacts: where promoted outputs are ingested (content-addressed, verified); the
+            exit report then carries the output's manifest. None: outputs are not ingested.
     """
 
     def __init__(
@@ -131,6 +135,7 @@ class LocalPool:
         kill_grace: float = 3.0,
         runtime: Runtime | None = None,
         env: Mapping[str, str] | None = None,
+        artifacts: ArtifactStore | None = None,
     ) -> None:
         self.home = Path(home).absolute()
         self.home.mkdir(parents=True, exist_ok=True)
@@ -141,6 +146,7 @@ class LocalPool:
         self._grace = kill_grace
         self._runtime: Runtime = runtime or ProcessRuntime()
         self._env = dict(os.environ if env is None else env)
+        self._artifacts = artifacts
         self._attempts: dict[str, _Attempt] = {}
         self._finished: collections.OrderedDict[str, None] = collections.OrderedDict()
         self._pids: dict[str, int] = {}
@@ -345,8 +351,11 @@ class LocalPool:
     def _promote_io(self, attempt: _Attempt, code: int) -> None:
         """I/O thread: promote the outputs; the reactor then reports the exit."""
         try:
-            event = AttemptExited(attempt.id, code, promote(attempt.dirs))
-        except OSError as exc:
+            ref = promote(attempt.dirs)
+            manifest = self._artifacts.ingest(Path(ref)) if self._artifacts else None
+            event = AttemptExited(attempt.id, code, ref,
+                                  manifest=manifest.to_json() if manifest else None)
+        except (OSError, OsmoError) as exc:
             event = AttemptExited(attempt.id, code, None, f"outputs could not be promoted: {exc}")
         self._reactor.call_soon(self._promoted, attempt, event)
 

@@ -1,0 +1,111 @@
+"""File-level primitives of the blob store: hash, publish by hard link, verified copy.
+
+Owns the few system calls whose order matters for atomicity (``link`` publishes a complete
+file under its final name or fails because one is there) and the streaming hash loop. Must not
+decide where blobs live or which files to store: that is :mod:`osmo.artifacts.store`'s job.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from collections.abc import Iterator
+from io import FileIO
+from pathlib import Path
+
+from osmo.artifacts.errors import ArtifactCorrupted, OutputRejected
+
+__all__ = ["CHUNK", "check_unchanged", "copy_verified", "files", "hash_fd", "link", "refresh"]
+
+CHUNK = 1 << 20  # 1 MiB reads: large enough that sha256 (not syscalls) bounds the speed
+
+
+def hash_fd(f: FileIO, size_hint: int) -> tuple[str, int]:
+    """Hash an open file from its current position to the end.
+
+    Args:
+        f: an unbuffered binary file.
+        size_hint: the expected size; the read buffer is no larger than needed for it.
+
+    Returns:
+        ``("sha256:<hex>", bytes read)``.
+    """
+    h = hashlib.sha256()
+    buf = bytearray(min(CHUNK, max(size_hint, 0) + 1))  # +1: a small file takes one read
+    view = memoryview(buf)
+    total = 0
+    while n := f.readinto(buf):
+        h.update(view[:n])  # releases the GIL for large chunks, so threads hash in parallel
+        total += n
+    return "sha256:" + h.hexdigest(), total
+
+
+def copy_verified(blob: Path, digest: str, size: int, tmp: Path) -> None:
+    """Copy ``blob`` to the new file ``tmp``, hashing on the way (one read, one write).
+
+    Args:
+        blob: the blob to copy.
+        digest: the digest it must hash to.
+        size: its expected size (sizes the read buffer).
+        tmp: where to write; must not exist.
+
+    Raises:
+        ArtifactCorrupted: the blob is missing or does not hash to ``digest`` (``tmp`` may
+            then hold a partial copy; the caller removes it).
+    """
+    h = hashlib.sha256()
+    buf = bytearray(min(CHUNK, size + 1))
+    view = memoryview(buf)
+    try:
+        with open(blob, "rb", buffering=0) as src, open(tmp, "xb", buffering=0) as out:
+            while n := src.readinto(buf):
+                h.update(view[:n])
+                out.write(view[:n])
+    except FileNotFoundError:
+        raise ArtifactCorrupted(digest, str(blob), None) from None
+    actual = "sha256:" + h.hexdigest()
+    if actual != digest:
+        raise ArtifactCorrupted(digest, str(blob), actual)
+
+
+def link(src: str, blob: Path) -> bool:
+    """Create ``blob`` as a hard link to ``src``; ``False`` if it already existed (it wins)."""
+    try:
+        os.link(src, blob)
+    except FileExistsError:
+        refresh(blob)
+        return False
+    except FileNotFoundError:
+        if not os.path.exists(src):
+            raise
+        blob.parent.mkdir(exist_ok=True)  # first blob of this shard
+        return link(src, blob)
+    return True
+
+
+def refresh(blob: Path) -> None:
+    """Bump the blob's ctime (and re-assert 0o444) so gc's grace period covers it."""
+    try:
+        os.chmod(blob, 0o444)
+    except OSError:
+        pass  # someone else's blob in a shared store: its age is then theirs to keep fresh
+
+
+def check_unchanged(rel: str, f: FileIO, before: os.stat_result, n: int) -> None:
+    """Raise if the file changed size or mtime since ``before`` (or ``n`` bytes were read)."""
+    st = os.fstat(f.fileno())
+    if n != before.st_size or (st.st_size, st.st_mtime_ns) != (before.st_size,
+                                                              before.st_mtime_ns):
+        raise OutputRejected(rel, "changed while it was being stored; make sure the task "
+                             "and its child processes have finished writing its outputs")
+
+
+def files(folder: Path, depth: int) -> Iterator[Path]:
+    """Yield the files ``depth`` levels below ``folder`` (1: its own files)."""
+    with os.scandir(folder) as it:
+        entries = list(it)
+    for entry in entries:
+        if depth > 1 and entry.is_dir(follow_symlinks=False):
+            yield from files(Path(entry.path), depth - 1)
+        elif depth == 1 and entry.is_file(follow_symlinks=False):
+            yield Path(entry.path)

@@ -1,0 +1,309 @@
+"""A content-addressed blob store on the local filesystem (``OSMO_HOME/artifacts``).
+
+Owns the on-disk layout below and every write into it: ingesting an output folder into blobs
+plus a :class:`~osmo.artifacts.manifest.Manifest`, verified reads, materializing a manifest
+into a folder, and garbage collection. Must not know about workflows, tasks or the state
+store: callers persist manifests and say which digests are still referenced. Never pickles;
+only the standard library.
+
+Layout::
+
+    root/blobs/sha256/ab/cdef...   one read-only (0o444) file per distinct content
+    root/tmp/                      copies being written (cross-filesystem ingest)
+    root/lock                      flock: ingest holds it shared, gc exclusive
+
+How ingest stores a new file, fastest first:
+
+- **Same filesystem:** the file is hashed (one streaming read), made read-only (0o444), and
+  hard-linked into place with ``os.link``, which either creates the final name atomically or
+  fails because the blob exists: an existing blob wins, so concurrent ingests of the same
+  content are safe. No data is copied. The output file and the blob then share one inode,
+  which is why outputs are immutable once ingested: writing to the output would change the
+  blob. The data is not fsynced on this path (that would cost a full disk write of every
+  output); a blob torn by a power cut fails verification and is never used.
+- **Otherwise** (another filesystem, or hard links refused): the file is copied to
+  ``root/tmp``, fsynced, made read-only and linked into place the same way.
+
+A file whose blob already exists writes no data; ingest only refreshes the blob's ctime (a
+``chmod`` to 0o444) so that :meth:`ArtifactStore.gc`'s grace period covers it until the caller
+records the manifest. Reads and materialization re-hash every byte and raise
+:class:`ArtifactCorrupted` on a mismatch.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import fcntl
+import hashlib
+import os
+import shutil
+import stat
+import tempfile
+import time
+import uuid
+from collections.abc import Iterable, Iterator
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
+from io import FileIO
+from pathlib import Path
+
+from osmo.artifacts.errors import ArtifactCorrupted, OutputRejected
+from osmo.artifacts.fsops import (CHUNK, check_unchanged, copy_verified, files, hash_fd, link,
+                                  refresh)
+from osmo.artifacts.manifest import Entry, Manifest, check_digest
+from osmo.artifacts.scan import scan
+from osmo.errors import NotFoundError, UsageError
+
+__all__ = ["DEFAULT_GRACE", "ArtifactStore"]
+
+DEFAULT_GRACE = 3600.0
+"""Seconds a blob is safe from :meth:`ArtifactStore.gc` after it was stored or deduplicated."""
+
+_PARALLEL_SIZE = 4 << 20  # files this large are hashed on a thread pool
+
+
+class ArtifactStore:
+    """Blobs named by their sha256, written once and never modified.
+
+    Args:
+        root: the store's folder (``OSMO_HOME/artifacts``); created if missing.
+    """
+
+    def __init__(self, root: Path) -> None:
+        self.root = Path(root)
+        self._blobs = self.root / "blobs" / "sha256"
+        self._tmp = self.root / "tmp"
+        self._blobs.mkdir(parents=True, exist_ok=True)
+        self._tmp.mkdir(exist_ok=True)
+        self._dev = os.stat(self._blobs).st_dev
+
+    # -- queries -----------------------------------------------------------------------------
+
+    def path(self, digest: str) -> Path:
+        """Return where the blob for ``digest`` lives; it may not exist, nothing is verified.
+
+        Raises:
+            UsageError: ``digest`` is malformed.
+        """
+        hex_ = check_digest(digest)
+        return self._blobs / hex_[:2] / hex_[2:]
+
+    def has(self, digest: str) -> bool:
+        """Return whether a blob for ``digest`` exists (its content is not verified)."""
+        return self.path(digest).is_file()
+
+    def verify(self, digest: str) -> bool:
+        """Re-hash the blob for ``digest``: ``True`` when it exists and matches (fsck, gc)."""
+        try:
+            with open(self.path(digest), "rb", buffering=0) as f:
+                return hash_fd(f, CHUNK)[0] == digest
+        except FileNotFoundError:
+            return False
+
+    def read(self, digest: str) -> bytes:
+        """Return the blob's content after checking it hashes to ``digest``.
+
+        Meant for small artifacts; use :meth:`materialize` for large ones.
+
+        Raises:
+            ArtifactCorrupted: the blob is missing or its content does not match.
+        """
+        path = self.path(digest)
+        try:
+            data = path.read_bytes()
+        except FileNotFoundError:
+            raise ArtifactCorrupted(digest, str(path), None) from None
+        actual = "sha256:" + hashlib.sha256(data).hexdigest()
+        if actual != digest:
+            raise ArtifactCorrupted(digest, str(path), actual)
+        return data
+
+    # -- ingest ------------------------------------------------------------------------------
+
+    def ingest(self, folder: Path) -> Manifest:
+        """Store every file under ``folder`` and return its manifest.
+
+        Files are hashed with streaming 1 MiB reads and stored deduplicated (see the module
+        docstring). New blobs on the same filesystem are hard links to the output files,
+        which become read-only. Symlinks follow :func:`osmo.artifacts.scan.scan`'s policy.
+
+        Args:
+            folder: the output folder; entry paths are relative to it.
+
+        Returns:
+            The manifest of every regular file under ``folder``.
+
+        Raises:
+            UsageError: ``folder`` is not a folder.
+            OutputRejected: a symlink leaves the folder, dangles or loops, an entry is not a
+                regular file, or a file changed while it was being stored.
+        """
+        if not Path(folder).is_dir():
+            raise UsageError(f"cannot ingest {folder}: not a folder")
+        files = scan(str(folder))
+        big = [(rel, src) for rel, src, size in files if size >= _PARALLEL_SIZE]
+        small = [(rel, src) for rel, src, size in files if size < _PARALLEL_SIZE]
+        with self._lock(exclusive=False):
+            if len(big) < 2:
+                return Manifest(tuple(self._ingest_file(rel, src) for rel, src in big + small))
+            # hashlib releases the GIL, so large files hash in parallel; small ones are
+            # syscall-bound and run faster on this thread than through a pool
+            workers = min(len(big), os.cpu_count() or 1, 8)
+            with ThreadPoolExecutor(workers, thread_name_prefix="osmo-ingest") as pool:
+                futures = [pool.submit(self._ingest_file, rel, src) for rel, src in big]
+                entries = [self._ingest_file(rel, src) for rel, src in small]
+                entries += [f.result() for f in futures]
+        return Manifest(tuple(entries))
+
+    def _ingest_file(self, rel: str, src: str) -> Entry:
+        """Hash one file and make sure its blob exists."""
+        try:
+            f = open(src, "rb", buffering=0)
+        except PermissionError as exc:
+            raise OutputRejected(rel, f"cannot be read ({exc.strerror}); make it readable "
+                                 "by the worker") from None
+        with f:
+            before = os.fstat(f.fileno())
+            digest, n = hash_fd(f, before.st_size)
+            check_unchanged(rel, f, before, n)
+            blob = self.path(digest)
+            try:
+                existing: os.stat_result | None = os.stat(blob)
+            except FileNotFoundError:
+                existing = None
+            if existing is not None and existing.st_size == n:
+                refresh(blob)
+            else:
+                if existing is not None:  # wrong size: certainly corrupt; replace it
+                    blob.unlink(missing_ok=True)
+                self._store_new(rel, src, f, before, blob)
+        return Entry(rel, digest, n)
+
+    def _store_new(self, rel: str, src: str, f: FileIO, before: os.stat_result,
+                   blob: Path) -> None:
+        """Publish a blob for the open file ``f``: by hard link if possible, else by copy."""
+        if before.st_dev == self._dev:
+            try:
+                os.fchmod(f.fileno(), 0o444)  # before the link: a blob is never writable
+                if link(src, blob) and os.stat(blob).st_ino != before.st_ino:
+                    blob.unlink()  # ``src`` was replaced after we opened it: copy our file
+                    raise OSError(errno.ESTALE, "output replaced during ingest")
+                return
+            except OSError:  # links refused (EXDEV across bind mounts, EPERM, EMLINK): copy
+                with contextlib.suppress(OSError):
+                    os.fchmod(f.fileno(), stat.S_IMODE(before.st_mode))  # not shared after all
+        tmp = self._tmp / uuid.uuid4().hex
+        try:
+            with open(tmp, "xb") as out:
+                f.seek(0)
+                shutil.copyfileobj(f, out, CHUNK)
+                out.flush()
+                os.fsync(out.fileno())
+            check_unchanged(rel, f, before, before.st_size)
+            os.chmod(tmp, 0o444)
+            link(str(tmp), blob)
+        finally:
+            tmp.unlink(missing_ok=True)
+
+    # -- materialize -------------------------------------------------------------------------
+
+    def materialize(self, manifest: Manifest, dest: Path, *, only: str | None = None
+                    ) -> list[Path]:
+        """Write the manifest's files (or just ``only``) under ``dest``, verified.
+
+        Every file is first copied from its blob into a hidden staging folder inside ``dest``
+        while being re-hashed; only when all match are they renamed into place (replacing
+        existing files). So a corrupted blob leaves nothing new in ``dest``, and no file is
+        ever visible under its final name half-written. Files are not fsynced: they can
+        always be materialized again.
+
+        Args:
+            manifest: the files to write.
+            dest: the folder to write them under (created if missing).
+            only: a single entry path to write instead of all of them.
+
+        Returns:
+            The paths written, in manifest order.
+
+        Raises:
+            NotFoundError: ``only`` is not a path in the manifest.
+            ArtifactCorrupted: a blob is missing or does not match its digest.
+        """
+        entries = list(manifest.entries)
+        if only is not None:
+            entry = manifest.get(only)
+            if entry is None:
+                raise NotFoundError(f"no artifact {only!r} in manifest {manifest.digest} "
+                                    f"({len(entries)} files)")
+            entries = [entry]
+        dest = Path(dest)
+        dest.mkdir(parents=True, exist_ok=True)
+        staging = Path(tempfile.mkdtemp(prefix=".osmo-materialize-", dir=dest))
+        try:
+            staged = [_stage(self.path(e.digest), e, staging / str(i))
+                      for i, e in enumerate(entries)]
+            written = []
+            for tmp, e in zip(staged, entries, strict=True):
+                final = dest / e.path
+                final.parent.mkdir(parents=True, exist_ok=True)
+                os.replace(tmp, final)
+                written.append(final)
+            return written
+        finally:
+            shutil.rmtree(staging, ignore_errors=True)
+
+    # -- garbage collection ------------------------------------------------------------------
+
+    def gc(self, referenced: Iterable[str], *, grace: float = DEFAULT_GRACE,
+           now: float | None = None) -> tuple[int, int]:
+        """Remove blobs whose digest is not in ``referenced``.
+
+        A blob is kept while it is younger than ``grace`` seconds, measured by its ctime:
+        storing a blob (``link``) and deduplicating onto it (``chmod``) both refresh it, so
+        an ingest whose manifest the caller has not recorded yet is safe. gc also waits for
+        running ingests (the store lock) and removes copies left in ``root/tmp`` older than
+        ``grace`` by a crash.
+
+        Args:
+            referenced: digests still in use (``"sha256:<hex>"``).
+            grace: seconds a newly stored or deduplicated blob is kept regardless.
+            now: the current time (``time.time()`` when omitted; injectable for tests).
+
+        Returns:
+            ``(blobs removed, their total size in bytes)``. Space is only freed once no
+            output file shares the blob's inode.
+
+        Raises:
+            UsageError: a referenced digest is malformed.
+        """
+        keep = {check_digest(d) for d in referenced}
+        now = time.time() if now is None else now
+        count = freed = 0
+        with self._lock(exclusive=True):
+            for blob in files(self._blobs, depth=2):
+                st = blob.stat()
+                if blob.parent.name + blob.name in keep or now - st.st_ctime < grace:
+                    continue
+                blob.unlink(missing_ok=True)
+                count, freed = count + 1, freed + st.st_size
+            for tmp in files(self._tmp, depth=1):
+                if now - tmp.stat().st_ctime >= grace:
+                    tmp.unlink(missing_ok=True)
+        return count, freed
+
+    @contextmanager
+    def _lock(self, *, exclusive: bool) -> Iterator[None]:
+        """Hold the store lock: shared for ingest, exclusive for gc (one fd per call)."""
+        fd = os.open(self.root / "lock", os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX if exclusive else fcntl.LOCK_SH)
+            yield
+        finally:
+            os.close(fd)  # closing releases the flock
+
+
+def _stage(blob: Path, entry: Entry, tmp: Path) -> Path:
+    """Copy ``entry``'s blob to ``tmp``, verified; return ``tmp``."""
+    copy_verified(blob, entry.digest, entry.size, tmp)
+    return tmp

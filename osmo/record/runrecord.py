@@ -1,0 +1,274 @@
+"""The run record: one MCAP file per finished workflow that Foxglove and rerun open directly.
+
+Layout (every channel has a JSON Schema, encoding ``jsonschema``; messages are ``json``; a
+message's log time is its event's time in ns since the unix epoch)::
+
+    /osmo/status   one message per status transition  (osmo.StatusTransition)
+    /osmo/lineage  one message per attempt             (osmo.Lineage, Lineage.to_dict())
+    /osmo/logs     one message per log line            (osmo.LogLine)
+    metadata "osmo.workflow": id, name, status, submitted_at, ended_at (strings), record_version,
+                              and "workflow": the whole workflow dict as JSON
+
+This module owns that layout and nothing else: it builds messages from plain dicts the server
+already has and leaves the MCAP encoding to :mod:`osmo.record.mcapio`. It must not import
+``mcap`` or the server.
+"""
+
+from __future__ import annotations
+
+import enum
+import json
+import math
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from osmo.errors import UsageError
+from osmo.record.lineage import Lineage
+from osmo.record.mcapio import JsonMcapWriter, McapFile, RecordError
+
+__all__ = [
+    "LINEAGE_TOPIC",
+    "LOGS_TOPIC",
+    "RECORD_VERSION",
+    "STATUS_TOPIC",
+    "WORKFLOW_METADATA",
+    "read_run_record",
+    "write_run_record",
+]
+
+STATUS_TOPIC = "/osmo/status"
+LINEAGE_TOPIC = "/osmo/lineage"
+LOGS_TOPIC = "/osmo/logs"
+WORKFLOW_METADATA = "osmo.workflow"
+RECORD_VERSION = "1"
+
+_STR = {"type": "string"}
+_OPT_STR = {"type": ["string", "null"]}
+_OPT_INT = {"type": ["integer", "null"]}
+_OPT_NUM = {"type": ["number", "null"]}
+
+STATUS_SCHEMA: dict[str, Any] = {
+    "title": "osmo.StatusTransition",
+    "description": "A workflow (task null) or task retry changed status.",
+    "type": "object",
+    "properties": {
+        "at": {"type": "number", "description": "unix seconds"},
+        "seq": _OPT_INT,
+        "workflow_id": _STR,
+        "task": _OPT_STR,
+        "retry": _OPT_INT,
+        "status": _STR,
+        "message": _STR,
+    },
+    "required": ["at", "workflow_id", "task", "retry", "status", "message"],
+}
+
+LINEAGE_SCHEMA: dict[str, Any] = {
+    "title": "osmo.Lineage",
+    "description": "Who made an attempt's outputs, from what, with what, and when.",
+    "type": "object",
+    "properties": {
+        "workflow_id": _STR,
+        "task": _STR,
+        "retry": {"type": "integer"},
+        "attempt_id": _OPT_STR,
+        "node": _STR,
+        "command": {"type": ["array", "null"], "items": _STR},
+        "plugin": {**_OPT_STR, "description": "type@version"},
+        "params": {"type": "object"},
+        "image": _OPT_STR,
+        "inputs": {
+            "type": "array",
+            "items": {
+                "type": "object",
+                "properties": {"task": _STR, "workflow_id": _STR, "manifest": _STR},
+                "required": ["task", "workflow_id", "manifest"],
+            },
+        },
+        "started_at": _OPT_NUM,
+        "ended_at": _OPT_NUM,
+        "exit_code": _OPT_INT,
+        "manifest_digest": _OPT_STR,
+        "osmo_version": _STR,
+    },
+    "required": ["workflow_id", "task", "retry"],
+}
+
+LOGS_SCHEMA: dict[str, Any] = {
+    "title": "osmo.LogLine",
+    "description": "One line a task retry wrote to stdout or stderr.",
+    "type": "object",
+    "properties": {
+        "ts": {"type": "number", "description": "unix seconds"},
+        "task": _STR,
+        "retry": {"type": "integer"},
+        "stream": _STR,
+        "text": _STR,
+    },
+    "required": ["ts", "task", "retry", "stream", "text"],
+}
+
+
+def write_run_record(path: Path, *, workflow: Mapping[str, Any],
+                     transitions: Sequence[Mapping[str, Any]], lineage: Sequence[Lineage],
+                     logs: Sequence[Mapping[str, Any]]) -> None:
+    """Write a workflow's run record to ``path`` atomically (temp file + rename).
+
+    Args:
+        path: the ``.mcap`` file to create or replace; its folder is created if missing.
+        workflow: at least ``id``, ``name``, ``status``; ``submitted_at``/``ended_at`` in unix
+            seconds (or None); any other JSON-safe keys are kept in the metadata's JSON copy.
+        transitions: status events as the store returns them: ``at``, ``status``, optional
+            ``workflow_id`` (default: the workflow's), ``task``, ``retry``, ``message``, ``seq``.
+        lineage: one :class:`Lineage` per attempt.
+        logs: log lines: ``ts``, ``task``, ``retry``, ``stream``, ``text``.
+
+    Raises:
+        UsageError: an event lacks a field or holds a value JSON cannot encode; nothing is
+            written (an earlier file at ``path`` is kept).
+        InfrastructureError: the file cannot be written.
+    """
+    workflow_id = _text(workflow, "id", "workflow")
+    with JsonMcapWriter(path) as out:
+        status = out.add_json_channel(STATUS_TOPIC, "osmo.StatusTransition", STATUS_SCHEMA)
+        attempts = out.add_json_channel(LINEAGE_TOPIC, "osmo.Lineage", LINEAGE_SCHEMA)
+        lines = out.add_json_channel(LOGS_TOPIC, "osmo.LogLine", LOGS_SCHEMA)
+        for event in transitions:
+            message = _transition(event, workflow_id)
+            out.write(status, message, _ns(message["at"], "transition 'at'"))
+        fallback = _opt_time(workflow.get("submitted_at"), "workflow submitted_at") or 0.0
+        for record in lineage:
+            if not isinstance(record, Lineage):
+                raise UsageError(f"lineage entries must be Lineage, got {type(record).__name__}")
+            when = record.ended_at if record.ended_at is not None else record.started_at
+            out.write(attempts, record.to_dict(), _ns(when if when is not None else fallback,
+                                                      "lineage time"))
+        for line in logs:
+            message = _log_line(line)
+            out.write(lines, message, _ns(message["ts"], "log 'ts'"))
+        out.add_metadata(WORKFLOW_METADATA, _workflow_metadata(workflow))
+
+
+def read_run_record(path: Path) -> dict[str, Any]:
+    """Read a run record back.
+
+    Returns:
+        ``{"workflow": dict, "status": [dict], "lineage": [Lineage], "logs": [dict]}``, each
+        list in log-time order (ties keep write order).
+
+    Raises:
+        NotFoundError: no file at ``path``.
+        RecordError: the file is not a readable MCAP run record.
+    """
+    with McapFile(path) as record:
+        meta = record.metadata(WORKFLOW_METADATA)
+        messages = record.messages([STATUS_TOPIC, LINEAGE_TOPIC, LOGS_TOPIC])
+    if not meta:
+        raise RecordError(path, f"no {WORKFLOW_METADATA} metadata: not an osmo run record")
+    by_topic: dict[str, list[Any]] = {STATUS_TOPIC: [], LINEAGE_TOPIC: [], LOGS_TOPIC: []}
+    for message in messages:
+        by_topic[message.topic].append(message.value)
+    try:
+        lineage = [Lineage.from_dict(v) for v in by_topic[LINEAGE_TOPIC]]
+    except UsageError as exc:
+        raise RecordError(path, f"malformed {LINEAGE_TOPIC} message: {exc}") from exc
+    return {
+        "workflow": _workflow_from_metadata(meta[-1][1]),
+        "status": by_topic[STATUS_TOPIC],
+        "lineage": lineage,
+        "logs": by_topic[LOGS_TOPIC],
+    }
+
+
+# ------------------------------------------------------------------------------ helpers
+
+
+def _ns(seconds: Any, what: str) -> int:
+    """Unix seconds → integer ns for an MCAP log time (MCAP times are unsigned)."""
+    if isinstance(seconds, bool) or not isinstance(seconds, int | float) \
+            or not math.isfinite(seconds) or seconds < 0:
+        raise UsageError(f"{what} must be unix seconds >= 0, got {seconds!r}")
+    return round(seconds * 1e9)
+
+
+def _text(event: Mapping[str, Any], key: str, what: str) -> str:
+    """A required string field (enum members give their value)."""
+    value = _plain(event.get(key))
+    if not isinstance(value, str):
+        raise UsageError(f"{what} needs a string {key!r}, got {value!r}")
+    return value
+
+
+def _plain(value: Any) -> Any:
+    """Enum members (TaskStatus, WorkflowStatus) become their value; others pass through."""
+    return value.value if isinstance(value, enum.Enum) else value
+
+
+def _opt_time(value: Any, what: str) -> float | None:
+    """None or unix seconds as a float."""
+    if value is None:
+        return None
+    _ns(value, what)
+    return float(value)
+
+
+def _transition(event: Mapping[str, Any], workflow_id: str) -> dict[str, Any]:
+    """Project a store event onto the status schema."""
+    message = {
+        "at": event.get("at"),
+        "seq": event.get("seq"),
+        "workflow_id": _plain(event.get("workflow_id")) or workflow_id,
+        "task": event.get("task"),
+        "retry": event.get("retry"),
+        "status": _text(event, "status", "a transition"),
+        "message": event.get("message") or "",
+    }
+    _ns(message["at"], "transition 'at'")
+    return message
+
+
+def _log_line(line: Mapping[str, Any]) -> dict[str, Any]:
+    """Project a log line onto the logs schema."""
+    missing = [k for k in ("ts", "task", "retry", "stream", "text") if k not in line]
+    if missing:
+        raise UsageError(f"log line {dict(line)!r} lacks {', '.join(missing)}")
+    return {k: _plain(line[k]) for k in ("ts", "task", "retry", "stream", "text")}
+
+
+def _workflow_metadata(workflow: Mapping[str, Any]) -> dict[str, str]:
+    """The flat ``osmo.workflow`` map: readable strings plus a lossless JSON copy."""
+    plain = {k: _plain(v) for k, v in workflow.items()}
+    out = {
+        "record_version": RECORD_VERSION,
+        "id": _text(plain, "id", "workflow"),
+        "name": str(plain.get("name") or ""),
+        "status": str(plain.get("status") or ""),
+    }
+    for key in ("submitted_at", "ended_at"):
+        when = _opt_time(plain.get(key), f"workflow {key}")
+        out[key] = "" if when is None else repr(when)
+    try:
+        out["workflow"] = json.dumps(plain, ensure_ascii=False, allow_nan=False,
+                                     separators=(",", ":"))
+    except (TypeError, ValueError) as exc:
+        raise UsageError(f"workflow {out['id']} is not JSON-serialisable: {exc}") from exc
+    return out
+
+
+def _workflow_from_metadata(meta: Mapping[str, str]) -> dict[str, Any]:
+    """Inverse of :func:`_workflow_metadata` (falls back to the flat keys)."""
+    if "workflow" in meta:
+        try:
+            loaded = json.loads(meta["workflow"])
+        except ValueError:
+            loaded = None
+        if isinstance(loaded, dict):
+            return loaded
+    flat: dict[str, Any] = {k: meta.get(k, "") for k in ("id", "name", "status")}
+    for key in ("submitted_at", "ended_at"):
+        try:
+            flat[key] = float(meta[key]) if meta.get(key) else None
+        except ValueError:
+            flat[key] = None
+    return flat

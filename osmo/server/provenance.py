@@ -1,0 +1,74 @@
+"""Builds the lineage of a completed attempt from what the engine knows when it exits.
+
+Called on the engine thread for an ``AttemptExited`` that carries an output manifest and is
+the task's current attempt (a stale report never gets lineage). The result is written in
+the same transaction as the status change that completes the task.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+
+import osmo
+from osmo.artifacts import Manifest
+from osmo.record import Lineage, LineageInput
+from osmo.scheduler.types import AttemptExited, PrepareAttempt
+from osmo.spec.model import TaskSpec
+from osmo.store.sqlite import LineageRow, Store
+
+__all__ = ["Provenance"]
+
+
+@dataclass
+class _Placed:
+    """What the engine remembers of an attempt between its placement and its exit."""
+
+    cmd: PrepareAttempt
+    node_address: str
+
+
+@dataclass
+class Provenance:
+    """Remembers placements (inputs, node) and turns exits into lineage rows."""
+
+    store: Store
+    _placed: dict[str, _Placed] = field(default_factory=dict)
+
+    def placed(self, cmd: PrepareAttempt, node_address: str) -> None:
+        """Note an attempt's inputs and node when it is placed."""
+        self._placed[cmd.attempt_id] = _Placed(cmd, node_address)
+
+    def exited(self, event: AttemptExited, task: TaskSpec, *, started_at: float | None,
+               now: float) -> LineageRow | None:
+        """The lineage row of a successful exit with outputs, else None (forgets the attempt)."""
+        placed = self._placed.pop(event.attempt_id, None)
+        if event.manifest is None or event.output is None or placed is None:
+            return None
+        manifest = Manifest.from_json(event.manifest)
+        inputs = tuple(self._input(name, ref) for name, ref in placed.cmd.inputs.items())
+        record = Lineage(
+            workflow_id=placed.cmd.workflow_id, task=placed.cmd.task, retry=placed.cmd.retry,
+            attempt_id=event.attempt_id, node=placed.node_address,
+            command=tuple(task.command) + tuple(task.args) if task.command else None,
+            plugin=task.type, params=dict(task.params), image=task.image,
+            inputs=tuple(i for i in inputs if i is not None),
+            started_at=started_at, ended_at=now, exit_code=event.exit_code,
+            manifest_digest=manifest.digest, osmo_version=osmo.__version__)
+        return LineageRow(
+            attempt_id=event.attempt_id, workflow_id=placed.cmd.workflow_id,
+            task=placed.cmd.task, manifest=manifest.digest, manifest_body=event.manifest,
+            entries=tuple((e.path, e.digest, e.size) for e in manifest.entries),
+            output_path=event.output, record=json.dumps(record.to_dict()),
+            consumed=tuple(i.manifest_digest for i in record.inputs))
+
+    def forget(self, attempt_id: str) -> None:
+        """Drop what was remembered of an attempt that ended without outputs."""
+        self._placed.pop(attempt_id, None)
+
+    def _input(self, task: str, ref: str) -> LineageInput | None:
+        digest = self.store.output_manifest(ref)
+        if digest is None:
+            return None
+        owner = self.store.owner_of_output(ref)
+        return LineageInput(task=task, workflow_id=owner or "", manifest_digest=digest)

@@ -1,0 +1,70 @@
+"""Read queries over artifacts and lineage: outputs, manifests, producers and consumers.
+
+A mixin of ``osmo.store.sqlite.Store`` (which owns the connection and the writes); kept
+apart so the store module stays small. Must not import sqlite3.
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+__all__ = ["LineageQueries"]
+
+
+class LineageQueries:
+    """Queries that need only ``self._read(sql, args) -> rows``."""
+
+    def _read(self, sql: str, args: tuple[Any, ...] = ()) -> list[Any]:
+        raise NotImplementedError
+
+    def output_manifest(self, path: str) -> str | None:
+        """Digest of the manifest promoted at output folder ``path`` (None if unknown)."""
+        rows = self._read("SELECT manifest FROM outputs WHERE path = ?", (path,))
+        return str(rows[0][0]) if rows else None
+
+    def lineage_of_workflow(self, workflow_id: str) -> list[dict[str, Any]]:
+        """Lineage records (JSON payloads) of a workflow's attempts, in commit order."""
+        rows = self._read("SELECT record FROM lineage WHERE workflow_id = ? ORDER BY rowid",
+                          (workflow_id,))
+        return [json.loads(r[0]) for r in rows]
+
+    def owner_of_output(self, path: str) -> str | None:
+        """The workflow whose task promoted the output folder ``path``."""
+        rows = self._read("SELECT workflow_id FROM outputs WHERE path = ?", (path,))
+        return str(rows[0][0]) if rows else None
+
+    def outputs(self, workflow_id: str, task: str | None = None) -> list[dict[str, Any]]:
+        """Promoted outputs of a workflow: task, attempt_id, manifest, path."""
+        sql, args = "SELECT * FROM outputs WHERE workflow_id = ?", [workflow_id]
+        if task is not None:
+            sql += " AND task = ?"
+            args.append(task)
+        return [dict(r) for r in self._read(sql + " ORDER BY rowid", tuple(args))]
+
+    def manifest_body(self, digest: str) -> str | None:
+        """The JSON of manifest ``digest``."""
+        rows = self._read("SELECT body FROM manifests WHERE digest = ?", (digest,))
+        return str(rows[0][0]) if rows else None
+
+    def manifests_holding(self, blob: str) -> list[str]:
+        """Manifests that contain blob ``blob``."""
+        rows = self._read("SELECT DISTINCT manifest FROM manifest_blobs WHERE digest = ?", (blob,))
+        return [str(r[0]) for r in rows]
+
+    def lineage_of_manifest(self, manifest: str) -> list[dict[str, Any]]:
+        """Lineage records (JSON payloads) of the attempts that produced ``manifest``."""
+        rows = self._read("SELECT record FROM lineage WHERE manifest = ? ORDER BY rowid",
+                          (manifest,))
+        return [json.loads(r[0]) for r in rows]
+
+    def consumers_of(self, manifest: str) -> list[dict[str, Any]]:
+        """Lineage records of the attempts that read ``manifest`` as an input."""
+        rows = self._read(
+            "SELECT l.record FROM consumed c JOIN lineage l ON l.attempt_id = c.attempt_id "
+            "WHERE c.manifest = ? ORDER BY l.rowid", (manifest,))
+        return [json.loads(r[0]) for r in rows]
+
+    def all_blob_digests(self) -> set[str]:
+        """Every blob digest any recorded manifest references (for garbage collection)."""
+        return {str(r[0]) for r in self._read("SELECT DISTINCT digest FROM manifest_blobs")}

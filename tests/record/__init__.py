@@ -1,0 +1,1 @@
+"""Tests of osmo.record: lineage, run records and lineage-stamped MCAP files."""
