@@ -9,7 +9,13 @@
     ├── SubmitError                 a valid spec the server refuses (e.g. no pool fits) (exit 2)
     ├── ServerUnreachable           no server answered (exit 3)
     ├── InfrastructureError         the server, store or a worker failed (exit 3)
+    │   └── ArtifactCorrupted       a stored blob does not match its digest (osmo.artifacts)
+    ├── OutputRejected              an output holds what cannot be stored (osmo.artifacts)
     └── WorkflowFailed              a waited-for workflow ended in a failed status (exit 1)
+
+    UsageError also has ``RecordError`` (an unreadable MCAP file, ``osmo.record``);
+    ``StartError``/``PrepareError`` (``osmo.runtime``/``osmo.worker``) derive from OsmoError
+    and become a task's FAILED_START_ERROR, never a CLI error.
 
 Third-party errors (zenoh, sqlite3, yaml, jinja2) are translated into these at the one module
 that imports each library; callers never see a foreign exception for a user mistake.
