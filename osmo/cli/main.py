@@ -42,6 +42,8 @@ def _add_workflow_verbs(sub: argparse._SubParsersAction) -> None:  # type: ignor
     p.add_argument("--pool", help="target pool (overrides workflow.pool)")
     p.add_argument("--wait", action="store_true", help="show progress; exit 0 only if COMPLETED")
     p.add_argument("--dry-run", action="store_true", help="print the rendered spec; submit nothing")
+    p.add_argument("--no-cache", action="store_true",
+                   help="run every task even if an identical earlier run could be reused")
     _add_format(p)
 
     p = sub.add_parser("validate", help="check a spec without submitting it")

@@ -78,7 +78,7 @@ def task_table(tasks: list[TaskInfo], verbose: bool = False) -> Table:
         table.add_column("Group")
         table.add_column("Message")
     for t in tasks:
-        status = t.status.name + (" (reused)" if t.reused else "")
+        status = t.status.name + (" (cached)" if t.reused else "")
         row = [t.name, str(t.retry), f"[{_style(t.status.name)}]{status}[/]" if _style(
             t.status.name) else status, _when(t.started_at), _dur(t.duration),
             "-" if t.exit_code is None else str(t.exit_code)]

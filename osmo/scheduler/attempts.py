@@ -91,6 +91,7 @@ def _exited(eng: Engine, run: Run, task: TaskState, report: AttemptExited) -> No
                     report.message or f"exit code {code} but outputs could not be promoted")
             return
         task.output = report.output
+        task.reused = task.reused or report.cached
         _finish(eng, run, task, TaskStatus.COMPLETED, code, report.message)
     elif action is ExitAction.RESCHEDULE and task.user_retries < run.max_retries:
         task.user_retries += 1

@@ -154,6 +154,7 @@ class AttemptExited:
     output: str | None = None
     message: str = ""
     manifest: str | None = None
+    cached: bool = False  # the outputs are an earlier identical attempt's (no process ran)
 
 
 @dataclass(frozen=True)

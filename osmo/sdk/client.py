@@ -41,7 +41,7 @@ class TaskInfo:
     ended_at: float | None
     output: str | None
     message: str
-    reused: bool
+    reused: bool  # its outputs came from an earlier identical run (cache or restart)
 
     @property
     def duration(self) -> float | None:
@@ -133,8 +133,11 @@ class Client:
 
     def submit(self, spec: SpecLike, *, set_values: Sequence[str] = (),
                set_strings: Sequence[str] = (), set_env: Sequence[str] = (),
-               pool: str | None = None) -> str:
+               pool: str | None = None, no_cache: bool = False) -> str:
         """Validate ``spec`` (a path, a dict, a model or a builder) and submit it.
+
+        Tasks whose definition and input contents match an earlier success reuse its
+        outputs (marked cached) unless ``no_cache`` or the task says ``cache: false``.
 
         Returns:
             the new workflow's id (``<name>-<N>``).
@@ -144,7 +147,8 @@ class Client:
             SubmitError: the server cannot run it (e.g. no pool fits a task).
         """
         model, filename = _to_model(spec, set_values, set_strings, set_env)
-        result = self._call("submit", spec=spec_to_dict(model), pool=pool, filename=filename)
+        result = self._call("submit", spec=spec_to_dict(model), pool=pool, filename=filename,
+                            no_cache=no_cache)
         return str(result["workflow_id"])
 
     def cancel(self, workflow_id: str) -> WorkflowStatus:

@@ -72,7 +72,8 @@ class Api:
         _check_credentials(spec)
         pool = request.get("pool") or spec.pool
         options = {"pool": pool, "filename": request.get("filename"),
-                   "reused_from": request.get("reused_from")}
+                   "reused_from": request.get("reused_from"),
+                   "no_cache": bool(request.get("no_cache"))}
         reused = request.get("reused") or {}
 
         def do(engine: Engine, batch: _Batch, now: float) -> str:
@@ -85,6 +86,8 @@ class Api:
             batch.commands += engine.scheduler.handle(
                 WorkflowSubmitted(wf_id, spec, max_retries, pool, reused), now)
             engine.specs[wf_id] = spec
+            if options["no_cache"]:
+                engine.no_cache.add(wf_id)
             batch.new_workflows.append((wf_id, spec.name, n, now, request["spec"], options))
             return wf_id
 

@@ -52,13 +52,16 @@ def _take_lock(home: Path) -> int:
     return fd
 
 
-def _restore(store: Store, scheduler: Scheduler) -> tuple[dict[str, WorkflowSpec], list[Any]]:
+def _restore(store: Store, scheduler: Scheduler,
+             no_cache: set[str]) -> tuple[dict[str, WorkflowSpec], list[Any]]:
     """Load unfinished workflows into the scheduler; return specs and lost attempts."""
     specs: dict[str, WorkflowSpec] = {}
     workflows, tasks = [], []
     for listed in store.workflows(active_only=True):
         row = store.workflow(listed.id)
         assert row is not None
+        if row.options.get("no_cache"):
+            no_cache.add(row.id)
         specs[row.id] = spec_from_dict(row.spec, filename=row.options.get("filename") or row.id)
         workflows.append(WorkflowState.from_dict(row.state))
         tasks += [TaskState.from_dict(t) for t in store.tasks(row.id)]
@@ -90,7 +93,8 @@ def serve(home: str | os.PathLike[str] | None = None, *, listen: str | None = No
     endpoint = listen or f"tcp/127.0.0.1:{free_port()}"
     store = Store(home_path / "state.db")
     scheduler = Scheduler(default_max_retries=3)
-    specs, lost = _restore(store, scheduler)
+    no_cache: set[str] = set()
+    specs, lost = _restore(store, scheduler, no_cache)
     _kill_leftovers(store, lost)
 
     link = Link.router([endpoint], cluster)
@@ -107,6 +111,7 @@ def serve(home: str | os.PathLike[str] | None = None, *, listen: str | None = No
     records = RunRecords(store, home_path)
     engine = Engine(store=store, scheduler=scheduler, executor=pool, specs=specs,
                     on_changed=on_changed, home=home_path, on_finished=records.finished)
+    engine.no_cache = no_cache
     engine_box.append(engine)
     engine.post(NodeUp(pool.node()))
     for task in lost:

@@ -24,6 +24,7 @@ from osmo.scheduler import Scheduler
 from osmo.scheduler.types import (
     AttemptExited,
     AttemptLost,
+    AttemptPrepared,
     AttemptStarted,
     AttemptStartFailed,
     Command,
@@ -35,6 +36,8 @@ from osmo.scheduler.types import (
     Tick,
 )
 from osmo.spec.model import TaskSpec, WorkflowSpec
+from osmo.server import cache
+from osmo.server.cache import CacheHit
 from osmo.server.provenance import Provenance
 from osmo.store.sqlite import AttemptRow, LineageRow, Store
 
@@ -98,6 +101,8 @@ class Engine:
         self._on_changed = on_changed
         self._on_finished = on_finished
         self.provenance = Provenance(store)
+        self.no_cache: set[str] = set()  # workflows submitted with --no-cache
+        self._hits: dict[str, CacheHit] = {}
         self._clock = clock
         self._home = home
         self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
@@ -203,16 +208,20 @@ class Engine:
 
     def _commit_and_execute(self, batch: _Batch) -> None:
         changes = self.scheduler.take_changes()
-        for cmd in batch.commands:
-            if isinstance(cmd, PrepareAttempt):
-                self.provenance.placed(cmd, cmd.hosts.get(cmd.task, cmd.node_id))
-                batch.attempts.append(AttemptRow(
-                    cmd.attempt_id, cmd.workflow_id, cmd.task, cmd.retry, cmd.node_id,
-                    str(self._home / "runs" / cmd.workflow_id / cmd.task / str(cmd.retry)),
-                    None, None))
+        placed = [cmd for cmd in batch.commands if isinstance(cmd, PrepareAttempt)]
+        batch.attempts += [AttemptRow(
+            cmd.attempt_id, cmd.workflow_id, cmd.task, cmd.retry, cmd.node_id,
+            str(self._home / "runs" / cmd.workflow_id / cmd.task / str(cmd.retry)), None, None)
+            for cmd in placed]
         if changes or batch.new_workflows or batch.attempts or batch.lineage:
             self.store.commit(changes, new_workflows=batch.new_workflows,
                               attempts=batch.attempts, lineage=batch.lineage)
+        for prep in placed:  # after the commit: an upstream completed in this batch is readable
+            key = self._cache_key(prep)
+            self.provenance.placed(prep, prep.hosts.get(prep.task, prep.node_id), key)
+            hit = cache.lookup(self.store, key) if key else None
+            if hit is not None:
+                self._hits[prep.attempt_id] = hit
         for future, result in batch.replies:
             future.set_result(result)
         for cmd in batch.commands:
@@ -227,9 +236,28 @@ class Engine:
                 self.specs.pop(wf.id, None)  # type: ignore[attr-defined]
                 self._on_finished(wf.id)  # type: ignore[attr-defined]
 
+    def _cache_key(self, cmd: PrepareAttempt) -> str | None:
+        """The attempt's cache fingerprint, or None when it must run (see osmo.server.cache)."""
+        task = self.specs[cmd.workflow_id].task(cmd.task)
+        if not cmd.run or not task.cache or cmd.workflow_id in self.no_cache:
+            return None
+        inputs = cache.input_manifests(self.store, cmd)
+        return None if inputs is None else cache.fingerprint(task, inputs)
+
+    def _replay(self, cmd: PrepareAttempt, hit: CacheHit) -> None:
+        """Complete a cache hit at once: the scheduler sees an ordinary successful attempt."""
+        message = f"cached: outputs of {hit.attempt_id}"
+        for event in (AttemptPrepared(cmd.attempt_id), AttemptStarted(cmd.attempt_id),
+                      AttemptExited(cmd.attempt_id, 0, hit.output_path, message,
+                                    manifest=hit.manifest_body, cached=True)):
+            self._queue.put(event)
+
     def _execute(self, cmd: Command) -> None:
         try:
-            if isinstance(cmd, PrepareAttempt):
+            hit = self._hits.pop(cmd.attempt_id, None) if isinstance(cmd, PrepareAttempt) else None
+            if isinstance(cmd, PrepareAttempt) and hit is not None:
+                self._replay(cmd, hit)
+            elif isinstance(cmd, PrepareAttempt):
                 self.executor.prepare(cmd, self.specs[cmd.workflow_id].task(cmd.task))
             elif isinstance(cmd, RunAttempt):
                 self.executor.run(cmd.attempt_id)

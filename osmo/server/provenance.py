@@ -26,6 +26,7 @@ class _Placed:
 
     cmd: PrepareAttempt
     node_address: str
+    fingerprint: str | None
 
 
 @dataclass
@@ -35,9 +36,10 @@ class Provenance:
     store: Store
     _placed: dict[str, _Placed] = field(default_factory=dict)
 
-    def placed(self, cmd: PrepareAttempt, node_address: str) -> None:
-        """Note an attempt's inputs and node when it is placed."""
-        self._placed[cmd.attempt_id] = _Placed(cmd, node_address)
+    def placed(self, cmd: PrepareAttempt, node_address: str,
+               fingerprint: str | None = None) -> None:
+        """Note an attempt's inputs, node and cache fingerprint when it is placed."""
+        self._placed[cmd.attempt_id] = _Placed(cmd, node_address, fingerprint)
 
     def exited(self, event: AttemptExited, task: TaskSpec, *, started_at: float | None,
                now: float) -> LineageRow | None:
@@ -60,7 +62,8 @@ class Provenance:
             task=placed.cmd.task, manifest=manifest.digest, manifest_body=event.manifest,
             entries=tuple((e.path, e.digest, e.size) for e in manifest.entries),
             output_path=event.output, record=json.dumps(record.to_dict()),
-            consumed=tuple(i.manifest_digest for i in record.inputs))
+            consumed=tuple(i.manifest_digest for i in record.inputs),
+            fingerprint=None if event.cached else placed.fingerprint)
 
     def forget(self, attempt_id: str) -> None:
         """Drop what was remembered of an attempt that ended without outputs."""

@@ -29,6 +29,11 @@ class LineageQueries:
                           (workflow_id,))
         return [json.loads(r[0]) for r in rows]
 
+    def cached(self, fingerprint: str) -> dict[str, Any] | None:
+        """The cache entry for ``fingerprint`` (attempt_id, output_path, manifest), or None."""
+        rows = self._read("SELECT * FROM cache WHERE fingerprint = ?", (fingerprint,))
+        return dict(rows[0]) if rows else None
+
     def owner_of_output(self, path: str) -> str | None:
         """The workflow whose task promoted the output folder ``path``."""
         rows = self._read("SELECT workflow_id FROM outputs WHERE path = ?", (path,))

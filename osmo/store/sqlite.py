@@ -78,6 +78,14 @@ def _v2(db: sqlite3.Connection) -> None:
     )
 
 
+def _v3(db: sqlite3.Connection) -> None:
+    """Task cache: fingerprint → the first successful attempt that had it."""
+    db.execute(
+        "CREATE TABLE cache (fingerprint TEXT PRIMARY KEY, attempt_id TEXT NOT NULL, "
+        "workflow_id TEXT NOT NULL, task TEXT NOT NULL, output_path TEXT NOT NULL, "
+        "manifest TEXT NOT NULL)")
+
+
 def _run_script(db: sqlite3.Connection, script: str) -> None:
     """Run ``;``-separated DDL inside the caller's transaction (``executescript`` would commit)."""
     for statement in script.split(";"):
@@ -87,7 +95,7 @@ def _run_script(db: sqlite3.Connection, script: str) -> None:
 
 _NO_SPEC = "id, name, status, submitted_at, '{}' AS spec, options, state"
 
-_MIGRATIONS: dict[int, Callable[[sqlite3.Connection], None]] = {1: _v1, 2: _v2}
+_MIGRATIONS: dict[int, Callable[[sqlite3.Connection], None]] = {1: _v1, 2: _v2, 3: _v3}
 SCHEMA_VERSION = max(_MIGRATIONS)
 
 
@@ -139,6 +147,7 @@ class LineageRow:
     output_path: str
     record: str
     consumed: tuple[str, ...]
+    fingerprint: str | None = None  # set when the attempt may serve as a cache entry
 
 
 class Store(LineageQueries):
@@ -346,6 +355,10 @@ def _write_lineage(db: sqlite3.Connection, row: LineageRow) -> None:
                (row.attempt_id, row.workflow_id, row.task, row.manifest, row.record))
     db.executemany("INSERT OR IGNORE INTO consumed VALUES (?,?)",
                    [(m, row.attempt_id) for m in row.consumed])
+    if row.fingerprint is not None:
+        db.execute("INSERT OR IGNORE INTO cache VALUES (?,?,?,?,?,?)",
+                   (row.fingerprint, row.attempt_id, row.workflow_id, row.task,
+                    row.output_path, row.manifest))
 
 
 def _workflow_row(r: sqlite3.Row) -> WorkflowRow:

@@ -1,0 +1,74 @@
+"""Task caching: a task whose fingerprint matches an earlier success reuses its outputs.
+
+A fingerprint is the sha256 of the task's definition as submitted (command, args,
+environment including ``--set-env``, files, image, plugin type and params) and the manifest
+digests of its inputs, in input order. Tokens are hashed as written: they resolve the same
+way for the same inputs; ``{{workflow_id}}``/``{{uuid}}`` are not treated as changes.
+
+Only attempts that no group barrier holds are cached (single-task groups and
+``barrier: false`` groups); co-started group members interact and always run. A task opts
+out with ``cache: false``, a submission with ``--no-cache``. A hit is taken only while the
+earlier output folder still exists; its files were verified when ingested and are
+read-only since.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+from osmo.scheduler.types import PrepareAttempt
+from osmo.spec.model import TaskSpec
+from osmo.store.sqlite import Store
+
+__all__ = ["CacheHit", "fingerprint", "lookup"]
+
+_VERSION = 1  # bump when the fingerprint's content changes
+
+
+def fingerprint(task: TaskSpec, inputs: list[tuple[str, str]]) -> str:
+    """The fingerprint of ``task`` given ``(input name, manifest digest)`` pairs."""
+    body = {
+        "v": _VERSION,
+        "command": list(task.command), "args": list(task.args),
+        "environment": sorted(task.environment.items()),
+        "files": [[f.path, f.contents, f.base64] for f in task.files],
+        "image": task.image, "type": task.type, "params": task.params,
+        "inputs": inputs,
+    }
+    text = json.dumps(body, sort_keys=True, separators=(",", ":"), default=str)
+    return "sha256:" + hashlib.sha256(text.encode()).hexdigest()
+
+
+@dataclass(frozen=True)
+class CacheHit:
+    """An earlier successful attempt whose outputs can stand in for a new one."""
+
+    attempt_id: str
+    output_path: str
+    manifest: str
+    manifest_body: str
+
+
+def input_manifests(store: Store, cmd: PrepareAttempt) -> list[tuple[str, str]] | None:
+    """``(input, manifest digest)`` of every input, or None if one has no recorded manifest."""
+    pairs = []
+    for name, ref in cmd.inputs.items():
+        digest = store.output_manifest(ref)
+        if digest is None:
+            return None
+        pairs.append((name, digest))
+    return pairs
+
+
+def lookup(store: Store, key: str) -> CacheHit | None:
+    """The cached success for fingerprint ``key`` whose output folder still exists."""
+    row = store.cached(key)
+    if row is None or not Path(row["output_path"]).is_dir():
+        return None
+    body = store.manifest_body(row["manifest"])
+    if body is None:
+        return None
+    return CacheHit(row["attempt_id"], row["output_path"], row["manifest"], body)
