@@ -128,8 +128,8 @@ def _label(key: str, node: dict[str, Any]) -> str:
         return f"{key[:19]}… (no recorded producer)"
     retry = f" retry {node['retry']}" if node.get("retry") else ""
     command = " ".join(node.get("command") or ()) or node.get("plugin") or ""
-    return (f"{node['task']} [{node['workflow_id']}{retry}] → {key[:19]}… "
-            f"exit {node.get('exit_code')}: {command[:60]}")
+    ran = f" exit {node['exit_code']}: {command[:60]}" if node.get("exit_code") is not None else ""
+    return f"{node['task']} [{node['workflow_id']}{retry}] → {key[:19]}…{ran}"
 
 
 def _tree(graph: dict[str, Any], downstream: bool) -> list[str]:

@@ -7,6 +7,7 @@ import sys
 from collections.abc import Callable
 
 from osmo.cli.artifacts import run_artifacts, run_lineage
+from osmo.cli.datasets import run_dataset
 from osmo.cli.render import (
     console,
     format_log,
@@ -182,6 +183,7 @@ _VERBS: dict[str, Callable[[argparse.Namespace], int]] = {
     "server": _server,
     "artifacts": run_artifacts,
     "lineage": run_lineage,
+    "dataset": run_dataset,
 }
 
 

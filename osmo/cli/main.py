@@ -13,6 +13,7 @@ import sys
 from collections.abc import Sequence
 
 from osmo.cli.artifacts import add_parsers as add_artifact_parsers
+from osmo.cli.datasets import add_parsers as add_dataset_parsers
 from osmo.errors import OsmoError
 
 __all__ = ["build_parser", "main"]
@@ -92,6 +93,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_workflow_verbs(wf.add_subparsers(dest="wf_verb", metavar="VERB", required=True))
 
     add_artifact_parsers(sub)
+    add_dataset_parsers(sub)
 
     p = sub.add_parser("server", help="run the server in the foreground, or start|stop|status")
     p.add_argument("action", nargs="?", choices=("start", "stop", "status", "run"), default="run")

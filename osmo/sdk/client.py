@@ -257,6 +257,34 @@ class Client:
         reply = self._call("artifacts_gc")
         return int(reply["removed"]), int(reply["bytes"])
 
+    # ------------------------------------------------------------------ datasets
+
+    def datasets(self, name: str | None = None) -> builtins.list[dict[str, Any]]:
+        """Dataset versions (of one dataset), newest first."""
+        return builtins.list(self._call("datasets_list", name=name))
+
+    def dataset_info(self, ref: str) -> dict[str, Any]:
+        """One version (``NAME[:TAG_OR_VERSION]``, default newest) with its files."""
+        return dict(self._call("datasets_info", ref=ref))
+
+    def tag_dataset(self, ref: str, tag: str) -> dict[str, Any]:
+        """Point ``tag`` at the version ``ref`` names."""
+        return dict(self._call("datasets_tag", ref=ref, tag=tag))
+
+    def download_dataset(self, ref: str, dest: str | os.PathLike[str], *,
+                         regex: str | None = None) -> builtins.list[str]:
+        """Write a version's files (verified) into ``dest``; returns the written paths."""
+        reply = self._call("datasets_download", ref=ref, dest=str(Path(dest).absolute()),
+                           regex=regex)
+        return builtins.list(reply["files"])
+
+    def upload_dataset(self, name: str, path: str | os.PathLike[str], *,
+                       metadata: dict[str, str] | None = None) -> int:
+        """Make a new version of ``name`` from a local folder; returns the version."""
+        reply = self._call("datasets_upload", name=name, path=str(Path(path).absolute()),
+                           metadata=metadata or {})
+        return int(reply["version"])
+
     def ping(self) -> dict[str, Any]:
         """The server's info (endpoint, pid, home)."""
         return dict(self._call("ping"))

@@ -16,6 +16,7 @@ from typing import Any
 from osmo.artifacts import ArtifactStore, Manifest
 from osmo.errors import NotFoundError, SubmitError, UsageError
 from osmo.scheduler.types import CancelWorkflow, WorkflowSubmitted
+from osmo.server.api_datasets import DatasetApi
 from osmo.server.engine import Engine, _Batch
 from osmo.server.lineage_query import lineage_graph, resolve_target
 from osmo.server.logview import read_logs
@@ -56,6 +57,7 @@ class Api:
             "artifacts_gc": self.artifacts_gc,
             "shutdown": self.shutdown,
         }
+        self._verbs.update(DatasetApi(engine, self._artifacts, home).verbs())
 
     def handle(self, verb: str, request: dict[str, Any]) -> Any:
         """Run the handler for ``verb``; UsageError for an unknown verb."""

@@ -28,6 +28,7 @@ from osmo.errors import InfrastructureError
 from osmo.scheduler import Scheduler, TaskState, WorkflowState
 from osmo.scheduler.types import AttemptLost, NodeUp
 from osmo.server.api import Api
+from osmo.server.datasets import Datasets
 from osmo.server.engine import Engine
 from osmo.server.records import RunRecords
 from osmo.spec import spec_from_dict
@@ -105,12 +106,13 @@ def serve(home: str | os.PathLike[str] | None = None, *, listen: str | None = No
             link.publish(link.key("events", wf_id), {"workflow_id": wf_id})
 
     engine_box: list[Engine] = []
+    artifacts = ArtifactStore(home_path / "artifacts")
     pool = LocalPool(home=home_path, emit=lambda ev: engine_box[0].post(ev),
-                     cpus=cpus, gpus=gpus, memory=memory,
-                     artifacts=ArtifactStore(home_path / "artifacts"))
+                     cpus=cpus, gpus=gpus, memory=memory, artifacts=artifacts)
     records = RunRecords(store, home_path)
     engine = Engine(store=store, scheduler=scheduler, executor=pool, specs=specs,
-                    on_changed=on_changed, home=home_path, on_finished=records.finished)
+                    on_changed=on_changed, home=home_path, on_finished=records.finished,
+                    datasets=Datasets(store, artifacts, home_path))
     engine.no_cache = no_cache
     engine_box.append(engine)
     engine.post(NodeUp(pool.node()))

@@ -36,10 +36,13 @@ from osmo.scheduler.types import (
     Tick,
 )
 from osmo.spec.model import TaskSpec, WorkflowSpec
+from osmo.artifacts import Manifest
+from osmo.errors import OsmoError
 from osmo.server import cache
+from osmo.server.datasets import Datasets
 from osmo.server.cache import CacheHit
 from osmo.server.provenance import Provenance
-from osmo.store.sqlite import AttemptRow, LineageRow, Store
+from osmo.store.sqlite import AttemptRow, DatasetRow, LineageRow, Store
 
 __all__ = ["Engine", "Executor"]
 
@@ -65,6 +68,8 @@ class _Batch:
         default_factory=list)
     attempts: list[AttemptRow] = field(default_factory=list)
     lineage: list[LineageRow] = field(default_factory=list)
+    datasets: list[DatasetRow] = field(default_factory=list)
+    tags: list[tuple[str, str, int]] = field(default_factory=list)
     replies: list[tuple[Future[Any], Any]] = field(default_factory=list)
 
 
@@ -93,6 +98,7 @@ class Engine:
     def __init__(self, *, store: Store, scheduler: Scheduler, executor: Executor,
                  specs: dict[str, WorkflowSpec], on_changed: Callable[[set[str]], None],
                  home: Any, on_finished: Callable[[str], None] = lambda _wf: None,
+                 datasets: Datasets | None = None,
                  clock: Callable[[], float] = time.time) -> None:
         self.store = store
         self.scheduler = scheduler
@@ -103,6 +109,8 @@ class Engine:
         self.provenance = Provenance(store)
         self.no_cache: set[str] = set()  # workflows submitted with --no-cache
         self._hits: dict[str, CacheHit] = {}
+        self.datasets = datasets
+        self._ready: dict[str, PrepareAttempt | str] = {}  # placed: final command, or why not
         self._clock = clock
         self._home = home
         self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
@@ -199,6 +207,9 @@ class Engine:
         row = self.provenance.exited(event, task, started_at=before.started_at, now=now)
         if row is not None:
             batch.lineage.append(row)
+            if self.datasets is not None and event.manifest is not None:
+                batch.datasets += self.datasets.versions_made(
+                    task, Manifest.from_json(event.manifest), event.attempt_id, now)
 
     def _run_call(self, call: _Call, batch: _Batch, now: float) -> None:
         try:
@@ -213,10 +224,18 @@ class Engine:
             cmd.attempt_id, cmd.workflow_id, cmd.task, cmd.retry, cmd.node_id,
             str(self._home / "runs" / cmd.workflow_id / cmd.task / str(cmd.retry)), None, None)
             for cmd in placed]
-        if changes or batch.new_workflows or batch.attempts or batch.lineage:
+        if (changes or batch.new_workflows or batch.attempts or batch.lineage or batch.datasets
+                or batch.tags):
             self.store.commit(changes, new_workflows=batch.new_workflows,
-                              attempts=batch.attempts, lineage=batch.lineage)
+                              attempts=batch.attempts, lineage=batch.lineage,
+                              datasets=batch.datasets, tags=batch.tags)
         for prep in placed:  # after the commit: an upstream completed in this batch is readable
+            try:
+                prep = self._with_datasets(prep)
+            except OsmoError as exc:
+                self._ready[prep.attempt_id] = str(exc)
+                continue
+            self._ready[prep.attempt_id] = prep
             key = self._cache_key(prep)
             self.provenance.placed(prep, prep.hosts.get(prep.task, prep.node_id), key)
             hit = cache.lookup(self.store, key) if key else None
@@ -236,6 +255,11 @@ class Engine:
                 self.specs.pop(wf.id, None)  # type: ignore[attr-defined]
                 self._on_finished(wf.id)  # type: ignore[attr-defined]
 
+    def _with_datasets(self, cmd: PrepareAttempt) -> PrepareAttempt:
+        if self.datasets is None:
+            return cmd
+        return self.datasets.resolve_inputs(cmd, self.specs[cmd.workflow_id].task(cmd.task))
+
     def _cache_key(self, cmd: PrepareAttempt) -> str | None:
         """The attempt's cache fingerprint, or None when it must run (see osmo.server.cache)."""
         task = self.specs[cmd.workflow_id].task(cmd.task)
@@ -243,6 +267,16 @@ class Engine:
             return None
         inputs = cache.input_manifests(self.store, cmd)
         return None if inputs is None else cache.fingerprint(task, inputs)
+
+    def _prepare(self, cmd: PrepareAttempt) -> None:
+        ready = self._ready.pop(cmd.attempt_id, cmd)
+        hit = self._hits.pop(cmd.attempt_id, None)
+        if isinstance(ready, str):
+            self._queue.put(AttemptStartFailed(cmd.attempt_id, ready))
+        elif hit is not None:
+            self._replay(ready, hit)
+        else:
+            self.executor.prepare(ready, self.specs[ready.workflow_id].task(ready.task))
 
     def _replay(self, cmd: PrepareAttempt, hit: CacheHit) -> None:
         """Complete a cache hit at once: the scheduler sees an ordinary successful attempt."""
@@ -254,11 +288,8 @@ class Engine:
 
     def _execute(self, cmd: Command) -> None:
         try:
-            hit = self._hits.pop(cmd.attempt_id, None) if isinstance(cmd, PrepareAttempt) else None
-            if isinstance(cmd, PrepareAttempt) and hit is not None:
-                self._replay(cmd, hit)
-            elif isinstance(cmd, PrepareAttempt):
-                self.executor.prepare(cmd, self.specs[cmd.workflow_id].task(cmd.task))
+            if isinstance(cmd, PrepareAttempt):
+                self._prepare(cmd)
             elif isinstance(cmd, RunAttempt):
                 self.executor.run(cmd.attempt_id)
             elif isinstance(cmd, KillAttempt):

@@ -1,10 +1,12 @@
 """Answers lineage questions: which attempts made an artifact, from what, and who used it.
 
 A target names an artifact: a blob digest (``sha256:...`` of one file), a manifest digest
-(a whole output), or ``WORKFLOW_ID:TASK[:PATH]``. The answer is a graph: ``nodes`` keyed by
-manifest digest (each with the lineage record of the attempt that made it) and ``edges``
-``[from, to]`` meaning "``to`` was made from ``from``". Upstream walks back to sources;
-downstream walks forward to consumers. Pure reads of the store.
+(a whole output), ``WORKFLOW_ID:TASK[:PATH]``, or ``dataset:NAME[:TAG_OR_VERSION]``.
+
+The answer is a graph: ``nodes`` keyed by manifest digest (each with the lineage record of
+the attempt that made it) and ``edges`` ``[from, to]`` meaning "``to`` was made from
+``from``". Upstream walks back to sources; downstream walks forward to consumers. Pure
+reads of the store.
 """
 
 from __future__ import annotations
@@ -23,6 +25,13 @@ def resolve_target(store: Store, target: str) -> tuple[list[str], str | None]:
     Raises:
         NotFoundError: nothing recorded matches the target.
     """
+    if target.startswith("dataset:"):
+        ref = target[len("dataset:"):]
+        name, _, tag = ref.partition(":")
+        row = store.dataset(name, tag or None)
+        if row is None:
+            raise NotFoundError(f"dataset '{ref}' does not exist")
+        return [str(row["manifest"])], None
     if target.startswith("sha256:"):
         if store.manifest_body(target) is not None:
             return [target], None
@@ -67,7 +76,7 @@ def lineage_graph(store: Store, target: str, *, downstream: bool = False) -> dic
         if manifest in nodes:
             continue
         records = store.lineage_of_manifest(manifest)
-        nodes[manifest] = records[0] if records else {"manifest_digest": manifest}
+        nodes[manifest] = records[0] if records else _dataset_node(store, manifest)
         if downstream:
             for consumer in store.consumers_of(manifest):
                 made = consumer.get("manifest_digest")
@@ -75,6 +84,10 @@ def lineage_graph(store: Store, target: str, *, downstream: bool = False) -> dic
                     edges.append([manifest, made])
                     pending.append(made)
         else:
+            origin = nodes[manifest].get("dataset_source")
+            if origin:
+                edges.append([origin, manifest])
+                pending.append(origin)
             for source in nodes[manifest].get("inputs", []):
                 made_from = source.get("manifest")
                 if made_from:
@@ -82,3 +95,14 @@ def lineage_graph(store: Store, target: str, *, downstream: bool = False) -> dic
                     pending.append(made_from)
     return {"target": target, "blob": blob, "roots": roots, "downstream": downstream,
             "nodes": nodes, "edges": sorted(map(list, {tuple(e) for e in edges}))}
+
+
+def _dataset_node(store: Store, manifest: str) -> dict[str, Any]:
+    """A node for a manifest no attempt made as a whole: a dataset version cut from an
+    output (``dataset_source``), an upload, or unknown."""
+    row = store.dataset_of_manifest(manifest)
+    if row is None:
+        return {"manifest_digest": manifest}
+    return {"task": f"dataset {row['name']}:{row['version']}",
+            "workflow_id": row["attempt_id"] or "upload", "manifest_digest": manifest,
+            "dataset_source": row["source_manifest"], "inputs": []}

@@ -113,7 +113,9 @@ def parse_files(ctx: Ctx, node: Node, base_dir: Path, where: str) -> tuple[FileS
 
 
 def _unsupported(ctx: Ctx, node: Node, key: str, where: str) -> None:
-    ctx.error(node, f"{where}: {UNSUPPORTED[key]}")
+    """Report ``key`` if this release does not support it (see ``support.UNSUPPORTED``)."""
+    if key in UNSUPPORTED:
+        ctx.error(node, f"{where}: {UNSUPPORTED[key]}")
 
 
 def _dataset(ctx: Ctx, node: Node, keys: tuple[str, ...], what: str) -> dict[str, Node]:
@@ -133,8 +135,7 @@ def _input(ctx: Ctx, node: Node, where: str) -> InputSpec | None:
         ctx.error(node, f"{what} needs exactly one of 'task', 'url' or 'dataset'")
         return None
     kind = kinds[0]
-    if f"inputs.{kind}" in UNSUPPORTED:
-        _unsupported(ctx, node, f"inputs.{kind}", where)
+    _unsupported(ctx, node, f"inputs.{kind}", where)
     regex = _read_regex(ctx, fields, what)
     if kind == "dataset":
         ds = _dataset(ctx, fields["dataset"], ("name", "regex"), f"'dataset' of {what}")

@@ -20,7 +20,5 @@ UNSUPPORTED: dict[str, str] = {
     "task.type": "plugin task types ('type') are not supported yet; use 'command' instead",
     "task.params": "'params' (of plugin task types) are not supported yet; remove them",
     "inputs.url": "'url' inputs are not supported yet; download inside the command instead",
-    "inputs.dataset": "'dataset' inputs are not supported yet; use a task input instead",
     "outputs.url": f"'url' outputs are not supported yet; {_KEPT}",
-    "outputs.dataset": f"'dataset' outputs are not supported yet; {_KEPT}",
 }

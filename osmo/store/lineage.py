@@ -7,7 +7,7 @@ apart so the store module stays small. Must not import sqlite3.
 from __future__ import annotations
 
 import json
-from typing import Any
+from typing import Any, cast
 
 __all__ = ["LineageQueries"]
 
@@ -33,6 +33,44 @@ class LineageQueries:
         """The cache entry for ``fingerprint`` (attempt_id, output_path, manifest), or None."""
         rows = self._read("SELECT * FROM cache WHERE fingerprint = ?", (fingerprint,))
         return dict(rows[0]) if rows else None
+
+    def next_dataset_version(self, name: str) -> int:
+        """1 + the highest version of dataset ``name``."""
+        rows = self._read("SELECT MAX(version) FROM datasets WHERE name = ?", (name,))
+        return int(rows[0][0] or 0) + 1
+
+    def dataset(self, name: str, tag_or_version: str | None = None) -> dict[str, Any] | None:
+        """One version of a dataset: a number, a tag, or None/``latest`` for the newest."""
+        version: int | None = None
+        if tag_or_version and tag_or_version.isdigit():
+            version = int(tag_or_version)
+        elif tag_or_version and tag_or_version != "latest":
+            rows = self._read("SELECT version FROM dataset_tags WHERE name = ? AND tag = ?",
+                              (name, tag_or_version))
+            if not rows:
+                return None
+            version = int(rows[0][0])
+        if version is None:
+            rows = self._read("SELECT * FROM datasets WHERE name = ? "
+                              "ORDER BY version DESC LIMIT 1", (name,))
+        else:
+            rows = self._read("SELECT * FROM datasets WHERE name = ? AND version = ?",
+                              (name, version))
+        return _dataset_dict(self, rows[0]) if rows else None
+
+    def datasets(self, name: str | None = None) -> list[dict[str, Any]]:
+        """Every dataset version (of one dataset), newest first."""
+        sql, args = "SELECT * FROM datasets", cast(tuple[Any, ...], ())
+        if name is not None:
+            sql, args = sql + " WHERE name = ?", (name,)
+        rows = self._read(sql + " ORDER BY name, version DESC", args)
+        return [_dataset_dict(self, r) for r in rows]
+
+    def dataset_of_manifest(self, manifest: str) -> dict[str, Any] | None:
+        """The first dataset version whose manifest is ``manifest``."""
+        rows = self._read("SELECT * FROM datasets WHERE manifest = ? ORDER BY rowid LIMIT 1",
+                          (manifest,))
+        return _dataset_dict(self, rows[0]) if rows else None
 
     def owner_of_output(self, path: str) -> str | None:
         """The workflow whose task promoted the output folder ``path``."""
@@ -73,3 +111,12 @@ class LineageQueries:
     def all_blob_digests(self) -> set[str]:
         """Every blob digest any recorded manifest references (for garbage collection)."""
         return {str(r[0]) for r in self._read("SELECT DISTINCT digest FROM manifest_blobs")}
+
+
+def _dataset_dict(store: LineageQueries, row: Any) -> dict[str, Any]:
+    out = dict(row)
+    out["metadata"] = json.loads(out["metadata"])
+    tags = store._read("SELECT tag FROM dataset_tags WHERE name = ? AND version = ?",
+                       (out["name"], out["version"]))
+    out["tags"] = sorted(str(t[0]) for t in tags)
+    return out

@@ -17,15 +17,15 @@ import sqlite3
 import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from osmo.errors import InfrastructureError
 from osmo.scheduler.types import Changes
 from osmo.store.lineage import LineageQueries
+from osmo.store.rows import AttemptRow, DatasetRow, LineageRow, WorkflowRow
 
-__all__ = ["AttemptRow", "LineageRow", "Store", "WorkflowRow"]
+__all__ = ["AttemptRow", "DatasetRow", "LineageRow", "Store", "WorkflowRow"]
 
 
 def _v1(db: sqlite3.Connection) -> None:
@@ -86,6 +86,23 @@ def _v3(db: sqlite3.Connection) -> None:
         "manifest TEXT NOT NULL)")
 
 
+def _v4(db: sqlite3.Connection) -> None:
+    """Datasets: named, versioned manifests with tags, linked to what made them."""
+    _run_script(
+        db,
+        """
+        CREATE TABLE datasets (
+            name TEXT NOT NULL, version INTEGER NOT NULL, manifest TEXT NOT NULL,
+            source_manifest TEXT, attempt_id TEXT, created_at REAL NOT NULL,
+            metadata TEXT NOT NULL, PRIMARY KEY (name, version));
+        CREATE INDEX datasets_manifest ON datasets(manifest);
+        CREATE TABLE dataset_tags (
+            name TEXT NOT NULL, tag TEXT NOT NULL, version INTEGER NOT NULL,
+            PRIMARY KEY (name, tag));
+        """,
+    )
+
+
 def _run_script(db: sqlite3.Connection, script: str) -> None:
     """Run ``;``-separated DDL inside the caller's transaction (``executescript`` would commit)."""
     for statement in script.split(";"):
@@ -95,59 +112,8 @@ def _run_script(db: sqlite3.Connection, script: str) -> None:
 
 _NO_SPEC = "id, name, status, submitted_at, '{}' AS spec, options, state"
 
-_MIGRATIONS: dict[int, Callable[[sqlite3.Connection], None]] = {1: _v1, 2: _v2, 3: _v3}
+_MIGRATIONS: dict[int, Callable[[sqlite3.Connection], None]] = {1: _v1, 2: _v2, 3: _v3, 4: _v4}
 SCHEMA_VERSION = max(_MIGRATIONS)
-
-
-@dataclass(frozen=True)
-class WorkflowRow:
-    """A stored workflow: its state payload, the spec as a dict, and submit options."""
-
-    id: str
-    name: str
-    status: str
-    submitted_at: float
-    spec: dict[str, Any]
-    options: dict[str, Any]
-    state: dict[str, Any]
-
-
-@dataclass(frozen=True)
-class AttemptRow:
-    """Where an attempt ran and, for local attempts, which process to clean up after a crash."""
-
-    id: str
-    workflow_id: str
-    task: str
-    retry: int
-    node_id: str | None
-    dir: str | None
-    pid: int | None
-    pid_start: float | None
-
-
-@dataclass(frozen=True)
-class LineageRow:
-    """What one successful attempt made and used, written with the batch that completes it.
-
-    Attributes:
-        manifest: digest of the attempt's output manifest; ``manifest_body`` its JSON.
-        entries: ``(path, blob digest, size)`` of every file in the manifest.
-        output_path: the promoted output folder (how downstream tasks receive it).
-        record: the lineage record as JSON (``osmo.record.Lineage.to_dict``).
-        consumed: manifest digests of the inputs it read.
-    """
-
-    attempt_id: str
-    workflow_id: str
-    task: str
-    manifest: str
-    manifest_body: str
-    entries: tuple[tuple[str, str, int], ...]
-    output_path: str
-    record: str
-    consumed: tuple[str, ...]
-    fingerprint: str | None = None  # set when the attempt may serve as a cache entry
 
 
 class Store(LineageQueries):
@@ -240,6 +206,8 @@ class Store(LineageQueries):
         new_workflows: list[tuple[str, str, int, float, dict[str, Any], dict[str, Any]]] = (),  # type: ignore[assignment]
         attempts: list[AttemptRow] = (),  # type: ignore[assignment]
         lineage: list[LineageRow] = (),  # type: ignore[assignment]
+        datasets: list[DatasetRow] = (),  # type: ignore[assignment]
+        tags: list[tuple[str, str, int]] = (),  # type: ignore[assignment]
     ) -> None:
         """Write one batch atomically.
 
@@ -248,6 +216,7 @@ class Store(LineageQueries):
             new_workflows: ``(id, name, n, submitted_at, spec_dict, options)`` rows to create.
             attempts: attempt rows to insert or replace (placement, pid).
             lineage: outputs and lineage of attempts that completed in this batch.
+            datasets: new dataset versions; tags: ``(name, tag, version)`` to (re)point.
         """
         with self._tx() as db:
             for wf_id, name, n, at, spec, options in new_workflows:
@@ -285,6 +254,22 @@ class Store(LineageQueries):
             )
             for row in lineage:
                 _write_lineage(db, row)
+            for ds in datasets:
+                _write_dataset(db, ds)
+            db.executemany("INSERT OR REPLACE INTO dataset_tags VALUES (?,?,?)", list(tags))
+
+    def register_output(self, workflow_id: str, task: str, manifest: str, body: str,
+                        path: str) -> None:
+        """Record a folder (e.g. a materialized dataset) as holding ``manifest``."""
+        from osmo.artifacts import Manifest
+
+        entries = tuple((e.path, e.digest, e.size) for e in Manifest.from_json(body).entries)
+        with self._tx() as db:
+            db.execute("INSERT OR IGNORE INTO manifests VALUES (?,?)", (manifest, body))
+            db.executemany("INSERT OR IGNORE INTO manifest_blobs VALUES (?,?,?,?)",
+                           [(manifest, p, d, s) for p, d, s in entries])
+            db.execute("INSERT OR REPLACE INTO outputs VALUES (?,?,?,?,?)",
+                       (workflow_id, task, "", manifest, path))
 
     # -------------------------------------------------------------- reads (any thread)
 
@@ -359,6 +344,15 @@ def _write_lineage(db: sqlite3.Connection, row: LineageRow) -> None:
         db.execute("INSERT OR IGNORE INTO cache VALUES (?,?,?,?,?,?)",
                    (row.fingerprint, row.attempt_id, row.workflow_id, row.task,
                     row.output_path, row.manifest))
+
+
+def _write_dataset(db: sqlite3.Connection, ds: DatasetRow) -> None:
+    db.execute("INSERT OR IGNORE INTO manifests VALUES (?,?)", (ds.manifest, ds.manifest_body))
+    db.executemany("INSERT OR IGNORE INTO manifest_blobs VALUES (?,?,?,?)",
+                   [(ds.manifest, path, digest, size) for path, digest, size in ds.entries])
+    db.execute("INSERT INTO datasets VALUES (?,?,?,?,?,?,?)",
+               (ds.name, ds.version, ds.manifest, ds.source_manifest, ds.attempt_id,
+                ds.created_at, json.dumps(ds.metadata)))
 
 
 def _workflow_row(r: sqlite3.Row) -> WorkflowRow:

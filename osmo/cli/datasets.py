@@ -1,0 +1,76 @@
+"""CLI verbs for datasets: ``osmo dataset list|info|tag|download|upload``."""
+
+from __future__ import annotations
+
+import argparse
+
+from osmo.cli.render import console, print_json
+from osmo.errors import UsageError
+from osmo.sdk.client import Client
+
+__all__ = ["add_parsers", "run_dataset"]
+
+
+def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    """Register ``dataset`` on the top-level parser."""
+    p = sub.add_parser("dataset", help="versioned datasets: list, info, tag, download, upload")
+    verbs = p.add_subparsers(dest="dataset_verb", metavar="VERB", required=True)
+    q = verbs.add_parser("list", help="datasets and their versions")
+    q.add_argument("name", nargs="?")
+    q.add_argument("--format", "-t", dest="format", choices=("text", "json"), default="text")
+    q = verbs.add_parser("info", help="one version: files, tags, what made it")
+    q.add_argument("ref", help="NAME[:TAG_OR_VERSION] (default: newest)")
+    q.add_argument("--format", "-t", dest="format", choices=("text", "json"), default="text")
+    q = verbs.add_parser("tag", help="point a tag at a version")
+    q.add_argument("ref")
+    q.add_argument("tag")
+    q = verbs.add_parser("download", help="write a version's files (verified) to a folder")
+    q.add_argument("ref")
+    q.add_argument("-o", "--output", required=True)
+    q.add_argument("--regex", help="only files whose path matches")
+    q = verbs.add_parser("upload", help="make a new version from a local folder")
+    q.add_argument("name")
+    q.add_argument("path")
+    q.add_argument("--metadata", action="append", default=[], metavar="K=V")
+
+
+def run_dataset(args: argparse.Namespace) -> int:
+    """Run one ``osmo dataset`` verb."""
+    with Client(args.server) as client:
+        verb = args.dataset_verb
+        if verb == "list":
+            rows = client.datasets(args.name)
+            if args.format == "json":
+                print_json(rows)
+            for r in rows if args.format == "text" else ():
+                tags = f" [{', '.join(r['tags'])}]" if r["tags"] else ""
+                console.print(f"{r['name']}:{r['version']}{tags}  {r['files']} files  "
+                              f"{r['size']} B  {r['created']}  by {r['made_by'] or 'upload'}",
+                              markup=False)
+        elif verb == "info":
+            info = client.dataset_info(args.ref)
+            if args.format == "json":
+                print_json(info)
+            else:
+                console.print(f"{info['name']}:{info['version']}  {info['manifest']}  "
+                              f"made by {info['made_by'] or 'upload'}", markup=False)
+                for f in info["files"]:
+                    console.print(f"  {f['path']}  {f['size']} B  {f['digest']}", markup=False)
+        elif verb == "tag":
+            r = client.tag_dataset(args.ref, args.tag)
+            console.print(f"{r['name']}:{r['tag']} -> version {r['version']}", markup=False)
+        elif verb == "download":
+            for path in client.download_dataset(args.ref, args.output, regex=args.regex):
+                console.print(path, markup=False)
+        else:
+            metadata = dict(_pair(m) for m in args.metadata)
+            version = client.upload_dataset(args.name, args.path, metadata=metadata)
+            console.print(f"{args.name}:{version}", markup=False)
+    return 0
+
+
+def _pair(item: str) -> tuple[str, str]:
+    key, sep, value = item.partition("=")
+    if not sep or not key:
+        raise UsageError(f"--metadata expects K=V, got '{item}'")
+    return key, value

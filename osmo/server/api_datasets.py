@@ -1,0 +1,116 @@
+"""API verbs for datasets: list, info, tag, download, upload.
+
+Writes (tag, upload) run on the engine thread like every other state change; reads go to the
+store. ``upload`` and ``download`` use paths on the server's machine (a local server; remote
+transfer arrives with remote workers).
+"""
+
+from __future__ import annotations
+
+
+import shutil
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+from osmo.artifacts import ArtifactStore, Manifest
+from osmo.errors import NotFoundError, UsageError
+from osmo.server.datasets import select
+from osmo.server.engine import Engine, _Batch
+
+__all__ = ["DatasetApi"]
+
+
+class DatasetApi:
+    """Handlers for ``datasets_*`` verbs."""
+
+    def __init__(self, engine: Engine, artifacts: ArtifactStore, home: Path) -> None:
+        self._engine = engine
+        self._store = engine.store
+        self._artifacts = artifacts
+        self._home = home
+
+    def verbs(self) -> dict[str, Any]:
+        """Verb name → handler."""
+        return {"datasets_list": self.list, "datasets_info": self.info,
+                "datasets_tag": self.tag, "datasets_download": self.download,
+                "datasets_upload": self.upload}
+
+    def list(self, request: dict[str, Any]) -> list[dict[str, Any]]:
+        """Every version (of one dataset), newest first, with size and tags."""
+        return [self._public(row) for row in self._store.datasets(request.get("name"))]
+
+    def info(self, request: dict[str, Any]) -> dict[str, Any]:
+        """One version with its files and what made it."""
+        row = self._row(request["ref"])
+        body = self._store.manifest_body(row["manifest"]) or '{"entries": []}'
+        files = [vars(e) for e in Manifest.from_json(body).entries]
+        return {**self._public(row), "files": files}
+
+    def tag(self, request: dict[str, Any]) -> dict[str, Any]:
+        """Point ``tag`` at a version (moving it if it pointed elsewhere)."""
+        row = self._row(request["ref"])
+        tag = str(request["tag"])
+        if tag.isdigit() or tag == "latest" or not tag:
+            raise UsageError(f"'{tag}' cannot be a tag: numbers and 'latest' name versions")
+
+        def do(engine: Engine, batch: _Batch, now: float) -> None:
+            batch.tags.append((row["name"], tag, row["version"]))
+
+        self._engine.call(do)
+        return {"name": row["name"], "version": row["version"], "tag": tag}
+
+    def download(self, request: dict[str, Any]) -> dict[str, Any]:
+        """Write a version's files (verified) into ``dest``."""
+        row = self._row(request["ref"])
+        body = self._store.manifest_body(row["manifest"])
+        assert body is not None
+        manifest = select(Manifest.from_json(body), path=None, regex=request.get("regex"))
+        written = self._artifacts.materialize(manifest, Path(request["dest"]))
+        return {"files": [str(p) for p in written], "version": row["version"]}
+
+    def upload(self, request: dict[str, Any]) -> dict[str, Any]:
+        """Make a new version of ``name`` from a folder (copied first: the caller's files are
+        left as they are)."""
+        source = Path(request["path"])
+        if not source.is_dir():
+            raise UsageError(f"cannot upload '{source}': not a folder")
+        staging = Path(tempfile.mkdtemp(prefix="upload-", dir=self._home))
+        try:
+            shutil.copytree(source, staging / "data", symlinks=True)
+            manifest = self._artifacts.ingest(staging / "data")
+        finally:
+            shutil.rmtree(staging, ignore_errors=True)
+        datasets = self._engine.datasets
+        assert datasets is not None
+        metadata = dict(request.get("metadata") or {})
+
+        def do(engine: Engine, batch: _Batch, now: float) -> int:
+            row = datasets.version_row(str(request["name"]), manifest, source=None,
+                                       attempt_id=None, now=now, metadata=metadata)
+            batch.datasets.append(row)
+            return row.version
+
+        version = self._engine.call(do)
+        return {"name": request["name"], "version": version, "manifest": manifest.digest}
+
+    def _row(self, ref: str) -> dict[str, Any]:
+        name, _, tag = ref.partition(":")
+        row = self._store.dataset(name, tag or None)
+        if row is None:
+            raise NotFoundError(f"dataset '{ref}' does not exist")
+        return row
+
+    def _public(self, row: dict[str, Any]) -> dict[str, Any]:
+        body = self._store.manifest_body(row["manifest"]) or '{"entries": []}'
+        manifest = Manifest.from_json(body)
+        return {"name": row["name"], "version": row["version"], "tags": row["tags"],
+                "manifest": row["manifest"], "files": len(manifest.entries),
+                "size": manifest.size, "created_at": row["created_at"],
+                "made_by": row["attempt_id"], "metadata": row["metadata"],
+                "created": time.strftime("%Y/%m/%d %H:%M:%S",
+                                         time.localtime(row["created_at"]))}
+
+
+
