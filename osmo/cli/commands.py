@@ -7,7 +7,7 @@ import sys
 from collections.abc import Callable
 
 from osmo.cli.artifacts import run_artifacts, run_lineage
-from osmo.cli.datasets import run_dataset
+from osmo.cli.datasets import run_credential, run_dataset
 from osmo.cli.render import (
     console,
     format_log,
@@ -184,6 +184,7 @@ _VERBS: dict[str, Callable[[argparse.Namespace], int]] = {
     "artifacts": run_artifacts,
     "lineage": run_lineage,
     "dataset": run_dataset,
+    "credential": run_credential,
 }
 
 

@@ -1,4 +1,5 @@
-"""CLI verbs for datasets: ``osmo dataset list|info|tag|download|upload``."""
+"""CLI verbs for data: ``osmo dataset list|info|tag|download|upload`` and
+``osmo credential set|list|delete`` (the secrets data URLs use)."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ from osmo.cli.render import console, print_json
 from osmo.errors import UsageError
 from osmo.sdk.client import Client
 
-__all__ = ["add_parsers", "run_dataset"]
+__all__ = ["add_credential_parsers", "add_parsers", "run_credential", "run_dataset"]
 
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -74,3 +75,30 @@ def _pair(item: str) -> tuple[str, str]:
     if not sep or not key:
         raise UsageError(f"--metadata expects K=V, got '{item}'")
     return key, value
+
+
+def add_credential_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    """Register ``credential`` on the top-level parser."""
+    p = sub.add_parser("credential", help="named secrets on the server (for data URLs)")
+    verbs = p.add_subparsers(dest="credential_verb", metavar="VERB", required=True)
+    q = verbs.add_parser("set", help="store a credential")
+    q.add_argument("name", help="e.g. s3, or s3://BUCKET for one bucket")
+    q.add_argument("--payload", action="append", default=[], metavar="K=V", required=True)
+    verbs.add_parser("list", help="names and keys (never values)")
+    q = verbs.add_parser("delete", help="remove a credential")
+    q.add_argument("name")
+
+
+def run_credential(args: argparse.Namespace) -> int:
+    """Run one ``osmo credential`` verb."""
+    with Client(args.server) as client:
+        if args.credential_verb == "set":
+            client.set_credential(args.name, dict(_pair(p) for p in args.payload))
+            console.print(f"stored credential '{args.name}'", markup=False)
+        elif args.credential_verb == "list":
+            for c in client.credentials():
+                console.print(f"{c['name']}  keys: {', '.join(c['keys'])}", markup=False)
+        else:
+            client.delete_credential(args.name)
+            console.print(f"deleted credential '{args.name}'", markup=False)
+    return 0

@@ -285,6 +285,20 @@ class Client:
                            metadata=metadata or {})
         return int(reply["version"])
 
+    # ------------------------------------------------------------------ credentials
+
+    def set_credential(self, name: str, payload: dict[str, str]) -> None:
+        """Store a named secret on the server (e.g. ``s3`` with endpoint/access_key/...)."""
+        self._call("credential_set", name=name, payload=payload)
+
+    def credentials(self) -> builtins.list[dict[str, Any]]:
+        """Stored credentials: names and keys, never values."""
+        return builtins.list(self._call("credential_list"))
+
+    def delete_credential(self, name: str) -> None:
+        """Remove a stored credential."""
+        self._call("credential_delete", name=name)
+
     def ping(self) -> dict[str, Any]:
         """The server's info (endpoint, pid, home)."""
         return dict(self._call("ping"))

@@ -17,6 +17,7 @@ from osmo.artifacts import ArtifactStore, Manifest
 from osmo.errors import NotFoundError, SubmitError, UsageError
 from osmo.scheduler.types import CancelWorkflow, WorkflowSubmitted
 from osmo.server.api_datasets import DatasetApi
+from osmo.server.credentials import CredentialApi
 from osmo.server.engine import Engine, _Batch
 from osmo.server.lineage_query import lineage_graph, resolve_target
 from osmo.server.logview import read_logs
@@ -58,6 +59,7 @@ class Api:
             "shutdown": self.shutdown,
         }
         self._verbs.update(DatasetApi(engine, self._artifacts, home).verbs())
+        self._verbs.update(CredentialApi(self._store).verbs())
 
     def handle(self, verb: str, request: dict[str, Any]) -> Any:
         """Run the handler for ``verb``; UsageError for an unknown verb."""
@@ -212,8 +214,8 @@ def _check_credentials(spec: Any) -> None:
     for task in spec.all_tasks():
         for name in task.credentials:
             raise SubmitError(
-                f"task '{task.name}' uses credential '{name}', but this server stores no "
-                "credentials yet (credential support arrives with remote workers)")
+                f"task '{task.name}' uses credential '{name}': injecting credentials into "
+                "tasks is not supported yet (stored credentials serve data URLs only)")
 
 
 def _workflow_dict(row: WorkflowRow) -> dict[str, Any]:

@@ -28,6 +28,7 @@ from osmo.errors import InfrastructureError
 from osmo.scheduler import Scheduler, TaskState, WorkflowState
 from osmo.scheduler.types import AttemptLost, NodeUp
 from osmo.server.api import Api
+from osmo.server.credentials import url_credential
 from osmo.server.datasets import Datasets
 from osmo.server.engine import Engine
 from osmo.server.records import RunRecords
@@ -108,7 +109,8 @@ def serve(home: str | os.PathLike[str] | None = None, *, listen: str | None = No
     engine_box: list[Engine] = []
     artifacts = ArtifactStore(home_path / "artifacts")
     pool = LocalPool(home=home_path, emit=lambda ev: engine_box[0].post(ev),
-                     cpus=cpus, gpus=gpus, memory=memory, artifacts=artifacts)
+                     cpus=cpus, gpus=gpus, memory=memory, artifacts=artifacts,
+                     credential_for=url_credential(store))
     records = RunRecords(store, home_path)
     engine = Engine(store=store, scheduler=scheduler, executor=pool, specs=specs,
                     on_changed=on_changed, home=home_path, on_finished=records.finished,

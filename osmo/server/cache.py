@@ -6,7 +6,9 @@ digests of its inputs, in input order. Tokens are hashed as written: they resolv
 way for the same inputs; ``{{workflow_id}}``/``{{uuid}}`` are not treated as changes.
 
 Only attempts that no group barrier holds are cached (single-task groups and
-``barrier: false`` groups); co-started group members interact and always run. A task opts
+``barrier: false`` groups); co-started group members interact and always run. Tasks with
+``url`` inputs or outputs always run too: the remote content is not known when the task is
+placed, and a hit would skip the upload. A task opts
 out with ``cache: false``, a submission with ``--no-cache``. A hit is taken only while the
 earlier output folder still exists; its files were verified when ingested and are
 read-only since.

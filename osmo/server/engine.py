@@ -265,6 +265,8 @@ class Engine:
         task = self.specs[cmd.workflow_id].task(cmd.task)
         if not cmd.run or not task.cache or cmd.workflow_id in self.no_cache:
             return None
+        if any(i.url for i in task.inputs) or any(o.url for o in task.outputs):
+            return None  # URL contents are unknown at placement; a hit would skip the upload
         inputs = cache.input_manifests(self.store, cmd)
         return None if inputs is None else cache.fingerprint(task, inputs)
 

@@ -10,7 +10,6 @@ from __future__ import annotations
 __all__ = ["UNSUPPORTED"]
 
 _PLATFORM = "is not supported by osmo's process runtime; remove it"
-_KEPT = "results written under {{output}} are kept by osmo"
 
 UNSUPPORTED: dict[str, str] = {
     "task.volumeMounts": f"'volumeMounts' {_PLATFORM}",
@@ -19,6 +18,4 @@ UNSUPPORTED: dict[str, str] = {
     "task.checkpoint": "'checkpoint' is not supported yet; write checkpoints under {{output}}",
     "task.type": "plugin task types ('type') are not supported yet; use 'command' instead",
     "task.params": "'params' (of plugin task types) are not supported yet; remove them",
-    "inputs.url": "'url' inputs are not supported yet; download inside the command instead",
-    "outputs.url": f"'url' outputs are not supported yet; {_KEPT}",
 }

@@ -103,6 +103,12 @@ def _v4(db: sqlite3.Connection) -> None:
     )
 
 
+def _v5(db: sqlite3.Connection) -> None:
+    """Credentials: named secrets (key → value) used for data URLs."""
+    db.execute("CREATE TABLE credentials (name TEXT PRIMARY KEY, payload TEXT NOT NULL, "
+               "updated_at REAL NOT NULL)")
+
+
 def _run_script(db: sqlite3.Connection, script: str) -> None:
     """Run ``;``-separated DDL inside the caller's transaction (``executescript`` would commit)."""
     for statement in script.split(";"):
@@ -112,7 +118,8 @@ def _run_script(db: sqlite3.Connection, script: str) -> None:
 
 _NO_SPEC = "id, name, status, submitted_at, '{}' AS spec, options, state"
 
-_MIGRATIONS: dict[int, Callable[[sqlite3.Connection], None]] = {1: _v1, 2: _v2, 3: _v3, 4: _v4}
+_MIGRATIONS: dict[int, Callable[[sqlite3.Connection], None]] = {
+    1: _v1, 2: _v2, 3: _v3, 4: _v4, 5: _v5}
 SCHEMA_VERSION = max(_MIGRATIONS)
 
 
@@ -257,6 +264,28 @@ class Store(LineageQueries):
             for ds in datasets:
                 _write_dataset(db, ds)
             db.executemany("INSERT OR REPLACE INTO dataset_tags VALUES (?,?,?)", list(tags))
+
+    def set_credential(self, name: str, payload: dict[str, str], now: float) -> None:
+        """Store (or replace) credential ``name``."""
+        with self._tx() as db:
+            db.execute("INSERT OR REPLACE INTO credentials VALUES (?,?,?)",
+                       (name, json.dumps(payload), now))
+
+    def delete_credential(self, name: str) -> bool:
+        """Remove credential ``name``; False if there was none."""
+        with self._tx() as db:
+            return db.execute("DELETE FROM credentials WHERE name = ?", (name,)).rowcount > 0
+
+    def credential(self, name: str) -> dict[str, str] | None:
+        """The payload of credential ``name``, or None."""
+        rows = self._read("SELECT payload FROM credentials WHERE name = ?", (name,))
+        return dict(json.loads(rows[0][0])) if rows else None
+
+    def credentials(self) -> list[dict[str, Any]]:
+        """Every credential's name, keys (never values) and update time."""
+        rows = self._read("SELECT * FROM credentials ORDER BY name")
+        return [{"name": r["name"], "keys": sorted(json.loads(r["payload"])),
+                 "updated_at": r["updated_at"]} for r in rows]
 
     def register_output(self, workflow_id: str, task: str, manifest: str, body: str,
                         path: str) -> None:

@@ -18,6 +18,8 @@ This module owns the format only; it does not know about processes or pipes.
 
 from __future__ import annotations
 
+import signal
+
 import logging
 import os
 import re
@@ -171,3 +173,15 @@ def read_log(path: Path, offset: int = 0) -> tuple[list[LogRecord], int]:
         if record is not None:
             records.append(record)
     return records, offset + end
+
+
+def image_note(image: str) -> str:
+    """The osmo log line noting an ``image`` the process runtime does not use."""
+    return f"image '{image}' recorded; the process runtime runs commands on the host"
+
+
+def exit_note(code: int) -> str:
+    """The osmo log line for an exit code (naming the signal for 128+N)."""
+    if code > 128 and code - 128 in signal.Signals._value2member_map_:
+        return f"exit code {code} ({signal.Signals(code - 128).name})"
+    return f"exit code {code}"

@@ -57,9 +57,10 @@ from osmo.scheduler.types import (
     PrepareAttempt,
 )
 from osmo.spec.model import ExitAction, TaskSpec
-from osmo.worker.logs import LogWriter
+from osmo.worker.logs import LogWriter, exit_note, image_note
 from osmo.worker.machine import detect_capacity, raise_fd_limit
 from osmo.worker.reactor import Reactor, Timer
+from osmo.worker.transfer import CredentialLookup, fetch_inputs, push_outputs
 from osmo.worker.workdir import AttemptDirs, Launch, PrepareError, prepare, promote
 
 __all__ = ["LocalPool", "kill_stale", "process_start_time"]
@@ -96,16 +97,6 @@ class _Attempt:
     escalation: Timer | None = None
 
 
-def _image_note(image: str) -> str:
-    return f"image '{image}' recorded; the process runtime runs commands on the host"
-
-
-def _exit_note(code: int) -> str:
-    if code > 128 and code - 128 in signal.Signals._value2member_map_:
-        return f"exit code {code} ({signal.Signals(code - 128).name})"
-    return f"exit code {code}"
-
-
 class LocalPool:
     """A resource-aware pool of host processes on this machine (see the module docstring).
 
@@ -120,6 +111,7 @@ class LocalPool:
         env: the base environment of every command (default: this process's environment).
         artifacts: where promoted outputs are ingested (content-addressed, verified); the
             exit report then carries the output's manifest. None: outputs are not ingested.
+        credential_for: ``url -> credential`` for ``url`` inputs and outputs.
     """
 
     def __init__(
@@ -136,6 +128,7 @@ class LocalPool:
         runtime: Runtime | None = None,
         env: Mapping[str, str] | None = None,
         artifacts: ArtifactStore | None = None,
+        credential_for: CredentialLookup | None = None,
     ) -> None:
         self.home = Path(home).absolute()
         self.home.mkdir(parents=True, exist_ok=True)
@@ -147,6 +140,7 @@ class LocalPool:
         self._runtime: Runtime = runtime or ProcessRuntime()
         self._env = dict(os.environ if env is None else env)
         self._artifacts = artifacts
+        self._credential_for = credential_for
         self._attempts: dict[str, _Attempt] = {}
         self._finished: collections.OrderedDict[str, None] = collections.OrderedDict()
         self._pids: dict[str, int] = {}
@@ -217,9 +211,10 @@ class LocalPool:
         """I/O thread: make the folders and files; hand the outcome back to the reactor."""
         try:
             dirs = AttemptDirs.at(self.home, cmd.workflow_id, cmd.task, cmd.retry)
+            cmd = fetch_inputs(cmd, task, dirs, self._credential_for)
             launch = prepare(dirs, cmd, task, self._env)
         except Exception as exc:  # every prepare must get its one final report
-            message = str(exc) if isinstance(exc, PrepareError) else f"cannot prepare: {exc!r}"
+            message = str(exc) if isinstance(exc, OsmoError) else f"cannot prepare: {exc!r}"
             self._reactor.call_soon(self._prepared, cmd, task, None, None, message)
         else:
             self._reactor.call_soon(self._prepared, cmd, task, dirs, launch, None)
@@ -235,7 +230,7 @@ class LocalPool:
             return
         attempt = _Attempt(cmd.attempt_id, task, dirs, launch, LogWriter(dirs.log))
         if task.image:
-            attempt.log.line("osmo", _image_note(task.image))
+            attempt.log.line("osmo", image_note(task.image))
         self._attempts[attempt.id] = attempt
         if kill_reason is not None:  # killed while its folders were being made
             self._kill(attempt.id, kill_reason)
@@ -338,7 +333,7 @@ class LocalPool:
         if attempt.escalation is not None:
             attempt.escalation.cancel()
         attempt.log.flush_partial()
-        attempt.log.line("osmo", _exit_note(code))
+        attempt.log.line("osmo", exit_note(code))
         if attempt.kill_reason is not None:
             self._finish(attempt, AttemptExited(attempt.id, code, None,
                                                 f"killed: {attempt.kill_reason}"))
@@ -353,10 +348,15 @@ class LocalPool:
         try:
             ref = promote(attempt.dirs)
             manifest = self._artifacts.ingest(Path(ref)) if self._artifacts else None
-            event = AttemptExited(attempt.id, code, ref,
-                                  manifest=manifest.to_json() if manifest else None)
         except (OSError, OsmoError) as exc:
             event = AttemptExited(attempt.id, code, None, f"outputs could not be promoted: {exc}")
+        else:
+            try:
+                push_outputs(attempt.task, Path(ref), self._credential_for)
+                event = AttemptExited(attempt.id, code, ref,
+                                      manifest=manifest.to_json() if manifest else None)
+            except (OSError, OsmoError) as exc:
+                event = AttemptExited(attempt.id, code, None, f"upload of outputs failed: {exc}")
         self._reactor.call_soon(self._promoted, attempt, event)
 
     def _promoted(self, attempt: _Attempt, event: AttemptExited) -> None:
