@@ -15,6 +15,7 @@ from typing import Any
 from osmo.spec.model import FileSpec, InputSpec, OutputSpec
 from osmo.spec.reader import Ctx, read_bool, read_fields, read_list, read_map, read_str
 from osmo.spec.support import UNSUPPORTED
+from osmo.spec.units import parse_duration
 from osmo.spec.yamlnodes import Map, Node, to_plain
 
 __all__ = ["MAX_LOCAL_FILE", "parse_checkpoint", "parse_files", "parse_inputs", "parse_outputs"]
@@ -195,7 +196,16 @@ def parse_checkpoint(ctx: Ctx, node: Node, where: str) -> tuple[dict[str, Any], 
     out = []
     for item in read_list(ctx, node, f"'checkpoint' of {where}"):
         fields = read_fields(ctx, item, _CHECKPOINT_KEYS, f"a checkpoint of {where}",
-                             required=("path", "url"))
-        if fields is not None and isinstance(item, Map):
-            out.append(to_plain(item))
+                             required=("path", "url", "frequency"))
+        if fields is None or not isinstance(item, Map):
+            continue
+        if "frequency" in fields:
+            try:
+                parse_duration(to_plain(fields["frequency"]))
+            except ValueError as exc:
+                ctx.error(fields["frequency"], f"'frequency' of a checkpoint of {where}: {exc}")
+                continue
+        if "regex" in fields:
+            _read_regex(ctx, fields, f"a checkpoint of {where}")
+        out.append(to_plain(item))
     return tuple(out)

@@ -27,6 +27,7 @@ descriptors).
 from __future__ import annotations
 
 import collections
+import functools
 import enum
 import logging
 import os
@@ -57,11 +58,12 @@ from osmo.scheduler.types import (
     PrepareAttempt,
 )
 from osmo.spec.model import ExitAction, TaskSpec
+from osmo.worker.checkpoints import Checkpointer, start_checkpoints
 from osmo.worker.logs import LogWriter, exit_note, image_note
 from osmo.worker.machine import detect_capacity, raise_fd_limit
 from osmo.worker.reactor import Reactor, Timer
 from osmo.worker.transfer import CredentialLookup, fetch_inputs, push_outputs
-from osmo.worker.workdir import AttemptDirs, Launch, PrepareError, prepare, promote
+from osmo.worker.workdir import AttemptDirs, Launch, prepare, promote
 
 __all__ = ["LocalPool", "kill_stale", "process_start_time"]
 
@@ -95,6 +97,7 @@ class _Attempt:
     open_fds: set[int] = field(default_factory=set)
     kill_reason: str | None = None
     escalation: Timer | None = None
+    checkpoints: Checkpointer | None = None
 
 
 class LocalPool:
@@ -178,14 +181,8 @@ class LocalPool:
         attempt = self._attempts.get(attempt_id)
         if attempt is not None:
             return attempt.dirs.root
-        parts = attempt_id.rsplit(":", 2)
-        if len(parts) != 3 or not parts[2].isdigit():
-            return None
-        try:
-            root = AttemptDirs.at(self.home, parts[0], parts[1], int(parts[2])).root
-        except PrepareError:
-            return None
-        return root if root.is_dir() else None
+        dirs = AttemptDirs.of_attempt(self.home, attempt_id)
+        return dirs.root if dirs is not None and dirs.root.is_dir() else None
 
     def running(self) -> dict[str, int]:
         """Map attempt id → pid (= process group id) of every running attempt."""
@@ -269,6 +266,9 @@ class LocalPool:
             attempt.open_fds.add(fd)
             self._reactor.add_reader(fd, lambda a=attempt, f=fd, s=stream: self._read(a, f, s))
         self._reactor.add_reader(handle.exit_fd, lambda a=attempt: self._exited(a))
+        attempt.checkpoints = start_checkpoints(
+            attempt.task, attempt.dirs, attempt.id, reactor=self._reactor, io=self._io,
+            credential_for=self._credential_for, log=functools.partial(attempt.log.line, "osmo"))
 
     def _kill(self, attempt_id: str, reason: str) -> None:
         if attempt_id in self._preparing:  # acted on when its folders are ready
@@ -332,6 +332,8 @@ class LocalPool:
         self._runtime.release(handle)
         if attempt.escalation is not None:
             attempt.escalation.cancel()
+        if attempt.checkpoints is not None:
+            attempt.checkpoints.stop()
         attempt.log.flush_partial()
         attempt.log.line("osmo", exit_note(code))
         if attempt.kill_reason is not None:
@@ -344,7 +346,13 @@ class LocalPool:
             self._io.submit(self._promote_io, attempt, code)
 
     def _promote_io(self, attempt: _Attempt, code: int) -> None:
-        """I/O thread: promote the outputs; the reactor then reports the exit."""
+        """I/O thread: last checkpoint, promote the outputs; the reactor reports the exit."""
+        failed = attempt.checkpoints.final() if attempt.checkpoints is not None else None
+        if failed is not None:
+            message = f"final checkpoint upload failed: {failed}"
+            self._reactor.call_soon(self._promoted, attempt,
+                                    AttemptExited(attempt.id, code, None, message))
+            return
         try:
             ref = promote(attempt.dirs)
             manifest = self._artifacts.ingest(Path(ref)) if self._artifacts else None

@@ -74,6 +74,17 @@ class AttemptDirs:
     root: Path
 
     @classmethod
+    def of_attempt(cls, home: Path, attempt_id: str) -> AttemptDirs | None:
+        """The folders of attempt ``<workflow>:<task>:<retry>``, or None for a malformed id."""
+        parts = attempt_id.rsplit(":", 2)
+        if len(parts) != 3 or not parts[2].isdigit():
+            return None
+        try:
+            return cls.at(home, parts[0], parts[1], int(parts[2]))
+        except PrepareError:
+            return None
+
+    @classmethod
     def at(cls, home: Path, workflow_id: str, task: str, retry: int) -> AttemptDirs:
         """The folder of retry ``retry`` of ``task`` in ``workflow_id`` under ``home``."""
         for name in (workflow_id, task):

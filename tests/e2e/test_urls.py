@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 
 from osmo.urls import for_url
@@ -88,3 +89,48 @@ def test_s3_output_and_input_with_a_stored_credential(
     assert (Path(used["tasks"][0]["output"]) / "both.txt").read_text() == "one\ntwo\n"
     logs = osmo("logs", used["id"]).out + osmo("logs", made["id"]).out
     assert s3_credential["secret_key"] not in logs
+
+
+CHECKPOINTED = """
+workflow:
+  name: train
+  tasks:
+  - name: fit
+    command: [sh, -c, "mkdir -p {{output}}/ckpt; i=0; while [ ! -e RELEASE ]; do i=$((i+1)); echo step $i > {{output}}/ckpt/state.txt; sleep 0.1; done; echo final > {{output}}/ckpt/state.txt"]
+    checkpoint:
+    - path: "{{output}}/ckpt"
+      url: URL
+      frequency: 1s
+"""
+
+
+def test_checkpoints_upload_while_running_and_at_the_end(osmo: Osmo, tmp_path: Path) -> None:
+    remote, release = tmp_path / "ckpts", tmp_path / "release"
+    spec = write(tmp_path / "t.yaml", CHECKPOINTED.replace("URL", f"file://{remote}")
+                 .replace("RELEASE", str(release)))
+    wf = osmo.submit(spec)
+    deadline = time.monotonic() + 60
+    while not (remote / ".osmo-complete.json").exists():  # a periodic upload landed
+        assert time.monotonic() < deadline, "no checkpoint was uploaded while running"
+        time.sleep(0.1)
+    assert osmo.query(wf)["tasks"][0]["status"] == "RUNNING"
+    assert (remote / "state.txt").read_text().startswith("step ")
+    release.write_text("go")
+    info = osmo.wait_for(wf, lambda i: i["status"] not in ("PENDING", "RUNNING", "WAITING"))
+    assert info["status"] == "COMPLETED"
+    assert (remote / "state.txt").read_text() == "final\n"  # the last upload at the end
+    assert "checkpoint uploaded to" in osmo("logs", wf, "-t", "fit").out
+
+
+def test_a_failed_final_checkpoint_fails_the_task(osmo: Osmo, tmp_path: Path) -> None:
+    blocker = tmp_path / "blocked"
+    blocker.write_text("a file where the checkpoint folder should go")
+    release = tmp_path / "release"
+    release.write_text("go")  # finish at once
+    spec = write(tmp_path / "t.yaml", CHECKPOINTED.replace("URL", f"file://{blocker}/x")
+                 .replace("RELEASE", str(release)))
+    r = osmo("submit", str(spec), "--wait")
+    assert r.code == 1
+    task = osmo.query(r.out.splitlines()[0].split(" - ")[1])["tasks"][0]
+    assert task["status"] == "FAILED" and "final checkpoint upload failed" in task["message"]
+    assert task["output"] is None
