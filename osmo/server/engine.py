@@ -42,6 +42,8 @@ from osmo.server import cache
 from osmo.server.datasets import Datasets
 from osmo.server.cache import CacheHit
 from osmo.server.provenance import Provenance
+from osmo.status import TaskStatus
+from osmo.worker.workdir import AttemptDirs
 from osmo.store.sqlite import AttemptRow, DatasetRow, LineageRow, Store
 
 __all__ = ["Engine", "Executor"]
@@ -194,13 +196,11 @@ class Engine:
             if isinstance(event, AttemptStarted):
                 self._note_pid(event.attempt_id, batch)
             return
-        before = self.scheduler.attempt(event.attempt_id)
+        before = self.scheduler.attempt(event.attempt_id)  # None: a stale (fenced) report
         batch.commands += self.scheduler.handle(event, now)
         after = self.scheduler.attempt(event.attempt_id)
-        completed = (isinstance(event, AttemptExited) and before is not None
-                     and before.status.active and after is not None
-                     and after.status.name == "COMPLETED")
-        if not completed or before is None or not isinstance(event, AttemptExited):
+        if (not isinstance(event, AttemptExited) or before is None or not before.status.active
+                or after is None or after.status is not TaskStatus.COMPLETED):
             self.provenance.forget(event.attempt_id)
             return
         task = self.specs[before.workflow_id].task(before.name)
@@ -219,28 +219,15 @@ class Engine:
 
     def _commit_and_execute(self, batch: _Batch) -> None:
         changes = self.scheduler.take_changes()
-        placed = [cmd for cmd in batch.commands if isinstance(cmd, PrepareAttempt)]
-        batch.attempts += [AttemptRow(
-            cmd.attempt_id, cmd.workflow_id, cmd.task, cmd.retry, cmd.node_id,
-            str(self._home / "runs" / cmd.workflow_id / cmd.task / str(cmd.retry)), None, None)
-            for cmd in placed]
+        placed = [c for c in batch.commands if isinstance(c, PrepareAttempt)]
+        batch.attempts += [self._attempt_row(p.attempt_id, p.node_id) for p in placed]
         if (changes or batch.new_workflows or batch.attempts or batch.lineage or batch.datasets
                 or batch.tags):
             self.store.commit(changes, new_workflows=batch.new_workflows,
                               attempts=batch.attempts, lineage=batch.lineage,
                               datasets=batch.datasets, tags=batch.tags)
         for prep in placed:  # after the commit: an upstream completed in this batch is readable
-            try:
-                prep = self._with_datasets(prep)
-            except OsmoError as exc:
-                self._ready[prep.attempt_id] = str(exc)
-                continue
-            self._ready[prep.attempt_id] = prep
-            key = self._cache_key(prep)
-            self.provenance.placed(prep, prep.hosts.get(prep.task, prep.node_id), key)
-            hit = cache.lookup(self.store, key) if key else None
-            if hit is not None:
-                self._hits[prep.attempt_id] = hit
+            self._resolve(prep)
         for future, result in batch.replies:
             future.set_result(result)
         for cmd in batch.commands:
@@ -255,10 +242,28 @@ class Engine:
                 self.specs.pop(wf.id, None)  # type: ignore[attr-defined]
                 self._on_finished(wf.id)  # type: ignore[attr-defined]
 
-    def _with_datasets(self, cmd: PrepareAttempt) -> PrepareAttempt:
-        if self.datasets is None:
-            return cmd
-        return self.datasets.resolve_inputs(cmd, self.specs[cmd.workflow_id].task(cmd.task))
+    def _resolve(self, cmd: PrepareAttempt) -> None:
+        """Settle what a placed attempt needs before it is prepared: dataset and other-workflow
+        inputs, its cache key, and a cache hit if there is one."""
+        try:
+            if self.datasets is not None:
+                cmd = self.datasets.resolve_inputs(cmd, self.specs[cmd.workflow_id].task(cmd.task))
+        except OsmoError as exc:
+            self._ready[cmd.attempt_id] = str(exc)
+            return
+        self._ready[cmd.attempt_id] = cmd
+        key = self._cache_key(cmd)
+        self.provenance.placed(cmd, cmd.hosts.get(cmd.task, cmd.node_id), key)
+        hit = cache.lookup(self.store, key) if key else None
+        if hit is not None:
+            self._hits[cmd.attempt_id] = hit
+
+    def _attempt_row(self, attempt_id: str, node_id: str | None, pid: int | None = None,
+                     pid_start: float | None = None) -> AttemptRow:
+        dirs = AttemptDirs.of_attempt(self._home, attempt_id)
+        wf, task, retry = attempt_id.rsplit(":", 2)
+        return AttemptRow(attempt_id, wf, task, int(retry), node_id,
+                          str(dirs.root) if dirs else None, pid, pid_start)
 
     def _cache_key(self, cmd: PrepareAttempt) -> str | None:
         """The attempt's cache fingerprint, or None when it must run (see osmo.server.cache)."""
@@ -307,7 +312,5 @@ class Engine:
         task = self.scheduler.attempt(attempt_id)
         if pid is None or task is None:
             return
-        batch.attempts.append(AttemptRow(
-            attempt_id, task.workflow_id, task.name, task.retry, task.node_id,
-            str(self._home / "runs" / task.workflow_id / task.name / str(task.retry)),
-            pid, process_start_time(pid)))
+        batch.attempts.append(self._attempt_row(attempt_id, task.node_id, pid,
+                                                process_start_time(pid)))
