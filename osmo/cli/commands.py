@@ -8,6 +8,7 @@ from collections.abc import Callable
 
 from osmo.cli.artifacts import run_artifacts, run_lineage
 from osmo.cli.datasets import run_credential, run_dataset
+from osmo.cli.pools import run_pool, run_resource
 from osmo.cli.render import (
     console,
     format_log,
@@ -185,6 +186,9 @@ _VERBS: dict[str, Callable[[argparse.Namespace], int]] = {
     "lineage": run_lineage,
     "dataset": run_dataset,
     "credential": run_credential,
+    "pool": run_pool,
+    "resource": run_resource,
+    "workers": run_resource,
 }
 
 

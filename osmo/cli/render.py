@@ -23,7 +23,7 @@ from rich.text import Text
 from osmo.sdk.client import LogRecord, TaskInfo, WorkflowInfo
 
 __all__ = ["console", "err_console", "format_log", "info_dict", "live_progress", "print_error",
-           "print_json", "task_table", "workflow_header", "workflows_table"]
+           "print_json", "resource_table", "task_table", "workflow_header", "workflows_table"]
 
 console = Console(highlight=False, width=None if sys.stdout.isatty() else 160)
 err_console = Console(stderr=True, highlight=False, soft_wrap=True)
@@ -147,3 +147,23 @@ def live_progress() -> Iterator[Callable[[WorkflowInfo], None]]:
             live.update(Group(head, task_table(info.tasks)))
 
         yield update
+
+
+def _gib(n: float) -> str:
+    return f"{n / 2**30:.1f}Gi"
+
+
+def resource_table(rows: list[dict[str, Any]], *, by: str) -> Table:
+    """Nodes or pools with cpu/gpu/memory as used/total."""
+    table = Table(box=None, pad_edge=False)
+    first = ["Node", "Pool", "Platform"] if by == "node" else ["Pool", "Nodes", "Platforms"]
+    for col in (*first, "CPU", "GPU", "Memory"):
+        table.add_column(col)
+    for r in rows:
+        used, total = r["used"], r["total"]
+        head = ([r["node"], r["pool"], r["platform"] or "-"] if by == "node"
+                else [r["pool"], str(r["nodes"]), ", ".join(r["platforms"])])
+        table.add_row(*head, f"{used['cpu']:g}/{total['cpu']:g}",
+                      f"{used['gpu']}/{total['gpu']}",
+                      f"{_gib(used['memory'])}/{_gib(total['memory'])}")
+    return table

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import time
@@ -146,3 +147,27 @@ workflow:
     second = [t for t in info["tasks"] if t["name"] == "second"][0]
     assert second["retry"] == 1
     assert "42" in osmo("logs", wf_id, "-t", "third").out
+
+
+def test_pool_and_resource_lists_show_capacity_in_use(osmo: Osmo, tmp_path: Path) -> None:
+    started, release = tmp_path / "started", tmp_path / "release"
+    spec = write(tmp_path / "busy.yaml", f"""
+workflow:
+  name: busy
+  resources:
+    default: {{cpu: 1, memory: 1Gi}}
+  tasks:
+  - name: hold
+    command: [sh, -c, "echo up > {started}; while [ ! -e {release} ]; do sleep 0.05; done"]
+""")
+    wf = osmo.submit(spec)
+    _wait_file(started)
+    nodes = json.loads(osmo("resource", "list", "--format", "json", check=True).out)
+    assert [n["pool"] for n in nodes] == ["local"]
+    assert nodes[0]["used"]["cpu"] == 1 and nodes[0]["used"]["memory"] == 2**30
+    assert "local" in osmo("pool", "list", check=True).out
+    assert osmo("workers", check=True).out.splitlines()[1].startswith("local")
+    release.write_text("go")
+    osmo.wait_for(wf, lambda i: i["status"] == "COMPLETED")
+    nodes = json.loads(osmo("workers", "--format", "json", check=True).out)
+    assert nodes[0]["used"]["cpu"] == 0
