@@ -49,3 +49,25 @@ def test_readme_cli_examples(shared_osmo: Osmo) -> None:
         assert r.code == 0, (argv, r.out, r.err)
         if argv[1] == "submit" and "--dry-run" not in argv:
             wf_id = r.out.splitlines()[0].split(" - ")[1]
+
+
+def test_readme_lineage_walkthrough(shared_osmo: Osmo, tmp_path_factory) -> None:  # type: ignore[no-untyped-def]
+    readme = (REPO / "README.md").read_text()
+    section = re.search(r"### Where did this file come from\?\n.*?```sh\n(.*?)```", readme, re.S)
+    assert section is not None
+    workdir = tmp_path_factory.mktemp("walkthrough")
+    wf_id, out = "", ""
+    for line in section.group(1).splitlines():
+        argv = line.split("#")[0].split()
+        argv = [a.replace("hello-pipeline-1", wf_id or "hello-pipeline-1") for a in argv]
+        argv = [str(workdir / a) if a.startswith("fetched") else a for a in argv]
+        proc = subprocess.run([sys.executable, "-m", "osmo", *argv[1:]], env=shared_osmo.env,
+                              cwd=REPO, capture_output=True, text=True, timeout=180)
+        assert proc.returncode == 0, (argv, proc.stdout, proc.stderr)
+        if argv[1] == "submit":
+            wf_id = proc.stdout.splitlines()[0].split(" - ")[1]
+        out = proc.stdout
+    lines = out.splitlines()
+    # The producer is this run, or an earlier identical one whose outputs it reused (cache).
+    assert lines[0].startswith("report [hello-pipeline-")
+    assert any("generate [" in ln for ln in lines) and any("square [" in ln for ln in lines)
