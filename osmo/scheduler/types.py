@@ -155,6 +155,7 @@ class AttemptExited:
     message: str = ""
     manifest: str | None = None
     cached: bool = False  # the outputs are an earlier identical attempt's (no process ran)
+    command: tuple[str, ...] | None = None  # the argv that ran, tokens resolved (lineage)
 
 
 @dataclass(frozen=True)

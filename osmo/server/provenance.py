@@ -52,7 +52,7 @@ class Provenance:
         record = Lineage(
             workflow_id=placed.cmd.workflow_id, task=placed.cmd.task, retry=placed.cmd.retry,
             attempt_id=event.attempt_id, node=placed.node_address,
-            command=tuple(task.command) + tuple(task.args) if task.command else None,
+            command=event.command or (tuple(task.command) + tuple(task.args) or None),
             plugin=task.type, params=dict(task.params), image=task.image,
             inputs=tuple(i for i in inputs if i is not None),
             started_at=started_at, ended_at=now, exit_code=event.exit_code,

@@ -362,7 +362,8 @@ class LocalPool:
             try:
                 push_outputs(attempt.task, Path(ref), self._credential_for)
                 event = AttemptExited(attempt.id, code, ref,
-                                      manifest=manifest.to_json() if manifest else None)
+                                      manifest=manifest.to_json() if manifest else None,
+                                      command=tuple(attempt.launch.argv))
             except (OSError, OsmoError) as exc:
                 event = AttemptExited(attempt.id, code, None, f"upload of outputs failed: {exc}")
         self._reactor.call_soon(self._promoted, attempt, event)

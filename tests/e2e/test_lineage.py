@@ -51,6 +51,8 @@ def test_lineage_of_a_three_stage_pipeline_both_ways(shared_osmo: Osmo, tmp_path
     assert model["workflow_id"] == wf and model["exit_code"] == 0
     assert {i["task"] for i in model["inputs"]} == {"clean", "raw"}
     assert model["command"][:2] == ["sh", "-c"]
+    assert "{{" not in " ".join(model["command"])  # the argv that ran, tokens resolved
+    assert "/clean/" in model["command"][2] and "/raw/" in model["command"][2]
 
     down = _graph(shared_osmo, f"{wf}:raw", "--downstream")
     assert {n["task"] for n in down["nodes"].values()} == {"raw", "clean", "model"}
