@@ -1,11 +1,11 @@
 """Lineage overhead per task: what osmo adds to each completed attempt for artifacts.
 
-For a 1,000-task chain, this times exactly the work the server does per completed attempt
-beyond running it: ingest the output folder (one small file, sha256, hard link), build the
-lineage record from the placement, and commit the manifest, blobs, output and lineage rows
-to the real SQLite store (one transaction per task, as in a chain). Each stage reports the
-median of several runs, and the end-to-end number is shown beside it: the fan-out/join
-through a real server with and without it.
+For a 1,000-task chain this times exactly the work the server does per attempt beyond running
+it: ingest the output folder (one small file, sha256, hard link), read the inputs' manifests
+at placement, build the lineage record, and commit the manifest, blob, output and lineage
+rows to the real SQLite store (one transaction per task, as in a chain). Prints the median
+of several runs with min/max. The end-to-end effect is in bench_engine.py's numbers, which
+include all of this.
 
 Usage: python bench/bench_lineage.py [--runs 3] [--tasks 1000] [--base DIR]
 """
@@ -25,6 +25,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from osmo.artifacts import ArtifactStore  # noqa: E402
 from osmo.scheduler.types import AttemptExited, Changes, PrepareAttempt  # noqa: E402
+from osmo.server.cache import input_sources  # noqa: E402
 from osmo.server.provenance import Provenance  # noqa: E402
 from osmo.spec.model import TaskSpec  # noqa: E402
 from osmo.store.sqlite import Store  # noqa: E402
@@ -36,7 +37,7 @@ def one_run(n: int, base: str | None) -> tuple[float, float]:
         root = Path(tmp)
         store = Store(root / "state.db")
         artifacts = ArtifactStore(root / "artifacts")
-        provenance = Provenance(store)
+        provenance = Provenance()
         task = TaskSpec(name="t", command=("sh", "-c", "echo $RANDOM > {{output}}/x"))
         folders = []
         for i in range(n):
@@ -52,7 +53,7 @@ def one_run(n: int, base: str | None) -> tuple[float, float]:
             aid = f"w-1:t{i}:0"
             cmd = PrepareAttempt(aid, "w-1", f"t{i}", 0, "local",
                                  {f"t{i - 1}": previous} if previous else {}, {}, run=True)
-            provenance.placed(cmd, "127.0.0.1")
+            provenance.placed(cmd, "127.0.0.1", None, input_sources(store, cmd))
             row = provenance.exited(AttemptExited(aid, 0, str(folder), manifest=manifest.to_json()),
                                     task, started_at=t1, now=time.time())
             assert row is not None

@@ -21,11 +21,12 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
+from osmo.record import LineageInput
 from osmo.scheduler.types import PrepareAttempt
 from osmo.spec.model import TaskSpec
 from osmo.store.sqlite import Store
 
-__all__ = ["CacheHit", "fingerprint", "lookup"]
+__all__ = ["CacheHit", "fingerprint", "input_sources", "lookup"]
 
 _VERSION = 1  # bump when the fingerprint's content changes
 
@@ -54,15 +55,16 @@ class CacheHit:
     manifest_body: str
 
 
-def input_manifests(store: Store, cmd: PrepareAttempt) -> list[tuple[str, str]] | None:
-    """``(input, manifest digest)`` of every input, or None if one has no recorded manifest."""
-    pairs = []
+def input_sources(store: Store, cmd: PrepareAttempt) -> list[LineageInput | None]:
+    """What each input of ``cmd`` is: its manifest and owning workflow (None if unrecorded).
+
+    Read once at placement; the cache key and the lineage record both use it.
+    """
+    sources: list[LineageInput | None] = []
     for name, ref in cmd.inputs.items():
-        digest = store.output_manifest(ref)
-        if digest is None:
-            return None
-        pairs.append((name, digest))
-    return pairs
+        found = store.output_of(ref)
+        sources.append(None if found is None else LineageInput(name, found[1], found[0]))
+    return sources
 
 
 def lookup(store: Store, key: str) -> CacheHit | None:

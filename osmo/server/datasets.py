@@ -120,16 +120,19 @@ class Datasets:
         suffix = f"-{hashlib.sha256(regex.encode()).hexdigest()[:12]}" if regex else ""
         target = self._root / name / f"{row['version']}{suffix}"
         if not target.is_dir():
-            self._materialize(manifest, target)
-        self._store.register_output(f"dataset:{name}", f"{row['version']}{suffix}",
-                                    manifest.digest, manifest.to_json(), str(target))
+            self._materialize(manifest, target, f"dataset:{name}")
         return target
 
-    def _materialize(self, manifest: Manifest, target: Path) -> None:
+    def _materialize(self, manifest: Manifest, target: Path, owner: str) -> None:
+        """Write the folder once, verified; it is registered (so caching and lineage see its
+        manifest) before it appears under its final name."""
         staging = target.parent / f".{target.name}.{uuid.uuid4().hex}"
         staging.mkdir(parents=True)
         try:
             self._artifacts.materialize(manifest, staging)
+            self._store.register_output(
+                owner, target.name, manifest.digest, manifest.to_json(),
+                tuple((e.path, e.digest, e.size) for e in manifest.entries), str(target))
             staging.rename(target)
         finally:
             if staging.exists():

@@ -38,6 +38,7 @@ from osmo.scheduler.types import (
 from osmo.spec.model import TaskSpec, WorkflowSpec
 from osmo.artifacts import Manifest
 from osmo.errors import OsmoError
+from osmo.record import LineageInput
 from osmo.server import cache
 from osmo.server.datasets import Datasets
 from osmo.server.cache import CacheHit
@@ -108,7 +109,7 @@ class Engine:
         self.specs = specs
         self._on_changed = on_changed
         self._on_finished = on_finished
-        self.provenance = Provenance(store)
+        self.provenance = Provenance()
         self.no_cache: set[str] = set()  # workflows submitted with --no-cache
         self._hits: dict[str, CacheHit] = {}
         self.datasets = datasets
@@ -252,8 +253,9 @@ class Engine:
             self._ready[cmd.attempt_id] = str(exc)
             return
         self._ready[cmd.attempt_id] = cmd
-        key = self._cache_key(cmd)
-        self.provenance.placed(cmd, cmd.hosts.get(cmd.task, cmd.node_id), key)
+        sources = cache.input_sources(self.store, cmd)
+        key = self._cache_key(cmd, sources)
+        self.provenance.placed(cmd, cmd.hosts.get(cmd.task, cmd.node_id), key, sources)
         hit = cache.lookup(self.store, key) if key else None
         if hit is not None:
             self._hits[cmd.attempt_id] = hit
@@ -265,15 +267,17 @@ class Engine:
         return AttemptRow(attempt_id, wf, task, int(retry), node_id,
                           str(dirs.root) if dirs else None, pid, pid_start)
 
-    def _cache_key(self, cmd: PrepareAttempt) -> str | None:
+    def _cache_key(self, cmd: PrepareAttempt,
+                   sources: list[LineageInput | None]) -> str | None:
         """The attempt's cache fingerprint, or None when it must run (see osmo.server.cache)."""
         task = self.specs[cmd.workflow_id].task(cmd.task)
         if not cmd.run or not task.cache or cmd.workflow_id in self.no_cache:
             return None
         if any(i.url for i in task.inputs) or any(o.url for o in task.outputs):
             return None  # URL contents are unknown at placement; a hit would skip the upload
-        inputs = cache.input_manifests(self.store, cmd)
-        return None if inputs is None else cache.fingerprint(task, inputs)
+        if any(s is None for s in sources):
+            return None  # an input without a recorded manifest: its content is unknown
+        return cache.fingerprint(task, [(s.task, s.manifest_digest) for s in sources if s])
 
     def _prepare(self, cmd: PrepareAttempt) -> None:
         ready = self._ready.pop(cmd.attempt_id, cmd)

@@ -15,7 +15,7 @@ from osmo.artifacts import Manifest
 from osmo.record import Lineage, LineageInput
 from osmo.scheduler.types import AttemptExited, PrepareAttempt
 from osmo.spec.model import TaskSpec
-from osmo.store.sqlite import LineageRow, Store
+from osmo.store.sqlite import LineageRow
 
 __all__ = ["Provenance"]
 
@@ -27,19 +27,20 @@ class _Placed:
     cmd: PrepareAttempt
     node_address: str
     fingerprint: str | None
+    inputs: tuple[LineageInput, ...]
 
 
 @dataclass
 class Provenance:
     """Remembers placements (inputs, node) and turns exits into lineage rows."""
 
-    store: Store
     _placed: dict[str, _Placed] = field(default_factory=dict)
 
-    def placed(self, cmd: PrepareAttempt, node_address: str,
-               fingerprint: str | None = None) -> None:
-        """Note an attempt's inputs, node and cache fingerprint when it is placed."""
-        self._placed[cmd.attempt_id] = _Placed(cmd, node_address, fingerprint)
+    def placed(self, cmd: PrepareAttempt, node_address: str, fingerprint: str | None = None,
+               inputs: list[LineageInput | None] | None = None) -> None:
+        """Note an attempt's node, cache fingerprint and recorded inputs when it is placed."""
+        known = tuple(i for i in inputs or () if i is not None)
+        self._placed[cmd.attempt_id] = _Placed(cmd, node_address, fingerprint, known)
 
     def exited(self, event: AttemptExited, task: TaskSpec, *, started_at: float | None,
                now: float) -> LineageRow | None:
@@ -48,13 +49,12 @@ class Provenance:
         if event.manifest is None or event.output is None or placed is None:
             return None
         manifest = Manifest.from_json(event.manifest)
-        inputs = tuple(self._input(name, ref) for name, ref in placed.cmd.inputs.items())
         record = Lineage(
             workflow_id=placed.cmd.workflow_id, task=placed.cmd.task, retry=placed.cmd.retry,
             attempt_id=event.attempt_id, node=placed.node_address,
             command=event.command or (tuple(task.command) + tuple(task.args) or None),
             plugin=task.type, params=dict(task.params), image=task.image,
-            inputs=tuple(i for i in inputs if i is not None),
+            inputs=placed.inputs,
             started_at=started_at, ended_at=now, exit_code=event.exit_code,
             manifest_digest=manifest.digest, osmo_version=osmo.__version__)
         return LineageRow(
@@ -69,9 +69,3 @@ class Provenance:
         """Drop what was remembered of an attempt that ended without outputs."""
         self._placed.pop(attempt_id, None)
 
-    def _input(self, task: str, ref: str) -> LineageInput | None:
-        digest = self.store.output_manifest(ref)
-        if digest is None:
-            return None
-        owner = self.store.owner_of_output(ref)
-        return LineageInput(task=task, workflow_id=owner or "", manifest_digest=digest)

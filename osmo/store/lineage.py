@@ -18,10 +18,10 @@ class LineageQueries:
     def _read(self, sql: str, args: tuple[Any, ...] = ()) -> list[Any]:
         raise NotImplementedError
 
-    def output_manifest(self, path: str) -> str | None:
-        """Digest of the manifest promoted at output folder ``path`` (None if unknown)."""
-        rows = self._read("SELECT manifest FROM outputs WHERE path = ?", (path,))
-        return str(rows[0][0]) if rows else None
+    def output_of(self, path: str) -> tuple[str, str] | None:
+        """``(manifest digest, workflow id)`` of the output folder ``path``, or None."""
+        rows = self._read("SELECT manifest, workflow_id FROM outputs WHERE path = ?", (path,))
+        return (str(rows[0][0]), str(rows[0][1])) if rows else None
 
     def lineage_of_workflow(self, workflow_id: str) -> list[dict[str, Any]]:
         """Lineage records (JSON payloads) of a workflow's attempts, in commit order."""
@@ -71,11 +71,6 @@ class LineageQueries:
         rows = self._read("SELECT * FROM datasets WHERE manifest = ? ORDER BY rowid LIMIT 1",
                           (manifest,))
         return _dataset_dict(self, rows[0]) if rows else None
-
-    def owner_of_output(self, path: str) -> str | None:
-        """The workflow whose task promoted the output folder ``path``."""
-        rows = self._read("SELECT workflow_id FROM outputs WHERE path = ?", (path,))
-        return str(rows[0][0]) if rows else None
 
     def outputs(self, workflow_id: str, task: str | None = None) -> list[dict[str, Any]]:
         """Promoted outputs of a workflow: task, attempt_id, manifest, path."""

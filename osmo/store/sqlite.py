@@ -288,11 +288,8 @@ class Store(LineageQueries):
                  "updated_at": r["updated_at"]} for r in rows]
 
     def register_output(self, workflow_id: str, task: str, manifest: str, body: str,
-                        path: str) -> None:
+                        entries: tuple[tuple[str, str, int], ...], path: str) -> None:
         """Record a folder (e.g. a materialized dataset) as holding ``manifest``."""
-        from osmo.artifacts import Manifest
-
-        entries = tuple((e.path, e.digest, e.size) for e in Manifest.from_json(body).entries)
         with self._tx() as db:
             db.execute("INSERT OR IGNORE INTO manifests VALUES (?,?)", (manifest, body))
             db.executemany("INSERT OR IGNORE INTO manifest_blobs VALUES (?,?,?,?)",

@@ -62,8 +62,8 @@ from osmo.worker.checkpoints import Checkpointer, start_checkpoints
 from osmo.worker.logs import LogWriter, exit_note, image_note
 from osmo.worker.machine import detect_capacity, raise_fd_limit
 from osmo.worker.reactor import Reactor, Timer
-from osmo.worker.transfer import CredentialLookup, fetch_inputs, push_outputs
-from osmo.worker.workdir import AttemptDirs, Launch, prepare, promote
+from osmo.worker.transfer import CredentialLookup, DeliveryError, deliver, fetch_inputs
+from osmo.worker.workdir import AttemptDirs, Launch, prepare
 
 __all__ = ["LocalPool", "kill_stale", "process_start_time"]
 
@@ -347,25 +347,14 @@ class LocalPool:
 
     def _promote_io(self, attempt: _Attempt, code: int) -> None:
         """I/O thread: last checkpoint, promote the outputs; the reactor reports the exit."""
-        failed = attempt.checkpoints.final() if attempt.checkpoints is not None else None
-        if failed is not None:
-            message = f"final checkpoint upload failed: {failed}"
-            self._reactor.call_soon(self._promoted, attempt,
-                                    AttemptExited(attempt.id, code, None, message))
-            return
         try:
-            ref = promote(attempt.dirs)
-            manifest = self._artifacts.ingest(Path(ref)) if self._artifacts else None
-        except (OSError, OsmoError) as exc:
-            event = AttemptExited(attempt.id, code, None, f"outputs could not be promoted: {exc}")
-        else:
-            try:
-                push_outputs(attempt.task, Path(ref), self._credential_for)
-                event = AttemptExited(attempt.id, code, ref,
-                                      manifest=manifest.to_json() if manifest else None,
-                                      command=tuple(attempt.launch.argv))
-            except (OSError, OsmoError) as exc:
-                event = AttemptExited(attempt.id, code, None, f"upload of outputs failed: {exc}")
+            ref, manifest = deliver(attempt.dirs, attempt.task, checkpoints=attempt.checkpoints,
+                                    artifacts=self._artifacts,
+                                    credential_for=self._credential_for)
+            event = AttemptExited(attempt.id, code, ref, manifest=manifest,
+                                  command=tuple(attempt.launch.argv))
+        except DeliveryError as exc:
+            event = AttemptExited(attempt.id, code, None, str(exc))
         self._reactor.call_soon(self._promoted, attempt, event)
 
     def _promoted(self, attempt: _Attempt, event: AttemptExited) -> None:

@@ -1,4 +1,5 @@
-"""Data URLs of an attempt: downloading ``url`` inputs before it runs, uploading after.
+"""An attempt's data in and out: ``url`` inputs before it runs; after a successful exit, the
+last checkpoint, promotion, ingest into the artifact store, and ``url`` output uploads.
 
 Runs on the pool's I/O threads. Inputs land in ``<attempt>.inputs/<index>/`` beside the
 attempt folder (kept apart because preparing an attempt again clears its folder) and reach
@@ -14,13 +15,16 @@ import shutil
 from collections.abc import Callable, Mapping
 from dataclasses import replace
 from pathlib import Path
+from typing import Protocol
 
+from osmo.artifacts import ArtifactStore
+from osmo.errors import OsmoError
 from osmo.scheduler.types import PrepareAttempt
 from osmo.spec.model import TaskSpec
 from osmo.urls import for_url
-from osmo.worker.workdir import AttemptDirs
+from osmo.worker.workdir import AttemptDirs, promote
 
-__all__ = ["CredentialLookup", "fetch_inputs", "push_outputs"]
+__all__ = ["CredentialLookup", "DeliveryError", "deliver", "fetch_inputs", "push_outputs"]
 
 CredentialLookup = Callable[[str], Mapping[str, str] | None]
 
@@ -57,3 +61,38 @@ def push_outputs(task: TaskSpec, folder: Path, credential_for: CredentialLookup 
         if spec.url is not None:
             remote = for_url(spec.url, credential_for(spec.url) if credential_for else None)
             remote.upload(folder, regex=spec.regex)
+
+
+class DeliveryError(OsmoError):
+    """A successful attempt's outputs could not be delivered; the message says which step."""
+
+
+class _FinalCheckpoint(Protocol):
+    def final(self) -> str | None: ...
+
+
+def deliver(dirs: AttemptDirs, task: TaskSpec, *, checkpoints: _FinalCheckpoint | None,
+            artifacts: ArtifactStore | None,
+            credential_for: CredentialLookup | None) -> tuple[str, str | None]:
+    """Finish a successful attempt's outputs, in order: last checkpoint upload, promotion of
+    ``output.partial`` to ``output``, ingest, ``url`` uploads (I/O thread).
+
+    Returns:
+        the output reference and its manifest JSON (None without an artifact store).
+
+    Raises:
+        DeliveryError: a step failed; nothing of this attempt is handed downstream.
+    """
+    failed = checkpoints.final() if checkpoints is not None else None
+    if failed is not None:
+        raise DeliveryError(f"final checkpoint upload failed: {failed}")
+    try:
+        ref = promote(dirs)
+        manifest = artifacts.ingest(Path(ref)) if artifacts else None
+    except (OSError, OsmoError) as exc:
+        raise DeliveryError(f"outputs could not be promoted: {exc}") from exc
+    try:
+        push_outputs(task, Path(ref), credential_for)
+    except (OSError, OsmoError) as exc:
+        raise DeliveryError(f"upload of outputs failed: {exc}") from exc
+    return ref, manifest.to_json() if manifest else None
