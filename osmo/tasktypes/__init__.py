@@ -1,4 +1,4 @@
-"""Task types (plugins): the contract in ``osmo.tasktypes.api``; lookup and running live beside it."""
+"""Task types (plugins): the contract is ``osmo.tasktypes.api``; lookup and running beside it."""
 
 from osmo.tasktypes.api import REQUIRED, Param, TaskCancelled, TaskContext, TaskType, task_type
 
