@@ -230,7 +230,7 @@ class Client:
                 changed.wait(timeout=1.0)
                 time.sleep(min_interval)  # coalesce bursts of notices into one re-read
         finally:
-            sub.undeclare()
+            sub.close()
 
     def _wait_change(self, workflow_id: str, interval: float) -> None:
         time.sleep(interval)

@@ -16,7 +16,8 @@ from pathlib import Path
 
 from osmo.config import ServerInfo, home_dir, lock_is_held, read_server_info
 from osmo.errors import InfrastructureError, ServerUnreachable
-from osmo.transport.zenoh_link import ApiClient, Link
+from osmo.transport.api import ApiClient
+from osmo.transport.zenoh_link import Link
 
 __all__ = ["Connection", "server_status", "start_server", "stop_server"]
 

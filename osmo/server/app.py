@@ -35,7 +35,8 @@ from osmo.server.records import RunRecords
 from osmo.spec import spec_from_dict
 from osmo.spec.model import WorkflowSpec
 from osmo.store.sqlite import Store
-from osmo.transport.zenoh_link import ApiServer, Link
+from osmo.transport.api import ApiServer
+from osmo.transport.zenoh_link import Link
 from osmo.runtime.process import kill_stale
 from osmo.worker.pool import LocalPool
 

@@ -1,106 +1,239 @@
-"""The one module that imports zenoh: sessions, the request/reply API, and event publishing.
+"""The one module that imports zenoh: sessions, puts, subscriptions, queries, liveliness.
 
-Key expressions live under one prefix per cluster: ``osmo/<cluster>/...``.
+Everything osmo sends travels under one key prefix per cluster, ``osmo/<cluster>/...``; the
+key layout is documented by the modules that use it (``osmo.transport.api`` for the client
+API, ``osmo.transport.blobs`` for artifact transfer, ``osmo.server.workers`` and
+``osmo.worker.remote`` for worker traffic).
 
-- ``osmo/<cluster>/api/<verb>`` — the server's queryable; a request is a JSON object, the
-  reply a JSON object ``{"ok": ...}`` or ``{"error": {"type": ..., "message": ...}}``.
-- ``osmo/<cluster>/events/<workflow_id>`` — the server publishes a small JSON notice whenever
-  a workflow's state changes (clients waiting on it re-query instead of polling fast).
+Defaults keep everything on loopback with scouting off. A zenoh configuration file (JSON5,
+zenoh's own format) can be given for TLS, mutual TLS and user/password authentication; osmo
+only adds its mode, endpoints, scouting and lease settings on top of it. The transport lease
+is 1 s (zenoh's default is 10 s), so a hung or cut-off peer is noticed in about 0.75 s.
 
-Defaults keep everything on loopback with scouting off. zenoh raises one exception type
-(``ZError``); it is translated here into ``ServerUnreachable``/``InfrastructureError``.
+zenoh raises one exception type (``ZError``); it is translated here into
+``ServerUnreachable`` / ``InfrastructureError`` with a message that says what to check.
 """
 
 from __future__ import annotations
 
 import json
-import threading
-from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+import os
+from collections.abc import Callable, Iterable, Sequence
 from typing import Any
 
 import zenoh
 
-from osmo.errors import InfrastructureError, OsmoError, ServerUnreachable
+from osmo.errors import InfrastructureError, ServerUnreachable, UsageError
 
-__all__ = ["ApiClient", "ApiServer", "Link", "RemoteError"]
+__all__ = ["Link", "Request", "Subscription"]
 
-Handler = Callable[[str, dict[str, Any]], Any]
-
-
-class RemoteError(OsmoError):
-    """An error raised by the server while handling a request, carried back to the client.
-
-    ``type_name`` is the server-side class name (e.g. ``SpecError``); the CLI exits with
-    ``exit_code``, which the server sends along.
-    """
-
-    def __init__(self, type_name: str, message: str, exit_code: int) -> None:
-        super().__init__(message)
-        self.type_name = type_name
-        self.exit_code = exit_code
+LEASE_MS = 1000
 
 
-def _config(mode: str, *, listen: list[str] = (), connect: list[str] = ()) -> zenoh.Config:  # type: ignore[assignment]
-    conf = zenoh.Config()
+def _config(mode: str, *, listen: Sequence[str] = (), connect: Sequence[str] = (),
+            config_file: str | None = None) -> zenoh.Config:
+    if config_file:
+        try:
+            conf = zenoh.Config.from_file(config_file)
+        except (zenoh.ZError, OSError) as exc:
+            raise UsageError(f"cannot read zenoh config {config_file}: {exc}") from exc
+    else:
+        conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps(mode))
     conf.insert_json5("scouting/multicast/enabled", "false")
     conf.insert_json5("scouting/gossip/enabled", "false")
+    conf.insert_json5("transport/link/tx/lease", str(LEASE_MS))
     if listen:
         conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
     if connect:
         conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
+        conf.insert_json5("connect/timeout_ms", "5000")
     return conf
+
+
+def _refused(connect: Sequence[str], config_file: str | None, exc: Exception) -> ServerUnreachable:
+    where = ", ".join(connect)
+    hint = ("check the address, and that the TLS certificates / user and password in "
+            f"{config_file} match the server's" if config_file else
+            "start one with `osmo server start`, or check --server / OSMO_SERVER; a server "
+            "that requires TLS or a password needs --zenoh-config / OSMO_ZENOH_CONFIG")
+    return ServerUnreachable(f"cannot connect to an osmo server at {where} "
+                             f"(refused or unreachable: {exc}); {hint}")
+
+
+class Request:
+    """One query received by a queryable: its key, payload and attachment; answer once.
+
+    A request may be answered from another thread; call :meth:`reply` (or :meth:`fail`)
+    exactly once, which also releases it.
+    """
+
+    def __init__(self, query: zenoh.Query) -> None:
+        self._query = query
+        self.key = str(query.key_expr)
+        self.payload = query.payload.to_bytes() if query.payload is not None else b""
+        self.attachment = (query.attachment.to_bytes() if query.attachment is not None
+                           else None)
+
+    def reply(self, payload: bytes, attachment: bytes | None = None) -> None:
+        """Send the answer and release the query (a vanished asker is ignored)."""
+        try:
+            self._query.reply(self._query.key_expr, payload, attachment=attachment)
+        except zenoh.ZError:
+            pass
+        finally:
+            self._query.drop()  # type: ignore[no-untyped-call]
+
+
+class Subscription:
+    """A handle on a subscriber, queryable or liveliness token; ``close()`` undeclares it."""
+
+    def __init__(self, entity: Any) -> None:
+        self._entity = entity
+
+    def close(self) -> None:
+        """Undeclare (idempotent; errors after the session closed are ignored)."""
+        try:
+            self._entity.undeclare()
+        except zenoh.ZError:
+            pass
 
 
 class Link:
     """An open zenoh session scoped to one cluster prefix.
 
-    Use ``Link.router(listen)`` for the server (it hosts the router) and
-    ``Link.client(connect)`` for the CLI, SDK and remote workers.
+    ``Link.router(listen)`` is the server hosting the router (or joining one with
+    ``connect``); ``Link.client(connect)`` is the CLI, SDK or a worker.
     """
 
     def __init__(self, session: zenoh.Session, cluster: str) -> None:
         self._session = session
+        self.cluster = cluster
         self.prefix = f"osmo/{cluster}"
 
     @classmethod
-    def router(cls, listen: list[str], cluster: str = "local") -> Link:
-        """Open a router session listening on ``listen`` endpoints (``tcp/127.0.0.1:7447``)."""
+    def router(cls, listen: Sequence[str], cluster: str = "local", *,
+               connect: Sequence[str] = (), config_file: str | None = None) -> Link:
+        """Open the server's session: a router listening on ``listen``, or, with
+        ``connect`` and no ``listen``, a peer of an existing ``zenohd`` router."""
+        mode = "router" if listen or not connect else "peer"
         try:
-            return cls(zenoh.open(_config("router", listen=listen)), cluster)
+            conf = _config(mode, listen=listen, connect=connect, config_file=config_file)
+            return cls(zenoh.open(conf), cluster)
         except zenoh.ZError as exc:
-            raise InfrastructureError(f"cannot listen on {', '.join(listen)}: {exc}") from exc
+            where = ", ".join([*listen, *connect])
+            raise InfrastructureError(f"cannot listen on / connect to {where}: {exc}") from exc
 
     @classmethod
-    def client(cls, connect: list[str], cluster: str = "local") -> Link:
+    def client(cls, connect: Sequence[str], cluster: str = "local", *,
+               config_file: str | None = None) -> Link:
         """Open a client session to a router; ServerUnreachable if none answers."""
+        config_file = config_file or os.environ.get("OSMO_ZENOH_CONFIG") or None
         try:
-            return cls(zenoh.open(_config("client", connect=connect)), cluster)
+            conf = _config("client", connect=connect, config_file=config_file)
+            return cls(zenoh.open(conf), cluster)
         except zenoh.ZError as exc:
-            raise ServerUnreachable(
-                f"no osmo server reachable at {', '.join(connect)} "
-                "(start one with `osmo server start`, or check --server / OSMO_SERVER)"
-            ) from exc
+            raise _refused(connect, config_file, exc) from exc
 
     def key(self, *parts: str) -> str:
         """A key expression under this cluster's prefix."""
         return "/".join((self.prefix, *parts))
 
+    # -- publish / subscribe --------------------------------------------------------------
+
     def publish(self, key: str, message: dict[str, Any]) -> None:
         """Put a JSON message on ``key`` (best effort; errors are not fatal to the caller)."""
-        try:
-            self._session.put(key, json.dumps(message).encode())
-        except zenoh.ZError:
-            pass
+        self.put(key, json.dumps(message).encode())
 
-    def subscribe(self, key: str, callback: Callable[[dict[str, Any]], None]) -> Any:
-        """Call ``callback(message)`` for every JSON message on ``key``; returns the handle."""
+    def put(self, key: str, data: bytes, attachment: bytes | None = None) -> bool:
+        """Put raw bytes, blocking (not dropping) when the link is congested; False on error."""
+        try:
+            self._session.put(key, data, attachment=attachment,
+                              congestion_control=zenoh.CongestionControl.BLOCK)
+        except zenoh.ZError:
+            return False
+        return True
+
+    def subscribe(self, key: str, callback: Callable[[dict[str, Any]], None]) -> Subscription:
+        """Call ``callback(message)`` for every JSON message on ``key``."""
+        return self.subscribe_raw(
+            key, lambda _key, data, _att: callback(json.loads(data or b"{}")))
+
+    def subscribe_raw(self, key: str,
+                      callback: Callable[[str, bytes, bytes | None], None]) -> Subscription:
+        """Call ``callback(key, payload, attachment)`` for every sample on ``key``
+        (on a zenoh thread: keep it short)."""
 
         def on_sample(sample: zenoh.Sample) -> None:
-            callback(json.loads(sample.payload.to_bytes() or b"{}"))
+            att = sample.attachment.to_bytes() if sample.attachment is not None else None
+            callback(str(sample.key_expr), sample.payload.to_bytes(), att)
 
-        return self._session.declare_subscriber(key, on_sample)
+        return Subscription(self._session.declare_subscriber(key, on_sample))
+
+    # -- queries ---------------------------------------------------------------------------
+
+    def serve(self, key: str, callback: Callable[[Request], object]) -> Subscription:
+        """Declare a queryable on ``key``; ``callback`` gets each :class:`Request` (on a
+        zenoh thread: hand slow work to another thread and reply from there)."""
+        return Subscription(self._session.declare_queryable(
+            key, lambda query: callback(Request(query))))
+
+    def ask(self, key: str, payload: bytes = b"", *, attachment: bytes | None = None,
+            timeout: float = 30.0) -> Any:
+        """Send a query now; returns a pending answer for :meth:`answer` (so several queries
+        can be in flight at once)."""
+        try:
+            return self._session.get(key, payload=payload, attachment=attachment,
+                                     timeout=timeout)
+        except zenoh.ZError as exc:
+            raise ServerUnreachable(f"query {key} failed: {exc}") from exc
+
+    @staticmethod
+    def answer(pending: Any) -> tuple[bytes, bytes | None] | None:
+        """Wait for the first good reply of a pending query: ``(payload, attachment)``, or
+        None when nobody answered before the timeout."""
+        try:
+            for reply in pending:
+                if reply.ok is not None:
+                    ok = reply.ok
+                    att = ok.attachment.to_bytes() if ok.attachment is not None else None
+                    return ok.payload.to_bytes(), att
+        except zenoh.ZError:
+            return None
+        return None
+
+    def request(self, key: str, payload: bytes = b"", *, attachment: bytes | None = None,
+                timeout: float = 30.0) -> tuple[bytes, bytes | None] | None:
+        """Query ``key`` and wait for the answer (None: nobody answered in time)."""
+        return self.answer(self.ask(key, payload, attachment=attachment, timeout=timeout))
+
+    # -- liveliness ------------------------------------------------------------------------
+
+    def token(self, key: str) -> Subscription:
+        """Declare a liveliness token: peers watching see ``key`` alive until it is closed
+        or this process dies or is cut off (noticed within the lease)."""
+        try:
+            return Subscription(self._session.liveliness().declare_token(key))
+        except zenoh.ZError as exc:
+            raise InfrastructureError(f"cannot declare liveliness token {key}: {exc}") from exc
+
+    def watch(self, key: str, callback: Callable[[str, bool], None]) -> Subscription:
+        """Call ``callback(key, alive)`` when a token matching ``key`` appears or goes away,
+        including the tokens that exist already."""
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            callback(str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT)
+
+        return Subscription(self._session.liveliness().declare_subscriber(
+            key, on_sample, history=True))
+
+    def alive(self, key: str, timeout: float = 2.0) -> list[str]:
+        """Keys of the live tokens matching ``key`` right now."""
+        try:
+            replies: Iterable[Any] = self._session.liveliness().get(key, timeout=timeout)
+            return [str(r.ok.key_expr) for r in replies if r.ok is not None]
+        except zenoh.ZError:
+            return []
 
     def close(self) -> None:
         """Close the session (idempotent)."""
@@ -108,114 +241,3 @@ class Link:
             self._session.close()  # type: ignore[no-untyped-call]
         except zenoh.ZError:
             pass
-
-    @property
-    def session(self) -> zenoh.Session:
-        """The raw session, for the few adapters that extend this module."""
-        return self._session
-
-
-class ApiServer:
-    """Serves ``<prefix>/api/<verb>`` queries with ``handler(verb, request) -> result``.
-
-    Handlers run on a small thread pool so a slow request never blocks zenoh's own threads.
-    An ``OsmoError`` becomes an error reply with its class name and exit code; any other
-    exception becomes an ``InfrastructureError`` reply (the server logs the traceback).
-    """
-
-    def __init__(self, link: Link, handler: Handler, *, threads: int = 8,
-                 on_crash: Callable[[BaseException], None] | None = None) -> None:
-        self._link = link
-        self._handler = handler
-        self._on_crash = on_crash
-        self._pool = ThreadPoolExecutor(threads, thread_name_prefix="osmo-api")
-        self._prefix = link.key("api") + "/"
-        self._queryable = link.session.declare_queryable(link.key("api", "**"), self._on_query)
-
-    def _on_query(self, query: zenoh.Query) -> None:
-        self._pool.submit(self._serve, query)
-
-    def _serve(self, query: zenoh.Query) -> None:
-        verb = str(query.key_expr)[len(self._prefix):]
-        try:
-            request = json.loads(query.payload.to_bytes()) if query.payload else {}
-            reply: dict[str, Any] = {"ok": self._handler(verb, request)}
-        except OsmoError as exc:
-            reply = {"error": _error_dict(exc)}
-        except Exception as exc:  # noqa: BLE001 - reported to the client, logged by the server
-            if self._on_crash:
-                self._on_crash(exc)
-            reply = {"error": {"type": "InfrastructureError", "exit_code": 3,
-                               "message": f"server error in '{verb}': {exc!r}"}}
-        try:
-            query.reply(query.key_expr, json.dumps(reply).encode())
-        except zenoh.ZError:
-            pass  # the client went away
-        finally:
-            query.drop()  # type: ignore[no-untyped-call]
-
-    def close(self) -> None:
-        """Stop serving and wait for in-flight handlers."""
-        self._queryable.undeclare()  # type: ignore[no-untyped-call]
-        self._pool.shutdown(wait=True)
-
-
-def _error_dict(exc: OsmoError) -> dict[str, Any]:
-    out: dict[str, Any] = {"type": type(exc).__name__, "message": str(exc),
-                           "exit_code": exc.exit_code}
-    diags = getattr(exc, "diagnostics", None)
-    if diags:
-        out["diagnostics"] = [d.__dict__ for d in diags]
-    return out
-
-
-class ApiClient:
-    """Calls the server's API over a client ``Link``."""
-
-    def __init__(self, link: Link, *, timeout: float = 30.0) -> None:
-        self._link = link
-        self._timeout = timeout
-        self._lock = threading.Lock()
-
-    def call(self, verb: str, request: dict[str, Any] | None = None,
-             *, timeout: float | None = None) -> Any:
-        """Send ``request`` to ``verb`` and return the result.
-
-        Raises:
-            ServerUnreachable: no server replied within the timeout.
-            RemoteError: the server raised an error (type, message and exit code kept).
-        """
-        payload = json.dumps(request or {}).encode()
-        try:
-            replies = list(self._link.session.get(
-                self._link.key("api", verb), payload=payload,
-                timeout=timeout if timeout is not None else self._timeout))
-        except zenoh.ZError as exc:
-            raise ServerUnreachable(f"request '{verb}' failed: {exc}") from exc
-        for reply in replies:
-            if reply.ok is None:
-                continue
-            body = json.loads(reply.ok.payload.to_bytes())
-            if "error" in body:
-                err = body["error"]
-                raise _remote_error(err)
-            return body["ok"]
-        raise ServerUnreachable(
-            f"no osmo server answered '{verb}' at {self._link.prefix} "
-            "(is it running? `osmo server status`)"
-        )
-
-
-def _remote_error(err: dict[str, Any]) -> OsmoError:
-    """Rebuild the server's error as the matching local class where one exists."""
-    from osmo import errors
-
-    diags = err.get("diagnostics")
-    if err["type"] == "SpecError" and diags:
-        return errors.SpecError([errors.Diagnostic(**d) for d in diags])
-    cls = getattr(errors, err["type"], None)
-    if isinstance(cls, type) and issubclass(cls, OsmoError) and cls not in (
-        errors.SpecError, errors.WorkflowFailed
-    ):
-        return cls(err["message"])
-    return RemoteError(err["type"], err["message"], int(err.get("exit_code", 1)))
