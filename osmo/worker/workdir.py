@@ -280,18 +280,23 @@ def _write_files(mapping: Mapping[str, Path], task: TaskSpec, text: Callable[[st
 def _write_mounts(mapping: Mapping[str, Path],
                   mounted: Mapping[str, Mapping[str, str]]) -> tuple[Path, ...]:
     written: list[Path] = []
-    for path, payload in mounted.items():
-        folder = mapping[path]
-        folder.mkdir(parents=True, exist_ok=True)
-        for key, value in payload.items():
-            target = folder / key
-            fd = os.open(target, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_CLOEXEC, 0o600)
-            try:
-                os.fchmod(fd, 0o600)  # an existing file keeps its mode on O_CREAT
-                os.write(fd, value.encode())
-            finally:
-                os.close(fd)
-            written.append(target)
+    try:
+        for path, payload in mounted.items():
+            folder = mapping[path]
+            folder.mkdir(parents=True, exist_ok=True)
+            for key, value in payload.items():
+                target = folder / key
+                flags = os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_CLOEXEC
+                fd = os.open(target, flags, 0o600)
+                written.append(target)
+                try:
+                    os.fchmod(fd, 0o600)  # an existing file keeps its mode on O_CREAT
+                    os.write(fd, value.encode())
+                finally:
+                    os.close(fd)
+    except OSError:  # a failed preparation leaves no secret behind
+        remove_secret_files(Launch((), Path(), {}, (), tuple(written)))
+        raise
     return tuple(written)
 
 

@@ -273,3 +273,13 @@ def test_unusable_credentials_fail(tmp_path: Path, credentials: dict[str, object
     with pytest.raises(OsmoError) as info:
         prepare(dirs, cmd, task, {}, secrets)
     assert str(info.value) == message
+
+
+def test_failed_mount_leaves_no_secret(tmp_path: Path) -> None:
+    task = TaskSpec(name="t", command=("true",), credentials={"a": "/m", "b": "/m/k1"},
+                    files=(FileSpec(path="/m/k1/k2", contents="x"),))
+    cmd = command("t")
+    dirs = AttemptDirs.at(tmp_path, cmd.workflow_id, cmd.task, cmd.retry)
+    with pytest.raises(PrepareError, match="cannot prepare"):  # /m/k1 is a folder: no file
+        prepare(dirs, cmd, task, {}, {"a": {"k0": "secret0", "k1": "secret1"}, "b": {"k": "v"}})
+    assert not (dirs.files / "m" / "k0").exists()
