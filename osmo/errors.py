@@ -14,8 +14,8 @@
     └── WorkflowFailed              a waited-for workflow ended in a failed status (exit 1)
 
     UsageError also has ``RecordError`` (an unreadable MCAP file, ``osmo.record``);
-    ``StartError``/``PrepareError`` (``osmo.runtime``/``osmo.worker``) derive from OsmoError
-    and become a task's FAILED_START_ERROR, never a CLI error.
+    ``StartError``/``PrepareError``/``SecretError`` (``osmo.runtime``/``osmo.worker``) derive
+    from OsmoError and become a task's FAILED_START_ERROR, never a CLI error.
 
 Third-party errors (zenoh, sqlite3, yaml, jinja2) are translated into these at the one module
 that imports each library; callers never see a foreign exception for a user mistake.

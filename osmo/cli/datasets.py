@@ -1,5 +1,5 @@
 """CLI verbs for data: ``osmo dataset list|info|tag|download|upload`` and
-``osmo credential set|list|delete`` (the secrets data URLs use)."""
+``osmo credential set|list|delete`` (the secrets data URLs and tasks use)."""
 
 from __future__ import annotations
 
@@ -79,10 +79,10 @@ def _pair(item: str) -> tuple[str, str]:
 
 def add_credential_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     """Register ``credential`` on the top-level parser."""
-    p = sub.add_parser("credential", help="named secrets on the server (for data URLs)")
+    p = sub.add_parser("credential", help="named secrets on the server (for data URLs and tasks)")
     verbs = p.add_subparsers(dest="credential_verb", metavar="VERB", required=True)
     q = verbs.add_parser("set", help="store a credential")
-    q.add_argument("name", help="e.g. s3, or s3://BUCKET for one bucket")
+    q.add_argument("name", help="e.g. s3, s3://BUCKET for one bucket, or a name tasks use")
     q.add_argument("--payload", action="append", default=[], metavar="K=V", required=True)
     verbs.add_parser("list", help="names and keys (never values)")
     q = verbs.add_parser("delete", help="remove a credential")

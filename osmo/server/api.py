@@ -17,7 +17,7 @@ from osmo.artifacts import ArtifactStore, Manifest
 from osmo.errors import NotFoundError, SubmitError, UsageError
 from osmo.scheduler.types import CancelWorkflow, WorkflowSubmitted
 from osmo.server.api_datasets import DatasetApi
-from osmo.server.credentials import CredentialApi
+from osmo.server.credentials import CredentialApi, check_task_credentials
 from osmo.server.engine import Engine, _Batch
 from osmo.server.lineage_query import lineage_graph, resolve_target
 from osmo.server.logview import read_logs
@@ -73,7 +73,7 @@ class Api:
     def submit(self, request: dict[str, Any]) -> dict[str, Any]:
         """Create a workflow from a spec dict. Request: spec, pool?, options?."""
         spec = spec_from_dict(request["spec"], filename=request.get("filename", "<submitted>"))
-        _check_credentials(spec)
+        check_task_credentials(spec, self._store)
         pool = request.get("pool") or spec.pool
         options = {"pool": pool, "filename": request.get("filename"),
                    "reused_from": request.get("reused_from"),
@@ -208,14 +208,6 @@ class Api:
             hint = f" (did you mean {', '.join(near)}?)" if near else ""
             raise NotFoundError(f"no workflow '{workflow_id}'{hint}")
         return row
-
-
-def _check_credentials(spec: Any) -> None:
-    for task in spec.all_tasks():
-        for name in task.credentials:
-            raise SubmitError(
-                f"task '{task.name}' uses credential '{name}': injecting credentials into "
-                "tasks is not supported yet (stored credentials serve data URLs only)")
 
 
 def _workflow_dict(row: WorkflowRow) -> dict[str, Any]:

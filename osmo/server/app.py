@@ -111,7 +111,7 @@ def serve(home: str | os.PathLike[str] | None = None, *, listen: str | None = No
     artifacts = ArtifactStore(home_path / "artifacts")
     pool = LocalPool(home=home_path, emit=lambda ev: engine_box[0].post(ev),
                      cpus=cpus, gpus=gpus, memory=memory, artifacts=artifacts,
-                     credential_for=url_credential(store))
+                     credential_for=url_credential(store), task_secrets=store.credential)
     records = RunRecords(store, home_path)
     engine = Engine(store=store, scheduler=scheduler, executor=pool, specs=specs,
                     on_changed=on_changed, home=home_path, on_finished=records.finished,

@@ -1,8 +1,10 @@
 """Task caching: a task whose fingerprint matches an earlier success reuses its outputs.
 
 A fingerprint is the sha256 of the task's definition as submitted (command, args,
-environment including ``--set-env``, files, image, plugin type and params) and the manifest
-digests of its inputs, in input order. Tokens are hashed as written: they resolve the same
+environment including ``--set-env``, files, image, plugin type and params, and its
+``credentials:`` — names, variables, keys and mount paths, never the secret values, so a
+rotated secret does not invalidate the cache) and the manifest digests of its inputs, in
+input order. Tokens are hashed as written: they resolve the same
 way for the same inputs; ``{{workflow_id}}``/``{{uuid}}`` are not treated as changes.
 
 Only attempts that no group barrier holds are cached (single-task groups and
@@ -41,6 +43,8 @@ def fingerprint(task: TaskSpec, inputs: list[tuple[str, str]]) -> str:
         "image": task.image, "type": task.type, "params": task.params,
         "inputs": inputs,
     }
+    if task.credentials:  # only when present: earlier fingerprints stay valid
+        body["credentials"] = task.credentials
     text = json.dumps(body, sort_keys=True, separators=(",", ":"), default=str)
     return "sha256:" + hashlib.sha256(text.encode()).hexdigest()
 

@@ -1,4 +1,4 @@
-"""Credentials: named secrets stored on the server, used to reach data URLs.
+"""Credentials: named secrets stored on the server, for data URLs and for tasks.
 
 ``osmo credential set NAME --payload key=value ...`` stores one; values never leave the
 server through the API (``list`` shows names and keys only) and never reach logs. A data URL
@@ -6,9 +6,15 @@ picks its credential by name: for ``s3://BUCKET/...`` the credential called
 ``s3://BUCKET``, else the one called ``s3`` (keys: ``endpoint``, ``access_key``,
 ``secret_key``, ``region``, ``session_token``). ``file://`` URLs need none.
 
+A task names credentials in ``credentials:`` (``NAME: {ENV: key}`` sets environment
+variables, ``NAME: /path`` mounts every key as a file; see ``osmo.worker.secrets``).
+``check_task_credentials`` refuses a submission whose credentials or keys do not exist; the
+values are read from the store only when an attempt is prepared, so a credential updated
+after submit is used by later attempts. The worker masks the values in the task's logs.
+Only names and key names reach the spec, the run record, lineage and the cache fingerprint.
+
 Credentials are stored in the state database (``OSMO_HOME/state.db``, readable only by the
-server's user); tasks' own ``credentials:`` (injecting secrets into a task) are not
-supported yet.
+server's user).
 """
 
 from __future__ import annotations
@@ -18,10 +24,12 @@ from collections.abc import Callable
 from typing import Any
 from urllib.parse import urlsplit
 
-from osmo.errors import NotFoundError, UsageError
+from osmo.errors import NotFoundError, SubmitError, UsageError
+from osmo.spec.model import TaskSpec, WorkflowSpec
 from osmo.store.sqlite import Store
+from osmo.worker.secrets import unusable_file_name
 
-__all__ = ["CredentialApi", "url_credential"]
+__all__ = ["CredentialApi", "check_task_credentials", "url_credential"]
 
 _NAME_OK = set("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789-_.:/")
 
@@ -36,6 +44,50 @@ def url_credential(store: Store) -> Callable[[str], dict[str, str] | None]:
         return store.credential(f"s3://{parts.netloc}") or store.credential("s3")
 
     return lookup
+
+
+def check_task_credentials(spec: WorkflowSpec, store: Store) -> None:
+    """Check that every credential the tasks of ``spec`` name exists with the keys they use.
+
+    Raises:
+        SubmitError: listing every problem at once, each with its fix.
+    """
+    missing: dict[str, list[str]] = {}
+    problems: list[str] = []
+    for task in spec.all_tasks():
+        for name, use in task.credentials.items():
+            payload = store.credential(name)
+            if payload is None:
+                missing.setdefault(name, []).append(task.name)
+            else:
+                problems += _use_problems(task, name, use, payload)
+        problems += _env_clashes(task)
+    reasons = [f"credential '{name}' (used by task {', '.join(repr(t) for t in tasks)}) "
+               f"does not exist; store it with `osmo credential set {name} --payload "
+               "KEY=VALUE ...`" for name, tasks in missing.items()]
+    if reasons or problems:
+        raise SubmitError("cannot use the credentials of this workflow:\n  "
+                          + "\n  ".join(reasons + problems))
+
+
+def _use_problems(task: TaskSpec, name: str, use: Any, payload: dict[str, str]) -> list[str]:
+    keys = ", ".join(sorted(payload))
+    if isinstance(use, str):
+        return [f"task '{task.name}': credential '{name}' is mounted at {use} but its key "
+                f"'{key}' {problem}; rename the key (`osmo credential set {name} ...`)"
+                for key in payload if (problem := unusable_file_name(key))]
+    return [f"task '{task.name}': credential '{name}' has no key '{key}' (for ${var}); "
+            f"its keys: {keys}" for var, key in use.items() if key not in payload]
+
+
+def _env_clashes(task: TaskSpec) -> list[str]:
+    """Variables set twice: by two credentials, or by a credential and ``environment``."""
+    setters: dict[str, list[str]] = {v: ["'environment'"] for v in task.environment}
+    for name, use in task.credentials.items():
+        for var in use if isinstance(use, dict) else ():
+            setters.setdefault(var, []).append(f"credential '{name}'")
+    return [f"task '{task.name}': ${var} is set by both {' and '.join(who)}; keep one"
+            for var, who in setters.items() if len(who) > 1]
 
 
 class CredentialApi:

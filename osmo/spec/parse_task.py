@@ -7,6 +7,8 @@ Owns the task's field table, its scalar/list/map fields and ``exitActions``. Dat
 
 from __future__ import annotations
 
+import posixpath
+import re
 from pathlib import Path
 from typing import Any
 
@@ -34,6 +36,7 @@ TASK_KEYS = ("name", "image", "command", "args", "environment", "files", "inputs
              "credentials", "resource", "lead", "exitActions", "checkpoint", "volumeMounts",
              "privileged", "hostNetwork", "type", "params", "cache")
 _ACTIONS = [a.value for a in ExitAction]
+_ENV_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 
 
 def _str_map(ctx: Ctx, node: Node, what: str) -> dict[str, str]:
@@ -48,13 +51,30 @@ def _str_map(ctx: Ctx, node: Node, what: str) -> dict[str, str]:
     return out
 
 
+def _credential_env(ctx: Ctx, node: Map, name: str) -> dict[str, str]:
+    """``{ENV: key}``: names must be usable variable names that osmo does not own."""
+    for var, _ in read_map(ctx, node, f"credential '{name}' variable") or []:
+        if not _ENV_NAME.fullmatch(var.text):
+            ctx.error(var, f"credential '{name}': '{var.text}' is not an environment variable "
+                           "name (letters, digits and _, not starting with a digit)")
+        elif var.text.startswith("OSMO_"):
+            ctx.error(var, f"credential '{name}': variables named OSMO_* are set by osmo; "
+                           "choose another name")
+    return _str_map(ctx, node, f"credential '{name}' variable")
+
+
 def _credentials(ctx: Ctx, node: Node, where: str) -> dict[str, Any]:
     """``NAME: /path`` (mount as files) or ``NAME: {ENV: key}`` (inject as env vars)."""
     out: dict[str, Any] = {}
     for key, value in read_map(ctx, node, f"'credentials' of {where}") or []:
         if isinstance(value, Map):
-            out[key.text] = _str_map(ctx, value, f"credential '{key.text}' variable")
+            out[key.text] = _credential_env(ctx, value, key.text)
         elif isinstance(value, Scalar) and isinstance(value.value, str) and value.value:
+            normal = posixpath.normpath(value.value)
+            if normal == "/" or normal == ".." or normal.startswith("../"):
+                ctx.error(value, f"credential '{key.text}' of {where}: mount path "
+                                 f"'{value.value}' must name a folder inside the task's files "
+                                 "(like /etc/creds)")
             out[key.text] = value.value
         else:
             ctx.error(value, f"credential '{key.text}' of {where} must be a mount path or a "

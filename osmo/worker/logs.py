@@ -11,6 +11,10 @@ Rules the writer keeps so that one record is always exactly one line:
   (never inside a UTF-8 sequence).
 - A partial last line (no trailing newline) is kept until more data arrives or the writer is
   closed, then written as its own record.
+- Secret values given to the writer are replaced by ``****`` in every record, whatever its
+  stream (``osmo.worker.masking``). A line is masked whole, before it is split at 64 KiB,
+  and an unfinished line that must be cut keeps enough of its end for a value that starts
+  there to be masked once the rest arrives.
 
 The timestamp is taken when the bytes are read from the pipe, not when the program wrote them.
 This module owns the format only; it does not know about processes or pipes.
@@ -18,14 +22,16 @@ This module owns the format only; it does not know about processes or pipes.
 
 from __future__ import annotations
 
-import signal
-
 import logging
 import os
 import re
+import signal
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
+
+from osmo.worker.masking import Masker
 
 __all__ = ["MAX_LINE", "STREAMS", "LogRecord", "LogWriter", "read_log"]
 
@@ -72,10 +78,15 @@ class LogWriter:
 
     Not thread-safe: one attempt's writer is used by one thread (the pool's I/O thread).
     Write errors (a full disk) drop records and count them in ``dropped``; they never raise.
+
+    Args:
+        path: the log file.
+        secrets: values to mask as ``****`` in every record (see the module docstring).
     """
 
-    def __init__(self, path: Path) -> None:
+    def __init__(self, path: Path, secrets: Iterable[str] = ()) -> None:
         self.path = path
+        self._masker = Masker(secrets)
         self._fd: int | None = None
         self._partial: dict[str, bytes] = {}
         self.dropped = 0  # records that could not be written (e.g. disk full)
@@ -86,27 +97,30 @@ class LogWriter:
         lines: list[bytes] = []
         start = 0
         while (end := buffer.find(b"\n", start)) >= 0:
-            lines.extend(self._split_long(buffer[start:end]))
+            lines.extend(self._split_long(self._masker.mask(buffer[start:end])))
             start = end + 1
         rest = buffer[start:]
-        while len(rest) > MAX_LINE:
-            cut = _utf8_cut(rest, MAX_LINE)
-            lines.append(rest[:cut])
-            rest = rest[cut:]
+        if len(rest) > MAX_LINE:  # an unfinished line too long to keep: cut it
+            rest = self._masker.mask(rest)
+            hold = min(self._masker.hold, MAX_LINE // 2)  # a value may start in the last bytes
+            while len(rest) > MAX_LINE:
+                cut = _utf8_cut(rest, min(MAX_LINE, len(rest) - hold))
+                lines.append(rest[:cut])
+                rest = rest[cut:]
         if rest:
             self._partial[stream] = rest
         if lines:
             self._append(stream, [line.decode("utf-8", "replace") for line in lines])
 
     def line(self, stream: str, text: str) -> None:
-        """Record one line of text as it is (used for ``osmo`` lines)."""
-        self._append(stream, [text])
+        """Record one line of text, secrets masked (used for ``osmo`` lines)."""
+        self._append(stream, [self._masker.mask_text(text)])
 
     def flush_partial(self) -> None:
         """Write every stream's unfinished last line as a record of its own."""
         partial, self._partial = self._partial, {}
         for stream, rest in partial.items():
-            self._append(stream, [rest.decode("utf-8", "replace")])
+            self._append(stream, [self._masker.mask(rest).decode("utf-8", "replace")])
 
     def close(self) -> None:
         """Flush partial lines and close the file."""

@@ -19,6 +19,9 @@ reports ``AttemptExited(exit_code=137)``. ``close()`` kills what still runs and 
 nothing more (the server is shutting down; on restart those attempts are recovered from the
 store, see ``kill_stale``).
 
+Credentials (``osmo.worker.secrets``) are given to ``prepare`` or looked up via
+``task_secrets``; their values are masked in the log, their mounted files deleted at the end.
+
 The ``image`` field is recorded in the log and otherwise ignored by the process runtime.
 Creating a pool lifts the process's soft open-files limit (each running attempt holds four
 descriptors).
@@ -62,8 +65,9 @@ from osmo.worker.checkpoints import Checkpointer, start_checkpoints
 from osmo.worker.logs import LogWriter, exit_note, image_note
 from osmo.worker.machine import detect_capacity, raise_fd_limit
 from osmo.worker.reactor import Reactor, Timer
+from osmo.worker.secrets import SecretLookup, Secrets, gather
 from osmo.worker.transfer import CredentialLookup, DeliveryError, deliver, fetch_inputs
-from osmo.worker.workdir import AttemptDirs, Launch, prepare
+from osmo.worker.workdir import AttemptDirs, Launch, prepare, remove_secret_files
 
 __all__ = ["LocalPool", "kill_stale", "process_start_time"]
 
@@ -115,6 +119,8 @@ class LocalPool:
         artifacts: where promoted outputs are ingested (content-addressed, verified); the
             exit report then carries the output's manifest. None: outputs are not ingested.
         credential_for: ``url -> credential`` for ``url`` inputs and outputs.
+        task_secrets: credential name → payload, for tasks' ``credentials:`` when
+            ``prepare`` is not given them.
     """
 
     def __init__(
@@ -132,6 +138,7 @@ class LocalPool:
         env: Mapping[str, str] | None = None,
         artifacts: ArtifactStore | None = None,
         credential_for: CredentialLookup | None = None,
+        task_secrets: SecretLookup | None = None,
     ) -> None:
         self.home = Path(home).absolute()
         self.home.mkdir(parents=True, exist_ok=True)
@@ -144,6 +151,7 @@ class LocalPool:
         self._env = dict(os.environ if env is None else env)
         self._artifacts = artifacts
         self._credential_for = credential_for
+        self._task_secrets = task_secrets
         self._attempts: dict[str, _Attempt] = {}
         self._finished: collections.OrderedDict[str, None] = collections.OrderedDict()
         self._pids: dict[str, int] = {}
@@ -161,9 +169,13 @@ class LocalPool:
                                    memory=self._memory)
         return Node(id=self._node_id, pool=self._pool, capacity=capacity)
 
-    def prepare(self, cmd: PrepareAttempt, task: TaskSpec) -> None:
-        """Prepare an attempt's folder; later emits AttemptPrepared or AttemptStartFailed."""
-        self._reactor.call_soon(self._prepare, cmd, task)
+    def prepare(self, cmd: PrepareAttempt, task: TaskSpec,
+                secrets: Secrets | None = None) -> None:
+        """Prepare an attempt's folder; later emits AttemptPrepared or AttemptStartFailed.
+
+        ``secrets``: payloads of the credentials ``task`` names (None: ask ``task_secrets``).
+        """
+        self._reactor.call_soon(self._prepare, cmd, task, secrets)
 
     def run(self, attempt_id: str) -> None:
         """Start a prepared attempt: AttemptStarted, then one AttemptExited.
@@ -196,20 +208,22 @@ class LocalPool:
 
     # -------------------------------------------------------------- reactor thread
 
-    def _prepare(self, cmd: PrepareAttempt, task: TaskSpec) -> None:
+    def _prepare(self, cmd: PrepareAttempt, task: TaskSpec, secrets: Secrets | None) -> None:
         if cmd.attempt_id in self._attempts or cmd.attempt_id in self._preparing:
             _log.warning("attempt %s is already active; prepare ignored", cmd.attempt_id)
             return
         self._finished.pop(cmd.attempt_id, None)
         self._preparing[cmd.attempt_id] = None
-        self._io.submit(self._prepare_io, cmd, task)
+        self._io.submit(self._prepare_io, cmd, task, secrets)
 
-    def _prepare_io(self, cmd: PrepareAttempt, task: TaskSpec) -> None:
+    def _prepare_io(self, cmd: PrepareAttempt, task: TaskSpec, secrets: Secrets | None) -> None:
         """I/O thread: make the folders and files; hand the outcome back to the reactor."""
         try:
             dirs = AttemptDirs.at(self.home, cmd.workflow_id, cmd.task, cmd.retry)
             cmd = fetch_inputs(cmd, task, dirs, self._credential_for)
-            launch = prepare(dirs, cmd, task, self._env)
+            if secrets is None:
+                secrets = gather(task, self._task_secrets)
+            launch = prepare(dirs, cmd, task, self._env, secrets)
         except Exception as exc:  # every prepare must get its one final report
             message = str(exc) if isinstance(exc, OsmoError) else f"cannot prepare: {exc!r}"
             self._reactor.call_soon(self._prepared, cmd, task, None, None, message)
@@ -225,7 +239,8 @@ class LocalPool:
             self._remember(cmd.attempt_id)
             self._emit(AttemptStartFailed(cmd.attempt_id, error or "cannot prepare"))
             return
-        attempt = _Attempt(cmd.attempt_id, task, dirs, launch, LogWriter(dirs.log))
+        log = LogWriter(dirs.log, launch.secrets)
+        attempt = _Attempt(cmd.attempt_id, task, dirs, launch, log)
         if task.image:
             attempt.log.line("osmo", image_note(task.image))
         self._attempts[attempt.id] = attempt
@@ -365,6 +380,7 @@ class LocalPool:
     def _finish(self, attempt: _Attempt, event: AttemptExited | AttemptStartFailed) -> None:
         attempt.state = _State.DONE
         attempt.log.close()
+        remove_secret_files(attempt.launch)
         self._attempts.pop(attempt.id, None)
         with self._pids_lock:
             self._pids.pop(attempt.id, None)
@@ -385,6 +401,7 @@ class LocalPool:
                 self._runtime.reap(handle)
                 self._runtime.release(handle)
             attempt.log.close()
+            remove_secret_files(attempt.launch)
         self._attempts.clear()
         with self._pids_lock:
             self._pids.clear()

@@ -4,7 +4,8 @@ Layout, one folder per attempt::
 
     <home>/runs/<workflow_id>/<task>/<retry>/
         work/            the command's working folder (cwd)
-        files/           private root for absolute ``files:`` paths (``OSMO_FILES_ROOT``)
+        files/           private root for absolute ``files:`` paths and credential mounts
+                         (``OSMO_FILES_ROOT``)
         output.partial/  what ``{{output}}`` and ``OSMO_OUTPUT`` point to while running
         output/          the same folder after promotion (success only)
         log.txt          the attempt's log records (see ``osmo.worker.logs``)
@@ -23,6 +24,9 @@ other's file, without containers:
 - ``files[].path`` is taken literally (tokens are not substituted in it);
 - base64 files are decoded and written as they are (no rewriting, no tokens); a file whose
   content starts with ``#!`` is made executable (0o755), any other is 0o644.
+- a credential mounted at a path (``credentials: {NAME: /path}``, ``osmo.worker.secrets``)
+  is mapped and rewritten the same way; each of its keys is written as a file in that
+  folder, mode 0o600, verbatim. ``remove_secret_files`` deletes them when the attempt ends.
 
 Tokens (``osmo.spec.tokens``), substituted after the rewriting, in command, args, environment
 values and text file contents: ``{{output}}`` → ``output.partial``; ``{{input:N}}`` → the
@@ -31,8 +35,9 @@ output reference; ``{{workflow_id}}``; ``{{host:NAME}}`` → the address of grou
 ``{{uuid}}`` → one random uuid4 hex per attempt. An unknown token fails the preparation.
 
 Environment: the server's environment, then the task's ``environment`` (tokens substituted),
-then osmo's own variables, which a task cannot override: ``OSMO_WORKFLOW_ID``, ``OSMO_TASK``,
-``OSMO_RETRY``, ``OSMO_OUTPUT``, ``OSMO_FILES_ROOT``.
+then the variables its credentials set (``NAME: {ENV: key}``, verbatim), then osmo's own
+variables, which a task cannot override: ``OSMO_WORKFLOW_ID``, ``OSMO_TASK``, ``OSMO_RETRY``,
+``OSMO_OUTPUT``, ``OSMO_FILES_ROOT``.
 
 Promotion: after a COMPLETE exit of an attempt that was not killed, ``output.partial`` is
 renamed to ``output`` (atomic) and the attempt folder is fsynced; the output reference is the
@@ -52,15 +57,16 @@ import re
 import shutil
 import uuid
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from osmo.errors import OsmoError
 from osmo.scheduler.types import PrepareAttempt
 from osmo.spec.model import InputSpec, TaskSpec
 from osmo.spec.tokens import substitute
+from osmo.worker.secrets import Secrets, mounts, secret_env, secret_values
 
-__all__ = ["AttemptDirs", "Launch", "PrepareError", "prepare", "promote"]
+__all__ = ["AttemptDirs", "Launch", "PrepareError", "prepare", "promote", "remove_secret_files"]
 
 
 class PrepareError(OsmoError):
@@ -120,25 +126,38 @@ class AttemptDirs:
 
 @dataclass(frozen=True)
 class Launch:
-    """What to run for a prepared attempt: argv, working folder and complete environment."""
+    """What to run for a prepared attempt: argv, working folder and complete environment.
+
+    ``secrets`` are the values of the task's credentials (for masking its logs) and
+    ``secret_files`` the files its credential mounts wrote; neither is shown by ``repr``.
+    """
 
     argv: tuple[str, ...]
     cwd: Path
-    env: dict[str, str]
+    env: dict[str, str] = field(repr=False)
+    secrets: tuple[str, ...] = field(default=(), repr=False)
+    secret_files: tuple[Path, ...] = ()
 
 
 def prepare(
-    dirs: AttemptDirs, cmd: PrepareAttempt, task: TaskSpec, base_env: Mapping[str, str]
+    dirs: AttemptDirs, cmd: PrepareAttempt, task: TaskSpec, base_env: Mapping[str, str],
+    secrets: Secrets | None = None,
 ) -> Launch:
     """Create the attempt's folder, write its files and resolve its command.
+
+    Args:
+        secrets: the payloads of the credentials ``task`` names (credential name → payload).
 
     Raises:
         PrepareError: a token cannot be resolved, a file path is unusable, or the folder
             cannot be written (the message names the path).
+        SecretError: a credential the task names is not in ``secrets`` or lacks a key.
     """
     if not task.command:
         raise PrepareError(f"task '{task.name}' has no command to run")
-    mapping = _file_mapping(dirs, task)
+    secrets = secrets or {}
+    mounted = mounts(task, secrets)
+    mapping = _file_mapping(dirs, task, mounted)
     rewrite = _rewriter(mapping)
     resolve = _resolver(dirs, cmd, task)
 
@@ -148,13 +167,24 @@ def prepare(
     argv = tuple(text(word) for word in (*task.command, *task.args))
     env = dict(base_env)
     env.update({key: text(str(value)) for key, value in task.environment.items()})
+    env.update(secret_env(task, secrets))
     env.update(_osmo_env(dirs, cmd))
     try:
-        _make_folders(dirs, with_files=bool(task.files))
+        _make_folders(dirs, with_files=bool(task.files or mounted))
         _write_files(mapping, task, text)
+        written = _write_mounts(mapping, mounted)
     except OSError as exc:
         raise PrepareError(f"cannot prepare {exc.filename or dirs.root}: {exc.strerror}") from exc
-    return Launch(argv, dirs.work, env)
+    return Launch(argv, dirs.work, env, tuple(secret_values(task, secrets)), written)
+
+
+def remove_secret_files(launch: Launch) -> None:
+    """Delete the files an attempt's credential mounts wrote (missing ones are fine)."""
+    for path in launch.secret_files:
+        try:
+            path.unlink()
+        except FileNotFoundError:
+            pass
 
 
 def promote(dirs: AttemptDirs) -> str:
@@ -205,19 +235,21 @@ def _make_folders(dirs: AttemptDirs, *, with_files: bool) -> None:
         folder.mkdir()
 
 
-def _file_mapping(dirs: AttemptDirs, task: TaskSpec) -> dict[str, Path]:
-    """Declared path → private location, for every file of the task."""
+def _file_mapping(dirs: AttemptDirs, task: TaskSpec,
+                  mounted: Mapping[str, object]) -> dict[str, Path]:
+    """Declared path → private location, for every file and credential mount of the task."""
     mapping: dict[str, Path] = {}
-    for spec in task.files:
-        normal = posixpath.normpath(spec.path)
-        if not spec.path or normal == "/":
-            raise PrepareError(f"file path {spec.path!r} names no file")
+    for path, what in [*((f.path, "file") for f in task.files),
+                       *((m, "credential mount") for m in mounted)]:
+        normal = posixpath.normpath(path)
+        if not path or normal == "/":
+            raise PrepareError(f"{what} path {path!r} names no {what.split()[-1]}")
         if normal.startswith("/"):
-            mapping[spec.path] = dirs.files / normal.lstrip("/")
+            mapping[path] = dirs.files / normal.lstrip("/")
         elif normal == ".." or normal.startswith("../"):
-            raise PrepareError(f"file path {spec.path!r} leaves the working folder")
+            raise PrepareError(f"{what} path {path!r} leaves the working folder")
         else:
-            mapping[spec.path] = dirs.work / normal
+            mapping[path] = dirs.work / normal
     return mapping
 
 
@@ -243,6 +275,29 @@ def _write_files(mapping: Mapping[str, Path], task: TaskSpec, text: Callable[[st
             os.fchmod(fd, mode)  # the umask must not strip the executable bit
         finally:
             os.close(fd)
+
+
+def _write_mounts(mapping: Mapping[str, Path],
+                  mounted: Mapping[str, Mapping[str, str]]) -> tuple[Path, ...]:
+    written: list[Path] = []
+    try:
+        for path, payload in mounted.items():
+            folder = mapping[path]
+            folder.mkdir(parents=True, exist_ok=True)
+            for key, value in payload.items():
+                target = folder / key
+                flags = os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_CLOEXEC
+                fd = os.open(target, flags, 0o600)
+                written.append(target)
+                try:
+                    os.fchmod(fd, 0o600)  # an existing file keeps its mode on O_CREAT
+                    os.write(fd, value.encode())
+                finally:
+                    os.close(fd)
+    except OSError:  # a failed preparation leaves no secret behind
+        remove_secret_files(Launch((), Path(), {}, (), tuple(written)))
+        raise
+    return tuple(written)
 
 
 def _decode(contents: str, path: str) -> bytes:

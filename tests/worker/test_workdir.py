@@ -10,7 +10,8 @@ import pytest
 
 from osmo.scheduler.types import PrepareAttempt
 from osmo.spec.model import FileSpec, InputSpec, TaskSpec
-from osmo.worker.workdir import AttemptDirs, PrepareError, prepare, promote
+from osmo.errors import OsmoError
+from osmo.worker.workdir import AttemptDirs, PrepareError, prepare, promote, remove_secret_files
 
 
 def command(
@@ -207,3 +208,78 @@ def test_promote(tmp_path: Path) -> None:
     assert not dirs.output_partial.exists()
     with pytest.raises(OSError):
         promote(dirs)  # nothing left to promote
+
+
+# ---------------------------------------------------------------- credentials
+
+
+def test_credentials_as_environment_and_files(tmp_path: Path) -> None:
+    task = TaskSpec(
+        name="t",
+        command=("sh", "-c", "cat /etc/creds/password"),
+        args=("/etc/creds", "/etc/creds/user"),
+        environment={"A": "/etc/creds/user"},
+        credentials={"db": "/etc/creds", "api": {"TOKEN": "token", "OSMO_TASK": "token"}},
+    )
+    cmd = command("t")
+    dirs = AttemptDirs.at(tmp_path, cmd.workflow_id, cmd.task, cmd.retry)
+    secrets = {"db": {"user": "alice", "password": "pa55word"}, "api": {"token": "tok-123"}}
+    launch = prepare(dirs, cmd, task, {"TOKEN": "server"}, secrets)
+    mount = dirs.files / "etc" / "creds"
+    assert launch.argv == ("sh", "-c", f"cat {mount}/password", str(mount), f"{mount}/user")
+    assert launch.env["A"] == f"{mount}/user"
+    assert launch.env["TOKEN"] == "tok-123"  # a credential overrides the server's environment
+    assert launch.env["OSMO_TASK"] == "t"  # and never osmo's own variables
+    for key, value in secrets["db"].items():
+        assert (mount / key).read_text() == value
+        assert (mount / key).stat().st_mode & 0o777 == 0o600
+    assert sorted(launch.secret_files) == [mount / "password", mount / "user"]
+    assert sorted(launch.secrets) == ["alice", "pa55word", "tok-123"]
+    assert "tok-123" not in repr(launch) and "pa55word" not in repr(launch)
+    remove_secret_files(launch)
+    assert not any(mount.iterdir())
+    remove_secret_files(launch)  # already gone: fine
+
+
+def test_relative_credential_mount_is_under_work(tmp_path: Path) -> None:
+    task = TaskSpec(name="t", command=("true",), credentials={"db": "creds"})
+    cmd = command("t")
+    dirs = AttemptDirs.at(tmp_path, cmd.workflow_id, cmd.task, cmd.retry)
+    launch = prepare(dirs, cmd, task, {}, {"db": {"k": "v"}})
+    assert launch.secret_files == (dirs.work / "creds" / "k",)
+
+
+def test_task_without_credentials_gets_no_secret(tmp_path: Path) -> None:
+    dirs, launch = prep(tmp_path, TaskSpec(name="t", command=("true",)))
+    assert launch.secrets == () and launch.secret_files == ()
+
+
+@pytest.mark.parametrize(("credentials", "secrets", "message"), [
+    ({"db": {"PW": "password"}}, {}, "task 't': credential 'db' was not given to this worker; "
+     "store it again with `osmo credential set db --payload KEY=VALUE ...`"),
+    ({"db": {"PW": "pw"}}, {"db": {"user": "u", "password": "p"}},
+     "task 't': credential 'db' has no key 'pw' (for $PW); its keys: password, user"),
+    ({"db": "/etc/db"}, {"db": {"a/b": "v"}},
+     "task 't': credential 'db' is mounted at /etc/db but its key 'a/b' contains '/' or a NUL "
+     "character; rename the key"),
+    ({"db": "/"}, {"db": {"k": "v"}}, "credential mount path '/' names no mount"),
+    ({"db": "../x"}, {"db": {"k": "v"}}, "credential mount path '../x' leaves the working folder"),
+])
+def test_unusable_credentials_fail(tmp_path: Path, credentials: dict[str, object],
+                                   secrets: dict[str, dict[str, str]], message: str) -> None:
+    task = TaskSpec(name="t", command=("true",), credentials=credentials)
+    cmd = command("t")
+    dirs = AttemptDirs.at(tmp_path, cmd.workflow_id, cmd.task, cmd.retry)
+    with pytest.raises(OsmoError) as info:
+        prepare(dirs, cmd, task, {}, secrets)
+    assert str(info.value) == message
+
+
+def test_failed_mount_leaves_no_secret(tmp_path: Path) -> None:
+    task = TaskSpec(name="t", command=("true",), credentials={"a": "/m", "b": "/m/k1"},
+                    files=(FileSpec(path="/m/k1/k2", contents="x"),))
+    cmd = command("t")
+    dirs = AttemptDirs.at(tmp_path, cmd.workflow_id, cmd.task, cmd.retry)
+    with pytest.raises(PrepareError, match="cannot prepare"):  # /m/k1 is a folder: no file
+        prepare(dirs, cmd, task, {}, {"a": {"k0": "secret0", "k1": "secret1"}, "b": {"k": "v"}})
+    assert not (dirs.files / "m" / "k0").exists()
