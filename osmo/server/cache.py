@@ -1,9 +1,10 @@
 """Task caching: a task whose fingerprint matches an earlier success reuses its outputs.
 
 A fingerprint is the sha256 of the task's definition as submitted (command, args,
-environment including ``--set-env``, files, image, plugin type and params) and the manifest
-digests of its inputs, in input order. Tokens are hashed as written: they resolve the same
-way for the same inputs; ``{{workflow_id}}``/``{{uuid}}`` are not treated as changes.
+environment including ``--set-env``, files, image, plugin type, its version and params) and
+the manifest digests of its inputs, in input order. Tokens are hashed as written: they
+resolve the same way for the same inputs; ``{{workflow_id}}``/``{{uuid}}``
+are not treated as changes.
 
 Only attempts that no group barrier holds are cached (single-task groups and
 ``barrier: false`` groups); co-started group members interact and always run. Tasks with
@@ -33,7 +34,7 @@ _VERSION = 1  # bump when the fingerprint's content changes
 
 def fingerprint(task: TaskSpec, inputs: list[tuple[str, str]]) -> str:
     """The fingerprint of ``task`` given ``(input name, manifest digest)`` pairs."""
-    body = {
+    body: dict[str, object] = {
         "v": _VERSION,
         "command": list(task.command), "args": list(task.args),
         "environment": sorted(task.environment.items()),
@@ -41,6 +42,8 @@ def fingerprint(task: TaskSpec, inputs: list[tuple[str, str]]) -> str:
         "image": task.image, "type": task.type, "params": task.params,
         "inputs": inputs,
     }
+    if task.type is not None:  # typed tasks: the type's version is part of the definition
+        body["type_version"] = task.resolved.version if task.resolved else None
     text = json.dumps(body, sort_keys=True, separators=(",", ":"), default=str)
     return "sha256:" + hashlib.sha256(text.encode()).hexdigest()
 
