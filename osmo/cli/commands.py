@@ -9,6 +9,7 @@ from pathlib import Path
 
 from osmo.cli.artifacts import run_artifacts, run_lineage
 from osmo.cli.datasets import run_credential, run_dataset
+from osmo.cli.plugins import run_plugins
 from osmo.cli.pools import run_pool, run_resource
 from osmo.cli.render import (
     console,
@@ -196,6 +197,7 @@ _VERBS: dict[str, Callable[[argparse.Namespace], int]] = {
     "pool": run_pool,
     "resource": run_resource,
     "workers": run_resource,
+    "plugins": run_plugins,
 }
 
 

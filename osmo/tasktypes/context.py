@@ -42,14 +42,31 @@ class _Below(logging.Filter):
         return record.levelno < self.level
 
 
+class _Std(logging.Handler):
+    """Writes to ``sys.stdout``/``sys.stderr`` as they are when a record comes (not as they
+    were when the logger was made: test runners swap them)."""
+
+    def __init__(self, which: str) -> None:
+        super().__init__()
+        self.which = which
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            stream = getattr(sys, self.which)
+            stream.write(self.format(record) + "\n")
+            stream.flush()
+        except Exception:  # noqa: BLE001 - logging must never fail the task
+            self.handleError(record)
+
+
 def task_logger(task: str) -> logging.Logger:
     """A logger for task ``task`` writing plain lines to stdout and warnings to stderr."""
     logger = logging.getLogger(f"osmo.task.{task}")
     if not logger.handlers:
-        out = logging.StreamHandler(sys.stdout)
+        out = _Std("stdout")
         out.addFilter(_Below(logging.WARNING))
         out.setFormatter(logging.Formatter("%(message)s"))
-        err = logging.StreamHandler(sys.stderr)
+        err = _Std("stderr")
         err.setLevel(logging.WARNING)
         err.setFormatter(logging.Formatter("%(levelname)s: %(message)s"))
         logger.addHandler(out)

@@ -190,7 +190,11 @@ def _load_custom(ref: str, paths: Sequence[str]) -> tuple[TaskType, str | None]:
         obj: Any = module
         for part in attr.split("."):
             if not hasattr(obj, part):
-                raise TaskTypeError(f"{what}: module '{module_name}' has no attribute '{attr}'")
+                from osmo.spec.reader import did_you_mean
+
+                names = [n for n in dir(obj) if not n.startswith("_")]
+                raise TaskTypeError(f"{what}: module '{module_name}' has no attribute '{attr}'"
+                                    f"{did_you_mean(part, names)}")
             obj = getattr(obj, part)
         return _checked(obj, what), _module_root(module)
 
