@@ -5,8 +5,10 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 from tests.conftest import REPO, Osmo, write
@@ -136,3 +138,50 @@ def FINE(ctx):
     assert rows["sim.broken"]["error"].endswith('pip install "osmo[sim]"')
     assert rows["demo.fine"]["params"]["n"]["default"] == 3
     assert not (tmp_path / "home" / "server.json").exists()
+
+
+def test_typed_task_survives_server_kill9(osmo: Osmo, tmp_path: Path) -> None:
+    started, release = tmp_path / "started", tmp_path / "release"
+    write(tmp_path / "slowtypes.py", f"""
+import os, time
+from osmo import task_type
+
+@task_type(version="7")
+def wait(ctx):
+    open({str(started)!r}, "w").write(str(os.getpid()))
+    while not os.path.exists({str(release)!r}):
+        time.sleep(0.02)
+    (ctx.output / "done.txt").write_text("done")
+""")
+    spec = write(tmp_path / "wf.yaml", """workflow:
+  name: typed-survive
+  tasks:
+  - name: slow
+    type: slowtypes:wait
+""")
+    wf_id = osmo.submit(spec)
+    osmo.wait_for(wf_id, lambda _info: started.exists())
+    server = osmo.server_pid()
+    assert server is not None
+    os.kill(server, signal.SIGKILL)
+    deadline = time.monotonic() + 30
+    while _alive(server):
+        assert time.monotonic() < deadline
+        time.sleep(0.05)
+    started.unlink()
+    osmo("query", wf_id, check=True)  # a new server restores the workflow from the store
+    osmo.wait_for(wf_id, lambda _info: started.exists())
+    release.write_text("go")
+    info = osmo.wait_for(wf_id, lambda i: i["status"] not in ("PENDING", "RUNNING", "WAITING"))
+    assert info["status"] == "COMPLETED", info
+    assert info["tasks"][0]["retry"] == 1
+    lineage = osmo("lineage", f"{wf_id}:slow", "--format", "json", check=True).json()
+    assert [n["plugin"] for n in lineage["nodes"].values()] == ["slowtypes:wait@7"]  # type: ignore[index]
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return True
