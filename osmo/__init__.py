@@ -26,9 +26,11 @@ __all__ = [
     "LogRecord",
     "NotFoundError",
     "OsmoError",
+    "Param",
     "ServerUnreachable",
     "SpecError",
     "SubmitError",
+    "TaskContext",
     "TaskInfo",
     "TaskStatus",
     "UsageError",
@@ -38,6 +40,7 @@ __all__ = [
     "WorkflowSpec",
     "WorkflowStatus",
     "load_spec",
+    "task_type",
 ]
 
 _WHERE = {
@@ -59,6 +62,9 @@ _WHERE = {
     "SubmitError": "osmo.errors",
     "UsageError": "osmo.errors",
     "WorkflowFailed": "osmo.errors",
+    "Param": "osmo.tasktypes.api",
+    "TaskContext": "osmo.tasktypes.api",
+    "task_type": "osmo.tasktypes.api",
 }
 
 if TYPE_CHECKING:
@@ -77,6 +83,7 @@ if TYPE_CHECKING:
     from osmo.spec import Workflow, load_spec
     from osmo.spec.model import WorkflowSpec
     from osmo.status import TaskStatus, WorkflowStatus
+    from osmo.tasktypes.api import Param, TaskContext, task_type
 
 
 def __getattr__(name: str) -> Any:

@@ -5,9 +5,11 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Callable
+from pathlib import Path
 
 from osmo.cli.artifacts import run_artifacts, run_lineage
 from osmo.cli.datasets import run_credential, run_dataset
+from osmo.cli.plugins import run_plugins
 from osmo.cli.pools import run_pool, run_resource
 from osmo.cli.render import (
     console,
@@ -22,12 +24,18 @@ from osmo.cli.render import (
 from osmo.errors import WorkflowFailed
 from osmo.sdk.client import Client, WorkflowInfo
 from osmo.sdk.connect import server_status, start_server, stop_server
+from osmo.tasktypes.registry import Resolver
 
 __all__ = ["run"]
 
 
 def _client(args: argparse.Namespace) -> Client:
     return Client(args.server)
+
+
+def _types(file: str) -> Resolver:
+    """Task types as this environment has them; custom ones from the spec file's folder."""
+    return Resolver([str(Path(file).parent)])
 
 
 def _submit(args: argparse.Namespace) -> int:
@@ -37,7 +45,7 @@ def _submit(args: argparse.Namespace) -> int:
         sys.stdout.write(render_spec(args.file, set_values=args.set_values,
                                      set_strings=args.set_strings))
         load_spec(args.file, set_values=args.set_values, set_strings=args.set_strings,
-                  set_env=args.set_env)
+                  set_env=args.set_env, types=_types(args.file))
         return 0
     with _client(args) as client:
         wf_id = client.submit(args.file, set_values=args.set_values,
@@ -79,7 +87,7 @@ def _validate(args: argparse.Namespace) -> int:
     from osmo.spec import load_spec
 
     spec = load_spec(args.file, set_values=args.set_values, set_strings=args.set_strings,
-                     set_env=args.set_env)
+                     set_env=args.set_env, types=_types(args.file))
     console.print(f"{args.file}: valid workflow '{spec.name}' with "
                   f"{len(spec.all_tasks())} task(s) in {len(spec.groups)} group(s)", markup=False)
     return 0
@@ -189,6 +197,7 @@ _VERBS: dict[str, Callable[[argparse.Namespace], int]] = {
     "pool": run_pool,
     "resource": run_resource,
     "workers": run_resource,
+    "plugins": run_plugins,
 }
 
 

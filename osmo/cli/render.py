@@ -22,8 +22,9 @@ from rich.text import Text
 
 from osmo.sdk.client import LogRecord, TaskInfo, WorkflowInfo
 
-__all__ = ["console", "err_console", "format_log", "info_dict", "live_progress", "print_error",
-           "print_json", "resource_table", "task_table", "workflow_header", "workflows_table"]
+__all__ = ["console", "err_console", "format_log", "info_dict", "live_progress", "plugin_table",
+           "print_error", "print_json", "resource_table", "task_table", "workflow_header",
+           "workflows_table"]
 
 console = Console(highlight=False, width=None if sys.stdout.isatty() else 160)
 err_console = Console(stderr=True, highlight=False, soft_wrap=True)
@@ -166,4 +167,29 @@ def resource_table(rows: list[dict[str, Any]], *, by: str) -> Table:
         table.add_row(*head, f"{used['cpu']:g}/{total['cpu']:g}",
                       f"{used['gpu']}/{total['gpu']}",
                       f"{_gib(used['memory'])}/{_gib(total['memory'])}")
+    return table
+
+
+def _param_line(name: str, p: dict[str, Any]) -> str:
+    default = "required" if p["required"] else f"default {p['default']!r}"
+    bounds = [f"choices {p['choices']}"] if p["choices"] else []
+    bounds += [f"{k} {p[k]:g}" for k in ("min", "max") if p[k] is not None]
+    extra = f", {', '.join(bounds)}" if bounds else ""
+    return f"  {name}: {p['type']} ({default}{extra})" + (f" - {p['help']}" if p["help"] else "")
+
+
+def plugin_table(rows: list[dict[str, Any]], *, verbose: bool = False) -> Table:
+    """Installed task types; a broken one shows its error in red instead of a description."""
+    table = Table(box=None, pad_edge=False, header_style="bold")
+    for col in ("Type", "Version", "Extra", "Description"):
+        table.add_column(col)
+    for row in rows:
+        if row["error"]:
+            about = Text(f"BROKEN: {row['error']}", style="red")
+        else:
+            lines = [row["description"] or "-"]
+            if verbose:
+                lines += [_param_line(n, p) for n, p in row["params"].items()] or ["  (no params)"]
+            about = Text("\n".join(lines))
+        table.add_row(row["name"], row["version"] or "-", row["extra"] or "-", about)
     return table

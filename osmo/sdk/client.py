@@ -19,7 +19,7 @@ from typing import Any
 
 from osmo.errors import UsageError
 from osmo.sdk.connect import Connection, connect
-from osmo.spec import Workflow, load_spec, spec_to_dict
+from osmo.spec import Workflow, load_spec, spec_from_dict, spec_to_dict
 from osmo.spec.model import WorkflowSpec
 from osmo.status import TaskStatus, WorkflowStatus
 
@@ -147,8 +147,9 @@ class Client:
             SubmitError: the server cannot run it (e.g. no pool fits a task).
         """
         model, filename = _to_model(spec, set_values, set_strings, set_env)
+        type_paths = sorted({p for t in model.all_tasks() if t.resolved for p in t.resolved.paths})
         result = self._call("submit", spec=spec_to_dict(model), pool=pool, filename=filename,
-                            no_cache=no_cache)
+                            no_cache=no_cache, type_paths=type_paths)
         return str(result["workflow_id"])
 
     def cancel(self, workflow_id: str) -> WorkflowStatus:
@@ -314,16 +315,23 @@ def _record(r: dict[str, Any]) -> LogRecord:
 
 def _to_model(spec: SpecLike, set_values: Sequence[str], set_strings: Sequence[str],
               set_env: Sequence[str]) -> tuple[WorkflowSpec, str]:
+    """The validated model and its file name. Task types are resolved here too (params
+    checked with positions); custom ``module:attr`` types are imported from the spec file's
+    folder, or the current folder for builders and dicts."""
+    from osmo.tasktypes.registry import Resolver
+
     if isinstance(spec, WorkflowSpec):
         return spec, "<model>"
     if isinstance(spec, Workflow):
-        return spec.build(), "<builder>"
+        return spec_from_dict(spec.to_dict(), filename="<builder>",
+                              types=Resolver([os.getcwd()])), "<builder>"
     if isinstance(spec, dict):
         text = json.dumps(spec)  # JSON is YAML: the one loader validates dicts too
         return load_spec(text=text, filename="<dict>", set_values=set_values,
-                         set_strings=set_strings, set_env=set_env), "<dict>"
+                         set_strings=set_strings, set_env=set_env,
+                         types=Resolver([os.getcwd()])), "<dict>"
     if isinstance(spec, (str, os.PathLike)):
         path = Path(spec)
         return load_spec(path, set_values=set_values, set_strings=set_strings,
-                         set_env=set_env), str(path)
+                         set_env=set_env, types=Resolver([str(path.parent)])), str(path)
     raise UsageError(f"cannot submit a {type(spec).__name__}; pass a path, dict or Workflow")

@@ -71,13 +71,23 @@ class Api:
     # ------------------------------------------------------------------ mutating verbs
 
     def submit(self, request: dict[str, Any]) -> dict[str, Any]:
-        """Create a workflow from a spec dict. Request: spec, pool?, options?."""
-        spec = spec_from_dict(request["spec"], filename=request.get("filename", "<submitted>"))
+        """Create a workflow from a spec dict. Request: spec, pool?, filename?, no_cache?,
+        type_paths? (folders custom task types are imported from: the spec file's folder).
+
+        Task types are resolved here, with this server's installed plugins; what was
+        resolved (version, resources, folders) is kept in the workflow's options."""
+        from osmo.tasktypes.registry import Resolver
+
+        type_paths = [str(p) for p in request.get("type_paths") or []]
+        spec = spec_from_dict(request["spec"], filename=request.get("filename", "<submitted>"),
+                              types=Resolver(type_paths))
         check_task_credentials(spec, self._store)
         pool = request.get("pool") or spec.pool
         options = {"pool": pool, "filename": request.get("filename"),
                    "reused_from": request.get("reused_from"),
-                   "no_cache": bool(request.get("no_cache"))}
+                   "no_cache": bool(request.get("no_cache")), "type_paths": type_paths,
+                   "types": {t.name: t.resolved.to_dict() for t in spec.all_tasks()
+                             if t.resolved is not None}}
         reused = request.get("reused") or {}
 
         def do(engine: Engine, batch: _Batch, now: float) -> str:
@@ -121,7 +131,8 @@ class Api:
                   if t["status"] == "COMPLETED" and t.get("output")}
         return self.submit({"spec": row.spec, "pool": row.options.get("pool"),
                             "filename": row.options.get("filename"), "reused": reused,
-                            "reused_from": row.id})
+                            "reused_from": row.id,
+                            "type_paths": row.options.get("type_paths")})
 
     def shutdown(self, _request: dict[str, Any]) -> dict[str, Any]:
         """Stop the server (after replying)."""

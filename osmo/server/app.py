@@ -33,7 +33,8 @@ from osmo.server.datasets import Datasets
 from osmo.server.engine import Engine
 from osmo.server.records import RunRecords
 from osmo.spec import spec_from_dict
-from osmo.spec.model import WorkflowSpec
+from osmo.spec.model import ResolvedType, WorkflowSpec
+from osmo.spec.typed import apply_resolved
 from osmo.store.sqlite import Store
 from osmo.transport.api import ApiServer
 from osmo.transport.zenoh_link import Link
@@ -65,7 +66,9 @@ def _restore(store: Store, scheduler: Scheduler,
         assert row is not None
         if row.options.get("no_cache"):
             no_cache.add(row.id)
-        specs[row.id] = spec_from_dict(row.spec, filename=row.options.get("filename") or row.id)
+        spec = spec_from_dict(row.spec, filename=row.options.get("filename") or row.id)
+        specs[row.id] = apply_resolved(spec, {name: ResolvedType.from_dict(data) for name, data
+                                              in (row.options.get("types") or {}).items()})
         workflows.append(WorkflowState.from_dict(row.state))
         tasks += [TaskState.from_dict(t) for t in store.tasks(row.id)]
     scheduler.restore(specs, workflows, tasks)

@@ -1,10 +1,10 @@
 """Task caching: a task whose fingerprint matches an earlier success reuses its outputs.
 
 A fingerprint is the sha256 of the task's definition as submitted (command, args,
-environment including ``--set-env``, files, image, plugin type and params, and its
-``credentials:`` — names, variables, keys and mount paths, never the secret values, so a
-rotated secret does not invalidate the cache) and the manifest digests of its inputs, in
-input order. Tokens are hashed as written: they resolve the same
+environment including ``--set-env``, files, image, plugin type, its version and params,
+and its ``credentials:`` — names, variables, keys and mount paths, never the secret
+values, so a rotated secret does not invalidate the cache) and the manifest digests of
+its inputs, in input order. Tokens are hashed as written: they resolve the same
 way for the same inputs; ``{{workflow_id}}``/``{{uuid}}`` are not treated as changes.
 
 Only attempts that no group barrier holds are cached (single-task groups and
@@ -35,7 +35,7 @@ _VERSION = 1  # bump when the fingerprint's content changes
 
 def fingerprint(task: TaskSpec, inputs: list[tuple[str, str]]) -> str:
     """The fingerprint of ``task`` given ``(input name, manifest digest)`` pairs."""
-    body = {
+    body: dict[str, object] = {
         "v": _VERSION,
         "command": list(task.command), "args": list(task.args),
         "environment": sorted(task.environment.items()),
@@ -45,6 +45,8 @@ def fingerprint(task: TaskSpec, inputs: list[tuple[str, str]]) -> str:
     }
     if task.credentials:  # only when present: earlier fingerprints stay valid
         body["credentials"] = task.credentials
+    if task.type is not None:  # typed tasks: the type's version is part of the definition
+        body["type_version"] = task.resolved.version if task.resolved else None
     text = json.dumps(body, sort_keys=True, separators=(",", ":"), default=str)
     return "sha256:" + hashlib.sha256(text.encode()).hexdigest()
 

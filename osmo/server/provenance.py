@@ -52,8 +52,9 @@ class Provenance:
         record = Lineage(
             workflow_id=placed.cmd.workflow_id, task=placed.cmd.task, retry=placed.cmd.retry,
             attempt_id=event.attempt_id, node=placed.node_address,
-            command=event.command or (tuple(task.command) + tuple(task.args) or None),
-            plugin=task.type, params=dict(task.params), image=task.image,
+            command=None if task.type else (
+                event.command or (tuple(task.command) + tuple(task.args) or None)),
+            plugin=_plugin(task), params=dict(task.params), image=task.image,
             inputs=placed.inputs,
             started_at=started_at, ended_at=now, exit_code=event.exit_code,
             manifest_digest=manifest.digest, osmo_version=osmo.__version__)
@@ -69,3 +70,9 @@ class Provenance:
         """Drop what was remembered of an attempt that ended without outputs."""
         self._placed.pop(attempt_id, None)
 
+
+def _plugin(task: TaskSpec) -> str | None:
+    """``type@version`` of a typed task (``type`` alone if its version is unknown)."""
+    if task.type is None:
+        return None
+    return f"{task.type}@{task.resolved.version}" if task.resolved else task.type

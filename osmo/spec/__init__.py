@@ -7,13 +7,15 @@ Public API::
     render_spec(path | text=..., set_values=, set_strings=) -> str     # --dry-run
     spec_to_dict(spec) -> dict;  dump_yaml(spec) -> str
     spec_from_dict(d) -> WorkflowSpec                                  # stored specs
+    load_spec(..., types=Resolver(paths))   # [ext] check type:/params: against task types
     Workflow(name, ...).resource(...).task(...).group(name, [Task(...)]).build()
 
 Every problem is reported at once as a :class:`osmo.errors.SpecError` whose ``diagnostics``
 read ``file:line:col: message``. Module map: ``yamlnodes`` (the only ``yaml`` import),
 ``template`` (the only ``jinja2`` import), ``units``, ``reader`` (typed node access),
 ``parse``/``parse_task``/``parse_io`` (one document → model), ``validate`` (cross-references),
-``support`` (what is not supported yet), ``dump``, ``builder``, ``loader`` (the pipeline).
+``typed`` (typed tasks against their task types), ``support`` (what is not supported yet),
+``dump``, ``builder``, ``loader`` (the pipeline).
 """
 
 from __future__ import annotations
@@ -30,12 +32,14 @@ from osmo.spec.model import (
     InputSpec,
     OutputSpec,
     Pos,
+    ResolvedType,
     ResourceSpec,
     TaskSpec,
     Timeouts,
     TopologySpec,
     WorkflowSpec,
 )
+from osmo.spec.typed import TypeResolver, apply_resolved
 
 __all__ = [
     "DEFAULT_RESOURCE",
@@ -46,13 +50,16 @@ __all__ = [
     "InputSpec",
     "OutputSpec",
     "Pos",
+    "ResolvedType",
     "ResourceSpec",
     "Task",
     "TaskSpec",
     "Timeouts",
     "TopologySpec",
+    "TypeResolver",
     "Workflow",
     "WorkflowSpec",
+    "apply_resolved",
     "dump_yaml",
     "load_spec",
     "render_spec",

@@ -14,6 +14,14 @@ Groups of co-scheduled tasks are declared with :class:`Task` values, one marked 
     wf.group("rollout", [Task("server", ["sim-server"], lead=True),
                          Task("client", ["sim-client", "{{host:server}}"])])
 
+A task runs a ``command`` or, [ext], a task type with parameters::
+
+    wf.task("roll", type="sim.rollout", params={"episodes": 10})   # an installed type
+    wf.task("mine", type=tasks.rollout, params={"n": 3})             # a @task_type object
+
+A type object (a function decorated with ``osmo.task_type`` or a task-type instance) is
+written as its ``module:attr`` reference; its module must be importable by the worker.
+
 A workflow uses either ``.task`` (bare tasks) or ``.group``, not both. ``build()`` dumps the
 builder to plain data and loads it through the same parser and validation as a YAML file, so
 every rule (and every error message) is the same; positions in those messages refer to
@@ -67,10 +75,12 @@ class Task:
     ``inputs`` are upstream task names (``"prep"``, ``"other-wf-3:prep"``) or ``InputSpec``.
     ``files`` maps a path to its contents (``bytes`` are stored base64). ``exit_actions``
     maps ``COMPLETE``/``FAIL``/``RESCHEDULE`` to codes like ``"0,1-10"``, ``3`` or a list.
+    ``type`` (a name, ``module:attr`` or a task-type object) and ``params`` replace
+    ``command`` for a typed task.
     """
 
     name: str
-    command: Sequence[str] | str
+    command: Sequence[str] | str | None = None
     args: Sequence[str] = ()
     image: str | None = None
     environment: Mapping[str, Any] | None = None
@@ -80,12 +90,23 @@ class Task:
     exit_actions: Mapping[str, Codes] | None = None
     cache: bool = True
     lead: bool = False
+    type: Any = None
+    params: Mapping[str, Any] | None = None
 
     def to_dict(self) -> dict[str, Any]:
-        """The task as spec data (OSMO key names)."""
-        command = shlex.split(self.command) if isinstance(self.command, str) else self.command
-        out: dict[str, Any] = {"name": self.name, "command": list(command)}
+        """The task as spec data (OSMO key names).
+
+        Raises:
+            TaskTypeError: ``type`` is an object that cannot be named as ``module:attr``.
+        """
+        out: dict[str, Any] = {"name": self.name}
+        if self.command is not None:
+            command = shlex.split(self.command) if isinstance(self.command, str) \
+                else self.command
+            out["command"] = list(command)
         optional: dict[str, Any] = {
+            "type": _type_ref(self.type),
+            "params": dict(self.params) if self.params else None,
             "image": self.image,
             "args": list(self.args) or None,
             "environment": {k: _env_value(v) for k, v in (self.environment or {}).items()}
@@ -101,6 +122,14 @@ class Task:
         }
         out.update({k: v for k, v in optional.items() if v is not None})
         return out
+
+
+def _type_ref(value: Any) -> str | None:
+    if value is None or isinstance(value, str):
+        return value
+    from osmo.tasktypes.registry import ref_of
+
+    return ref_of(value)
 
 
 def _env_value(value: Any) -> str:
@@ -136,14 +165,16 @@ class Workflow:
         self._resources[name] = {k: v for k, v in values.items() if v is not None}
         return self
 
-    def task(self, name: str, command: Sequence[str] | str, *, args: Sequence[str] = (),
-             image: str | None = None, environment: Mapping[str, Any] | None = None,
+    def task(self, name: str, command: Sequence[str] | str | None = None, *,
+             args: Sequence[str] = (), image: str | None = None,
+             environment: Mapping[str, Any] | None = None,
              files: Mapping[str, str | bytes] | None = None,
              inputs: Sequence[str | InputSpec] = (), resource: str | None = None,
-             exit_actions: Mapping[str, Codes] | None = None, cache: bool = True) -> Workflow:
+             exit_actions: Mapping[str, Codes] | None = None, cache: bool = True,
+             type: Any = None, params: Mapping[str, Any] | None = None) -> Workflow:
         """Add a bare task (its own one-task group). Arguments as for :class:`Task`."""
         self._tasks.append(Task(name, command, args, image, environment, files, inputs,
-                                resource, exit_actions, cache))
+                                resource, exit_actions, cache, type=type, params=params))
         return self
 
     def group(self, name: str, tasks: Sequence[Task], barrier: bool = True,

@@ -18,6 +18,7 @@ from osmo.spec import template, yamlnodes
 from osmo.spec.model import WorkflowSpec
 from osmo.spec.parse import parse_document
 from osmo.spec.reader import Ctx
+from osmo.spec.typed import TypeResolver, apply_resolved, check_types
 from osmo.spec.validate import validate
 
 __all__ = ["load_spec", "render_spec", "spec_from_dict"]
@@ -83,7 +84,8 @@ def _with_env(spec: WorkflowSpec, env: dict[str, str]) -> WorkflowSpec:
     return dataclasses.replace(spec, groups=groups)
 
 
-def _build(text: str, file: str, base_dir: Path, env: dict[str, str]) -> WorkflowSpec:
+def _build(text: str, file: str, base_dir: Path, env: dict[str, str],
+           types: TypeResolver | None) -> WorkflowSpec:
     """Rendered YAML text → validated model (raises SpecError with every problem)."""
     root, diags = yamlnodes.load_nodes(text, file)
     if root is None and diags:
@@ -91,6 +93,8 @@ def _build(text: str, file: str, base_dir: Path, env: dict[str, str]) -> Workflo
     ctx = Ctx(file, diags)
     parsed = parse_document(ctx, root, base_dir)
     if parsed is not None:
+        if types is not None:
+            parsed.spec = apply_resolved(parsed.spec, check_types(ctx, parsed, types))
         validate(ctx, parsed)
     if ctx.diags or parsed is None:
         raise SpecError(ctx.diags)
@@ -99,7 +103,8 @@ def _build(text: str, file: str, base_dir: Path, env: dict[str, str]) -> Workflo
 
 def load_spec(path: str | os.PathLike[str] | None = None, *, text: str | None = None,
               filename: str | None = None, set_values: Sequence[str] = (),
-              set_strings: Sequence[str] = (), set_env: Sequence[str] = ()) -> WorkflowSpec:
+              set_strings: Sequence[str] = (), set_env: Sequence[str] = (),
+              types: TypeResolver | None = None) -> WorkflowSpec:
     """Read, render, parse and validate a workflow spec.
 
     Args:
@@ -110,6 +115,9 @@ def load_spec(path: str | os.PathLike[str] | None = None, *, text: str | None = 
         set_values: ``NAME=VALUE`` template overrides (``--set``), cast to int, float or str.
         set_strings: ``NAME=VALUE`` template overrides kept as strings (``--set-string``).
         set_env: ``NAME=VALUE`` added to every task's environment (``--set-env``).
+        types: [ext] resolves ``type:`` names; when given, typed tasks are checked against
+            their types (params, resources) and get ``TaskSpec.resolved``. Without it,
+            ``type``/``params`` are not checked (see ``osmo.spec.typed``).
 
     Returns:
         the validated model.
@@ -121,7 +129,7 @@ def load_spec(path: str | os.PathLike[str] | None = None, *, text: str | None = 
     source, file, base_dir = _source(path, text, filename)
     env, env_diags = _env_items(file, set_env)
     rendered = _render(source, file, set_values, set_strings, env_diags)
-    return _build(rendered, file, base_dir, env)
+    return _build(rendered, file, base_dir, env, types)
 
 
 def render_spec(path: str | os.PathLike[str] | None = None, *, text: str | None = None,
@@ -136,8 +144,11 @@ def render_spec(path: str | os.PathLike[str] | None = None, *, text: str | None 
     return _render(source, file, set_values, set_strings, [])
 
 
-def spec_from_dict(d: dict[str, Any], *, filename: str = "<stored>") -> WorkflowSpec:
+def spec_from_dict(d: dict[str, Any], *, filename: str = "<stored>",
+                   types: TypeResolver | None = None) -> WorkflowSpec:
     """The model from plain data such as ``spec_to_dict`` returns (no templating).
+
+    ``types`` is as for :func:`load_spec`.
 
     Raises:
         SpecError: if the data is not a valid spec.
@@ -148,4 +159,4 @@ def spec_from_dict(d: dict[str, Any], *, filename: str = "<stored>") -> Workflow
         text = yamlnodes.dump(d)
     except TypeError as exc:
         raise SpecError([Diagnostic(filename, 0, 0, str(exc))]) from None
-    return _build(text, filename, Path(), {})
+    return _build(text, filename, Path(), {}, types)

@@ -26,6 +26,7 @@ __all__ = [
     "InputSpec",
     "OutputSpec",
     "Pos",
+    "ResolvedType",
     "ResourceSpec",
     "TaskSpec",
     "Timeouts",
@@ -143,6 +144,38 @@ class OutputSpec:
 
 
 @dataclass(frozen=True)
+class ResolvedType:
+    """[ext] What submit learned of a typed task's type; derived, never written in YAML.
+
+    Attributes:
+        version: the type's version (lineage shows ``type@version``; part of the cache key).
+        resources: the type's default resources (used when the task names no resource other
+            than ``default``), or None when it declares none.
+        paths: folders a custom (``module:attr``) type is imported from (the workflow file's
+            folder); the runner puts them on ``PYTHONPATH``.
+    """
+
+    version: str
+    resources: ResourceSpec | None = None
+    paths: tuple[str, ...] = ()
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain data for the store (``from_dict`` reads it back)."""
+        res = self.resources
+        return {"version": self.version, "paths": list(self.paths),
+                "resources": None if res is None else {
+                    "cpu": res.cpu, "gpu": res.gpu, "memory": res.memory,
+                    "storage": res.storage, "platform": res.platform}}
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> ResolvedType:
+        """Inverse of :meth:`to_dict`."""
+        res = data.get("resources")
+        return cls(str(data["version"]), None if res is None else ResourceSpec(**res),
+                   tuple(data.get("paths") or ()))
+
+
+@dataclass(frozen=True)
 class TaskSpec:
     """One task. Either ``command`` (a process) or [ext] ``type`` (a plugin task type)."""
 
@@ -163,6 +196,7 @@ class TaskSpec:
     params: dict[str, Any] = field(default_factory=dict)  # [ext]
     cache: bool = True  # [ext]
     pos: Pos | None = _pos()
+    resolved: ResolvedType | None = field(default=None, compare=False, repr=False)  # [ext]
 
     def upstream_tasks(self) -> tuple[str, ...]:
         """Names of same-workflow tasks this task takes as inputs, in list order."""
@@ -231,5 +265,11 @@ class WorkflowSpec:
         return {t.name: t for t in self.all_tasks()}
 
     def resource_for(self, task: TaskSpec) -> ResourceSpec:
-        """The resource spec a task requests (an empty spec if the workflow defines none)."""
+        """The resource spec a task requests (an empty spec if the workflow defines none).
+
+        Precedence: a ``resource:`` other than ``default`` named by the task, then its type's
+        declared resources, then the workflow's ``default`` entry, then nothing specific.
+        """
+        if task.resource == DEFAULT_RESOURCE and task.resolved and task.resolved.resources:
+            return task.resolved.resources
         return self.resources.get(task.resource, ResourceSpec())

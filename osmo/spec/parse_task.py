@@ -131,6 +131,7 @@ def _command(ctx: Ctx, fields: dict[str, Node], node: Node, where: str) -> tuple
         return ()
     if has_type:
         ctx.error(fields["command"], f"{where} has both 'command' and 'type'; keep one")
+        return ()
     value = fields["command"]
     if isinstance(value, Scalar) and isinstance(value.value, str):
         words = ", ".join(value.value.split()[:3]) or "python, run.py"
@@ -164,6 +165,7 @@ def parse_task(ctx: Ctx, node: Node, base_dir: Path) -> TaskSpec | None:
     for key in fields:
         if f"task.{key}" in UNSUPPORTED:
             ctx.error(fields[key], f"{where}: {UNSUPPORTED['task.' + key]}")
+    _typed_fields(ctx, fields, where)
     name = _optional(ctx, fields, "name", read_name, "task name")
     f = fields  # short alias: the constructor call below reads one field per line
     return TaskSpec(
@@ -186,6 +188,15 @@ def parse_task(ctx: Ctx, node: Node, base_dir: Path) -> TaskSpec | None:
         cache=_optional(ctx, f, "cache", read_bool, f"'cache' of {where}") is not False,
         pos=node.pos,
     )
+
+
+def _typed_fields(ctx: Ctx, fields: dict[str, Node], where: str) -> None:
+    """``params`` belong to a ``type``; ``args`` to a ``command``."""
+    if "params" in fields and "type" not in fields:
+        ctx.error(fields["params"], f"{where} has 'params' but no 'type'; params configure a "
+                                    "task type (type: NAME), a command takes 'args'")
+    if "args" in fields and "type" in fields:
+        ctx.error(fields["args"], f"{where} has 'args' and 'type'; a task type takes 'params'")
 
 
 def _params(ctx: Ctx, node: Node | None, where: str) -> dict[str, Any]:

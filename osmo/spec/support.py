@@ -15,6 +15,4 @@ UNSUPPORTED: dict[str, str] = {
     "task.volumeMounts": f"'volumeMounts' {_PLATFORM}",
     "task.privileged": f"'privileged' {_PLATFORM}",
     "task.hostNetwork": f"'hostNetwork' {_PLATFORM}",
-    "task.type": "plugin task types ('type') are not supported yet; use 'command' instead",
-    "task.params": "'params' (of plugin task types) are not supported yet; remove them",
 }

@@ -5,7 +5,8 @@ Rules (documented for users):
 - Task and group names share one namespace, unique ignoring case and treating ``-``/``_`` as
   equal. In the bare-tasks form a task's one-task group shares its name, which is fine.
 - Resources: if ``workflow.resources`` is written, a task without ``resource:`` uses
-  ``default``, and a missing ``default`` entry is an error at that task; a ``resource:``
+  ``default``, and a missing ``default`` entry is an error at that task (unless its task
+  type declares resources, which then apply; see ``WorkflowSpec.resource_for``); a ``resource:``
   naming an unknown entry is an error. Without ``workflow.resources`` tasks request nothing
   specific (``ResourceSpec()``: the pool's defaults apply), and only ``resource: default``
   may be written.
@@ -85,7 +86,7 @@ def _resources(ctx: Ctx, parsed: Parsed) -> None:
         elif task.resource not in defined and explicit:
             ctx.error(_field_pos(node, "resource"), f"resource '{task.resource}' of {where} is "
                       f"not in 'workflow.resources'{did_you_mean(task.resource, defined)}")
-        elif task.resource not in defined:
+        elif task.resource not in defined and not (task.resolved and task.resolved.resources):
             ctx.error(node, f"{where} has no 'resource:' and 'workflow.resources' has no "
                             "'default' entry; add 'resource: NAME' or a 'default' resource")
 

@@ -44,6 +44,9 @@ renamed to ``output`` (atomic) and the attempt folder is fsynced; the output ref
 absolute path of ``output``. A failed or killed attempt's ``output.partial`` stays where
 nobody references it.
 
+Typed tasks (``type:``) run ``python -m osmo.tasktypes.runner <attempt>/task.json``; the
+context file is written here (see ``osmo.tasktypes.launch`` for its format).
+
 This module does file-system work only; it spawns nothing and reports nothing.
 """
 
@@ -65,6 +68,7 @@ from osmo.scheduler.types import PrepareAttempt
 from osmo.spec.model import InputSpec, TaskSpec
 from osmo.spec.tokens import substitute
 from osmo.worker.secrets import Secrets, mounts, secret_env, secret_values
+from osmo.tasktypes import launch
 
 __all__ = ["AttemptDirs", "Launch", "PrepareError", "prepare", "promote", "remove_secret_files"]
 
@@ -153,7 +157,7 @@ def prepare(
             cannot be written (the message names the path).
         SecretError: a credential the task names is not in ``secrets`` or lacks a key.
     """
-    if not task.command:
+    if not task.command and not task.type:
         raise PrepareError(f"task '{task.name}' has no command to run")
     secrets = secrets or {}
     mounted = mounts(task, secrets)
@@ -169,10 +173,15 @@ def prepare(
     env.update({key: text(str(value)) for key, value in task.environment.items()})
     env.update(secret_env(task, secrets))
     env.update(_osmo_env(dirs, cmd))
+    if task.type:  # a typed task: the runner reads its context file (osmo.tasktypes.launch)
+        argv = launch.runner_argv(dirs.root / launch.CONTEXT_FILE)
+        env.update(launch.runner_env(task, env))
     try:
         _make_folders(dirs, with_files=bool(task.files or mounted))
         _write_files(mapping, task, text)
         written = _write_mounts(mapping, mounted)
+        if task.type:
+            _write_context(dirs, cmd, task)
     except OSError as exc:
         raise PrepareError(f"cannot prepare {exc.filename or dirs.root}: {exc.strerror}") from exc
     return Launch(argv, dirs.work, env, tuple(secret_values(task, secrets)), written)
@@ -206,6 +215,19 @@ def promote(dirs: AttemptDirs) -> str:
 
 
 # ---------------------------------------------------------------- helpers
+
+
+def _write_context(dirs: AttemptDirs, cmd: PrepareAttempt, task: TaskSpec) -> None:
+    """The typed task's context file; its inputs resolve like ``{{input:N}}``."""
+    inputs = []
+    for index, spec in enumerate(task.inputs):
+        ref = _input_ref(index, spec, cmd.inputs)
+        if ref is None:
+            raise PrepareError(f"task '{task.name}': input {index} is not available")
+        inputs.append((launch.input_name(spec), ref))
+    launch.write_context(dirs.root / launch.CONTEXT_FILE, task=task, inputs=inputs,
+                         output=dirs.output_partial, workdir=dirs.work,
+                         workflow_id=cmd.workflow_id, retry=cmd.retry, attempt_id=cmd.attempt_id)
 
 
 def _osmo_env(dirs: AttemptDirs, cmd: PrepareAttempt) -> dict[str, str]:

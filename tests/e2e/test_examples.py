@@ -5,6 +5,7 @@ from __future__ import annotations
 import re
 import subprocess
 import sys
+from pathlib import Path
 
 from tests.conftest import REPO, Osmo
 
@@ -71,3 +72,28 @@ def test_readme_lineage_walkthrough(shared_osmo: Osmo, tmp_path_factory) -> None
     # The producer is this run, or an earlier identical one whose outputs it reused (cache).
     assert lines[0].startswith("report [hello-pipeline-")
     assert any("generate [" in ln for ln in lines) and any("square [" in ln for ln in lines)
+
+
+def test_readme_custom_task_types(shared_osmo: Osmo, tmp_path_factory) -> None:  # type: ignore[no-untyped-def]
+    readme = (REPO / "README.md").read_text()
+    section = re.search(r"### Custom task types\n(.*?)### Where did this file come from\?",
+                        readme, re.S)
+    assert section is not None
+    text = section.group(1)
+    project = tmp_path_factory.mktemp("custom-types")
+    (project / "tasks.py").write_text(re.search(r"```py\n(.*?)```", text, re.S).group(1))  # type: ignore[union-attr]
+    (project / "workflow.yaml").write_text(re.search(r"```yaml\n(.*?)```", text, re.S).group(1))  # type: ignore[union-attr]
+    commands = re.search(r"```sh\n(.*?)```", text, re.S).group(1)  # type: ignore[union-attr]
+    wf_id, out = "", ""
+    for line in commands.splitlines():
+        argv = [a.replace("numbers-1", wf_id or "numbers-1") for a in line.split("#")[0].split()]
+        proc = subprocess.run([sys.executable, "-m", "osmo", *argv[1:]], env=shared_osmo.env,
+                              cwd=project, capture_output=True, text=True, timeout=180)
+        assert proc.returncode == 0, (argv, proc.stdout, proc.stderr)
+        if argv[1] == "submit":
+            wf_id = proc.stdout.splitlines()[0].split(" - ")[1]
+        out = proc.stdout
+    assert out.startswith(f"numbers [{wf_id}] → sha256:")
+    assert out.splitlines()[0].endswith("exit 0: tasks:numbers@1")
+    info = shared_osmo.query(wf_id)
+    assert (Path(info["tasks"][0]["output"]) / "numbers.txt").read_text() == "1\n2\n3\n"

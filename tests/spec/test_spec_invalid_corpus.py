@@ -1,7 +1,9 @@
 """Every file in ``invalid/`` is rejected with exactly the diagnostics its header declares.
 
 A header line ``# expect: LINE:COL: text`` asserts one diagnostic at that position whose message
-contains ``text``. The number of diagnostics must equal the number of expectations.
+contains ``text``. The number of diagnostics must equal the number of expectations. Task
+types resolve as in the CLI: custom ``module:attr`` types from the file's folder
+(``corpus_types.py``).
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ import pytest
 
 from osmo.errors import SpecError
 from osmo.spec import load_spec
+from osmo.tasktypes.registry import Resolver
 
 CORPUS = Path(__file__).parent / "invalid"
 FILES = sorted(CORPUS.glob("*.yaml"))
@@ -37,7 +40,7 @@ def test_invalid_spec(path: Path) -> None:
     expected = _expectations(path)
     assert expected, f"{path.name} declares no '# expect:' lines"
     with pytest.raises(SpecError) as info:
-        load_spec(path)
+        load_spec(path, types=Resolver([str(path.parent)]))  # as the CLI resolves types
     got = info.value.diagnostics
     shown = "\n".join(str(d) for d in got)
     for line, col, text in expected:

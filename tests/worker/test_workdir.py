@@ -3,13 +3,15 @@
 from __future__ import annotations
 
 import base64
+import json
 import os
+import sys
 from pathlib import Path
 
 import pytest
 
 from osmo.scheduler.types import PrepareAttempt
-from osmo.spec.model import FileSpec, InputSpec, TaskSpec
+from osmo.spec.model import FileSpec, InputSpec, ResolvedType, TaskSpec
 from osmo.errors import OsmoError
 from osmo.worker.workdir import AttemptDirs, PrepareError, prepare, promote, remove_secret_files
 
@@ -182,7 +184,22 @@ def test_absolute_dotdot_stays_inside_files_root(tmp_path: Path) -> None:
 
 def test_task_without_command_fails(tmp_path: Path) -> None:
     with pytest.raises(PrepareError, match="no command"):
-        prep(tmp_path, TaskSpec(name="t", type="sim"))
+        prep(tmp_path, TaskSpec(name="t"))
+
+
+def test_typed_task_runs_the_runner_on_its_context_file(tmp_path: Path) -> None:
+    task = TaskSpec(name="t", type="mod:fn", params={"n": 1}, inputs=(InputSpec(task="up"),),
+                    resolved=ResolvedType("3", paths=("/src",)))
+    cmd = command("t", inputs={"up": "/runs/up/output"})
+    dirs, launch = prep(tmp_path, task, cmd, {"PYTHONPATH": "/old"})
+    context = dirs.root / "task.json"
+    assert launch.argv == (sys.executable, "-m", "osmo.tasktypes.runner", str(context))
+    assert launch.env["PYTHONPATH"] == f"/src{os.pathsep}/old"
+    data = json.loads(context.read_text())
+    assert (data["type"], data["type_version"], data["params"], data["paths"]) == (
+        "mod:fn", "3", {"n": 1}, ["/src"])
+    assert data["inputs"] == [{"name": "up", "path": "/runs/up/output"}]
+    assert data["output"] == str(dirs.output_partial) and data["attempt_id"] == cmd.attempt_id
 
 
 @pytest.mark.parametrize("name", ["a/b", "..", ""])

@@ -1,0 +1,309 @@
+"""Finding task types by the name a spec writes, lazily, and listing the installed ones.
+
+A task's ``type:`` is one of:
+
+- an **installed type**: the name of an entry point of the ``osmo.task_types`` group
+  (``"sim.rollout" = "osmo_plugins.sim.rollout:ROLLOUT [sim]"`` in a plugin's
+  ``pyproject.toml``). The optional ``[extra]`` after the object reference is the standard
+  entry-point syntax for extras; osmo reads it to say ``pip install "osmo[sim]"`` when the
+  type's dependencies are missing (without it, a small built-in table of name prefixes is
+  used: ``sim.`` → ``sim``, ``lerobot.`` → ``learn``, ``viz.`` → ``viz``);
+- a **custom type**: ``"module:attr"`` (``mypkg.tasks:rollout``). The module is imported
+  with the given search folders first on ``sys.path`` (for a YAML file, its folder).
+
+The object found may be a :class:`~osmo.tasktypes.api.TaskType` instance (a function wrapped
+by ``@task_type`` is one) or a class with the same attributes, which is instantiated without
+arguments. Nothing is imported until a name is resolved; ``import osmo`` never loads plugins.
+
+Custom modules are imported *in isolation* (:class:`Resolver`): the search folders are on
+``sys.path`` only during the import, and the modules loaded from them are dropped afterwards,
+so a long-running server can resolve ``tasks:x`` for two projects that both have a
+``tasks.py``, and an edited module is read afresh at the next submit.
+"""
+
+from __future__ import annotations
+
+import importlib
+import importlib.metadata
+import inspect
+import os
+import sys
+import threading
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from typing import Any
+
+from osmo.errors import UsageError
+from osmo.tasktypes.api import Param, TaskType
+from osmo.tasktypes.params import schema_problems
+
+__all__ = ["GROUP", "Resolver", "TaskTypeError", "TypeEntry", "is_custom", "list_types",
+           "ref_of", "resolve", "shape_problems"]
+
+GROUP = "osmo.task_types"
+"""The entry-point group plugins register their task types in."""
+
+_EXTRA_BY_PREFIX = {"sim": "sim", "lerobot": "learn", "viz": "viz"}
+_IMPORT_LOCK = threading.RLock()
+
+
+class TaskTypeError(UsageError):
+    """A task type cannot be found, imported, or does not have the shape of a task type."""
+
+
+@dataclass(frozen=True)
+class TypeEntry:
+    """One installed task type as ``osmo plugins list`` shows it.
+
+    Attributes:
+        name: the entry-point name (what ``type:`` says).
+        ref: the object reference (``module:attr``).
+        version, description, extra: from the type (None/"" when it could not be loaded).
+        params: its parameter schema (empty when broken).
+        error: why it could not be loaded (None when it loads), with a pip hint if known.
+        distribution: the installed distribution that registers it.
+    """
+
+    name: str
+    ref: str
+    version: str | None = None
+    description: str = ""
+    extra: str | None = None
+    params: Mapping[str, Param] = field(default_factory=dict)
+    error: str | None = None
+    distribution: str | None = None
+
+
+def is_custom(ref: str) -> bool:
+    """True for a ``module:attr`` reference, False for an installed type's name."""
+    return ":" in ref
+
+
+def _entry_points() -> dict[str, importlib.metadata.EntryPoint]:
+    found: dict[str, importlib.metadata.EntryPoint] = {}
+    for ep in importlib.metadata.entry_points(group=GROUP):
+        found.setdefault(ep.name, ep)  # the first distribution on sys.path wins
+    return found
+
+
+def _extra_of(ep: importlib.metadata.EntryPoint) -> str | None:
+    if ep.extras:
+        return ep.extras[0]
+    return _EXTRA_BY_PREFIX.get(ep.name.split(".", 1)[0])
+
+
+def _import_failure(what: str, module: str, exc: BaseException, extra: str | None) -> str:
+    if isinstance(exc, ModuleNotFoundError) and exc.name and not (
+            module == exc.name or module.startswith(exc.name + ".")):
+        hint = f"; install it with: pip install \"osmo[{extra}]\"" if extra else ""
+        return f"{what} needs module '{exc.name}', which is not installed{hint}"
+    if isinstance(exc, ModuleNotFoundError):
+        return f"{what}: cannot import module '{module}' ({exc})"
+    return f"{what}: importing '{module}' failed: {type(exc).__name__}: {exc}"
+
+
+def shape_problems(obj: Any) -> list[str]:
+    """What keeps ``obj`` from being a task type (empty when it has the declared shape)."""
+    problems = []
+    for attr, kinds in (("name", str), ("version", str), ("description", str)):
+        if not isinstance(getattr(obj, attr, None), kinds):
+            problems.append(f"'{attr}' must be a string, got {getattr(obj, attr, None)!r}")
+    if not isinstance(getattr(obj, "resources", None), Mapping):
+        problems.append("'resources' must be a mapping like {'cpu': 2}")
+    extra = getattr(obj, "extra", None)
+    if extra is not None and not isinstance(extra, str):
+        problems.append(f"'extra' must be a string or None, got {extra!r}")
+    problems += schema_problems(getattr(obj, "params", None))
+    run = getattr(obj, "run", None)
+    if not callable(run):
+        problems.append("'run' must be a method run(ctx)")
+    else:
+        try:
+            inspect.signature(run).bind(object())
+        except TypeError:
+            problems.append(f"'run' must take exactly one argument (ctx); it is run"
+                            f"{inspect.signature(run)}")
+        except ValueError:  # no signature (builtin): trust it
+            pass
+    return problems
+
+
+def _checked(obj: Any, what: str) -> TaskType:
+    if inspect.isclass(obj):
+        try:
+            obj = obj()
+        except Exception as exc:
+            raise TaskTypeError(f"{what}: cannot create it with no arguments: "
+                                f"{type(exc).__name__}: {exc}") from exc
+    problems = shape_problems(obj)
+    if problems:
+        raise TaskTypeError(f"{what} is not a task type: " + "; ".join(problems))
+    return obj  # type: ignore[no-any-return]
+
+
+@contextmanager
+def _search(paths: Sequence[str]) -> Iterator[None]:
+    """Import with ``paths`` first on sys.path; forget the modules this import loaded from
+    them afterwards (modules imported earlier, e.g. by the user's own script, stay)."""
+    if not paths:
+        yield
+        return
+    roots = tuple(os.path.join(os.path.abspath(p), "") for p in paths)
+    with _IMPORT_LOCK:
+        saved, before = list(sys.path), set(sys.modules)
+        sys.path[:0] = [os.path.abspath(p) for p in paths]
+        importlib.invalidate_caches()
+        try:
+            yield
+        finally:
+            sys.path[:] = saved
+            for name in set(sys.modules) - before:
+                if str(getattr(sys.modules[name], "__file__", None) or "").startswith(roots):
+                    del sys.modules[name]
+
+
+def _module_root(module: Any) -> str | None:
+    """The folder that must be on sys.path to import ``module`` (None if installed)."""
+    file = getattr(module, "__file__", None)
+    if not file:
+        return None
+    root = os.path.dirname(os.path.abspath(file))
+    depth = module.__name__.count(".") + (1 if os.path.basename(file) == "__init__.py" else 0)
+    for _ in range(depth):
+        root = os.path.dirname(root)
+    parts = root.split(os.sep)
+    return None if "site-packages" in parts or "dist-packages" in parts else root
+
+
+def _load_custom(ref: str, paths: Sequence[str]) -> tuple[TaskType, str | None]:
+    module_name, _, attr = ref.partition(":")
+    what = f"task type '{ref}'"
+    if not module_name or not attr:
+        raise TaskTypeError(f"{what}: write a custom type as 'module:attr' (e.g. tasks:rollout)")
+    with _search(paths):
+        try:
+            module = importlib.import_module(module_name)
+        except Exception as exc:
+            where = f" (searched {', '.join(paths)} first)" if paths else ""
+            raise TaskTypeError(_import_failure(what, module_name, exc, None) + where) from exc
+        obj: Any = module
+        for part in attr.split("."):
+            if not hasattr(obj, part):
+                from osmo.spec.reader import did_you_mean
+
+                names = [n for n in dir(obj) if not n.startswith("_")]
+                raise TaskTypeError(f"{what}: module '{module_name}' has no attribute '{attr}'"
+                                    f"{did_you_mean(part, names)}")
+            obj = getattr(obj, part)
+        return _checked(obj, what), _module_root(module)
+
+
+def _load_installed(name: str) -> TaskType:
+    from osmo.spec.reader import did_you_mean
+
+    eps = _entry_points()
+    ep = eps.get(name)
+    if ep is None:
+        known = ", ".join(sorted(eps)) or "none are installed"
+        raise TaskTypeError(f"unknown task type '{name}'{did_you_mean(name, eps)}; installed "
+                            f"types: {known}. A custom type is written 'module:attr'")
+    try:
+        obj = ep.load()
+    except Exception as exc:
+        raise TaskTypeError(_import_failure(f"task type '{name}'", ep.module, exc,
+                                            _extra_of(ep))) from exc
+    return _checked(obj, f"task type '{name}' ({ep.value})")
+
+
+def resolve(ref: str, *, paths: Sequence[str] = ()) -> TaskType:
+    """The task type named ``ref`` (an installed name or ``module:attr``).
+
+    Args:
+        ref: what a spec's ``type:`` says.
+        paths: folders searched first for a custom type's module.
+
+    Raises:
+        TaskTypeError: unknown, not importable (with the ``pip install`` hint when an extra
+            is known), or not shaped like a task type.
+    """
+    if not isinstance(ref, str) or not ref.strip():
+        raise TaskTypeError("a task type is named by a non-empty string")
+    return _load_custom(ref, paths)[0] if is_custom(ref) else _load_installed(ref)
+
+
+class Resolver:
+    """Resolves types for one validation (a spec, a submission), caching each name.
+
+    Implements ``osmo.spec.typed.TypeResolver``.
+
+    Args:
+        paths: folders searched first for custom (``module:attr``) types.
+    """
+
+    def __init__(self, paths: Sequence[str] = ()) -> None:
+        self.paths = tuple(os.path.abspath(p) for p in paths)
+        self._cache: dict[str, tuple[TaskType, str | None] | TaskTypeError] = {}
+
+    def _lookup(self, ref: str) -> tuple[TaskType, str | None]:
+        if ref not in self._cache:
+            try:
+                if not isinstance(ref, str) or not ref.strip():
+                    raise TaskTypeError("a task type is named by a non-empty string")
+                self._cache[ref] = (_load_custom(ref, self.paths) if is_custom(ref)
+                                    else (_load_installed(ref), None))
+            except TaskTypeError as exc:
+                self._cache[ref] = exc
+        found = self._cache[ref]
+        if isinstance(found, TaskTypeError):
+            raise found
+        return found
+
+    def resolve(self, ref: str) -> TaskType:
+        """As :func:`resolve`, with this resolver's paths; raises :class:`TaskTypeError`."""
+        return self._lookup(ref)[0]
+
+    def paths_for(self, ref: str) -> tuple[str, ...]:
+        """The folder a resolved custom type's module is imported from (empty for an
+        installed type or a module installed in site-packages)."""
+        root = self._lookup(ref)[1]
+        return (root,) if root else ()
+
+
+def list_types() -> list[TypeEntry]:
+    """Every installed task type, sorted by name; broken ones carry their import error."""
+    out = []
+    for name, ep in sorted(_entry_points().items()):
+        dist = ep.dist.name if ep.dist is not None else None
+        try:
+            obj = _load_installed(name)
+        except TaskTypeError as exc:
+            out.append(TypeEntry(name, ep.value, extra=_extra_of(ep), error=str(exc),
+                                 distribution=dist))
+            continue
+        out.append(TypeEntry(name, ep.value, obj.version, obj.description, obj.extra,
+                             dict(obj.params), None, dist))
+    return out
+
+
+def ref_of(obj: Any) -> str:
+    """The ``module:attr`` reference of a task-type object (for ``Workflow.task(type=obj)``).
+
+    Raises:
+        TaskTypeError: the object is not found in its module's globals, or lives in
+            ``__main__`` (a worker cannot import the script being run).
+    """
+    fn = getattr(obj, "fn", None)
+    module_name = getattr(fn, "__module__", None) or getattr(obj, "__module__", None)
+    if module_name is None and not inspect.isclass(obj):
+        module_name = type(obj).__module__
+    if module_name == "__main__":
+        raise TaskTypeError("task types defined in the script being run cannot be imported by "
+                            "the worker; move them into a module next to it (e.g. tasks.py) "
+                            "and import them from there")
+    module = sys.modules.get(module_name or "")
+    for attr, value in vars(module).items() if module is not None else ():
+        if value is obj:
+            return f"{module_name}:{attr}"
+    raise TaskTypeError(f"cannot find {obj!r} in its module '{module_name}'; pass the type as "
+                        "a 'module:attr' string")

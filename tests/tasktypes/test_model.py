@@ -1,0 +1,61 @@
+"""Typed tasks in the model: the builder, resource precedence and the cache key."""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+from pathlib import Path
+
+import osmo
+from osmo.server.cache import fingerprint
+from osmo.spec import ResolvedType, ResourceSpec, load_spec, spec_from_dict
+from osmo.tasktypes.registry import Resolver
+from tests.conftest import write
+
+TYPES = '''
+from osmo import Param, task_type
+
+@task_type(version="2", params={"n": Param(int)}, resources={"cpu": 3, "memory": "1Gi"})
+def heavy(ctx):
+    pass
+'''
+
+
+def test_builder_takes_a_type_object_or_name(on_path: Path) -> None:
+    write(on_path / "btypes.py", TYPES)
+    import btypes  # type: ignore[import-not-found]
+
+    wf = osmo.Workflow("typed")
+    wf.task("a", type=btypes.heavy, params={"n": 1})
+    wf.task("b", type="btypes:heavy", params={"n": 2}, inputs=["a"])
+    assert wf.to_dict()["workflow"]["tasks"][0] == {
+        "name": "a", "type": "btypes:heavy", "params": {"n": 1}}
+    spec = spec_from_dict(wf.to_dict(), types=Resolver())
+    assert spec.task("a").resolved == ResolvedType(
+        "2", ResourceSpec(cpu=3, memory=1 << 30), (str(on_path),))
+    assert spec == wf.build()  # resolution is derived data, outside equality
+
+
+def test_type_resources_apply_unless_a_resource_is_named(tmp_path: Path) -> None:
+    spec_file = write(tmp_path / "wf.yaml", """
+workflow:
+  name: res
+  resources:
+    small: {cpu: 1}
+  tasks:
+  - {name: a, type: "rtypes:heavy", params: {n: 1}}
+  - {name: b, type: "rtypes:heavy", params: {n: 1}, resource: small}
+""")
+    write(tmp_path / "rtypes.py", TYPES)
+    spec = load_spec(spec_file, types=Resolver([str(tmp_path)]))
+    assert spec.resource_for(spec.task("a")) == ResourceSpec(cpu=3, memory=1 << 30)
+    assert spec.resource_for(spec.task("b")).cpu == 1
+    assert "rtypes" not in sys.modules
+
+
+def test_fingerprint_changes_with_the_type_version() -> None:
+    task = osmo.spec.TaskSpec(name="a", type="x:y", params={"n": 1},
+                              resolved=ResolvedType("1"))
+    newer = dataclasses.replace(task, resolved=ResolvedType("2"))
+    assert fingerprint(task, []) != fingerprint(newer, [])
+    assert fingerprint(task, []) == fingerprint(dataclasses.replace(task), [])
