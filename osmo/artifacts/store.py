@@ -206,6 +206,64 @@ class ArtifactStore:
         finally:
             tmp.unlink(missing_ok=True)
 
+    # -- transfer ----------------------------------------------------------------------------
+
+    @property
+    def tmp(self) -> Path:
+        """Scratch folder for blobs being received (same filesystem; gc clears old files)."""
+        return self._tmp
+
+    def adopt(self, tmp: Path, digest: str) -> None:
+        """Publish ``tmp`` — complete, and already hashed to ``digest`` by the caller — as
+        that blob (fsynced, read-only, linked into place; an existing blob wins)."""
+        with open(tmp, "rb") as f:
+            os.fsync(f.fileno())
+        os.chmod(tmp, 0o444)
+        try:
+            link(str(tmp), self.path(digest))
+        finally:
+            tmp.unlink(missing_ok=True)
+
+    def adopt_link(self, src: Path, digest: str) -> bool:
+        """Hard-link another store's blob ``src`` (same host and filesystem) as ``digest``;
+        False when it cannot be linked (then the caller copies it)."""
+        try:
+            link(str(src), self.path(digest))
+        except OSError:
+            return False
+        return True
+
+    def link_tree(self, manifest: Manifest, dest: Path) -> None:
+        """Create folder ``dest`` holding the manifest's files as hard links of their blobs
+        (read-only, nothing copied; a copy, verified, where links are refused). Built beside
+        ``dest`` and renamed into place, so ``dest`` appears complete or not at all; an
+        existing ``dest`` is left as it is.
+
+        Raises:
+            ArtifactCorrupted: a blob is missing.
+        """
+        if dest.is_dir():
+            return
+        build = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", dir=dest.parent))
+        try:
+            for e in manifest.entries:
+                final = build / e.path
+                final.parent.mkdir(parents=True, exist_ok=True)
+                try:
+                    os.link(self.path(e.digest), final)
+                except FileNotFoundError:
+                    raise ArtifactCorrupted(e.digest, str(self.path(e.digest)), None) from None
+                except OSError:
+                    copy_verified(self.path(e.digest), e.digest, e.size, final)
+            os.chmod(build, 0o755)
+            try:
+                os.rename(build, dest)
+            except OSError:
+                if not dest.is_dir():
+                    raise
+        finally:
+            shutil.rmtree(build, ignore_errors=True)
+
     # -- materialize -------------------------------------------------------------------------
 
     def materialize(self, manifest: Manifest, dest: Path, *, only: str | None = None
