@@ -58,16 +58,17 @@ def load_values(path: Path) -> dict[str, Any]:
     return values
 
 
-def render(values: dict[str, Any] | None = None) -> Rendered:
-    """``helm template demo helm/osmo -n robots`` with ``values`` over the chart defaults.
+def render(values: dict[str, Any] | None = None, release: str = RELEASE,
+           namespace: str = NAMESPACE) -> Rendered:
+    """``helm template RELEASE helm/osmo -n NAMESPACE`` with ``values`` over the chart defaults.
 
     Raises:
         helm_python.HelmValuesError: the values break values.schema.json.
         helm_python.HelmRenderError: a template failed (e.g. a ``fail`` check in validate.yaml).
     """
     with helm.Chart.load(CHART) as chart:
-        manifests = chart.render(values=copy.deepcopy(values or {}), name=RELEASE,
-                                 namespace=NAMESPACE, is_install=True)
+        manifests = chart.render(values=copy.deepcopy(values or {}), name=release,
+                                 namespace=namespace, is_install=True)
     objects: list[dict[str, Any]] = []
     notes = ""
     for path, text in sorted(manifests.items()):

@@ -7,6 +7,8 @@ certificates), which ``helm template``/``install`` report and ``helm lint`` only
 
 from __future__ import annotations
 
+import json
+
 import helm_python as helm
 import pytest
 
@@ -73,3 +75,30 @@ BAD_COMBINATIONS = [
 def test_template_refuses_inconsistent_values(values: dict, message: str) -> None:
     with pytest.raises(helm.HelmRenderError, match=message):
         render(values)
+
+
+def _keys(values: dict, prefix: str = "") -> list[str]:
+    """Dotted key paths of values.yaml; resources and probe timings count as one value each."""
+    out = []
+    for key, value in values.items():
+        path = f"{prefix}{key}"
+        if isinstance(value, dict) and value and not path.endswith(("resources", "seccompProfile", "capabilities")) \
+                and ".probes." not in path:
+            out.extend(_keys(value, path + "."))
+        else:
+            out.append(path)
+    return out
+
+
+def test_chart_readme_documents_every_value() -> None:
+    from tests.helm.chart import CHART
+
+    readme = (CHART / "README.md").read_text()
+    values = load_values(CHART / "values.yaml")
+    missing = [k for k in _keys(values) if f"`{k}`" not in readme]
+    schema = json.loads((CHART / "values.schema.json").read_text())
+    pool_keys = schema["definitions"]["pool"]["properties"]
+    missing += [f"pools[].{k}" for k in pool_keys if f"| `{k}` |" not in readme]
+    assert missing == []
+    top = set(schema["properties"]) - {"global"}
+    assert top == set(values), "values.yaml and values.schema.json disagree on top-level keys"
