@@ -270,3 +270,10 @@ def test_notes_tell_how_to_reach_the_server(values: dict) -> None:
     notes = render(values).notes
     assert f"port-forward svc/{FULLNAME} 7447:7447" in notes
     assert "osmo --server tcp/127.0.0.1:7447" in notes
+
+
+def test_numeric_quantities_become_plain_numbers() -> None:
+    values = {"pools": [{"name": "p", "replicas": 1,
+                         "resources": {"limits": {"cpu": 0.5, "memory": 8589934592, "nvidia.com/gpu": 8}}}]}
+    args = container(workers(values)["p"], "worker")["args"]
+    assert (flag(args, "--cpus"), flag(args, "--memory"), flag(args, "--gpus")) == (["0.5"], ["8589934592"], ["8"])

@@ -232,6 +232,18 @@ exec:
 {{- if hasSuffix "m" $s -}}
 {{- divf (trimSuffix "m" $s | float64) 1000 -}}
 {{- else -}}
-{{- $s -}}
+{{- include "osmo.quantityString" . -}}
+{{- end -}}
+{{- end -}}
+
+{{/* A quantity as text: strings as written, whole numbers without an exponent (8589934592,
+not 8.589934592e+09), other numbers as they print. */}}
+{{- define "osmo.quantityString" -}}
+{{- if kindIs "string" . -}}
+{{- . -}}
+{{- else if eq (float64 .) (floor .) -}}
+{{- printf "%d" (int64 .) -}}
+{{- else -}}
+{{- toString . -}}
 {{- end -}}
 {{- end -}}
