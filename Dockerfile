@@ -1,0 +1,54 @@
+# syntax=docker/dockerfile:1
+# osmo container image: the server, workers and the CLI share it (ENTRYPOINT is `osmo`).
+#
+#   docker build -t osmo:0.1.0 .                                  # core only
+#   docker build --build-arg OSMO_EXTRAS=sim -t osmo:0.1.0-sim .  # + simulation task types
+#   docker build --build-arg OSMO_EXTRAS=all -t osmo:0.1.0-all .  # every extra (learn needs 3.12)
+#
+# Two stages: the builder installs osmo (and the chosen extras) into a virtualenv at /opt/osmo;
+# the runtime stage copies only that virtualenv onto a fresh slim base and runs as an unprivileged
+# user (uid 10001), so no compiler, pip cache or source tree ships in the image.
+
+ARG PYTHON_IMAGE=python:3.12-slim
+
+FROM ${PYTHON_IMAGE} AS builder
+# Comma-separated pip extras: empty = core; sim, learn, viz or all.
+ARG OSMO_EXTRAS=
+ENV PIP_NO_CACHE_DIR=1 \
+    PIP_DISABLE_PIP_VERSION_CHECK=1 \
+    PYTHONDONTWRITEBYTECODE=1
+RUN python -m venv /opt/osmo
+WORKDIR /src
+COPY pyproject.toml README.md ./
+COPY osmo ./osmo
+RUN if [ -n "${OSMO_EXTRAS}" ]; then spec="/src[${OSMO_EXTRAS}]"; else spec="/src"; fi \
+ && /opt/osmo/bin/pip install "${spec}" \
+ && /opt/osmo/bin/osmo --help >/dev/null
+
+FROM ${PYTHON_IMAGE} AS runtime
+ARG OSMO_UID=10001
+# Extra Debian packages for task types that need them (e.g. libegl1 for MuJoCo offscreen
+# rendering with MUJOCO_GL=egl); empty by default.
+ARG OSMO_APT_PACKAGES=
+RUN if [ -n "${OSMO_APT_PACKAGES}" ]; then \
+      apt-get update \
+      && apt-get install -y --no-install-recommends ${OSMO_APT_PACKAGES} \
+      && rm -rf /var/lib/apt/lists/*; \
+    fi \
+ && groupadd --system --gid "${OSMO_UID}" osmo \
+ && useradd --system --uid "${OSMO_UID}" --gid "${OSMO_UID}" --home-dir /home/osmo \
+      --create-home --shell /usr/sbin/nologin osmo \
+ && mkdir -p /var/lib/osmo \
+ && chown "${OSMO_UID}:${OSMO_UID}" /var/lib/osmo
+COPY --from=builder /opt/osmo /opt/osmo
+ENV PATH=/opt/osmo/bin:${PATH} \
+    OSMO_HOME=/var/lib/osmo \
+    PYTHONUNBUFFERED=1 \
+    PYTHONDONTWRITEBYTECODE=1
+WORKDIR /var/lib/osmo
+# 7447: zenoh over TCP; 7448: zenoh over TLS (when the server is started with a tls/ endpoint).
+EXPOSE 7447 7448
+# A numeric user, so Kubernetes' runAsNonRoot can verify it without reading /etc/passwd.
+USER ${OSMO_UID}:${OSMO_UID}
+ENTRYPOINT ["osmo"]
+CMD ["--help"]

@@ -1,0 +1,249 @@
+{{/*
+Names, labels, endpoints and the pieces every osmo pod shares. File paths inside the pods:
+  /var/lib/osmo        OSMO_HOME (server: the PVC; workers: an emptyDir)
+  /etc/osmo/zenoh      the zenoh configs (ConfigMap): server.json5, client.json5, router.json5
+  /run/osmo/zenoh      client.json5 with the user/password filled in (auth.enabled only)
+  /etc/osmo/tls/server the server certificate Secret (ca.crt, tls.crt, tls.key)
+  /etc/osmo/tls/client the client certificate Secret (mtls only)
+  /etc/osmo/auth       the user/password Secret (user, password, dictionary)
+*/}}
+
+{{- define "osmo.name" -}}
+{{- default .Chart.Name .Values.nameOverride | trunc 63 | trimSuffix "-" -}}
+{{- end -}}
+
+{{- define "osmo.fullname" -}}
+{{- if .Values.fullnameOverride -}}
+{{- .Values.fullnameOverride | trunc 63 | trimSuffix "-" -}}
+{{- else -}}
+{{- $name := default .Chart.Name .Values.nameOverride -}}
+{{- if contains $name .Release.Name -}}
+{{- .Release.Name | trunc 63 | trimSuffix "-" -}}
+{{- else -}}
+{{- printf "%s-%s" .Release.Name $name | trunc 63 | trimSuffix "-" -}}
+{{- end -}}
+{{- end -}}
+{{- end -}}
+
+{{- define "osmo.chart" -}}
+{{- printf "%s-%s" .Chart.Name .Chart.Version | replace "+" "_" | trunc 63 | trimSuffix "-" -}}
+{{- end -}}
+
+{{/* Labels on every object. */}}
+{{- define "osmo.labels" -}}
+helm.sh/chart: {{ include "osmo.chart" . }}
+{{ include "osmo.selectorLabels" . }}
+app.kubernetes.io/version: {{ .Chart.AppVersion | quote }}
+app.kubernetes.io/managed-by: {{ .Release.Service }}
+{{- with .Values.commonLabels }}
+{{ toYaml . }}
+{{- end }}
+{{- end -}}
+
+{{- define "osmo.selectorLabels" -}}
+app.kubernetes.io/name: {{ include "osmo.name" . }}
+app.kubernetes.io/instance: {{ .Release.Name }}
+{{- end -}}
+
+{{- define "osmo.serviceAccountName" -}}
+{{- if .Values.serviceAccount.create -}}
+{{- default (include "osmo.fullname" .) .Values.serviceAccount.name -}}
+{{- else -}}
+{{- default "default" .Values.serviceAccount.name -}}
+{{- end -}}
+{{- end -}}
+
+{{- define "osmo.image" -}}
+{{- printf "%s:%s" .Values.image.repository (default .Chart.AppVersion .Values.image.tag) -}}
+{{- end -}}
+
+{{/* Secret names: the existing one when given, else the one this chart creates. */}}
+{{- define "osmo.tlsSecretName" -}}
+{{- default (printf "%s-tls" (include "osmo.fullname" .)) .Values.tls.existingSecret -}}
+{{- end -}}
+
+{{- define "osmo.tlsClientSecretName" -}}
+{{- default (printf "%s-tls-client" (include "osmo.fullname" .)) .Values.tls.client.existingSecret -}}
+{{- end -}}
+
+{{- define "osmo.authSecretName" -}}
+{{- default (printf "%s-auth" (include "osmo.fullname" .)) .Values.auth.existingSecret -}}
+{{- end -}}
+
+{{/* Is a zenoh config needed at all (TLS or user/password)? "true" or "". */}}
+{{- define "osmo.zenohConfigured" -}}
+{{- if or .Values.tls.enabled .Values.auth.enabled -}}true{{- end -}}
+{{- end -}}
+
+{{/* Where a client (worker, probe, server joining a router) reads its zenoh config. */}}
+{{- define "osmo.clientConfigPath" -}}
+{{- if .Values.auth.enabled -}}/run/osmo/zenoh/client.json5{{- else -}}/etc/osmo/zenoh/client.json5{{- end -}}
+{{- end -}}
+
+{{/* The endpoint workers and the server (router mode) dial: the Service, over TLS when enabled. */}}
+{{- define "osmo.connectEndpoint" -}}
+{{- if .Values.tls.enabled -}}
+{{- printf "tls/%s:%d" (include "osmo.fullname" .) (int .Values.service.tlsPort) -}}
+{{- else -}}
+{{- printf "tcp/%s:%d" (include "osmo.fullname" .) (int .Values.service.port) -}}
+{{- end -}}
+{{- end -}}
+
+{{/* Endpoints a listener (server, or router when enabled) binds, as a JSON list. */}}
+{{- define "osmo.listenEndpoints" -}}
+{{- $eps := list -}}
+{{- if .Values.server.plainTcp -}}
+{{- $eps = append $eps (printf "tcp/0.0.0.0:%d" (int .Values.service.port)) -}}
+{{- else -}}
+{{- $eps = append $eps (printf "tcp/127.0.0.1:%d" (int .Values.service.port)) -}}
+{{- end -}}
+{{- if .Values.tls.enabled -}}
+{{- $eps = append $eps (printf "tls/0.0.0.0:%d" (int .Values.service.tlsPort)) -}}
+{{- end -}}
+{{- toJson $eps -}}
+{{- end -}}
+
+{{/* zenoh settings of a listener: certificates to present, clients to check. JSON object. */}}
+{{- define "osmo.zenohListenerTransport" -}}
+{{- $t := dict -}}
+{{- if .Values.tls.enabled -}}
+{{- $tls := dict "listen_certificate" "/etc/osmo/tls/server/tls.crt" "listen_private_key" "/etc/osmo/tls/server/tls.key" -}}
+{{- if .Values.tls.mtls -}}
+{{- $_ := set $tls "root_ca_certificate" "/etc/osmo/tls/server/ca.crt" -}}
+{{- $_ := set $tls "enable_mtls" true -}}
+{{- end -}}
+{{- $_ := set $t "link" (dict "tls" $tls) -}}
+{{- end -}}
+{{- if .Values.auth.enabled -}}
+{{- $_ := set $t "auth" (dict "usrpwd" (dict "dictionary_file" "/etc/osmo/auth/dictionary")) -}}
+{{- end -}}
+{{- toJson $t -}}
+{{- end -}}
+
+{{/* zenoh settings of a client: the CA to trust, the certificate to present (mtls). The
+user/password are filled in at pod start from the auth Secret (see render-client-config.py). */}}
+{{- define "osmo.zenohClientTransport" -}}
+{{- $t := dict -}}
+{{- if .Values.tls.enabled -}}
+{{- $tls := dict "root_ca_certificate" "/etc/osmo/tls/server/ca.crt" -}}
+{{- if .Values.tls.mtls -}}
+{{- $_ := set $tls "connect_certificate" "/etc/osmo/tls/client/tls.crt" -}}
+{{- $_ := set $tls "connect_private_key" "/etc/osmo/tls/client/tls.key" -}}
+{{- end -}}
+{{- $_ := set $t "link" (dict "tls" $tls) -}}
+{{- end -}}
+{{- toJson $t -}}
+{{- end -}}
+
+{{/* Volumes carrying the zenoh config and the Secrets it points at. */}}
+{{- define "osmo.securityVolumes" -}}
+{{- if include "osmo.zenohConfigured" . }}
+- name: zenoh-config
+  configMap:
+    name: {{ include "osmo.fullname" . }}-zenoh
+{{- end }}
+{{- if .Values.tls.enabled }}
+- name: tls-server
+  secret:
+    secretName: {{ include "osmo.tlsSecretName" . }}
+    defaultMode: 0440
+{{- if .Values.tls.mtls }}
+- name: tls-client
+  secret:
+    secretName: {{ include "osmo.tlsClientSecretName" . }}
+    defaultMode: 0440
+{{- end }}
+{{- end }}
+{{- if .Values.auth.enabled }}
+- name: auth
+  secret:
+    secretName: {{ include "osmo.authSecretName" . }}
+    defaultMode: 0440
+- name: zenoh-client-config
+  emptyDir:
+    medium: Memory
+    sizeLimit: 1Mi
+{{- end }}
+{{- end -}}
+
+{{- define "osmo.securityVolumeMounts" -}}
+{{- if include "osmo.zenohConfigured" . }}
+- name: zenoh-config
+  mountPath: /etc/osmo/zenoh
+  readOnly: true
+{{- end }}
+{{- if .Values.tls.enabled }}
+- name: tls-server
+  mountPath: /etc/osmo/tls/server
+  readOnly: true
+{{- if .Values.tls.mtls }}
+- name: tls-client
+  mountPath: /etc/osmo/tls/client
+  readOnly: true
+{{- end }}
+{{- end }}
+{{- if .Values.auth.enabled }}
+- name: auth
+  mountPath: /etc/osmo/auth
+  readOnly: true
+- name: zenoh-client-config
+  mountPath: /run/osmo/zenoh
+{{- end }}
+{{- end -}}
+
+{{/* With user/password auth, an init container writes the client config with the credentials
+from the Secret into a memory-backed volume, so the password never sits in a ConfigMap. */}}
+{{- define "osmo.clientConfigInitContainer" -}}
+{{- if .root.Values.auth.enabled }}
+- name: zenoh-client-config
+  image: {{ .image | quote }}
+  imagePullPolicy: {{ .pullPolicy }}
+  command:
+    - python
+    - /etc/osmo/zenoh/render-client-config.py
+    - /etc/osmo/zenoh/client.json5
+    - /etc/osmo/auth/user
+    - /etc/osmo/auth/password
+    - /run/osmo/zenoh/client.json5
+  securityContext:
+    {{- toYaml .root.Values.containerSecurityContext | nindent 4 }}
+  resources:
+    requests:
+      cpu: 10m
+      memory: 32Mi
+    limits:
+      memory: 64Mi
+  volumeMounts:
+    {{- include "osmo.securityVolumeMounts" .root | nindent 4 }}
+{{- end }}
+{{- end -}}
+
+{{/* A probe running a command, with timings from values. Args: cmd (list), timing (dict). */}}
+{{- define "osmo.execProbe" -}}
+exec:
+  command:
+    {{- toYaml .cmd | nindent 4 }}
+{{ toYaml .timing }}
+{{- end -}}
+
+{{/* Kubernetes CPU quantity ("500m", "2", 1.5) as the plain number `--cpus` takes. */}}
+{{- define "osmo.cpuNumber" -}}
+{{- $s := toString . -}}
+{{- if hasSuffix "m" $s -}}
+{{- divf (trimSuffix "m" $s | float64) 1000 -}}
+{{- else -}}
+{{- include "osmo.quantityString" . -}}
+{{- end -}}
+{{- end -}}
+
+{{/* A quantity as text: strings as written, whole numbers without an exponent (8589934592,
+not 8.589934592e+09), other numbers as they print. */}}
+{{- define "osmo.quantityString" -}}
+{{- if kindIs "string" . -}}
+{{- . -}}
+{{- else if eq (float64 .) (floor .) -}}
+{{- printf "%d" (int64 .) -}}
+{{- else -}}
+{{- toString . -}}
+{{- end -}}
+{{- end -}}
