@@ -100,3 +100,23 @@ def free_port(preferred: int = DEFAULT_PORT, host: str = "127.0.0.1") -> int:
                 continue
             return int(sock.getsockname()[1])
     raise OSError("no free TCP port on loopback")
+
+
+PROFILE_KEYS = ("server", "cluster", "zenoh-config")
+"""What ``osmo profile set`` accepts."""
+
+
+def read_profile(home: Path) -> dict[str, str]:
+    """The saved client profile (``OSMO_HOME/profile.json``); empty when none."""
+    try:
+        data = json.loads((home / "profile.json").read_text())
+    except (OSError, ValueError):
+        return {}
+    return {str(k): str(v) for k, v in data.items() if k in PROFILE_KEYS} if isinstance(
+        data, dict) else {}
+
+
+def write_profile(home: Path, profile: dict[str, str]) -> None:
+    """Save the client profile atomically."""
+    home.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(home / "profile.json", profile)

@@ -244,6 +244,7 @@ class ArtifactStore:
         """
         if dest.is_dir():
             return
+        dest.parent.mkdir(parents=True, exist_ok=True)
         build = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", dir=dest.parent))
         try:
             for e in manifest.entries:

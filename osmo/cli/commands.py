@@ -23,7 +23,9 @@ from osmo.cli.render import (
 )
 from osmo.errors import WorkflowFailed
 from osmo.sdk.client import Client, WorkflowInfo
+from osmo.cli.remote import run_health, run_profile, run_worker
 from osmo.sdk.connect import server_status, start_server, stop_server
+from osmo.server.options import server_args, server_kwargs
 from osmo.tasktypes.registry import Resolver
 
 __all__ = ["run"]
@@ -159,10 +161,10 @@ def _server(args: argparse.Namespace) -> int:
         from osmo.server.app import serve
 
         console.print("osmo server running in the foreground (Ctrl-C to stop)", markup=False)
-        serve(listen=args.listen, cpus=args.cpus, gpus=args.gpus)
+        serve(**server_kwargs(args))
         return 0
     if args.action == "start":
-        info = start_server(listen=args.listen, cpus=args.cpus)
+        info = start_server(extra_args=server_args(args))
         console.print(f"osmo server running: pid {info.pid}, {info.endpoint}", markup=False)
         return 0
     if args.action == "stop":
@@ -198,6 +200,9 @@ _VERBS: dict[str, Callable[[argparse.Namespace], int]] = {
     "resource": run_resource,
     "workers": run_resource,
     "plugins": run_plugins,
+    "worker": run_worker,
+    "health": run_health,
+    "profile": run_profile,
 }
 
 

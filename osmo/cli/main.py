@@ -17,7 +17,9 @@ from osmo.cli.datasets import add_credential_parsers
 from osmo.cli.plugins import add_parsers as add_plugin_parsers
 from osmo.cli.pools import add_parsers as add_pool_parsers
 from osmo.cli.datasets import add_parsers as add_dataset_parsers
+from osmo.cli.remote import add_parsers as add_remote_parsers
 from osmo.errors import OsmoError
+from osmo.server.options import add_server_options
 
 __all__ = ["build_parser", "main"]
 
@@ -103,10 +105,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("server", help="run the server in the foreground, or start|stop|status")
     p.add_argument("action", nargs="?", choices=("start", "stop", "status", "run"), default="run")
-    p.add_argument("--listen", help="zenoh endpoint to listen on (default loopback:7447 or free)")
-    p.add_argument("--cpus", type=float, help="CPU slots of the local pool (default: cores)")
-    p.add_argument("--gpus", type=int, help="GPU slots of the local pool (default: detected)")
+    add_server_options(p)
     _add_format(p)
+    add_remote_parsers(sub)
     return parser
 
 

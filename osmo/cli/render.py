@@ -157,12 +157,14 @@ def _gib(n: float) -> str:
 def resource_table(rows: list[dict[str, Any]], *, by: str) -> Table:
     """Nodes or pools with cpu/gpu/memory as used/total."""
     table = Table(box=None, pad_edge=False)
-    first = ["Node", "Pool", "Platform"] if by == "node" else ["Pool", "Nodes", "Platforms"]
+    first = (["Node", "Pool", "Platform", "Status"] if by == "node"
+             else ["Pool", "Nodes", "Platforms"])
     for col in (*first, "CPU", "GPU", "Memory"):
         table.add_column(col)
     for r in rows:
         used, total = r["used"], r["total"]
-        head = ([r["node"], r["pool"], r["platform"] or "-"] if by == "node"
+        head = ([r["node"], r["pool"], r["platform"] or "-", r.get("status", "online")]
+                if by == "node"
                 else [r["pool"], str(r["nodes"]), ", ".join(r["platforms"])])
         table.add_row(*head, f"{used['cpu']:g}/{total['cpu']:g}",
                       f"{used['gpu']}/{total['gpu']}",

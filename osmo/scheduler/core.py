@@ -205,6 +205,10 @@ class Scheduler:
         """Known nodes, sorted by id."""
         return self._eng.ledger.nodes()
 
+    def attempts_on(self, node_id: str) -> list[str]:
+        """Ids of the attempts placed on ``node_id`` that have not sent their final report."""
+        return self._eng.ledger.held_on(node_id)
+
     def used(self, node_id: str) -> Capacity:
         """Resources held on ``node_id`` by attempts that have not sent their final report."""
         return self._eng.ledger.used(node_id)

@@ -111,6 +111,10 @@ class Ledger:
         """What attempts hold on ``node_id`` (zero when nothing)."""
         return self._used.get(node_id, ZERO)
 
+    def held_on(self, node_id: str) -> list[str]:
+        """Ids of the attempts holding resources on ``node_id``."""
+        return sorted(self._on_node.get(node_id, ()))
+
     def up(self, node: Node) -> None:
         """Add or replace a node (its reservations are kept)."""
         self._nodes[node.id] = node

@@ -42,6 +42,7 @@ class TaskInfo:
     output: str | None
     message: str
     reused: bool  # its outputs came from an earlier identical run (cache or restart)
+    node: str | None = None  # where its latest attempt was placed ("local" or a worker)
 
     @property
     def duration(self) -> float | None:
@@ -93,7 +94,7 @@ def _task_info(d: dict[str, Any]) -> TaskInfo:
     return TaskInfo(d["name"], d.get("group", d["name"]), TaskStatus[d["status"]],
                     d.get("retry", 0), d.get("exit_code"), d.get("started_at"),
                     d.get("ended_at"), d.get("output"), d.get("message", ""),
-                    bool(d.get("reused")))
+                    bool(d.get("reused")), d.get("node_id"))
 
 
 def _workflow_info(wf: dict[str, Any], tasks: list[dict[str, Any]] = ()) -> WorkflowInfo:  # type: ignore[assignment]

@@ -1,6 +1,7 @@
 """Finding, starting and stopping the local server; opening an API connection to a server.
 
-The endpoint used: an explicit ``server`` argument > ``OSMO_SERVER`` > the home's
+The endpoint used: an explicit ``server`` argument > ``OSMO_SERVER`` > the saved profile
+(``osmo profile set server ENDPOINT``, kept in ``OSMO_HOME/profile.json``) > the home's
 ``server.json``. With none of them and ``autostart`` on, a server is started in the
 background for the home (``python -m osmo.server.app``, its own session, output in
 ``server.log``) and the call waits until it answers.
@@ -14,7 +15,7 @@ import sys
 import time
 from pathlib import Path
 
-from osmo.config import ServerInfo, home_dir, lock_is_held, read_server_info
+from osmo.config import ServerInfo, home_dir, lock_is_held, read_profile, read_server_info
 from osmo.errors import InfrastructureError, ServerUnreachable
 from osmo.transport.api import ApiClient
 from osmo.transport.zenoh_link import Link
@@ -27,9 +28,10 @@ START_TIMEOUT = 20.0
 class Connection:
     """An open API connection (a zenoh client session plus the request helper)."""
 
-    def __init__(self, endpoint: str, cluster: str = "local") -> None:
+    def __init__(self, endpoint: str, cluster: str = "local",
+                 zenoh_config: str | None = None) -> None:
         self.endpoint = endpoint
-        self.link = Link.client([endpoint], cluster)
+        self.link = Link.client([endpoint], cluster, config_file=zenoh_config)
         self.api = ApiClient(self.link)
 
     def close(self) -> None:
@@ -52,8 +54,10 @@ def _wait_ready(home: Path, proc: subprocess.Popen[bytes] | None, timeout: float
 
 
 def start_server(home: str | os.PathLike[str] | None = None, *, listen: str | None = None,
-                 cpus: float | None = None) -> ServerInfo:
-    """Start a background server for ``home`` unless one runs; return its info."""
+                 cpus: float | None = None, extra_args: list[str] | None = None) -> ServerInfo:
+    """Start a background server for ``home`` unless one runs; return its info.
+
+    ``extra_args`` are ``osmo server`` options (see ``osmo.server.options``)."""
     home_path = home_dir(home)
     if lock_is_held(home_path):
         return _wait_ready(home_path, None, START_TIMEOUT)
@@ -62,6 +66,7 @@ def start_server(home: str | os.PathLike[str] | None = None, *, listen: str | No
         args += ["--listen", listen]
     if cpus:
         args += ["--cpus", str(cpus)]
+    args += extra_args or []
     with open(home_path / "server.log", "ab") as out:
         proc = subprocess.Popen(args, stdin=subprocess.DEVNULL, stdout=out, stderr=out,
                                 start_new_session=True, close_fds=True)
@@ -94,10 +99,12 @@ def stop_server(home: str | os.PathLike[str] | None = None, timeout: float = 30.
 def connect(server: str | None = None, home: str | os.PathLike[str] | None = None,
             *, autostart: bool = True) -> Connection:
     """Open a connection to the server chosen as described in the module docstring."""
-    endpoint = server or os.environ.get("OSMO_SERVER")
-    if endpoint:
-        return Connection(endpoint)
     home_path = home_dir(home)
+    profile = read_profile(home_path)
+    endpoint = server or os.environ.get("OSMO_SERVER") or profile.get("server")
+    if endpoint:
+        return Connection(endpoint, os.environ.get("OSMO_CLUSTER") or
+                          profile.get("cluster") or "local", profile.get("zenoh-config"))
     info = server_status(home_path)
     if info is None:
         if not autostart:

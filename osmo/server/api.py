@@ -34,7 +34,8 @@ class Api:
     """Dispatches ``verb`` → handler. ``info`` is returned by ``ping``."""
 
     def __init__(self, engine: Engine, home: Path, info: dict[str, Any],
-                 on_shutdown: Callable[[], None]) -> None:
+                 on_shutdown: Callable[[], None], workers: Any = None) -> None:
+        self._workers = workers  # the WorkerHub: its verbs, and worker status for pools
         self._engine = engine
         self._store = engine.store
         self._home = home
@@ -58,6 +59,8 @@ class Api:
             "artifacts_gc": self.artifacts_gc,
             "shutdown": self.shutdown,
         }
+        if workers is not None:
+            self._verbs.update(workers.verbs())
         self._verbs.update(DatasetApi(engine, self._artifacts, home).verbs())
         self._verbs.update(CredentialApi(self._store).verbs())
 
@@ -170,10 +173,14 @@ class Api:
     def pools(self, _request: dict[str, Any]) -> builtins.list[dict[str, Any]]:
         """Known nodes with their pool, platform and capacity used/total."""
         sched = self._engine.scheduler
+        remote = {w["id"]: w for w in self._workers.workers()} if self._workers else {}
         out = []
         for node in sched.nodes():
             used = sched.used(node.id)
+            worker = remote.get(node.id, {})
             out.append({"node": node.id, "pool": node.pool, "platform": node.platform,
+                        "status": worker.get("status", "online"),
+                        "kind": "remote" if worker else "local",
                         "total": vars(node.capacity), "used": vars(used)})
         return out
 

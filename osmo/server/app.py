@@ -31,6 +31,8 @@ from osmo.server.api import Api
 from osmo.server.credentials import url_credential
 from osmo.server.datasets import Datasets
 from osmo.server.engine import Engine
+from osmo.server.options import add_server_options, server_kwargs
+from osmo.server.workers import Dispatcher, WorkerHub
 from osmo.server.records import RunRecords
 from osmo.spec import spec_from_dict
 from osmo.spec.model import ResolvedType, WorkflowSpec
@@ -83,27 +85,42 @@ def _kill_leftovers(store: Store, lost: list[Any]) -> None:
                 kill_stale(row.pid, row.pid_start)
 
 
-def serve(home: str | os.PathLike[str] | None = None, *, listen: str | None = None,
+def _split_lost(lost: list[Any]) -> tuple[list[Any], set[str]]:
+    """Restored active attempts: those of the local pool (lost with the old server), and the
+    nodes of remote ones (their workers keep running and are expected back)."""
+    local = [t for t in lost if (t.node_id or "local") == "local"]
+    remote = {t.node_id for t in lost if t.node_id and t.node_id != "local"}
+    return local, remote
+
+
+def serve(home: str | os.PathLike[str] | None = None, *, listen: list[str] | None = None,
+          connect: list[str] | None = None, zenoh_config: str | None = None,
           cluster: str = "local", cpus: float | None = None, gpus: int | None = None,
-          memory: int | None = None, ready: threading.Event | None = None) -> None:
+          memory: int | None = None, local_pool: bool = True, reconnect_grace: float = 30.0,
+          ready: threading.Event | None = None) -> None:
     """Run the server in the foreground until stopped.
 
     Args:
         home: the osmo home (default: ``OSMO_HOME`` / XDG data folder).
-        listen: zenoh endpoint, default ``tcp/127.0.0.1:7447`` (another free port if taken).
+        listen: zenoh endpoints, default ``tcp/127.0.0.1:7447`` (another free port if taken).
+        connect: join an existing zenoh router instead of hosting one (with no ``listen``).
+        zenoh_config: a zenoh JSON5 file (TLS, mutual TLS, user/password).
         cpus/gpus/memory: override the local pool's detected capacity.
+        local_pool: run tasks on this host too (off: remote workers only).
+        reconnect_grace: seconds remote workers get to come back after a restart.
     """
     home_path = home_dir(home)
     lock_fd = _take_lock(home_path)
     (home_path / "server.json").unlink(missing_ok=True)  # a crashed server's stale address
-    endpoint = listen or f"tcp/127.0.0.1:{free_port()}"
+    endpoints = list(listen or ([] if connect else [f"tcp/127.0.0.1:{free_port()}"]))
     store = Store(home_path / "state.db")
     scheduler = Scheduler(default_max_retries=3)
     no_cache: set[str] = set()
     specs, lost = _restore(store, scheduler, no_cache)
+    lost, remote_nodes = _split_lost(lost)
     _kill_leftovers(store, lost)
 
-    link = Link.router([endpoint], cluster)
+    link = Link.router(endpoints, cluster, connect=connect or [], config_file=zenoh_config)
     stopping = threading.Event()
 
     def on_changed(ids: set[str]) -> None:
@@ -114,25 +131,34 @@ def serve(home: str | os.PathLike[str] | None = None, *, listen: str | None = No
     artifacts = ArtifactStore(home_path / "artifacts")
     pool = LocalPool(home=home_path, emit=lambda ev: engine_box[0].post(ev),
                      cpus=cpus, gpus=gpus, memory=memory, artifacts=artifacts,
-                     credential_for=url_credential(store), task_secrets=store.credential)
+                     credential_for=url_credential(store),
+                     task_secrets=store.credential) if local_pool else None
+    hub = WorkerHub(link=link, post=lambda ev: engine_box[0].post(ev), store=store,
+                    artifacts=artifacts, home=home_path, url_credential=url_credential(store),
+                    engine_call=lambda fn: engine_box[0].call(fn))
     records = RunRecords(store, home_path)
-    engine = Engine(store=store, scheduler=scheduler, executor=pool, specs=specs,
+    dispatcher = Dispatcher(pool, hub, node_of=lambda aid: _node_of(engine_box[0], aid))
+    engine = Engine(store=store, scheduler=scheduler, executor=dispatcher, specs=specs,
                     on_changed=on_changed, home=home_path, on_finished=records.finished,
                     datasets=Datasets(store, artifacts, home_path))
     engine.no_cache = no_cache
     engine_box.append(engine)
-    engine.post(NodeUp(pool.node()))
+    if pool is not None:
+        engine.post(NodeUp(pool.node()))
     for task in lost:
         engine.post(AttemptLost(task.attempt_id, "server restarted; attempt lost"))
     engine.start()
+    hub.expect(remote_nodes, reconnect_grace)
 
-    info = {"endpoint": endpoint, "pid": os.getpid(), "cluster": cluster,
+    info = {"endpoint": endpoints[0] if endpoints else (connect or [""])[0],
+            "endpoints": endpoints, "pid": os.getpid(), "cluster": cluster,
             "started_at": time.time(), "home": str(home_path)}
-    api = Api(engine, home_path, info, on_shutdown=stopping.set)
+    api = Api(engine, home_path, info, on_shutdown=stopping.set, workers=hub)
     api_server = ApiServer(link, api.handle,
                            on_crash=lambda exc: log.error("API handler crashed", exc_info=exc))
     write_json_atomic(home_path / "server.json", info)
-    log.info("osmo server %s listening on %s (home %s)", os.getpid(), endpoint, home_path)
+    log.info("osmo server %s listening on %s (home %s)", os.getpid(),
+             ", ".join(endpoints or connect or []), home_path)
 
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stopping.set())
@@ -145,12 +171,19 @@ def serve(home: str | os.PathLike[str] | None = None, *, listen: str | None = No
         time.sleep(0.05)  # let the reply to a `shutdown` request leave
         (home_path / "server.json").unlink(missing_ok=True)
         api_server.close()
+        hub.close()
         engine.stop()
-        pool.close()
+        if pool is not None:
+            pool.close()
         records.close()
         link.close()
         store.close()
         os.close(lock_fd)
+
+
+def _node_of(engine: Engine, attempt_id: str) -> str | None:
+    task = engine.scheduler.attempt(attempt_id)
+    return task.node_id if task is not None else None
 
 
 def main() -> None:
@@ -161,12 +194,10 @@ def main() -> None:
 
     parser = argparse.ArgumentParser(prog="osmo-server")
     parser.add_argument("--home")
-    parser.add_argument("--listen")
-    parser.add_argument("--cpus", type=float)
-    parser.add_argument("--gpus", type=int)
+    add_server_options(parser)
     args = parser.parse_args()
     try:
-        serve(args.home, listen=args.listen, cpus=args.cpus, gpus=args.gpus)
+        serve(args.home, **server_kwargs(args))
     except InfrastructureError as exc:
         print(f"osmo server: {exc}", file=sys.stderr)
         sys.exit(3)

@@ -19,6 +19,7 @@ filesystem is hard-linked instead of sent (:class:`SameHost`).
 from __future__ import annotations
 
 import hashlib
+import os
 from collections import deque
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
@@ -44,7 +45,12 @@ class TransferError(InfrastructureError):
 
 
 def host_id() -> str:
-    """This machine's identity for this boot (machine id + boot id), to spot a same-host peer."""
+    """This machine's identity for this boot (machine id + boot id), to spot a same-host peer.
+
+    ``OSMO_HOST_ID`` overrides it: processes on one machine that should behave as separate
+    machines (tests, benchmarks of the network path) set different values."""
+    if os.environ.get("OSMO_HOST_ID"):
+        return os.environ["OSMO_HOST_ID"]
     parts = []
     for path in ("/etc/machine-id", "/proc/sys/kernel/random/boot_id"):
         try:

@@ -27,7 +27,7 @@ import os
 import re
 import signal
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -84,8 +84,10 @@ class LogWriter:
         secrets: values to mask as ``****`` in every record (see the module docstring).
     """
 
-    def __init__(self, path: Path, secrets: Iterable[str] = ()) -> None:
+    def __init__(self, path: Path, secrets: Iterable[str] = (),
+                 sink: Callable[[bytes], None] | None = None) -> None:
         self.path = path
+        self.sink = sink  # also gets every record as written (a remote worker streams them)
         self._masker = Masker(secrets)
         self._fd: int | None = None
         self._partial: dict[str, bytes] = {}
@@ -150,6 +152,8 @@ class LogWriter:
         except OSError as exc:  # a full disk loses log lines, never the attempt's report
             self.dropped += len(texts)
             _log.warning("cannot write %s: %s", self.path, exc)
+        if self.sink is not None:
+            self.sink(payload)
 
 
 def _parse(line: str) -> LogRecord | None:

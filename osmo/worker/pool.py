@@ -121,6 +121,7 @@ class LocalPool:
         credential_for: ``url -> credential`` for ``url`` inputs and outputs.
         task_secrets: credential name → payload, for tasks' ``credentials:`` when
             ``prepare`` is not given them.
+        log_sink: also gets ``(attempt id, records)`` for every log record written.
     """
 
     def __init__(
@@ -139,6 +140,7 @@ class LocalPool:
         artifacts: ArtifactStore | None = None,
         credential_for: CredentialLookup | None = None,
         task_secrets: SecretLookup | None = None,
+        log_sink: Callable[[str, bytes], None] | None = None,
     ) -> None:
         self.home = Path(home).absolute()
         self.home.mkdir(parents=True, exist_ok=True)
@@ -152,6 +154,7 @@ class LocalPool:
         self._artifacts = artifacts
         self._credential_for = credential_for
         self._task_secrets = task_secrets
+        self._log_sink = log_sink
         self._attempts: dict[str, _Attempt] = {}
         self._finished: collections.OrderedDict[str, None] = collections.OrderedDict()
         self._pids: dict[str, int] = {}
@@ -239,7 +242,8 @@ class LocalPool:
             self._remember(cmd.attempt_id)
             self._emit(AttemptStartFailed(cmd.attempt_id, error or "cannot prepare"))
             return
-        log = LogWriter(dirs.log, launch.secrets)
+        sink = functools.partial(self._log_sink, cmd.attempt_id) if self._log_sink else None
+        log = LogWriter(dirs.log, launch.secrets, sink)
         attempt = _Attempt(cmd.attempt_id, task, dirs, launch, log)
         if task.image:
             attempt.log.line("osmo", image_note(task.image))

@@ -235,6 +235,7 @@ def _osmo_env(dirs: AttemptDirs, cmd: PrepareAttempt) -> dict[str, str]:
         "OSMO_WORKFLOW_ID": cmd.workflow_id,
         "OSMO_TASK": cmd.task,
         "OSMO_RETRY": str(cmd.retry),
+        "OSMO_NODE": cmd.node_id,
         "OSMO_OUTPUT": str(dirs.output_partial),
         "OSMO_FILES_ROOT": str(dirs.files),
     }

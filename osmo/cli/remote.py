@@ -1,0 +1,143 @@
+"""CLI verbs for running across machines: ``osmo worker``, ``osmo health``, ``osmo profile``."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+from osmo.config import PROFILE_KEYS, home_dir, read_profile, write_profile
+from osmo.errors import OsmoError, ServerUnreachable, UsageError
+
+__all__ = ["add_parsers", "run_health", "run_profile", "run_worker"]
+
+_HEALTH_STALE = 30.0
+
+
+def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    """Register ``worker``, ``health`` and ``profile``."""
+    w = sub.add_parser("worker", help="run a worker that dials out to a server and runs tasks")
+    w.add_argument("--connect", action="append", required=True, metavar="ENDPOINT",
+                   help="the server's zenoh endpoint, e.g. tcp/10.0.0.5:7447 (repeatable)")
+    w.add_argument("--pool", default="default", help="pool this worker serves (default)")
+    w.add_argument("--name", help="unique worker name (default: HOSTNAME-PID)")
+    w.add_argument("--platform", help="platform name matched against resource specs")
+    w.add_argument("--cpus", type=float, help="CPU slots to offer (default: cores)")
+    w.add_argument("--gpus", type=int, help="GPUs to offer (default: detected)")
+    w.add_argument("--memory", help="memory to offer, e.g. 8Gi (default: detected)")
+    w.add_argument("--label", action="append", default=[], metavar="KEY=VALUE")
+    w.add_argument("--zenoh-config", metavar="FILE", default=os.environ.get("OSMO_ZENOH_CONFIG"),
+                   help="zenoh JSON5 config for TLS / user-password (OSMO_ZENOH_CONFIG)")
+    w.add_argument("--cluster", default="local", help="the server's cluster name")
+    w.add_argument("--home", help="the worker's folder (default: OSMO_HOME/worker)")
+    w.add_argument("--drain-timeout", type=float, default=600.0, metavar="SECONDS",
+                   help="on SIGTERM, how long running tasks may finish before being handed "
+                        "back (600)")
+    h = sub.add_parser("health", help="exit 0 when the server (or --worker) is healthy, else 3")
+    h.add_argument("--worker", action="store_true",
+                   help="check the worker process of this host's worker folder instead")
+    h.add_argument("--home", help="the worker's folder (with --worker)")
+    h.add_argument("--server", default=argparse.SUPPRESS,
+                   help="server endpoint to check (same as the global --server)")
+    p = sub.add_parser("profile", help="saved client settings: server, cluster, zenoh-config")
+    verbs = p.add_subparsers(dest="profile_verb", metavar="VERB", required=True)
+    s = verbs.add_parser("set", help="osmo profile set server tcp/HOST:7447")
+    s.add_argument("key", choices=PROFILE_KEYS)
+    s.add_argument("value")
+    u = verbs.add_parser("unset", help="forget a setting")
+    u.add_argument("key", choices=PROFILE_KEYS)
+    verbs.add_parser("show", help="print the profile")
+
+
+def _worker_home(args: argparse.Namespace) -> Path:
+    return Path(args.home).absolute() if args.home else home_dir() / "worker"
+
+
+def _labels(items: list[str]) -> dict[str, str]:
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise UsageError(f"--label {item!r}: write KEY=VALUE")
+        out[key] = value
+    return out
+
+
+def run_worker(args: argparse.Namespace) -> int:
+    """``osmo worker``: run until SIGINT (leave now) or SIGTERM (drain, then leave)."""
+    from osmo.spec.units import parse_size
+    from osmo.worker.remote import RemoteWorker, WorkerOptions
+
+    try:
+        memory = (int(args.memory) if args.memory and args.memory.isdigit() else
+                  parse_size(args.memory) if args.memory else None)
+    except ValueError as exc:
+        raise UsageError(f"--memory {args.memory!r}: {exc} (e.g. 8Gi, 512Mi)") from None
+    opts = WorkerOptions(connect=args.connect, pool=args.pool, name=args.name,
+                         platform=args.platform, cpus=args.cpus, gpus=args.gpus,
+                         memory=memory, labels=_labels(args.label), cluster=args.cluster,
+                         zenoh_config=args.zenoh_config, drain_timeout=args.drain_timeout)
+    worker = RemoteWorker(_worker_home(args), opts)
+    signal.signal(signal.SIGINT, lambda *_: worker.stop())
+    signal.signal(signal.SIGTERM, lambda *_: threading.Thread(
+        target=worker.drain, name="osmo-drain", daemon=True).start())
+    print(f"osmo worker {worker.id}: pool {args.pool}, connecting to "
+          f"{', '.join(args.connect)}", file=sys.stderr, flush=True)
+    worker.run()
+    return 0
+
+
+def run_health(args: argparse.Namespace) -> int:
+    """``osmo health [--worker]``."""
+    if args.worker:
+        return _worker_health(_worker_home(args))
+    from osmo.sdk.client import Client
+
+    try:
+        with Client(args.server, autostart=False) as client:
+            client.ping()
+    except (ServerUnreachable, OsmoError) as exc:
+        print(f"unhealthy: {exc}", file=sys.stderr)
+        return 3
+    print("ok")
+    return 0
+
+
+def _worker_health(home: Path) -> int:
+    try:
+        state: dict[str, Any] = json.loads((home / "worker.json").read_text())
+        os.kill(int(state["pid"]), 0)
+    except (OSError, ValueError, KeyError):
+        print(f"unhealthy: no worker running for {home}", file=sys.stderr)
+        return 3
+    age = time.time() - float(state.get("updated_at", 0))
+    if age > _HEALTH_STALE:
+        print(f"unhealthy: worker {state.get('id')} has not reported for {age:.0f}s",
+              file=sys.stderr)
+        return 3
+    status = ("draining" if state.get("draining") else
+              "connected" if state.get("connected") else "connecting")
+    print(f"ok: worker {state.get('id')} {status}, {state.get('running', 0)} running")
+    return 0
+
+
+def run_profile(args: argparse.Namespace) -> int:
+    """``osmo profile set|unset|show``."""
+    home = home_dir()
+    profile = read_profile(home)
+    if args.profile_verb == "set":
+        profile[args.key] = args.value
+        write_profile(home, profile)
+    elif args.profile_verb == "unset":
+        profile.pop(args.key, None)
+        write_profile(home, profile)
+    else:
+        for key in PROFILE_KEYS:
+            print(f"{key}: {profile.get(key, '-')}")
+    return 0

@@ -1,0 +1,380 @@
+"""Remote workers on the server side: membership, orders, reports, logs and outputs.
+
+:class:`WorkerHub` turns worker traffic (see ``osmo.worker.wire`` for the keys) into engine
+events and engine commands into orders:
+
+- A worker is a scheduler node once it has registered *and* its liveliness token is seen;
+  the token going away is ``NodeDown`` (its attempts are rescheduled). A draining worker is
+  re-announced with no capacity, so nothing new is placed on it.
+- ``prepare`` sends the attempt with the input manifests it needs (the task's workflow spec
+  only the first time a worker hears of that workflow), its secrets and URL credentials.
+- An exit report with outputs is handled on a transfer thread: the blobs the server lacks
+  are fetched from the worker, verified, the output folder is linked into the server's
+  ``runs/`` tree (so downstream tasks and ``osmo artifacts`` find it where local outputs
+  live), and only then does the engine see the exit; the worker then gets its ``ack``. A
+  transfer that fails makes the attempt lost (rescheduled).
+- After a server restart, attempts restored on remote nodes are given ``grace`` seconds for
+  their worker to register again (reporting what is still running and what finished
+  meanwhile); a node that does not come back is taken down.
+
+:class:`Dispatcher` is the engine's executor: it routes each command to the local pool or
+to the hub by the attempt's node.
+"""
+
+from __future__ import annotations
+
+import collections
+import json
+import logging
+import os
+import threading
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+from osmo.artifacts import ArtifactStore, Manifest
+from osmo.errors import OsmoError, UsageError
+from osmo.scheduler.types import (
+    AttemptExited,
+    AttemptLost,
+    AttemptStartFailed,
+    Capacity,
+    Event,
+    Node,
+    NodeDown,
+    NodeUp,
+    PrepareAttempt,
+)
+from osmo.spec.model import TaskSpec
+from osmo.store.sqlite import Store
+from osmo.transport.blobs import BlobServer, SameHost, fetch_manifest, host_id
+from osmo.transport.zenoh_link import Link, Subscription
+from osmo.worker.pool import LocalPool
+from osmo.worker.secrets import SecretError, gather
+from osmo.worker.wire import capacity_from_dict, event_from_dict, prepare_to_dict, spec_to_wire
+from osmo.worker.workdir import AttemptDirs
+
+__all__ = ["Dispatcher", "WorkerHub"]
+
+log = logging.getLogger("osmo.server.workers")
+
+_REMEMBER = 100_000
+
+
+class WorkerHub:
+    """Remote workers, as seen by the server (see the module docstring).
+
+    Args:
+        link: the server's session.
+        post: queues an event for the engine (thread-safe).
+        store: the state store (read only here: specs, manifests, credentials).
+        artifacts: the server's artifact store.
+        home: the server's home (attempt logs and outputs live under ``runs/``).
+        url_credential: ``url -> credential`` for data URLs.
+        engine_call: runs a function on the engine thread (to ask the scheduler).
+    """
+
+    def __init__(self, *, link: Link, post: Callable[[Event], None], store: Store,
+                 artifacts: ArtifactStore, home: Path,
+                 url_credential: Callable[[str], dict[str, str] | None],
+                 engine_call: Callable[[Callable[..., Any]], Any]) -> None:
+        self._link, self._post, self._store = link, post, store
+        self._artifacts, self._home = artifacts, home
+        self._url_credential, self._engine_call = url_credential, engine_call
+        self._lock = threading.Lock()
+        self._nodes: dict[str, Node] = {}  # registered workers
+        self._info: dict[str, dict[str, Any]] = {}
+        self._alive: set[str] = set()
+        self._draining: set[str] = set()
+        self._same_host: dict[str, SameHost | None] = {}
+        self._sent_specs: dict[str, set[str]] = {}
+        self._logs: dict[str, int] = {}
+        self._transfers = ThreadPoolExecutor(4, thread_name_prefix="osmo-pull")
+        self._host = host_id()
+        self._subs: list[Subscription] = [
+            link.watch(link.key("alive", "worker", "*"), self._on_token),
+            link.subscribe_raw(link.key("from-worker", "*"), self._on_report),
+            link.subscribe_raw(link.key("from-worker", "*", "log"), self._on_log),
+        ]
+        self._blobs = BlobServer(link, "server", artifacts)
+        self._server_token = link.token(link.key("alive", "server"))
+
+    # ------------------------------------------------------------------ membership
+
+    def verbs(self) -> dict[str, Callable[[dict[str, Any]], Any]]:
+        """API verbs served for workers."""
+        return {"worker_register": self.register, "worker_drain": self.drain}
+
+    def register(self, hello: dict[str, Any]) -> dict[str, Any]:
+        """A worker says hello (first start, or again after a server restart)."""
+        wid = str(hello.get("id") or "")
+        if not wid or "/" in wid or "*" in wid or wid == "local":
+            raise UsageError(f"invalid worker name {wid!r}")
+        node = Node(id=wid, pool=str(hello.get("pool") or "default"),
+                    capacity=capacity_from_dict(hello.get("capacity") or {}),
+                    platform=hello.get("platform"), address=str(hello.get("address")),
+                    labels={str(k): str(v) for k, v in (hello.get("labels") or {}).items()})
+        same = hello.get("host_id") == self._host and hello.get("artifacts")
+        with self._lock:
+            self._nodes[wid] = node
+            self._info[wid] = {k: hello.get(k) for k in ("pid", "address", "host_id")}
+            self._same_host[wid] = SameHost(Path(hello["artifacts"])) if same else None
+            self._sent_specs[wid] = set()
+            if hello.get("draining"):
+                self._draining.add(wid)
+            alive = wid in self._alive
+        self._reconcile(wid, set(hello.get("active") or ()), hello.get("finished") or [])
+        if alive:
+            self._post(NodeUp(self._announced(wid)))
+        log.info("worker %s registered (pool %s, %s)", wid, node.pool, node.capacity)
+        return {"host_id": self._host, "artifacts": str(self._artifacts.root)}
+
+    def drain(self, request: dict[str, Any]) -> dict[str, Any]:
+        """A worker stops taking work: announce it with no capacity."""
+        wid = str(request.get("id"))
+        with self._lock:
+            known = wid in self._nodes
+            self._draining.add(wid)
+        if known:
+            self._post(NodeUp(self._announced(wid)))
+        return {"draining": wid}
+
+    def _announced(self, wid: str) -> Node:
+        with self._lock:
+            node = self._nodes[wid]
+            return replace(node, capacity=Capacity()) if wid in self._draining else node
+
+    def _reconcile(self, wid: str, active: set[str], finished: list[dict[str, Any]]) -> None:
+        """After a (re-)registration: replay finished reports; attempts the scheduler placed
+        there that the worker knows nothing of are lost."""
+        known = set(self._engine_call(lambda eng, _b, _n: eng.scheduler.attempts_on(wid)))
+        done = {str(r.get("attempt_id")) for r in finished}
+        for report in finished:
+            self._handle(wid, report)
+        for aid in sorted(known - active - done):
+            self._post(AttemptLost(aid, f"worker {wid} no longer runs this attempt"))
+
+    def expect(self, node_ids: set[str], grace: float) -> None:
+        """Restored attempts sit on ``node_ids``: take down those not back within ``grace``."""
+
+        def check() -> None:
+            with self._lock:
+                missing = node_ids - set(self._nodes)
+            for wid in sorted(missing):
+                log.warning("worker %s did not come back within %.0fs", wid, grace)
+                self._post(NodeDown(wid))
+
+        if node_ids:
+            timer = threading.Timer(grace, check)
+            timer.daemon = True
+            timer.start()
+
+    def _on_token(self, key: str, alive: bool) -> None:
+        wid = key.rsplit("/", 1)[1]
+        with self._lock:
+            if alive:
+                self._alive.add(wid)
+                registered = wid in self._nodes
+            else:
+                self._alive.discard(wid)
+                registered = self._nodes.pop(wid, None) is not None
+                self._draining.discard(wid)
+        if alive and registered:
+            self._post(NodeUp(self._announced(wid)))
+        elif not alive and registered:
+            log.warning("worker %s is gone", wid)
+            self._post(NodeDown(wid))
+
+    def workers(self) -> list[dict[str, Any]]:
+        """Registered workers with their status (for ``osmo resource list``)."""
+        with self._lock:
+            return [{"id": wid, "pool": n.pool, "platform": n.platform,
+                     "status": ("draining" if wid in self._draining else
+                                "online" if wid in self._alive else "connecting"),
+                     **self._info.get(wid, {})} for wid, n in sorted(self._nodes.items())]
+
+    # ------------------------------------------------------------------ orders
+
+    def prepare(self, cmd: PrepareAttempt, task: TaskSpec) -> None:
+        """Send a placement to its worker (engine thread)."""
+        try:
+            order = self._order(cmd, task)
+        except (OsmoError, OSError) as exc:
+            self._post(AttemptStartFailed(cmd.attempt_id, str(exc)))
+            return
+        self._send(cmd.node_id, order)
+
+    def _order(self, cmd: PrepareAttempt, task: TaskSpec) -> dict[str, Any]:
+        order: dict[str, Any] = {"op": "prepare", "attempt_id": cmd.attempt_id,
+                                 "cmd": prepare_to_dict(cmd)}
+        with self._lock:
+            sent = self._sent_specs.setdefault(cmd.node_id, set())
+            first = cmd.workflow_id not in sent
+            sent.add(cmd.workflow_id)
+        if first:
+            row = self._store.workflow(cmd.workflow_id)
+            if row is None:
+                raise OsmoError(f"workflow {cmd.workflow_id} is not in the store")
+            order["spec"] = spec_to_wire(row.spec, row.options.get("filename") or row.id,
+                                         row.options.get("types") or {})
+        order["manifests"] = {ref: self._manifest_of(ref) for ref in set(cmd.inputs.values())
+                              if not _is_url(ref)}
+        try:
+            order["secrets"] = gather(task, self._store.credential) if task.credentials else {}
+        except SecretError as exc:
+            raise OsmoError(str(exc)) from exc
+        urls = [i.url for i in task.inputs if i.url] + [o.url for o in task.outputs if o.url]
+        urls += [str(c["url"]) for c in task.checkpoint if c.get("url")]
+        order["url_credentials"] = {u: c for u in urls if (c := self._url_credential(u))}
+        return order
+
+    def _manifest_of(self, ref: str) -> str:
+        found = self._store.output_of(ref)
+        body = self._store.manifest_body(found[0]) if found else None
+        if body is None:  # server-side data with no recorded manifest (a dataset copy)
+            body = self._artifacts.ingest(Path(ref)).to_json()
+        return body
+
+    def run(self, node_id: str, attempt_id: str) -> None:
+        """Start a prepared attempt (its group's barrier released)."""
+        self._send(node_id, {"op": "run", "attempt_id": attempt_id})
+
+    def kill(self, node_id: str, attempt_id: str, reason: str) -> None:
+        """Stop an attempt on its worker."""
+        self._send(node_id, {"op": "kill", "attempt_id": attempt_id, "reason": reason})
+
+    def _send(self, wid: str, order: dict[str, Any]) -> None:
+        self._link.put(self._link.key("to-worker", wid), json.dumps(order).encode())
+
+    # ------------------------------------------------------------------ reports
+
+    def _on_report(self, key: str, data: bytes, _att: bytes | None) -> None:
+        wid = key.rsplit("/", 1)[1]
+        try:
+            report = json.loads(data)
+        except ValueError:
+            log.warning("unreadable report from worker %s", wid)
+            return
+        self._handle(wid, report)
+
+    def _handle(self, wid: str, report: dict[str, Any]) -> None:
+        try:
+            event = event_from_dict(report)
+        except (ValueError, KeyError, TypeError):
+            log.warning("unknown report from worker %s: %r", wid, report)
+            return
+        if isinstance(event, AttemptExited):
+            self._transfers.submit(self._exited, wid, event)
+            return
+        if isinstance(event, (AttemptStartFailed, AttemptLost)):
+            self._close_log(event.attempt_id)
+        self._post(event)
+
+    def _exited(self, wid: str, event: AttemptExited) -> None:
+        """Transfer thread: take the outputs, then let the engine see the exit, then ack."""
+        self._close_log(event.attempt_id)
+        try:
+            if event.manifest is not None:
+                manifest = Manifest.from_json(event.manifest)
+                with self._lock:
+                    same = self._same_host.get(wid)
+                fetch_manifest(self._link, wid, manifest, self._artifacts, same_host=same)
+                dirs = _dirs(self._home, event.attempt_id)
+                self._artifacts.link_tree(manifest, dirs.output)
+                event = replace(event, output=str(dirs.output))
+            else:
+                event = replace(event, output=None)
+        except (OsmoError, OSError) as exc:
+            log.warning("outputs of %s from worker %s: %s", event.attempt_id, wid, exc)
+            self._post(AttemptLost(event.attempt_id, f"outputs could not be taken from worker "
+                                                     f"{wid}: {exc}"))
+            return
+        self._post(event)
+        self._send(wid, {"op": "ack", "attempt_id": event.attempt_id})
+
+    def _on_log(self, _key: str, records: bytes, attachment: bytes | None) -> None:
+        if not attachment:
+            return
+        aid = attachment.decode()
+        with self._lock:
+            fd = self._logs.get(aid)
+            if fd is None:
+                path = _dirs(self._home, aid).log
+                path.parent.mkdir(parents=True, exist_ok=True)
+                fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND | os.O_CLOEXEC, 0o644)
+                self._logs[aid] = fd
+                while len(self._logs) > 4096:  # never more open than this
+                    os.close(self._logs.pop(next(iter(self._logs))))
+            os.write(fd, records)
+
+    def _close_log(self, aid: str) -> None:
+        with self._lock:
+            fd = self._logs.pop(aid, None)
+        if fd is not None:
+            os.close(fd)
+
+    def close(self) -> None:
+        """Stop listening (workers keep running; they register again with the next server)."""
+        for sub in self._subs:
+            sub.close()
+        self._server_token.close()
+        self._blobs.close()
+        self._transfers.shutdown(wait=False, cancel_futures=True)
+        with self._lock:
+            for fd in self._logs.values():
+                os.close(fd)
+            self._logs.clear()
+
+
+def _dirs(home: Path, attempt_id: str) -> AttemptDirs:
+    wf, task, retry = attempt_id.rsplit(":", 2)
+    return AttemptDirs.at(home, wf, task, int(retry))
+
+
+def _is_url(ref: str) -> bool:
+    return "://" in ref
+
+
+class Dispatcher:
+    """The engine's executor: the local pool for node ``local``, the hub for the rest."""
+
+    def __init__(self, pool: LocalPool | None, hub: WorkerHub,
+                 node_of: Callable[[str], str | None] = lambda _aid: None) -> None:
+        self._pool, self._hub = pool, hub
+        self._lookup = node_of  # restored attempts: their node, asked of the scheduler
+        self._node_of: collections.OrderedDict[str, str] = collections.OrderedDict()
+
+    def _node(self, attempt_id: str) -> str:
+        return self._node_of.get(attempt_id) or self._lookup(attempt_id) or "local"
+
+    def prepare(self, cmd: PrepareAttempt, task: TaskSpec) -> None:
+        """Route a placement by its node."""
+        self._node_of[cmd.attempt_id] = cmd.node_id
+        while len(self._node_of) > _REMEMBER:
+            self._node_of.popitem(last=False)
+        if self._pool is not None and cmd.node_id == "local":
+            self._pool.prepare(cmd, task)
+        else:
+            self._hub.prepare(cmd, task)
+
+    def run(self, attempt_id: str) -> None:
+        """Route by the attempt's node."""
+        node = self._node(attempt_id)
+        if node == "local" and self._pool is not None:
+            self._pool.run(attempt_id)
+        else:
+            self._hub.run(node, attempt_id)
+
+    def kill(self, attempt_id: str, reason: str) -> None:
+        """Route by the attempt's node (restored attempts: found from their id's node)."""
+        node = self._node(attempt_id)
+        if node == "local" and self._pool is not None:
+            self._pool.kill(attempt_id, reason)
+        else:
+            self._hub.kill(node, attempt_id, reason)
+
+    def running(self) -> dict[str, int]:
+        """Pids of the local pool's running attempts (remote ones have no local pid)."""
+        return self._pool.running() if self._pool is not None else {}

@@ -1,0 +1,344 @@
+"""A remote worker: ``osmo worker --connect ENDPOINT --pool NAME``.
+
+It dials out to the server (so it may sit behind a firewall), registers its capacity, keeps
+a liveliness token alive, and runs the server's orders with the same :class:`LocalPool` the
+server uses on its own host — one runtime implementation. The wire protocol is described in
+``osmo.worker.wire``.
+
+Data: an attempt's inputs are fetched by digest from the server's artifact store (only the
+blobs this worker lacks; hard links when both share a host and filesystem) and linked into
+``<home>/inputs/<manifest>/``; its outputs are ingested into this worker's own store and
+pulled by the server, which acknowledges each exit report once every byte is safe with it.
+Unacknowledged reports are kept and sent again whenever the worker registers again (after a
+server restart), so a result that finished while the server was away is not lost.
+
+Drain (SIGTERM): the worker stops taking work (it re-registers with no capacity), lets
+running attempts finish for up to ``drain_timeout`` seconds and waits until their outputs
+were taken; attempts still running then are killed and handed back (reported lost, so they
+are rescheduled without using a retry). Then it exits.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import socket
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+from osmo.artifacts import ArtifactStore, Manifest
+from osmo.config import write_json_atomic
+from osmo.errors import OsmoError
+from osmo.scheduler.types import (
+    AttemptExited,
+    AttemptLost,
+    AttemptStartFailed,
+    Capacity,
+    Event,
+    PrepareAttempt,
+)
+from osmo.spec.model import TaskSpec, WorkflowSpec
+from osmo.transport.api import ApiClient
+from osmo.transport.blobs import BlobServer, SameHost, fetch_manifest, host_id
+from osmo.transport.zenoh_link import Link, Subscription
+from osmo.worker.pool import LocalPool
+from osmo.worker.wire import event_to_dict, prepare_from_dict, spec_from_wire
+
+__all__ = ["RemoteWorker", "WorkerOptions"]
+
+log = logging.getLogger("osmo.worker")
+
+HEALTH_FILE = "worker.json"
+_HEALTH_EVERY = 5.0
+
+
+@dataclass
+class WorkerOptions:
+    """How a worker presents itself (see ``osmo worker --help``)."""
+
+    connect: list[str]
+    pool: str = "default"
+    name: str | None = None
+    platform: str | None = None
+    cpus: float | None = None
+    gpus: int | None = None
+    memory: int | None = None
+    labels: dict[str, str] = field(default_factory=dict)
+    cluster: str = "local"
+    zenoh_config: str | None = None
+    drain_timeout: float = 600.0
+    kill_grace: float = 3.0
+    address: str | None = None
+
+
+@dataclass
+class _Pending:
+    """An attempt whose inputs are being fetched (orders that came meanwhile)."""
+
+    run: bool = False
+    kill: str | None = None
+
+
+class RemoteWorker:
+    """One worker process (see the module docstring). ``run()`` blocks until stopped."""
+
+    def __init__(self, home: Path, options: WorkerOptions) -> None:
+        self.home = Path(home).absolute()
+        self.home.mkdir(parents=True, exist_ok=True)
+        self.opts = options
+        self.id = options.name or f"{socket.gethostname()}-{os.getpid()}"
+        self.store = ArtifactStore(self.home / "artifacts")
+        self.link = Link.client(options.connect, options.cluster,
+                                config_file=options.zenoh_config)
+        self._api = ApiClient(self.link, timeout=10.0)
+        self._lock = threading.Lock()
+        self._changed = threading.Condition(self._lock)
+        self._specs: dict[str, WorkflowSpec] = {}
+        self._url_creds: dict[str, dict[str, str]] = {}
+        self._pending: dict[str, _Pending] = {}
+        self._active: set[str] = set()
+        self._unacked: dict[str, dict[str, Any]] = {}
+        self._handed_back: set[str] = set()
+        self._server_host: SameHost | None = None
+        self._draining = False
+        self._connected = False
+        self._server_lost = False
+        self._register_now = threading.Event()
+        self._stop = threading.Event()
+        self._io = ThreadPoolExecutor(4, thread_name_prefix="osmo-inputs")
+        self._token: Subscription | None = None
+        self.pool = LocalPool(
+            home=self.home, emit=self._emit, node_id=self.id, pool=options.pool,
+            cpus=options.cpus, gpus=options.gpus, memory=options.memory,
+            kill_grace=options.kill_grace, artifacts=self.store,
+            credential_for=self._url_creds.get, log_sink=self._send_log)
+        self._subs: list[Any] = []
+
+    # ------------------------------------------------------------------ life cycle
+
+    def run(self) -> None:
+        """Register (retrying until the server answers), serve orders, re-register whenever
+        the server comes back; return after :meth:`stop` or a finished :meth:`drain`."""
+        self._subs = [
+            self.link.subscribe(self.link.key("to-worker", self.id), self._on_order),
+            BlobServer(self.link, self.id, self.store),
+            self.link.watch(self.link.key("alive", "server"), self._on_server),
+        ]
+        delay = 0.2
+        self._register_now.set()
+        while not self._stop.is_set():
+            if self._register_now.wait(timeout=_HEALTH_EVERY):
+                self._register_now.clear()
+                if not self._register():
+                    self._stop.wait(delay)
+                    delay = min(delay * 2, 5.0)
+                    self._register_now.set()
+                    continue
+                delay = 0.2
+            self._write_health()
+        self._close()
+
+    def stop(self) -> None:
+        """Leave now: running attempts are killed (the server reschedules them)."""
+        self._stop.set()
+
+    def drain(self) -> None:
+        """Stop taking work, let running attempts finish (up to ``drain_timeout``), hand
+        back what is still running, wait until outputs were taken, then stop."""
+        with self._lock:
+            self._draining = True
+        self._write_health()
+        try:
+            self._api.call("worker_drain", {"id": self.id})
+        except OsmoError as exc:
+            log.warning("could not tell the server about the drain: %s", exc)
+        deadline = time.monotonic() + self.opts.drain_timeout
+        with self._changed:
+            self._changed.wait_for(lambda: not (self._pending or self._active),
+                                   timeout=max(0.0, deadline - time.monotonic()))
+            left = sorted(self._active | set(self._pending))
+            self._handed_back.update(left)
+        for aid in left:
+            log.info("handing back %s (still running at the end of the drain)", aid)
+            self._send({"op": "lost", "attempt_id": aid,
+                        "message": f"worker {self.id} drained; attempt handed back"})
+            self.pool.kill(aid, "worker draining")
+        with self._changed:
+            self._changed.wait_for(lambda: not self._unacked, timeout=30.0)
+        self._stop.set()
+
+    def _close(self) -> None:
+        for sub in self._subs:
+            sub.close()
+        if self._token is not None:
+            self._token.close()
+        self.pool.close()
+        self._io.shutdown(wait=False, cancel_futures=True)
+        self.link.close()
+        (self.home / HEALTH_FILE).unlink(missing_ok=True)
+
+    # ------------------------------------------------------------------ registration
+
+    def _on_server(self, _key: str, alive: bool) -> None:
+        """The server's token: gone means it stopped or is cut off; back means register
+        again (a new server process knows nothing of this worker yet)."""
+        with self._lock:
+            self._connected = self._connected and alive
+            came_back = alive and self._server_lost
+            self._server_lost = self._server_lost or not alive
+            if came_back:
+                self._server_lost = False
+        if came_back:
+            self._register_now.set()
+
+    def _register(self) -> bool:
+        with self._lock:
+            hello = {
+                "id": self.id, "pool": self.opts.pool, "platform": self.opts.platform,
+                "capacity": _capacity_dict(self.pool.node().capacity),
+                "draining": self._draining, "labels": self.opts.labels,
+                "address": self.opts.address or _address(), "host_id": host_id(),
+                "artifacts": str(self.store.root), "pid": os.getpid(),
+                "active": sorted(self._active | set(self._pending)),
+                "finished": list(self._unacked.values()),
+            }
+        try:
+            reply = self._api.call("worker_register", hello)
+        except OsmoError as exc:
+            log.info("server not reachable yet (%s); retrying", exc)
+            return False
+        same = reply.get("host_id") == hello["host_id"] and reply.get("artifacts")
+        self._server_host = SameHost(Path(reply["artifacts"])) if same else None
+        if self._token is None:
+            self._token = self.link.token(self.link.key("alive", "worker", self.id))
+        with self._lock:
+            self._connected = True
+        log.info("worker %s registered with the server (pool %s)", self.id, self.opts.pool)
+        return True
+
+    def _write_health(self) -> None:
+        with self._lock:
+            state = {"id": self.id, "pid": os.getpid(), "connected": self._connected,
+                     "draining": self._draining, "running": len(self._active),
+                     "updated_at": time.time()}
+        write_json_atomic(self.home / HEALTH_FILE, state)
+
+    # ------------------------------------------------------------------ orders
+
+    def _on_order(self, order: dict[str, Any]) -> None:
+        op, aid = order.get("op"), str(order.get("attempt_id"))
+        if op == "prepare":
+            self._prepare(order)
+        elif op in ("run", "kill"):
+            with self._lock:
+                pending = self._pending.get(aid)
+                if pending is not None:
+                    if op == "run":
+                        pending.run = True
+                    else:
+                        pending.kill = pending.kill or str(order.get("reason"))
+                    return
+            if op == "run":
+                self.pool.run(aid)
+            else:
+                self.pool.kill(aid, str(order.get("reason")))
+        elif op == "ack":
+            with self._changed:
+                self._unacked.pop(aid, None)
+                self._changed.notify_all()
+
+    def _prepare(self, order: dict[str, Any]) -> None:
+        cmd = prepare_from_dict(order["cmd"])
+        with self._lock:
+            if order.get("spec") is not None:
+                self._specs[cmd.workflow_id] = spec_from_wire(order["spec"])
+            self._url_creds.update(order.get("url_credentials") or {})
+            self._pending[cmd.attempt_id] = _Pending()
+        self._io.submit(self._fetch_and_prepare, cmd, order)
+
+    def _fetch_and_prepare(self, cmd: PrepareAttempt, order: dict[str, Any]) -> None:
+        try:
+            task = self._task(cmd)
+            local = {ref: self._fetch_input(Manifest.from_json(body))
+                     for ref, body in (order.get("manifests") or {}).items()}
+            cmd = replace(cmd, inputs={k: local.get(v, v) for k, v in cmd.inputs.items()})
+        except Exception as exc:  # noqa: BLE001 - every prepare gets one final report
+            with self._changed:
+                self._pending.pop(cmd.attempt_id, None)
+                self._changed.notify_all()
+            self._send(event_to_dict(AttemptLost(  # rescheduled: maybe another worker can
+                cmd.attempt_id, f"inputs could not be fetched to worker {self.id}: {exc}")))
+            return
+        with self._lock:
+            pending = self._pending.pop(cmd.attempt_id, _Pending())
+            self._active.add(cmd.attempt_id)
+        self.pool.prepare(cmd, task, order.get("secrets") or {})
+        if pending.kill is not None:
+            self.pool.kill(cmd.attempt_id, pending.kill)
+        elif pending.run:
+            self.pool.run(cmd.attempt_id)
+
+    def _task(self, cmd: PrepareAttempt) -> TaskSpec:
+        with self._lock:
+            spec = self._specs.get(cmd.workflow_id)
+        if spec is None:
+            raise OsmoError(f"no spec of workflow {cmd.workflow_id} was sent to this worker")
+        return spec.task(cmd.task)
+
+    def _fetch_input(self, manifest: Manifest) -> str:
+        dest = self.home / "inputs" / manifest.digest.split(":", 1)[1]
+        if not dest.is_dir():
+            fetch_manifest(self.link, "server", manifest, self.store,
+                           same_host=self._server_host)
+            dest.parent.mkdir(parents=True, exist_ok=True)
+            self.store.link_tree(manifest, dest)
+        return str(dest)
+
+    # ------------------------------------------------------------------ reports
+
+    def _emit(self, event: Event) -> None:
+        """The pool's reports (its thread): forward them; keep exit reports until acked."""
+        aid = getattr(event, "attempt_id", None)
+        if aid is None:
+            return
+        with self._changed:
+            final = isinstance(event, (AttemptExited, AttemptStartFailed, AttemptLost))
+            if final:
+                self._active.discard(aid)
+                self._changed.notify_all()
+            if aid in self._handed_back:
+                if final:
+                    self._handed_back.discard(aid)
+                return
+            data = event_to_dict(event)
+            if isinstance(event, AttemptExited):
+                self._unacked[aid] = data
+        self._send(data)
+
+    def _send(self, data: dict[str, Any]) -> None:
+        import json
+
+        self.link.put(self.link.key("from-worker", self.id), json.dumps(data).encode())
+
+    def _send_log(self, attempt_id: str, records: bytes) -> None:
+        self.link.put(self.link.key("from-worker", self.id, "log"), records,
+                      attachment=attempt_id.encode())
+
+
+def _capacity_dict(capacity: Capacity) -> dict[str, Any]:
+    return {"cpu": capacity.cpu, "gpu": capacity.gpu, "memory": capacity.memory,
+            "storage": capacity.storage}
+
+
+def _address() -> str:
+    """This host's address as peers should reach it (``{{host:task}}``)."""
+    try:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            s.connect(("10.255.255.255", 1))  # no packet is sent; picks the outbound interface
+            return str(s.getsockname()[0])
+    except OSError:
+        return "127.0.0.1"

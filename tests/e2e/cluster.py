@@ -1,0 +1,85 @@
+"""A server and remote workers as real processes on loopback, for the remote-worker tests.
+
+The server is started through the real CLI with ``--listen`` on a free loopback port and no
+local pool; each worker is ``osmo worker --connect ...`` in its own process and folder. All
+of them are stopped by PID at the end (never by name).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from osmo.config import free_port
+from tests.conftest import REPO, Osmo
+
+
+class Cluster:
+    """One server (home ``root/server``) plus workers (homes ``root/<name>``)."""
+
+    def __init__(self, root: Path, *, server_args: tuple[str, ...] = (),
+                 env: dict[str, str] | None = None) -> None:
+        self.root = root
+        self.port = free_port()
+        self.endpoint = f"tcp/127.0.0.1:{self.port}"
+        self.osmo = Osmo(root / "server")
+        self.osmo.env.update(env or {})
+        self.server_args = ("--listen", self.endpoint, "--no-local-pool", *server_args)
+        self.workers: dict[str, subprocess.Popen[bytes]] = {}
+        self.env = env or {}
+
+    def start_server(self) -> None:
+        self.osmo("server", "start", *self.server_args, check=True)
+
+    def start_worker(self, name: str, *args: str, pool: str = "default",
+                     host: str | None = None, env: dict[str, str] | None = None,
+                     wait: bool = True) -> subprocess.Popen[bytes]:
+        """Start ``osmo worker`` as its own process; wait until the server lists it."""
+        worker_env = dict(os.environ, OSMO_HOME=str(self.root / name), PYTHONUNBUFFERED="1",
+                          **self.env, **(env or {}))
+        worker_env.pop("OSMO_SERVER", None)
+        if host is not None:
+            worker_env["OSMO_HOST_ID"] = host
+        log = open(self.root / f"{name}.log", "ab")
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "osmo", "worker", "--connect", self.endpoint,
+             "--name", name, "--pool", pool, *args],
+            env=worker_env, stdout=log, stderr=log, cwd=REPO, start_new_session=True)
+        log.close()
+        self.workers[name] = proc
+        if wait:
+            self.wait_online(name)
+        return proc
+
+    def nodes(self) -> dict[str, dict]:
+        r = self.osmo("resource", "list", "--format", "json", check=True)
+        return {n["node"]: n for n in json.loads(r.out)}
+
+    def wait_online(self, name: str, timeout: float = 30) -> None:
+        deadline = time.monotonic() + timeout
+        while self.nodes().get(name, {}).get("status") != "online":
+            if time.monotonic() > deadline:
+                raise AssertionError(f"worker {name} never came online:\n{self.worker_log(name)}")
+            time.sleep(0.1)
+
+    def worker_log(self, name: str) -> str:
+        return (self.root / f"{name}.log").read_text(errors="replace")
+
+    def signal(self, name: str, sig: int) -> None:
+        os.kill(self.workers[name].pid, sig)
+
+    def stop(self) -> None:
+        for proc in self.workers.values():
+            if proc.poll() is None:
+                try:
+                    os.kill(proc.pid, signal.SIGCONT)
+                    os.kill(proc.pid, signal.SIGKILL)
+                except ProcessLookupError:
+                    pass
+            proc.wait(timeout=30)
+        self.osmo.stop_server()

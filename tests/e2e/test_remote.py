@@ -1,0 +1,311 @@
+"""Remote workers end to end: a server and workers as separate processes on loopback."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import signal
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from tests.conftest import write
+from tests.e2e.cluster import Cluster
+
+
+@pytest.fixture
+def cluster(tmp_path: Path) -> Iterator[Cluster]:
+    c = Cluster(tmp_path, server_args=("--reconnect-grace", "20"),
+                env={"OSMO_HOST_ID": "shared-host"})
+    c.start_server()
+    yield c
+    c.stop()
+
+
+def _task(info: dict, name: str) -> dict:
+    return next(t for t in info["tasks"] if t["name"] == name)
+
+
+def _done(info: dict) -> bool:
+    return info["status"] not in ("PENDING", "RUNNING", "WAITING")
+
+
+def test_pools_and_platforms_place_tasks_on_the_right_workers(cluster: Cluster, tmp_path: Path) -> None:
+    cluster.start_worker("cpu-1", "--cpus", "2", pool="cpu")
+    cluster.start_worker("arm-1", "--cpus", "2", "--platform", "jetson", pool="edge")
+    cluster.start_worker("x86-1", "--cpus", "2", "--platform", "x86", pool="edge")
+    spec = write(tmp_path / "wf.yaml", """
+workflow:
+  name: placed
+  resources:
+    default: {cpu: 1}
+  tasks:
+  - name: on-cpu
+    command: [sh, -c, "echo $OSMO_NODE > {{output}}/node"]
+""")
+    wf = cluster.osmo.submit(spec, "--pool", "cpu")
+    info = cluster.osmo.wait_for(wf, _done)
+    assert info["status"] == "COMPLETED", info
+    assert _task(info, "on-cpu")["node"] == "cpu-1"
+    # a resource whose platform no worker of the pool offers is a submit error
+    r = cluster.osmo("submit", str(spec), "--pool", "nowhere")
+    assert r.code != 0 and "nowhere" in (r.err + r.out)
+    # the 'jetson' task only fits the jetson worker of pool 'edge'
+    spec2 = write(tmp_path / "edge.yaml", """
+workflow:
+  name: edge
+  resources:
+    default: {cpu: 1, platform: jetson}
+  tasks:
+  - name: a
+    command: [sh, -c, "echo $OSMO_NODE > {{output}}/node"]
+  - name: b
+    command: [sh, -c, "echo $OSMO_NODE > {{output}}/node"]
+""")
+    wf2 = cluster.osmo.submit(spec2, "--pool", "edge", "--no-cache")
+    info2 = cluster.osmo.wait_for(wf2, _done)
+    assert info2["status"] == "COMPLETED", info2
+    for task in info2["tasks"]:
+        assert task["node"] == "arm-1"
+        assert Path(task["output"], "node").read_text().strip() == "arm-1"
+    listed = cluster.osmo("pool", "list", "--format", "json", check=True).json()
+    pools = {p["pool"]: p for p in listed}  # type: ignore[union-attr]
+    assert pools["edge"]["nodes"] == 2 and pools["cpu"]["total"]["cpu"] == 2
+
+
+def test_data_passes_between_workers_on_different_hosts(cluster: Cluster, tmp_path: Path) -> None:
+    cluster.start_worker("a", "--platform", "pa", host="host-a")
+    cluster.start_worker("b", "--platform", "pb", host="host-b")
+    spec = write(tmp_path / "wf.yaml", """
+workflow:
+  name: across
+  resources:
+    default: {cpu: 1}
+    pa: {cpu: 1, platform: pa}
+    pb: {cpu: 1, platform: pb}
+  tasks:
+  - name: make
+    resource: pa
+    command: [sh, -c, "head -c 5000000 /dev/urandom > {{output}}/data.bin && mkdir {{output}}/sub && echo hi > {{output}}/sub/x.txt && echo $OSMO_NODE > {{output}}/node"]
+  - name: use
+    resource: pb
+    command: [sh, -c, "sha256sum {{input:make}}/data.bin | cut -d' ' -f1 > {{output}}/sum && cat {{input:make}}/sub/x.txt > {{output}}/x && echo $OSMO_NODE > {{output}}/node"]
+    inputs:
+    - task: make
+""")
+    wf = cluster.osmo.submit(spec)
+    info = cluster.osmo.wait_for(wf, _done)
+    assert info["status"] == "COMPLETED", (info, cluster.worker_log("a"), cluster.worker_log("b"))
+    make, use = _task(info, "make"), _task(info, "use")
+    assert (make["node"], use["node"]) == ("a", "b")
+    data = Path(make["output"], "data.bin").read_bytes()
+    assert len(data) == 5_000_000
+    assert Path(use["output"], "sum").read_text().strip() == hashlib.sha256(data).hexdigest()
+    assert Path(use["output"], "x").read_text() == "hi\n"
+    # worker b holds the bytes in its own store, not linked from the server's
+    b_blob = tmp_path / "b" / "worker" / "artifacts" / "blobs" / "sha256"
+    digest = hashlib.sha256(data).hexdigest()
+    blob = b_blob / digest[:2] / digest[2:]
+    assert blob.read_bytes() == data
+    server_blob = tmp_path / "server" / "artifacts" / "blobs" / "sha256" / digest[:2] / digest[2:]
+    assert blob.stat().st_ino != server_blob.stat().st_ino
+    logs = cluster.osmo("logs", wf, check=True).out
+    assert "[make][osmo] exit code 0" in logs and "[use][osmo] exit code 0" in logs
+
+
+def test_same_host_worker_links_instead_of_copying(cluster: Cluster, tmp_path: Path) -> None:
+    cluster.start_worker("w", pool="p", host="shared-host")
+    spec = write(tmp_path / "wf.yaml", """
+workflow:
+  name: linked
+  pool: p
+  tasks:
+  - name: make
+    command: [sh, -c, "head -c 100000 /dev/urandom > {{output}}/d"]
+  - name: use
+    command: [sh, -c, "cmp {{input:make}}/d {{input:make}}/d && echo ok > {{output}}/ok"]
+    inputs:
+    - task: make
+""")
+    info = cluster.osmo.wait_for(cluster.osmo.submit(spec), _done)
+    assert info["status"] == "COMPLETED", info
+    digest = hashlib.sha256(Path(_task(info, "make")["output"], "d").read_bytes()).hexdigest()
+    rel = Path("artifacts", "blobs", "sha256", digest[:2], digest[2:])
+    worker_blob = tmp_path / "w" / "worker" / rel
+    assert worker_blob.stat().st_ino == (tmp_path / "server" / rel).stat().st_ino
+
+
+def _running_on(cluster: Cluster, wf: str, task: str) -> tuple[dict, str]:
+    info = cluster.osmo.wait_for(wf, lambda i: _task(i, task)["status"] == "RUNNING")
+    return info, _task(info, task)["node"]
+
+
+def test_sigkill_of_a_worker_reschedules_its_task(cluster: Cluster, tmp_path: Path) -> None:
+    cluster.start_worker("w1", "--cpus", "1")
+    cluster.start_worker("w2", "--cpus", "1")
+    spec = write(tmp_path / "wf.yaml", """
+workflow:
+  name: survive
+  tasks:
+  - name: slow
+    command: [sh, -c, "sleep 3; echo $OSMO_NODE > {{output}}/node"]
+""")
+    wf = cluster.osmo.submit(spec)
+    _, victim = _running_on(cluster, wf, "slow")
+    killed_at = time.monotonic()
+    cluster.signal(victim, signal.SIGKILL)
+    info = cluster.osmo.wait_for(wf, lambda i: _task(i, "slow")["retry"] >= 1)
+    assert time.monotonic() - killed_at < 3.0, "worker loss must be noticed within 3 s"
+    info = cluster.osmo.wait_for(wf, _done)
+    slow = _task(info, "slow")
+    assert info["status"] == "COMPLETED" and slow["retry"] == 1
+    survivor = "w2" if victim == "w1" else "w1"
+    assert Path(slow["output"], "node").read_text().strip() == survivor
+    logs = cluster.osmo("logs", wf, check=True).out
+    assert "RESCHEDULED" in logs
+
+
+def test_a_cut_off_worker_is_rescheduled_and_its_late_report_ignored(
+        cluster: Cluster, tmp_path: Path) -> None:
+    cluster.start_worker("w1", "--cpus", "1")
+    cluster.start_worker("w2", "--cpus", "1")
+    spec = write(tmp_path / "wf.yaml", """
+workflow:
+  name: cut
+  tasks:
+  - name: slow
+    command: [sh, -c, "sleep 2; echo $OSMO_NODE > {{output}}/node"]
+""")
+    wf = cluster.osmo.submit(spec)
+    _, victim = _running_on(cluster, wf, "slow")
+    stopped_at = time.monotonic()
+    cluster.signal(victim, signal.SIGSTOP)  # hung / network cut: only the lease notices
+    cluster.osmo.wait_for(wf, lambda i: _task(i, "slow")["retry"] >= 1)
+    assert time.monotonic() - stopped_at < 3.0
+    info = cluster.osmo.wait_for(wf, _done)
+    assert info["status"] == "COMPLETED" and _task(info, "slow")["retry"] == 1
+    cluster.signal(victim, signal.SIGCONT)  # it wakes up and reports its stale attempt
+    time.sleep(3.0)
+    after = cluster.osmo.query(wf)
+    slow = _task(after, "slow")
+    assert after["status"] == "COMPLETED" and slow["retry"] == 1
+    survivor = "w2" if victim == "w1" else "w1"
+    assert Path(slow["output"], "node").read_text().strip() == survivor
+
+
+def test_server_restart_does_not_kill_running_tasks(cluster: Cluster, tmp_path: Path) -> None:
+    cluster.start_worker("w1", "--cpus", "1")
+    spec = write(tmp_path / "wf.yaml", """
+workflow:
+  name: restart
+  tasks:
+  - name: long
+    command: [sh, -c, "sleep 3; echo $OSMO_NODE > {{output}}/node"]
+  - name: after
+    command: [sh, -c, "cat {{input:long}}/node > {{output}}/seen"]
+    inputs:
+    - task: long
+""")
+    wf = cluster.osmo.submit(spec)
+    _running_on(cluster, wf, "long")
+    pid = cluster.osmo.server_pid()
+    assert pid is not None
+    import os
+
+    os.kill(pid, signal.SIGKILL)
+    time.sleep(0.5)
+    cluster.start_server()
+    info = cluster.osmo.wait_for(wf, _done, timeout=60)
+    assert info["status"] == "COMPLETED", (info, cluster.worker_log("w1"))
+    assert _task(info, "long")["retry"] == 0, "the running task must not have been rerun"
+    assert Path(_task(info, "after")["output"], "seen").read_text().strip() == "w1"
+
+
+def test_sigterm_drains_a_worker(cluster: Cluster, tmp_path: Path) -> None:
+    proc = cluster.start_worker("w1", "--cpus", "1", "--drain-timeout", "30")
+    spec = write(tmp_path / "wf.yaml", """
+workflow:
+  name: drain
+  tasks:
+  - name: finishing
+    command: [sh, -c, "sleep 2; head -c 200000 /dev/urandom > {{output}}/ckpt"]
+  - name: queued
+    command: [sh, -c, "echo $OSMO_NODE > {{output}}/node"]
+""")
+    wf = cluster.osmo.submit(spec)
+    _running_on(cluster, wf, "finishing")
+    cluster.signal("w1", signal.SIGTERM)
+    assert proc.wait(timeout=40) == 0
+    info = cluster.osmo.query(wf)
+    done = _task(info, "finishing")
+    assert done["status"] == "COMPLETED" and done["retry"] == 0
+    assert Path(done["output"], "ckpt").stat().st_size == 200_000
+    assert _task(info, "queued")["status"] != "COMPLETED"  # never taken by the draining worker
+    cluster.start_worker("w2", "--cpus", "1")
+    info = cluster.osmo.wait_for(wf, _done)
+    assert info["status"] == "COMPLETED"
+    assert Path(_task(info, "queued")["output"], "node").read_text().strip() == "w2"
+
+
+def test_drain_timeout_hands_back_running_attempts(cluster: Cluster, tmp_path: Path) -> None:
+    proc = cluster.start_worker("w1", "--cpus", "1", "--drain-timeout", "0.5")
+    spec = write(tmp_path / "wf.yaml", """
+workflow:
+  name: handback
+  tasks:
+  - name: long
+    command: [sh, -c, "sleep 600"]
+""")
+    wf = cluster.osmo.submit(spec)
+    _running_on(cluster, wf, "long")
+    cluster.signal("w1", signal.SIGTERM)
+    assert proc.wait(timeout=30) == 0
+    info = cluster.osmo.wait_for(wf, lambda i: _task(i, "long")["retry"] >= 1)
+    assert _task(info, "long")["status"] in ("WAITING", "SCHEDULING", "PENDING")
+    cluster.osmo("cancel", wf, check=True)
+
+
+def test_worker_health_and_resource_list(cluster: Cluster) -> None:
+    cluster.start_worker("w1", "--cpus", "1", "--memory", "2Gi", "--label", "zone=a")
+    nodes = cluster.nodes()
+    assert nodes["w1"]["total"]["cpu"] == 1 and nodes["w1"]["total"]["memory"] == 2 << 30
+    assert nodes["w1"]["kind"] == "remote" and nodes["w1"]["status"] == "online"
+    env = dict(cluster.osmo.env, OSMO_HOME=str(cluster.root / "w1"))
+    import subprocess
+    import sys
+
+    ok = subprocess.run([sys.executable, "-m", "osmo", "health", "--worker"], env=env,
+                        capture_output=True, text=True, timeout=30)
+    assert ok.returncode == 0 and "w1" in ok.stdout
+    r = cluster.osmo("--server", cluster.endpoint, "health")
+    assert r.code == 0
+    text = cluster.osmo("workers", check=True).out
+    assert "w1" in text and "online" in text
+
+
+def test_remote_client_with_server_flag_env_and_profile(cluster: Cluster, tmp_path: Path) -> None:
+    cluster.start_worker("w1")
+    spec = write(tmp_path / "wf.yaml", """
+workflow:
+  name: remote-client
+  tasks:
+  - name: t
+    command: [echo, hi]
+""")
+    from tests.conftest import Osmo
+
+    laptop = Osmo(tmp_path / "laptop")  # a different machine: no server of its own
+    r = laptop("--server", cluster.endpoint, "submit", str(spec), "--wait")
+    assert r.code == 0, r.err
+    laptop.env["OSMO_SERVER"] = cluster.endpoint
+    assert laptop("list", "--format", "json", check=True).json()[0]["name"] == "remote-client"  # type: ignore[index]
+    del laptop.env["OSMO_SERVER"]
+    laptop("profile", "set", "server", cluster.endpoint, check=True)
+    assert "remote-client" in laptop("list", check=True).out
+    assert laptop.server_pid() is None  # nothing was started on the laptop
+    unreachable = Osmo(tmp_path / "other")
+    r = unreachable("--server", "tcp/127.0.0.1:9", "list")
+    assert r.code == 3 and "Traceback" not in r.err and "cannot connect" in r.err
+    json.dumps(r.err)
