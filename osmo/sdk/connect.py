@@ -111,4 +111,19 @@ def connect(server: str | None = None, home: str | os.PathLike[str] | None = Non
             raise ServerUnreachable(f"no osmo server running for {home_path} "
                                     "(start one with `osmo server start`)")
         info = start_server(home_path)
-    return Connection(info.endpoint, info.cluster)
+    return Connection(info.endpoint, info.cluster, _local_config(home_path))
+
+
+def _local_config(home: Path) -> str | None:
+    """The zenoh config the home's server was started with (same credentials serve the
+    local CLI), unless ``OSMO_ZENOH_CONFIG`` says otherwise."""
+    import json
+
+    if os.environ.get("OSMO_ZENOH_CONFIG"):
+        return None  # Link.client takes it from the environment
+    try:
+        data = json.loads((home / "server.json").read_text())
+    except (OSError, ValueError):
+        return None
+    value = data.get("zenoh_config")
+    return str(value) if value else None

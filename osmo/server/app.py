@@ -24,7 +24,7 @@ from typing import Any
 
 from osmo.artifacts import ArtifactStore
 from osmo.config import free_port, home_dir, write_json_atomic
-from osmo.errors import InfrastructureError
+from osmo.errors import InfrastructureError, OsmoError
 from osmo.scheduler import Scheduler, TaskState, WorkflowState
 from osmo.scheduler.types import AttemptLost, NodeUp
 from osmo.server.api import Api
@@ -150,8 +150,9 @@ def serve(home: str | os.PathLike[str] | None = None, *, listen: list[str] | Non
     engine.start()
     hub.expect(remote_nodes, reconnect_grace)
 
-    info = {"endpoint": endpoints[0] if endpoints else (connect or [""])[0],
+    info = {"endpoint": _local_endpoint(endpoints) if endpoints else (connect or [""])[0],
             "endpoints": endpoints, "pid": os.getpid(), "cluster": cluster,
+            "zenoh_config": str(Path(zenoh_config).absolute()) if zenoh_config else None,
             "started_at": time.time(), "home": str(home_path)}
     api = Api(engine, home_path, info, on_shutdown=stopping.set, workers=hub)
     api_server = ApiServer(link, api.handle,
@@ -181,6 +182,18 @@ def serve(home: str | os.PathLike[str] | None = None, *, listen: list[str] | Non
         os.close(lock_fd)
 
 
+def _local_endpoint(endpoints: list[str]) -> str:
+    """Where this host's CLI should connect: a loopback TCP endpoint if there is one (a
+    wildcard address counts as loopback), else the first endpoint."""
+    for ep in endpoints:
+        proto, _, rest = ep.partition("/")
+        host, _, port = rest.rpartition(":")
+        if proto == "tcp" and host in ("127.0.0.1", "localhost", "0.0.0.0", "[::]", "[::1]"):
+            local = {"0.0.0.0": "127.0.0.1", "[::]": "[::1]"}.get(host, host)
+            return f"tcp/{local}:{port}"
+    return endpoints[0]
+
+
 def _node_of(engine: Engine, attempt_id: str) -> str | None:
     task = engine.scheduler.attempt(attempt_id)
     return task.node_id if task is not None else None
@@ -198,9 +211,9 @@ def main() -> None:
     args = parser.parse_args()
     try:
         serve(args.home, **server_kwargs(args))
-    except InfrastructureError as exc:
+    except OsmoError as exc:
         print(f"osmo server: {exc}", file=sys.stderr)
-        sys.exit(3)
+        sys.exit(exc.exit_code)
 
 
 if __name__ == "__main__":

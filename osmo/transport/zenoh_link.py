@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 from collections.abc import Callable, Iterable, Sequence
 from typing import Any
 
@@ -53,12 +54,13 @@ def _config(mode: str, *, listen: Sequence[str] = (), connect: Sequence[str] = (
 
 def _refused(connect: Sequence[str], config_file: str | None, exc: Exception) -> ServerUnreachable:
     where = ", ".join(connect)
+    detail = re.sub(r"\s+at \S+\.rs:\d+\.?", "", str(exc)).strip()
     hint = ("check the address, and that the TLS certificates / user and password in "
             f"{config_file} match the server's" if config_file else
             "start one with `osmo server start`, or check --server / OSMO_SERVER; a server "
             "that requires TLS or a password needs --zenoh-config / OSMO_ZENOH_CONFIG")
     return ServerUnreachable(f"cannot connect to an osmo server at {where} "
-                             f"(refused or unreachable: {exc}); {hint}")
+                             f"(refused or unreachable: {detail}); {hint}")
 
 
 class Request:

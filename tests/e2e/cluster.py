@@ -38,7 +38,7 @@ class Cluster:
 
     def start_worker(self, name: str, *args: str, pool: str = "default",
                      host: str | None = None, env: dict[str, str] | None = None,
-                     wait: bool = True) -> subprocess.Popen[bytes]:
+                     wait: bool = True, connect: str | None = None) -> subprocess.Popen[bytes]:
         """Start ``osmo worker`` as its own process; wait until the server lists it."""
         worker_env = dict(os.environ, OSMO_HOME=str(self.root / name), PYTHONUNBUFFERED="1",
                           **self.env, **(env or {}))
@@ -47,7 +47,7 @@ class Cluster:
             worker_env["OSMO_HOST_ID"] = host
         log = open(self.root / f"{name}.log", "ab")
         proc = subprocess.Popen(
-            [sys.executable, "-m", "osmo", "worker", "--connect", self.endpoint,
+            [sys.executable, "-m", "osmo", "worker", "--connect", connect or self.endpoint,
              "--name", name, "--pool", pool, *args],
             env=worker_env, stdout=log, stderr=log, cwd=REPO, start_new_session=True)
         log.close()
