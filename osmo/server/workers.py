@@ -28,6 +28,7 @@ import json
 import logging
 import os
 import threading
+import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
@@ -280,7 +281,13 @@ class WorkerHub:
                 manifest = Manifest.from_json(event.manifest)
                 with self._lock:
                     same = self._same_host.get(wid)
-                fetch_manifest(self._link, wid, manifest, self._artifacts, same_host=same)
+                t0 = time.perf_counter()
+                sent = fetch_manifest(self._link, wid, manifest, self._artifacts, same_host=same)
+                if sent:
+                    took = time.perf_counter() - t0
+                    log.info("outputs of %s: %d bytes fetched from worker %s in %.3fs "
+                             "(%.0f MiB/s)", event.attempt_id, sent, wid, took,
+                             sent / max(took, 1e-9) / 2**20)
                 dirs = _dirs(self._home, event.attempt_id)
                 self._artifacts.link_tree(manifest, dirs.output)
                 event = replace(event, output=str(dirs.output))

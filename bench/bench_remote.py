@@ -1,0 +1,221 @@
+"""Remote workers: dispatch latency, output transfer throughput, fan-out over two workers.
+
+Everything runs as real processes on loopback: a server (``--no-local-pool``) and workers
+started with ``osmo worker --connect``. Workers get their own ``OSMO_HOST_ID`` so data goes
+through the network path (zenoh), not same-host hard links.
+
+- **dispatch round trip:** a chain of ``--chain`` no-op tasks (``true``) on one remote
+  worker. For each task, from its placement (INITIALIZING) to COMPLETED, read from the
+  server's event log: the server sends the order, the worker prepares the folder, spawns
+  ``true``, ingests the (empty) output and reports; the server records it. The same chain
+  on the server's own local pool is printed beside it, so the remote part is the difference.
+- **output transfer:** one task writes a ``--size-mib`` file on a worker "on another host";
+  the server fetches it (chunked, pipelined, verified). The rate is what the server logs
+  for the fetch (bytes / seconds).
+- **fan-out:** 1 → ``--fanout`` → 1 no-op tasks over two remote workers with 2 cpus each.
+
+Usage: python bench/bench_remote.py [--runs 3] [--chain 300] [--fanout 1000]
+       [--size-mib 1024] [--json out.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import re
+import signal
+import sqlite3
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import osmo  # noqa: E402
+from osmo.config import free_port  # noqa: E402
+
+
+class Cluster:
+    """A server and workers in their own processes under one temp folder."""
+
+    def __init__(self, root: Path, *, local_pool: bool = False) -> None:
+        self.root = root
+        self.endpoint = f"tcp/127.0.0.1:{free_port()}"
+        self.env = dict(os.environ, OSMO_HOME=str(root / "server"))
+        self.env.pop("OSMO_SERVER", None)
+        args = ["server", "start", "--listen", self.endpoint]
+        if not local_pool:
+            args.append("--no-local-pool")
+        self.osmo(*args)
+        self.workers: list[subprocess.Popen[bytes]] = []
+
+    def osmo(self, *args: str) -> str:
+        return subprocess.run([sys.executable, "-m", "osmo", *args], env=self.env, check=True,
+                              capture_output=True, text=True).stdout
+
+    def worker(self, name: str, cpus: int) -> None:
+        env = dict(self.env, OSMO_HOME=str(self.root / name), OSMO_HOST_ID=f"host-{name}")
+        log = open(self.root / f"{name}.log", "wb")
+        self.workers.append(subprocess.Popen(
+            [sys.executable, "-m", "osmo", "worker", "--connect", self.endpoint, "--name", name,
+             "--cpus", str(cpus)], env=env, stdout=log, stderr=log, start_new_session=True))
+        log.close()
+        deadline = time.monotonic() + 30
+        while name not in self.osmo("resource", "list"):
+            if time.monotonic() > deadline:
+                raise SystemExit(f"worker {name} did not come online")
+            time.sleep(0.1)
+
+    def client(self) -> osmo.Client:
+        return osmo.Client(self.endpoint)
+
+    def close(self) -> None:
+        for proc in self.workers:
+            os.kill(proc.pid, signal.SIGKILL)
+            proc.wait()
+        self.osmo("server", "stop")
+
+
+def chain(n: int) -> osmo.Workflow:
+    wf = osmo.Workflow("bench-remote-chain")
+    wf.task("t0", ["true"])
+    for i in range(1, n):
+        wf.task(f"t{i}", ["true"], inputs=[f"t{i - 1}"])
+    return wf
+
+
+def fan_out(n: int) -> osmo.Workflow:
+    wf = osmo.Workflow("bench-remote-fanout")
+    wf.task("source", ["true"])
+    middle = [f"m{i}" for i in range(n)]
+    for name in middle:
+        wf.task(name, ["true"], inputs=["source"])
+    wf.task("join", ["true"], inputs=middle)
+    return wf
+
+
+def round_trips(home: Path, wf_id: str) -> list[float]:
+    """Per task: seconds from INITIALIZING to COMPLETED, from the server's event log."""
+    db = sqlite3.connect(f"file:{home / 'state.db'}?mode=ro", uri=True)
+    rows = db.execute("SELECT task, status, at FROM events WHERE workflow_id = ? ORDER BY seq",
+                      (wf_id,))
+    placed: dict[str, float] = {}
+    out = []
+    for task, status, at in rows:
+        if status == "INITIALIZING":
+            placed[task] = at
+        elif status == "COMPLETED" and task in placed:
+            out.append(at - placed.pop(task))
+    return out
+
+
+def dispatch(runs: int, n: int, local: bool) -> list[float]:
+    samples: list[float] = []
+    for _ in range(runs):
+        with tempfile.TemporaryDirectory(prefix="osmo-bench-remote-") as root:
+            c = Cluster(Path(root), local_pool=local)
+            try:
+                if not local:
+                    c.worker("w1", 2)
+                with c.client() as client:
+                    info = client.wait(client.submit(chain(n), no_cache=True))
+                    assert info.ok, info.status
+                samples += round_trips(Path(root) / "server", info.id)
+            finally:
+                c.close()
+    return samples
+
+
+def transfer(runs: int, size_mib: int) -> list[float]:
+    rates = []
+    for _ in range(runs):
+        with tempfile.TemporaryDirectory(prefix="osmo-bench-remote-") as root:
+            c = Cluster(Path(root))
+            try:
+                c.worker("w1", 2)
+                wf = osmo.Workflow("bench-remote-transfer")
+                wf.task("big", ["sh", "-c", f"head -c {size_mib}M /dev/urandom > "
+                                            "{{output}}/big.bin"])
+                with c.client() as client:
+                    assert client.wait(client.submit(wf, no_cache=True)).ok
+                log = (Path(root) / "server" / "server.log").read_text()
+                found = re.findall(r"fetched from worker \S+ in [\d.]+s \((\d+) MiB/s\)", log)
+                rates.append(float(found[-1]))
+            finally:
+                c.close()
+    return rates
+
+
+def fanout(runs: int, n: int) -> list[float]:
+    rates = []
+    for _ in range(runs):
+        with tempfile.TemporaryDirectory(prefix="osmo-bench-remote-") as root:
+            c = Cluster(Path(root))
+            try:
+                c.worker("w1", 2)
+                c.worker("w2", 2)
+                with c.client() as client:
+                    t0 = time.perf_counter()
+                    assert client.wait(client.submit(fan_out(n), no_cache=True)).ok
+                    rates.append((n + 2) / (time.perf_counter() - t0))
+            finally:
+                c.close()
+    return rates
+
+
+def pct(values: list[float], q: float) -> float:
+    ordered = sorted(values)
+    return ordered[min(len(ordered) - 1, int(q * len(ordered)))]
+
+
+def row(name: str, unit: str, values: list[float], *, higher: bool, runs: int,
+        notes: str = "") -> dict[str, object]:
+    return {"name": name, "unit": unit, "median": statistics.median(values), "min": min(values),
+            "max": max(values), "runs": runs, "higher_is_better": higher, "notes": notes}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--runs", type=int, default=3)
+    ap.add_argument("--chain", type=int, default=300)
+    ap.add_argument("--fanout", type=int, default=1000)
+    ap.add_argument("--size-mib", type=int, default=1024)
+    ap.add_argument("--json", help="write result rows here")
+    args = ap.parse_args()
+    print(f"machine: {platform.machine()}, {os.cpu_count()} cores, Python "
+          f"{platform.python_version()}, {platform.system()} {platform.release()}")
+    rows = []
+    remote = dispatch(args.runs, args.chain, local=False)
+    local = dispatch(args.runs, args.chain, local=True)
+    for label, samples in (("remote", remote), ("local pool", local)):
+        ms = [s * 1000 for s in samples]
+        print(f"dispatch round trip, {label}: p50 {pct(ms, 0.5):.2f} ms, "
+              f"p99 {pct(ms, 0.99):.2f} ms over {len(ms)} tasks")
+    for q in (0.5, 0.99):
+        ms = [s * 1000 for s in remote]
+        rows.append({"name": f"remote dispatch round trip p{int(q * 100)}", "unit": "ms",
+                     "median": pct(ms, q), "min": min(ms), "max": max(ms), "runs": args.runs,
+                     "higher_is_better": False,
+                     "notes": f"local pool p{int(q * 100)} "
+                              f"{pct([s * 1000 for s in local], q):.2f} ms"})
+    rates = transfer(args.runs, args.size_mib)
+    print(f"output transfer {args.size_mib} MiB: median {statistics.median(rates):.0f} MiB/s "
+          f"(min {min(rates):.0f}, max {max(rates):.0f})")
+    rows.append(row(f"remote output transfer ({args.size_mib} MiB)", "MiB/s", rates,
+                    higher=True, runs=args.runs))
+    fan = fanout(args.runs, args.fanout)
+    print(f"fan-out {args.fanout} over 2 remote workers: median {statistics.median(fan):.0f} "
+          f"tasks/s (min {min(fan):.0f}, max {max(fan):.0f})")
+    rows.append(row(f"remote fan-out {args.fanout} over 2 workers", "tasks/s", fan,
+                    higher=True, runs=args.runs))
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=2))
+
+
+if __name__ == "__main__":
+    main()
