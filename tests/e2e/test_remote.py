@@ -309,3 +309,50 @@ workflow:
     r = unreachable("--server", "tcp/127.0.0.1:9", "list")
     assert r.code == 3 and "Traceback" not in r.err and "cannot connect" in r.err
     json.dumps(r.err)
+
+
+def test_readme_run_across_machines(tmp_path: Path) -> None:
+    """The README's "Run across machines" block, on loopback with a free port."""
+    import re
+    import subprocess
+    import sys
+
+    from osmo.config import free_port
+    from tests.conftest import REPO, Osmo
+
+    readme = (REPO / "README.md").read_text()
+    block = re.search(r"## Run across machines\n.*?```sh\n(.*?)```", readme, re.S)
+    assert block is not None
+    port = str(free_port())
+    lines = [ln.split("  #")[0].strip() for ln in block.group(1).splitlines()
+             if ln.startswith("osmo ")]
+    lines = [ln.replace("0.0.0.0:7447", f"127.0.0.1:{port}").replace("SERVER:7447",
+             f"127.0.0.1:{port}") for ln in lines]
+    server, laptop = Osmo(tmp_path / "server"), Osmo(tmp_path / "laptop")
+    worker_proc = None
+    try:
+        for line in lines:
+            argv = line.split()[1:]
+            if argv[0] == "server":
+                server(*argv, check=True)
+            elif argv[0] == "worker":
+                env = dict(server.env, OSMO_HOME=str(tmp_path / "worker"))
+                worker_proc = subprocess.Popen([sys.executable, "-m", "osmo", *argv], env=env,
+                                               cwd=REPO, stdout=subprocess.DEVNULL,
+                                               stderr=subprocess.DEVNULL)
+                deadline = time.monotonic() + 30
+                while "gpu-1" not in server("workers").out:
+                    assert time.monotonic() < deadline, "the README's worker never came online"
+                    time.sleep(0.1)
+            else:
+                r = laptop(*argv, check=True)
+                if argv[0] == "workers":
+                    assert "gpu-1" in r.out and "x86-l4" in r.out and "online" in r.out
+                if argv[0] == "submit":
+                    assert "COMPLETED" in r.out
+        assert laptop.server_pid() is None
+    finally:
+        if worker_proc is not None:
+            worker_proc.kill()
+            worker_proc.wait()
+        server.stop_server()
