@@ -129,6 +129,7 @@ user/password are filled in at pod start from the auth Secret (see render-client
 {{- if .Values.tls.mtls -}}
 {{- $_ := set $tls "connect_certificate" "/etc/osmo/tls/client/tls.crt" -}}
 {{- $_ := set $tls "connect_private_key" "/etc/osmo/tls/client/tls.key" -}}
+{{- $_ := set $tls "enable_mtls" true -}}
 {{- end -}}
 {{- $_ := set $t "link" (dict "tls" $tls) -}}
 {{- end -}}
