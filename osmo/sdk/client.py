@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from osmo.artifacts import Manifest
 from osmo.errors import UsageError
 from osmo.sdk.connect import Connection, connect
 from osmo.spec import Workflow, load_spec, spec_from_dict, spec_to_dict
@@ -127,8 +128,8 @@ class Client:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def _call(self, verb: str, **request: Any) -> Any:
-        return self._conn.api.call(verb, request)
+    def _call(self, verb: str, *, timeout: float | None = None, **request: Any) -> Any:
+        return self._conn.api.call(verb, request, timeout=timeout)
 
     # ------------------------------------------------------------------ submit & control
 
@@ -249,10 +250,14 @@ class Client:
         return builtins.list(self._call("artifacts_list", workflow_id=workflow_id, task=task))
 
     def get_artifact(self, target: str, dest: str | os.PathLike[str]) -> builtins.list[str]:
-        """Write a target's files, verified, into ``dest`` (the server's machine: local
-        servers only until remote transfer lands). Returns the written paths."""
-        dest_path = str(Path(dest).absolute())
-        return builtins.list(self._call("artifacts_get", target=target, dest=dest_path)["files"])
+        """Write a target's files, verified, into ``dest`` on this machine (fetched from the
+        server, wherever it runs). Returns the written paths."""
+        from osmo.sdk import transfer
+
+        reply = self._call("artifacts_get", target=target)
+        written = transfer.download(self._conn.link, self.ping(), Manifest.from_json(
+            reply["body"]), Path(dest).absolute(), only=reply.get("only"))
+        return [str(p) for p in written]
 
     def gc_artifacts(self) -> tuple[int, int]:
         """Remove unreferenced blobs; returns (count, bytes)."""
@@ -275,16 +280,30 @@ class Client:
 
     def download_dataset(self, ref: str, dest: str | os.PathLike[str], *,
                          regex: str | None = None) -> builtins.list[str]:
-        """Write a version's files (verified) into ``dest``; returns the written paths."""
-        reply = self._call("datasets_download", ref=ref, dest=str(Path(dest).absolute()),
-                           regex=regex)
-        return builtins.list(reply["files"])
+        """Write a version's files (verified) into ``dest`` on this machine; returns the
+        written paths."""
+        from osmo.sdk import transfer
+
+        reply = self._call("datasets_download", ref=ref, regex=regex)
+        written = transfer.download(self._conn.link, self.ping(),
+                                    Manifest.from_json(reply["manifest"]), Path(dest).absolute())
+        return [str(p) for p in written]
 
     def upload_dataset(self, name: str, path: str | os.PathLike[str], *,
                        metadata: dict[str, str] | None = None) -> int:
-        """Make a new version of ``name`` from a local folder; returns the version."""
-        reply = self._call("datasets_upload", name=name, path=str(Path(path).absolute()),
-                           metadata=metadata or {})
+        """Make a new version of ``name`` from a folder on this machine (a copy is sent; your
+        files stay as they are); returns the version."""
+        from osmo.sdk import transfer
+
+        folder = Path(path).absolute()
+        if not folder.is_dir():
+            raise UsageError(f"cannot upload '{folder}': not a folder")
+        offer = transfer.upload(self._conn.link, folder)
+        try:
+            reply = self._call("datasets_upload", name=name, manifest=offer.manifest.to_json(),
+                               source=offer.source, metadata=metadata or {}, timeout=3600)
+        finally:
+            offer.close()
         return int(reply["version"])
 
     # ------------------------------------------------------------------ credentials

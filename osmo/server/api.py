@@ -61,7 +61,8 @@ class Api:
         }
         if workers is not None:
             self._verbs.update(workers.verbs())
-        self._verbs.update(DatasetApi(engine, self._artifacts, home).verbs())
+        self._verbs.update(DatasetApi(engine, self._artifacts, home,
+                                      workers.pull if workers else None).verbs())
         self._verbs.update(CredentialApi(self._store).verbs())
 
     def handle(self, verb: str, request: dict[str, Any]) -> Any:
@@ -204,14 +205,14 @@ class Api:
         return out
 
     def artifacts_get(self, request: dict[str, Any]) -> dict[str, Any]:
-        """Write a target's files (verified) into ``dest`` on the server's machine."""
+        """A target's manifest (and the one file meant, if it names a file); the client
+        fetches the blobs and writes the files."""
         manifests, blob = resolve_target(self._store, request["target"])
         body = self._store.manifest_body(manifests[0])
         assert body is not None
         manifest = Manifest.from_json(body)
         only = next((e.path for e in manifest.entries if e.digest == blob), None) if blob else None
-        written = self._artifacts.materialize(manifest, Path(request["dest"]), only=only)
-        return {"files": [str(p) for p in written], "manifest": manifests[0]}
+        return {"manifest": manifests[0], "body": body, "only": only}
 
     def artifacts_gc(self, _request: dict[str, Any]) -> dict[str, Any]:
         """Remove blobs no recorded manifest references (recent blobs are kept)."""

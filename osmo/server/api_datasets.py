@@ -1,16 +1,17 @@
 """API verbs for datasets: list, info, tag, download, upload.
 
 Writes (tag, upload) run on the engine thread like every other state change; reads go to the
-store. ``upload`` and ``download`` use paths on the server's machine (a local server; remote
-transfer arrives with remote workers).
+store. Files travel between the client's machine and the server as blobs
+(``osmo.transport.blobs``): ``download`` hands the client the version's manifest and the
+client fetches what it lacks; ``upload`` gets a manifest of the client's folder and the server
+pulls the blobs it lacks from the client.
 """
 
 from __future__ import annotations
 
 
-import shutil
-import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -25,7 +26,9 @@ __all__ = ["DatasetApi"]
 class DatasetApi:
     """Handlers for ``datasets_*`` verbs."""
 
-    def __init__(self, engine: Engine, artifacts: ArtifactStore, home: Path) -> None:
+    def __init__(self, engine: Engine, artifacts: ArtifactStore, home: Path,
+                 pull: Callable[[dict[str, Any], Manifest], None] | None = None) -> None:
+        self._pull = pull  # fetch a manifest's blobs from a client (see WorkerHub.pull)
         self._engine = engine
         self._store = engine.store
         self._artifacts = artifacts
@@ -62,26 +65,20 @@ class DatasetApi:
         return {"name": row["name"], "version": row["version"], "tag": tag}
 
     def download(self, request: dict[str, Any]) -> dict[str, Any]:
-        """Write a version's files (verified) into ``dest``."""
+        """A version's manifest (``regex`` applied); the client fetches the blobs."""
         row = self._row(request["ref"])
         body = self._store.manifest_body(row["manifest"])
         assert body is not None
         manifest = select(Manifest.from_json(body), path=None, regex=request.get("regex"))
-        written = self._artifacts.materialize(manifest, Path(request["dest"]))
-        return {"files": [str(p) for p in written], "version": row["version"]}
+        return {"manifest": manifest.to_json(), "version": row["version"]}
 
     def upload(self, request: dict[str, Any]) -> dict[str, Any]:
-        """Make a new version of ``name`` from a folder (copied first: the caller's files are
-        left as they are)."""
-        source = Path(request["path"])
-        if not source.is_dir():
-            raise UsageError(f"cannot upload '{source}': not a folder")
-        staging = Path(tempfile.mkdtemp(prefix="upload-", dir=self._home))
-        try:
-            shutil.copytree(source, staging / "data", symlinks=True)
-            manifest = self._artifacts.ingest(staging / "data")
-        finally:
-            shutil.rmtree(staging, ignore_errors=True)
+        """Make a new version of ``name`` from the manifest of a client's folder: the blobs
+        this server lacks are pulled from the client (``request["source"]``) first."""
+        if self._pull is None:
+            raise UsageError("this server cannot receive uploads")
+        manifest = Manifest.from_json(str(request["manifest"]))
+        self._pull(dict(request["source"]), manifest)
         datasets = self._engine.datasets
         assert datasets is not None
         metadata = dict(request.get("metadata") or {})

@@ -33,6 +33,7 @@ from osmo.server.datasets import Datasets
 from osmo.server.engine import Engine
 from osmo.server.options import add_server_options, server_kwargs
 from osmo.server.workers import Dispatcher, WorkerHub
+from osmo.transport.blobs import host_id
 from osmo.server.records import RunRecords
 from osmo.spec import spec_from_dict
 from osmo.spec.model import ResolvedType, WorkflowSpec
@@ -153,6 +154,7 @@ def serve(home: str | os.PathLike[str] | None = None, *, listen: list[str] | Non
     info = {"endpoint": _local_endpoint(endpoints) if endpoints else (connect or [""])[0],
             "endpoints": endpoints, "pid": os.getpid(), "cluster": cluster,
             "zenoh_config": str(Path(zenoh_config).absolute()) if zenoh_config else None,
+            "host_id": host_id(), "artifacts": str(artifacts.root),
             "started_at": time.time(), "home": str(home_path)}
     api = Api(engine, home_path, info, on_shutdown=stopping.set, workers=hub)
     api_server = ApiServer(link, api.handle,

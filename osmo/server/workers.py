@@ -196,6 +196,14 @@ class WorkerHub:
                                 "online" if wid in self._alive else "connecting"),
                      **self._info.get(wid, {})} for wid, n in sorted(self._nodes.items())]
 
+    def pull(self, source: dict[str, Any], manifest: Manifest) -> None:
+        """Fetch ``manifest``'s blobs from a client that serves them as ``source["owner"]``
+        (linked instead when it shares this host)."""
+        same = (SameHost(Path(source["artifacts"]))
+                if source.get("host_id") == self._host and source.get("artifacts") else None)
+        fetch_manifest(self._link, str(source["owner"]), manifest, self._artifacts,
+                       same_host=same)
+
     # ------------------------------------------------------------------ orders
 
     def prepare(self, cmd: PrepareAttempt, task: TaskSpec) -> None:

@@ -356,3 +356,39 @@ def test_readme_run_across_machines(tmp_path: Path) -> None:
             worker_proc.kill()
             worker_proc.wait()
         server.stop_server()
+
+
+def test_remote_client_moves_files_both_ways(cluster: Cluster, tmp_path: Path) -> None:
+    """artifacts get, dataset upload and download from a machine that is not the server's."""
+    from tests.conftest import Osmo
+
+    cluster.start_worker("w1", host="worker-host")
+    laptop = Osmo(tmp_path / "laptop")
+    laptop.env.update(OSMO_SERVER=cluster.endpoint, OSMO_HOST_ID="laptop-host")
+    data = tmp_path / "mine"
+    (data / "sub").mkdir(parents=True)
+    (data / "a.bin").write_bytes(bytes(range(256)) * 4000)
+    (data / "sub" / "b.txt").write_text("bee\n")
+    r = laptop("dataset", "upload", "demos", str(data), check=True)
+    assert "1" in r.out
+    assert (data / "a.bin").stat().st_mode & 0o200, "the user's own files stay writable"
+    spec = write(tmp_path / "wf.yaml", """
+workflow:
+  name: uses-dataset
+  tasks:
+  - name: t
+    inputs:
+    - dataset: {name: demos}
+    command: [sh, -c, "cat {{input:0}}/sub/b.txt > {{output}}/b && cp {{input:0}}/a.bin {{output}}/a.bin"]
+""")
+    r = laptop("submit", str(spec), "--wait")
+    assert r.code == 0, r.out + r.err
+    wf = r.out.splitlines()[0].split(" - ")[1].strip()
+    out = tmp_path / "got"
+    laptop("artifacts", "get", f"{wf}:t", "-o", str(out), check=True)
+    assert (out / "b").read_text() == "bee\n"
+    assert (out / "a.bin").read_bytes() == (data / "a.bin").read_bytes()
+    back = tmp_path / "back"
+    laptop("dataset", "download", "demos", "-o", str(back), check=True)
+    assert (back / "sub" / "b.txt").read_text() == "bee\n"
+    assert not (tmp_path / "server" / "got").exists() and not Path("/got").exists()
