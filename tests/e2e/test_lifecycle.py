@@ -49,7 +49,7 @@ def test_submit_autostarts_server_and_server_commands(osmo: Osmo, tmp_path: Path
 def test_unreachable_server_exit_code(osmo: Osmo) -> None:
     r = osmo("--server", "tcp/127.0.0.1:9", "list")
     assert r.code == 3
-    assert "no osmo server reachable" in r.err and "Traceback" not in r.err
+    assert "cannot connect to an osmo server" in r.err and "Traceback" not in r.err
 
 
 def test_cancel_kills_the_process_group(osmo: Osmo, tmp_path: Path) -> None:

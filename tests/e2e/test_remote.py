@@ -392,3 +392,43 @@ workflow:
     laptop("dataset", "download", "demos", "-o", str(back), check=True)
     assert (back / "sub" / "b.txt").read_text() == "bee\n"
     assert not (tmp_path / "server" / "got").exists() and not Path("/got").exists()
+
+
+def test_cancel_and_timeout_reach_remote_tasks(cluster: Cluster, tmp_path: Path) -> None:
+    cluster.start_worker("w1", "--cpus", "2", host="elsewhere")
+    pidfile = tmp_path / "pid"
+    spec = write(tmp_path / "wf.yaml", f"""
+workflow:
+  name: stopme
+  tasks:
+  - name: long
+    command: [sh, -c, "echo started; sleep 600 & echo $! > {pidfile}; wait"]
+""")
+    wf = cluster.osmo.submit(spec)
+    cluster.osmo.wait_for(wf, lambda i: pidfile.exists() and pidfile.read_text().strip() != "")
+    child = int(pidfile.read_text())
+    cluster.osmo("cancel", wf, check=True)
+    info = cluster.osmo.wait_for(wf, _done)
+    assert info["status"] == "FAILED_CANCELED"
+    deadline = time.monotonic() + 10
+    import os
+
+    while True:
+        try:
+            os.kill(child, 0)
+        except ProcessLookupError:
+            break
+        assert time.monotonic() < deadline, "the remote task's process group was not killed"
+        time.sleep(0.1)
+    logs = cluster.osmo("logs", wf, check=True).out
+    assert "[long] started" in logs  # streamed from the worker
+    timed = write(tmp_path / "timeout.yaml", """
+workflow:
+  name: timed
+  timeout: {exec_timeout: 2s}
+  tasks:
+  - name: slow
+    command: [sleep, "600"]
+""")
+    info = cluster.osmo.wait_for(cluster.osmo.submit(timed), _done, timeout=60)
+    assert info["status"] == "FAILED_EXEC_TIMEOUT", info
