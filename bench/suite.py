@@ -88,13 +88,12 @@ def run_script(script: Path, out_dir: Path, env: dict[str, str], timeout: float
               "log": str(log_path), "status": "ok"}
     rows: list[Row] = []
     problem = ""
+    try:  # a script that failed part-way may still have written the rows it has
+        rows = validate(json.loads(Path(json_path).read_text() or "null"))
+    except (ValueError, TypeError) as exc:
+        problem = f"bad --json output: {exc}"
     if code != 0:
         problem = f"timed out after {timeout:.0f} s" if timed_out else f"exit code {code}"
-    else:
-        try:
-            rows = validate(json.loads(Path(json_path).read_text() or "null"))
-        except (ValueError, TypeError) as exc:
-            problem = f"bad --json output: {exc}"
     Path(json_path).unlink(missing_ok=True)
     for r in rows:
         r["script"] = name
@@ -102,7 +101,7 @@ def run_script(script: Path, out_dir: Path, env: dict[str, str], timeout: float
         record["status"] = "failed"
         last = next((line for line in reversed(tail) if line.strip()), "")
         record["error"] = f"{problem}; last output: {last[:200]}"
-        rows = [{"name": f"{name}: FAILED", "script": name, "status": "failed", "unit": "",
+        rows += [{"name": f"{name}: FAILED", "script": name, "status": "failed", "unit": "",
                  "median": None, "min": None, "max": None, "runs": 0, "higher_is_better": True,
                  "notes": f"{record['error']} (log: {log_path})"}]
         print(f"!! {name} failed: {record['error']}", flush=True)
