@@ -83,9 +83,12 @@ def run_script(script: Path, out_dir: Path, env: dict[str, str], timeout: float
     code = proc.wait()
     timed_out = not timer.is_alive() and code != 0
     timer.cancel()
+    leaked = reap_leftovers(env["OSMO_BENCH_RUN"])
     seconds = time.perf_counter() - t0
     record = {"script": name, "path": str(script), "seconds": round(seconds, 1),
-              "log": str(log_path), "status": "ok"}
+              "log": str(log_path), "status": "ok", "leftover_processes": leaked}
+    if leaked:
+        print(f"!! {name} left {len(leaked)} process(es) running (killed): {leaked}", flush=True)
     rows: list[Row] = []
     problem = ""
     try:  # a script that failed part-way may still have written the rows it has
@@ -106,6 +109,27 @@ def run_script(script: Path, out_dir: Path, env: dict[str, str], timeout: float
                  "notes": f"{record['error']} (log: {log_path})"}]
         print(f"!! {name} failed: {record['error']}", flush=True)
     return record, rows
+
+
+def reap_leftovers(token: str) -> list[str]:
+    """Kill (by pid) processes a finished script left behind, e.g. a server it did not stop.
+
+    Every process the harness starts inherits ``OSMO_BENCH_RUN=<token>``; one still alive
+    after its script exited is a leak, reported in the script's record.
+    """
+    mark = f"OSMO_BENCH_RUN={token}".encode()
+    found = []
+    for proc in Path("/proc").iterdir():
+        if not proc.name.isdigit() or int(proc.name) == os.getpid():
+            continue
+        try:
+            if mark in (proc / "environ").read_bytes().split(b"\0"):
+                cmd = (proc / "cmdline").read_bytes().replace(b"\0", b" ").decode()
+                os.kill(int(proc.name), signal.SIGKILL)
+                found.append(f"{proc.name} {cmd[:100]}")
+        except (OSError, ProcessLookupError):
+            continue
+    return found
 
 
 def validate(data: object) -> list[Row]:
@@ -242,6 +266,7 @@ def main() -> None:
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     env.pop("OSMO_SERVER", None)
     env.pop("OSMO_HOME", None)
+    env["OSMO_BENCH_RUN"] = f"{os.getpid()}-{time.time_ns()}"
     if args.quick:
         env["OSMO_BENCH_QUICK"] = "1"
     machine = machine_info()
