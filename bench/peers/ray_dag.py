@@ -79,8 +79,8 @@ def main() -> None:
         out: dict[str, object] = {"peer": "ray", "version": ray.__version__,
                                   "startup_s": time.perf_counter() - T_START, "results": []}
         flows = {"chain": chain, "fanout": fanout}
-        for shape in args.shapes.split(","):
-            for body in args.bodies.split(","):
+        for body in args.bodies.split(","):  # the `true` body first: it is compared
+            for shape in args.shapes.split(","):
                 t0 = time.perf_counter()
                 flows[shape](args.tasks, body)
                 out["results"].append({"shape": shape, "body": body, "tasks": args.tasks,  # type: ignore[attr-defined]
