@@ -1,39 +1,44 @@
-"""Engine throughput: 1,000 `true` tasks end to end through a real server with durable state.
+"""Engine throughput: `true` tasks end to end through a real server with durable state.
 
-Shapes: fan-out/join (1 source → 998 parallel → 1 join) and a 1,000-task chain. Each is
-submitted through the SDK to a fresh server (own OSMO_HOME, SQLite WAL) and timed from
-submit to the workflow's COMPLETED. Prints the median of N runs (min/max), tasks/s and
-per-task overhead, plus the "limit": spawning `true` as many times with the same
-parallelism and no orchestrator.
+Shapes: fan-out/join (1 source → N-2 parallel → 1 join) of 1,000 and of 10,000 tasks, and a
+1,000-task chain. Each run submits through the SDK to a fresh server (own OSMO_HOME, SQLite
+WAL; the server is started before the clock starts) and times from ``submit`` to the
+workflow's COMPLETED. The rounds alternate the shapes, so a noisy minute hits all of them.
+Every task requests 1 cpu, so on 2 cores 2 run at once. Submitted with ``no_cache``: the
+``true`` tasks of a shape have identical definitions and inputs, so with caching on all but
+the first few would complete as cache hits without running. The limit these rows are compared
+with is bench_limits.py's spawn row (spawning ``true`` with the same parallelism and no
+orchestrator).
 
-Usage: python bench/bench_engine.py [--runs 3] [--tasks 1000] [--base DIR] [--json out.json]
+Usage: python bench/bench_engine.py [--runs 3] [--tasks 1000] [--big 10000] [--base DIR]
+       [--json out.json]
 
-The numbers depend heavily on the filesystem under the homes (each attempt makes folders
-and renames its output): the script prints the median mkdir cost there. Compare with
-``--base /dev/shm`` (tmpfs) to see the engine without the disk.
+The numbers depend on the filesystem under the homes (each attempt makes folders and renames
+its output): a row gives the median mkdir cost there. ``--base /dev/shm`` (tmpfs) shows the
+engine without the disk.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import platform
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import osmo  # noqa: E402
+from benchlib import quick, row, write_rows  # noqa: E402
 from osmo.sdk.connect import start_server, stop_server  # noqa: E402
+
+SPAWN_LIMIT = "limit: spawn `true`, 2 parallel, no orchestrator"
 
 
 def fan_out(n: int) -> osmo.Workflow:
+    """1 source task, n-2 parallel tasks that read it, 1 join task that reads them all."""
     wf = osmo.Workflow("bench-fanout")
     wf.task("source", ["true"])
     middle = [f"m{i}" for i in range(n - 2)]
@@ -44,6 +49,7 @@ def fan_out(n: int) -> osmo.Workflow:
 
 
 def chain(n: int) -> osmo.Workflow:
+    """n tasks, each reading the previous one's output."""
     wf = osmo.Workflow("bench-chain")
     wf.task("t0", ["true"])
     for i in range(1, n):
@@ -52,12 +58,13 @@ def chain(n: int) -> osmo.Workflow:
 
 
 def run_once(spec: osmo.WorkflowSpec, base: str | None) -> float:
+    """Seconds from submit to COMPLETED on a fresh server (started before the clock)."""
     with tempfile.TemporaryDirectory(prefix="osmo-bench-", dir=base) as home:
         start_server(home)
         try:
             with osmo.Client(home=home) as client:
                 t0 = time.perf_counter()
-                result = client.wait(client.submit(spec))
+                result = client.wait(client.submit(spec, no_cache=True))
                 elapsed = time.perf_counter() - t0
                 if not result.ok:
                     raise SystemExit(f"benchmark workflow ended {result.status.name}")
@@ -67,57 +74,48 @@ def run_once(spec: osmo.WorkflowSpec, base: str | None) -> float:
     return elapsed
 
 
-def spawn_limit(n: int, parallel: int) -> float:
-    t0 = time.perf_counter()
-    with ThreadPoolExecutor(parallel) as pool:
-        list(pool.map(lambda _i: subprocess.run(["true"], check=True), range(n)))
-    return time.perf_counter() - t0
-
-
-def mkdir_us(base: str | None, n: int = 500) -> float:
-    """Median cost of one mkdir where the homes live: attempt folders are mostly this."""
+def mkdir_us(base: str | None, n: int = 500) -> list[float]:
+    """Cost of each mkdir where the homes live (attempt folders are mostly this), in µs."""
     with tempfile.TemporaryDirectory(dir=base) as d:
         times = []
         for i in range(n):
             t0 = time.perf_counter()
             os.mkdir(f"{d}/{i}")
-            times.append(time.perf_counter() - t0)
-    return statistics.median(times) * 1e6
-
-
-def machine() -> str:
-    return (f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}, "
-            f"{platform.system()} {platform.release()}")
+            times.append((time.perf_counter() - t0) * 1e6)
+    return times
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser()
-    parser.add_argument("--runs", type=int, default=3)
-    parser.add_argument("--tasks", type=int, default=1000)
+    """Run every shape ``--runs`` times (alternating) and write the rows."""
+    small = quick()
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--runs", type=int, default=1 if small else 3)
+    parser.add_argument("--tasks", type=int, default=20 if small else 1000)
+    parser.add_argument("--big", type=int, default=60 if small else 10_000)
     parser.add_argument("--json")
     parser.add_argument("--base", help="folder for the OSMO_HOMEs (default: system temp)")
     args = parser.parse_args()
-    print(f"machine: {machine()}")
-    print(f"homes under {args.base or tempfile.gettempdir()}: mkdir {mkdir_us(args.base):.0f} µs")
-    cores = os.cpu_count() or 1
-    results = {}
-    limit = [spawn_limit(args.tasks, cores) for _ in range(args.runs)]
-    shapes = {"fan-out/join": fan_out(args.tasks).build(), "chain": chain(args.tasks).build()}
-    for name, spec in shapes.items():
-        times = [run_once(spec, args.base) for _ in range(args.runs)]
-        med = statistics.median(times)
-        results[name] = {"median_s": med, "min_s": min(times), "max_s": max(times),
-                         "tasks_per_s": args.tasks / med, "per_task_ms": 1000 * med / args.tasks}
-        print(f"{name:14s} {args.tasks} tasks: median {med:.2f}s (min {min(times):.2f}, "
-              f"max {max(times):.2f}) → {args.tasks / med:.0f} tasks/s, "
-              f"{1000 * med / args.tasks:.2f} ms/task")
-    lim = statistics.median(limit)
-    results["spawn-limit"] = {"median_s": lim, "tasks_per_s": args.tasks / lim}
-    print(f"{'limit':14s} spawn `true` x{args.tasks}, {cores} parallel, no orchestrator: "
-          f"{lim:.2f}s → {args.tasks / lim:.0f}/s")
-    if args.json:
-        Path(args.json).write_text(json.dumps(
-            {"machine": machine(), "base": args.base, **results}, indent=2))
+    where = args.base or tempfile.gettempdir()
+    shapes = {
+        f"osmo fan-out/join {args.tasks:,} `true` tasks": fan_out(args.tasks).build(),
+        f"osmo chain {args.tasks:,} `true` tasks": chain(args.tasks).build(),
+        f"osmo fan-out/join {args.big:,} `true` tasks": fan_out(args.big).build(),
+    }
+    sizes = [args.tasks, args.tasks, args.big]
+    times: dict[str, list[float]] = {name: [] for name in shapes}
+    mkdirs: list[float] = []
+    for _ in range(args.runs):
+        mkdirs.append(statistics.median(mkdir_us(args.base)))
+        for name, spec in shapes.items():
+            times[name].append(run_once(spec, args.base))
+    rows = [row(f"filesystem: mkdir under {where}", "µs", mkdirs, higher_is_better=False,
+                notes="attempt folders cost mostly this; a slow disk moment shows here")]
+    for (name, runs), n in zip(times.items(), sizes, strict=True):
+        rows.append(row(name, "tasks/s", [n / t for t in runs], higher_is_better=True,
+                        limit_of=SPAWN_LIMIT,
+                        notes=f"submit→COMPLETED median {statistics.median(runs):.2f} s, "
+                              f"{1000 * statistics.median(runs) / n:.2f} ms/task"))
+    write_rows(args.json, rows)
 
 
 if __name__ == "__main__":

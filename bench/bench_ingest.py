@@ -18,19 +18,18 @@ The file is written once and stays in the page cache (warm reads), which is the 
 right after a task wrote its outputs. Target from the brief: ≥ 500 MiB/s for the same-filesystem
 ingest of a 1 GiB file.
 
-Usage: python bench/bench_ingest.py [--runs 3] [--mib 1024] [--base DIR] [--json out.json]
+Every ingest and materialize row carries the file-hashing row's median as its limit.
+
+Usage: python bench/bench_ingest.py [--runs 3] [--mib 1024] [--small 10000] [--base DIR]
+       [--json out.json]
 """
 
 from __future__ import annotations
 
 import argparse
 import hashlib
-import json
 import os
-import platform
 import shutil
-import ssl
-import statistics
 import sys
 import tempfile
 import time
@@ -39,26 +38,11 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchlib import Row, quick, row, write_rows  # noqa: E402
 from osmo.artifacts import ArtifactStore  # noqa: E402
 from osmo.artifacts.fsops import hash_fd  # noqa: E402
 
 MiB = 1 << 20
-
-
-def machine() -> dict[str, object]:
-    """Describe the machine the numbers come from."""
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-        flags = Path("/proc/cpuinfo").read_text()
-        cpu += " (sha_ni)" if " sha_ni" in flags else " (no sha_ni)"
-    except OSError:
-        pass
-    return {"cpu": cpu, "cores": os.cpu_count(), "python": platform.python_version(),
-            "openssl": ssl.OPENSSL_VERSION, "os": f"{platform.system()} {platform.release()}"}
 
 
 def fs_type(path: Path) -> str:
@@ -86,13 +70,11 @@ def timed(runs: int, setup: Callable[[], object], work: Callable[[object], objec
     return out
 
 
-def report(name: str, times: list[float], amount: float, unit: str) -> dict[str, object]:
-    """Print one line: median rate and min–max; return it as a dict for --json."""
-    rates = sorted(amount / t for t in times)
-    med = statistics.median(rates)
-    print(f"  {name:<42} {med:9,.0f} {unit}  (min–max {rates[0]:,.0f}–{rates[-1]:,.0f}; "
-          f"median {statistics.median(times):.3f} s)")
-    return {"case": name, "median": med, "min": rates[0], "max": rates[-1], "unit": unit}
+def report(name: str, times: list[float], amount: float, unit: str,
+           limit: float | None = None, target: float | None = None) -> Row:
+    """One protocol row: the rate of each run (``amount`` per second)."""
+    return row(f"ingest: {name}", unit, [amount / t for t in times], higher_is_better=True,
+               limit=limit, target=target)
 
 
 def write_random(path: Path, mib: int) -> None:
@@ -106,19 +88,20 @@ def write_random(path: Path, mib: int) -> None:
 
 
 def main() -> None:
-    """Run every case and print the table."""
+    """Run every case and write the rows."""
+    small_run = quick()
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--runs", type=int, default=3)
-    ap.add_argument("--mib", type=int, default=1024)
+    ap.add_argument("--runs", type=int, default=1 if small_run else 3)
+    ap.add_argument("--mib", type=int, default=8 if small_run else 1024)
+    ap.add_argument("--small", type=int, default=200 if small_run else 10_000,
+                    help="number of 4 KiB files in the small-files case")
     ap.add_argument("--base", default=None, help="folder for outputs and stores (default: tmp)")
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
-    results: list[dict[str, object]] = []
+    results: list[Row] = []
     with tempfile.TemporaryDirectory(prefix="osmo-bench-ingest-", dir=args.base) as tmp:
         base = Path(tmp)
-        info = machine() | {"base": str(base), "base_fs": fs_type(base)}
-        print("machine:", json.dumps(info))
-        print(f"{args.mib} MiB file, median of {args.runs} runs, warm page cache:")
+        print(f"{args.mib} MiB file under {base} ({fs_type(base)}), warm page cache:")
         out = base / "out"
         write_random(out / "big.bin", args.mib)
         stores = iter(range(10**6))
@@ -139,21 +122,24 @@ def main() -> None:
                 hash_fd(f, MiB)
         results.append(report("limit: sha256 of the file (1 MiB reads)",
                               timed(args.runs, lambda: None, hash_file), args.mib, "MiB/s"))
+        limit = float(results[-1]["median"])
 
         def ingest(store: object) -> None:
             assert isinstance(store, ArtifactStore)
             store.ingest(out)
-        results.append(report("ingest, new blob, same filesystem (link)",
-                              timed(args.runs, fresh, ingest), args.mib, "MiB/s"))
+        results.append(report(f"{args.mib:,} MiB file, new blob, same filesystem (link)",
+                              timed(args.runs, fresh, ingest), args.mib, "MiB/s", limit,
+                              target=500.0 if args.mib >= 1024 else None))
         shared = fresh()
         shared.ingest(out)
-        results.append(report("ingest, blob exists (dedup)",
-                              timed(args.runs, lambda: shared, ingest), args.mib, "MiB/s"))
+        results.append(report(f"{args.mib:,} MiB file, blob exists (dedup)",
+                              timed(args.runs, lambda: shared, ingest), args.mib, "MiB/s",
+                              limit))
 
         manifest = shared.ingest(out)
-        results.append(report("materialize (verified copy)", timed(
+        results.append(report("materialize (verified copy out)", timed(
             args.runs, lambda: shutil.rmtree(base / "dest", ignore_errors=True),
-            lambda _: shared.materialize(manifest, base / "dest")), args.mib, "MiB/s"))
+            lambda _: shared.materialize(manifest, base / "dest")), args.mib, "MiB/s", limit))
         shutil.rmtree(base / "dest", ignore_errors=True)
 
         shm = Path("/dev/shm")
@@ -165,25 +151,26 @@ def main() -> None:
                 def ingest_shm(store: object) -> None:
                     assert isinstance(store, ArtifactStore)
                     store.ingest(shm_out)
-                results.append(report("ingest, new blob, across filesystems (copy)",
-                                      timed(args.runs, fresh, ingest_shm), args.mib, "MiB/s"))
+                results.append(report("new blob, across filesystems (copy + fsync)",
+                                      timed(args.runs, fresh, ingest_shm), args.mib, "MiB/s",
+                                      limit))
             finally:
                 shutil.rmtree(shm_out, ignore_errors=True)
 
         parts = base / "parts"
+        parts.mkdir()
         with open(out / "big.bin", "rb") as f:
             for i in range(8):
-                (parts.mkdir(exist_ok=True), (parts / f"part{i}").write_bytes(
-                    f.read(args.mib * MiB // 8)))
+                (parts / f"part{i}").write_bytes(f.read(args.mib * MiB // 8))
 
         def ingest_parts(store: object) -> None:
             assert isinstance(store, ArtifactStore)
             store.ingest(parts)
-        results.append(report("ingest, same bytes as 8 files (parallel)",
+        results.append(report("same bytes as 8 files (parallel hashing)",
                               timed(args.runs, fresh, ingest_parts), args.mib, "MiB/s"))
 
         small = base / "small"
-        for i in range(10_000):
+        for i in range(args.small):
             p = small / f"d{i % 100}" / f"f{i}.bin"
             p.parent.mkdir(parents=True, exist_ok=True)
             p.write_bytes(os.urandom(4096))
@@ -191,10 +178,9 @@ def main() -> None:
         def ingest_small(store: object) -> None:
             assert isinstance(store, ArtifactStore)
             store.ingest(small)
-        results.append(report("small files: 10,000 × 4 KiB, new blobs",
-                              timed(args.runs, fresh, ingest_small), 10_000, "files/s"))
-    if args.json:
-        Path(args.json).write_text(json.dumps({"machine": info, "results": results}, indent=2))
+        results.append(report(f"small files: {args.small:,} × 4 KiB, new blobs",
+                              timed(args.runs, fresh, ingest_small), args.small, "files/s"))
+    write_rows(args.json, results)
 
 
 if __name__ == "__main__":

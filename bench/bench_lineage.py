@@ -7,15 +7,12 @@ rows to the real SQLite store (one transaction per task, as in a chain). Prints 
 of several runs with min/max. The end-to-end effect is in bench_engine.py's numbers, which
 include all of this.
 
-Usage: python bench/bench_lineage.py [--runs 3] [--tasks 1000] [--base DIR]
+Usage: python bench/bench_lineage.py [--runs 3] [--tasks 1000] [--base DIR] [--json out.json]
 """
 
 from __future__ import annotations
 
 import argparse
-import os
-import platform
-import statistics
 import sys
 import tempfile
 import time
@@ -23,6 +20,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchlib import quick, row, write_rows  # noqa: E402
 from osmo.artifacts import ArtifactStore  # noqa: E402
 from osmo.scheduler.types import AttemptExited, Changes, PrepareAttempt  # noqa: E402
 from osmo.server.cache import input_sources  # noqa: E402
@@ -65,21 +63,25 @@ def one_run(n: int, base: str | None) -> tuple[float, float]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser()
-    parser.add_argument("--runs", type=int, default=3)
-    parser.add_argument("--tasks", type=int, default=1000)
+    """Measure ``--runs`` chains and write the rows (ms per task)."""
+    small = quick()
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--runs", type=int, default=1 if small else 3)
+    parser.add_argument("--tasks", type=int, default=20 if small else 1000)
     parser.add_argument("--base")
+    parser.add_argument("--json")
     args = parser.parse_args()
-    print(f"machine: {platform.machine()}, {os.cpu_count()} cores, "
-          f"Python {platform.python_version()}, under {args.base or tempfile.gettempdir()}")
     runs = [one_run(args.tasks, args.base) for _ in range(args.runs)]
-    ingest = statistics.median(r[0] for r in runs) * 1000
-    record = statistics.median(r[1] for r in runs) * 1000
-    print(f"ingest one small output      : {ingest:.3f} ms/task")
-    print(f"lineage record + commit      : {record:.3f} ms/task")
-    print(f"lineage overhead per task    : {ingest + record:.3f} ms "
-          f"(min run {min(sum(r) for r in runs) * 1000:.3f}, "
-          f"max run {max(sum(r) for r in runs) * 1000:.3f})")
+    where = f"{args.tasks:,}-task chain under {args.base or tempfile.gettempdir()}"
+    rows = [
+        row("lineage: ingest one small output", "ms/task", [r[0] * 1000 for r in runs],
+            higher_is_better=False, notes=where),
+        row("lineage: inputs read + record + commit", "ms/task", [r[1] * 1000 for r in runs],
+            higher_is_better=False),
+        row("lineage: overhead per task (total)", "ms/task", [sum(r) * 1000 for r in runs],
+            higher_is_better=False, target=1.0, notes=where),
+    ]
+    write_rows(args.json, rows)
 
 
 if __name__ == "__main__":

@@ -1,0 +1,212 @@
+"""osmo side by side with Prefect 3 and Ray on the same DAG shapes (``bench/run --peers``).
+
+Runs with osmo's python. The peers live in their own virtualenv, ``.cache/bench-peers-venv``
+(created here with ``python3 -m venv``; pinned versions; never osmo's environment), and run
+as ``prefect_dag.py`` / ``ray_dag.py`` under that venv's python, one process per round, each
+printing JSON. See those scripts for each peer's local mode and task bodies.
+
+Shapes: a chain of N and a fan-out/join of N (1 → N-2 → 1), N = 1,000. osmo runs them exactly
+as bench_engine.py does (fresh server per run, SDK submit → COMPLETED, tasks are ``true``
+processes). Each round runs osmo (both shapes), then Prefect, then Ray, so osmo's runs
+alternate with the peers'; the ratio osmo ÷ peer is taken per round from that round's osmo
+run, and reported as the median (min–max) over rounds. The no-op Python body is measured in
+the first round only (its rows have 1 run), to keep ``--peers`` under 15 minutes: Prefect
+needs 10–70 s per 1,000-task flow here.
+
+Rows: tasks/s for every system × shape (× body for the peers), each peer's start-up (process
+start to a finished warm-up flow), and the ratios, with the issue's targets on the fan-out:
+osmo ≥ 5× Prefect and ≥ 1× Ray (``true`` tasks on both sides).
+
+Usage: python bench/peers/compare.py [--rounds 3] [--tasks 1000] [--no-install] --json OUT
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+REPO = HERE.parents[1]
+sys.path.insert(0, str(HERE.parent))
+
+from bench_engine import chain, fan_out, run_once  # noqa: E402
+from benchlib import Row, quick, row, write_rows  # noqa: E402
+
+VENV = REPO / ".cache" / "bench-peers-venv"
+PINNED = ["prefect==3.9.1", "ray==2.60.0"]
+# prefect 3.9.1 declares certifi>=2026.10.19, newer than any certifi the package index here
+# has. Then: resolve 3.9.1's other requirements (via 3.8.8 plus 3.9.1's tighter bounds) and
+# install prefect 3.9.1 itself without dependencies; `pip check` names only certifi.
+FALLBACK = [["ray==2.60.0", "prefect==3.8.8", "fastapi>=0.139,<0.151",
+             "whenever>=0.10.5,<0.12", "ruamel-yaml!=0.19.0"],
+            ["--no-deps", "prefect==3.9.1"]]
+SHAPES = {"chain": ("chain", chain), "fanout": ("fan-out/join", fan_out)}
+BODIES = {"shell": "`true` tasks", "noop": "no-op Python tasks"}
+TARGETS = {("prefect", "fanout"): 5.0, ("ray", "fanout"): 1.0}
+
+
+def pip(*args: str) -> bool:
+    """Run the peer venv's pip; True on success."""
+    cmd = [str(VENV / "bin" / "python"), "-m", "pip", "install", "--quiet",
+           "--disable-pip-version-check", *args]
+    return subprocess.run(cmd).returncode == 0
+
+
+def ensure_venv() -> str:
+    """Create/refresh the peer venv; return how the peers were installed."""
+    marker = VENV / "osmo-bench-peers.json"
+    if marker.exists() and json.loads(marker.read_text()).get("pinned") == PINNED:
+        return json.loads(marker.read_text())["how"]
+    if not (VENV / "bin" / "python").exists():
+        subprocess.run(["python3", "-m", "venv", str(VENV)], check=True)
+    print(f"installing {' '.join(PINNED)} into {VENV}", flush=True)
+    if pip(*PINNED):
+        how = "pip install " + " ".join(PINNED)
+    else:
+        print("pinned set does not resolve here; installing prefect 3.9.1 without its "
+              "certifi pin (see compare.py)", flush=True)
+        for step in FALLBACK:
+            if not pip(*step):
+                raise SystemExit(f"cannot install the peers: pip install {' '.join(step)}")
+        how = "prefect 3.9.1 --no-deps over its other requirements (certifi pin unavailable)"
+    marker.write_text(json.dumps({"pinned": PINNED, "how": how}))
+    return how
+
+
+def leftovers(pgid: int, private: str) -> list[str]:
+    """Processes still alive from a peer run: in its process group or naming its folder."""
+    found = []
+    for proc in Path("/proc").iterdir():
+        if not proc.name.isdigit():
+            continue
+        try:
+            cmd = (proc / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+            if os.getpgid(int(proc.name)) == pgid or private in cmd:
+                found.append(f"{proc.name} {cmd[:120]}")
+        except (OSError, ProcessLookupError):
+            continue
+    return found
+
+
+def run_peer(peer: str, tasks: int, log: Path, bodies: str) -> dict[str, object]:
+    """One peer process (warm-up + every shape × body); its JSON, plus any leak found."""
+    private = tempfile.mkdtemp(prefix=f"osmo-peer-{peer[:3]}-", dir="/tmp")  # short: sockets
+    out_json = Path(private) / "out.json"
+    env = dict(os.environ, PREFECT_HOME=private, PREFECT_SERVER_ANALYTICS_ENABLED="false",
+               PREFECT_SERVER_ALLOW_EPHEMERAL_MODE="true", RAY_USAGE_STATS_ENABLED="0")
+    env.pop("PREFECT_API_URL", None)
+    env.pop("OSMO_BENCH_QUICK", None)
+    cmd = [str(VENV / "bin" / "python"), str(HERE / f"{peer}_dag.py"), "--tasks", str(tasks),
+           "--bodies", bodies, "--json", str(out_json)]
+    if peer == "ray":
+        cmd += ["--temp-dir", str(Path(private) / "ray")]
+    try:
+        with open(log, "a") as out:
+            proc = subprocess.Popen(cmd, env=env, stdout=out, stderr=out,
+                                    start_new_session=True)
+            try:
+                proc.wait(timeout=600)
+            except subprocess.TimeoutExpired:
+                pass
+        leaked = leftovers(proc.pid, private)
+        if leaked:  # only processes of the group we started, or under our private folder
+            try:
+                os.killpg(proc.pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+        if proc.returncode != 0 or not out_json.exists():
+            raise RuntimeError(f"{peer} exited {proc.returncode}; see {log}")
+        result: dict[str, object] = json.loads(out_json.read_text())
+        result["leaked"] = leaked
+        return result
+    finally:
+        shutil.rmtree(private, ignore_errors=True)
+
+
+def tps(tasks: int, seconds: float) -> float:
+    """Tasks per second."""
+    return tasks / seconds
+
+
+def main() -> None:
+    """Install the peers, run the rounds, write the rows."""
+    small = quick()
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--rounds", type=int, default=1 if small else 3)
+    ap.add_argument("--tasks", type=int, default=20 if small else 1000)
+    ap.add_argument("--peers", default="prefect,ray")
+    ap.add_argument("--no-install", action="store_true")
+    ap.add_argument("--json")
+    args = ap.parse_args()
+    how = "as found" if args.no_install else ensure_venv()
+    peers = args.peers.split(",")
+    n = args.tasks
+    specs = {shape: build(n).build() for shape, (_, build) in SHAPES.items()}
+    osmo_runs: dict[str, list[float]] = {s: [] for s in SHAPES}
+    before: dict[tuple[str, str], list[float]] = {}  # (peer, shape) → osmo tasks/s before it
+    results: dict[str, list[dict[str, object]]] = {p: [] for p in peers}
+    failures: list[str] = []
+    log = Path(tempfile.gettempdir()) / "osmo-bench-peers.log"
+    log.write_text("")
+    for r in range(args.rounds):
+        this_round = {}
+        for shape, spec in specs.items():
+            this_round[shape] = tps(n, run_once(spec, None))
+            osmo_runs[shape].append(this_round[shape])
+            print(f"round {r + 1}: osmo {shape} {this_round[shape]:,.0f} tasks/s", flush=True)
+        for peer in peers:
+            try:
+                t0 = time.perf_counter()
+                res = run_peer(peer, n, log, "shell,noop" if r == 0 else "shell")
+                print(f"round {r + 1}: {peer} {res['version']} in {time.perf_counter() - t0:.0f} s:"
+                      f" {json.dumps(res['results'])}", flush=True)
+                results[peer].append(res)
+                for shape, value in this_round.items():
+                    before.setdefault((peer, shape), []).append(value)
+            except RuntimeError as exc:
+                failures.append(str(exc))
+                print(f"round {r + 1}: {exc}", flush=True)
+    rows: list[Row] = []
+    for shape, (label, _) in SHAPES.items():
+        rows.append(row(f"peers: osmo {label} {n:,}, `true` tasks", "tasks/s", osmo_runs[shape],
+                        higher_is_better=True, notes="fresh server per run; submit → COMPLETED"))
+    for peer in peers:
+        runs = results[peer]
+        if not runs:
+            continue
+        version = runs[0]["version"]
+        leaks = sum(len(x["leaked"]) for x in runs)  # type: ignore[arg-type]
+        rows.append(row(f"peers: {peer} {version} start-up to a finished warm-up flow", "s",
+                        [float(x["startup_s"]) for x in runs],  # type: ignore[arg-type]
+                        higher_is_better=False,
+                        notes=f"installed: {how}; leftover processes after exit: {leaks}"))
+        for shape, (label, _) in SHAPES.items():
+            for body, body_label in BODIES.items():
+                values = [tps(n, float(res["seconds"])) for x in runs
+                          for res in x["results"]  # type: ignore[attr-defined]
+                          if res["shape"] == shape and res["body"] == body]
+                if not values:
+                    continue
+                rows.append(row(f"peers: {peer} {label} {n:,}, {body_label}", "tasks/s", values,
+                                higher_is_better=True))
+                if body == "shell":
+                    ratios = [o / p for o, p in zip(before[(peer, shape)], values, strict=True)]
+                    rows.append(row(f"peers: osmo ÷ {peer}, {label} {n:,} (`true` tasks on both)",
+                                    "×", ratios, higher_is_better=True,
+                                    target=TARGETS.get((peer, shape)),
+                                    notes="per round: that round's osmo run ÷ the peer's"))
+    write_rows(args.json, rows)
+    if failures:
+        raise SystemExit("peer runs failed: " + "; ".join(failures))
+
+
+if __name__ == "__main__":
+    main()

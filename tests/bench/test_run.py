@@ -1,0 +1,95 @@
+"""bench/run --quick: every bench script runs and the report has the expected rows.
+
+Behaviour only: the sizes are tiny and no number is compared with anything, so a slow or
+busy machine never fails this. The peer comparison (which installs Prefect and Ray) is not
+run here.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+RUN = REPO / "bench" / "run"
+
+EXPECTED = [
+    "osmo fan-out/join 20 `true` tasks",
+    "osmo chain 20 `true` tasks",
+    "osmo fan-out/join 60 `true` tasks",
+    "ingest: 8 MiB file, new blob, same filesystem (link)",
+    "lineage: overhead per task (total)",
+    "limit: spawn `true`, 2 parallel, no orchestrator",
+    "limit: zenoh get round trip p50",
+    "limit: zenoh get round trip p99",
+    "limit: zenoh put throughput",
+    "limit: sha256 of a file (page cache, 1 MiB reads)",
+    "startup: submit → first task running (SDK)",
+    "startup: submit → first task running (CLI `osmo submit`)",
+    "startup: auto-started server ready (CLI, no server running)",
+]
+
+
+def run(*args: str, timeout: float = 240) -> subprocess.CompletedProcess[str]:
+    """bench/run with this interpreter's environment (no pip)."""
+    return subprocess.run([sys.executable, str(REPO / "bench" / "suite.py"), *args],
+                          capture_output=True, text=True, timeout=timeout, cwd=REPO)
+
+
+def test_bench_run_is_executable_and_takes_no_setup() -> None:
+    text = RUN.read_text()
+    assert RUN.stat().st_mode & 0o111
+    assert "--no-setup" in text and "bench/suite.py" in text
+
+
+@pytest.mark.timeout(300)
+def test_quick_run_writes_every_expected_row(tmp_path: Path) -> None:
+    proc = run("--quick", "--out", str(tmp_path))
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    report = json.loads((tmp_path / "latest.json").read_text())
+    assert {"cpu", "cores", "python", "kernel", "date"} <= set(report["machine"])
+    assert all(s["status"] == "ok" for s in report["scripts"]), report["scripts"]
+    rows = {r["name"]: r for r in report["rows"]}
+    for name in EXPECTED:
+        assert name in rows, f"missing row {name!r}; have {sorted(rows)}"
+        r = rows[name]
+        for key in ("median", "min", "max"):
+            assert isinstance(r[key], (int, float)) and math.isfinite(r[key]), (name, r)
+        assert r["min"] <= r["median"] <= r["max"] and r["runs"] >= 1
+    # limits resolved across scripts, and the targets checked (pass or fail, never an error)
+    fan = rows["osmo fan-out/join 20 `true` tasks"]
+    assert fan["limit"] == rows["limit: spawn `true`, 2 parallel, no orchestrator"]["median"]
+    assert 0 < fan["fraction_of_limit"]
+    assert isinstance(rows["startup: submit → first task running (SDK)"]["pass"], bool)
+    assert any(n.startswith("derived: ") and "pass" in r for n, r in rows.items())
+    md = (tmp_path / "latest.md").read_text()
+    assert "## Targets" in md and report["machine"]["cpu"] in md
+    for name in EXPECTED:
+        assert f"| {name} |" in md
+
+
+def test_a_failing_script_is_reported_and_the_others_still_run(tmp_path: Path) -> None:
+    scripts = tmp_path / "scripts"
+    scripts.mkdir()
+    (scripts / "bench_good.py").write_text(
+        "import json, sys\n"
+        "rows = [{'name': 'good', 'unit': 'x/s', 'median': 2.0, 'min': 1.0, 'max': 3.0,\n"
+        "         'runs': 3, 'higher_is_better': True, 'limit': 4.0}]\n"
+        "open(sys.argv[sys.argv.index('--json') + 1], 'w').write(json.dumps(rows))\n")
+    (scripts / "bench_broken.py").write_text("raise SystemExit('it broke')\n")
+    (scripts / "bench_badrows.py").write_text(
+        "import sys\nopen(sys.argv[sys.argv.index('--json') + 1], 'w').write('[{\"name\": 1}]')\n")
+    proc = run("--scripts", str(scripts), "--out", str(tmp_path / "out"), timeout=60)
+    assert proc.returncode == 1
+    report = json.loads((tmp_path / "out" / "latest.json").read_text())
+    status = {s["script"]: s["status"] for s in report["scripts"]}
+    assert status == {"bench_good": "ok", "bench_broken": "failed", "bench_badrows": "failed"}
+    rows = {r["name"]: r for r in report["rows"]}
+    assert rows["good"]["fraction_of_limit"] == 0.5
+    assert "it broke" in rows["bench_broken: FAILED"]["notes"]
+    assert "| bench_broken: FAILED |" in (tmp_path / "out" / "latest.md").read_text()
