@@ -203,6 +203,7 @@ def _node_of(engine: Engine, attempt_id: str) -> str | None:
 
 def main() -> None:
     """Entry point of the background server process (``python -m osmo.server.app``)."""
+    sys.setswitchinterval(float(os.environ.get("OSMO_SWITCH_INTERVAL", "0.005")))
     logging.basicConfig(level=logging.INFO, stream=sys.stderr,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     import argparse
