@@ -7,6 +7,7 @@ import sys
 from collections.abc import Callable
 
 from osmo.cli.artifacts import run_artifacts, run_lineage
+from osmo.cli.robotics import run_eval, run_view
 from osmo.cli.datasets import run_credential, run_dataset
 from osmo.cli.pools import run_pool, run_resource
 from osmo.cli.render import (
@@ -189,6 +190,8 @@ _VERBS: dict[str, Callable[[argparse.Namespace], int]] = {
     "pool": run_pool,
     "resource": run_resource,
     "workers": run_resource,
+    "eval": run_eval,
+    "view": run_view,
 }
 
 

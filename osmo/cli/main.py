@@ -15,6 +15,7 @@ from collections.abc import Sequence
 from osmo.cli.artifacts import add_parsers as add_artifact_parsers
 from osmo.cli.datasets import add_credential_parsers
 from osmo.cli.pools import add_parsers as add_pool_parsers
+from osmo.cli.robotics import add_parsers as add_robotics_parsers
 from osmo.cli.datasets import add_parsers as add_dataset_parsers
 from osmo.errors import OsmoError
 
@@ -98,6 +99,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_dataset_parsers(sub)
     add_credential_parsers(sub)
     add_pool_parsers(sub)
+    add_robotics_parsers(sub)
 
     p = sub.add_parser("server", help="run the server in the foreground, or start|stop|status")
     p.add_argument("action", nargs="?", choices=("start", "stop", "status", "run"), default="run")

@@ -15,7 +15,7 @@ from typing import Any
 
 from osmo.tasktypes.api import Param, TaskContext
 
-__all__ = ["PluginType", "find_folder_with"]
+__all__ = ["PluginType", "find_folder_with", "offline"]
 
 
 @dataclass(frozen=True)
@@ -45,3 +45,12 @@ def find_folder_with(folders: Any, marker: str) -> Any:
         for hit in sorted(Path(folder).rglob(marker)):
             return hit.parent
     return None
+
+
+def offline() -> None:
+    """Make Hugging Face libraries work from local files only: plugins never download
+    weights or datasets at run time (set before ``lerobot``/``huggingface_hub`` import)."""
+    import os
+
+    os.environ.setdefault("HF_HUB_OFFLINE", "1")
+    os.environ.setdefault("HF_DATASETS_OFFLINE", "1")

@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 
 from osmo.tasktypes.api import TaskContext
+from osmo_plugins._base import offline
 from osmo_plugins.episodes import Episode, episode_files, read_episodes
 from osmo_plugins.sim.envs import require
 
@@ -56,6 +57,7 @@ def _load(ctx: TaskContext) -> list[Episode]:
 
 def run(ctx: TaskContext) -> None:
     """Convert every episode of every input into one LeRobotDataset."""
+    offline()
     require("lerobot", "learn")
     from lerobot.datasets import LeRobotDataset
 
@@ -70,7 +72,7 @@ def run(ctx: TaskContext) -> None:
     feats = features_for(obs_dim, act_dim, frame_shape, p["min_dims"])
     root = Path(ctx.output) / "dataset"
     ds = LeRobotDataset.create(repo_id=p["repo_id"], fps=fps, features=feats, root=root,
-                               robot_type="mujoco", use_videos=False)
+                               robot_type="mujoco", use_videos=False, video_backend="pyav")
     frames = 0
     for n, ep in enumerate(episodes):
         ctx.check_cancelled()

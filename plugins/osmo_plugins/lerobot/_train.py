@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from osmo.tasktypes.api import TaskContext
-from osmo_plugins._base import find_folder_with
+from osmo_plugins._base import find_folder_with, offline
 from osmo_plugins.lerobot._dataset import DATASET_MARKER
 from osmo_plugins.lerobot.policy_io import POLICY_MARKER
 from osmo_plugins.sim.envs import require
@@ -49,6 +49,7 @@ def _seed(seed: int) -> Any:
 def run(ctx: TaskContext) -> None:
     """Train and save the policy and its loss curve."""
     p = ctx.params
+    offline()
     torch = _seed(p["seed"])
     if p["threads"]:
         torch.set_num_threads(p["threads"])
@@ -63,7 +64,7 @@ def run(ctx: TaskContext) -> None:
     meta = LeRobotDatasetMetadata(info["repo_id"], root=root)
     cfg = make_config(p, bool(info["images"]))
     policy = make_policy(cfg, ds_meta=meta)
-    dataset = LeRobotDataset(info["repo_id"], root=root,
+    dataset = LeRobotDataset(info["repo_id"], root=root, video_backend="pyav",
                              delta_timestamps=resolve_delta_timestamps(cfg, meta))
     pre, post = make_pre_post_processors(cfg, dataset_stats=dataset.meta.stats)
     if info["images"]:

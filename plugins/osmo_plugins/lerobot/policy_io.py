@@ -30,8 +30,10 @@ class CheckpointPolicy:
     name = "checkpoint"
 
     def __init__(self, folder: Path, env: Any) -> None:
+        from osmo_plugins._base import offline
         from osmo_plugins.sim.envs import require
 
+        offline()
         self._torch = require("torch", "learn")
         require("lerobot", "learn")
         from lerobot.policies.act.modeling_act import ACTPolicy
