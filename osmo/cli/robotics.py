@@ -61,7 +61,7 @@ def _is_metrics(data: Any) -> bool:
 
 
 def _from_store(client: Client, workflow_id: str, scratch: Path) -> list[tuple[str, str, Any]]:
-    found = []
+    found: list[tuple[str, str, Any]] = []
     for out in client.artifacts(workflow_id):
         for f in out["files"]:
             if Path(f["path"]).name != METRICS_FILE:
@@ -113,7 +113,7 @@ def _convert(path: Path, out: Path) -> Path:
         raise UsageError(f'osmo view needs the viz extra: pip install "osmo[viz]" ({exc})') \
             from exc
     try:
-        return mcap_to_rrd(path, out)
+        return Path(mcap_to_rrd(path, out))
     except MissingExtra as exc:
         raise UsageError(str(exc)) from exc
 

@@ -53,7 +53,7 @@ def test_channels_have_json_schemas(tmp_path: Path) -> None:
     assert all(c.schema_encoding == "jsonschema" and c.message_encoding == "json"
                for c in chans.values())
     assert chans[FRAME_TOPIC].schema_name == "foxglove.RawImage"
-    assert chans[STEP_TOPIC].message_count == 8
+    assert chans[STEP_TOPIC].message_count == 2  # one block per episode (block=100)
 
 
 def test_not_an_episode_file(tmp_path: Path) -> None:

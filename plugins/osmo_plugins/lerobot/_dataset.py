@@ -49,7 +49,7 @@ def _load(ctx: TaskContext) -> list[Episode]:
     if not files:
         raise ValueError("no .mcap episode files in the inputs (expected sim.rollout outputs)")
     episodes = [ep for f in files for ep in read_episodes(f)]
-    envs = {ep.meta.get("env") for ep in episodes}
+    envs = {ep.meta.get("env", "?") for ep in episodes}
     if len(envs) > 1:
         raise ValueError(f"episodes from several envs cannot share a dataset: {sorted(envs)}")
     return episodes

@@ -56,7 +56,7 @@ class CheckpointPolicy:
     def act(self, observation: np.ndarray) -> np.ndarray:
         """One ``select_action`` call; the padding is cut off the action."""
         torch = self._torch
-        obs = np.zeros(self._width, dtype=np.float32)
+        obs: np.ndarray = np.zeros(self._width, dtype=np.float32)
         flat = np.asarray(observation, dtype=np.float32).ravel()
         obs[: flat.shape[0]] = flat
         state = torch.from_numpy(obs).unsqueeze(0)

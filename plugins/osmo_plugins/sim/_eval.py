@@ -98,8 +98,9 @@ def run(ctx: TaskContext) -> None:
             policy = make_policy(kind, env, env_id=env_id, checkpoint=ckpt)
             name = f"rollouts/{label}--{env_id}.mcap"
 
-            def tick(index: int, r: EpisodeResult, base: int = done, who: str = label) -> None:
-                ctx.progress(base + index + 1, total, f"{who} on {env_id}: {r.total_reward:.0f}")
+            def tick(index: int, r: EpisodeResult, base: int = done,
+                     who: str = f"{label} on {env_id}") -> None:
+                ctx.progress(base + index + 1, total, f"{who}: {r.total_reward:.0f}")
 
             meta = {"env": env_id, "policy": label, "kind": kind, "seed": str(p["seed"]),
                     "episodes": str(len(seeds)), "max_steps": str(p["max_steps"]),
