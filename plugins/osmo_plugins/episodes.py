@@ -16,8 +16,10 @@ its first step), so the same rollout writes the same messages. Steps travel in b
 one message per step cost as much as the simulation itself (one MCAP record and one JSON
 encoding per step, ~30 µs), and arrays are packed because formatting floats as JSON text
 (~0.5–0.9 µs each) alone cost 20% of a 1-DoF env's step; observations and actions are float32
-(what LeRobot stores), rewards float64. See bench/bench_datagen.py. This module imports only numpy and :mod:`osmo.record`; it must not
-import gymnasium, mujoco, torch or lerobot.
+(what LeRobot stores), rewards float64. See bench/bench_datagen.py.
+
+This module imports only numpy and :mod:`osmo.record`; it must not import gymnasium, mujoco,
+torch or lerobot.
 """
 
 from __future__ import annotations
