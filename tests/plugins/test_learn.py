@@ -79,7 +79,13 @@ def test_dataset_with_images_trains(tmp_path: Path) -> None:
     train = make_ctx(TRAIN, tmp_path, "train", inputs=[ds.output], steps=2, batch_size=4,
                      log_every=1)
     TRAIN.run(train)
-    assert json.loads((train.output / "checkpoint/osmo_policy.json").read_text())["images"]
+    marker = json.loads((train.output / "checkpoint/osmo_policy.json").read_text())
+    assert marker["images"] and marker["image_size"] == 32
+    ev = make_ctx(EVAL, tmp_path, "eval", inputs=[train.output], episodes=1, max_steps=5,
+                  policies=["checkpoint"], rrd=False)
+    EVAL.run(ev)  # the env renders 32×32 frames for the policy
+    (row,) = json.loads((ev.output / "metrics.json").read_text())["results"]
+    assert row["episodes"] == 1 and row["mean_length"] <= 5
 
 
 def test_dataset_needs_episodes(tmp_path: Path) -> None:

@@ -91,6 +91,7 @@ def run(ctx: TaskContext) -> None:
     info = {"env": first.meta.get("env"), "obs_dim": obs_dim, "action_dim": act_dim,
             "padded_action_dim": feats[ACTION]["shape"][0], "fps": fps,
             "episodes": len(episodes), "frames": frames, "images": frame_shape is not None,
+            "image_size": int(frame_shape[0]) if frame_shape else None,
             "repo_id": p["repo_id"], "root": "dataset",
             "mean_return": float(np.mean([ep.total_reward for ep in episodes]))}
     (Path(ctx.output) / DATASET_MARKER).write_text(json.dumps(info, indent=1) + "\n")

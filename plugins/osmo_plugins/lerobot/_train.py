@@ -144,7 +144,8 @@ def _save(ctx: TaskContext, policy: Any, pre: Any, post: Any, info: dict[str, An
     post.save_pretrained(ckpt)
     marker = {"policy": "act", "env": info["env"], "obs_dim": info["obs_dim"],
               "action_dim": info["action_dim"], "padded_action_dim": info["padded_action_dim"],
-              "images": info["images"], "params": dict(ctx.params),
+              "images": info["images"], "image_size": info.get("image_size"),
+              "params": dict(ctx.params),
               "final_loss": curve[-1]["loss"], "dataset_episodes": info["episodes"]}
     (ckpt / POLICY_MARKER).write_text(json.dumps(marker, indent=1) + "\n")
     (out / "loss.json").write_text(json.dumps(curve, indent=1) + "\n")

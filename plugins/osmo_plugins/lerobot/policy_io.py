@@ -13,10 +13,19 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["POLICY_MARKER", "CheckpointPolicy"]
+__all__ = ["POLICY_MARKER", "CheckpointPolicy", "frame_size"]
 
 POLICY_MARKER = "osmo_policy.json"
 """The file that marks a checkpoint folder written by ``lerobot.train``."""
+
+
+def frame_size(folder: Path | None) -> int | None:
+    """The camera frame size a checkpoint was trained on, or None for a state-only one: its
+    env must then be made with ``render=True`` at that size."""
+    if folder is None:
+        return None
+    info = json.loads((Path(folder) / POLICY_MARKER).read_text())
+    return int(info.get("image_size") or 64) if info.get("images") else None
 
 
 class CheckpointPolicy:

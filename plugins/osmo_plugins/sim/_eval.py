@@ -10,7 +10,7 @@ from typing import Any
 
 from osmo.tasktypes.api import TaskContext
 from osmo_plugins.episodes import EpisodeWriter
-from osmo_plugins.lerobot.policy_io import POLICY_MARKER
+from osmo_plugins.lerobot.policy_io import POLICY_MARKER, frame_size
 from osmo_plugins.sim.envs import EpisodeResult, make_env, run_episodes
 from osmo_plugins.sim.policies import has_expert, make_policy
 
@@ -94,7 +94,9 @@ def run(ctx: TaskContext) -> None:
                 ctx.log.info("no expert for %s: skipped", env_id)
                 done += len(seeds)
                 continue
-            env = make_env(env_id, max_steps=p["max_steps"])
+            size = frame_size(ckpt)
+            env = make_env(env_id, max_steps=p["max_steps"], render=size is not None,
+                           size=size or 64)
             policy = make_policy(kind, env, env_id=env_id, checkpoint=ckpt)
             name = f"rollouts/{label}--{env_id}.mcap"
 

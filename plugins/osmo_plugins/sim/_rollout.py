@@ -8,7 +8,7 @@ from pathlib import Path
 from osmo.tasktypes.api import TaskContext
 from osmo_plugins._base import find_folder_with
 from osmo_plugins.episodes import EpisodeWriter
-from osmo_plugins.lerobot.policy_io import POLICY_MARKER
+from osmo_plugins.lerobot.policy_io import POLICY_MARKER, frame_size
 from osmo_plugins.sim.envs import EpisodeResult, make_env, run_episodes
 from osmo_plugins.sim.policies import make_policy
 
@@ -40,8 +40,10 @@ def run(ctx: TaskContext) -> None:
         raise ValueError(f"shard {p['shard']} is out of range for shards={p['shards']}")
     checkpoint = find_folder_with(ctx.inputs, POLICY_MARKER) if p["policy"] == "checkpoint" \
         else None
-    env = make_env(p["env"], xml_file=resolve_xml(p["xml"], ctx), render=p["render"],
-                   size=p["size"], max_steps=p["max_steps"] or None)
+    seen = frame_size(checkpoint)  # a policy that sees frames needs a rendering env
+    env = make_env(p["env"], xml_file=resolve_xml(p["xml"], ctx),
+                   render=p["render"] or seen is not None, size=seen or p["size"],
+                   max_steps=p["max_steps"] or None)
     policy = make_policy(p["policy"], env, env_id=p["env"], checkpoint=checkpoint,
                          noise=p["noise"])
     seeds = shard_seeds(p["seed"], p["shard"], p["episodes"])
