@@ -8,6 +8,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from osmo.cli.artifacts import run_artifacts, run_lineage
+from osmo.cli.robotics import run_eval, run_view
 from osmo.cli.datasets import run_credential, run_dataset
 from osmo.cli.plugins import run_plugins
 from osmo.cli.pools import run_pool, run_resource
@@ -203,6 +204,8 @@ _VERBS: dict[str, Callable[[argparse.Namespace], int]] = {
     "worker": run_worker,
     "health": run_health,
     "profile": run_profile,
+    "eval": run_eval,
+    "view": run_view,
 }
 
 

@@ -16,6 +16,7 @@ from osmo.cli.artifacts import add_parsers as add_artifact_parsers
 from osmo.cli.datasets import add_credential_parsers
 from osmo.cli.plugins import add_parsers as add_plugin_parsers
 from osmo.cli.pools import add_parsers as add_pool_parsers
+from osmo.cli.robotics import add_parsers as add_robotics_parsers
 from osmo.cli.datasets import add_parsers as add_dataset_parsers
 from osmo.cli.remote import add_parsers as add_remote_parsers
 from osmo.errors import OsmoError
@@ -102,6 +103,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_credential_parsers(sub)
     add_pool_parsers(sub)
     add_plugin_parsers(sub)
+    add_robotics_parsers(sub)
 
     p = sub.add_parser("server", help="run the server in the foreground, or start|stop|status")
     p.add_argument("action", nargs="?", choices=("start", "stop", "status", "run"), default="run")

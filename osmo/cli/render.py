@@ -22,9 +22,9 @@ from rich.text import Text
 
 from osmo.sdk.client import LogRecord, TaskInfo, WorkflowInfo
 
-__all__ = ["console", "err_console", "format_log", "info_dict", "live_progress", "plugin_table",
-           "print_error", "print_json", "resource_table", "task_table", "workflow_header",
-           "workflows_table"]
+__all__ = ["console", "err_console", "format_log", "info_dict", "leaderboard_table",
+           "live_progress", "plugin_table", "print_error", "print_json", "resource_table",
+           "task_table", "workflow_header", "workflows_table"]
 
 console = Console(highlight=False, width=None if sys.stdout.isatty() else 160)
 err_console = Console(stderr=True, highlight=False, soft_wrap=True)
@@ -194,4 +194,18 @@ def plugin_table(rows: list[dict[str, Any]], *, verbose: bool = False) -> Table:
                 lines += [_param_line(n, p) for n, p in row["params"].items()] or ["  (no params)"]
             about = Text("\n".join(lines))
         table.add_row(row["name"], row["version"] or "-", row["extra"] or "-", about)
+
+
+def leaderboard_table(rows: list[dict[str, Any]]) -> Table:
+    """``osmo eval report``: policies ranked per env (rows from ``leaderboard_rows``)."""
+    table = Table(box=None, pad_edge=False)
+    for col in ("Env", "#", "Policy", "Workflow", "Task", "Success", "Return (95% CI)",
+                "Length", "Episodes"):
+        table.add_column(col)
+    for r in rows:
+        lo, hi = r["return_ci95"]
+        table.add_row(r["env"], str(r["rank"]), r["policy"], r["workflow"], r["task"],
+                      f"{100 * r['success_rate']:.0f}%",
+                      f"{r['mean_return']:.1f} [{lo:.1f}, {hi:.1f}]",
+                      f"{r['mean_length']:.0f}", str(r["episodes"]))
     return table

@@ -1,0 +1,147 @@
+"""CLI verbs for the robotics pipeline: ``osmo eval report`` and ``osmo view``.
+
+``osmo eval report [WORKFLOW_IDS...]`` finds the ``metrics.json`` outputs of ``sim.eval``
+tasks (in the artifact store, through the SDK; or local files given as paths) and shows one
+leaderboard across runs, best mean return first per env. ``osmo view TARGET`` turns an MCAP
+artifact or file into a rerun ``.rrd`` and opens the viewer only with ``--open``.
+
+The MCAP→rrd conversion lives in the ``osmo_plugins`` package (installed with osmo) and needs
+the ``viz`` extra; it is imported only when ``view`` runs, so ``import osmo`` stays light.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Any
+
+from osmo.cli.render import console, leaderboard_table, print_json
+from osmo.errors import NotFoundError, UsageError
+from osmo.sdk.client import Client
+
+__all__ = ["add_parsers", "leaderboard_rows", "run_eval", "run_view"]
+
+METRICS_FILE = "metrics.json"
+
+
+def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    """Register ``eval`` and ``view`` on the top-level parser."""
+    p = sub.add_parser("eval", help="evaluation results: osmo eval report [WORKFLOW_IDS...]")
+    verbs = p.add_subparsers(dest="eval_verb", metavar="VERB", required=True)
+    q = verbs.add_parser("report", help="leaderboard of policies from sim.eval metrics.json")
+    q.add_argument("targets", nargs="*", metavar="WORKFLOW_ID_OR_FILE",
+                   help="workflows (default: the 20 most recent) or local metrics.json files")
+    q.add_argument("--format", "-t", dest="format", choices=("text", "json"), default="text")
+
+    p = sub.add_parser("view", help="MCAP artifact or file → rerun .rrd (viewer with --open)")
+    p.add_argument("target", help="a local .mcap/.rrd file, WORKFLOW_ID:TASK[:PATH] or sha256:…")
+    p.add_argument("--out", help="the .rrd to write (default: <name>.rrd here)")
+    p.add_argument("--open", action="store_true", help="open the rerun viewer on the result")
+
+
+def leaderboard_rows(sources: list[tuple[str, str, dict[str, Any]]]) -> list[dict[str, Any]]:
+    """Flatten ``(workflow, task, metrics)`` into rows ranked per env by mean return."""
+    rows = [{"workflow": wf, "task": task, **{k: r[k] for k in (
+        "policy", "kind", "env", "episodes", "success_rate", "mean_return", "return_ci95",
+        "mean_length")}} for wf, task, metrics in sources for r in metrics.get("results", [])]
+    rows.sort(key=lambda r: (r["env"], -r["mean_return"], r["workflow"], r["policy"]))
+    rank, env = 0, None
+    for row in rows:
+        rank = rank + 1 if row["env"] == env else 1
+        env = row["env"]
+        row["rank"] = rank
+    return rows
+
+
+def _is_metrics(data: Any) -> bool:
+    return isinstance(data, dict) and isinstance(data.get("results"), list) and "suite" in data
+
+
+def _from_store(client: Client, workflow_id: str, scratch: Path) -> list[tuple[str, str, Any]]:
+    found: list[tuple[str, str, Any]] = []
+    for out in client.artifacts(workflow_id):
+        for f in out["files"]:
+            if Path(f["path"]).name != METRICS_FILE:
+                continue
+            dest = scratch / f"{workflow_id}-{out['task']}-{len(found)}"
+            client.get_artifact(f"{workflow_id}:{out['task']}:{f['path']}", dest)
+            data = json.loads(next(dest.rglob(METRICS_FILE)).read_text())
+            if _is_metrics(data):
+                found.append((workflow_id, out["task"], data))
+    return found
+
+
+def run_eval(args: argparse.Namespace) -> int:
+    """``osmo eval report``."""
+    sources: list[tuple[str, str, Any]] = []
+    files = [t for t in args.targets if Path(t).is_file()]
+    for path in files:
+        data = json.loads(Path(path).read_text())
+        if not _is_metrics(data):
+            raise UsageError(f"{path}: not a sim.eval metrics.json (no suite/results)")
+        sources.append(("-", path, data))
+    ids = [t for t in args.targets if t not in files]
+    if ids or not files:
+        with Client(args.server) as client, tempfile.TemporaryDirectory() as tmp:
+            if not ids:
+                ids = [w.id for w in client.list(limit=20)]
+            for wf in ids:
+                sources.extend(_from_store(client, wf, Path(tmp)))
+    rows = leaderboard_rows(sources)
+    if args.format == "json":
+        print_json(rows)
+    elif not rows:
+        console.print("no sim.eval metrics found (run a workflow with a sim.eval task)",
+                      markup=False)
+    else:
+        console.print(leaderboard_table(rows))
+    return 0 if rows or args.format == "json" else 1
+
+
+def _convert(path: Path, out: Path) -> Path:
+    if path.suffix == ".rrd":
+        if path.resolve() != out.resolve():
+            shutil.copyfile(path, out)
+        return out
+    try:
+        from osmo_plugins.sim.envs import MissingExtra
+        from osmo_plugins.viz._rerun import mcap_to_rrd
+    except ImportError as exc:
+        raise UsageError(f'osmo view needs the viz extra: pip install "osmo[viz]" ({exc})') \
+            from exc
+    try:
+        return Path(mcap_to_rrd(path, out))
+    except MissingExtra as exc:
+        raise UsageError(str(exc)) from exc
+
+
+def run_view(args: argparse.Namespace) -> int:
+    """``osmo view TARGET``."""
+    local = Path(args.target)
+    with tempfile.TemporaryDirectory() as tmp:
+        if local.is_file():
+            source = local
+        else:
+            with Client(args.server) as client:
+                client.get_artifact(args.target, tmp)
+            candidates = sorted(p for p in Path(tmp).rglob("*") if p.suffix in (".mcap", ".rrd"))
+            if not candidates:
+                raise NotFoundError(f"{args.target}: no .mcap or .rrd file in that artifact")
+            if len(candidates) > 1:
+                names = ", ".join(str(p.relative_to(tmp)) for p in candidates[:8])
+                raise UsageError(f"{args.target} holds several files ({names}); name one as "
+                                 "WORKFLOW_ID:TASK:PATH")
+            source = candidates[0]
+        out = Path(args.out) if args.out else Path(f"{source.stem}.rrd")
+        _convert(source, out)
+    console.print(f"wrote {out}", markup=False)
+    if args.open:
+        from osmo_plugins.viz._rerun import open_viewer
+
+        if not open_viewer(out):
+            console.print(f"no display or rerun viewer here; open it elsewhere: rerun {out}",
+                          markup=False)
+    return 0

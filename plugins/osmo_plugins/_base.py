@@ -1,0 +1,56 @@
+"""The task-type object every built-in plugin exports, with its implementation loaded lazily.
+
+A :class:`PluginType` carries the declared attributes of ``osmo.tasktypes.TaskType`` and the
+``"module:function"`` that does the work. ``run`` imports that module only when the task runs,
+so ``osmo plugins list`` can import every entry point without numpy, gymnasium, torch or
+rerun installed, and report the missing extra instead of an import error.
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+from osmo.tasktypes.api import Param, TaskContext
+
+__all__ = ["PluginType", "find_folder_with", "offline"]
+
+
+@dataclass(frozen=True)
+class PluginType:
+    """A task type whose ``run`` calls ``impl`` (``"package.module:function"``)."""
+
+    name: str
+    version: str
+    description: str
+    impl: str
+    extra: str | None
+    params: Mapping[str, Param] = field(default_factory=dict)
+    resources: Mapping[str, Any] = field(default_factory=dict)
+
+    def run(self, ctx: TaskContext) -> None:
+        """Import the implementation and run it with ``ctx``."""
+        module, _, attr = self.impl.partition(":")
+        getattr(importlib.import_module(module), attr)(ctx)
+
+
+def find_folder_with(folders: Any, marker: str) -> Any:
+    """The first folder (searching each input folder, recursively) holding a file ``marker``,
+    or None."""
+    from pathlib import Path
+
+    for folder in folders:
+        for hit in sorted(Path(folder).rglob(marker)):
+            return hit.parent
+    return None
+
+
+def offline() -> None:
+    """Make Hugging Face libraries work from local files only: plugins never download
+    weights or datasets at run time (set before ``lerobot``/``huggingface_hub`` import)."""
+    import os
+
+    os.environ.setdefault("HF_HUB_OFFLINE", "1")
+    os.environ.setdefault("HF_DATASETS_OFFLINE", "1")

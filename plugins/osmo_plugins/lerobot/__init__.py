@@ -1,0 +1,1 @@
+"""Learning task types: ``lerobot.dataset`` and ``lerobot.train`` (LeRobot; extra ``learn``)."""

@@ -1,0 +1,1 @@
+"""Simulation task types: ``sim.rollout`` and ``sim.eval`` (gymnasium + MuJoCo; extra ``sim``)."""

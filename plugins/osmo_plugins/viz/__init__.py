@@ -1,0 +1,1 @@
+"""Visualisation task type: ``viz.rerun`` (MCAP → rerun .rrd; extra ``viz``)."""
