@@ -20,7 +20,8 @@ class LineageQueries:
 
     def output_of(self, path: str) -> tuple[str, str] | None:
         """``(manifest digest, workflow id)`` of the output folder ``path``, or None."""
-        rows = self._read("SELECT manifest, workflow_id FROM outputs WHERE path = ?", (path,))
+        rows = self._read("SELECT manifest, workflow_id FROM outputs WHERE path = ? LIMIT 1",
+                          (path,))
         return (str(rows[0][0]), str(rows[0][1])) if rows else None
 
     def lineage_of_workflow(self, workflow_id: str) -> list[dict[str, Any]]:

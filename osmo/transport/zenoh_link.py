@@ -43,6 +43,7 @@ def _config(mode: str, *, listen: Sequence[str] = (), connect: Sequence[str] = (
     conf.insert_json5("mode", json.dumps(mode))
     conf.insert_json5("scouting/multicast/enabled", "false")
     conf.insert_json5("scouting/gossip/enabled", "false")
+    conf.insert_json5("scouting/delay", "0")  # default 500 ms: the whole of a server's start-up
     conf.insert_json5("transport/link/tx/lease", str(LEASE_MS))
     if listen:
         conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
