@@ -194,6 +194,7 @@ def plugin_table(rows: list[dict[str, Any]], *, verbose: bool = False) -> Table:
                 lines += [_param_line(n, p) for n, p in row["params"].items()] or ["  (no params)"]
             about = Text("\n".join(lines))
         table.add_row(row["name"], row["version"] or "-", row["extra"] or "-", about)
+    return table
 
 
 def leaderboard_table(rows: list[dict[str, Any]]) -> Table:

@@ -31,6 +31,7 @@ from osmo.server.api import Api
 from osmo.server.credentials import url_credential
 from osmo.server.datasets import Datasets
 from osmo.server.engine import Engine
+from osmo.server.notices import Notifier
 from osmo.server.options import add_server_options, server_kwargs
 from osmo.server.workers import Dispatcher, WorkerHub
 from osmo.transport.blobs import host_id
@@ -124,9 +125,8 @@ def serve(home: str | os.PathLike[str] | None = None, *, listen: list[str] | Non
     link = Link.router(endpoints, cluster, connect=connect or [], config_file=zenoh_config)
     stopping = threading.Event()
 
-    def on_changed(ids: set[str]) -> None:
-        for wf_id in ids:
-            link.publish(link.key("events", wf_id), {"workflow_id": wf_id})
+    notifier = Notifier(link)
+    on_changed = notifier.changed
 
     engine_box: list[Engine] = []
     artifacts = ArtifactStore(home_path / "artifacts")
@@ -176,6 +176,7 @@ def serve(home: str | os.PathLike[str] | None = None, *, listen: list[str] | Non
         api_server.close()
         hub.close()
         engine.stop()
+        notifier.close()
         if pool is not None:
             pool.close()
         records.close()
