@@ -6,6 +6,7 @@ import argparse
 import sys
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from osmo.cli.artifacts import run_artifacts, run_lineage
 from osmo.cli.robotics import run_eval, run_view
@@ -27,7 +28,6 @@ from osmo.sdk.client import Client, WorkflowInfo
 from osmo.cli.remote import run_health, run_profile, run_worker
 from osmo.sdk.connect import server_status, start_server, stop_server
 from osmo.server.options import server_args, server_kwargs
-from osmo.tasktypes.registry import Resolver
 
 __all__ = ["run"]
 
@@ -36,15 +36,17 @@ def _client(args: argparse.Namespace) -> Client:
     return Client(args.server)
 
 
-def _types(file: str) -> Resolver:
+def _types(file: str) -> Any:
     """Task types as this environment has them; custom ones from the spec file's folder."""
+    from osmo.tasktypes.registry import Resolver
+
     return Resolver([str(Path(file).parent)])
 
 
 def _submit(args: argparse.Namespace) -> int:
-    from osmo.spec import load_spec, render_spec
-
     if args.dry_run:
+        from osmo.spec import load_spec, render_spec
+
         sys.stdout.write(render_spec(args.file, set_values=args.set_values,
                                      set_strings=args.set_strings))
         load_spec(args.file, set_values=args.set_values, set_strings=args.set_strings,

@@ -15,19 +15,62 @@ from typing import Any
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
-from rich.console import Console, Group
-from rich.live import Live
-from rich.table import Table
-from rich.text import Text
+from typing import TYPE_CHECKING
 
-from osmo.sdk.client import LogRecord, TaskInfo, WorkflowInfo
+if TYPE_CHECKING:
+    from rich.table import Table
+
+    from osmo.sdk.client import LogRecord, TaskInfo, WorkflowInfo
 
 __all__ = ["console", "err_console", "format_log", "info_dict", "leaderboard_table",
            "live_progress", "plugin_table", "print_error", "print_json", "resource_table",
            "task_table", "workflow_header", "workflows_table"]
 
-console = Console(highlight=False, width=None if sys.stdout.isatty() else 160)
-err_console = Console(stderr=True, highlight=False, soft_wrap=True)
+_PLAIN_WIDTH = 160
+
+
+class _LazyConsole:
+    """A ``rich`` console made on first real use, so a CLI command that only prints a few
+    plain lines (``osmo submit`` to a pipe) never imports rich. Plain ASCII lines that fit
+    the width are written as rich would write them to a non-terminal."""
+
+    def __init__(self, *, stderr: bool = False, **kwargs: Any) -> None:
+        self._stderr = stderr
+        self._kwargs = {"stderr": stderr, **kwargs}
+        self._real: Any = None
+
+    def _stream(self) -> Any:
+        return sys.stderr if self._stderr else sys.stdout
+
+    def _get(self) -> Any:
+        if self._real is None:
+            from rich.console import Console
+
+            self._real = Console(**self._kwargs)
+        return self._real
+
+    @property
+    def is_terminal(self) -> bool:
+        """Whether output goes to a terminal (live progress, colours)."""
+        return bool(self._get().is_terminal) if self._real is not None else (
+            self._stream().isatty())
+
+    def print(self, *objects: Any, **kwargs: Any) -> None:
+        """``rich.console.Console.print``."""
+        if (self._real is None and len(objects) == 1 and isinstance(objects[0], str)
+                and kwargs == {"markup": False} and not self._stream().isatty()
+                and objects[0].isascii() and len(objects[0]) <= _PLAIN_WIDTH
+                and "\n" not in objects[0]):
+            self._stream().write(objects[0] + "\n")
+            return
+        self._get().print(*objects, **kwargs)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._get(), name)
+
+
+console: Any = _LazyConsole(highlight=False, width=None if sys.stdout.isatty() else 160)
+err_console: Any = _LazyConsole(stderr=True, highlight=False, soft_wrap=True)
 
 
 def _when(ts: float | None) -> str:
@@ -72,6 +115,8 @@ def workflow_header(info: WorkflowInfo) -> str:
 
 def task_table(tasks: list[TaskInfo], verbose: bool = False) -> Table:
     """A table of tasks: name, retry, status, start, duration, exit code (+ message)."""
+    from rich.table import Table
+
     table = Table(box=None, pad_edge=False)
     for col in ("Task", "Retry", "Status", "Start", "Duration", "Exit Code"):
         table.add_column(col)
@@ -91,6 +136,8 @@ def task_table(tasks: list[TaskInfo], verbose: bool = False) -> Table:
 
 def workflows_table(rows: list[WorkflowInfo]) -> Table:
     """A table of workflows for ``osmo list``."""
+    from rich.table import Table
+
     table = Table(box=None, pad_edge=False)
     for col in ("Workflow ID", "Status", "Submitted", "Duration", "Pool"):
         table.add_column(col)
@@ -134,13 +181,19 @@ def info_dict(info: WorkflowInfo) -> dict[str, Any]:
 
 def print_error(message: str) -> None:
     """``error: message`` on stderr (the message is printed literally, never as markup)."""
+    from rich.text import Text
+
     err_console.print(Text("error: ", style="red") + Text(message))
 
 
 @contextmanager
 def live_progress() -> Iterator[Callable[[WorkflowInfo], None]]:
     """A live-redrawn progress view on a terminal; yields the function that updates it."""
-    with Live(console=console, refresh_per_second=8, transient=False) as live:
+    from rich.text import Text
+    from rich.console import Group
+    from rich.live import Live
+
+    with Live(console=console._get(), refresh_per_second=8, transient=False) as live:
 
         def update(info: WorkflowInfo) -> None:
             done = sum(t.status.terminal for t in info.tasks)
@@ -156,6 +209,8 @@ def _gib(n: float) -> str:
 
 def resource_table(rows: list[dict[str, Any]], *, by: str) -> Table:
     """Nodes or pools with cpu/gpu/memory as used/total."""
+    from rich.table import Table
+
     table = Table(box=None, pad_edge=False)
     first = (["Node", "Pool", "Platform", "Status"] if by == "node"
              else ["Pool", "Nodes", "Platforms"])
@@ -182,6 +237,9 @@ def _param_line(name: str, p: dict[str, Any]) -> str:
 
 def plugin_table(rows: list[dict[str, Any]], *, verbose: bool = False) -> Table:
     """Installed task types; a broken one shows its error in red instead of a description."""
+    from rich.table import Table
+    from rich.text import Text
+
     table = Table(box=None, pad_edge=False, header_style="bold")
     for col in ("Type", "Version", "Extra", "Description"):
         table.add_column(col)
@@ -199,6 +257,8 @@ def plugin_table(rows: list[dict[str, Any]], *, verbose: bool = False) -> Table:
 
 def leaderboard_table(rows: list[dict[str, Any]]) -> Table:
     """``osmo eval report``: policies ranked per env (rows from ``leaderboard_rows``)."""
+    from rich.table import Table
+
     table = Table(box=None, pad_edge=False)
     for col in ("Env", "#", "Policy", "Workflow", "Task", "Success", "Return (95% CI)",
                 "Length", "Episodes"):

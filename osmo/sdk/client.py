@@ -17,16 +17,18 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from osmo.artifacts import Manifest
 from osmo.errors import UsageError
 from osmo.sdk.connect import Connection, connect
-from osmo.spec import Workflow, load_spec, spec_from_dict, spec_to_dict
-from osmo.spec.model import WorkflowSpec
+from typing import TYPE_CHECKING, TypeAlias
+
+if TYPE_CHECKING:  # the spec package (YAML, Jinja) loads only when a spec is handled here
+    from osmo.spec import Workflow
+    from osmo.spec.model import WorkflowSpec
 from osmo.status import TaskStatus, WorkflowStatus
 
 __all__ = ["Client", "LogRecord", "TaskInfo", "WorkflowInfo"]
 
-SpecLike = str | os.PathLike[str] | dict[str, Any] | WorkflowSpec | Workflow
+SpecLike: TypeAlias = "str | os.PathLike[str] | dict[str, Any] | WorkflowSpec | Workflow"
 
 
 @dataclass(frozen=True)
@@ -117,6 +119,7 @@ class Client:
     def __init__(self, server: str | None = None, *, home: str | os.PathLike[str] | None = None,
                  autostart: bool = True) -> None:
         self._conn: Connection = connect(server, home, autostart=autostart)
+        self._here: bool | None = None
 
     def close(self) -> None:
         """Close the connection."""
@@ -130,6 +133,14 @@ class Client:
 
     def _call(self, verb: str, *, timeout: float | None = None, **request: Any) -> Any:
         return self._conn.api.call(verb, request, timeout=timeout)
+
+    def _server_is_here(self) -> bool:
+        """Whether the server runs on this host (it can then read files named here)."""
+        if self._here is None:
+            from osmo.transport.blobs import host_id
+
+            self._here = self.ping().get("host_id") == host_id()
+        return self._here
 
     # ------------------------------------------------------------------ submit & control
 
@@ -148,6 +159,18 @@ class Client:
             SpecError: the spec is invalid (nothing was created).
             SubmitError: the server cannot run it (e.g. no pool fits a task).
         """
+        if isinstance(spec, (str, os.PathLike)) and self._server_is_here():
+            path = Path(spec).absolute()
+            try:
+                text = path.read_text()
+            except OSError as exc:
+                raise UsageError(f"cannot read {spec}: {exc.strerror}") from None
+            result = self._call("submit", source={"path": str(path), "text": text},
+                                set_values=list(set_values), set_strings=list(set_strings),
+                                set_env=list(set_env), pool=pool, no_cache=no_cache)
+            return str(result["workflow_id"])
+        from osmo.spec import spec_to_dict
+
         model, filename = _to_model(spec, set_values, set_strings, set_env)
         type_paths = sorted({p for t in model.all_tasks() if t.resolved for p in t.resolved.paths})
         result = self._call("submit", spec=spec_to_dict(model), pool=pool, filename=filename,
@@ -255,6 +278,8 @@ class Client:
         from osmo.sdk import transfer
 
         reply = self._call("artifacts_get", target=target)
+        from osmo.artifacts import Manifest
+
         written = transfer.download(self._conn.link, self.ping(), Manifest.from_json(
             reply["body"]), Path(dest).absolute(), only=reply.get("only"))
         return [str(p) for p in written]
@@ -283,6 +308,8 @@ class Client:
         """Write a version's files (verified) into ``dest`` on this machine; returns the
         written paths."""
         from osmo.sdk import transfer
+
+        from osmo.artifacts import Manifest
 
         reply = self._call("datasets_download", ref=ref, regex=regex)
         written = transfer.download(self._conn.link, self.ping(),
@@ -338,6 +365,8 @@ def _to_model(spec: SpecLike, set_values: Sequence[str], set_strings: Sequence[s
     """The validated model and its file name. Task types are resolved here too (params
     checked with positions); custom ``module:attr`` types are imported from the spec file's
     folder, or the current folder for builders and dicts."""
+    from osmo.spec import Workflow, load_spec, spec_from_dict
+    from osmo.spec.model import WorkflowSpec
     from osmo.tasktypes.registry import Resolver
 
     if isinstance(spec, WorkflowSpec):

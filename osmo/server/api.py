@@ -21,7 +21,7 @@ from osmo.server.credentials import CredentialApi, check_task_credentials
 from osmo.server.engine import Engine, _Batch
 from osmo.server.lineage_query import lineage_graph, resolve_target
 from osmo.server.logview import read_logs
-from osmo.spec import spec_from_dict
+from osmo.spec import load_spec, spec_from_dict, spec_to_dict
 from osmo.status import WorkflowStatus
 from osmo.store.sqlite import WorkflowRow
 
@@ -77,14 +77,30 @@ class Api:
     def submit(self, request: dict[str, Any]) -> dict[str, Any]:
         """Create a workflow from a spec dict. Request: spec, pool?, filename?, no_cache?,
         type_paths? (folders custom task types are imported from: the spec file's folder).
+        Instead of ``spec``, a client on this host may send ``source`` (``{path, text}``) and
+        the template values (set_values, set_strings, set_env): the file is then rendered and
+        checked here, with the same loader and the same messages, saving the client the
+        template engine and YAML parser.
 
         Task types are resolved here, with this server's installed plugins; what was
         resolved (version, resources, folders) is kept in the workflow's options."""
         from osmo.tasktypes.registry import Resolver
 
-        type_paths = [str(p) for p in request.get("type_paths") or []]
-        spec = spec_from_dict(request["spec"], filename=request.get("filename", "<submitted>"),
-                              types=Resolver(type_paths))
+        if "source" in request:  # a spec file on this server's host: read and checked here
+            path = str(request["source"]["path"])
+            spec = load_spec(text=str(request["source"]["text"]), filename=path,
+                             set_values=request.get("set_values") or (),
+                             set_strings=request.get("set_strings") or (),
+                             set_env=request.get("set_env") or (),
+                             types=Resolver([str(Path(path).parent)]))
+            request = {**request, "filename": path, "spec": spec_to_dict(spec)}
+            type_paths = sorted({p for t in spec.all_tasks() if t.resolved
+                                 for p in t.resolved.paths})
+        else:
+            type_paths = [str(p) for p in request.get("type_paths") or []]
+            spec = spec_from_dict(request["spec"],
+                                  filename=request.get("filename", "<submitted>"),
+                                  types=Resolver(type_paths))
         check_task_credentials(spec, self._store)
         pool = request.get("pool") or spec.pool
         options = {"pool": pool, "filename": request.get("filename"),
