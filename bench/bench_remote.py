@@ -21,13 +21,11 @@ Usage: python bench/bench_remote.py [--runs 3] [--chain 300] [--fanout 1000]
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import platform
 import re
 import signal
-import sqlite3
 import statistics
+import sqlite3
 import subprocess
 import sys
 import tempfile
@@ -37,6 +35,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import osmo  # noqa: E402
+from benchlib import machine_info, quick, row, write_rows  # noqa: E402
 from osmo.config import free_port  # noqa: E402
 
 
@@ -114,8 +113,9 @@ def round_trips(home: Path, wf_id: str) -> list[float]:
     return out
 
 
-def dispatch(runs: int, n: int, local: bool) -> list[float]:
-    samples: list[float] = []
+def dispatch(runs: int, n: int, local: bool) -> list[list[float]]:
+    """Per run: every task's placed → completed seconds."""
+    samples: list[list[float]] = []
     for _ in range(runs):
         with tempfile.TemporaryDirectory(prefix="osmo-bench-remote-") as root:
             c = Cluster(Path(root), local_pool=local)
@@ -125,7 +125,7 @@ def dispatch(runs: int, n: int, local: bool) -> list[float]:
                 with c.client() as client:
                     info = client.wait(client.submit(chain(n), no_cache=True))
                     assert info.ok, info.status
-                samples += round_trips(Path(root) / "server", info.id)
+                samples.append(round_trips(Path(root) / "server", info.id))
             finally:
                 c.close()
     return samples
@@ -173,12 +173,6 @@ def pct(values: list[float], q: float) -> float:
     return ordered[min(len(ordered) - 1, int(q * len(ordered)))]
 
 
-def row(name: str, unit: str, values: list[float], *, higher: bool, runs: int,
-        notes: str = "") -> dict[str, object]:
-    return {"name": name, "unit": unit, "median": statistics.median(values), "min": min(values),
-            "max": max(values), "runs": runs, "higher_is_better": higher, "notes": notes}
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=3)
@@ -187,34 +181,26 @@ def main() -> None:
     ap.add_argument("--size-mib", type=int, default=1024)
     ap.add_argument("--json", help="write result rows here")
     args = ap.parse_args()
-    print(f"machine: {platform.machine()}, {os.cpu_count()} cores, Python "
-          f"{platform.python_version()}, {platform.system()} {platform.release()}")
+    if quick():
+        args.runs, args.chain, args.fanout, args.size_mib = 1, 10, 20, 8
+    print(f"machine: {machine_info()}")
     rows = []
     remote = dispatch(args.runs, args.chain, local=False)
     local = dispatch(args.runs, args.chain, local=True)
-    for label, samples in (("remote", remote), ("local pool", local)):
-        ms = [s * 1000 for s in samples]
-        print(f"dispatch round trip, {label}: p50 {pct(ms, 0.5):.2f} ms, "
-              f"p99 {pct(ms, 0.99):.2f} ms over {len(ms)} tasks")
     for q in (0.5, 0.99):
-        ms = [s * 1000 for s in remote]
-        rows.append({"name": f"remote dispatch round trip p{int(q * 100)}", "unit": "ms",
-                     "median": pct(ms, q), "min": min(ms), "max": max(ms), "runs": args.runs,
-                     "higher_is_better": False,
-                     "notes": f"local pool p{int(q * 100)} "
-                              f"{pct([s * 1000 for s in local], q):.2f} ms"})
-    rates = transfer(args.runs, args.size_mib)
-    print(f"output transfer {args.size_mib} MiB: median {statistics.median(rates):.0f} MiB/s "
-          f"(min {min(rates):.0f}, max {max(rates):.0f})")
-    rows.append(row(f"remote output transfer ({args.size_mib} MiB)", "MiB/s", rates,
-                    higher=True, runs=args.runs))
-    fan = fanout(args.runs, args.fanout)
-    print(f"fan-out {args.fanout} over 2 remote workers: median {statistics.median(fan):.0f} "
-          f"tasks/s (min {min(fan):.0f}, max {max(fan):.0f})")
-    rows.append(row(f"remote fan-out {args.fanout} over 2 workers", "tasks/s", fan,
-                    higher=True, runs=args.runs))
-    if args.json:
-        Path(args.json).write_text(json.dumps(rows, indent=2))
+        name = f"p{int(q * 100)}"
+        rem = [pct([s * 1000 for s in run], q) for run in remote]
+        loc = statistics.median(pct([s * 1000 for s in run], q) for run in local)
+        rows.append(row(f"remote: no-op task round trip {name} (placed → completed)", "ms",
+                        rem, higher_is_better=False, target=2.0 if q == 0.5 else 10.0,
+                        notes=f"{args.chain} tasks of a chain on one remote worker; the same "
+                              f"chain on the server's local pool: {name} {loc:.2f} ms"))
+    rows.append(row(f"remote: output transfer ({args.size_mib} MiB, worker → server)", "MiB/s",
+                    transfer(args.runs, args.size_mib), higher_is_better=True, target=300.0,
+                    limit_of="limit: zenoh put throughput"))
+    rows.append(row(f"remote: fan-out/join {args.fanout} `true` tasks over 2 workers",
+                    "tasks/s", fanout(args.runs, args.fanout), higher_is_better=True))
+    write_rows(args.json, rows)
 
 
 if __name__ == "__main__":
