@@ -21,11 +21,9 @@ Usage: python bench/bench_datagen.py [--runs 5] [--steps 20000] [--env InvertedP
 from __future__ import annotations
 
 import argparse
-import json
 import multiprocessing as mp
 import os
 import platform
-import statistics
 import sys
 import tempfile
 import time
@@ -33,7 +31,9 @@ from pathlib import Path
 from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path[:0] = [str(ROOT), str(ROOT / "plugins")]
+sys.path[:0] = [str(ROOT), str(ROOT / "plugins"), str(ROOT / "bench")]
+
+from benchlib import quick, row, write_rows  # noqa: E402
 
 
 def _worker(env_id: str, steps: int, record: bool, folder: str, index: int,
@@ -98,6 +98,8 @@ def main() -> None:
     parser.add_argument("--env", default="InvertedPendulum-v5")
     parser.add_argument("--json")
     args = parser.parse_args()
+    if quick():
+        args.runs, args.steps = 1, 2_000
     print(f"machine: {machine()}")
     cases = {"bare, 1 process": (1, False), "recorded, 1 worker": (1, True),
              "recorded, 2 workers": (2, True)}
@@ -105,22 +107,16 @@ def main() -> None:
     for _ in range(args.runs):  # interleaved, so background load hits every case alike
         for name, (workers, record) in cases.items():
             samples[name].append(one_run(args.env, workers, args.steps, record))
-    rows = [{"name": f"{args.env} {name}", "unit": "steps/s",
-             "median": statistics.median(v), "min": min(v), "max": max(v), "runs": len(v)}
+    rows = [row(f"datagen: {args.env} {name}", "steps/s", v, higher_is_better=True)
             for name, v in samples.items()]
     bare, one, two = (samples[n] for n in cases)
     ratio = [b / a for a, b in zip(one, two, strict=True)]
     overhead = [100 * (b / r - 1) for b, r in zip(bare, one, strict=True)]
-    rows.append({"name": "2 workers / 1 worker", "unit": "x", "median": statistics.median(ratio),
-                 "min": min(ratio), "max": max(ratio), "runs": len(ratio)})
-    rows.append({"name": "recording overhead (recorded vs bare time per step)", "unit": "%",
-                 "median": statistics.median(overhead), "min": min(overhead),
-                 "max": max(overhead), "runs": len(overhead)})
-    for r in rows:
-        print(f"{r['name']:<58} {r['median']:>10,.1f} {r['unit']:<8} "
-              f"({r['min']:,.1f}–{r['max']:,.1f}, {r['runs']} runs)")
-    if args.json:
-        Path(args.json).write_text(json.dumps(rows, indent=2) + "\n")
+    rows.append(row("datagen: 2 workers / 1 worker", "x", ratio, higher_is_better=True,
+                    target=1.7))
+    rows.append(row("datagen: recording overhead (recorded vs bare time per step)", "%",
+                    overhead, higher_is_better=False, target=15.0))
+    write_rows(args.json, rows)
 
 
 if __name__ == "__main__":

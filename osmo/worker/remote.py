@@ -258,7 +258,11 @@ class RemoteWorker:
                 self._specs[cmd.workflow_id] = spec_from_wire(order["spec"])
             self._url_creds.update(order.get("url_credentials") or {})
             self._pending[cmd.attempt_id] = _Pending()
-        self._io.submit(self._fetch_and_prepare, cmd, order)
+        manifests = order.get("manifests") or {}
+        if all(self._input_dir(Manifest.from_json(b)).is_dir() for b in manifests.values()):
+            self._fetch_and_prepare(cmd, order)  # nothing to fetch: no extra thread hop
+        else:
+            self._io.submit(self._fetch_and_prepare, cmd, order)
 
     def _fetch_and_prepare(self, cmd: PrepareAttempt, order: dict[str, Any]) -> None:
         try:
@@ -289,8 +293,11 @@ class RemoteWorker:
             raise OsmoError(f"no spec of workflow {cmd.workflow_id} was sent to this worker")
         return spec.task(cmd.task)
 
+    def _input_dir(self, manifest: Manifest) -> Path:
+        return self.home / "inputs" / manifest.digest.split(":", 1)[1]
+
     def _fetch_input(self, manifest: Manifest) -> str:
-        dest = self.home / "inputs" / manifest.digest.split(":", 1)[1]
+        dest = self._input_dir(manifest)
         if not dest.is_dir():
             fetch_manifest(self.link, "server", manifest, self.store,
                            same_host=self._server_host)
