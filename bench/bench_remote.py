@@ -44,7 +44,7 @@ class Cluster:
 
     def __init__(self, root: Path, *, local_pool: bool = False) -> None:
         self.root = root
-        self.endpoint = f"tcp/127.0.0.1:{free_port()}"
+        self.endpoint = f"tcp/127.0.0.1:{free_port(0)}"
         self.env = dict(os.environ, OSMO_HOME=str(root / "server"))
         self.env.pop("OSMO_SERVER", None)
         args = ["server", "start", "--listen", self.endpoint]

@@ -25,7 +25,7 @@ class Cluster:
     def __init__(self, root: Path, *, server_args: tuple[str, ...] = (),
                  env: dict[str, str] | None = None) -> None:
         self.root = root
-        self.port = free_port()
+        self.port = free_port(0)
         self.endpoint = f"tcp/127.0.0.1:{self.port}"
         self.osmo = Osmo(root / "server")
         self.osmo.env.update(env or {})

@@ -323,7 +323,7 @@ def test_readme_run_across_machines(tmp_path: Path) -> None:
     readme = (REPO / "README.md").read_text()
     block = re.search(r"## Run across machines\n.*?```sh\n(.*?)```", readme, re.S)
     assert block is not None
-    port = str(free_port())
+    port = str(free_port(0))
     lines = [ln.split("  #")[0].strip() for ln in block.group(1).splitlines()
              if ln.startswith("osmo ")]
     lines = [ln.replace("0.0.0.0:7447", f"127.0.0.1:{port}").replace("SERVER:7447",

@@ -67,7 +67,7 @@ def test_user_password_auth_refuses_strangers(password_cluster: Cluster, tmp_pat
 
 def test_mutual_tls(tmp_path: Path) -> None:
     certs = make_certs(tmp_path / "certs")
-    tls_port = free_port()
+    tls_port = free_port(0)
     tls = {"root_ca_certificate": f"{certs}/ca.pem"}
     server_conf = write(tmp_path / "server.json5", "{transport: {link: {tls: {"
                         f'listen_certificate: "{certs}/server.pem", '

@@ -18,7 +18,7 @@ from osmo.transport.zenoh_link import Link
 
 @pytest.fixture
 def links() -> Iterator[tuple[Link, Link]]:
-    port = free_port()
+    port = free_port(0)
     server = Link.router([f"tcp/127.0.0.1:{port}"])
     client = Link.client([f"tcp/127.0.0.1:{port}"])
     yield server, client
