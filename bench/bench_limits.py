@@ -90,7 +90,7 @@ def serve(endpoint: str) -> None:
     session.close()
 
 
-def free_port(0) -> int:
+def free_port() -> int:
     """A free TCP port on loopback."""
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -107,7 +107,7 @@ def get_once(session: zenoh.Session, key: str, payload: bytes | None = None) -> 
 
 def zenoh_rows(runs: int, gets: int, put_mib: int) -> list[dict[str, object]]:
     """Round trip p50/p99 and put throughput against a router in another process."""
-    endpoint = f"tcp/127.0.0.1:{free_port(0)}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     proc = subprocess.Popen([sys.executable, __file__, "--serve", endpoint],
                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     try:

@@ -59,7 +59,7 @@ def install() -> Path:
     return script
 
 
-def free_port(0) -> int:
+def free_port() -> int:
     """A TCP port on 127.0.0.1 that was free a moment ago."""
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -75,7 +75,7 @@ def s3rver(data: Path, timeout: float = 30.0) -> Iterator[str]:
         Unavailable: it could not be installed, or did not start within ``timeout`` seconds.
     """
     script = install()
-    port = free_port(0)
+    port = free_port()
     data.mkdir(parents=True, exist_ok=True)
     log = open(data.parent / f"s3rver-{port}.log", "wb")
     proc = subprocess.Popen(

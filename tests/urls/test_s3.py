@@ -85,7 +85,7 @@ def test_missing_bucket_is_named(s3_credential: dict[str, str], tmp_path: Path) 
 
 
 def test_unreachable_endpoint(tmp_path: Path) -> None:
-    cred = {"endpoint": f"http://127.0.0.1:{s3server.free_port(0)}", "access_key": "a",
+    cred = {"endpoint": f"http://127.0.0.1:{s3server.free_port()}", "access_key": "a",
             "secret_key": "unreachable-secret"}
     with pytest.raises(UrlError, match="cannot reach S3 endpoint") as e:
         for_url("s3://b/x", cred).download(tmp_path / "d")
