@@ -6,12 +6,15 @@ through ``emit``. Every ``prepare`` gets exactly one final report — ``AttemptS
 ``AttemptExited`` — whatever happens (kill before start, spawn failure, promotion failure).
 
 Threading: public methods may be called from any thread; they only queue work for the pool's
-reactor thread (``osmo.worker.reactor``), which spawns, reads pipes, watches exits through
-pidfds, runs kill grace timers and calls ``emit``. So ``emit`` must be cheap (put the event
-on a queue). Attempt state lives on that thread only. Filesystem work that waits on the
-disk — making an attempt's folders and promoting its outputs — runs on a few I/O threads and
-hands its result back to the reactor, so a slow disk never stalls pipes and spawns, and the
-waits of several attempts overlap.
+reactor thread (``osmo.worker.reactor``), which reads pipes, watches exits through pidfds,
+runs kill grace timers and owns attempt state. Filesystem work that waits on the disk —
+making an attempt's folders and promoting its outputs — runs on a few I/O threads, so a slow
+disk never stalls pipes, and the waits of several attempts overlap. An attempt with no
+barrier is also spawned on its I/O thread right after its folders are made, and a
+successful exit is reported from the I/O thread that promoted its outputs: each saves a
+thread hand-off per task, and the slots' spawns overlap. ``emit`` is therefore called from
+the reactor and the I/O threads; it must be thread-safe and cheap (put the event on a
+queue).
 
 Kill: ``SIGTERM`` to the attempt's process group, ``SIGKILL`` after ``kill_grace`` seconds.
 A killed attempt's outputs are never promoted; a prepared attempt killed before it started
@@ -109,7 +112,7 @@ class LocalPool:
 
     Args:
         home: osmo's home folder; attempts live under ``home/runs``.
-        emit: receives every event, on the pool's thread; must be cheap.
+        emit: receives every event, from the pool's threads; thread-safe and cheap.
         node_id: the node id this pool reports as.
         pool: the pool name.
         cpus, gpus, memory: capacity to advertise (default: what the machine has).
@@ -205,9 +208,12 @@ class LocalPool:
             return dict(self._pids)
 
     def close(self) -> None:
-        """Kill every running process group and stop the threads (no more events)."""
-        self._reactor.stop(self._shutdown)
+        """Kill every running process group and stop the threads (no more events).
+
+        The I/O threads are drained first: a process one of them just spawned is handed to
+        the reactor before the reactor's final sweep kills everything."""
         self._io.shutdown(wait=True, cancel_futures=True)
+        self._reactor.stop(self._shutdown)
 
     # -------------------------------------------------------------- reactor thread
 
@@ -230,11 +236,21 @@ class LocalPool:
         except Exception as exc:  # every prepare must get its one final report
             message = str(exc) if isinstance(exc, OsmoError) else f"cannot prepare: {exc!r}"
             self._reactor.call_soon(self._prepared, cmd, task, None, None, message)
-        else:
-            self._reactor.call_soon(self._prepared, cmd, task, dirs, launch, None)
+            return
+        started: ProcessHandle | str | None = None
+        if cmd.run and self._preparing.get(cmd.attempt_id) is None:
+            # No barrier: spawn here, so the slots' spawns overlap and the reactor thread
+            # (pipes, exits) never waits on fork/exec. A kill that came meanwhile is applied
+            # by _prepared.
+            try:
+                started = self._runtime.start(launch.argv, cwd=launch.cwd, env=launch.env)
+            except (StartError, OSError) as exc:
+                started = str(exc)
+        self._reactor.call_soon(self._prepared, cmd, task, dirs, launch, None, started)
 
     def _prepared(self, cmd: PrepareAttempt, task: TaskSpec, dirs: AttemptDirs | None,
-                  launch: Launch | None, error: str | None) -> None:
+                  launch: Launch | None, error: str | None,
+                  started: ProcessHandle | str | None = None) -> None:
         kill_reason = self._preparing.pop(cmd.attempt_id, None)
         run_now = cmd.run or cmd.attempt_id in self._run_pending
         self._run_pending.discard(cmd.attempt_id)
@@ -248,11 +264,18 @@ class LocalPool:
         if task.image:
             attempt.log.line("osmo", image_note(task.image))
         self._attempts[attempt.id] = attempt
+        if isinstance(started, ProcessHandle):
+            self._watch(attempt, started)
         if kill_reason is not None:  # killed while its folders were being made
             self._kill(attempt.id, kill_reason)
             return
         self._emit(AttemptPrepared(attempt.id))
-        if run_now:  # no barrier holds it (or run() already came): start now
+        if isinstance(started, ProcessHandle):
+            self._emit(AttemptStarted(attempt.id))
+        elif isinstance(started, str):
+            attempt.log.line("osmo", f"start failed: {started}")
+            self._finish(attempt, AttemptStartFailed(attempt.id, started))
+        elif run_now:  # no barrier holds it (or run() already came): start now
             self._run(attempt.id)
 
     def _run(self, attempt_id: str) -> None:
@@ -374,14 +397,22 @@ class LocalPool:
                                   command=tuple(attempt.launch.argv))
         except DeliveryError as exc:
             event = AttemptExited(attempt.id, code, None, str(exc))
-        self._reactor.call_soon(self._promoted, attempt, event)
+            self._reactor.call_soon(self._promoted, attempt, event)
+            return
+        # Reported from here, one thread hop sooner; the reactor's bookkeeping follows (a
+        # kill() that comes meanwhile finds it FINISHING and is ignored).
+        remove_secret_files(attempt.launch)
+        with self._pids_lock:
+            self._pids.pop(attempt.id, None)
+        self._emit(event)
+        self._reactor.call_soon(self._finish, attempt, None)
 
     def _promoted(self, attempt: _Attempt, event: AttemptExited) -> None:
         if event.message:
             attempt.log.line("osmo", event.message)
         self._finish(attempt, event)
 
-    def _finish(self, attempt: _Attempt, event: AttemptExited | AttemptStartFailed) -> None:
+    def _finish(self, attempt: _Attempt, event: AttemptExited | AttemptStartFailed | None) -> None:
         attempt.state = _State.DONE
         attempt.log.close()
         remove_secret_files(attempt.launch)
@@ -389,7 +420,8 @@ class LocalPool:
         with self._pids_lock:
             self._pids.pop(attempt.id, None)
         self._remember(attempt.id)
-        self._emit(event)
+        if event is not None:
+            self._emit(event)
 
     def _remember(self, attempt_id: str) -> None:
         self._finished[attempt_id] = None
