@@ -93,7 +93,22 @@ def stop_server(home: str | os.PathLike[str] | None = None, timeout: float = 30.
     deadline = time.monotonic() + timeout
     while lock_is_held(home_path) and time.monotonic() < deadline:
         time.sleep(0.05)
+    while _running(info.pid) and time.monotonic() < deadline:  # the lock goes just before exit
+        time.sleep(0.01)
     return info.pid
+
+
+def _running(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    try:  # a zombie (exited, not yet reaped by its parent) counts as stopped
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except (OSError, IndexError):
+        return False
 
 
 def connect(server: str | None = None, home: str | os.PathLike[str] | None = None,

@@ -34,14 +34,12 @@ from __future__ import annotations
 
 import collections
 import functools
-import enum
 import logging
 import os
 import signal
 import threading
 from collections.abc import Callable, Mapping
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
 from pathlib import Path
 
 from osmo.artifacts import ArtifactStore
@@ -64,10 +62,11 @@ from osmo.scheduler.types import (
     PrepareAttempt,
 )
 from osmo.spec.model import ExitAction, TaskSpec
-from osmo.worker.checkpoints import Checkpointer, start_checkpoints
+from osmo.worker.checkpoints import start_checkpoints
 from osmo.worker.logs import LogWriter, exit_note, image_note
 from osmo.worker.machine import detect_capacity, raise_fd_limit
-from osmo.worker.reactor import Reactor, Timer
+from osmo.worker.live import AttemptState, LiveAttempt
+from osmo.worker.reactor import Reactor
 from osmo.worker.secrets import SecretLookup, Secrets, gather
 from osmo.worker.transfer import CredentialLookup, DeliveryError, deliver, fetch_inputs
 from osmo.worker.workdir import AttemptDirs, Launch, prepare, remove_secret_files
@@ -77,34 +76,8 @@ __all__ = ["LocalPool", "kill_stale", "process_start_time"]
 _log = logging.getLogger(__name__)
 
 KILLED_BEFORE_START = 128 + signal.SIGKILL
-_READ_SIZE = 65536
-_DRAIN_READS = 64  # at exit, read at most this many chunks more per pipe
 _REMEMBER_FINISHED = 4096  # finished ids kept to ignore late run()/kill() for them
 _IO_THREADS = 4
-
-
-class _State(enum.Enum):
-    PREPARED = "prepared"
-    RUNNING = "running"
-    FINISHING = "finishing"  # exited; outputs being promoted on an I/O thread
-    DONE = "done"
-
-
-@dataclass(eq=False)
-class _Attempt:
-    """One attempt's live state (reactor thread only)."""
-
-    id: str
-    task: TaskSpec
-    dirs: AttemptDirs
-    launch: Launch
-    log: LogWriter
-    state: _State = _State.PREPARED
-    handle: ProcessHandle | None = None
-    open_fds: set[int] = field(default_factory=set)
-    kill_reason: str | None = None
-    escalation: Timer | None = None
-    checkpoints: Checkpointer | None = None
 
 
 class LocalPool:
@@ -158,7 +131,7 @@ class LocalPool:
         self._credential_for = credential_for
         self._task_secrets = task_secrets
         self._log_sink = log_sink
-        self._attempts: dict[str, _Attempt] = {}
+        self._attempts: dict[str, LiveAttempt] = {}
         self._finished: collections.OrderedDict[str, None] = collections.OrderedDict()
         self._pids: dict[str, int] = {}
         self._pids_lock = threading.Lock()
@@ -260,7 +233,7 @@ class LocalPool:
             return
         sink = functools.partial(self._log_sink, cmd.attempt_id) if self._log_sink else None
         log = LogWriter(dirs.log, launch.secrets, sink)
-        attempt = _Attempt(cmd.attempt_id, task, dirs, launch, log)
+        attempt = LiveAttempt(cmd.attempt_id, task, dirs, launch, log)
         if task.image:
             attempt.log.line("osmo", image_note(task.image))
         self._attempts[attempt.id] = attempt
@@ -288,7 +261,7 @@ class LocalPool:
                 self._remember(attempt_id)
                 self._emit(AttemptStartFailed(attempt_id, "attempt was not prepared here"))
             return
-        if attempt.state is not _State.PREPARED:
+        if attempt.state is not AttemptState.PREPARED:
             return
         launch = attempt.launch
         try:
@@ -300,13 +273,14 @@ class LocalPool:
         self._watch(attempt, handle)
         self._emit(AttemptStarted(attempt_id))
 
-    def _watch(self, attempt: _Attempt, handle: ProcessHandle) -> None:
-        attempt.handle, attempt.state = handle, _State.RUNNING
+    def _watch(self, attempt: LiveAttempt, handle: ProcessHandle) -> None:
+        attempt.handle, attempt.state = handle, AttemptState.RUNNING
         with self._pids_lock:
             self._pids[attempt.id] = handle.pid
+        reactor = self._reactor
         for fd, stream in ((handle.stdout_fd, "stdout"), (handle.stderr_fd, "stderr")):
             attempt.open_fds.add(fd)
-            self._reactor.add_reader(fd, lambda a=attempt, f=fd, s=stream: self._read(a, f, s))
+            reactor.add_reader(fd, lambda a=attempt, f=fd, s=stream: a.read(reactor, f, s))
         self._reactor.add_reader(handle.exit_fd, lambda a=attempt: self._exited(a))
         attempt.checkpoints = start_checkpoints(
             attempt.task, attempt.dirs, attempt.id, reactor=self._reactor, io=self._io,
@@ -319,58 +293,28 @@ class LocalPool:
         attempt = self._attempts.get(attempt_id)
         if attempt is None or attempt.kill_reason is not None:
             return
-        if attempt.state is _State.FINISHING:
+        if attempt.state is AttemptState.FINISHING:
             return  # it already exited; its report is on the way
         attempt.kill_reason = reason
         attempt.log.line("osmo", f"killed: {reason}")
-        if attempt.state is _State.PREPARED:
+        if attempt.state is AttemptState.PREPARED:
             event = AttemptExited(attempt_id, KILLED_BEFORE_START, None, f"killed: {reason}")
             self._finish(attempt, event)
         elif attempt.handle is not None:
             self._runtime.kill(attempt.handle)
             attempt.escalation = self._reactor.call_later(self._grace, self._escalate, attempt)
 
-    def _escalate(self, attempt: _Attempt) -> None:
-        if attempt.state is _State.RUNNING and attempt.handle is not None:
+    def _escalate(self, attempt: LiveAttempt) -> None:
+        if attempt.state is AttemptState.RUNNING and attempt.handle is not None:
             attempt.log.line("osmo", f"still running {self._grace:g}s after SIGTERM: SIGKILL")
             self._runtime.kill(attempt.handle, force=True)
 
-    def _read(self, attempt: _Attempt, fd: int, stream: str) -> bool:
-        """Log one chunk from a pipe; False when nothing was there (closed at EOF)."""
-        if fd not in attempt.open_fds:
-            return False
-        try:
-            data = os.read(fd, _READ_SIZE)
-        except BlockingIOError:
-            return False
-        if data:
-            attempt.log.write(stream, data)
-        else:
-            self._unwatch(attempt, fd)
-        return bool(data)
-
-    def _unwatch(self, attempt: _Attempt, fd: int) -> None:
-        attempt.open_fds.discard(fd)
-        self._reactor.remove_reader(fd)
-
-    def _drain(self, attempt: _Attempt, handle: ProcessHandle) -> None:
-        """Read what the pipes still hold, then stop watching them.
-
-        Bounded: a process that escaped the group (``setsid``) and keeps writing to an
-        inherited pipe is not waited for.
-        """
-        for fd, stream in ((handle.stdout_fd, "stdout"), (handle.stderr_fd, "stderr")):
-            for _ in range(_DRAIN_READS):
-                if not self._read(attempt, fd, stream):
-                    break
-            self._unwatch(attempt, fd)
-
-    def _exited(self, attempt: _Attempt) -> None:
+    def _exited(self, attempt: LiveAttempt) -> None:
         handle = attempt.handle
         assert handle is not None
         self._reactor.remove_reader(handle.exit_fd)
         code = self._runtime.reap(handle)
-        self._drain(attempt, handle)
+        attempt.drain(self._reactor, handle)
         self._runtime.release(handle)
         if attempt.escalation is not None:
             attempt.escalation.cancel()
@@ -384,10 +328,10 @@ class LocalPool:
         elif attempt.task.exit_action(code) is not ExitAction.COMPLETE:
             self._finish(attempt, AttemptExited(attempt.id, code))
         else:
-            attempt.state = _State.FINISHING
+            attempt.state = AttemptState.FINISHING
             self._io.submit(self._promote_io, attempt, code)
 
-    def _promote_io(self, attempt: _Attempt, code: int) -> None:
+    def _promote_io(self, attempt: LiveAttempt, code: int) -> None:
         """I/O thread: last checkpoint, promote the outputs; the reactor reports the exit."""
         try:
             ref, manifest = deliver(attempt.dirs, attempt.task, checkpoints=attempt.checkpoints,
@@ -407,13 +351,14 @@ class LocalPool:
         self._emit(event)
         self._reactor.call_soon(self._finish, attempt, None)
 
-    def _promoted(self, attempt: _Attempt, event: AttemptExited) -> None:
+    def _promoted(self, attempt: LiveAttempt, event: AttemptExited) -> None:
         if event.message:
             attempt.log.line("osmo", event.message)
         self._finish(attempt, event)
 
-    def _finish(self, attempt: _Attempt, event: AttemptExited | AttemptStartFailed | None) -> None:
-        attempt.state = _State.DONE
+    def _finish(self, attempt: LiveAttempt,
+                event: AttemptExited | AttemptStartFailed | None) -> None:
+        attempt.state = AttemptState.DONE
         attempt.log.close()
         remove_secret_files(attempt.launch)
         self._attempts.pop(attempt.id, None)
@@ -431,7 +376,7 @@ class LocalPool:
     def _shutdown(self) -> None:
         for attempt in list(self._attempts.values()):
             handle = attempt.handle
-            if attempt.state is _State.RUNNING and handle is not None:
+            if attempt.state is AttemptState.RUNNING and handle is not None:
                 attempt.log.line("osmo", "killed: pool closed")
                 self._runtime.kill(handle, force=True)
                 self._runtime.reap(handle)
