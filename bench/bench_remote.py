@@ -21,6 +21,7 @@ Usage: python bench/bench_remote.py [--runs 3] [--chain 300] [--fanout 1000]
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import re
 import signal
@@ -30,6 +31,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -113,58 +115,51 @@ def round_trips(home: Path, wf_id: str) -> list[float]:
     return out
 
 
+@contextlib.contextmanager
+def cluster(workers: int, *, local_pool: bool = False) -> Iterator[Cluster]:
+    """A fresh server with ``workers`` remote workers of 2 cpus each, torn down after."""
+    with tempfile.TemporaryDirectory(prefix="osmo-bench-remote-") as root:
+        c = Cluster(Path(root), local_pool=local_pool)
+        try:
+            for i in range(workers):
+                c.worker(f"w{i + 1}", 2)
+            yield c
+        finally:
+            c.close()
+
+
 def dispatch(runs: int, n: int, local: bool) -> list[list[float]]:
     """Per run: every task's placed → completed seconds."""
     samples: list[list[float]] = []
     for _ in range(runs):
-        with tempfile.TemporaryDirectory(prefix="osmo-bench-remote-") as root:
-            c = Cluster(Path(root), local_pool=local)
-            try:
-                if not local:
-                    c.worker("w1", 2)
-                with c.client() as client:
-                    info = client.wait(client.submit(chain(n), no_cache=True))
-                    assert info.ok, info.status
-                samples.append(round_trips(Path(root) / "server", info.id))
-            finally:
-                c.close()
+        with cluster(0 if local else 1, local_pool=local) as c, c.client() as client:
+            info = client.wait(client.submit(chain(n), no_cache=True))
+            assert info.ok, info.status
+            samples.append(round_trips(c.root / "server", info.id))
     return samples
 
 
 def transfer(runs: int, size_mib: int) -> list[float]:
     rates = []
     for _ in range(runs):
-        with tempfile.TemporaryDirectory(prefix="osmo-bench-remote-") as root:
-            c = Cluster(Path(root))
-            try:
-                c.worker("w1", 2)
-                wf = osmo.Workflow("bench-remote-transfer")
-                wf.task("big", ["sh", "-c", f"head -c {size_mib}M /dev/urandom > "
-                                            "{{output}}/big.bin"])
-                with c.client() as client:
-                    assert client.wait(client.submit(wf, no_cache=True)).ok
-                log = (Path(root) / "server" / "server.log").read_text()
-                found = re.findall(r"fetched from worker \S+ in [\d.]+s \((\d+) MiB/s\)", log)
-                rates.append(float(found[-1]))
-            finally:
-                c.close()
+        with cluster(1) as c, c.client() as client:
+            wf = osmo.Workflow("bench-remote-transfer")
+            write = f"head -c {size_mib}M /dev/urandom > " + "{{output}}/big.bin"
+            wf.task("big", ["sh", "-c", write])
+            assert client.wait(client.submit(wf, no_cache=True)).ok
+            log = (c.root / "server" / "server.log").read_text()
+            found = re.findall(r"fetched from worker \S+ in [\d.]+s \((\d+) MiB/s\)", log)
+            rates.append(float(found[-1]))
     return rates
 
 
 def fanout(runs: int, n: int) -> list[float]:
     rates = []
     for _ in range(runs):
-        with tempfile.TemporaryDirectory(prefix="osmo-bench-remote-") as root:
-            c = Cluster(Path(root))
-            try:
-                c.worker("w1", 2)
-                c.worker("w2", 2)
-                with c.client() as client:
-                    t0 = time.perf_counter()
-                    assert client.wait(client.submit(fan_out(n), no_cache=True)).ok
-                    rates.append((n + 2) / (time.perf_counter() - t0))
-            finally:
-                c.close()
+        with cluster(2) as c, c.client() as client:
+            t0 = time.perf_counter()
+            assert client.wait(client.submit(fan_out(n), no_cache=True)).ok
+            rates.append((n + 2) / (time.perf_counter() - t0))
     return rates
 
 
