@@ -120,3 +120,19 @@ def write_profile(home: Path, profile: dict[str, str]) -> None:
     """Save the client profile atomically."""
     home.mkdir(parents=True, exist_ok=True)
     write_json_atomic(home / "profile.json", profile)
+
+
+def host_id() -> str:
+    """This machine's identity for this boot (machine id + boot id), to spot a same-host peer.
+
+    ``OSMO_HOST_ID`` overrides it: processes on one machine that should behave as separate
+    machines (tests, benchmarks of the network path) set different values."""
+    if os.environ.get("OSMO_HOST_ID"):
+        return os.environ["OSMO_HOST_ID"]
+    parts = []
+    for path in ("/etc/machine-id", "/proc/sys/kernel/random/boot_id"):
+        try:
+            parts.append(Path(path).read_text().strip())
+        except OSError:
+            parts.append("?")
+    return ":".join(parts)

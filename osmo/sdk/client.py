@@ -137,7 +137,7 @@ class Client:
     def _server_is_here(self) -> bool:
         """Whether the server runs on this host (it can then read files named here)."""
         if self._here is None:
-            from osmo.transport.blobs import host_id
+            from osmo.config import host_id
 
             self._here = self.ping().get("host_id") == host_id()
         return self._here

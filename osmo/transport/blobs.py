@@ -19,7 +19,6 @@ filesystem is hard-linked instead of sent (:class:`SameHost`).
 from __future__ import annotations
 
 import hashlib
-import os
 from collections import deque
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
@@ -29,6 +28,7 @@ from typing import Any
 
 from osmo.artifacts import ArtifactStore, Manifest
 from osmo.artifacts.manifest import check_digest
+from osmo.config import host_id
 from osmo.errors import InfrastructureError
 from osmo.transport.zenoh_link import Link, Request, Subscription
 
@@ -42,22 +42,6 @@ _TIMEOUT = 30.0
 
 class TransferError(InfrastructureError):
     """A blob could not be fetched (the peer is gone, or sent something else)."""
-
-
-def host_id() -> str:
-    """This machine's identity for this boot (machine id + boot id), to spot a same-host peer.
-
-    ``OSMO_HOST_ID`` overrides it: processes on one machine that should behave as separate
-    machines (tests, benchmarks of the network path) set different values."""
-    if os.environ.get("OSMO_HOST_ID"):
-        return os.environ["OSMO_HOST_ID"]
-    parts = []
-    for path in ("/etc/machine-id", "/proc/sys/kernel/random/boot_id"):
-        try:
-            parts.append(Path(path).read_text().strip())
-        except OSError:
-            parts.append("?")
-    return ":".join(parts)
 
 
 @dataclass(frozen=True)
