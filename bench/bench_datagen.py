@@ -98,6 +98,13 @@ def main() -> None:
     parser.add_argument("--env", default="InvertedPendulum-v5")
     parser.add_argument("--json")
     args = parser.parse_args()
+    import importlib.util
+
+    missing = [m for m in ("gymnasium", "mujoco") if importlib.util.find_spec(m) is None]
+    if missing:  # a core-only install: nothing to measure, not a failure
+        print(f"skipped: needs {', '.join(missing)} (pip install \"osmo[sim]\")")
+        write_rows(args.json, [])
+        return
     if quick():
         args.runs, args.steps = 1, 2_000
     print(f"machine: {machine()}")

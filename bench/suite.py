@@ -4,8 +4,9 @@ Runs each ``bench_*.py`` in the scripts folder (and, with ``--peers``, ``peers/c
 as its own process with ``--json FILE``, collects the rows (the protocol is in
 ``benchlib.py``), and writes ``latest.json`` and ``latest.md`` into the results folder, with
 the machine (cpu model, cores, python, kernel, date). A script that exits non-zero, times
-out or writes no valid rows shows up as a FAILED row; the others still run. The exit code is
-1 if any script failed, else 0: slowness never fails the run.
+out or writes no valid rows shows up as a FAILED row; the others still run. A script that
+writes an empty list (its extra is not installed) is marked skipped. The exit code is 1 if
+any script failed, else 0: slowness never fails the run.
 
 After collecting, the harness:
 
@@ -98,6 +99,9 @@ def run_script(script: Path, out_dir: Path, env: dict[str, str], timeout: float
     if code != 0:
         problem = f"timed out after {timeout:.0f} s" if timed_out else f"exit code {code}"
     Path(json_path).unlink(missing_ok=True)
+    if not problem and not rows:  # e.g. bench_datagen without the sim extra
+        record["status"] = "skipped"
+        record["error"] = next((line for line in reversed(tail) if line.strip()), "")[:200]
     for r in rows:
         r["script"] = name
     if problem:
@@ -134,8 +138,8 @@ def reap_leftovers(token: str) -> list[str]:
 
 def validate(data: object) -> list[Row]:
     """Check a script's rows against the protocol; raise ValueError naming the problem."""
-    if not isinstance(data, list) or not data:
-        raise ValueError("expected a non-empty JSON list of rows")
+    if not isinstance(data, list):
+        raise ValueError("expected a JSON list of rows")
     for r in data:
         if not isinstance(r, dict):
             raise ValueError(f"a row is not an object: {r!r}")
@@ -231,7 +235,8 @@ def markdown(machine: dict[str, Any], scripts: list[dict[str, Any]], rows: list[
     lines += ["## All rows", "", "| benchmark | median | min–max | unit | runs | limit | of limit "
               "| notes |", "|---|---|---|---|---|---|---|---|"]
     for s in scripts:
-        failed = ", FAILED" if s["status"] != "ok" else ""
+        failed = {"ok": "", "skipped": f", skipped: {s.get('error', '')}"}.get(
+            s["status"], ", FAILED")
         lines.append(f"| **{s['script']}** ({s['seconds']:.0f} s{failed}) | | | | | | | |")
         for r in (r for r in rows if r["script"] == s["script"]):
             frac = r.get("fraction_of_limit")
@@ -289,7 +294,7 @@ def main() -> None:
     (out / "latest.json").write_text(json.dumps(report, indent=2, ensure_ascii=False) + "\n")
     (out / "latest.md").write_text(markdown(machine, records, rows, args.quick))
     print(f"\nwrote {out / 'latest.md'} and {out / 'latest.json'}")
-    failed = [r["script"] for r in records if r["status"] != "ok"]
+    failed = [r["script"] for r in records if r["status"] == "failed"]
     if failed:
         print(f"failed: {', '.join(failed)}", file=sys.stderr)
     sys.exit(1 if failed else 0)

@@ -33,7 +33,8 @@ from osmo.server.datasets import Datasets
 from osmo.server.engine import Engine
 from osmo.server.notices import Notifier
 from osmo.server.options import add_server_options, server_kwargs
-from osmo.server.workers import Dispatcher, WorkerHub
+from osmo.server.dispatch import Dispatcher
+from osmo.server.workers import WorkerHub
 from osmo.transport.blobs import host_id
 from osmo.server.records import RunRecords
 from osmo.spec import spec_from_dict

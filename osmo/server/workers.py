@@ -17,13 +17,12 @@ events and engine commands into orders:
   their worker to register again (reporting what is still running and what finished
   meanwhile); a node that does not come back is taken down.
 
-:class:`Dispatcher` is the engine's executor: it routes each command to the local pool or
-to the hub by the attempt's node.
+The engine's executor is ``osmo.server.dispatch.Dispatcher``, which routes each command to
+the local pool or to this hub by the attempt's node.
 """
 
 from __future__ import annotations
 
-import collections
 import json
 import logging
 import os
@@ -52,16 +51,14 @@ from osmo.spec.model import TaskSpec
 from osmo.store.sqlite import Store
 from osmo.transport.blobs import BlobServer, SameHost, fetch_manifest, host_id
 from osmo.transport.zenoh_link import Link, Subscription
-from osmo.worker.pool import LocalPool
 from osmo.worker.secrets import SecretError, gather
 from osmo.worker.wire import capacity_from_dict, event_from_dict, prepare_to_dict, spec_to_wire
 from osmo.worker.workdir import AttemptDirs
 
-__all__ = ["Dispatcher", "WorkerHub"]
+__all__ = ["WorkerHub"]
 
 log = logging.getLogger("osmo.server.workers")
 
-_REMEMBER = 100_000
 
 
 class WorkerHub:
@@ -275,11 +272,20 @@ class WorkerHub:
             log.warning("unknown report from worker %s: %r", wid, report)
             return
         if isinstance(event, AttemptExited):
-            self._transfers.submit(self._exited, wid, event)
+            if self._nothing_to_fetch(event):
+                self._exited(wid, event)  # a few links at most: no need for another thread
+            else:
+                self._transfers.submit(self._exited, wid, event)
             return
         if isinstance(event, (AttemptStartFailed, AttemptLost)):
             self._close_log(event.attempt_id)
         self._post(event)
+
+    def _nothing_to_fetch(self, event: AttemptExited) -> bool:
+        if event.manifest is None:
+            return True
+        entries = Manifest.from_json(event.manifest).entries
+        return len(entries) <= 16 and all(self._artifacts.has(e.digest) for e in entries)
 
     def _exited(self, wid: str, event: AttemptExited) -> None:
         """Transfer thread: take the outputs, then let the engine see the exit, then ack."""
@@ -350,46 +356,3 @@ def _dirs(home: Path, attempt_id: str) -> AttemptDirs:
 
 def _is_url(ref: str) -> bool:
     return "://" in ref
-
-
-class Dispatcher:
-    """The engine's executor: the local pool for node ``local``, the hub for the rest."""
-
-    def __init__(self, pool: LocalPool | None, hub: WorkerHub,
-                 node_of: Callable[[str], str | None] = lambda _aid: None) -> None:
-        self._pool, self._hub = pool, hub
-        self._lookup = node_of  # restored attempts: their node, asked of the scheduler
-        self._node_of: collections.OrderedDict[str, str] = collections.OrderedDict()
-
-    def _node(self, attempt_id: str) -> str:
-        return self._node_of.get(attempt_id) or self._lookup(attempt_id) or "local"
-
-    def prepare(self, cmd: PrepareAttempt, task: TaskSpec) -> None:
-        """Route a placement by its node."""
-        self._node_of[cmd.attempt_id] = cmd.node_id
-        while len(self._node_of) > _REMEMBER:
-            self._node_of.popitem(last=False)
-        if self._pool is not None and cmd.node_id == "local":
-            self._pool.prepare(cmd, task)
-        else:
-            self._hub.prepare(cmd, task)
-
-    def run(self, attempt_id: str) -> None:
-        """Route by the attempt's node."""
-        node = self._node(attempt_id)
-        if node == "local" and self._pool is not None:
-            self._pool.run(attempt_id)
-        else:
-            self._hub.run(node, attempt_id)
-
-    def kill(self, attempt_id: str, reason: str) -> None:
-        """Route by the attempt's node (restored attempts: found from their id's node)."""
-        node = self._node(attempt_id)
-        if node == "local" and self._pool is not None:
-            self._pool.kill(attempt_id, reason)
-        else:
-            self._hub.kill(node, attempt_id, reason)
-
-    def running(self) -> dict[str, int]:
-        """Pids of the local pool's running attempts (remote ones have no local pid)."""
-        return self._pool.running() if self._pool is not None else {}

@@ -94,7 +94,7 @@ class TaskContext(Protocol):
     attempt_id: str
 
     def progress(self, done: float, total: float | None = None, message: str = "") -> None:
-        """Report progress (shown by ``osmo query`` and the live view)."""
+        """Report progress: a ``[osmo:progress] done/total message`` line in the task's log."""
 
     def cancelled(self) -> bool:
         """True once the attempt was asked to stop (SIGTERM); finish up quickly."""
