@@ -114,7 +114,8 @@ def workflow_header(info: WorkflowInfo) -> str:
 
 
 def task_table(tasks: list[TaskInfo], verbose: bool = False) -> Table:
-    """A table of tasks: name, retry, status, start, duration, exit code (+ message)."""
+    """A table of tasks: name, retry, status, start, duration, exit code (+ group, node and
+    message with ``verbose``)."""
     from rich.table import Table
 
     table = Table(box=None, pad_edge=False)
@@ -122,6 +123,7 @@ def task_table(tasks: list[TaskInfo], verbose: bool = False) -> Table:
         table.add_column(col)
     if verbose:
         table.add_column("Group")
+        table.add_column("Node")
         table.add_column("Message")
     for t in tasks:
         status = t.status.name + (" (cached)" if t.reused else "")
@@ -129,7 +131,7 @@ def task_table(tasks: list[TaskInfo], verbose: bool = False) -> Table:
             t.status.name) else status, _when(t.started_at), _dur(t.duration),
             "-" if t.exit_code is None else str(t.exit_code)]
         if verbose:
-            row += [t.group, t.message or ""]
+            row += [t.group, t.node or "-", t.message or ""]
         table.add_row(*row)
     return table
 

@@ -49,6 +49,7 @@ workflow:
     info = cluster.osmo.wait_for(wf, _done)
     assert info["status"] == "COMPLETED", info
     assert _task(info, "on-cpu")["node"] == "cpu-1"
+    assert "cpu-1" in cluster.osmo("query", wf, "-v", check=True).out  # the Node column
     # a resource whose platform no worker of the pool offers is a submit error
     r = cluster.osmo("submit", str(spec), "--pool", "nowhere")
     assert r.code != 0 and "nowhere" in (r.err + r.out)
