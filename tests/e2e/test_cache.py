@@ -89,13 +89,18 @@ def test_no_cache_runs_everything(osmo: Osmo, tmp_path: Path) -> None:
 
 def test_tasks_behind_a_group_barrier_are_not_cached(osmo: Osmo, tmp_path: Path) -> None:
     log = tmp_path / "runs.log"
+    # The group ends when its lead does, possibly before the peer's command ran: the lead
+    # waits (up to 10 s) until this run's peer has written its line.
+    wait_for_peer = (f"echo lead >> {log}; for i in $(seq 200); do "
+                     f"[ $(grep -c peer {log}) -ge $(grep -c lead {log}) ] && break; "
+                     "sleep 0.05; done")
     spec = write(tmp_path / "g.yaml", f"""
 workflow:
   name: gang
   groups:
   - name: pair
     tasks:
-    - {{name: lead, lead: true, command: [sh, -c, "echo lead >> {log}"]}}
+    - {{name: lead, lead: true, command: [sh, -c, "{wait_for_peer}"]}}
     - {{name: peer, command: [sh, -c, "echo peer >> {log}"]}}
 """)
     _submit(osmo, spec)
