@@ -121,6 +121,9 @@ def task_table(tasks: list[TaskInfo], verbose: bool = False) -> Table:
     table = Table(box=None, pad_edge=False)
     for col in ("Task", "Retry", "Status", "Start", "Duration", "Exit Code"):
         table.add_column(col)
+    progress = any(t.progress for t in tasks)
+    if progress:
+        table.add_column("Progress")
     if verbose:
         table.add_column("Group")
         table.add_column("Node")
@@ -130,6 +133,8 @@ def task_table(tasks: list[TaskInfo], verbose: bool = False) -> Table:
         row = [t.name, str(t.retry), f"[{_style(t.status.name)}]{status}[/]" if _style(
             t.status.name) else status, _when(t.started_at), _dur(t.duration),
             "-" if t.exit_code is None else str(t.exit_code)]
+        if progress:
+            row.append(t.progress or "")
         if verbose:
             row += [t.group, t.node or "-", t.message or ""]
         table.add_row(*row)

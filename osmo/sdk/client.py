@@ -46,6 +46,7 @@ class TaskInfo:
     message: str
     reused: bool  # its outputs came from an earlier identical run (cache or restart)
     node: str | None = None  # where its latest attempt was placed ("local" or a worker)
+    progress: str | None = None  # a running typed task's latest progress ("3/10 message")
 
     @property
     def duration(self) -> float | None:
@@ -97,7 +98,7 @@ def _task_info(d: dict[str, Any]) -> TaskInfo:
     return TaskInfo(d["name"], d.get("group", d["name"]), TaskStatus[d["status"]],
                     d.get("retry", 0), d.get("exit_code"), d.get("started_at"),
                     d.get("ended_at"), d.get("output"), d.get("message", ""),
-                    bool(d.get("reused")), d.get("node_id"))
+                    bool(d.get("reused")), d.get("node_id"), d.get("progress"))
 
 
 def _workflow_info(wf: dict[str, Any], tasks: list[dict[str, Any]] = ()) -> WorkflowInfo:  # type: ignore[assignment]

@@ -20,10 +20,11 @@ from osmo.server.api_datasets import DatasetApi
 from osmo.server.credentials import CredentialApi, check_task_credentials
 from osmo.server.engine import Engine, _Batch
 from osmo.server.lineage_query import lineage_graph, resolve_target
-from osmo.server.logview import read_logs
+from osmo.server.logview import last_progress, read_logs
 from osmo.spec import load_spec, spec_from_dict, spec_to_dict
 from osmo.status import WorkflowStatus
 from osmo.store.sqlite import WorkflowRow
+from osmo.worker.workdir import AttemptDirs
 
 __all__ = ["Api"]
 
@@ -165,6 +166,10 @@ class Api:
         """A workflow's state and its tasks' states."""
         row = self._row(request["workflow_id"], with_spec=True)
         tasks = _ordered_tasks(row, self._store.tasks(row.id))
+        for task in tasks:  # typed tasks report progress as log lines; show the latest
+            if task.get("status") == "RUNNING":
+                dirs = AttemptDirs.at(self._home, row.id, task["name"], int(task.get("retry", 0)))
+                task["progress"] = last_progress(dirs.log)
         return {"workflow": _workflow_dict(row), "tasks": tasks}
 
     def status(self, request: dict[str, Any]) -> dict[str, Any]:

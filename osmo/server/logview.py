@@ -13,7 +13,26 @@ from osmo.status import WorkflowStatus
 from osmo.store.sqlite import Store, WorkflowRow
 from osmo.worker.logs import read_log
 
-__all__ = ["read_logs"]
+__all__ = ["last_progress", "read_logs"]
+
+_TAIL = 16384
+
+
+def last_progress(log: Path) -> str | None:
+    """The latest ``[osmo:progress] ...`` text in the last 16 KiB of an attempt's log."""
+    from osmo.tasktypes.api import PROGRESS_PREFIX
+
+    try:
+        with open(log, "rb") as f:
+            f.seek(max(0, f.seek(0, 2) - _TAIL))
+            tail = f.read().decode("utf-8", "replace")
+    except OSError:
+        return None
+    for line in reversed(tail.splitlines()):
+        at = line.find(PROGRESS_PREFIX)
+        if at >= 0:
+            return line[at + len(PROGRESS_PREFIX):].strip() or None
+    return None
 
 
 def read_logs(store: Store, row: WorkflowRow, *, task: str | None = None,

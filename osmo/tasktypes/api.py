@@ -26,6 +26,7 @@ from typing import Any, Protocol, runtime_checkable
 from osmo.errors import OsmoError
 
 __all__ = [
+    "PROGRESS_PREFIX",
     "REQUIRED",
     "Param",
     "TaskCancelled",
@@ -33,6 +34,10 @@ __all__ = [
     "TaskType",
     "task_type",
 ]
+
+
+PROGRESS_PREFIX = "[osmo:progress]"
+"""How a progress line starts in a task's log (``osmo query`` shows the latest one)."""
 
 
 class _Required:
@@ -94,7 +99,8 @@ class TaskContext(Protocol):
     attempt_id: str
 
     def progress(self, done: float, total: float | None = None, message: str = "") -> None:
-        """Report progress: a ``[osmo:progress] done/total message`` line in the task's log."""
+        """Report progress: a ``[osmo:progress] done/total message`` line in the task's log;
+        ``osmo query`` shows the latest while the task runs."""
 
     def cancelled(self) -> bool:
         """True once the attempt was asked to stop (SIGTERM); finish up quickly."""

@@ -25,12 +25,9 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-from osmo.tasktypes.api import TaskCancelled
+from osmo.tasktypes.api import PROGRESS_PREFIX, TaskCancelled
 
 __all__ = ["PROGRESS_PREFIX", "RunContext", "task_logger"]
-
-PROGRESS_PREFIX = "[osmo:progress]"
-"""How a progress line starts in a task's log."""
 
 
 class _Below(logging.Filter):

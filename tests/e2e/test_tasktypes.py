@@ -114,6 +114,37 @@ def wait(ctx):
     assert "SIGKILL" not in logs  # it stopped within the grace period, by itself
 
 
+def test_query_shows_a_running_typed_tasks_progress(shared_osmo: Osmo, tmp_path: Path) -> None:
+    go = tmp_path / "go"
+    write(tmp_path / "steps.py", f"""
+import os, time
+from osmo import task_type
+
+@task_type(version="1")
+def steps(ctx):
+    ctx.progress(1, 4, "warming up")
+    ctx.progress(2, 4, "rolling out")
+    for _ in range(600):
+        if os.path.exists({str(go)!r}):
+            break
+        time.sleep(0.05)
+""")
+    spec = write(tmp_path / "wf.yaml", """workflow:
+  name: typed-progress
+  tasks:
+  - name: roll
+    type: steps:steps
+""")
+    wf_id = shared_osmo.submit(spec)
+    info = shared_osmo.wait_for(wf_id, lambda i: i["tasks"][0].get("progress") is not None)
+    assert info["tasks"][0]["progress"] == "2/4 rolling out"
+    text = shared_osmo("query", wf_id, check=True).out
+    assert "Progress" in text and "2/4 rolling out" in text
+    go.touch()
+    done = shared_osmo.wait_for(wf_id, lambda i: i["status"] == "COMPLETED")
+    assert done["tasks"][0]["progress"] is None  # only running tasks report progress
+
+
 def test_plugins_list_shows_installed_and_broken_types(tmp_path: Path) -> None:
     site = tmp_path / "site"
     write(site / "fine_plugin.py", """
