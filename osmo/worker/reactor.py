@@ -98,9 +98,11 @@ class Reactor:
     # -------------------------------------------------------------- internals
 
     def _stop(self, final: Callback | None) -> None:
-        if final is not None:
-            final()
-        self._stopping = True
+        try:
+            if final is not None:
+                final()
+        finally:  # a failing final sweep must not leave stop() waiting forever
+            self._stopping = True
 
     def _drain_wake(self) -> None:
         try:

@@ -57,3 +57,14 @@ def test_readers_and_failing_callbacks() -> None:
     os.close(read_fd)
     os.close(write_fd)
     assert seen.empty()
+
+
+def test_stop_returns_even_if_the_final_sweep_fails() -> None:
+    reactor = Reactor("test")
+
+    def broken() -> None:
+        raise RuntimeError("sweep failed")
+
+    done = threading.Event()
+    threading.Thread(target=lambda: (reactor.stop(broken), done.set()), daemon=True).start()
+    assert done.wait(timeout=TIMEOUT), "stop() must not wait forever when the final call raises"
