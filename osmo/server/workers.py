@@ -272,27 +272,27 @@ class WorkerHub:
             log.warning("unknown report from worker %s: %r", wid, report)
             return
         if isinstance(event, AttemptExited):
-            if self._nothing_to_fetch(event):
-                self._exited(wid, event)  # a few links at most: no need for another thread
+            manifest = Manifest.from_json(event.manifest) if event.manifest else None
+            if self._nothing_to_fetch(manifest):
+                self._exited(wid, event, manifest)  # a few links at most: no other thread
             else:
-                self._transfers.submit(self._exited, wid, event)
+                self._transfers.submit(self._exited, wid, event, manifest)
             return
         if isinstance(event, (AttemptStartFailed, AttemptLost)):
             self._close_log(event.attempt_id)
         self._post(event)
 
-    def _nothing_to_fetch(self, event: AttemptExited) -> bool:
-        if event.manifest is None:
+    def _nothing_to_fetch(self, manifest: Manifest | None) -> bool:
+        if manifest is None:
             return True
-        entries = Manifest.from_json(event.manifest).entries
+        entries = manifest.entries
         return len(entries) <= 16 and all(self._artifacts.has(e.digest) for e in entries)
 
-    def _exited(self, wid: str, event: AttemptExited) -> None:
-        """Transfer thread: take the outputs, then let the engine see the exit, then ack."""
+    def _exited(self, wid: str, event: AttemptExited, manifest: Manifest | None) -> None:
+        """Take the outputs, then let the engine see the exit, then ack."""
         self._close_log(event.attempt_id)
         try:
-            if event.manifest is not None:
-                manifest = Manifest.from_json(event.manifest)
+            if manifest is not None:
                 with self._lock:
                     same = self._same_host.get(wid)
                 t0 = time.perf_counter()
@@ -322,7 +322,10 @@ class WorkerHub:
         with self._lock:
             fd = self._logs.get(aid)
             if fd is None:
-                path = _dirs(self._home, aid).log
+                dirs = AttemptDirs.of_attempt(self._home, aid)
+                if dirs is None:
+                    return  # not an attempt id
+                path = dirs.log
                 path.parent.mkdir(parents=True, exist_ok=True)
                 fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND | os.O_CLOEXEC, 0o644)
                 self._logs[aid] = fd
@@ -350,8 +353,10 @@ class WorkerHub:
 
 
 def _dirs(home: Path, attempt_id: str) -> AttemptDirs:
-    wf, task, retry = attempt_id.rsplit(":", 2)
-    return AttemptDirs.at(home, wf, task, int(retry))
+    dirs = AttemptDirs.of_attempt(home, attempt_id)
+    if dirs is None:
+        raise OsmoError(f"malformed attempt id {attempt_id!r}")
+    return dirs
 
 
 def _is_url(ref: str) -> bool:

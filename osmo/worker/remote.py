@@ -20,6 +20,7 @@ are rescheduled without using a retry). Then it exits.
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import socket
@@ -258,17 +259,18 @@ class RemoteWorker:
                 self._specs[cmd.workflow_id] = spec_from_wire(order["spec"])
             self._url_creds.update(order.get("url_credentials") or {})
             self._pending[cmd.attempt_id] = _Pending()
-        manifests = order.get("manifests") or {}
-        if all(self._input_dir(Manifest.from_json(b)).is_dir() for b in manifests.values()):
-            self._fetch_and_prepare(cmd, order)  # nothing to fetch: no extra thread hop
+        manifests = {ref: Manifest.from_json(body)
+                     for ref, body in (order.get("manifests") or {}).items()}
+        if all(self._input_dir(m).is_dir() for m in manifests.values()):
+            self._fetch_and_prepare(cmd, order, manifests)  # nothing to fetch: no thread hop
         else:
-            self._io.submit(self._fetch_and_prepare, cmd, order)
+            self._io.submit(self._fetch_and_prepare, cmd, order, manifests)
 
-    def _fetch_and_prepare(self, cmd: PrepareAttempt, order: dict[str, Any]) -> None:
+    def _fetch_and_prepare(self, cmd: PrepareAttempt, order: dict[str, Any],
+                           manifests: dict[str, Manifest]) -> None:
         try:
             task = self._task(cmd)
-            local = {ref: self._fetch_input(Manifest.from_json(body))
-                     for ref, body in (order.get("manifests") or {}).items()}
+            local = {ref: self._fetch_input(m) for ref, m in manifests.items()}
             cmd = replace(cmd, inputs={k: local.get(v, v) for k, v in cmd.inputs.items()})
         except Exception as exc:  # noqa: BLE001 - every prepare gets one final report
             with self._changed:
@@ -327,8 +329,6 @@ class RemoteWorker:
         self._send(data)
 
     def _send(self, data: dict[str, Any]) -> None:
-        import json
-
         self.link.put(self.link.key("from-worker", self.id), json.dumps(data).encode())
 
     def _send_log(self, attempt_id: str, records: bytes) -> None:
