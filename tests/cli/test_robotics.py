@@ -103,12 +103,11 @@ def test_report_rejects_other_json(tmp_path: Path, capsys: pytest.CaptureFixture
 def test_view_local_mcap(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     pytest.importorskip("rerun")
     pytest.importorskip("numpy")
-    from osmo.record import LineageMcapWriter
+    pytest.importorskip("foxglove")
     from osmo_plugins.episodes import EpisodeWriter
 
     src = tmp_path / "ep.mcap"
-    with LineageMcapWriter(src, None) as mcap:
-        w = EpisodeWriter(mcap, {"env": "Fake-v0"}, dt=0.1)
+    with EpisodeWriter(src, {"env": "Fake-v0"}, dt=0.1) as w:
         w.step(0, 0, [0.0, 1.0], [0.5, 0.0], 1.0, False, True)
         w.end(0, 1, 1.0, 1, False, True)
     out = tmp_path / "x.rrd"

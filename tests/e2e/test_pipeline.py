@@ -58,10 +58,29 @@ def test_pendulum_bc_tiny(shared_osmo: Osmo, tmp_path: Path) -> None:
     shared_osmo("view", f"{wf}:rollout-0:episodes-shard000.mcap", "--out", str(mcap),
                 check=True)
     assert mcap.stat().st_size > 0
+    _check_shard(shared_osmo, wf, tmp_path)
 
     graph = shared_osmo("lineage", f"{wf}:eval:metrics.json", "--format", "json",
                         check=True).json()
     assert "train" in json.dumps(graph) and "dataset" in json.dumps(graph)
+
+
+def _check_shard(osmo: Osmo, wf: str, tmp: Path) -> None:
+    """A rollout shard as a task wrote it: Foxglove-native, with the attempt's lineage."""
+    from osmo.record import McapFile, read_lineage
+    from osmo_plugins.episodes import read_episodes
+
+    osmo("artifacts", "get", f"{wf}:rollout-1:episodes-shard001.mcap", "-o", str(tmp / "s"),
+         check=True)
+    (path,) = (tmp / "s").rglob("*.mcap")
+    with McapFile(path) as f:
+        chans = {c.topic: (c.message_encoding, c.schema_name, c.message_count)
+                 for c in f.channels()}
+    assert chans == {"/episode/step": ("protobuf", "osmo.EpisodeStep", 100)}  # 2 × 50 steps
+    lineage = read_lineage(path)
+    assert lineage is not None and (lineage.workflow_id, lineage.task) == (wf, "rollout-1")
+    assert lineage.plugin == "sim.rollout@2" and lineage.params["shard"] == 1
+    assert [e.seed for e in read_episodes(path)] == [2, 3]
 
 
 def test_arena_eval_tiny(shared_osmo: Osmo) -> None:

@@ -116,8 +116,7 @@ def _evaluate(ctx: TaskContext, env_id: str, label: str, kind: str, ckpt: Path |
         meta = {"env": env_id, "policy": label, "kind": kind, "seed": str(p["seed"]),
                 "episodes": str(len(seeds)), "max_steps": str(p["max_steps"]),
                 "fps": str(round(1.0 / env.unwrapped.dt, 6))}
-        with ctx.mcap_writer(name) as mcap:
-            writer = EpisodeWriter(mcap, meta, dt=env.unwrapped.dt)
+        with EpisodeWriter.for_task(ctx, name, meta, dt=env.unwrapped.dt) as writer:
             results = run_episodes(env, policy, seeds, writer=writer, on_episode=tick,
                                    cancelled=ctx.cancelled)
         recorded.append((f"{label}/{env_id}", Path(ctx.output) / name))
