@@ -1,4 +1,5 @@
-"""The robotics pipeline end to end through the real CLI: pendulum-bc and arena-eval, tiny.
+"""The robotics pipeline end to end through the real CLI, tiny: pendulum-bc, arena-eval,
+reach-vision (learning from pixels) and the sweep (with its caching).
 
 These run the plugin task types (``type: sim.rollout`` ...) through osmo's server and
 workers, so they need the task-type runner (the plugins-api work) and the extras.
@@ -104,7 +105,74 @@ def test_arena_eval_tiny(shared_osmo: Osmo) -> None:
     assert "n/a [" in cheetah and "%" not in cheetah
 
 
-@pytest.mark.parametrize("name", ["pendulum-bc", "arena-eval"])
+def test_reach_vision_tiny(shared_osmo: Osmo, tmp_path: Path) -> None:
+    """The vision pipeline's plumbing: 64×64 frames → an image dataset → an ACT policy that
+    sees them → evaluated against the expert and random on unseen seeds. Twenty training
+    steps teach it nothing; what it learns at full size is measured in bench/ (pipeline row)."""
+    pytest.importorskip("lerobot")
+    wf = shared_osmo.submit(REPO / "workflows/reach-vision.yaml", "--wait", "--set", "shards=2",
+                            "--set", "episodes=2", "--set", "steps=20",
+                            "--set", "eval_episodes=2")
+    assert shared_osmo.query(wf)["status"] == "COMPLETED", shared_osmo("logs", wf).out
+    rows = shared_osmo("eval", "report", wf, "--format", "json", check=True).json()
+    got = _by_policy(rows, "osmo/ReacherVision-v0")
+    assert set(got) == {"train", "expert", "random"}
+    assert {r["criterion"] for r in rows} == {"info['is_success'] (the env's own success signal)"}
+    assert got["expert"]["success_rate"] == 1.0 and got["random"]["success_rate"] == 0.0
+    assert got["expert"]["mean_return"] > got["random"]["mean_return"]
+    assert all(r["mean_length"] == 50 for r in rows)
+    shared_osmo("artifacts", "get", f"{wf}:train:checkpoint/osmo_policy.json", "-o",
+                str(tmp_path / "ckpt"), check=True)
+    (marker,) = (tmp_path / "ckpt").rglob("osmo_policy.json")
+    info = json.loads(marker.read_text())
+    assert info["images"] and info["image_size"] == 64 and info["obs_dim"] == 6
+    shared_osmo("artifacts", "get", f"{wf}:rollout-0:episodes-shard000.mcap", "-o",
+                str(tmp_path / "shard"), check=True)
+    (shard,) = (tmp_path / "shard").rglob("*.mcap")
+    from osmo.record import McapFile
+
+    with McapFile(shard) as f:
+        chans = {c.topic: (c.schema_name, c.message_count) for c in f.channels()}
+    assert chans == {"/episode/step": ("osmo.EpisodeStep", 100),
+                     "/camera/rgb": ("foxglove.RawImage", 100)}
+
+
+SWEEP = ["--set", "lrs=0.003,0.001", "--set", "episodes=2", "--set", "max_steps=50",
+         "--set", "steps=10"]
+
+
+def test_sweep_reruns_only_evaluation_when_only_evaluation_changes(shared_osmo: Osmo) -> None:
+    pytest.importorskip("lerobot")
+    spec = REPO / "workflows/sweep.yaml"
+    first = shared_osmo.submit(spec, "--wait", *SWEEP, "--set", "eval_episodes=2")
+    assert shared_osmo.query(first)["status"] == "COMPLETED", shared_osmo("logs", first).out
+    trains = {"train-lr0-s0", "train-lr1-s0"}
+    second = shared_osmo.submit(spec, "--wait", *SWEEP, "--set", "eval_episodes=3")
+    tasks = {t["name"]: t for t in shared_osmo.query(second)["tasks"]}
+    assert set(tasks) == {"rollout-0", "rollout-1", "dataset", "eval"} | trains
+    for name, task in tasks.items():  # only the evaluation ran again
+        assert task["status"] == "COMPLETED" and task["reused"] == (name != "eval"), task
+    table = shared_osmo("query", second, check=True).out
+    assert sum("cached" in line for line in table.splitlines()) == 5, table
+
+    rows = shared_osmo("eval", "report", second, "--format", "json", check=True).json()
+    got = _by_policy(rows, "InvertedPendulum-v5")
+    assert set(got) == trains | {"expert", "random"}
+    assert all(r["episodes"] == 3 for r in rows)
+    ranked = sorted(rows, key=lambda r: r["rank"])
+    assert [r["mean_return"] for r in ranked] == sorted(
+        (r["mean_return"] for r in rows), reverse=True)
+    for r in rows:  # each with its 95% interval
+        lo, hi = r["return_ci95"]
+        assert lo <= r["mean_return"] <= hi
+    best = next(r for r in ranked if r["kind"] == "checkpoint")
+    graph = shared_osmo("lineage", f"{second}:{best['policy']}:checkpoint/model.safetensors",
+                        "--format", "json", check=True).json()
+    text = json.dumps(graph)
+    assert all(f'"{name}"' in text for name in ("dataset", "rollout-0", "rollout-1")), text
+
+
+@pytest.mark.parametrize("name", ["pendulum-bc", "arena-eval", "reach-vision", "sweep"])
 def test_robotics_workflows_validate(shared_osmo: Osmo, name: str) -> None:
     r = shared_osmo("validate", str(REPO / f"workflows/{name}.yaml"))
     assert r.code == 0, r.out + r.err

@@ -21,7 +21,7 @@ __all__ = ["TRAIN"]
 
 TRAIN = PluginType(
     name="lerobot.train",
-    version="1",
+    version="2",
     description="Train a small LeRobot ACT policy (behaviour cloning) on CPU; checkpoint + loss",
     impl="osmo_plugins.lerobot._train:run",
     extra="learn",

@@ -18,8 +18,11 @@ import numpy as np
 
 from osmo_plugins.episodes import EpisodeWriter
 
-__all__ = ["SUCCESS_KEYS", "EpisodeResult", "MissingExtra", "make_env", "require",
+__all__ = ["OSMO_ENVS", "SUCCESS_KEYS", "EpisodeResult", "MissingExtra", "make_env", "require",
            "run_episodes"]
+
+OSMO_ENVS = ("osmo/ReacherVision-v0",)
+"""Env ids osmo itself provides (registered with gymnasium when first made)."""
 
 SUCCESS_KEYS = ("is_success", "success")
 """``info`` keys an env may use for its own success signal, in order of preference."""
@@ -65,6 +68,10 @@ def make_env(env_id: str, *, xml_file: str | Path | None = None, render: bool = 
         os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
     gym = require("gymnasium", "sim")
     require("mujoco", "sim")
+    if env_id in OSMO_ENVS:
+        from osmo_plugins.sim import reacher
+
+        reacher.register()
     kwargs: dict[str, Any] = {}
     if xml_file:
         path = Path(xml_file).resolve()
