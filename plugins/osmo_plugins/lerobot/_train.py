@@ -69,9 +69,40 @@ def run(ctx: TaskContext) -> None:
     pre, post = make_pre_post_processors(cfg, dataset_stats=dataset.meta.stats)
     loader = _memory_batches(torch, dataset, cfg.chunk_size, p["batch_size"], p["seed"],
                              images=[CAMERA] if info["images"] else [])
+    if info["images"]:
+        _norms(torch, policy.model.backbone, trainable=True)
     optimizer = torch.optim.AdamW(policy.parameters(), lr=p["lr"], weight_decay=1e-4)
     curve = _train(ctx, torch, policy, pre, loader, optimizer)
+    if info["images"]:
+        _norms(torch, policy.model.backbone, trainable=False)
     _save(ctx, policy, pre, post, info, curve)
+
+
+def _norms(torch: Any, module: Any, *, trainable: bool) -> None:
+    """Swap the backbone's batch norms between LeRobot's frozen kind and trainable ones.
+
+    ACT builds its ResNet with ``FrozenBatchNorm2d``, made for pretrained weights; trained from
+    scratch, those are fixed identities and leave an 18-layer net without normalisation, which
+    learns slowly. Training real ``BatchNorm2d`` layers and folding their statistics back into
+    frozen ones before saving keeps the checkpoint a standard ACT (the same computation in
+    eval mode).
+    """
+    from torchvision.ops.misc import FrozenBatchNorm2d
+
+    for name, child in module.named_children():
+        if trainable and isinstance(child, FrozenBatchNorm2d):
+            norm = torch.nn.BatchNorm2d(child.weight.shape[0], eps=child.eps)
+            with torch.no_grad():
+                for key in ("weight", "bias", "running_mean", "running_var"):
+                    getattr(norm, key).copy_(getattr(child, key))
+            setattr(module, name, norm)
+        elif not trainable and isinstance(child, torch.nn.BatchNorm2d):
+            frozen = FrozenBatchNorm2d(child.num_features, eps=child.eps)
+            for key in ("weight", "bias", "running_mean", "running_var"):
+                getattr(frozen, key).copy_(getattr(child, key).detach())
+            setattr(module, name, frozen)
+        else:
+            _norms(torch, child, trainable=trainable)
 
 
 def _memory_batches(torch: Any, dataset: Any, chunk: int, batch_size: int, seed: int,
@@ -112,6 +143,8 @@ def _train(ctx: TaskContext, torch: Any, policy: Any, pre: Any, loader: Any,
     p = ctx.params
     policy.train()
     curve: list[dict[str, float]] = []
+    schedule = (torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=p["steps"])
+                if p["lr_schedule"] == "cosine" else None)
     start, running = time.perf_counter(), 0.0
     for step in range(1, p["steps"] + 1):
         batch = pre(next(loader))
@@ -120,10 +153,13 @@ def _train(ctx: TaskContext, torch: Any, policy: Any, pre: Any, loader: Any,
         loss.backward()
         torch.nn.utils.clip_grad_norm_(policy.parameters(), 10.0)
         optimizer.step()
+        lr = optimizer.param_groups[0]["lr"]
+        if schedule is not None:
+            schedule.step()
         running += float(loss.item())
         if step % p["log_every"] == 0 or step == p["steps"]:
             n = step % p["log_every"] or p["log_every"]
-            curve.append({"step": step, "loss": running / n, "lr": p["lr"],
+            curve.append({"step": step, "loss": running / n, "lr": lr,
                           "seconds": time.perf_counter() - start})
             running = 0.0
             ctx.progress(step, p["steps"], f"loss {curve[-1]['loss']:.4f}")
