@@ -27,7 +27,7 @@ from pathlib import Path
 
 from osmo.runtime.container import ContainerEngine
 from osmo.runtime.container_run import ContainerError, ContainerRun, run_argv, secret_env_text
-from osmo.runtime.process import ProcessHandle, ProcessRuntime, StartError
+from osmo.runtime.process import ProcessHandle, ProcessRuntime, Runtime, StartError
 
 __all__ = ["ContainerRuntime"]
 
@@ -73,6 +73,8 @@ class ContainerRuntime:
             if run.secret_env and run.secret_env_file is not None:
                 _write_private(run.secret_env_file, secret_env_text(run.secret_env))
         except (ContainerError, OSError) as exc:
+            if isinstance(exc, OSError):  # a part-written file (or a planted symlink) goes
+                _unlink(run.secret_env_file)
             raise StartError(f"cannot start container for image '{run.image}': {exc}") from exc
         try:
             handle = self._processes.start(cli, cwd=cwd, env=self.engine.env)
@@ -179,3 +181,8 @@ def _unlink(path: Path | None) -> None:
             path.unlink()
         except FileNotFoundError:
             pass
+
+
+def _conforms(runtime: ContainerRuntime) -> Runtime:
+    """Never called: mypy checks here that ContainerRuntime satisfies the runtime contract."""
+    return runtime
