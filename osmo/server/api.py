@@ -21,7 +21,7 @@ from osmo.server.credentials import CredentialApi, check_task_credentials
 from osmo.server.engine import Engine, _Batch
 from osmo.server.lineage_query import lineage_graph, resolve_target
 from osmo.server.logview import last_progress, read_logs
-from osmo.spec import load_spec, spec_from_dict, spec_to_dict
+from osmo.spec import isolation, load_spec, spec_from_dict, spec_to_dict
 from osmo.status import WorkflowStatus
 from osmo.store.sqlite import WorkflowRow
 from osmo.worker.workdir import AttemptDirs
@@ -65,6 +65,7 @@ class Api:
         self._verbs.update(DatasetApi(engine, self._artifacts, home,
                                       workers.pull if workers else None).verbs())
         self._verbs.update(CredentialApi(self._store).verbs())
+        isolation.warm()  # the template renderer, started now so no submit waits for it
 
     def handle(self, verb: str, request: dict[str, Any]) -> Any:
         """Run the handler for ``verb``; UsageError for an unknown verb."""

@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from osmo.errors import Diagnostic, SpecError
-from osmo.spec import template, yamlnodes
+from osmo.spec import isolation, yamlnodes
 from osmo.spec.model import WorkflowSpec
 from osmo.spec.parse import parse_document
 from osmo.spec.reader import Ctx
@@ -52,10 +52,8 @@ def _source(path: str | os.PathLike[str] | None, text: str | None,
 
 def _render(text: str, file: str, set_values: Sequence[str], set_strings: Sequence[str],
             extra: list[Diagnostic]) -> str:
-    context, diags = template.build_context(text, file, set_values, set_strings)
-    if diags:
-        raise SpecError(diags + extra)
-    rendered, diags = template.render(text, file, context)
+    """The rendered text; templates run in a child under memory and time limits."""
+    rendered, diags = isolation.render(text, file, set_values, set_strings)
     if rendered is None or extra:
         raise SpecError(diags + extra)
     return rendered
