@@ -15,6 +15,7 @@ from typing import Any
 
 from osmo.artifacts import ArtifactStore, Manifest
 from osmo.errors import NotFoundError, SubmitError, UsageError
+from osmo.names import check_workflow_id
 from osmo.scheduler.types import CancelWorkflow, WorkflowSubmitted
 from osmo.server.api_datasets import DatasetApi
 from osmo.server.credentials import CredentialApi, check_task_credentials
@@ -131,7 +132,7 @@ class Api:
 
     def cancel(self, request: dict[str, Any]) -> dict[str, Any]:
         """Cancel a workflow; a no-op for one already ended."""
-        row = self._row(request["workflow_id"])
+        row = self._row(request.get("workflow_id"))
 
         def do(engine: Engine, batch: _Batch, now: float) -> None:
             try:
@@ -145,7 +146,7 @@ class Api:
 
     def restart(self, request: dict[str, Any]) -> dict[str, Any]:
         """Submit the same spec again, reusing the outputs of tasks that completed."""
-        row = self._row(request["workflow_id"], with_spec=True)
+        row = self._row(request.get("workflow_id"), with_spec=True)
         if not WorkflowStatus[row.status].terminal:
             raise UsageError(f"workflow {row.id} is still {row.status}; "
                              f"cancel it first (`osmo cancel {row.id}`)")
@@ -165,7 +166,7 @@ class Api:
 
     def get(self, request: dict[str, Any]) -> dict[str, Any]:
         """A workflow's state and its tasks' states."""
-        row = self._row(request["workflow_id"], with_spec=True)
+        row = self._row(request.get("workflow_id"), with_spec=True)
         tasks = _ordered_tasks(row, self._store.tasks(row.id))
         for task in tasks:  # typed tasks report progress as log lines; show the latest
             if task.get("status") == "RUNNING":
@@ -175,7 +176,7 @@ class Api:
 
     def status(self, request: dict[str, Any]) -> dict[str, Any]:
         """Only the workflow's own state (cheap: for waiting on big workflows)."""
-        return _workflow_dict(self._row(request["workflow_id"]))
+        return _workflow_dict(self._row(request.get("workflow_id")))
 
     def list(self, request: dict[str, Any]) -> list[dict[str, Any]]:
         """Workflows newest first; filters: statuses, name, limit."""
@@ -185,13 +186,13 @@ class Api:
 
     def logs(self, request: dict[str, Any]) -> dict[str, Any]:
         """Log records of a workflow since a cursor; see ``osmo.server.logview``."""
-        row = self._row(request["workflow_id"])
+        row = self._row(request.get("workflow_id"))
         return read_logs(self._store, row, task=request.get("task"), retry=request.get("retry"),
                          cursor=request.get("cursor"))
 
     def spec(self, request: dict[str, Any]) -> dict[str, Any]:
         """The stored (rendered) spec of a workflow, as a dict."""
-        return {"spec": self._row(request["workflow_id"], with_spec=True).spec}
+        return {"spec": self._row(request.get("workflow_id"), with_spec=True).spec}
 
     def pools(self, _request: dict[str, Any]) -> builtins.list[dict[str, Any]]:
         """Known nodes with their pool, platform and capacity used/total."""
@@ -216,7 +217,7 @@ class Api:
 
     def artifacts_list(self, request: dict[str, Any]) -> builtins.list[dict[str, Any]]:
         """Promoted outputs of a workflow (optionally one task) with their files."""
-        row = self._row(request["workflow_id"])
+        row = self._row(request.get("workflow_id"))
         out = []
         for output in self._store.outputs(row.id, request.get("task")):
             body = self._store.manifest_body(output["manifest"]) or '{"entries": []}'
@@ -241,7 +242,8 @@ class Api:
         count, size = self._artifacts.gc(self._store.all_blob_digests())
         return {"removed": count, "bytes": size}
 
-    def _row(self, workflow_id: str, *, with_spec: bool = False) -> WorkflowRow:
+    def _row(self, workflow_id: object, *, with_spec: bool = False) -> WorkflowRow:
+        workflow_id = check_workflow_id(workflow_id)
         row = self._store.workflow(workflow_id, with_spec=with_spec)
         if row is None:
             near = [r.id for r in self._store.workflows(name=workflow_id.rsplit("-", 1)[0],

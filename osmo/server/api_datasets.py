@@ -17,6 +17,7 @@ from typing import Any
 
 from osmo.artifacts import ArtifactStore, Manifest
 from osmo.errors import NotFoundError, UsageError
+from osmo.names import check_name, check_tag, parse_ref
 from osmo.server.datasets import select
 from osmo.server.engine import Engine, _Batch
 
@@ -42,21 +43,22 @@ class DatasetApi:
 
     def list(self, request: dict[str, Any]) -> list[dict[str, Any]]:
         """Every version (of one dataset), newest first, with size and tags."""
-        return [self._public(row) for row in self._store.datasets(request.get("name"))]
+        name = request.get("name")
+        if name is not None:
+            check_name(name, "dataset name")
+        return [self._public(row) for row in self._store.datasets(name)]
 
     def info(self, request: dict[str, Any]) -> dict[str, Any]:
         """One version with its files and what made it."""
-        row = self._row(request["ref"])
+        row = self._row(request.get("ref"))
         body = self._store.manifest_body(row["manifest"]) or '{"entries": []}'
         files = [vars(e) for e in Manifest.from_json(body).entries]
         return {**self._public(row), "files": files}
 
     def tag(self, request: dict[str, Any]) -> dict[str, Any]:
         """Point ``tag`` at a version (moving it if it pointed elsewhere)."""
-        row = self._row(request["ref"])
-        tag = str(request["tag"])
-        if tag.isdigit() or tag == "latest" or not tag:
-            raise UsageError(f"'{tag}' cannot be a tag: numbers and 'latest' name versions")
+        row = self._row(request.get("ref"))
+        tag = check_tag(request.get("tag"))
 
         def do(engine: Engine, batch: _Batch, now: float) -> None:
             batch.tags.append((row["name"], tag, row["version"]))
@@ -66,7 +68,7 @@ class DatasetApi:
 
     def download(self, request: dict[str, Any]) -> dict[str, Any]:
         """A version's manifest (``regex`` applied); the client fetches the blobs."""
-        row = self._row(request["ref"])
+        row = self._row(request.get("ref"))
         body = self._store.manifest_body(row["manifest"])
         assert body is not None
         manifest = select(Manifest.from_json(body), path=None, regex=request.get("regex"))
@@ -77,6 +79,7 @@ class DatasetApi:
         this server lacks are pulled from the client (``request["source"]``) first."""
         if self._pull is None:
             raise UsageError("this server cannot receive uploads")
+        name = check_name(request.get("name"), "dataset name")
         manifest = Manifest.from_json(str(request["manifest"]))
         self._pull(dict(request["source"]), manifest)
         datasets = self._engine.datasets
@@ -84,17 +87,17 @@ class DatasetApi:
         metadata = dict(request.get("metadata") or {})
 
         def do(engine: Engine, batch: _Batch, now: float) -> int:
-            row = datasets.version_row(str(request["name"]), manifest, source=None,
+            row = datasets.version_row(name, manifest, source=None,
                                        attempt_id=None, now=now, metadata=metadata)
             batch.datasets.append(row)
             return row.version
 
         version = self._engine.call(do)
-        return {"name": request["name"], "version": version, "manifest": manifest.digest}
+        return {"name": name, "version": version, "manifest": manifest.digest}
 
-    def _row(self, ref: str) -> dict[str, Any]:
-        name, _, tag = ref.partition(":")
-        row = self._store.dataset(name, tag or None)
+    def _row(self, ref: object) -> dict[str, Any]:
+        name, tag = parse_ref(ref)
+        row = self._store.dataset(name, tag)
         if row is None:
             raise NotFoundError(f"dataset '{ref}' does not exist")
         return row

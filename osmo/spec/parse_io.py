@@ -12,8 +12,17 @@ import re
 from pathlib import Path, PurePosixPath
 from typing import Any
 
+from osmo.names import name_problem, ref_problem, workflow_id_problem
 from osmo.spec.model import FileSpec, InputSpec, OutputSpec
-from osmo.spec.reader import Ctx, read_bool, read_fields, read_list, read_map, read_str
+from osmo.spec.reader import (
+    Ctx,
+    read_bool,
+    read_fields,
+    read_list,
+    read_map,
+    read_name,
+    read_str,
+)
 from osmo.spec.support import UNSUPPORTED
 from osmo.spec.units import parse_duration
 from osmo.spec.yamlnodes import Map, Node, to_plain
@@ -140,7 +149,10 @@ def _input(ctx: Ctx, node: Node, where: str) -> InputSpec | None:
     regex = _read_regex(ctx, fields, what)
     if kind == "dataset":
         ds = _dataset(ctx, fields["dataset"], ("name", "regex"), f"'dataset' of {what}")
-        name = read_str(ctx, ds["name"], "dataset 'name'") if "name" in ds else None
+        name = read_str(ctx, ds["name"], "dataset name") if "name" in ds else None
+        problem = None if name is None else ref_problem(name)
+        if problem is not None:
+            ctx.error(ds["name"], f"{problem} (a dataset input is NAME[:TAG|VERSION|latest])")
         return InputSpec(dataset=name, regex=_read_regex(ctx, ds, what) or regex, pos=node.pos)
     value = read_str(ctx, fields[kind], f"'{kind}' of {what}")
     if value is None:
@@ -151,6 +163,10 @@ def _input(ctx: Ctx, node: Node, where: str) -> InputSpec | None:
     if ":" in value and not (workflow and task):
         ctx.error(fields["task"], f"'{value}' in {where} must be NAME or WORKFLOW_ID:NAME")
         return None
+    if workflow:
+        problem = workflow_id_problem(workflow) or name_problem(task, "task name")
+        if problem is not None:
+            ctx.error(fields["task"], f"{problem} (in '- task: WORKFLOW_ID:NAME')")
     return InputSpec(task=task, workflow=workflow or None, regex=regex, pos=node.pos)
 
 
@@ -175,7 +191,7 @@ def _output(ctx: Ctx, node: Node, where: str) -> OutputSpec | None:
         url = read_str(ctx, fields["url"], f"'url' of {what}")
         return OutputSpec(url=url, regex=regex, pos=node.pos)
     ds = _dataset(ctx, fields["dataset"], ("name", "path", "regex", "metadata"), what)
-    name = read_str(ctx, ds["name"], "dataset 'name'") if "name" in ds else None
+    name = read_name(ctx, ds["name"], "dataset name") if "name" in ds else None
     path = read_str(ctx, ds["path"], "dataset 'path'") if "path" in ds else None
     metadata = ds.get("metadata")
     meta = None
