@@ -9,17 +9,18 @@ pulls the blobs it lacks from the client.
 
 from __future__ import annotations
 
-
+import re
 import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from osmo.artifacts import ArtifactStore, Manifest
-from osmo.errors import NotFoundError, UsageError
-from osmo.names import check_name, check_tag, parse_ref
+from osmo.errors import InfrastructureError, NotFoundError, UsageError
+from osmo.names import check_name, check_tag, parse_ref, shown
 from osmo.server.datasets import select
 from osmo.server.engine import Engine, _Batch
+from osmo.transport.api import field, str_map
 
 __all__ = ["DatasetApi"]
 
@@ -57,8 +58,8 @@ class DatasetApi:
 
     def tag(self, request: dict[str, Any]) -> dict[str, Any]:
         """Point ``tag`` at a version (moving it if it pointed elsewhere)."""
-        row = self._row(request.get("ref"))
         tag = check_tag(request.get("tag"))
+        row = self._row(request.get("ref"))
 
         def do(engine: Engine, batch: _Batch, now: float) -> None:
             batch.tags.append((row["name"], tag, row["version"]))
@@ -68,10 +69,16 @@ class DatasetApi:
 
     def download(self, request: dict[str, Any]) -> dict[str, Any]:
         """A version's manifest (``regex`` applied); the client fetches the blobs."""
+        regex = field(request, "regex", str, default=None, max_len=1000)
+        try:
+            re.compile(regex or "")
+        except re.error as exc:
+            raise UsageError(f"--regex {shown(regex)} is not a valid regular expression: "
+                             f"{exc}") from None
         row = self._row(request.get("ref"))
         body = self._store.manifest_body(row["manifest"])
         assert body is not None
-        manifest = select(Manifest.from_json(body), path=None, regex=request.get("regex"))
+        manifest = select(Manifest.from_json(body), path=None, regex=regex)
         return {"manifest": manifest.to_json(), "version": row["version"]}
 
     def upload(self, request: dict[str, Any]) -> dict[str, Any]:
@@ -80,11 +87,15 @@ class DatasetApi:
         if self._pull is None:
             raise UsageError("this server cannot receive uploads")
         name = check_name(request.get("name"), "dataset name")
-        manifest = Manifest.from_json(str(request["manifest"]))
-        self._pull(dict(request["source"]), manifest)
+        try:
+            manifest = Manifest.from_json(field(request, "manifest", str))
+        except InfrastructureError as exc:
+            raise UsageError(f"'manifest' is not one: {str(exc)[:300]}") from None
+        source = field(request, "source", dict)
+        metadata = str_map(request, "metadata")
+        self._pull(source, manifest)
         datasets = self._engine.datasets
         assert datasets is not None
-        metadata = dict(request.get("metadata") or {})
 
         def do(engine: Engine, batch: _Batch, now: float) -> int:
             row = datasets.version_row(name, manifest, source=None,
