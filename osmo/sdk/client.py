@@ -164,11 +164,10 @@ class Client:
             SubmitError: the server cannot run it (e.g. no pool fits a task).
         """
         if isinstance(spec, (str, os.PathLike)) and self._server_is_here():
+            from osmo.spec.loader import read_spec_file
+
             path = Path(spec).absolute()
-            try:
-                text = path.read_text()
-            except OSError as exc:
-                raise UsageError(f"cannot read {spec}: {exc.strerror}") from None
+            text = read_spec_file(path, os.fspath(spec))
             result = self._call("submit", source={"path": str(path), "text": text},
                                 set_values=list(set_values), set_strings=list(set_strings),
                                 set_env=list(set_env), pool=pool, no_cache=no_cache)

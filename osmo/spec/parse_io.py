@@ -13,6 +13,7 @@ from pathlib import Path, PurePosixPath
 from typing import Any
 
 from osmo.names import name_problem, ref_problem, workflow_id_problem
+from osmo.spec.files import FileRefused, read_regular_file
 from osmo.spec.model import FileSpec, InputSpec, OutputSpec
 from osmo.spec.reader import (
     Ctx,
@@ -55,17 +56,14 @@ def _read_local(ctx: Ctx, node: Node, base_dir: Path, where: str) -> tuple[str, 
     if name is None:
         return None
     path = base_dir / name
-    if not path.exists():
+    try:
+        data = read_regular_file(path, limit=MAX_LOCAL_FILE)
+    except FileNotFoundError:
         ctx.error(node, f"localpath '{name}' in {where} does not exist (looked for {path})")
         return None
-    if not path.is_file():
-        ctx.error(node, f"localpath '{name}' in {where} is a folder; it must name a file")
+    except FileRefused as exc:
+        ctx.error(node, f"localpath '{name}' in {where} {exc}; it must name a file")
         return None
-    try:
-        if path.stat().st_size > MAX_LOCAL_FILE:
-            ctx.error(node, f"localpath '{name}' is larger than {MAX_LOCAL_FILE // 2**20} MiB")
-            return None
-        data = path.read_bytes()
     except OSError as exc:
         ctx.error(node, f"cannot read localpath '{name}' in {where}: {exc.strerror or exc}")
         return None
