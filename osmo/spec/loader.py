@@ -20,6 +20,7 @@ from osmo.spec.model import WorkflowSpec
 from osmo.spec.parse import parse_document
 from osmo.spec.reader import Ctx
 from osmo.spec.typed import TypeResolver, apply_resolved, check_types
+from osmo.spec.values import split_items
 from osmo.spec.validate import validate
 
 __all__ = ["load_spec", "read_spec_file", "render_spec", "spec_from_dict"]
@@ -67,18 +68,6 @@ def _render(text: str, file: str, set_values: Sequence[str], set_strings: Sequen
     if rendered is None or extra:
         raise SpecError(diags + extra)
     return rendered
-
-
-def _env_items(file: str, items: Sequence[str]) -> tuple[dict[str, str], list[Diagnostic]]:
-    env: dict[str, str] = {}
-    diags = []
-    for item in items:
-        name, eq, value = item.partition("=")
-        if not eq or not name.strip():
-            diags.append(Diagnostic(file, 0, 0, f"--set-env {item!r}: expected NAME=VALUE"))
-        else:
-            env[name.strip()] = value
-    return env, diags
 
 
 def _with_env(spec: WorkflowSpec, env: dict[str, str]) -> WorkflowSpec:
@@ -135,7 +124,7 @@ def load_spec(path: str | os.PathLike[str] | None = None, *, text: str | None = 
             refer to the rendered document (identical to the source without ``{% %}`` blocks).
     """
     source, file, base_dir = _source(path, text, filename)
-    env, env_diags = _env_items(file, set_env)
+    env, env_diags = split_items(file, "--set-env", set_env)
     rendered = _render(source, file, set_values, set_strings, env_diags)
     return _build(rendered, file, base_dir, env, types)
 

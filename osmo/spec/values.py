@@ -13,7 +13,7 @@ from typing import Any
 from osmo.errors import Diagnostic
 from osmo.spec.yamlnodes import Map, load_nodes, to_plain
 
-__all__ = ["build_context", "item_diags"]
+__all__ = ["build_context", "item_diags", "split_items"]
 
 
 def _cast(value: str) -> Any:
@@ -25,8 +25,9 @@ def _cast(value: str) -> Any:
     return value
 
 
-def _split_items(file: str, flag: str,
-                 items: Sequence[str]) -> tuple[dict[str, str], list[Diagnostic]]:
+def split_items(file: str, flag: str,
+                items: Sequence[str]) -> tuple[dict[str, str], list[Diagnostic]]:
+    """``NAME=VALUE`` items of a command-line ``flag`` → (name → value, problems)."""
     out: dict[str, str] = {}
     diags = []
     for item in items:
@@ -41,7 +42,7 @@ def _split_items(file: str, flag: str,
 def item_diags(file: str, set_values: Sequence[str],
                set_strings: Sequence[str]) -> list[Diagnostic]:
     """The problems of malformed ``--set``/``--set-string`` items (not ``NAME=VALUE``)."""
-    return _split_items(file, "--set", set_values)[1] + _split_items(
+    return split_items(file, "--set", set_values)[1] + split_items(
         file, "--set-string", set_strings)[1]
 
 
@@ -70,8 +71,8 @@ def build_context(text: str, file: str, set_values: Sequence[str] = (),
         values = root.get("default-values") if isinstance(root, Map) else None
         if isinstance(values, Map):
             context.update(to_plain(values))
-    sets, bad = _split_items(file, "--set", set_values)
-    strings, bad2 = _split_items(file, "--set-string", set_strings)
+    sets, bad = split_items(file, "--set", set_values)
+    strings, bad2 = split_items(file, "--set-string", set_strings)
     context.update({k: _cast(v) for k, v in sets.items()})
     context.update(strings)
     return context, diags + bad + bad2

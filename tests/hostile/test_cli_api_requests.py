@@ -10,14 +10,14 @@ from __future__ import annotations
 
 import json
 from collections.abc import Iterator
-from pathlib import Path
 from typing import Any
 
 import pytest
 
 from osmo.errors import OsmoError, SpecError, UsageError
-from osmo.sdk.connect import Connection, connect
+from osmo.sdk.connect import Connection
 from tests.conftest import Osmo, write
+from tests.hostile.test_names_datasets import raw_api
 
 HUGE = "x" * 100_000
 JUNK: Any = {"a": [1, {"b": None}], "c": [[[]]]}
@@ -110,9 +110,7 @@ def server(shared_osmo: Osmo, tmp_path_factory: pytest.TempPathFactory) -> Osmo:
 
 @pytest.fixture
 def raw(server: Osmo) -> Iterator[Connection]:
-    conn = connect(home=server.home)
-    yield conn
-    conn.close()
+    yield from raw_api(server)
 
 
 def _log(server: Osmo) -> str:

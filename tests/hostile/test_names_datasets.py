@@ -40,12 +40,17 @@ def home(shared_osmo: Osmo, tmp_path_factory: pytest.TempPathFactory) -> Osmo:
     return shared_osmo
 
 
-@pytest.fixture
-def raw(home: Osmo) -> Iterator[Connection]:
-    """An API connection that sends requests as written (no client-side checks)."""
-    conn = connect(home=home.home)
+def raw_api(osmo: Osmo) -> Iterator[Connection]:
+    """An API connection to ``osmo``'s server that sends requests as written (no client-side
+    checks), for a fixture to yield from."""
+    conn = connect(home=osmo.home)
     yield conn
     conn.close()
+
+
+@pytest.fixture
+def raw(home: Osmo) -> Iterator[Connection]:
+    yield from raw_api(home)
 
 
 def _outside(tmp: Path) -> list[Path]:
