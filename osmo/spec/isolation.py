@@ -26,6 +26,7 @@ This module must not import jinja2: the caller never runs template code.
 
 from __future__ import annotations
 
+import atexit
 import gc
 import json
 import os
@@ -41,7 +42,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from osmo.errors import Diagnostic
+from osmo.errors import Diagnostic, InfrastructureError
 from osmo.spec import tokens
 
 __all__ = ["MAX_MEMORY", "MAX_RENDERED", "MAX_SECONDS", "needs_jinja", "render", "warm"]
@@ -121,28 +122,54 @@ class _Helper:
             return self._sock
 
     def _start(self) -> None:
-        if self._sock is not None:
-            self._sock.close()
+        self._stop()
         ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
         root = str(Path(__file__).resolve().parents[2])  # this osmo, whatever sys.path says
         path = os.pathsep.join(p for p in (root, os.environ.get("PYTHONPATH")) if p)
-        with theirs:
-            self._proc = subprocess.Popen(
-                [sys.executable, "-c", _HELPER_MAIN, str(theirs.fileno())],
-                pass_fds=(theirs.fileno(),), stdin=subprocess.DEVNULL,
-                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
-                env={**os.environ, "PYTHONPATH": path})
+        try:
+            with theirs:
+                self._proc = subprocess.Popen(
+                    [sys.executable, "-c", _HELPER_MAIN, str(theirs.fileno())],
+                    pass_fds=(theirs.fileno(),), stdin=subprocess.DEVNULL,
+                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                    start_new_session=True, env={**os.environ, "PYTHONPATH": path})
+        except BaseException:
+            ours.close()
+            raise
         self._sock = ours
 
+    def _stop(self) -> None:
+        """Close the socket (the helper then exits) and reap the helper."""
+        if self._sock is not None:
+            self._sock.close()
+            self._sock = None
+        if self._proc is not None:
+            try:
+                self._proc.wait(timeout=2)
+            except subprocess.TimeoutExpired:
+                self._proc.kill()
+                self._proc.wait()
+            self._proc = None
+
+    def close(self) -> None:
+        """Stop the helper (at exit; a later rendering starts another)."""
+        with self._lock:
+            self._stop()
+
     def _hand_over(self, conn: socket.socket) -> None:
-        """Give the helper one end of a rendering's socket pair (restarting it once)."""
+        """Give the helper one end of a rendering's socket pair (restarting it once).
+
+        Raises:
+            InfrastructureError: no helper could be started or reached.
+        """
         for attempt in (1, 2):
             try:
                 socket.send_fds(self.connection(), [b"r"], [conn.fileno()])
                 return
-            except OSError:
+            except OSError as exc:
                 if attempt == 2:
-                    raise
+                    raise InfrastructureError(f"cannot reach the template renderer process "
+                                              f"({exc.strerror or exc})") from None
                 with self._lock:
                     if self._proc is not None:
                         self._proc.kill()
@@ -153,11 +180,11 @@ class _Helper:
         start = time.monotonic()
         ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
         with ours:
+            with theirs:
+                self._hand_over(theirs)
             try:
-                with theirs:
-                    self._hand_over(theirs)
                 answer = _exchange(ours, json.dumps(request).encode(), start + seconds + _GRACE)
-            except OSError:
+            except OSError:  # the child died before it read or answered
                 answer = None
         if answer is not None:
             try:
@@ -190,6 +217,7 @@ def _exchange(conn: socket.socket, request: bytes, deadline: float) -> bytes | N
 
 
 _HELPER = _Helper()
+atexit.register(_HELPER.close)
 
 
 # ---------------------------------------------------------------------- the helper process

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from osmo.errors import SpecError
+from osmo.errors import InfrastructureError, SpecError
 from osmo.spec import isolation, load_spec, render_spec
 from osmo.spec import template as template_module
 from tests.conftest import REPO, Osmo, write
@@ -182,3 +182,12 @@ def test_a_killed_renderer_is_started_again() -> None:
     helper.kill()  # the helper this process started
     helper.wait()
     assert render_spec(text="a: {{ 2 + 2 }}\n") == "a: 4\n"
+
+
+def test_a_renderer_that_cannot_start_is_an_infrastructure_error(
+        monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    monkeypatch.setattr(isolation.sys, "executable", str(tmp_path / "no-python"))
+    helper = isolation._Helper()  # a fresh one: this process's own helper stays as it is
+    with pytest.raises(InfrastructureError, match="cannot reach the template renderer"):
+        helper.render({"text": "{{ 1 }}", "file": "f", "set_values": [], "set_strings": [],
+                       "seconds": 1.0, "memory": isolation.MAX_MEMORY})
