@@ -240,7 +240,10 @@ def _child(conn: socket.socket) -> None:
     request = json.loads(b"".join(chunks))
     signal.setitimer(signal.ITIMER_REAL, float(request["seconds"]) + 0.5)
     limit = _address_space() + int(request["memory"])
-    resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
+    hard = resource.getrlimit(resource.RLIMIT_AS)[1]
+    if hard != resource.RLIM_INFINITY:  # a lower limit set from outside stays
+        limit = min(limit, hard)
+    resource.setrlimit(resource.RLIMIT_AS, (limit, limit))  # hard too: no way back up
     from osmo.spec import template, values
 
     file = str(request["file"])
