@@ -164,7 +164,7 @@ class Client:
             SubmitError: the server cannot run it (e.g. no pool fits a task).
         """
         if isinstance(spec, (str, os.PathLike)) and self._server_is_here():
-            from osmo.spec.loader import read_spec_file
+            from osmo.spec.files import read_spec_file
 
             path = Path(spec).absolute()
             text = read_spec_file(path, os.fspath(spec))

@@ -1,5 +1,6 @@
 """Reading the files a spec is or names (the spec file, ``localpath`` files): regular files
-only, bounded in size, and never blocking.
+only, bounded in size, and never blocking. Light on purpose: the SDK reads a spec file with
+it without loading the parsers.
 
 A FIFO with no writer blocks ``open()`` forever and ``/dev/zero`` never ends, so anything but
 a regular file is refused by what it is, before a byte is read. The file is opened
@@ -12,7 +13,11 @@ from __future__ import annotations
 import os
 import stat
 
-__all__ = ["FileRefused", "read_regular_file"]
+from osmo.errors import Diagnostic, SpecError
+
+__all__ = ["MAX_SPEC_FILE", "FileRefused", "read_regular_file", "read_spec_file"]
+
+MAX_SPEC_FILE = 16 * 1024 * 1024  # bytes of a spec file
 
 _KINDS = ((stat.S_ISDIR, "a folder"), (stat.S_ISFIFO, "a FIFO (named pipe)"),
           (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
@@ -49,3 +54,23 @@ def read_regular_file(path: str | os.PathLike[str], *, limit: int) -> bytes:
     if len(data) > limit:
         raise FileRefused(f"is larger than {limit // 2**20} MiB, the limit")
     return data
+
+
+def read_spec_file(path: str | os.PathLike[str], name: str | None = None) -> str:
+    """The text of a spec file: a regular file of UTF-8 text, at most :data:`MAX_SPEC_FILE`
+    bytes; ``name`` is the file's name in messages (default: ``path``).
+
+    Raises:
+        SpecError: it cannot be read, or is a folder, FIFO or device, or too large.
+    """
+    try:
+        return read_regular_file(path, limit=MAX_SPEC_FILE).decode("utf-8")
+    except FileNotFoundError:
+        message = "spec file not found; check the path"
+    except FileRefused as exc:
+        message = f"{exc}; pass a spec file"
+    except UnicodeDecodeError as exc:
+        message = f"is not UTF-8 text ({exc.reason} at byte {exc.start})"
+    except OSError as exc:
+        message = f"cannot read the spec file: {exc.strerror or exc}"
+    raise SpecError([Diagnostic(name or os.fspath(path), 0, 0, message)])

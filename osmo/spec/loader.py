@@ -15,7 +15,7 @@ from typing import Any
 
 from osmo.errors import Diagnostic, SpecError
 from osmo.spec import isolation, yamlnodes
-from osmo.spec.files import FileRefused, read_regular_file
+from osmo.spec.files import read_spec_file
 from osmo.spec.model import WorkflowSpec
 from osmo.spec.parse import parse_document
 from osmo.spec.reader import Ctx
@@ -23,7 +23,7 @@ from osmo.spec.typed import TypeResolver, apply_resolved, check_types
 from osmo.spec.values import split_items
 from osmo.spec.validate import validate
 
-__all__ = ["load_spec", "read_spec_file", "render_spec", "spec_from_dict"]
+__all__ = ["load_spec", "render_spec", "spec_from_dict"]
 
 _STRING = "<string>"
 
@@ -40,25 +40,6 @@ def _source(path: str | os.PathLike[str] | None, text: str | None,
         return text, name, base
     name = filename or os.fspath(path)
     return read_spec_file(path, name), name, Path(path).parent
-
-
-def read_spec_file(path: str | os.PathLike[str], name: str | None = None) -> str:
-    """The text of a spec file: a regular file of UTF-8 text, at most ``MAX_RENDERED`` bytes.
-
-    Raises:
-        SpecError: it cannot be read, or is a folder, FIFO or device, or too large.
-    """
-    try:
-        return read_regular_file(path, limit=isolation.MAX_RENDERED).decode("utf-8")
-    except FileNotFoundError:
-        message = "spec file not found; check the path"
-    except FileRefused as exc:
-        message = f"{exc}; pass a spec file"
-    except UnicodeDecodeError as exc:
-        message = f"is not UTF-8 text ({exc.reason} at byte {exc.start})"
-    except OSError as exc:
-        message = f"cannot read the spec file: {exc.strerror or exc}"
-    raise SpecError([Diagnostic(name or os.fspath(path), 0, 0, message)])
 
 
 def _render(text: str, file: str, set_values: Sequence[str], set_strings: Sequence[str],
