@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from osmo.cli.render import console, print_error, print_json
+from osmo.cli.render import console, print_error, print_json, safe
 from osmo.errors import OsmoError
 from osmo.sdk.client import Client
 
@@ -48,13 +48,14 @@ def run_artifacts(args: argparse.Namespace) -> int:
             if args.format == "json":
                 print_json(outputs)
             for out in outputs if args.format == "text" else ():
-                console.print(f"{out['task']}  {out['manifest']}  ({out['attempt_id']})",
+                console.print(safe(f"{out['task']}  {out['manifest']}  ({out['attempt_id']})"),
                               markup=False)
                 for f in out["files"]:
-                    console.print(f"  {f['path']}  {f['size']} B  {f['digest']}", markup=False)
+                    console.print(f"  {safe(f['path'])}  {f['size']} B  {f['digest']}",
+                                  markup=False)
         elif args.artifacts_verb == "get":
             for path in client.get_artifact(args.target, args.output):
-                console.print(path, markup=False)
+                console.print(safe(path), markup=False)
         else:
             count, size = client.gc_artifacts()
             console.print(f"removed {count} unreferenced blob(s), {size} bytes", markup=False)
@@ -119,7 +120,7 @@ def _print(fmt: str, graph: dict[str, Any], *, downstream: bool) -> int:
         sys.stdout.write(_dot(graph))
     else:
         for line in _tree(graph, downstream):
-            console.print(line, markup=False)
+            console.print(safe(line), markup=False)
     return 0
 
 
