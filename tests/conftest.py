@@ -183,6 +183,41 @@ def write(path: Path, text: str) -> Path:
     return path
 
 
+def process_alive(pid: int) -> bool:
+    """Whether process ``pid`` exists and is not a zombie (an exited child nobody reaped yet,
+    such as an orphan in a container whose init does not reap)."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    return stat.rsplit(")", 1)[1].split()[0] != "Z"
+
+
+def wait_gone(pid: int, timeout: float = 15) -> float:
+    """Wait until process ``pid`` is gone; return when (``time.monotonic()``)."""
+    deadline = time.monotonic() + timeout
+    while process_alive(pid):
+        if time.monotonic() > deadline:
+            raise AssertionError(f"process {pid} is still alive after {timeout}s")
+        time.sleep(0.02)
+    return time.monotonic()
+
+
+def read_pid(path: Path, timeout: float = 60) -> int:
+    """Wait for a task to write its pid (``echo $$ > FILE``) and return it."""
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            text = path.read_text()
+        except FileNotFoundError:
+            text = ""
+        if text.endswith("\n"):
+            return int(text)
+        if time.monotonic() > deadline:
+            raise AssertionError(f"no pid was written to {path}")
+        time.sleep(0.02)
+
+
 @pytest.fixture
 def osmo(tmp_path: Path) -> Iterator[Osmo]:
     """A CLI bound to a fresh OSMO_HOME; its server (auto-started on use) is stopped after."""
