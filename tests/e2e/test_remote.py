@@ -286,17 +286,19 @@ workflow:
 
 def test_drain_timeout_hands_back_running_attempts(cluster: Cluster, tmp_path: Path) -> None:
     proc = cluster.start_worker("w1", "--cpus", "1", "--drain-timeout", "0.5")
-    spec = write(tmp_path / "wf.yaml", """
+    spec = write(tmp_path / "wf.yaml", f"""
 workflow:
   name: handback
   tasks:
   - name: long
-    command: [sh, -c, "sleep 600"]
+    command: [sh, -c, "echo $$ > {tmp_path}/pid; exec sleep 600"]
 """)
     wf = cluster.osmo.submit(spec)
     _running_on(cluster, wf, "long")
+    pid = read_pid(tmp_path / "pid")
     cluster.signal("w1", signal.SIGTERM)
     assert proc.wait(timeout=30) == 0
+    wait_gone(pid, timeout=5)  # handed back means killed, not left running
     info = cluster.osmo.wait_for(wf, lambda i: _task(i, "long")["retry"] >= 1)
     assert _task(info, "long")["status"] in ("WAITING", "SCHEDULING", "PENDING")
     cluster.osmo("cancel", wf, check=True)
@@ -445,25 +447,17 @@ workflow:
     cluster.osmo("cancel", wf, check=True)
     info = cluster.osmo.wait_for(wf, _done)
     assert info["status"] == "FAILED_CANCELED"
-    deadline = time.monotonic() + 10
-    import os
-
-    while True:
-        try:
-            os.kill(child, 0)
-        except ProcessLookupError:
-            break
-        assert time.monotonic() < deadline, "the remote task's process group was not killed"
-        time.sleep(0.1)
+    wait_gone(child, timeout=10)  # the remote task's whole process group was killed
     logs = cluster.osmo("logs", wf, check=True).out
     assert "[long] started" in logs  # streamed from the worker
-    timed = write(tmp_path / "timeout.yaml", """
+    timed = write(tmp_path / "timeout.yaml", f"""
 workflow:
   name: timed
-  timeout: {exec_timeout: 2s}
+  timeout: {{exec_timeout: 2s}}
   tasks:
   - name: slow
-    command: [sleep, "600"]
+    command: [sh, -c, "echo $$ > {tmp_path}/timed-pid; exec sleep 600"]
 """)
     info = cluster.osmo.wait_for(cluster.osmo.submit(timed), _done, timeout=60)
     assert info["status"] == "FAILED_EXEC_TIMEOUT", info
+    wait_gone(read_pid(tmp_path / "timed-pid"), timeout=10)  # the worker killed it
