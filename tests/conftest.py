@@ -122,9 +122,10 @@ class Osmo:
         self.env = dict(os.environ, OSMO_HOME=str(home), PYTHONUNBUFFERED="1")
         self.env.pop("OSMO_SERVER", None)
 
-    def __call__(self, *args: str, timeout: float = 180, check: bool = False) -> Result:
+    def __call__(self, *args: str, timeout: float = 180, check: bool = False,
+                 cwd: Path = REPO) -> Result:
         proc = subprocess.run([sys.executable, "-m", "osmo", *args], env=self.env,
-                              capture_output=True, text=True, timeout=timeout, cwd=REPO)
+                              capture_output=True, text=True, timeout=timeout, cwd=cwd)
         result = Result(proc.returncode, proc.stdout, proc.stderr)
         if check and result.code != 0:
             raise AssertionError(f"osmo {' '.join(args)} exited {result.code}\n"
