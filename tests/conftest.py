@@ -184,6 +184,11 @@ def write(path: Path, text: str) -> Path:
     return path
 
 
+def ended(info: dict) -> bool:
+    """Whether a workflow (``osmo query --format json``) has reached a final status."""
+    return info["status"] not in ("PENDING", "RUNNING", "WAITING")
+
+
 def process_alive(pid: int) -> bool:
     """Whether process ``pid`` exists and is not a zombie (an exited child nobody reaped yet,
     such as an orphan in a container whose init does not reap)."""

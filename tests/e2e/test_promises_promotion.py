@@ -16,7 +16,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from tests.conftest import Osmo, wait_gone, write
+from tests.conftest import Osmo, ended, wait_gone, write
 from tests.e2e.cluster import Cluster
 
 FILES = 4000
@@ -33,10 +33,6 @@ workflow:
     - task: make
 """.replace("FILES", str(FILES))
 EVERYTHING = f"{FILES} {FILES * (FILES + 1) // 2}\n"
-
-
-def _done(info: dict) -> bool:
-    return info["status"] not in ("PENDING", "RUNNING", "WAITING")
 
 
 def _kill_when(pid: int, seen: Callable[[], bool], timeout: float = 120) -> None:
@@ -56,7 +52,7 @@ def _nothing_or_everything(folder: Path) -> None:
 
 
 def _downstream_saw_everything(osmo: Osmo, wf: str) -> None:
-    info = osmo.wait_for(wf, _done, timeout=180)
+    info = osmo.wait_for(wf, ended, timeout=180)
     assert info["status"] == "COMPLETED", info
     use = next(t for t in info["tasks"] if t["name"] == "use")
     assert Path(use["output"], "seen").read_text() == EVERYTHING

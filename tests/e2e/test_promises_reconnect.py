@@ -19,7 +19,7 @@ import pytest
 
 from osmo.server.app import serve
 from osmo.server.options import add_server_options, server_args, server_kwargs
-from tests.conftest import wait_gone, write
+from tests.conftest import ended, wait_gone, write
 from tests.e2e.cluster import Cluster
 
 GRACE = 3.0
@@ -75,7 +75,7 @@ def test_a_worker_not_back_within_the_grace_is_lost(cluster: Cluster, tmp_path: 
                                      and i["tasks"][0]["status"] == "RUNNING")
         assert info["tasks"][0]["node"] == back
         (tmp_path / f"release-{back}").touch()
-        info = cluster.osmo.wait_for(wf, lambda i: i["status"] not in ("PENDING", "RUNNING"))
+        info = cluster.osmo.wait_for(wf, ended)
     finally:
         (tmp_path / f"release-{gone}").touch()
     assert info["status"] == "COMPLETED", info

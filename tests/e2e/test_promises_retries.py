@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.conftest import Osmo, write
+from tests.conftest import Osmo, ended, write
 from tests.e2e.cluster import Cluster
 
 
@@ -64,12 +64,12 @@ workflow:
     wf = cluster.osmo.submit(spec)
     try:
         for retry in range(6):
-            info = cluster.osmo.wait_for(wf, lambda i, r=retry: _ended(i) or (
+            info = cluster.osmo.wait_for(wf, lambda i, r=retry: ended(i) or (
                 i["tasks"][0]["retry"] == r and i["tasks"][0]["status"] == "RUNNING"))
-            if _ended(info):
+            if ended(info):
                 break  # ended too early: the assertions below say how
             cluster.signal(info["tasks"][0]["node"], signal.SIGKILL)
-        info = cluster.osmo.wait_for(wf, _ended)
+        info = cluster.osmo.wait_for(wf, ended)
     finally:
         _kill_orphans(tmp_path / "pids")
     task = info["tasks"][0]
@@ -77,10 +77,6 @@ workflow:
     assert (task["status"], task["retry"], task["exit_code"]) == (
         "FAILED_SERVER_ERROR", 5, 3006), task
     assert "lost-attempt cap 5 reached" in task["message"]
-
-
-def _ended(info: dict) -> bool:
-    return info["status"] not in ("PENDING", "RUNNING", "WAITING")
 
 
 def _kill_orphans(pids: Path) -> None:

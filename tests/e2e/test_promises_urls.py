@@ -9,7 +9,7 @@ from pathlib import Path
 
 from osmo.config import free_port
 from osmo.urls import for_url
-from tests.conftest import Osmo, write
+from tests.conftest import Osmo, ended, write
 from tests.urls.conftest import s3_bucket, s3_credential, s3_endpoint  # noqa: F401
 
 
@@ -102,7 +102,7 @@ workflow:
         assert time.monotonic() < deadline, "no periodic upload failed"
         time.sleep(0.2)
     blocker.unlink()  # the destination works from now on
-    info = osmo.wait_for(wf, lambda i: i["status"] not in ("PENDING", "RUNNING", "WAITING"))
+    info = osmo.wait_for(wf, ended)
     assert info["status"] == "COMPLETED", (info, osmo("logs", wf).out)
     assert landed.read_text() == "step\n"
     logs = osmo("logs", wf, "-t", "fit").out

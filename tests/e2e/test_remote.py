@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.conftest import process_alive, read_pid, wait_gone, write
+from tests.conftest import ended, process_alive, read_pid, wait_gone, write
 from tests.e2e.cluster import Cluster
 
 
@@ -29,10 +29,6 @@ def _task(info: dict, name: str) -> dict:
     return next(t for t in info["tasks"] if t["name"] == name)
 
 
-def _done(info: dict) -> bool:
-    return info["status"] not in ("PENDING", "RUNNING", "WAITING")
-
-
 def test_pools_and_platforms_place_tasks_on_the_right_workers(cluster: Cluster, tmp_path: Path) -> None:
     cluster.start_worker("cpu-1", "--cpus", "2", pool="cpu")
     cluster.start_worker("arm-1", "--cpus", "2", "--platform", "jetson", pool="edge")
@@ -47,7 +43,7 @@ workflow:
     command: [sh, -c, "echo $OSMO_NODE > {{output}}/node"]
 """)
     wf = cluster.osmo.submit(spec, "--pool", "cpu")
-    info = cluster.osmo.wait_for(wf, _done)
+    info = cluster.osmo.wait_for(wf, ended)
     assert info["status"] == "COMPLETED", info
     assert _task(info, "on-cpu")["node"] == "cpu-1"
     assert "cpu-1" in cluster.osmo("query", wf, "-v", check=True).out  # the Node column
@@ -67,7 +63,7 @@ workflow:
     command: [sh, -c, "echo $OSMO_NODE > {{output}}/node"]
 """)
     wf2 = cluster.osmo.submit(spec2, "--pool", "edge", "--no-cache")
-    info2 = cluster.osmo.wait_for(wf2, _done)
+    info2 = cluster.osmo.wait_for(wf2, ended)
     assert info2["status"] == "COMPLETED", info2
     for task in info2["tasks"]:
         assert task["node"] == "arm-1"
@@ -98,7 +94,7 @@ workflow:
     - task: make
 """)
     wf = cluster.osmo.submit(spec)
-    info = cluster.osmo.wait_for(wf, _done)
+    info = cluster.osmo.wait_for(wf, ended)
     assert info["status"] == "COMPLETED", (info, cluster.worker_log("a"), cluster.worker_log("b"))
     make, use = _task(info, "make"), _task(info, "use")
     assert (make["node"], use["node"]) == ("a", "b")
@@ -131,7 +127,7 @@ workflow:
     inputs:
     - task: make
 """)
-    info = cluster.osmo.wait_for(cluster.osmo.submit(spec), _done)
+    info = cluster.osmo.wait_for(cluster.osmo.submit(spec), ended)
     assert info["status"] == "COMPLETED", info
     digest = hashlib.sha256(Path(_task(info, "make")["output"], "d").read_bytes()).hexdigest()
     rel = Path("artifacts", "blobs", "sha256", digest[:2], digest[2:])
@@ -192,7 +188,7 @@ def test_sigkill_of_a_worker_reschedules_its_task(cluster: Cluster, tmp_path: Pa
         assert noticed_at - killed_at < NOTICED_WITHIN, "worker loss noticed too late"
         _rerun_on(cluster, wf, survivor)
         (tmp_path / f"release-{survivor}").touch()
-        info = cluster.osmo.wait_for(wf, _done)
+        info = cluster.osmo.wait_for(wf, ended)
     finally:
         (tmp_path / f"release-{victim}").touch()  # the killed worker's task, if it lives on
     slow = _task(info, "slow")
@@ -222,7 +218,7 @@ def test_a_cut_off_worker_is_rescheduled_and_its_late_report_ignored(
     slow = _task(cluster.osmo.query(wf), "slow")
     assert (slow["status"], slow["retry"], slow["node"]) == ("RUNNING", 1, survivor), slow
     (tmp_path / f"release-{survivor}").touch()
-    info = cluster.osmo.wait_for(wf, _done)
+    info = cluster.osmo.wait_for(wf, ended)
     slow = _task(info, "slow")
     assert info["status"] == "COMPLETED" and slow["retry"] == 1
     assert Path(slow["output"], "node").read_text().strip() == survivor
@@ -251,7 +247,7 @@ def test_server_restart_does_not_kill_running_tasks(cluster: Cluster, tmp_path: 
     slow = _task(cluster.osmo.query(wf), "slow")
     assert (slow["status"], slow["retry"]) == ("RUNNING", 0), slow
     (tmp_path / "release-w1").touch()
-    info = cluster.osmo.wait_for(wf, _done, timeout=60)
+    info = cluster.osmo.wait_for(wf, ended, timeout=60)
     assert info["status"] == "COMPLETED", (info, cluster.worker_log("w1"))
     assert _task(info, "slow")["retry"] == 0, "the running task must not have been rerun"
     assert (tmp_path / "starts").read_text() == "w1\n", "it started once"
@@ -279,7 +275,7 @@ workflow:
     assert Path(done["output"], "ckpt").stat().st_size == 200_000
     assert _task(info, "queued")["status"] != "COMPLETED"  # never taken by the draining worker
     cluster.start_worker("w2", "--cpus", "1")
-    info = cluster.osmo.wait_for(wf, _done)
+    info = cluster.osmo.wait_for(wf, ended)
     assert info["status"] == "COMPLETED"
     assert Path(_task(info, "queued")["output"], "node").read_text().strip() == "w2"
 
@@ -445,7 +441,7 @@ workflow:
     cluster.osmo.wait_for(wf, lambda i: pidfile.exists() and pidfile.read_text().strip() != "")
     child = int(pidfile.read_text())
     cluster.osmo("cancel", wf, check=True)
-    info = cluster.osmo.wait_for(wf, _done)
+    info = cluster.osmo.wait_for(wf, ended)
     assert info["status"] == "FAILED_CANCELED"
     wait_gone(child, timeout=10)  # the remote task's whole process group was killed
     logs = cluster.osmo("logs", wf, check=True).out
@@ -458,6 +454,6 @@ workflow:
   - name: slow
     command: [sh, -c, "echo $$ > {tmp_path}/timed-pid; exec sleep 600"]
 """)
-    info = cluster.osmo.wait_for(cluster.osmo.submit(timed), _done, timeout=60)
+    info = cluster.osmo.wait_for(cluster.osmo.submit(timed), ended, timeout=60)
     assert info["status"] == "FAILED_EXEC_TIMEOUT", info
     wait_gone(read_pid(tmp_path / "timed-pid"), timeout=10)  # the worker killed it

@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from osmo.config import free_port
-from tests.conftest import REPO, Osmo, write
+from tests.conftest import REPO, Osmo, ended, write
 from tests.e2e.cluster import Cluster
 from tests.e2e.certs import make_certs
 
@@ -24,10 +24,6 @@ workflow:
   - name: t
     command: [sh, -c, "echo $OSMO_NODE > {{output}}/node"]
 """
-
-
-def _done(info: dict) -> bool:
-    return info["status"] not in ("PENDING", "RUNNING", "WAITING")
 
 
 @pytest.fixture
@@ -94,7 +90,7 @@ def test_mutual_tls(tmp_path: Path) -> None:
         assert proc.wait(timeout=60) == 3
         assert "cannot connect" in c.worker_log("no-cert")
         c.start_worker("w1", "--zenoh-config", str(client_conf), connect=tls_ep)
-        info = c.osmo.wait_for(c.osmo.submit(write(tmp_path / "wf.yaml", SPEC)), _done)
+        info = c.osmo.wait_for(c.osmo.submit(write(tmp_path / "wf.yaml", SPEC)), ended)
         assert info["status"] == "COMPLETED"
         assert Path(info["tasks"][0]["output"], "node").read_text().strip() == "w1"
     finally:
@@ -117,7 +113,7 @@ workflow:
       robot-key: {ROBOT_TOKEN: token}
     command: [sh, -c, "echo using $ROBOT_TOKEN; printf %s $ROBOT_TOKEN | sha256sum | cut -c1-16 > {{output}}/h"]
 """)
-        info = c.osmo.wait_for(c.osmo.submit(spec), _done)
+        info = c.osmo.wait_for(c.osmo.submit(spec), ended)
         assert info["status"] == "COMPLETED", info
         import hashlib
 
