@@ -131,7 +131,8 @@ workflow:
     "version: a task can change, add and delete its files, and the next consumer sees the "
     "change. Mode bits alone cannot stop a task running as root; a read-only bind mount can."))
 def test_dataset_inputs_are_read_only(osmo: Osmo, tmp_path: Path) -> None:
-    """README, Datasets: a version is handed to the task "as a read-only folder"."""
+    """A dataset version is handed to a task read-only (DESIGN: inputs read-only). The
+    README promised "a read-only folder" until this test showed it is not; it now says so."""
     src = tmp_path / "data"
     write(src / "a.txt", "alpha\n")
     write(src / "sub" / "b.txt", "beta\n")
