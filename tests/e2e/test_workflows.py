@@ -144,11 +144,10 @@ def test_group_barrier_holds_every_command_until_all_are_prepared(shared_osmo: O
     r = shared_osmo("submit", str(write(tmp_path / "b.yaml",
                                         BARRIER.replace("TMP", str(tmp_path)))), "--wait")
     assert r.code == 0, r.out + r.err
-    info = shared_osmo.query(r.out.splitlines()[0].split(" - ")[1])
-    assert _statuses(info) == {"slow": "COMPLETED", "lead": "COMPLETED"}
-    slow = next(t for t in info["tasks"] if t["name"] == "slow")
+    wf = r.out.splitlines()[0].split(" - ")[1]
+    assert _statuses(shared_osmo.query(wf)) == {"slow": "COMPLETED", "lead": "COMPLETED"}
     # slow's input landed at the end of its preparation (the download is its slow part)
-    landed = Path(slow["output"]).parent.with_name("0.inputs") / "0" / "data.bin"
+    landed = shared_osmo.home / "runs" / wf / "slow" / "0.inputs" / "0" / "data.bin"
     prepared = landed.stat().st_mtime
     starts = {n: float((tmp_path / f"start-{n}").read_text()) for n in ("slow", "lead")}
     shutil.rmtree(landed.parent.parent)  # the 256 MiB copy
