@@ -196,6 +196,8 @@ class Engine:
                 self._note_pid(event.attempt_id, batch)
             return
         before = self.scheduler.attempt(event.attempt_id)  # None: a stale (fenced) report
+        if before is None:
+            log.info("report on %s ignored: not its task's current attempt", event.attempt_id)
         batch.commands += self.scheduler.handle(event, now)
         after = self.scheduler.attempt(event.attempt_id)
         if (not isinstance(event, AttemptExited) or before is None or not before.status.active
