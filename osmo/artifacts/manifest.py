@@ -1,9 +1,26 @@
-"""Manifests: the frozen list of (path, digest, size) an attempt's outputs consist of.
+r"""Manifests: the frozen list of (path, digest, size) an attempt's outputs consist of.
 
 Owns the :class:`Entry` and :class:`Manifest` records, their canonical JSON form and the
 digest string format (``"sha256:<64 lowercase hex>"``). It validates what a manifest may
 contain (relative posix paths that stay inside the output folder, well-formed digests), so
 that a manifest read from anywhere is safe to materialize.
+
+File names are bytes. The one encoding rule, everywhere osmo keeps or sends a name:
+
+- **In memory** a name is the ``str`` that :func:`os.fsdecode` makes of its bytes: UTF-8,
+  where every byte that is not part of valid UTF-8 becomes one lone surrogate
+  ``U+DC80..U+DCFF`` (PEP 383, ``surrogateescape``). ``os.fsencode(name)`` gives back the
+  exact bytes, so ``open``, ``os.link`` and friends write the same name on every host. A
+  path holding any other surrogate is rejected (it names no bytes).
+- **In JSON** (manifests, lineage, the API, worker traffic, MCAP run records) names are
+  written with ``ensure_ascii``: a valid UTF-8 name reads as itself in any JSON reader, and a
+  byte such as ``0xE9`` that is not UTF-8 appears as the escape ``\udce9``, which Python's
+  ``json`` reads back into the same ``str``. Manifests written before this rule use the same
+  form (they simply never held such a name), so every old manifest reads unchanged.
+- **In SQLite** (``osmo.store``) a name that is valid UTF-8 is ``TEXT``; any other name is a
+  ``BLOB`` of its raw bytes (``CAST(path AS BLOB)`` gives the bytes of either).
+- **On a terminal** a name is shown through :func:`printable`: undecodable bytes as
+  ``\xNN``, control characters escaped, so a name can neither garble nor forge output.
 
 Must not touch the filesystem or the blob store; that is :mod:`osmo.artifacts.store`'s job.
 """
@@ -12,6 +29,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import re
 from dataclasses import dataclass
 from functools import cached_property
@@ -19,7 +37,7 @@ from typing import Any
 
 from osmo.errors import InfrastructureError, UsageError
 
-__all__ = ["MANIFEST_VERSION", "Entry", "Manifest", "check_digest"]
+__all__ = ["MANIFEST_VERSION", "Entry", "Manifest", "check_digest", "printable"]
 
 MANIFEST_VERSION = 1
 _DIGEST = re.compile(r"sha256:[0-9a-f]{64}")
@@ -43,13 +61,43 @@ def check_digest(digest: str) -> str:
     return digest[7:]
 
 
+def printable(name: str) -> str:
+    """``name`` made safe to print: each byte that is not UTF-8 as ``\\xNN``, characters
+    that do not print (controls, direction marks, unassigned) as ``\\n``, ``\\t``,
+    ``\\xNN`` or ``\\uNNNN``, a backslash doubled (so the escape is unambiguous);
+    everything else as it is."""
+    if name.isprintable() and "\\" not in name:
+        return name  # the common case: nothing to escape
+    out = []
+    for ch in name:
+        code = ord(ch)
+        if 0xDC80 <= code <= 0xDCFF:  # an undecodable byte (see the module docstring)
+            out.append(f"\\x{code - 0xDC00:02x}")
+        elif ch == "\\":
+            out.append("\\\\")
+        elif ch in "\n\t\r":
+            out.append(repr(ch)[1:-1])
+        elif not ch.isprintable():  # controls, format marks (RTL override), unassigned
+            out.append(f"\\x{code:02x}" if code < 0x100 else
+                       f"\\u{code:04x}" if code < 0x10000 else f"\\U{code:08x}")
+        else:
+            out.append(ch)
+    return "".join(out)
+
+
 def _check_path(path: str) -> None:
-    """Reject paths that are absolute, empty, non-canonical or climb out of the folder."""
-    parts = path.split("/")
-    if (not path or path.startswith("/") or "\\" in path or "\0" in path
-            or any(p in ("", ".", "..") for p in parts)):
+    """Reject paths that are absolute, empty, non-canonical, climb out of the folder, or
+    name no bytes (a surrogate that ``surrogateescape`` never makes)."""
+    parts = path.split("/") if isinstance(path, str) else [""]
+    if (not isinstance(path, str) or not path or path.startswith("/") or "\\" in path
+            or "\0" in path or any(p in ("", ".", "..") for p in parts)):
         raise UsageError(f"invalid artifact path {path!r}: expected a relative posix path "
                          "inside the output folder (no '', '.', '..' parts, no backslashes)")
+    try:
+        os.fsencode(path)
+    except UnicodeEncodeError:
+        raise UsageError(f"invalid artifact path {path!r}: it holds a surrogate that stands "
+                         "for no byte") from None
 
 
 @dataclass(frozen=True)

@@ -42,6 +42,8 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
 
 def run_artifacts(args: argparse.Namespace) -> int:
     """``osmo artifacts list|get|gc``."""
+    from osmo.artifacts.manifest import printable  # names are bytes: shown escaped
+
     with Client(args.server) as client:
         if args.artifacts_verb == "list":
             outputs = client.artifacts(args.workflow_id, args.task)
@@ -51,10 +53,11 @@ def run_artifacts(args: argparse.Namespace) -> int:
                 console.print(f"{out['task']}  {out['manifest']}  ({out['attempt_id']})",
                               markup=False)
                 for f in out["files"]:
-                    console.print(f"  {f['path']}  {f['size']} B  {f['digest']}", markup=False)
+                    console.print(f"  {printable(f['path'])}  {f['size']} B  {f['digest']}",
+                                  markup=False)
         elif args.artifacts_verb == "get":
             for path in client.get_artifact(args.target, args.output):
-                console.print(path, markup=False)
+                console.print(printable(path), markup=False)
         else:
             count, size = client.gc_artifacts()
             console.print(f"removed {count} unreferenced blob(s), {size} bytes", markup=False)
