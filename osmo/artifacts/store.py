@@ -50,7 +50,7 @@ from pathlib import Path
 
 from osmo.artifacts.errors import ArtifactCorrupted, OutputRejected
 from osmo.artifacts.fsops import (CHUNK, check_unchanged, copy_verified, files, hash_fd, link,
-                                  refresh)
+                                  make_dirs, refresh, remove_tree)
 from osmo.artifacts.manifest import Entry, Manifest, check_digest
 from osmo.artifacts.scan import scan
 from osmo.errors import NotFoundError, UsageError
@@ -244,12 +244,12 @@ class ArtifactStore:
         """
         if dest.is_dir():
             return
-        dest.parent.mkdir(parents=True, exist_ok=True)
+        make_dirs(dest.parent)
         build = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", dir=dest.parent))
         try:
             for e in manifest.entries:
                 final = build / e.path
-                final.parent.mkdir(parents=True, exist_ok=True)
+                make_dirs(final.parent)
                 try:
                     os.link(self.path(e.digest), final)
                 except FileNotFoundError:
@@ -263,7 +263,7 @@ class ArtifactStore:
                 if not dest.is_dir():
                     raise
         finally:
-            shutil.rmtree(build, ignore_errors=True)
+            remove_tree(build, ignore_errors=True)
 
     # -- materialize -------------------------------------------------------------------------
 
@@ -297,7 +297,7 @@ class ArtifactStore:
                                     f"({len(entries)} files)")
             entries = [entry]
         dest = Path(dest)
-        dest.mkdir(parents=True, exist_ok=True)
+        make_dirs(dest)
         staging = Path(tempfile.mkdtemp(prefix=".osmo-materialize-", dir=dest))
         try:
             staged = [_stage(self.path(e.digest), e, staging / str(i))
@@ -305,12 +305,12 @@ class ArtifactStore:
             written = []
             for tmp, e in zip(staged, entries, strict=True):
                 final = dest / e.path
-                final.parent.mkdir(parents=True, exist_ok=True)
+                make_dirs(final.parent)
                 os.replace(tmp, final)
                 written.append(final)
             return written
         finally:
-            shutil.rmtree(staging, ignore_errors=True)
+            remove_tree(staging, ignore_errors=True)
 
     # -- garbage collection ------------------------------------------------------------------
 

@@ -312,6 +312,10 @@ class WorkerHub:
             self._post(AttemptLost(event.attempt_id, f"outputs could not be taken from worker "
                                                      f"{wid}: {exc}"))
             return
+        except Exception as exc:  # noqa: BLE001 - a bug: fail the attempt, never leave it open
+            log.exception("outputs of %s from worker %s", event.attempt_id, wid)
+            event = replace(event, output=None, manifest=None,
+                            message=f"outputs could not be promoted: {exc!r}")
         self._post(event)
         self._send(wid, {"op": "ack", "attempt_id": event.attempt_id})
 

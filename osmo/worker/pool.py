@@ -219,6 +219,9 @@ class LocalPool:
                 started = self._runtime.start(launch.argv, cwd=launch.cwd, env=launch.env)
             except (StartError, OSError) as exc:
                 started = str(exc)
+            except Exception as exc:  # noqa: BLE001 - a bug: fail the start, report it
+                _log.exception("starting %s failed", cmd.attempt_id)
+                started = f"cannot start: {exc!r}"
         self._reactor.call_soon(self._prepared, cmd, task, dirs, launch, None, started)
 
     def _prepared(self, cmd: PrepareAttempt, task: TaskSpec, dirs: AttemptDirs | None,
@@ -232,7 +235,17 @@ class LocalPool:
             self._emit(AttemptStartFailed(cmd.attempt_id, error or "cannot prepare"))
             return
         sink = functools.partial(self._log_sink, cmd.attempt_id) if self._log_sink else None
-        log = LogWriter(dirs.log, launch.secrets, sink)
+        try:
+            log = LogWriter(dirs.log, launch.secrets, sink)
+        except OSError as exc:  # no log, no attempt: undo what preparing made, report once
+            if isinstance(started, ProcessHandle):
+                self._runtime.kill(started, force=True)
+                self._runtime.reap(started)
+                self._runtime.release(started)
+            remove_secret_files(launch)
+            self._remember(cmd.attempt_id)
+            self._emit(AttemptStartFailed(cmd.attempt_id, f"cannot write its log: {exc}"))
+            return
         attempt = LiveAttempt(cmd.attempt_id, task, dirs, launch, log)
         if task.image:
             attempt.log.line("osmo", image_note(task.image))
@@ -314,14 +327,20 @@ class LocalPool:
         assert handle is not None
         self._reactor.remove_reader(handle.exit_fd)
         code = self._runtime.reap(handle)
-        attempt.drain(self._reactor, handle)
-        self._runtime.release(handle)
-        if attempt.escalation is not None:
-            attempt.escalation.cancel()
-        if attempt.checkpoints is not None:
-            attempt.checkpoints.stop()
-        attempt.log.flush_partial()
-        attempt.log.line("osmo", exit_note(code))
+        try:
+            attempt.drain(self._reactor, handle)
+            self._runtime.release(handle)
+            if attempt.escalation is not None:
+                attempt.escalation.cancel()
+            if attempt.checkpoints is not None:
+                attempt.checkpoints.stop()
+            attempt.log.flush_partial()
+            attempt.log.line("osmo", exit_note(code))
+        except Exception as exc:  # noqa: BLE001 - e.g. a full disk: still one final report
+            _log.exception("finishing %s failed", attempt.id)
+            self._finish(attempt, AttemptExited(attempt.id, code, None,
+                                                f"its end could not be recorded: {exc!r}"))
+            return
         if attempt.kill_reason is not None:
             self._finish(attempt, AttemptExited(attempt.id, code, None,
                                                 f"killed: {attempt.kill_reason}"))
@@ -332,20 +351,28 @@ class LocalPool:
             self._io.submit(self._promote_io, attempt, code)
 
     def _promote_io(self, attempt: LiveAttempt, code: int) -> None:
-        """I/O thread: last checkpoint, promote the outputs; the reactor reports the exit."""
+        """I/O thread: last checkpoint, promote the outputs; report the exit.
+
+        Whatever is raised, the attempt gets its one final report (a failure, exit code
+        3005, with the reason) and its credential files are deleted."""
         try:
             ref, manifest = deliver(attempt.dirs, attempt.task, checkpoints=attempt.checkpoints,
                                     artifacts=self._artifacts,
                                     credential_for=self._credential_for)
             event = AttemptExited(attempt.id, code, ref, manifest=manifest,
                                   command=tuple(attempt.launch.argv))
-        except DeliveryError as exc:
-            event = AttemptExited(attempt.id, code, None, str(exc))
-            self._reactor.call_soon(self._promoted, attempt, event)
+        except Exception as exc:  # noqa: BLE001 - DeliveryError, or a bug: still one report
+            if not isinstance(exc, DeliveryError):
+                _log.exception("promoting the outputs of %s failed", attempt.id)
+            message = str(exc) if isinstance(exc, DeliveryError) else (
+                f"outputs could not be promoted: {type(exc).__name__}: {exc}")
+            self._reactor.call_soon(self._promoted, attempt,
+                                    AttemptExited(attempt.id, code, None, message))
             return
+        finally:
+            remove_secret_files(attempt.launch)
         # Reported from here, one thread hop sooner; the reactor's bookkeeping follows (a
         # kill() that comes meanwhile finds it FINISHING and is ignored).
-        remove_secret_files(attempt.launch)
         with self._pids_lock:
             self._pids.pop(attempt.id, None)
         self._emit(event)
@@ -359,14 +386,16 @@ class LocalPool:
     def _finish(self, attempt: LiveAttempt,
                 event: AttemptExited | AttemptStartFailed | None) -> None:
         attempt.state = AttemptState.DONE
-        attempt.log.close()
-        remove_secret_files(attempt.launch)
-        self._attempts.pop(attempt.id, None)
-        with self._pids_lock:
-            self._pids.pop(attempt.id, None)
-        self._remember(attempt.id)
-        if event is not None:
-            self._emit(event)
+        try:
+            attempt.log.close()
+        finally:  # a log that cannot be written must not keep the report (or a secret) back
+            remove_secret_files(attempt.launch)
+            self._attempts.pop(attempt.id, None)
+            with self._pids_lock:
+                self._pids.pop(attempt.id, None)
+            self._remember(attempt.id)
+            if event is not None:
+                self._emit(event)
 
     def _remember(self, attempt_id: str) -> None:
         self._finished[attempt_id] = None

@@ -11,13 +11,13 @@ every file arrived (see ``osmo.urls``).
 
 from __future__ import annotations
 
-import shutil
 from collections.abc import Callable, Mapping
 from dataclasses import replace
 from pathlib import Path
 from typing import Protocol
 
 from osmo.artifacts import ArtifactStore
+from osmo.artifacts.fsops import remove_tree
 from osmo.errors import OsmoError
 from osmo.scheduler.types import PrepareAttempt
 from osmo.spec.model import TaskSpec
@@ -42,8 +42,7 @@ def fetch_inputs(cmd: PrepareAttempt, task: TaskSpec, dirs: AttemptDirs,
         if spec.url is None:
             continue
         dest = base / str(index)
-        if dest.exists():
-            shutil.rmtree(dest)
+        remove_tree(dest)
         dest.parent.mkdir(parents=True, exist_ok=True)
         remote = for_url(spec.url, credential_for(spec.url) if credential_for else None)
         remote.download(dest, regex=spec.regex)

@@ -57,12 +57,12 @@ import binascii
 import os
 import posixpath
 import re
-import shutil
 import uuid
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from osmo.artifacts.fsops import remove_tree
 from osmo.errors import OsmoError
 from osmo.scheduler.types import PrepareAttempt
 from osmo.spec.model import InputSpec, TaskSpec
@@ -247,7 +247,7 @@ def _make_folders(dirs: AttemptDirs, *, with_files: bool) -> None:
     try:
         dirs.root.mkdir()
     except FileExistsError:  # the same attempt prepared again (e.g. after a server restart)
-        shutil.rmtree(dirs.root)
+        remove_tree(dirs.root)  # iterative: the last run may have left a very deep tree
         dirs.root.mkdir()
     except FileNotFoundError:
         dirs.root.parent.mkdir(parents=True, exist_ok=True)

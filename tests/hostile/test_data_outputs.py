@@ -1,0 +1,72 @@
+"""Hostile outputs: whatever a task leaves in its output folder, its attempt finishes (COMPLETED
+or FAILED with a reason and a documented code), its cpu slot is released and its mounted
+credential files are deleted (issue 11, item 2; items 6 and the output limit add kinds).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from osmo.status import ExitCode
+from tests.conftest import Osmo, write
+
+# Folders made one level at a time with relative names: the path may exceed PATH_MAX.
+NEST = """
+import os, sys
+os.chdir(os.environ["OSMO_OUTPUT"])
+for _ in range(int(sys.argv[1])):
+    os.mkdir("d")
+    os.chdir("d")
+open("leaf.txt", "w").write("deep\\n")
+"""
+
+
+def _task(name: str, command: str, extra: str = "") -> str:
+    return f"""
+  - name: {name}
+    command: [sh, -c, {json.dumps(command)}]
+    credentials: {{vault: /etc/vault}}
+    files:
+    - path: /tmp/nest.py
+      contents: {json.dumps(NEST)}{extra}
+"""
+
+
+def _kinds(tmp_path: Path) -> Path:
+    return write(tmp_path / "kinds.yaml", """
+workflow:
+  name: kinds
+  resources:
+    default: {cpu: 1}
+  tasks:""" + _task("deep", "python3 /tmp/nest.py 600")
+        + _task("deeper", "python3 /tmp/nest.py 2100")
+        + _task("escape", "ln -s /etc/passwd {{output}}/passwd"))
+
+
+def _cpu_used(osmo: Osmo) -> float:
+    nodes = json.loads(osmo("resource", "list", "--format", "json", check=True).out)
+    return float(sum(n["used"]["cpu"] for n in nodes))
+
+
+def test_every_output_failure_kind_finishes_and_releases_slot_and_secrets(
+        osmo: Osmo, tmp_path: Path) -> None:
+    osmo("credential", "set", "vault", "--payload", "key=s3cr3t-value", check=True)
+    r = osmo("submit", str(_kinds(tmp_path)), "--wait", timeout=120)
+    assert r.code == 1, r.out + r.err  # some of them failed, and --wait returned
+    wf = r.out.splitlines()[0].split(" - ")[1]
+    tasks = {t["name"]: t for t in osmo.query(wf)["tasks"]}
+
+    assert tasks["deep"]["status"] == "COMPLETED", tasks["deep"]  # 600 levels: walked fine
+    got = tmp_path / "got"
+    osmo("artifacts", "get", f"{wf}:deep", "-o", str(got), check=True)
+    assert (got / ("d/" * 600) / "leaf.txt").read_text() == "deep\n"
+
+    for name, words in (("deeper", "too deep"), ("escape", "outside the output folder")):
+        task = tasks[name]
+        assert task["status"] == "FAILED" and task["exit_code"] == ExitCode.OUTPUT_ERROR, task
+        assert words in task["message"], task
+    assert _cpu_used(osmo) == 0
+    for name in tasks:  # every attempt had its credential mounted, and it is gone now
+        vault = osmo.home / "runs" / wf / name / "0" / "files" / "etc" / "vault"
+        assert vault.is_dir() and list(vault.iterdir()) == [], f"{name} left its secret behind"
