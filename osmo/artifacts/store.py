@@ -14,15 +14,18 @@ Layout::
 
 How ingest stores a new file, fastest first:
 
-- **Same filesystem:** the file is hashed (one streaming read), made read-only (0o444), and
-  hard-linked into place with ``os.link``, which either creates the final name atomically or
-  fails because the blob exists: an existing blob wins, so concurrent ingests of the same
-  content are safe. No data is copied. The output file and the blob then share one inode,
-  which is why outputs are immutable once ingested: writing to the output would change the
-  blob. The data is not fsynced on this path (that would cost a full disk write of every
-  output); a blob torn by a power cut fails verification and is never used.
-- **Otherwise** (another filesystem, or hard links refused): the file is copied to
-  ``root/tmp``, fsynced, made read-only and linked into place the same way.
+- **Same filesystem, one link:** the file is hashed (one streaming read), made read-only
+  (0o444), and hard-linked into place with ``os.link``, which either creates the final name
+  atomically or fails because the blob exists: an existing blob wins, so concurrent ingests
+  of the same content are safe. No data is copied. The output file and the blob then share
+  one inode, which is why outputs are immutable once ingested: writing to the output would
+  change the blob. The data is not fsynced on this path (that would cost a full disk write
+  of every output); a blob torn by a power cut fails verification and is never used.
+- **Otherwise** (another filesystem, hard links refused, or a file that already has more
+  than one link): the file is copied to ``root/tmp``, fsynced, made read-only and linked
+  into place the same way. A file with several links is never linked or chmod-ed: its
+  other names may be outside the output folder (``ln /any/file {{output}}/x``), and ingest
+  never changes a file it does not own.
 
 A file whose blob already exists writes no data; ingest only refreshes the blob's ctime (a
 ``chmod`` to 0o444) so that :meth:`ArtifactStore.gc`'s grace period covers it until the caller
@@ -158,8 +161,8 @@ class ArtifactStore:
 
     def _ingest_file(self, rel: str, src: str) -> Entry:
         """Hash one file and make sure its blob exists."""
-        try:
-            f = open(src, "rb", buffering=0)
+        try:  # O_NOFOLLOW: a symlink swapped in since the scan is never followed
+            f = open(os.open(src, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC), "rb", buffering=0)
         except PermissionError as exc:
             raise OutputRejected(rel, f"cannot be read ({exc.strerror}); make it readable "
                                  "by the worker") from None
@@ -182,8 +185,12 @@ class ArtifactStore:
 
     def _store_new(self, rel: str, src: str, f: FileIO, before: os.stat_result,
                    blob: Path) -> None:
-        """Publish a blob for the open file ``f``: by hard link if possible, else by copy."""
-        if before.st_dev == self._dev:
+        """Publish a blob for the open file ``f``: by hard link if possible, else by copy.
+
+        A file with more than one link is always copied: its other names may lie outside the
+        output folder (a task can hard-link any file it can reach, even the state store), and
+        linking or chmod-ing its inode would change that file and serve it as a blob."""
+        if before.st_dev == self._dev and before.st_nlink == 1:
             try:
                 os.fchmod(f.fileno(), 0o444)  # before the link: a blob is never writable
                 if link(src, blob) and os.stat(blob).st_ino != before.st_ino:

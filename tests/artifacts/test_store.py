@@ -77,6 +77,22 @@ def test_same_filesystem_ingest_links_and_makes_outputs_read_only(
     assert not list((store.root / "tmp").iterdir())
 
 
+def test_a_file_with_several_links_is_copied_and_left_alone(store: ArtifactStore,
+                                                            tmp_path: Path) -> None:
+    outside = tmp_path / "outside"
+    outside.write_bytes(b"someone else's")
+    outside.chmod(0o600)
+    out = tmp_path / "out"
+    out.mkdir()
+    os.link(outside, out / "f")
+    store.ingest(out)
+    blob = store.path(_digest(b"someone else's"))
+    assert os.stat(blob).st_ino != os.stat(outside).st_ino  # a copy
+    assert stat.S_IMODE(os.stat(outside).st_mode) == 0o600  # never chmod-ed
+    outside.write_bytes(b"changed")
+    assert store.read(_digest(b"someone else's")) == b"someone else's"
+
+
 def test_empty_folder_gives_empty_manifest(store: ArtifactStore, tmp_path: Path) -> None:
     (tmp_path / "out" / "only" / "dirs").mkdir(parents=True)
     assert store.ingest(tmp_path / "out") == Manifest(())

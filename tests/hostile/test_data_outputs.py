@@ -6,8 +6,12 @@ credential files are deleted (issue 11, item 2; items 6 and the output limit add
 from __future__ import annotations
 
 import json
+from collections.abc import Iterator
 from pathlib import Path
 
+import pytest
+
+from osmo.artifacts.fsops import remove_tree
 from osmo.status import ExitCode
 from tests.conftest import Osmo, write
 
@@ -20,6 +24,15 @@ for _ in range(int(sys.argv[1])):
     os.chdir("d")
 open("leaf.txt", "w").write("deep\\n")
 """
+
+
+@pytest.fixture
+def deep(osmo: Osmo, tmp_path: Path) -> Iterator[None]:
+    """Removes the deep trees after the server stopped (pytest's cleanup would recurse)."""
+    yield
+    osmo.stop_server()
+    for child in tmp_path.iterdir():
+        remove_tree(child, ignore_errors=True)
 
 
 def _task(name: str, command: str, extra: str = "") -> str:
@@ -50,7 +63,7 @@ def _cpu_used(osmo: Osmo) -> float:
 
 
 def test_every_output_failure_kind_finishes_and_releases_slot_and_secrets(
-        osmo: Osmo, tmp_path: Path) -> None:
+        osmo: Osmo, tmp_path: Path, deep: None) -> None:
     osmo("credential", "set", "vault", "--payload", "key=s3cr3t-value", check=True)
     r = osmo("submit", str(_kinds(tmp_path)), "--wait", timeout=120)
     assert r.code == 1, r.out + r.err  # some of them failed, and --wait returned
@@ -70,3 +83,32 @@ def test_every_output_failure_kind_finishes_and_releases_slot_and_secrets(
     for name in tasks:  # every attempt had its credential mounted, and it is gone now
         vault = osmo.home / "runs" / wf / name / "0" / "files" / "etc" / "vault"
         assert vault.is_dir() and list(vault.iterdir()) == [], f"{name} left its secret behind"
+
+
+def test_a_hard_link_to_an_outside_file_is_copied_never_changed(osmo: Osmo,
+                                                                tmp_path: Path) -> None:
+    outside = tmp_path / "outside.txt"
+    outside.write_text("before\n")
+    outside.chmod(0o644)
+    osmo("server", "start", check=True)
+    db = osmo.home / "state.db"
+    db_mode = db.stat().st_mode
+    spec = write(tmp_path / "link.yaml", f"""
+workflow:
+  name: links
+  tasks:
+  - name: t
+    command: [sh, -c, "ln {outside} {{{{output}}}}/outside.txt && ln {db} {{{{output}}}}/db"]
+""")
+    r = osmo("submit", str(spec), "--wait", timeout=60)
+    assert r.code == 0, r.out + r.err
+    wf = r.out.splitlines()[0].split(" - ")[1]
+    assert db.stat().st_mode == db_mode  # never chmod-ed
+    assert outside.stat().st_mode & 0o777 == 0o644
+    blobs = osmo.home / "artifacts" / "blobs"
+    assert outside.stat().st_ino not in {p.stat().st_ino for p in blobs.rglob("*")}
+    outside.write_text("changed later\n")  # the outside file is still its owner's to change
+    got = tmp_path / "got"
+    osmo("artifacts", "get", f"{wf}:t", "-o", str(got), check=True)
+    assert (got / "outside.txt").read_text() == "before\n"  # the artifact did not change
+    assert _cpu_used(osmo) == 0

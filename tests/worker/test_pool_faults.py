@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 
 from osmo.artifacts import ArtifactStore, Manifest
+from osmo.artifacts.fsops import remove_tree
 from osmo.scheduler.types import AttemptExited, PrepareAttempt
 from osmo.worker.pool import LocalPool
 from tests.worker.test_pool import Events, sh
@@ -58,13 +59,14 @@ def test_deep_output_trees_finish(tmp_path: Path, depth: int) -> None:
             "os.mkdir(\"d\"); os.chdir(\"d\")\\nopen(\"leaf\", \"w\").write(\"x\")'")
     try:
         final, vault = _run(pool, events, nest.replace("\\n", "\n"))
+        assert not any(vault.iterdir())
+        if depth == 600:
+            assert final.output is not None and final.manifest is not None
+            entry, = Manifest.from_json(final.manifest).entries
+            assert entry.path == "d/" * depth + "leaf"
+            assert os.path.isfile(os.path.join(final.output, entry.path))
+        else:  # deeper than the system can open by path: a clear failure, not a hang
+            assert final.output is None and "nested too deep" in final.message
     finally:
         pool.close()
-    assert not any(vault.iterdir())
-    if depth == 600:
-        assert final.output is not None and final.manifest is not None
-        entry, = Manifest.from_json(final.manifest).entries
-        assert entry.path == "d/" * depth + "leaf"
-        assert os.path.isfile(os.path.join(final.output, entry.path))
-    else:  # deeper than the system can open by path: a clear failure, not a hang
-        assert final.output is None and "nested too deep" in final.message
+        remove_tree(tmp_path / "home")  # pytest's own cleanup would recurse too deep
