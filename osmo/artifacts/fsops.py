@@ -1,5 +1,5 @@
-"""File-level primitives of the blob store: hash, publish by hard link, verified copy, and
-the tree walks every caller shares.
+"""File-level primitives of the blob store: hash, publish by hard link, and the tree walks
+every caller shares (verified copies are :mod:`osmo.artifacts.copies`).
 
 Owns the few system calls whose order matters for atomicity (``link`` publishes a complete
 file under its final name or fails because one is there) and the streaming hash loop. Every
@@ -20,9 +20,9 @@ from collections.abc import Iterator
 from io import FileIO
 from pathlib import Path
 
-from osmo.artifacts.errors import ArtifactCorrupted, OutputRejected
+from osmo.artifacts.errors import OutputRejected
 
-__all__ = ["CHUNK", "check_unchanged", "copy_verified", "files", "hash_fd", "link", "make_dirs",
+__all__ = ["CHUNK", "check_unchanged", "files", "hash_fd", "link", "make_dirs",
            "refresh", "remove_tree"]
 
 CHUNK = 1 << 20  # 1 MiB reads: large enough that sha256 (not syscalls) bounds the speed
@@ -46,34 +46,6 @@ def hash_fd(f: FileIO, size_hint: int) -> tuple[str, int]:
         h.update(view[:n])  # releases the GIL for large chunks, so threads hash in parallel
         total += n
     return "sha256:" + h.hexdigest(), total
-
-
-def copy_verified(blob: Path, digest: str, size: int, tmp: Path) -> None:
-    """Copy ``blob`` to the new file ``tmp``, hashing on the way (one read, one write).
-
-    Args:
-        blob: the blob to copy.
-        digest: the digest it must hash to.
-        size: its expected size (sizes the read buffer).
-        tmp: where to write; must not exist.
-
-    Raises:
-        ArtifactCorrupted: the blob is missing or does not hash to ``digest`` (``tmp`` may
-            then hold a partial copy; the caller removes it).
-    """
-    h = hashlib.sha256()
-    buf = bytearray(min(CHUNK, size + 1))
-    view = memoryview(buf)
-    try:
-        with open(blob, "rb", buffering=0) as src, open(tmp, "xb", buffering=0) as out:
-            while n := src.readinto(buf):
-                h.update(view[:n])
-                out.write(view[:n])
-    except FileNotFoundError:
-        raise ArtifactCorrupted(digest, str(blob), None) from None
-    actual = "sha256:" + h.hexdigest()
-    if actual != digest:
-        raise ArtifactCorrupted(digest, str(blob), actual)
 
 
 def link(src: str, blob: Path) -> bool:

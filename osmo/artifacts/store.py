@@ -29,8 +29,9 @@ How ingest stores a new file, fastest first:
 
 A file whose blob already exists writes no data; ingest only refreshes the blob's ctime (a
 ``chmod`` to 0o444) so that :meth:`ArtifactStore.gc`'s grace period covers it until the caller
-records the manifest. Reads and materialization re-hash every byte and raise
-:class:`ArtifactCorrupted` on a mismatch.
+records the manifest — after checking that the existing blob still holds its digest (a blob
+that does not is replaced). Reads and hand-outs (:mod:`osmo.artifacts.copies`) are checked
+against the digest and raise :class:`ArtifactCorrupted` on a mismatch.
 """
 
 from __future__ import annotations
@@ -42,7 +43,6 @@ import hashlib
 import os
 import shutil
 import stat
-import tempfile
 import time
 import uuid
 from collections.abc import Iterable, Iterator
@@ -51,12 +51,12 @@ from contextlib import contextmanager
 from io import FileIO
 from pathlib import Path
 
+from osmo.artifacts.copies import HandOut, Verifier
 from osmo.artifacts.errors import ArtifactCorrupted, OutputRejected
-from osmo.artifacts.fsops import (CHUNK, check_unchanged, copy_verified, files, hash_fd, link,
-                                  make_dirs, refresh, remove_tree)
+from osmo.artifacts.fsops import (CHUNK, check_unchanged, files, hash_fd, link, refresh)
 from osmo.artifacts.manifest import Entry, Manifest, check_digest
 from osmo.artifacts.scan import scan
-from osmo.errors import NotFoundError, UsageError
+from osmo.errors import UsageError
 
 __all__ = ["DEFAULT_GRACE", "ArtifactStore"]
 
@@ -66,8 +66,9 @@ DEFAULT_GRACE = 3600.0
 _PARALLEL_SIZE = 4 << 20  # files this large are hashed on a thread pool
 
 
-class ArtifactStore:
-    """Blobs named by their sha256, written once and never modified.
+class ArtifactStore(HandOut):
+    """Blobs named by their sha256, written once and never modified; handed out as checked
+    copies or links (:class:`~osmo.artifacts.copies.HandOut`).
 
     Args:
         root: the store's folder (``OSMO_HOME/artifacts``); created if missing.
@@ -80,6 +81,7 @@ class ArtifactStore:
         self._blobs.mkdir(parents=True, exist_ok=True)
         self._tmp.mkdir(exist_ok=True)
         self._dev = os.stat(self._blobs).st_dev
+        self._verifier = Verifier()
 
     # -- queries -----------------------------------------------------------------------------
 
@@ -97,10 +99,14 @@ class ArtifactStore:
         return self.path(digest).is_file()
 
     def verify(self, digest: str) -> bool:
-        """Re-hash the blob for ``digest``: ``True`` when it exists and matches (fsck, gc)."""
+        """Re-hash the blob for ``digest``: ``True`` when it exists and matches."""
         try:
             with open(self.path(digest), "rb", buffering=0) as f:
-                return hash_fd(f, CHUNK)[0] == digest
+                before = os.fstat(f.fileno())
+                ok = hash_fd(f, before.st_size)[0] == digest
+                if ok and os.fstat(f.fileno()).st_ctime_ns == before.st_ctime_ns:
+                    self._verifier.note(digest, before)
+                return ok
         except FileNotFoundError:
             return False
 
@@ -175,13 +181,27 @@ class ArtifactStore:
                 existing: os.stat_result | None = os.stat(blob)
             except FileNotFoundError:
                 existing = None
-            if existing is not None and existing.st_size == n:
-                refresh(blob)
-            else:
-                if existing is not None:  # wrong size: certainly corrupt; replace it
+            if existing is None or existing.st_size != n or not self._reusable(
+                    blob, digest, existing):
+                if existing is not None:  # no longer holds its digest: replace it
                     blob.unlink(missing_ok=True)
+                    self._verifier.forget(digest)
                 self._store_new(rel, src, f, before, blob)
         return Entry(rel, digest, n)
+
+    def _reusable(self, blob: Path, digest: str, existing: os.stat_result) -> bool:
+        """True when the existing blob still holds ``digest`` (hashed unless known intact);
+        its ctime is then refreshed for gc's grace period."""
+        if not self._verifier.intact(digest, existing) and not self.verify(digest):
+            return False
+        refresh(blob)
+        try:
+            after = os.stat(blob)
+        except FileNotFoundError:
+            return False
+        if (after.st_mtime_ns, after.st_size) == (existing.st_mtime_ns, existing.st_size):
+            self._verifier.note(digest, after)  # only our chmod changed its ctime
+        return True
 
     def _store_new(self, rel: str, src: str, f: FileIO, before: os.stat_result,
                    blob: Path) -> None:
@@ -240,85 +260,6 @@ class ArtifactStore:
             return False
         return True
 
-    def link_tree(self, manifest: Manifest, dest: Path) -> None:
-        """Create folder ``dest`` holding the manifest's files as hard links of their blobs
-        (read-only, nothing copied; a copy, verified, where links are refused). Built beside
-        ``dest`` and renamed into place, so ``dest`` appears complete or not at all; an
-        existing ``dest`` is left as it is.
-
-        Raises:
-            ArtifactCorrupted: a blob is missing.
-        """
-        if dest.is_dir():
-            return
-        make_dirs(dest.parent)
-        build = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", dir=dest.parent))
-        try:
-            for e in manifest.entries:
-                final = build / e.path
-                make_dirs(final.parent)
-                try:
-                    os.link(self.path(e.digest), final)
-                except FileNotFoundError:
-                    raise ArtifactCorrupted(e.digest, str(self.path(e.digest)), None) from None
-                except OSError:
-                    copy_verified(self.path(e.digest), e.digest, e.size, final)
-            os.chmod(build, 0o755)
-            try:
-                os.rename(build, dest)
-            except OSError:
-                if not dest.is_dir():
-                    raise
-        finally:
-            remove_tree(build, ignore_errors=True)
-
-    # -- materialize -------------------------------------------------------------------------
-
-    def materialize(self, manifest: Manifest, dest: Path, *, only: str | None = None
-                    ) -> list[Path]:
-        """Write the manifest's files (or just ``only``) under ``dest``, verified.
-
-        Every file is first copied from its blob into a hidden staging folder inside ``dest``
-        while being re-hashed; only when all match are they renamed into place (replacing
-        existing files). So a corrupted blob leaves nothing new in ``dest``, and no file is
-        ever visible under its final name half-written. Files are not fsynced: they can
-        always be materialized again.
-
-        Args:
-            manifest: the files to write.
-            dest: the folder to write them under (created if missing).
-            only: a single entry path to write instead of all of them.
-
-        Returns:
-            The paths written, in manifest order.
-
-        Raises:
-            NotFoundError: ``only`` is not a path in the manifest.
-            ArtifactCorrupted: a blob is missing or does not match its digest.
-        """
-        entries = list(manifest.entries)
-        if only is not None:
-            entry = manifest.get(only)
-            if entry is None:
-                raise NotFoundError(f"no artifact {only!r} in manifest {manifest.digest} "
-                                    f"({len(entries)} files)")
-            entries = [entry]
-        dest = Path(dest)
-        make_dirs(dest)
-        staging = Path(tempfile.mkdtemp(prefix=".osmo-materialize-", dir=dest))
-        try:
-            staged = [_stage(self.path(e.digest), e, staging / str(i))
-                      for i, e in enumerate(entries)]
-            written = []
-            for tmp, e in zip(staged, entries, strict=True):
-                final = dest / e.path
-                make_dirs(final.parent)
-                os.replace(tmp, final)
-                written.append(final)
-            return written
-        finally:
-            remove_tree(staging, ignore_errors=True)
-
     # -- garbage collection ------------------------------------------------------------------
 
     def gc(self, referenced: Iterable[str], *, grace: float = DEFAULT_GRACE,
@@ -368,8 +309,3 @@ class ArtifactStore:
         finally:
             os.close(fd)  # closing releases the flock
 
-
-def _stage(blob: Path, entry: Entry, tmp: Path) -> Path:
-    """Copy ``entry``'s blob to ``tmp``, verified; return ``tmp``."""
-    copy_verified(blob, entry.digest, entry.size, tmp)
-    return tmp

@@ -38,6 +38,7 @@ from osmo.server.engine import Engine
 from osmo.server.isolation import reason
 from osmo.server.recovery import InFlight, kill_leftovers, quarantine, restore, split_lost
 from osmo.server.notices import Notifier
+from osmo.server.placing import output_manifests
 from osmo.server.options import add_server_options, server_kwargs
 from osmo.server.dispatch import Dispatcher
 from osmo.server.workers import WorkerHub
@@ -101,6 +102,7 @@ def serve(home: str | os.PathLike[str] | None = None, *, listen: list[str] | Non
     pool = LocalPool(home=home_path, emit=lambda ev: engine_box[0].post(ev),
                      cpus=cpus, gpus=gpus, memory=memory, artifacts=artifacts,
                      credential_for=url_credential(store),
+                     input_manifests=output_manifests(store),
                      task_secrets=store.credential) if local_pool else None
     hub = WorkerHub(link=link, post=lambda ev: engine_box[0].post(ev), store=store,
                     artifacts=artifacts, home=home_path, url_credential=url_credential(store),

@@ -10,10 +10,12 @@ resolved. Runs on the engine thread only; must not touch the scheduler.
 
 from __future__ import annotations
 
+import functools
 import logging
 from collections.abc import Callable
 from typing import Any
 
+from osmo.artifacts import Manifest
 from osmo.errors import OsmoError
 from osmo.record import LineageInput
 from osmo.scheduler.types import (
@@ -31,7 +33,7 @@ from osmo.server.provenance import Provenance
 from osmo.spec.model import WorkflowSpec
 from osmo.store.sqlite import Store
 
-__all__ = ["Placements"]
+__all__ = ["Placements", "output_manifests"]
 
 log = logging.getLogger("osmo.server")
 
@@ -111,3 +113,20 @@ class Placements:
                       AttemptExited(cmd.attempt_id, 0, hit.output_path, message,
                                     manifest=hit.manifest_body, cached=True)):
             self._post(event)
+
+
+def output_manifests(store: Store) -> Callable[[str], Manifest | None]:
+    """``folder → manifest`` of recorded output folders (task outputs, dataset versions): how
+    a pool on this host finds what to copy for an attempt's inputs. Parsed manifests are
+    kept by digest (a fan-out reads the same one a thousand times)."""
+
+    @functools.lru_cache(maxsize=256)
+    def parsed(digest: str) -> Manifest | None:
+        body = store.manifest_body(digest)
+        return Manifest.from_json(body) if body is not None else None
+
+    def lookup(ref: str) -> Manifest | None:
+        found = store.output_of(ref)
+        return parsed(found[0]) if found is not None else None
+
+    return lookup

@@ -43,6 +43,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from osmo.artifacts import ArtifactStore
+from osmo.artifacts.fsops import remove_tree
 from osmo.errors import OsmoError
 from osmo.runtime.process import (
     ProcessHandle,
@@ -68,8 +69,9 @@ from osmo.worker.machine import detect_capacity, raise_fd_limit
 from osmo.worker.live import AttemptState, LiveAttempt
 from osmo.worker.reactor import Reactor
 from osmo.worker.secrets import SecretLookup, Secrets, gather
-from osmo.worker.transfer import CredentialLookup, DeliveryError, deliver, fetch_inputs
-from osmo.worker.workdir import AttemptDirs, Launch, prepare, remove_secret_files
+from osmo.worker.transfer import (CredentialLookup, DeliveryError, ManifestLookup, deliver,
+                                  make_ready)
+from osmo.worker.workdir import AttemptDirs, Launch, remove_secret_files
 
 __all__ = ["LocalPool", "kill_stale", "process_start_time"]
 
@@ -95,6 +97,8 @@ class LocalPool:
         artifacts: where promoted outputs are ingested (content-addressed, verified); the
             exit report then carries the output's manifest. None: outputs are not ingested.
         credential_for: ``url -> credential`` for ``url`` inputs and outputs.
+        input_manifests: input reference → its manifest, for inputs that are artifacts; each
+            attempt then gets its own checked copy of them (``transfer.copy_inputs``).
         task_secrets: credential name → payload, for tasks' ``credentials:`` when
             ``prepare`` is not given them.
         log_sink: also gets ``(attempt id, records)`` for every log record written.
@@ -115,6 +119,7 @@ class LocalPool:
         env: Mapping[str, str] | None = None,
         artifacts: ArtifactStore | None = None,
         credential_for: CredentialLookup | None = None,
+        input_manifests: ManifestLookup | None = None,
         task_secrets: SecretLookup | None = None,
         log_sink: Callable[[str, bytes], None] | None = None,
     ) -> None:
@@ -129,6 +134,7 @@ class LocalPool:
         self._env = dict(os.environ if env is None else env)
         self._artifacts = artifacts
         self._credential_for = credential_for
+        self._input_manifests = input_manifests
         self._task_secrets = task_secrets
         self._log_sink = log_sink
         self._attempts: dict[str, LiveAttempt] = {}
@@ -202,10 +208,11 @@ class LocalPool:
         """I/O thread: make the folders and files; hand the outcome back to the reactor."""
         try:
             dirs = AttemptDirs.at(self.home, cmd.workflow_id, cmd.task, cmd.retry)
-            cmd = fetch_inputs(cmd, task, dirs, self._credential_for)
             if secrets is None:
                 secrets = gather(task, self._task_secrets)
-            launch = prepare(dirs, cmd, task, self._env, secrets)
+            launch = make_ready(dirs, cmd, task, env=self._env, secrets=secrets,
+                                credential_for=self._credential_for, artifacts=self._artifacts,
+                                input_manifests=self._input_manifests)
         except Exception as exc:  # every prepare must get its one final report
             message = str(exc) if isinstance(exc, OsmoError) else f"cannot prepare: {exc!r}"
             self._reactor.call_soon(self._prepared, cmd, task, None, None, message)
@@ -390,12 +397,21 @@ class LocalPool:
             attempt.log.close()
         finally:  # a log that cannot be written must not keep the report (or a secret) back
             remove_secret_files(attempt.launch)
+            self._drop_scratch(attempt.launch)
             self._attempts.pop(attempt.id, None)
             with self._pids_lock:
                 self._pids.pop(attempt.id, None)
             self._remember(attempt.id)
             if event is not None:
                 self._emit(event)
+
+    def _drop_scratch(self, launch: Launch) -> None:
+        """Delete an ended attempt's large input copies, off the reactor thread."""
+        for folder in launch.scratch:
+            try:
+                self._io.submit(remove_tree, folder, ignore_errors=True)
+            except RuntimeError:  # closing: they go when the attempt is prepared again
+                return
 
     def _remember(self, attempt_id: str) -> None:
         self._finished[attempt_id] = None

@@ -4,6 +4,8 @@ Layout, one folder per attempt::
 
     <home>/runs/<workflow_id>/<task>/<retry>/
         work/            the command's working folder (cwd)
+        inputs/<name>/   the attempt's own checked copy of each artifact input
+                         (``osmo.worker.transfer.copy_inputs``)
         files/           private root for absolute ``files:`` paths and credential mounts
                          (``OSMO_FILES_ROOT``)
         output.partial/  what ``{{output}}`` and ``OSMO_OUTPUT`` point to while running
@@ -113,6 +115,11 @@ class AttemptDirs:
         return self.root / "files"
 
     @property
+    def inputs(self) -> Path:
+        """The attempt's own copies of its artifact inputs, one folder per input."""
+        return self.root / "inputs"
+
+    @property
     def output_partial(self) -> Path:
         """The output folder while the command runs."""
         return self.root / "output.partial"
@@ -141,6 +148,7 @@ class Launch:
     env: dict[str, str] = field(repr=False)
     secrets: tuple[str, ...] = field(default=(), repr=False)
     secret_files: tuple[Path, ...] = ()
+    scratch: tuple[Path, ...] = ()  # deleted when the attempt ends (large input copies)
 
 
 def prepare(
