@@ -25,6 +25,7 @@ from __future__ import annotations
 import fcntl
 import hashlib
 import os
+import stat
 import tempfile
 import threading
 import time
@@ -34,8 +35,8 @@ from pathlib import Path
 
 from osmo.artifacts.errors import ArtifactCorrupted
 from osmo.artifacts.fsops import CHUNK, hash_fd, make_dirs, remove_tree
-from osmo.artifacts.manifest import Entry, Manifest
-from osmo.errors import NotFoundError
+from osmo.artifacts.manifest import Entry, Manifest, printable
+from osmo.errors import NotFoundError, UsageError
 
 __all__ = ["HandOut", "Verifier", "copy_out"]
 
@@ -149,20 +150,25 @@ class HandOut:
         """Write the manifest's files (or just ``only``) under ``dest``, verified.
 
         Every file is first copied from its blob into a hidden staging folder inside ``dest``
-        while being re-hashed; only when all match are they renamed into place (replacing
-        existing files). So a corrupted blob leaves nothing new in ``dest``, and no file is
-        ever visible under its final name half-written. Files are not fsynced: they can
-        always be materialized again.
+        and checked; only when all match are they renamed into place (replacing existing
+        files). So a corrupted blob leaves nothing new in ``dest``, and no file is ever
+        visible under its final name half-written. Files are not fsynced: they can always be
+        materialized again. Nothing is written through a symlink inside ``dest``: a file
+        that is a symlink is replaced by the file, and a folder that is a symlink (or a file
+        where a folder is needed) refuses the whole call before anything is written.
 
         Args:
             manifest: the files to write.
-            dest: the folder to write them under (created if missing).
+            dest: the folder to write them under (created if missing; may itself be a
+                symlink to a folder).
             only: a single entry path to write instead of all of them.
 
         Returns:
             The paths written, in manifest order.
 
         Raises:
+            UsageError: ``dest`` exists and is not a folder (a file, a dangling symlink), or
+                a folder inside it is a symlink or a file.
             NotFoundError: ``only`` is not a path in the manifest.
             ArtifactCorrupted: a blob is missing or does not match its digest.
         """
@@ -174,21 +180,71 @@ class HandOut:
                                     f"({len(entries)} files)")
             entries = [entry]
         dest = Path(dest)
+        if os.path.lexists(dest) and not dest.is_dir():
+            raise UsageError(f"{dest} exists and is not a folder (a file, or a symlink to "
+                             "nothing); choose a folder, or remove it first")
         make_dirs(dest)
+        checked: set[str] = set()
+        for e in entries:
+            _check_parents(dest, e.path, checked)
         staging = Path(tempfile.mkdtemp(prefix=".osmo-materialize-", dir=dest))
         try:
             staged = [staging / str(i) for i in range(len(entries))]
             for tmp, e in zip(staged, entries, strict=True):
                 self._copy(e, tmp)
-            written = []
             for tmp, e in zip(staged, entries, strict=True):
-                final = dest / e.path
-                make_dirs(final.parent)
-                os.replace(tmp, final)
-                written.append(final)
-            return written
+                _place(tmp, dest, e.path)
+            return [dest / e.path for e in entries]
         finally:
             remove_tree(staging, ignore_errors=True)
+
+
+def _check_parents(dest: Path, path: str, checked: set[str]) -> None:
+    """Refuse a folder of ``path`` (under ``dest``) that exists as a symlink or a file."""
+    parts = path.split("/")[:-1]
+    for i in range(1, len(parts) + 1):
+        rel = "/".join(parts[:i])
+        if rel in checked:
+            continue
+        try:
+            mode = os.lstat(dest / rel).st_mode
+        except FileNotFoundError:
+            return  # made by _place; nothing below it can exist either
+        if not stat.S_ISDIR(mode):
+            what = "a symlink" if stat.S_ISLNK(mode) else "a file"
+            raise UsageError(f"{dest / printable(rel)} is {what} where the artifact has a "
+                             "folder; osmo never writes through a symlink inside the "
+                             "destination: remove it, or choose another folder")
+        checked.add(rel)
+
+
+def _place(tmp: Path, dest: Path, path: str) -> None:
+    """Rename ``tmp`` to ``dest/path``, opening each folder on the way without following a
+    symlink (a folder swapped for one meanwhile fails instead of being written through)."""
+    *folders, name = path.split("/")
+    fd = os.open(dest, os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC)
+    try:
+        for folder in folders:
+            try:
+                os.mkdir(folder, dir_fd=fd)
+            except FileExistsError:
+                pass
+            try:
+                inner = os.open(folder, os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW |
+                                os.O_CLOEXEC, dir_fd=fd)
+            except OSError as exc:
+                raise UsageError(f"{dest / printable(path)}: a folder on its way is not a "
+                                 f"folder any more ({exc.strerror}); nothing was written "
+                                 "through it") from None
+            os.close(fd)
+            fd = inner
+        try:
+            os.replace(tmp, name, dst_dir_fd=fd)
+        except (IsADirectoryError, NotADirectoryError):
+            raise UsageError(f"{dest / printable(path)} is a folder where the artifact has a "
+                             "file; remove it, or choose another folder") from None
+    finally:
+        os.close(fd)
 
 
 def copy_out(blob: Path, digest: str, size: int, dest: Path, verifier: Verifier) -> None:

@@ -55,3 +55,21 @@ def test_a_changed_blob_is_replaced_not_reused_by_the_next_ingest(store: Artifac
     assert store.read(_digest(b"original\n")) == b"original\n"  # healed by the new output
     store.copy_tree(m, tmp_path / "copy")
     assert (tmp_path / "copy" / "data.txt").read_bytes() == b"original\n"
+
+
+def test_materialize_never_writes_through_a_symlink(store: ArtifactStore, tmp_path: Path) -> None:
+    from osmo.errors import UsageError
+
+    m = store.ingest(_write(tmp_path / "out", {"sub/x": b"x", "top": b"t"}))
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    dest = tmp_path / "dest"
+    dest.mkdir()
+    (dest / "sub").symlink_to(outside)
+    with pytest.raises(UsageError, match="symlink"):
+        store.materialize(m, dest)
+    assert list(outside.iterdir()) == [] and not (dest / "top").exists()
+    (tmp_path / "file").write_text("keep")
+    with pytest.raises(UsageError, match="not a folder"):
+        store.materialize(m, tmp_path / "file")
+    assert (tmp_path / "file").read_text() == "keep"
