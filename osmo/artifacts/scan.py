@@ -23,7 +23,7 @@ from osmo.artifacts.manifest import printable
 
 __all__ = ["scan"]
 
-def scan(folder: str) -> list[tuple[str, str, int]]:
+def scan(folder: str, *, max_files: int | None = None) -> list[tuple[str, str, int]]:
     """List every file an ingest of ``folder`` stores, following the module's symlink policy.
 
     The walk is iterative (an explicit stack), so any depth is walked; a folder whose path
@@ -31,13 +31,15 @@ def scan(folder: str) -> list[tuple[str, str, int]]:
 
     Args:
         folder: the output folder.
+        max_files: stop (and reject the output) once more files than this are listed.
 
     Returns:
         ``(relative posix path, real path to read, size)`` per file, in no particular order.
 
     Raises:
         OutputRejected: a symlink leaves the folder, dangles or loops, an entry is not a
-            regular file, folder or symlink, or the tree is nested too deep to open.
+            regular file, folder or symlink, the tree is nested too deep to open, or it
+            lists more than ``max_files`` files.
     """
     root = os.path.realpath(folder)
     out: list[tuple[str, str, int]] = []
@@ -53,6 +55,10 @@ def scan(folder: str) -> list[tuple[str, str, int]]:
         for name, target, st in _entries(root, real, rel):
             if stat.S_ISREG(st.st_mode):
                 out.append((name, target, st.st_size))
+                if max_files is not None and len(out) > max_files:
+                    raise OutputRejected("", f"lists more than {max_files} files (symlinks "
+                                         "to folders count their files again); write fewer "
+                                         "or pack them into an archive")
             elif stat.S_ISDIR(st.st_mode):
                 if target in walking:
                     raise OutputRejected(name, "is a symlink that loops back into a folder "

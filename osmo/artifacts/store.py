@@ -58,10 +58,14 @@ from osmo.artifacts.manifest import Entry, Manifest, check_digest
 from osmo.artifacts.scan import scan
 from osmo.errors import UsageError
 
-__all__ = ["DEFAULT_GRACE", "ArtifactStore"]
+__all__ = ["DEFAULT_GRACE", "DEFAULT_MAX_FILES", "ArtifactStore"]
 
 DEFAULT_GRACE = 3600.0
 """Seconds a blob is safe from :meth:`ArtifactStore.gc` after it was stored or deduplicated."""
+
+DEFAULT_MAX_FILES = 1_000_000
+"""Files one output may list by default (bounds a tree of symlinks that lists itself over and
+over: each name is a file ``artifacts get`` would write)."""
 
 _PARALLEL_SIZE = 4 << 20  # files this large are hashed on a thread pool
 
@@ -130,15 +134,21 @@ class ArtifactStore(HandOut):
 
     # -- ingest ------------------------------------------------------------------------------
 
-    def ingest(self, folder: Path) -> Manifest:
+    def ingest(self, folder: Path, *, max_bytes: int | None = None,
+               max_files: int | None = DEFAULT_MAX_FILES) -> Manifest:
         """Store every file under ``folder`` and return its manifest.
 
         Files are hashed with streaming 1 MiB reads and stored deduplicated (see the module
         docstring). New blobs on the same filesystem are hard links to the output files,
-        which become read-only. Symlinks follow :func:`osmo.artifacts.scan.scan`'s policy.
+        which become read-only. Symlinks follow :func:`osmo.artifacts.scan.scan`'s policy;
+        a file listed under several names (through symlinks) is read once. The limits are
+        checked on the listing, before anything is read or stored.
 
         Args:
             folder: the output folder; entry paths are relative to it.
+            max_bytes: the most bytes the listed files may hold (None: no limit). Sizes are
+                the files' lengths, so a sparse file counts its holes.
+            max_files: the most files the output may list (None: no limit).
 
         Returns:
             The manifest of every regular file under ``folder``.
@@ -146,24 +156,43 @@ class ArtifactStore(HandOut):
         Raises:
             UsageError: ``folder`` is not a folder.
             OutputRejected: a symlink leaves the folder, dangles or loops, an entry is not a
-                regular file, or a file changed while it was being stored.
+                regular file, a file changed while it was being stored, or the output holds
+                more than ``max_bytes`` or ``max_files``.
         """
         if not Path(folder).is_dir():
             raise UsageError(f"cannot ingest {folder}: not a folder")
-        files = scan(str(folder))
-        big = [(rel, src) for rel, src, size in files if size >= _PARALLEL_SIZE]
-        small = [(rel, src) for rel, src, size in files if size < _PARALLEL_SIZE]
+        files = scan(str(folder), max_files=max_files)
+        total = sum(size for _rel, _src, size in files)
+        if max_bytes is not None and total > max_bytes:
+            raise OutputRejected("", f"holds {total} bytes in {len(files)} files, more than "
+                                 f"the task's storage limit of {max_bytes} bytes (resources: "
+                                 "storage); write less, or raise the limit")
+        first: dict[str, tuple[str, int]] = {}  # real file → (first name listed, size)
+        for rel, src, size in files:
+            first.setdefault(src, (rel, size))
+        stored = dict(zip(first, self._ingest_all(
+            [(rel, src, size) for src, (rel, size) in first.items()]), strict=True))
+        return Manifest(tuple(Entry(rel, stored[src].digest, stored[src].size)
+                              for rel, src, _size in files))
+
+    def _ingest_all(self, files: list[tuple[str, str, int]]) -> list[Entry]:
+        """Ingest each ``(name, real path, size)``; entries in the same order."""
         with self._lock(exclusive=False):
+            big = [i for i, (_rel, _src, size) in enumerate(files) if size >= _PARALLEL_SIZE]
             if len(big) < 2:
-                return Manifest(tuple(self._ingest_file(rel, src) for rel, src in big + small))
+                return [self._ingest_file(rel, src) for rel, src, _size in files]
             # hashlib releases the GIL, so large files hash in parallel; small ones are
             # syscall-bound and run faster on this thread than through a pool
             workers = min(len(big), os.cpu_count() or 1, 8)
+            out: list[Entry | None] = [None] * len(files)
             with ThreadPoolExecutor(workers, thread_name_prefix="osmo-ingest") as pool:
-                futures = [pool.submit(self._ingest_file, rel, src) for rel, src in big]
-                entries = [self._ingest_file(rel, src) for rel, src in small]
-                entries += [f.result() for f in futures]
-        return Manifest(tuple(entries))
+                futures = {i: pool.submit(self._ingest_file, *files[i][:2]) for i in big}
+                for i, (rel, src, _size) in enumerate(files):
+                    if i not in futures:
+                        out[i] = self._ingest_file(rel, src)
+                for i, future in futures.items():
+                    out[i] = future.result()
+            return [e for e in out if e is not None]
 
     def _ingest_file(self, rel: str, src: str) -> Entry:
         """Hash one file and make sure its blob exists."""

@@ -84,7 +84,8 @@ class Placements:
             self._hits[cmd.attempt_id] = hit
 
     def prepare(self, cmd: PrepareAttempt) -> None:
-        """Execute a placement: prepare it, complete it from the cache, or fail its start."""
+        """Execute a placement: prepare it (its output limited to the task's ``storage``),
+        complete it from the cache, or fail its start."""
         ready = self._ready.pop(cmd.attempt_id, cmd)
         hit = self._hits.pop(cmd.attempt_id, None)
         if isinstance(ready, str):
@@ -92,7 +93,10 @@ class Placements:
         elif hit is not None:
             self._replay(ready, hit)
         else:
-            self._executor.prepare(ready, self._specs[ready.workflow_id].task(ready.task))
+            spec = self._specs[ready.workflow_id]
+            task = spec.task(ready.task)
+            self._executor.prepare(ready, task,
+                                   max_output_bytes=spec.resource_for(task).storage)
 
     def _cache_key(self, cmd: PrepareAttempt,
                    sources: list[LineageInput | None]) -> str | None:

@@ -203,13 +203,15 @@ class WorkerHub:
 
     # ------------------------------------------------------------------ orders
 
-    def prepare(self, cmd: PrepareAttempt, task: TaskSpec) -> None:
+    def prepare(self, cmd: PrepareAttempt, task: TaskSpec, *,
+                max_output_bytes: int | None = None) -> None:
         """Send a placement to its worker (engine thread)."""
         try:
             order = self._order(cmd, task)
         except (OsmoError, OSError) as exc:
             self._post(AttemptStartFailed(cmd.attempt_id, str(exc)))
             return
+        order["max_output_bytes"] = max_output_bytes
         self._send(cmd.node_id, order)
 
     def _order(self, cmd: PrepareAttempt, task: TaskSpec) -> dict[str, Any]:

@@ -40,10 +40,12 @@ import signal
 import threading
 from collections.abc import Callable, Mapping
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import replace
 from pathlib import Path
 
 from osmo.artifacts import ArtifactStore
 from osmo.artifacts.fsops import remove_tree
+from osmo.artifacts.store import DEFAULT_MAX_FILES
 from osmo.errors import OsmoError
 from osmo.runtime.process import (
     ProcessHandle,
@@ -99,6 +101,7 @@ class LocalPool:
         credential_for: ``url -> credential`` for ``url`` inputs and outputs.
         input_manifests: input reference → its manifest, for inputs that are artifacts; each
             attempt then gets its own checked copy of them (``transfer.copy_inputs``).
+        max_output_files: the most files one attempt's output may hold.
         task_secrets: credential name → payload, for tasks' ``credentials:`` when
             ``prepare`` is not given them.
         log_sink: also gets ``(attempt id, records)`` for every log record written.
@@ -120,6 +123,7 @@ class LocalPool:
         artifacts: ArtifactStore | None = None,
         credential_for: CredentialLookup | None = None,
         input_manifests: ManifestLookup | None = None,
+        max_output_files: int | None = DEFAULT_MAX_FILES,
         task_secrets: SecretLookup | None = None,
         log_sink: Callable[[str, bytes], None] | None = None,
     ) -> None:
@@ -135,6 +139,7 @@ class LocalPool:
         self._artifacts = artifacts
         self._credential_for = credential_for
         self._input_manifests = input_manifests
+        self._max_output_files = max_output_files
         self._task_secrets = task_secrets
         self._log_sink = log_sink
         self._attempts: dict[str, LiveAttempt] = {}
@@ -154,13 +159,14 @@ class LocalPool:
                                    memory=self._memory)
         return Node(id=self._node_id, pool=self._pool, capacity=capacity)
 
-    def prepare(self, cmd: PrepareAttempt, task: TaskSpec,
-                secrets: Secrets | None = None) -> None:
+    def prepare(self, cmd: PrepareAttempt, task: TaskSpec, secrets: Secrets | None = None,
+                *, max_output_bytes: int | None = None) -> None:
         """Prepare an attempt's folder; later emits AttemptPrepared or AttemptStartFailed.
 
         ``secrets``: payloads of the credentials ``task`` names (None: ask ``task_secrets``).
+        ``max_output_bytes``: the task's ``storage`` request; a larger output fails it.
         """
-        self._reactor.call_soon(self._prepare, cmd, task, secrets)
+        self._reactor.call_soon(self._prepare, cmd, task, secrets, max_output_bytes)
 
     def run(self, attempt_id: str) -> None:
         """Start a prepared attempt: AttemptStarted, then one AttemptExited.
@@ -196,15 +202,17 @@ class LocalPool:
 
     # -------------------------------------------------------------- reactor thread
 
-    def _prepare(self, cmd: PrepareAttempt, task: TaskSpec, secrets: Secrets | None) -> None:
+    def _prepare(self, cmd: PrepareAttempt, task: TaskSpec, secrets: Secrets | None,
+                 max_output_bytes: int | None) -> None:
         if cmd.attempt_id in self._attempts or cmd.attempt_id in self._preparing:
             _log.warning("attempt %s is already active; prepare ignored", cmd.attempt_id)
             return
         self._finished.pop(cmd.attempt_id, None)
         self._preparing[cmd.attempt_id] = None
-        self._io.submit(self._prepare_io, cmd, task, secrets)
+        self._io.submit(self._prepare_io, cmd, task, secrets, max_output_bytes)
 
-    def _prepare_io(self, cmd: PrepareAttempt, task: TaskSpec, secrets: Secrets | None) -> None:
+    def _prepare_io(self, cmd: PrepareAttempt, task: TaskSpec, secrets: Secrets | None,
+                    max_output_bytes: int | None) -> None:
         """I/O thread: make the folders and files; hand the outcome back to the reactor."""
         try:
             dirs = AttemptDirs.at(self.home, cmd.workflow_id, cmd.task, cmd.retry)
@@ -213,6 +221,7 @@ class LocalPool:
             launch = make_ready(dirs, cmd, task, env=self._env, secrets=secrets,
                                 credential_for=self._credential_for, artifacts=self._artifacts,
                                 input_manifests=self._input_manifests)
+            launch = replace(launch, max_output_bytes=max_output_bytes)
         except Exception as exc:  # every prepare must get its one final report
             message = str(exc) if isinstance(exc, OsmoError) else f"cannot prepare: {exc!r}"
             self._reactor.call_soon(self._prepared, cmd, task, None, None, message)
@@ -365,7 +374,9 @@ class LocalPool:
         try:
             ref, manifest = deliver(attempt.dirs, attempt.task, checkpoints=attempt.checkpoints,
                                     artifacts=self._artifacts,
-                                    credential_for=self._credential_for)
+                                    credential_for=self._credential_for,
+                                    max_bytes=attempt.launch.max_output_bytes,
+                                    max_files=self._max_output_files)
             event = AttemptExited(attempt.id, code, ref, manifest=manifest,
                                   command=tuple(attempt.launch.argv))
         except Exception as exc:  # noqa: BLE001 - DeliveryError, or a bug: still one report

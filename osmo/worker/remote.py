@@ -290,7 +290,9 @@ class RemoteWorker:
         with self._lock:
             pending = self._pending.pop(cmd.attempt_id, _Pending())
             self._active.add(cmd.attempt_id)
-        self.pool.prepare(cmd, task, order.get("secrets") or {})
+        limit = order.get("max_output_bytes")
+        self.pool.prepare(cmd, task, order.get("secrets") or {},
+                          max_output_bytes=limit if isinstance(limit, int) else None)
         if pending.kill is not None:
             self.pool.kill(cmd.attempt_id, pending.kill)
         elif pending.run:

@@ -28,6 +28,7 @@ from typing import Protocol
 
 from osmo.artifacts import ArtifactStore, Manifest
 from osmo.artifacts.fsops import make_dirs, remove_tree
+from osmo.artifacts.store import DEFAULT_MAX_FILES
 from osmo.errors import OsmoError
 from osmo.scheduler.types import PrepareAttempt
 from osmo.spec.model import TaskSpec
@@ -163,10 +164,12 @@ class _FinalCheckpoint(Protocol):
 
 
 def deliver(dirs: AttemptDirs, task: TaskSpec, *, checkpoints: _FinalCheckpoint | None,
-            artifacts: ArtifactStore | None,
-            credential_for: CredentialLookup | None) -> tuple[str, str | None]:
+            artifacts: ArtifactStore | None, credential_for: CredentialLookup | None,
+            max_bytes: int | None = None,
+            max_files: int | None = DEFAULT_MAX_FILES) -> tuple[str, str | None]:
     """Finish a successful attempt's outputs, in order: last checkpoint upload, promotion of
-    ``output.partial`` to ``output``, ingest, ``url`` uploads (I/O thread).
+    ``output.partial`` to ``output``, ingest (within ``max_bytes`` and ``max_files``), ``url``
+    uploads (I/O thread).
 
     Returns:
         the output reference and its manifest JSON (None without an artifact store).
@@ -179,7 +182,8 @@ def deliver(dirs: AttemptDirs, task: TaskSpec, *, checkpoints: _FinalCheckpoint 
         raise DeliveryError(f"final checkpoint upload failed: {failed}")
     try:
         ref = promote(dirs)
-        manifest = artifacts.ingest(Path(ref)) if artifacts else None
+        manifest = artifacts.ingest(Path(ref), max_bytes=max_bytes,
+                                    max_files=max_files) if artifacts else None
     except (OSError, OsmoError) as exc:
         raise DeliveryError(f"outputs could not be promoted: {exc}") from exc
     try:

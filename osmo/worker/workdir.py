@@ -149,6 +149,7 @@ class Launch:
     secrets: tuple[str, ...] = field(default=(), repr=False)
     secret_files: tuple[Path, ...] = ()
     scratch: tuple[Path, ...] = ()  # deleted when the attempt ends (large input copies)
+    max_output_bytes: int | None = None  # the task's ``storage``: its output may hold no more
 
 
 def prepare(

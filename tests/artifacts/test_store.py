@@ -311,3 +311,27 @@ def test_large_files_hashed_in_parallel_give_the_same_manifest(store: ArtifactSt
     assert [(e.path, e.digest, e.size) for e in m.entries] == sorted(
         (p, _digest(d), len(d)) for p, d in files.items())
     assert all(store.verify(e.digest) for e in m.entries)
+
+
+def test_limits_are_checked_before_anything_is_stored(store: ArtifactStore,
+                                                      tmp_path: Path) -> None:
+    out = _write(tmp_path / "out", {"a": b"x" * 600, "b": b"y" * 600})
+    with pytest.raises(OutputRejected, match="1200 bytes in 2 files, more than .* 1000 bytes"):
+        store.ingest(out, max_bytes=1000)
+    with pytest.raises(OutputRejected, match="more than 1 files"):
+        store.ingest(out, max_files=1)
+    assert not [p for p in (store.root / "blobs").rglob("*") if p.is_file()]
+    assert len(store.ingest(out, max_bytes=1200, max_files=2).entries) == 2
+
+
+def test_a_tree_of_symlinks_that_lists_itself_is_bounded(store: ArtifactStore,
+                                                         tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    for level in range(30):  # d0 → d1 twice → d2 twice ...: 2**30 names for one file
+        (out / f"d{level}").mkdir(parents=True)
+        for link in ("l1", "l2"):
+            (out / f"d{level}" / link).symlink_to(f"../d{level + 1}")
+    (out / "d30").mkdir()
+    (out / "d30" / "f").write_bytes(b"one file")
+    with pytest.raises(OutputRejected, match="more than 1000 files"):
+        store.ingest(out, max_files=1000)

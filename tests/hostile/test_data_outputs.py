@@ -112,3 +112,28 @@ workflow:
     osmo("artifacts", "get", f"{wf}:t", "-o", str(got), check=True)
     assert (got / "outside.txt").read_text() == "before\n"  # the artifact did not change
     assert _cpu_used(osmo) == 0
+
+
+def test_an_output_over_the_tasks_storage_limit_fails_clearly(osmo: Osmo, tmp_path: Path) -> None:
+    spec = write(tmp_path / "big.yaml", """
+workflow:
+  name: sizes
+  resources:
+    default: {cpu: 1, storage: 4Ki}
+  tasks:
+  - name: small
+    command: [sh, -c, "head -c 3000 /dev/zero > {{output}}/a"]
+  - name: big
+    command: [sh, -c, "head -c 3000 /dev/zero > {{output}}/a; head -c 3000 /dev/urandom > {{output}}/b"]
+""")
+    r = osmo("submit", str(spec), "--wait", timeout=60)
+    assert r.code == 1, r.out + r.err
+    wf = r.out.splitlines()[0].split(" - ")[1]
+    tasks = {t["name"]: t for t in osmo.query(wf)["tasks"]}
+    assert tasks["small"]["status"] == "COMPLETED"
+    big = tasks["big"]
+    assert big["status"] == "FAILED" and big["exit_code"] == ExitCode.OUTPUT_ERROR, big
+    assert "6000 bytes in 2 files" in big["message"] and "storage" in big["message"], big
+    assert _cpu_used(osmo) == 0
+    blobs = osmo.home / "artifacts" / "blobs"
+    assert len([p for p in blobs.rglob("*") if p.is_file()]) == 1  # nothing of big was stored
