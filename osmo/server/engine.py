@@ -211,17 +211,22 @@ class Engine:
         return items
 
     def _step(self, items: list[Any]) -> bool:
-        """Apply one batch (isolating its culprit if it raises); False after ``stop()``."""
-        self._applying = items
-        try:
-            self._apply(items)
-        except Exception as exc:  # noqa: BLE001 - isolated below; only a double fault is fatal
-            log.error("applying %d event(s) failed (%s); applying them one at a time to "
-                      "isolate the cause", len(items), reason(exc), exc_info=exc)
-            self._isolate(items)
-        finally:
-            if self._inflight is not None:
-                self._inflight.clear()
+        """Apply what was queued (isolating a culprit if it raises); False after ``stop()``.
+
+        A final report (which carries a task's outputs or messages) is applied and committed
+        on its own, so the quarantine file names exactly the report being applied; the
+        other events go in batches."""
+        for part in _parts(items):
+            self._applying = part
+            try:
+                self._apply(part)
+            except Exception as exc:  # noqa: BLE001 - isolated below; only a double fault stops
+                log.error("applying %d event(s) failed (%s); applying them one at a time to "
+                          "isolate the cause", len(part), reason(exc), exc_info=exc)
+                self._isolate(part)
+            finally:
+                if self._inflight is not None:
+                    self._inflight.clear()
         self._applying = []
         return not any(item is _STOP for item in items)
 
@@ -410,3 +415,13 @@ class Engine:
         batch.attempts.append(attempt_row(self._home, attempt_id, task.node_id, pid,
                                                 process_start_time(pid)))
 
+
+def _parts(items: list[Any]) -> list[list[Any]]:
+    """``items`` cut so that each attempt's exit or start failure stands alone."""
+    parts: list[list[Any]] = [[]]
+    for item in items:
+        if isinstance(item, (AttemptExited, AttemptStartFailed)):
+            parts += [[item], []]
+        else:
+            parts[-1].append(item)
+    return [p for p in parts if p] or [[]]

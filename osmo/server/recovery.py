@@ -5,16 +5,16 @@ commands runs. So a scheduler built from the store (:func:`restore`) is exactly 
 workers were last told about. The server does this when it starts; the engine does it when
 applying a batch raised (``osmo.server.engine``), to drop the half-applied batch from memory.
 
-Quarantine: before the engine applies attempts' final reports (exits, start failures: the
-reports that carry a task's outputs and messages into the server), it writes their ids to
-``OSMO_HOME/applying.json`` (:class:`InFlight`) and empties the file once the batch is
-committed. A file still holding ids when a server starts means the previous server died
-while applying them (a crash that no exception handler saw: a segfault, the kernel's OOM
-killer, ``kill -9`` at that very instant). Those attempts are failed with
-:data:`QUARANTINED` instead of being run again, so one attempt cannot crash a server over
-and over; ``osmo restart`` runs the task again once its cause is fixed. The file is written
-without fsync: a process crash leaves the page cache intact, and a power cut is no attempt's
-fault.
+Quarantine: the engine applies each attempt's final report (an exit or a start failure: the
+reports that carry a task's outputs and messages into the server) in a transaction of its
+own, writing its id to ``OSMO_HOME/applying.json`` (:class:`InFlight`) before and emptying
+the file once it is committed. A file still holding an id when a server starts means the
+previous server died while applying that report (a crash no exception handler saw: a
+segfault, the kernel's OOM killer, ``kill -9`` at that very instant). That attempt is failed
+with :data:`QUARANTINED` instead of being run again, so one attempt cannot crash a server
+over and over; ``osmo restart`` runs the task again once its cause is fixed. The file is
+written without fsync: a process crash leaves the page cache intact, and a power cut is no
+attempt's fault.
 
 Must not run tasks or talk to workers; it only reads the store and that one file.
 """

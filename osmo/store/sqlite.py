@@ -26,7 +26,7 @@ from osmo.errors import InfrastructureError
 from osmo.scheduler.types import Changes
 from osmo.store.lineage import LineageQueries
 from osmo.store.rows import AttemptRow, DatasetRow, LineageRow, WorkflowRow
-from osmo.store.writes import name_value, text_value, write_dataset, write_lineage
+from osmo.store.writes import text_value, write_dataset, write_lineage, write_manifest
 
 __all__ = ["AttemptRow", "DatasetRow", "LineageRow", "Store", "WorkflowRow"]
 
@@ -294,9 +294,7 @@ class Store(LineageQueries):
                         entries: tuple[tuple[str, str, int], ...], path: str) -> None:
         """Record a folder (e.g. a materialized dataset) as holding ``manifest``."""
         with self._tx() as db:
-            db.execute("INSERT OR IGNORE INTO manifests VALUES (?,?)", (manifest, body))
-            db.executemany("INSERT OR IGNORE INTO manifest_blobs VALUES (?,?,?,?)",
-                           [(manifest, name_value(p), d, s) for p, d, s in entries])
+            write_manifest(db, manifest, body, entries)
             db.execute("INSERT OR REPLACE INTO outputs VALUES (?,?,?,?,?)",
                        (workflow_id, task, "", manifest, path))
 

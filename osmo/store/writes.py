@@ -16,7 +16,7 @@ from typing import Any, Protocol
 
 from osmo.store.rows import DatasetRow, LineageRow
 
-__all__ = ["name_value", "text_value", "write_dataset", "write_lineage"]
+__all__ = ["name_value", "text_value", "write_dataset", "write_lineage", "write_manifest"]
 
 
 class _Db(Protocol):
@@ -28,10 +28,7 @@ class _Db(Protocol):
 
 def write_lineage(db: _Db, row: LineageRow) -> None:
     """Record a completed attempt's manifest, output folder, lineage, inputs and cache key."""
-    db.execute("INSERT OR IGNORE INTO manifests VALUES (?,?)", (row.manifest, row.manifest_body))
-    db.executemany("INSERT OR IGNORE INTO manifest_blobs VALUES (?,?,?,?)",
-                   [(row.manifest, name_value(path), digest, size)
-                    for path, digest, size in row.entries])
+    write_manifest(db, row.manifest, row.manifest_body, row.entries)
     db.execute("INSERT OR REPLACE INTO outputs VALUES (?,?,?,?,?)",
                (row.workflow_id, row.task, row.attempt_id, row.manifest, row.output_path))
     db.execute("INSERT OR REPLACE INTO lineage VALUES (?,?,?,?,?)",
@@ -46,13 +43,18 @@ def write_lineage(db: _Db, row: LineageRow) -> None:
 
 def write_dataset(db: _Db, ds: DatasetRow) -> None:
     """Record a new dataset version and its manifest."""
-    db.execute("INSERT OR IGNORE INTO manifests VALUES (?,?)", (ds.manifest, ds.manifest_body))
-    db.executemany("INSERT OR IGNORE INTO manifest_blobs VALUES (?,?,?,?)",
-                   [(ds.manifest, name_value(path), digest, size)
-                    for path, digest, size in ds.entries])
+    write_manifest(db, ds.manifest, ds.manifest_body, ds.entries)
     db.execute("INSERT INTO datasets VALUES (?,?,?,?,?,?,?)",
                (ds.name, ds.version, ds.manifest, ds.source_manifest, ds.attempt_id,
                 ds.created_at, json.dumps(ds.metadata)))
+
+
+def write_manifest(db: _Db, digest: str, body: str,
+                   entries: tuple[tuple[str, str, int], ...]) -> None:
+    """Record a manifest and which blob each of its names holds (kept if already there)."""
+    db.execute("INSERT OR IGNORE INTO manifests VALUES (?,?)", (digest, body))
+    db.executemany("INSERT OR IGNORE INTO manifest_blobs VALUES (?,?,?,?)",
+                   [(digest, name_value(path), blob, size) for path, blob, size in entries])
 
 
 def name_value(path: str) -> str | bytes:

@@ -397,9 +397,11 @@ class LocalPool:
         self._reactor.call_soon(self._finish, attempt, None)
 
     def _promoted(self, attempt: LiveAttempt, event: AttemptExited) -> None:
-        if event.message:
-            attempt.log.line("osmo", event.message)
-        self._finish(attempt, event)
+        try:
+            if event.message:
+                attempt.log.line("osmo", event.message)
+        finally:
+            self._finish(attempt, event)
 
     def _finish(self, attempt: LiveAttempt,
                 event: AttemptExited | AttemptStartFailed | None) -> None:

@@ -14,6 +14,7 @@ from pathlib import Path
 
 from osmo.record import read_run_record
 from tests.conftest import Osmo, write
+from tests.hostile.datarun import finished
 
 NAMES = {b"caf\xe9.csv": b"latin-1\n", "na\u00efve.txt".encode(): b"utf-8\n",
          b"d\xff/in\x01side": b"control\n", b"d\xff/new\nline": b"newline\n"}
@@ -61,9 +62,7 @@ def _tree(root: Path) -> dict[bytes, bytes]:
 
 def test_non_utf8_output_names_round_trip_and_the_server_keeps_serving(
         osmo: Osmo, tmp_path: Path) -> None:
-    r = osmo("submit", str(_spec(tmp_path)), "--wait", timeout=120)
-    assert r.code == 0, r.out + r.err
-    wf = r.out.splitlines()[0].split(" - ")[1]
+    wf = finished(osmo, _spec(tmp_path))
 
     dest = tmp_path / "got"
     got = osmo("artifacts", "get", f"{wf}:make", "-o", str(dest))
@@ -100,5 +99,4 @@ workflow:
   - name: t
     command: [sh, -c, "echo fine > {{output}}/f"]
 """)
-    r = osmo("submit", str(other), "--wait", timeout=60)
-    assert r.code == 0, r.out + r.err
+    finished(osmo, other)

@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 
 from tests.conftest import Osmo, write
+from tests.hostile.datarun import finished
 
 SPEC = """
 workflow:
@@ -22,9 +23,7 @@ workflow:
 @pytest.fixture(scope="module")
 def made(shared_osmo: Osmo, tmp_path_factory: pytest.TempPathFactory) -> str:
     spec = write(tmp_path_factory.mktemp("spec") / "s.yaml", SPEC)
-    r = shared_osmo("submit", str(spec), "--wait", timeout=60)
-    assert r.code == 0, r.out + r.err
-    return r.out.splitlines()[0].split(" - ")[1]
+    return finished(shared_osmo, spec)
 
 
 def _get(osmo: Osmo, wf: str, dest: Path, *args: str):  # type: ignore[no-untyped-def]

@@ -8,6 +8,7 @@ import hashlib
 from pathlib import Path
 
 from tests.conftest import Osmo, write
+from tests.hostile.datarun import finished, tasks
 
 PIPELINE = """
 workflow:
@@ -33,26 +34,20 @@ workflow:
 """
 
 
-def _wf(osmo: Osmo, spec: Path, *args: str, code: int = 0) -> str:
-    r = osmo("submit", str(spec), "--wait", *args, timeout=90)
-    assert r.code == code, r.out + r.err
-    return r.out.splitlines()[0].split(" - ")[1]
-
-
 def _output(osmo: Osmo, wf: str, task: str) -> Path:
-    return Path(next(t["output"] for t in osmo.query(wf)["tasks"] if t["name"] == task))
+    return Path(tasks(osmo, wf)[task]["output"])
 
 
 def test_a_task_appending_to_its_input_changes_nobody_elses(osmo: Osmo, tmp_path: Path) -> None:
     spec = write(tmp_path / "p.yaml", PIPELINE)
-    wf = _wf(osmo, spec)
+    wf = finished(osmo, spec)
     assert (_output(osmo, wf, "after") / "seen").read_text() == "original\n"
-    reader = _wf(osmo, write(tmp_path / "r.yaml", READER.format(wf=wf)))
+    reader = finished(osmo, write(tmp_path / "r.yaml", READER.format(wf=wf)))
     assert (_output(osmo, reader, "read") / "seen").read_text() == "original\n"
     got = tmp_path / "got"
     osmo("artifacts", "get", f"{wf}:make", "-o", str(got), check=True)
     assert (got / "data.txt").read_text() == "original\n"
-    again = _wf(osmo, spec)  # make is a cache hit now: its readers still get the original
+    again = finished(osmo, spec)  # make is a cache hit now: its readers still get the original
     assert (_output(osmo, again, "after") / "seen").read_text() == "original\n"
     blob = osmo.home / "artifacts" / "blobs" / "sha256" / _hex(b"original\n")[:2] / _hex(
         b"original\n")[2:]
@@ -60,13 +55,13 @@ def test_a_task_appending_to_its_input_changes_nobody_elses(osmo: Osmo, tmp_path
 
 
 def test_a_blob_that_no_longer_matches_is_never_handed_out(osmo: Osmo, tmp_path: Path) -> None:
-    wf = _wf(osmo, write(tmp_path / "p.yaml", PIPELINE))
+    wf = finished(osmo, write(tmp_path / "p.yaml", PIPELINE))
     hex_ = _hex(b"original\n")
     blob = osmo.home / "artifacts" / "blobs" / "sha256" / hex_[:2] / hex_[2:]
     blob.chmod(0o644)
     blob.write_bytes(b"tampered\n")  # what a root task could do to the store itself
-    reader = _wf(osmo, write(tmp_path / "r.yaml", READER.format(wf=wf)), code=1)
-    read = next(t for t in osmo.query(reader)["tasks"] if t["name"] == "read")
+    reader = finished(osmo, write(tmp_path / "r.yaml", READER.format(wf=wf)), code=1)
+    read = tasks(osmo, reader)["read"]
     assert read["status"] == "FAILED_START_ERROR", read
     assert f"sha256:{hex_}" in read["message"] and "now hashes to" in read["message"]
     got = osmo("artifacts", "get", f"{wf}:make", "-o", str(tmp_path / "got"))

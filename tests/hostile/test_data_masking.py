@@ -7,6 +7,7 @@ import base64
 from pathlib import Path
 
 from tests.conftest import Osmo, write
+from tests.hostile.datarun import finished
 
 TOKEN = "s3cr3t>>>???-Pa55w0rd"  # its base64 holds '+' and '/', so base64url differs
 
@@ -32,9 +33,7 @@ workflow:
     credentials: {api: {TOKEN: token}}
     command: [sh, -c, "printf %s \\"$TOKEN\\" | base64; printf %s \\"$TOKEN\\" | base64 | tr '+/' '-_' | tr -d =; printf 'user:%s' \\"$TOKEN\\" | base64; printf 'a%s' \\"$TOKEN\\" | base64 -w0 >&2; echo; echo plain $TOKEN"]
 """)
-    r = osmo("submit", str(spec), "--wait", timeout=60)
-    assert r.code == 0, r.out + r.err
-    wf = r.out.splitlines()[0].split(" - ")[1]
+    wf = finished(osmo, spec)
     logs = osmo("logs", wf, check=True).out
     assert logs.count("****") >= 5, logs
     for part in [TOKEN, *stable_parts(TOKEN.encode())]:

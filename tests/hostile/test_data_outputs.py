@@ -14,6 +14,7 @@ import pytest
 from osmo.artifacts.fsops import remove_tree
 from osmo.status import ExitCode
 from tests.conftest import Osmo, write
+from tests.hostile.datarun import finished, tasks
 
 # Folders made one level at a time with relative names: the path may exceed PATH_MAX.
 NEST = """
@@ -65,22 +66,20 @@ def _cpu_used(osmo: Osmo) -> float:
 def test_every_output_failure_kind_finishes_and_releases_slot_and_secrets(
         osmo: Osmo, tmp_path: Path, deep: None) -> None:
     osmo("credential", "set", "vault", "--payload", "key=s3cr3t-value", check=True)
-    r = osmo("submit", str(_kinds(tmp_path)), "--wait", timeout=120)
-    assert r.code == 1, r.out + r.err  # some of them failed, and --wait returned
-    wf = r.out.splitlines()[0].split(" - ")[1]
-    tasks = {t["name"]: t for t in osmo.query(wf)["tasks"]}
+    wf = finished(osmo, _kinds(tmp_path), code=1)  # some of them failed, and --wait returned
+    by_name = tasks(osmo, wf)
 
-    assert tasks["deep"]["status"] == "COMPLETED", tasks["deep"]  # 600 levels: walked fine
+    assert by_name["deep"]["status"] == "COMPLETED", by_name["deep"]  # 600 levels: walked fine
     got = tmp_path / "got"
     osmo("artifacts", "get", f"{wf}:deep", "-o", str(got), check=True)
     assert (got / ("d/" * 600) / "leaf.txt").read_text() == "deep\n"
 
     for name, words in (("deeper", "too deep"), ("escape", "outside the output folder")):
-        task = tasks[name]
+        task = by_name[name]
         assert task["status"] == "FAILED" and task["exit_code"] == ExitCode.OUTPUT_ERROR, task
         assert words in task["message"], task
     assert _cpu_used(osmo) == 0
-    for name in tasks:  # every attempt had its credential mounted, and it is gone now
+    for name in by_name:  # every attempt had its credential mounted, and it is gone now
         vault = osmo.home / "runs" / wf / name / "0" / "files" / "etc" / "vault"
         assert vault.is_dir() and list(vault.iterdir()) == [], f"{name} left its secret behind"
 
@@ -100,9 +99,7 @@ workflow:
   - name: t
     command: [sh, -c, "ln {outside} {{{{output}}}}/outside.txt && ln {db} {{{{output}}}}/db"]
 """)
-    r = osmo("submit", str(spec), "--wait", timeout=60)
-    assert r.code == 0, r.out + r.err
-    wf = r.out.splitlines()[0].split(" - ")[1]
+    wf = finished(osmo, spec)
     assert db.stat().st_mode == db_mode  # never chmod-ed
     assert outside.stat().st_mode & 0o777 == 0o644
     blobs = osmo.home / "artifacts" / "blobs"
@@ -126,12 +123,10 @@ workflow:
   - name: big
     command: [sh, -c, "head -c 3000 /dev/zero > {{output}}/a; head -c 3000 /dev/urandom > {{output}}/b"]
 """)
-    r = osmo("submit", str(spec), "--wait", timeout=60)
-    assert r.code == 1, r.out + r.err
-    wf = r.out.splitlines()[0].split(" - ")[1]
-    tasks = {t["name"]: t for t in osmo.query(wf)["tasks"]}
-    assert tasks["small"]["status"] == "COMPLETED"
-    big = tasks["big"]
+    wf = finished(osmo, spec, code=1)
+    by_name = tasks(osmo, wf)
+    assert by_name["small"]["status"] == "COMPLETED"
+    big = by_name["big"]
     assert big["status"] == "FAILED" and big["exit_code"] == ExitCode.OUTPUT_ERROR, big
     assert "6000 bytes in 2 files" in big["message"] and "storage" in big["message"], big
     assert _cpu_used(osmo) == 0

@@ -15,6 +15,7 @@ from osmo.artifacts.fsops import remove_tree
 from osmo.status import ExitCode
 from tests.conftest import write
 from tests.e2e.cluster import Cluster
+from tests.hostile.datarun import finished, tasks
 
 SPEC = r"""
 workflow:
@@ -47,14 +48,12 @@ def cluster(tmp_path: Path) -> Iterator[Cluster]:
 
 def test_a_remote_worker_keeps_the_same_guarantees(cluster: Cluster, tmp_path: Path) -> None:
     cluster.start_worker("w1", "--cpus", "2", host="other-host")  # blobs travel by zenoh
-    r = cluster.osmo("submit", str(write(tmp_path / "r.yaml", SPEC)), "--wait", timeout=120)
-    assert r.code == 1, r.out + r.err
-    wf = r.out.splitlines()[0].split(" - ")[1]
-    tasks = {t["name"]: t for t in cluster.osmo.query(wf)["tasks"]}
-    deep = tasks["deep"]
+    wf = finished(cluster.osmo, write(tmp_path / "r.yaml", SPEC), code=1)
+    by_name = tasks(cluster.osmo, wf)
+    deep = by_name["deep"]
     assert deep["status"] == "FAILED" and deep["exit_code"] == ExitCode.OUTPUT_ERROR, deep
     assert "nested too deep" in deep["message"]
-    assert [t["status"] for n, t in tasks.items() if n != "deep"] == ["COMPLETED"] * 3
+    assert [t["status"] for n, t in by_name.items() if n != "deep"] == ["COMPLETED"] * 3
     got = tmp_path / "got"
     cluster.osmo("artifacts", "get", f"{wf}:read", "-o", str(got), check=True)
     assert (got / "seen").read_bytes() == b"x"  # the original, not the tampered copy

@@ -17,6 +17,7 @@ import pytest
 
 from osmo.status import ExitCode
 from tests.conftest import REPO, Osmo, write
+from tests.hostile.datarun import finished, tasks
 
 # Several tasks finish together, so the culprit's exit shares a batch with innocent ones.
 SPEC = """
@@ -80,28 +81,21 @@ def faulty(osmo: Osmo) -> Iterator[list[Faulty]]:
         server.stop()
 
 
-def _tasks(info: dict) -> dict[str, dict]:
-    return {t["name"]: t for t in info["tasks"]}
-
-
 @pytest.mark.parametrize("fault", ["commit:boom", "apply:boom"])
 def test_one_bad_event_fails_its_attempt_and_the_rest_goes_on(
         osmo: Osmo, faulty: list[Faulty], tmp_path: Path, fault: str) -> None:
     server = Faulty(osmo, fault)
     faulty.append(server)
-    r = osmo("submit", str(write(tmp_path / "m.yaml", SPEC)), "--wait", timeout=120)
-    assert r.code == 1, r.out + r.err  # boom failed, so the workflow failed
-    wf = r.out.splitlines()[0].split(" - ")[1]
-    tasks = _tasks(osmo.query(wf))
-    boom = tasks.pop("boom")
+    wf = finished(osmo, write(tmp_path / "m.yaml", SPEC), code=1)  # boom failed: so did it
+    by_name = tasks(osmo, wf)
+    boom = by_name.pop("boom")
     assert boom["status"] == "FAILED" and boom["exit_code"] == ExitCode.OUTPUT_ERROR
     assert "injected" in boom["message"] and "could not apply" in boom["message"]
-    assert {name: t["status"] for name, t in tasks.items()} == dict.fromkeys(
+    assert {name: t["status"] for name, t in by_name.items()} == dict.fromkeys(
         ("gate", "a", "b", "c", "d", "after"), "COMPLETED")
     assert "injected" in server.log.read_text()  # and in the server's log
     # the same server keeps serving: a new workflow, and a cancel (an engine write)
-    r = osmo("submit", str(write(tmp_path / "o.yaml", OTHER)), "--wait", timeout=60)
-    assert r.code == 0, r.out + r.err
+    finished(osmo, write(tmp_path / "o.yaml", OTHER))
     assert osmo("cancel", wf, timeout=30).code == 0
     assert server.proc.poll() is None
     cpu = osmo("resource", "list", "--format", "json", check=True).json()
@@ -136,12 +130,12 @@ def test_an_attempt_that_crashed_the_server_is_quarantined(osmo: Osmo, faulty: l
     wf = osmo.submit(write(tmp_path / "m.yaml", SPEC))
     assert server.proc.wait(timeout=90) == -9  # it crashed applying boom's exit
     # The next server (started by the CLI, no fault) fails boom instead of running it again.
-    info = osmo.wait_for(wf, lambda i: i["status"] not in ("PENDING", "RUNNING", "WAITING"))
-    tasks = _tasks(info)
-    assert tasks["boom"]["status"] == "FAILED", tasks["boom"]
-    assert "quarantined" in tasks["boom"]["message"]
-    assert tasks["boom"]["retry"] == 0  # never run again
-    assert tasks["a"]["status"] == "COMPLETED" and tasks["after"]["status"] == "COMPLETED"
+    osmo.wait_for(wf, lambda i: i["status"] not in ("PENDING", "RUNNING", "WAITING"))
+    by_name = tasks(osmo, wf)
+    boom = by_name["boom"]
+    assert boom["status"] == "FAILED" and "quarantined" in boom["message"], boom
+    assert boom["retry"] == 0  # never run again
+    assert by_name["a"]["status"] == "COMPLETED" and by_name["after"]["status"] == "COMPLETED"
     assert "quarantined" in osmo("logs", wf, check=True).out + (
         osmo.home / "server.log").read_text()
     assert not os.path.getsize(osmo.home / "applying.json")

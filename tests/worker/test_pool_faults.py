@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -20,7 +21,7 @@ PAYLOAD = {"key": "s3cr3t-value"}
 class BrokenStore(ArtifactStore):
     """A store whose ingest raises what no handler expects (a bug, say)."""
 
-    def ingest(self, folder: Path) -> Manifest:
+    def ingest(self, folder: Path, **limits: Any) -> Manifest:
         raise RecursionError("maximum recursion depth exceeded (injected)")
 
 
