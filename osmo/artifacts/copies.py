@@ -35,7 +35,7 @@ from pathlib import Path
 
 from osmo.artifacts.errors import ArtifactCorrupted
 from osmo.artifacts.fsops import CHUNK, hash_fd, make_dirs, remove_tree
-from osmo.artifacts.manifest import Entry, Manifest, printable
+from osmo.artifacts.manifest import Entry, Manifest
 from osmo.errors import NotFoundError, UsageError
 
 __all__ = ["HandOut", "Verifier", "copy_out"]
@@ -212,7 +212,7 @@ def _check_parents(dest: Path, path: str, checked: set[str]) -> None:
             return  # made by _place; nothing below it can exist either
         if not stat.S_ISDIR(mode):
             what = "a symlink" if stat.S_ISLNK(mode) else "a file"
-            raise UsageError(f"{dest / printable(rel)} is {what} where the artifact has a "
+            raise UsageError(f"{dest / rel} is {what} where the artifact has a "
                              "folder; osmo never writes through a symlink inside the "
                              "destination: remove it, or choose another folder")
         checked.add(rel)
@@ -233,7 +233,7 @@ def _place(tmp: Path, dest: Path, path: str) -> None:
                 inner = os.open(folder, os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW |
                                 os.O_CLOEXEC, dir_fd=fd)
             except OSError as exc:
-                raise UsageError(f"{dest / printable(path)}: a folder on its way is not a "
+                raise UsageError(f"{dest / path}: a folder on its way is not a "
                                  f"folder any more ({exc.strerror}); nothing was written "
                                  "through it") from None
             os.close(fd)
@@ -241,7 +241,7 @@ def _place(tmp: Path, dest: Path, path: str) -> None:
         try:
             os.replace(tmp, name, dst_dir_fd=fd)
         except (IsADirectoryError, NotADirectoryError):
-            raise UsageError(f"{dest / printable(path)} is a folder where the artifact has a "
+            raise UsageError(f"{dest / path} is a folder where the artifact has a "
                              "file; remove it, or choose another folder") from None
     finally:
         os.close(fd)

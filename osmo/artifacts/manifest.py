@@ -19,8 +19,8 @@ File names are bytes. The one encoding rule, everywhere osmo keeps or sends a na
   form (they simply never held such a name), so every old manifest reads unchanged.
 - **In SQLite** (``osmo.store``) a name that is valid UTF-8 is ``TEXT``; any other name is a
   ``BLOB`` of its raw bytes (``CAST(path AS BLOB)`` gives the bytes of either).
-- **On a terminal** a name is shown through :func:`printable`: undecodable bytes as
-  ``\xNN``, control characters escaped, so a name can neither garble nor forge output.
+- **In messages** a name is quoted with ``repr`` (so it is one line of ASCII-safe text),
+  and whoever prints a name for a terminal escapes it (the CLI: ``osmo.cli.render.safe``).
 
 Must not touch the filesystem or the blob store; that is :mod:`osmo.artifacts.store`'s job.
 """
@@ -37,7 +37,7 @@ from typing import Any
 
 from osmo.errors import InfrastructureError, UsageError
 
-__all__ = ["MANIFEST_VERSION", "Entry", "Manifest", "check_digest", "printable"]
+__all__ = ["MANIFEST_VERSION", "Entry", "Manifest", "check_digest"]
 
 MANIFEST_VERSION = 1
 _DIGEST = re.compile(r"sha256:[0-9a-f]{64}")
@@ -59,30 +59,6 @@ def check_digest(digest: str) -> str:
         raise UsageError(f"invalid artifact digest {digest!r}: expected 'sha256:' followed by "
                          "64 lowercase hex characters")
     return digest[7:]
-
-
-def printable(name: str) -> str:
-    """``name`` made safe to print: each byte that is not UTF-8 as ``\\xNN``, characters
-    that do not print (controls, direction marks, unassigned) as ``\\n``, ``\\t``,
-    ``\\xNN`` or ``\\uNNNN``, a backslash doubled (so the escape is unambiguous);
-    everything else as it is."""
-    if name.isprintable() and "\\" not in name:
-        return name  # the common case: nothing to escape
-    out = []
-    for ch in name:
-        code = ord(ch)
-        if 0xDC80 <= code <= 0xDCFF:  # an undecodable byte (see the module docstring)
-            out.append(f"\\x{code - 0xDC00:02x}")
-        elif ch == "\\":
-            out.append("\\\\")
-        elif ch in "\n\t\r":
-            out.append(repr(ch)[1:-1])
-        elif not ch.isprintable():  # controls, format marks (RTL override), unassigned
-            out.append(f"\\x{code:02x}" if code < 0x100 else
-                       f"\\u{code:04x}" if code < 0x10000 else f"\\U{code:08x}")
-        else:
-            out.append(ch)
-    return "".join(out)
 
 
 def _check_path(path: str) -> None:

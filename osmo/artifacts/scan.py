@@ -19,7 +19,6 @@ import os
 import stat
 
 from osmo.artifacts.errors import OutputRejected
-from osmo.artifacts.manifest import printable
 
 __all__ = ["scan"]
 
@@ -76,7 +75,7 @@ def _entries(root: str, real: str, rel: str) -> list[tuple[str, str, os.stat_res
         return _list(root, real, rel)
     except OSError as exc:
         if exc.errno == errno.ENAMETOOLONG:
-            raise OutputRejected(printable(rel[:120]) + "...", "is nested too deep: its "
+            raise OutputRejected(rel[:120] + "...", "is nested too deep: its "
                                  "paths are longer than the system can open; flatten the "
                                  "output folder") from None
         raise
@@ -93,7 +92,7 @@ def _list(root: str, real: str, rel: str) -> list[tuple[str, str, os.stat_result
             continue
         target = os.path.realpath(e.path)
         if target != root and not target.startswith(root + os.sep):
-            raise OutputRejected(name, f"is a symlink to {printable(target)}, outside the "
+            raise OutputRejected(name, f"is a symlink to {target!r}, outside the "
                                  "output folder; copy the file into the folder instead")
         try:
             found.append((name, target, os.stat(target)))

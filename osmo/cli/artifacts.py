@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from osmo.cli.render import console, print_error, print_json
+from osmo.cli.render import console, print_error, print_json, safe
 from osmo.errors import OsmoError, UsageError
 from osmo.sdk.client import Client
 
@@ -51,20 +51,20 @@ def run_artifacts(args: argparse.Namespace) -> int:
             if args.format == "json":
                 print_json(outputs)
             for out in outputs if args.format == "text" else ():
-                console.print(f"{out['task']}  {out['manifest']}  ({out['attempt_id']})",
+                console.print(safe(f"{out['task']}  {out['manifest']}  ({out['attempt_id']})"),
                               markup=False)
                 for f in out["files"]:
-                    console.print(f"  {printable(f['path'])}  {f['size']} B  {f['digest']}",
+                    console.print(f"  {safe(f['path'])}  {f['size']} B  {f['digest']}",
                                   markup=False)
         elif args.artifacts_verb == "get":
             _make_room(Path(args.output), force=args.force)
             try:
                 written = client.get_artifact(args.target, args.output)
             except OSError as exc:  # the destination the user chose cannot be written
-                raise UsageError(f"cannot write into {printable(args.output)}: "
+                raise UsageError(f"cannot write into {safe(args.output)}: "
                                  f"{exc.strerror or exc}") from None
             for path in written:
-                console.print(printable(path), markup=False)
+                console.print(safe(path), markup=False)
         else:
             count, size = client.gc_artifacts()
             console.print(f"removed {count} unreferenced blob(s), {size} bytes", markup=False)
@@ -77,7 +77,7 @@ def _make_room(dest: Path, *, force: bool) -> None:
         return
     if not force:
         kind = "a symlink to nothing" if dest.is_symlink() else "a file"
-        raise UsageError(f"{printable(str(dest))} is {kind}, not a folder; choose a folder, "
+        raise UsageError(f"{safe(dest)} is {kind}, not a folder; choose a folder, "
                          "or pass --force to replace it")
     dest.unlink()
 
@@ -104,13 +104,6 @@ def run_lineage(args: argparse.Namespace) -> int:
     with Client(args.server) as client:
         graph = client.lineage(target, downstream=args.downstream)
     return _print(args.format, graph, downstream=args.downstream)
-
-
-def printable(name: str) -> str:
-    """A name shown escaped (``osmo.artifacts.manifest.printable``; imported when used)."""
-    from osmo.artifacts.manifest import printable as escape
-
-    return escape(name)
 
 
 def _embedded(path: Path) -> dict[str, Any] | None:
@@ -147,7 +140,7 @@ def _print(fmt: str, graph: dict[str, Any], *, downstream: bool) -> int:
         sys.stdout.write(_dot(graph))
     else:
         for line in _tree(graph, downstream):
-            console.print(line, markup=False)
+            console.print(safe(line), markup=False)
     return 0
 
 

@@ -11,7 +11,6 @@ from hypothesis import strategies as st
 
 import osmo.artifacts
 from osmo.artifacts import ArtifactCorrupted, Entry, Manifest, OutputRejected
-from osmo.artifacts.manifest import printable
 from osmo.errors import InfrastructureError, OsmoError, UsageError
 
 D1 = "sha256:" + hashlib.sha256(b"one").hexdigest()
@@ -125,17 +124,6 @@ def test_any_byte_name_round_trips_exactly(names: list[bytes]) -> None:
     again = Manifest.from_json(text)
     assert sorted(os.fsencode(e.path) for e in again.entries) == sorted(names)
     assert again.digest == m.digest
-    for e in again.entries:
-        shown = printable(e.path)
-        assert shown.isprintable() and shown.encode("utf-8")
-
-
-def test_printable_escapes_bytes_and_control_characters() -> None:
-    import os
-
-    assert printable(os.fsdecode(b"caf\xe9.csv")) == "caf\\xe9.csv"
-    assert printable("new\nline\x1b[2J") == "new\\nline\\x1b[2J"
-    assert printable("a\\b") == "a\\\\b" and printable("plain.txt") == "plain.txt"
 
 
 def test_a_surrogate_that_names_no_byte_is_refused() -> None:
