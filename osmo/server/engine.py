@@ -44,7 +44,6 @@ from osmo.scheduler.types import (
     Command,
     Event,
     KillAttempt,
-    NodeUp,
     PrepareAttempt,
     RunAttempt,
     Tick,
@@ -54,8 +53,7 @@ from osmo.artifacts import Manifest
 from osmo.errors import InfrastructureError
 from osmo.server.datasets import Datasets
 from osmo.server.placing import Placements
-from osmo.server.isolation import (FINAL, REBUILT, describe, failures, guard, reason,
-                                   restarting)
+from osmo.server.isolation import STOP, Call, FaultIsolation, guard, reason
 from osmo.server.provenance import Provenance
 from osmo.server.recovery import InFlight, Restored, attempt_row
 from osmo.status import TaskStatus
@@ -92,16 +90,11 @@ class _Batch:
     ended: list[str] = field(default_factory=list)  # attempts whose final report is applied
 
 
-@dataclass
-class _Call:
-    fn: Callable[[Engine, _Batch, float], Any]
-    future: Future[Any]
+_Call = Call
+_STOP = STOP
 
 
-_STOP = object()
-
-
-class Engine:
+class Engine(FaultIsolation):
     """Runs the scheduler on its own thread.
 
     Args:
@@ -315,79 +308,6 @@ class Engine:
                 guard(self.scheduler.forget, wf.id)  # type: ignore[attr-defined]
                 self.specs.pop(wf.id, None)  # type: ignore[attr-defined]
                 guard(self._on_finished, wf.id)  # type: ignore[attr-defined]
-
-    # ------------------------------------------------------------------ fault isolation
-
-    def _isolate(self, items: list[Any]) -> None:
-        """Rebuild from the store and apply ``items`` one at a time; fail the culprit(s)."""
-        self._rebuild()
-        for item in items:
-            if item is _STOP or isinstance(item, Tick) or (
-                    isinstance(item, _Call) and item.future.done()):
-                continue
-            try:
-                self._apply([item], tick=False)
-            except Exception as exc:  # noqa: BLE001 - this one is a culprit
-                log.error("%s could not be applied: %s", describe(item), reason(exc),
-                          exc_info=exc)
-                self._rebuild()
-                self._refuse(item, exc)
-        self._apply([])  # timeouts due meanwhile; no one event to blame if this raises
-
-    def _rebuild(self) -> None:
-        """Replace the scheduler by one built from the store; re-announce the known nodes,
-        start again what was starting (``isolation.restarting``)."""
-        if self._restore is None:
-            raise InfrastructureError("the scheduler cannot be rebuilt (no store to rebuild "
-                                      "it from)")
-        nodes = self.scheduler.nodes()
-        restored = self._restore()
-        self.scheduler = restored.scheduler
-        self.specs.clear()
-        self.specs.update(restored.specs)
-        self.no_cache |= restored.no_cache
-        again = restarting(restored.active)
-        self._apply([*(NodeUp(n) for n in nodes), *(AttemptLost(a, REBUILT) for a in again)],
-                    tick=False)
-        for aid in again:
-            self._execute(KillAttempt(aid, REBUILT))
-
-    def _refuse(self, item: Any, exc: Exception) -> None:
-        """Turn a culprit into its failure: an API call's error, an attempt's failure, or
-        (anything else) a log line."""
-        why = reason(exc)
-        if isinstance(item, _Call):
-            item.future.set_exception(InfrastructureError(
-                f"the server could not apply this request: {why}"))
-            return
-        if not isinstance(getattr(item, "attempt_id", None), str):
-            log.error("dropped %s: %s", describe(item), why)
-            return
-        for failure in failures(item, why):
-            try:
-                self._apply([failure], tick=False)
-                break
-            except Exception as again:  # noqa: BLE001 - try the plainer failure next
-                log.error("recording %s failed: %s", describe(failure), reason(again))
-                self._rebuild()
-        else:
-            raise InfrastructureError(f"the failure of {describe(item)} cannot be recorded")
-        if not isinstance(item, FINAL):  # it still runs: stop it
-            self._execute(KillAttempt(item.attempt_id, f"the server could not apply its "
-                                                        f"report ({why})"))
-
-    def _abandon(self, exc: BaseException) -> None:
-        """The engine stopped: every call in hand or queued gets an error."""
-        error = InfrastructureError(f"the server's engine stopped: {reason(exc)}")
-        pending = list(self._applying)
-        while True:
-            try:
-                pending.append(self._queue.get_nowait())
-            except queue.Empty:
-                break
-        for item in pending:
-            if isinstance(item, _Call) and not item.future.done():
-                item.future.set_exception(error)
 
     # ------------------------------------------------------------------ commands
 

@@ -1,23 +1,33 @@
-"""The pure parts of the engine's fault isolation: what a culprit becomes, and messages.
+"""The engine's fault isolation (see ``osmo.server.engine``): a batch that raised is dropped
+from memory by rebuilding the scheduler from the store, and applied again one event at a
+time; the event that raises again is the culprit, and becomes its failure.
 
-``osmo.server.engine`` applies a batch that raised again one event at a time; the event that
-raises again is the culprit. This module says what replaces it (:func:`failures`), which
-attempts a rebuilt scheduler must start again (:func:`restarting`), and how an exception is
-told in a stored message (:func:`reason`). No I/O, no engine state.
+:class:`FaultIsolation` is the engine's part that does it (a mixin of
+``osmo.server.engine.Engine``); the rest are pure helpers: what replaces a culprit
+(:func:`failures`), which attempts a rebuilt scheduler must start again
+(:func:`restarting`), and how an exception is told in a stored message (:func:`reason`).
 """
 
 from __future__ import annotations
 
 import logging
+import queue
 from collections.abc import Callable
+from concurrent.futures import Future
+from dataclasses import dataclass
 from typing import Any
 
-from osmo.errors import OsmoError
+from osmo.errors import InfrastructureError, OsmoError
+from osmo.scheduler import Scheduler
 from osmo.scheduler.state import TaskState
-from osmo.scheduler.types import AttemptExited, AttemptLost, AttemptStartFailed, Event
+from osmo.scheduler.types import (AttemptExited, AttemptLost, AttemptStartFailed, Command,
+                                  Event, KillAttempt, NodeUp, Tick)
+from osmo.server.recovery import Restored
+from osmo.spec.model import WorkflowSpec
 from osmo.status import TaskStatus
 
-__all__ = ["FINAL", "REBUILT", "describe", "failures", "guard", "reason", "restarting"]
+__all__ = ["FINAL", "REBUILT", "STOP", "Call", "FaultIsolation", "describe", "failures",
+           "guard", "reason", "restarting"]
 
 log = logging.getLogger("osmo.server")
 
@@ -28,6 +38,105 @@ REBUILT = "the server rebuilt its state after an error; attempt started again"
 """Why an attempt that was starting during a rebuild is lost (and started again)."""
 
 _BARE = "the server could not apply this attempt's report; see the server log"
+
+STOP = object()
+"""Queued by ``Engine.stop``: finish what is in hand, then leave the loop."""
+
+
+@dataclass
+class Call:
+    """``Engine.call``'s request: ``fn(engine, batch, now)`` and where its result goes."""
+
+    fn: Callable[..., Any]
+    future: Future[Any]
+
+
+class FaultIsolation:
+    """The engine's fault isolation (a mixin: the engine provides what is declared here)."""
+
+    scheduler: Scheduler
+    specs: dict[str, WorkflowSpec]
+    no_cache: set[str]
+    _restore: Callable[[], Restored] | None
+    _queue: queue.SimpleQueue[Any]
+    _applying: list[Any]
+
+    def _apply(self, items: list[Any], *, tick: bool = True) -> None:
+        raise NotImplementedError
+
+    def _execute(self, cmd: Command) -> None:
+        raise NotImplementedError
+
+    def _isolate(self, items: list[Any]) -> None:
+        """Rebuild from the store and apply ``items`` one at a time; fail the culprit(s)."""
+        self._rebuild()
+        for item in items:
+            if item is STOP or isinstance(item, Tick) or (
+                    isinstance(item, Call) and item.future.done()):
+                continue
+            try:
+                self._apply([item], tick=False)
+            except Exception as exc:  # noqa: BLE001 - this one is a culprit
+                log.error("%s could not be applied: %s", describe(item), reason(exc),
+                          exc_info=exc)
+                self._rebuild()
+                self._refuse(item, exc)
+        self._apply([])  # timeouts due meanwhile; no one event to blame if this raises
+
+    def _rebuild(self) -> None:
+        """Replace the scheduler by one built from the store; re-announce the known nodes,
+        start again what was starting (``isolation.restarting``)."""
+        if self._restore is None:
+            raise InfrastructureError("the scheduler cannot be rebuilt (no store to rebuild "
+                                      "it from)")
+        nodes = self.scheduler.nodes()
+        restored = self._restore()
+        self.scheduler = restored.scheduler
+        self.specs.clear()
+        self.specs.update(restored.specs)
+        self.no_cache |= restored.no_cache
+        again = restarting(restored.active)
+        self._apply([*(NodeUp(n) for n in nodes), *(AttemptLost(a, REBUILT) for a in again)],
+                    tick=False)
+        for aid in again:
+            self._execute(KillAttempt(aid, REBUILT))
+
+    def _refuse(self, item: Any, exc: Exception) -> None:
+        """Turn a culprit into its failure: an API call's error, an attempt's failure, or
+        (anything else) a log line."""
+        why = reason(exc)
+        if isinstance(item, Call):
+            item.future.set_exception(InfrastructureError(
+                f"the server could not apply this request: {why}"))
+            return
+        if not isinstance(getattr(item, "attempt_id", None), str):
+            log.error("dropped %s: %s", describe(item), why)
+            return
+        for failure in failures(item, why):
+            try:
+                self._apply([failure], tick=False)
+                break
+            except Exception as again:  # noqa: BLE001 - try the plainer failure next
+                log.error("recording %s failed: %s", describe(failure), reason(again))
+                self._rebuild()
+        else:
+            raise InfrastructureError(f"the failure of {describe(item)} cannot be recorded")
+        if not isinstance(item, FINAL):  # it still runs: stop it
+            self._execute(KillAttempt(item.attempt_id, f"the server could not apply its "
+                                                        f"report ({why})"))
+
+    def _abandon(self, exc: BaseException) -> None:
+        """The engine stopped: every call in hand or queued gets an error."""
+        error = InfrastructureError(f"the server's engine stopped: {reason(exc)}")
+        pending = list(self._applying)
+        while True:
+            try:
+                pending.append(self._queue.get_nowait())
+            except queue.Empty:
+                break
+        for item in pending:
+            if isinstance(item, Call) and not item.future.done():
+                item.future.set_exception(error)
 
 
 def reason(exc: BaseException) -> str:

@@ -24,6 +24,8 @@ store, see ``kill_stale``).
 
 Credentials (``osmo.worker.secrets``) are given to ``prepare`` or looked up via
 ``task_secrets``; their values are masked in the log, their mounted files deleted at the end.
+How an attempt ends (exit, promotion, its one final report in every path) is
+``osmo.worker.endings``.
 
 The ``image`` field is recorded in the log and otherwise ignored by the process runtime.
 Creating a pool lifts the process's soft open-files limit (each running attempt holds four
@@ -44,7 +46,6 @@ from dataclasses import replace
 from pathlib import Path
 
 from osmo.artifacts import ArtifactStore
-from osmo.artifacts.fsops import remove_tree
 from osmo.artifacts.store import DEFAULT_MAX_FILES
 from osmo.errors import OsmoError
 from osmo.runtime.process import (
@@ -64,15 +65,15 @@ from osmo.scheduler.types import (
     Node,
     PrepareAttempt,
 )
-from osmo.spec.model import ExitAction, TaskSpec
+from osmo.spec.model import TaskSpec
 from osmo.worker.checkpoints import start_checkpoints
-from osmo.worker.logs import LogWriter, exit_note, image_note
+from osmo.worker.endings import AttemptEndings
+from osmo.worker.logs import LogWriter, image_note
 from osmo.worker.machine import detect_capacity, raise_fd_limit
 from osmo.worker.live import AttemptState, LiveAttempt
 from osmo.worker.reactor import Reactor
 from osmo.worker.secrets import SecretLookup, Secrets, gather
-from osmo.worker.transfer import (CredentialLookup, DeliveryError, ManifestLookup, deliver,
-                                  make_ready)
+from osmo.worker.transfer import CredentialLookup, ManifestLookup, make_ready
 from osmo.worker.workdir import AttemptDirs, Launch, remove_secret_files
 
 __all__ = ["LocalPool", "kill_stale", "process_start_time"]
@@ -80,11 +81,10 @@ __all__ = ["LocalPool", "kill_stale", "process_start_time"]
 _log = logging.getLogger(__name__)
 
 KILLED_BEFORE_START = 128 + signal.SIGKILL
-_REMEMBER_FINISHED = 4096  # finished ids kept to ignore late run()/kill() for them
 _IO_THREADS = 4
 
 
-class LocalPool:
+class LocalPool(AttemptEndings):
     """A resource-aware pool of host processes on this machine (see the module docstring).
 
     Args:
@@ -337,99 +337,6 @@ class LocalPool:
         if attempt.state is AttemptState.RUNNING and attempt.handle is not None:
             attempt.log.line("osmo", f"still running {self._grace:g}s after SIGTERM: SIGKILL")
             self._runtime.kill(attempt.handle, force=True)
-
-    def _exited(self, attempt: LiveAttempt) -> None:
-        handle = attempt.handle
-        assert handle is not None
-        self._reactor.remove_reader(handle.exit_fd)
-        code = self._runtime.reap(handle)
-        try:
-            attempt.drain(self._reactor, handle)
-            self._runtime.release(handle)
-            if attempt.escalation is not None:
-                attempt.escalation.cancel()
-            if attempt.checkpoints is not None:
-                attempt.checkpoints.stop()
-            attempt.log.flush_partial()
-            attempt.log.line("osmo", exit_note(code))
-        except Exception as exc:  # noqa: BLE001 - e.g. a full disk: still one final report
-            _log.exception("finishing %s failed", attempt.id)
-            self._finish(attempt, AttemptExited(attempt.id, code, None,
-                                                f"its end could not be recorded: {exc!r}"))
-            return
-        if attempt.kill_reason is not None:
-            self._finish(attempt, AttemptExited(attempt.id, code, None,
-                                                f"killed: {attempt.kill_reason}"))
-        elif attempt.task.exit_action(code) is not ExitAction.COMPLETE:
-            self._finish(attempt, AttemptExited(attempt.id, code))
-        else:
-            attempt.state = AttemptState.FINISHING
-            self._io.submit(self._promote_io, attempt, code)
-
-    def _promote_io(self, attempt: LiveAttempt, code: int) -> None:
-        """I/O thread: last checkpoint, promote the outputs; report the exit.
-
-        Whatever is raised, the attempt gets its one final report (a failure, exit code
-        3005, with the reason) and its credential files are deleted."""
-        try:
-            ref, manifest = deliver(attempt.dirs, attempt.task, checkpoints=attempt.checkpoints,
-                                    artifacts=self._artifacts,
-                                    credential_for=self._credential_for,
-                                    max_bytes=attempt.launch.max_output_bytes,
-                                    max_files=self._max_output_files)
-            event = AttemptExited(attempt.id, code, ref, manifest=manifest,
-                                  command=tuple(attempt.launch.argv))
-        except Exception as exc:  # noqa: BLE001 - DeliveryError, or a bug: still one report
-            if not isinstance(exc, DeliveryError):
-                _log.exception("promoting the outputs of %s failed", attempt.id)
-            message = str(exc) if isinstance(exc, DeliveryError) else (
-                f"outputs could not be promoted: {type(exc).__name__}: {exc}")
-            self._reactor.call_soon(self._promoted, attempt,
-                                    AttemptExited(attempt.id, code, None, message))
-            return
-        finally:
-            remove_secret_files(attempt.launch)
-        # Reported from here, one thread hop sooner; the reactor's bookkeeping follows (a
-        # kill() that comes meanwhile finds it FINISHING and is ignored).
-        with self._pids_lock:
-            self._pids.pop(attempt.id, None)
-        self._emit(event)
-        self._reactor.call_soon(self._finish, attempt, None)
-
-    def _promoted(self, attempt: LiveAttempt, event: AttemptExited) -> None:
-        try:
-            if event.message:
-                attempt.log.line("osmo", event.message)
-        finally:
-            self._finish(attempt, event)
-
-    def _finish(self, attempt: LiveAttempt,
-                event: AttemptExited | AttemptStartFailed | None) -> None:
-        attempt.state = AttemptState.DONE
-        try:
-            attempt.log.close()
-        finally:  # a log that cannot be written must not keep the report (or a secret) back
-            remove_secret_files(attempt.launch)
-            self._drop_scratch(attempt.launch)
-            self._attempts.pop(attempt.id, None)
-            with self._pids_lock:
-                self._pids.pop(attempt.id, None)
-            self._remember(attempt.id)
-            if event is not None:
-                self._emit(event)
-
-    def _drop_scratch(self, launch: Launch) -> None:
-        """Delete an ended attempt's large input copies, off the reactor thread."""
-        for folder in launch.scratch:
-            try:
-                self._io.submit(remove_tree, folder, ignore_errors=True)
-            except RuntimeError:  # closing: they go when the attempt is prepared again
-                return
-
-    def _remember(self, attempt_id: str) -> None:
-        self._finished[attempt_id] = None
-        while len(self._finished) > _REMEMBER_FINISHED:
-            self._finished.popitem(last=False)
 
     def _shutdown(self) -> None:
         for attempt in list(self._attempts.values()):
