@@ -108,3 +108,24 @@ def test_round_trip_property(files: dict[str, tuple[bytes, int]]) -> None:
         return  # generated a file that is also a folder of another entry
     again = Manifest.from_json(m.to_json())
     assert again == m and again.digest == m.digest
+
+
+_byte_names = st.binary(min_size=1, max_size=12).filter(
+    lambda b: b"/" not in b and b"\0" not in b and b"\\" not in b and b not in (b".", b".."))
+
+
+@given(st.lists(_byte_names, min_size=1, max_size=6, unique=True))
+def test_any_byte_name_round_trips_exactly(names: list[bytes]) -> None:
+    import os
+
+    m = Manifest(tuple(Entry(os.fsdecode(n), D1, 1) for n in names))
+    text = m.to_json()
+    assert text.isascii()  # valid in any JSON reader, whatever the bytes
+    again = Manifest.from_json(text)
+    assert sorted(os.fsencode(e.path) for e in again.entries) == sorted(names)
+    assert again.digest == m.digest
+
+
+def test_a_surrogate_that_names_no_byte_is_refused() -> None:
+    with pytest.raises(UsageError, match="stands for no byte"):
+        Entry("bad\ud800", D1, 1)

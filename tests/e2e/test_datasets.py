@@ -126,10 +126,9 @@ workflow:
 
 
 @pytest.mark.xfail(strict=True, reason=(
-    "issue 19: a dataset input is a plain copy (folder 0755, files 0644, osmo/server/"
-    "datasets.py _materialize via ArtifactStore.materialize) shared by every consumer of the "
-    "version: a task can change, add and delete its files, and the next consumer sees the "
-    "change. Mode bits alone cannot stop a task running as root; a read-only bind mount can."))
+    "issue 19/13: each task gets its own checked copy of a dataset version, so other consumers "
+    "never see a change (test_dataset_inputs_are_private below), but the copy itself is "
+    "writable: mode bits cannot stop a task running as root; a read-only bind mount can."))
 def test_dataset_inputs_are_read_only(osmo: Osmo, tmp_path: Path) -> None:
     """A dataset version is handed to a task read-only (DESIGN: inputs read-only). The
     README promised "a read-only folder" until this test showed it is not; it now says so."""
@@ -140,6 +139,21 @@ def test_dataset_inputs_are_read_only(osmo: Osmo, tmp_path: Path) -> None:
     spec = write(tmp_path / "tamper.yaml", TAMPER)
     tampered = (Path(osmo.query(_wf(osmo, spec))["tasks"][0]["output"]) / "ops.txt").read_text()
     assert "allowed" not in tampered, tampered
+    read = _wf(osmo, write(tmp_path / "read.yaml", READ))
+    seen = (Path(osmo.query(read)["tasks"][0]["output"]) / "seen.txt").read_text()
+    assert seen == "alpha\nbeta\n", "a later consumer saw another task's changes"
+
+
+def test_dataset_inputs_are_private(osmo: Osmo, tmp_path: Path) -> None:
+    """Whatever a task does to its dataset input, the next consumer of the version reads the
+    version as uploaded (each attempt gets its own checked copy)."""
+    src = tmp_path / "data"
+    write(src / "a.txt", "alpha\n")
+    write(src / "sub" / "b.txt", "beta\n")
+    osmo("dataset", "upload", "kept", str(src), check=True)
+    tampered = (Path(osmo.query(_wf(osmo, write(tmp_path / "tamper.yaml", TAMPER)))["tasks"][0]
+                     ["output"]) / "ops.txt").read_text()
+    assert "allowed: sh -c" in tampered, tampered  # the task did write to its own copy
     read = _wf(osmo, write(tmp_path / "read.yaml", READ))
     seen = (Path(osmo.query(read)["tasks"][0]["output"]) / "seen.txt").read_text()
     assert seen == "alpha\nbeta\n", "a later consumer saw another task's changes"
