@@ -42,7 +42,7 @@ class OutputRejected(OsmoError):
     """An output folder holds something that cannot be stored as an artifact (exit code 1).
 
     Attributes:
-        path: the offending entry, relative to the output folder.
+        path: the offending entry, relative to the output folder ("": the whole output).
         reason: what is wrong with it and how to fix it.
     """
 
@@ -51,4 +51,4 @@ class OutputRejected(OsmoError):
     def __init__(self, path: str, reason: str) -> None:
         self.path = path
         self.reason = reason
-        super().__init__(f"output {path!r} {reason}")
+        super().__init__(f"output {path!r} {reason}" if path else f"the output {reason}")

@@ -1,21 +1,29 @@
-"""File-level primitives of the blob store: hash, publish by hard link, verified copy.
+"""File-level primitives of the blob store: hash, publish by hard link, and the tree walks
+every caller shares (verified copies are :mod:`osmo.artifacts.copies`).
 
 Owns the few system calls whose order matters for atomicity (``link`` publishes a complete
-file under its final name or fails because one is there) and the streaming hash loop. Must not
-decide where blobs live or which files to store: that is :mod:`osmo.artifacts.store`'s job.
+file under its final name or fails because one is there) and the streaming hash loop. Every
+walk over a tree here is iterative (:func:`files`, :func:`make_dirs`, :func:`remove_tree`):
+a task may leave thousands of nested folders, and Python's recursion limit (or
+``shutil.rmtree``'s and ``Path.mkdir(parents=True)``'s recursion) must not decide whether its
+attempt finishes. Must not decide where blobs live or which files to store: that is
+:mod:`osmo.artifacts.store`'s job.
 """
 
 from __future__ import annotations
 
 import hashlib
 import os
+import stat
+import uuid
 from collections.abc import Iterator
 from io import FileIO
 from pathlib import Path
 
-from osmo.artifacts.errors import ArtifactCorrupted, OutputRejected
+from osmo.artifacts.errors import OutputRejected
 
-__all__ = ["CHUNK", "check_unchanged", "copy_verified", "files", "hash_fd", "link", "refresh"]
+__all__ = ["CHUNK", "check_unchanged", "files", "hash_fd", "link", "make_dirs",
+           "refresh", "remove_tree"]
 
 CHUNK = 1 << 20  # 1 MiB reads: large enough that sha256 (not syscalls) bounds the speed
 
@@ -38,34 +46,6 @@ def hash_fd(f: FileIO, size_hint: int) -> tuple[str, int]:
         h.update(view[:n])  # releases the GIL for large chunks, so threads hash in parallel
         total += n
     return "sha256:" + h.hexdigest(), total
-
-
-def copy_verified(blob: Path, digest: str, size: int, tmp: Path) -> None:
-    """Copy ``blob`` to the new file ``tmp``, hashing on the way (one read, one write).
-
-    Args:
-        blob: the blob to copy.
-        digest: the digest it must hash to.
-        size: its expected size (sizes the read buffer).
-        tmp: where to write; must not exist.
-
-    Raises:
-        ArtifactCorrupted: the blob is missing or does not hash to ``digest`` (``tmp`` may
-            then hold a partial copy; the caller removes it).
-    """
-    h = hashlib.sha256()
-    buf = bytearray(min(CHUNK, size + 1))
-    view = memoryview(buf)
-    try:
-        with open(blob, "rb", buffering=0) as src, open(tmp, "xb", buffering=0) as out:
-            while n := src.readinto(buf):
-                h.update(view[:n])
-                out.write(view[:n])
-    except FileNotFoundError:
-        raise ArtifactCorrupted(digest, str(blob), None) from None
-    actual = "sha256:" + h.hexdigest()
-    if actual != digest:
-        raise ArtifactCorrupted(digest, str(blob), actual)
 
 
 def link(src: str, blob: Path) -> bool:
@@ -102,10 +82,74 @@ def check_unchanged(rel: str, f: FileIO, before: os.stat_result, n: int) -> None
 
 def files(folder: Path, depth: int) -> Iterator[Path]:
     """Yield the files ``depth`` levels below ``folder`` (1: its own files)."""
+    pending = [(Path(folder), depth)]
+    while pending:
+        current, left = pending.pop()
+        with os.scandir(current) as it:
+            entries = list(it)
+        for entry in entries:
+            if left > 1 and entry.is_dir(follow_symlinks=False):
+                pending.append((Path(entry.path), left - 1))
+            elif left == 1 and entry.is_file(follow_symlinks=False):
+                yield Path(entry.path)
+
+
+def make_dirs(folder: Path) -> None:
+    """``mkdir -p folder``, without recursion (existing folders are fine).
+
+    Raises:
+        OSError: a level cannot be made (a file is in the way, the path is too long, ...).
+    """
+    missing: list[Path] = []
+    current = Path(folder)
+    while not current.is_dir():
+        missing.append(current)
+        if current.parent == current:
+            break
+        current = current.parent
+    for level in reversed(missing):
+        try:
+            os.mkdir(level)
+        except FileExistsError:
+            if not level.is_dir():
+                raise
+
+
+def remove_tree(path: Path, *, ignore_errors: bool = False) -> None:
+    """``rm -rf path`` without recursion and without following symlinks.
+
+    Each folder met is emptied one level at a time: its sub-folders are first moved up into
+    ``path`` (a rename within one filesystem), so no path grows longer than ``path`` plus one
+    name, however deep the tree (``shutil.rmtree`` recurses, and a deep tree's paths exceed
+    ``PATH_MAX``).
+
+    Raises:
+        OSError: something could not be removed (unless ``ignore_errors``).
+    """
+    root = Path(path)
+    try:
+        if not stat.S_ISDIR(os.lstat(root).st_mode):
+            os.unlink(root)
+            return
+        while entries := _listing(root):
+            for entry in entries:
+                if not entry.is_dir(follow_symlinks=False):
+                    os.unlink(entry.path)
+                    continue
+                for inner in _listing(Path(entry.path)):
+                    if inner.is_dir(follow_symlinks=False):
+                        os.rename(inner.path, root / f".rm-{uuid.uuid4().hex}")
+                    else:
+                        os.unlink(inner.path)
+                os.rmdir(entry.path)
+        os.rmdir(root)
+    except FileNotFoundError:
+        pass  # gone already (or removed by someone else meanwhile)
+    except OSError:
+        if not ignore_errors:
+            raise
+
+
+def _listing(folder: Path) -> list[os.DirEntry[str]]:
     with os.scandir(folder) as it:
-        entries = list(it)
-    for entry in entries:
-        if depth > 1 and entry.is_dir(follow_symlinks=False):
-            yield from files(Path(entry.path), depth - 1)
-        elif depth == 1 and entry.is_file(follow_symlinks=False):
-            yield Path(entry.path)
+        return list(it)

@@ -1,9 +1,26 @@
-"""Manifests: the frozen list of (path, digest, size) an attempt's outputs consist of.
+r"""Manifests: the frozen list of (path, digest, size) an attempt's outputs consist of.
 
 Owns the :class:`Entry` and :class:`Manifest` records, their canonical JSON form and the
 digest string format (``"sha256:<64 lowercase hex>"``). It validates what a manifest may
 contain (relative posix paths that stay inside the output folder, well-formed digests), so
 that a manifest read from anywhere is safe to materialize.
+
+File names are bytes. The one encoding rule, everywhere osmo keeps or sends a name:
+
+- **In memory** a name is the ``str`` that :func:`os.fsdecode` makes of its bytes: UTF-8,
+  where every byte that is not part of valid UTF-8 becomes one lone surrogate
+  ``U+DC80..U+DCFF`` (PEP 383, ``surrogateescape``). ``os.fsencode(name)`` gives back the
+  exact bytes, so ``open``, ``os.link`` and friends write the same name on every host. A
+  path holding any other surrogate is rejected (it names no bytes).
+- **In JSON** (manifests, lineage, the API, worker traffic, MCAP run records) names are
+  written with ``ensure_ascii``: a valid UTF-8 name reads as itself in any JSON reader, and a
+  byte such as ``0xE9`` that is not UTF-8 appears as the escape ``\udce9``, which Python's
+  ``json`` reads back into the same ``str``. Manifests written before this rule use the same
+  form (they simply never held such a name), so every old manifest reads unchanged.
+- **In SQLite** (``osmo.store``) a name that is valid UTF-8 is ``TEXT``; any other name is a
+  ``BLOB`` of its raw bytes (``CAST(path AS BLOB)`` gives the bytes of either).
+- **In messages** a name is quoted with ``repr`` (so it is one line of ASCII-safe text),
+  and whoever prints a name for a terminal escapes it (the CLI: ``osmo.cli.render.safe``).
 
 Must not touch the filesystem or the blob store; that is :mod:`osmo.artifacts.store`'s job.
 """
@@ -12,6 +29,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import re
 from dataclasses import dataclass
 from functools import cached_property
@@ -44,12 +62,18 @@ def check_digest(digest: str) -> str:
 
 
 def _check_path(path: str) -> None:
-    """Reject paths that are absolute, empty, non-canonical or climb out of the folder."""
-    parts = path.split("/")
-    if (not path or path.startswith("/") or "\\" in path or "\0" in path
-            or any(p in ("", ".", "..") for p in parts)):
+    """Reject paths that are absolute, empty, non-canonical, climb out of the folder, or
+    name no bytes (a surrogate that ``surrogateescape`` never makes)."""
+    parts = path.split("/") if isinstance(path, str) else [""]
+    if (not isinstance(path, str) or not path or path.startswith("/") or "\\" in path
+            or "\0" in path or any(p in ("", ".", "..") for p in parts)):
         raise UsageError(f"invalid artifact path {path!r}: expected a relative posix path "
                          "inside the output folder (no '', '.', '..' parts, no backslashes)")
+    try:
+        os.fsencode(path)
+    except UnicodeEncodeError:
+        raise UsageError(f"invalid artifact path {path!r}: it holds a surrogate that stands "
+                         "for no byte") from None
 
 
 @dataclass(frozen=True)

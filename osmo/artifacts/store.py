@@ -14,20 +14,24 @@ Layout::
 
 How ingest stores a new file, fastest first:
 
-- **Same filesystem:** the file is hashed (one streaming read), made read-only (0o444), and
-  hard-linked into place with ``os.link``, which either creates the final name atomically or
-  fails because the blob exists: an existing blob wins, so concurrent ingests of the same
-  content are safe. No data is copied. The output file and the blob then share one inode,
-  which is why outputs are immutable once ingested: writing to the output would change the
-  blob. The data is not fsynced on this path (that would cost a full disk write of every
-  output); a blob torn by a power cut fails verification and is never used.
-- **Otherwise** (another filesystem, or hard links refused): the file is copied to
-  ``root/tmp``, fsynced, made read-only and linked into place the same way.
+- **Same filesystem, one link:** the file is hashed (one streaming read), made read-only
+  (0o444), and hard-linked into place with ``os.link``, which either creates the final name
+  atomically or fails because the blob exists: an existing blob wins, so concurrent ingests
+  of the same content are safe. No data is copied. The output file and the blob then share
+  one inode, which is why outputs are immutable once ingested: writing to the output would
+  change the blob. The data is not fsynced on this path (that would cost a full disk write
+  of every output); a blob torn by a power cut fails verification and is never used.
+- **Otherwise** (another filesystem, hard links refused, or a file that already has more
+  than one link): the file is copied to ``root/tmp``, fsynced, made read-only and linked
+  into place the same way. A file with several links is never linked or chmod-ed: its
+  other names may be outside the output folder (``ln /any/file {{output}}/x``), and ingest
+  never changes a file it does not own.
 
 A file whose blob already exists writes no data; ingest only refreshes the blob's ctime (a
 ``chmod`` to 0o444) so that :meth:`ArtifactStore.gc`'s grace period covers it until the caller
-records the manifest. Reads and materialization re-hash every byte and raise
-:class:`ArtifactCorrupted` on a mismatch.
+records the manifest — after checking that the existing blob still holds its digest (a blob
+that does not is replaced). Reads and hand-outs (:mod:`osmo.artifacts.copies`) are checked
+against the digest and raise :class:`ArtifactCorrupted` on a mismatch.
 """
 
 from __future__ import annotations
@@ -39,7 +43,6 @@ import hashlib
 import os
 import shutil
 import stat
-import tempfile
 import time
 import uuid
 from collections.abc import Iterable, Iterator
@@ -48,23 +51,28 @@ from contextlib import contextmanager
 from io import FileIO
 from pathlib import Path
 
+from osmo.artifacts.copies import HandOut, Verifier
 from osmo.artifacts.errors import ArtifactCorrupted, OutputRejected
-from osmo.artifacts.fsops import (CHUNK, check_unchanged, copy_verified, files, hash_fd, link,
-                                  refresh)
+from osmo.artifacts.fsops import (CHUNK, check_unchanged, files, hash_fd, link, refresh)
 from osmo.artifacts.manifest import Entry, Manifest, check_digest
 from osmo.artifacts.scan import scan
-from osmo.errors import NotFoundError, UsageError
+from osmo.errors import UsageError
 
-__all__ = ["DEFAULT_GRACE", "ArtifactStore"]
+__all__ = ["DEFAULT_GRACE", "DEFAULT_MAX_FILES", "ArtifactStore"]
 
 DEFAULT_GRACE = 3600.0
 """Seconds a blob is safe from :meth:`ArtifactStore.gc` after it was stored or deduplicated."""
 
+DEFAULT_MAX_FILES = 1_000_000
+"""Files one output may list by default (bounds a tree of symlinks that lists itself over and
+over: each name is a file ``artifacts get`` would write)."""
+
 _PARALLEL_SIZE = 4 << 20  # files this large are hashed on a thread pool
 
 
-class ArtifactStore:
-    """Blobs named by their sha256, written once and never modified.
+class ArtifactStore(HandOut):
+    """Blobs named by their sha256, written once and never modified; handed out as checked
+    copies or links (:class:`~osmo.artifacts.copies.HandOut`).
 
     Args:
         root: the store's folder (``OSMO_HOME/artifacts``); created if missing.
@@ -77,6 +85,7 @@ class ArtifactStore:
         self._blobs.mkdir(parents=True, exist_ok=True)
         self._tmp.mkdir(exist_ok=True)
         self._dev = os.stat(self._blobs).st_dev
+        self._verifier = Verifier()
 
     # -- queries -----------------------------------------------------------------------------
 
@@ -94,10 +103,14 @@ class ArtifactStore:
         return self.path(digest).is_file()
 
     def verify(self, digest: str) -> bool:
-        """Re-hash the blob for ``digest``: ``True`` when it exists and matches (fsck, gc)."""
+        """Re-hash the blob for ``digest``: ``True`` when it exists and matches."""
         try:
             with open(self.path(digest), "rb", buffering=0) as f:
-                return hash_fd(f, CHUNK)[0] == digest
+                before = os.fstat(f.fileno())
+                ok = hash_fd(f, before.st_size)[0] == digest
+                if ok and os.fstat(f.fileno()).st_ctime_ns == before.st_ctime_ns:
+                    self._verifier.note(digest, before)
+                return ok
         except FileNotFoundError:
             return False
 
@@ -121,15 +134,21 @@ class ArtifactStore:
 
     # -- ingest ------------------------------------------------------------------------------
 
-    def ingest(self, folder: Path) -> Manifest:
+    def ingest(self, folder: Path, *, max_bytes: int | None = None,
+               max_files: int | None = DEFAULT_MAX_FILES) -> Manifest:
         """Store every file under ``folder`` and return its manifest.
 
         Files are hashed with streaming 1 MiB reads and stored deduplicated (see the module
         docstring). New blobs on the same filesystem are hard links to the output files,
-        which become read-only. Symlinks follow :func:`osmo.artifacts.scan.scan`'s policy.
+        which become read-only. Symlinks follow :func:`osmo.artifacts.scan.scan`'s policy;
+        a file listed under several names (through symlinks) is read once. The limits are
+        checked on the listing, before anything is read or stored.
 
         Args:
             folder: the output folder; entry paths are relative to it.
+            max_bytes: the most bytes the listed files may hold (None: no limit). Sizes are
+                the files' lengths, so a sparse file counts its holes.
+            max_files: the most files the output may list (None: no limit).
 
         Returns:
             The manifest of every regular file under ``folder``.
@@ -137,29 +156,48 @@ class ArtifactStore:
         Raises:
             UsageError: ``folder`` is not a folder.
             OutputRejected: a symlink leaves the folder, dangles or loops, an entry is not a
-                regular file, or a file changed while it was being stored.
+                regular file, a file changed while it was being stored, or the output holds
+                more than ``max_bytes`` or ``max_files``.
         """
         if not Path(folder).is_dir():
             raise UsageError(f"cannot ingest {folder}: not a folder")
-        files = scan(str(folder))
-        big = [(rel, src) for rel, src, size in files if size >= _PARALLEL_SIZE]
-        small = [(rel, src) for rel, src, size in files if size < _PARALLEL_SIZE]
+        files = scan(str(folder), max_files=max_files)
+        total = sum(size for _rel, _src, size in files)
+        if max_bytes is not None and total > max_bytes:
+            raise OutputRejected("", f"holds {total} bytes in {len(files)} files, more than "
+                                 f"the task's storage limit of {max_bytes} bytes (resources: "
+                                 "storage); write less, or raise the limit")
+        first: dict[str, tuple[str, int]] = {}  # real file → (first name listed, size)
+        for rel, src, size in files:
+            first.setdefault(src, (rel, size))
+        stored = dict(zip(first, self._ingest_all(
+            [(rel, src, size) for src, (rel, size) in first.items()]), strict=True))
+        return Manifest(tuple(Entry(rel, stored[src].digest, stored[src].size)
+                              for rel, src, _size in files))
+
+    def _ingest_all(self, files: list[tuple[str, str, int]]) -> list[Entry]:
+        """Ingest each ``(name, real path, size)``; entries in the same order."""
         with self._lock(exclusive=False):
+            big = [i for i, (_rel, _src, size) in enumerate(files) if size >= _PARALLEL_SIZE]
             if len(big) < 2:
-                return Manifest(tuple(self._ingest_file(rel, src) for rel, src in big + small))
+                return [self._ingest_file(rel, src) for rel, src, _size in files]
             # hashlib releases the GIL, so large files hash in parallel; small ones are
             # syscall-bound and run faster on this thread than through a pool
             workers = min(len(big), os.cpu_count() or 1, 8)
+            out: list[Entry | None] = [None] * len(files)
             with ThreadPoolExecutor(workers, thread_name_prefix="osmo-ingest") as pool:
-                futures = [pool.submit(self._ingest_file, rel, src) for rel, src in big]
-                entries = [self._ingest_file(rel, src) for rel, src in small]
-                entries += [f.result() for f in futures]
-        return Manifest(tuple(entries))
+                futures = {i: pool.submit(self._ingest_file, *files[i][:2]) for i in big}
+                for i, (rel, src, _size) in enumerate(files):
+                    if i not in futures:
+                        out[i] = self._ingest_file(rel, src)
+                for i, future in futures.items():
+                    out[i] = future.result()
+            return [e for e in out if e is not None]
 
     def _ingest_file(self, rel: str, src: str) -> Entry:
         """Hash one file and make sure its blob exists."""
-        try:
-            f = open(src, "rb", buffering=0)
+        try:  # O_NOFOLLOW: a symlink swapped in since the scan is never followed
+            f = open(os.open(src, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC), "rb", buffering=0)
         except PermissionError as exc:
             raise OutputRejected(rel, f"cannot be read ({exc.strerror}); make it readable "
                                  "by the worker") from None
@@ -172,18 +210,36 @@ class ArtifactStore:
                 existing: os.stat_result | None = os.stat(blob)
             except FileNotFoundError:
                 existing = None
-            if existing is not None and existing.st_size == n:
-                refresh(blob)
-            else:
-                if existing is not None:  # wrong size: certainly corrupt; replace it
+            if existing is None or existing.st_size != n or not self._reusable(
+                    blob, digest, existing):
+                if existing is not None:  # no longer holds its digest: replace it
                     blob.unlink(missing_ok=True)
+                    self._verifier.forget(digest)
                 self._store_new(rel, src, f, before, blob)
         return Entry(rel, digest, n)
 
+    def _reusable(self, blob: Path, digest: str, existing: os.stat_result) -> bool:
+        """True when the existing blob still holds ``digest`` (hashed unless known intact);
+        its ctime is then refreshed for gc's grace period."""
+        if not self._verifier.intact(digest, existing) and not self.verify(digest):
+            return False
+        refresh(blob)
+        try:
+            after = os.stat(blob)
+        except FileNotFoundError:
+            return False
+        if (after.st_mtime_ns, after.st_size) == (existing.st_mtime_ns, existing.st_size):
+            self._verifier.note(digest, after)  # only our chmod changed its ctime
+        return True
+
     def _store_new(self, rel: str, src: str, f: FileIO, before: os.stat_result,
                    blob: Path) -> None:
-        """Publish a blob for the open file ``f``: by hard link if possible, else by copy."""
-        if before.st_dev == self._dev:
+        """Publish a blob for the open file ``f``: by hard link if possible, else by copy.
+
+        A file with more than one link is always copied: its other names may lie outside the
+        output folder (a task can hard-link any file it can reach, even the state store), and
+        linking or chmod-ing its inode would change that file and serve it as a blob."""
+        if before.st_dev == self._dev and before.st_nlink == 1:
             try:
                 os.fchmod(f.fileno(), 0o444)  # before the link: a blob is never writable
                 if link(src, blob) and os.stat(blob).st_ino != before.st_ino:
@@ -232,85 +288,6 @@ class ArtifactStore:
         except OSError:
             return False
         return True
-
-    def link_tree(self, manifest: Manifest, dest: Path) -> None:
-        """Create folder ``dest`` holding the manifest's files as hard links of their blobs
-        (read-only, nothing copied; a copy, verified, where links are refused). Built beside
-        ``dest`` and renamed into place, so ``dest`` appears complete or not at all; an
-        existing ``dest`` is left as it is.
-
-        Raises:
-            ArtifactCorrupted: a blob is missing.
-        """
-        if dest.is_dir():
-            return
-        dest.parent.mkdir(parents=True, exist_ok=True)
-        build = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", dir=dest.parent))
-        try:
-            for e in manifest.entries:
-                final = build / e.path
-                final.parent.mkdir(parents=True, exist_ok=True)
-                try:
-                    os.link(self.path(e.digest), final)
-                except FileNotFoundError:
-                    raise ArtifactCorrupted(e.digest, str(self.path(e.digest)), None) from None
-                except OSError:
-                    copy_verified(self.path(e.digest), e.digest, e.size, final)
-            os.chmod(build, 0o755)
-            try:
-                os.rename(build, dest)
-            except OSError:
-                if not dest.is_dir():
-                    raise
-        finally:
-            shutil.rmtree(build, ignore_errors=True)
-
-    # -- materialize -------------------------------------------------------------------------
-
-    def materialize(self, manifest: Manifest, dest: Path, *, only: str | None = None
-                    ) -> list[Path]:
-        """Write the manifest's files (or just ``only``) under ``dest``, verified.
-
-        Every file is first copied from its blob into a hidden staging folder inside ``dest``
-        while being re-hashed; only when all match are they renamed into place (replacing
-        existing files). So a corrupted blob leaves nothing new in ``dest``, and no file is
-        ever visible under its final name half-written. Files are not fsynced: they can
-        always be materialized again.
-
-        Args:
-            manifest: the files to write.
-            dest: the folder to write them under (created if missing).
-            only: a single entry path to write instead of all of them.
-
-        Returns:
-            The paths written, in manifest order.
-
-        Raises:
-            NotFoundError: ``only`` is not a path in the manifest.
-            ArtifactCorrupted: a blob is missing or does not match its digest.
-        """
-        entries = list(manifest.entries)
-        if only is not None:
-            entry = manifest.get(only)
-            if entry is None:
-                raise NotFoundError(f"no artifact {only!r} in manifest {manifest.digest} "
-                                    f"({len(entries)} files)")
-            entries = [entry]
-        dest = Path(dest)
-        dest.mkdir(parents=True, exist_ok=True)
-        staging = Path(tempfile.mkdtemp(prefix=".osmo-materialize-", dir=dest))
-        try:
-            staged = [_stage(self.path(e.digest), e, staging / str(i))
-                      for i, e in enumerate(entries)]
-            written = []
-            for tmp, e in zip(staged, entries, strict=True):
-                final = dest / e.path
-                final.parent.mkdir(parents=True, exist_ok=True)
-                os.replace(tmp, final)
-                written.append(final)
-            return written
-        finally:
-            shutil.rmtree(staging, ignore_errors=True)
 
     # -- garbage collection ------------------------------------------------------------------
 
@@ -361,8 +338,3 @@ class ArtifactStore:
         finally:
             os.close(fd)  # closing releases the flock
 
-
-def _stage(blob: Path, entry: Entry, tmp: Path) -> Path:
-    """Copy ``entry``'s blob to ``tmp``, verified; return ``tmp``."""
-    copy_verified(blob, entry.digest, entry.size, tmp)
-    return tmp

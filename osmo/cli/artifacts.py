@@ -9,12 +9,13 @@ from __future__ import annotations
 
 import argparse
 import hashlib
+import os
 import sys
 from pathlib import Path
 from typing import Any
 
-from osmo.cli.render import console, print_error, print_json
-from osmo.errors import OsmoError
+from osmo.cli.render import console, print_error, print_json, safe
+from osmo.errors import OsmoError, UsageError
 from osmo.sdk.client import Client
 
 __all__ = ["add_parsers", "run_artifacts", "run_lineage"]
@@ -31,6 +32,8 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
     q = verbs.add_parser("get", help="write an artifact's files (verified) to a folder")
     q.add_argument("target", help="sha256:<digest> or WORKFLOW_ID:TASK[:PATH]")
     q.add_argument("-o", "--output", required=True, help="destination folder")
+    q.add_argument("--force", action="store_true",
+                   help="replace DEST if it is a file or a symlink to nothing")
     verbs.add_parser("gc", help="remove blobs that no recorded output references")
 
     p = sub.add_parser("lineage", help="what made an artifact (or, --downstream, what used it)")
@@ -48,17 +51,35 @@ def run_artifacts(args: argparse.Namespace) -> int:
             if args.format == "json":
                 print_json(outputs)
             for out in outputs if args.format == "text" else ():
-                console.print(f"{out['task']}  {out['manifest']}  ({out['attempt_id']})",
+                console.print(safe(f"{out['task']}  {out['manifest']}  ({out['attempt_id']})"),
                               markup=False)
                 for f in out["files"]:
-                    console.print(f"  {f['path']}  {f['size']} B  {f['digest']}", markup=False)
+                    console.print(f"  {safe(f['path'])}  {f['size']} B  {f['digest']}",
+                                  markup=False)
         elif args.artifacts_verb == "get":
-            for path in client.get_artifact(args.target, args.output):
-                console.print(path, markup=False)
+            _make_room(Path(args.output), force=args.force)
+            try:
+                written = client.get_artifact(args.target, args.output)
+            except OSError as exc:  # the destination the user chose cannot be written
+                raise UsageError(f"cannot write into {safe(args.output)}: "
+                                 f"{exc.strerror or exc}") from None
+            for path in written:
+                console.print(safe(path), markup=False)
         else:
             count, size = client.gc_artifacts()
             console.print(f"removed {count} unreferenced blob(s), {size} bytes", markup=False)
     return 0
+
+
+def _make_room(dest: Path, *, force: bool) -> None:
+    """Refuse (or, with ``--force``, remove) a DEST that exists and is not a folder."""
+    if not os.path.lexists(dest) or dest.is_dir():
+        return
+    if not force:
+        kind = "a symlink to nothing" if dest.is_symlink() else "a file"
+        raise UsageError(f"{safe(dest)} is {kind}, not a folder; choose a folder, "
+                         "or pass --force to replace it")
+    dest.unlink()
 
 
 def run_lineage(args: argparse.Namespace) -> int:
@@ -119,7 +140,7 @@ def _print(fmt: str, graph: dict[str, Any], *, downstream: bool) -> int:
         sys.stdout.write(_dot(graph))
     else:
         for line in _tree(graph, downstream):
-            console.print(line, markup=False)
+            console.print(safe(line), markup=False)
     return 0
 
 

@@ -19,6 +19,7 @@ from osmo.cli.render import (
     live_progress,
     info_dict,
     print_json,
+    safe,
     task_table,
     workflow_header,
     workflows_table,
@@ -75,7 +76,7 @@ def _wait(client: Client, wf_id: str, fmt: str = "text") -> int:
             for t in i.tasks:
                 if seen.get(t.name) != t.status.name and fmt == "text":
                     seen[t.name] = t.status.name
-                    console.print(f"{t.name}: {t.status.name}", markup=False)
+                    console.print(f"{safe(t.name)}: {t.status.name}", markup=False)
 
         info = client.wait(wf_id, on_update=show, min_interval=0.2)
         if fmt == "text":
@@ -139,7 +140,7 @@ def _logs(args: argparse.Namespace) -> int:
 def _cancel(args: argparse.Namespace) -> int:
     with _client(args) as client:
         status = client.cancel(args.workflow_id)
-    console.print(f"Workflow {args.workflow_id}: {status.name}", markup=False)
+    console.print(f"Workflow {safe(args.workflow_id)}: {status.name}", markup=False)
     return 0
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import argparse
 
-from osmo.cli.render import console, print_json
+from osmo.cli.render import console, print_json, safe
 from osmo.errors import UsageError
 from osmo.sdk.client import Client
 
@@ -45,24 +45,25 @@ def run_dataset(args: argparse.Namespace) -> int:
                 print_json(rows)
             for r in rows if args.format == "text" else ():
                 tags = f" [{', '.join(r['tags'])}]" if r["tags"] else ""
-                console.print(f"{r['name']}:{r['version']}{tags}  {r['files']} files  "
-                              f"{r['size']} B  {r['created']}  by {r['made_by'] or 'upload'}",
-                              markup=False)
+                console.print(safe(f"{r['name']}:{r['version']}{tags}  {r['files']} files  "
+                                   f"{r['size']} B  {r['created']}  by "
+                                   f"{r['made_by'] or 'upload'}"), markup=False)
         elif verb == "info":
             info = client.dataset_info(args.ref)
             if args.format == "json":
                 print_json(info)
             else:
-                console.print(f"{info['name']}:{info['version']}  {info['manifest']}  "
-                              f"made by {info['made_by'] or 'upload'}", markup=False)
+                console.print(safe(f"{info['name']}:{info['version']}  {info['manifest']}  "
+                                   f"made by {info['made_by'] or 'upload'}"), markup=False)
                 for f in info["files"]:
-                    console.print(f"  {f['path']}  {f['size']} B  {f['digest']}", markup=False)
+                    console.print(f"  {safe(f['path'])}  {f['size']} B  {f['digest']}",
+                                  markup=False)
         elif verb == "tag":
             r = client.tag_dataset(args.ref, args.tag)
             console.print(f"{r['name']}:{r['tag']} -> version {r['version']}", markup=False)
         elif verb == "download":
             for path in client.download_dataset(args.ref, args.output, regex=args.regex):
-                console.print(path, markup=False)
+                console.print(safe(path), markup=False)
         else:
             metadata = dict(_pair(m) for m in args.metadata)
             version = client.upload_dataset(args.name, args.path, metadata=metadata)

@@ -24,7 +24,7 @@ if TYPE_CHECKING:
 
 __all__ = ["console", "err_console", "format_log", "info_dict", "leaderboard_table",
            "live_progress", "plugin_table", "print_error", "print_json", "resource_table",
-           "task_table", "workflow_header", "workflows_table"]
+           "safe", "task_table", "workflow_header", "workflows_table"]
 
 _PLAIN_WIDTH = 160
 
@@ -73,6 +73,38 @@ console: Any = _LazyConsole(highlight=False, width=None if sys.stdout.isatty() e
 err_console: Any = _LazyConsole(stderr=True, highlight=False, soft_wrap=True)
 
 
+_NAMED = {"\a": "\\a", "\b": "\\b", "\t": "\\t", "\n": "\\n", "\v": "\\v", "\f": "\\f",
+          "\r": "\\r", "\\": "\\\\"}
+
+
+def _escape(c: str) -> str:
+    if c in _NAMED:
+        return _NAMED[c]
+    if c.isprintable():
+        return c
+    code = ord(c)
+    if 0xDC80 <= code <= 0xDCFF:  # a byte that was not UTF-8, kept by surrogateescape
+        return f"\\{code - 0xDC00:03o}"
+    if code < 0x100:
+        return f"\\{code:03o}"
+    return f"\\u{code:04x}" if code <= 0xFFFF else f"\\U{code:08x}"
+
+
+def safe(text: object) -> str:
+    """``text`` with control and other non-printing characters escaped, as GNU ``ls --escape``
+    shows file names (``\\n``, ``\\033``, ``\\u202e``; a byte that was not UTF-8 as
+    ``\\351``; backslashes doubled).
+
+    Every name a task, a file or a user chose (task, workflow, artifact path, command, message)
+    is printed through this, so it can neither move the cursor, retitle or clear the terminal
+    nor forge a line. JSON output is left exact.
+    """
+    value = str(text)
+    if value.isprintable() and "\\" not in value:
+        return value
+    return "".join(map(_escape, value))
+
+
 def _when(ts: float | None) -> str:
     return time.strftime("%Y/%m/%d %H:%M:%S", time.localtime(ts)) if ts else "-"
 
@@ -102,14 +134,14 @@ def _elapsed(info: WorkflowInfo) -> float | None:
 def workflow_header(info: WorkflowInfo) -> str:
     """The lines above a task table: id, status, pool, times."""
     lines = [
-        f"Workflow ID : {info.id}",
+        f"Workflow ID : {safe(info.id)}",
         f"Status      : {info.status.name}",
-        f"Pool        : {info.pool or '-'}",
+        f"Pool        : {safe(info.pool or '-')}",
         f"Submitted   : {_when(info.submitted_at)}",
         f"Duration    : {_dur(_elapsed(info))}",
     ]
     if info.reused_from:
-        lines.append(f"Restart of  : {info.reused_from}")
+        lines.append(f"Restart of  : {safe(info.reused_from)}")
     return "\n".join(lines)
 
 
@@ -117,6 +149,7 @@ def task_table(tasks: list[TaskInfo], verbose: bool = False) -> Table:
     """A table of tasks: name, retry, status, start, duration, exit code (+ group, node and
     message with ``verbose``)."""
     from rich.table import Table
+    from rich.text import Text
 
     table = Table(box=None, pad_edge=False)
     for col in ("Task", "Retry", "Status", "Start", "Duration", "Exit Code"):
@@ -130,13 +163,13 @@ def task_table(tasks: list[TaskInfo], verbose: bool = False) -> Table:
         table.add_column("Message")
     for t in tasks:
         status = t.status.name + (" (cached)" if t.reused else "")
-        row = [t.name, str(t.retry), f"[{_style(t.status.name)}]{status}[/]" if _style(
-            t.status.name) else status, _when(t.started_at), _dur(t.duration),
+        row: list[Any] = [Text(safe(t.name)), str(t.retry), Text(status, _style(
+            t.status.name)), _when(t.started_at), _dur(t.duration),
             "-" if t.exit_code is None else str(t.exit_code)]
         if progress:
-            row.append(t.progress or "")
+            row.append(Text(safe(t.progress or "")))
         if verbose:
-            row += [t.group, t.node or "-", t.message or ""]
+            row += [Text(safe(t.group)), Text(safe(t.node or "-")), Text(safe(t.message or ""))]
         table.add_row(*row)
     return table
 
@@ -149,14 +182,14 @@ def workflows_table(rows: list[WorkflowInfo]) -> Table:
     for col in ("Workflow ID", "Status", "Submitted", "Duration", "Pool"):
         table.add_column(col)
     for w in rows:
-        table.add_row(w.id, w.status.name, _when(w.submitted_at), _dur(_elapsed(w)),
-                      w.pool or "-")
+        table.add_row(safe(w.id), w.status.name, _when(w.submitted_at), _dur(_elapsed(w)),
+                      safe(w.pool or "-"))
     return table
 
 
 def format_log(r: LogRecord) -> str:
     """OSMO's log line: ``YYYY/MM/DD HH:MM:SS [task] text`` (retries, osmo lines marked)."""
-    who = r.task or "workflow"
+    who = safe(r.task or "workflow")
     if r.retry:
         who += f" retry-{r.retry}"
     tag = f"[{who}][osmo]" if r.stream == "osmo" else f"[{who}]"
@@ -190,7 +223,8 @@ def print_error(message: str) -> None:
     """``error: message`` on stderr (the message is printed literally, never as markup)."""
     from rich.text import Text
 
-    err_console.print(Text("error: ", style="red") + Text(message))
+    lines = "\n".join(safe(line) for line in message.split("\n"))  # keep the line breaks only
+    err_console.print(Text("error: ", style="red") + Text(lines))
 
 
 @contextmanager
@@ -204,7 +238,8 @@ def live_progress() -> Iterator[Callable[[WorkflowInfo], None]]:
 
         def update(info: WorkflowInfo) -> None:
             done = sum(t.status.terminal for t in info.tasks)
-            head = Text(f"{info.id}  {info.status.name}  {done}/{len(info.tasks)} tasks done")
+            head = Text(f"{safe(info.id)}  {info.status.name}  {done}/{len(info.tasks)} tasks "
+                        "done")
             live.update(Group(head, task_table(info.tasks)))
 
         yield update
@@ -225,9 +260,9 @@ def resource_table(rows: list[dict[str, Any]], *, by: str) -> Table:
         table.add_column(col)
     for r in rows:
         used, total = r["used"], r["total"]
-        head = ([r["node"], r["pool"], r["platform"] or "-", r.get("status", "online")]
-                if by == "node"
-                else [r["pool"], str(r["nodes"]), ", ".join(r["platforms"])])
+        head = ([safe(r["node"]), safe(r["pool"]), safe(r["platform"] or "-"),
+                 safe(r.get("status", "online"))] if by == "node"
+                else [safe(r["pool"]), str(r["nodes"]), safe(", ".join(r["platforms"]))])
         table.add_row(*head, f"{used['cpu']:g}/{total['cpu']:g}",
                       f"{used['gpu']}/{total['gpu']}",
                       f"{_gib(used['memory'])}/{_gib(total['memory'])}")
@@ -272,7 +307,8 @@ def leaderboard_table(rows: list[dict[str, Any]]) -> Table:
         table.add_column(col)
     for r in rows:
         lo, hi = r["return_ci95"]
-        table.add_row(r["env"], str(r["rank"]), r["policy"], r["workflow"], r["task"],
+        table.add_row(safe(r["env"]), str(r["rank"]), safe(r["policy"]), safe(r["workflow"]),
+                      safe(r["task"]),
                       f"{100 * r['success_rate']:.0f}%",
                       f"{r['mean_return']:.1f} [{lo:.1f}, {hi:.1f}]",
                       f"{r['mean_length']:.0f}", str(r["episodes"]))

@@ -247,11 +247,28 @@ def _osmo_version() -> str:
 
 
 def _json(value: Any) -> str:
-    """Compact JSON, no NaN (Foxglove and browsers reject it)."""
+    return compact_json(value, f"lineage value {value!r}")
+
+
+def compact_json(value: Any, what: str = "value") -> str:
+    """Compact JSON text that is valid UTF-8, with no NaN (Foxglove and browsers reject it).
+
+    Non-ASCII text is kept as it is, except when a string holds a byte that is not UTF-8
+    (a file name; see ``osmo.artifacts.manifest``): the whole text is then written with
+    ``\\u`` escapes, which every JSON reader accepts and Python reads back exactly.
+
+    Raises:
+        UsageError: the value is not JSON-serialisable; ``what`` names it in the message.
+    """
     try:
-        return json.dumps(value, separators=(",", ":"), ensure_ascii=False, allow_nan=False)
+        text = json.dumps(value, separators=(",", ":"), ensure_ascii=False, allow_nan=False)
     except (TypeError, ValueError) as exc:
-        raise UsageError(f"lineage value {value!r} is not JSON-serialisable: {exc}") from exc
+        raise UsageError(f"{what} is not JSON-serialisable: {exc}") from exc
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        return json.dumps(value, separators=(",", ":"), ensure_ascii=True, allow_nan=False)
+    return text
 
 
 def _typed(data: Mapping[str, Any], key: str, kind: type, *, default: Any = None,

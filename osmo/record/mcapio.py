@@ -30,7 +30,7 @@ from mcap.reader import McapReader, make_reader
 from mcap.writer import CompressionType, Writer
 
 from osmo.errors import InfrastructureError, NotFoundError, OsmoError, UsageError
-from osmo.record.lineage import LINEAGE_METADATA, Lineage
+from osmo.record.lineage import LINEAGE_METADATA, Lineage, compact_json
 
 __all__ = [
     "Attachment", "ChannelInfo", "JsonMcapWriter", "LineageMcapWriter", "McapFile",
@@ -58,11 +58,7 @@ def json_bytes(value: Any, what: str = "value") -> bytes:
     Raises:
         UsageError: the value is not JSON-serialisable; ``what`` names it in the message.
     """
-    try:
-        text = json.dumps(value, separators=(",", ":"), ensure_ascii=False, allow_nan=False)
-    except (TypeError, ValueError) as exc:
-        raise UsageError(f"{what} is not JSON-serialisable: {exc}") from exc
-    return text.encode("utf-8")
+    return compact_json(value, what).encode("utf-8")
 
 
 def _best_compression() -> CompressionType:

@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from osmo.errors import UsageError
-from osmo.record.lineage import Lineage
+from osmo.record.lineage import Lineage, compact_json
 from osmo.record.mcapio import JsonMcapWriter, McapFile, RecordError
 
 __all__ = [
@@ -248,11 +248,7 @@ def _workflow_metadata(workflow: Mapping[str, Any]) -> dict[str, str]:
     for key in ("submitted_at", "ended_at"):
         when = _opt_time(plain.get(key), f"workflow {key}")
         out[key] = "" if when is None else repr(when)
-    try:
-        out["workflow"] = json.dumps(plain, ensure_ascii=False, allow_nan=False,
-                                     separators=(",", ":"))
-    except (TypeError, ValueError) as exc:
-        raise UsageError(f"workflow {out['id']} is not JSON-serialisable: {exc}") from exc
+    out["workflow"] = compact_json(plain, f"workflow {out['id']}")
     return out
 
 

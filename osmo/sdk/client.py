@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from osmo.errors import UsageError
+from osmo.names import check_name, check_tag, check_workflow_id, parse_ref
 from osmo.sdk.connect import Connection, connect
 from typing import TYPE_CHECKING, TypeAlias
 
@@ -133,6 +134,8 @@ class Client:
         self.close()
 
     def _call(self, verb: str, *, timeout: float | None = None, **request: Any) -> Any:
+        if "workflow_id" in request:  # checked here, so a mistyped id never leaves this host
+            check_workflow_id(request["workflow_id"])
         return self._conn.api.call(verb, request, timeout=timeout)
 
     def _server_is_here(self) -> bool:
@@ -161,11 +164,10 @@ class Client:
             SubmitError: the server cannot run it (e.g. no pool fits a task).
         """
         if isinstance(spec, (str, os.PathLike)) and self._server_is_here():
+            from osmo.spec.files import read_spec_file
+
             path = Path(spec).absolute()
-            try:
-                text = path.read_text()
-            except OSError as exc:
-                raise UsageError(f"cannot read {spec}: {exc.strerror}") from None
+            text = read_spec_file(path, os.fspath(spec))
             result = self._call("submit", source={"path": str(path), "text": text},
                                 set_values=list(set_values), set_strings=list(set_strings),
                                 set_env=list(set_env), pool=pool, no_cache=no_cache)
@@ -294,15 +296,19 @@ class Client:
 
     def datasets(self, name: str | None = None) -> builtins.list[dict[str, Any]]:
         """Dataset versions (of one dataset), newest first."""
+        if name is not None:
+            check_name(name, "dataset name")
         return builtins.list(self._call("datasets_list", name=name))
 
     def dataset_info(self, ref: str) -> dict[str, Any]:
         """One version (``NAME[:TAG_OR_VERSION]``, default newest) with its files."""
+        parse_ref(ref)
         return dict(self._call("datasets_info", ref=ref))
 
     def tag_dataset(self, ref: str, tag: str) -> dict[str, Any]:
         """Point ``tag`` at the version ``ref`` names."""
-        return dict(self._call("datasets_tag", ref=ref, tag=tag))
+        parse_ref(ref)
+        return dict(self._call("datasets_tag", ref=ref, tag=check_tag(tag)))
 
     def download_dataset(self, ref: str, dest: str | os.PathLike[str], *,
                          regex: str | None = None) -> builtins.list[str]:
@@ -312,6 +318,7 @@ class Client:
 
         from osmo.artifacts import Manifest
 
+        parse_ref(ref)
         reply = self._call("datasets_download", ref=ref, regex=regex)
         written = transfer.download(self._conn.link, self.ping(),
                                     Manifest.from_json(reply["manifest"]), Path(dest).absolute())
@@ -323,6 +330,7 @@ class Client:
         files stay as they are); returns the version."""
         from osmo.sdk import transfer
 
+        check_name(name, "dataset name")
         folder = Path(path).absolute()
         if not folder.is_dir():
             raise UsageError(f"cannot upload '{folder}': not a folder")

@@ -15,20 +15,25 @@ from typing import Any
 
 from osmo.artifacts import ArtifactStore, Manifest
 from osmo.errors import NotFoundError, SubmitError, UsageError
+from osmo.names import MAX_NAME, check_name, check_workflow_id, parse_ref, shown
 from osmo.scheduler.types import CancelWorkflow, WorkflowSubmitted
 from osmo.server.api_datasets import DatasetApi
 from osmo.server.credentials import CredentialApi, check_task_credentials
 from osmo.server.engine import Engine, _Batch
 from osmo.server.lineage_query import lineage_graph, resolve_target
 from osmo.server.logview import last_progress, read_logs
-from osmo.spec import load_spec, spec_from_dict, spec_to_dict
+from osmo.spec import isolation, load_spec, spec_from_dict, spec_to_dict
 from osmo.status import WorkflowStatus
 from osmo.store.sqlite import WorkflowRow
+from osmo.spec.reader import did_you_mean
+from osmo.transport.api import MAX_INT, field, str_list
 from osmo.worker.workdir import AttemptDirs
 
 __all__ = ["Api"]
 
 DEFAULT_MAX_RETRIES = 3
+MAX_LIST = 1_000_000  # workflows one ``list`` may ask for
+_MAX_TEXT = 4096  # characters of a path, a pool or an artifact target in a request
 
 
 class Api:
@@ -65,12 +70,13 @@ class Api:
         self._verbs.update(DatasetApi(engine, self._artifacts, home,
                                       workers.pull if workers else None).verbs())
         self._verbs.update(CredentialApi(self._store).verbs())
+        isolation.warm()  # the template renderer, started now so no submit waits for it
 
     def handle(self, verb: str, request: dict[str, Any]) -> Any:
         """Run the handler for ``verb``; UsageError for an unknown verb."""
         handler = self._verbs.get(verb)
         if handler is None:
-            raise UsageError(f"unknown API verb '{verb}'")
+            raise UsageError(f"unknown API verb {shown(verb)}")
         return handler(request)
 
     # ------------------------------------------------------------------ mutating verbs
@@ -84,32 +90,41 @@ class Api:
         template engine and YAML parser.
 
         Task types are resolved here, with this server's installed plugins; what was
-        resolved (version, resources, folders) is kept in the workflow's options."""
+        resolved (version, resources, folders) is kept in the workflow's options. Outputs
+        to reuse are for ``restart`` to give, never a request."""
+        if "reused" in request or "reused_from" in request:
+            raise UsageError("'reused' and 'reused_from' are set by `osmo restart` only")
+        return self._submit(request, {}, None)
+
+    def _submit(self, request: dict[str, Any], reused: dict[str, str],
+                reused_from: str | None) -> dict[str, Any]:
         from osmo.tasktypes.registry import Resolver
 
+        pool = field(request, "pool", str, default=None, max_len=_MAX_TEXT)
+        filename = field(request, "filename", str, default=None, max_len=_MAX_TEXT)
         if "source" in request:  # a spec file on this server's host: read and checked here
-            path = str(request["source"]["path"])
-            spec = load_spec(text=str(request["source"]["text"]), filename=path,
-                             set_values=request.get("set_values") or (),
-                             set_strings=request.get("set_strings") or (),
-                             set_env=request.get("set_env") or (),
-                             types=Resolver([str(Path(path).parent)]))
-            request = {**request, "filename": path, "spec": spec_to_dict(spec)}
+            source = field(request, "source", dict)
+            filename = field(source, "path", str, max_len=_MAX_TEXT, what="'source.path'")
+            spec = load_spec(text=field(source, "text", str, what="'source.text'"),
+                             filename=filename, set_values=str_list(request, "set_values"),
+                             set_strings=str_list(request, "set_strings"),
+                             set_env=str_list(request, "set_env"),
+                             types=Resolver([str(Path(filename).parent)]))
+            stored = spec_to_dict(spec)
             type_paths = sorted({p for t in spec.all_tasks() if t.resolved
                                  for p in t.resolved.paths})
         else:
-            type_paths = [str(p) for p in request.get("type_paths") or []]
-            spec = spec_from_dict(request["spec"],
-                                  filename=request.get("filename", "<submitted>"),
+            type_paths = str_list(request, "type_paths")
+            stored = field(request, "spec", dict)
+            spec = spec_from_dict(stored, filename=filename or "<submitted>",
                                   types=Resolver(type_paths))
         check_task_credentials(spec, self._store)
-        pool = request.get("pool") or spec.pool
-        options = {"pool": pool, "filename": request.get("filename"),
-                   "reused_from": request.get("reused_from"),
-                   "no_cache": bool(request.get("no_cache")), "type_paths": type_paths,
+        pool = pool or spec.pool
+        options = {"pool": pool, "filename": filename, "reused_from": reused_from,
+                   "no_cache": field(request, "no_cache", bool, default=False),
+                   "type_paths": type_paths,
                    "types": {t.name: t.resolved.to_dict() for t in spec.all_tasks()
                              if t.resolved is not None}}
-        reused = request.get("reused") or {}
 
         def do(engine: Engine, batch: _Batch, now: float) -> str:
             reasons = engine.scheduler.check_fit(spec, pool)
@@ -123,14 +138,14 @@ class Api:
             engine.specs[wf_id] = spec
             if options["no_cache"]:
                 engine.no_cache.add(wf_id)
-            batch.new_workflows.append((wf_id, spec.name, n, now, request["spec"], options))
+            batch.new_workflows.append((wf_id, spec.name, n, now, stored, options))
             return wf_id
 
         return {"workflow_id": self._engine.call(do)}
 
     def cancel(self, request: dict[str, Any]) -> dict[str, Any]:
         """Cancel a workflow; a no-op for one already ended."""
-        row = self._row(request["workflow_id"])
+        row = self._row(request.get("workflow_id"))
 
         def do(engine: Engine, batch: _Batch, now: float) -> None:
             try:
@@ -144,16 +159,15 @@ class Api:
 
     def restart(self, request: dict[str, Any]) -> dict[str, Any]:
         """Submit the same spec again, reusing the outputs of tasks that completed."""
-        row = self._row(request["workflow_id"], with_spec=True)
+        row = self._row(request.get("workflow_id"), with_spec=True)
         if not WorkflowStatus[row.status].terminal:
             raise UsageError(f"workflow {row.id} is still {row.status}; "
                              f"cancel it first (`osmo cancel {row.id}`)")
         reused = {t["name"]: t["output"] for t in self._store.tasks(row.id)
                   if t["status"] == "COMPLETED" and t.get("output")}
-        return self.submit({"spec": row.spec, "pool": row.options.get("pool"),
-                            "filename": row.options.get("filename"), "reused": reused,
-                            "reused_from": row.id,
-                            "type_paths": row.options.get("type_paths")})
+        return self._submit({"spec": row.spec, "pool": row.options.get("pool"),
+                             "filename": row.options.get("filename"),
+                             "type_paths": row.options.get("type_paths")}, reused, row.id)
 
     def shutdown(self, _request: dict[str, Any]) -> dict[str, Any]:
         """Stop the server (after replying)."""
@@ -164,7 +178,7 @@ class Api:
 
     def get(self, request: dict[str, Any]) -> dict[str, Any]:
         """A workflow's state and its tasks' states."""
-        row = self._row(request["workflow_id"], with_spec=True)
+        row = self._row(request.get("workflow_id"), with_spec=True)
         tasks = _ordered_tasks(row, self._store.tasks(row.id))
         for task in tasks:  # typed tasks report progress as log lines; show the latest
             if task.get("status") == "RUNNING":
@@ -174,23 +188,25 @@ class Api:
 
     def status(self, request: dict[str, Any]) -> dict[str, Any]:
         """Only the workflow's own state (cheap: for waiting on big workflows)."""
-        return _workflow_dict(self._row(request["workflow_id"]))
+        return _workflow_dict(self._row(request.get("workflow_id")))
 
     def list(self, request: dict[str, Any]) -> list[dict[str, Any]]:
         """Workflows newest first; filters: statuses, name, limit."""
-        rows = self._store.workflows(statuses=request.get("statuses"), name=request.get("name"),
-                                     limit=request.get("limit"))
+        rows = self._store.workflows(statuses=_statuses(request),
+                                     name=field(request, "name", str, default=None,
+                                                max_len=MAX_NAME),
+                                     limit=_limit(request))
         return [_workflow_dict(r) for r in rows]
 
     def logs(self, request: dict[str, Any]) -> dict[str, Any]:
         """Log records of a workflow since a cursor; see ``osmo.server.logview``."""
-        row = self._row(request["workflow_id"])
-        return read_logs(self._store, row, task=request.get("task"), retry=request.get("retry"),
-                         cursor=request.get("cursor"))
+        row = self._row(request.get("workflow_id"))
+        task, retry = self._attempt(row, request)
+        return read_logs(self._store, row, task=task, retry=retry, cursor=_cursor(request))
 
     def spec(self, request: dict[str, Any]) -> dict[str, Any]:
         """The stored (rendered) spec of a workflow, as a dict."""
-        return {"spec": self._row(request["workflow_id"], with_spec=True).spec}
+        return {"spec": self._row(request.get("workflow_id"), with_spec=True).spec}
 
     def pools(self, _request: dict[str, Any]) -> builtins.list[dict[str, Any]]:
         """Known nodes with their pool, platform and capacity used/total."""
@@ -210,25 +226,28 @@ class Api:
 
     def lineage(self, request: dict[str, Any]) -> dict[str, Any]:
         """The lineage graph of a target (see ``osmo.server.lineage_query``)."""
-        return lineage_graph(self._store, request["target"],
-                             downstream=bool(request.get("downstream")))
+        return lineage_graph(self._store, _target(request),
+                             downstream=field(request, "downstream", bool, default=False))
 
     def artifacts_list(self, request: dict[str, Any]) -> builtins.list[dict[str, Any]]:
         """Promoted outputs of a workflow (optionally one task) with their files."""
-        row = self._row(request["workflow_id"])
+        row = self._row(request.get("workflow_id"))
+        task = field(request, "task", str, default=None)
+        if task is not None:
+            check_name(task, "task name")
         out = []
-        for output in self._store.outputs(row.id, request.get("task")):
+        for output in self._store.outputs(row.id, task):
             body = self._store.manifest_body(output["manifest"]) or '{"entries": []}'
             files = [vars(e) for e in Manifest.from_json(body).entries]
             out.append({**output, "files": files})
-        if request.get("task") and not out:
-            raise NotFoundError(f"task '{request['task']}' of {row.id} has no recorded output")
+        if task and not out:
+            raise NotFoundError(f"task '{task}' of {row.id} has no recorded output")
         return out
 
     def artifacts_get(self, request: dict[str, Any]) -> dict[str, Any]:
         """A target's manifest (and the one file meant, if it names a file); the client
         fetches the blobs and writes the files."""
-        manifests, blob = resolve_target(self._store, request["target"])
+        manifests, blob = resolve_target(self._store, _target(request))
         body = self._store.manifest_body(manifests[0])
         assert body is not None
         manifest = Manifest.from_json(body)
@@ -240,7 +259,26 @@ class Api:
         count, size = self._artifacts.gc(self._store.all_blob_digests())
         return {"removed": count, "bytes": size}
 
-    def _row(self, workflow_id: str, *, with_spec: bool = False) -> WorkflowRow:
+    def _attempt(self, row: WorkflowRow, request: dict[str, Any]) -> tuple[str | None,
+                                                                          int | None]:
+        """The ``task`` and ``retry`` a request names, checked to exist in ``row``."""
+        task = field(request, "task", str, default=None)
+        retry = field(request, "retry", int, default=None)
+        if retry is not None and retry < 0:
+            raise UsageError(f"a retry is a number from 0, not {retry}")
+        if task is None:
+            return None, retry
+        check_name(task, "task name")
+        latest = {t["name"]: int(t.get("retry", 0)) for t in self._store.tasks(row.id)}
+        if task not in latest:
+            raise NotFoundError(f"no task '{task}' in {row.id}{did_you_mean(task, latest)}")
+        if retry is not None and not 0 <= retry <= latest[task]:
+            raise NotFoundError(f"task '{task}' of {row.id} has no retry {retry} (it has "
+                                f"retries 0 to {latest[task]})")
+        return task, retry
+
+    def _row(self, workflow_id: object, *, with_spec: bool = False) -> WorkflowRow:
+        workflow_id = check_workflow_id(workflow_id)
         row = self._store.workflow(workflow_id, with_spec=with_spec)
         if row is None:
             near = [r.id for r in self._store.workflows(name=workflow_id.rsplit("-", 1)[0],
@@ -248,6 +286,44 @@ class Api:
             hint = f" (did you mean {', '.join(near)}?)" if near else ""
             raise NotFoundError(f"no workflow '{workflow_id}'{hint}")
         return row
+
+
+def _statuses(request: dict[str, Any]) -> builtins.list[str] | None:
+    statuses = str_list(request, "statuses")
+    for status in statuses:
+        if status not in WorkflowStatus.__members__:
+            raise UsageError(f"unknown status {shown(status)}; the statuses are "
+                             f"{', '.join(WorkflowStatus.__members__)}")
+    return statuses or None
+
+
+def _limit(request: dict[str, Any]) -> int | None:
+    what = "the count of workflows to list"
+    limit = field(request, "limit", int, default=None, what=what)
+    if limit is not None and not 1 <= limit <= MAX_LIST:
+        raise UsageError(f"{what} must be from 1 to {MAX_LIST}, not {limit}")
+    return limit  # type: ignore[no-any-return]
+
+
+def _cursor(request: dict[str, Any]) -> dict[str, Any] | None:
+    """A log cursor as ``logview`` gave it out: ``{files: {attempt: offset}, seq}``."""
+    cursor = field(request, "cursor", dict, default=None)
+    if cursor is None:
+        return None
+    files = field(cursor, "files", dict, default={}, what="'cursor.files'")
+    seq = field(cursor, "seq", int, default=0, what="'cursor.seq'")
+    if seq < 0 or not all(isinstance(k, str) and type(v) is int and 0 <= v <= MAX_INT
+                          for k, v in files.items()):
+        raise UsageError("'cursor' is not one this server gave out; start again without it")
+    return {"files": files, "seq": seq}
+
+
+def _target(request: dict[str, Any]) -> str:
+    """An artifact target (``sha256:...``, ``WORKFLOW_ID:TASK[:PATH]``, ``dataset:REF``)."""
+    target: str = field(request, "target", str, max_len=_MAX_TEXT)
+    if target.startswith("dataset:"):
+        parse_ref(target[len("dataset:"):])
+    return target
 
 
 def _workflow_dict(row: WorkflowRow) -> dict[str, Any]:

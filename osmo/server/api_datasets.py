@@ -9,16 +9,18 @@ pulls the blobs it lacks from the client.
 
 from __future__ import annotations
 
-
+import re
 import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from osmo.artifacts import ArtifactStore, Manifest
-from osmo.errors import NotFoundError, UsageError
+from osmo.errors import InfrastructureError, NotFoundError, UsageError
+from osmo.names import check_name, check_tag, parse_ref, shown
 from osmo.server.datasets import select
 from osmo.server.engine import Engine, _Batch
+from osmo.transport.api import field, str_map
 
 __all__ = ["DatasetApi"]
 
@@ -42,21 +44,22 @@ class DatasetApi:
 
     def list(self, request: dict[str, Any]) -> list[dict[str, Any]]:
         """Every version (of one dataset), newest first, with size and tags."""
-        return [self._public(row) for row in self._store.datasets(request.get("name"))]
+        name = request.get("name")
+        if name is not None:
+            check_name(name, "dataset name")
+        return [self._public(row) for row in self._store.datasets(name)]
 
     def info(self, request: dict[str, Any]) -> dict[str, Any]:
         """One version with its files and what made it."""
-        row = self._row(request["ref"])
+        row = self._row(request.get("ref"))
         body = self._store.manifest_body(row["manifest"]) or '{"entries": []}'
         files = [vars(e) for e in Manifest.from_json(body).entries]
         return {**self._public(row), "files": files}
 
     def tag(self, request: dict[str, Any]) -> dict[str, Any]:
         """Point ``tag`` at a version (moving it if it pointed elsewhere)."""
-        row = self._row(request["ref"])
-        tag = str(request["tag"])
-        if tag.isdigit() or tag == "latest" or not tag:
-            raise UsageError(f"'{tag}' cannot be a tag: numbers and 'latest' name versions")
+        tag = check_tag(request.get("tag"))
+        row = self._row(request.get("ref"))
 
         def do(engine: Engine, batch: _Batch, now: float) -> None:
             batch.tags.append((row["name"], tag, row["version"]))
@@ -66,10 +69,16 @@ class DatasetApi:
 
     def download(self, request: dict[str, Any]) -> dict[str, Any]:
         """A version's manifest (``regex`` applied); the client fetches the blobs."""
-        row = self._row(request["ref"])
+        regex = field(request, "regex", str, default=None, max_len=1000)
+        try:
+            re.compile(regex or "")
+        except re.error as exc:
+            raise UsageError(f"--regex {shown(regex)} is not a valid regular expression: "
+                             f"{exc}") from None
+        row = self._row(request.get("ref"))
         body = self._store.manifest_body(row["manifest"])
         assert body is not None
-        manifest = select(Manifest.from_json(body), path=None, regex=request.get("regex"))
+        manifest = select(Manifest.from_json(body), path=None, regex=regex)
         return {"manifest": manifest.to_json(), "version": row["version"]}
 
     def upload(self, request: dict[str, Any]) -> dict[str, Any]:
@@ -77,24 +86,29 @@ class DatasetApi:
         this server lacks are pulled from the client (``request["source"]``) first."""
         if self._pull is None:
             raise UsageError("this server cannot receive uploads")
-        manifest = Manifest.from_json(str(request["manifest"]))
-        self._pull(dict(request["source"]), manifest)
+        name = check_name(request.get("name"), "dataset name")
+        try:
+            manifest = Manifest.from_json(field(request, "manifest", str))
+        except InfrastructureError as exc:
+            raise UsageError(f"'manifest' is not one: {str(exc)[:300]}") from None
+        source = field(request, "source", dict)
+        metadata = str_map(request, "metadata")
+        self._pull(source, manifest)
         datasets = self._engine.datasets
         assert datasets is not None
-        metadata = dict(request.get("metadata") or {})
 
         def do(engine: Engine, batch: _Batch, now: float) -> int:
-            row = datasets.version_row(str(request["name"]), manifest, source=None,
+            row = datasets.version_row(name, manifest, source=None,
                                        attempt_id=None, now=now, metadata=metadata)
             batch.datasets.append(row)
             return row.version
 
         version = self._engine.call(do)
-        return {"name": request["name"], "version": version, "manifest": manifest.digest}
+        return {"name": name, "version": version, "manifest": manifest.digest}
 
-    def _row(self, ref: str) -> dict[str, Any]:
-        name, _, tag = ref.partition(":")
-        row = self._store.dataset(name, tag or None)
+    def _row(self, ref: object) -> dict[str, Any]:
+        name, tag = parse_ref(ref)
+        row = self._store.dataset(name, tag)
         if row is None:
             raise NotFoundError(f"dataset '{ref}' does not exist")
         return row

@@ -7,7 +7,13 @@ Recovery after a crash (kill -9): workflows that were not terminal are restored 
 scheduler from the store; attempts that were placed or running on the local pool died with
 the server (their leftover processes are killed by pid, after checking the pid still names
 the same process), so each is reported lost and rescheduled as a new retry. Completed tasks
-are never re-run; the lost attempt's id is fenced, so it can never be committed.
+are never re-run; the lost attempt's id is fenced, so it can never be committed. An attempt
+whose report the old server was applying when it died is quarantined instead: failed with
+the reason, never run again on its own (see ``osmo.server.recovery``).
+
+If the engine cannot go on (the state store is gone or unwritable), the server stops and
+exits with code 3, so that a supervisor or health check sees it instead of a server that
+answers but can no longer change anything.
 """
 
 from __future__ import annotations
@@ -20,30 +26,27 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import Any
 
 from osmo.artifacts import ArtifactStore
 from osmo.config import free_port, home_dir, write_json_atomic
 from osmo.errors import InfrastructureError, OsmoError
-from osmo.scheduler import Scheduler, TaskState, WorkflowState
 from osmo.scheduler.types import AttemptLost, NodeUp
 from osmo.server.api import Api
 from osmo.server.credentials import url_credential
 from osmo.server.datasets import Datasets
 from osmo.server.engine import Engine
+from osmo.server.isolation import reason
+from osmo.server.recovery import InFlight, kill_leftovers, quarantine, restore, split_lost
 from osmo.server.notices import Notifier
+from osmo.server.placing import output_manifests
 from osmo.server.options import add_server_options, server_kwargs
 from osmo.server.dispatch import Dispatcher
 from osmo.server.workers import WorkerHub
 from osmo.transport.blobs import host_id
 from osmo.server.records import RunRecords
-from osmo.spec import spec_from_dict
-from osmo.spec.model import ResolvedType, WorkflowSpec
-from osmo.spec.typed import apply_resolved
 from osmo.store.sqlite import Store
 from osmo.transport.api import ApiServer
 from osmo.transport.zenoh_link import Link
-from osmo.runtime.process import kill_stale
 from osmo.worker.pool import LocalPool
 
 __all__ = ["serve"]
@@ -59,41 +62,6 @@ def _take_lock(home: Path) -> int:
         os.close(fd)
         raise InfrastructureError(f"another osmo server is already running for {home}") from None
     return fd
-
-
-def _restore(store: Store, scheduler: Scheduler,
-             no_cache: set[str]) -> tuple[dict[str, WorkflowSpec], list[Any]]:
-    """Load unfinished workflows into the scheduler; return specs and lost attempts."""
-    specs: dict[str, WorkflowSpec] = {}
-    workflows, tasks = [], []
-    for listed in store.workflows(active_only=True):
-        row = store.workflow(listed.id)
-        assert row is not None
-        if row.options.get("no_cache"):
-            no_cache.add(row.id)
-        spec = spec_from_dict(row.spec, filename=row.options.get("filename") or row.id)
-        specs[row.id] = apply_resolved(spec, {name: ResolvedType.from_dict(data) for name, data
-                                              in (row.options.get("types") or {}).items()})
-        workflows.append(WorkflowState.from_dict(row.state))
-        tasks += [TaskState.from_dict(t) for t in store.tasks(row.id)]
-    scheduler.restore(specs, workflows, tasks)
-    lost = [t for t in tasks if t.status.active and t.attempt_id]
-    return specs, lost
-
-
-def _kill_leftovers(store: Store, lost: list[Any]) -> None:
-    for task in lost:
-        for row in store.attempts(task.workflow_id, task.name):
-            if row.id == task.attempt_id and row.pid and row.pid_start is not None:
-                kill_stale(row.pid, row.pid_start)
-
-
-def _split_lost(lost: list[Any]) -> tuple[list[Any], set[str]]:
-    """Restored active attempts: those of the local pool (lost with the old server), and the
-    nodes of remote ones (their workers keep running and are expected back)."""
-    local = [t for t in lost if (t.node_id or "local") == "local"]
-    remote = {t.node_id for t in lost if t.node_id and t.node_id != "local"}
-    return local, remote
 
 
 def serve(home: str | os.PathLike[str] | None = None, *, listen: list[str] | None = None,
@@ -117,11 +85,11 @@ def serve(home: str | os.PathLike[str] | None = None, *, listen: list[str] | Non
     (home_path / "server.json").unlink(missing_ok=True)  # a crashed server's stale address
     endpoints = list(listen or ([] if connect else [f"tcp/127.0.0.1:{free_port()}"]))
     store = Store(home_path / "state.db")
-    scheduler = Scheduler(default_max_retries=3)
-    no_cache: set[str] = set()
-    specs, lost = _restore(store, scheduler, no_cache)
-    lost, remote_nodes = _split_lost(lost)
-    _kill_leftovers(store, lost)
+    inflight = InFlight(home_path / "applying.json")
+    restored = restore(store)
+    active, failed = quarantine(restored.active, inflight.left)
+    lost, remote_nodes = split_lost(active)
+    kill_leftovers(store, lost)
 
     link = Link.router(endpoints, cluster, connect=connect or [], config_file=zenoh_config)
     stopping = threading.Event()
@@ -134,21 +102,31 @@ def serve(home: str | os.PathLike[str] | None = None, *, listen: list[str] | Non
     pool = LocalPool(home=home_path, emit=lambda ev: engine_box[0].post(ev),
                      cpus=cpus, gpus=gpus, memory=memory, artifacts=artifacts,
                      credential_for=url_credential(store),
+                     input_manifests=output_manifests(store),
                      task_secrets=store.credential) if local_pool else None
     hub = WorkerHub(link=link, post=lambda ev: engine_box[0].post(ev), store=store,
                     artifacts=artifacts, home=home_path, url_credential=url_credential(store),
                     engine_call=lambda fn: engine_box[0].call(fn))
     records = RunRecords(store, home_path)
     dispatcher = Dispatcher(pool, hub, node_of=lambda aid: _node_of(engine_box[0], aid))
-    engine = Engine(store=store, scheduler=scheduler, executor=dispatcher, specs=specs,
-                    on_changed=on_changed, home=home_path, on_finished=records.finished,
-                    datasets=Datasets(store, artifacts, home_path))
-    engine.no_cache = no_cache
+    fatal: list[BaseException] = []
+
+    def on_fatal(exc: BaseException) -> None:
+        fatal.append(exc)
+        stopping.set()
+
+    engine = Engine(store=store, scheduler=restored.scheduler, executor=dispatcher,
+                    specs=restored.specs, on_changed=on_changed, home=home_path,
+                    on_finished=records.finished, datasets=Datasets(store, artifacts, home_path),
+                    no_cache=restored.no_cache, restore=lambda: restore(store),
+                    inflight=inflight, on_fatal=on_fatal)
     engine_box.append(engine)
     if pool is not None:
         engine.post(NodeUp(pool.node()))
+    for event in failed:
+        engine.post(event)
     for task in lost:
-        engine.post(AttemptLost(task.attempt_id, "server restarted; attempt lost"))
+        engine.post(AttemptLost(str(task.attempt_id), "server restarted; attempt lost"))
     engine.start()
     hub.expect(remote_nodes, reconnect_grace)
 
@@ -183,7 +161,11 @@ def serve(home: str | os.PathLike[str] | None = None, *, listen: list[str] | Non
         records.close()
         link.close()
         store.close()
+        inflight.close()
         os.close(lock_fd)
+    if fatal:
+        raise InfrastructureError(f"the server stopped because its engine cannot go on "
+                                  f"({reason(fatal[0])}); see the log above")
 
 
 def _local_endpoint(endpoints: list[str]) -> str:

@@ -12,8 +12,8 @@ Only attempts that no group barrier holds are cached (single-task groups and
 ``url`` inputs or outputs always run too: the remote content is not known when the task is
 placed, and a hit would skip the upload. A task opts
 out with ``cache: false``, a submission with ``--no-cache``. A hit is taken only while the
-earlier output folder still exists; its files were verified when ingested and are
-read-only since.
+earlier output folder still exists; its readers get their own copies of it, checked
+against its manifest (a changed blob fails them instead).
 """
 
 from __future__ import annotations

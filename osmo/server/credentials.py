@@ -25,12 +25,15 @@ from typing import Any
 from urllib.parse import urlsplit
 
 from osmo.errors import NotFoundError, SubmitError, UsageError
+from osmo.names import shown
 from osmo.spec.model import TaskSpec, WorkflowSpec
 from osmo.store.sqlite import Store
+from osmo.transport.api import field, str_map
 from osmo.worker.secrets import unusable_file_name
 
 __all__ = ["CredentialApi", "check_task_credentials", "url_credential"]
 
+_MAX_NAME = 256  # an S3 bucket name is at most 63; room for a prefix
 _NAME_OK = set("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789-_.:/")
 
 
@@ -103,14 +106,11 @@ class CredentialApi:
 
     def set(self, request: dict[str, Any]) -> dict[str, Any]:
         """Store credential ``name`` with ``payload`` (a non-empty map of strings)."""
-        name = str(request.get("name") or "")
-        payload = request.get("payload") or {}
-        if not name or not set(name) <= _NAME_OK:
-            raise UsageError(f"invalid credential name '{name}': use letters, digits, -_.:/")
-        if not isinstance(payload, dict) or not payload:
+        name = _name(request)
+        payload = str_map(request, "payload")
+        if not payload:
             raise UsageError("a credential needs at least one --payload key=value")
-        self._store.set_credential(name, {str(k): str(v) for k, v in payload.items()},
-                                   time.time())
+        self._store.set_credential(name, payload, time.time())
         return {"name": name, "keys": sorted(payload)}
 
     def list(self, _request: dict[str, Any]) -> list[dict[str, Any]]:
@@ -119,6 +119,15 @@ class CredentialApi:
 
     def delete(self, request: dict[str, Any]) -> dict[str, Any]:
         """Remove a credential."""
-        if not self._store.delete_credential(str(request["name"])):
-            raise NotFoundError(f"no credential '{request['name']}'")
-        return {"name": request["name"]}
+        name = _name(request)
+        if not self._store.delete_credential(name):
+            raise NotFoundError(f"no credential '{name}'")
+        return {"name": name}
+
+
+def _name(request: dict[str, Any]) -> str:
+    """A credential name: a name, or ``s3://BUCKET`` for one bucket."""
+    name: str = field(request, "name", str, max_len=_MAX_NAME)
+    if not name or not set(name) <= _NAME_OK:
+        raise UsageError(f"invalid credential name {shown(name)}: use letters, digits, -_.:/")
+    return name

@@ -24,6 +24,7 @@ from typing import Any
 
 from osmo.artifacts import ArtifactStore, Entry, Manifest
 from osmo.errors import NotFoundError
+from osmo.names import parse_ref
 from osmo.scheduler.types import PrepareAttempt
 from osmo.spec.model import TaskSpec
 from osmo.store.sqlite import DatasetRow, Store
@@ -107,9 +108,14 @@ class Datasets:
         return str(outputs[0]["path"])
 
     def folder(self, ref: str, regex: str | None) -> Path:
-        """The materialized, registered folder of dataset ``NAME[:TAG_OR_VERSION]``."""
-        name, _, tag = ref.partition(":")
-        row = self._store.dataset(name, tag or None)
+        """The materialized, registered folder of dataset ``NAME[:TAG_OR_VERSION]``.
+
+        Raises:
+            UsageError: ``ref`` is not a valid reference (checked before it names a folder).
+            NotFoundError: no such dataset or version.
+        """
+        name, tag = parse_ref(ref)
+        row = self._store.dataset(name, tag)
         if row is None:
             known = [f"{d['name']}:{d['version']}" for d in self._store.datasets(name)][:5]
             hint = f" (known: {', '.join(known)})" if known else " (no versions yet)"

@@ -27,15 +27,16 @@ class Dispatcher:
     def _node(self, attempt_id: str) -> str:
         return self._node_of.get(attempt_id) or self._lookup(attempt_id) or "local"
 
-    def prepare(self, cmd: PrepareAttempt, task: TaskSpec) -> None:
+    def prepare(self, cmd: PrepareAttempt, task: TaskSpec, *,
+                max_output_bytes: int | None = None) -> None:
         """Route a placement by its node."""
         self._node_of[cmd.attempt_id] = cmd.node_id
         while len(self._node_of) > _REMEMBER:
             self._node_of.popitem(last=False)
         if self._pool is not None and cmd.node_id == "local":
-            self._pool.prepare(cmd, task)
+            self._pool.prepare(cmd, task, max_output_bytes=max_output_bytes)
         else:
-            self._hub.prepare(cmd, task)
+            self._hub.prepare(cmd, task, max_output_bytes=max_output_bytes)
 
     def run(self, attempt_id: str) -> None:
         """Route by the attempt's node."""

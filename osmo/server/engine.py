@@ -6,6 +6,20 @@ executed, so a server killed at any instant restarts into a consistent state. Ev
 workers and calls from API threads arrive on one queue; the loop blocks on it until an event
 arrives or the scheduler's next deadline (a timeout) is due — no polling.
 
+Fault isolation: no exception stops the loop. When applying a batch raises — in the
+scheduler, while building lineage, or in the commit itself — nothing of the batch was
+committed, so the engine drops it from memory by rebuilding the scheduler from the store
+(``osmo.server.recovery``) and applies the batch's events again one at a time. The event that
+raises again is the culprit: an attempt's report becomes a failure of that attempt (FAILED
+with the message, exit code 3005 for an exit; FAILED_START_ERROR otherwise; a still-running
+attempt is killed), an API call gets the error, anything else is logged and dropped; every
+other event is applied as usual. Attempts that were still starting when the scheduler was
+rebuilt are reported lost and started again (a group barrier's progress is not kept in the
+store). Only when even a failure cannot be committed, or the store cannot be read, does the
+engine stop: it then calls ``on_fatal`` (the server exits non-zero, so a supervisor sees it)
+and every waiting API call gets an error. A hard crash while reports are applied is covered
+by the quarantine file (``osmo.server.recovery.InFlight``).
+
 It must not parse specs, talk zenoh or format output; those belong to other layers.
 """
 
@@ -24,9 +38,9 @@ from osmo.scheduler import Scheduler
 from osmo.scheduler.types import (
     AttemptExited,
     AttemptLost,
-    AttemptPrepared,
     AttemptStarted,
     AttemptStartFailed,
+    Changes,
     Command,
     Event,
     KillAttempt,
@@ -36,14 +50,13 @@ from osmo.scheduler.types import (
 )
 from osmo.spec.model import TaskSpec, WorkflowSpec
 from osmo.artifacts import Manifest
-from osmo.errors import OsmoError
-from osmo.record import LineageInput
-from osmo.server import cache
+from osmo.errors import InfrastructureError
 from osmo.server.datasets import Datasets
-from osmo.server.cache import CacheHit
+from osmo.server.placing import Placements
+from osmo.server.isolation import STOP, Call, FaultIsolation, guard, reason
 from osmo.server.provenance import Provenance
+from osmo.server.recovery import InFlight, Restored, attempt_row
 from osmo.status import TaskStatus
-from osmo.worker.workdir import AttemptDirs
 from osmo.store.sqlite import AttemptRow, DatasetRow, LineageRow, Store
 
 __all__ = ["Engine", "Executor"]
@@ -51,10 +64,12 @@ __all__ = ["Engine", "Executor"]
 log = logging.getLogger("osmo.server")
 
 
+
 class Executor(Protocol):
     """What the engine needs from a pool of workers (the local pool, later remote ones)."""
 
-    def prepare(self, cmd: PrepareAttempt, task: TaskSpec) -> None: ...
+    def prepare(self, cmd: PrepareAttempt, task: TaskSpec, *,
+                max_output_bytes: int | None = None) -> None: ...
     def run(self, attempt_id: str) -> None: ...
     def kill(self, attempt_id: str, reason: str) -> None: ...
     def running(self) -> dict[str, int]: ...
@@ -72,18 +87,14 @@ class _Batch:
     datasets: list[DatasetRow] = field(default_factory=list)
     tags: list[tuple[str, str, int]] = field(default_factory=list)
     replies: list[tuple[Future[Any], Any]] = field(default_factory=list)
+    ended: list[str] = field(default_factory=list)  # attempts whose final report is applied
 
 
-@dataclass
-class _Call:
-    fn: Callable[[Engine, _Batch, float], Any]
-    future: Future[Any]
+_Call = Call
+_STOP = STOP
 
 
-_STOP = object()
-
-
-class Engine:
+class Engine(FaultIsolation):
     """Runs the scheduler on its own thread.
 
     Args:
@@ -93,13 +104,22 @@ class Engine:
         specs: workflow id → spec for every workflow the scheduler holds.
         on_changed: called with the ids of workflows whose state changed (after commit).
         on_finished: called with the id of each workflow that ended (after commit).
+        datasets: resolves dataset inputs and records dataset outputs.
+        no_cache: ids of workflows submitted with ``--no-cache`` (kept current here).
+        restore: rebuilds a scheduler from the store (``osmo.server.recovery.restore``);
+            without it a batch that raises stops the engine.
+        inflight: the quarantine file (``osmo.server.recovery.InFlight``), if any.
+        on_fatal: called (on the engine thread) when the engine cannot go on.
         clock: time source (injectable for tests).
     """
 
     def __init__(self, *, store: Store, scheduler: Scheduler, executor: Executor,
                  specs: dict[str, WorkflowSpec], on_changed: Callable[[set[str]], None],
                  home: Any, on_finished: Callable[[str], None] = lambda _wf: None,
-                 datasets: Datasets | None = None,
+                 datasets: Datasets | None = None, no_cache: set[str] | None = None,
+                 restore: Callable[[], Restored] | None = None,
+                 inflight: InFlight | None = None,
+                 on_fatal: Callable[[BaseException], None] = lambda _exc: None,
                  clock: Callable[[], float] = time.time) -> None:
         self.store = store
         self.scheduler = scheduler
@@ -108,14 +128,18 @@ class Engine:
         self._on_changed = on_changed
         self._on_finished = on_finished
         self.provenance = Provenance()
-        self.no_cache: set[str] = set()  # workflows submitted with --no-cache
-        self._hits: dict[str, CacheHit] = {}
+        self.no_cache = no_cache if no_cache is not None else set()  # --no-cache workflows
         self.datasets = datasets
-        self._ready: dict[str, PrepareAttempt | str] = {}  # placed: final command, or why not
         self._clock = clock
         self._home = home
         self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self.placements = Placements(store=store, specs=specs, no_cache=self.no_cache,
+                                     executor=executor, post=self._queue.put,
+                                     provenance=self.provenance, datasets=datasets)
         self._numbers: dict[str, int] = {}
+        self._restore, self._inflight, self._on_fatal = restore, inflight, on_fatal
+        self._applying: list[Any] = []  # the batch in hand (its calls fail if the engine stops)
+        self._dead: BaseException | None = None
         self._thread = threading.Thread(target=self._loop, name="osmo-engine", daemon=True)
 
     # ------------------------------------------------------------------ public API
@@ -139,6 +163,8 @@ class Engine:
         Exceptions raised by ``fn`` propagate to the caller and nothing of it is committed
         (``fn`` must raise before mutating the scheduler).
         """
+        if self._dead is not None:
+            raise InfrastructureError(f"the server's engine stopped: {reason(self._dead)}")
         future: Future[Any] = Future()
         self._queue.put(_Call(fn, future))
         return future.result(timeout=timeout)
@@ -152,10 +178,15 @@ class Engine:
     # ------------------------------------------------------------------ the loop
 
     def _loop(self) -> None:
-        while True:
-            items = self._wait()
-            if not self._run_batch(items):
-                return
+        try:
+            while self._step(self._wait()):
+                pass
+        except BaseException as exc:  # noqa: BLE001 - the engine cannot go on: say so, loudly
+            log.critical("the engine cannot go on; the server stops: %s", reason(exc),
+                         exc_info=exc)
+            self._dead = exc
+            self._abandon(exc)
+            self._on_fatal(exc)
 
     def _wait(self) -> list[Any]:
         deadline = self.scheduler.next_deadline()
@@ -172,22 +203,51 @@ class Engine:
                 break
         return items
 
-    def _run_batch(self, items: list[Any]) -> bool:
+    def _step(self, items: list[Any]) -> bool:
+        """Apply what was queued (isolating a culprit if it raises); False after ``stop()``.
+
+        A final report (which carries a task's outputs or messages) is applied and committed
+        on its own, so the quarantine file names exactly the report being applied; the
+        other events go in batches."""
+        for part in _parts(items):
+            self._applying = part
+            try:
+                self._apply(part)
+            except Exception as exc:  # noqa: BLE001 - isolated below; only a double fault stops
+                log.error("applying %d event(s) failed (%s); applying them one at a time to "
+                          "isolate the cause", len(part), reason(exc), exc_info=exc)
+                self._isolate(part)
+            finally:
+                if self._inflight is not None:
+                    self._inflight.clear()
+        self._applying = []
+        return not any(item is _STOP for item in items)
+
+    def _apply(self, items: list[Any], *, tick: bool = True) -> None:
+        """Handle ``items``, commit, execute. Raises only before the commit succeeded (then
+        nothing of ``items`` is stored, though the scheduler may hold some of it)."""
         batch = _Batch()
-        keep_going = True
         now = self._clock()
+        self._mark(items)
         for item in items:
-            if item is _STOP:
-                keep_going = False
-            elif isinstance(item, _Call):
+            if isinstance(item, _Call):
                 self._run_call(item, batch, now)
-            else:
+            elif item is not _STOP:
                 self._handle(item, batch, now)
-        deadline = self.scheduler.next_deadline()
-        if deadline is not None and deadline <= now:
-            batch.commands += self.scheduler.handle(Tick(), now)
-        self._commit_and_execute(batch)
-        return keep_going
+        if tick:
+            deadline = self.scheduler.next_deadline()
+            if deadline is not None and deadline <= now:
+                batch.commands += self.scheduler.handle(Tick(), now)
+        changes, placed = self._commit(batch)
+        self._after_commit(batch, changes, placed)
+
+    def _mark(self, items: list[Any]) -> None:
+        """Write the quarantine file before applying attempts' final reports."""
+        if self._inflight is not None:
+            ids = [i.attempt_id for i in items if isinstance(i, (AttemptExited,
+                                                                  AttemptStartFailed))]
+            if ids:
+                self._inflight.mark(ids)
 
     def _handle(self, event: Event, batch: _Batch, now: float) -> None:
         if not isinstance(event, (AttemptExited, AttemptStartFailed, AttemptLost)):
@@ -196,11 +256,13 @@ class Engine:
                 self._note_pid(event.attempt_id, batch)
             return
         before = self.scheduler.attempt(event.attempt_id)  # None: a stale (fenced) report
+        if before is None:
+            log.info("report on %s ignored: not its task's current attempt", event.attempt_id)
         batch.commands += self.scheduler.handle(event, now)
         after = self.scheduler.attempt(event.attempt_id)
+        batch.ended.append(event.attempt_id)
         if (not isinstance(event, AttemptExited) or before is None or not before.status.active
                 or after is None or after.status is not TaskStatus.COMPLETED):
-            self.provenance.forget(event.attempt_id)
             return
         task = self.specs[before.workflow_id].task(before.name)
         row = self.provenance.exited(event, task, started_at=before.started_at, now=now)
@@ -216,95 +278,53 @@ class Engine:
         except BaseException as exc:  # noqa: BLE001 - handed to the caller's thread
             call.future.set_exception(exc)
 
-    def _commit_and_execute(self, batch: _Batch) -> None:
+    def _commit(self, batch: _Batch) -> tuple[Changes, list[PrepareAttempt]]:
         changes = self.scheduler.take_changes()
         placed = [c for c in batch.commands if isinstance(c, PrepareAttempt)]
-        batch.attempts += [self._attempt_row(p.attempt_id, p.node_id) for p in placed]
+        batch.attempts += [attempt_row(self._home, p.attempt_id, p.node_id) for p in placed]
         if (changes or batch.new_workflows or batch.attempts or batch.lineage or batch.datasets
                 or batch.tags):
             self.store.commit(changes, new_workflows=batch.new_workflows,
                               attempts=batch.attempts, lineage=batch.lineage,
                               datasets=batch.datasets, tags=batch.tags)
+        return changes, placed
+
+    def _after_commit(self, batch: _Batch, changes: Changes,
+                      placed: list[PrepareAttempt]) -> None:
+        """What follows a commit; never raises (the batch is stored: it must not be isolated
+        again), each step's failure is logged."""
+        for aid in batch.ended:
+            self.provenance.forget(aid)
         for prep in placed:  # after the commit: an upstream completed in this batch is readable
-            self._resolve(prep)
+            self.placements.resolve(prep)
         for future, result in batch.replies:
-            future.set_result(result)
+            guard(future.set_result, result)
         for cmd in batch.commands:
             self._execute(cmd)
         changed = {w.id for w in changes.workflows}  # type: ignore[attr-defined]
         changed |= {t.workflow_id for t in changes.tasks}  # type: ignore[attr-defined]
         if changed:
-            self._on_changed(changed)
+            guard(self._on_changed, changed)
         for wf in changes.workflows:
             if wf.status.terminal:  # type: ignore[attr-defined]
-                self.scheduler.forget(wf.id)  # type: ignore[attr-defined]
+                guard(self.scheduler.forget, wf.id)  # type: ignore[attr-defined]
                 self.specs.pop(wf.id, None)  # type: ignore[attr-defined]
-                self._on_finished(wf.id)  # type: ignore[attr-defined]
+                guard(self._on_finished, wf.id)  # type: ignore[attr-defined]
 
-    def _resolve(self, cmd: PrepareAttempt) -> None:
-        """Settle what a placed attempt needs before it is prepared: dataset and other-workflow
-        inputs, its cache key, and a cache hit if there is one."""
-        try:
-            if self.datasets is not None:
-                cmd = self.datasets.resolve_inputs(cmd, self.specs[cmd.workflow_id].task(cmd.task))
-        except OsmoError as exc:
-            self._ready[cmd.attempt_id] = str(exc)
-            return
-        self._ready[cmd.attempt_id] = cmd
-        sources = cache.input_sources(self.store, cmd)
-        key = self._cache_key(cmd, sources)
-        self.provenance.placed(cmd, cmd.hosts.get(cmd.task, cmd.node_id), key, sources)
-        hit = cache.lookup(self.store, key) if key else None
-        if hit is not None:
-            self._hits[cmd.attempt_id] = hit
-
-    def _attempt_row(self, attempt_id: str, node_id: str | None, pid: int | None = None,
-                     pid_start: float | None = None) -> AttemptRow:
-        dirs = AttemptDirs.of_attempt(self._home, attempt_id)
-        wf, task, retry = attempt_id.rsplit(":", 2)
-        return AttemptRow(attempt_id, wf, task, int(retry), node_id,
-                          str(dirs.root) if dirs else None, pid, pid_start)
-
-    def _cache_key(self, cmd: PrepareAttempt,
-                   sources: list[LineageInput | None]) -> str | None:
-        """The attempt's cache fingerprint, or None when it must run (see osmo.server.cache)."""
-        task = self.specs[cmd.workflow_id].task(cmd.task)
-        if not cmd.run or not task.cache or cmd.workflow_id in self.no_cache:
-            return None
-        if any(i.url for i in task.inputs) or any(o.url for o in task.outputs):
-            return None  # URL contents are unknown at placement; a hit would skip the upload
-        if any(s is None for s in sources):
-            return None  # an input without a recorded manifest: its content is unknown
-        return cache.fingerprint(task, [(s.task, s.manifest_digest) for s in sources if s])
-
-    def _prepare(self, cmd: PrepareAttempt) -> None:
-        ready = self._ready.pop(cmd.attempt_id, cmd)
-        hit = self._hits.pop(cmd.attempt_id, None)
-        if isinstance(ready, str):
-            self._queue.put(AttemptStartFailed(cmd.attempt_id, ready))
-        elif hit is not None:
-            self._replay(ready, hit)
-        else:
-            self.executor.prepare(ready, self.specs[ready.workflow_id].task(ready.task))
-
-    def _replay(self, cmd: PrepareAttempt, hit: CacheHit) -> None:
-        """Complete a cache hit at once: the scheduler sees an ordinary successful attempt."""
-        message = f"cached: outputs of {hit.attempt_id}"
-        for event in (AttemptPrepared(cmd.attempt_id), AttemptStarted(cmd.attempt_id),
-                      AttemptExited(cmd.attempt_id, 0, hit.output_path, message,
-                                    manifest=hit.manifest_body, cached=True)):
-            self._queue.put(event)
+    # ------------------------------------------------------------------ commands
 
     def _execute(self, cmd: Command) -> None:
         try:
             if isinstance(cmd, PrepareAttempt):
-                self._prepare(cmd)
+                self.placements.prepare(cmd)
             elif isinstance(cmd, RunAttempt):
                 self.executor.run(cmd.attempt_id)
             elif isinstance(cmd, KillAttempt):
                 self.executor.kill(cmd.attempt_id, cmd.reason)
-        except Exception:  # noqa: BLE001 - a worker bug must not stop the engine
+        except Exception as exc:  # noqa: BLE001 - a worker bug must not stop the engine
             log.exception("executing %r failed", cmd)
+            if not isinstance(cmd, KillAttempt):  # else it would wait for ever to start
+                self.post(AttemptStartFailed(cmd.attempt_id, f"cannot start: {reason(exc)}"))
 
     def _note_pid(self, attempt_id: str, batch: _Batch) -> None:
         """Record the attempt's pid so a restarted server can kill a leftover process."""
@@ -314,5 +334,16 @@ class Engine:
         task = self.scheduler.attempt(attempt_id)
         if pid is None or task is None:
             return
-        batch.attempts.append(self._attempt_row(attempt_id, task.node_id, pid,
+        batch.attempts.append(attempt_row(self._home, attempt_id, task.node_id, pid,
                                                 process_start_time(pid)))
+
+
+def _parts(items: list[Any]) -> list[list[Any]]:
+    """``items`` cut so that each attempt's exit or start failure stands alone."""
+    parts: list[list[Any]] = [[]]
+    for item in items:
+        if isinstance(item, (AttemptExited, AttemptStartFailed)):
+            parts += [[item], []]
+        else:
+            parts[-1].append(item)
+    return [p for p in parts if p] or [[]]

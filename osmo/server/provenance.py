@@ -44,8 +44,11 @@ class Provenance:
 
     def exited(self, event: AttemptExited, task: TaskSpec, *, started_at: float | None,
                now: float) -> LineageRow | None:
-        """The lineage row of a successful exit with outputs, else None (forgets the attempt)."""
-        placed = self._placed.pop(event.attempt_id, None)
+        """The lineage row of a successful exit with outputs, else None.
+
+        The placement is kept until :meth:`forget`: the engine forgets it once the exit is
+        committed, so a batch that failed and is applied again still finds it."""
+        placed = self._placed.get(event.attempt_id)
         if event.manifest is None or event.output is None or placed is None:
             return None
         manifest = Manifest.from_json(event.manifest)
@@ -67,7 +70,7 @@ class Provenance:
             fingerprint=None if event.cached else placed.fingerprint)
 
     def forget(self, attempt_id: str) -> None:
-        """Drop what was remembered of an attempt that ended without outputs."""
+        """Drop what was remembered of an attempt whose final report was committed."""
         self._placed.pop(attempt_id, None)
 
 

@@ -203,13 +203,15 @@ class WorkerHub:
 
     # ------------------------------------------------------------------ orders
 
-    def prepare(self, cmd: PrepareAttempt, task: TaskSpec) -> None:
+    def prepare(self, cmd: PrepareAttempt, task: TaskSpec, *,
+                max_output_bytes: int | None = None) -> None:
         """Send a placement to its worker (engine thread)."""
         try:
             order = self._order(cmd, task)
         except (OsmoError, OSError) as exc:
             self._post(AttemptStartFailed(cmd.attempt_id, str(exc)))
             return
+        order["max_output_bytes"] = max_output_bytes
         self._send(cmd.node_id, order)
 
     def _order(self, cmd: PrepareAttempt, task: TaskSpec) -> dict[str, Any]:
@@ -312,6 +314,10 @@ class WorkerHub:
             self._post(AttemptLost(event.attempt_id, f"outputs could not be taken from worker "
                                                      f"{wid}: {exc}"))
             return
+        except Exception as exc:  # noqa: BLE001 - a bug: fail the attempt, never leave it open
+            log.exception("outputs of %s from worker %s", event.attempt_id, wid)
+            event = replace(event, output=None, manifest=None,
+                            message=f"outputs could not be promoted: {exc!r}")
         self._post(event)
         self._send(wid, {"op": "ack", "attempt_id": event.attempt_id})
 

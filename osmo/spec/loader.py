@@ -14,11 +14,13 @@ from pathlib import Path
 from typing import Any
 
 from osmo.errors import Diagnostic, SpecError
-from osmo.spec import template, yamlnodes
+from osmo.spec import isolation, yamlnodes
+from osmo.spec.files import read_spec_file
 from osmo.spec.model import WorkflowSpec
 from osmo.spec.parse import parse_document
 from osmo.spec.reader import Ctx
 from osmo.spec.typed import TypeResolver, apply_resolved, check_types
+from osmo.spec.values import split_items
 from osmo.spec.validate import validate
 
 __all__ = ["load_spec", "render_spec", "spec_from_dict"]
@@ -37,40 +39,16 @@ def _source(path: str | os.PathLike[str] | None, text: str | None,
         base = Path(filename).parent if filename and not filename.startswith("<") else Path()
         return text, name, base
     name = filename or os.fspath(path)
-    try:
-        return Path(path).read_text(encoding="utf-8"), name, Path(path).parent
-    except FileNotFoundError:
-        message = "spec file not found; check the path"
-    except IsADirectoryError:
-        message = "is a folder; pass the spec file inside it"
-    except UnicodeDecodeError as exc:
-        message = f"is not UTF-8 text ({exc.reason} at byte {exc.start})"
-    except OSError as exc:
-        message = f"cannot read the spec file: {exc.strerror or exc}"
-    raise SpecError([Diagnostic(name, 0, 0, message)])
+    return read_spec_file(path, name), name, Path(path).parent
 
 
 def _render(text: str, file: str, set_values: Sequence[str], set_strings: Sequence[str],
             extra: list[Diagnostic]) -> str:
-    context, diags = template.build_context(text, file, set_values, set_strings)
-    if diags:
-        raise SpecError(diags + extra)
-    rendered, diags = template.render(text, file, context)
+    """The rendered text; templates run in a child under memory and time limits."""
+    rendered, diags = isolation.render(text, file, set_values, set_strings)
     if rendered is None or extra:
         raise SpecError(diags + extra)
     return rendered
-
-
-def _env_items(file: str, items: Sequence[str]) -> tuple[dict[str, str], list[Diagnostic]]:
-    env: dict[str, str] = {}
-    diags = []
-    for item in items:
-        name, eq, value = item.partition("=")
-        if not eq or not name.strip():
-            diags.append(Diagnostic(file, 0, 0, f"--set-env {item!r}: expected NAME=VALUE"))
-        else:
-            env[name.strip()] = value
-    return env, diags
 
 
 def _with_env(spec: WorkflowSpec, env: dict[str, str]) -> WorkflowSpec:
@@ -127,7 +105,7 @@ def load_spec(path: str | os.PathLike[str] | None = None, *, text: str | None = 
             refer to the rendered document (identical to the source without ``{% %}`` blocks).
     """
     source, file, base_dir = _source(path, text, filename)
-    env, env_diags = _env_items(file, set_env)
+    env, env_diags = split_items(file, "--set-env", set_env)
     rendered = _render(source, file, set_values, set_strings, env_diags)
     return _build(rendered, file, base_dir, env, types)
 

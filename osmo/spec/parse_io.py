@@ -8,12 +8,23 @@ from __future__ import annotations
 
 import base64
 import binascii
+import posixpath
 import re
 from pathlib import Path, PurePosixPath
 from typing import Any
 
+from osmo.names import name_problem, ref_problem, shown, workflow_id_problem
+from osmo.spec.files import FileRefused, read_regular_file
 from osmo.spec.model import FileSpec, InputSpec, OutputSpec
-from osmo.spec.reader import Ctx, read_bool, read_fields, read_list, read_map, read_str
+from osmo.spec.reader import (
+    Ctx,
+    read_bool,
+    read_fields,
+    read_list,
+    read_map,
+    read_name,
+    read_str,
+)
 from osmo.spec.support import UNSUPPORTED
 from osmo.spec.units import parse_duration
 from osmo.spec.yamlnodes import Map, Node, to_plain
@@ -21,6 +32,8 @@ from osmo.spec.yamlnodes import Map, Node, to_plain
 __all__ = ["MAX_LOCAL_FILE", "parse_checkpoint", "parse_files", "parse_inputs", "parse_outputs"]
 
 MAX_LOCAL_FILE = 16 * 1024 * 1024  # bytes read from one ``localpath``
+MAX_PATH = 4096  # bytes of a file path (Linux PATH_MAX)
+MAX_PATH_PART = 255  # bytes of one of its components (NAME_MAX)
 
 _FILE_KEYS = ("path", "contents", "base64", "localpath")
 _INPUT_KINDS = ("task", "url", "dataset")
@@ -46,17 +59,14 @@ def _read_local(ctx: Ctx, node: Node, base_dir: Path, where: str) -> tuple[str, 
     if name is None:
         return None
     path = base_dir / name
-    if not path.exists():
+    try:
+        data = read_regular_file(path, limit=MAX_LOCAL_FILE)
+    except FileNotFoundError:
         ctx.error(node, f"localpath '{name}' in {where} does not exist (looked for {path})")
         return None
-    if not path.is_file():
-        ctx.error(node, f"localpath '{name}' in {where} is a folder; it must name a file")
+    except FileRefused as exc:
+        ctx.error(node, f"localpath '{name}' in {where} {exc}; it must name a file")
         return None
-    try:
-        if path.stat().st_size > MAX_LOCAL_FILE:
-            ctx.error(node, f"localpath '{name}' is larger than {MAX_LOCAL_FILE // 2**20} MiB")
-            return None
-        data = path.read_bytes()
     except OSError as exc:
         ctx.error(node, f"cannot read localpath '{name}' in {where}: {exc.strerror or exc}")
         return None
@@ -71,8 +81,10 @@ def _file(ctx: Ctx, node: Node, base_dir: Path, where: str) -> FileSpec | None:
     if fields is None or "path" not in fields:
         return None
     path = read_str(ctx, fields["path"], f"'path' of a file in {where}")
-    if path is not None and ".." in PurePosixPath(path).parts:
-        ctx.error(fields["path"], f"file path '{path}' in {where} must not contain '..'")
+    problem = None if path is None else _path_problem(path)
+    if problem is not None:
+        ctx.error(fields["path"], f"file path {shown(path)} in {where} {problem}")
+        path = None
     has_contents, has_local = "contents" in fields, "localpath" in fields
     if has_contents == has_local:
         if not (ctx.hinted(node, "contents") or ctx.hinted(node, "localpath")):
@@ -97,17 +109,46 @@ def _file(ctx: Ctx, node: Node, base_dir: Path, where: str) -> FileSpec | None:
     return FileSpec(path, contents, bool(encoded), pos=node.pos)
 
 
+def _path_problem(path: str) -> str | None:
+    """Why a ``files:`` path cannot name a file the task gets, or None (see ``workdir``:
+    absolute paths go under the attempt's ``files/``, relative ones under ``work/``)."""
+    if ".." in PurePosixPath(path).parts:
+        return "must not contain '..'"
+    if "\0" in path:
+        return "must not contain a NUL character"
+    if posixpath.normpath(path) in ("/", ".", "//") or path.endswith("/"):
+        return "names a folder, not a file; give the file's name (e.g. /etc/app.conf)"
+    encoded = path.encode("utf-8", "surrogateescape")
+    if len(encoded) > MAX_PATH or any(len(p) > MAX_PATH_PART for p in encoded.split(b"/")):
+        return (f"is too long: at most {MAX_PATH} bytes, and {MAX_PATH_PART} bytes per "
+                "folder or file name")
+    return None
+
+
+def _clash(spec: FileSpec, out: list[FileSpec], where: str) -> str | None:
+    """Why ``spec`` cannot be written beside the earlier files of its task, or None."""
+    mine = posixpath.normpath(spec.path)
+    for first in out:
+        theirs, line = posixpath.normpath(first.path), first.pos.line if first.pos else 0
+        if theirs == mine:
+            return (f"file path '{spec.path}' appears twice in {where} (first at line {line}); "
+                    "paths must be unique per task")
+        if mine.startswith(theirs + "/") or theirs.startswith(mine + "/"):
+            return (f"file paths '{spec.path}' and '{first.path}' (line {line}) of {where} "
+                    "cannot both be files: one is inside the other")
+    return None
+
+
 def parse_files(ctx: Ctx, node: Node, base_dir: Path, where: str) -> tuple[FileSpec, ...]:
-    """``files:`` entries; duplicate paths within the task are reported."""
+    """``files:`` entries; paths that are the same file, or one inside another, are reported."""
     out: list[FileSpec] = []
     for item in read_list(ctx, node, f"'files' of {where}"):
         spec = _file(ctx, item, base_dir, where)
         if spec is None:
             continue
-        first = next((f for f in out if f.path == spec.path), None)
-        if first is not None and first.pos is not None:
-            ctx.error(item, f"file path '{spec.path}' appears twice in {where} (first at line "
-                            f"{first.pos.line}); paths must be unique per task")
+        clash = _clash(spec, out, where)
+        if clash is not None:
+            ctx.error(item, clash)
             continue
         out.append(spec)
     return tuple(out)
@@ -140,7 +181,10 @@ def _input(ctx: Ctx, node: Node, where: str) -> InputSpec | None:
     regex = _read_regex(ctx, fields, what)
     if kind == "dataset":
         ds = _dataset(ctx, fields["dataset"], ("name", "regex"), f"'dataset' of {what}")
-        name = read_str(ctx, ds["name"], "dataset 'name'") if "name" in ds else None
+        name = read_str(ctx, ds["name"], "dataset name") if "name" in ds else None
+        problem = None if name is None else ref_problem(name)
+        if problem is not None:
+            ctx.error(ds["name"], f"{problem} (a dataset input is NAME[:TAG|VERSION|latest])")
         return InputSpec(dataset=name, regex=_read_regex(ctx, ds, what) or regex, pos=node.pos)
     value = read_str(ctx, fields[kind], f"'{kind}' of {what}")
     if value is None:
@@ -151,6 +195,10 @@ def _input(ctx: Ctx, node: Node, where: str) -> InputSpec | None:
     if ":" in value and not (workflow and task):
         ctx.error(fields["task"], f"'{value}' in {where} must be NAME or WORKFLOW_ID:NAME")
         return None
+    if workflow:
+        problem = workflow_id_problem(workflow) or name_problem(task, "task name")
+        if problem is not None:
+            ctx.error(fields["task"], f"{problem} (in '- task: WORKFLOW_ID:NAME')")
     return InputSpec(task=task, workflow=workflow or None, regex=regex, pos=node.pos)
 
 
@@ -175,7 +223,7 @@ def _output(ctx: Ctx, node: Node, where: str) -> OutputSpec | None:
         url = read_str(ctx, fields["url"], f"'url' of {what}")
         return OutputSpec(url=url, regex=regex, pos=node.pos)
     ds = _dataset(ctx, fields["dataset"], ("name", "path", "regex", "metadata"), what)
-    name = read_str(ctx, ds["name"], "dataset 'name'") if "name" in ds else None
+    name = read_name(ctx, ds["name"], "dataset name") if "name" in ds else None
     path = read_str(ctx, ds["path"], "dataset 'path'") if "path" in ds else None
     metadata = ds.get("metadata")
     meta = None

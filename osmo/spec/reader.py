@@ -8,21 +8,17 @@ and every problem in a file is reported once. Knows no workflow field names.
 from __future__ import annotations
 
 import difflib
-import re
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 from osmo.errors import Diagnostic
+from osmo.names import name_problem
 from osmo.spec.model import Pos
 from osmo.spec.yamlnodes import Map, Node, Scalar, Seq
 
-__all__ = ["NAME_RE", "Ctx", "did_you_mean", "is_empty", "read_bool", "read_fields",
-           "read_int", "read_list", "read_map", "read_name", "read_str", "read_str_list",
-           "scalar_text"]
-
-NAME_RE = re.compile(r"^[a-zA-Z]([a-zA-Z0-9_-]*[a-zA-Z0-9])?$")
-MAX_NAME = 64
+__all__ = ["Ctx", "did_you_mean", "is_empty", "read_bool", "read_fields", "read_int",
+           "read_list", "read_map", "read_name", "read_str", "read_str_list", "scalar_text"]
 
 
 def did_you_mean(word: str, choices: Iterable[str]) -> str:
@@ -159,19 +155,17 @@ def read_str_list(ctx: Ctx, node: Node, what: str) -> tuple[str, ...]:
 
 
 def read_name(ctx: Ctx, node: Node, what: str) -> str | None:
-    """A workflow/task/group name: ``^[a-zA-Z]([a-zA-Z0-9_-]*[a-zA-Z0-9])?$``, ≤ 64 chars.
+    """A user-chosen name (workflow, group, task, dataset): ``osmo.names.NAME_RE``, at most
+    ``osmo.names.MAX_NAME`` characters.
 
     A malformed name is reported and still returned, so later checks can use it.
     """
     name = read_str(ctx, node, what)
     if name is None:
         return None
-    if len(name) > MAX_NAME:
-        ctx.error(node, f"{what} '{name[:20]}...' is {len(name)} characters; the limit is "
-                        f"{MAX_NAME}")
-    elif not NAME_RE.match(name):
-        ctx.error(node, f"{what} '{name}' is not a valid name: use letters, digits, '-' and "
-                        "'_', starting with a letter and ending with a letter or digit")
+    problem = name_problem(name, what)
+    if problem is not None:
+        ctx.error(node, problem)
     return name
 
 

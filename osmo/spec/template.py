@@ -1,10 +1,13 @@
 """Jinja templating of spec files: the only module of osmo that imports ``jinja2``.
 
-It owns the rendering context (``default-values`` overridden by ``--set``/``--set-string``)
-and rendering the whole file in a sandbox with ``StrictUndefined``, bounded in output size
-(:data:`MAX_RENDERED`), loop size (:data:`MAX_RANGE`) and time (:data:`MAX_SECONDS`). Special
-tokens (``{{output}}``...) are protected before rendering and restored after, so ``--set
-output=...`` has no effect on them. Every jinja error becomes a :class:`Diagnostic`.
+It owns rendering the whole file in a sandbox with ``StrictUndefined``, bounded in output size
+(``isolation.MAX_RENDERED``), loop size (:data:`MAX_RANGE`), bracket nesting
+(:data:`MAX_NESTING`) and time (checked as loops run). Special tokens (``{{output}}``...) are
+protected before rendering and restored after, so ``--set output=...`` has no effect on them.
+Every jinja error becomes a :class:`Diagnostic`. The context comes from ``osmo.spec.values``.
+
+It runs only in the child processes of ``osmo.spec.isolation``, which bound its memory and
+wall time from outside; the checks here just fail earlier, with a position.
 
 Positions in diagnostics found *after* rendering (YAML and schema errors) refer to the rendered
 document, which is line-for-line identical to the source when the file uses no ``{% %}``
@@ -15,22 +18,20 @@ from __future__ import annotations
 
 import re
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator
 from typing import Any
 
 import jinja2
 from jinja2.sandbox import SandboxedEnvironment
 
 from osmo.errors import Diagnostic
-from osmo.spec import tokens
+from osmo.spec import isolation, tokens
 from osmo.spec.reader import did_you_mean
-from osmo.spec.yamlnodes import Map, load_nodes, to_plain
 
-__all__ = ["MAX_RANGE", "MAX_RENDERED", "MAX_SECONDS", "build_context", "render"]
+__all__ = ["MAX_NESTING", "MAX_RANGE", "nesting_message", "render"]
 
-MAX_RENDERED = 16 * 1024 * 1024  # characters of rendered text
 MAX_RANGE = 100_000  # items of one range()
-MAX_SECONDS = 10.0  # wall time of one rendering
+MAX_NESTING = 30  # brackets inside one {{ }} or {% %}; jinja's parser recurses per level
 MAX_UNDEFINED = 20  # undefined variables reported from one file
 _TEMPLATE_FILE = "<template>"
 
@@ -39,10 +40,22 @@ class _LimitExceededError(Exception):
     """A sandbox bound was hit; the message says which."""
 
 
+class _Deadline:
+    """The wall-time budget of one rendering, checked as loops and output chunks go by."""
+
+    def __init__(self, seconds: float) -> None:
+        self.seconds = seconds
+        self._at = time.monotonic() + seconds
+
+    def check(self) -> None:
+        if time.monotonic() > self._at:
+            raise _LimitExceededError(isolation.time_message(self.seconds))
+
+
 class _BoundedRange:
     """``range()`` for templates: refuses huge ranges and checks the time budget as it runs."""
 
-    def __init__(self, deadline: float, *args: int) -> None:
+    def __init__(self, deadline: _Deadline, *args: int) -> None:
         self._range = range(*args)
         if len(self._range) > MAX_RANGE:
             raise _LimitExceededError(f"range() of {len(self._range)} items exceeds the "
@@ -58,13 +71,8 @@ class _BoundedRange:
     def __iter__(self) -> Iterator[int]:
         for n, value in enumerate(self._range):
             if n % 1000 == 0:
-                _check_time(self._deadline)
+                self._deadline.check()
             yield value
-
-
-def _check_time(deadline: float) -> None:
-    if time.monotonic() > deadline:
-        raise _LimitExceededError(f"template rendering took longer than {MAX_SECONDS:g}s")
 
 
 class _Sandbox(SandboxedEnvironment):
@@ -76,65 +84,11 @@ class _Sandbox(SandboxedEnvironment):
         if operator == "*":
             for seq, n in ((left, right), (right, left)):
                 if isinstance(seq, str | list | tuple) and isinstance(n, int) and (
-                        len(seq) * n > MAX_RENDERED):
+                        len(seq) * n > isolation.MAX_RENDERED):
                     raise _LimitExceededError("a repeated string or list is too large")
         if operator == "**" and isinstance(right, int | float) and abs(right) > 1000:
             raise _LimitExceededError("exponents above 1000 are not allowed in templates")
         return super().call_binop(context, operator, left, right)
-
-
-def _cast(value: str) -> Any:
-    for kind in (int, float):
-        try:
-            return kind(value)
-        except ValueError:
-            pass
-    return value
-
-
-def _split_items(file: str, flag: str,
-                 items: Sequence[str]) -> tuple[dict[str, str], list[Diagnostic]]:
-    out: dict[str, str] = {}
-    diags = []
-    for item in items:
-        name, eq, value = item.partition("=")
-        if not eq or not name.strip():
-            diags.append(Diagnostic(file, 0, 0, f"{flag} {item!r}: expected NAME=VALUE"))
-        else:
-            out[name.strip()] = value
-    return out, diags
-
-
-def _default_values_block(text: str) -> str | None:
-    """The top-level ``default-values:`` block, with earlier lines blanked so that line
-    numbers stay those of the file (the raw file may not be YAML before rendering)."""
-    lines = text.splitlines()
-    for start, line in enumerate(lines):
-        if re.match(r"default-values\s*:", line):
-            end = start + 1
-            while end < len(lines) and not re.match(r"[^\s#]", lines[end]):
-                end += 1
-            return "\n" * start + "\n".join(lines[start:end]) + "\n"
-    return None
-
-
-def build_context(text: str, file: str, set_values: Sequence[str] = (),
-                  set_strings: Sequence[str] = ()) -> tuple[dict[str, Any], list[Diagnostic]]:
-    """The template context: ``default-values`` of ``text``, then ``--set`` (cast to int,
-    then float, else kept as a string), then ``--set-string`` (kept as a string)."""
-    context: dict[str, Any] = {}
-    diags: list[Diagnostic] = []
-    block = _default_values_block(text)
-    if block is not None:
-        root, diags = load_nodes(block, file)
-        values = root.get("default-values") if isinstance(root, Map) else None
-        if isinstance(values, Map):
-            context.update(to_plain(values))
-    sets, bad = _split_items(file, "--set", set_values)
-    strings, bad2 = _split_items(file, "--set-string", set_strings)
-    context.update({k: _cast(v) for k, v in sets.items()})
-    context.update(strings)
-    return context, diags + bad + bad2
 
 
 _JINJA_SPAN = re.compile(r"\{\{.*?\}\}|\{%.*?%\}")
@@ -177,25 +131,71 @@ def _template_line(exc: BaseException) -> int:
     return line
 
 
-def _run(template: jinja2.Template, context: dict[str, Any], deadline: float) -> str:
+def _run(template: jinja2.Template, context: dict[str, Any], deadline: _Deadline) -> str:
     parts, size = [], 0
     for chunk in template.generate(context):
         size += len(chunk)
-        if size > MAX_RENDERED:
-            raise _LimitExceededError(f"rendered spec exceeds {MAX_RENDERED // 2**20} MiB")
-        _check_time(deadline)
+        if size > isolation.MAX_RENDERED:
+            raise _LimitExceededError(
+                f"rendered spec exceeds {isolation.MAX_RENDERED // 2**20} MiB")
+        deadline.check()
         parts.append(chunk)
     return "".join(parts)
 
 
-def render(text: str, file: str, context: dict[str, Any]) -> tuple[str | None, list[Diagnostic]]:
+def nesting_message() -> str:
+    """What a template nested too deeply for the parser is told (the limit named)."""
+    return (f"template expressions nest too deeply: at most {MAX_NESTING} levels of "
+            "brackets (very long chains of operators count too); split the expression")
+
+
+_SPAN_START = re.compile(r"\{\{|\{%")
+_OPEN, _CLOSE, _QUOTES = "([{", ")]}", "'\""
+
+
+def _too_deep(text: str) -> tuple[int, int] | None:
+    """Where (line, col) a ``{{ }}``/``{% %}`` first nests brackets deeper than
+    :data:`MAX_NESTING`, skipping string literals; None if nowhere. Checked before jinja
+    parses, since its parser recurses once per level and would fail without a position."""
+    pos = 0
+    while (start := _SPAN_START.search(text, pos)) is not None:
+        i, depth, quote = start.end(), 0, ""
+        while i < len(text):
+            c = text[i]
+            if quote:
+                quote = "" if c == quote else quote
+                i += 1 if c == "\\" else 0
+            elif c in _QUOTES:
+                quote = c
+            elif depth == 0 and text.startswith(("}}", "%}"), i):
+                break
+            elif c in _OPEN:
+                depth += 1
+                if depth > MAX_NESTING:
+                    line = text.count("\n", 0, i) + 1
+                    return line, i - text.rfind("\n", 0, i)
+            elif c in _CLOSE:
+                depth = max(depth - 1, 0)
+            i += 1
+        pos = i + 2
+    return None
+
+
+def render(text: str, file: str, context: dict[str, Any], *,
+           seconds: float = isolation.MAX_SECONDS) -> tuple[str | None, list[Diagnostic]]:
     """Render ``text`` with ``context`` in the sandbox; special tokens pass through untouched.
+
+    Only ``osmo.spec.isolation`` calls this, in a child process under memory and time limits
+    (``seconds`` is its time limit, checked here too so that loops stop with a position).
 
     Returns:
         the rendered text (None on any error) and the diagnostics.
     """
     protected, saved = tokens.protect(text)
-    deadline = time.monotonic() + MAX_SECONDS
+    deep = _too_deep(protected)
+    if deep is not None:
+        return None, [Diagnostic(file, deep[0], deep[1], nesting_message())]
+    deadline = _Deadline(seconds)
     env = _Sandbox(undefined=jinja2.StrictUndefined, keep_trailing_newline=True, autoescape=False)
     env.globals["range"] = lambda *args: _BoundedRange(deadline, *args)
     try:
@@ -206,7 +206,7 @@ def render(text: str, file: str, context: dict[str, Any]) -> tuple[str | None, l
     return (None if rendered is None else tokens.restore(rendered, saved)), diags
 
 
-def _render_all(template: jinja2.Template, context: dict[str, Any], deadline: float, file: str,
+def _render_all(template: jinja2.Template, context: dict[str, Any], deadline: _Deadline, file: str,
                 lines: list[str]) -> tuple[str | None, list[Diagnostic]]:
     """Render, reporting every undefined variable the rendering actually evaluates.
 
@@ -241,4 +241,8 @@ def _describe(exc: BaseException) -> str:
         return f"{exc.message}; check the name or define it under 'default-values:'"
     if isinstance(exc, _LimitExceededError | jinja2.TemplateError):
         return str(exc)
+    if isinstance(exc, MemoryError):
+        return isolation.memory_message()
+    if isinstance(exc, RecursionError):
+        return nesting_message()
     return f"{type(exc).__name__}: {exc}"

@@ -3,12 +3,17 @@
 It owns safe loading of a YAML document into a small node tree (:class:`Scalar`, :class:`Seq`,
 :class:`Map`) in which every node keeps its 1-based source position, and the dumping of plain
 data back to YAML text. Loading never builds Python objects from tags (``yaml.SafeLoader``
-only), reports duplicate keys, recursive aliases and alias bombs as :class:`Diagnostic` s, and
-translates every ``yaml`` error into one. It knows nothing about the workflow schema.
+only) and refuses every tag but the plain ones (``!!str``, ``!!int``...: see
+:data:`PLAIN_TAGS`), naming it. It reports duplicate keys, recursive aliases, alias bombs,
+nesting deeper than :data:`MAX_DEPTH` and integers longer than Python converts as
+:class:`Diagnostic` s, and translates every ``yaml`` error into one. It knows nothing about the
+workflow schema.
 """
 
 from __future__ import annotations
 
+import re
+import sys
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -24,7 +29,17 @@ __all__ = ["Map", "Node", "Scalar", "Seq", "dump", "load_nodes", "to_plain"]
 _LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
 _DUMPER = getattr(yaml, "CSafeDumper", yaml.SafeDumper)
 MAX_ALIAS_NODES = 100_000  # nodes copied through aliases; bounds "billion laughs" documents
-_MERGE_TAG = "tag:yaml.org,2002:merge"
+MAX_DEPTH = 100  # levels of nested lists and mappings
+_YAML_TAG = "tag:yaml.org,2002:"
+_MERGE_TAG = _YAML_TAG + "merge"
+PLAIN_TAGS = frozenset(_YAML_TAG + t for t in (
+    "str", "int", "float", "bool", "null", "timestamp", "seq", "map", "merge", "value"))
+#: libyaml's composer recurses in C once per level and overflows the stack tens of thousands
+#: of levels deep; a document this short cannot nest that deep, longer ones are measured first
+_SHORT = 2000
+_PREFIX = re.compile(r"^[ ?:-]*", re.MULTILINE)
+_NOT_BRACKET = re.compile(r"[^\[\]{}]+")
+_PAIR = re.compile(r"\[\]|\{\}")
 
 
 @dataclass
@@ -67,6 +82,63 @@ class _TooBigError(Exception):
     pass
 
 
+class _TooDeepError(Exception):
+    def __init__(self, node: ynodes.Node) -> None:
+        self.node = node
+
+
+def _depth_message() -> str:
+    return (f"YAML nested more than {MAX_DEPTH} levels deep (lists and mappings), the limit; "
+            "flatten the document")
+
+
+def _flow_depth(text: str, limit: int) -> int | None:
+    """How deep the brackets of ``text`` nest, if at most ``limit``; None if deeper or if they
+    do not pair up. Brackets in strings and comments count too, so it never says less than
+    the document's flow nesting."""
+    brackets = _NOT_BRACKET.sub("", text)
+    for depth in range(limit + 1):
+        if not brackets:
+            return depth
+        shorter = _PAIR.sub("", brackets)  # one level per pass
+        if shorter == brackets:
+            return None
+        brackets = shorter
+    return None
+
+
+def _surely_shallow(text: str) -> bool:
+    """True if ``text`` cannot nest deeper than :data:`MAX_DEPTH` (cheap, conservative): a
+    block level takes a column of indentation or an indicator (``- ``, ``? ``), a flow level
+    a bracket."""
+    if len(text) <= _SHORT:
+        return True
+    block = 2 * (max(map(len, _PREFIX.findall(text)), default=0) + 1)
+    flow = _flow_depth(text, MAX_DEPTH - block) if block < MAX_DEPTH else None
+    return flow is not None
+
+
+def _depth_problem(text: str, file: str) -> Diagnostic | None:
+    """Where the document first nests deeper than :data:`MAX_DEPTH`, read from the parser's
+    events (which keep no stack of their own), before any recursive composition."""
+    if _surely_shallow(text):
+        return None
+    depth = 0
+    try:
+        for event in yaml.parse(text, Loader=_LOADER):
+            if isinstance(event, yaml.CollectionStartEvent):
+                depth += 1
+                if depth > MAX_DEPTH:
+                    mark = event.start_mark
+                    line, col = (mark.line + 1, mark.column + 1) if mark else (0, 0)
+                    return Diagnostic(file, line, col, _depth_message())
+            elif isinstance(event, yaml.CollectionEndEvent):
+                depth -= 1
+    except yaml.YAMLError:
+        return None  # composing reports it, with its position
+    return None
+
+
 class _Converter:
     """Turns a composed ``yaml`` node graph into our node tree, collecting diagnostics."""
 
@@ -76,6 +148,7 @@ class _Converter:
         self.copied = 0
         self.seen: set[int] = set()
         self.active: set[int] = set()
+        self.depth = 0
         self.constructor = yaml.SafeLoader("")
 
     def pos(self, node: ynodes.Node) -> Pos:
@@ -94,8 +167,13 @@ class _Converter:
         if id(node) in self.active:
             self.error(node, "recursive YAML alias; an anchor cannot contain itself")
             return Scalar(self.pos(node), None, "")
+        if not self.plain(node):
+            return Scalar(self.pos(node), None, "")
         self.active.add(id(node))
+        self.depth += 1
         try:
+            if self.depth > MAX_DEPTH:  # aliases can nest what the text does not
+                raise _TooDeepError(node)
             if isinstance(node, ynodes.ScalarNode):
                 return self.scalar(node)
             if isinstance(node, ynodes.SequenceNode):
@@ -103,13 +181,28 @@ class _Converter:
             assert isinstance(node, ynodes.MappingNode)
             return self.mapping(node)
         finally:
+            self.depth -= 1
             self.active.discard(id(node))
+
+    def plain(self, node: ynodes.Node) -> bool:
+        """Whether the node's tag is a plain one; an unknown tag is reported, by name."""
+        if node.tag in PLAIN_TAGS:
+            return True
+        tag = node.tag.replace(_YAML_TAG, "!!", 1)
+        self.error(node, f"unknown YAML tag {tag!r}: osmo reads plain YAML values only "
+                         "(strings, numbers, booleans, null, lists, mappings); remove the tag")
+        return False
 
     def scalar(self, node: ynodes.ScalarNode) -> Scalar:
         try:
             value = self.constructor.construct_object(node, deep=True)
         except yaml.YAMLError as exc:
             self.error(node, f"cannot read this YAML value: {_problem(exc)}")
+            value = node.value
+        except ValueError:  # an integer longer than Python converts
+            self.error(node, f"this number has {len(node.value)} characters; integers may have "
+                             f"at most {sys.get_int_max_str_digits()} digits, the limit (quote "
+                             "it to keep it as text)")
             value = node.value
         return Scalar(self.pos(node), value, str(node.value))
 
@@ -149,7 +242,7 @@ class _Converter:
         if not isinstance(node, ynodes.ScalarNode):
             self.error(node, "a mapping key must be a plain value, not a list or mapping")
             return None
-        return self.scalar(node)
+        return self.scalar(node) if self.plain(node) else None
 
 
 def _dedupe(entries: list[tuple[Scalar, Node]]) -> list[tuple[Scalar, Node]]:
@@ -175,6 +268,9 @@ def load_nodes(text: str, file: str) -> tuple[Node | None, list[Diagnostic]]:
     Returns:
         the root node (None for an empty document or a syntax error) and the diagnostics.
     """
+    deep = _depth_problem(text, file)
+    if deep is not None:
+        return None, [deep]
     try:
         root = yaml.compose(text, Loader=_LOADER)
     except yaml.MarkedYAMLError as exc:
@@ -195,6 +291,9 @@ def load_nodes(text: str, file: str) -> tuple[Node | None, list[Diagnostic]]:
         message = (f"YAML aliases expand to more than {MAX_ALIAS_NODES} copied nodes "
                    "(alias bomb?); write the values out instead")
         return None, [Diagnostic(file, 1, 1, message)]
+    except _TooDeepError as exc:
+        mark = exc.node.start_mark
+        return None, [Diagnostic(file, mark.line + 1, mark.column + 1, _depth_message())]
     return tree, converter.diags
 
 

@@ -8,6 +8,8 @@ server's engine thread) commits each batch of scheduler changes in one transacti
 the matching commands are executed; readers (API threads) use their own connections.
 
 Schema migrations are forward-only functions keyed by version in ``_MIGRATIONS``.
+
+Text from tasks may hold bytes that are not UTF-8 (file names): see ``osmo.store.writes``.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from osmo.errors import InfrastructureError
 from osmo.scheduler.types import Changes
 from osmo.store.lineage import LineageQueries
 from osmo.store.rows import AttemptRow, DatasetRow, LineageRow, WorkflowRow
+from osmo.store.writes import text_value, write_dataset, write_lineage, write_manifest
 
 __all__ = ["AttemptRow", "DatasetRow", "LineageRow", "Store", "WorkflowRow"]
 
@@ -248,7 +251,7 @@ class Store(LineageQueries):
                 "INSERT INTO events (at, workflow_id, task, retry, status, message) "
                 "VALUES (?,?,?,?,?,?)",
                 [
-                    (t.at, t.workflow_id, t.task, t.retry, t.status, t.message)
+                    (t.at, t.workflow_id, t.task, t.retry, t.status, text_value(t.message))
                     for t in changes.transitions
                 ],
             )
@@ -260,9 +263,9 @@ class Store(LineageQueries):
                 ],
             )
             for row in lineage:
-                _write_lineage(db, row)
+                write_lineage(db, row)
             for ds in datasets:
-                _write_dataset(db, ds)
+                write_dataset(db, ds)
             db.executemany("INSERT OR REPLACE INTO dataset_tags VALUES (?,?,?)", list(tags))
 
     def set_credential(self, name: str, payload: dict[str, str], now: float) -> None:
@@ -291,9 +294,7 @@ class Store(LineageQueries):
                         entries: tuple[tuple[str, str, int], ...], path: str) -> None:
         """Record a folder (e.g. a materialized dataset) as holding ``manifest``."""
         with self._tx() as db:
-            db.execute("INSERT OR IGNORE INTO manifests VALUES (?,?)", (manifest, body))
-            db.executemany("INSERT OR IGNORE INTO manifest_blobs VALUES (?,?,?,?)",
-                           [(manifest, p, d, s) for p, d, s in entries])
+            write_manifest(db, manifest, body, entries)
             db.execute("INSERT OR REPLACE INTO outputs VALUES (?,?,?,?,?)",
                        (workflow_id, task, "", manifest, path))
 
@@ -354,31 +355,6 @@ class Store(LineageQueries):
             args.append(task)
         rows = self._read(sql + " ORDER BY task, retry", tuple(args))
         return [AttemptRow(**dict(r)) for r in rows]
-
-
-def _write_lineage(db: sqlite3.Connection, row: LineageRow) -> None:
-    db.execute("INSERT OR IGNORE INTO manifests VALUES (?,?)", (row.manifest, row.manifest_body))
-    db.executemany("INSERT OR IGNORE INTO manifest_blobs VALUES (?,?,?,?)",
-                   [(row.manifest, path, digest, size) for path, digest, size in row.entries])
-    db.execute("INSERT OR REPLACE INTO outputs VALUES (?,?,?,?,?)",
-               (row.workflow_id, row.task, row.attempt_id, row.manifest, row.output_path))
-    db.execute("INSERT OR REPLACE INTO lineage VALUES (?,?,?,?,?)",
-               (row.attempt_id, row.workflow_id, row.task, row.manifest, row.record))
-    db.executemany("INSERT OR IGNORE INTO consumed VALUES (?,?)",
-                   [(m, row.attempt_id) for m in row.consumed])
-    if row.fingerprint is not None:
-        db.execute("INSERT OR IGNORE INTO cache VALUES (?,?,?,?,?,?)",
-                   (row.fingerprint, row.attempt_id, row.workflow_id, row.task,
-                    row.output_path, row.manifest))
-
-
-def _write_dataset(db: sqlite3.Connection, ds: DatasetRow) -> None:
-    db.execute("INSERT OR IGNORE INTO manifests VALUES (?,?)", (ds.manifest, ds.manifest_body))
-    db.executemany("INSERT OR IGNORE INTO manifest_blobs VALUES (?,?,?,?)",
-                   [(ds.manifest, path, digest, size) for path, digest, size in ds.entries])
-    db.execute("INSERT INTO datasets VALUES (?,?,?,?,?,?,?)",
-               (ds.name, ds.version, ds.manifest, ds.source_manifest, ds.attempt_id,
-                ds.created_at, json.dumps(ds.metadata)))
 
 
 def _workflow_row(r: sqlite3.Row) -> WorkflowRow:

@@ -6,22 +6,95 @@
   a workflow's state changes (clients waiting on it re-query instead of polling fast).
 
 Server-side errors travel as their class name, message and exit code and are rebuilt as the
-matching ``osmo.errors`` class on the client.
+matching ``osmo.errors`` class on the client. A request that is not a JSON object, or whose
+fields have the wrong type (see :func:`field`), is the client's mistake: a ``UsageError``
+(exit 2) and one line in the server's log, never an ``InfrastructureError``.
 """
 
 from __future__ import annotations
 
 import json
+import logging
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
-from osmo.errors import OsmoError, ServerUnreachable
+from osmo.errors import OsmoError, ServerUnreachable, UsageError
+from osmo.names import shown
 from osmo.transport.zenoh_link import Link, Request
 
-__all__ = ["ApiClient", "ApiServer", "RemoteError"]
+__all__ = ["ApiClient", "ApiServer", "RemoteError", "field", "str_list", "str_map"]
 
 Handler = Callable[[str, dict[str, Any]], Any]
+log = logging.getLogger("osmo.api")
+_REQUIRED: Any = object()
+_KINDS = {str: "a string", int: "a whole number", bool: "true or false", dict: "an object",
+          list: "a list"}
+MAX_INT = 2**63 - 1  # what SQLite stores; larger numbers in a request are refused
+
+
+def field(request: dict[str, Any], key: str, kind: type, *, default: Any = _REQUIRED,
+          max_len: int | None = None, what: str | None = None) -> Any:
+    """``request[key]``, checked to be a ``kind`` (str, int, bool, dict or list).
+
+    A missing or null field gives ``default`` if one is given. Integers must fit in 64 bits;
+    ``max_len`` bounds a string's length.
+
+    Raises:
+        UsageError: naming the field and what it must be.
+    """
+    name = what or f"'{key}'"
+    value = request.get(key)
+    if value is None:
+        if default is _REQUIRED:
+            raise UsageError(f"the request needs {name} ({_KINDS[kind]})")
+        return default
+    if not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
+        raise UsageError(f"{name} must be {_KINDS[kind]}, not {type(value).__name__}")
+    if isinstance(value, int) and not -MAX_INT <= value <= MAX_INT:
+        raise UsageError(f"{name} is out of range: {shown(value)}")
+    if isinstance(value, str | list | dict) and max_len is not None and len(value) > max_len:
+        raise UsageError(f"{name} is too long ({len(value)} characters; the limit is {max_len})")
+    return value
+
+
+def str_list(request: dict[str, Any], key: str) -> list[str]:
+    """``request[key]`` as a list of strings ([] if absent).
+
+    Raises:
+        UsageError: it is not a list of strings.
+    """
+    items = field(request, key, list, default=[])
+    if not all(isinstance(item, str) for item in items):
+        raise UsageError(f"'{key}' must be a list of strings")
+    return list(items)
+
+
+def str_map(request: dict[str, Any], key: str) -> dict[str, str]:
+    """``request[key]`` as an object of string values ({} if absent).
+
+    Raises:
+        UsageError: it is not an object of strings.
+    """
+    items = field(request, key, dict, default={})
+    if not all(isinstance(value, str) for value in items.values()):
+        raise UsageError(f"'{key}' must be an object whose values are strings")
+    return dict(items)
+
+
+def _request_body(payload: bytes) -> dict[str, Any]:
+    """The JSON object a request carries.
+
+    Raises:
+        UsageError: the payload is not JSON, not an object, or nested too deeply.
+    """
+    try:
+        body = json.loads(payload) if payload else {}
+    except (ValueError, RecursionError) as exc:
+        raise UsageError(f"the request is not valid JSON: {str(exc)[:200]}") from None
+    if not isinstance(body, dict):
+        raise UsageError(f"the request must be a JSON object, not {type(body).__name__}")
+    return body
 
 
 class RemoteError(OsmoError):
@@ -57,8 +130,10 @@ class ApiServer:
     def _serve(self, request: Request) -> None:
         verb = request.key[len(self._prefix):]
         try:
-            body = json.loads(request.payload) if request.payload else {}
-            reply: dict[str, Any] = {"ok": self._handler(verb, body)}
+            reply: dict[str, Any] = {"ok": self._handler(verb, _request_body(request.payload))}
+        except UsageError as exc:  # the client's mistake: one line, no traceback
+            log.warning("refused a %s request: %r", shown(verb), str(exc)[:300])
+            reply = {"error": _error_dict(exc)}
         except OsmoError as exc:
             reply = {"error": _error_dict(exc)}
         except Exception as exc:  # noqa: BLE001 - reported to the client, logged by the server

@@ -10,16 +10,42 @@ lines is masked on its own as well. Very short values are masked too, but a secr
 two characters masks every occurrence of those characters in the log, secret or not; such a
 secret is weak anyway.
 
+A value is masked in its base64 and base64url forms too, as CI systems do (``echo $TOKEN |
+base64`` must not print it in the clear): inside a longer encoded text a value can start at
+any of three offsets, each encoding it differently, so the characters that depend on the
+value alone are masked for each offset, in both alphabets (the one or two characters at each
+end, which also carry the neighbouring bytes, stay). Values shorter than 4 bytes are not
+masked in encoded form: their encodings are a few characters long and would mask random
+base64 text.
+
 This module only transforms text; it does not know where secrets come from.
 """
 
 from __future__ import annotations
 
+import base64
 from collections.abc import Iterable
 
-__all__ = ["MASK", "Masker"]
+__all__ = ["MASK", "Masker", "encoded_forms"]
 
 MASK = b"****"
+_MIN_ENCODED = 4  # bytes: shorter values are not masked in their encoded forms
+_URLSAFE = bytes.maketrans(b"+/", b"-_")
+
+
+def encoded_forms(value: bytes) -> set[bytes]:
+    """How ``value`` can show in base64 and base64url text (see the module docstring)."""
+    if len(value) < _MIN_ENCODED:
+        return set()
+    forms: set[bytes] = set()
+    whole = base64.b64encode(value)
+    for form in (whole, whole.rstrip(b"=")):
+        forms |= {form, form.translate(_URLSAFE)}
+    for shift in range(3):  # the value's offset in the encoded text, modulo 3
+        encoded = base64.b64encode(b"\0" * shift + value)
+        core = encoded[-(-8 * shift // 6):8 * (shift + len(value)) // 6]
+        forms |= {core, core.translate(_URLSAFE)}
+    return forms
 
 
 class Masker:
@@ -35,6 +61,8 @@ class Masker:
             found.add(value.encode())
             found.update(line.encode() for line in value.splitlines())
         found.discard(b"")
+        for plain in list(found):
+            found |= encoded_forms(plain)
         # Longest first: the common case is a value that is not a part of another one.
         self._values = tuple(sorted(found, key=len, reverse=True))
         self.hold = max((len(v) for v in self._values), default=1) - 1

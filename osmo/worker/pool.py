@@ -24,6 +24,8 @@ store, see ``kill_stale``).
 
 Credentials (``osmo.worker.secrets``) are given to ``prepare`` or looked up via
 ``task_secrets``; their values are masked in the log, their mounted files deleted at the end.
+How an attempt ends (exit, promotion, its one final report in every path) is
+``osmo.worker.endings``.
 
 The ``image`` field is recorded in the log and otherwise ignored by the process runtime.
 Creating a pool lifts the process's soft open-files limit (each running attempt holds four
@@ -40,9 +42,11 @@ import signal
 import threading
 from collections.abc import Callable, Mapping
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import replace
 from pathlib import Path
 
 from osmo.artifacts import ArtifactStore
+from osmo.artifacts.store import DEFAULT_MAX_FILES
 from osmo.errors import OsmoError
 from osmo.runtime.process import (
     ProcessHandle,
@@ -61,26 +65,26 @@ from osmo.scheduler.types import (
     Node,
     PrepareAttempt,
 )
-from osmo.spec.model import ExitAction, TaskSpec
+from osmo.spec.model import TaskSpec
 from osmo.worker.checkpoints import start_checkpoints
-from osmo.worker.logs import LogWriter, exit_note, image_note
+from osmo.worker.endings import AttemptEndings
+from osmo.worker.logs import LogWriter, image_note
 from osmo.worker.machine import detect_capacity, raise_fd_limit
 from osmo.worker.live import AttemptState, LiveAttempt
 from osmo.worker.reactor import Reactor
 from osmo.worker.secrets import SecretLookup, Secrets, gather
-from osmo.worker.transfer import CredentialLookup, DeliveryError, deliver, fetch_inputs
-from osmo.worker.workdir import AttemptDirs, Launch, prepare, remove_secret_files
+from osmo.worker.transfer import CredentialLookup, ManifestLookup, make_ready
+from osmo.worker.workdir import AttemptDirs, Launch, remove_secret_files
 
 __all__ = ["LocalPool", "kill_stale", "process_start_time"]
 
 _log = logging.getLogger(__name__)
 
 KILLED_BEFORE_START = 128 + signal.SIGKILL
-_REMEMBER_FINISHED = 4096  # finished ids kept to ignore late run()/kill() for them
 _IO_THREADS = 4
 
 
-class LocalPool:
+class LocalPool(AttemptEndings):
     """A resource-aware pool of host processes on this machine (see the module docstring).
 
     Args:
@@ -95,6 +99,9 @@ class LocalPool:
         artifacts: where promoted outputs are ingested (content-addressed, verified); the
             exit report then carries the output's manifest. None: outputs are not ingested.
         credential_for: ``url -> credential`` for ``url`` inputs and outputs.
+        input_manifests: input reference → its manifest, for inputs that are artifacts; each
+            attempt then gets its own checked copy of them (``transfer.copy_inputs``).
+        max_output_files: the most files one attempt's output may hold.
         task_secrets: credential name → payload, for tasks' ``credentials:`` when
             ``prepare`` is not given them.
         log_sink: also gets ``(attempt id, records)`` for every log record written.
@@ -115,6 +122,8 @@ class LocalPool:
         env: Mapping[str, str] | None = None,
         artifacts: ArtifactStore | None = None,
         credential_for: CredentialLookup | None = None,
+        input_manifests: ManifestLookup | None = None,
+        max_output_files: int | None = DEFAULT_MAX_FILES,
         task_secrets: SecretLookup | None = None,
         log_sink: Callable[[str, bytes], None] | None = None,
     ) -> None:
@@ -129,6 +138,8 @@ class LocalPool:
         self._env = dict(os.environ if env is None else env)
         self._artifacts = artifacts
         self._credential_for = credential_for
+        self._input_manifests = input_manifests
+        self._max_output_files = max_output_files
         self._task_secrets = task_secrets
         self._log_sink = log_sink
         self._attempts: dict[str, LiveAttempt] = {}
@@ -148,13 +159,14 @@ class LocalPool:
                                    memory=self._memory)
         return Node(id=self._node_id, pool=self._pool, capacity=capacity)
 
-    def prepare(self, cmd: PrepareAttempt, task: TaskSpec,
-                secrets: Secrets | None = None) -> None:
+    def prepare(self, cmd: PrepareAttempt, task: TaskSpec, secrets: Secrets | None = None,
+                *, max_output_bytes: int | None = None) -> None:
         """Prepare an attempt's folder; later emits AttemptPrepared or AttemptStartFailed.
 
         ``secrets``: payloads of the credentials ``task`` names (None: ask ``task_secrets``).
+        ``max_output_bytes``: the task's ``storage`` request; a larger output fails it.
         """
-        self._reactor.call_soon(self._prepare, cmd, task, secrets)
+        self._reactor.call_soon(self._prepare, cmd, task, secrets, max_output_bytes)
 
     def run(self, attempt_id: str) -> None:
         """Start a prepared attempt: AttemptStarted, then one AttemptExited.
@@ -190,22 +202,26 @@ class LocalPool:
 
     # -------------------------------------------------------------- reactor thread
 
-    def _prepare(self, cmd: PrepareAttempt, task: TaskSpec, secrets: Secrets | None) -> None:
+    def _prepare(self, cmd: PrepareAttempt, task: TaskSpec, secrets: Secrets | None,
+                 max_output_bytes: int | None) -> None:
         if cmd.attempt_id in self._attempts or cmd.attempt_id in self._preparing:
             _log.warning("attempt %s is already active; prepare ignored", cmd.attempt_id)
             return
         self._finished.pop(cmd.attempt_id, None)
         self._preparing[cmd.attempt_id] = None
-        self._io.submit(self._prepare_io, cmd, task, secrets)
+        self._io.submit(self._prepare_io, cmd, task, secrets, max_output_bytes)
 
-    def _prepare_io(self, cmd: PrepareAttempt, task: TaskSpec, secrets: Secrets | None) -> None:
+    def _prepare_io(self, cmd: PrepareAttempt, task: TaskSpec, secrets: Secrets | None,
+                    max_output_bytes: int | None) -> None:
         """I/O thread: make the folders and files; hand the outcome back to the reactor."""
         try:
             dirs = AttemptDirs.at(self.home, cmd.workflow_id, cmd.task, cmd.retry)
-            cmd = fetch_inputs(cmd, task, dirs, self._credential_for)
             if secrets is None:
                 secrets = gather(task, self._task_secrets)
-            launch = prepare(dirs, cmd, task, self._env, secrets)
+            launch = make_ready(dirs, cmd, task, env=self._env, secrets=secrets,
+                                credential_for=self._credential_for, artifacts=self._artifacts,
+                                input_manifests=self._input_manifests)
+            launch = replace(launch, max_output_bytes=max_output_bytes)
         except Exception as exc:  # every prepare must get its one final report
             message = str(exc) if isinstance(exc, OsmoError) else f"cannot prepare: {exc!r}"
             self._reactor.call_soon(self._prepared, cmd, task, None, None, message)
@@ -219,6 +235,9 @@ class LocalPool:
                 started = self._runtime.start(launch.argv, cwd=launch.cwd, env=launch.env)
             except (StartError, OSError) as exc:
                 started = str(exc)
+            except Exception as exc:  # noqa: BLE001 - a bug: fail the start, report it
+                _log.exception("starting %s failed", cmd.attempt_id)
+                started = f"cannot start: {exc!r}"
         self._reactor.call_soon(self._prepared, cmd, task, dirs, launch, None, started)
 
     def _prepared(self, cmd: PrepareAttempt, task: TaskSpec, dirs: AttemptDirs | None,
@@ -232,7 +251,17 @@ class LocalPool:
             self._emit(AttemptStartFailed(cmd.attempt_id, error or "cannot prepare"))
             return
         sink = functools.partial(self._log_sink, cmd.attempt_id) if self._log_sink else None
-        log = LogWriter(dirs.log, launch.secrets, sink)
+        try:
+            log = LogWriter(dirs.log, launch.secrets, sink)
+        except OSError as exc:  # no log, no attempt: undo what preparing made, report once
+            if isinstance(started, ProcessHandle):
+                self._runtime.kill(started, force=True)
+                self._runtime.reap(started)
+                self._runtime.release(started)
+            remove_secret_files(launch)
+            self._remember(cmd.attempt_id)
+            self._emit(AttemptStartFailed(cmd.attempt_id, f"cannot write its log: {exc}"))
+            return
         attempt = LiveAttempt(cmd.attempt_id, task, dirs, launch, log)
         if task.image:
             attempt.log.line("osmo", image_note(task.image))
@@ -308,70 +337,6 @@ class LocalPool:
         if attempt.state is AttemptState.RUNNING and attempt.handle is not None:
             attempt.log.line("osmo", f"still running {self._grace:g}s after SIGTERM: SIGKILL")
             self._runtime.kill(attempt.handle, force=True)
-
-    def _exited(self, attempt: LiveAttempt) -> None:
-        handle = attempt.handle
-        assert handle is not None
-        self._reactor.remove_reader(handle.exit_fd)
-        code = self._runtime.reap(handle)
-        attempt.drain(self._reactor, handle)
-        self._runtime.release(handle)
-        if attempt.escalation is not None:
-            attempt.escalation.cancel()
-        if attempt.checkpoints is not None:
-            attempt.checkpoints.stop()
-        attempt.log.flush_partial()
-        attempt.log.line("osmo", exit_note(code))
-        if attempt.kill_reason is not None:
-            self._finish(attempt, AttemptExited(attempt.id, code, None,
-                                                f"killed: {attempt.kill_reason}"))
-        elif attempt.task.exit_action(code) is not ExitAction.COMPLETE:
-            self._finish(attempt, AttemptExited(attempt.id, code))
-        else:
-            attempt.state = AttemptState.FINISHING
-            self._io.submit(self._promote_io, attempt, code)
-
-    def _promote_io(self, attempt: LiveAttempt, code: int) -> None:
-        """I/O thread: last checkpoint, promote the outputs; the reactor reports the exit."""
-        try:
-            ref, manifest = deliver(attempt.dirs, attempt.task, checkpoints=attempt.checkpoints,
-                                    artifacts=self._artifacts,
-                                    credential_for=self._credential_for)
-            event = AttemptExited(attempt.id, code, ref, manifest=manifest,
-                                  command=tuple(attempt.launch.argv))
-        except DeliveryError as exc:
-            event = AttemptExited(attempt.id, code, None, str(exc))
-            self._reactor.call_soon(self._promoted, attempt, event)
-            return
-        # Reported from here, one thread hop sooner; the reactor's bookkeeping follows (a
-        # kill() that comes meanwhile finds it FINISHING and is ignored).
-        remove_secret_files(attempt.launch)
-        with self._pids_lock:
-            self._pids.pop(attempt.id, None)
-        self._emit(event)
-        self._reactor.call_soon(self._finish, attempt, None)
-
-    def _promoted(self, attempt: LiveAttempt, event: AttemptExited) -> None:
-        if event.message:
-            attempt.log.line("osmo", event.message)
-        self._finish(attempt, event)
-
-    def _finish(self, attempt: LiveAttempt,
-                event: AttemptExited | AttemptStartFailed | None) -> None:
-        attempt.state = AttemptState.DONE
-        attempt.log.close()
-        remove_secret_files(attempt.launch)
-        self._attempts.pop(attempt.id, None)
-        with self._pids_lock:
-            self._pids.pop(attempt.id, None)
-        self._remember(attempt.id)
-        if event is not None:
-            self._emit(event)
-
-    def _remember(self, attempt_id: str) -> None:
-        self._finished[attempt_id] = None
-        while len(self._finished) > _REMEMBER_FINISHED:
-            self._finished.popitem(last=False)
 
     def _shutdown(self) -> None:
         for attempt in list(self._attempts.values()):

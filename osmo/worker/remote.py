@@ -6,8 +6,9 @@ server uses on its own host — one runtime implementation. The wire protocol is
 ``osmo.worker.wire``.
 
 Data: an attempt's inputs are fetched by digest from the server's artifact store (only the
-blobs this worker lacks; hard links when both share a host and filesystem) and linked into
-``<home>/inputs/<manifest>/``; its outputs are ingested into this worker's own store and
+blobs this worker lacks; hard links when both share a host and filesystem), and the pool
+hands the attempt its own checked copy of them, as on the server (``transfer.copy_inputs``);
+its outputs are ingested into this worker's own store and
 pulled by the server, which acknowledges each exit report once every byte is safe with it.
 Unacknowledged reports are kept and sent again whenever the worker registers again (after a
 server restart), so a result that finished while the server was away is not lost.
@@ -20,6 +21,7 @@ are rescheduled without using a retry). Then it exits.
 
 from __future__ import annotations
 
+import collections
 import json
 import logging
 import os
@@ -55,6 +57,8 @@ log = logging.getLogger("osmo.worker")
 
 HEALTH_FILE = "worker.json"
 _HEALTH_EVERY = 5.0
+_INPUT = "artifact:"  # an input reference of this worker: "artifact:<manifest digest>"
+_KEEP_MANIFESTS = 4096  # input manifests remembered (each was fetched whole)
 
 
 @dataclass
@@ -101,6 +105,7 @@ class RemoteWorker:
         self._specs: dict[str, WorkflowSpec] = {}
         self._url_creds: dict[str, dict[str, str]] = {}
         self._pending: dict[str, _Pending] = {}
+        self._manifests: collections.OrderedDict[str, Manifest] = collections.OrderedDict()
         self._active: set[str] = set()
         self._unacked: dict[str, dict[str, Any]] = {}
         self._handed_back: set[str] = set()
@@ -116,7 +121,8 @@ class RemoteWorker:
             home=self.home, emit=self._emit, node_id=self.id, pool=options.pool,
             cpus=options.cpus, gpus=options.gpus, memory=options.memory,
             kill_grace=options.kill_grace, artifacts=self.store,
-            credential_for=self._url_creds.get, log_sink=self._send_log)
+            credential_for=self._url_creds.get, log_sink=self._send_log,
+            input_manifests=self._manifest_of)
         self._subs: list[Any] = []
 
     # ------------------------------------------------------------------ life cycle
@@ -261,7 +267,9 @@ class RemoteWorker:
             self._pending[cmd.attempt_id] = _Pending()
         manifests = {ref: Manifest.from_json(body)
                      for ref, body in (order.get("manifests") or {}).items()}
-        if all(self._input_dir(m).is_dir() for m in manifests.values()):
+        with self._lock:
+            fetched = all(m.digest in self._manifests for m in manifests.values())
+        if fetched:
             self._fetch_and_prepare(cmd, order, manifests)  # nothing to fetch: no thread hop
         else:
             self._io.submit(self._fetch_and_prepare, cmd, order, manifests)
@@ -282,7 +290,9 @@ class RemoteWorker:
         with self._lock:
             pending = self._pending.pop(cmd.attempt_id, _Pending())
             self._active.add(cmd.attempt_id)
-        self.pool.prepare(cmd, task, order.get("secrets") or {})
+        limit = order.get("max_output_bytes")
+        self.pool.prepare(cmd, task, order.get("secrets") or {},
+                          max_output_bytes=limit if isinstance(limit, int) else None)
         if pending.kill is not None:
             self.pool.kill(cmd.attempt_id, pending.kill)
         elif pending.run:
@@ -295,17 +305,24 @@ class RemoteWorker:
             raise OsmoError(f"no spec of workflow {cmd.workflow_id} was sent to this worker")
         return spec.task(cmd.task)
 
-    def _input_dir(self, manifest: Manifest) -> Path:
-        return self.home / "inputs" / manifest.digest.split(":", 1)[1]
-
     def _fetch_input(self, manifest: Manifest) -> str:
-        dest = self._input_dir(manifest)
-        if not dest.is_dir():
+        """Make this worker's store hold ``manifest``'s blobs; return the reference the
+        pool's ``input_manifests`` knows it by."""
+        with self._lock:
+            fetched = manifest.digest in self._manifests
+        if not fetched:
             fetch_manifest(self.link, "server", manifest, self.store,
                            same_host=self._server_host)
-            dest.parent.mkdir(parents=True, exist_ok=True)
-            self.store.link_tree(manifest, dest)
-        return str(dest)
+        with self._lock:
+            self._manifests[manifest.digest] = manifest
+            self._manifests.move_to_end(manifest.digest)
+            while len(self._manifests) > _KEEP_MANIFESTS:
+                self._manifests.popitem(last=False)
+        return f"{_INPUT}{manifest.digest}"
+
+    def _manifest_of(self, ref: str) -> Manifest | None:
+        with self._lock:
+            return self._manifests.get(ref[len(_INPUT):]) if ref.startswith(_INPUT) else None
 
     # ------------------------------------------------------------------ reports
 

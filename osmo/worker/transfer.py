@@ -1,32 +1,55 @@
-"""An attempt's data in and out: ``url`` inputs before it runs; after a successful exit, the
-last checkpoint, promotion, ingest into the artifact store, and ``url`` output uploads.
+"""An attempt's data in and out: before it runs, ``url`` inputs and private copies of its
+artifact inputs; after a successful exit, the last checkpoint, promotion, ingest into the
+artifact store, and ``url`` output uploads.
 
-Runs on the pool's I/O threads. Inputs land in ``<attempt>.inputs/<index>/`` beside the
-attempt folder (kept apart because preparing an attempt again clears its folder) and reach
-the command through ``{{input:N}}``/``{{input:<url>}}``. Outputs are uploaded from the
-promoted ``output/`` folder after it was ingested; a failed upload fails the attempt (its
-output is never handed downstream), and the URL's completion marker is only written when
-every file arrived (see ``osmo.urls``).
+Runs on the pool's I/O threads. Inputs land beside the attempt folder (kept apart because
+preparing an attempt again clears its folder) and reach the command through
+``{{input:N}}``/``{{input:<name>}}``:
+
+- ``<attempt>.inputs/<index>/``: a ``url`` input, downloaded;
+- ``<attempt>/inputs/<input name>/``: an artifact input (an upstream task's output,
+  another workflow's, a dataset version), copied for this attempt alone from the blob store
+  and checked against its digests (``ArtifactStore.copy_tree``: a reflink where the
+  filesystem can share data, else a copy). A task may change its copy freely; no blob and
+  no other reader sees it. A blob that no longer matches its digest fails the attempt's
+  start. Copies over 1 MiB are deleted when the attempt ends.
+
+Outputs are uploaded from the promoted ``output/`` folder after it was ingested; a failed
+upload fails the attempt (its output is never handed downstream), and the URL's completion
+marker is only written when every file arrived (see ``osmo.urls``).
 """
 
 from __future__ import annotations
 
-import shutil
 from collections.abc import Callable, Mapping
 from dataclasses import replace
 from pathlib import Path
 from typing import Protocol
 
-from osmo.artifacts import ArtifactStore
+from osmo.artifacts import ArtifactStore, Manifest
+from osmo.artifacts.fsops import make_dirs, remove_tree
+from osmo.artifacts.store import DEFAULT_MAX_FILES
 from osmo.errors import OsmoError
 from osmo.scheduler.types import PrepareAttempt
 from osmo.spec.model import TaskSpec
 from osmo.urls import for_url
-from osmo.worker.workdir import AttemptDirs, promote
+from osmo.worker.secrets import Secrets
+from osmo.worker.workdir import AttemptDirs, Launch, prepare, promote, remove_secret_files
 
-__all__ = ["CredentialLookup", "DeliveryError", "deliver", "fetch_inputs", "push_outputs"]
+__all__ = ["CredentialLookup", "DeliveryError", "InputCopies", "ManifestLookup", "copy_inputs",
+           "deliver", "fetch_inputs", "make_ready", "plan_input_copies", "push_outputs"]
 
 CredentialLookup = Callable[[str], Mapping[str, str] | None]
+ManifestLookup = Callable[[str], Manifest | None]
+"""An input reference → the manifest of the artifact it names (None: not an artifact)."""
+InputCopies = list[tuple[Manifest, Path]]
+"""The copies an attempt's artifact inputs need: (manifest, folder to write)."""
+
+_KEEP_COPIES = 1 << 20  # input copies up to this size stay with the attempt's folder
+
+
+def _inputs_dir(dirs: AttemptDirs) -> Path:
+    return dirs.root.with_name(f"{dirs.root.name}.inputs")
 
 
 def fetch_inputs(cmd: PrepareAttempt, task: TaskSpec, dirs: AttemptDirs,
@@ -37,18 +60,87 @@ def fetch_inputs(cmd: PrepareAttempt, task: TaskSpec, dirs: AttemptDirs,
         OsmoError: a download failed (``UrlError``) or a URL is malformed (``UsageError``).
     """
     extra: dict[str, str] = {}
-    base = dirs.root.with_name(f"{dirs.root.name}.inputs")
+    base = _inputs_dir(dirs)
     for index, spec in enumerate(task.inputs):
         if spec.url is None:
             continue
         dest = base / str(index)
-        if dest.exists():
-            shutil.rmtree(dest)
+        remove_tree(dest)
         dest.parent.mkdir(parents=True, exist_ok=True)
         remote = for_url(spec.url, credential_for(spec.url) if credential_for else None)
         remote.download(dest, regex=spec.regex)
         extra[spec.url] = extra[str(index)] = str(dest)
     return replace(cmd, inputs={**cmd.inputs, **extra}) if extra else cmd
+
+
+def make_ready(dirs: AttemptDirs, cmd: PrepareAttempt, task: TaskSpec, *,
+               env: Mapping[str, str], secrets: Secrets,
+               credential_for: CredentialLookup | None, artifacts: ArtifactStore | None,
+               input_manifests: ManifestLookup | None) -> Launch:
+    """Everything an attempt needs before it can start, in order: its ``url`` inputs, its
+    folder and files (``workdir.prepare``), its own copies of its artifact inputs.
+
+    Raises:
+        OsmoError: a download, a token, a file, a credential or a blob failed (a blob that
+            no longer matches its digest is ``ArtifactCorrupted``); credential files already
+            written are deleted first.
+        OSError: the attempt's folder cannot be written.
+    """
+    cmd = fetch_inputs(cmd, task, dirs, credential_for)
+    cmd, copies = plan_input_copies(cmd, dirs, input_manifests if artifacts else None)
+    launch = prepare(dirs, cmd, task, env, secrets)
+    if copies and artifacts is not None:
+        try:
+            launch = replace(launch, scratch=copy_inputs(copies, artifacts))
+        except BaseException:
+            remove_secret_files(launch)
+            raise
+    return launch
+
+
+def plan_input_copies(cmd: PrepareAttempt, dirs: AttemptDirs,
+                      manifest_of: ManifestLookup | None) -> tuple[PrepareAttempt, InputCopies]:
+    """Where the attempt's own copy of each artifact input goes (``inputs/<input name>``):
+    ``cmd`` with those folders as its inputs, and what :func:`copy_inputs` must write."""
+    if manifest_of is None or not cmd.inputs:
+        return cmd, []
+    names: dict[str, list[str]] = {}
+    for key, ref in cmd.inputs.items():
+        names.setdefault(ref, []).append(key)
+    plan: InputCopies = []
+    copies: dict[str, str] = {}
+    for ref, keys in names.items():
+        manifest = manifest_of(ref)
+        if manifest is None:
+            continue  # a downloaded url input (already private), or nothing osmo stored
+        dest = dirs.inputs / _folder_name(keys, manifest)
+        plan.append((manifest, dest))
+        copies[ref] = str(dest)
+    return (replace(cmd, inputs={key: copies.get(ref, ref) for key, ref in cmd.inputs.items()}),
+            plan)
+
+
+def copy_inputs(plan: InputCopies, artifacts: ArtifactStore) -> tuple[Path, ...]:
+    """Write the planned copies (after the attempt's folder was made); return those to delete
+    when the attempt ends: copies over 1 MiB (small ones stay with the attempt's folder).
+
+    Raises:
+        ArtifactCorrupted: a blob is missing or no longer matches its digest.
+    """
+    if plan:
+        make_dirs(plan[0][1].parent)
+    for manifest, dest in plan:
+        artifacts.copy_tree(manifest, dest)
+    return tuple(dest for manifest, dest in plan if manifest.size > _KEEP_COPIES)
+
+
+def _folder_name(keys: list[str], manifest: Manifest) -> str:
+    """The input's name (the upstream task's, for a task input), so paths read well."""
+    for key in keys:
+        name = key.replace("/", "_")
+        if name not in ("", ".", "..") and not name.isdigit() and len(name) < 200:
+            return name
+    return f"m{manifest.digest[7:23]}"
 
 
 def push_outputs(task: TaskSpec, folder: Path, credential_for: CredentialLookup | None) -> None:
@@ -72,10 +164,12 @@ class _FinalCheckpoint(Protocol):
 
 
 def deliver(dirs: AttemptDirs, task: TaskSpec, *, checkpoints: _FinalCheckpoint | None,
-            artifacts: ArtifactStore | None,
-            credential_for: CredentialLookup | None) -> tuple[str, str | None]:
+            artifacts: ArtifactStore | None, credential_for: CredentialLookup | None,
+            max_bytes: int | None = None,
+            max_files: int | None = DEFAULT_MAX_FILES) -> tuple[str, str | None]:
     """Finish a successful attempt's outputs, in order: last checkpoint upload, promotion of
-    ``output.partial`` to ``output``, ingest, ``url`` uploads (I/O thread).
+    ``output.partial`` to ``output``, ingest (within ``max_bytes`` and ``max_files``), ``url``
+    uploads (I/O thread).
 
     Returns:
         the output reference and its manifest JSON (None without an artifact store).
@@ -88,7 +182,8 @@ def deliver(dirs: AttemptDirs, task: TaskSpec, *, checkpoints: _FinalCheckpoint 
         raise DeliveryError(f"final checkpoint upload failed: {failed}")
     try:
         ref = promote(dirs)
-        manifest = artifacts.ingest(Path(ref)) if artifacts else None
+        manifest = artifacts.ingest(Path(ref), max_bytes=max_bytes,
+                                    max_files=max_files) if artifacts else None
     except (OSError, OsmoError) as exc:
         raise DeliveryError(f"outputs could not be promoted: {exc}") from exc
     try:

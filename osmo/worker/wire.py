@@ -8,7 +8,8 @@ Keys, under the cluster prefix ``osmo/<cluster>``:
 - ``api/worker_register`` — a worker's hello (see :func:`hello`), answered with the server's
   host id and artifact folder (a worker on the same host links blobs instead of fetching).
 - ``to-worker/<id>`` — the server's orders: ``prepare`` (the attempt, the task's workflow
-  spec the first time, input manifests, secrets), ``run``, ``kill``, ``ack`` (an exit report
+  spec the first time, input manifests, secrets, ``max_output_bytes``: the task's storage
+  limit), ``run``, ``kill``, ``ack`` (an exit report
   was received and its outputs are safe on the server), ``drain`` notices.
 - ``from-worker/<id>`` — the worker's reports: ``prepared``, ``started``, ``exited``,
   ``start_failed``, ``lost`` (handed back while draining); ``from-worker/<id>/log`` carries

@@ -4,6 +4,8 @@ Layout, one folder per attempt::
 
     <home>/runs/<workflow_id>/<task>/<retry>/
         work/            the command's working folder (cwd)
+        inputs/<name>/   the attempt's own checked copy of each artifact input
+                         (``osmo.worker.transfer.copy_inputs``)
         files/           private root for absolute ``files:`` paths and credential mounts
                          (``OSMO_FILES_ROOT``)
         output.partial/  what ``{{output}}`` and ``OSMO_OUTPUT`` point to while running
@@ -57,12 +59,12 @@ import binascii
 import os
 import posixpath
 import re
-import shutil
 import uuid
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from osmo.artifacts.fsops import remove_tree
 from osmo.errors import OsmoError
 from osmo.scheduler.types import PrepareAttempt
 from osmo.spec.model import InputSpec, TaskSpec
@@ -113,6 +115,11 @@ class AttemptDirs:
         return self.root / "files"
 
     @property
+    def inputs(self) -> Path:
+        """The attempt's own copies of its artifact inputs, one folder per input."""
+        return self.root / "inputs"
+
+    @property
     def output_partial(self) -> Path:
         """The output folder while the command runs."""
         return self.root / "output.partial"
@@ -141,6 +148,8 @@ class Launch:
     env: dict[str, str] = field(repr=False)
     secrets: tuple[str, ...] = field(default=(), repr=False)
     secret_files: tuple[Path, ...] = ()
+    scratch: tuple[Path, ...] = ()  # deleted when the attempt ends (large input copies)
+    max_output_bytes: int | None = None  # the task's ``storage``: its output may hold no more
 
 
 def prepare(
@@ -247,7 +256,7 @@ def _make_folders(dirs: AttemptDirs, *, with_files: bool) -> None:
     try:
         dirs.root.mkdir()
     except FileExistsError:  # the same attempt prepared again (e.g. after a server restart)
-        shutil.rmtree(dirs.root)
+        remove_tree(dirs.root)  # iterative: the last run may have left a very deep tree
         dirs.root.mkdir()
     except FileNotFoundError:
         dirs.root.parent.mkdir(parents=True, exist_ok=True)

@@ -6,8 +6,10 @@ import hashlib
 import os
 import shutil
 import stat
+import subprocess
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -77,6 +79,22 @@ def test_same_filesystem_ingest_links_and_makes_outputs_read_only(
     assert not list((store.root / "tmp").iterdir())
 
 
+def test_a_file_with_several_links_is_copied_and_left_alone(store: ArtifactStore,
+                                                            tmp_path: Path) -> None:
+    outside = tmp_path / "outside"
+    outside.write_bytes(b"someone else's")
+    outside.chmod(0o600)
+    out = tmp_path / "out"
+    out.mkdir()
+    os.link(outside, out / "f")
+    store.ingest(out)
+    blob = store.path(_digest(b"someone else's"))
+    assert os.stat(blob).st_ino != os.stat(outside).st_ino  # a copy
+    assert stat.S_IMODE(os.stat(outside).st_mode) == 0o600  # never chmod-ed
+    outside.write_bytes(b"changed")
+    assert store.read(_digest(b"someone else's")) == b"someone else's"
+
+
 def test_empty_folder_gives_empty_manifest(store: ArtifactStore, tmp_path: Path) -> None:
     (tmp_path / "out" / "only" / "dirs").mkdir(parents=True)
     assert store.ingest(tmp_path / "out") == Manifest(())
@@ -103,12 +121,35 @@ def test_second_ingest_of_same_content_writes_nothing(store: ArtifactStore,
     assert len([p for p in (store.root / "blobs").rglob("*") if p.is_file()]) == 1
 
 
-def test_cross_filesystem_ingest_copies(tmp_path: Path) -> None:
+@pytest.fixture
+def other_filesystem(tmp_path: Path) -> Iterator[Path]:
+    """A folder on a filesystem other than tmp_path's: a tmpfs this test mounts (as root),
+    else /dev/shm when it is a different filesystem. A full run allows no skip, so a machine
+    offering neither fails here."""
+    mnt = tmp_path / "mnt"
+    mnt.mkdir()
+    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=16m", "tmpfs", str(mnt)],
+                             capture_output=True).returncode == 0
+    if mounted:
+        try:
+            yield mnt
+        finally:
+            subprocess.run(["umount", str(mnt)], check=True)
+        return
     shm = Path("/dev/shm")
     if not shm.is_dir() or os.stat(shm).st_dev == os.stat(tmp_path).st_dev:
-        pytest.skip("needs /dev/shm on another filesystem than tmp_path")
+        pytest.skip("needs root (to mount a tmpfs) or /dev/shm on another filesystem")
+    folder = shm / f"osmo-test-{os.getpid()}-{time.monotonic_ns()}"
+    try:
+        yield folder
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+def test_cross_filesystem_ingest_copies(tmp_path: Path, other_filesystem: Path) -> None:
     store = ArtifactStore(tmp_path / "artifacts")
-    src = Path(shm / f"osmo-test-{os.getpid()}-{time.monotonic_ns()}")
+    src = other_filesystem / "out"
+    assert os.stat(other_filesystem).st_dev != os.stat(store.root).st_dev
     try:
         data = os.urandom((1 << 20) + 5)
         _write(src, {"d/x.bin": data, "e": b""})
@@ -295,3 +336,27 @@ def test_large_files_hashed_in_parallel_give_the_same_manifest(store: ArtifactSt
     assert [(e.path, e.digest, e.size) for e in m.entries] == sorted(
         (p, _digest(d), len(d)) for p, d in files.items())
     assert all(store.verify(e.digest) for e in m.entries)
+
+
+def test_limits_are_checked_before_anything_is_stored(store: ArtifactStore,
+                                                      tmp_path: Path) -> None:
+    out = _write(tmp_path / "out", {"a": b"x" * 600, "b": b"y" * 600})
+    with pytest.raises(OutputRejected, match="1200 bytes in 2 files, more than .* 1000 bytes"):
+        store.ingest(out, max_bytes=1000)
+    with pytest.raises(OutputRejected, match="more than 1 files"):
+        store.ingest(out, max_files=1)
+    assert not [p for p in (store.root / "blobs").rglob("*") if p.is_file()]
+    assert len(store.ingest(out, max_bytes=1200, max_files=2).entries) == 2
+
+
+def test_a_tree_of_symlinks_that_lists_itself_is_bounded(store: ArtifactStore,
+                                                         tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    for level in range(30):  # d0 → d1 twice → d2 twice ...: 2**30 names for one file
+        (out / f"d{level}").mkdir(parents=True)
+        for link in ("l1", "l2"):
+            (out / f"d{level}" / link).symlink_to(f"../d{level + 1}")
+    (out / "d30").mkdir()
+    (out / "d30" / "f").write_bytes(b"one file")
+    with pytest.raises(OutputRejected, match="more than 1000 files"):
+        store.ingest(out, max_files=1000)

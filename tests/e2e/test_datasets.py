@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import pytest
+
 from tests.conftest import Osmo, write
 
 MAKE = r"""
@@ -88,3 +90,70 @@ def test_upload_download_and_the_callers_files_stay_writable(osmo: Osmo,
     assert (dest / "a.txt").read_text() == "alpha\n"
     assert (dest / "sub" / "b.bin").read_text() == "beta\n"
     assert _datasets(osmo)[0]["made_by"] is None
+
+
+TAMPER = r"""
+workflow:
+  name: tamper
+  tasks:
+  - name: t
+    command: [sh, /opt/tamper.sh, "{{input:0}}", "{{output}}/ops.txt"]
+    files:
+    - path: /opt/tamper.sh
+      contents: |
+        d=$1
+        try() { if "$@" 2>/dev/null; then echo "allowed: $*"; else echo "denied: $*"; fi; }
+        {
+          try sh -c 'echo evil >> "$1"' - "$d/a.txt"
+          try touch "$d/new.txt"
+          try rm "$d/sub/b.txt"
+          try chmod 777 "$d/a.txt"
+        } > "$2"
+    inputs:
+    - dataset: {name: kept}
+"""
+
+
+READ = r"""
+workflow:
+  name: read
+  tasks:
+  - name: t
+    command: [sh, -c, "cat {{input:0}}/a.txt {{input:0}}/sub/b.txt > {{output}}/seen.txt 2>&1; exit 0"]
+    inputs:
+    - dataset: {name: kept}
+"""
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "issue 19/13: each task gets its own checked copy of a dataset version, so other consumers "
+    "never see a change (test_dataset_inputs_are_private below), but the copy itself is "
+    "writable: mode bits cannot stop a task running as root; a read-only bind mount can."))
+def test_dataset_inputs_are_read_only(osmo: Osmo, tmp_path: Path) -> None:
+    """A dataset version is handed to a task read-only (DESIGN: inputs read-only). The
+    README promised "a read-only folder" until this test showed it is not; it now says so."""
+    src = tmp_path / "data"
+    write(src / "a.txt", "alpha\n")
+    write(src / "sub" / "b.txt", "beta\n")
+    osmo("dataset", "upload", "kept", str(src), check=True)
+    spec = write(tmp_path / "tamper.yaml", TAMPER)
+    tampered = (Path(osmo.query(_wf(osmo, spec))["tasks"][0]["output"]) / "ops.txt").read_text()
+    assert "allowed" not in tampered, tampered
+    read = _wf(osmo, write(tmp_path / "read.yaml", READ))
+    seen = (Path(osmo.query(read)["tasks"][0]["output"]) / "seen.txt").read_text()
+    assert seen == "alpha\nbeta\n", "a later consumer saw another task's changes"
+
+
+def test_dataset_inputs_are_private(osmo: Osmo, tmp_path: Path) -> None:
+    """Whatever a task does to its dataset input, the next consumer of the version reads the
+    version as uploaded (each attempt gets its own checked copy)."""
+    src = tmp_path / "data"
+    write(src / "a.txt", "alpha\n")
+    write(src / "sub" / "b.txt", "beta\n")
+    osmo("dataset", "upload", "kept", str(src), check=True)
+    tampered = (Path(osmo.query(_wf(osmo, write(tmp_path / "tamper.yaml", TAMPER)))["tasks"][0]
+                     ["output"]) / "ops.txt").read_text()
+    assert "allowed: sh -c" in tampered, tampered  # the task did write to its own copy
+    read = _wf(osmo, write(tmp_path / "read.yaml", READ))
+    seen = (Path(osmo.query(read)["tasks"][0]["output"]) / "seen.txt").read_text()
+    assert seen == "alpha\nbeta\n", "a later consumer saw another task's changes"

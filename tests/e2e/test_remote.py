@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import signal
 import time
 from collections.abc import Iterator
@@ -11,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.conftest import write
+from tests.conftest import ended, process_alive, read_pid, wait_gone, write
 from tests.e2e.cluster import Cluster
 
 
@@ -28,10 +29,6 @@ def _task(info: dict, name: str) -> dict:
     return next(t for t in info["tasks"] if t["name"] == name)
 
 
-def _done(info: dict) -> bool:
-    return info["status"] not in ("PENDING", "RUNNING", "WAITING")
-
-
 def test_pools_and_platforms_place_tasks_on_the_right_workers(cluster: Cluster, tmp_path: Path) -> None:
     cluster.start_worker("cpu-1", "--cpus", "2", pool="cpu")
     cluster.start_worker("arm-1", "--cpus", "2", "--platform", "jetson", pool="edge")
@@ -46,7 +43,7 @@ workflow:
     command: [sh, -c, "echo $OSMO_NODE > {{output}}/node"]
 """)
     wf = cluster.osmo.submit(spec, "--pool", "cpu")
-    info = cluster.osmo.wait_for(wf, _done)
+    info = cluster.osmo.wait_for(wf, ended)
     assert info["status"] == "COMPLETED", info
     assert _task(info, "on-cpu")["node"] == "cpu-1"
     assert "cpu-1" in cluster.osmo("query", wf, "-v", check=True).out  # the Node column
@@ -66,7 +63,7 @@ workflow:
     command: [sh, -c, "echo $OSMO_NODE > {{output}}/node"]
 """)
     wf2 = cluster.osmo.submit(spec2, "--pool", "edge", "--no-cache")
-    info2 = cluster.osmo.wait_for(wf2, _done)
+    info2 = cluster.osmo.wait_for(wf2, ended)
     assert info2["status"] == "COMPLETED", info2
     for task in info2["tasks"]:
         assert task["node"] == "arm-1"
@@ -97,7 +94,7 @@ workflow:
     - task: make
 """)
     wf = cluster.osmo.submit(spec)
-    info = cluster.osmo.wait_for(wf, _done)
+    info = cluster.osmo.wait_for(wf, ended)
     assert info["status"] == "COMPLETED", (info, cluster.worker_log("a"), cluster.worker_log("b"))
     make, use = _task(info, "make"), _task(info, "use")
     assert (make["node"], use["node"]) == ("a", "b")
@@ -130,7 +127,7 @@ workflow:
     inputs:
     - task: make
 """)
-    info = cluster.osmo.wait_for(cluster.osmo.submit(spec), _done)
+    info = cluster.osmo.wait_for(cluster.osmo.submit(spec), ended)
     assert info["status"] == "COMPLETED", info
     digest = hashlib.sha256(Path(_task(info, "make")["output"], "d").read_bytes()).hexdigest()
     rel = Path("artifacts", "blobs", "sha256", digest[:2], digest[2:])
@@ -143,84 +140,117 @@ def _running_on(cluster: Cluster, wf: str, task: str) -> tuple[dict, str]:
     return info, _task(info, task)["node"]
 
 
+# The README: a killed or cut-off worker "is noticed within about a second (the zenoh lease
+# is 1 s)". Measured on a 2-core machine at load ~4, from the signal to the server's log line:
+# SIGSTOP 0.76-0.99 s (6 runs), SIGKILL 2-6 ms (its TCP link closes at once). The margin
+# covers a loaded CI machine; zenoh's default lease (10 s) would fail it.
+NOTICED_WITHIN = 2.0
+
+# One task that records its pid and start, then holds until the test releases the node it
+# runs on (so nothing depends on how long a sleep lasts).
+HELD = """
+workflow:
+  name: held
+  tasks:
+  - name: slow
+    command: [sh, -c, "echo $$ > TMP/pid-$OSMO_NODE; echo $OSMO_NODE >> TMP/starts; while [ ! -e TMP/release-$OSMO_NODE ]; do sleep 0.05; done; echo $OSMO_NODE > {{output}}/node; touch TMP/done-$OSMO_NODE"]
+"""
+
+
+def _other(name: str) -> str:
+    return "w2" if name == "w1" else "w1"
+
+
+def _wait_file(path: Path, timeout: float = 60) -> None:
+    deadline = time.monotonic() + timeout
+    while not path.exists():
+        assert time.monotonic() < deadline, f"{path} never appeared"
+        time.sleep(0.02)
+
+
+def _rerun_on(cluster: Cluster, wf: str, node: str) -> dict:
+    info = cluster.osmo.wait_for(wf, lambda i: _task(i, "slow")["retry"] == 1
+                                 and _task(i, "slow")["status"] == "RUNNING")
+    assert _task(info, "slow")["node"] == node, info
+    return info
+
+
 def test_sigkill_of_a_worker_reschedules_its_task(cluster: Cluster, tmp_path: Path) -> None:
     cluster.start_worker("w1", "--cpus", "1")
     cluster.start_worker("w2", "--cpus", "1")
-    spec = write(tmp_path / "wf.yaml", """
-workflow:
-  name: survive
-  tasks:
-  - name: slow
-    command: [sh, -c, "sleep 3; echo $OSMO_NODE > {{output}}/node"]
-""")
-    wf = cluster.osmo.submit(spec)
+    wf = cluster.osmo.submit(write(tmp_path / "wf.yaml", HELD.replace("TMP", str(tmp_path))))
     _, victim = _running_on(cluster, wf, "slow")
-    killed_at = time.monotonic()
-    cluster.signal(victim, signal.SIGKILL)
-    info = cluster.osmo.wait_for(wf, lambda i: _task(i, "slow")["retry"] >= 1)
-    assert time.monotonic() - killed_at < 3.0, "worker loss must be noticed within 3 s"
-    info = cluster.osmo.wait_for(wf, _done)
+    survivor = _other(victim)
+    try:
+        killed_at = time.time()
+        cluster.signal(victim, signal.SIGKILL)
+        noticed_at, _ = cluster.server_log_line(f"worker {victim} is gone")
+        assert noticed_at - killed_at < NOTICED_WITHIN, "worker loss noticed too late"
+        _rerun_on(cluster, wf, survivor)
+        (tmp_path / f"release-{survivor}").touch()
+        info = cluster.osmo.wait_for(wf, ended)
+    finally:
+        (tmp_path / f"release-{victim}").touch()  # the killed worker's task, if it lives on
     slow = _task(info, "slow")
     assert info["status"] == "COMPLETED" and slow["retry"] == 1
-    survivor = "w2" if victim == "w1" else "w1"
     assert Path(slow["output"], "node").read_text().strip() == survivor
-    logs = cluster.osmo("logs", wf, check=True).out
-    assert "RESCHEDULED" in logs
+    assert "RESCHEDULED" in cluster.osmo("logs", wf, check=True).out
 
 
 def test_a_cut_off_worker_is_rescheduled_and_its_late_report_ignored(
         cluster: Cluster, tmp_path: Path) -> None:
     cluster.start_worker("w1", "--cpus", "1")
     cluster.start_worker("w2", "--cpus", "1")
-    spec = write(tmp_path / "wf.yaml", """
-workflow:
-  name: cut
-  tasks:
-  - name: slow
-    command: [sh, -c, "sleep 2; echo $OSMO_NODE > {{output}}/node"]
-""")
-    wf = cluster.osmo.submit(spec)
+    wf = cluster.osmo.submit(write(tmp_path / "wf.yaml", HELD.replace("TMP", str(tmp_path))))
     _, victim = _running_on(cluster, wf, "slow")
-    stopped_at = time.monotonic()
+    survivor = _other(victim)
+    stopped_at = time.time()
     cluster.signal(victim, signal.SIGSTOP)  # hung / network cut: only the lease notices
-    cluster.osmo.wait_for(wf, lambda i: _task(i, "slow")["retry"] >= 1)
-    assert time.monotonic() - stopped_at < 3.0
-    info = cluster.osmo.wait_for(wf, _done)
-    assert info["status"] == "COMPLETED" and _task(info, "slow")["retry"] == 1
+    noticed_at, _ = cluster.server_log_line(f"worker {victim} is gone")
+    assert noticed_at - stopped_at < NOTICED_WITHIN, "a cut-off worker noticed too late"
+    _rerun_on(cluster, wf, survivor)
+    # The cut-off worker's attempt succeeds meanwhile (its task is not stopped), so the
+    # worker holds a successful exit report with outputs for the superseded attempt 0.
+    (tmp_path / f"release-{victim}").touch()
+    _wait_file(tmp_path / f"done-{victim}")
     cluster.signal(victim, signal.SIGCONT)  # it wakes up and reports its stale attempt
-    time.sleep(3.0)
-    after = cluster.osmo.query(wf)
-    slow = _task(after, "slow")
-    assert after["status"] == "COMPLETED" and slow["retry"] == 1
-    survivor = "w2" if victim == "w1" else "w1"
+    cluster.server_log_line(f"report on {wf}:slow:0 ignored")
+    slow = _task(cluster.osmo.query(wf), "slow")
+    assert (slow["status"], slow["retry"], slow["node"]) == ("RUNNING", 1, survivor), slow
+    (tmp_path / f"release-{survivor}").touch()
+    info = cluster.osmo.wait_for(wf, ended)
+    slow = _task(info, "slow")
+    assert info["status"] == "COMPLETED" and slow["retry"] == 1
     assert Path(slow["output"], "node").read_text().strip() == survivor
+    lineage = cluster.osmo("lineage", f"{wf}:slow", "--format", "json", check=True).out
+    assert f"{wf}:slow:1" in lineage and f"{wf}:slow:0" not in lineage
 
 
 def test_server_restart_does_not_kill_running_tasks(cluster: Cluster, tmp_path: Path) -> None:
     cluster.start_worker("w1", "--cpus", "1")
-    spec = write(tmp_path / "wf.yaml", """
-workflow:
-  name: restart
-  tasks:
-  - name: long
-    command: [sh, -c, "sleep 3; echo $OSMO_NODE > {{output}}/node"]
+    spec = write(tmp_path / "wf.yaml", HELD.replace("TMP", str(tmp_path)) + """
   - name: after
-    command: [sh, -c, "cat {{input:long}}/node > {{output}}/seen"]
+    command: [sh, -c, "cat {{input:slow}}/node > {{output}}/seen"]
     inputs:
-    - task: long
+    - task: slow
 """)
     wf = cluster.osmo.submit(spec)
-    _running_on(cluster, wf, "long")
-    pid = cluster.osmo.server_pid()
-    assert pid is not None
-    import os
-
-    os.kill(pid, signal.SIGKILL)
-    time.sleep(0.5)
+    _running_on(cluster, wf, "slow")
+    task_pid = read_pid(tmp_path / "pid-w1")
+    server_pid = cluster.osmo.server_pid()
+    assert server_pid is not None
+    os.kill(server_pid, signal.SIGKILL)
+    wait_gone(server_pid)
     cluster.start_server()
-    info = cluster.osmo.wait_for(wf, _done, timeout=60)
+    cluster.wait_online("w1")
+    assert process_alive(task_pid), "the server's death must not stop the task"
+    slow = _task(cluster.osmo.query(wf), "slow")
+    assert (slow["status"], slow["retry"]) == ("RUNNING", 0), slow
+    (tmp_path / "release-w1").touch()
+    info = cluster.osmo.wait_for(wf, ended, timeout=60)
     assert info["status"] == "COMPLETED", (info, cluster.worker_log("w1"))
-    assert _task(info, "long")["retry"] == 0, "the running task must not have been rerun"
+    assert _task(info, "slow")["retry"] == 0, "the running task must not have been rerun"
+    assert (tmp_path / "starts").read_text() == "w1\n", "it started once"
     assert Path(_task(info, "after")["output"], "seen").read_text().strip() == "w1"
 
 
@@ -245,24 +275,26 @@ workflow:
     assert Path(done["output"], "ckpt").stat().st_size == 200_000
     assert _task(info, "queued")["status"] != "COMPLETED"  # never taken by the draining worker
     cluster.start_worker("w2", "--cpus", "1")
-    info = cluster.osmo.wait_for(wf, _done)
+    info = cluster.osmo.wait_for(wf, ended)
     assert info["status"] == "COMPLETED"
     assert Path(_task(info, "queued")["output"], "node").read_text().strip() == "w2"
 
 
 def test_drain_timeout_hands_back_running_attempts(cluster: Cluster, tmp_path: Path) -> None:
     proc = cluster.start_worker("w1", "--cpus", "1", "--drain-timeout", "0.5")
-    spec = write(tmp_path / "wf.yaml", """
+    spec = write(tmp_path / "wf.yaml", f"""
 workflow:
   name: handback
   tasks:
   - name: long
-    command: [sh, -c, "sleep 600"]
+    command: [sh, -c, "echo $$ > {tmp_path}/pid; exec sleep 600"]
 """)
     wf = cluster.osmo.submit(spec)
     _running_on(cluster, wf, "long")
+    pid = read_pid(tmp_path / "pid")
     cluster.signal("w1", signal.SIGTERM)
     assert proc.wait(timeout=30) == 0
+    wait_gone(pid, timeout=5)  # handed back means killed, not left running
     info = cluster.osmo.wait_for(wf, lambda i: _task(i, "long")["retry"] >= 1)
     assert _task(info, "long")["status"] in ("WAITING", "SCHEDULING", "PENDING")
     cluster.osmo("cancel", wf, check=True)
@@ -409,27 +441,19 @@ workflow:
     cluster.osmo.wait_for(wf, lambda i: pidfile.exists() and pidfile.read_text().strip() != "")
     child = int(pidfile.read_text())
     cluster.osmo("cancel", wf, check=True)
-    info = cluster.osmo.wait_for(wf, _done)
+    info = cluster.osmo.wait_for(wf, ended)
     assert info["status"] == "FAILED_CANCELED"
-    deadline = time.monotonic() + 10
-    import os
-
-    while True:
-        try:
-            os.kill(child, 0)
-        except ProcessLookupError:
-            break
-        assert time.monotonic() < deadline, "the remote task's process group was not killed"
-        time.sleep(0.1)
+    wait_gone(child, timeout=10)  # the remote task's whole process group was killed
     logs = cluster.osmo("logs", wf, check=True).out
     assert "[long] started" in logs  # streamed from the worker
-    timed = write(tmp_path / "timeout.yaml", """
+    timed = write(tmp_path / "timeout.yaml", f"""
 workflow:
   name: timed
-  timeout: {exec_timeout: 2s}
+  timeout: {{exec_timeout: 2s}}
   tasks:
   - name: slow
-    command: [sleep, "600"]
+    command: [sh, -c, "echo $$ > {tmp_path}/timed-pid; exec sleep 600"]
 """)
-    info = cluster.osmo.wait_for(cluster.osmo.submit(timed), _done, timeout=60)
+    info = cluster.osmo.wait_for(cluster.osmo.submit(timed), ended, timeout=60)
     assert info["status"] == "FAILED_EXEC_TIMEOUT", info
+    wait_gone(read_pid(tmp_path / "timed-pid"), timeout=10)  # the worker killed it

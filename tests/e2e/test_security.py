@@ -2,14 +2,19 @@
 
 from __future__ import annotations
 
+import json
+import re
+import shutil
 import subprocess
+import sys
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
 from osmo.config import free_port
-from tests.conftest import Osmo, write
+from tests.conftest import REPO, Osmo, ended, write
 from tests.e2e.cluster import Cluster
 from tests.e2e.certs import make_certs
 
@@ -20,10 +25,6 @@ workflow:
   - name: t
     command: [sh, -c, "echo $OSMO_NODE > {{output}}/node"]
 """
-
-
-def _done(info: dict) -> bool:
-    return info["status"] not in ("PENDING", "RUNNING", "WAITING")
 
 
 @pytest.fixture
@@ -90,7 +91,7 @@ def test_mutual_tls(tmp_path: Path) -> None:
         assert proc.wait(timeout=60) == 3
         assert "cannot connect" in c.worker_log("no-cert")
         c.start_worker("w1", "--zenoh-config", str(client_conf), connect=tls_ep)
-        info = c.osmo.wait_for(c.osmo.submit(write(tmp_path / "wf.yaml", SPEC)), _done)
+        info = c.osmo.wait_for(c.osmo.submit(write(tmp_path / "wf.yaml", SPEC)), ended)
         assert info["status"] == "COMPLETED"
         assert Path(info["tasks"][0]["output"], "node").read_text().strip() == "w1"
     finally:
@@ -113,7 +114,7 @@ workflow:
       robot-key: {ROBOT_TOKEN: token}
     command: [sh, -c, "echo using $ROBOT_TOKEN; printf %s $ROBOT_TOKEN | sha256sum | cut -c1-16 > {{output}}/h"]
 """)
-        info = c.osmo.wait_for(c.osmo.submit(spec), _done)
+        info = c.osmo.wait_for(c.osmo.submit(spec), ended)
         assert info["status"] == "COMPLETED", info
         import hashlib
 
@@ -126,3 +127,60 @@ workflow:
         assert worker_files.stdout == "", "the secret must not be left on the worker's disk"
     finally:
         c.stop()
+
+
+def test_readme_mutual_tls_walkthrough(tmp_path: Path) -> None:
+    """README, Run across machines → "Mutual TLS, worked through": its openssl commands and
+    config files run exactly as written (taken from README.md, so the two cannot drift);
+    its two osmo commands run with free ports on loopback. The worker resolves
+    ``osmo.example.org`` to 127.0.0.1 through its own /etc/hosts (bubblewrap), as a worker
+    on another machine would through DNS."""
+    if shutil.which("bwrap") is None:  # a failure in a full run (OSMO_NO_SKIPS)
+        pytest.skip("bubblewrap is needed to resolve osmo.example.org for the worker "
+                    "(./dev test installs it: apt-get install bubblewrap)")
+    readme = (REPO / "README.md").read_text()
+    found = re.search(r"Mutual TLS, worked through.*?```sh\n(.*?)```", readme, re.S)
+    assert found is not None
+    lines = found.group(1).splitlines(keepends=True)
+    first_osmo = next(i for i, line in enumerate(lines) if line.startswith("osmo "))
+    setup, commands = "".join(lines[:first_osmo]), [ln.split() for ln in lines[first_osmo:]]
+    assert [c[:2] for c in commands] == [["osmo", "server"], ["osmo", "worker"]]
+    folder = tmp_path / "keys"
+    folder.mkdir()
+    subprocess.run(["bash", "-euo", "pipefail", "-c", setup], cwd=folder, check=True,
+                   capture_output=True)
+    assert {p.name for p in folder.iterdir()} >= {
+        "ca.pem", "server.pem", "server.key", "worker.pem", "worker.key", "server.json5",
+        "worker.json5"}
+    tls_port, tcp_port = free_port(0), free_port(0)
+
+    def ports(argv: list[str]) -> list[str]:
+        return [a.replace("0.0.0.0:7448", f"127.0.0.1:{tls_port}")
+                 .replace("osmo.example.org:7448", f"osmo.example.org:{tls_port}")
+                 .replace("127.0.0.1:7447", f"127.0.0.1:{tcp_port}") for a in argv]
+
+    server = Osmo(tmp_path / "server")
+    server(*ports(commands[0])[1:], check=True, cwd=folder)
+    hosts = write(tmp_path / "hosts", "127.0.0.1 localhost osmo.example.org\n")
+    env = dict(server.env, OSMO_HOME=str(tmp_path / "worker"))
+    log = open(tmp_path / "worker.log", "wb")
+    worker = subprocess.Popen(
+        ["bwrap", "--dev-bind", "/", "/", "--ro-bind", str(hosts), "/etc/hosts",
+         "--chdir", str(folder), "--die-with-parent", "--",
+         sys.executable, "-m", "osmo", *ports(commands[1])[1:]],
+        env=env, stdout=log, stderr=log)
+    log.close()
+    try:
+        deadline = time.monotonic() + 60
+        while not any(n["pool"] == "gpu" and n["status"] == "online" for n in json.loads(
+                server("workers", "--format", "json", check=True).out)):
+            assert worker.poll() is None, (tmp_path / "worker.log").read_text()
+            assert time.monotonic() < deadline, "the README's worker never came online"
+            time.sleep(0.1)
+        # commands on the server's host use the loopback listener (and server.json's config)
+        r = server("submit", str(write(tmp_path / "wf.yaml", SPEC)), "--pool", "gpu", "--wait")
+        assert r.code == 0, r.out + r.err
+    finally:
+        worker.kill()
+        worker.wait()
+        server.stop_server()

@@ -7,7 +7,7 @@ import time
 from pathlib import Path
 
 from osmo.urls import for_url
-from tests.conftest import Osmo, write
+from tests.conftest import Osmo, ended, write
 from tests.urls.conftest import s3_bucket, s3_credential, s3_endpoint  # noqa: F401
 
 PRODUCE = """
@@ -116,7 +116,7 @@ def test_checkpoints_upload_while_running_and_at_the_end(osmo: Osmo, tmp_path: P
     assert osmo.query(wf)["tasks"][0]["status"] == "RUNNING"
     assert (remote / "state.txt").read_text().startswith("step ")
     release.write_text("go")
-    info = osmo.wait_for(wf, lambda i: i["status"] not in ("PENDING", "RUNNING", "WAITING"))
+    info = osmo.wait_for(wf, ended)
     assert info["status"] == "COMPLETED"
     assert (remote / "state.txt").read_text() == "final\n"  # the last upload at the end
     assert "checkpoint uploaded to" in osmo("logs", wf, "-t", "fit").out

@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+import shutil
 import socket
 from pathlib import Path
 
-from tests.conftest import REPO, Osmo, write
+from tests.conftest import REPO, Osmo, read_pid, wait_gone, write
 
 
 def _statuses(info: dict) -> dict[str, str]:
@@ -71,7 +72,7 @@ def test_files_are_private_per_attempt(shared_osmo: Osmo, tmp_path: Path) -> Non
     assert not Path("/tmp/run.sh").exists() or "mine-" not in Path("/tmp/run.sh").read_text()
 
 
-def test_group_lead_barrier_and_host_networking(shared_osmo: Osmo, tmp_path: Path) -> None:
+def test_group_lead_and_host_networking(shared_osmo: Osmo, tmp_path: Path) -> None:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
@@ -111,6 +112,47 @@ workflow:
     server = [t for t in info["tasks"] if t["name"] == "server"][0]
     assert "lead finished" in server["message"]
     assert "fetched" in shared_osmo("logs", wf_id, "-t", "client").out
+
+
+BARRIER = """
+workflow:
+  name: barrier
+  timeout: {exec_timeout: 120s}
+  groups:
+  - name: gang
+    tasks:
+    - name: slow
+      command: [sh, -c, "date +%s.%N > TMP/start-slow"]
+      inputs:
+      - url: file://TMP/big
+    - name: lead
+      lead: true
+      command: [sh, -c, "date +%s.%N > TMP/start-lead; i=0; while [ ! -e TMP/start-slow ]; do i=$((i+1)); [ $i -lt 1200 ] || exit 9; sleep 0.05; done"]
+"""
+
+
+def test_group_barrier_holds_every_command_until_all_are_prepared(shared_osmo: Osmo,
+                                                                  tmp_path: Path) -> None:
+    """No member's command starts before the whole group is prepared. ``slow``'s
+    preparation downloads and verifies 256 MiB, ``lead``'s takes milliseconds: without the
+    barrier ``lead`` starts long before ``slow`` is prepared (seen: 1.2-1.35 s early with
+    the pool starting attempts at prepare; 0.5-0.6 s with 128 MiB and the scheduler
+    releasing the barrier at the first prepared member)."""
+    (tmp_path / "big").mkdir()
+    with open(tmp_path / "big" / "data.bin", "wb") as f:
+        f.truncate(256 << 20)  # sparse: costs no disk here
+    r = shared_osmo("submit", str(write(tmp_path / "b.yaml",
+                                        BARRIER.replace("TMP", str(tmp_path)))), "--wait")
+    assert r.code == 0, r.out + r.err
+    wf = r.out.splitlines()[0].split(" - ")[1]
+    assert _statuses(shared_osmo.query(wf)) == {"slow": "COMPLETED", "lead": "COMPLETED"}
+    # slow's input landed at the end of its preparation (the download is its slow part)
+    landed = shared_osmo.home / "runs" / wf / "slow" / "0.inputs" / "0" / "data.bin"
+    prepared = landed.stat().st_mtime
+    starts = {n: float((tmp_path / f"start-{n}").read_text()) for n in ("slow", "lead")}
+    shutil.rmtree(landed.parent.parent)  # the 256 MiB copy
+    early = {n: round(prepared - t, 3) for n, t in starts.items() if t < prepared}
+    assert not early, f"started before the group was prepared (seconds early): {early}"
 
 
 def test_exit_action_reschedules_until_success(shared_osmo: Osmo, tmp_path: Path) -> None:
@@ -154,22 +196,23 @@ workflow:
 
 
 def test_exec_timeout_kills_and_fails(shared_osmo: Osmo, tmp_path: Path) -> None:
-    spec = write(tmp_path / "slow.yaml", """
+    spec = write(tmp_path / "slow.yaml", f"""
 workflow:
   name: slow
-  timeout: {exec_timeout: 1s}
+  timeout: {{exec_timeout: 1s}}
   tasks:
   - name: sleeper
-    command: [sleep, "600"]
+    command: [sh, -c, "echo $$ > {tmp_path}/pid; exec sleep 600"]
   - name: after
     command: ["true"]
-    inputs: [{task: sleeper}]
+    inputs: [{{task: sleeper}}]
 """)
     r = shared_osmo("submit", str(spec), "--wait")
     assert r.code == 1
     info = shared_osmo.query(r.out.splitlines()[0].split(" - ")[1])
     assert info["status"] == "FAILED_EXEC_TIMEOUT"
     assert _statuses(info) == {"sleeper": "FAILED_EXEC_TIMEOUT", "after": "FAILED_UPSTREAM"}
+    wait_gone(read_pid(tmp_path / "pid"), timeout=10)  # killed, not just marked
 
 
 def test_upstream_failure_cascades(shared_osmo: Osmo, tmp_path: Path) -> None:

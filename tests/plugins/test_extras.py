@@ -24,6 +24,7 @@ def test_expected_extras_are_known() -> None:
     assert set(EXPECTED) <= set(MODULES), EXPECTED
 
 
-@pytest.mark.parametrize("module", [m for e in EXPECTED for m in MODULES[e]] or ["json"])
+@pytest.mark.skipif(not EXPECTED, reason="OSMO_EXPECT_EXTRAS is not set: a core-only run")
+@pytest.mark.parametrize("module", [m for e in EXPECTED for m in MODULES[e]] or ["-"])
 def test_extra_is_importable(module: str) -> None:
     importlib.import_module(module)

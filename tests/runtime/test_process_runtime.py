@@ -136,12 +136,34 @@ def test_reap_kills_leftover_background_children(runtime: ProcessRuntime, tmp_pa
 
 
 def test_kill_after_reap_is_harmless(runtime: ProcessRuntime, tmp_path: Path) -> None:
+    """After reap the group id may name someone else's group, and after release the fd
+    numbers may be someone else's files: neither a late kill nor a second release touches
+    them."""
     handle = start(runtime, "true", tmp_path)
     wait_exit(handle)
     runtime.reap(handle)
-    runtime.kill(handle, force=True)
+    # Stand-in for a recycled pid: a live process group of ours under the handle's pid.
+    other = subprocess.Popen(["sleep", "30"], start_new_session=True)
+    try:
+        handle.pid = other.pid
+        runtime.kill(handle, force=True)
+        runtime.kill(handle)
+        time.sleep(0.2)  # a signal, if one had been sent, has landed by now
+        assert other.poll() is None, "a kill after reap signalled another process group"
+    finally:
+        other.kill()
+        other.wait()
+    numbers = {handle.exit_fd, handle.stdout_fd, handle.stderr_fd}
     runtime.release(handle)
-    runtime.release(handle)
+    reused = [os.open(os.devnull, os.O_RDONLY) for _ in range(6)]  # take the freed numbers
+    try:
+        assert numbers & set(reused), "the freed fd numbers were not reused; test is moot"
+        runtime.release(handle)
+        for fd in reused:
+            os.fstat(fd)  # raises EBADF if the second release closed someone else's fd
+    finally:
+        for fd in reused:
+            os.close(fd)
 
 
 @pytest.mark.parametrize(

@@ -6,6 +6,7 @@ import pytest
 
 from osmo.errors import SpecError
 from osmo.spec import load_spec, render_spec
+from osmo.spec import isolation
 from osmo.spec import template as template_module
 
 SPEC = """\
@@ -113,16 +114,27 @@ def test_range_and_repeat_limits() -> None:
 
 
 def test_rendered_size_limit(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(template_module, "MAX_RENDERED", 1000)
-    with pytest.raises(SpecError, match="rendered spec exceeds"):
-        render_spec(text="{% for i in range(1000) %}line {{ i }}\n{% endfor %}")
+    # in this process (the limits are module constants); load_spec renders in a child
+    monkeypatch.setattr(isolation, "MAX_RENDERED", 1000)
+    rendered, diags = template_module.render(
+        "{% for i in range(1000) %}line {{ i }}\n{% endfor %}", "f.yaml", {})
+    assert rendered is None and "rendered spec exceeds" in diags[0].message
 
 
-def test_time_limit(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(template_module, "MAX_SECONDS", 0.05)
+def test_time_limit_is_checked_as_loops_run() -> None:
     text = "{% for i in range(100000) %}{% for j in range(100000) %}{% endfor %}{% endfor %}"
-    with pytest.raises(SpecError, match="took longer than"):
-        render_spec(text=text)
+    rendered, diags = template_module.render(text, "f.yaml", {}, seconds=0.05)
+    assert rendered is None and "took longer than 0.05 s, the time limit" in diags[0].message
+
+
+def test_deep_nesting_is_reported_with_its_position() -> None:
+    deep = "{{ " + "(" * 3000 + "1" + ")" * 3000 + " }}"
+    with pytest.raises(SpecError) as info:
+        render_spec(text=f"a: 1\nb: '{{{{ \"(((\" }}}}' {deep}\n", filename="wf.yaml")
+    [message] = _messages(info)
+    assert message.startswith(f"wf.yaml:2:{21 + template_module.MAX_NESTING}: template "
+                              "expressions nest too deeply: at most 30 levels"), message
+    assert render_spec(text="{{ " + "(" * 30 + "1" + ")" * 30 + " }}") == "1"
 
 
 def test_render_spec_returns_rendered_text() -> None:

@@ -85,3 +85,29 @@ def test_attempt_rows_and_reads_from_another_thread(tmp_path: Path) -> None:
     t.start()
     t.join()
     assert seen == [[row]]
+
+
+def test_names_that_are_not_utf8_are_stored_as_their_bytes(tmp_path: Path) -> None:
+    import hashlib
+    import os
+
+    from osmo.artifacts import Entry, Manifest
+    from osmo.store.sqlite import LineageRow
+
+    store = Store(tmp_path / "s.db")
+    _submit(store)
+    digest = "sha256:" + hashlib.sha256(b"x").hexdigest()
+    names = [os.fsdecode(b"caf\xe9.csv"), "na\u00efve.txt"]
+    manifest = Manifest(tuple(Entry(n, digest, 1) for n in names))
+    row = LineageRow("w-1:a:0", "w-1", "a", manifest.digest, manifest.to_json(),
+                     tuple((e.path, e.digest, e.size) for e in manifest.entries),
+                     "/out", "{}", ())
+    message = "output " + os.fsdecode(b"caf\xe9.csv") + " rejected"
+    store.commit(Changes(transitions=[Transition(2.0, "w-1", "a", 0, "FAILED", message)]),
+                 lineage=[row])
+    db = sqlite3.connect(tmp_path / "s.db")
+    stored = db.execute("SELECT CAST(path AS BLOB), typeof(path) FROM manifest_blobs "
+                        "ORDER BY path").fetchall()
+    assert sorted(stored) == [(b"caf\xe9.csv", "blob"), ("naïve.txt".encode(), "text")]
+    assert store.transitions("w-1")[-1]["message"] == "output caf\\xe9.csv rejected"
+    assert Manifest.from_json(str(store.manifest_body(manifest.digest))) == manifest

@@ -4,7 +4,12 @@ from __future__ import annotations
 
 import hashlib
 import os
+import signal
+import subprocess
+import sys
+import time
 from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
@@ -24,6 +29,15 @@ def links() -> Iterator[tuple[Link, Link]]:
     yield server, client
     client.close()
     server.close()
+
+
+@pytest.fixture
+def router() -> Iterator[tuple[Link, str]]:
+    """A router session in this process and the endpoint other processes connect to."""
+    endpoint = f"tcp/127.0.0.1:{free_port(0)}"
+    link = Link.router([endpoint])
+    yield link, endpoint
+    link.close()
 
 
 def _store_with(tmp: Path, name: str, data: bytes) -> tuple[ArtifactStore, str]:
@@ -46,17 +60,74 @@ def test_fetch_is_verified_and_counted(links: tuple[Link, Link], tmp_path: Path)
     server.close()
 
 
-def test_an_interrupted_fetch_resumes(links: tuple[Link, Link], tmp_path: Path) -> None:
-    data = os.urandom(4 * blobs.CHUNK)
+# A sender in its own process: a client session serving one store, as a remote worker does.
+_SENDER = """
+import sys
+from pathlib import Path
+from osmo.artifacts import ArtifactStore
+from osmo.transport.blobs import BlobServer
+from osmo.transport.zenoh_link import Link
+link = Link.client([sys.argv[1]])
+BlobServer(link, "sender", ArtifactStore(Path(sys.argv[2])))
+print("serving", flush=True)
+sys.stdin.read()  # until the test closes stdin, or kills this process
+"""
+
+
+@contextmanager
+def _sender(endpoint: str, store: ArtifactStore, receiver: Link,
+            digest: str) -> Iterator[subprocess.Popen[str]]:
+    """A sender process serving ``store`` as ``sender``, once its queryable answers."""
+    proc = subprocess.Popen([sys.executable, "-c", _SENDER, endpoint, str(store.root)],
+                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout is not None and proc.stdout.readline() == "serving\n"
+        key = receiver.key("blob", "sender", digest.split(":")[1])
+        deadline = time.monotonic() + 10
+        while receiver.request(key, b"0:1", timeout=1.0) is None:  # declared at the router
+            assert time.monotonic() < deadline, "the sender never answered"
+        yield proc
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        proc.wait(timeout=10)
+        assert proc.stdout is not None and proc.stdin is not None
+        proc.stdout.close()
+        proc.stdin.close()
+
+
+def test_an_interrupted_fetch_resumes(router: tuple[Link, str], tmp_path: Path) -> None:
+    """A transfer cut by the sender's death (SIGKILL mid-way) resumes from a new sender, and
+    only the bytes missing are sent again."""
+    link, endpoint = router
+    size = 64 * blobs.CHUNK  # 32 MiB
+    data = os.urandom(size)
     sender, digest = _store_with(tmp_path, "a", data)
     receiver = ArtifactStore(tmp_path / "b")
     partial = receiver.tmp / f"{digest.split(':')[1]}.partial"
-    partial.write_bytes(data[: 2 * blobs.CHUNK + 7])  # what a cut-off fetch left behind
-    server = BlobServer(links[0], "server", sender)
-    sent = fetch_blob(links[1], "server", digest, len(data), receiver)
-    assert sent == len(data) - (2 * blobs.CHUNK + 7)
+    with _sender(endpoint, sender, link, digest) as proc:
+        got = 0
+
+        def cut(n: int) -> None:  # the sender dies once an eighth has arrived
+            nonlocal got
+            got += n
+            if got >= size // 8 and proc.poll() is None:
+                proc.send_signal(signal.SIGKILL)
+                proc.wait()
+
+        t0 = time.monotonic()
+        with pytest.raises(TransferError, match="no answer"):
+            fetch_blob(link, "sender", digest, size, receiver, on_bytes=cut)
+        assert time.monotonic() - t0 < blobs._TIMEOUT, "a dead sender is noticed at once"
+    kept = partial.stat().st_size
+    assert size // 8 <= kept < size, "the transfer was cut mid-way"
+    assert partial.read_bytes() == data[:kept], "what arrived is kept, in order"
+    assert not receiver.has(digest)
+    with _sender(endpoint, sender, link, digest):
+        resent: list[int] = []
+        sent = fetch_blob(link, "sender", digest, size, receiver, on_bytes=resent.append)
+    assert sum(resent) == sent == size - kept, "only the missing bytes crossed again"
     assert receiver.read(digest) == data and not partial.exists()
-    server.close()
 
 
 def test_damaged_bytes_are_never_published(links: tuple[Link, Link], tmp_path: Path) -> None:

@@ -79,3 +79,27 @@ def test_unfinished_line_far_longer_than_the_limit(tmp_path: Path) -> None:
     writer.close()
     joined = "".join(t for _, t in texts(log))
     assert joined == ("z" * 1000 + "****") * 200
+
+
+@pytest.mark.parametrize("prefix", [b"", b"a", b"ab", b"user:", b'{"k": "'])
+@pytest.mark.parametrize("urlsafe", [False, True])
+def test_base64_forms_are_masked_at_any_offset(prefix: bytes, urlsafe: bool) -> None:
+    import base64
+
+    secret = b"s3cr3t>>>???-Pa55w0rd"
+    encode = base64.urlsafe_b64encode if urlsafe else base64.b64encode
+    line = b"data: " + encode(prefix + secret + b'" tail')
+    masked = Masker([secret.decode()]).mask(line)
+    # the characters that carry the secret's bits alone (not its neighbours') are gone
+    shift = len(prefix) % 3
+    whole = encode(b"\0" * shift + secret)
+    core = whole[-(-8 * shift // 6):8 * (shift + len(secret)) // 6]
+    assert core in line and core not in masked and b"****" in masked
+
+
+def test_short_values_are_not_masked_in_encoded_form() -> None:
+    import base64
+
+    text = b"payload " + base64.b64encode(b"abc" * 10)
+    assert Masker(["abc"]).mask(text).startswith(b"payload ")
+    assert Masker(["abc"]).mask(base64.b64encode(b"xyz")) == base64.b64encode(b"xyz")

@@ -1,0 +1,136 @@
+"""User-chosen names: one pattern, one length limit and one message for every name a user picks.
+
+Workflow, group and task names, dataset names and dataset tags all match :data:`NAME_RE`:
+letters, digits, ``-`` and ``_``, starting with a letter and ending with a letter or a digit,
+at most :data:`MAX_NAME` characters. Such a name is safe as one path component, a zenoh key
+chunk and a log label, so whatever takes a name from a user (a spec, the CLI, the SDK, the
+server API) checks it here before the name touches a path. Workflow ids are ``NAME-N``.
+Dataset references are ``NAME[:TAG|VERSION|latest]``; ``latest`` and numbers name versions,
+so they cannot be tags (a tag starts with a letter, and ``latest`` is reserved).
+
+Pure functions; the bottom layer (imports only ``osmo.errors``).
+"""
+
+from __future__ import annotations
+
+import re
+
+from osmo.errors import UsageError
+
+__all__ = ["MAX_NAME", "NAME_RE", "check_name", "check_tag", "check_workflow_id",
+           "name_problem", "parse_ref", "ref_problem", "shown", "workflow_id_problem"]
+
+NAME_RE = re.compile(r"[a-zA-Z](?:[a-zA-Z0-9_-]*[a-zA-Z0-9])?")
+MAX_NAME = 64
+_MAX_ID = MAX_NAME + 21  # NAME-N, N a 64-bit counter at most
+_LATEST = "latest"
+_VERSION = re.compile(r"[0-9]{1,18}")
+
+
+def _rule(limit: int) -> str:
+    return ("use letters, digits, '-' and '_', starting with a letter and ending with a letter "
+            f"or digit, at most {limit} characters")
+
+_SHOWN = 40  # characters of a bad value echoed in a message
+
+
+def shown(value: object) -> str:
+    """``value`` quoted for a message: control characters escaped, long values cut."""
+    text = str(value)
+    if len(text) <= _SHOWN:
+        return repr(text)
+    quoted = repr(text[:_SHOWN])
+    return f"{quoted[:-1]}...{quoted[-1]} ({len(text)} characters)"
+
+
+def _suggestion(name: str, limit: int) -> str:
+    """`` (did you mean 'x'?)`` with a valid name made from ``name``, or an empty string."""
+    guess = re.sub(r"[^a-zA-Z0-9_-]+", "-", name[:1000])
+    guess = re.sub(r"^[^a-zA-Z]+", "", guess)[:limit].rstrip("-_")
+    return f" (did you mean '{guess}'?)" if guess and NAME_RE.fullmatch(guess) else ""
+
+
+def name_problem(name: object, what: str, *, limit: int = MAX_NAME) -> str | None:
+    """Why ``name`` cannot be a ``what`` (e.g. "dataset name"), or None if it can."""
+    if not isinstance(name, str):
+        return f"{what} must be a string, not {type(name).__name__}"
+    if not name:
+        return f"{what} must not be empty; {_rule(limit)}"
+    if len(name) <= limit and NAME_RE.fullmatch(name):
+        return None
+    if len(name) > limit:
+        return (f"{what} {shown(name)} is too long: the limit is {limit} characters"
+                f"{_suggestion(name, limit)}")
+    return (f"{what} {shown(name)} is not a valid name: {_rule(limit)}"
+            f"{_suggestion(name, limit)}")
+
+
+def check_name(name: object, what: str) -> str:
+    """``name`` if it is a valid ``what``.
+
+    Raises:
+        UsageError: naming what is wrong, with a valid name to use instead where one is near.
+    """
+    problem = name_problem(name, what)
+    if problem is not None:
+        raise UsageError(problem)
+    assert isinstance(name, str)
+    return name
+
+
+def check_tag(tag: object, what: str = "dataset tag") -> str:
+    """``tag`` if it is a valid dataset tag (a name other than ``latest``).
+
+    Raises:
+        UsageError: naming what is wrong.
+    """
+    if tag == _LATEST or (isinstance(tag, str) and _VERSION.fullmatch(tag)):
+        raise UsageError(f"{what} {shown(tag)} is not allowed: numbers and '{_LATEST}' name "
+                         "versions; pick a name that starts with a letter")
+    return check_name(tag, what)
+
+
+def ref_problem(ref: object, what: str = "dataset") -> str | None:
+    """Why ``ref`` is not ``NAME[:TAG|VERSION|latest]``, or None."""
+    if not isinstance(ref, str):
+        return f"{what} reference must be a string, not {type(ref).__name__}"
+    name, colon, tag = ref.partition(":")
+    problem = name_problem(name, f"{what} name")
+    if problem is not None or not colon:
+        return problem
+    if tag == _LATEST or _VERSION.fullmatch(tag):
+        return None
+    return name_problem(tag, f"{what} tag or version")
+
+
+def parse_ref(ref: object, what: str = "dataset") -> tuple[str, str | None]:
+    """``NAME[:TAG|VERSION|latest]`` → (name, tag or version text, or None).
+
+    Raises:
+        UsageError: naming what is wrong.
+    """
+    problem = ref_problem(ref, what)
+    if problem is not None:
+        raise UsageError(problem)
+    assert isinstance(ref, str)
+    name, _, tag = ref.partition(":")
+    return name, tag or None
+
+
+def workflow_id_problem(workflow_id: object) -> str | None:
+    """Why ``workflow_id`` cannot be one, or None. Ids are ``NAME-N``; a bare name passes too,
+    so that a lookup can suggest its ids."""
+    return name_problem(workflow_id, "workflow id", limit=_MAX_ID)
+
+
+def check_workflow_id(workflow_id: object) -> str:
+    """``workflow_id`` if it could be one (see :func:`workflow_id_problem`).
+
+    Raises:
+        UsageError: naming what is wrong.
+    """
+    problem = workflow_id_problem(workflow_id)
+    if problem is not None:
+        raise UsageError(problem)
+    assert isinstance(workflow_id, str)
+    return workflow_id

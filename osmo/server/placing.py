@@ -1,0 +1,136 @@
+"""What the engine settles for a placed attempt before it is prepared on a worker.
+
+:class:`Placements` resolves a ``PrepareAttempt`` once its placement is committed: dataset
+and other-workflow inputs, the cache key (``osmo.server.cache``) and a cache hit, and what
+provenance must remember for the attempt's lineage. When the command is executed, the
+attempt is then prepared on its executor, completed from the cache at once (the scheduler
+sees an ordinary success), or failed to start with the reason its inputs could not be
+resolved. Runs on the engine thread only; must not touch the scheduler.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+from collections.abc import Callable
+from typing import Any
+
+from osmo.artifacts import Manifest
+from osmo.errors import OsmoError
+from osmo.record import LineageInput
+from osmo.scheduler.types import (
+    AttemptExited,
+    AttemptPrepared,
+    AttemptStarted,
+    AttemptStartFailed,
+    Event,
+    PrepareAttempt,
+)
+from osmo.server import cache
+from osmo.server.cache import CacheHit
+from osmo.server.datasets import Datasets
+from osmo.server.provenance import Provenance
+from osmo.spec.model import WorkflowSpec
+from osmo.store.sqlite import Store
+
+__all__ = ["Placements", "output_manifests"]
+
+log = logging.getLogger("osmo.server")
+
+
+class Placements:
+    """Placed attempts between their commit and their preparation (engine thread).
+
+    Args:
+        store: read for input manifests and cache entries.
+        specs: workflow id → spec, shared with the engine (kept current by it).
+        no_cache: ids of workflows submitted with ``--no-cache``, shared with the engine.
+        executor: prepares attempts (``Executor.prepare``).
+        post: queues an event for the engine.
+        provenance: remembers each placement for its lineage.
+        datasets: resolves dataset and other-workflow inputs (None: none to resolve).
+    """
+
+    def __init__(self, *, store: Store, specs: dict[str, WorkflowSpec], no_cache: set[str],
+                 executor: Any, post: Callable[[Event], None], provenance: Provenance,
+                 datasets: Datasets | None) -> None:
+        self._store, self._specs, self._no_cache = store, specs, no_cache
+        self._executor, self._post = executor, post
+        self._provenance, self._datasets = provenance, datasets
+        self._ready: dict[str, PrepareAttempt | str] = {}  # the final command, or why not
+        self._hits: dict[str, CacheHit] = {}
+
+    def resolve(self, cmd: PrepareAttempt) -> None:
+        """Settle what a placed attempt needs before it is prepared: dataset and other-workflow
+        inputs, its cache key, and a cache hit if there is one. Never raises: a failure is
+        kept as the reason the attempt cannot start."""
+        try:
+            if self._datasets is not None:
+                cmd = self._datasets.resolve_inputs(cmd, self._specs[cmd.workflow_id].task(
+                    cmd.task))
+            sources = cache.input_sources(self._store, cmd)
+            key = self._cache_key(cmd, sources)
+            hit = cache.lookup(self._store, key) if key else None
+        except OsmoError as exc:
+            self._ready[cmd.attempt_id] = str(exc)
+            return
+        except Exception as exc:  # noqa: BLE001 - fails this attempt's start, nothing else
+            log.exception("resolving the inputs of %s failed", cmd.attempt_id)
+            self._ready[cmd.attempt_id] = f"cannot resolve its inputs: {exc!r}"
+            return
+        self._ready[cmd.attempt_id] = cmd
+        self._provenance.placed(cmd, cmd.hosts.get(cmd.task, cmd.node_id), key, sources)
+        if hit is not None:
+            self._hits[cmd.attempt_id] = hit
+
+    def prepare(self, cmd: PrepareAttempt) -> None:
+        """Execute a placement: prepare it (its output limited to the task's ``storage``),
+        complete it from the cache, or fail its start."""
+        ready = self._ready.pop(cmd.attempt_id, cmd)
+        hit = self._hits.pop(cmd.attempt_id, None)
+        if isinstance(ready, str):
+            self._post(AttemptStartFailed(cmd.attempt_id, ready))
+        elif hit is not None:
+            self._replay(ready, hit)
+        else:
+            spec = self._specs[ready.workflow_id]
+            task = spec.task(ready.task)
+            self._executor.prepare(ready, task,
+                                   max_output_bytes=spec.resource_for(task).storage)
+
+    def _cache_key(self, cmd: PrepareAttempt,
+                   sources: list[LineageInput | None]) -> str | None:
+        """The attempt's cache fingerprint, or None when it must run (see osmo.server.cache)."""
+        task = self._specs[cmd.workflow_id].task(cmd.task)
+        if not cmd.run or not task.cache or cmd.workflow_id in self._no_cache:
+            return None
+        if any(i.url for i in task.inputs) or any(o.url for o in task.outputs):
+            return None  # URL contents are unknown at placement; a hit would skip the upload
+        if any(s is None for s in sources):
+            return None  # an input without a recorded manifest: its content is unknown
+        return cache.fingerprint(task, [(s.task, s.manifest_digest) for s in sources if s])
+
+    def _replay(self, cmd: PrepareAttempt, hit: CacheHit) -> None:
+        """Complete a cache hit at once: the scheduler sees an ordinary successful attempt."""
+        message = f"cached: outputs of {hit.attempt_id}"
+        for event in (AttemptPrepared(cmd.attempt_id), AttemptStarted(cmd.attempt_id),
+                      AttemptExited(cmd.attempt_id, 0, hit.output_path, message,
+                                    manifest=hit.manifest_body, cached=True)):
+            self._post(event)
+
+
+def output_manifests(store: Store) -> Callable[[str], Manifest | None]:
+    """``folder → manifest`` of recorded output folders (task outputs, dataset versions): how
+    a pool on this host finds what to copy for an attempt's inputs. Parsed manifests are
+    kept by digest (a fan-out reads the same one a thousand times)."""
+
+    @functools.lru_cache(maxsize=256)
+    def parsed(digest: str) -> Manifest | None:
+        body = store.manifest_body(digest)
+        return Manifest.from_json(body) if body is not None else None
+
+    def lookup(ref: str) -> Manifest | None:
+        found = store.output_of(ref)
+        return parsed(found[0]) if found is not None else None
+
+    return lookup
