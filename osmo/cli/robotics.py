@@ -20,7 +20,7 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from osmo.cli.render import console, print_json
+from osmo.cli.render import console, print_json, safe
 from osmo.errors import NotFoundError, UsageError
 from osmo.sdk.client import Client
 
@@ -87,7 +87,8 @@ def leaderboard_text(rows: list[dict[str, Any]]) -> str:
         lo, hi = r["return_ci95"]
         norm = r["normalized_score"]
         table.append([
-            r["env"], str(r["rank"]), r["policy"], r["workflow"], r["task"],
+            safe(r["env"]), str(r["rank"]), safe(r["policy"]), safe(r["workflow"]),
+            safe(r["task"]),
             f"{'n/a' if rate is None else f'{100 * rate:.0f}%'} [{mark}]",
             f"{r['mean_return']:.1f} [{lo:.1f}, {hi:.1f}]",
             "-" if norm is None else f"{norm:.2f}", f"{r['mean_length']:.0f}",
@@ -97,7 +98,7 @@ def leaderboard_text(rows: list[dict[str, Any]]) -> str:
              for line in table]
     lines.append("")
     lines.append("Success criteria:")
-    lines.extend(f"  [{n}] {text}" for text, n in notes.items())
+    lines.extend(f"  [{n}] {safe(text)}" for text, n in notes.items())
     if any(r["normalized_score"] is not None for r in rows):
         lines.append("Normalised: (return - random) / (expert - random) in the same suite.")
     return "\n".join(lines)

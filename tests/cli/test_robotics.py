@@ -113,3 +113,16 @@ def test_view_local_mcap(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> 
     out = tmp_path / "x.rrd"
     assert main(["view", str(src), "--out", str(out)]) == 0
     assert out.stat().st_size > 0 and f"wrote {out}" in capsys.readouterr().out
+
+
+def test_report_escapes_hostile_names(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Names in metrics files are data: they cannot clear the screen or forge a line."""
+    path = _metrics(tmp_path / "m.json", [("evil\x1b[2J\nrandom  Pend-v5  1", "Pend-v5", 5.0)])
+    data = json.loads(path.read_text())
+    data["results"][0]["success_criterion"] = "return >= 1\x1b]0;pwned\x07"
+    path.write_text(json.dumps(data))
+    assert main(["eval", "report", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "\x1b" not in out and "\x07" not in out
+    assert "evil\\033[2J\\nrandom" in out and "\\033]0;pwned\\a" in out
+    assert len([ln for ln in out.splitlines() if "Pend-v5" in ln]) == 1
