@@ -6,7 +6,7 @@ base, 50 steps of 0.02 s) with three changes, so that a policy must look at the 
 - the observation is the arm's proprioception only — cos and sin of both joint angles and
   their velocities (6 numbers); the target's position appears only in the camera image;
 - the camera looks straight down on the arena, and the target is drawn larger and pure red
-  (``assets/reacher_vision.xml``), so it covers a few pixels at 64×64;
+  on a dark floor (``assets/reacher_vision.xml``), so it covers ~50 pixels at 64×64;
 - ``info["is_success"]`` turns true once the fingertip has touched the target (centres within
   3 cm: the two spheres' radii) for 10 consecutive steps (0.2 s): reached and held, which
   random flailing does not do.
