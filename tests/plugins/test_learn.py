@@ -118,3 +118,13 @@ def test_backbone_norms_train_and_fold_back_unchanged() -> None:
         folded = net(x)
     assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in net.modules())
     assert torch.allclose(trained, folded, atol=1e-5)
+
+
+def test_cosine_schedule_decays_the_learning_rate(tmp_path: Path) -> None:
+    ds = make_ctx(DATASET, tmp_path, "dataset", inputs=_shards(tmp_path))
+    DATASET.run(ds)
+    train = make_ctx(TRAIN, tmp_path, "train", inputs=[ds.output], steps=20, log_every=5,
+                     lr=0.01, lr_schedule="cosine")
+    TRAIN.run(train)
+    lrs = [row["lr"] for row in json.loads((train.output / "loss.json").read_text())]
+    assert lrs == sorted(lrs, reverse=True) and lrs[0] < 0.01 and lrs[-1] < 0.0002
