@@ -2,8 +2,10 @@
 
 ``osmo eval report [WORKFLOW_IDS...]`` finds the ``metrics.json`` outputs of ``sim.eval``
 tasks (in the artifact store, through the SDK; or local files given as paths) and shows one
-leaderboard across runs, best mean return first per env. ``osmo view TARGET`` turns an MCAP
-artifact or file into a rerun ``.rrd`` and opens the viewer only with ``--open``.
+leaderboard across runs, best mean return first per env, with each success rate's criterion
+as a footnote (``n/a`` where the suite had none) and the normalised score. ``osmo view
+TARGET`` turns an MCAP artifact or file into a rerun ``.rrd`` and opens the viewer only with
+``--open``.
 
 The MCAP→rrd conversion lives in the ``osmo_plugins`` package (installed with osmo) and needs
 the ``viz`` extra; it is imported only when ``view`` runs, so ``import osmo`` stays light.
@@ -18,11 +20,11 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from osmo.cli.render import console, leaderboard_table, print_json
+from osmo.cli.render import console, print_json, safe
 from osmo.errors import NotFoundError, UsageError
 from osmo.sdk.client import Client
 
-__all__ = ["add_parsers", "leaderboard_rows", "run_eval", "run_view"]
+__all__ = ["add_parsers", "leaderboard_rows", "leaderboard_text", "run_eval", "run_view"]
 
 METRICS_FILE = "metrics.json"
 
@@ -43,10 +45,21 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
 
 
 def leaderboard_rows(sources: list[tuple[str, str, dict[str, Any]]]) -> list[dict[str, Any]]:
-    """Flatten ``(workflow, task, metrics)`` into rows ranked per env by mean return."""
-    rows = [{"workflow": wf, "task": task, **{k: r[k] for k in (
-        "policy", "kind", "env", "episodes", "success_rate", "mean_return", "return_ci95",
-        "mean_length")}} for wf, task, metrics in sources for r in metrics.get("results", [])]
+    """Flatten ``(workflow, task, metrics)`` into rows ranked per env by mean return.
+
+    ``success_rate`` is None where the suite had no success criterion for the env;
+    ``criterion`` says how success was decided (older metrics files: the suite's sentence).
+    """
+    rows = []
+    for wf, task, metrics in sources:
+        suite = metrics.get("suite", {})
+        for r in metrics.get("results", []):
+            rows.append({"workflow": wf, "task": task, **{k: r[k] for k in (
+                "policy", "kind", "env", "episodes", "success_rate", "mean_return",
+                "return_ci95", "mean_length")},
+                "criterion": r.get("success_criterion") or _old_criterion(suite),
+                "normalized_score": r.get("normalized_score"),
+                "normalized_ci95": r.get("normalized_ci95")})
     rows.sort(key=lambda r: (r["env"], -r["mean_return"], r["workflow"], r["policy"]))
     rank, env = 0, None
     for row in rows:
@@ -54,6 +67,41 @@ def leaderboard_rows(sources: list[tuple[str, str, dict[str, Any]]]) -> list[dic
         env = row["env"]
         row["rank"] = rank
     return rows
+
+
+def _old_criterion(suite: dict[str, Any]) -> str | None:
+    """The criterion of a metrics file written before success was defined per env."""
+    text = suite.get("success")
+    return f"{text} (older sim.eval)" if isinstance(text, str) else None
+
+
+def leaderboard_text(rows: list[dict[str, Any]]) -> str:
+    """The leaderboard as aligned text, each success rate marked with its criterion's
+    footnote (``n/a`` where there was none)."""
+    notes: dict[str, int] = {}
+    table = [["Env", "#", "Policy", "Workflow", "Task", "Success", "Return (95% CI)",
+              "Normalised", "Length", "Episodes"]]
+    for r in rows:
+        mark = notes.setdefault(r["criterion"] or "not recorded", len(notes) + 1)
+        rate = r["success_rate"]
+        lo, hi = r["return_ci95"]
+        norm = r["normalized_score"]
+        table.append([
+            safe(r["env"]), str(r["rank"]), safe(r["policy"]), safe(r["workflow"]),
+            safe(r["task"]),
+            f"{'n/a' if rate is None else f'{100 * rate:.0f}%'} [{mark}]",
+            f"{r['mean_return']:.1f} [{lo:.1f}, {hi:.1f}]",
+            "-" if norm is None else f"{norm:.2f}", f"{r['mean_length']:.0f}",
+            str(r["episodes"])])
+    widths = [max(len(line[i]) for line in table) for i in range(len(table[0]))]
+    lines = ["  ".join(cell.ljust(w) for cell, w in zip(line, widths, strict=True)).rstrip()
+             for line in table]
+    lines.append("")
+    lines.append("Success criteria:")
+    lines.extend(f"  [{n}] {safe(text)}" for text, n in notes.items())
+    if any(r["normalized_score"] is not None for r in rows):
+        lines.append("Normalised: (return - random) / (expert - random) in the same suite.")
+    return "\n".join(lines)
 
 
 def _is_metrics(data: Any) -> bool:
@@ -97,7 +145,7 @@ def run_eval(args: argparse.Namespace) -> int:
         console.print("no sim.eval metrics found (run a workflow with a sim.eval task)",
                       markup=False)
     else:
-        console.print(leaderboard_table(rows))
+        console.print(leaderboard_text(rows), markup=False, highlight=False, soft_wrap=True)
     return 0 if rows or args.format == "json" else 1
 
 

@@ -11,11 +11,35 @@ from __future__ import annotations
 import importlib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from types import TracebackType
+from typing import Any, Self
 
 from osmo.tasktypes.api import Param, TaskContext
 
-__all__ = ["PluginType", "find_folder_with", "offline"]
+__all__ = ["Committing", "PluginType", "find_folder_with", "offline"]
+
+
+class Committing:
+    """A writer used as a context manager: ``close()`` (commit) after a clean block,
+    ``abort()`` (discard) after an exception. Subclasses define both."""
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, kind: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        if kind is None:
+            self.close()
+        else:
+            self.abort()
+
+    def close(self) -> None:
+        """Finish and keep what was written."""
+        raise NotImplementedError
+
+    def abort(self) -> None:
+        """Discard what was written."""
+        raise NotImplementedError
 
 
 @dataclass(frozen=True)

@@ -41,6 +41,11 @@ EXPECTED = [
 DATAGEN = [
     "datagen: 2 workers / 1 worker",
     "datagen: recording overhead (recorded vs bare time per step)",
+    "datagen: recording overhead with 64x64 frames",
+]
+PIPELINE = [
+    "pipeline: reach-vision wall time, submit → COMPLETED",
+    "pipeline: reach-vision trained success / expert success",
 ]
 
 
@@ -63,11 +68,13 @@ def test_quick_run_writes_every_expected_row(tmp_path: Path) -> None:
     report = json.loads((tmp_path / "latest.json").read_text())
     assert {"cpu", "cores", "python", "kernel", "date"} <= set(report["machine"])
     sim = importlib.util.find_spec("gymnasium") is not None  # the datagen bench needs osmo[sim]
+    learn = sim and importlib.util.find_spec("lerobot") is not None  # the pipeline: osmo[all]
     for script in report["scripts"]:
-        wanted = "skipped" if script["script"] == "bench_datagen" and not sim else "ok"
+        wanted = "skipped" if (script["script"] == "bench_datagen" and not sim) or (
+            script["script"] == "bench_pipeline" and not learn) else "ok"
         assert script["status"] == wanted, script
     rows = {r["name"]: r for r in report["rows"]}
-    expected = EXPECTED + (DATAGEN if sim else [])
+    expected = EXPECTED + (DATAGEN if sim else []) + (PIPELINE if learn else [])
     for name in expected:
         assert name in rows, f"missing row {name!r}; have {sorted(rows)}"
         r = rows[name]

@@ -13,7 +13,7 @@ import os
 import pytest
 
 MODULES = {
-    "sim": ["numpy", "gymnasium", "mujoco"],
+    "sim": ["numpy", "gymnasium", "mujoco", "foxglove", "google.protobuf"],
     "learn": ["torch", "lerobot", "lerobot.datasets", "lerobot.policies.act.modeling_act"],
     "viz": ["rerun"],
 }

@@ -93,3 +93,38 @@ def test_dataset_needs_episodes(tmp_path: Path) -> None:
     empty.mkdir()
     with pytest.raises(ValueError, match="no .mcap episode files"):
         DATASET.run(make_ctx(DATASET, tmp_path, "dataset", inputs=[empty]))
+
+
+def test_backbone_norms_train_and_fold_back_unchanged() -> None:
+    """From scratch the ResNet trains real batch norms; folded back into LeRobot's frozen
+    ones, the saved network computes exactly what the trained one does in eval mode."""
+    import torch
+    import torchvision
+    from torchvision.ops.misc import FrozenBatchNorm2d
+
+    from osmo_plugins.lerobot._train import _norms
+
+    torch.manual_seed(0)
+    net = torchvision.models.resnet18(weights=None, norm_layer=FrozenBatchNorm2d)
+    _norms(torch, net, trainable=True)
+    assert not any(isinstance(m, FrozenBatchNorm2d) for m in net.modules())
+    net.train()
+    net(torch.rand(8, 3, 32, 32) * 3)  # a training step's forward moves the running stats
+    net.eval()
+    x = torch.rand(2, 3, 32, 32)
+    with torch.no_grad():
+        trained = net(x)
+        _norms(torch, net, trainable=False)
+        folded = net(x)
+    assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in net.modules())
+    assert torch.allclose(trained, folded, atol=1e-5)
+
+
+def test_cosine_schedule_decays_the_learning_rate(tmp_path: Path) -> None:
+    ds = make_ctx(DATASET, tmp_path, "dataset", inputs=_shards(tmp_path))
+    DATASET.run(ds)
+    train = make_ctx(TRAIN, tmp_path, "train", inputs=[ds.output], steps=20, log_every=5,
+                     lr=0.01, lr_schedule="cosine")
+    TRAIN.run(train)
+    lrs = [row["lr"] for row in json.loads((train.output / "loss.json").read_text())]
+    assert lrs == sorted(lrs, reverse=True) and lrs[0] < 0.01 and lrs[-1] < 0.0002

@@ -17,8 +17,7 @@ from tests.plugins.fakectx import make_ctx  # noqa: E402
 
 def _inputs(tmp: Path) -> Path:
     folder = tmp / "in"
-    with LineageMcapWriter(folder / "episodes.mcap", None) as mcap:
-        w = EpisodeWriter(mcap, {"env": "Fake-v0"}, dt=0.1)
+    with EpisodeWriter(folder / "episodes.mcap", {"env": "Fake-v0"}, dt=0.1) as w:
         for t in range(4):
             w.step(0, t, [t, 0.0], [0.5, 0.1], 1.0, False, t == 3)
         w.end(0, 1, 4.0, 4, False, True)

@@ -71,8 +71,10 @@ def run(ctx: TaskContext) -> None:
     fps = int(round(float(first.meta.get("fps", "25"))))
     feats = features_for(obs_dim, act_dim, frame_shape, p["min_dims"])
     root = Path(ctx.output) / "dataset"
+    # PNG writing in threads roughly doubles the frames per second with images.
     ds = LeRobotDataset.create(repo_id=p["repo_id"], fps=fps, features=feats, root=root,
-                               robot_type="mujoco", use_videos=False, video_backend="pyav")
+                               robot_type="mujoco", use_videos=False, video_backend="pyav",
+                               image_writer_threads=p["image_threads"] if frame_shape else 0)
     frames = 0
     for n, ep in enumerate(episodes):
         ctx.check_cancelled()

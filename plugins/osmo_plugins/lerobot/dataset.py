@@ -26,5 +26,6 @@ DATASET = PluginType(
         "task": Param(str, "balance the pole", "the language task stored with every frame"),
         "images": Param(bool, True, "include camera frames when the episodes have them"),
         "min_dims": Param(int, 2, "pad vector features narrower than this", min=1),
+        "image_threads": Param(int, 2, "threads writing PNG frames", min=1, max=16),
     },
 )

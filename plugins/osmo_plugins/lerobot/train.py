@@ -21,7 +21,7 @@ __all__ = ["TRAIN"]
 
 TRAIN = PluginType(
     name="lerobot.train",
-    version="1",
+    version="2",
     description="Train a small LeRobot ACT policy (behaviour cloning) on CPU; checkpoint + loss",
     impl="osmo_plugins.lerobot._train:run",
     extra="learn",
@@ -30,6 +30,8 @@ TRAIN = PluginType(
         "steps": Param(int, 1500, "optimiser steps", min=1),
         "batch_size": Param(int, 64, "batch size", min=1),
         "lr": Param(float, 1e-3, "learning rate", min=0),
+        "lr_schedule": Param(str, "constant", "constant, or cosine decay to 0 over the steps",
+                             choices=("constant", "cosine")),
         "seed": Param(int, 0, "seed for weights, batches and dropout"),
         "chunk_size": Param(int, 10, "ACT action chunk length", min=1),
         "n_action_steps": Param(int, 1, "actions executed per policy query", min=1),

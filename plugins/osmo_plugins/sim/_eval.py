@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import json
-import math
-from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -12,39 +10,10 @@ from osmo.tasktypes.api import TaskContext
 from osmo_plugins.episodes import EpisodeWriter
 from osmo_plugins.lerobot.policy_io import POLICY_MARKER, frame_size
 from osmo_plugins.sim.envs import EpisodeResult, make_env, run_episodes
+from osmo_plugins.sim.metrics import add_normalized, choose_criterion, parse_success, summarize
 from osmo_plugins.sim.policies import has_expert, make_policy
 
-__all__ = ["ci95", "run", "summarize"]
-
-# Two-sided 95% Student t quantiles for 1..30 degrees of freedom; normal beyond.
-_T95 = (12.706, 4.303, 3.182, 2.776, 2.571, 2.447, 2.365, 2.306, 2.262, 2.228, 2.201, 2.179,
-        2.160, 2.145, 2.131, 2.120, 2.110, 2.101, 2.093, 2.086, 2.080, 2.074, 2.069, 2.064,
-        2.060, 2.056, 2.052, 2.048, 2.045, 2.042)
-
-
-def ci95(values: Sequence[float]) -> tuple[float, float]:
-    """The 95% confidence interval of the mean (Student t; a point for one value)."""
-    n = len(values)
-    mean = sum(values) / n
-    if n < 2:
-        return mean, mean
-    sd = math.sqrt(sum((v - mean) ** 2 for v in values) / (n - 1))
-    half = (_T95[n - 2] if n - 1 <= len(_T95) else 1.96) * sd / math.sqrt(n)
-    return mean - half, mean + half
-
-
-def summarize(policy: str, kind: str, env_id: str, results: Sequence[EpisodeResult],
-              max_steps: int) -> dict[str, Any]:
-    """One row of ``metrics.json``."""
-    returns = [r.total_reward for r in results]
-    lo, hi = ci95(returns)
-    return {
-        "policy": policy, "kind": kind, "env": env_id, "episodes": len(results),
-        "success_rate": sum(1 for r in results if not r.terminated and r.length >= max_steps)
-        / len(results),
-        "mean_return": sum(returns) / len(returns), "return_ci95": [lo, hi],
-        "mean_length": sum(r.length for r in results) / len(results),
-        "returns": returns, "seeds": [r.seed for r in results]}
+__all__ = ["run"]
 
 
 def _checkpoints(ctx: TaskContext) -> list[tuple[str, Path]]:
@@ -77,6 +46,7 @@ def _plan(ctx: TaskContext) -> list[tuple[str, str, Path | None]]:
 def run(ctx: TaskContext) -> None:
     """Run every policy on every env over the same seeds; write metrics, MCAP, .rrd."""
     p = ctx.params
+    default, per_env = parse_success(p["success"], p["envs"])
     if p["threads"]:
         try:
             import torch
@@ -85,51 +55,85 @@ def run(ctx: TaskContext) -> None:
         except ImportError:
             pass
     plan, seeds = _plan(ctx), [p["seed"] + i for i in range(p["episodes"])]
-    out = Path(ctx.output)
-    rows, recorded = [], []
-    total, done = len(plan) * len(p["envs"]) * len(seeds), 0
+    rows: list[dict[str, Any]] = []
+    criteria: dict[str, Any] = {}
+    recorded: list[tuple[str, Path]] = []
+    progress = _Progress(ctx, len(plan) * len(p["envs"]) * len(seeds))
     for env_id in p["envs"]:
+        ran: list[tuple[str, str, list[EpisodeResult]]] = []
         for label, kind, ckpt in plan:
             if kind == "expert" and not has_expert(env_id):
                 ctx.log.info("no expert for %s: skipped", env_id)
-                done += len(seeds)
+                progress.skip(len(seeds))
                 continue
-            size = frame_size(ckpt)
-            env = make_env(env_id, max_steps=p["max_steps"], render=size is not None,
-                           size=size or 64)
-            policy = make_policy(kind, env, env_id=env_id, checkpoint=ckpt)
-            name = f"rollouts/{label}--{env_id}.mcap"
-
-            def tick(index: int, r: EpisodeResult, base: int = done,
-                     who: str = f"{label} on {env_id}") -> None:
-                ctx.progress(base + index + 1, total, f"{who}: {r.total_reward:.0f}")
-
-            meta = {"env": env_id, "policy": label, "kind": kind, "seed": str(p["seed"]),
-                    "episodes": str(len(seeds)), "max_steps": str(p["max_steps"]),
-                    "fps": str(round(1.0 / env.unwrapped.dt, 6))}
-            if p["record"]:
-                with ctx.mcap_writer(name) as mcap:
-                    writer = EpisodeWriter(mcap, meta, dt=env.unwrapped.dt)
-                    results = run_episodes(env, policy, seeds, writer=writer, on_episode=tick,
-                                           cancelled=ctx.cancelled)
-                recorded.append((f"{label}/{env_id}", out / name))
-            else:
-                results = run_episodes(env, policy, seeds, on_episode=tick,
-                                       cancelled=ctx.cancelled)
-            ctx.check_cancelled()
-            env.close()
-            done += len(seeds)
-            row = summarize(label, kind, env_id, results, p["max_steps"])
-            rows.append(row)
-            ctx.log.info("%-12s %-24s success %.0f%%  return %.1f [%.1f, %.1f]  length %.0f",
-                         label, env_id, 100 * row["success_rate"], row["mean_return"],
-                         *row["return_ci95"], row["mean_length"])
+            ran.append((label, kind, _evaluate(ctx, env_id, label, kind, ckpt, seeds,
+                                               progress, recorded)))
+        criterion = choose_criterion(env_id, [r for *_, rs in ran for r in rs],
+                                     max_steps=p["max_steps"], default=default,
+                                     per_env=per_env)
+        criteria[env_id] = criterion.to_json()
+        rows.extend(summarize(label, kind, env_id, results, criterion)
+                    for label, kind, results in ran)
+    add_normalized(rows)
+    for row in rows:
+        _log_row(ctx, row)
     metrics = {"suite": {"envs": list(p["envs"]), "seeds": seeds, "max_steps": p["max_steps"],
-                         "success": "ran max_steps steps without terminating"},
+                         "success": criteria},
                "results": rows}
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=1) + "\n")
+    (Path(ctx.output) / "metrics.json").write_text(json.dumps(metrics, indent=1) + "\n")
     if p["rrd"] and recorded:
         _write_rrd(ctx, recorded)
+
+
+class _Progress:
+    """Progress over every episode of the suite."""
+
+    def __init__(self, ctx: TaskContext, total: int) -> None:
+        self.ctx, self.total, self.done = ctx, total, 0
+
+    def skip(self, n: int) -> None:
+        self.done += n
+
+    def tick(self, who: str, r: EpisodeResult) -> None:
+        self.done += 1
+        self.ctx.progress(self.done, self.total, f"{who}: {r.total_reward:.0f}")
+
+
+def _evaluate(ctx: TaskContext, env_id: str, label: str, kind: str, ckpt: Path | None,
+              seeds: list[int], progress: _Progress,
+              recorded: list[tuple[str, Path]]) -> list[EpisodeResult]:
+    """One policy on one env over the suite's seeds (recorded as MCAP when asked)."""
+    p = ctx.params
+    size = frame_size(ckpt)
+    env = make_env(env_id, max_steps=p["max_steps"], render=size is not None, size=size or 64)
+    policy = make_policy(kind, env, env_id=env_id, checkpoint=ckpt)
+
+    def tick(index: int, r: EpisodeResult) -> None:
+        progress.tick(f"{label} on {env_id}", r)
+
+    if p["record"]:
+        name = f"rollouts/{label}--{env_id}.mcap"
+        meta = {"env": env_id, "policy": label, "kind": kind, "seed": str(p["seed"]),
+                "episodes": str(len(seeds)), "max_steps": str(p["max_steps"]),
+                "fps": str(round(1.0 / env.unwrapped.dt, 6))}
+        with EpisodeWriter.for_task(ctx, name, meta, dt=env.unwrapped.dt) as writer:
+            results = run_episodes(env, policy, seeds, writer=writer, on_episode=tick,
+                                   cancelled=ctx.cancelled)
+        recorded.append((f"{label}/{env_id}", Path(ctx.output) / name))
+    else:
+        results = run_episodes(env, policy, seeds, on_episode=tick, cancelled=ctx.cancelled)
+    ctx.check_cancelled()
+    env.close()
+    return results
+
+
+def _log_row(ctx: TaskContext, row: dict[str, Any]) -> None:
+    rate = row["success_rate"]
+    norm = row["normalized_score"]
+    ctx.log.info("%-12s %-24s success %s  return %.1f [%.1f, %.1f]  normalised %s  length %.0f",
+                 row["policy"], row["env"], "n/a" if rate is None else f"{100 * rate:.0f}%",
+                 row["mean_return"], *row["return_ci95"],
+                 "n/a" if norm is None else f"{norm:.2f}", row["mean_length"])
 
 
 def _write_rrd(ctx: TaskContext, recorded: list[tuple[str, Path]]) -> None:

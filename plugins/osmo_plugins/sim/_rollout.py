@@ -60,8 +60,8 @@ def run(ctx: TaskContext) -> None:
     def done(index: int, r: EpisodeResult) -> None:
         ctx.progress(index + 1, len(seeds), f"return {r.total_reward:.1f} in {r.length} steps")
 
-    with ctx.mcap_writer(name) as mcap:
-        writer = EpisodeWriter(mcap, meta, dt=env.unwrapped.dt, with_frames=p["render"])
+    with EpisodeWriter.for_task(ctx, name, meta, dt=env.unwrapped.dt,
+                                with_frames=p["render"]) as writer:
         results = run_episodes(env, policy, seeds, writer=writer, render=p["render"],
                                on_episode=done, cancelled=ctx.cancelled)
         ctx.check_cancelled()

@@ -18,7 +18,14 @@ import numpy as np
 
 from osmo_plugins.episodes import EpisodeWriter
 
-__all__ = ["EpisodeResult", "MissingExtra", "make_env", "require", "run_episodes"]
+__all__ = ["OSMO_ENVS", "SUCCESS_KEYS", "EpisodeResult", "MissingExtra", "make_env", "require",
+           "run_episodes"]
+
+OSMO_ENVS = ("osmo/ReacherVision-v0",)
+"""Env ids osmo itself provides (registered with gymnasium when first made)."""
+
+SUCCESS_KEYS = ("is_success", "success")
+"""``info`` keys an env may use for its own success signal, in order of preference."""
 
 
 class MissingExtra(RuntimeError):
@@ -38,13 +45,19 @@ def require(module: str, extra: str) -> Any:
 
 @dataclass(frozen=True)
 class EpisodeResult:
-    """What one episode came to."""
+    """What one episode came to.
+
+    ``signal`` names the env's own success key (``is_success`` or ``success`` in ``info``)
+    when the env reported one; ``success`` is then true when any step reported success.
+    """
 
     seed: int
     total_reward: float
     length: int
     terminated: bool
     truncated: bool
+    success: bool | None = None
+    signal: str | None = None
 
 
 def make_env(env_id: str, *, xml_file: str | Path | None = None, render: bool = False,
@@ -55,6 +68,10 @@ def make_env(env_id: str, *, xml_file: str | Path | None = None, render: bool = 
         os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
     gym = require("gymnasium", "sim")
     require("mujoco", "sim")
+    if env_id in OSMO_ENVS:
+        from osmo_plugins.sim import reacher
+
+        reacher.register()
     kwargs: dict[str, Any] = {}
     if xml_file:
         path = Path(xml_file).resolve()
@@ -106,16 +123,23 @@ def run_episodes(env: Any, policy: Any, seeds: Sequence[int], *,
         obs, _ = env.reset(seed=int(seed))
         policy.reset(int(seed))
         total, t, terminated, truncated = 0.0, 0, False, False
+        key: str | None = None
+        success: bool | None = None
         while not (terminated or truncated):
             action = policy.act(obs)
             frame = env.render() if render else None
-            next_obs, reward, terminated, truncated, _ = env.step(action)
+            next_obs, reward, terminated, truncated, info = env.step(action)
+            if t == 0:  # an env that has a success signal reports it from the first step
+                key = next((k for k in SUCCESS_KEYS if k in info), None)
+            if key is not None:
+                success = bool(success) or bool(info.get(key))
             if writer is not None:
                 writer.step(index, t, obs, action, float(reward), terminated, truncated, frame)
             total += float(reward)
             t += 1
             obs = next_obs
-        result = EpisodeResult(int(seed), total, t, bool(terminated), bool(truncated))
+        result = EpisodeResult(int(seed), total, t, bool(terminated), bool(truncated),
+                               success, key)
         if writer is not None:
             writer.end(index, int(seed), total, t, terminated, truncated)
         results.append(result)

@@ -4,13 +4,18 @@ Every policy runs the same episode seeds on every env. ``policies`` lists ``chec
 (every trained checkpoint among the inputs, named after the task that made it), ``random``
 and ``expert`` (skipped, with a log line, on envs that have none). Writes:
 
-- ``metrics.json``: per policy and env, success rate, mean return with a 95% confidence
-  interval (Student t), mean episode length, and the per-episode returns;
+- ``metrics.json``: per policy and env, the success rate and the criterion it used, mean
+  return with a 95% confidence interval (Student t), the normalised score, mean episode
+  length, and the per-episode returns;
 - ``rollouts/<policy>--<env>.mcap``: every evaluation episode (the episode format);
 - ``eval.rrd``: the same episodes as a rerun recording (when the ``viz`` extra is installed).
 
-Success means the episode ran to the step limit without terminating (the pole stayed up,
-the hopper did not fall): the natural bar for envs that end on failure.
+Success is defined per env (:mod:`osmo_plugins.sim.metrics`): the env's own
+``info["is_success"]``/``info["success"]``, else a return threshold (``success:
+{return_at_least: X}`` for every env, ``success: {ENV: {return_at_least: X}}`` for one, else
+gymnasium's ``reward_threshold`` when the suite runs the env's registered episode length),
+else no success rate at all (``null``, shown as ``n/a``). The normalised score is ``(return -
+random) / (expert - random)`` on envs where both baselines ran in this suite.
 """
 
 from __future__ import annotations
@@ -22,7 +27,7 @@ __all__ = ["EVAL"]
 
 EVAL = PluginType(
     name="sim.eval",
-    version="1",
+    version="2",
     description="Evaluate checkpoints and baselines on fixed seeds × envs → metrics, MCAP, .rrd",
     impl="osmo_plugins.sim._eval:run",
     extra="sim",
@@ -37,5 +42,7 @@ EVAL = PluginType(
         "record": Param(bool, True, "write the evaluation episodes as MCAP"),
         "rrd": Param(bool, True, "write eval.rrd (needs the viz extra)"),
         "threads": Param(int, 1, "torch CPU threads for checkpoints", min=0),
+        "success": Param(dict, {}, "return thresholds: {return_at_least: X} and/or "
+                         "{ENV: {return_at_least: X}} (else the env's signal or gymnasium's)"),
     },
 )

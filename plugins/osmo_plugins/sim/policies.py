@@ -1,11 +1,13 @@
-"""Policies that drive a gymnasium env: ``random``, ``expert`` (LQR) and ``checkpoint``.
+"""Policies that drive a gymnasium env: ``random``, ``expert`` and ``checkpoint``.
 
 A policy is anything with ``reset(seed)`` and ``act(observation) -> action`` (numpy). The
-expert balances the MuJoCo inverted pendulums: it linearises the env's own MuJoCo model about
-its upright rest pose (``mujoco.mjd_transitionFD``), folds in the env's frame skip and solves
-the discrete-time LQR, so it works on any pendulum XML passed to the env, not only the stock
-one. A ``checkpoint`` policy is a LeRobot policy saved by ``lerobot.train`` (loaded lazily:
-importing this module needs numpy only; gymnasium/mujoco/torch are imported when used).
+experts read the env's true MuJoCo state. For the inverted pendulums, LQR: it linearises the
+env's own model about its upright rest pose (central differences of ``mj_step``), folds in
+the env's frame skip and solves the discrete-time LQR, so it works on any pendulum XML passed
+to the env, not only the stock one. For the reachers (Reacher-v5, osmo/ReacherVision-v0),
+inverse kinematics plus joint PD (:mod:`osmo_plugins.sim.reacher`). A ``checkpoint`` policy is
+a LeRobot policy saved by ``lerobot.train`` (loaded lazily: importing this module needs numpy
+only; gymnasium/mujoco/torch are imported when used).
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ import numpy as np
 __all__ = ["EXPERT_ENVS", "ExpertPolicy", "Policy", "RandomPolicy", "has_expert", "linearize",
            "lqr_gain", "make_policy"]
 
-EXPERT_ENVS = ("InvertedPendulum", "InvertedDoublePendulum")
+EXPERT_ENVS = ("InvertedPendulum", "InvertedDoublePendulum", "Reacher", "osmo/ReacherVision")
 """Env families (id without the ``-vN`` suffix) that have an expert."""
 
 
@@ -147,6 +149,10 @@ def make_policy(kind: str, env: Any, *, env_id: str, checkpoint: Path | None = N
         if env_id.split("-")[0] not in EXPERT_ENVS:
             raise ValueError(f"no expert policy for {env_id}; experts exist for "
                              f"{', '.join(EXPERT_ENVS)} (use policy: random or checkpoint)")
+        if "Reacher" in env_id:
+            from osmo_plugins.sim.reacher import ReacherExpert
+
+            return ReacherExpert(env, noise=noise)
         return ExpertPolicy(env, noise=noise)
     if kind == "checkpoint":
         if checkpoint is None:

@@ -15,7 +15,7 @@ __all__ = ["ROLLOUT"]
 
 ROLLOUT = PluginType(
     name="sim.rollout",
-    version="1",
+    version="2",
     description="Roll out a policy in a gymnasium/MuJoCo env; episodes → MCAP (one per shard)",
     impl="osmo_plugins.sim._rollout:run",
     extra="sim",
