@@ -13,12 +13,15 @@ Pure functions; the bottom layer (imports only ``osmo.errors``).
 
 from __future__ import annotations
 
+import difflib
 import re
+from collections.abc import Iterable
 
 from osmo.errors import UsageError
 
 __all__ = ["MAX_NAME", "NAME_RE", "check_name", "check_tag", "check_workflow_id",
-           "name_problem", "parse_ref", "ref_problem", "shown", "workflow_id_problem"]
+           "did_you_mean", "name_problem", "parse_ref", "ref_problem", "shown",
+           "workflow_id_problem"]
 
 NAME_RE = re.compile(r"[a-zA-Z](?:[a-zA-Z0-9_-]*[a-zA-Z0-9])?")
 MAX_NAME = 64
@@ -41,6 +44,12 @@ def shown(value: object) -> str:
         return repr(text)
     quoted = repr(text[:_SHOWN])
     return f"{quoted[:-1]}...{quoted[-1]} ({len(text)} characters)"
+
+
+def did_you_mean(word: str, choices: Iterable[str]) -> str:
+    """`` (did you mean 'x'?)`` for the closest of ``choices`` to ``word``, or an empty string."""
+    close = difflib.get_close_matches(word, list(choices), n=1, cutoff=0.6)
+    return f" (did you mean '{close[0]}'?)" if close else ""
 
 
 def _suggestion(name: str, limit: int) -> str:

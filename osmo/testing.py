@@ -38,8 +38,7 @@ __all__ = ["check_task_type"]
 
 
 def _params_problems(schema: Mapping[str, Any], params: Mapping[str, Any]) -> list[str]:
-    from osmo.tasktypes.api import REQUIRED
-    from osmo.tasktypes.params import value_problem
+    from osmo.params import REQUIRED, value_problem
 
     problems = [f"param '{n}' is not declared (declared: {', '.join(schema) or 'none'})"
                 for n in params if n not in schema]
@@ -52,7 +51,7 @@ def _params_problems(schema: Mapping[str, Any], params: Mapping[str, Any]) -> li
 
 def _run(obj: Any, params: Mapping[str, Any], inputs: Sequence[Path], root: Path) -> list[str]:
     from osmo.tasktypes.context import RunContext
-    from osmo.tasktypes.params import fill_defaults
+    from osmo.params import fill_defaults
 
     output, work = root / "output", root / "work"
     output.mkdir(parents=True)

@@ -241,7 +241,7 @@ class Lineage:
 
 def _osmo_version() -> str:
     """The running osmo's version (imported late: ``osmo/__init__`` is lazy and cheap)."""
-    from osmo import __version__
+    from osmo.version import __version__
 
     return __version__
 

@@ -95,7 +95,7 @@ class JsonMcapWriter:
     """
 
     def __init__(self, path: Path | str, *, compress: bool = True, profile: str = "") -> None:
-        from osmo import __version__
+        from osmo.version import __version__
 
         self.path = Path(path)
         self._tmp = self.path.with_name(f".{self.path.name}.{uuid.uuid4().hex[:12]}.partial")

@@ -15,7 +15,7 @@ from typing import Any
 
 from osmo.artifacts import ArtifactStore, Manifest
 from osmo.errors import NotFoundError, SubmitError, UsageError
-from osmo.names import MAX_NAME, check_name, check_workflow_id, parse_ref, shown
+from osmo.names import MAX_NAME, check_name, check_workflow_id, did_you_mean, parse_ref, shown
 from osmo.scheduler.types import CancelWorkflow, WorkflowSubmitted
 from osmo.server.api_datasets import DatasetApi
 from osmo.server.credentials import CredentialApi, check_task_credentials
@@ -25,7 +25,6 @@ from osmo.server.logview import last_progress, read_logs
 from osmo.spec import isolation, load_spec, spec_from_dict, spec_to_dict
 from osmo.status import WorkflowStatus
 from osmo.store.sqlite import WorkflowRow
-from osmo.spec.reader import did_you_mean
 from osmo.transport.api import MAX_INT, field, str_list
 from osmo.worker.workdir import AttemptDirs
 

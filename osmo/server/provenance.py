@@ -10,12 +10,12 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, field
 
-import osmo
 from osmo.artifacts import Manifest
 from osmo.record import Lineage, LineageInput
 from osmo.scheduler.types import AttemptExited, PrepareAttempt
 from osmo.spec.model import TaskSpec
 from osmo.store.sqlite import LineageRow
+from osmo.version import __version__
 
 __all__ = ["Provenance"]
 
@@ -60,7 +60,7 @@ class Provenance:
             plugin=_plugin(task), params=dict(task.params), image=task.image,
             inputs=placed.inputs,
             started_at=started_at, ended_at=now, exit_code=event.exit_code,
-            manifest_digest=manifest.digest, osmo_version=osmo.__version__)
+            manifest_digest=manifest.digest, osmo_version=__version__)
         return LineageRow(
             attempt_id=event.attempt_id, workflow_id=placed.cmd.workflow_id,
             task=placed.cmd.task, manifest=manifest.digest, manifest_body=event.manifest,

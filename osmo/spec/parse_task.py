@@ -12,11 +12,11 @@ import re
 from pathlib import Path
 from typing import Any
 
+from osmo.names import did_you_mean
 from osmo.spec.model import DEFAULT_RESOURCE, ExitAction, ExitRule, TaskSpec
 from osmo.spec.parse_io import parse_checkpoint, parse_files, parse_inputs, parse_outputs
 from osmo.spec.reader import (
     Ctx,
-    did_you_mean,
     is_empty,
     read_bool,
     read_fields,

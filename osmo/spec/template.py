@@ -26,7 +26,7 @@ from jinja2.sandbox import SandboxedEnvironment
 
 from osmo.errors import Diagnostic
 from osmo.spec import isolation, tokens
-from osmo.spec.reader import did_you_mean
+from osmo.names import did_you_mean
 
 __all__ = ["MAX_NESTING", "MAX_RANGE", "nesting_message", "render"]
 

@@ -18,13 +18,13 @@ from collections.abc import Iterator, Mapping
 from typing import Any, Protocol
 
 from osmo.errors import OsmoError
+from osmo.params import REQUIRED, type_label, value_problem
 from osmo.spec.model import Pos, ResolvedType, ResourceSpec, TaskSpec, WorkflowSpec
 from osmo.spec.parse import Parsed
-from osmo.spec.reader import Ctx, did_you_mean
+from osmo.names import did_you_mean
+from osmo.spec.reader import Ctx
 from osmo.spec.units import parse_size
 from osmo.spec.yamlnodes import Map, Node, to_plain
-from osmo.tasktypes.api import REQUIRED
-from osmo.tasktypes.params import type_label, value_problem
 
 __all__ = ["TypeResolver", "apply_resolved", "check_types"]
 

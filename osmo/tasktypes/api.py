@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
 from osmo.errors import OsmoError
+from osmo.params import REQUIRED, Param
 
 __all__ = [
     "PROGRESS_PREFIX",
@@ -38,36 +39,6 @@ __all__ = [
 
 PROGRESS_PREFIX = "[osmo:progress]"
 """How a progress line starts in a task's log (``osmo query`` shows the latest one)."""
-
-
-class _Required:
-    def __repr__(self) -> str:
-        return "REQUIRED"
-
-
-REQUIRED: Any = _Required()
-"""Default of a :class:`Param` that the task must be given."""
-
-
-@dataclass(frozen=True)
-class Param:
-    """One parameter of a task type, checked at submit (errors point at the spec's line).
-
-    Attributes:
-        type: ``int``, ``float``, ``str``, ``bool``, ``list`` or ``dict`` (an ``int`` is
-            accepted where ``float`` is asked for).
-        default: value when the spec omits it; :data:`REQUIRED` makes it mandatory.
-        help: one line shown by ``osmo plugins list -v`` and in error messages.
-        choices: allowed values (empty: any value of the type).
-        min, max: inclusive bounds for numbers.
-    """
-
-    type: type
-    default: Any = REQUIRED
-    help: str = ""
-    choices: tuple[Any, ...] = ()
-    min: float | None = None
-    max: float | None = None
 
 
 class TaskCancelled(OsmoError):

@@ -47,7 +47,7 @@ absolute path of ``output``. A failed or killed attempt's ``output.partial`` sta
 nobody references it.
 
 Typed tasks (``type:``) run ``python -m osmo.tasktypes.runner <attempt>/task.json``; the
-context file is written here (see ``osmo.tasktypes.launch`` for its format).
+context file is written here (see ``osmo.worker.launch`` for its format).
 
 This module does file-system work only; it spawns nothing and reports nothing.
 """
@@ -70,7 +70,7 @@ from osmo.scheduler.types import PrepareAttempt
 from osmo.spec.model import InputSpec, TaskSpec
 from osmo.spec.tokens import substitute
 from osmo.worker.secrets import Secrets, mounts, secret_env, secret_values
-from osmo.tasktypes import launch
+from osmo.worker import launch
 
 __all__ = ["AttemptDirs", "Launch", "PrepareError", "prepare", "promote", "remove_secret_files"]
 
@@ -182,7 +182,7 @@ def prepare(
     env.update({key: text(str(value)) for key, value in task.environment.items()})
     env.update(secret_env(task, secrets))
     env.update(_osmo_env(dirs, cmd))
-    if task.type:  # a typed task: the runner reads its context file (osmo.tasktypes.launch)
+    if task.type:  # a typed task: the runner reads its context file (osmo.worker.launch)
         argv = launch.runner_argv(dirs.root / launch.CONTEXT_FILE)
         env.update(launch.runner_env(task, env))
     try:
