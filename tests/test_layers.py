@@ -22,7 +22,8 @@ from tests.conftest import REPO
 PACKAGE = REPO / "osmo"
 
 LAYERS: tuple[tuple[str, frozenset[str]], ...] = (
-    ("bottom", frozenset({"errors", "names", "status", "config", "params", "version"})),
+    ("bottom", frozenset({"errors", "names", "status", "config", "params", "layout",
+                          "version"})),
     ("spec", frozenset({"spec"})),
     ("graph", frozenset({"graph"})),
     ("scheduler", frozenset({"scheduler"})),

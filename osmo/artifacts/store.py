@@ -51,6 +51,7 @@ from contextlib import contextmanager
 from io import FileIO
 from pathlib import Path
 
+from osmo.layout import BlobDirs
 from osmo.artifacts.copies import HandOut, Verifier
 from osmo.artifacts.errors import ArtifactCorrupted, OutputRejected
 from osmo.artifacts.fsops import (CHUNK, check_unchanged, files, hash_fd, link, refresh)
@@ -80,8 +81,9 @@ class ArtifactStore(HandOut):
 
     def __init__(self, root: Path) -> None:
         self.root = Path(root)
-        self._blobs = self.root / "blobs" / "sha256"
-        self._tmp = self.root / "tmp"
+        self._dirs = BlobDirs(self.root)
+        self._blobs = self._dirs.blobs
+        self._tmp = self._dirs.tmp
         self._blobs.mkdir(parents=True, exist_ok=True)
         self._tmp.mkdir(exist_ok=True)
         self._dev = os.stat(self._blobs).st_dev
@@ -95,8 +97,7 @@ class ArtifactStore(HandOut):
         Raises:
             UsageError: ``digest`` is malformed.
         """
-        hex_ = check_digest(digest)
-        return self._blobs / hex_[:2] / hex_[2:]
+        return self._dirs.blob(check_digest(digest))
 
     def has(self, digest: str) -> bool:
         """Return whether a blob for ``digest`` exists (its content is not verified)."""

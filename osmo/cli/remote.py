@@ -12,6 +12,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from osmo.layout import Home
 from osmo.config import PROFILE_KEYS, home_dir, read_profile, write_profile
 from osmo.errors import OsmoError, ServerUnreachable, UsageError
 
@@ -111,7 +112,7 @@ def run_health(args: argparse.Namespace) -> int:
 
 def _worker_health(home: Path) -> int:
     try:
-        state: dict[str, Any] = json.loads((home / "worker.json").read_text())
+        state: dict[str, Any] = json.loads(Home(home).worker_health.read_text())
         os.kill(int(state["pid"]), 0)
     except (OSError, ValueError, KeyError):
         print(f"unhealthy: no worker running for {home}", file=sys.stderr)

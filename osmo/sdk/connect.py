@@ -15,6 +15,7 @@ import sys
 import time
 from pathlib import Path
 
+from osmo.layout import Home
 from osmo.config import ServerInfo, home_dir, lock_is_held, read_profile, read_server_info
 from osmo.errors import InfrastructureError, ServerUnreachable
 from osmo.transport.api import ApiClient
@@ -46,11 +47,11 @@ def _wait_ready(home: Path, proc: subprocess.Popen[bytes] | None, timeout: float
         if info is not None and (proc is None or info.pid == proc.pid) and lock_is_held(home):
             return info
         if proc is not None and proc.poll() is not None:
-            log = (home / "server.log").read_text(errors="replace")[-2000:]
+            log = Home(home).server_log.read_text(errors="replace")[-2000:]
             raise InfrastructureError(f"the osmo server exited at start:\n{log}")
         time.sleep(0.02)  # start-up only: waiting for another process to write its file
     raise InfrastructureError(f"the osmo server did not become ready within {timeout:.0f}s; "
-                              f"see {home / 'server.log'}")
+                              f"see {Home(home).server_log}")
 
 
 def start_server(home: str | os.PathLike[str] | None = None, *, listen: str | None = None,
@@ -67,7 +68,7 @@ def start_server(home: str | os.PathLike[str] | None = None, *, listen: str | No
     if cpus:
         args += ["--cpus", str(cpus)]
     args += extra_args or []
-    with open(home_path / "server.log", "ab") as out:
+    with open(Home(home_path).server_log, "ab") as out:
         proc = subprocess.Popen(args, stdin=subprocess.DEVNULL, stdout=out, stderr=out,
                                 start_new_session=True, close_fds=True)
     return _wait_ready(home_path, proc, START_TIMEOUT)
@@ -137,7 +138,7 @@ def _local_config(home: Path) -> str | None:
     if os.environ.get("OSMO_ZENOH_CONFIG"):
         return None  # Link.client takes it from the environment
     try:
-        data = json.loads((home / "server.json").read_text())
+        data = json.loads(Home(home).server_info.read_text())
     except (OSError, ValueError):
         return None
     value = data.get("zenoh_config")

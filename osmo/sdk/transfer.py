@@ -14,6 +14,7 @@ import uuid
 from pathlib import Path
 from typing import Any
 
+from osmo.layout import Home
 from osmo.artifacts import ArtifactStore, Manifest
 from osmo.config import home_dir
 from osmo.transport.blobs import BlobServer, SameHost, fetch_manifest, host_id
@@ -23,7 +24,7 @@ __all__ = ["download", "upload"]
 
 
 def _cache() -> ArtifactStore:
-    return ArtifactStore(home_dir() / "client" / "artifacts")
+    return ArtifactStore(Home(home_dir()).client_artifacts)
 
 
 def _same_host(server: dict[str, Any]) -> SameHost | None:

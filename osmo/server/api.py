@@ -15,6 +15,7 @@ from typing import Any
 
 from osmo.artifacts import ArtifactStore, Manifest
 from osmo.errors import NotFoundError, SubmitError, UsageError
+from osmo.layout import Home
 from osmo.names import MAX_NAME, check_name, check_workflow_id, did_you_mean, parse_ref, shown
 from osmo.scheduler.types import CancelWorkflow, WorkflowSubmitted
 from osmo.server.api_datasets import DatasetApi
@@ -26,7 +27,6 @@ from osmo.spec import isolation, load_spec, spec_from_dict, spec_to_dict
 from osmo.status import WorkflowStatus
 from osmo.store.sqlite import WorkflowRow
 from osmo.transport.api import MAX_INT, field, str_list
-from osmo.worker.workdir import AttemptDirs
 
 __all__ = ["Api"]
 
@@ -46,7 +46,7 @@ class Api:
         self._home = home
         self._info = info
         self._on_shutdown = on_shutdown
-        self._artifacts = ArtifactStore(home / "artifacts")
+        self._artifacts = ArtifactStore(Home(home).artifacts)
         self._verbs: dict[str, Callable[[dict[str, Any]], Any]] = {
             "ping": lambda _r: self._info,
             "submit": self.submit,
@@ -181,7 +181,7 @@ class Api:
         tasks = _ordered_tasks(row, self._store.tasks(row.id))
         for task in tasks:  # typed tasks report progress as log lines; show the latest
             if task.get("status") == "RUNNING":
-                dirs = AttemptDirs.at(self._home, row.id, task["name"], int(task.get("retry", 0)))
+                dirs = Home(self._home).attempt(row.id, task["name"], int(task.get("retry", 0)))
                 task["progress"] = last_progress(dirs.log)
         return {"workflow": _workflow_dict(row), "tasks": tasks}
 

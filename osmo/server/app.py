@@ -30,6 +30,7 @@ from pathlib import Path
 from osmo.artifacts import ArtifactStore
 from osmo.config import free_port, home_dir, write_json_atomic
 from osmo.errors import InfrastructureError, OsmoError
+from osmo.layout import Home
 from osmo.scheduler.types import AttemptLost, NodeUp
 from osmo.server.api import Api
 from osmo.server.credentials import url_credential
@@ -54,13 +55,14 @@ __all__ = ["serve"]
 log = logging.getLogger("osmo.server")
 
 
-def _take_lock(home: Path) -> int:
-    fd = os.open(home / "server.lock", os.O_RDWR | os.O_CREAT, 0o644)
+def _take_lock(home: Home) -> int:
+    fd = os.open(home.server_lock, os.O_RDWR | os.O_CREAT, 0o644)
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:
         os.close(fd)
-        raise InfrastructureError(f"another osmo server is already running for {home}") from None
+        raise InfrastructureError(
+            f"another osmo server is already running for {home.root}") from None
     return fd
 
 
@@ -81,11 +83,12 @@ def serve(home: str | os.PathLike[str] | None = None, *, listen: list[str] | Non
         reconnect_grace: seconds remote workers get to come back after a restart.
     """
     home_path = home_dir(home)
-    lock_fd = _take_lock(home_path)
-    (home_path / "server.json").unlink(missing_ok=True)  # a crashed server's stale address
+    layout = Home(home_path)
+    lock_fd = _take_lock(layout)
+    layout.server_info.unlink(missing_ok=True)  # a crashed server's stale address
     endpoints = list(listen or ([] if connect else [f"tcp/127.0.0.1:{free_port()}"]))
-    store = Store(home_path / "state.db")
-    inflight = InFlight(home_path / "applying.json")
+    store = Store(layout.state_db)
+    inflight = InFlight(layout.applying)
     restored = restore(store)
     active, failed = quarantine(restored.active, inflight.left)
     lost, remote_nodes = split_lost(active)
@@ -98,7 +101,7 @@ def serve(home: str | os.PathLike[str] | None = None, *, listen: list[str] | Non
     on_changed = notifier.changed
 
     engine_box: list[Engine] = []
-    artifacts = ArtifactStore(home_path / "artifacts")
+    artifacts = ArtifactStore(layout.artifacts)
     pool = LocalPool(home=home_path, emit=lambda ev: engine_box[0].post(ev),
                      cpus=cpus, gpus=gpus, memory=memory, artifacts=artifacts,
                      credential_for=url_credential(store),
@@ -138,7 +141,7 @@ def serve(home: str | os.PathLike[str] | None = None, *, listen: list[str] | Non
     api = Api(engine, home_path, info, on_shutdown=stopping.set, workers=hub)
     api_server = ApiServer(link, api.handle,
                            on_crash=lambda exc: log.error("API handler crashed", exc_info=exc))
-    write_json_atomic(home_path / "server.json", info)
+    write_json_atomic(layout.server_info, info)
     log.info("osmo server %s listening on %s (home %s)", os.getpid(),
              ", ".join(endpoints or connect or []), home_path)
 
@@ -151,7 +154,7 @@ def serve(home: str | os.PathLike[str] | None = None, *, listen: list[str] | Non
             pass
     finally:
         time.sleep(0.05)  # let the reply to a `shutdown` request leave
-        (home_path / "server.json").unlink(missing_ok=True)
+        layout.server_info.unlink(missing_ok=True)
         api_server.close()
         hub.close()
         engine.stop()

@@ -24,6 +24,7 @@ from typing import Any
 
 from osmo.artifacts import ArtifactStore, Entry, Manifest
 from osmo.errors import NotFoundError
+from osmo.layout import Home
 from osmo.names import parse_ref
 from osmo.scheduler.types import PrepareAttempt
 from osmo.spec.model import TaskSpec
@@ -52,7 +53,7 @@ class Datasets:
     def __init__(self, store: Store, artifacts: ArtifactStore, home: Path) -> None:
         self._store = store
         self._artifacts = artifacts
-        self._root = home / "datasets"
+        self._home = Home(home)
         self._versions: dict[str, int] = {}
 
     def next_version(self, name: str) -> int:
@@ -123,8 +124,8 @@ class Datasets:
         body = self._store.manifest_body(row["manifest"])
         assert body is not None
         manifest = select(Manifest.from_json(body), path=None, regex=regex)
-        suffix = f"-{hashlib.sha256(regex.encode()).hexdigest()[:12]}" if regex else ""
-        target = self._root / name / f"{row['version']}{suffix}"
+        variant = hashlib.sha256(regex.encode()).hexdigest()[:12] if regex else None
+        target = self._home.dataset_version(name, row["version"], variant)
         if not target.is_dir():
             self._materialize(manifest, target, f"dataset:{name}")
         return target

@@ -27,6 +27,7 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from osmo.layout import Home
 from osmo.scheduler import Scheduler, TaskState, WorkflowState
 from osmo.scheduler.types import AttemptExited, AttemptStartFailed, Event
 from osmo.spec import spec_from_dict
@@ -35,7 +36,6 @@ from osmo.spec.typed import apply_resolved
 from osmo.status import TaskStatus
 from osmo.runtime.process import kill_stale
 from osmo.store.sqlite import AttemptRow, Store
-from osmo.worker.workdir import AttemptDirs
 
 __all__ = ["QUARANTINED", "InFlight", "Restored", "attempt_row", "kill_leftovers",
            "quarantine", "restore", "split_lost"]
@@ -109,7 +109,7 @@ def kill_leftovers(store: Store, lost: list[TaskState]) -> None:
 def attempt_row(home: Path, attempt_id: str, node_id: str | None, pid: int | None = None,
                 pid_start: float | None = None) -> AttemptRow:
     """The store's row of an attempt: where it runs and, locally, its folder and process."""
-    dirs = AttemptDirs.of_attempt(home, attempt_id)
+    dirs = Home(home).attempt_of(attempt_id)
     wf, task, retry = attempt_id.rsplit(":", 2)
     return AttemptRow(attempt_id, wf, task, int(retry), node_id,
                       str(dirs.root) if dirs else None, pid, pid_start)

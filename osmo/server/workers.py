@@ -36,6 +36,7 @@ from typing import Any
 
 from osmo.artifacts import ArtifactStore, Manifest
 from osmo.errors import OsmoError, UsageError
+from osmo.layout import AttemptDirs, Home
 from osmo.scheduler.types import (
     AttemptExited,
     AttemptLost,
@@ -53,7 +54,6 @@ from osmo.transport.blobs import BlobServer, SameHost, fetch_manifest, host_id
 from osmo.transport.zenoh_link import Link, Subscription
 from osmo.worker.secrets import SecretError, gather
 from osmo.worker.wire import capacity_from_dict, event_from_dict, prepare_to_dict, spec_to_wire
-from osmo.worker.workdir import AttemptDirs
 
 __all__ = ["WorkerHub"]
 
@@ -328,7 +328,7 @@ class WorkerHub:
         with self._lock:
             fd = self._logs.get(aid)
             if fd is None:
-                dirs = AttemptDirs.of_attempt(self._home, aid)
+                dirs = Home(self._home).attempt_of(aid)
                 if dirs is None:
                     return  # not an attempt id
                 path = dirs.log
@@ -359,7 +359,7 @@ class WorkerHub:
 
 
 def _dirs(home: Path, attempt_id: str) -> AttemptDirs:
-    dirs = AttemptDirs.of_attempt(home, attempt_id)
+    dirs = Home(home).attempt_of(attempt_id)
     if dirs is None:
         raise OsmoError(f"malformed attempt id {attempt_id!r}")
     return dirs

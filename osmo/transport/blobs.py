@@ -26,6 +26,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from osmo.layout import BlobDirs
 from osmo.artifacts import ArtifactStore, Manifest
 from osmo.artifacts.manifest import check_digest
 from osmo.config import host_id
@@ -52,8 +53,7 @@ class SameHost:
 
     def blob(self, digest: str) -> Path:
         """Where the sender keeps ``digest``."""
-        hex_ = check_digest(digest)
-        return self.root / "blobs" / "sha256" / hex_[:2] / hex_[2:]
+        return BlobDirs(self.root).blob(check_digest(digest))
 
 
 class BlobServer:

@@ -2,10 +2,9 @@
 
 from osmo.worker.logs import LogRecord, LogWriter, read_log
 from osmo.worker.pool import LocalPool, kill_stale, process_start_time
-from osmo.worker.workdir import AttemptDirs, Launch, PrepareError, prepare, promote
+from osmo.worker.workdir import Launch, PrepareError, prepare, promote
 
 __all__ = [
-    "AttemptDirs",
     "Launch",
     "LocalPool",
     "LogRecord",

@@ -28,7 +28,7 @@ from osmo.spec.units import parse_duration
 from osmo.urls import for_url
 from osmo.worker.reactor import Reactor, Timer
 from osmo.worker.transfer import CredentialLookup
-from osmo.worker.workdir import AttemptDirs
+from osmo.layout import AttemptDirs
 
 __all__ = ["Checkpoint", "Checkpointer", "plan", "start_checkpoints"]
 

@@ -36,11 +36,9 @@ from typing import Any
 from osmo.spec.model import InputSpec, TaskSpec
 from osmo.tasktypes.runner import FORMAT
 
-__all__ = ["CONTEXT_FILE", "input_name", "runner_argv", "runner_env",
+__all__ = ["input_name", "runner_argv", "runner_env",
            "write_context"]
 
-CONTEXT_FILE = "task.json"
-"""The context file's name inside the attempt folder."""
 
 
 def input_name(spec: InputSpec) -> str:

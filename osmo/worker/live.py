@@ -15,7 +15,8 @@ from osmo.spec.model import TaskSpec
 from osmo.worker.checkpoints import Checkpointer
 from osmo.worker.logs import LogWriter
 from osmo.worker.reactor import Reactor, Timer
-from osmo.worker.workdir import AttemptDirs, Launch
+from osmo.layout import AttemptDirs
+from osmo.worker.workdir import Launch
 
 __all__ = ["AttemptState", "LiveAttempt"]
 

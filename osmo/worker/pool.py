@@ -48,6 +48,7 @@ from pathlib import Path
 from osmo.artifacts import ArtifactStore
 from osmo.artifacts.store import DEFAULT_MAX_FILES
 from osmo.errors import OsmoError
+from osmo.layout import AttemptDirs, Home
 from osmo.runtime.process import (
     ProcessHandle,
     ProcessRuntime,
@@ -74,7 +75,7 @@ from osmo.worker.live import AttemptState, LiveAttempt
 from osmo.worker.reactor import Reactor
 from osmo.worker.secrets import SecretLookup, Secrets, gather
 from osmo.worker.transfer import CredentialLookup, ManifestLookup, make_ready
-from osmo.worker.workdir import AttemptDirs, Launch, remove_secret_files
+from osmo.worker.workdir import Launch, remove_secret_files
 
 __all__ = ["LocalPool", "kill_stale", "process_start_time"]
 
@@ -129,6 +130,7 @@ class LocalPool(AttemptEndings):
     ) -> None:
         self.home = Path(home).absolute()
         self.home.mkdir(parents=True, exist_ok=True)
+        self._layout = Home(self.home)
         raise_fd_limit()
         self._emit = emit
         self._node_id, self._pool = node_id, pool
@@ -179,14 +181,6 @@ class LocalPool(AttemptEndings):
         """Kill an attempt's process group (SIGTERM, SIGKILL after the grace period)."""
         self._reactor.call_soon(self._kill, attempt_id, reason)
 
-    def attempt_dir(self, attempt_id: str) -> Path | None:
-        """The folder of an attempt (live or finished on this node), or None."""
-        attempt = self._attempts.get(attempt_id)
-        if attempt is not None:
-            return attempt.dirs.root
-        dirs = AttemptDirs.of_attempt(self.home, attempt_id)
-        return dirs.root if dirs is not None and dirs.root.is_dir() else None
-
     def running(self) -> dict[str, int]:
         """Map attempt id → pid (= process group id) of every running attempt."""
         with self._pids_lock:
@@ -215,7 +209,7 @@ class LocalPool(AttemptEndings):
                     max_output_bytes: int | None) -> None:
         """I/O thread: make the folders and files; hand the outcome back to the reactor."""
         try:
-            dirs = AttemptDirs.at(self.home, cmd.workflow_id, cmd.task, cmd.retry)
+            dirs = self._layout.attempt(cmd.workflow_id, cmd.task, cmd.retry)
             if secrets is None:
                 secrets = gather(task, self._task_secrets)
             launch = make_ready(dirs, cmd, task, env=self._env, secrets=secrets,

@@ -36,6 +36,7 @@ from typing import Any
 from osmo.artifacts import ArtifactStore, Manifest
 from osmo.config import write_json_atomic
 from osmo.errors import OsmoError
+from osmo.layout import Home
 from osmo.scheduler.types import (
     AttemptExited,
     AttemptLost,
@@ -55,7 +56,6 @@ __all__ = ["RemoteWorker", "WorkerOptions"]
 
 log = logging.getLogger("osmo.worker")
 
-HEALTH_FILE = "worker.json"
 _HEALTH_EVERY = 5.0
 _INPUT = "artifact:"  # an input reference of this worker: "artifact:<manifest digest>"
 _KEEP_MANIFESTS = 4096  # input manifests remembered (each was fetched whole)
@@ -96,7 +96,8 @@ class RemoteWorker:
         self.home.mkdir(parents=True, exist_ok=True)
         self.opts = options
         self.id = options.name or f"{socket.gethostname()}-{os.getpid()}"
-        self.store = ArtifactStore(self.home / "artifacts")
+        self._layout = Home(self.home)
+        self.store = ArtifactStore(self._layout.artifacts)
         self.link = Link.client(options.connect, options.cluster,
                                 config_file=options.zenoh_config)
         self._api = ApiClient(self.link, timeout=10.0)
@@ -186,7 +187,7 @@ class RemoteWorker:
         self.pool.close()
         self._io.shutdown(wait=False, cancel_futures=True)
         self.link.close()
-        (self.home / HEALTH_FILE).unlink(missing_ok=True)
+        self._layout.worker_health.unlink(missing_ok=True)
 
     # ------------------------------------------------------------------ registration
 
@@ -232,7 +233,7 @@ class RemoteWorker:
             state = {"id": self.id, "pid": os.getpid(), "connected": self._connected,
                      "draining": self._draining, "running": len(self._active),
                      "updated_at": time.time()}
-        write_json_atomic(self.home / HEALTH_FILE, state)
+        write_json_atomic(self._layout.worker_health, state)
 
     # ------------------------------------------------------------------ orders
 

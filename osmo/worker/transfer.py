@@ -34,7 +34,8 @@ from osmo.scheduler.types import PrepareAttempt
 from osmo.spec.model import TaskSpec
 from osmo.urls import for_url
 from osmo.worker.secrets import Secrets
-from osmo.worker.workdir import AttemptDirs, Launch, prepare, promote, remove_secret_files
+from osmo.layout import AttemptDirs
+from osmo.worker.workdir import Launch, prepare, promote, remove_secret_files
 
 __all__ = ["CredentialLookup", "DeliveryError", "InputCopies", "ManifestLookup", "copy_inputs",
            "deliver", "fetch_inputs", "make_ready", "plan_input_copies", "push_outputs"]
@@ -48,10 +49,6 @@ InputCopies = list[tuple[Manifest, Path]]
 _KEEP_COPIES = 1 << 20  # input copies up to this size stay with the attempt's folder
 
 
-def _inputs_dir(dirs: AttemptDirs) -> Path:
-    return dirs.root.with_name(f"{dirs.root.name}.inputs")
-
-
 def fetch_inputs(cmd: PrepareAttempt, task: TaskSpec, dirs: AttemptDirs,
                  credential_for: CredentialLookup | None) -> PrepareAttempt:
     """Download every ``url`` input; returns ``cmd`` with their folders as inputs.
@@ -60,7 +57,7 @@ def fetch_inputs(cmd: PrepareAttempt, task: TaskSpec, dirs: AttemptDirs,
         OsmoError: a download failed (``UrlError``) or a URL is malformed (``UsageError``).
     """
     extra: dict[str, str] = {}
-    base = _inputs_dir(dirs)
+    base = dirs.url_inputs
     for index, spec in enumerate(task.inputs):
         if spec.url is None:
             continue
