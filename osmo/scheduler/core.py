@@ -28,6 +28,7 @@ from osmo.scheduler.placement import enqueue, place_pending
 from osmo.scheduler.runs import Run, group_outcome
 from osmo.scheduler.state import TaskState, WorkflowState
 from osmo.scheduler.types import (
+    DEFAULT_MAX_RETRIES,
     AttemptExited,
     AttemptLost,
     AttemptPrepared,
@@ -64,7 +65,8 @@ class Scheduler:
         max_lost_retries: how many times a task is retried after lost attempts.
     """
 
-    def __init__(self, *, default_max_retries: int = 3, max_lost_retries: int = 5) -> None:
+    def __init__(self, *, default_max_retries: int = DEFAULT_MAX_RETRIES,
+                 max_lost_retries: int = 5) -> None:
         self._eng = Engine(default_max_retries=default_max_retries,
                            max_lost_retries=max_lost_retries)
 

@@ -95,7 +95,8 @@ class Engine:
         The attempt's resources stay reserved until its final report arrives.
         """
         if kill is not None and task.status.active and task.attempt_id is not None:
-            self.out.append(KillAttempt(task.attempt_id, kill))
+            assert task.node_id is not None  # an active attempt is placed
+            self.out.append(KillAttempt(task.attempt_id, task.node_id, kill))
         task.exit_code = exit_code
         self.set_status(run, task, status, message)
 
@@ -110,9 +111,9 @@ class Engine:
             return
         batch.released = True
         for name in batch.members:
-            attempt = run.tasks[name].attempt_id
-            assert attempt is not None
-            self.out.append(RunAttempt(attempt))
+            task = run.tasks[name]
+            assert task.attempt_id is not None and task.node_id is not None
+            self.out.append(RunAttempt(task.attempt_id, task.node_id))
 
     def _leave_batch(self, run: Run, group: Group, name: str) -> None:
         group.prepared.discard(name)

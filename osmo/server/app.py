@@ -111,7 +111,7 @@ def serve(home: str | os.PathLike[str] | None = None, *, listen: list[str] | Non
                     artifacts=artifacts, home=home_path, url_credential=url_credential(store),
                     engine_call=lambda fn: engine_box[0].call(fn))
     records = RunRecords(store, home_path)
-    dispatcher = Dispatcher(pool, hub, node_of=lambda aid: _node_of(engine_box[0], aid))
+    dispatcher = Dispatcher(pool, hub)
     fatal: list[BaseException] = []
 
     def on_fatal(exc: BaseException) -> None:
@@ -181,11 +181,6 @@ def _local_endpoint(endpoints: list[str]) -> str:
             local = {"0.0.0.0": "127.0.0.1", "[::]": "[::1]"}.get(host, host)
             return f"tcp/{local}:{port}"
     return endpoints[0]
-
-
-def _node_of(engine: Engine, attempt_id: str) -> str | None:
-    task = engine.scheduler.attempt(attempt_id)
-    return task.node_id if task is not None else None
 
 
 def main() -> None:

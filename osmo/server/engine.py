@@ -70,9 +70,8 @@ class Executor(Protocol):
 
     def prepare(self, cmd: PrepareAttempt, task: TaskSpec, *,
                 max_output_bytes: int | None = None) -> None: ...
-    def run(self, attempt_id: str) -> None: ...
-    def kill(self, attempt_id: str, reason: str) -> None: ...
-    def running(self) -> dict[str, int]: ...
+    def run(self, cmd: RunAttempt) -> None: ...
+    def kill(self, cmd: KillAttempt) -> None: ...
 
 
 @dataclass
@@ -253,7 +252,7 @@ class Engine(FaultIsolation):
         if not isinstance(event, (AttemptExited, AttemptStartFailed, AttemptLost)):
             batch.commands += self.scheduler.handle(event, now)
             if isinstance(event, AttemptStarted):
-                self._note_pid(event.attempt_id, batch)
+                self._note_pid(event, batch)
             return
         before = self.scheduler.attempt(event.attempt_id)  # None: a stale (fenced) report
         if before is None:
@@ -301,15 +300,15 @@ class Engine(FaultIsolation):
             guard(future.set_result, result)
         for cmd in batch.commands:
             self._execute(cmd)
-        changed = {w.id for w in changes.workflows}  # type: ignore[attr-defined]
-        changed |= {t.workflow_id for t in changes.tasks}  # type: ignore[attr-defined]
+        changed = {w.id for w in changes.workflows}
+        changed |= {t.workflow_id for t in changes.tasks}
         if changed:
             guard(self._on_changed, changed)
         for wf in changes.workflows:
-            if wf.status.terminal:  # type: ignore[attr-defined]
-                guard(self.scheduler.forget, wf.id)  # type: ignore[attr-defined]
-                self.specs.pop(wf.id, None)  # type: ignore[attr-defined]
-                guard(self._on_finished, wf.id)  # type: ignore[attr-defined]
+            if wf.status.terminal:
+                guard(self.scheduler.forget, wf.id)
+                self.specs.pop(wf.id, None)
+                guard(self._on_finished, wf.id)
 
     # ------------------------------------------------------------------ commands
 
@@ -318,24 +317,21 @@ class Engine(FaultIsolation):
             if isinstance(cmd, PrepareAttempt):
                 self.placements.prepare(cmd)
             elif isinstance(cmd, RunAttempt):
-                self.executor.run(cmd.attempt_id)
+                self.executor.run(cmd)
             elif isinstance(cmd, KillAttempt):
-                self.executor.kill(cmd.attempt_id, cmd.reason)
+                self.executor.kill(cmd)
         except Exception as exc:  # noqa: BLE001 - a worker bug must not stop the engine
             log.exception("executing %r failed", cmd)
             if not isinstance(cmd, KillAttempt):  # else it would wait for ever to start
                 self.post(AttemptStartFailed(cmd.attempt_id, f"cannot start: {reason(exc)}"))
 
-    def _note_pid(self, attempt_id: str, batch: _Batch) -> None:
-        """Record the attempt's pid so a restarted server can kill a leftover process."""
-        from osmo.runtime.process import process_start_time
-
-        pid = self.executor.running().get(attempt_id)
-        task = self.scheduler.attempt(attempt_id)
-        if pid is None or task is None:
+    def _note_pid(self, event: AttemptStarted, batch: _Batch) -> None:
+        """Record a local attempt's pid so a restarted server can kill a leftover process."""
+        task = self.scheduler.attempt(event.attempt_id)
+        if event.pid is None or task is None:
             return
-        batch.attempts.append(attempt_row(self._home, attempt_id, task.node_id, pid,
-                                                process_start_time(pid)))
+        batch.attempts.append(attempt_row(self._home, event.attempt_id, task.node_id,
+                                          event.pid, event.pid_start))
 
 
 def _parts(items: list[Any]) -> list[list[Any]]:

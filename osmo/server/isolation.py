@@ -20,8 +20,8 @@ from typing import Any
 from osmo.errors import InfrastructureError, OsmoError
 from osmo.scheduler import Scheduler
 from osmo.scheduler.state import TaskState
-from osmo.scheduler.types import (AttemptExited, AttemptLost, AttemptStartFailed, Command,
-                                  Event, KillAttempt, NodeUp, Tick)
+from osmo.scheduler.types import (LOCAL_NODE, AttemptExited, AttemptLost, AttemptStartFailed,
+                                  Command, Event, KillAttempt, NodeUp, Tick)
 from osmo.server.recovery import Restored
 from osmo.spec.model import WorkflowSpec
 from osmo.status import TaskStatus
@@ -96,10 +96,10 @@ class FaultIsolation:
         self.specs.update(restored.specs)
         self.no_cache |= restored.no_cache
         again = restarting(restored.active)
-        self._apply([*(NodeUp(n) for n in nodes), *(AttemptLost(a, REBUILT) for a in again)],
-                    tick=False)
-        for aid in again:
-            self._execute(KillAttempt(aid, REBUILT))
+        self._apply([*(NodeUp(n) for n in nodes), *(AttemptLost(k.attempt_id, REBUILT)
+                                                     for k in again)], tick=False)
+        for kill in again:
+            self._execute(kill)
 
     def _refuse(self, item: Any, exc: Exception) -> None:
         """Turn a culprit into its failure: an API call's error, an attempt's failure, or
@@ -112,6 +112,8 @@ class FaultIsolation:
         if not isinstance(getattr(item, "attempt_id", None), str):
             log.error("dropped %s: %s", describe(item), why)
             return
+        placed = self.scheduler.attempt(item.attempt_id)
+        node = placed.node_id if placed is not None and placed.node_id else LOCAL_NODE
         for failure in failures(item, why):
             try:
                 self._apply([failure], tick=False)
@@ -122,8 +124,8 @@ class FaultIsolation:
         else:
             raise InfrastructureError(f"the failure of {describe(item)} cannot be recorded")
         if not isinstance(item, FINAL):  # it still runs: stop it
-            self._execute(KillAttempt(item.attempt_id, f"the server could not apply its "
-                                                        f"report ({why})"))
+            self._execute(KillAttempt(item.attempt_id, node, f"the server could not apply its "
+                                                              f"report ({why})"))
 
     def _abandon(self, exc: BaseException) -> None:
         """The engine stopped: every call in hand or queued gets an error."""
@@ -165,10 +167,11 @@ def failures(event: Any, why: str) -> list[Event]:
     return out
 
 
-def restarting(active: list[TaskState]) -> list[str]:
+def restarting(active: list[TaskState]) -> list[KillAttempt]:
     """Attempts a rebuilt scheduler must start again: those still starting, since where
-    their group's barrier stood is not in the store (running ones carry on)."""
-    return [t.attempt_id for t in active
+    their group's barrier stood is not in the store (running ones carry on); each as the
+    kill that stops what its executor prepared."""
+    return [KillAttempt(t.attempt_id, t.node_id or LOCAL_NODE, REBUILT) for t in active
             if t.attempt_id and t.status is TaskStatus.INITIALIZING]
 
 

@@ -235,7 +235,7 @@ class Store(LineageQueries):
                     (wf_id, name, n, "PENDING", at, json.dumps(spec), json.dumps(options), "{}"),
                 )
             for wf in changes.workflows:
-                state = wf.to_dict()  # type: ignore[attr-defined]
+                state = wf.to_dict()
                 db.execute(
                     "UPDATE workflows SET status = ?, state = ? WHERE id = ?",
                     (state["status"], json.dumps(state), state["id"]),
@@ -244,7 +244,7 @@ class Store(LineageQueries):
                 "INSERT OR REPLACE INTO tasks VALUES (?,?,?,?)",
                 [
                     (s["workflow_id"], s["name"], s["status"], json.dumps(s))
-                    for s in (t.to_dict() for t in changes.tasks)  # type: ignore[attr-defined]
+                    for s in (t.to_dict() for t in changes.tasks)
                 ],
             )
             db.executemany(

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import collections
 import logging
-import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 
@@ -43,8 +42,6 @@ class AttemptEndings:
     _io: ThreadPoolExecutor
     _attempts: dict[str, LiveAttempt]
     _finished: collections.OrderedDict[str, None]
-    _pids: dict[str, int]
-    _pids_lock: threading.Lock
     _artifacts: ArtifactStore | None
     _credential_for: CredentialLookup | None
     _max_output_files: int | None
@@ -102,8 +99,6 @@ class AttemptEndings:
             remove_secret_files(attempt.launch)
         # Reported from here, one thread hop sooner; the reactor's bookkeeping follows (a
         # kill() that comes meanwhile finds it FINISHING and is ignored).
-        with self._pids_lock:
-            self._pids.pop(attempt.id, None)
         self._emit(event)
         self._reactor.call_soon(self._finish, attempt, None)
 
@@ -123,8 +118,6 @@ class AttemptEndings:
             remove_secret_files(attempt.launch)
             self._drop_scratch(attempt.launch)
             self._attempts.pop(attempt.id, None)
-            with self._pids_lock:
-                self._pids.pop(attempt.id, None)
             self._remember(attempt.id)
             if event is not None:
                 self._emit(event)

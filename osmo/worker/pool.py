@@ -39,7 +39,6 @@ import functools
 import logging
 import os
 import signal
-import threading
 from collections.abc import Callable, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
@@ -146,8 +145,6 @@ class LocalPool(AttemptEndings):
         self._log_sink = log_sink
         self._attempts: dict[str, LiveAttempt] = {}
         self._finished: collections.OrderedDict[str, None] = collections.OrderedDict()
-        self._pids: dict[str, int] = {}
-        self._pids_lock = threading.Lock()
         self._reactor = Reactor(f"osmo-pool-{pool}")
         self._io = ThreadPoolExecutor(_IO_THREADS, thread_name_prefix=f"osmo-io-{pool}")
         self._preparing: dict[str, str | None] = {}  # attempt id → kill reason, if killed
@@ -180,11 +177,6 @@ class LocalPool(AttemptEndings):
     def kill(self, attempt_id: str, reason: str) -> None:
         """Kill an attempt's process group (SIGTERM, SIGKILL after the grace period)."""
         self._reactor.call_soon(self._kill, attempt_id, reason)
-
-    def running(self) -> dict[str, int]:
-        """Map attempt id → pid (= process group id) of every running attempt."""
-        with self._pids_lock:
-            return dict(self._pids)
 
     def close(self) -> None:
         """Kill every running process group and stop the threads (no more events).
@@ -267,7 +259,7 @@ class LocalPool(AttemptEndings):
             return
         self._emit(AttemptPrepared(attempt.id))
         if isinstance(started, ProcessHandle):
-            self._emit(AttemptStarted(attempt.id))
+            self._emit(_started(attempt.id, started))
         elif isinstance(started, str):
             attempt.log.line("osmo", f"start failed: {started}")
             self._finish(attempt, AttemptStartFailed(attempt.id, started))
@@ -294,12 +286,10 @@ class LocalPool(AttemptEndings):
             self._finish(attempt, AttemptStartFailed(attempt_id, str(exc)))
             return
         self._watch(attempt, handle)
-        self._emit(AttemptStarted(attempt_id))
+        self._emit(_started(attempt_id, handle))
 
     def _watch(self, attempt: LiveAttempt, handle: ProcessHandle) -> None:
         attempt.handle, attempt.state = handle, AttemptState.RUNNING
-        with self._pids_lock:
-            self._pids[attempt.id] = handle.pid
         reactor = self._reactor
         for fd, stream in ((handle.stdout_fd, "stdout"), (handle.stderr_fd, "stderr")):
             attempt.open_fds.add(fd)
@@ -343,5 +333,9 @@ class LocalPool(AttemptEndings):
             attempt.log.close()
             remove_secret_files(attempt.launch)
         self._attempts.clear()
-        with self._pids_lock:
-            self._pids.clear()
+
+
+def _started(attempt_id: str, handle: ProcessHandle) -> AttemptStarted:
+    """The start report, with the process (group) id and its start time: recorded by the
+    server, so that a restarted server can kill what is left of it."""
+    return AttemptStarted(attempt_id, handle.pid, process_start_time(handle.pid))

@@ -257,12 +257,13 @@ def test_large_output_is_not_lost(pool: LocalPool, events: Events) -> None:
 
 def test_kill_running_kills_grandchildren(pool: LocalPool, events: Events) -> None:
     aid = submit(pool, sh("k", "sleep 100 & echo $! > bg.pid; echo started; sleep 100"))
-    events.wait_for(lambda e: isinstance(e, AttemptStarted))
+    started = events.wait_for(lambda e: isinstance(e, AttemptStarted))
+    assert isinstance(started, AttemptStarted) and started.pid is not None
     folder = attempt_dir(pool, aid)
     assert folder is not None
     wait_until(lambda: ("stdout", "started") in log_of(pool, aid))
     grandchild = int((folder / "work" / "bg.pid").read_text())
-    assert aid in pool.running()
+    assert alive(started.pid) and started.pid_start is not None
     pool.kill(aid, "exec timeout")
     final = events.final(aid)
     assert isinstance(final, AttemptExited)
@@ -271,7 +272,7 @@ def test_kill_running_kills_grandchildren(pool: LocalPool, events: Events) -> No
     assert ("osmo", "killed: exec timeout") in log_of(pool, aid)
     assert not (folder / "output").exists()
     wait_until(lambda: not alive(grandchild))
-    assert aid not in pool.running()
+    assert not alive(started.pid)
 
 
 def test_kill_escalates_to_sigkill(pool: LocalPool, events: Events) -> None:
@@ -327,11 +328,10 @@ def test_kill_of_finished_or_unknown_attempt_is_ignored(pool: LocalPool, events:
 def test_close_kills_running_processes(tmp_path: Path, events: Events) -> None:
     pool = LocalPool(home=tmp_path, emit=events)
     aid = submit(pool, sh("long", "sleep 100"))
-    events.wait_for(lambda e: isinstance(e, AttemptStarted))
-    pid = pool.running()[aid]
+    started = events.wait_for(lambda e: isinstance(e, AttemptStarted) and e.attempt_id == aid)
+    assert isinstance(started, AttemptStarted) and started.pid is not None
     pool.close()
-    assert not alive(pid)
-    assert pool.running() == {}
+    assert not alive(started.pid)
     pool.close()  # idempotent
 
 
