@@ -1,8 +1,9 @@
 """The server's request handlers: one function per API verb, JSON in and JSON out.
 
-Mutating verbs (submit, cancel, restart) run on the engine thread through ``Engine.call`` and
-reply only after their changes are committed. Read verbs read the store directly from the
-calling API thread. Handlers raise ``OsmoError`` subclasses for the client's mistakes.
+Mutating verbs (submit, cancel, restart) ask the engine with a typed request
+(``osmo.server.requests``) and reply only after their changes are committed. Read verbs read
+the store directly from the calling API thread. Handlers raise ``OsmoError`` subclasses for
+the client's mistakes.
 """
 
 from __future__ import annotations
@@ -14,15 +15,16 @@ from pathlib import Path
 from typing import Any
 
 from osmo.artifacts import ArtifactStore, Manifest
-from osmo.errors import NotFoundError, SubmitError, UsageError
+from osmo.errors import NotFoundError, UsageError
 from osmo.layout import Home
 from osmo.names import MAX_NAME, check_name, check_workflow_id, did_you_mean, parse_ref, shown
-from osmo.scheduler.types import CancelWorkflow, WorkflowSubmitted
+from osmo.scheduler.types import CancelWorkflow
 from osmo.server.api_datasets import DatasetApi
 from osmo.server.credentials import CredentialApi, check_task_credentials
-from osmo.server.engine import Engine, _Batch
+from osmo.server.engine import Engine
 from osmo.server.lineage_query import lineage_graph, resolve_target
 from osmo.server.logview import last_progress, read_logs
+from osmo.server.requests import ListNodes, SubmitWorkflow
 from osmo.spec import isolation, load_spec, spec_from_dict, spec_to_dict
 from osmo.status import WorkflowStatus
 from osmo.store.sqlite import WorkflowRow
@@ -30,7 +32,6 @@ from osmo.transport.api import MAX_INT, field, str_list
 
 __all__ = ["Api"]
 
-DEFAULT_MAX_RETRIES = 3
 MAX_LIST = 1_000_000  # workflows one ``list`` may ask for
 _MAX_TEXT = 4096  # characters of a path, a pool or an artifact target in a request
 
@@ -118,42 +119,17 @@ class Api:
             spec = spec_from_dict(stored, filename=filename or "<submitted>",
                                   types=Resolver(type_paths))
         check_task_credentials(spec, self._store)
-        pool = pool or spec.pool
-        options = {"pool": pool, "filename": filename, "reused_from": reused_from,
+        options = {"pool": pool or spec.pool, "filename": filename, "reused_from": reused_from,
                    "no_cache": field(request, "no_cache", bool, default=False),
                    "type_paths": type_paths,
                    "types": {t.name: t.resolved.to_dict() for t in spec.all_tasks()
                              if t.resolved is not None}}
-
-        def do(engine: Engine, batch: _Batch, now: float) -> str:
-            reasons = engine.scheduler.check_fit(spec, pool)
-            if reasons:
-                raise SubmitError("cannot run this workflow:\n  " + "\n  ".join(reasons))
-            n = engine.next_number(spec.name)
-            wf_id = f"{spec.name}-{n}"
-            max_retries = spec.max_retries if spec.max_retries is not None else DEFAULT_MAX_RETRIES
-            batch.commands += engine.scheduler.handle(
-                WorkflowSubmitted(wf_id, spec, max_retries, pool, reused), now)
-            engine.specs[wf_id] = spec
-            if options["no_cache"]:
-                engine.no_cache.add(wf_id)
-            batch.new_workflows.append((wf_id, spec.name, n, now, stored, options))
-            return wf_id
-
-        return {"workflow_id": self._engine.call(do)}
+        return {"workflow_id": self._engine.ask(SubmitWorkflow(spec, stored, options, reused))}
 
     def cancel(self, request: dict[str, Any]) -> dict[str, Any]:
         """Cancel a workflow; a no-op for one already ended."""
         row = self._row(request.get("workflow_id"))
-
-        def do(engine: Engine, batch: _Batch, now: float) -> None:
-            try:
-                engine.scheduler.workflow(row.id)
-            except KeyError:
-                return  # already terminal and forgotten
-            batch.commands += engine.scheduler.handle(CancelWorkflow(row.id), now)
-
-        self._engine.call(do)
+        self._engine.ask(CancelWorkflow(row.id))
         return {"workflow_id": row.id, "status": self._row(row.id).status}
 
     def restart(self, request: dict[str, Any]) -> dict[str, Any]:
@@ -209,11 +185,9 @@ class Api:
 
     def pools(self, _request: dict[str, Any]) -> builtins.list[dict[str, Any]]:
         """Known nodes with their pool, platform and capacity used/total."""
-        sched = self._engine.scheduler
         remote = {w["id"]: w for w in self._workers.workers()} if self._workers else {}
         out = []
-        for node in sched.nodes():
-            used = sched.used(node.id)
+        for node, used in self._engine.ask(ListNodes()):
             worker = remote.get(node.id, {})
             out.append({"node": node.id, "pool": node.pool, "platform": node.platform,
                         "status": worker.get("status", "online"),

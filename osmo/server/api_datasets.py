@@ -19,7 +19,8 @@ from osmo.artifacts import ArtifactStore, Manifest
 from osmo.errors import InfrastructureError, NotFoundError, UsageError
 from osmo.names import check_name, check_tag, parse_ref, shown
 from osmo.server.datasets import select
-from osmo.server.engine import Engine, _Batch
+from osmo.server.engine import Engine
+from osmo.server.requests import AddDatasetVersion, TagDataset
 from osmo.transport.api import field, str_map
 
 __all__ = ["DatasetApi"]
@@ -60,11 +61,7 @@ class DatasetApi:
         """Point ``tag`` at a version (moving it if it pointed elsewhere)."""
         tag = check_tag(request.get("tag"))
         row = self._row(request.get("ref"))
-
-        def do(engine: Engine, batch: _Batch, now: float) -> None:
-            batch.tags.append((row["name"], tag, row["version"]))
-
-        self._engine.call(do)
+        self._engine.ask(TagDataset(row["name"], tag, row["version"]))
         return {"name": row["name"], "version": row["version"], "tag": tag}
 
     def download(self, request: dict[str, Any]) -> dict[str, Any]:
@@ -94,16 +91,7 @@ class DatasetApi:
         source = field(request, "source", dict)
         metadata = str_map(request, "metadata")
         self._pull(source, manifest)
-        datasets = self._engine.datasets
-        assert datasets is not None
-
-        def do(engine: Engine, batch: _Batch, now: float) -> int:
-            row = datasets.version_row(name, manifest, source=None,
-                                       attempt_id=None, now=now, metadata=metadata)
-            batch.datasets.append(row)
-            return row.version
-
-        version = self._engine.call(do)
+        version = self._engine.ask(AddDatasetVersion(name, manifest, metadata))
         return {"name": name, "version": version, "manifest": manifest.digest}
 
     def _row(self, ref: object) -> dict[str, Any]:

@@ -36,6 +36,8 @@ from osmo.server.api import Api
 from osmo.server.credentials import url_credential
 from osmo.server.datasets import Datasets
 from osmo.server.engine import Engine
+from osmo.server.inbox import Inbox
+from osmo.server.requests import AttemptsOn
 from osmo.server.isolation import reason
 from osmo.server.recovery import InFlight, kill_leftovers, quarantine, restore, split_lost
 from osmo.server.notices import Notifier
@@ -100,16 +102,16 @@ def serve(home: str | os.PathLike[str] | None = None, *, listen: list[str] | Non
     notifier = Notifier(link)
     on_changed = notifier.changed
 
-    engine_box: list[Engine] = []
+    inbox = Inbox()
     artifacts = ArtifactStore(layout.artifacts)
-    pool = LocalPool(home=home_path, emit=lambda ev: engine_box[0].post(ev),
+    pool = LocalPool(home=home_path, emit=inbox.post,
                      cpus=cpus, gpus=gpus, memory=memory, artifacts=artifacts,
                      credential_for=url_credential(store),
                      input_manifests=output_manifests(store),
                      task_secrets=store.credential) if local_pool else None
-    hub = WorkerHub(link=link, post=lambda ev: engine_box[0].post(ev), store=store,
+    hub = WorkerHub(link=link, post=inbox.post, store=store,
                     artifacts=artifacts, home=home_path, url_credential=url_credential(store),
-                    engine_call=lambda fn: engine_box[0].call(fn))
+                    attempts_on=lambda node: list(inbox.ask(AttemptsOn(node))))
     records = RunRecords(store, home_path)
     dispatcher = Dispatcher(pool, hub)
     fatal: list[BaseException] = []
@@ -118,12 +120,11 @@ def serve(home: str | os.PathLike[str] | None = None, *, listen: list[str] | Non
         fatal.append(exc)
         stopping.set()
 
-    engine = Engine(store=store, scheduler=restored.scheduler, executor=dispatcher,
+    engine = Engine(store=store, scheduler=restored.scheduler, executor=dispatcher, inbox=inbox,
                     specs=restored.specs, on_changed=on_changed, home=home_path,
                     on_finished=records.finished, datasets=Datasets(store, artifacts, home_path),
                     no_cache=restored.no_cache, restore=lambda: restore(store),
                     inflight=inflight, on_fatal=on_fatal)
-    engine_box.append(engine)
     if pool is not None:
         engine.post(NodeUp(pool.node()))
     for event in failed:

@@ -71,16 +71,17 @@ class WorkerHub:
         artifacts: the server's artifact store.
         home: the server's home (attempt logs and outputs live under ``runs/``).
         url_credential: ``url -> credential`` for data URLs.
-        engine_call: runs a function on the engine thread (to ask the scheduler).
+        attempts_on: the ids of the attempts the scheduler placed on a node (asked of the
+            engine when a worker registers again).
     """
 
     def __init__(self, *, link: Link, post: Callable[[Event], None], store: Store,
                  artifacts: ArtifactStore, home: Path,
                  url_credential: Callable[[str], dict[str, str] | None],
-                 engine_call: Callable[[Callable[..., Any]], Any]) -> None:
+                 attempts_on: Callable[[str], list[str]]) -> None:
         self._link, self._post, self._store = link, post, store
         self._artifacts, self._home = artifacts, home
-        self._url_credential, self._engine_call = url_credential, engine_call
+        self._url_credential, self._attempts_on = url_credential, attempts_on
         self._lock = threading.Lock()
         self._nodes: dict[str, Node] = {}  # registered workers
         self._info: dict[str, dict[str, Any]] = {}
@@ -147,7 +148,7 @@ class WorkerHub:
     def _reconcile(self, wid: str, active: set[str], finished: list[dict[str, Any]]) -> None:
         """After a (re-)registration: replay finished reports; attempts the scheduler placed
         there that the worker knows nothing of are lost."""
-        known = set(self._engine_call(lambda eng, _b, _n: eng.scheduler.attempts_on(wid)))
+        known = set(self._attempts_on(wid))
         done = {str(r.get("attempt_id")) for r in finished}
         for report in finished:
             self._handle(wid, report)
