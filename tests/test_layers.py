@@ -27,7 +27,7 @@ LAYERS: tuple[tuple[str, frozenset[str]], ...] = (
     ("spec", frozenset({"spec"})),
     ("graph", frozenset({"graph"})),
     ("scheduler", frozenset({"scheduler"})),
-    ("adapters", frozenset({"store", "transport", "artifacts", "runtime", "record",
+    ("adapters", frozenset({"executor", "store", "transport", "artifacts", "runtime", "record",
                             "urls", "tasktypes"})),
     ("workers", frozenset({"worker"})),
     ("server", frozenset({"server"})),

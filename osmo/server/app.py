@@ -30,6 +30,7 @@ from pathlib import Path
 from osmo.artifacts import ArtifactStore
 from osmo.config import free_port, home_dir, write_json_atomic
 from osmo.errors import InfrastructureError, OsmoError
+from osmo.executor import Executor
 from osmo.layout import Home
 from osmo.scheduler.types import AttemptLost, NodeUp
 from osmo.server.api import Api
@@ -43,7 +44,6 @@ from osmo.server.recovery import InFlight, kill_leftovers, quarantine, restore, 
 from osmo.server.notices import Notifier
 from osmo.server.placing import output_manifests
 from osmo.server.options import add_server_options, server_kwargs
-from osmo.server.dispatch import Dispatcher
 from osmo.server.workers import WorkerHub
 from osmo.transport.blobs import host_id
 from osmo.server.records import RunRecords
@@ -109,18 +109,18 @@ def serve(home: str | os.PathLike[str] | None = None, *, listen: list[str] | Non
                      credential_for=url_credential(store),
                      input_manifests=output_manifests(store),
                      task_secrets=store.credential) if local_pool else None
-    hub = WorkerHub(link=link, post=inbox.post, store=store,
+    hub = WorkerHub(link=link, emit=inbox.post, store=store,
                     artifacts=artifacts, home=home_path, url_credential=url_credential(store),
                     attempts_on=lambda node: list(inbox.ask(AttemptsOn(node))))
     records = RunRecords(store, home_path)
-    dispatcher = Dispatcher(pool, hub)
     fatal: list[BaseException] = []
 
     def on_fatal(exc: BaseException) -> None:
         fatal.append(exc)
         stopping.set()
 
-    engine = Engine(store=store, scheduler=restored.scheduler, executor=dispatcher, inbox=inbox,
+    executors: list[Executor] = [hub] if pool is None else [pool, hub]
+    engine = Engine(store=store, scheduler=restored.scheduler, executors=executors, inbox=inbox,
                     specs=restored.specs, on_changed=on_changed, home=home_path,
                     on_finished=records.finished, datasets=Datasets(store, artifacts, home_path),
                     no_cache=restored.no_cache, restore=lambda: restore(store),
@@ -157,11 +157,8 @@ def serve(home: str | os.PathLike[str] | None = None, *, listen: list[str] | Non
         time.sleep(0.05)  # let the reply to a `shutdown` request leave
         layout.server_info.unlink(missing_ok=True)
         api_server.close()
-        hub.close()
-        engine.stop()
+        engine.stop()  # and its executors: the local pool's processes die with the server
         notifier.close()
-        if pool is not None:
-            pool.close()
         records.close()
         link.close()
         store.close()

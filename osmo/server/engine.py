@@ -30,11 +30,12 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Callable
-from typing import Any, Protocol
+from collections.abc import Callable, Sequence
+from typing import Any
 
 from osmo.artifacts import Manifest
 from osmo.errors import InfrastructureError, SubmitError, UsageError
+from osmo.executor import Executor
 from osmo.scheduler import Scheduler
 from osmo.scheduler.types import (
     DEFAULT_MAX_RETRIES,
@@ -68,22 +69,13 @@ from osmo.server.requests import (
     SubmitWorkflow,
     TagDataset,
 )
-from osmo.spec.model import TaskSpec, WorkflowSpec
+from osmo.spec.model import WorkflowSpec
 from osmo.status import TaskStatus
 from osmo.store.sqlite import NewWorkflowRow, Store, TagRow
 
-__all__ = ["Engine", "Executor"]
+__all__ = ["Engine"]
 
 log = logging.getLogger("osmo.server")
-
-
-class Executor(Protocol):
-    """What the engine needs from a pool of workers (the local pool, later remote ones)."""
-
-    def prepare(self, cmd: PrepareAttempt, task: TaskSpec, *,
-                max_output_bytes: int | None = None) -> None: ...
-    def run(self, cmd: RunAttempt) -> None: ...
-    def kill(self, cmd: KillAttempt) -> None: ...
 
 
 class Engine:
@@ -92,7 +84,8 @@ class Engine:
     Args:
         store: the state store (the engine is its only writer).
         scheduler: the scheduler, already restored from the store if recovering.
-        executor: the pool that runs attempts.
+        executors: what runs attempts (``osmo.executor``); each command goes to the first
+            that owns its node. The engine closes them when it stops.
         inbox: where events and requests for the engine arrive.
         specs: workflow id → spec for every workflow the scheduler holds.
         on_changed: called with the ids of workflows whose state changed (after commit).
@@ -106,7 +99,8 @@ class Engine:
         clock: time source (injectable for tests).
     """
 
-    def __init__(self, *, store: Store, scheduler: Scheduler, executor: Executor, inbox: Inbox,
+    def __init__(self, *, store: Store, scheduler: Scheduler, executors: Sequence[Executor],
+                 inbox: Inbox,
                  specs: dict[str, WorkflowSpec], on_changed: Callable[[set[str]], None],
                  home: Any, on_finished: Callable[[str], None] = lambda _wf: None,
                  datasets: Datasets | None = None, no_cache: set[str] | None = None,
@@ -116,7 +110,7 @@ class Engine:
                  clock: Callable[[], float] = time.time) -> None:
         self.store = store
         self.scheduler = scheduler
-        self.executor = executor
+        self._executors = tuple(executors)
         self.specs = specs
         self._inbox = inbox
         self._on_changed = on_changed
@@ -127,8 +121,8 @@ class Engine:
         self._clock = clock
         self._home = home
         self.placements = Placements(store=store, specs=specs, no_cache=self.no_cache,
-                                     executor=executor, post=inbox.post,
-                                     provenance=self.provenance, datasets=datasets)
+                                     post=inbox.post, provenance=self.provenance,
+                                     datasets=datasets)
         self._numbers: dict[str, int] = {}
         self._restore, self._inflight, self._on_fatal = restore, inflight, on_fatal
         self._isolation = Isolation(apply=self._apply, rebuild=self._rebuild,
@@ -143,9 +137,12 @@ class Engine:
         self._thread.start()
 
     def stop(self) -> None:
-        """Ask the loop to finish the current batch and exit; wait for it."""
+        """Ask the loop to finish the current batch and exit; wait for it; close the
+        executors."""
         self._inbox.stop()
         self._thread.join(timeout=30)
+        for executor in self._executors:
+            guard(executor.close)
 
     def post(self, event: Event) -> None:
         """Queue an event (thread-safe)."""
@@ -322,13 +319,21 @@ class Engine:
     # ------------------------------------------------------------------ commands
 
     def _execute(self, cmd: Command) -> None:
+        """Hand ``cmd`` to the executor of its node (a placement goes through the cache and
+        the input resolution first: ``osmo.server.placing``)."""
+        executor = next((e for e in self._executors if e.owns(cmd.node_id)), None)
         try:
             if isinstance(cmd, PrepareAttempt):
-                self.placements.prepare(cmd)
+                self.placements.prepare(cmd, executor)
+            elif executor is None and isinstance(cmd, KillAttempt):
+                log.warning("%s not killed: no executor runs node '%s'", cmd.attempt_id,
+                            cmd.node_id)
+            elif executor is None:
+                raise InfrastructureError(f"no executor runs node '{cmd.node_id}'")
             elif isinstance(cmd, RunAttempt):
-                self.executor.run(cmd)
-            elif isinstance(cmd, KillAttempt):
-                self.executor.kill(cmd)
+                executor.run(cmd)
+            else:
+                executor.kill(cmd)
         except Exception as exc:  # noqa: BLE001 - a worker bug must not stop the engine
             log.exception("executing %r failed", cmd)
             if not isinstance(cmd, KillAttempt):  # else it would wait for ever to start

@@ -13,10 +13,10 @@ from __future__ import annotations
 import functools
 import logging
 from collections.abc import Callable
-from typing import Any
 
 from osmo.artifacts import Manifest
 from osmo.errors import OsmoError
+from osmo.executor import Executor
 from osmo.record import LineageInput
 from osmo.scheduler.types import (
     AttemptExited,
@@ -45,17 +45,16 @@ class Placements:
         store: read for input manifests and cache entries.
         specs: workflow id → spec, shared with the engine (kept current by it).
         no_cache: ids of workflows submitted with ``--no-cache``, shared with the engine.
-        executor: prepares attempts (``Executor.prepare``).
         post: queues an event for the engine.
         provenance: remembers each placement for its lineage.
         datasets: resolves dataset and other-workflow inputs (None: none to resolve).
     """
 
     def __init__(self, *, store: Store, specs: dict[str, WorkflowSpec], no_cache: set[str],
-                 executor: Any, post: Callable[[Event], None], provenance: Provenance,
+                 post: Callable[[Event], None], provenance: Provenance,
                  datasets: Datasets | None) -> None:
         self._store, self._specs, self._no_cache = store, specs, no_cache
-        self._executor, self._post = executor, post
+        self._post = post
         self._provenance, self._datasets = provenance, datasets
         self._ready: dict[str, PrepareAttempt | str] = {}  # the final command, or why not
         self._hits: dict[str, CacheHit] = {}
@@ -83,20 +82,22 @@ class Placements:
         if hit is not None:
             self._hits[cmd.attempt_id] = hit
 
-    def prepare(self, cmd: PrepareAttempt) -> None:
-        """Execute a placement: prepare it (its output limited to the task's ``storage``),
-        complete it from the cache, or fail its start."""
+    def prepare(self, cmd: PrepareAttempt, executor: Executor | None) -> None:
+        """Execute a placement: prepare it on ``executor`` (the one of its node; its output
+        limited to the task's ``storage``), complete it from the cache, or fail its start."""
         ready = self._ready.pop(cmd.attempt_id, cmd)
         hit = self._hits.pop(cmd.attempt_id, None)
         if isinstance(ready, str):
             self._post(AttemptStartFailed(cmd.attempt_id, ready))
         elif hit is not None:
             self._replay(ready, hit)
+        elif executor is None:
+            self._post(AttemptStartFailed(cmd.attempt_id,
+                                          f"no executor runs node '{cmd.node_id}'"))
         else:
             spec = self._specs[ready.workflow_id]
             task = spec.task(ready.task)
-            self._executor.prepare(ready, task,
-                                   max_output_bytes=spec.resource_for(task).storage)
+            executor.prepare(ready, task, max_output_bytes=spec.resource_for(task).storage)
 
     def _cache_key(self, cmd: PrepareAttempt,
                    sources: list[LineageInput | None]) -> str | None:

@@ -1,8 +1,9 @@
 """The local pool: runs attempts as host processes on this machine, within its capacity.
 
-``LocalPool`` turns the scheduler's commands into processes and reports what happened as
-events (``AttemptPrepared``, ``AttemptStarted``, ``AttemptExited``, ``AttemptStartFailed``)
-through ``emit``. Every ``prepare`` gets exactly one final report — ``AttemptStartFailed`` or
+``LocalPool`` is the executor (``osmo.executor.Executor``) of one node: it turns the
+scheduler's commands into processes and reports what happened as events
+(``AttemptPrepared``, ``AttemptStarted``, ``AttemptExited``, ``AttemptStartFailed``) through
+``emit``. Every ``prepare`` gets exactly one final report — ``AttemptStartFailed`` or
 ``AttemptExited`` — whatever happens (kill before start, spawn failure, promotion failure).
 
 Threading: public methods may be called from any thread; they only queue work for the pool's
@@ -61,9 +62,12 @@ from osmo.scheduler.types import (
     AttemptPrepared,
     AttemptStarted,
     AttemptStartFailed,
+    LOCAL_NODE,
     Event,
+    KillAttempt,
     Node,
     PrepareAttempt,
+    RunAttempt,
 )
 from osmo.spec.model import TaskSpec
 from osmo.worker.checkpoints import start_checkpoints
@@ -112,8 +116,8 @@ class LocalPool(AttemptEndings):
         *,
         home: Path,
         emit: Callable[[Event], None],
-        node_id: str = "local",
-        pool: str = "local",
+        node_id: str = LOCAL_NODE,
+        pool: str = LOCAL_NODE,
         cpus: float | None = None,
         gpus: int | None = None,
         memory: int | None = None,
@@ -167,16 +171,20 @@ class LocalPool(AttemptEndings):
         """
         self._reactor.call_soon(self._prepare, cmd, task, secrets, max_output_bytes)
 
-    def run(self, attempt_id: str) -> None:
+    def owns(self, node_id: str) -> bool:
+        """Whether ``node_id`` is this pool's node."""
+        return node_id == self._node_id
+
+    def run(self, cmd: RunAttempt) -> None:
         """Start a prepared attempt: AttemptStarted, then one AttemptExited.
 
         AttemptStartFailed instead if the command cannot be spawned.
         """
-        self._reactor.call_soon(self._run, attempt_id)
+        self._reactor.call_soon(self._run, cmd.attempt_id)
 
-    def kill(self, attempt_id: str, reason: str) -> None:
+    def kill(self, cmd: KillAttempt) -> None:
         """Kill an attempt's process group (SIGTERM, SIGKILL after the grace period)."""
-        self._reactor.call_soon(self._kill, attempt_id, reason)
+        self._reactor.call_soon(self._kill, cmd.attempt_id, cmd.reason)
 
     def close(self) -> None:
         """Kill every running process group and stop the threads (no more events).

@@ -3,7 +3,7 @@
 It dials out to the server (so it may sit behind a firewall), registers its capacity, keeps
 a liveliness token alive, and runs the server's orders with the same :class:`LocalPool` the
 server uses on its own host — one runtime implementation. The wire protocol is described in
-``osmo.worker.wire``.
+``osmo.transport.wire``.
 
 Data: an attempt's inputs are fetched by digest from the server's artifact store (only the
 blobs this worker lacks; hard links when both share a host and filesystem), and the pool
@@ -41,16 +41,17 @@ from osmo.scheduler.types import (
     AttemptExited,
     AttemptLost,
     AttemptStartFailed,
-    Capacity,
     Event,
+    KillAttempt,
     PrepareAttempt,
+    RunAttempt,
 )
 from osmo.spec.model import TaskSpec, WorkflowSpec
 from osmo.transport.api import ApiClient
 from osmo.transport.blobs import BlobServer, SameHost, fetch_manifest, host_id
+from osmo.transport.wire import capacity_to_dict, event_to_dict, prepare_from_dict, spec_from_wire
 from osmo.transport.zenoh_link import Link, Subscription
 from osmo.worker.pool import LocalPool
-from osmo.worker.wire import event_to_dict, prepare_from_dict, spec_from_wire
 
 __all__ = ["RemoteWorker", "WorkerOptions"]
 
@@ -174,7 +175,7 @@ class RemoteWorker:
             log.info("handing back %s (still running at the end of the drain)", aid)
             self._send({"op": "lost", "attempt_id": aid,
                         "message": f"worker {self.id} drained; attempt handed back"})
-            self.pool.kill(aid, "worker draining")
+            self.pool.kill(KillAttempt(aid, self.id, "worker draining"))
         with self._changed:
             self._changed.wait_for(lambda: not self._unacked, timeout=30.0)
         self._stop.set()
@@ -207,7 +208,7 @@ class RemoteWorker:
         with self._lock:
             hello = {
                 "id": self.id, "pool": self.opts.pool, "platform": self.opts.platform,
-                "capacity": _capacity_dict(self.pool.node().capacity),
+                "capacity": capacity_to_dict(self.pool.node().capacity),
                 "draining": self._draining, "labels": self.opts.labels,
                 "address": self.opts.address or _address(), "host_id": host_id(),
                 "artifacts": str(self.store.root), "pid": os.getpid(),
@@ -251,9 +252,9 @@ class RemoteWorker:
                         pending.kill = pending.kill or str(order.get("reason"))
                     return
             if op == "run":
-                self.pool.run(aid)
+                self.pool.run(RunAttempt(aid, self.id))
             else:
-                self.pool.kill(aid, str(order.get("reason")))
+                self.pool.kill(KillAttempt(aid, self.id, str(order.get("reason"))))
         elif op == "ack":
             with self._changed:
                 self._unacked.pop(aid, None)
@@ -295,9 +296,9 @@ class RemoteWorker:
         self.pool.prepare(cmd, task, order.get("secrets") or {},
                           max_output_bytes=limit if isinstance(limit, int) else None)
         if pending.kill is not None:
-            self.pool.kill(cmd.attempt_id, pending.kill)
+            self.pool.kill(KillAttempt(cmd.attempt_id, self.id, pending.kill))
         elif pending.run:
-            self.pool.run(cmd.attempt_id)
+            self.pool.run(RunAttempt(cmd.attempt_id, self.id))
 
     def _task(self, cmd: PrepareAttempt) -> TaskSpec:
         with self._lock:
@@ -352,11 +353,6 @@ class RemoteWorker:
     def _send_log(self, attempt_id: str, records: bytes) -> None:
         self.link.put(self.link.key("from-worker", self.id, "log"), records,
                       attachment=attempt_id.encode())
-
-
-def _capacity_dict(capacity: Capacity) -> dict[str, Any]:
-    return {"cpu": capacity.cpu, "gpu": capacity.gpu, "memory": capacity.memory,
-            "storage": capacity.storage}
 
 
 def _address() -> str:

@@ -13,12 +13,15 @@ import pytest
 
 from osmo.layout import Home
 from osmo.scheduler.types import (
+    LOCAL_NODE,
     AttemptExited,
     AttemptPrepared,
     AttemptStarted,
     AttemptStartFailed,
     Event,
+    KillAttempt,
     PrepareAttempt,
+    RunAttempt,
 )
 from osmo.spec.model import ExitAction, ExitRule, FileSpec, TaskSpec
 from osmo.worker.logs import read_log
@@ -110,7 +113,7 @@ def submit(
     )
     pool.prepare(cmd, task)
     if run:
-        pool.run(cmd.attempt_id)
+        pool.run(RunAttempt(cmd.attempt_id, LOCAL_NODE))
     return cmd.attempt_id
 
 
@@ -218,7 +221,7 @@ def test_prepare_failure(pool: LocalPool, events: Events) -> None:
 
 
 def test_run_without_prepare(pool: LocalPool, events: Events) -> None:
-    pool.run("wf-1:ghost:0")
+    pool.run(RunAttempt("wf-1:ghost:0", LOCAL_NODE))
     assert isinstance(events.final("wf-1:ghost:0"), AttemptStartFailed)
 
 
@@ -264,7 +267,7 @@ def test_kill_running_kills_grandchildren(pool: LocalPool, events: Events) -> No
     wait_until(lambda: ("stdout", "started") in log_of(pool, aid))
     grandchild = int((folder / "work" / "bg.pid").read_text())
     assert alive(started.pid) and started.pid_start is not None
-    pool.kill(aid, "exec timeout")
+    pool.kill(KillAttempt(aid, LOCAL_NODE, "exec timeout"))
     final = events.final(aid)
     assert isinstance(final, AttemptExited)
     assert (final.exit_code, final.output) == (128 + signal.SIGTERM, None)
@@ -280,7 +283,7 @@ def test_kill_escalates_to_sigkill(pool: LocalPool, events: Events) -> None:
     wait_until(
         lambda: attempt_dir(pool, aid) is not None and ("stdout", "ready") in log_of(pool, aid)
     )
-    pool.kill(aid, "canceled")
+    pool.kill(KillAttempt(aid, LOCAL_NODE, "canceled"))
     final = events.final(aid)
     assert isinstance(final, AttemptExited)
     assert final.exit_code == 128 + signal.SIGKILL
@@ -295,7 +298,7 @@ def test_killed_attempt_is_not_promoted_even_if_it_exits_zero(
     wait_until(
         lambda: attempt_dir(pool, aid) is not None and ("stdout", "ready") in log_of(pool, aid)
     )
-    pool.kill(aid, "canceled")
+    pool.kill(KillAttempt(aid, LOCAL_NODE, "canceled"))
     final = events.final(aid)
     assert isinstance(final, AttemptExited)
     assert (final.exit_code, final.output) == (0, None)
@@ -303,9 +306,9 @@ def test_killed_attempt_is_not_promoted_even_if_it_exits_zero(
 
 def test_kill_before_start_reports_once(pool: LocalPool, events: Events) -> None:
     aid = submit(pool, sh("never", "echo ran > {{output}}/x"), run=False)
-    pool.kill(aid, "canceled")
-    pool.run(aid)  # too late: must neither start nor report again
-    pool.kill(aid, "again")
+    pool.kill(KillAttempt(aid, LOCAL_NODE, "canceled"))
+    pool.run(RunAttempt(aid, LOCAL_NODE))  # too late: must neither start nor report again
+    pool.kill(KillAttempt(aid, LOCAL_NODE, "again"))
     sentinel = submit(pool, TaskSpec(name="sentinel", command=("true",)))
     final = events.final(aid)
     assert final == AttemptExited(aid, 137, None, "killed: canceled")
@@ -317,8 +320,8 @@ def test_kill_before_start_reports_once(pool: LocalPool, events: Events) -> None
 def test_kill_of_finished_or_unknown_attempt_is_ignored(pool: LocalPool, events: Events) -> None:
     aid = submit(pool, TaskSpec(name="quick", command=("true",)))
     events.final(aid)
-    pool.kill(aid, "late")
-    pool.kill("wf-1:unknown:0", "nothing")
+    pool.kill(KillAttempt(aid, LOCAL_NODE, "late"))
+    pool.kill(KillAttempt("wf-1:unknown:0", LOCAL_NODE, "nothing"))
     sentinel = submit(pool, TaskSpec(name="sentinel", command=("true",)))
     events.final(sentinel)
     assert events.of(aid) == [AttemptPrepared, AttemptStarted, AttemptExited]

@@ -8,7 +8,13 @@ from pathlib import Path
 
 import pytest
 
-from osmo.scheduler.types import AttemptExited, AttemptStartFailed, PrepareAttempt
+from osmo.scheduler.types import (
+    LOCAL_NODE,
+    AttemptExited,
+    AttemptStartFailed,
+    KillAttempt,
+    PrepareAttempt,
+)
 from osmo.spec.model import TaskSpec
 from osmo.worker.pool import LocalPool
 from tests.worker.test_pool import Events, attempt_dir, log_of, sh
@@ -103,7 +109,7 @@ def test_killed_before_start_removes_mounted_files(pool: LocalPool, events: Even
     cmd = PrepareAttempt("wf-1:api:0", "wf-1", "api", 0, "local", {}, {})
     pool.prepare(cmd, task)
     events.wait_for(lambda e: getattr(e, "attempt_id", None) == cmd.attempt_id)
-    pool.kill(cmd.attempt_id, "cancelled")
+    pool.kill(KillAttempt(cmd.attempt_id, LOCAL_NODE, "cancelled"))
     final = events.final(cmd.attempt_id)
     assert isinstance(final, AttemptExited) and final.exit_code == 137
     folder = attempt_dir(pool, cmd.attempt_id)

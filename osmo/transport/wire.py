@@ -1,5 +1,8 @@
 """What the server and a remote worker say to each other: keys and JSON messages.
 
+The server's side is ``osmo.server.workers.WorkerHub``, the worker's
+``osmo.worker.remote.RemoteWorker``; both speak only through this module's functions.
+
 Keys, under the cluster prefix ``osmo/<cluster>``:
 
 - ``alive/server`` and ``alive/worker/<id>`` — liveliness tokens. A worker's token going
@@ -36,8 +39,8 @@ from osmo.scheduler.types import (
 )
 from osmo.spec.model import WorkflowSpec
 
-__all__ = ["capacity_from_dict", "event_from_dict", "event_to_dict", "prepare_from_dict",
-           "prepare_to_dict", "spec_from_wire", "spec_to_wire"]
+__all__ = ["capacity_from_dict", "capacity_to_dict", "event_from_dict", "event_to_dict",
+           "prepare_from_dict", "prepare_to_dict", "spec_from_wire", "spec_to_wire"]
 
 
 def event_to_dict(event: Event) -> dict[str, Any]:
@@ -95,8 +98,14 @@ def prepare_from_dict(data: dict[str, Any]) -> PrepareAttempt:
         hosts={str(k): str(v) for k, v in data["hosts"].items()}, run=bool(data["run"]))
 
 
+def capacity_to_dict(capacity: Capacity) -> dict[str, Any]:
+    """A worker's capacity as it advertises it."""
+    return {"cpu": capacity.cpu, "gpu": capacity.gpu, "memory": capacity.memory,
+            "storage": capacity.storage}
+
+
 def capacity_from_dict(data: dict[str, Any]) -> Capacity:
-    """A worker's advertised capacity."""
+    """The inverse of :func:`capacity_to_dict`."""
     return Capacity(cpu=float(data.get("cpu", 0)), gpu=int(data.get("gpu", 0)),
                     memory=int(data.get("memory", 0)), storage=int(data.get("storage", 0)))
 
