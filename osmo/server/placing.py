@@ -17,7 +17,6 @@ from collections.abc import Callable
 from osmo.artifacts import Manifest
 from osmo.errors import OsmoError
 from osmo.executor import Executor
-from osmo.record import LineageInput
 from osmo.scheduler.types import (
     AttemptExited,
     AttemptPrepared,
@@ -68,7 +67,8 @@ class Placements:
                 cmd = self._datasets.resolve_inputs(cmd, self._specs[cmd.workflow_id].task(
                     cmd.task))
             sources = cache.input_sources(self._store, cmd)
-            key = self._cache_key(cmd, sources)
+            key = cache.key(cmd, self._specs[cmd.workflow_id].task(cmd.task), sources,
+                            no_cache=cmd.workflow_id in self._no_cache)
             hit = cache.lookup(self._store, key) if key else None
         except OsmoError as exc:
             self._ready[cmd.attempt_id] = str(exc)
@@ -98,18 +98,6 @@ class Placements:
             spec = self._specs[ready.workflow_id]
             task = spec.task(ready.task)
             executor.prepare(ready, task, max_output_bytes=spec.resource_for(task).storage)
-
-    def _cache_key(self, cmd: PrepareAttempt,
-                   sources: list[LineageInput | None]) -> str | None:
-        """The attempt's cache fingerprint, or None when it must run (see osmo.server.cache)."""
-        task = self._specs[cmd.workflow_id].task(cmd.task)
-        if not cmd.run or not task.cache or cmd.workflow_id in self._no_cache:
-            return None
-        if any(i.url for i in task.inputs) or any(o.url for o in task.outputs):
-            return None  # URL contents are unknown at placement; a hit would skip the upload
-        if any(s is None for s in sources):
-            return None  # an input without a recorded manifest: its content is unknown
-        return cache.fingerprint(task, [(s.task, s.manifest_digest) for s in sources if s])
 
     def _replay(self, cmd: PrepareAttempt, hit: CacheHit) -> None:
         """Complete a cache hit at once: the scheduler sees an ordinary successful attempt."""
