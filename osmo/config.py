@@ -20,6 +20,7 @@ from typing import Any
 from osmo.layout import Home
 
 __all__ = [
+    "DEFAULT_CLUSTER",
     "DEFAULT_PORT",
     "ServerInfo",
     "free_port",
@@ -30,6 +31,11 @@ __all__ = [
 ]
 
 DEFAULT_PORT = 7447
+"""The server's zenoh port when nothing else listens on it."""
+
+DEFAULT_CLUSTER = "local"
+"""The key prefix (``osmo/<cluster>/...``) a server, its workers and clients share unless
+told another."""
 
 
 def home_dir(home: str | os.PathLike[str] | None = None) -> Path:

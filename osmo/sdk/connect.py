@@ -16,8 +16,16 @@ import time
 from pathlib import Path
 
 from osmo.layout import Home
-from osmo.config import ServerInfo, home_dir, lock_is_held, read_profile, read_server_info
+from osmo.config import (
+    DEFAULT_CLUSTER,
+    ServerInfo,
+    home_dir,
+    lock_is_held,
+    read_profile,
+    read_server_info,
+)
 from osmo.errors import InfrastructureError, ServerUnreachable
+from osmo.server.options import ServerOptions
 from osmo.transport.api import ApiClient
 from osmo.transport.zenoh_link import Link
 
@@ -29,7 +37,7 @@ START_TIMEOUT = 20.0
 class Connection:
     """An open API connection (a zenoh client session plus the request helper)."""
 
-    def __init__(self, endpoint: str, cluster: str = "local",
+    def __init__(self, endpoint: str, cluster: str = DEFAULT_CLUSTER,
                  zenoh_config: str | None = None) -> None:
         self.endpoint = endpoint
         self.link = Link.client([endpoint], cluster, config_file=zenoh_config)
@@ -54,20 +62,15 @@ def _wait_ready(home: Path, proc: subprocess.Popen[bytes] | None, timeout: float
                               f"see {Home(home).server_log}")
 
 
-def start_server(home: str | os.PathLike[str] | None = None, *, listen: str | None = None,
-                 cpus: float | None = None, extra_args: list[str] | None = None) -> ServerInfo:
-    """Start a background server for ``home`` unless one runs; return its info.
-
-    ``extra_args`` are ``osmo server`` options (see ``osmo.server.options``)."""
+def start_server(home: str | os.PathLike[str] | None = None,
+                 options: ServerOptions | None = None) -> ServerInfo:
+    """Start a background server for ``home`` with ``options`` unless one runs; return its
+    info."""
     home_path = home_dir(home)
     if lock_is_held(home_path):
         return _wait_ready(home_path, None, START_TIMEOUT)
-    args = [sys.executable, "-m", "osmo.server.app", "--home", str(home_path)]
-    if listen:
-        args += ["--listen", listen]
-    if cpus:
-        args += ["--cpus", str(cpus)]
-    args += extra_args or []
+    args = [sys.executable, "-m", "osmo.server.app", "--home", str(home_path),
+            *(options or ServerOptions()).to_argv()]
     with open(Home(home_path).server_log, "ab") as out:
         proc = subprocess.Popen(args, stdin=subprocess.DEVNULL, stdout=out, stderr=out,
                                 start_new_session=True, close_fds=True)
@@ -120,7 +123,7 @@ def connect(server: str | None = None, home: str | os.PathLike[str] | None = Non
     endpoint = server or os.environ.get("OSMO_SERVER") or profile.get("server")
     if endpoint:
         return Connection(endpoint, os.environ.get("OSMO_CLUSTER") or
-                          profile.get("cluster") or "local", profile.get("zenoh-config"))
+                          profile.get("cluster") or DEFAULT_CLUSTER, profile.get("zenoh-config"))
     info = server_status(home_path)
     if info is None:
         if not autostart:

@@ -43,7 +43,7 @@ from osmo.server.isolation import reason
 from osmo.server.recovery import InFlight, kill_leftovers, quarantine, restore, split_lost
 from osmo.server.notices import Notifier
 from osmo.server.placing import output_manifests
-from osmo.server.options import add_server_options, server_kwargs
+from osmo.server.options import ServerOptions
 from osmo.server.workers import WorkerHub
 from osmo.transport.blobs import host_id
 from osmo.server.records import RunRecords
@@ -68,27 +68,22 @@ def _take_lock(home: Home) -> int:
     return fd
 
 
-def serve(home: str | os.PathLike[str] | None = None, *, listen: list[str] | None = None,
-          connect: list[str] | None = None, zenoh_config: str | None = None,
-          cluster: str = "local", cpus: float | None = None, gpus: int | None = None,
-          memory: int | None = None, local_pool: bool = True, reconnect_grace: float = 30.0,
-          ready: threading.Event | None = None) -> None:
+def serve(home: str | os.PathLike[str] | None = None, options: ServerOptions | None = None,
+          *, ready: threading.Event | None = None) -> None:
     """Run the server in the foreground until stopped.
 
     Args:
         home: the osmo home (default: ``OSMO_HOME`` / XDG data folder).
-        listen: zenoh endpoints, default ``tcp/127.0.0.1:7447`` (another free port if taken).
-        connect: join an existing zenoh router instead of hosting one (with no ``listen``).
-        zenoh_config: a zenoh JSON5 file (TLS, mutual TLS, user/password).
-        cpus/gpus/memory: override the local pool's detected capacity.
-        local_pool: run tasks on this host too (off: remote workers only).
-        reconnect_grace: seconds remote workers get to come back after a restart.
+        options: how it listens and runs (default: ``ServerOptions()``).
+        ready: set once the server answers requests.
     """
     home_path = home_dir(home)
     layout = Home(home_path)
     lock_fd = _take_lock(layout)
     layout.server_info.unlink(missing_ok=True)  # a crashed server's stale address
-    endpoints = list(listen or ([] if connect else [f"tcp/127.0.0.1:{free_port()}"]))
+    options = options or ServerOptions()
+    listen, connect = list(options.listen), list(options.connect)
+    endpoints = listen or ([] if connect else [f"tcp/127.0.0.1:{free_port()}"])
     store = Store(layout.state_db)
     inflight = InFlight(layout.applying)
     restored = restore(store)
@@ -96,7 +91,8 @@ def serve(home: str | os.PathLike[str] | None = None, *, listen: list[str] | Non
     lost, remote_nodes = split_lost(active)
     kill_leftovers(store, lost)
 
-    link = Link.router(endpoints, cluster, connect=connect or [], config_file=zenoh_config)
+    link = Link.router(endpoints, options.cluster, connect=connect,
+                       config_file=options.zenoh_config)
     stopping = threading.Event()
 
     notifier = Notifier(link)
@@ -105,10 +101,10 @@ def serve(home: str | os.PathLike[str] | None = None, *, listen: list[str] | Non
     inbox = Inbox()
     artifacts = ArtifactStore(layout.artifacts)
     pool = LocalPool(home=home_path, emit=inbox.post,
-                     cpus=cpus, gpus=gpus, memory=memory, artifacts=artifacts,
+                     cpus=options.cpus, gpus=options.gpus, artifacts=artifacts,
                      credential_for=url_credential(store),
                      input_manifests=output_manifests(store),
-                     task_secrets=store.credential) if local_pool else None
+                     task_secrets=store.credential) if options.local_pool else None
     hub = WorkerHub(link=link, emit=inbox.post, store=store,
                     artifacts=artifacts, home=home_path, url_credential=url_credential(store),
                     attempts_on=lambda node: list(inbox.ask(AttemptsOn(node))))
@@ -132,11 +128,12 @@ def serve(home: str | os.PathLike[str] | None = None, *, listen: list[str] | Non
     for task in lost:
         engine.post(AttemptLost(str(task.attempt_id), "server restarted; attempt lost"))
     engine.start()
-    hub.expect(remote_nodes, reconnect_grace)
+    hub.expect(remote_nodes, options.reconnect_grace)
 
     info = {"endpoint": _local_endpoint(endpoints) if endpoints else (connect or [""])[0],
-            "endpoints": endpoints, "pid": os.getpid(), "cluster": cluster,
-            "zenoh_config": str(Path(zenoh_config).absolute()) if zenoh_config else None,
+            "endpoints": endpoints, "pid": os.getpid(), "cluster": options.cluster,
+            "zenoh_config": (str(Path(options.zenoh_config).absolute())
+                             if options.zenoh_config else None),
             "host_id": host_id(), "artifacts": str(artifacts.root),
             "started_at": time.time(), "home": str(home_path)}
     api = Api(engine, home_path, info, on_shutdown=stopping.set, workers=hub)
@@ -190,10 +187,10 @@ def main() -> None:
 
     parser = argparse.ArgumentParser(prog="osmo-server")
     parser.add_argument("--home")
-    add_server_options(parser)
+    ServerOptions.add_arguments(parser)
     args = parser.parse_args()
     try:
-        serve(args.home, **server_kwargs(args))
+        serve(args.home, ServerOptions.from_args(args))
     except OsmoError as exc:
         print(f"osmo server: {exc}", file=sys.stderr)
         sys.exit(exc.exit_code)

@@ -24,6 +24,7 @@ from typing import Any
 
 import zenoh
 
+from osmo.config import DEFAULT_CLUSTER
 from osmo.errors import InfrastructureError, ServerUnreachable, UsageError
 
 __all__ = ["Link", "Request", "Subscription"]
@@ -115,7 +116,7 @@ class Link:
         self.prefix = f"osmo/{cluster}"
 
     @classmethod
-    def router(cls, listen: Sequence[str], cluster: str = "local", *,
+    def router(cls, listen: Sequence[str], cluster: str = DEFAULT_CLUSTER, *,
                connect: Sequence[str] = (), config_file: str | None = None) -> Link:
         """Open the server's session: a router listening on ``listen``, or, with
         ``connect`` and no ``listen``, a peer of an existing ``zenohd`` router."""
@@ -128,7 +129,7 @@ class Link:
             raise InfrastructureError(f"cannot listen on / connect to {where}: {exc}") from exc
 
     @classmethod
-    def client(cls, connect: Sequence[str], cluster: str = "local", *,
+    def client(cls, connect: Sequence[str], cluster: str = DEFAULT_CLUSTER, *,
                config_file: str | None = None) -> Link:
         """Open a client session to a router; ServerUnreachable if none answers."""
         config_file = config_file or os.environ.get("OSMO_ZENOH_CONFIG") or None

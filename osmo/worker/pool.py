@@ -73,6 +73,7 @@ from osmo.spec.model import TaskSpec
 from osmo.worker.checkpoints import start_checkpoints
 from osmo.worker.endings import AttemptEndings
 from osmo.worker.logs import LogWriter, image_note
+from osmo.worker.options import DEFAULT_KILL_GRACE
 from osmo.worker.machine import detect_capacity, raise_fd_limit
 from osmo.worker.live import AttemptState, LiveAttempt
 from osmo.worker.reactor import Reactor
@@ -121,7 +122,7 @@ class LocalPool(AttemptEndings):
         cpus: float | None = None,
         gpus: int | None = None,
         memory: int | None = None,
-        kill_grace: float = 3.0,
+        kill_grace: float = DEFAULT_KILL_GRACE,
         runtime: Runtime | None = None,
         env: Mapping[str, str] | None = None,
         artifacts: ArtifactStore | None = None,

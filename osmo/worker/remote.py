@@ -29,7 +29,7 @@ import socket
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -49,36 +49,18 @@ from osmo.scheduler.types import (
 from osmo.spec.model import TaskSpec, WorkflowSpec
 from osmo.transport.api import ApiClient
 from osmo.transport.blobs import BlobServer, SameHost, fetch_manifest, host_id
+from osmo.worker.options import WorkerOptions
 from osmo.transport.wire import capacity_to_dict, event_to_dict, prepare_from_dict, spec_from_wire
 from osmo.transport.zenoh_link import Link, Subscription
 from osmo.worker.pool import LocalPool
 
-__all__ = ["RemoteWorker", "WorkerOptions"]
+__all__ = ["RemoteWorker"]
 
 log = logging.getLogger("osmo.worker")
 
 _HEALTH_EVERY = 5.0
 _INPUT = "artifact:"  # an input reference of this worker: "artifact:<manifest digest>"
 _KEEP_MANIFESTS = 4096  # input manifests remembered (each was fetched whole)
-
-
-@dataclass
-class WorkerOptions:
-    """How a worker presents itself (see ``osmo worker --help``)."""
-
-    connect: list[str]
-    pool: str = "default"
-    name: str | None = None
-    platform: str | None = None
-    cpus: float | None = None
-    gpus: int | None = None
-    memory: int | None = None
-    labels: dict[str, str] = field(default_factory=dict)
-    cluster: str = "local"
-    zenoh_config: str | None = None
-    drain_timeout: float = 600.0
-    kill_grace: float = 3.0
-    address: str | None = None
 
 
 @dataclass
@@ -99,7 +81,7 @@ class RemoteWorker:
         self.id = options.name or f"{socket.gethostname()}-{os.getpid()}"
         self._layout = Home(self.home)
         self.store = ArtifactStore(self._layout.artifacts)
-        self.link = Link.client(options.connect, options.cluster,
+        self.link = Link.client(list(options.connect), options.cluster,
                                 config_file=options.zenoh_config)
         self._api = ApiClient(self.link, timeout=10.0)
         self._lock = threading.Lock()
