@@ -17,7 +17,7 @@ from typing import Any
 from osmo.artifacts import ArtifactStore, Manifest
 from osmo.errors import NotFoundError, UsageError
 from osmo.layout import Home
-from osmo.names import MAX_NAME, check_name, check_workflow_id, did_you_mean, parse_ref, shown
+from osmo.names import MAX_NAME, check_name, check_workflow_id, did_you_mean, shown
 from osmo.scheduler.types import CancelWorkflow
 from osmo.server.api_datasets import DatasetApi
 from osmo.server.credentials import CredentialApi, check_task_credentials
@@ -292,10 +292,9 @@ def _cursor(request: dict[str, Any]) -> dict[str, Any] | None:
 
 
 def _target(request: dict[str, Any]) -> str:
-    """An artifact target (``sha256:...``, ``WORKFLOW_ID:TASK[:PATH]``, ``dataset:REF``)."""
+    """An artifact target (``sha256:...``, ``WORKFLOW_ID:TASK[:PATH]``, ``dataset:REF``;
+    ``osmo.server.lineage_query`` checks what it names)."""
     target: str = field(request, "target", str, max_len=_MAX_TEXT)
-    if target.startswith("dataset:"):
-        parse_ref(target[len("dataset:"):])
     return target
 
 

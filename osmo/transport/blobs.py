@@ -33,12 +33,15 @@ from osmo.config import host_id
 from osmo.errors import InfrastructureError
 from osmo.transport.zenoh_link import Link, Request, Subscription
 
-__all__ = ["BlobServer", "SameHost", "TransferError", "fetch_blob", "fetch_manifest",
+__all__ = ["SERVER", "BlobServer", "SameHost", "TransferError", "fetch_blob", "fetch_manifest",
            "host_id"]
 
 CHUNK = 512 << 10
 WINDOW = 16  # chunks in flight per blob
 _TIMEOUT = 30.0
+
+SERVER = "server"
+"""The owner name the server serves its blobs as (no worker or client may take it)."""
 
 
 class TransferError(InfrastructureError):

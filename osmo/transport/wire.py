@@ -37,7 +37,10 @@ from osmo.scheduler.types import (
     Event,
     PrepareAttempt,
 )
+from osmo.errors import UsageError
+from osmo.names import shown
 from osmo.spec.model import WorkflowSpec
+from osmo.transport.api import MAX_INT, field
 
 __all__ = ["capacity_from_dict", "capacity_to_dict", "event_from_dict", "event_to_dict",
            "prepare_from_dict", "prepare_to_dict", "spec_from_wire", "spec_to_wire"]
@@ -105,9 +108,20 @@ def capacity_to_dict(capacity: Capacity) -> dict[str, Any]:
 
 
 def capacity_from_dict(data: dict[str, Any]) -> Capacity:
-    """The inverse of :func:`capacity_to_dict`."""
-    return Capacity(cpu=float(data.get("cpu", 0)), gpu=int(data.get("gpu", 0)),
-                    memory=int(data.get("memory", 0)), storage=int(data.get("storage", 0)))
+    """The inverse of :func:`capacity_to_dict`; absent amounts are zero.
+
+    Raises:
+        UsageError: an amount that is not a number of the right kind, or is negative.
+    """
+    cpu = data.get("cpu", 0)
+    if isinstance(cpu, bool) or not isinstance(cpu, int | float) or not 0 <= cpu <= MAX_INT:
+        raise UsageError(f"'capacity.cpu' must be a number from 0, not {shown(cpu)}")
+    amounts = {key: field(data, key, int, default=0, what=f"'capacity.{key}'")
+               for key in ("gpu", "memory", "storage")}
+    negative = [key for key, value in amounts.items() if value < 0]
+    if negative:
+        raise UsageError(f"'capacity.{negative[0]}' must not be negative")
+    return Capacity(cpu=float(cpu), **amounts)
 
 
 def spec_to_wire(spec: dict[str, Any], filename: str, types: dict[str, Any]) -> dict[str, Any]:

@@ -29,7 +29,7 @@ class WorkerOptions:
     Attributes:
         connect: the server's zenoh endpoints.
         pool: the pool it serves.
-        name: its unique name (default: ``HOSTNAME-PID``).
+        name: its unique name (default: ``HOSTNAME-PID``; ``osmo.names.check_worker_name``).
         platform: matched against resource specs' ``platform``.
         cpus, gpus, memory: capacity to offer (default: what the machine has).
         labels: free ``key: value`` labels, shown with the worker.

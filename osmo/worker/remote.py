@@ -36,8 +36,10 @@ from typing import Any
 from osmo.artifacts import ArtifactStore, Manifest
 from osmo.config import write_json_atomic
 from osmo.errors import OsmoError
+from osmo.names import check_worker_name
 from osmo.layout import Home
 from osmo.scheduler.types import (
+    LOCAL_NODE,
     AttemptExited,
     AttemptLost,
     AttemptStartFailed,
@@ -48,7 +50,7 @@ from osmo.scheduler.types import (
 )
 from osmo.spec.model import TaskSpec, WorkflowSpec
 from osmo.transport.api import ApiClient
-from osmo.transport.blobs import BlobServer, SameHost, fetch_manifest, host_id
+from osmo.transport.blobs import SERVER, BlobServer, SameHost, fetch_manifest, host_id
 from osmo.worker.options import WorkerOptions
 from osmo.transport.wire import capacity_to_dict, event_to_dict, prepare_from_dict, spec_from_wire
 from osmo.transport.zenoh_link import Link, Subscription
@@ -78,7 +80,8 @@ class RemoteWorker:
         self.home = Path(home).absolute()
         self.home.mkdir(parents=True, exist_ok=True)
         self.opts = options
-        self.id = options.name or f"{socket.gethostname()}-{os.getpid()}"
+        self.id = check_worker_name(options.name or f"{socket.gethostname()}-{os.getpid()}",
+                                    reserved=(LOCAL_NODE, SERVER))
         self._layout = Home(self.home)
         self.store = ArtifactStore(self._layout.artifacts)
         self.link = Link.client(list(options.connect), options.cluster,
@@ -117,7 +120,7 @@ class RemoteWorker:
         self._subs = [
             self.link.subscribe(self.link.key("to-worker", self.id), self._on_order),
             BlobServer(self.link, self.id, self.store),
-            self.link.watch(self.link.key("alive", "server"), self._on_server),
+            self.link.watch(self.link.key("alive", SERVER), self._on_server),
         ]
         delay = 0.2
         self._register_now.set()
@@ -295,7 +298,7 @@ class RemoteWorker:
         with self._lock:
             fetched = manifest.digest in self._manifests
         if not fetched:
-            fetch_manifest(self.link, "server", manifest, self.store,
+            fetch_manifest(self.link, SERVER, manifest, self.store,
                            same_host=self._server_host)
         with self._lock:
             self._manifests[manifest.digest] = manifest

@@ -22,6 +22,7 @@ from tests.hostile.test_names_datasets import raw_api
 HUGE = "x" * 100_000
 JUNK: Any = {"a": [1, {"b": None}], "c": [[[]]]}
 DEEP: Any = [[[[[[[[[[["deep"]]]]]]]]]]]
+EMPTY = '{"entries": [], "version": 1}'  # a valid manifest of no files
 
 CASES: list[Any] = [
     ("submit", {}),
@@ -79,6 +80,10 @@ CASES: list[Any] = [
     ("datasets_upload", {"name": "ds", "manifest": '{"entries": 5}', "source": {}}),
     ("datasets_upload", {"name": "ds", "manifest": '{"entries": []}', "source": {},
                          "metadata": [1]}),
+    ("datasets_upload", {"name": "ds", "manifest": EMPTY, "source": {}}),
+    ("datasets_upload", {"name": "ds", "manifest": EMPTY, "source": {"owner": "../x"}}),
+    ("datasets_upload", {"name": "ds", "manifest": EMPTY,
+                         "source": {"owner": "client-1", "host_id": 5}}),
     ("credential_set", {}),
     ("credential_set", {"name": "c", "payload": "x"}),
     ("credential_set", {"name": "c", "payload": {"k": JUNK}}),
@@ -86,14 +91,22 @@ CASES: list[Any] = [
     ("credential_delete", {}),
     ("credential_delete", {"name": JUNK}),
     ("no_such_verb", {}),
-]
-_WORKERS = pytest.mark.xfail(strict=True, reason="osmo/server/workers.py (another helper's) "
-                             "does not check its requests yet: AttributeError, exit 3")
-CASES += [
-    pytest.param("worker_register", {"id": "w", "capacity": "junk"}, marks=_WORKERS),
-    pytest.param("worker_register", {"id": "w", "labels": 5}, marks=_WORKERS),
-    pytest.param("worker_register", {"id": ["x"]}, marks=_WORKERS),
-    pytest.param("worker_drain", {}, marks=_WORKERS),
+    ("worker_register", {"id": "w", "capacity": "junk"}),
+    ("worker_register", {"id": "w", "capacity": {"cpu": "x"}}),
+    ("worker_register", {"id": "w", "capacity": {"gpu": -1}}),
+    ("worker_register", {"id": "w", "capacity": {"memory": 2**70}}),
+    ("worker_register", {"id": "w", "labels": 5}),
+    ("worker_register", {"id": "w", "labels": {"a": JUNK}}),
+    ("worker_register", {"id": "w", "active": "wf-1:a:0"}),
+    ("worker_register", {"id": "w", "finished": [5]}),
+    ("worker_register", {"id": "w", "pool": JUNK}),
+    ("worker_register", {"id": "w", "draining": "yes"}),
+    ("worker_register", {"id": ["x"]}),
+    ("worker_register", {"id": "local"}),
+    ("worker_register", {"id": "w\n2026-01-01 00:00:00 INFO fake log line"}),
+    ("worker_register", {"id": "a/b"}),
+    ("worker_drain", {}),
+    ("worker_drain", {"id": 5}),
 ]
 RAW_PAYLOADS = [b"not json", b"[1, 2]", b"1" * 5000, b'"a string"', b"[" * 100_000,
                 b'{"workflow_id": ' + b"[" * 100_000, b"\xff\xfe"]

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 import pytest
 
@@ -11,6 +12,7 @@ from osmo.config import DEFAULT_CLUSTER
 from osmo.errors import UsageError
 from osmo.server.options import ServerOptions
 from osmo.worker.options import DEFAULT_POOL, WorkerOptions
+from tests.conftest import Osmo
 
 
 def _server(argv: list[str]) -> ServerOptions:
@@ -55,3 +57,11 @@ def test_worker_flags_and_defaults() -> None:
 def test_bad_worker_flags_say_what_to_write(argv: list[str], message: str) -> None:
     with pytest.raises(UsageError, match=message):
         _worker(argv)
+
+
+@pytest.mark.parametrize("name", ["local", "server", "a/b", "-x", "w\nfake"])
+def test_a_worker_refuses_a_name_it_cannot_have(tmp_path: Path, name: str) -> None:
+    r = Osmo(tmp_path / "home")("worker", "--connect", "tcp/127.0.0.1:9", f"--name={name}",
+                                "--home", str(tmp_path / "w"), timeout=60)
+    assert r.code == 2, r
+    assert "is not valid" in r.err and "Traceback" not in r.err, r.err
