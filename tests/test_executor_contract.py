@@ -29,7 +29,7 @@ from osmo.spec import spec_to_dict
 from osmo.spec.model import WorkflowSpec
 from osmo.store.sqlite import NewWorkflowRow, Store
 from osmo.testing import check_executor
-from osmo.transport.api import ApiServer
+from osmo.transport.rpc import ApiServer
 from osmo.transport.zenoh_link import Link
 from osmo.worker.pool import LocalPool
 from tests.conftest import REPO

@@ -49,7 +49,7 @@ def run_dataset(args: argparse.Namespace) -> int:
                                    f"{r['size']} B  {r['created']}  by "
                                    f"{r['made_by'] or 'upload'}"), markup=False)
         elif verb == "info":
-            info = client.dataset_info(args.ref)
+            info = client.dataset(args.ref)
             if args.format == "json":
                 print_json(info)
             else:

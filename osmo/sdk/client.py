@@ -111,6 +111,12 @@ def _workflow_info(wf: dict[str, Any], tasks: list[dict[str, Any]] = ()) -> Work
 class Client:
     """A connection to an osmo server.
 
+    Method names: a read is named by what it returns (``get``, ``spec``, ``lineage``,
+    ``artifacts``, ``datasets``, ``dataset``, ``credentials``), an action by its verb and
+    object (``submit``, ``get_artifact``, ``gc_artifacts``, ``tag_dataset``,
+    ``upload_dataset``, ``set_credential``). The server's API verbs are
+    ``<object>_<verb>`` (``artifact_get``, ``dataset_tag``, ``credential_set``).
+
     Args:
         server: zenoh endpoint of a server (``tcp/host:7447``); default: ``OSMO_SERVER`` or
             the local server of ``home``, started in the background if needed.
@@ -273,14 +279,14 @@ class Client:
 
     def artifacts(self, workflow_id: str, task: str | None = None) -> builtins.list[dict[str, Any]]:
         """Promoted outputs of a workflow with their files (path, digest, size)."""
-        return builtins.list(self._call("artifacts_list", workflow_id=workflow_id, task=task))
+        return builtins.list(self._call("artifact_list", workflow_id=workflow_id, task=task))
 
     def get_artifact(self, target: str, dest: str | os.PathLike[str]) -> builtins.list[str]:
         """Write a target's files, verified, into ``dest`` on this machine (fetched from the
         server, wherever it runs). Returns the written paths."""
         from osmo.sdk import transfer
 
-        reply = self._call("artifacts_get", target=target)
+        reply = self._call("artifact_get", target=target)
         from osmo.artifacts import Manifest
 
         written = transfer.download(self._conn.link, self.ping(), Manifest.from_json(
@@ -289,7 +295,7 @@ class Client:
 
     def gc_artifacts(self) -> tuple[int, int]:
         """Remove unreferenced blobs; returns (count, bytes)."""
-        reply = self._call("artifacts_gc")
+        reply = self._call("artifact_gc")
         return int(reply["removed"]), int(reply["bytes"])
 
     # ------------------------------------------------------------------ datasets
@@ -298,17 +304,17 @@ class Client:
         """Dataset versions (of one dataset), newest first."""
         if name is not None:
             check_name(name, "dataset name")
-        return builtins.list(self._call("datasets_list", name=name))
+        return builtins.list(self._call("dataset_list", name=name))
 
-    def dataset_info(self, ref: str) -> dict[str, Any]:
+    def dataset(self, ref: str) -> dict[str, Any]:
         """One version (``NAME[:TAG_OR_VERSION]``, default newest) with its files."""
         parse_ref(ref)
-        return dict(self._call("datasets_info", ref=ref))
+        return dict(self._call("dataset_info", ref=ref))
 
     def tag_dataset(self, ref: str, tag: str) -> dict[str, Any]:
         """Point ``tag`` at the version ``ref`` names."""
         parse_ref(ref)
-        return dict(self._call("datasets_tag", ref=ref, tag=check_tag(tag)))
+        return dict(self._call("dataset_tag", ref=ref, tag=check_tag(tag)))
 
     def download_dataset(self, ref: str, dest: str | os.PathLike[str], *,
                          regex: str | None = None) -> builtins.list[str]:
@@ -319,7 +325,7 @@ class Client:
         from osmo.artifacts import Manifest
 
         parse_ref(ref)
-        reply = self._call("datasets_download", ref=ref, regex=regex)
+        reply = self._call("dataset_download", ref=ref, regex=regex)
         written = transfer.download(self._conn.link, self.ping(),
                                     Manifest.from_json(reply["manifest"]), Path(dest).absolute())
         return [str(p) for p in written]
@@ -336,7 +342,7 @@ class Client:
             raise UsageError(f"cannot upload '{folder}': not a folder")
         offer = transfer.upload(self._conn.link, folder)
         try:
-            reply = self._call("datasets_upload", name=name, manifest=offer.manifest.to_json(),
+            reply = self._call("dataset_upload", name=name, manifest=offer.manifest.to_json(),
                                source=offer.source, metadata=metadata or {}, timeout=3600)
         finally:
             offer.close()

@@ -26,7 +26,7 @@ from osmo.config import (
 )
 from osmo.errors import InfrastructureError, ServerUnreachable
 from osmo.server.options import ServerOptions
-from osmo.transport.api import ApiClient
+from osmo.transport.rpc import ApiClient
 from osmo.transport.zenoh_link import Link
 
 __all__ = ["Connection", "server_status", "start_server", "stop_server"]

@@ -33,7 +33,7 @@ from osmo.errors import InfrastructureError, OsmoError
 from osmo.executor import Executor
 from osmo.layout import Home
 from osmo.scheduler.types import AttemptLost, NodeUp
-from osmo.server.api import Api
+from osmo.server.handlers import Handlers
 from osmo.server.credentials import url_credential
 from osmo.server.datasets import Datasets
 from osmo.server.engine import Engine
@@ -48,7 +48,7 @@ from osmo.server.workers import WorkerHub
 from osmo.transport.blobs import host_id
 from osmo.server.records import RunRecords
 from osmo.store.sqlite import Store
-from osmo.transport.api import ApiServer
+from osmo.transport.rpc import ApiServer
 from osmo.transport.zenoh_link import Link
 from osmo.worker.pool import LocalPool
 
@@ -136,8 +136,8 @@ def serve(home: str | os.PathLike[str] | None = None, options: ServerOptions | N
                              if options.zenoh_config else None),
             "host_id": host_id(), "artifacts": str(artifacts.root),
             "started_at": time.time(), "home": str(home_path)}
-    api = Api(engine, home_path, info, on_shutdown=stopping.set, workers=hub)
-    api_server = ApiServer(link, api.handle,
+    handlers = Handlers(engine, home_path, info, on_shutdown=stopping.set, workers=hub)
+    api_server = ApiServer(link, handlers.handle,
                            on_crash=lambda exc: log.error("API handler crashed", exc_info=exc))
     write_json_atomic(layout.server_info, info)
     log.info("osmo server %s listening on %s (home %s)", os.getpid(),

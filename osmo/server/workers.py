@@ -53,7 +53,7 @@ from osmo.spec.model import TaskSpec
 from osmo.store.sqlite import Store
 from osmo.transport.blobs import SERVER, BlobServer, SameHost, fetch_manifest, host_id
 from osmo.names import check_worker_name
-from osmo.transport.api import field, str_list, str_map
+from osmo.transport.rpc import field, str_list, str_map
 from osmo.worker.options import DEFAULT_POOL
 from osmo.transport.wire import capacity_from_dict, event_from_dict, prepare_to_dict, spec_to_wire
 from osmo.transport.zenoh_link import Link, Subscription

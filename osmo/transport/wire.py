@@ -40,7 +40,7 @@ from osmo.scheduler.types import (
 from osmo.errors import UsageError
 from osmo.names import shown
 from osmo.spec.model import WorkflowSpec
-from osmo.transport.api import MAX_INT, field
+from osmo.transport.rpc import MAX_INT, field
 
 __all__ = ["capacity_from_dict", "capacity_to_dict", "event_from_dict", "event_to_dict",
            "prepare_from_dict", "prepare_to_dict", "spec_from_wire", "spec_to_wire"]

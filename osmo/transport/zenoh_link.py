@@ -1,7 +1,7 @@
 """The one module that imports zenoh: sessions, puts, subscriptions, queries, liveliness.
 
 Everything osmo sends travels under one key prefix per cluster, ``osmo/<cluster>/...``; the
-key layout is documented by the modules that use it (``osmo.transport.api`` for the client
+key layout is documented by the modules that use it (``osmo.transport.rpc`` for the client
 API, ``osmo.transport.blobs`` for artifact transfer, ``osmo.server.workers`` and
 ``osmo.worker.remote`` for worker traffic).
 

@@ -49,7 +49,7 @@ from osmo.scheduler.types import (
     RunAttempt,
 )
 from osmo.spec.model import TaskSpec, WorkflowSpec
-from osmo.transport.api import ApiClient
+from osmo.transport.rpc import ApiClient
 from osmo.transport.blobs import SERVER, BlobServer, SameHost, fetch_manifest, host_id
 from osmo.worker.options import WorkerOptions
 from osmo.transport.wire import capacity_to_dict, event_to_dict, prepare_from_dict, spec_from_wire

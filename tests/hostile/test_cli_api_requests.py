@@ -2,7 +2,7 @@
 log line, never an infrastructure error and never a traceback in ``server.log``.
 
 The table covers every client verb with wrong types, missing fields, huge strings and nested
-junk. Requests go through :class:`~osmo.transport.api.ApiClient` (JSON the client would never
+junk. Requests go through :class:`~osmo.transport.rpc.ApiClient` (JSON the client would never
 send) or straight onto the zenoh key (bytes that are not JSON at all).
 """
 
@@ -64,25 +64,25 @@ CASES: list[Any] = [
     ("lineage", {"target": "dataset:x:99999999999999999999999"}),
     ("lineage", {"target": "dataset:../x"}),
     ("lineage", {"target": "ok-1:a", "downstream": "yes"}),
-    ("artifacts_list", {"workflow_id": "ok-1", "task": ["a"]}),
-    ("artifacts_get", {}),
-    ("artifacts_get", {"target": JUNK}),
-    ("datasets_list", {"name": 5}),
-    ("datasets_info", {}),
-    ("datasets_info", {"ref": None}),
-    ("datasets_tag", {"ref": "ds:1"}),
-    ("datasets_tag", {"ref": "ds:1", "tag": JUNK}),
-    ("datasets_download", {"ref": "ds", "regex": "("}),
-    ("datasets_download", {"ref": "ds", "regex": 5}),
-    ("datasets_upload", {"name": "ds"}),
-    ("datasets_upload", {"name": "ds", "manifest": "not json", "source": {}}),
-    ("datasets_upload", {"name": "ds", "manifest": "{}", "source": "x"}),
-    ("datasets_upload", {"name": "ds", "manifest": '{"entries": 5}', "source": {}}),
-    ("datasets_upload", {"name": "ds", "manifest": '{"entries": []}', "source": {},
+    ("artifact_list", {"workflow_id": "ok-1", "task": ["a"]}),
+    ("artifact_get", {}),
+    ("artifact_get", {"target": JUNK}),
+    ("dataset_list", {"name": 5}),
+    ("dataset_info", {}),
+    ("dataset_info", {"ref": None}),
+    ("dataset_tag", {"ref": "ds:1"}),
+    ("dataset_tag", {"ref": "ds:1", "tag": JUNK}),
+    ("dataset_download", {"ref": "ds", "regex": "("}),
+    ("dataset_download", {"ref": "ds", "regex": 5}),
+    ("dataset_upload", {"name": "ds"}),
+    ("dataset_upload", {"name": "ds", "manifest": "not json", "source": {}}),
+    ("dataset_upload", {"name": "ds", "manifest": "{}", "source": "x"}),
+    ("dataset_upload", {"name": "ds", "manifest": '{"entries": 5}', "source": {}}),
+    ("dataset_upload", {"name": "ds", "manifest": '{"entries": []}', "source": {},
                          "metadata": [1]}),
-    ("datasets_upload", {"name": "ds", "manifest": EMPTY, "source": {}}),
-    ("datasets_upload", {"name": "ds", "manifest": EMPTY, "source": {"owner": "../x"}}),
-    ("datasets_upload", {"name": "ds", "manifest": EMPTY,
+    ("dataset_upload", {"name": "ds", "manifest": EMPTY, "source": {}}),
+    ("dataset_upload", {"name": "ds", "manifest": EMPTY, "source": {"owner": "../x"}}),
+    ("dataset_upload", {"name": "ds", "manifest": EMPTY,
                          "source": {"owner": "client-1", "host_id": 5}}),
     ("credential_set", {}),
     ("credential_set", {"name": "c", "payload": "x"}),

@@ -19,8 +19,8 @@ from osmo.errors import NotFoundError, UsageError
 from osmo.layout import Home
 from osmo.names import MAX_NAME, check_name, check_workflow_id, did_you_mean, shown
 from osmo.scheduler.types import CancelWorkflow
-from osmo.server.api_datasets import DatasetApi
-from osmo.server.credentials import CredentialApi, check_task_credentials
+from osmo.server.dataset_handlers import DatasetHandlers
+from osmo.server.credentials import CredentialHandlers, check_task_credentials
 from osmo.server.engine import Engine
 from osmo.server.lineage_query import lineage_graph, resolve_target
 from osmo.server.logview import last_progress, read_logs
@@ -28,15 +28,15 @@ from osmo.server.requests import ListNodes, SubmitWorkflow
 from osmo.spec import isolation, load_spec, spec_from_dict, spec_to_dict
 from osmo.status import WorkflowStatus
 from osmo.store.sqlite import WorkflowRow
-from osmo.transport.api import MAX_INT, field, str_list
+from osmo.transport.rpc import MAX_INT, field, str_list
 
-__all__ = ["Api"]
+__all__ = ["Handlers"]
 
 MAX_LIST = 1_000_000  # workflows one ``list`` may ask for
 _MAX_TEXT = 4096  # characters of a path, a pool or an artifact target in a request
 
 
-class Api:
+class Handlers:
     """Dispatches ``verb`` → handler. ``info`` is returned by ``ping``."""
 
     def __init__(self, engine: Engine, home: Path, info: dict[str, Any],
@@ -60,16 +60,16 @@ class Api:
             "spec": self.spec,
             "pools": self.pools,
             "lineage": self.lineage,
-            "artifacts_list": self.artifacts_list,
-            "artifacts_get": self.artifacts_get,
-            "artifacts_gc": self.artifacts_gc,
+            "artifact_list": self.artifact_list,
+            "artifact_get": self.artifact_get,
+            "artifact_gc": self.artifact_gc,
             "shutdown": self.shutdown,
         }
         if workers is not None:
             self._verbs.update(workers.verbs())
-        self._verbs.update(DatasetApi(engine, self._artifacts, home,
+        self._verbs.update(DatasetHandlers(engine, self._artifacts, home,
                                       workers.pull if workers else None).verbs())
-        self._verbs.update(CredentialApi(self._store).verbs())
+        self._verbs.update(CredentialHandlers(self._store).verbs())
         isolation.warm()  # the template renderer, started now so no submit waits for it
 
     def handle(self, verb: str, request: dict[str, Any]) -> Any:
@@ -202,7 +202,7 @@ class Api:
         return lineage_graph(self._store, _target(request),
                              downstream=field(request, "downstream", bool, default=False))
 
-    def artifacts_list(self, request: dict[str, Any]) -> builtins.list[dict[str, Any]]:
+    def artifact_list(self, request: dict[str, Any]) -> builtins.list[dict[str, Any]]:
         """Promoted outputs of a workflow (optionally one task) with their files."""
         row = self._row(request.get("workflow_id"))
         task = field(request, "task", str, default=None)
@@ -217,7 +217,7 @@ class Api:
             raise NotFoundError(f"task '{task}' of {row.id} has no recorded output")
         return out
 
-    def artifacts_get(self, request: dict[str, Any]) -> dict[str, Any]:
+    def artifact_get(self, request: dict[str, Any]) -> dict[str, Any]:
         """A target's manifest (and the one file meant, if it names a file); the client
         fetches the blobs and writes the files."""
         manifests, blob = resolve_target(self._store, _target(request))
@@ -227,7 +227,7 @@ class Api:
         only = next((e.path for e in manifest.entries if e.digest == blob), None) if blob else None
         return {"manifest": manifests[0], "body": body, "only": only}
 
-    def artifacts_gc(self, _request: dict[str, Any]) -> dict[str, Any]:
+    def artifact_gc(self, _request: dict[str, Any]) -> dict[str, Any]:
         """Remove blobs no recorded manifest references (recent blobs are kept)."""
         count, size = self._artifacts.gc(self._store.all_blob_digests())
         return {"removed": count, "bytes": size}

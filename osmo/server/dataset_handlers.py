@@ -21,12 +21,12 @@ from osmo.names import check_name, check_tag, parse_ref, shown
 from osmo.server.datasets import select
 from osmo.server.engine import Engine
 from osmo.server.requests import AddDatasetVersion, TagDataset
-from osmo.transport.api import field, str_map
+from osmo.transport.rpc import field, str_map
 
-__all__ = ["DatasetApi"]
+__all__ = ["DatasetHandlers"]
 
 
-class DatasetApi:
+class DatasetHandlers:
     """Handlers for ``datasets_*`` verbs."""
 
     def __init__(self, engine: Engine, artifacts: ArtifactStore, home: Path,
@@ -39,9 +39,9 @@ class DatasetApi:
 
     def verbs(self) -> dict[str, Any]:
         """Verb name → handler."""
-        return {"datasets_list": self.list, "datasets_info": self.info,
-                "datasets_tag": self.tag, "datasets_download": self.download,
-                "datasets_upload": self.upload}
+        return {"dataset_list": self.list, "dataset_info": self.info,
+                "dataset_tag": self.tag, "dataset_download": self.download,
+                "dataset_upload": self.upload}
 
     def list(self, request: dict[str, Any]) -> list[dict[str, Any]]:
         """Every version (of one dataset), newest first, with size and tags."""

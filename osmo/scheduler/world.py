@@ -2,7 +2,7 @@
 
 This module owns the containers (runs, the attempt index, the node ledger, the queue, the
 deadlines), the outgoing commands of the event being handled, the change journal, and the
-single choke point for status changes (:meth:`Engine.set_status`), which keeps the per-run
+single choke point for status changes (:meth:`World.set_status`), which keeps the per-run
 counters, the transition log and the barrier membership consistent. Rules live in
 ``placement``, ``groups`` and ``attempts``; they call into this module, never the reverse.
 """
@@ -18,10 +18,10 @@ from osmo.scheduler.state import TaskState, WorkflowState
 from osmo.scheduler.types import Changes, Command, KillAttempt, RunAttempt, Transition
 from osmo.status import TaskStatus, WorkflowStatus
 
-__all__ = ["Engine"]
+__all__ = ["World"]
 
 
-class Engine:
+class World:
     """State shared by the scheduler's rules while they handle one event at ``now``."""
 
     def __init__(self, *, default_max_retries: int, max_lost_retries: int) -> None:
