@@ -68,7 +68,7 @@ class Scheduler:
     def __init__(self, *, default_max_retries: int = DEFAULT_MAX_RETRIES,
                  max_lost_retries: int = 5) -> None:
         self._world = World(default_max_retries=default_max_retries,
-                           max_lost_retries=max_lost_retries)
+                            max_lost_retries=max_lost_retries)
 
     # ------------------------------------------------------------------ events
 
@@ -288,7 +288,7 @@ class Scheduler:
             run.running += task.status is TaskStatus.RUNNING
             if task.attempt_id is not None and task.node_id is not None:
                 world.ledger.reserve(task.attempt_id, task.node_id,
-                                   run.requests[task.name].capacity)
+                                     run.requests[task.name].capacity)
 
     def _restore_group(self, run: Run, name: str) -> None:
         world, group = self._world, run.groups[name]

@@ -65,10 +65,7 @@ def _stop_rest(world: World, run: Run, group: Group, cause: TaskState) -> None:
     message = ("stopped: lead finished" if completed
                else f"stopped: task '{cause.name}' {cause.status.name}")
     status = TaskStatus.COMPLETED if completed else TaskStatus.FAILED
-    for spec in group.spec.tasks:
-        task = run.tasks[spec.name]
-        if not task.status.terminal:
-            world.end_task(run, task, status, ExitCode.STOPPED, message, kill=message)
+    _end_open_tasks(world, run, group, status, ExitCode.STOPPED, message, kill=message)
 
 
 def close_group(world: World, run: Run, group: Group) -> None:
@@ -93,11 +90,8 @@ def _cascade(world: World, run: Run, failed: Group) -> None:
         if group.closing:
             continue
         group.closing = True
-        for spec in group.spec.tasks:
-            task = run.tasks[spec.name]
-            if not task.status.terminal:
-                world.end_task(run, task, TaskStatus.FAILED_UPSTREAM, ExitCode.UPSTREAM_FAILED,
-                             message)
+        _end_open_tasks(world, run, group, TaskStatus.FAILED_UPSTREAM, ExitCode.UPSTREAM_FAILED,
+                        message)
         group.outcome = TaskStatus.FAILED_UPSTREAM
         run.open_groups -= 1
 
@@ -120,11 +114,8 @@ def expire_exec(world: World, run: Run, group: Group) -> None:
     """The group's exec timeout expired: fail every non-terminal task of it."""
     group.closing = True
     message = f"exec timeout ({run.spec.timeout.exec_timeout:g}s) exceeded"
-    for spec in group.spec.tasks:
-        task = run.tasks[spec.name]
-        if not task.status.terminal:
-            world.end_task(run, task, TaskStatus.FAILED_EXEC_TIMEOUT, ExitCode.EXEC_TIMEOUT,
-                         message, kill="exec timeout")
+    _end_open_tasks(world, run, group, TaskStatus.FAILED_EXEC_TIMEOUT, ExitCode.EXEC_TIMEOUT,
+                    message, kill="exec timeout")
     close_group(world, run, group)
 
 
@@ -148,11 +139,18 @@ def cancel(world: World, run: Run) -> None:
         if group.closing:
             continue
         group.closing = True
-        for spec in group.spec.tasks:
-            task = run.tasks[spec.name]
-            if not task.status.terminal:
-                world.end_task(run, task, TaskStatus.FAILED_CANCELED, ExitCode.CANCELED,
-                             "canceled", kill="canceled")
+        _end_open_tasks(world, run, group, TaskStatus.FAILED_CANCELED, ExitCode.CANCELED,
+                        "canceled", kill="canceled")
         group.outcome = group_outcome(group.spec, run.tasks)
         run.open_groups -= 1
     world.touch(run)
+
+
+def _end_open_tasks(world: World, run: Run, group: Group, status: TaskStatus, code: int,
+                    message: str, kill: str | None = None) -> None:
+    """End every task of ``group`` that is not terminal yet with ``status``; with ``kill``,
+    its active attempt is stopped first (the kill's reason)."""
+    for spec in group.spec.tasks:
+        task = run.tasks[spec.name]
+        if not task.status.terminal:
+            world.end_task(run, task, status, code, message, kill=kill)

@@ -68,7 +68,7 @@ class Handlers:
         if workers is not None:
             self._verbs.update(workers.verbs())
         self._verbs.update(DatasetHandlers(engine, self._artifacts, home,
-                                      workers.pull if workers else None).verbs())
+                                           workers.pull if workers else None).verbs())
         self._verbs.update(CredentialHandlers(self._store).verbs())
         isolation.warm()  # the template renderer, started now so no submit waits for it
 

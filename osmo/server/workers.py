@@ -347,7 +347,7 @@ class WorkerHub:
         except (OsmoError, OSError) as exc:
             log.warning("outputs of %s from worker %s: %s", event.attempt_id, wid, exc)
             self._emit(AttemptLost(event.attempt_id, f"outputs could not be taken from worker "
-                                                     f"{wid}: {exc}"))
+                                                      f"{wid}: {exc}"))
             return
         except Exception as exc:  # noqa: BLE001 - a bug: fail the attempt, never leave it open
             log.exception("outputs of %s from worker %s", event.attempt_id, wid)
