@@ -111,11 +111,8 @@ def _workflow_info(wf: dict[str, Any], tasks: list[dict[str, Any]] = ()) -> Work
 class Client:
     """A connection to an osmo server.
 
-    Method names: a read is named by what it returns (``get``, ``spec``, ``lineage``,
-    ``artifacts``, ``datasets``, ``dataset``, ``credentials``), an action by its verb and
-    object (``submit``, ``get_artifact``, ``gc_artifacts``, ``tag_dataset``,
-    ``upload_dataset``, ``set_credential``). The server's API verbs are
-    ``<object>_<verb>`` (``artifact_get``, ``dataset_tag``, ``credential_set``).
+    A read is named by what it returns (``artifacts``, ``dataset``), an action by verb and
+    object (``get_artifact``, ``tag_dataset``); the API verbs are ``<object>_<verb>``.
 
     Args:
         server: zenoh endpoint of a server (``tcp/host:7447``); default: ``OSMO_SERVER`` or

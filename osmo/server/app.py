@@ -136,7 +136,8 @@ def serve(home: str | os.PathLike[str] | None = None, options: ServerOptions | N
                              if options.zenoh_config else None),
             "host_id": host_id(), "artifacts": str(artifacts.root),
             "started_at": time.time(), "home": str(home_path)}
-    handlers = Handlers(engine, home_path, info, on_shutdown=stopping.set, workers=hub)
+    handlers = Handlers(engine, home_path, info, on_shutdown=stopping.set, workers=hub,
+                        link=link)
     api_server = ApiServer(link, handlers.handle,
                            on_crash=lambda exc: log.error("API handler crashed", exc_info=exc))
     write_json_atomic(layout.server_info, info)

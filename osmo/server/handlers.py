@@ -25,6 +25,8 @@ from osmo.server.engine import Engine
 from osmo.server.lineage_query import lineage_graph, resolve_target
 from osmo.server.logview import last_progress, read_logs
 from osmo.server.requests import ListNodes, SubmitWorkflow
+from osmo.server.workers import WorkerHub
+from osmo.transport.zenoh_link import Link
 from osmo.spec import isolation, load_spec, spec_from_dict, spec_to_dict
 from osmo.status import WorkflowStatus
 from osmo.store.sqlite import WorkflowRow
@@ -40,7 +42,8 @@ class Handlers:
     """Dispatches ``verb`` → handler. ``info`` is returned by ``ping``."""
 
     def __init__(self, engine: Engine, home: Path, info: dict[str, Any],
-                 on_shutdown: Callable[[], None], workers: Any = None) -> None:
+                 on_shutdown: Callable[[], None], workers: WorkerHub | None = None,
+                 link: Link | None = None) -> None:
         self._workers = workers  # the WorkerHub: its verbs, and worker status for pools
         self._engine = engine
         self._store = engine.store
@@ -67,8 +70,7 @@ class Handlers:
         }
         if workers is not None:
             self._verbs.update(workers.verbs())
-        self._verbs.update(DatasetHandlers(engine, self._artifacts, home,
-                                           workers.pull if workers else None).verbs())
+        self._verbs.update(DatasetHandlers(engine, self._artifacts, home, link).verbs())
         self._verbs.update(CredentialHandlers(self._store).verbs())
         isolation.warm()  # the template renderer, started now so no submit waits for it
 

@@ -33,7 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from osmo.artifacts import ArtifactStore, Manifest
-from osmo.errors import OsmoError, UsageError
+from osmo.errors import OsmoError
 from osmo.layout import AttemptDirs, Home
 from osmo.scheduler.types import (
     LOCAL_NODE,
@@ -52,18 +52,13 @@ from osmo.scheduler.types import (
 from osmo.spec.model import TaskSpec
 from osmo.store.sqlite import Store
 from osmo.transport.blobs import SERVER, BlobServer, SameHost, fetch_manifest, host_id
-from osmo.names import check_worker_name
-from osmo.transport.rpc import field, str_list, str_map
-from osmo.worker.options import DEFAULT_POOL
-from osmo.transport.wire import capacity_from_dict, event_from_dict, prepare_to_dict, spec_to_wire
+from osmo.transport.wire import Hello, event_from_dict, prepare_to_dict, spec_to_wire, worker_id
 from osmo.transport.zenoh_link import Link, Subscription
 from osmo.worker.secrets import SecretError, gather
 
 __all__ = ["WorkerHub"]
 
 log = logging.getLogger("osmo.server.workers")
-
-_TEXT = 4096  # characters of a name, an address or a folder in a worker's request
 
 
 
@@ -112,39 +107,26 @@ class WorkerHub:
         """API verbs served for workers."""
         return {"worker_register": self.register, "worker_drain": self.drain}
 
-    def register(self, hello: dict[str, Any]) -> dict[str, Any]:
-        """A worker says hello (first start, or again after a server restart): its name,
-        pool, platform, capacity, labels, address, host id, artifact folder and pid, whether
-        it drains, the attempts it still runs and the exit reports not yet acknowledged.
+    def register(self, request: dict[str, Any]) -> dict[str, Any]:
+        """A worker says hello (``osmo.transport.wire.Hello``): first start, or again after
+        a server restart.
 
         Raises:
             UsageError: a field of the wrong type or out of range (nothing is changed).
         """
-        wid = _worker(hello)
-        node = Node(id=wid, pool=field(hello, "pool", str, default=DEFAULT_POOL, max_len=_TEXT),
-                    capacity=capacity_from_dict(field(hello, "capacity", dict, default={})),
-                    platform=field(hello, "platform", str, default=None, max_len=_TEXT),
-                    address=field(hello, "address", str, default="127.0.0.1", max_len=_TEXT),
-                    labels=str_map(hello, "labels"))
-        artifacts = field(hello, "artifacts", str, default=None, max_len=_TEXT)
-        host = field(hello, "host_id", str, default=None, max_len=_TEXT)
-        info = {"pid": field(hello, "pid", int, default=None), "address": node.address,
-                "host_id": host}
-        draining = field(hello, "draining", bool, default=False)
-        active = set(str_list(hello, "active"))
-        finished = field(hello, "finished", list, default=[])
-        if not all(isinstance(report, dict) for report in finished):
-            raise UsageError("'finished' must be a list of reports (objects)")
+        hello = Hello.from_dict(request)
+        node, wid = hello.node, hello.node.id
         with self._lock:
             self._nodes[wid] = node
-            self._info[wid] = info
-            same = host == self._host and artifacts
-            self._same_host[wid] = SameHost(Path(artifacts)) if same else None
+            self._info[wid] = {"pid": hello.pid, "address": node.address,
+                               "host_id": hello.host_id}
+            same = hello.host_id == self._host and hello.artifacts
+            self._same_host[wid] = SameHost(Path(hello.artifacts or "")) if same else None
             self._sent_specs[wid] = set()
-            if draining:
+            if hello.draining:
                 self._draining.add(wid)
             alive = wid in self._alive
-        self._reconcile(wid, active, finished)
+        self._reconcile(wid, set(hello.active), list(hello.finished))
         if alive:
             self._emit(NodeUp(self._announced(wid)))
         log.info("worker %s registered (pool %s, %s)", wid, node.pool, node.capacity)
@@ -152,7 +134,7 @@ class WorkerHub:
 
     def drain(self, request: dict[str, Any]) -> dict[str, Any]:
         """A worker stops taking work: announce it with no capacity."""
-        wid = _worker(request)
+        wid = worker_id(request)
         with self._lock:
             known = wid in self._nodes
             self._draining.add(wid)
@@ -213,22 +195,6 @@ class WorkerHub:
                      "status": ("draining" if wid in self._draining else
                                 "online" if wid in self._alive else "connecting"),
                      **self._info.get(wid, {})} for wid, n in sorted(self._nodes.items())]
-
-    def pull(self, source: dict[str, Any], manifest: Manifest) -> None:
-        """Fetch ``manifest``'s blobs from a client that serves them as ``source["owner"]``
-        (linked from ``source["artifacts"]`` instead when ``source["host_id"]`` is this host).
-
-        Raises:
-            UsageError: ``source`` is not such an object.
-        """
-        owner = check_worker_name(field(source, "owner", str, max_len=_TEXT,
-                                        what="'source.owner'"), reserved=(SERVER,))
-        host = field(source, "host_id", str, default=None, max_len=_TEXT,
-                     what="'source.host_id'")
-        artifacts = field(source, "artifacts", str, default=None, max_len=_TEXT,
-                          what="'source.artifacts'")
-        same = SameHost(Path(artifacts)) if host == self._host and artifacts else None
-        fetch_manifest(self._link, owner, manifest, self._artifacts, same_host=same)
 
     # ------------------------------------------------------------------ orders
 
@@ -391,12 +357,6 @@ class WorkerHub:
             for fd in self._logs.values():
                 os.close(fd)
             self._logs.clear()
-
-
-def _worker(request: dict[str, Any]) -> str:
-    """The worker a request comes from (its ``id``), checked as a worker name."""
-    return check_worker_name(field(request, "id", str, max_len=_TEXT),
-                             reserved=(LOCAL_NODE, SERVER))
 
 
 def _dirs(home: Path, attempt_id: str) -> AttemptDirs:

@@ -8,8 +8,9 @@ Keys, under the cluster prefix ``osmo/<cluster>``:
 - ``alive/server`` and ``alive/worker/<id>`` — liveliness tokens. A worker's token going
   away (process killed, network cut: noticed within the 1 s lease) is its ``NodeDown``; the
   server's token coming back tells a worker to register again.
-- ``api/worker_register`` — a worker's hello (see :func:`hello`), answered with the server's
-  host id and artifact folder (a worker on the same host links blobs instead of fetching).
+- ``api/worker_register`` — a worker's :class:`Hello`, answered with the server's host id and
+  artifact folder (a worker on the same host links blobs instead of fetching);
+  ``api/worker_drain`` — ``{"id": <worker>}``: it takes no more work.
 - ``to-worker/<id>`` — the server's orders: ``prepare`` (the attempt, the task's workflow
   spec the first time, input manifests, secrets, ``max_output_bytes``: the task's storage
   limit), ``run``, ``kill``, ``ack`` (an exit report
@@ -24,10 +25,11 @@ ignored, so a worker that returns late can never commit stale work.
 
 from __future__ import annotations
 
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from typing import Any
 
 from osmo.scheduler.types import (
+    LOCAL_NODE,
     AttemptExited,
     AttemptLost,
     AttemptPrepared,
@@ -35,15 +37,20 @@ from osmo.scheduler.types import (
     AttemptStartFailed,
     Capacity,
     Event,
+    Node,
     PrepareAttempt,
 )
 from osmo.errors import UsageError
-from osmo.names import shown
+from osmo.names import check_worker_name, shown
 from osmo.spec.model import WorkflowSpec
-from osmo.transport.rpc import MAX_INT, field
+from osmo.transport.blobs import SERVER
+from osmo.transport.rpc import MAX_INT, field, str_list, str_map
 
-__all__ = ["capacity_from_dict", "capacity_to_dict", "event_from_dict", "event_to_dict",
-           "prepare_from_dict", "prepare_to_dict", "spec_from_wire", "spec_to_wire"]
+__all__ = ["Hello", "capacity_from_dict", "capacity_to_dict", "event_from_dict",
+           "event_to_dict", "prepare_from_dict", "prepare_to_dict", "spec_from_wire",
+           "spec_to_wire", "worker_id"]
+
+_TEXT = 4096  # characters of a name, an address or a folder in a worker's message
 
 
 def event_to_dict(event: Event) -> dict[str, Any]:
@@ -122,6 +129,70 @@ def capacity_from_dict(data: dict[str, Any]) -> Capacity:
     if negative:
         raise UsageError(f"'capacity.{negative[0]}' must not be negative")
     return Capacity(cpu=float(cpu), **amounts)
+
+
+def worker_id(request: dict[str, Any]) -> str:
+    """The worker a request comes from (its ``id``), checked as a worker name.
+
+    Raises:
+        UsageError: not a string, or not a name a worker may have.
+    """
+    return check_worker_name(field(request, "id", str, max_len=_TEXT),
+                             reserved=(LOCAL_NODE, SERVER))
+
+
+@dataclass(frozen=True)
+class Hello:
+    """A worker's registration: who it is, and what it holds (it says hello again after a
+    server restart).
+
+    Attributes:
+        node: its name, pool, capacity, platform, address and labels.
+        pid: its process id (shown by ``osmo resource list``).
+        host_id, artifacts: its host and its artifact folder (a server on the same host
+            links blobs from there instead of fetching them).
+        draining: it takes no more work.
+        active: the attempts it still runs.
+        finished: its exit reports the server has not acknowledged yet.
+    """
+
+    node: Node
+    pid: int | None = None
+    host_id: str | None = None
+    artifacts: str | None = None
+    draining: bool = False
+    active: tuple[str, ...] = ()
+    finished: tuple[dict[str, Any], ...] = ()
+
+    def to_dict(self) -> dict[str, Any]:
+        """The hello as JSON-safe data."""
+        node = self.node
+        return {"id": node.id, "pool": node.pool, "platform": node.platform,
+                "capacity": capacity_to_dict(node.capacity), "labels": dict(node.labels),
+                "address": node.address, "host_id": self.host_id, "artifacts": self.artifacts,
+                "pid": self.pid, "draining": self.draining, "active": list(self.active),
+                "finished": list(self.finished)}
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> Hello:
+        """The inverse of :meth:`to_dict`, every field checked.
+
+        Raises:
+            UsageError: a field missing, of the wrong type or out of range.
+        """
+        node = Node(id=worker_id(data), pool=field(data, "pool", str, max_len=_TEXT),
+                    capacity=capacity_from_dict(field(data, "capacity", dict, default={})),
+                    platform=field(data, "platform", str, default=None, max_len=_TEXT),
+                    address=field(data, "address", str, max_len=_TEXT),
+                    labels=str_map(data, "labels"))
+        finished = field(data, "finished", list, default=[])
+        if not all(isinstance(report, dict) for report in finished):
+            raise UsageError("'finished' must be a list of reports (objects)")
+        return cls(node, pid=field(data, "pid", int, default=None),
+                   host_id=field(data, "host_id", str, default=None, max_len=_TEXT),
+                   artifacts=field(data, "artifacts", str, default=None, max_len=_TEXT),
+                   draining=field(data, "draining", bool, default=False),
+                   active=tuple(str_list(data, "active")), finished=tuple(finished))
 
 
 def spec_to_wire(spec: dict[str, Any], filename: str, types: dict[str, Any]) -> dict[str, Any]:

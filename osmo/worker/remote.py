@@ -52,7 +52,7 @@ from osmo.spec.model import TaskSpec, WorkflowSpec
 from osmo.transport.rpc import ApiClient
 from osmo.transport.blobs import SERVER, BlobServer, SameHost, fetch_manifest, host_id
 from osmo.worker.options import WorkerOptions
-from osmo.transport.wire import capacity_to_dict, event_to_dict, prepare_from_dict, spec_from_wire
+from osmo.transport.wire import Hello, event_to_dict, prepare_from_dict, spec_from_wire
 from osmo.transport.zenoh_link import Link, Subscription
 from osmo.worker.pool import LocalPool
 
@@ -190,16 +190,13 @@ class RemoteWorker:
             self._register_now.set()
 
     def _register(self) -> bool:
+        node = replace(self.pool.node(), platform=self.opts.platform,
+                       address=self.opts.address or _address(), labels=dict(self.opts.labels))
         with self._lock:
-            hello = {
-                "id": self.id, "pool": self.opts.pool, "platform": self.opts.platform,
-                "capacity": capacity_to_dict(self.pool.node().capacity),
-                "draining": self._draining, "labels": self.opts.labels,
-                "address": self.opts.address or _address(), "host_id": host_id(),
-                "artifacts": str(self.store.root), "pid": os.getpid(),
-                "active": sorted(self._active | set(self._pending)),
-                "finished": list(self._unacked.values()),
-            }
+            hello = Hello(node, pid=os.getpid(), host_id=host_id(),
+                          artifacts=str(self.store.root), draining=self._draining,
+                          active=tuple(sorted(self._active | set(self._pending))),
+                          finished=tuple(self._unacked.values())).to_dict()
         try:
             reply = self._api.call("worker_register", hello)
         except OsmoError as exc:

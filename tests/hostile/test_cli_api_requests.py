@@ -23,6 +23,7 @@ HUGE = "x" * 100_000
 JUNK: Any = {"a": [1, {"b": None}], "c": [[[]]]}
 DEEP: Any = [[[[[[[[[[["deep"]]]]]]]]]]]
 EMPTY = '{"entries": [], "version": 1}'  # a valid manifest of no files
+HELLO = {"id": "w", "pool": "p", "address": "127.0.0.1"}  # what a hello needs, no more
 
 CASES: list[Any] = [
     ("submit", {}),
@@ -91,17 +92,18 @@ CASES: list[Any] = [
     ("credential_delete", {}),
     ("credential_delete", {"name": JUNK}),
     ("no_such_verb", {}),
-    ("worker_register", {"id": "w", "capacity": "junk"}),
-    ("worker_register", {"id": "w", "capacity": {"cpu": "x"}}),
-    ("worker_register", {"id": "w", "capacity": {"gpu": -1}}),
-    ("worker_register", {"id": "w", "capacity": {"memory": 2**70}}),
-    ("worker_register", {"id": "w", "labels": 5}),
-    ("worker_register", {"id": "w", "labels": {"a": JUNK}}),
-    ("worker_register", {"id": "w", "active": "wf-1:a:0"}),
-    ("worker_register", {"id": "w", "finished": [5]}),
-    ("worker_register", {"id": "w", "pool": JUNK}),
-    ("worker_register", {"id": "w", "draining": "yes"}),
+    ("worker_register", {**HELLO, "capacity": "junk"}),
+    ("worker_register", {**HELLO, "capacity": {"cpu": "x"}}),
+    ("worker_register", {**HELLO, "capacity": {"gpu": -1}}),
+    ("worker_register", {**HELLO, "capacity": {"memory": 2**70}}),
+    ("worker_register", {**HELLO, "labels": 5}),
+    ("worker_register", {**HELLO, "labels": {"a": JUNK}}),
+    ("worker_register", {**HELLO, "active": "wf-1:a:0"}),
+    ("worker_register", {**HELLO, "finished": [5]}),
+    ("worker_register", {**HELLO, "pool": JUNK}),
+    ("worker_register", {**HELLO, "draining": "yes"}),
     ("worker_register", {"id": ["x"]}),
+    ("worker_register", {"id": "w", "address": "127.0.0.1"}),  # no pool
     ("worker_register", {"id": "local"}),
     ("worker_register", {"id": "w\n2026-01-01 00:00:00 INFO fake log line"}),
     ("worker_register", {"id": "a/b"}),
