@@ -34,6 +34,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
 from benchlib import quick, row, timed, write_rows  # noqa: E402
+
 from osmo.runtime.container import (  # noqa: E402
     DATA_OUTPUT,
     ContainerRun,

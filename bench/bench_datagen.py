@@ -38,10 +38,11 @@ from benchlib import quick, row, write_rows  # noqa: E402
 
 def _worker(env_id: str, steps: int, record: bool, folder: str, index: int,
             ready: Any, go: Any, done: Any) -> None:
-    from osmo.record import LineageMcapWriter
     from osmo_plugins.episodes import EpisodeWriter
     from osmo_plugins.sim.envs import make_env, run_episodes
     from osmo_plugins.sim.policies import has_expert, make_policy
+
+    from osmo.record import LineageMcapWriter
 
     env = make_env(env_id, max_steps=1000)
     policy = make_policy("expert" if has_expert(env_id) else "random", env, env_id=env_id,

@@ -130,7 +130,8 @@ def host_id() -> str:
     """This machine's identity for this boot (machine id + boot id), to spot a same-host peer.
 
     ``OSMO_HOST_ID`` overrides it: processes on one machine that should behave as separate
-    machines (tests, benchmarks of the network path) set different values."""
+    machines (tests, benchmarks of the network path) set different values.
+    """
     if os.environ.get("OSMO_HOST_ID"):
         return os.environ["OSMO_HOST_ID"]
     parts = []

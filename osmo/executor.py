@@ -34,23 +34,33 @@ class Executor(Protocol):
 
     def prepare(self, cmd: PrepareAttempt, task: TaskSpec, *,
                 max_output_bytes: int | None = None) -> None:
-        """Make the attempt ready on ``cmd.node_id``: ``AttemptPrepared`` follows (and, with
-        ``cmd.run``, the start at once), or a final report saying why it cannot run.
+        """Make the attempt ready on ``cmd.node_id``.
+
+        ``AttemptPrepared`` follows (and, with ``cmd.run``, the start at once), or a final report
+        saying why it cannot run.
 
         Args:
+            cmd: the placement: attempt, node, inputs, peers' addresses, whether to start.
+            task: the task's definition (command or type, files, resources, outputs).
             max_output_bytes: the task's ``storage`` request; a larger output fails it.
         """
 
     def run(self, cmd: RunAttempt) -> None:
-        """Start a prepared attempt (its group's barrier was released): ``AttemptStarted``,
-        then its final report; a start failure if it was not prepared here."""
+        """Start a prepared attempt (its group's barrier was released).
+
+        ``AttemptStarted``, then its final report; a start failure if it was not prepared here.
+        """
 
     def kill(self, cmd: KillAttempt) -> None:
-        """Stop an attempt; its final report still follows. Unknown or ended attempts are
-        ignored."""
+        """Stop an attempt; its final report still follows.
+
+        Unknown or ended attempts are ignored.
+        """
 
     def close(self) -> None:
-        """Stop executing and reporting (the server is shutting down). What still runs is
-        the executor's to settle: the local pool kills its processes (a restarted server
-        finds those attempts lost), remote workers keep running theirs and report them to
-        the next server."""
+        """Stop executing and reporting (the server is shutting down).
+
+        What still runs is the executor's to settle: the local pool kills its processes (a restarted
+        server finds those attempts lost), remote workers keep running theirs and report them to the
+        next server.
+        """

@@ -1,5 +1,6 @@
-"""Every path under an osmo home, in one place: ``OSMO_HOME`` (the server's and a client's)
-and a remote worker's home, which share one layout::
+"""Every path under an osmo home, in one place.
+
+``OSMO_HOME`` (the server's and a client's) and a remote worker's home share one layout::
 
     <home>/
         state.db              the state store (SQLite, WAL)
@@ -34,7 +35,9 @@ __all__ = ["AttemptDirs", "BlobDirs", "Home"]
 
 @dataclass(frozen=True)
 class AttemptDirs:
-    """One attempt's folder, ``runs/<workflow_id>/<task>/<retry>/``::
+    """One attempt's folder, ``runs/<workflow_id>/<task>/<retry>/``.
+
+    What it holds::
 
         work/            the command's working folder (cwd)
         inputs/<name>/   the attempt's own checked copy of each artifact input
@@ -64,8 +67,10 @@ class AttemptDirs:
 
     @property
     def url_inputs(self) -> Path:
-        """Its downloaded ``url`` inputs, one folder per input index (beside the attempt's
-        folder: preparing the attempt again clears that folder, not these)."""
+        """Its downloaded ``url`` inputs, one folder per input index.
+
+        Beside the attempt's folder: preparing the attempt again clears that folder, not these.
+        """
         return self.root.with_name(f"{self.root.name}.inputs")
 
     @property
@@ -91,8 +96,11 @@ class AttemptDirs:
 
 @dataclass(frozen=True)
 class BlobDirs:
-    """An artifact store's folder: ``blobs/sha256/<first 2 hex>/<other 62 hex>`` and
-    ``tmp/`` (where blobs are written before they are renamed into place)."""
+    """An artifact store's folder: its blobs and a scratch folder.
+
+    ``blobs/sha256/<first 2 hex>/<other 62 hex>``, and ``tmp/``, where blobs are written before they
+    are renamed into place.
+    """
 
     root: Path
 

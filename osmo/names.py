@@ -131,8 +131,10 @@ def parse_ref(ref: object, what: str = "dataset") -> tuple[str, str | None]:
 
 
 def workflow_id_problem(workflow_id: object) -> str | None:
-    """Why ``workflow_id`` cannot be one, or None. Ids are ``NAME-N``; a bare name passes too,
-    so that a lookup can suggest its ids."""
+    """Why ``workflow_id`` cannot be one, or None.
+
+    Ids are ``NAME-N``; a bare name passes too, so that a lookup can suggest its ids.
+    """
     return name_problem(workflow_id, "workflow id", limit=_MAX_ID)
 
 
@@ -153,7 +155,8 @@ def check_worker_name(name: object, *, reserved: tuple[str, ...] = ()) -> str:
     """``name`` if it can name a remote worker (a zenoh key chunk, a node id, a log label).
 
     Args:
-        reserved: names taken by the server itself (its own pool's node).
+        name: what the worker calls itself (or a client its blob source).
+        reserved: names taken by the server itself (its own pool's node, its blobs).
 
     Raises:
         UsageError: naming what is wrong.

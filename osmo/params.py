@@ -76,8 +76,10 @@ def _is(value: Any, kind: type) -> bool:
 
 
 def value_problem(param: Param, value: Any) -> str | None:
-    """What is wrong with ``value`` for ``param`` (a phrase like ``must be int, got ...``),
-    or None when it is acceptable."""
+    """What is wrong with ``value`` for ``param``, or None when it is acceptable.
+
+    The problem is a phrase like ``must be int, got ...``.
+    """
     if not _is(value, param.type):
         shown = "null" if value is None else f"{type_label(type(value))} {value!r}"
         return f"must be {type_label(param.type)}, got {shown}"

@@ -1,6 +1,7 @@
-"""Conformance kits: :func:`check_task_type` for task-type authors, :func:`check_executor`
-for executors (``osmo.executor.Executor``: the local pool, the remote-worker hub, and the
-container or Kubernetes executors to come).
+"""Conformance kits: :func:`check_task_type` and :func:`check_executor`.
+
+The first for task-type authors; the second for executors (``osmo.executor.Executor``: the local
+pool, the remote-worker hub, and the container or Kubernetes executors to come).
 
 Task types: ``check_task_type(obj)`` in a plugin's tests.
 
@@ -65,8 +66,8 @@ def _params_problems(schema: Mapping[str, Any], params: Mapping[str, Any]) -> li
 
 
 def _run(obj: Any, params: Mapping[str, Any], inputs: Sequence[Path], root: Path) -> list[str]:
-    from osmo.tasktypes.context import RunContext
     from osmo.params import fill_defaults
+    from osmo.tasktypes.context import RunContext
 
     output, work = root / "output", root / "work"
     output.mkdir(parents=True)
@@ -192,6 +193,7 @@ def check_executor(executor: Executor, events: EventSource, node_id: str, *,
 
     Args:
         executor: the executor under test, ready to run attempts on ``node_id``.
+        node_id: the node it runs attempts on.
         events: where the events it emits arrive.
         admit: called with the workflow's id and spec before any of its attempts is
             prepared (an executor that reads specs from the state store needs it there).
@@ -244,10 +246,11 @@ class _ExecutorCheck:
         return found
 
     def drive(self) -> None:
-        """Place every task, run the held one, kill a running and a prepared one, run one
-        never prepared, kill one unknown."""
-        from osmo.scheduler.types import (AttemptPrepared, AttemptStarted, KillAttempt,
-                                          RunAttempt)
+        """Place every task, run the held one, kill a running and a prepared one.
+
+        Also run one never prepared, and kill one unknown.
+        """
+        from osmo.scheduler.types import AttemptPrepared, AttemptStarted, KillAttempt, RunAttempt
 
         for name in ("ok", "held", "exit3", "missing", "sleeper", "early"):
             self.place(name)

@@ -9,24 +9,24 @@ from pathlib import Path
 from typing import Any
 
 from osmo.cli.artifacts import run_artifacts, run_lineage
-from osmo.cli.robotics import run_eval, run_view
 from osmo.cli.datasets import run_credential, run_dataset
 from osmo.cli.plugins import run_plugins
 from osmo.cli.pools import run_pool, run_resource
+from osmo.cli.remote import run_health, run_profile, run_worker
 from osmo.cli.render import (
     console,
     format_log,
-    live_progress,
     info_dict,
+    live_progress,
     print_json,
     safe,
     task_table,
     workflow_header,
     workflows_table,
 )
+from osmo.cli.robotics import run_eval, run_view
 from osmo.errors import WorkflowFailed
 from osmo.sdk.client import Client, WorkflowInfo
-from osmo.cli.remote import run_health, run_profile, run_worker
 from osmo.sdk.connect import server_status, start_server, stop_server
 from osmo.server.options import ServerOptions
 

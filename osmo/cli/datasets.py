@@ -1,5 +1,8 @@
-"""CLI verbs for data: ``osmo dataset list|info|tag|download|upload`` and
-``osmo credential set|list|delete`` (the secrets data URLs and tasks use)."""
+"""CLI verbs for data: ``osmo dataset ...`` and ``osmo credential ...``.
+
+``osmo dataset list|info|tag|download|upload``, and ``osmo credential set|list|delete`` (the secrets
+data URLs and tasks use).
+"""
 
 from __future__ import annotations
 

@@ -14,11 +14,11 @@ from collections.abc import Sequence
 
 from osmo.cli.artifacts import add_parsers as add_artifact_parsers
 from osmo.cli.datasets import add_credential_parsers
+from osmo.cli.datasets import add_parsers as add_dataset_parsers
 from osmo.cli.plugins import add_parsers as add_plugin_parsers
 from osmo.cli.pools import add_parsers as add_pool_parsers
-from osmo.cli.robotics import add_parsers as add_robotics_parsers
-from osmo.cli.datasets import add_parsers as add_dataset_parsers
 from osmo.cli.remote import add_parsers as add_remote_parsers
+from osmo.cli.robotics import add_parsers as add_robotics_parsers
 from osmo.errors import OsmoError
 from osmo.server.options import ServerOptions
 

@@ -12,9 +12,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-from osmo.layout import Home
 from osmo.config import PROFILE_KEYS, home_dir, read_profile, write_profile
 from osmo.errors import OsmoError, ServerUnreachable
+from osmo.layout import Home
 from osmo.worker.options import WorkerOptions
 
 __all__ = ["add_parsers", "run_health", "run_profile", "run_worker"]

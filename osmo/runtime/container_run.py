@@ -139,8 +139,11 @@ def safe_name(*parts: str) -> str:
 
 
 def pull_reference(image: str) -> str:
-    """``image`` with a registry: short names are Docker Hub's, as docker and Kubernetes read
-    them (Debian's podman has no search registries, so ``ubuntu:24.04`` would not pull)."""
+    """``image`` with a registry: short names are Docker Hub's.
+
+    As docker and Kubernetes read them (Debian's podman has no search registries, so
+    ``ubuntu:24.04`` would not pull).
+    """
     first, sep, rest = image.partition("/")
     if sep and ("." in first or ":" in first or first == "localhost"):
         return image

@@ -16,7 +16,6 @@ This module owns fencing and the per-task outcome of an attempt (documented beha
 
 from __future__ import annotations
 
-from osmo.scheduler.world import World
 from osmo.scheduler.groups import settle, start_exec_clock
 from osmo.scheduler.placement import enqueue
 from osmo.scheduler.runs import Run
@@ -28,6 +27,7 @@ from osmo.scheduler.types import (
     AttemptStarted,
     AttemptStartFailed,
 )
+from osmo.scheduler.world import World
 from osmo.spec.model import ExitAction
 from osmo.status import ExitCode, TaskStatus
 

@@ -22,7 +22,6 @@ from __future__ import annotations
 from collections import defaultdict
 
 from osmo.scheduler import attempts, groups
-from osmo.scheduler.world import World
 from osmo.scheduler.fit import check_fit
 from osmo.scheduler.placement import enqueue, place_pending
 from osmo.scheduler.runs import Run, group_outcome
@@ -45,6 +44,7 @@ from osmo.scheduler.types import (
     Tick,
     WorkflowSubmitted,
 )
+from osmo.scheduler.world import World
 from osmo.spec.model import WorkflowSpec
 from osmo.status import TaskStatus
 

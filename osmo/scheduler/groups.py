@@ -19,11 +19,11 @@ This module owns what happens to a group as a unit (documented behaviour):
 
 from __future__ import annotations
 
-from osmo.scheduler.world import World
 from osmo.scheduler.placement import enqueue
 from osmo.scheduler.queue import Deadline
 from osmo.scheduler.runs import Group, Queued, Run, group_outcome
 from osmo.scheduler.state import TaskState
+from osmo.scheduler.world import World
 from osmo.status import ExitCode, TaskStatus
 
 __all__ = [
@@ -148,8 +148,10 @@ def cancel(world: World, run: Run) -> None:
 
 def _end_open_tasks(world: World, run: Run, group: Group, status: TaskStatus, code: int,
                     message: str, kill: str | None = None) -> None:
-    """End every task of ``group`` that is not terminal yet with ``status``; with ``kill``,
-    its active attempt is stopped first (the kill's reason)."""
+    """End every task of ``group`` that is not terminal yet with ``status``.
+
+    With ``kill``, its active attempt is stopped first (the kill's reason).
+    """
     for spec in group.spec.tasks:
         task = run.tasks[spec.name]
         if not task.status.terminal:

@@ -12,10 +12,10 @@ placement attempt, not O(queue).
 
 from __future__ import annotations
 
-from osmo.scheduler.world import World
 from osmo.scheduler.queue import Deadline
 from osmo.scheduler.runs import Batch, Group, Queued, Run
 from osmo.scheduler.types import PrepareAttempt, attempt_id
+from osmo.scheduler.world import World
 from osmo.status import TaskStatus
 
 __all__ = ["enqueue", "place_pending"]

@@ -15,12 +15,11 @@ import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, TypeAlias
 
 from osmo.errors import UsageError
 from osmo.names import check_name, check_tag, check_workflow_id, parse_ref
 from osmo.sdk.connect import Connection, connect
-from typing import TYPE_CHECKING, TypeAlias
 
 if TYPE_CHECKING:  # the spec package (YAML, Jinja) loads only when a spec is handled here
     from osmo.spec import Workflow
@@ -270,8 +269,11 @@ class Client:
     # ------------------------------------------------------------------ artifacts & lineage
 
     def lineage(self, target: str, *, downstream: bool = False) -> dict[str, Any]:
-        """The lineage graph of an artifact: ``sha256:<digest>`` (a file or a whole output)
-        or ``WORKFLOW_ID:TASK[:PATH]``. See ``osmo.server.lineage_query`` for its shape."""
+        """The lineage graph of an artifact.
+
+        A target is ``sha256:<digest>`` (a file or a whole output) or ``WORKFLOW_ID:TASK[:PATH]``.
+        See ``osmo.server.lineage_query`` for its shape.
+        """
         return dict(self._call("lineage", target=target, downstream=downstream))
 
     def artifacts(self, workflow_id: str, task: str | None = None) -> builtins.list[dict[str, Any]]:
@@ -279,8 +281,10 @@ class Client:
         return builtins.list(self._call("artifact_list", workflow_id=workflow_id, task=task))
 
     def get_artifact(self, target: str, dest: str | os.PathLike[str]) -> builtins.list[str]:
-        """Write a target's files, verified, into ``dest`` on this machine (fetched from the
-        server, wherever it runs). Returns the written paths."""
+        """Write a target's files, verified, into ``dest`` on this machine.
+
+        They are fetched from the server, wherever it runs. Returns the written paths.
+        """
         from osmo.sdk import transfer
 
         reply = self._call("artifact_get", target=target)
@@ -315,11 +319,12 @@ class Client:
 
     def download_dataset(self, ref: str, dest: str | os.PathLike[str], *,
                          regex: str | None = None) -> builtins.list[str]:
-        """Write a version's files (verified) into ``dest`` on this machine; returns the
-        written paths."""
-        from osmo.sdk import transfer
+        """Write a version's files, verified, into ``dest`` on this machine.
 
+        Returns the written paths.
+        """
         from osmo.artifacts import Manifest
+        from osmo.sdk import transfer
 
         parse_ref(ref)
         reply = self._call("dataset_download", ref=ref, regex=regex)
@@ -329,8 +334,10 @@ class Client:
 
     def upload_dataset(self, name: str, path: str | os.PathLike[str], *,
                        metadata: dict[str, str] | None = None) -> int:
-        """Make a new version of ``name`` from a folder on this machine (a copy is sent; your
-        files stay as they are); returns the version."""
+        """Make a new version of ``name`` from a folder on this machine; returns the version.
+
+        A copy is sent; your files stay as they are.
+        """
         from osmo.sdk import transfer
 
         check_name(name, "dataset name")
@@ -374,9 +381,11 @@ def _record(r: dict[str, Any]) -> LogRecord:
 
 def _to_model(spec: SpecLike, set_values: Sequence[str], set_strings: Sequence[str],
               set_env: Sequence[str]) -> tuple[WorkflowSpec, str]:
-    """The validated model and its file name. Task types are resolved here too (params
-    checked with positions); custom ``module:attr`` types are imported from the spec file's
-    folder, or the current folder for builders and dicts."""
+    """The validated model and its file name.
+
+    Task types are resolved here too (params checked with positions); custom ``module:attr`` types
+    are imported from the spec file's folder, or the current folder for builders and dicts.
+    """
     from osmo.spec import Workflow, load_spec, spec_from_dict
     from osmo.spec.model import WorkflowSpec
     from osmo.tasktypes.registry import Resolver

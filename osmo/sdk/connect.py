@@ -15,7 +15,6 @@ import sys
 import time
 from pathlib import Path
 
-from osmo.layout import Home
 from osmo.config import (
     DEFAULT_CLUSTER,
     ServerInfo,
@@ -25,6 +24,7 @@ from osmo.config import (
     read_server_info,
 )
 from osmo.errors import InfrastructureError, ServerUnreachable
+from osmo.layout import Home
 from osmo.server.options import ServerOptions
 from osmo.transport.rpc import ApiClient
 from osmo.transport.zenoh_link import Link
@@ -64,8 +64,11 @@ def _wait_ready(home: Path, proc: subprocess.Popen[bytes] | None, timeout: float
 
 def start_server(home: str | os.PathLike[str] | None = None,
                  options: ServerOptions | None = None) -> ServerInfo:
-    """Start a background server for ``home`` with ``options`` unless one runs; return its
-    info."""
+    """Start a background server for ``home`` with ``options`` unless one runs.
+
+    Returns:
+        the running server's info (``server.json``), once it answers.
+    """
     home_path = home_dir(home)
     if lock_is_held(home_path):
         return _wait_ready(home_path, None, START_TIMEOUT)
@@ -134,8 +137,10 @@ def connect(server: str | None = None, home: str | os.PathLike[str] | None = Non
 
 
 def _local_config(home: Path) -> str | None:
-    """The zenoh config the home's server was started with (same credentials serve the
-    local CLI), unless ``OSMO_ZENOH_CONFIG`` says otherwise."""
+    """The zenoh config the home's server was started with.
+
+    The same credentials serve the local CLI, unless ``OSMO_ZENOH_CONFIG`` says otherwise.
+    """
     import json
 
     if os.environ.get("OSMO_ZENOH_CONFIG"):

@@ -14,9 +14,9 @@ import uuid
 from pathlib import Path
 from typing import Any
 
-from osmo.layout import Home
 from osmo.artifacts import ArtifactStore, Manifest
 from osmo.config import home_dir
+from osmo.layout import Home
 from osmo.transport.blobs import SERVER, BlobServer, SameHost, fetch_manifest, host_id
 from osmo.transport.zenoh_link import Link
 

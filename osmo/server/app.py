@@ -33,21 +33,21 @@ from osmo.errors import InfrastructureError, OsmoError
 from osmo.executor import Executor
 from osmo.layout import Home
 from osmo.scheduler.types import AttemptLost, NodeUp
-from osmo.server.handlers import Handlers
 from osmo.server.credentials import url_credential
 from osmo.server.datasets import Datasets
 from osmo.server.engine import Engine
+from osmo.server.handlers import Handlers
 from osmo.server.inbox import Inbox
-from osmo.server.requests import AttemptsOn
 from osmo.server.isolation import reason
-from osmo.server.recovery import InFlight, kill_leftovers, quarantine, restore, split_lost
 from osmo.server.notices import Notifier
-from osmo.server.placing import output_manifests
 from osmo.server.options import ServerOptions
-from osmo.server.workers import WorkerHub
-from osmo.transport.blobs import host_id
+from osmo.server.placing import output_manifests
 from osmo.server.records import RunRecords
+from osmo.server.recovery import InFlight, kill_leftovers, quarantine, restore, split_lost
+from osmo.server.requests import AttemptsOn
+from osmo.server.workers import WorkerHub
 from osmo.store.sqlite import Store
+from osmo.transport.blobs import host_id
 from osmo.transport.rpc import ApiServer
 from osmo.transport.zenoh_link import Link
 from osmo.worker.pool import LocalPool
@@ -168,8 +168,11 @@ def serve(home: str | os.PathLike[str] | None = None, options: ServerOptions | N
 
 
 def _local_endpoint(endpoints: list[str]) -> str:
-    """Where this host's CLI should connect: a loopback TCP endpoint if there is one (a
-    wildcard address counts as loopback), else the first endpoint."""
+    """Where this host's CLI should connect.
+
+    A loopback TCP endpoint if there is one (a wildcard address counts as loopback), else the first
+    endpoint.
+    """
     for ep in endpoints:
         proto, _, rest = ep.partition("/")
         host, _, port = rest.rpartition(":")

@@ -43,8 +43,9 @@ class Batch:
 
     def commit(self, store: Store, scheduler: Scheduler,
                home: Path) -> tuple[Changes, list[PrepareAttempt]]:
-        """Take the scheduler's changes and write them with this batch's rows (an attempt
-        row for each placement); returns the changes and the placements.
+        """Take the scheduler's changes and write them with this batch's rows.
+
+        An attempt row is added for each placement. Returns the changes and the placements.
 
         Raises:
             InfrastructureError: the store refused the transaction (nothing was written).

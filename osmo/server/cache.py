@@ -53,10 +53,13 @@ def fingerprint(task: TaskSpec, inputs: list[tuple[str, str]]) -> str:
 
 def key(cmd: PrepareAttempt, task: TaskSpec, sources: list[LineageInput | None], *,
         no_cache: bool) -> str | None:
-    """The cache key of a placed attempt: its fingerprint, or None when it must run (the
-    rules of the module docstring).
+    """The cache key of a placed attempt, or None when it must run.
+
+    The key is the attempt's fingerprint; the rules are the module docstring's.
 
     Args:
+        cmd: the placement (``run``: no group barrier holds it).
+        task: its task's definition.
         sources: what each of its inputs is (:func:`input_sources`).
         no_cache: its workflow was submitted with ``--no-cache``.
     """

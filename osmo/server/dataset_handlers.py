@@ -87,8 +87,10 @@ class DatasetHandlers:
         return {"manifest": manifest.to_json(), "version": row["version"]}
 
     def upload(self, request: dict[str, Any]) -> dict[str, Any]:
-        """Make a new version of ``name`` from the manifest of a client's folder: the blobs
-        this server lacks are pulled from the client (``request["source"]``) first."""
+        """Make a new version of ``name`` from the manifest of a client's folder.
+
+        The blobs this server lacks are pulled from the client (``request["source"]``) first.
+        """
         if self._link is None:
             raise UsageError("this server cannot receive uploads")
         name = check_name(request.get("name"), "dataset name")
@@ -103,8 +105,10 @@ class DatasetHandlers:
         return {"name": name, "version": version, "manifest": manifest.digest}
 
     def _pull(self, link: Link, source: dict[str, Any], manifest: Manifest) -> None:
-        """Fetch ``manifest``'s blobs from a client that serves them as ``source["owner"]``
-        (linked from ``source["artifacts"]`` instead when ``source["host_id"]`` is this host).
+        """Fetch ``manifest``'s blobs from the client that serves them.
+
+        It serves them as ``source["owner"]``; they are linked from ``source["artifacts"]`` instead
+        when ``source["host_id"]`` is this host.
 
         Raises:
             UsageError: ``source`` is not such an object.

@@ -85,8 +85,9 @@ class Datasets:
             source_manifest=source, attempt_id=attempt_id, created_at=now, metadata=metadata)
 
     def resolve_inputs(self, cmd: PrepareAttempt, task: TaskSpec) -> PrepareAttempt:
-        """``cmd`` with a folder for each dataset input and each other-workflow task input
-        (keyed as written in the spec), resolved now.
+        """``cmd`` with a folder for each dataset and other-workflow input, resolved now.
+
+        Keyed as written in the spec.
 
         Raises:
             NotFoundError: a named dataset, version or other-workflow output does not exist.
@@ -131,8 +132,11 @@ class Datasets:
         return target
 
     def _materialize(self, manifest: Manifest, target: Path, owner: str) -> None:
-        """Write the folder once, verified; it is registered (so caching and lineage see its
-        manifest) before it appears under its final name."""
+        """Write the folder once, verified, and register it.
+
+        It is registered (so caching and lineage see its manifest) before it appears under its final
+        name.
+        """
         staging = target.parent / f".{target.name}.{uuid.uuid4().hex}"
         staging.mkdir(parents=True)
         try:

@@ -137,8 +137,7 @@ class Engine:
         self._thread.start()
 
     def stop(self) -> None:
-        """Ask the loop to finish the current batch and exit; wait for it; close the
-        executors."""
+        """Ask the loop to finish the current batch and exit; wait, then close the executors."""
         self._inbox.stop()
         self._thread.join(timeout=30)
         for executor in self._executors:
@@ -149,8 +148,10 @@ class Engine:
         self._inbox.post(event)
 
     def ask(self, request: Request, timeout: float = 60) -> Any:
-        """Apply ``request`` on the engine thread; return its answer after the commit (see
-        ``osmo.server.requests``; raises what applying it raised)."""
+        """Apply ``request`` on the engine thread; return its answer after the commit.
+
+        See ``osmo.server.requests``; raises what applying it raised.
+        """
         return self._inbox.ask(request, timeout)
 
     # ------------------------------------------------------------------ the loop
@@ -175,7 +176,8 @@ class Engine:
 
         A final report (which carries a task's outputs or messages) is applied and committed
         on its own, so the quarantine file names exactly the report being applied; the
-        other events go in batches."""
+        other events go in batches.
+        """
         for part in _parts(items):
             self._applying = part
             try:
@@ -191,8 +193,11 @@ class Engine:
         return not any(item is STOP for item in items)
 
     def _apply(self, items: list[Any], tick: bool = True) -> None:
-        """Handle ``items``, commit, execute. Raises only before the commit succeeded (then
-        nothing of ``items`` is stored, though the scheduler may hold some of it)."""
+        """Handle ``items``, commit, execute.
+
+        Raises only before the commit succeeded (then nothing of ``items`` is stored, though the
+        scheduler may hold some of it).
+        """
         batch = Batch()
         now = self._clock()
         self._mark(items)
@@ -296,8 +301,10 @@ class Engine:
 
     def _after_commit(self, batch: Batch, changes: Changes,
                       placed: list[PrepareAttempt]) -> None:
-        """What follows a commit; never raises (the batch is stored: it must not be isolated
-        again), each step's failure is logged."""
+        """What follows a commit; never raises.
+
+        The batch is stored, so it must not be isolated again: each step's failure is logged.
+        """
         for aid in batch.ended:
             self.provenance.forget(aid)
         for prep in placed:  # after the commit: an upstream completed in this batch is readable
@@ -319,8 +326,10 @@ class Engine:
     # ------------------------------------------------------------------ commands
 
     def _execute(self, cmd: Command) -> None:
-        """Hand ``cmd`` to the executor of its node (a placement goes through the cache and
-        the input resolution first: ``osmo.server.placing``)."""
+        """Hand ``cmd`` to the executor of its node.
+
+        A placement goes through the cache and the input resolution first (``osmo.server.placing``).
+        """
         executor = next((e for e in self._executors if e.owns(cmd.node_id)), None)
         try:
             if isinstance(cmd, PrepareAttempt):
@@ -350,8 +359,11 @@ class Engine:
     # ------------------------------------------------------------------ rebuilding
 
     def _rebuild(self) -> None:
-        """Replace the scheduler by one built from the store; re-announce the known nodes,
-        start again what was starting (``isolation.restarting``)."""
+        """Replace the scheduler by one built from the store.
+
+        The known nodes are announced again, and what was starting is started again
+        (``isolation.restarting``).
+        """
         if self._restore is None:
             raise InfrastructureError("the scheduler cannot be rebuilt (no store to rebuild "
                                       "it from)")

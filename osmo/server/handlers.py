@@ -19,18 +19,18 @@ from osmo.errors import NotFoundError, UsageError
 from osmo.layout import Home
 from osmo.names import MAX_NAME, check_name, check_workflow_id, did_you_mean, shown
 from osmo.scheduler.types import CancelWorkflow
-from osmo.server.dataset_handlers import DatasetHandlers
 from osmo.server.credentials import CredentialHandlers, check_task_credentials
+from osmo.server.dataset_handlers import DatasetHandlers
 from osmo.server.engine import Engine
 from osmo.server.lineage_query import lineage_graph, resolve_target
 from osmo.server.logview import last_progress, read_logs
 from osmo.server.requests import ListNodes, SubmitWorkflow
 from osmo.server.workers import WorkerHub
-from osmo.transport.zenoh_link import Link
 from osmo.spec import isolation, load_spec, spec_from_dict, spec_to_dict
 from osmo.status import WorkflowStatus
 from osmo.store.sqlite import WorkflowRow
 from osmo.transport.rpc import MAX_INT, field, str_list
+from osmo.transport.zenoh_link import Link
 
 __all__ = ["Handlers"]
 
@@ -84,16 +84,18 @@ class Handlers:
     # ------------------------------------------------------------------ mutating verbs
 
     def submit(self, request: dict[str, Any]) -> dict[str, Any]:
-        """Create a workflow from a spec dict. Request: spec, pool?, filename?, no_cache?,
-        type_paths? (folders custom task types are imported from: the spec file's folder).
-        Instead of ``spec``, a client on this host may send ``source`` (``{path, text}``) and
-        the template values (set_values, set_strings, set_env): the file is then rendered and
-        checked here, with the same loader and the same messages, saving the client the
-        template engine and YAML parser.
+        """Create a workflow from a spec dict.
+
+        Request: spec, pool?, filename?, no_cache?, type_paths? (folders custom task types are
+        imported from: the spec file's folder). Instead of ``spec``, a client on this host may send
+        ``source`` (``{path, text}``) and the template values (set_values, set_strings, set_env):
+        the file is then rendered and checked here, with the same loader and the same messages,
+        saving the client the template engine and YAML parser.
 
         Task types are resolved here, with this server's installed plugins; what was
         resolved (version, resources, folders) is kept in the workflow's options. Outputs
-        to reuse are for ``restart`` to give, never a request."""
+        to reuse are for ``restart`` to give, never a request.
+        """
         if "reused" in request or "reused_from" in request:
             raise UsageError("'reused' and 'reused_from' are set by `osmo restart` only")
         return self._submit(request, {}, None)
@@ -220,8 +222,10 @@ class Handlers:
         return out
 
     def artifact_get(self, request: dict[str, Any]) -> dict[str, Any]:
-        """A target's manifest (and the one file meant, if it names a file); the client
-        fetches the blobs and writes the files."""
+        """A target's manifest, and the one file meant if it names a file.
+
+        The client fetches the blobs and writes the files.
+        """
         manifests, blob = resolve_target(self._store, _target(request))
         body = self._store.manifest_body(manifests[0])
         assert body is not None
@@ -294,8 +298,10 @@ def _cursor(request: dict[str, Any]) -> dict[str, Any] | None:
 
 
 def _target(request: dict[str, Any]) -> str:
-    """An artifact target (``sha256:...``, ``WORKFLOW_ID:TASK[:PATH]``, ``dataset:REF``;
-    ``osmo.server.lineage_query`` checks what it names)."""
+    """An artifact target: ``sha256:...``, ``WORKFLOW_ID:TASK[:PATH]`` or ``dataset:REF``.
+
+    ``osmo.server.lineage_query`` checks what it names.
+    """
     target: str = field(request, "target", str, max_len=_MAX_TEXT)
     return target
 

@@ -66,8 +66,11 @@ class Inbox:
         self._queue.put(STOP)
 
     def take(self, timeout: float | None) -> list[Any]:
-        """Wait up to ``timeout`` seconds (None: for ever) for the first item; return it with
-        whatever else is queued by then (at most a few thousand). Empty when none came."""
+        """Wait for the first item, then take whatever else is queued by then.
+
+        Waits up to ``timeout`` seconds (None: for ever); takes at most a few thousand items. Empty
+        when none came.
+        """
         try:
             items = [self._queue.get(timeout=timeout)]
         except queue.Empty:
@@ -80,8 +83,10 @@ class Inbox:
         return items
 
     def close(self, why: str, in_hand: Iterable[Any] = ()) -> None:
-        """The engine cannot go on: fail every request in ``in_hand``, in the queue, and
-        asked from now on with ``why``."""
+        """The engine cannot go on: fail every request with ``why``.
+
+        Those in ``in_hand``, in the queue, and asked from now on.
+        """
         self._closed = why
         error = InfrastructureError(f"the server's engine stopped: {why}")
         pending = list(in_hand)

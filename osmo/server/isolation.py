@@ -1,6 +1,7 @@
-"""The engine's fault isolation (see ``osmo.server.engine``): a batch that raised is dropped
-from memory by rebuilding the scheduler from the store, and applied again one item at a
-time; the item that raises again is the culprit, and becomes its failure.
+"""The engine's fault isolation (see ``osmo.server.engine``).
+
+A batch that raised is dropped from memory by rebuilding the scheduler from the store, and applied
+again one item at a time; the item that raises again is the culprit, and becomes its failure.
 
 :class:`Isolation` does it, a collaborator the engine owns; the rest are pure helpers: what
 replaces a culprit (:func:`failures`), which attempts a rebuilt scheduler must start again
@@ -15,8 +16,16 @@ from typing import Any
 
 from osmo.errors import InfrastructureError, OsmoError
 from osmo.scheduler.state import TaskState
-from osmo.scheduler.types import (LOCAL_NODE, AttemptExited, AttemptLost, AttemptStartFailed,
-                                  Command, Event, KillAttempt, Tick)
+from osmo.scheduler.types import (
+    LOCAL_NODE,
+    AttemptExited,
+    AttemptLost,
+    AttemptStartFailed,
+    Command,
+    Event,
+    KillAttempt,
+    Tick,
+)
 from osmo.server.inbox import STOP, Asked
 from osmo.status import TaskStatus
 
@@ -66,8 +75,10 @@ class Isolation:
         self._apply([], True)  # timeouts due meanwhile; no one event to blame if this raises
 
     def _refuse(self, item: Any, exc: Exception) -> None:
-        """Turn a culprit into its failure: a request's error, an attempt's failure, or
-        (anything else) a log line."""
+        """Turn a culprit into its failure.
+
+        A request gets the error, an attempt fails, anything else is a log line.
+        """
         why = reason(exc)
         if isinstance(item, Asked):
             item.future.set_exception(InfrastructureError(
@@ -107,9 +118,11 @@ def describe(item: Any) -> str:
 
 
 def failures(event: Any, why: str) -> list[Event]:
-    """What replaces a culprit attempt report, plainest last (tried in order until one can be
-    applied): an exit without outputs (FAILED; exit code 3005 after a successful exit), or
-    a start failure; the last one carries no text from the culprit at all."""
+    """What replaces a culprit attempt report, plainest last.
+
+    Tried in order until one can be applied: an exit without outputs (FAILED; exit code 3005 after a
+    successful exit), or a start failure; the last one carries no text from the culprit at all.
+    """
     aid = str(event.attempt_id)
     message = (f"the server could not apply this attempt's report ({why}); the attempt "
                "failed so that everything else could go on")
@@ -120,9 +133,11 @@ def failures(event: Any, why: str) -> list[Event]:
 
 
 def restarting(active: list[TaskState]) -> list[KillAttempt]:
-    """Attempts a rebuilt scheduler must start again: those still starting, since where
-    their group's barrier stood is not in the store (running ones carry on); each as the
-    kill that stops what its executor prepared."""
+    """Attempts a rebuilt scheduler must start again, each as the kill that stops it.
+
+    Those still starting, since where their group's barrier stood is not in the store (running ones
+    carry on); the kill stops what their executor prepared.
+    """
     return [KillAttempt(t.attempt_id, t.node_id or LOCAL_NODE, REBUILT) for t in active
             if t.attempt_id and t.status is TaskStatus.INITIALIZING]
 

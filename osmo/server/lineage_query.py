@@ -100,8 +100,10 @@ def lineage_graph(store: Store, target: str, *, downstream: bool = False) -> dic
 
 
 def _dataset_node(store: Store, manifest: str) -> dict[str, Any]:
-    """A node for a manifest no attempt made as a whole: a dataset version cut from an
-    output (``dataset_source``), an upload, or unknown."""
+    """A node for a manifest no attempt made as a whole.
+
+    A dataset version cut from an output (``dataset_source``), an upload, or unknown.
+    """
     row = store.dataset_of_manifest(manifest)
     if row is None:
         return {"manifest_digest": manifest}

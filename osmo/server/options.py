@@ -1,6 +1,7 @@
-"""The server's options, defined once: ``osmo server``'s flags, the background server
-process's command line (``python -m osmo.server.app``) and ``serve()`` all use
-:class:`ServerOptions`.
+"""The server's options, defined once.
+
+``osmo server``'s flags, the background server process's command line (``python -m
+osmo.server.app``) and ``serve()`` all use :class:`ServerOptions`.
 
 Light on purpose: the CLI imports it to build its parser.
 """
@@ -41,8 +42,11 @@ class ServerOptions:
 
     @staticmethod
     def add_arguments(p: argparse.ArgumentParser) -> None:
-        """Add the flags: ``--listen``, ``--connect``, ``--zenoh-config``, ``--cluster``,
-        ``--cpus``, ``--gpus``, ``--no-local-pool``, ``--reconnect-grace``."""
+        """Add the server's flags to ``p``.
+
+        ``--listen``, ``--connect``, ``--zenoh-config``, ``--cluster``, ``--cpus``, ``--gpus``,
+        ``--no-local-pool``, ``--reconnect-grace``.
+        """
         d = ServerOptions()
         p.add_argument("--listen", action="append", metavar="ENDPOINT",
                        help="zenoh endpoint to listen on, repeatable (default: "
@@ -72,8 +76,10 @@ class ServerOptions:
                    reconnect_grace=args.reconnect_grace)
 
     def to_argv(self) -> list[str]:
-        """The same options as flags (those that differ from the defaults), to start the
-        server in another process."""
+        """The same options as flags, to start the server in another process.
+
+        Only those that differ from the defaults.
+        """
         d = ServerOptions()
         out = [arg for ep in self.listen for arg in ("--listen", ep)]
         out += [arg for ep in self.connect for arg in ("--connect", ep)]

@@ -59,9 +59,11 @@ class Placements:
         self._hits: dict[str, CacheHit] = {}
 
     def resolve(self, cmd: PrepareAttempt) -> None:
-        """Settle what a placed attempt needs before it is prepared: dataset and other-workflow
-        inputs, its cache key, and a cache hit if there is one. Never raises: a failure is
-        kept as the reason the attempt cannot start."""
+        """Settle what a placed attempt needs before it is prepared.
+
+        Its dataset and other-workflow inputs, its cache key, and a cache hit if there is one. Never
+        raises: a failure is kept as the reason the attempt cannot start.
+        """
         try:
             if self._datasets is not None:
                 cmd = self._datasets.resolve_inputs(cmd, self._specs[cmd.workflow_id].task(
@@ -83,8 +85,11 @@ class Placements:
             self._hits[cmd.attempt_id] = hit
 
     def prepare(self, cmd: PrepareAttempt, executor: Executor | None) -> None:
-        """Execute a placement: prepare it on ``executor`` (the one of its node; its output
-        limited to the task's ``storage``), complete it from the cache, or fail its start."""
+        """Execute a placement: prepare it, complete it from the cache, or fail its start.
+
+        It is prepared on ``executor``, the one of its node, its output limited to the task's
+        ``storage``.
+        """
         ready = self._ready.pop(cmd.attempt_id, cmd)
         hit = self._hits.pop(cmd.attempt_id, None)
         if isinstance(ready, str):
@@ -109,9 +114,11 @@ class Placements:
 
 
 def output_manifests(store: Store) -> Callable[[str], Manifest | None]:
-    """``folder → manifest`` of recorded output folders (task outputs, dataset versions): how
-    a pool on this host finds what to copy for an attempt's inputs. Parsed manifests are
-    kept by digest (a fan-out reads the same one a thousand times)."""
+    """``folder → manifest`` of recorded output folders (task outputs, dataset versions).
+
+    How a pool on this host finds what to copy for an attempt's inputs. Parsed manifests are kept by
+    digest (a fan-out reads the same one a thousand times).
+    """
 
     @functools.lru_cache(maxsize=256)
     def parsed(digest: str) -> Manifest | None:

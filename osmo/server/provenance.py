@@ -47,7 +47,8 @@ class Provenance:
         """The lineage row of a successful exit with outputs, else None.
 
         The placement is kept until :meth:`forget`: the engine forgets it once the exit is
-        committed, so a batch that failed and is applied again still finds it."""
+        committed, so a batch that failed and is applied again still finds it.
+        """
         placed = self._placed.get(event.attempt_id)
         if event.manifest is None or event.output is None or placed is None:
             return None

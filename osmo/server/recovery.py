@@ -28,13 +28,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from osmo.layout import Home
+from osmo.runtime.process import kill_stale
 from osmo.scheduler import Scheduler, TaskState, WorkflowState
 from osmo.scheduler.types import AttemptExited, AttemptStartFailed, Event
 from osmo.spec import spec_from_dict
 from osmo.spec.model import ResolvedType, WorkflowSpec
 from osmo.spec.typed import apply_resolved
 from osmo.status import TaskStatus
-from osmo.runtime.process import kill_stale
 from osmo.store.sqlite import AttemptRow, Store
 
 __all__ = ["QUARANTINED", "InFlight", "Restored", "attempt_row", "kill_leftovers",
@@ -91,8 +91,11 @@ def restore(store: Store) -> Restored:
 
 
 def split_lost(active: list[TaskState]) -> tuple[list[TaskState], set[str]]:
-    """Restored active attempts: those of the local pool (lost with the old server), and the
-    nodes of remote ones (their workers keep running and are expected back)."""
+    """Split restored active attempts into the local pool's and remote nodes.
+
+    The local pool's were lost with the old server; the workers of remote ones keep running and are
+    expected back.
+    """
     local = [t for t in active if (t.node_id or "local") == "local"]
     remote = {t.node_id for t in active if t.node_id and t.node_id != "local"}
     return local, remote

@@ -42,9 +42,9 @@ from osmo.scheduler.types import (
     AttemptStartFailed,
     Capacity,
     Event,
+    KillAttempt,
     Node,
     NodeDown,
-    KillAttempt,
     NodeUp,
     PrepareAttempt,
     RunAttempt,
@@ -108,8 +108,9 @@ class WorkerHub:
         return {"worker_register": self.register, "worker_drain": self.drain}
 
     def register(self, request: dict[str, Any]) -> dict[str, Any]:
-        """A worker says hello (``osmo.transport.wire.Hello``): first start, or again after
-        a server restart.
+        """A worker says hello (``osmo.transport.wire.Hello``).
+
+        On its first start, or again after a server restart.
 
         Raises:
             UsageError: a field of the wrong type or out of range (nothing is changed).
@@ -148,8 +149,10 @@ class WorkerHub:
             return replace(node, capacity=Capacity()) if wid in self._draining else node
 
     def _reconcile(self, wid: str, active: set[str], finished: list[dict[str, Any]]) -> None:
-        """After a (re-)registration: replay finished reports; attempts the scheduler placed
-        there that the worker knows nothing of are lost."""
+        """After a (re-)registration, replay finished reports and lose forgotten attempts.
+
+        Attempts the scheduler placed there that the worker knows nothing of are lost.
+        """
         known = set(self._attempts_on(wid))
         done = {str(r.get("attempt_id")) for r in finished}
         for report in finished:
@@ -199,8 +202,11 @@ class WorkerHub:
     # ------------------------------------------------------------------ orders
 
     def owns(self, node_id: str) -> bool:
-        """Every node but the server's own pool is a remote worker's (registered or not:
-        an order to a worker that is gone is lost with it, and its attempts with it)."""
+        """Every node but the server's own pool is a remote worker's.
+
+        Registered or not: an order to a worker that is gone is lost with it, and its attempts with
+        it.
+        """
         return node_id != LOCAL_NODE
 
     def prepare(self, cmd: PrepareAttempt, task: TaskSpec, *,

@@ -128,8 +128,10 @@ class Task:
 
 
 def _type_ref(value: Any) -> str | None:
-    """``value`` as a spec's ``type:`` writes it: a string as is, an object as the
-    ``module:attr`` its module holds it under (found there, so a worker can import it).
+    """``value`` as a spec's ``type:`` writes it.
+
+    A string as is, an object as the ``module:attr`` its module holds it under (found there, so a
+    worker can import it).
 
     Raises:
         UsageError: the object is not in its module's globals, or lives in ``__main__``.

@@ -148,8 +148,9 @@ def read_str_list(ctx: Ctx, node: Node, what: str) -> tuple[str, ...]:
 
 
 def read_name(ctx: Ctx, node: Node, what: str) -> str | None:
-    """A user-chosen name (workflow, group, task, dataset): ``osmo.names.NAME_RE``, at most
-    ``osmo.names.MAX_NAME`` characters.
+    """A user-chosen name (workflow, group, task, dataset).
+
+    It matches ``osmo.names.NAME_RE``, at most ``osmo.names.MAX_NAME`` characters.
 
     A malformed name is reported and still returned, so later checks can use it.
     """

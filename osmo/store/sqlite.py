@@ -234,7 +234,8 @@ class Store(LineageQueries):
             new_workflows: workflows to create.
             attempts: attempt rows to insert or replace (placement, pid).
             lineage: outputs and lineage of attempts that completed in this batch.
-            datasets: new dataset versions; tags: dataset tags to (re)point.
+            datasets: new dataset versions.
+            tags: dataset tags to (re)point.
         """
         with self._tx() as db:
             for new in new_workflows:

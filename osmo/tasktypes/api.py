@@ -70,8 +70,10 @@ class TaskContext(Protocol):
     attempt_id: str
 
     def progress(self, done: float, total: float | None = None, message: str = "") -> None:
-        """Report progress: a ``[osmo:progress] done/total message`` line in the task's log;
-        ``osmo query`` shows the latest while the task runs."""
+        """Report progress: a ``[osmo:progress] done/total message`` line in the task's log.
+
+        ``osmo query`` shows the latest while the task runs.
+        """
 
     def cancelled(self) -> bool:
         """True once the attempt was asked to stop (SIGTERM); finish up quickly."""
@@ -80,8 +82,11 @@ class TaskContext(Protocol):
         """Raise :class:`TaskCancelled` if the attempt was asked to stop."""
 
     def mcap_writer(self, path: str | Path, *, metadata: Mapping[str, str] | None = None) -> Any:
-        """Open an ``osmo.record.LineageMcapWriter`` at ``path`` (relative: under ``output``)
-        that stamps this attempt's lineage into the file."""
+        """Open an ``osmo.record.LineageMcapWriter`` at ``path``.
+
+        A relative ``path`` is under ``output``; the writer stamps this attempt's lineage into the
+        file.
+        """
 
 
 @runtime_checkable
@@ -148,8 +153,12 @@ def task_type(
 
     Args:
         name: defaults to the function's ``module:name``.
-        version, params, resources, extra, description: see :class:`TaskType`
-            (description defaults to the docstring's first line).
+        version: the type's version (see :class:`TaskType`).
+        params: parameter name → :class:`Param`.
+        resources: default resources, spec keys.
+        extra: the pip extra that provides its dependencies.
+        description: one line for ``osmo plugins list`` (default: the docstring's first
+            line).
     """
 
     def wrap(fn: Callable[[TaskContext], None]) -> _FunctionTaskType:

@@ -1,5 +1,8 @@
-"""The parameter rules, now in :mod:`osmo.params` (the bottom layer, so the spec layer can
-check params without importing task types); re-exported here for existing importers."""
+"""The parameter rules, now in :mod:`osmo.params`; re-exported here.
+
+They moved to the bottom layer, so the spec layer can check params without importing task types;
+existing importers keep working.
+"""
 
 from osmo.params import SIMPLE_TYPES, fill_defaults, schema_problems, type_label, value_problem
 

@@ -26,11 +26,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from osmo.layout import BlobDirs
 from osmo.artifacts import ArtifactStore, Manifest
 from osmo.artifacts.manifest import check_digest
 from osmo.config import host_id
 from osmo.errors import InfrastructureError
+from osmo.layout import BlobDirs
 from osmo.transport.zenoh_link import Link, Request, Subscription
 
 __all__ = ["SERVER", "BlobServer", "SameHost", "TransferError", "fetch_blob", "fetch_manifest",
@@ -89,8 +89,10 @@ class BlobServer:
 def fetch_blob(link: Link, owner: str, digest: str, size: int, store: ArtifactStore, *,
                same_host: SameHost | None = None,
                on_bytes: Callable[[int], None] | None = None) -> int:
-    """Make ``store`` hold blob ``digest`` (``size`` bytes) from ``owner``; return the bytes
-    sent over the network (0 when it was there already or linked on the same host).
+    """Make ``store`` hold blob ``digest`` (``size`` bytes) from ``owner``.
+
+    Returns the bytes sent over the network (0 when it was there already or linked on the same
+    host).
 
     Raises:
         TransferError: the owner did not answer, lacks the blob, or sent bytes that do not

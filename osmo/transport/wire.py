@@ -28,6 +28,8 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 from typing import Any
 
+from osmo.errors import UsageError
+from osmo.names import check_worker_name, shown
 from osmo.scheduler.types import (
     LOCAL_NODE,
     AttemptExited,
@@ -40,8 +42,6 @@ from osmo.scheduler.types import (
     Node,
     PrepareAttempt,
 )
-from osmo.errors import UsageError
-from osmo.names import check_worker_name, shown
 from osmo.spec.model import WorkflowSpec
 from osmo.transport.blobs import SERVER
 from osmo.transport.rpc import MAX_INT, field, str_list, str_map
@@ -143,8 +143,9 @@ def worker_id(request: dict[str, Any]) -> str:
 
 @dataclass(frozen=True)
 class Hello:
-    """A worker's registration: who it is, and what it holds (it says hello again after a
-    server restart).
+    """A worker's registration: who it is, and what it holds.
+
+    It says hello again after a server restart.
 
     Attributes:
         node: its name, pool, capacity, platform, address and labels.

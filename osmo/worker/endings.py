@@ -1,6 +1,6 @@
-"""How an attempt of the local pool ends: its exit, the promotion of its outputs, and its
-one final report (a mixin of :class:`osmo.worker.pool.LocalPool`; see its module docstring
-for the threads).
+"""How an attempt of the local pool ends: its exit, its outputs, its final report.
+
+A mixin of :class:`osmo.worker.pool.LocalPool`; see its module docstring for the threads.
 
 Whatever happens after the process exits — a promotion or ingest that raises anything, a log
 that cannot be written — the attempt gets exactly one ``AttemptExited`` (a failure carries
@@ -78,7 +78,8 @@ class AttemptEndings:
         """I/O thread: last checkpoint, promote the outputs; report the exit.
 
         Whatever is raised, the attempt gets its one final report (a failure, exit code
-        3005, with the reason) and its credential files are deleted."""
+        3005, with the reason) and its credential files are deleted.
+        """
         try:
             ref, manifest = deliver(attempt.dirs, attempt.task, checkpoints=attempt.checkpoints,
                                     artifacts=self._artifacts,

@@ -1,5 +1,6 @@
-"""A remote worker's options, defined once: ``osmo worker``'s flags and
-``osmo.worker.remote.RemoteWorker`` both use :class:`WorkerOptions`.
+"""A remote worker's options, defined once.
+
+``osmo worker``'s flags and ``osmo.worker.remote.RemoteWorker`` both use :class:`WorkerOptions`.
 
 Light on purpose: the CLI imports it to build its parser.
 """

@@ -58,11 +58,11 @@ from osmo.runtime.process import (
     process_start_time,
 )
 from osmo.scheduler.types import (
+    LOCAL_NODE,
     AttemptExited,
     AttemptPrepared,
     AttemptStarted,
     AttemptStartFailed,
-    LOCAL_NODE,
     Event,
     KillAttempt,
     Node,
@@ -72,10 +72,10 @@ from osmo.scheduler.types import (
 from osmo.spec.model import TaskSpec
 from osmo.worker.checkpoints import start_checkpoints
 from osmo.worker.endings import AttemptEndings
-from osmo.worker.logs import LogWriter, image_note
-from osmo.worker.options import DEFAULT_KILL_GRACE
-from osmo.worker.machine import detect_capacity, raise_fd_limit
 from osmo.worker.live import AttemptState, LiveAttempt
+from osmo.worker.logs import LogWriter, image_note
+from osmo.worker.machine import detect_capacity, raise_fd_limit
+from osmo.worker.options import DEFAULT_KILL_GRACE
 from osmo.worker.reactor import Reactor
 from osmo.worker.secrets import SecretLookup, Secrets, gather
 from osmo.worker.transfer import CredentialLookup, ManifestLookup, make_ready
@@ -191,7 +191,8 @@ class LocalPool(AttemptEndings):
         """Kill every running process group and stop the threads (no more events).
 
         The I/O threads are drained first: a process one of them just spawned is handed to
-        the reactor before the reactor's final sweep kills everything."""
+        the reactor before the reactor's final sweep kills everything.
+        """
         self._io.shutdown(wait=True, cancel_futures=True)
         self._reactor.stop(self._shutdown)
 
@@ -345,6 +346,8 @@ class LocalPool(AttemptEndings):
 
 
 def _started(attempt_id: str, handle: ProcessHandle) -> AttemptStarted:
-    """The start report, with the process (group) id and its start time: recorded by the
-    server, so that a restarted server can kill what is left of it."""
+    """The start report, with the process (group) id and its start time.
+
+    The server records them, so that a restarted server can kill what is left of it.
+    """
     return AttemptStarted(attempt_id, handle.pid, process_start_time(handle.pid))

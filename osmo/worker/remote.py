@@ -36,8 +36,8 @@ from typing import Any
 from osmo.artifacts import ArtifactStore, Manifest
 from osmo.config import write_json_atomic
 from osmo.errors import OsmoError
-from osmo.names import check_worker_name
 from osmo.layout import Home
+from osmo.names import check_worker_name
 from osmo.scheduler.types import (
     LOCAL_NODE,
     AttemptExited,
@@ -49,11 +49,11 @@ from osmo.scheduler.types import (
     RunAttempt,
 )
 from osmo.spec.model import TaskSpec, WorkflowSpec
-from osmo.transport.rpc import ApiClient
 from osmo.transport.blobs import SERVER, BlobServer, SameHost, fetch_manifest, host_id
-from osmo.worker.options import WorkerOptions
+from osmo.transport.rpc import ApiClient
 from osmo.transport.wire import Hello, event_to_dict, prepare_from_dict, spec_from_wire
 from osmo.transport.zenoh_link import Link, Subscription
+from osmo.worker.options import WorkerOptions
 from osmo.worker.pool import LocalPool
 
 __all__ = ["RemoteWorker"]
@@ -115,8 +115,11 @@ class RemoteWorker:
     # ------------------------------------------------------------------ life cycle
 
     def run(self) -> None:
-        """Register (retrying until the server answers), serve orders, re-register whenever
-        the server comes back; return after :meth:`stop` or a finished :meth:`drain`."""
+        """Register, serve orders, register again whenever the server comes back.
+
+        Registering is retried until the server answers. Returns after :meth:`stop` or a finished
+        :meth:`drain`.
+        """
         self._subs = [
             self.link.subscribe(self.link.key("to-worker", self.id), self._on_order),
             BlobServer(self.link, self.id, self.store),
@@ -141,8 +144,10 @@ class RemoteWorker:
         self._stop.set()
 
     def drain(self) -> None:
-        """Stop taking work, let running attempts finish (up to ``drain_timeout``), hand
-        back what is still running, wait until outputs were taken, then stop."""
+        """Stop taking work, let running attempts finish, hand back the rest, then stop.
+
+        Running attempts get up to ``drain_timeout``; it waits until their outputs were taken.
+        """
         with self._lock:
             self._draining = True
         self._write_health()
@@ -178,8 +183,10 @@ class RemoteWorker:
     # ------------------------------------------------------------------ registration
 
     def _on_server(self, _key: str, alive: bool) -> None:
-        """The server's token: gone means it stopped or is cut off; back means register
-        again (a new server process knows nothing of this worker yet)."""
+        """The server's token: gone means it stopped, back means register again.
+
+        Gone: it stopped or is cut off. Back: a new server process knows nothing of this worker yet.
+        """
         with self._lock:
             self._connected = self._connected and alive
             came_back = alive and self._server_lost
@@ -290,8 +297,10 @@ class RemoteWorker:
         return spec.task(cmd.task)
 
     def _fetch_input(self, manifest: Manifest) -> str:
-        """Make this worker's store hold ``manifest``'s blobs; return the reference the
-        pool's ``input_manifests`` knows it by."""
+        """Make this worker's store hold ``manifest``'s blobs.
+
+        Returns the reference the pool's ``input_manifests`` knows it by.
+        """
         with self._lock:
             fetched = manifest.digest in self._manifests
         if not fetched:

@@ -62,8 +62,8 @@ from osmo.layout import AttemptDirs
 from osmo.scheduler.types import PrepareAttempt
 from osmo.spec.model import InputSpec, TaskSpec
 from osmo.spec.tokens import substitute
-from osmo.worker.secrets import Secrets, mounts, secret_env, secret_values
 from osmo.worker import launch
+from osmo.worker.secrets import Secrets, mounts, secret_env, secret_values
 
 __all__ = ["Launch", "PrepareError", "prepare", "promote", "remove_secret_files"]
 
@@ -96,6 +96,10 @@ def prepare(
     """Create the attempt's folder, write its files and resolve its command.
 
     Args:
+        dirs: the attempt's folder (made here; an earlier one of the same attempt is cleared).
+        cmd: the placement: inputs, peers' addresses, the attempt's id.
+        task: what to run.
+        base_env: the environment the command starts from.
         secrets: the payloads of the credentials ``task`` names (credential name → payload).
 
     Raises:

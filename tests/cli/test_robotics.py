@@ -54,8 +54,9 @@ def test_report_rejects_other_json(tmp_path: Path, capsys: pytest.CaptureFixture
 def test_view_local_mcap(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     pytest.importorskip("rerun")
     pytest.importorskip("numpy")
-    from osmo.record import LineageMcapWriter
     from osmo_plugins.episodes import EpisodeWriter
+
+    from osmo.record import LineageMcapWriter
 
     src = tmp_path / "ep.mcap"
     with LineageMcapWriter(src, None) as mcap:

@@ -8,10 +8,17 @@ import pytest
 
 np = pytest.importorskip("numpy")
 
-from osmo.record import LineageMcapWriter, McapFile  # noqa: E402
 from osmo_plugins.episodes import (  # noqa: E402
-    END_TOPIC, FRAME_TOPIC, METADATA_NAME, STEP_TOPIC, EpisodeWriter, episode_files,
-    read_episodes)
+    END_TOPIC,
+    FRAME_TOPIC,
+    METADATA_NAME,
+    STEP_TOPIC,
+    EpisodeWriter,
+    episode_files,
+    read_episodes,
+)
+
+from osmo.record import LineageMcapWriter, McapFile  # noqa: E402
 
 
 def _write(path: Path, frames: bool) -> None:

@@ -14,6 +14,7 @@ pytest.importorskip("mujoco")
 from osmo_plugins.episodes import read_episodes  # noqa: E402
 from osmo_plugins.sim._eval import ci95  # noqa: E402
 from osmo_plugins.sim.eval import EVAL  # noqa: E402
+
 from tests.plugins.fakectx import make_ctx  # noqa: E402
 
 

@@ -15,6 +15,7 @@ from osmo_plugins.lerobot.dataset import DATASET  # noqa: E402
 from osmo_plugins.lerobot.train import TRAIN  # noqa: E402
 from osmo_plugins.sim.eval import EVAL  # noqa: E402
 from osmo_plugins.sim.rollout import ROLLOUT  # noqa: E402
+
 from tests.plugins.fakectx import make_ctx  # noqa: E402
 
 

@@ -6,8 +6,8 @@ from typing import Any
 
 import pytest
 
-from osmo.tasktypes import REQUIRED, Param
 from osmo.params import fill_defaults, schema_problems, value_problem
+from osmo.tasktypes import REQUIRED, Param
 
 
 @pytest.mark.parametrize(("param", "value", "problem"), [

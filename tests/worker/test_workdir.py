@@ -10,10 +10,10 @@ from pathlib import Path
 
 import pytest
 
-from osmo.scheduler.types import PrepareAttempt
-from osmo.spec.model import FileSpec, InputSpec, ResolvedType, TaskSpec
 from osmo.errors import OsmoError
 from osmo.layout import Home
+from osmo.scheduler.types import PrepareAttempt
+from osmo.spec.model import FileSpec, InputSpec, ResolvedType, TaskSpec
 from osmo.worker.workdir import PrepareError, prepare, promote, remove_secret_files
 
 
