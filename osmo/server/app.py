@@ -1,5 +1,8 @@
-"""Composes the server: store + scheduler + local pool + engine + zenoh API, and recovery.
+"""Composes the server: store, scheduler, engine and its executors, zenoh API; recovery.
 
+The executors (``osmo.executor``) are the local pool (unless ``--no-local-pool``) and the
+remote-worker hub; they report into the engine's inbox, which exists before both, and the
+engine owns and closes them.
 ``serve()`` runs one server for one ``OSMO_HOME`` in the foreground until SIGTERM/SIGINT or
 an API ``shutdown``. Only one server runs per home: it holds ``server.lock`` for its life.
 

@@ -28,6 +28,7 @@ class Batch:
     Attributes:
         commands: the scheduler's commands, executed after the commit.
         workflows, attempts, lineage, datasets, tags: rows to write with the changes.
+        pids: ``(attempt id, pid, its start time)`` of attempts started as local processes.
         replies: answers to requests, given after the commit.
         ended: attempts whose final report was applied (provenance forgets them).
     """
@@ -38,6 +39,7 @@ class Batch:
     lineage: list[LineageRow] = field(default_factory=list)
     datasets: list[DatasetRow] = field(default_factory=list)
     tags: list[TagRow] = field(default_factory=list)
+    pids: list[tuple[str, int, float | None]] = field(default_factory=list)
     replies: list[tuple[Future[Any], Any]] = field(default_factory=list)
     ended: list[str] = field(default_factory=list)
 
@@ -54,7 +56,8 @@ class Batch:
         placed = [c for c in self.commands if isinstance(c, PrepareAttempt)]
         self.attempts += [attempt_row(home, p.attempt_id, p.node_id) for p in placed]
         if (changes or self.workflows or self.attempts or self.lineage or self.datasets
-                or self.tags):
+                or self.tags or self.pids):
             store.commit(changes, new_workflows=self.workflows, attempts=self.attempts,
-                         lineage=self.lineage, datasets=self.datasets, tags=self.tags)
+                         lineage=self.lineage, datasets=self.datasets, tags=self.tags,
+                         pids=self.pids)
         return changes, placed

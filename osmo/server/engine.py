@@ -60,7 +60,7 @@ from osmo.server.inbox import STOP, Asked, Inbox
 from osmo.server.isolation import REBUILT, Isolation, guard, reason, restarting
 from osmo.server.placing import Placements
 from osmo.server.provenance import Provenance
-from osmo.server.recovery import InFlight, Restored, attempt_row
+from osmo.server.recovery import InFlight, Restored
 from osmo.server.requests import (
     AddDatasetVersion,
     AttemptsOn,
@@ -224,8 +224,9 @@ class Engine:
     def _handle(self, event: Event, batch: Batch, now: float) -> None:
         if not isinstance(event, (AttemptExited, AttemptStartFailed, AttemptLost)):
             batch.commands += self.scheduler.handle(event, now)
-            if isinstance(event, AttemptStarted):
-                self._note_pid(event, batch)
+            if isinstance(event, AttemptStarted) and event.pid is not None:
+                # a local process: recorded so a restarted server can kill what is left
+                batch.pids.append((event.attempt_id, event.pid, event.pid_start))
             return
         before = self.scheduler.attempt(event.attempt_id)  # None: a stale (fenced) report
         if before is None:
@@ -347,14 +348,6 @@ class Engine:
             log.exception("executing %r failed", cmd)
             if not isinstance(cmd, KillAttempt):  # else it would wait for ever to start
                 self.post(AttemptStartFailed(cmd.attempt_id, f"cannot start: {reason(exc)}"))
-
-    def _note_pid(self, event: AttemptStarted, batch: Batch) -> None:
-        """Record a local attempt's pid so a restarted server can kill a leftover process."""
-        task = self.scheduler.attempt(event.attempt_id)
-        if event.pid is None or task is None:
-            return
-        batch.attempts.append(attempt_row(self._home, event.attempt_id, task.node_id,
-                                          event.pid, event.pid_start))
 
     # ------------------------------------------------------------------ rebuilding
 

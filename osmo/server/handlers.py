@@ -278,10 +278,10 @@ def _statuses(request: dict[str, Any]) -> builtins.list[str] | None:
 
 def _limit(request: dict[str, Any]) -> int | None:
     what = "the count of workflows to list"
-    limit = field(request, "limit", int, default=None, what=what)
+    limit: int | None = field(request, "limit", int, default=None, what=what)
     if limit is not None and not 1 <= limit <= MAX_LIST:
         raise UsageError(f"{what} must be from 1 to {MAX_LIST}, not {limit}")
-    return limit  # type: ignore[no-any-return]
+    return limit
 
 
 def _cursor(request: dict[str, Any]) -> dict[str, Any] | None:

@@ -109,13 +109,15 @@ def kill_leftovers(store: Store, lost: list[TaskState]) -> None:
                 kill_stale(row.pid, row.pid_start)
 
 
-def attempt_row(home: Path, attempt_id: str, node_id: str | None, pid: int | None = None,
-                pid_start: float | None = None) -> AttemptRow:
-    """The store's row of an attempt: where it runs and, locally, its folder and process."""
+def attempt_row(home: Path, attempt_id: str, node_id: str | None) -> AttemptRow:
+    """The store's row of a placed attempt: where it runs and, locally, its folder.
+
+    Its process id is written when the attempt starts (``Batch.pids``).
+    """
     dirs = Home(home).attempt_of(attempt_id)
     wf, task, retry = attempt_id.rsplit(":", 2)
     return AttemptRow(attempt_id, wf, task, int(retry), node_id,
-                      str(dirs.root) if dirs else None, pid, pid_start)
+                      str(dirs.root) if dirs else None, None, None)
 
 
 def quarantine(active: list[TaskState], suspects: set[str]) -> tuple[list[TaskState],

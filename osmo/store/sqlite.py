@@ -226,6 +226,7 @@ class Store(LineageQueries):
         lineage: Sequence[LineageRow] = (),
         datasets: Sequence[DatasetRow] = (),
         tags: Sequence[TagRow] = (),
+        pids: Sequence[tuple[str, int, float | None]] = (),
     ) -> None:
         """Write one batch atomically.
 
@@ -236,6 +237,8 @@ class Store(LineageQueries):
             lineage: outputs and lineage of attempts that completed in this batch.
             datasets: new dataset versions.
             tags: dataset tags to (re)point.
+            pids: ``(attempt id, pid, pid start time)`` of attempts whose process started
+                (their rows exist: written with their placement).
         """
         with self._tx() as db:
             for new in new_workflows:
@@ -272,6 +275,8 @@ class Store(LineageQueries):
                     for a in attempts
                 ],
             )
+            db.executemany("UPDATE attempts SET pid = ?, pid_start = ? WHERE id = ?",
+                           [(pid, start, aid) for aid, pid, start in pids])
             for row in lineage:
                 write_lineage(db, row)
             for ds in datasets:
