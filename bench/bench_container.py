@@ -34,10 +34,11 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "bench"))
 
 from benchlib import quick, row, timed, write_rows  # noqa: E402
+
 from osmo.runtime.container import (  # noqa: E402
     DATA_OUTPUT,
     ContainerRun,
-    Engine,
+    EngineInfo,
     Mount,
     data_input,
     detect_engine,
@@ -55,7 +56,7 @@ def bare(env: dict[str, str]) -> None:
                    env=env, stdin=subprocess.DEVNULL)
 
 
-def with_osmo_options(env: dict[str, str], folder: Path, engine: Engine) -> None:
+def with_osmo_options(env: dict[str, str], folder: Path, engine: EngineInfo) -> None:
     """``true`` through the argv osmo builds for a task (fresh name each time)."""
     run = ContainerRun(
         image=IMAGE, name=safe_name("bench", str(time.monotonic_ns())), argv=("true",),

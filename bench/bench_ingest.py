@@ -39,6 +39,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchlib import Row, quick, row, write_rows  # noqa: E402
+
 from osmo.artifacts import ArtifactStore  # noqa: E402
 from osmo.artifacts.fsops import hash_fd  # noqa: E402
 

@@ -21,9 +21,10 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-import osmo  # noqa: E402
 from bench_engine import SPAWN_LIMIT, run_once  # noqa: E402
 from benchlib import quick, row, write_rows  # noqa: E402
+
+import osmo  # noqa: E402
 
 
 def fan_out_reading(n: int, files: int, size: int) -> osmo.Workflow:

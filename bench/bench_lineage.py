@@ -21,6 +21,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchlib import quick, row, write_rows  # noqa: E402
+
 from osmo.artifacts import ArtifactStore  # noqa: E402
 from osmo.scheduler.types import AttemptExited, Changes, PrepareAttempt  # noqa: E402
 from osmo.server.cache import input_sources  # noqa: E402

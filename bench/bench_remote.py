@@ -25,8 +25,8 @@ import contextlib
 import os
 import re
 import signal
-import statistics
 import sqlite3
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -36,8 +36,9 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import osmo  # noqa: E402
 from benchlib import machine_info, quick, row, write_rows  # noqa: E402
+
+import osmo  # noqa: E402
 from osmo.config import free_port  # noqa: E402
 
 

@@ -36,8 +36,9 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import osmo  # noqa: E402
 from benchlib import quick, row, write_rows  # noqa: E402
+
+import osmo  # noqa: E402
 from osmo.sdk.connect import start_server, stop_server  # noqa: E402
 
 STAMP = ["sh", "-c", "date +%s.%N > {{output}}/started"]

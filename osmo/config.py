@@ -1,12 +1,8 @@
 """Where osmo keeps its state, and how a client finds its server.
 
-``OSMO_HOME`` (default: ``$XDG_DATA_HOME/osmo``, else ``~/.local/share/osmo``) holds:
-
-- ``state.db`` — the SQLite state store;
-- ``runs/<workflow_id>/<task>/<retry>/`` — each attempt's private folder, logs and outputs;
-- ``server.json`` — the running local server's endpoint and pid (written atomically);
-- ``server.lock`` — held (flock) by the running server: a free lock means no server;
-- ``server.log`` — the background server's own output.
+``OSMO_HOME`` (default: ``$XDG_DATA_HOME/osmo``, else ``~/.local/share/osmo``) holds the
+state store, the attempts' folders, the running server's address and lock, and more: its
+layout is :mod:`osmo.layout`. A free ``server.lock`` means no server runs.
 
 The server endpoint a client uses: ``--server`` > ``OSMO_SERVER`` > ``server.json``.
 """
@@ -21,7 +17,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from osmo.layout import Home
+
 __all__ = [
+    "DEFAULT_CLUSTER",
     "DEFAULT_PORT",
     "ServerInfo",
     "free_port",
@@ -32,6 +31,11 @@ __all__ = [
 ]
 
 DEFAULT_PORT = 7447
+"""The server's zenoh port when nothing else listens on it."""
+
+DEFAULT_CLUSTER = "local"
+"""The key prefix (``osmo/<cluster>/...``) a server, its workers and clients share unless
+told another."""
 
 
 def home_dir(home: str | os.PathLike[str] | None = None) -> Path:
@@ -66,7 +70,7 @@ def write_json_atomic(path: Path, data: dict[str, Any]) -> None:
 def read_server_info(home: Path) -> ServerInfo | None:
     """The server.json of ``home``, or None if absent or unreadable."""
     try:
-        data = json.loads((home / "server.json").read_text())
+        data = json.loads(Home(home).server_info.read_text())
         return ServerInfo(data["endpoint"], int(data["pid"]), data["cluster"],
                           float(data["started_at"]))
     except (OSError, ValueError, KeyError):
@@ -76,7 +80,7 @@ def read_server_info(home: Path) -> ServerInfo | None:
 def lock_is_held(home: Path) -> bool:
     """True if a server process holds ``server.lock`` of ``home`` (it is alive)."""
     try:
-        fd = os.open(home / "server.lock", os.O_RDWR | os.O_CREAT, 0o644)
+        fd = os.open(Home(home).server_lock, os.O_RDWR | os.O_CREAT, 0o644)
     except OSError:
         return False
     try:
@@ -109,7 +113,7 @@ PROFILE_KEYS = ("server", "cluster", "zenoh-config")
 def read_profile(home: Path) -> dict[str, str]:
     """The saved client profile (``OSMO_HOME/profile.json``); empty when none."""
     try:
-        data = json.loads((home / "profile.json").read_text())
+        data = json.loads(Home(home).profile.read_text())
     except (OSError, ValueError):
         return {}
     return {str(k): str(v) for k, v in data.items() if k in PROFILE_KEYS} if isinstance(
@@ -119,14 +123,15 @@ def read_profile(home: Path) -> dict[str, str]:
 def write_profile(home: Path, profile: dict[str, str]) -> None:
     """Save the client profile atomically."""
     home.mkdir(parents=True, exist_ok=True)
-    write_json_atomic(home / "profile.json", profile)
+    write_json_atomic(Home(home).profile, profile)
 
 
 def host_id() -> str:
     """This machine's identity for this boot (machine id + boot id), to spot a same-host peer.
 
     ``OSMO_HOST_ID`` overrides it: processes on one machine that should behave as separate
-    machines (tests, benchmarks of the network path) set different values."""
+    machines (tests, benchmarks of the network path) set different values.
+    """
     if os.environ.get("OSMO_HOST_ID"):
         return os.environ["OSMO_HOST_ID"]
     parts = []

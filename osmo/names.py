@@ -6,23 +6,30 @@ at most :data:`MAX_NAME` characters. Such a name is safe as one path component, 
 chunk and a log label, so whatever takes a name from a user (a spec, the CLI, the SDK, the
 server API) checks it here before the name touches a path. Workflow ids are ``NAME-N``.
 Dataset references are ``NAME[:TAG|VERSION|latest]``; ``latest`` and numbers name versions,
-so they cannot be tags (a tag starts with a letter, and ``latest`` is reserved).
+so they cannot be tags (a tag starts with a letter, and ``latest`` is reserved). A worker's
+name is looser, so that its default (``HOSTNAME-PID``) passes: letters, digits, ``.``, ``-``
+and ``_``, starting and ending with a letter or digit (:func:`check_worker_name`).
 
 Pure functions; the bottom layer (imports only ``osmo.errors``).
 """
 
 from __future__ import annotations
 
+import difflib
 import re
+from collections.abc import Iterable
 
 from osmo.errors import UsageError
 
-__all__ = ["MAX_NAME", "NAME_RE", "check_name", "check_tag", "check_workflow_id",
-           "name_problem", "parse_ref", "ref_problem", "shown", "workflow_id_problem"]
+__all__ = ["MAX_NAME", "NAME_RE", "check_name", "check_tag", "check_worker_name",
+           "check_workflow_id", "did_you_mean", "name_problem", "parse_ref", "ref_problem",
+           "shown", "workflow_id_problem"]
 
 NAME_RE = re.compile(r"[a-zA-Z](?:[a-zA-Z0-9_-]*[a-zA-Z0-9])?")
 MAX_NAME = 64
 _MAX_ID = MAX_NAME + 21  # NAME-N, N a 64-bit counter at most
+_WORKER_RE = re.compile(r"[a-zA-Z0-9](?:[a-zA-Z0-9._-]*[a-zA-Z0-9])?")
+_MAX_WORKER = 253 + 21  # a host name, '-', a process id
 _LATEST = "latest"
 _VERSION = re.compile(r"[0-9]{1,18}")
 
@@ -41,6 +48,12 @@ def shown(value: object) -> str:
         return repr(text)
     quoted = repr(text[:_SHOWN])
     return f"{quoted[:-1]}...{quoted[-1]} ({len(text)} characters)"
+
+
+def did_you_mean(word: str, choices: Iterable[str]) -> str:
+    """`` (did you mean 'x'?)`` for the closest of ``choices`` to ``word``, or an empty string."""
+    close = difflib.get_close_matches(word, list(choices), n=1, cutoff=0.6)
+    return f" (did you mean '{close[0]}'?)" if close else ""
 
 
 def _suggestion(name: str, limit: int) -> str:
@@ -118,8 +131,10 @@ def parse_ref(ref: object, what: str = "dataset") -> tuple[str, str | None]:
 
 
 def workflow_id_problem(workflow_id: object) -> str | None:
-    """Why ``workflow_id`` cannot be one, or None. Ids are ``NAME-N``; a bare name passes too,
-    so that a lookup can suggest its ids."""
+    """Why ``workflow_id`` cannot be one, or None.
+
+    Ids are ``NAME-N``; a bare name passes too, so that a lookup can suggest its ids.
+    """
     return name_problem(workflow_id, "workflow id", limit=_MAX_ID)
 
 
@@ -134,3 +149,23 @@ def check_workflow_id(workflow_id: object) -> str:
         raise UsageError(problem)
     assert isinstance(workflow_id, str)
     return workflow_id
+
+
+def check_worker_name(name: object, *, reserved: tuple[str, ...] = ()) -> str:
+    """``name`` if it can name a remote worker (a zenoh key chunk, a node id, a log label).
+
+    Args:
+        name: what the worker calls itself (or a client its blob source).
+        reserved: names taken by the server itself (its own pool's node, its blobs).
+
+    Raises:
+        UsageError: naming what is wrong.
+    """
+    if not isinstance(name, str):
+        raise UsageError(f"a worker name must be a string, not {type(name).__name__}")
+    if len(name) > _MAX_WORKER or not _WORKER_RE.fullmatch(name) or name in reserved:
+        taken = f" other than {', '.join(map(repr, reserved))}" if reserved else ""
+        raise UsageError(f"worker name {shown(name)} is not valid: use letters, digits, '.', "
+                         f"'-' and '_', starting and ending with a letter or digit, at most "
+                         f"{_MAX_WORKER} characters{taken}")
+    return name

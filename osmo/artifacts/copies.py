@@ -57,9 +57,11 @@ class Verifier:
             return self._intact.get(digest) == _key(st)
 
     def note(self, digest: str, st: os.stat_result) -> None:
-        """Remember that the blob ``st`` describes hashed to ``digest`` — unless it changed
-        less than a second ago: file times tick coarsely (a few ms), and a write within the
-        same tick as the last change would leave ``ctime`` as it was."""
+        """Remember that the blob ``st`` describes hashed to ``digest``.
+
+        Unless it changed less than a second ago: file times tick coarsely (a few ms), and a write
+        within the same tick as the last change would leave ``ctime`` as it was.
+        """
         if time.time_ns() - st.st_ctime_ns < _SETTLED_NS:
             return
         with self._lock:
@@ -72,8 +74,10 @@ class Verifier:
 
 
 class HandOut:
-    """How :class:`~osmo.artifacts.store.ArtifactStore` hands blobs out: folders of checked
-    copies (:meth:`copy_tree`, :meth:`materialize`) or of links (:meth:`link_tree`).
+    """How the artifact store hands blobs out: folders of checked copies or of links.
+
+    Copies: :meth:`copy_tree`, :meth:`materialize`; links: :meth:`link_tree` (used by
+    :class:`~osmo.artifacts.store.ArtifactStore`).
 
     A mixin: the store provides :meth:`path` and ``_verifier``.
     """
@@ -85,11 +89,12 @@ class HandOut:
         raise NotImplementedError
 
     def link_tree(self, manifest: Manifest, dest: Path) -> None:
-        """Create folder ``dest`` holding the manifest's files as hard links of their blobs
-        (read-only, nothing copied; a verified copy where links are refused). For folders no
-        task is handed (a remote attempt's promoted output on the server); a task gets
-        :meth:`copy_tree`. Built beside ``dest`` and renamed into place, so ``dest`` appears
-        complete or not at all; an existing ``dest`` is left as it is.
+        """Create folder ``dest`` holding the manifest's files as hard links of their blobs.
+
+        Read-only, nothing copied; a verified copy where links are refused. For folders no task is
+        handed (a remote attempt's promoted output on the server); a task gets :meth:`copy_tree`.
+        Built beside ``dest`` and renamed into place, so ``dest`` appears complete or not at all; an
+        existing ``dest`` is left as it is.
 
         Raises:
             ArtifactCorrupted: a blob is missing.
@@ -98,10 +103,11 @@ class HandOut:
             self._build(manifest, dest, self._link_or_copy)
 
     def copy_tree(self, manifest: Manifest, dest: Path) -> None:
-        """Fill the new folder ``dest`` with private copies of the manifest's files (reflinks
-        where the filesystem shares data), each checked against its digest (see
-        :mod:`osmo.artifacts.copies`). What a task is handed: changing it changes no blob.
-        Written in place, not staged: ``dest`` must be the caller's alone until this returns.
+        """Fill the new folder ``dest`` with private, checked copies of the manifest's files.
+
+        Reflinks where the filesystem shares data; each file is checked against its digest (see
+        :mod:`osmo.artifacts.copies`). What a task is handed: changing it changes no blob. Written
+        in place, not staged: ``dest`` must be the caller's alone until this returns.
 
         Raises:
             ArtifactCorrupted: a blob is missing or no longer matches its digest.
@@ -219,8 +225,11 @@ def _check_parents(dest: Path, path: str, checked: set[str]) -> None:
 
 
 def _place(tmp: Path, dest: Path, path: str) -> None:
-    """Rename ``tmp`` to ``dest/path``, opening each folder on the way without following a
-    symlink (a folder swapped for one meanwhile fails instead of being written through)."""
+    """Rename ``tmp`` to ``dest/path`` without following a symlink on the way.
+
+    Each folder on the way is opened so: a folder swapped for a symlink meanwhile fails instead of
+    being written through.
+    """
     *folders, name = path.split("/")
     fd = os.open(dest, os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC)
     try:

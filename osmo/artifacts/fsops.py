@@ -1,5 +1,6 @@
-"""File-level primitives of the blob store: hash, publish by hard link, and the tree walks
-every caller shares (verified copies are :mod:`osmo.artifacts.copies`).
+"""File-level primitives of the blob store: hash, publish by hard link, walk trees.
+
+The tree walks are the ones every caller shares; verified copies are :mod:`osmo.artifacts.copies`.
 
 Owns the few system calls whose order matters for atomicity (``link`` publishes a complete
 file under its final name or fails because one is there) and the streaming hash loop. Every

@@ -62,8 +62,11 @@ def check_digest(digest: str) -> str:
 
 
 def _check_path(path: str) -> None:
-    """Reject paths that are absolute, empty, non-canonical, climb out of the folder, or
-    name no bytes (a surrogate that ``surrogateescape`` never makes)."""
+    """Reject a path that cannot be one of a manifest's files.
+
+    Absolute, empty, non-canonical, climbing out of the folder, or naming no bytes (a surrogate that
+    ``surrogateescape`` never makes).
+    """
     parts = path.split("/") if isinstance(path, str) else [""]
     if (not isinstance(path, str) or not path or path.startswith("/") or "\\" in path
             or "\0" in path or any(p in ("", ".", "..") for p in parts)):

@@ -53,10 +53,11 @@ from pathlib import Path
 
 from osmo.artifacts.copies import HandOut, Verifier
 from osmo.artifacts.errors import ArtifactCorrupted, OutputRejected
-from osmo.artifacts.fsops import (CHUNK, check_unchanged, files, hash_fd, link, refresh)
+from osmo.artifacts.fsops import CHUNK, check_unchanged, files, hash_fd, link, refresh
 from osmo.artifacts.manifest import Entry, Manifest, check_digest
 from osmo.artifacts.scan import scan
 from osmo.errors import UsageError
+from osmo.layout import BlobDirs
 
 __all__ = ["DEFAULT_GRACE", "DEFAULT_MAX_FILES", "ArtifactStore"]
 
@@ -71,8 +72,9 @@ _PARALLEL_SIZE = 4 << 20  # files this large are hashed on a thread pool
 
 
 class ArtifactStore(HandOut):
-    """Blobs named by their sha256, written once and never modified; handed out as checked
-    copies or links (:class:`~osmo.artifacts.copies.HandOut`).
+    """Blobs named by their sha256, written once and never modified.
+
+    Handed out as checked copies or links (:class:`~osmo.artifacts.copies.HandOut`).
 
     Args:
         root: the store's folder (``OSMO_HOME/artifacts``); created if missing.
@@ -80,8 +82,9 @@ class ArtifactStore(HandOut):
 
     def __init__(self, root: Path) -> None:
         self.root = Path(root)
-        self._blobs = self.root / "blobs" / "sha256"
-        self._tmp = self.root / "tmp"
+        self._dirs = BlobDirs(self.root)
+        self._blobs = self._dirs.blobs
+        self._tmp = self._dirs.tmp
         self._blobs.mkdir(parents=True, exist_ok=True)
         self._tmp.mkdir(exist_ok=True)
         self._dev = os.stat(self._blobs).st_dev
@@ -95,8 +98,7 @@ class ArtifactStore(HandOut):
         Raises:
             UsageError: ``digest`` is malformed.
         """
-        hex_ = check_digest(digest)
-        return self._blobs / hex_[:2] / hex_[2:]
+        return self._dirs.blob(check_digest(digest))
 
     def has(self, digest: str) -> bool:
         """Return whether a blob for ``digest`` exists (its content is not verified)."""
@@ -219,8 +221,10 @@ class ArtifactStore(HandOut):
         return Entry(rel, digest, n)
 
     def _reusable(self, blob: Path, digest: str, existing: os.stat_result) -> bool:
-        """True when the existing blob still holds ``digest`` (hashed unless known intact);
-        its ctime is then refreshed for gc's grace period."""
+        """Whether the existing blob still holds ``digest`` (hashed unless known intact).
+
+        Its ctime is then refreshed for gc's grace period.
+        """
         if not self._verifier.intact(digest, existing) and not self.verify(digest):
             return False
         refresh(blob)
@@ -238,7 +242,8 @@ class ArtifactStore(HandOut):
 
         A file with more than one link is always copied: its other names may lie outside the
         output folder (a task can hard-link any file it can reach, even the state store), and
-        linking or chmod-ing its inode would change that file and serve it as a blob."""
+        linking or chmod-ing its inode would change that file and serve it as a blob.
+        """
         if before.st_dev == self._dev and before.st_nlink == 1:
             try:
                 os.fchmod(f.fileno(), 0o444)  # before the link: a blob is never writable
@@ -270,8 +275,10 @@ class ArtifactStore(HandOut):
         return self._tmp
 
     def adopt(self, tmp: Path, digest: str) -> None:
-        """Publish ``tmp`` — complete, and already hashed to ``digest`` by the caller — as
-        that blob (fsynced, read-only, linked into place; an existing blob wins)."""
+        """Publish ``tmp``, complete and hashed to ``digest`` by the caller, as that blob.
+
+        Fsynced, read-only, linked into place; an existing blob wins.
+        """
         with open(tmp, "rb") as f:
             os.fsync(f.fileno())
         os.chmod(tmp, 0o444)
@@ -281,8 +288,10 @@ class ArtifactStore(HandOut):
             tmp.unlink(missing_ok=True)
 
     def adopt_link(self, src: Path, digest: str) -> bool:
-        """Hard-link another store's blob ``src`` (same host and filesystem) as ``digest``;
-        False when it cannot be linked (then the caller copies it)."""
+        """Hard-link another store's blob ``src`` (same host and filesystem) as ``digest``.
+
+        False when it cannot be linked (then the caller copies it).
+        """
         try:
             link(str(src), self.path(digest))
         except OSError:

@@ -9,26 +9,26 @@ from pathlib import Path
 from typing import Any
 
 from osmo.cli.artifacts import run_artifacts, run_lineage
-from osmo.cli.robotics import run_eval, run_view
 from osmo.cli.datasets import run_credential, run_dataset
 from osmo.cli.plugins import run_plugins
 from osmo.cli.pools import run_pool, run_resource
+from osmo.cli.remote import run_health, run_profile, run_worker
 from osmo.cli.render import (
     console,
     format_log,
-    live_progress,
     info_dict,
+    live_progress,
     print_json,
     safe,
     task_table,
     workflow_header,
     workflows_table,
 )
+from osmo.cli.robotics import run_eval, run_view
 from osmo.errors import WorkflowFailed
 from osmo.sdk.client import Client, WorkflowInfo
-from osmo.cli.remote import run_health, run_profile, run_worker
 from osmo.sdk.connect import server_status, start_server, stop_server
-from osmo.server.options import server_args, server_kwargs
+from osmo.server.options import ServerOptions
 
 __all__ = ["run"]
 
@@ -165,10 +165,10 @@ def _server(args: argparse.Namespace) -> int:
         from osmo.server.app import serve
 
         console.print("osmo server running in the foreground (Ctrl-C to stop)", markup=False)
-        serve(**server_kwargs(args))
+        serve(options=ServerOptions.from_args(args))
         return 0
     if args.action == "start":
-        info = start_server(extra_args=server_args(args))
+        info = start_server(options=ServerOptions.from_args(args))
         console.print(f"osmo server running: pid {info.pid}, {info.endpoint}", markup=False)
         return 0
     if args.action == "stop":

@@ -1,5 +1,8 @@
-"""CLI verbs for data: ``osmo dataset list|info|tag|download|upload`` and
-``osmo credential set|list|delete`` (the secrets data URLs and tasks use)."""
+"""CLI verbs for data: ``osmo dataset ...`` and ``osmo credential ...``.
+
+``osmo dataset list|info|tag|download|upload``, and ``osmo credential set|list|delete`` (the secrets
+data URLs and tasks use).
+"""
 
 from __future__ import annotations
 
@@ -49,7 +52,7 @@ def run_dataset(args: argparse.Namespace) -> int:
                                    f"{r['size']} B  {r['created']}  by "
                                    f"{r['made_by'] or 'upload'}"), markup=False)
         elif verb == "info":
-            info = client.dataset_info(args.ref)
+            info = client.dataset(args.ref)
             if args.format == "json":
                 print_json(info)
             else:

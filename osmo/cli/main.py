@@ -14,13 +14,13 @@ from collections.abc import Sequence
 
 from osmo.cli.artifacts import add_parsers as add_artifact_parsers
 from osmo.cli.datasets import add_credential_parsers
+from osmo.cli.datasets import add_parsers as add_dataset_parsers
 from osmo.cli.plugins import add_parsers as add_plugin_parsers
 from osmo.cli.pools import add_parsers as add_pool_parsers
-from osmo.cli.robotics import add_parsers as add_robotics_parsers
-from osmo.cli.datasets import add_parsers as add_dataset_parsers
 from osmo.cli.remote import add_parsers as add_remote_parsers
+from osmo.cli.robotics import add_parsers as add_robotics_parsers
 from osmo.errors import OsmoError
-from osmo.server.options import add_server_options
+from osmo.server.options import ServerOptions
 
 __all__ = ["build_parser", "main"]
 
@@ -107,7 +107,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("server", help="run the server in the foreground, or start|stop|status")
     p.add_argument("action", nargs="?", choices=("start", "stop", "status", "run"), default="run")
-    add_server_options(p)
+    ServerOptions.add_arguments(p)
     _add_format(p)
     add_remote_parsers(sub)
     return parser

@@ -25,7 +25,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
 
 
 def _param(param: Any) -> dict[str, Any]:
-    from osmo.tasktypes.api import REQUIRED
+    from osmo.params import REQUIRED
 
     required = param.default is REQUIRED
     return {"type": getattr(param.type, "__name__", repr(param.type)), "required": required,

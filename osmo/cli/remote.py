@@ -13,7 +13,9 @@ from pathlib import Path
 from typing import Any
 
 from osmo.config import PROFILE_KEYS, home_dir, read_profile, write_profile
-from osmo.errors import OsmoError, ServerUnreachable, UsageError
+from osmo.errors import OsmoError, ServerUnreachable
+from osmo.layout import Home
+from osmo.worker.options import WorkerOptions
 
 __all__ = ["add_parsers", "run_health", "run_profile", "run_worker"]
 
@@ -23,22 +25,8 @@ _HEALTH_STALE = 30.0
 def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     """Register ``worker``, ``health`` and ``profile``."""
     w = sub.add_parser("worker", help="run a worker that dials out to a server and runs tasks")
-    w.add_argument("--connect", action="append", required=True, metavar="ENDPOINT",
-                   help="the server's zenoh endpoint, e.g. tcp/10.0.0.5:7447 (repeatable)")
-    w.add_argument("--pool", default="default", help="pool this worker serves (default)")
-    w.add_argument("--name", help="unique worker name (default: HOSTNAME-PID)")
-    w.add_argument("--platform", help="platform name matched against resource specs")
-    w.add_argument("--cpus", type=float, help="CPU slots to offer (default: cores)")
-    w.add_argument("--gpus", type=int, help="GPUs to offer (default: detected)")
-    w.add_argument("--memory", help="memory to offer, e.g. 8Gi (default: detected)")
-    w.add_argument("--label", action="append", default=[], metavar="KEY=VALUE")
-    w.add_argument("--zenoh-config", metavar="FILE", default=os.environ.get("OSMO_ZENOH_CONFIG"),
-                   help="zenoh JSON5 config for TLS / user-password (OSMO_ZENOH_CONFIG)")
-    w.add_argument("--cluster", default="local", help="the server's cluster name")
+    WorkerOptions.add_arguments(w)
     w.add_argument("--home", help="the worker's folder (default: OSMO_HOME/worker)")
-    w.add_argument("--drain-timeout", type=float, default=600.0, metavar="SECONDS",
-                   help="on SIGTERM, how long running tasks may finish before being handed "
-                        "back (600)")
     h = sub.add_parser("health", help="exit 0 when the server (or --worker) is healthy, else 3")
     h.add_argument("--worker", action="store_true",
                    help="check the worker process of this host's worker folder instead")
@@ -59,31 +47,11 @@ def _worker_home(args: argparse.Namespace) -> Path:
     return Path(args.home).absolute() if args.home else home_dir() / "worker"
 
 
-def _labels(items: list[str]) -> dict[str, str]:
-    out = {}
-    for item in items:
-        key, sep, value = item.partition("=")
-        if not sep or not key:
-            raise UsageError(f"--label {item!r}: write KEY=VALUE")
-        out[key] = value
-    return out
-
-
 def run_worker(args: argparse.Namespace) -> int:
     """``osmo worker``: run until SIGINT (leave now) or SIGTERM (drain, then leave)."""
-    from osmo.spec.units import parse_size
-    from osmo.worker.remote import RemoteWorker, WorkerOptions
+    from osmo.worker.remote import RemoteWorker
 
-    try:
-        memory = (int(args.memory) if args.memory and args.memory.isdigit() else
-                  parse_size(args.memory) if args.memory else None)
-    except ValueError as exc:
-        raise UsageError(f"--memory {args.memory!r}: {exc} (e.g. 8Gi, 512Mi)") from None
-    opts = WorkerOptions(connect=args.connect, pool=args.pool, name=args.name,
-                         platform=args.platform, cpus=args.cpus, gpus=args.gpus,
-                         memory=memory, labels=_labels(args.label), cluster=args.cluster,
-                         zenoh_config=args.zenoh_config, drain_timeout=args.drain_timeout)
-    worker = RemoteWorker(_worker_home(args), opts)
+    worker = RemoteWorker(_worker_home(args), WorkerOptions.from_args(args))
     signal.signal(signal.SIGINT, lambda *_: worker.stop())
     signal.signal(signal.SIGTERM, lambda *_: threading.Thread(
         target=worker.drain, name="osmo-drain", daemon=True).start())
@@ -111,7 +79,7 @@ def run_health(args: argparse.Namespace) -> int:
 
 def _worker_health(home: Path) -> int:
     try:
-        state: dict[str, Any] = json.loads((home / "worker.json").read_text())
+        state: dict[str, Any] = json.loads(Home(home).worker_health.read_text())
         os.kill(int(state["pid"]), 0)
     except (OSError, ValueError, KeyError):
         print(f"unhealthy: no worker running for {home}", file=sys.stderr)

@@ -9,13 +9,10 @@ from __future__ import annotations
 import json
 import sys
 import time
-from dataclasses import asdict
-from typing import Any
-
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-
-from typing import TYPE_CHECKING
+from dataclasses import asdict
+from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from rich.table import Table
@@ -30,9 +27,12 @@ _PLAIN_WIDTH = 160
 
 
 class _LazyConsole:
-    """A ``rich`` console made on first real use, so a CLI command that only prints a few
-    plain lines (``osmo submit`` to a pipe) never imports rich. Plain ASCII lines that fit
-    the width are written as rich would write them to a non-terminal."""
+    """A ``rich`` console made on first real use.
+
+    So a CLI command that only prints a few plain lines (``osmo submit`` to a pipe) never imports
+    rich. Plain ASCII lines that fit the width are written as rich would write them to a
+    non-terminal.
+    """
 
     def __init__(self, *, stderr: bool = False, **kwargs: Any) -> None:
         self._stderr = stderr
@@ -91,9 +91,10 @@ def _escape(c: str) -> str:
 
 
 def safe(text: object) -> str:
-    """``text`` with control and other non-printing characters escaped, as GNU ``ls --escape``
-    shows file names (``\\n``, ``\\033``, ``\\u202e``; a byte that was not UTF-8 as
-    ``\\351``; backslashes doubled).
+    r"""``text`` with control and other non-printing characters escaped.
+
+    As GNU ``ls --escape`` shows file names (``\n``, ``\033``, ``\u202e``; a byte that was not UTF-8
+    as ``\351``; backslashes doubled).
 
     Every name a task, a file or a user chose (task, workflow, artifact path, command, message)
     is printed through this, so it can neither move the cursor, retitle or clear the terminal
@@ -146,8 +147,10 @@ def workflow_header(info: WorkflowInfo) -> str:
 
 
 def task_table(tasks: list[TaskInfo], verbose: bool = False) -> Table:
-    """A table of tasks: name, retry, status, start, duration, exit code (+ group, node and
-    message with ``verbose``)."""
+    """A table of tasks: name, retry, status, start, duration, exit code.
+
+    With ``verbose``, also group, node and message.
+    """
     from rich.table import Table
     from rich.text import Text
 
@@ -230,9 +233,9 @@ def print_error(message: str) -> None:
 @contextmanager
 def live_progress() -> Iterator[Callable[[WorkflowInfo], None]]:
     """A live-redrawn progress view on a terminal; yields the function that updates it."""
-    from rich.text import Text
     from rich.console import Group
     from rich.live import Live
+    from rich.text import Text
 
     with Live(console=console._get(), refresh_per_second=8, transient=False) as live:
 

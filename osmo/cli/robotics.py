@@ -76,8 +76,10 @@ def _old_criterion(suite: dict[str, Any]) -> str | None:
 
 
 def leaderboard_text(rows: list[dict[str, Any]]) -> str:
-    """The leaderboard as aligned text, each success rate marked with its criterion's
-    footnote (``n/a`` where there was none)."""
+    """The leaderboard as aligned text.
+
+    Each success rate is marked with its criterion's footnote (``n/a`` where there was none).
+    """
     notes: dict[str, int] = {}
     table = [["Env", "#", "Policy", "Workflow", "Task", "Success", "Return (95% CI)",
               "Normalised", "Length", "Episodes"]]

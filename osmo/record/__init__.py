@@ -1,5 +1,6 @@
-"""Records of what ran: lineage, per-workflow MCAP run records, and MCAP files that carry
-their own lineage.
+"""Records of what ran: lineage, run records, and MCAP files with their own lineage.
+
+Run records are MCAP files, one per workflow.
 
 Public API (import from here; the submodules are private)::
 

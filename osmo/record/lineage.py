@@ -241,7 +241,7 @@ class Lineage:
 
 def _osmo_version() -> str:
     """The running osmo's version (imported late: ``osmo/__init__`` is lazy and cheap)."""
-    from osmo import __version__
+    from osmo.version import __version__
 
     return __version__
 
@@ -251,11 +251,11 @@ def _json(value: Any) -> str:
 
 
 def compact_json(value: Any, what: str = "value") -> str:
-    """Compact JSON text that is valid UTF-8, with no NaN (Foxglove and browsers reject it).
+    r"""Compact JSON text that is valid UTF-8, with no NaN (Foxglove and browsers reject it).
 
     Non-ASCII text is kept as it is, except when a string holds a byte that is not UTF-8
     (a file name; see ``osmo.artifacts.manifest``): the whole text is then written with
-    ``\\u`` escapes, which every JSON reader accepts and Python reads back exactly.
+    ``\u`` escapes, which every JSON reader accepts and Python reads back exactly.
 
     Raises:
         UsageError: the value is not JSON-serialisable; ``what`` names it in the message.

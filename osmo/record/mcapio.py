@@ -95,7 +95,7 @@ class JsonMcapWriter:
     """
 
     def __init__(self, path: Path | str, *, compress: bool = True, profile: str = "") -> None:
-        from osmo import __version__
+        from osmo.version import __version__
 
         self.path = Path(path)
         self._tmp = self.path.with_name(f".{self.path.name}.{uuid.uuid4().hex[:12]}.partial")
@@ -125,8 +125,10 @@ class JsonMcapWriter:
 
     @contextmanager
     def _writing(self, *, finishing: bool = False) -> Iterator[None]:
-        """Translate write failures and abort the file: a half-written MCAP is junk. An osmo
-        error (raised before anything was written) aborts only while ``finishing``."""
+        """Translate write failures and abort the file: a half-written MCAP is junk.
+
+        An osmo error (raised before anything was written) aborts only while ``finishing``.
+        """
         if self._closed:
             raise UsageError(f"{self.path}: the MCAP writer is already closed")
         try:
@@ -143,8 +145,10 @@ class JsonMcapWriter:
             raise
 
     def add_json_channel(self, topic: str, schema_name: str, schema: Mapping[str, Any]) -> int:
-        """Register a channel (e.g. ``/robot/state``) of JSON messages described by a JSON
-        Schema named ``schema_name`` (stored with encoding ``jsonschema``).
+        """Register a channel (e.g. ``/robot/state``) of JSON messages.
+
+        They are described by a JSON Schema named ``schema_name`` (stored with encoding
+        ``jsonschema``).
 
         Returns:
             the channel id to pass to :meth:`write`.
@@ -163,8 +167,9 @@ class JsonMcapWriter:
         return channel_id
 
     def write(self, channel_id: int, obj: Any, log_time_ns: int | None = None) -> None:
-        """Write one JSON-serialisable ``obj`` to a channel from :meth:`add_json_channel`,
-        stamped ``log_time_ns`` (ns since the unix epoch; default: now).
+        """Write one JSON-serialisable ``obj`` to a channel from :meth:`add_json_channel`.
+
+        It is stamped ``log_time_ns`` (ns since the unix epoch; default: now).
 
         Raises:
             UsageError: unknown channel, bad time, or ``obj`` is not JSON-serialisable.
@@ -251,8 +256,11 @@ class LineageMcapWriter(JsonMcapWriter):
 
 @dataclass(frozen=True)
 class ChannelInfo:
-    """A channel as the file describes it: schema fields are empty when it has no schema;
-    ``message_count`` comes from the file's statistics (None when it has none)."""
+    """A channel as the file describes it.
+
+    Schema fields are empty when it has no schema; ``message_count`` comes from the file's
+    statistics (None when it has none).
+    """
 
     topic: str
     message_encoding: str

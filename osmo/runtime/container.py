@@ -39,7 +39,7 @@ from osmo.runtime.container_run import (
     SECRET_ENV_PATH,
     ContainerError,
     ContainerRun,
-    Engine,
+    EngineInfo,
     Mount,
     RegistryAuth,
     data_input,
@@ -50,7 +50,7 @@ from osmo.runtime.container_run import (
 )
 
 __all__ = ["DATA_OUTPUT", "ENGINES", "SECRET_ENV_PATH", "ContainerEngine", "ContainerError",
-           "ContainerRun", "Engine", "EngineNotFound", "ImageError", "ImageInfo", "Mount",
+           "ContainerRun", "EngineInfo", "EngineNotFound", "ImageError", "ImageInfo", "Mount",
            "RegistryAuth", "data_input", "detect_engine", "run_argv", "safe_name"]
 
 ENGINES = ("podman", "docker")
@@ -77,7 +77,7 @@ class ImageInfo:
     repo_digests: tuple[str, ...] = ()
 
 
-def detect_engine(name: str | None = None, *, env: Mapping[str, str] | None = None) -> Engine:
+def detect_engine(name: str | None = None, *, env: Mapping[str, str] | None = None) -> EngineInfo:
     """The first usable engine of ``podman``, ``docker`` (or only ``name``).
 
     Raises:
@@ -99,14 +99,14 @@ def detect_engine(name: str | None = None, *, env: Mapping[str, str] | None = No
     raise EngineNotFound(f"no usable container engine ({'; '.join(problems)}); {_INSTALL}")
 
 
-def _probe(name: str, path: str, env: Mapping[str, str]) -> Engine:
+def _probe(name: str, path: str, env: Mapping[str, str]) -> EngineInfo:
     if name == "podman":  # podman run by a non-root user is rootless
         version = _call([path, "version", "--format", "{{.Client.Version}}"], env)
-        return Engine(name, path, version.strip(), rootless=os.geteuid() != 0)
+        return EngineInfo(name, path, version.strip(), rootless=os.geteuid() != 0)
     # `docker info` needs the daemon: the CLI alone cannot run anything
     out = _call([path, "info", "--format", "{{.ServerVersion}}|{{json .SecurityOptions}}"], env)
     version, _, security = out.strip().partition("|")
-    return Engine(name, path, version, rootless="rootless" in security)
+    return EngineInfo(name, path, version, rootless="rootless" in security)
 
 
 def _call(argv: Sequence[str], env: Mapping[str, str], *, timeout: float = 60,
@@ -143,7 +143,7 @@ class ContainerEngine:
             ``CONTAINERS_CONF``.
     """
 
-    def __init__(self, engine: Engine, *, env: Mapping[str, str] | None = None) -> None:
+    def __init__(self, engine: EngineInfo, *, env: Mapping[str, str] | None = None) -> None:
         self.engine = engine
         self._env = None if env is None else dict(env)
 

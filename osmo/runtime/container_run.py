@@ -40,7 +40,7 @@ from pathlib import Path
 
 from osmo.errors import OsmoError
 
-__all__ = ["DATA_OUTPUT", "SECRET_ENV_PATH", "ContainerError", "ContainerRun", "Engine",
+__all__ = ["DATA_OUTPUT", "SECRET_ENV_PATH", "ContainerError", "ContainerRun", "EngineInfo",
            "Mount", "RegistryAuth", "data_input", "login_argv", "pull_argv",
            "pull_reference", "run_argv", "safe_name", "secret_env_text"]
 
@@ -67,7 +67,7 @@ class ContainerError(OsmoError):
 
 
 @dataclass(frozen=True)
-class Engine:
+class EngineInfo:
     """A detected engine: ``name`` (podman or docker), CLI ``path``, ``version``, rootless."""
 
     name: str
@@ -139,8 +139,11 @@ def safe_name(*parts: str) -> str:
 
 
 def pull_reference(image: str) -> str:
-    """``image`` with a registry: short names are Docker Hub's, as docker and Kubernetes read
-    them (Debian's podman has no search registries, so ``ubuntu:24.04`` would not pull)."""
+    """``image`` with a registry: short names are Docker Hub's.
+
+    As docker and Kubernetes read them (Debian's podman has no search registries, so
+    ``ubuntu:24.04`` would not pull).
+    """
     first, sep, rest = image.partition("/")
     if sep and ("." in first or ":" in first or first == "localhost"):
         return image
@@ -150,7 +153,7 @@ def pull_reference(image: str) -> str:
 # ---------------------------------------------------------------- argv
 
 
-def run_argv(engine: Engine, run: ContainerRun) -> list[str]:
+def run_argv(engine: EngineInfo, run: ContainerRun) -> list[str]:
     """The engine's ``run`` argv for ``run``.
 
     The container is removed when it ends (``--rm``), never pulls (``--pull=never``: resolve
@@ -190,7 +193,7 @@ def run_argv(engine: Engine, run: ContainerRun) -> list[str]:
     return [*argv, run.image, *command[1:]]
 
 
-def login_argv(engine: Engine, auth: RegistryAuth, config_dir: Path
+def login_argv(engine: EngineInfo, auth: RegistryAuth, config_dir: Path
                ) -> tuple[list[str], dict[str, str], bytes]:
     """``(argv, extra environment, stdin)`` of a login into ``config_dir`` only.
 
@@ -204,7 +207,7 @@ def login_argv(engine: Engine, auth: RegistryAuth, config_dir: Path
     return [*argv, auth.registry], env, auth.password.encode()
 
 
-def pull_argv(engine: Engine, image: str, config_dir: Path | None = None
+def pull_argv(engine: EngineInfo, image: str, config_dir: Path | None = None
               ) -> tuple[list[str], dict[str, str]]:
     """``(argv, extra environment)`` of pulling ``image`` (with ``login_argv``'s folder)."""
     if not _IMAGE.fullmatch(image):
@@ -230,7 +233,7 @@ def secret_env_text(values: Mapping[str, str]) -> str:
 # ---------------------------------------------------------------- checks
 
 
-def _gpu_args(engine: Engine, gpus: tuple[int, ...]) -> list[str]:
+def _gpu_args(engine: EngineInfo, gpus: tuple[int, ...]) -> list[str]:
     if not gpus:
         return []
     if engine.name == "docker":  # docker reads the value as CSV: the quotes keep one field

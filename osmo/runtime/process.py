@@ -22,6 +22,7 @@ It must not know about attempts, logs or the scheduler; the worker pool drives i
 
 from __future__ import annotations
 
+import functools
 import os
 import signal
 import subprocess
@@ -179,6 +180,7 @@ def _stat_fields(pid: int) -> list[str] | None:
     return data[data.rfind(")") + 2 :].split()
 
 
+@functools.cache  # the boot time does not change while this process lives
 def _boot_time() -> float:
     with open("/proc/stat") as f:
         for line in f:

@@ -9,6 +9,8 @@ module of this package is private.
 from osmo.scheduler.core import Scheduler
 from osmo.scheduler.state import TaskState, WorkflowState
 from osmo.scheduler.types import (
+    DEFAULT_MAX_RETRIES,
+    LOCAL_NODE,
     AttemptExited,
     AttemptLost,
     AttemptPrepared,
@@ -32,6 +34,8 @@ from osmo.scheduler.types import (
 )
 
 __all__ = [
+    "DEFAULT_MAX_RETRIES",
+    "LOCAL_NODE",
     "AttemptExited",
     "AttemptLost",
     "AttemptPrepared",

@@ -16,7 +16,6 @@ This module owns fencing and the per-task outcome of an attempt (documented beha
 
 from __future__ import annotations
 
-from osmo.scheduler.engine import Engine
 from osmo.scheduler.groups import settle, start_exec_clock
 from osmo.scheduler.placement import enqueue
 from osmo.scheduler.runs import Run
@@ -28,6 +27,7 @@ from osmo.scheduler.types import (
     AttemptStarted,
     AttemptStartFailed,
 )
+from osmo.scheduler.world import World
 from osmo.spec.model import ExitAction
 from osmo.status import ExitCode, TaskStatus
 
@@ -37,12 +37,12 @@ Report = AttemptPrepared | AttemptStarted | AttemptExited | AttemptStartFailed |
 _FINAL = (AttemptExited, AttemptStartFailed, AttemptLost)
 
 
-def on_report(eng: Engine, report: Report) -> None:
+def on_report(world: World, report: Report) -> None:
     """Apply one attempt report (see the module docstring for fencing)."""
     aid = report.attempt_id
-    if isinstance(report, _FINAL) and eng.ledger.release(aid):
-        eng.queue.capacity_grew()
-    found = eng.attempts.get(aid)
+    if isinstance(report, _FINAL) and world.ledger.release(aid):
+        world.queue.capacity_grew()
+    found = world.attempts.get(aid)
     if found is None:
         return
     run, name = found
@@ -50,82 +50,82 @@ def on_report(eng: Engine, report: Report) -> None:
     if task.attempt_id != aid or not task.status.active:
         return
     if isinstance(report, AttemptPrepared):
-        _prepared(eng, run, task)
+        _prepared(world, run, task)
     elif isinstance(report, AttemptStarted):
-        _started(eng, run, task)
+        _started(world, run, task)
     elif isinstance(report, AttemptExited):
-        _exited(eng, run, task, report)
+        _exited(world, run, task, report)
     elif isinstance(report, AttemptStartFailed):
-        _finish(eng, run, task, TaskStatus.FAILED_START_ERROR, ExitCode.START_ERROR,
+        _finish(world, run, task, TaskStatus.FAILED_START_ERROR, ExitCode.START_ERROR,
                 report.message)
     else:
-        lose(eng, run, task, report.message)
+        lose(world, run, task, report.message)
 
 
-def _prepared(eng: Engine, run: Run, task: TaskState) -> None:
+def _prepared(world: World, run: Run, task: TaskState) -> None:
     group = run.group_of(task)
     if task.status is not TaskStatus.INITIALIZING or task.name in group.prepared:
         return
     group.prepared.add(task.name)
     batch = group.batch
     if batch is not None and not batch.released and task.name in batch.members:
-        eng.release_barrier(run, group)
+        world.release_barrier(run, group)
     # Otherwise no barrier holds it: it was placed with PrepareAttempt(run=True) and the
     # worker starts it by itself.
 
 
-def _started(eng: Engine, run: Run, task: TaskState) -> None:
+def _started(world: World, run: Run, task: TaskState) -> None:
     if task.status is not TaskStatus.INITIALIZING:
         return
-    task.started_at = eng.now
-    eng.set_status(run, task, TaskStatus.RUNNING, "")
-    start_exec_clock(eng, run, run.group_of(task))
+    task.started_at = world.now
+    world.set_status(run, task, TaskStatus.RUNNING, "")
+    start_exec_clock(world, run, run.group_of(task))
 
 
-def _exited(eng: Engine, run: Run, task: TaskState, report: AttemptExited) -> None:
+def _exited(world: World, run: Run, task: TaskState, report: AttemptExited) -> None:
     code = report.exit_code
     action = run.task_specs[task.name].exit_action(code)
     if action is ExitAction.COMPLETE:
         if report.output is None:
-            _finish(eng, run, task, TaskStatus.FAILED, ExitCode.OUTPUT_ERROR,
+            _finish(world, run, task, TaskStatus.FAILED, ExitCode.OUTPUT_ERROR,
                     report.message or f"exit code {code} but outputs could not be promoted")
             return
         task.output = report.output
         task.reused = task.reused or report.cached
-        _finish(eng, run, task, TaskStatus.COMPLETED, code, report.message)
+        _finish(world, run, task, TaskStatus.COMPLETED, code, report.message)
     elif action is ExitAction.RESCHEDULE and task.user_retries < run.max_retries:
         task.user_retries += 1
-        _retry(eng, run, task, report.message or f"exit code {code}: RESCHEDULE")
+        _retry(world, run, task, report.message or f"exit code {code}: RESCHEDULE")
     elif action is ExitAction.RESCHEDULE:
-        _finish(eng, run, task, TaskStatus.FAILED, code,
+        _finish(world, run, task, TaskStatus.FAILED, code,
                 f"exit code {code}: retry cap {run.max_retries} reached")
     else:
-        _finish(eng, run, task, TaskStatus.FAILED, code, report.message or f"exit code {code}")
+        _finish(world, run, task, TaskStatus.FAILED, code, report.message or f"exit code {code}")
 
 
-def lose(eng: Engine, run: Run, task: TaskState, message: str) -> None:
+def lose(world: World, run: Run, task: TaskState, message: str) -> None:
     """The current attempt of active ``task`` is lost: retry it, or fail past the cap."""
-    if task.lost_retries < eng.max_lost_retries:
+    if task.lost_retries < world.max_lost_retries:
         task.lost_retries += 1
-        _retry(eng, run, task, message)
+        _retry(world, run, task, message)
     else:
-        _finish(eng, run, task, TaskStatus.FAILED_SERVER_ERROR, ExitCode.LOST,
-                f"{message}; lost-attempt cap {eng.max_lost_retries} reached")
+        _finish(world, run, task, TaskStatus.FAILED_SERVER_ERROR, ExitCode.LOST,
+                f"{message}; lost-attempt cap {world.max_lost_retries} reached")
 
 
-def _finish(eng: Engine, run: Run, task: TaskState, status: TaskStatus, code: int,
+def _finish(world: World, run: Run, task: TaskState, status: TaskStatus, code: int,
             message: str) -> None:
-    eng.end_task(run, task, status, code, message)
-    settle(eng, run, task)
+    world.end_task(run, task, status, code, message)
+    settle(world, run, task)
 
 
-def _retry(eng: Engine, run: Run, task: TaskState, reason: str) -> None:
-    eng.set_status(run, task, TaskStatus.RESCHEDULED, reason)
+def _retry(world: World, run: Run, task: TaskState, reason: str) -> None:
+    world.set_status(run, task, TaskStatus.RESCHEDULED, reason)
     if task.attempt_id is not None:
-        eng.attempts.pop(task.attempt_id, None)
+        world.attempts.pop(task.attempt_id, None)
     task.retry += 1
     task.attempt_id = task.node_id = task.exit_code = task.output = None
     task.started_at = task.ended_at = None
-    task.scheduling_at = eng.now
-    eng.set_status(run, task, TaskStatus.SCHEDULING, f"retry {task.retry} after: {reason}")
-    enqueue(eng, run, run.group_of(task), (task.name,), gang=False)
+    task.scheduling_at = world.now
+    world.set_status(run, task, TaskStatus.SCHEDULING, f"retry {task.retry} after: {reason}")
+    enqueue(world, run, run.group_of(task), (task.name,), gang=False)

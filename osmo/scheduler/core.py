@@ -22,12 +22,12 @@ from __future__ import annotations
 from collections import defaultdict
 
 from osmo.scheduler import attempts, groups
-from osmo.scheduler.engine import Engine
 from osmo.scheduler.fit import check_fit
 from osmo.scheduler.placement import enqueue, place_pending
 from osmo.scheduler.runs import Run, group_outcome
 from osmo.scheduler.state import TaskState, WorkflowState
 from osmo.scheduler.types import (
+    DEFAULT_MAX_RETRIES,
     AttemptExited,
     AttemptLost,
     AttemptPrepared,
@@ -44,6 +44,7 @@ from osmo.scheduler.types import (
     Tick,
     WorkflowSubmitted,
 )
+from osmo.scheduler.world import World
 from osmo.spec.model import WorkflowSpec
 from osmo.status import TaskStatus
 
@@ -64,9 +65,10 @@ class Scheduler:
         max_lost_retries: how many times a task is retried after lost attempts.
     """
 
-    def __init__(self, *, default_max_retries: int = 3, max_lost_retries: int = 5) -> None:
-        self._eng = Engine(default_max_retries=default_max_retries,
-                           max_lost_retries=max_lost_retries)
+    def __init__(self, *, default_max_retries: int = DEFAULT_MAX_RETRIES,
+                 max_lost_retries: int = 5) -> None:
+        self._world = World(default_max_retries=default_max_retries,
+                            max_lost_retries=max_lost_retries)
 
     # ------------------------------------------------------------------ events
 
@@ -77,45 +79,45 @@ class Scheduler:
             ValueError: a WorkflowSubmitted reuses a known workflow id.
             TypeError: a WorkflowSubmitted carries no WorkflowSpec.
         """
-        eng = self._eng
-        eng.now, eng.out = now, []
+        world = self._world
+        world.now, world.out = now, []
         submit = event if isinstance(event, WorkflowSubmitted) else None
         new_run = self._new_run(submit) if submit is not None else None
         self._fire_due()
         if isinstance(event, _REPORTS):
-            attempts.on_report(eng, event)
+            attempts.on_report(world, event)
         elif submit is not None and new_run is not None:
             self._submit(new_run, submit.reused)
         elif isinstance(event, CancelWorkflow):
-            run = eng.runs.get(event.workflow_id)
+            run = world.runs.get(event.workflow_id)
             if run is not None:
-                groups.cancel(eng, run)
+                groups.cancel(world, run)
         elif isinstance(event, NodeUp):
-            eng.ledger.up(event.node)
-            eng.queue.capacity_grew()
+            world.ledger.up(event.node)
+            world.queue.capacity_grew()
         elif isinstance(event, NodeDown):
             self._node_down(event.node_id)
         else:
             assert isinstance(event, Tick), event
-        place_pending(eng)
-        eng.refresh()
-        out, eng.out = eng.out, []
+        place_pending(world)
+        world.refresh()
+        out, world.out = world.out, []
         return out
 
     def _fire_due(self) -> None:
-        eng = self._eng
-        while (due := eng.deadlines.pop_due(eng.now)) is not None:
+        world = self._world
+        while (due := world.deadlines.pop_due(world.now)) is not None:
             if due.request is not None:
-                groups.expire_queue(eng, due.request)
+                groups.expire_queue(world, due.request)
             else:
                 assert due.run is not None and due.group is not None
-                groups.expire_exec(eng, due.run, due.group)
+                groups.expire_exec(world, due.run, due.group)
 
     def _node_down(self, node_id: str) -> None:
-        eng = self._eng
+        world = self._world
         lost: list[tuple[Run, TaskState]] = []
-        for aid in eng.ledger.down(node_id):
-            found = eng.attempts.get(aid)
+        for aid in world.ledger.down(node_id):
+            found = world.attempts.get(aid)
             if found is None:
                 continue
             run, name = found
@@ -125,7 +127,7 @@ class Scheduler:
                 lost.append((run, task))
         for run, task in lost:
             if task.status.active:  # an earlier loss may have ended its group
-                attempts.lose(eng, run, task, f"node '{node_id}' down")
+                attempts.lose(world, run, task, f"node '{node_id}' down")
 
     def _new_run(self, event: WorkflowSubmitted) -> Run:
         """Validate a submit and build its records; changes nothing (raises first)."""
@@ -133,69 +135,69 @@ class Scheduler:
         if not isinstance(spec, WorkflowSpec):
             raise TypeError(f"WorkflowSubmitted.spec must be a WorkflowSpec, not "
                             f"{type(spec).__name__}")
-        if event.workflow_id in self._eng.runs:
+        if event.workflow_id in self._world.runs:
             raise ValueError(f"workflow '{event.workflow_id}' is already known")
         state = WorkflowState(event.workflow_id, spec.name, pool=event.pool,
-                              max_retries=event.max_retries, submitted_at=self._eng.now)
-        run = Run.build(spec, state, next(self._eng.seq), event.max_retries)
+                              max_retries=event.max_retries, submitted_at=self._world.now)
+        run = Run.build(spec, state, next(self._world.seq), event.max_retries)
         for spec_task in spec.all_tasks():
             name = spec_task.name
             run.tasks[name] = TaskState(run.id, name, run.graph.group_of(name),
-                                        created_at=self._eng.now)
+                                        created_at=self._world.now)
         return run
 
     def _submit(self, run: Run, reused: dict[str, str]) -> None:
-        eng = self._eng
-        eng.runs[run.id] = run
-        eng.note_workflow(run)
-        eng.touch(run)
-        eng.log(run, None, run.state.status.name, "")
+        world = self._world
+        world.runs[run.id] = run
+        world.note_workflow(run)
+        world.touch(run)
+        world.log(run, None, run.state.status.name, "")
         for name in run.graph.topological_order():
             self._start_group(run, name, reused)
 
     def _start_group(self, run: Run, name: str, reused: dict[str, str]) -> None:
         """Set a new group's first status (topological order: its upstream are settled)."""
-        eng, group = self._eng, run.groups[name]
+        world, group = self._world, run.groups[name]
         if all(t.name in reused for t in group.spec.tasks):
             for spec in group.spec.tasks:
                 task = run.tasks[spec.name]
                 task.output, task.reused, task.exit_code = reused[spec.name], True, 0
-                eng.set_status(run, task, TaskStatus.COMPLETED, "reused")
+                world.set_status(run, task, TaskStatus.COMPLETED, "reused")
             group.closing, group.outcome = True, TaskStatus.COMPLETED
             run.open_groups -= 1
             for child in run.graph.children(name):
                 run.groups[child].waiting_on -= 1
         elif group.waiting_on == 0:
-            groups.open_group(eng, run, group)
+            groups.open_group(world, run, group)
         else:
             for spec in group.spec.tasks:
-                eng.set_status(run, run.tasks[spec.name], TaskStatus.WAITING)
+                world.set_status(run, run.tasks[spec.name], TaskStatus.WAITING)
 
     # ------------------------------------------------------------------ queries
 
     def take_changes(self) -> Changes:
         """Copies of workflows and tasks changed since the last call, plus transitions."""
-        return self._eng.take_changes()
+        return self._world.take_changes()
 
     def next_deadline(self) -> float | None:
         """The earliest time a ``Tick`` could change something (a timeout), or None."""
-        return self._eng.deadlines.earliest()
+        return self._world.deadlines.earliest()
 
     def check_fit(self, spec: WorkflowSpec, pool: str | None) -> list[str]:
         """Reasons ``spec`` can never be placed in ``pool`` on the known nodes; [] = ok."""
-        return check_fit(spec, pool, self._eng.ledger.nodes())
+        return check_fit(spec, pool, self._world.ledger.nodes())
 
     def workflow(self, workflow_id: str) -> WorkflowState:
         """A copy of the workflow's state. Raises KeyError if unknown."""
-        return self._eng.runs[workflow_id].state.copy()
+        return self._world.runs[workflow_id].state.copy()
 
     def tasks(self, workflow_id: str) -> list[TaskState]:
         """Copies of the workflow's tasks in spec order. Raises KeyError if unknown."""
-        return [t.copy() for t in self._eng.runs[workflow_id].tasks.values()]
+        return [t.copy() for t in self._world.runs[workflow_id].tasks.values()]
 
     def attempt(self, attempt_id: str) -> TaskState | None:
         """A copy of the task whose current attempt is ``attempt_id``, if any."""
-        found = self._eng.attempts.get(attempt_id)
+        found = self._world.attempts.get(attempt_id)
         if found is None:
             return None
         task = found[0].tasks[found[1]]
@@ -203,15 +205,15 @@ class Scheduler:
 
     def nodes(self) -> list[Node]:
         """Known nodes, sorted by id."""
-        return self._eng.ledger.nodes()
+        return self._world.ledger.nodes()
 
     def attempts_on(self, node_id: str) -> list[str]:
         """Ids of the attempts placed on ``node_id`` that have not sent their final report."""
-        return self._eng.ledger.held_on(node_id)
+        return self._world.ledger.held_on(node_id)
 
     def used(self, node_id: str) -> Capacity:
         """Resources held on ``node_id`` by attempts that have not sent their final report."""
-        return self._eng.ledger.used(node_id)
+        return self._world.ledger.used(node_id)
 
     def forget(self, workflow_id: str) -> None:
         """Drop a terminal workflow from memory (unknown ids are ignored).
@@ -221,17 +223,17 @@ class Scheduler:
         Raises:
             ValueError: the workflow is not terminal.
         """
-        eng = self._eng
-        run = eng.runs.get(workflow_id)
+        world = self._world
+        run = world.runs.get(workflow_id)
         if run is None:
             return
         if not run.state.status.terminal:
             raise ValueError(f"workflow '{workflow_id}' is {run.state.status.name}, "
                              f"not terminal")
-        del eng.runs[workflow_id]
+        del world.runs[workflow_id]
         for task in run.tasks.values():
             if task.attempt_id is not None:
-                eng.attempts.pop(task.attempt_id, None)
+                world.attempts.pop(task.attempt_id, None)
 
     # ------------------------------------------------------------------ restore
 
@@ -255,15 +257,15 @@ class Scheduler:
             by_workflow[task.workflow_id].append(task)
         for state in sorted(workflows, key=lambda w: (w.submitted_at, w.id)):
             self._restore_run(spec_by_id[state.id], state, by_workflow[state.id])
-        self._eng.queue.capacity_grew()
+        self._world.queue.capacity_grew()
 
     def _restore_run(self, spec: WorkflowSpec, state: WorkflowState,
                      tasks: list[TaskState]) -> None:
-        eng = self._eng
-        if state.id in eng.runs:
+        world = self._world
+        if state.id in world.runs:
             raise ValueError(f"workflow '{state.id}' is already known")
-        cap = state.max_retries if state.max_retries is not None else eng.default_max_retries
-        run = Run.build(spec, state.copy(), next(eng.seq), cap)
+        cap = state.max_retries if state.max_retries is not None else world.default_max_retries
+        run = Run.build(spec, state.copy(), next(world.seq), cap)
         given = {t.name: t for t in tasks}
         if given.keys() != run.task_specs.keys():
             raise ValueError(f"workflow '{state.id}': persisted tasks do not match its spec")
@@ -272,24 +274,24 @@ class Scheduler:
             self._restore_task(run, task)
         for name in run.graph.topological_order():
             self._restore_group(run, name)
-        eng.runs[run.id] = run
-        eng.touch(run)
+        world.runs[run.id] = run
+        world.touch(run)
 
     def _restore_task(self, run: Run, task: TaskState) -> None:
-        eng = self._eng
+        world = self._world
         if task.status is TaskStatus.RESCHEDULED:  # never persisted by us; be lenient
             task.status = TaskStatus.SCHEDULING
         if task.attempt_id is not None:
-            eng.attempts[task.attempt_id] = (run, task.name)
+            world.attempts[task.attempt_id] = (run, task.name)
         if task.status.active:
             run.active += 1
             run.running += task.status is TaskStatus.RUNNING
             if task.attempt_id is not None and task.node_id is not None:
-                eng.ledger.reserve(task.attempt_id, task.node_id,
-                                   run.requests[task.name].capacity)
+                world.ledger.reserve(task.attempt_id, task.node_id,
+                                     run.requests[task.name].capacity)
 
     def _restore_group(self, run: Run, name: str) -> None:
-        eng, group = self._eng, run.groups[name]
+        world, group = self._world, run.groups[name]
         members = [run.tasks[t.name] for t in group.spec.tasks]
         if all(t.status.terminal for t in members):
             group.closing, group.outcome = True, group_outcome(group.spec, run.tasks)
@@ -299,12 +301,12 @@ class Scheduler:
                                for up in run.graph.upstream(name))
         started = [t.started_at for t in members if t.started_at is not None]
         if started:
-            groups.start_exec_clock_at(eng, run, group, min(started))
+            groups.start_exec_clock_at(world, run, group, min(started))
         waiting = [t for t in members if t.status is TaskStatus.SCHEDULING]
         if len(waiting) == len(members) and all(t.retry == 0 for t in members):
             since = min(t.scheduling_at or run.state.submitted_at for t in waiting)
-            enqueue(eng, run, group, tuple(t.name for t in waiting), gang=True, since=since)
+            enqueue(world, run, group, tuple(t.name for t in waiting), gang=True, since=since)
             return
         for task in waiting:
-            enqueue(eng, run, group, (task.name,), gang=False,
+            enqueue(world, run, group, (task.name,), gang=False,
                     since=task.scheduling_at or run.state.submitted_at)

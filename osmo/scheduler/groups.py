@@ -19,11 +19,11 @@ This module owns what happens to a group as a unit (documented behaviour):
 
 from __future__ import annotations
 
-from osmo.scheduler.engine import Engine
 from osmo.scheduler.placement import enqueue
 from osmo.scheduler.queue import Deadline
 from osmo.scheduler.runs import Group, Queued, Run, group_outcome
 from osmo.scheduler.state import TaskState
+from osmo.scheduler.world import World
 from osmo.status import ExitCode, TaskStatus
 
 __all__ = [
@@ -38,16 +38,16 @@ __all__ = [
 ]
 
 
-def open_group(eng: Engine, run: Run, group: Group) -> None:
+def open_group(world: World, run: Run, group: Group) -> None:
     """All upstream groups completed: queue the whole group for gang placement."""
     for spec in group.spec.tasks:
         task = run.tasks[spec.name]
-        task.scheduling_at = eng.now
-        eng.set_status(run, task, TaskStatus.SCHEDULING)
-    enqueue(eng, run, group, tuple(t.name for t in group.spec.tasks), gang=True)
+        task.scheduling_at = world.now
+        world.set_status(run, task, TaskStatus.SCHEDULING)
+    enqueue(world, run, group, tuple(t.name for t in group.spec.tasks), gang=True)
 
 
-def settle(eng: Engine, run: Run, task: TaskState) -> None:
+def settle(world: World, run: Run, task: TaskState) -> None:
     """``task`` just became terminal: end its group if that decides the group."""
     group = run.group_of(task)
     if group.closing:
@@ -55,23 +55,20 @@ def settle(eng: Engine, run: Run, task: TaskState) -> None:
     decisive = task.name == group.spec.lead.name or (
         task.status.failed and not group.spec.ignore_nonlead_status)
     if decisive:
-        _stop_rest(eng, run, group, task)
-        close_group(eng, run, group)
+        _stop_rest(world, run, group, task)
+        close_group(world, run, group)
 
 
-def _stop_rest(eng: Engine, run: Run, group: Group, cause: TaskState) -> None:
+def _stop_rest(world: World, run: Run, group: Group, cause: TaskState) -> None:
     group.closing = True
     completed = cause.status is TaskStatus.COMPLETED
     message = ("stopped: lead finished" if completed
                else f"stopped: task '{cause.name}' {cause.status.name}")
     status = TaskStatus.COMPLETED if completed else TaskStatus.FAILED
-    for spec in group.spec.tasks:
-        task = run.tasks[spec.name]
-        if not task.status.terminal:
-            eng.end_task(run, task, status, ExitCode.STOPPED, message, kill=message)
+    _end_open_tasks(world, run, group, status, ExitCode.STOPPED, message, kill=message)
 
 
-def close_group(eng: Engine, run: Run, group: Group) -> None:
+def close_group(world: World, run: Run, group: Group) -> None:
     """Record the ended group's outcome and open or fail what waits for it."""
     group.closing = True
     group.outcome = group_outcome(group.spec, run.tasks)
@@ -81,66 +78,60 @@ def close_group(eng: Engine, run: Run, group: Group) -> None:
             child = run.groups[name]
             child.waiting_on -= 1
             if child.waiting_on == 0 and not child.closing:
-                open_group(eng, run, child)
+                open_group(world, run, child)
     else:
-        _cascade(eng, run, group)
+        _cascade(world, run, group)
 
 
-def _cascade(eng: Engine, run: Run, failed: Group) -> None:
+def _cascade(world: World, run: Run, failed: Group) -> None:
     message = f"upstream group '{failed.name}' {failed.outcome.name if failed.outcome else ''}"
     for name in sorted(run.graph.downstream(failed.name), key=run.graph.index):
         group = run.groups[name]
         if group.closing:
             continue
         group.closing = True
-        for spec in group.spec.tasks:
-            task = run.tasks[spec.name]
-            if not task.status.terminal:
-                eng.end_task(run, task, TaskStatus.FAILED_UPSTREAM, ExitCode.UPSTREAM_FAILED,
-                             message)
+        _end_open_tasks(world, run, group, TaskStatus.FAILED_UPSTREAM, ExitCode.UPSTREAM_FAILED,
+                        message)
         group.outcome = TaskStatus.FAILED_UPSTREAM
         run.open_groups -= 1
 
 
-def start_exec_clock(eng: Engine, run: Run, group: Group) -> None:
+def start_exec_clock(world: World, run: Run, group: Group) -> None:
     """A task of ``group`` is RUNNING: start the group's exec timeout once."""
-    start_exec_clock_at(eng, run, group, eng.now)
+    start_exec_clock_at(world, run, group, world.now)
 
 
-def start_exec_clock_at(eng: Engine, run: Run, group: Group, started: float) -> None:
+def start_exec_clock_at(world: World, run: Run, group: Group, started: float) -> None:
     """Start ``group``'s exec timeout as of ``started``, unless it already runs."""
     timeout = run.spec.timeout.exec_timeout
     if timeout is None or group.exec_deadline is not None:
         return
     group.exec_deadline = started + timeout
-    eng.deadlines.push(Deadline(group.exec_deadline, run=run, group=group))
+    world.deadlines.push(Deadline(group.exec_deadline, run=run, group=group))
 
 
-def expire_exec(eng: Engine, run: Run, group: Group) -> None:
+def expire_exec(world: World, run: Run, group: Group) -> None:
     """The group's exec timeout expired: fail every non-terminal task of it."""
     group.closing = True
     message = f"exec timeout ({run.spec.timeout.exec_timeout:g}s) exceeded"
-    for spec in group.spec.tasks:
-        task = run.tasks[spec.name]
-        if not task.status.terminal:
-            eng.end_task(run, task, TaskStatus.FAILED_EXEC_TIMEOUT, ExitCode.EXEC_TIMEOUT,
-                         message, kill="exec timeout")
-    close_group(eng, run, group)
+    _end_open_tasks(world, run, group, TaskStatus.FAILED_EXEC_TIMEOUT, ExitCode.EXEC_TIMEOUT,
+                    message, kill="exec timeout")
+    close_group(world, run, group)
 
 
-def expire_queue(eng: Engine, request: Queued) -> None:
+def expire_queue(world: World, request: Queued) -> None:
     """``request`` waited longer than the queue timeout: fail its tasks."""
     run = request.run
-    eng.queue.done(request)
+    world.queue.done(request)
     message = f"queue timeout ({run.spec.timeout.queue_timeout:g}s) exceeded"
     tasks = [run.tasks[n] for n in request.tasks]
     for task in tasks:
-        eng.end_task(run, task, TaskStatus.FAILED_QUEUE_TIMEOUT, ExitCode.QUEUE_TIMEOUT, message)
+        world.end_task(run, task, TaskStatus.FAILED_QUEUE_TIMEOUT, ExitCode.QUEUE_TIMEOUT, message)
     for task in tasks:
-        settle(eng, run, task)
+        settle(world, run, task)
 
 
-def cancel(eng: Engine, run: Run) -> None:
+def cancel(world: World, run: Run) -> None:
     """Fail every non-terminal task of ``run`` as canceled (no-op once terminal)."""
     if run.state.status.terminal:
         return
@@ -148,11 +139,20 @@ def cancel(eng: Engine, run: Run) -> None:
         if group.closing:
             continue
         group.closing = True
-        for spec in group.spec.tasks:
-            task = run.tasks[spec.name]
-            if not task.status.terminal:
-                eng.end_task(run, task, TaskStatus.FAILED_CANCELED, ExitCode.CANCELED,
-                             "canceled", kill="canceled")
+        _end_open_tasks(world, run, group, TaskStatus.FAILED_CANCELED, ExitCode.CANCELED,
+                        "canceled", kill="canceled")
         group.outcome = group_outcome(group.spec, run.tasks)
         run.open_groups -= 1
-    eng.touch(run)
+    world.touch(run)
+
+
+def _end_open_tasks(world: World, run: Run, group: Group, status: TaskStatus, code: int,
+                    message: str, kill: str | None = None) -> None:
+    """End every task of ``group`` that is not terminal yet with ``status``.
+
+    With ``kill``, its active attempt is stopped first (the kill's reason).
+    """
+    for spec in group.spec.tasks:
+        task = run.tasks[spec.name]
+        if not task.status.terminal:
+            world.end_task(run, task, status, code, message, kill=kill)

@@ -12,21 +12,21 @@ placement attempt, not O(queue).
 
 from __future__ import annotations
 
-from osmo.scheduler.engine import Engine
 from osmo.scheduler.queue import Deadline
 from osmo.scheduler.runs import Batch, Group, Queued, Run
 from osmo.scheduler.types import PrepareAttempt, attempt_id
+from osmo.scheduler.world import World
 from osmo.status import TaskStatus
 
 __all__ = ["enqueue", "place_pending"]
 
 
-def enqueue(eng: Engine, run: Run, group: Group, names: tuple[str, ...], *, gang: bool,
+def enqueue(world: World, run: Run, group: Group, names: tuple[str, ...], *, gang: bool,
             since: float | None = None) -> None:
     """Queue ``names`` of ``group`` (already SCHEDULING) for placement all at once.
 
     Args:
-        eng: the engine.
+        world: the engine.
         run: the workflow.
         group: the tasks' group.
         names: tasks to place together, in group order.
@@ -36,56 +36,56 @@ def enqueue(eng: Engine, run: Run, group: Group, names: tuple[str, ...], *, gang
     tasks = run.tasks
     shape = (run.state.pool, tuple(run.requests[n] for n in names))
     request = Queued(run, group, names, tuple(tasks[n].retry for n in names),
-                     (run.seq, group.index, next(eng.seq)), shape, gang)
-    eng.queue.push(request)
+                     (run.seq, group.index, next(world.seq)), shape, gang)
+    world.queue.push(request)
     timeout = run.spec.timeout.queue_timeout
     if timeout is not None:
-        start = eng.now if since is None else since
-        eng.deadlines.push(Deadline(start + timeout, request=request))
+        start = world.now if since is None else since
+        world.deadlines.push(Deadline(start + timeout, request=request))
 
 
-def place_pending(eng: Engine) -> None:
+def place_pending(world: World) -> None:
     """Place every queued request that fits now, in FIFO order."""
-    queue = eng.queue
+    queue = world.queue
     for request in queue.pending():
         if not request.valid():
             queue.done(request)
             continue
         run = request.run
-        plan = eng.ledger.place([(n, run.requests[n]) for n in request.tasks], run.state.pool)
+        plan = world.ledger.place([(n, run.requests[n]) for n in request.tasks], run.state.pool)
         if plan is None:
             queue.block(request.shape)
             continue
         queue.done(request)
-        _commit(eng, request, plan)
+        _commit(world, request, plan)
 
 
-def _commit(eng: Engine, request: Queued, plan: dict[str, str]) -> None:
+def _commit(world: World, request: Queued, plan: dict[str, str]) -> None:
     run, group = request.run, request.group
     for name in request.tasks:
         task = run.tasks[name]
         aid = attempt_id(run.id, name, task.retry)
         task.attempt_id, task.node_id = aid, plan[name]
-        eng.ledger.reserve(aid, plan[name], run.requests[name].capacity)
-        eng.attempts[aid] = (run, name)
-        eng.set_status(run, task, TaskStatus.INITIALIZING, "")
+        world.ledger.reserve(aid, plan[name], run.requests[name].capacity)
+        world.attempts[aid] = (run, name)
+        world.set_status(run, task, TaskStatus.INITIALIZING, "")
     held = request.gang and group.spec.barrier and len(request.tasks) > 1
     if held:
         group.batch = Batch(list(request.tasks))
-    hosts = _hosts(eng, run, group)
+    hosts = _hosts(world, run, group)
     for name in request.tasks:
         task = run.tasks[name]
         assert task.attempt_id is not None and task.node_id is not None
-        eng.out.append(PrepareAttempt(
+        world.out.append(PrepareAttempt(
             attempt_id=task.attempt_id, workflow_id=run.id, task=name, retry=task.retry,
             node_id=task.node_id, inputs=_inputs(run, name), hosts=hosts, run=not held))
 
 
-def _hosts(eng: Engine, run: Run, group: Group) -> dict[str, str]:
+def _hosts(world: World, run: Run, group: Group) -> dict[str, str]:
     hosts: dict[str, str] = {}
     for spec in group.spec.tasks:
         node_id = run.tasks[spec.name].node_id
-        node = eng.ledger.node(node_id) if node_id is not None else None
+        node = world.ledger.node(node_id) if node_id is not None else None
         if node is not None:
             hosts[spec.name] = node.address
     return hosts

@@ -14,7 +14,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from osmo.status import TaskStatus, WorkflowStatus
+from osmo.scheduler.state import TaskState, WorkflowState
+from osmo.spec.model import WorkflowSpec
 
 __all__ = [
     "AttemptExited",
@@ -22,6 +23,8 @@ __all__ = [
     "AttemptPrepared",
     "AttemptStarted",
     "AttemptStartFailed",
+    "DEFAULT_MAX_RETRIES",
+    "LOCAL_NODE",
     "CancelWorkflow",
     "Capacity",
     "Changes",
@@ -38,6 +41,14 @@ __all__ = [
     "WorkflowSubmitted",
     "attempt_id",
 ]
+
+
+DEFAULT_MAX_RETRIES = 3
+"""How many times a task that exits with a RESCHEDULE action is retried, unless its workflow's
+``maxRetries`` says otherwise."""
+
+LOCAL_NODE = "local"
+"""The node id of the server's own pool (a remote worker may not call itself so)."""
 
 
 def attempt_id(workflow_id: str, task: str, retry: int) -> str:
@@ -85,7 +96,7 @@ class Node:
     """A place tasks can run: the local pool's host, or (later) one remote worker.
 
     Attributes:
-        id: unique node id (``"local"`` for the server's own pool).
+        id: unique node id (:data:`LOCAL_NODE` for the server's own pool).
         pool: the pool this node belongs to.
         capacity: total resources it offers.
         platform: platform name (matched against a resource spec's ``platform``).
@@ -115,8 +126,8 @@ class WorkflowSubmitted:
     """
 
     workflow_id: str
-    spec: object  # osmo.spec.model.WorkflowSpec (typed loosely to keep this module light)
-    max_retries: int = 3
+    spec: WorkflowSpec
+    max_retries: int = DEFAULT_MAX_RETRIES
     pool: str | None = None
     reused: dict[str, str] = field(default_factory=dict)
 
@@ -130,9 +141,17 @@ class AttemptPrepared:
 
 @dataclass(frozen=True)
 class AttemptStarted:
-    """The attempt's command (process) is running."""
+    """The attempt's command (process) is running.
+
+    Attributes:
+        pid: the process (group) id when it runs as a process of the server's own host (the
+            local pool), with ``pid_start`` its start time: the scheduler ignores both, the
+            server records them so that a restarted server can kill what is left over.
+    """
 
     attempt_id: str
+    pid: int | None = None
+    pid_start: float | None = None
 
 
 @dataclass(frozen=True)
@@ -243,6 +262,7 @@ class RunAttempt:
     """Start a prepared attempt's command (the group's barrier, if any, is released)."""
 
     attempt_id: str
+    node_id: str
 
 
 @dataclass(frozen=True)
@@ -250,10 +270,12 @@ class KillAttempt:
     """Stop an attempt (its whole process group). Its exit report is still expected."""
 
     attempt_id: str
+    node_id: str
     reason: str
 
 
 Command = PrepareAttempt | RunAttempt | KillAttempt
+"""Every command names the node its attempt was placed on: its executor is found by it."""
 
 # ---------------------------------------------------------------- changes (to persist)
 
@@ -278,12 +300,9 @@ class Changes:
     (see ``osmo.scheduler.state``); the store writes them and appends ``transitions``.
     """
 
-    workflows: list[object] = field(default_factory=list)
-    tasks: list[object] = field(default_factory=list)
+    workflows: list[WorkflowState] = field(default_factory=list)
+    tasks: list[TaskState] = field(default_factory=list)
     transitions: list[Transition] = field(default_factory=list)
 
     def __bool__(self) -> bool:
         return bool(self.workflows or self.tasks or self.transitions)
-
-
-_ = (TaskStatus, WorkflowStatus)  # re-exported names used in docs of this contract

@@ -15,12 +15,11 @@ import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, TypeAlias
 
 from osmo.errors import UsageError
 from osmo.names import check_name, check_tag, check_workflow_id, parse_ref
 from osmo.sdk.connect import Connection, connect
-from typing import TYPE_CHECKING, TypeAlias
 
 if TYPE_CHECKING:  # the spec package (YAML, Jinja) loads only when a spec is handled here
     from osmo.spec import Workflow
@@ -110,6 +109,9 @@ def _workflow_info(wf: dict[str, Any], tasks: list[dict[str, Any]] = ()) -> Work
 
 class Client:
     """A connection to an osmo server.
+
+    A read is named by what it returns (``artifacts``, ``dataset``), an action by verb and
+    object (``get_artifact``, ``tag_dataset``); the API verbs are ``<object>_<verb>``.
 
     Args:
         server: zenoh endpoint of a server (``tcp/host:7447``); default: ``OSMO_SERVER`` or
@@ -267,20 +269,25 @@ class Client:
     # ------------------------------------------------------------------ artifacts & lineage
 
     def lineage(self, target: str, *, downstream: bool = False) -> dict[str, Any]:
-        """The lineage graph of an artifact: ``sha256:<digest>`` (a file or a whole output)
-        or ``WORKFLOW_ID:TASK[:PATH]``. See ``osmo.server.lineage_query`` for its shape."""
+        """The lineage graph of an artifact.
+
+        A target is ``sha256:<digest>`` (a file or a whole output) or ``WORKFLOW_ID:TASK[:PATH]``.
+        See ``osmo.server.lineage_query`` for its shape.
+        """
         return dict(self._call("lineage", target=target, downstream=downstream))
 
     def artifacts(self, workflow_id: str, task: str | None = None) -> builtins.list[dict[str, Any]]:
         """Promoted outputs of a workflow with their files (path, digest, size)."""
-        return builtins.list(self._call("artifacts_list", workflow_id=workflow_id, task=task))
+        return builtins.list(self._call("artifact_list", workflow_id=workflow_id, task=task))
 
     def get_artifact(self, target: str, dest: str | os.PathLike[str]) -> builtins.list[str]:
-        """Write a target's files, verified, into ``dest`` on this machine (fetched from the
-        server, wherever it runs). Returns the written paths."""
+        """Write a target's files, verified, into ``dest`` on this machine.
+
+        They are fetched from the server, wherever it runs. Returns the written paths.
+        """
         from osmo.sdk import transfer
 
-        reply = self._call("artifacts_get", target=target)
+        reply = self._call("artifact_get", target=target)
         from osmo.artifacts import Manifest
 
         written = transfer.download(self._conn.link, self.ping(), Manifest.from_json(
@@ -289,7 +296,7 @@ class Client:
 
     def gc_artifacts(self) -> tuple[int, int]:
         """Remove unreferenced blobs; returns (count, bytes)."""
-        reply = self._call("artifacts_gc")
+        reply = self._call("artifact_gc")
         return int(reply["removed"]), int(reply["bytes"])
 
     # ------------------------------------------------------------------ datasets
@@ -298,36 +305,39 @@ class Client:
         """Dataset versions (of one dataset), newest first."""
         if name is not None:
             check_name(name, "dataset name")
-        return builtins.list(self._call("datasets_list", name=name))
+        return builtins.list(self._call("dataset_list", name=name))
 
-    def dataset_info(self, ref: str) -> dict[str, Any]:
+    def dataset(self, ref: str) -> dict[str, Any]:
         """One version (``NAME[:TAG_OR_VERSION]``, default newest) with its files."""
         parse_ref(ref)
-        return dict(self._call("datasets_info", ref=ref))
+        return dict(self._call("dataset_info", ref=ref))
 
     def tag_dataset(self, ref: str, tag: str) -> dict[str, Any]:
         """Point ``tag`` at the version ``ref`` names."""
         parse_ref(ref)
-        return dict(self._call("datasets_tag", ref=ref, tag=check_tag(tag)))
+        return dict(self._call("dataset_tag", ref=ref, tag=check_tag(tag)))
 
     def download_dataset(self, ref: str, dest: str | os.PathLike[str], *,
                          regex: str | None = None) -> builtins.list[str]:
-        """Write a version's files (verified) into ``dest`` on this machine; returns the
-        written paths."""
+        """Write a version's files, verified, into ``dest`` on this machine.
+
+        Returns the written paths.
+        """
+        from osmo.artifacts import Manifest
         from osmo.sdk import transfer
 
-        from osmo.artifacts import Manifest
-
         parse_ref(ref)
-        reply = self._call("datasets_download", ref=ref, regex=regex)
+        reply = self._call("dataset_download", ref=ref, regex=regex)
         written = transfer.download(self._conn.link, self.ping(),
                                     Manifest.from_json(reply["manifest"]), Path(dest).absolute())
         return [str(p) for p in written]
 
     def upload_dataset(self, name: str, path: str | os.PathLike[str], *,
                        metadata: dict[str, str] | None = None) -> int:
-        """Make a new version of ``name`` from a folder on this machine (a copy is sent; your
-        files stay as they are); returns the version."""
+        """Make a new version of ``name`` from a folder on this machine; returns the version.
+
+        A copy is sent; your files stay as they are.
+        """
         from osmo.sdk import transfer
 
         check_name(name, "dataset name")
@@ -336,7 +346,7 @@ class Client:
             raise UsageError(f"cannot upload '{folder}': not a folder")
         offer = transfer.upload(self._conn.link, folder)
         try:
-            reply = self._call("datasets_upload", name=name, manifest=offer.manifest.to_json(),
+            reply = self._call("dataset_upload", name=name, manifest=offer.manifest.to_json(),
                                source=offer.source, metadata=metadata or {}, timeout=3600)
         finally:
             offer.close()
@@ -371,9 +381,11 @@ def _record(r: dict[str, Any]) -> LogRecord:
 
 def _to_model(spec: SpecLike, set_values: Sequence[str], set_strings: Sequence[str],
               set_env: Sequence[str]) -> tuple[WorkflowSpec, str]:
-    """The validated model and its file name. Task types are resolved here too (params
-    checked with positions); custom ``module:attr`` types are imported from the spec file's
-    folder, or the current folder for builders and dicts."""
+    """The validated model and its file name.
+
+    Task types are resolved here too (params checked with positions); custom ``module:attr`` types
+    are imported from the spec file's folder, or the current folder for builders and dicts.
+    """
     from osmo.spec import Workflow, load_spec, spec_from_dict
     from osmo.spec.model import WorkflowSpec
     from osmo.tasktypes.registry import Resolver

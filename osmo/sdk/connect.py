@@ -15,9 +15,18 @@ import sys
 import time
 from pathlib import Path
 
-from osmo.config import ServerInfo, home_dir, lock_is_held, read_profile, read_server_info
+from osmo.config import (
+    DEFAULT_CLUSTER,
+    ServerInfo,
+    home_dir,
+    lock_is_held,
+    read_profile,
+    read_server_info,
+)
 from osmo.errors import InfrastructureError, ServerUnreachable
-from osmo.transport.api import ApiClient
+from osmo.layout import Home
+from osmo.server.options import ServerOptions
+from osmo.transport.rpc import ApiClient
 from osmo.transport.zenoh_link import Link
 
 __all__ = ["Connection", "server_status", "start_server", "stop_server"]
@@ -28,7 +37,7 @@ START_TIMEOUT = 20.0
 class Connection:
     """An open API connection (a zenoh client session plus the request helper)."""
 
-    def __init__(self, endpoint: str, cluster: str = "local",
+    def __init__(self, endpoint: str, cluster: str = DEFAULT_CLUSTER,
                  zenoh_config: str | None = None) -> None:
         self.endpoint = endpoint
         self.link = Link.client([endpoint], cluster, config_file=zenoh_config)
@@ -46,28 +55,26 @@ def _wait_ready(home: Path, proc: subprocess.Popen[bytes] | None, timeout: float
         if info is not None and (proc is None or info.pid == proc.pid) and lock_is_held(home):
             return info
         if proc is not None and proc.poll() is not None:
-            log = (home / "server.log").read_text(errors="replace")[-2000:]
+            log = Home(home).server_log.read_text(errors="replace")[-2000:]
             raise InfrastructureError(f"the osmo server exited at start:\n{log}")
         time.sleep(0.02)  # start-up only: waiting for another process to write its file
     raise InfrastructureError(f"the osmo server did not become ready within {timeout:.0f}s; "
-                              f"see {home / 'server.log'}")
+                              f"see {Home(home).server_log}")
 
 
-def start_server(home: str | os.PathLike[str] | None = None, *, listen: str | None = None,
-                 cpus: float | None = None, extra_args: list[str] | None = None) -> ServerInfo:
-    """Start a background server for ``home`` unless one runs; return its info.
+def start_server(home: str | os.PathLike[str] | None = None,
+                 options: ServerOptions | None = None) -> ServerInfo:
+    """Start a background server for ``home`` with ``options`` unless one runs.
 
-    ``extra_args`` are ``osmo server`` options (see ``osmo.server.options``)."""
+    Returns:
+        the running server's info (``server.json``), once it answers.
+    """
     home_path = home_dir(home)
     if lock_is_held(home_path):
         return _wait_ready(home_path, None, START_TIMEOUT)
-    args = [sys.executable, "-m", "osmo.server.app", "--home", str(home_path)]
-    if listen:
-        args += ["--listen", listen]
-    if cpus:
-        args += ["--cpus", str(cpus)]
-    args += extra_args or []
-    with open(home_path / "server.log", "ab") as out:
+    args = [sys.executable, "-m", "osmo.server.app", "--home", str(home_path),
+            *(options or ServerOptions()).to_argv()]
+    with open(Home(home_path).server_log, "ab") as out:
         proc = subprocess.Popen(args, stdin=subprocess.DEVNULL, stdout=out, stderr=out,
                                 start_new_session=True, close_fds=True)
     return _wait_ready(home_path, proc, START_TIMEOUT)
@@ -119,7 +126,7 @@ def connect(server: str | None = None, home: str | os.PathLike[str] | None = Non
     endpoint = server or os.environ.get("OSMO_SERVER") or profile.get("server")
     if endpoint:
         return Connection(endpoint, os.environ.get("OSMO_CLUSTER") or
-                          profile.get("cluster") or "local", profile.get("zenoh-config"))
+                          profile.get("cluster") or DEFAULT_CLUSTER, profile.get("zenoh-config"))
     info = server_status(home_path)
     if info is None:
         if not autostart:
@@ -130,14 +137,16 @@ def connect(server: str | None = None, home: str | os.PathLike[str] | None = Non
 
 
 def _local_config(home: Path) -> str | None:
-    """The zenoh config the home's server was started with (same credentials serve the
-    local CLI), unless ``OSMO_ZENOH_CONFIG`` says otherwise."""
+    """The zenoh config the home's server was started with.
+
+    The same credentials serve the local CLI, unless ``OSMO_ZENOH_CONFIG`` says otherwise.
+    """
     import json
 
     if os.environ.get("OSMO_ZENOH_CONFIG"):
         return None  # Link.client takes it from the environment
     try:
-        data = json.loads((home / "server.json").read_text())
+        data = json.loads(Home(home).server_info.read_text())
     except (OSError, ValueError):
         return None
     value = data.get("zenoh_config")

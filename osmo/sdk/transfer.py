@@ -16,14 +16,15 @@ from typing import Any
 
 from osmo.artifacts import ArtifactStore, Manifest
 from osmo.config import home_dir
-from osmo.transport.blobs import BlobServer, SameHost, fetch_manifest, host_id
+from osmo.layout import Home
+from osmo.transport.blobs import SERVER, BlobServer, SameHost, fetch_manifest, host_id
 from osmo.transport.zenoh_link import Link
 
 __all__ = ["download", "upload"]
 
 
 def _cache() -> ArtifactStore:
-    return ArtifactStore(home_dir() / "client" / "artifacts")
+    return ArtifactStore(Home(home_dir()).client_artifacts)
 
 
 def _same_host(server: dict[str, Any]) -> SameHost | None:
@@ -37,7 +38,7 @@ def download(link: Link, server: dict[str, Any], manifest: Manifest, dest: Path,
     """Write ``manifest``'s files (or just ``only``) under ``dest``, verified."""
     cache = _cache()
     wanted = Manifest(tuple(e for e in manifest.entries if only is None or e.path == only))
-    fetch_manifest(link, "server", wanted, cache, same_host=_same_host(server))
+    fetch_manifest(link, SERVER, wanted, cache, same_host=_same_host(server))
     return cache.materialize(manifest, dest, only=only)
 
 

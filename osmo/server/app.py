@@ -1,5 +1,8 @@
-"""Composes the server: store + scheduler + local pool + engine + zenoh API, and recovery.
+"""Composes the server: store, scheduler, engine and its executors, zenoh API; recovery.
 
+The executors (``osmo.executor``) are the local pool (unless ``--no-local-pool``) and the
+remote-worker hub; they report into the engine's inbox, which exists before both, and the
+engine owns and closes them.
 ``serve()`` runs one server for one ``OSMO_HOME`` in the foreground until SIGTERM/SIGINT or
 an API ``shutdown``. Only one server runs per home: it holds ``server.lock`` for its life.
 
@@ -30,22 +33,25 @@ from pathlib import Path
 from osmo.artifacts import ArtifactStore
 from osmo.config import free_port, home_dir, write_json_atomic
 from osmo.errors import InfrastructureError, OsmoError
+from osmo.executor import Executor
+from osmo.layout import Home
 from osmo.scheduler.types import AttemptLost, NodeUp
-from osmo.server.api import Api
 from osmo.server.credentials import url_credential
 from osmo.server.datasets import Datasets
 from osmo.server.engine import Engine
+from osmo.server.handlers import Handlers
+from osmo.server.inbox import Inbox
 from osmo.server.isolation import reason
-from osmo.server.recovery import InFlight, kill_leftovers, quarantine, restore, split_lost
 from osmo.server.notices import Notifier
+from osmo.server.options import ServerOptions
 from osmo.server.placing import output_manifests
-from osmo.server.options import add_server_options, server_kwargs
-from osmo.server.dispatch import Dispatcher
-from osmo.server.workers import WorkerHub
-from osmo.transport.blobs import host_id
 from osmo.server.records import RunRecords
+from osmo.server.recovery import InFlight, kill_leftovers, quarantine, restore, split_lost
+from osmo.server.requests import AttemptsOn
+from osmo.server.workers import WorkerHub
 from osmo.store.sqlite import Store
-from osmo.transport.api import ApiServer
+from osmo.transport.blobs import host_id
+from osmo.transport.rpc import ApiServer
 from osmo.transport.zenoh_link import Link
 from osmo.worker.pool import LocalPool
 
@@ -54,73 +60,70 @@ __all__ = ["serve"]
 log = logging.getLogger("osmo.server")
 
 
-def _take_lock(home: Path) -> int:
-    fd = os.open(home / "server.lock", os.O_RDWR | os.O_CREAT, 0o644)
+def _take_lock(home: Home) -> int:
+    fd = os.open(home.server_lock, os.O_RDWR | os.O_CREAT, 0o644)
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:
         os.close(fd)
-        raise InfrastructureError(f"another osmo server is already running for {home}") from None
+        raise InfrastructureError(
+            f"another osmo server is already running for {home.root}") from None
     return fd
 
 
-def serve(home: str | os.PathLike[str] | None = None, *, listen: list[str] | None = None,
-          connect: list[str] | None = None, zenoh_config: str | None = None,
-          cluster: str = "local", cpus: float | None = None, gpus: int | None = None,
-          memory: int | None = None, local_pool: bool = True, reconnect_grace: float = 30.0,
-          ready: threading.Event | None = None) -> None:
+def serve(home: str | os.PathLike[str] | None = None, options: ServerOptions | None = None,
+          *, ready: threading.Event | None = None) -> None:
     """Run the server in the foreground until stopped.
 
     Args:
         home: the osmo home (default: ``OSMO_HOME`` / XDG data folder).
-        listen: zenoh endpoints, default ``tcp/127.0.0.1:7447`` (another free port if taken).
-        connect: join an existing zenoh router instead of hosting one (with no ``listen``).
-        zenoh_config: a zenoh JSON5 file (TLS, mutual TLS, user/password).
-        cpus/gpus/memory: override the local pool's detected capacity.
-        local_pool: run tasks on this host too (off: remote workers only).
-        reconnect_grace: seconds remote workers get to come back after a restart.
+        options: how it listens and runs (default: ``ServerOptions()``).
+        ready: set once the server answers requests.
     """
     home_path = home_dir(home)
-    lock_fd = _take_lock(home_path)
-    (home_path / "server.json").unlink(missing_ok=True)  # a crashed server's stale address
-    endpoints = list(listen or ([] if connect else [f"tcp/127.0.0.1:{free_port()}"]))
-    store = Store(home_path / "state.db")
-    inflight = InFlight(home_path / "applying.json")
+    layout = Home(home_path)
+    lock_fd = _take_lock(layout)
+    layout.server_info.unlink(missing_ok=True)  # a crashed server's stale address
+    options = options or ServerOptions()
+    listen, connect = list(options.listen), list(options.connect)
+    endpoints = listen or ([] if connect else [f"tcp/127.0.0.1:{free_port()}"])
+    store = Store(layout.state_db)
+    inflight = InFlight(layout.applying)
     restored = restore(store)
     active, failed = quarantine(restored.active, inflight.left)
     lost, remote_nodes = split_lost(active)
     kill_leftovers(store, lost)
 
-    link = Link.router(endpoints, cluster, connect=connect or [], config_file=zenoh_config)
+    link = Link.router(endpoints, options.cluster, connect=connect,
+                       config_file=options.zenoh_config)
     stopping = threading.Event()
 
     notifier = Notifier(link)
     on_changed = notifier.changed
 
-    engine_box: list[Engine] = []
-    artifacts = ArtifactStore(home_path / "artifacts")
-    pool = LocalPool(home=home_path, emit=lambda ev: engine_box[0].post(ev),
-                     cpus=cpus, gpus=gpus, memory=memory, artifacts=artifacts,
+    inbox = Inbox()
+    artifacts = ArtifactStore(layout.artifacts)
+    pool = LocalPool(home=home_path, emit=inbox.post,
+                     cpus=options.cpus, gpus=options.gpus, artifacts=artifacts,
                      credential_for=url_credential(store),
                      input_manifests=output_manifests(store),
-                     task_secrets=store.credential) if local_pool else None
-    hub = WorkerHub(link=link, post=lambda ev: engine_box[0].post(ev), store=store,
+                     task_secrets=store.credential) if options.local_pool else None
+    hub = WorkerHub(link=link, emit=inbox.post, store=store,
                     artifacts=artifacts, home=home_path, url_credential=url_credential(store),
-                    engine_call=lambda fn: engine_box[0].call(fn))
+                    attempts_on=lambda node: list(inbox.ask(AttemptsOn(node))))
     records = RunRecords(store, home_path)
-    dispatcher = Dispatcher(pool, hub, node_of=lambda aid: _node_of(engine_box[0], aid))
     fatal: list[BaseException] = []
 
     def on_fatal(exc: BaseException) -> None:
         fatal.append(exc)
         stopping.set()
 
-    engine = Engine(store=store, scheduler=restored.scheduler, executor=dispatcher,
+    executors: list[Executor] = [hub] if pool is None else [pool, hub]
+    engine = Engine(store=store, scheduler=restored.scheduler, executors=executors, inbox=inbox,
                     specs=restored.specs, on_changed=on_changed, home=home_path,
                     on_finished=records.finished, datasets=Datasets(store, artifacts, home_path),
                     no_cache=restored.no_cache, restore=lambda: restore(store),
                     inflight=inflight, on_fatal=on_fatal)
-    engine_box.append(engine)
     if pool is not None:
         engine.post(NodeUp(pool.node()))
     for event in failed:
@@ -128,17 +131,19 @@ def serve(home: str | os.PathLike[str] | None = None, *, listen: list[str] | Non
     for task in lost:
         engine.post(AttemptLost(str(task.attempt_id), "server restarted; attempt lost"))
     engine.start()
-    hub.expect(remote_nodes, reconnect_grace)
+    hub.expect(remote_nodes, options.reconnect_grace)
 
     info = {"endpoint": _local_endpoint(endpoints) if endpoints else (connect or [""])[0],
-            "endpoints": endpoints, "pid": os.getpid(), "cluster": cluster,
-            "zenoh_config": str(Path(zenoh_config).absolute()) if zenoh_config else None,
+            "endpoints": endpoints, "pid": os.getpid(), "cluster": options.cluster,
+            "zenoh_config": (str(Path(options.zenoh_config).absolute())
+                             if options.zenoh_config else None),
             "host_id": host_id(), "artifacts": str(artifacts.root),
             "started_at": time.time(), "home": str(home_path)}
-    api = Api(engine, home_path, info, on_shutdown=stopping.set, workers=hub)
-    api_server = ApiServer(link, api.handle,
+    handlers = Handlers(engine, home_path, info, on_shutdown=stopping.set, workers=hub,
+                        link=link)
+    api_server = ApiServer(link, handlers.handle,
                            on_crash=lambda exc: log.error("API handler crashed", exc_info=exc))
-    write_json_atomic(home_path / "server.json", info)
+    write_json_atomic(layout.server_info, info)
     log.info("osmo server %s listening on %s (home %s)", os.getpid(),
              ", ".join(endpoints or connect or []), home_path)
 
@@ -151,13 +156,10 @@ def serve(home: str | os.PathLike[str] | None = None, *, listen: list[str] | Non
             pass
     finally:
         time.sleep(0.05)  # let the reply to a `shutdown` request leave
-        (home_path / "server.json").unlink(missing_ok=True)
+        layout.server_info.unlink(missing_ok=True)
         api_server.close()
-        hub.close()
-        engine.stop()
+        engine.stop()  # and its executors: the local pool's processes die with the server
         notifier.close()
-        if pool is not None:
-            pool.close()
         records.close()
         link.close()
         store.close()
@@ -169,8 +171,11 @@ def serve(home: str | os.PathLike[str] | None = None, *, listen: list[str] | Non
 
 
 def _local_endpoint(endpoints: list[str]) -> str:
-    """Where this host's CLI should connect: a loopback TCP endpoint if there is one (a
-    wildcard address counts as loopback), else the first endpoint."""
+    """Where this host's CLI should connect.
+
+    A loopback TCP endpoint if there is one (a wildcard address counts as loopback), else the first
+    endpoint.
+    """
     for ep in endpoints:
         proto, _, rest = ep.partition("/")
         host, _, port = rest.rpartition(":")
@@ -178,11 +183,6 @@ def _local_endpoint(endpoints: list[str]) -> str:
             local = {"0.0.0.0": "127.0.0.1", "[::]": "[::1]"}.get(host, host)
             return f"tcp/{local}:{port}"
     return endpoints[0]
-
-
-def _node_of(engine: Engine, attempt_id: str) -> str | None:
-    task = engine.scheduler.attempt(attempt_id)
-    return task.node_id if task is not None else None
 
 
 def main() -> None:
@@ -194,10 +194,10 @@ def main() -> None:
 
     parser = argparse.ArgumentParser(prog="osmo-server")
     parser.add_argument("--home")
-    add_server_options(parser)
+    ServerOptions.add_arguments(parser)
     args = parser.parse_args()
     try:
-        serve(args.home, **server_kwargs(args))
+        serve(args.home, ServerOptions.from_args(args))
     except OsmoError as exc:
         print(f"osmo server: {exc}", file=sys.stderr)
         sys.exit(exc.exit_code)

@@ -28,7 +28,7 @@ from osmo.scheduler.types import PrepareAttempt
 from osmo.spec.model import TaskSpec
 from osmo.store.sqlite import Store
 
-__all__ = ["CacheHit", "fingerprint", "input_sources", "lookup"]
+__all__ = ["CacheHit", "fingerprint", "input_sources", "key", "lookup"]
 
 _VERSION = 1  # bump when the fingerprint's content changes
 
@@ -49,6 +49,27 @@ def fingerprint(task: TaskSpec, inputs: list[tuple[str, str]]) -> str:
         body["type_version"] = task.resolved.version if task.resolved else None
     text = json.dumps(body, sort_keys=True, separators=(",", ":"), default=str)
     return "sha256:" + hashlib.sha256(text.encode()).hexdigest()
+
+
+def key(cmd: PrepareAttempt, task: TaskSpec, sources: list[LineageInput | None], *,
+        no_cache: bool) -> str | None:
+    """The cache key of a placed attempt, or None when it must run.
+
+    The key is the attempt's fingerprint; the rules are the module docstring's.
+
+    Args:
+        cmd: the placement (``run``: no group barrier holds it).
+        task: its task's definition.
+        sources: what each of its inputs is (:func:`input_sources`).
+        no_cache: its workflow was submitted with ``--no-cache``.
+    """
+    if not cmd.run or not task.cache or no_cache:
+        return None  # held by a group barrier, or caching is off for it
+    if any(i.url for i in task.inputs) or any(o.url for o in task.outputs):
+        return None  # URL contents are unknown at placement; a hit would skip the upload
+    if any(s is None for s in sources):
+        return None  # an input without a recorded manifest: its content is unknown
+    return fingerprint(task, [(s.task, s.manifest_digest) for s in sources if s])
 
 
 @dataclass(frozen=True)

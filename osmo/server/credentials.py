@@ -28,10 +28,10 @@ from osmo.errors import NotFoundError, SubmitError, UsageError
 from osmo.names import shown
 from osmo.spec.model import TaskSpec, WorkflowSpec
 from osmo.store.sqlite import Store
-from osmo.transport.api import field, str_map
+from osmo.transport.rpc import field, str_map
 from osmo.worker.secrets import unusable_file_name
 
-__all__ = ["CredentialApi", "check_task_credentials", "url_credential"]
+__all__ = ["CredentialHandlers", "check_task_credentials", "url_credential"]
 
 _MAX_NAME = 256  # an S3 bucket name is at most 63; room for a prefix
 _NAME_OK = set("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789-_.:/")
@@ -93,7 +93,7 @@ def _env_clashes(task: TaskSpec) -> list[str]:
             for var, who in setters.items() if len(who) > 1]
 
 
-class CredentialApi:
+class CredentialHandlers:
     """Handlers for ``credential_*`` verbs."""
 
     def __init__(self, store: Store) -> None:

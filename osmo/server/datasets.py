@@ -24,6 +24,7 @@ from typing import Any
 
 from osmo.artifacts import ArtifactStore, Entry, Manifest
 from osmo.errors import NotFoundError
+from osmo.layout import Home
 from osmo.names import parse_ref
 from osmo.scheduler.types import PrepareAttempt
 from osmo.spec.model import TaskSpec
@@ -52,7 +53,7 @@ class Datasets:
     def __init__(self, store: Store, artifacts: ArtifactStore, home: Path) -> None:
         self._store = store
         self._artifacts = artifacts
-        self._root = home / "datasets"
+        self._home = Home(home)
         self._versions: dict[str, int] = {}
 
     def next_version(self, name: str) -> int:
@@ -84,8 +85,9 @@ class Datasets:
             source_manifest=source, attempt_id=attempt_id, created_at=now, metadata=metadata)
 
     def resolve_inputs(self, cmd: PrepareAttempt, task: TaskSpec) -> PrepareAttempt:
-        """``cmd`` with a folder for each dataset input and each other-workflow task input
-        (keyed as written in the spec), resolved now.
+        """``cmd`` with a folder for each dataset and other-workflow input, resolved now.
+
+        Keyed as written in the spec.
 
         Raises:
             NotFoundError: a named dataset, version or other-workflow output does not exist.
@@ -123,15 +125,18 @@ class Datasets:
         body = self._store.manifest_body(row["manifest"])
         assert body is not None
         manifest = select(Manifest.from_json(body), path=None, regex=regex)
-        suffix = f"-{hashlib.sha256(regex.encode()).hexdigest()[:12]}" if regex else ""
-        target = self._root / name / f"{row['version']}{suffix}"
+        variant = hashlib.sha256(regex.encode()).hexdigest()[:12] if regex else None
+        target = self._home.dataset_version(name, row["version"], variant)
         if not target.is_dir():
             self._materialize(manifest, target, f"dataset:{name}")
         return target
 
     def _materialize(self, manifest: Manifest, target: Path, owner: str) -> None:
-        """Write the folder once, verified; it is registered (so caching and lineage see its
-        manifest) before it appears under its final name."""
+        """Write the folder once, verified, and register it.
+
+        It is registered (so caching and lineage see its manifest) before it appears under its final
+        name.
+        """
         staging = target.parent / f".{target.name}.{uuid.uuid4().hex}"
         staging.mkdir(parents=True)
         try:

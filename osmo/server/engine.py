@@ -3,8 +3,9 @@
 Owns the loop ``events → Scheduler.handle → commit to the store → execute commands``. Every
 batch of state changes is committed in one transaction *before* any command of that batch is
 executed, so a server killed at any instant restarts into a consistent state. Events from
-workers and calls from API threads arrive on one queue; the loop blocks on it until an event
-arrives or the scheduler's next deadline (a timeout) is due — no polling.
+executors and typed requests from API threads (``osmo.server.requests``) arrive in one
+inbox (``osmo.server.inbox``); the loop blocks on it until something arrives or the
+scheduler's next deadline (a timeout) is due — no polling.
 
 Fault isolation: no exception stops the loop. When applying a batch raises — in the
 scheduler, while building lineage, or in the commit itself — nothing of the batch was
@@ -12,13 +13,14 @@ committed, so the engine drops it from memory by rebuilding the scheduler from t
 (``osmo.server.recovery``) and applies the batch's events again one at a time. The event that
 raises again is the culprit: an attempt's report becomes a failure of that attempt (FAILED
 with the message, exit code 3005 for an exit; FAILED_START_ERROR otherwise; a still-running
-attempt is killed), an API call gets the error, anything else is logged and dropped; every
-other event is applied as usual. Attempts that were still starting when the scheduler was
-rebuilt are reported lost and started again (a group barrier's progress is not kept in the
-store). Only when even a failure cannot be committed, or the store cannot be read, does the
-engine stop: it then calls ``on_fatal`` (the server exits non-zero, so a supervisor sees it)
-and every waiting API call gets an error. A hard crash while reports are applied is covered
-by the quarantine file (``osmo.server.recovery.InFlight``).
+attempt is killed), a request gets the error, anything else is logged and dropped; every
+other event is applied as usual (``osmo.server.isolation``). Attempts that were still
+starting when the scheduler was rebuilt are reported lost and started again (a group
+barrier's progress is not kept in the store). Only when even a failure cannot be committed,
+or the store cannot be read, does the engine stop: it then calls ``on_fatal`` (the server
+exits non-zero, so a supervisor sees it) and every waiting request gets an error. A hard
+crash while reports are applied is covered by the quarantine file
+(``osmo.server.recovery.InFlight``).
 
 It must not parse specs, talk zenoh or format output; those belong to other layers.
 """
@@ -26,81 +28,65 @@ It must not parse specs, talk zenoh or format output; those belong to other laye
 from __future__ import annotations
 
 import logging
-import queue
 import threading
 import time
-from collections.abc import Callable
-from concurrent.futures import Future
-from dataclasses import dataclass, field
-from typing import Any, Protocol
+from collections.abc import Callable, Sequence
+from typing import Any
 
+from osmo.artifacts import Manifest
+from osmo.errors import InfrastructureError, SubmitError, UsageError
+from osmo.executor import Executor
 from osmo.scheduler import Scheduler
 from osmo.scheduler.types import (
+    DEFAULT_MAX_RETRIES,
     AttemptExited,
     AttemptLost,
     AttemptStarted,
     AttemptStartFailed,
+    CancelWorkflow,
     Changes,
     Command,
     Event,
     KillAttempt,
+    NodeUp,
     PrepareAttempt,
     RunAttempt,
     Tick,
+    WorkflowSubmitted,
 )
-from osmo.spec.model import TaskSpec, WorkflowSpec
-from osmo.artifacts import Manifest
-from osmo.errors import InfrastructureError
+from osmo.server.batch import Batch
 from osmo.server.datasets import Datasets
+from osmo.server.inbox import STOP, Asked, Inbox
+from osmo.server.isolation import REBUILT, Isolation, guard, reason, restarting
 from osmo.server.placing import Placements
-from osmo.server.isolation import STOP, Call, FaultIsolation, guard, reason
 from osmo.server.provenance import Provenance
-from osmo.server.recovery import InFlight, Restored, attempt_row
+from osmo.server.recovery import InFlight, Restored
+from osmo.server.requests import (
+    AddDatasetVersion,
+    AttemptsOn,
+    ListNodes,
+    Request,
+    SubmitWorkflow,
+    TagDataset,
+)
+from osmo.spec.model import WorkflowSpec
 from osmo.status import TaskStatus
-from osmo.store.sqlite import AttemptRow, DatasetRow, LineageRow, Store
+from osmo.store.sqlite import NewWorkflowRow, Store, TagRow
 
-__all__ = ["Engine", "Executor"]
+__all__ = ["Engine"]
 
 log = logging.getLogger("osmo.server")
 
 
-
-class Executor(Protocol):
-    """What the engine needs from a pool of workers (the local pool, later remote ones)."""
-
-    def prepare(self, cmd: PrepareAttempt, task: TaskSpec, *,
-                max_output_bytes: int | None = None) -> None: ...
-    def run(self, attempt_id: str) -> None: ...
-    def kill(self, attempt_id: str, reason: str) -> None: ...
-    def running(self) -> dict[str, int]: ...
-
-
-@dataclass
-class _Batch:
-    """What one loop iteration accumulates before committing."""
-
-    commands: list[Command] = field(default_factory=list)
-    new_workflows: list[tuple[str, str, int, float, dict[str, Any], dict[str, Any]]] = field(
-        default_factory=list)
-    attempts: list[AttemptRow] = field(default_factory=list)
-    lineage: list[LineageRow] = field(default_factory=list)
-    datasets: list[DatasetRow] = field(default_factory=list)
-    tags: list[tuple[str, str, int]] = field(default_factory=list)
-    replies: list[tuple[Future[Any], Any]] = field(default_factory=list)
-    ended: list[str] = field(default_factory=list)  # attempts whose final report is applied
-
-
-_Call = Call
-_STOP = STOP
-
-
-class Engine(FaultIsolation):
+class Engine:
     """Runs the scheduler on its own thread.
 
     Args:
         store: the state store (the engine is its only writer).
         scheduler: the scheduler, already restored from the store if recovering.
-        executor: the pool that runs attempts.
+        executors: what runs attempts (``osmo.executor``); each command goes to the first
+            that owns its node. The engine closes them when it stops.
+        inbox: where events and requests for the engine arrive.
         specs: workflow id → spec for every workflow the scheduler holds.
         on_changed: called with the ids of workflows whose state changed (after commit).
         on_finished: called with the id of each workflow that ended (after commit).
@@ -113,7 +99,8 @@ class Engine(FaultIsolation):
         clock: time source (injectable for tests).
     """
 
-    def __init__(self, *, store: Store, scheduler: Scheduler, executor: Executor,
+    def __init__(self, *, store: Store, scheduler: Scheduler, executors: Sequence[Executor],
+                 inbox: Inbox,
                  specs: dict[str, WorkflowSpec], on_changed: Callable[[set[str]], None],
                  home: Any, on_finished: Callable[[str], None] = lambda _wf: None,
                  datasets: Datasets | None = None, no_cache: set[str] | None = None,
@@ -123,8 +110,9 @@ class Engine(FaultIsolation):
                  clock: Callable[[], float] = time.time) -> None:
         self.store = store
         self.scheduler = scheduler
-        self.executor = executor
+        self._executors = tuple(executors)
         self.specs = specs
+        self._inbox = inbox
         self._on_changed = on_changed
         self._on_finished = on_finished
         self.provenance = Provenance()
@@ -132,14 +120,14 @@ class Engine(FaultIsolation):
         self.datasets = datasets
         self._clock = clock
         self._home = home
-        self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self.placements = Placements(store=store, specs=specs, no_cache=self.no_cache,
-                                     executor=executor, post=self._queue.put,
-                                     provenance=self.provenance, datasets=datasets)
+                                     post=inbox.post, provenance=self.provenance,
+                                     datasets=datasets)
         self._numbers: dict[str, int] = {}
         self._restore, self._inflight, self._on_fatal = restore, inflight, on_fatal
-        self._applying: list[Any] = []  # the batch in hand (its calls fail if the engine stops)
-        self._dead: BaseException | None = None
+        self._isolation = Isolation(apply=self._apply, rebuild=self._rebuild,
+                                    execute=self._execute, node_of=self._node_of)
+        self._applying: list[Any] = []  # the batch in hand (its requests fail if we stop)
         self._thread = threading.Thread(target=self._loop, name="osmo-engine", daemon=True)
 
     # ------------------------------------------------------------------ public API
@@ -149,31 +137,22 @@ class Engine(FaultIsolation):
         self._thread.start()
 
     def stop(self) -> None:
-        """Ask the loop to finish the current batch and exit; wait for it."""
-        self._queue.put(_STOP)
+        """Ask the loop to finish the current batch and exit; wait, then close the executors."""
+        self._inbox.stop()
         self._thread.join(timeout=30)
+        for executor in self._executors:
+            guard(executor.close)
 
     def post(self, event: Event) -> None:
-        """Queue an event (thread-safe; called by workers' threads)."""
-        self._queue.put(event)
+        """Queue an event (thread-safe)."""
+        self._inbox.post(event)
 
-    def call(self, fn: Callable[[Engine, _Batch, float], Any], timeout: float = 60) -> Any:
-        """Run ``fn(engine, batch, now)`` on the engine thread; return its result after commit.
+    def ask(self, request: Request, timeout: float = 60) -> Any:
+        """Apply ``request`` on the engine thread; return its answer after the commit.
 
-        Exceptions raised by ``fn`` propagate to the caller and nothing of it is committed
-        (``fn`` must raise before mutating the scheduler).
+        See ``osmo.server.requests``; raises what applying it raised.
         """
-        if self._dead is not None:
-            raise InfrastructureError(f"the server's engine stopped: {reason(self._dead)}")
-        future: Future[Any] = Future()
-        self._queue.put(_Call(fn, future))
-        return future.result(timeout=timeout)
-
-    def next_number(self, name: str) -> int:
-        """Allocate the next ``N`` for a workflow called ``name`` (engine thread only)."""
-        n = max(self._numbers.get(name, 0), self.store.next_number(name) - 1) + 1
-        self._numbers[name] = n
-        return n
+        return self._inbox.ask(request, timeout)
 
     # ------------------------------------------------------------------ the loop
 
@@ -184,31 +163,21 @@ class Engine(FaultIsolation):
         except BaseException as exc:  # noqa: BLE001 - the engine cannot go on: say so, loudly
             log.critical("the engine cannot go on; the server stops: %s", reason(exc),
                          exc_info=exc)
-            self._dead = exc
-            self._abandon(exc)
+            self._inbox.close(reason(exc), self._applying)
             self._on_fatal(exc)
 
     def _wait(self) -> list[Any]:
         deadline = self.scheduler.next_deadline()
         timeout = None if deadline is None else max(0.0, deadline - self._clock())
-        items: list[Any] = []
-        try:
-            items.append(self._queue.get(timeout=timeout))
-        except queue.Empty:
-            return [Tick()]
-        while len(items) < 4096:
-            try:
-                items.append(self._queue.get_nowait())
-            except queue.Empty:
-                break
-        return items
+        return self._inbox.take(timeout) or [Tick()]
 
     def _step(self, items: list[Any]) -> bool:
         """Apply what was queued (isolating a culprit if it raises); False after ``stop()``.
 
         A final report (which carries a task's outputs or messages) is applied and committed
         on its own, so the quarantine file names exactly the report being applied; the
-        other events go in batches."""
+        other events go in batches.
+        """
         for part in _parts(items):
             self._applying = part
             try:
@@ -216,29 +185,32 @@ class Engine(FaultIsolation):
             except Exception as exc:  # noqa: BLE001 - isolated below; only a double fault stops
                 log.error("applying %d event(s) failed (%s); applying them one at a time to "
                           "isolate the cause", len(part), reason(exc), exc_info=exc)
-                self._isolate(part)
+                self._isolation.isolate(part)
             finally:
                 if self._inflight is not None:
                     self._inflight.clear()
         self._applying = []
-        return not any(item is _STOP for item in items)
+        return not any(item is STOP for item in items)
 
-    def _apply(self, items: list[Any], *, tick: bool = True) -> None:
-        """Handle ``items``, commit, execute. Raises only before the commit succeeded (then
-        nothing of ``items`` is stored, though the scheduler may hold some of it)."""
-        batch = _Batch()
+    def _apply(self, items: list[Any], tick: bool = True) -> None:
+        """Handle ``items``, commit, execute.
+
+        Raises only before the commit succeeded (then nothing of ``items`` is stored, though the
+        scheduler may hold some of it).
+        """
+        batch = Batch()
         now = self._clock()
         self._mark(items)
         for item in items:
-            if isinstance(item, _Call):
-                self._run_call(item, batch, now)
-            elif item is not _STOP:
+            if isinstance(item, Asked):
+                self._answer(item, batch, now)
+            elif item is not STOP:
                 self._handle(item, batch, now)
         if tick:
             deadline = self.scheduler.next_deadline()
             if deadline is not None and deadline <= now:
                 batch.commands += self.scheduler.handle(Tick(), now)
-        changes, placed = self._commit(batch)
+        changes, placed = batch.commit(self.store, self.scheduler, self._home)
         self._after_commit(batch, changes, placed)
 
     def _mark(self, items: list[Any]) -> None:
@@ -249,11 +221,12 @@ class Engine(FaultIsolation):
             if ids:
                 self._inflight.mark(ids)
 
-    def _handle(self, event: Event, batch: _Batch, now: float) -> None:
+    def _handle(self, event: Event, batch: Batch, now: float) -> None:
         if not isinstance(event, (AttemptExited, AttemptStartFailed, AttemptLost)):
             batch.commands += self.scheduler.handle(event, now)
-            if isinstance(event, AttemptStarted):
-                self._note_pid(event.attempt_id, batch)
+            if isinstance(event, AttemptStarted) and event.pid is not None:
+                # a local process: recorded so a restarted server can kill what is left
+                batch.pids.append((event.attempt_id, event.pid, event.pid_start))
             return
         before = self.scheduler.attempt(event.attempt_id)  # None: a stale (fenced) report
         if before is None:
@@ -272,27 +245,67 @@ class Engine(FaultIsolation):
                 batch.datasets += self.datasets.versions_made(
                     task, Manifest.from_json(event.manifest), event.attempt_id, now)
 
-    def _run_call(self, call: _Call, batch: _Batch, now: float) -> None:
+    # ------------------------------------------------------------------ requests
+
+    def _answer(self, asked: Asked, batch: Batch, now: float) -> None:
         try:
-            batch.replies.append((call.future, call.fn(self, batch, now)))
-        except BaseException as exc:  # noqa: BLE001 - handed to the caller's thread
-            call.future.set_exception(exc)
+            batch.replies.append((asked.future, self._request(asked.request, batch, now)))
+        except BaseException as exc:  # noqa: BLE001 - handed to the asker's thread
+            asked.future.set_exception(exc)
 
-    def _commit(self, batch: _Batch) -> tuple[Changes, list[PrepareAttempt]]:
-        changes = self.scheduler.take_changes()
-        placed = [c for c in batch.commands if isinstance(c, PrepareAttempt)]
-        batch.attempts += [attempt_row(self._home, p.attempt_id, p.node_id) for p in placed]
-        if (changes or batch.new_workflows or batch.attempts or batch.lineage or batch.datasets
-                or batch.tags):
-            self.store.commit(changes, new_workflows=batch.new_workflows,
-                              attempts=batch.attempts, lineage=batch.lineage,
-                              datasets=batch.datasets, tags=batch.tags)
-        return changes, placed
+    def _request(self, request: Request, batch: Batch, now: float) -> Any:
+        """Apply one request (see ``osmo.server.requests``); raise before changing anything."""
+        match request:
+            case SubmitWorkflow():
+                return self._submit(request, batch, now)
+            case CancelWorkflow(workflow_id=wf_id):
+                try:
+                    self.scheduler.workflow(wf_id)
+                except KeyError:
+                    return None  # it ended and was forgotten
+                batch.commands += self.scheduler.handle(request, now)
+                return None
+            case TagDataset(name=name, tag=tag, version=version):
+                batch.tags.append(TagRow(name, tag, version))
+                return None
+            case AddDatasetVersion():
+                if self.datasets is None:
+                    raise UsageError("this server keeps no datasets")
+                row = self.datasets.version_row(request.name, request.manifest, source=None,
+                                                attempt_id=None, now=now,
+                                                metadata=dict(request.metadata))
+                batch.datasets.append(row)
+                return row.version
+            case AttemptsOn(node_id=node_id):
+                return self.scheduler.attempts_on(node_id)
+            case ListNodes():
+                return [(node, self.scheduler.used(node.id)) for node in self.scheduler.nodes()]
+        raise TypeError(f"not a request: {request!r}")
 
-    def _after_commit(self, batch: _Batch, changes: Changes,
+    def _submit(self, request: SubmitWorkflow, batch: Batch, now: float) -> str:
+        spec, pool = request.spec, request.options.get("pool")
+        reasons = self.scheduler.check_fit(spec, pool)
+        if reasons:
+            raise SubmitError("cannot run this workflow:\n  " + "\n  ".join(reasons))
+        n = max(self._numbers.get(spec.name, 0), self.store.next_number(spec.name) - 1) + 1
+        self._numbers[spec.name] = n
+        wf_id = f"{spec.name}-{n}"
+        retries = spec.max_retries if spec.max_retries is not None else DEFAULT_MAX_RETRIES
+        batch.commands += self.scheduler.handle(
+            WorkflowSubmitted(wf_id, spec, retries, pool, dict(request.reused)), now)
+        self.specs[wf_id] = spec
+        if request.options.get("no_cache"):
+            self.no_cache.add(wf_id)
+        batch.workflows.append(NewWorkflowRow(wf_id, spec.name, n, now, request.stored,
+                                              request.options))
+        return wf_id
+
+    def _after_commit(self, batch: Batch, changes: Changes,
                       placed: list[PrepareAttempt]) -> None:
-        """What follows a commit; never raises (the batch is stored: it must not be isolated
-        again), each step's failure is logged."""
+        """What follows a commit; never raises.
+
+        The batch is stored, so it must not be isolated again: each step's failure is logged.
+        """
         for aid in batch.ended:
             self.provenance.forget(aid)
         for prep in placed:  # after the commit: an upstream completed in this batch is readable
@@ -301,41 +314,68 @@ class Engine(FaultIsolation):
             guard(future.set_result, result)
         for cmd in batch.commands:
             self._execute(cmd)
-        changed = {w.id for w in changes.workflows}  # type: ignore[attr-defined]
-        changed |= {t.workflow_id for t in changes.tasks}  # type: ignore[attr-defined]
+        changed = {w.id for w in changes.workflows}
+        changed |= {t.workflow_id for t in changes.tasks}
         if changed:
             guard(self._on_changed, changed)
         for wf in changes.workflows:
-            if wf.status.terminal:  # type: ignore[attr-defined]
-                guard(self.scheduler.forget, wf.id)  # type: ignore[attr-defined]
-                self.specs.pop(wf.id, None)  # type: ignore[attr-defined]
-                guard(self._on_finished, wf.id)  # type: ignore[attr-defined]
+            if wf.status.terminal:
+                guard(self.scheduler.forget, wf.id)
+                self.specs.pop(wf.id, None)
+                guard(self._on_finished, wf.id)
 
     # ------------------------------------------------------------------ commands
 
     def _execute(self, cmd: Command) -> None:
+        """Hand ``cmd`` to the executor of its node.
+
+        A placement goes through the cache and the input resolution first (``osmo.server.placing``).
+        """
+        executor = next((e for e in self._executors if e.owns(cmd.node_id)), None)
         try:
             if isinstance(cmd, PrepareAttempt):
-                self.placements.prepare(cmd)
+                self.placements.prepare(cmd, executor)
+            elif executor is None and isinstance(cmd, KillAttempt):
+                log.warning("%s not killed: no executor runs node '%s'", cmd.attempt_id,
+                            cmd.node_id)
+            elif executor is None:
+                raise InfrastructureError(f"no executor runs node '{cmd.node_id}'")
             elif isinstance(cmd, RunAttempt):
-                self.executor.run(cmd.attempt_id)
-            elif isinstance(cmd, KillAttempt):
-                self.executor.kill(cmd.attempt_id, cmd.reason)
+                executor.run(cmd)
+            else:
+                executor.kill(cmd)
         except Exception as exc:  # noqa: BLE001 - a worker bug must not stop the engine
             log.exception("executing %r failed", cmd)
             if not isinstance(cmd, KillAttempt):  # else it would wait for ever to start
                 self.post(AttemptStartFailed(cmd.attempt_id, f"cannot start: {reason(exc)}"))
 
-    def _note_pid(self, attempt_id: str, batch: _Batch) -> None:
-        """Record the attempt's pid so a restarted server can kill a leftover process."""
-        from osmo.runtime.process import process_start_time
+    # ------------------------------------------------------------------ rebuilding
 
-        pid = self.executor.running().get(attempt_id)
+    def _rebuild(self) -> None:
+        """Replace the scheduler by one built from the store.
+
+        The known nodes are announced again, and what was starting is started again
+        (``isolation.restarting``).
+        """
+        if self._restore is None:
+            raise InfrastructureError("the scheduler cannot be rebuilt (no store to rebuild "
+                                      "it from)")
+        nodes = self.scheduler.nodes()
+        restored = self._restore()
+        self.scheduler = restored.scheduler
+        self.specs.clear()
+        self.specs.update(restored.specs)
+        self.no_cache |= restored.no_cache
+        again = restarting(restored.active)
+        self._apply([*(NodeUp(n) for n in nodes),
+                     *(AttemptLost(kill.attempt_id, REBUILT) for kill in again)], tick=False)
+        for kill in again:
+            self._execute(kill)
+
+    def _node_of(self, attempt_id: str) -> str | None:
+        """Where the scheduler placed ``attempt_id`` (None: not a current attempt)."""
         task = self.scheduler.attempt(attempt_id)
-        if pid is None or task is None:
-            return
-        batch.attempts.append(attempt_row(self._home, attempt_id, task.node_id, pid,
-                                                process_start_time(pid)))
+        return task.node_id if task is not None else None
 
 
 def _parts(items: list[Any]) -> list[list[Any]]:

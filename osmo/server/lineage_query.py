@@ -14,6 +14,7 @@ from __future__ import annotations
 from typing import Any
 
 from osmo.errors import NotFoundError, UsageError
+from osmo.names import parse_ref
 from osmo.store.sqlite import Store
 
 __all__ = ["lineage_graph", "resolve_target"]
@@ -23,12 +24,13 @@ def resolve_target(store: Store, target: str) -> tuple[list[str], str | None]:
     """The manifests a target names, and the blob digest if it named one file.
 
     Raises:
+        UsageError: a ``dataset:`` target whose reference is not one (``osmo.names``).
         NotFoundError: nothing recorded matches the target.
     """
     if target.startswith("dataset:"):
         ref = target[len("dataset:"):]
-        name, _, tag = ref.partition(":")
-        row = store.dataset(name, tag or None)
+        name, tag = parse_ref(ref)
+        row = store.dataset(name, tag)
         if row is None:
             raise NotFoundError(f"dataset '{ref}' does not exist")
         return [str(row["manifest"])], None
@@ -98,8 +100,10 @@ def lineage_graph(store: Store, target: str, *, downstream: bool = False) -> dic
 
 
 def _dataset_node(store: Store, manifest: str) -> dict[str, Any]:
-    """A node for a manifest no attempt made as a whole: a dataset version cut from an
-    output (``dataset_source``), an upload, or unknown."""
+    """A node for a manifest no attempt made as a whole.
+
+    A dataset version cut from an output (``dataset_source``), an upload, or unknown.
+    """
     row = store.dataset_of_manifest(manifest)
     if row is None:
         return {"manifest_digest": manifest}

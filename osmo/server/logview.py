@@ -9,6 +9,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from osmo.layout import AttemptDirs
 from osmo.status import WorkflowStatus
 from osmo.store.sqlite import Store, WorkflowRow
 from osmo.worker.logs import read_log
@@ -50,7 +51,7 @@ def read_logs(store: Store, row: WorkflowRow, *, task: str | None = None,
         if retry is not None and attempt.retry != retry or not attempt.dir:
             continue
         offset = int(cursor["files"].get(attempt.id, 0))
-        lines, new_offset = read_log(Path(attempt.dir) / "log.txt", offset)
+        lines, new_offset = read_log(AttemptDirs(Path(attempt.dir)).log, offset)
         cursor["files"][attempt.id] = new_offset
         records += [{"ts": r.ts, "task": attempt.task, "retry": attempt.retry,
                      "stream": r.stream, "text": r.text} for r in lines]

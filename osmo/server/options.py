@@ -1,55 +1,91 @@
-"""Command-line options of the server, shared by ``osmo server`` and the background process."""
+"""The server's options, defined once.
+
+``osmo server``'s flags, the background server process's command line (``python -m
+osmo.server.app``) and ``serve()`` all use :class:`ServerOptions`.
+
+Light on purpose: the CLI imports it to build its parser.
+"""
 
 from __future__ import annotations
 
 import argparse
-from typing import Any
+from dataclasses import dataclass
 
-__all__ = ["add_server_options", "server_args", "server_kwargs"]
+from osmo.config import DEFAULT_CLUSTER
 
-
-def add_server_options(p: argparse.ArgumentParser) -> None:
-    """Add ``--listen``, ``--connect``, ``--zenoh-config``, ``--cluster``, capacity flags."""
-    p.add_argument("--listen", action="append", metavar="ENDPOINT",
-                   help="zenoh endpoint to listen on, repeatable (default: tcp/127.0.0.1:7447, "
-                        "or a free port); e.g. tcp/0.0.0.0:7447 to accept remote workers")
-    p.add_argument("--connect", action="append", metavar="ENDPOINT",
-                   help="join an existing zenoh router (zenohd) instead of hosting one")
-    p.add_argument("--zenoh-config", metavar="FILE",
-                   help="zenoh JSON5 config: TLS, mutual TLS, user/password (zenoh's own keys)")
-    p.add_argument("--cluster", default="local", help="key prefix shared with workers/clients")
-    p.add_argument("--cpus", type=float, help="CPU slots of the local pool (default: cores)")
-    p.add_argument("--gpus", type=int, help="GPU slots of the local pool (default: detected)")
-    p.add_argument("--no-local-pool", dest="local_pool", action="store_false",
-                   help="run no tasks on the server's host (remote workers only)")
-    p.add_argument("--reconnect-grace", type=float, default=30.0, metavar="SECONDS",
-                   help="after a restart, how long remote workers get to come back (30)")
+__all__ = ["ServerOptions"]
 
 
-def server_kwargs(args: argparse.Namespace) -> dict[str, Any]:
-    """``serve()`` keyword arguments from parsed options."""
-    return {"listen": args.listen, "connect": args.connect, "zenoh_config": args.zenoh_config,
-            "cluster": args.cluster, "cpus": args.cpus, "gpus": args.gpus,
-            "local_pool": args.local_pool, "reconnect_grace": args.reconnect_grace}
+@dataclass(frozen=True)
+class ServerOptions:
+    """How one server runs (every default is here).
 
+    Attributes:
+        listen: zenoh endpoints to listen on (none: ``tcp/127.0.0.1:7447``, or another free
+            port if that one is taken, unless ``connect`` is given).
+        connect: join an existing zenoh router instead of hosting one.
+        zenoh_config: a zenoh JSON5 file (TLS, mutual TLS, user/password).
+        cluster: the key prefix shared with workers and clients.
+        cpus, gpus: override the local pool's detected capacity.
+        local_pool: run tasks on the server's host too (off: remote workers only).
+        reconnect_grace: seconds remote workers get to come back after a restart.
+    """
 
-def server_args(args: argparse.Namespace) -> list[str]:
-    """The same options as a command line (to start the server in the background)."""
-    out: list[str] = []
-    for ep in args.listen or []:
-        out += ["--listen", ep]
-    for ep in args.connect or []:
-        out += ["--connect", ep]
-    if args.zenoh_config:
-        out += ["--zenoh-config", args.zenoh_config]
-    if args.cluster != "local":
-        out += ["--cluster", args.cluster]
-    if args.cpus is not None:
-        out += ["--cpus", str(args.cpus)]
-    if args.gpus is not None:
-        out += ["--gpus", str(args.gpus)]
-    if not args.local_pool:
-        out.append("--no-local-pool")
-    if args.reconnect_grace != 30.0:
-        out += ["--reconnect-grace", str(args.reconnect_grace)]
-    return out
+    listen: tuple[str, ...] = ()
+    connect: tuple[str, ...] = ()
+    zenoh_config: str | None = None
+    cluster: str = DEFAULT_CLUSTER
+    cpus: float | None = None
+    gpus: int | None = None
+    local_pool: bool = True
+    reconnect_grace: float = 30.0
+
+    @staticmethod
+    def add_arguments(p: argparse.ArgumentParser) -> None:
+        """Add the server's flags to ``p``.
+
+        ``--listen``, ``--connect``, ``--zenoh-config``, ``--cluster``, ``--cpus``, ``--gpus``,
+        ``--no-local-pool``, ``--reconnect-grace``.
+        """
+        d = ServerOptions()
+        p.add_argument("--listen", action="append", metavar="ENDPOINT",
+                       help="zenoh endpoint to listen on, repeatable (default: "
+                            "tcp/127.0.0.1:7447, or a free port); e.g. tcp/0.0.0.0:7447 to "
+                            "accept remote workers")
+        p.add_argument("--connect", action="append", metavar="ENDPOINT",
+                       help="join an existing zenoh router (zenohd) instead of hosting one")
+        p.add_argument("--zenoh-config", metavar="FILE",
+                       help="zenoh JSON5 config: TLS, mutual TLS, user/password (zenoh's own "
+                            "keys)")
+        p.add_argument("--cluster", default=d.cluster,
+                       help="key prefix shared with workers/clients")
+        p.add_argument("--cpus", type=float, help="CPU slots of the local pool (default: cores)")
+        p.add_argument("--gpus", type=int, help="GPU slots of the local pool (default: detected)")
+        p.add_argument("--no-local-pool", dest="local_pool", action="store_false",
+                       help="run no tasks on the server's host (remote workers only)")
+        p.add_argument("--reconnect-grace", type=float, default=d.reconnect_grace,
+                       metavar="SECONDS", help="after a restart, how long remote workers get "
+                                               f"to come back ({d.reconnect_grace:g})")
+
+    @classmethod
+    def from_args(cls, args: argparse.Namespace) -> ServerOptions:
+        """The options parsed by a parser that :meth:`add_arguments` set up."""
+        return cls(listen=tuple(args.listen or ()), connect=tuple(args.connect or ()),
+                   zenoh_config=args.zenoh_config, cluster=args.cluster, cpus=args.cpus,
+                   gpus=args.gpus, local_pool=args.local_pool,
+                   reconnect_grace=args.reconnect_grace)
+
+    def to_argv(self) -> list[str]:
+        """The same options as flags, to start the server in another process.
+
+        Only those that differ from the defaults.
+        """
+        d = ServerOptions()
+        out = [arg for ep in self.listen for arg in ("--listen", ep)]
+        out += [arg for ep in self.connect for arg in ("--connect", ep)]
+        for flag, value in (("--zenoh-config", self.zenoh_config), ("--cluster", self.cluster),
+                            ("--cpus", self.cpus), ("--gpus", self.gpus),
+                            ("--reconnect-grace", self.reconnect_grace)):
+            if value != getattr(d, flag[2:].replace("-", "_")):
+                out += [flag, str(value)]
+        return out + ([] if self.local_pool else ["--no-local-pool"])

@@ -13,11 +13,10 @@ from __future__ import annotations
 import functools
 import logging
 from collections.abc import Callable
-from typing import Any
 
 from osmo.artifacts import Manifest
 from osmo.errors import OsmoError
-from osmo.record import LineageInput
+from osmo.executor import Executor
 from osmo.scheduler.types import (
     AttemptExited,
     AttemptPrepared,
@@ -45,31 +44,33 @@ class Placements:
         store: read for input manifests and cache entries.
         specs: workflow id → spec, shared with the engine (kept current by it).
         no_cache: ids of workflows submitted with ``--no-cache``, shared with the engine.
-        executor: prepares attempts (``Executor.prepare``).
         post: queues an event for the engine.
         provenance: remembers each placement for its lineage.
         datasets: resolves dataset and other-workflow inputs (None: none to resolve).
     """
 
     def __init__(self, *, store: Store, specs: dict[str, WorkflowSpec], no_cache: set[str],
-                 executor: Any, post: Callable[[Event], None], provenance: Provenance,
+                 post: Callable[[Event], None], provenance: Provenance,
                  datasets: Datasets | None) -> None:
         self._store, self._specs, self._no_cache = store, specs, no_cache
-        self._executor, self._post = executor, post
+        self._post = post
         self._provenance, self._datasets = provenance, datasets
         self._ready: dict[str, PrepareAttempt | str] = {}  # the final command, or why not
         self._hits: dict[str, CacheHit] = {}
 
     def resolve(self, cmd: PrepareAttempt) -> None:
-        """Settle what a placed attempt needs before it is prepared: dataset and other-workflow
-        inputs, its cache key, and a cache hit if there is one. Never raises: a failure is
-        kept as the reason the attempt cannot start."""
+        """Settle what a placed attempt needs before it is prepared.
+
+        Its dataset and other-workflow inputs, its cache key, and a cache hit if there is one. Never
+        raises: a failure is kept as the reason the attempt cannot start.
+        """
         try:
             if self._datasets is not None:
                 cmd = self._datasets.resolve_inputs(cmd, self._specs[cmd.workflow_id].task(
                     cmd.task))
             sources = cache.input_sources(self._store, cmd)
-            key = self._cache_key(cmd, sources)
+            key = cache.key(cmd, self._specs[cmd.workflow_id].task(cmd.task), sources,
+                            no_cache=cmd.workflow_id in self._no_cache)
             hit = cache.lookup(self._store, key) if key else None
         except OsmoError as exc:
             self._ready[cmd.attempt_id] = str(exc)
@@ -83,32 +84,25 @@ class Placements:
         if hit is not None:
             self._hits[cmd.attempt_id] = hit
 
-    def prepare(self, cmd: PrepareAttempt) -> None:
-        """Execute a placement: prepare it (its output limited to the task's ``storage``),
-        complete it from the cache, or fail its start."""
+    def prepare(self, cmd: PrepareAttempt, executor: Executor | None) -> None:
+        """Execute a placement: prepare it, complete it from the cache, or fail its start.
+
+        It is prepared on ``executor``, the one of its node, its output limited to the task's
+        ``storage``.
+        """
         ready = self._ready.pop(cmd.attempt_id, cmd)
         hit = self._hits.pop(cmd.attempt_id, None)
         if isinstance(ready, str):
             self._post(AttemptStartFailed(cmd.attempt_id, ready))
         elif hit is not None:
             self._replay(ready, hit)
+        elif executor is None:
+            self._post(AttemptStartFailed(cmd.attempt_id,
+                                          f"no executor runs node '{cmd.node_id}'"))
         else:
             spec = self._specs[ready.workflow_id]
             task = spec.task(ready.task)
-            self._executor.prepare(ready, task,
-                                   max_output_bytes=spec.resource_for(task).storage)
-
-    def _cache_key(self, cmd: PrepareAttempt,
-                   sources: list[LineageInput | None]) -> str | None:
-        """The attempt's cache fingerprint, or None when it must run (see osmo.server.cache)."""
-        task = self._specs[cmd.workflow_id].task(cmd.task)
-        if not cmd.run or not task.cache or cmd.workflow_id in self._no_cache:
-            return None
-        if any(i.url for i in task.inputs) or any(o.url for o in task.outputs):
-            return None  # URL contents are unknown at placement; a hit would skip the upload
-        if any(s is None for s in sources):
-            return None  # an input without a recorded manifest: its content is unknown
-        return cache.fingerprint(task, [(s.task, s.manifest_digest) for s in sources if s])
+            executor.prepare(ready, task, max_output_bytes=spec.resource_for(task).storage)
 
     def _replay(self, cmd: PrepareAttempt, hit: CacheHit) -> None:
         """Complete a cache hit at once: the scheduler sees an ordinary successful attempt."""
@@ -120,9 +114,11 @@ class Placements:
 
 
 def output_manifests(store: Store) -> Callable[[str], Manifest | None]:
-    """``folder → manifest`` of recorded output folders (task outputs, dataset versions): how
-    a pool on this host finds what to copy for an attempt's inputs. Parsed manifests are
-    kept by digest (a fan-out reads the same one a thousand times)."""
+    """``folder → manifest`` of recorded output folders (task outputs, dataset versions).
+
+    How a pool on this host finds what to copy for an attempt's inputs. Parsed manifests are kept by
+    digest (a fan-out reads the same one a thousand times).
+    """
 
     @functools.lru_cache(maxsize=256)
     def parsed(digest: str) -> Manifest | None:

@@ -10,12 +10,12 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, field
 
-import osmo
 from osmo.artifacts import Manifest
 from osmo.record import Lineage, LineageInput
 from osmo.scheduler.types import AttemptExited, PrepareAttempt
 from osmo.spec.model import TaskSpec
 from osmo.store.sqlite import LineageRow
+from osmo.version import __version__
 
 __all__ = ["Provenance"]
 
@@ -47,7 +47,8 @@ class Provenance:
         """The lineage row of a successful exit with outputs, else None.
 
         The placement is kept until :meth:`forget`: the engine forgets it once the exit is
-        committed, so a batch that failed and is applied again still finds it."""
+        committed, so a batch that failed and is applied again still finds it.
+        """
         placed = self._placed.get(event.attempt_id)
         if event.manifest is None or event.output is None or placed is None:
             return None
@@ -60,7 +61,7 @@ class Provenance:
             plugin=_plugin(task), params=dict(task.params), image=task.image,
             inputs=placed.inputs,
             started_at=started_at, ended_at=now, exit_code=event.exit_code,
-            manifest_digest=manifest.digest, osmo_version=osmo.__version__)
+            manifest_digest=manifest.digest, osmo_version=__version__)
         return LineageRow(
             attempt_id=event.attempt_id, workflow_id=placed.cmd.workflow_id,
             task=placed.cmd.task, manifest=manifest.digest, manifest_body=event.manifest,

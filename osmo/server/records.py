@@ -13,18 +13,14 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from osmo.errors import OsmoError
+from osmo.layout import Home
 from osmo.record import Lineage, write_run_record
 from osmo.server.logview import read_logs
 from osmo.store.sqlite import Store
 
-__all__ = ["RunRecords", "record_path"]
+__all__ = ["RunRecords", "write_record"]
 
 log = logging.getLogger("osmo.server")
-
-
-def record_path(home: Path, workflow_id: str) -> Path:
-    """Where the run record of ``workflow_id`` lives."""
-    return home / "runs" / workflow_id / "run.mcap"
 
 
 def write_record(store: Store, home: Path, workflow_id: str) -> Path | None:
@@ -36,7 +32,7 @@ def write_record(store: Store, home: Path, workflow_id: str) -> Path | None:
     stream = read_logs(store, row)["records"]
     logs = [r for r in stream if r["stream"] != "osmo"]
     lineage = [Lineage.from_dict(d) for d in store.lineage_of_workflow(workflow_id)]
-    path = record_path(home, workflow_id)
+    path = Home(home).run_record(workflow_id)
     write_run_record(path, workflow=workflow, transitions=store.transitions(workflow_id),
                      lineage=lineage, logs=logs)
     return path

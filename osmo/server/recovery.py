@@ -27,15 +27,15 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from osmo.layout import Home
+from osmo.runtime.process import kill_stale
 from osmo.scheduler import Scheduler, TaskState, WorkflowState
 from osmo.scheduler.types import AttemptExited, AttemptStartFailed, Event
 from osmo.spec import spec_from_dict
 from osmo.spec.model import ResolvedType, WorkflowSpec
 from osmo.spec.typed import apply_resolved
 from osmo.status import TaskStatus
-from osmo.runtime.process import kill_stale
 from osmo.store.sqlite import AttemptRow, Store
-from osmo.worker.workdir import AttemptDirs
 
 __all__ = ["QUARANTINED", "InFlight", "Restored", "attempt_row", "kill_leftovers",
            "quarantine", "restore", "split_lost"]
@@ -91,8 +91,11 @@ def restore(store: Store) -> Restored:
 
 
 def split_lost(active: list[TaskState]) -> tuple[list[TaskState], set[str]]:
-    """Restored active attempts: those of the local pool (lost with the old server), and the
-    nodes of remote ones (their workers keep running and are expected back)."""
+    """Split restored active attempts into the local pool's and remote nodes.
+
+    The local pool's were lost with the old server; the workers of remote ones keep running and are
+    expected back.
+    """
     local = [t for t in active if (t.node_id or "local") == "local"]
     remote = {t.node_id for t in active if t.node_id and t.node_id != "local"}
     return local, remote
@@ -106,13 +109,15 @@ def kill_leftovers(store: Store, lost: list[TaskState]) -> None:
                 kill_stale(row.pid, row.pid_start)
 
 
-def attempt_row(home: Path, attempt_id: str, node_id: str | None, pid: int | None = None,
-                pid_start: float | None = None) -> AttemptRow:
-    """The store's row of an attempt: where it runs and, locally, its folder and process."""
-    dirs = AttemptDirs.of_attempt(home, attempt_id)
+def attempt_row(home: Path, attempt_id: str, node_id: str | None) -> AttemptRow:
+    """The store's row of a placed attempt: where it runs and, locally, its folder.
+
+    Its process id is written when the attempt starts (``Batch.pids``).
+    """
+    dirs = Home(home).attempt_of(attempt_id)
     wf, task, retry = attempt_id.rsplit(":", 2)
     return AttemptRow(attempt_id, wf, task, int(retry), node_id,
-                      str(dirs.root) if dirs else None, pid, pid_start)
+                      str(dirs.root) if dirs else None, None, None)
 
 
 def quarantine(active: list[TaskState], suspects: set[str]) -> tuple[list[TaskState],

@@ -1,7 +1,8 @@
 """Remote workers on the server side: membership, orders, reports, logs and outputs.
 
-:class:`WorkerHub` turns worker traffic (see ``osmo.worker.wire`` for the keys) into engine
-events and engine commands into orders:
+:class:`WorkerHub` is the executor (``osmo.executor.Executor``) of every remote node: it
+turns the engine's commands into orders to workers and worker traffic into events (see
+``osmo.transport.wire`` for the keys and messages):
 
 - A worker is a scheduler node once it has registered *and* its liveliness token is seen;
   the token going away is ``NodeDown`` (its attempts are rescheduled). A draining worker is
@@ -16,9 +17,6 @@ events and engine commands into orders:
 - After a server restart, attempts restored on remote nodes are given ``grace`` seconds for
   their worker to register again (reporting what is still running and what finished
   meanwhile); a node that does not come back is taken down.
-
-The engine's executor is ``osmo.server.dispatch.Dispatcher``, which routes each command to
-the local pool or to this hub by the attempt's node.
 """
 
 from __future__ import annotations
@@ -35,25 +33,28 @@ from pathlib import Path
 from typing import Any
 
 from osmo.artifacts import ArtifactStore, Manifest
-from osmo.errors import OsmoError, UsageError
+from osmo.errors import OsmoError
+from osmo.layout import AttemptDirs, Home
 from osmo.scheduler.types import (
+    LOCAL_NODE,
     AttemptExited,
     AttemptLost,
     AttemptStartFailed,
     Capacity,
     Event,
+    KillAttempt,
     Node,
     NodeDown,
     NodeUp,
     PrepareAttempt,
+    RunAttempt,
 )
 from osmo.spec.model import TaskSpec
 from osmo.store.sqlite import Store
-from osmo.transport.blobs import BlobServer, SameHost, fetch_manifest, host_id
+from osmo.transport.blobs import SERVER, BlobServer, SameHost, fetch_manifest, host_id
+from osmo.transport.wire import Hello, event_from_dict, prepare_to_dict, spec_to_wire, worker_id
 from osmo.transport.zenoh_link import Link, Subscription
 from osmo.worker.secrets import SecretError, gather
-from osmo.worker.wire import capacity_from_dict, event_from_dict, prepare_to_dict, spec_to_wire
-from osmo.worker.workdir import AttemptDirs
 
 __all__ = ["WorkerHub"]
 
@@ -66,21 +67,22 @@ class WorkerHub:
 
     Args:
         link: the server's session.
-        post: queues an event for the engine (thread-safe).
+        emit: receives every event (thread-safe and cheap: it queues it for the engine).
         store: the state store (read only here: specs, manifests, credentials).
         artifacts: the server's artifact store.
         home: the server's home (attempt logs and outputs live under ``runs/``).
         url_credential: ``url -> credential`` for data URLs.
-        engine_call: runs a function on the engine thread (to ask the scheduler).
+        attempts_on: the ids of the attempts the scheduler placed on a node (asked of the
+            engine when a worker registers again).
     """
 
-    def __init__(self, *, link: Link, post: Callable[[Event], None], store: Store,
+    def __init__(self, *, link: Link, emit: Callable[[Event], None], store: Store,
                  artifacts: ArtifactStore, home: Path,
                  url_credential: Callable[[str], dict[str, str] | None],
-                 engine_call: Callable[[Callable[..., Any]], Any]) -> None:
-        self._link, self._post, self._store = link, post, store
+                 attempts_on: Callable[[str], list[str]]) -> None:
+        self._link, self._emit, self._store = link, emit, store
         self._artifacts, self._home = artifacts, home
-        self._url_credential, self._engine_call = url_credential, engine_call
+        self._url_credential, self._attempts_on = url_credential, attempts_on
         self._lock = threading.Lock()
         self._nodes: dict[str, Node] = {}  # registered workers
         self._info: dict[str, dict[str, Any]] = {}
@@ -96,8 +98,8 @@ class WorkerHub:
             link.subscribe_raw(link.key("from-worker", "*"), self._on_report),
             link.subscribe_raw(link.key("from-worker", "*", "log"), self._on_log),
         ]
-        self._blobs = BlobServer(link, "server", artifacts)
-        self._server_token = link.token(link.key("alive", "server"))
+        self._blobs = BlobServer(link, SERVER, artifacts)
+        self._server_token = link.token(link.key("alive", SERVER))
 
     # ------------------------------------------------------------------ membership
 
@@ -105,38 +107,40 @@ class WorkerHub:
         """API verbs served for workers."""
         return {"worker_register": self.register, "worker_drain": self.drain}
 
-    def register(self, hello: dict[str, Any]) -> dict[str, Any]:
-        """A worker says hello (first start, or again after a server restart)."""
-        wid = str(hello.get("id") or "")
-        if not wid or "/" in wid or "*" in wid or wid == "local":
-            raise UsageError(f"invalid worker name {wid!r}")
-        node = Node(id=wid, pool=str(hello.get("pool") or "default"),
-                    capacity=capacity_from_dict(hello.get("capacity") or {}),
-                    platform=hello.get("platform"), address=str(hello.get("address")),
-                    labels={str(k): str(v) for k, v in (hello.get("labels") or {}).items()})
-        same = hello.get("host_id") == self._host and hello.get("artifacts")
+    def register(self, request: dict[str, Any]) -> dict[str, Any]:
+        """A worker says hello (``osmo.transport.wire.Hello``).
+
+        On its first start, or again after a server restart.
+
+        Raises:
+            UsageError: a field of the wrong type or out of range (nothing is changed).
+        """
+        hello = Hello.from_dict(request)
+        node, wid = hello.node, hello.node.id
         with self._lock:
             self._nodes[wid] = node
-            self._info[wid] = {k: hello.get(k) for k in ("pid", "address", "host_id")}
-            self._same_host[wid] = SameHost(Path(hello["artifacts"])) if same else None
+            self._info[wid] = {"pid": hello.pid, "address": node.address,
+                               "host_id": hello.host_id}
+            same = hello.host_id == self._host and hello.artifacts
+            self._same_host[wid] = SameHost(Path(hello.artifacts or "")) if same else None
             self._sent_specs[wid] = set()
-            if hello.get("draining"):
+            if hello.draining:
                 self._draining.add(wid)
             alive = wid in self._alive
-        self._reconcile(wid, set(hello.get("active") or ()), hello.get("finished") or [])
+        self._reconcile(wid, set(hello.active), list(hello.finished))
         if alive:
-            self._post(NodeUp(self._announced(wid)))
+            self._emit(NodeUp(self._announced(wid)))
         log.info("worker %s registered (pool %s, %s)", wid, node.pool, node.capacity)
         return {"host_id": self._host, "artifacts": str(self._artifacts.root)}
 
     def drain(self, request: dict[str, Any]) -> dict[str, Any]:
         """A worker stops taking work: announce it with no capacity."""
-        wid = str(request.get("id"))
+        wid = worker_id(request)
         with self._lock:
             known = wid in self._nodes
             self._draining.add(wid)
         if known:
-            self._post(NodeUp(self._announced(wid)))
+            self._emit(NodeUp(self._announced(wid)))
         return {"draining": wid}
 
     def _announced(self, wid: str) -> Node:
@@ -145,14 +149,16 @@ class WorkerHub:
             return replace(node, capacity=Capacity()) if wid in self._draining else node
 
     def _reconcile(self, wid: str, active: set[str], finished: list[dict[str, Any]]) -> None:
-        """After a (re-)registration: replay finished reports; attempts the scheduler placed
-        there that the worker knows nothing of are lost."""
-        known = set(self._engine_call(lambda eng, _b, _n: eng.scheduler.attempts_on(wid)))
+        """After a (re-)registration, replay finished reports and lose forgotten attempts.
+
+        Attempts the scheduler placed there that the worker knows nothing of are lost.
+        """
+        known = set(self._attempts_on(wid))
         done = {str(r.get("attempt_id")) for r in finished}
         for report in finished:
             self._handle(wid, report)
         for aid in sorted(known - active - done):
-            self._post(AttemptLost(aid, f"worker {wid} no longer runs this attempt"))
+            self._emit(AttemptLost(aid, f"worker {wid} no longer runs this attempt"))
 
     def expect(self, node_ids: set[str], grace: float) -> None:
         """Restored attempts sit on ``node_ids``: take down those not back within ``grace``."""
@@ -162,7 +168,7 @@ class WorkerHub:
                 missing = node_ids - set(self._nodes)
             for wid in sorted(missing):
                 log.warning("worker %s did not come back within %.0fs", wid, grace)
-                self._post(NodeDown(wid))
+                self._emit(NodeDown(wid))
 
         if node_ids:
             timer = threading.Timer(grace, check)
@@ -180,10 +186,10 @@ class WorkerHub:
                 registered = self._nodes.pop(wid, None) is not None
                 self._draining.discard(wid)
         if alive and registered:
-            self._post(NodeUp(self._announced(wid)))
+            self._emit(NodeUp(self._announced(wid)))
         elif not alive and registered:
             log.warning("worker %s is gone", wid)
-            self._post(NodeDown(wid))
+            self._emit(NodeDown(wid))
 
     def workers(self) -> list[dict[str, Any]]:
         """Registered workers with their status (for ``osmo resource list``)."""
@@ -193,15 +199,15 @@ class WorkerHub:
                                 "online" if wid in self._alive else "connecting"),
                      **self._info.get(wid, {})} for wid, n in sorted(self._nodes.items())]
 
-    def pull(self, source: dict[str, Any], manifest: Manifest) -> None:
-        """Fetch ``manifest``'s blobs from a client that serves them as ``source["owner"]``
-        (linked instead when it shares this host)."""
-        same = (SameHost(Path(source["artifacts"]))
-                if source.get("host_id") == self._host and source.get("artifacts") else None)
-        fetch_manifest(self._link, str(source["owner"]), manifest, self._artifacts,
-                       same_host=same)
-
     # ------------------------------------------------------------------ orders
+
+    def owns(self, node_id: str) -> bool:
+        """Every node but the server's own pool is a remote worker's.
+
+        Registered or not: an order to a worker that is gone is lost with it, and its attempts with
+        it.
+        """
+        return node_id != LOCAL_NODE
 
     def prepare(self, cmd: PrepareAttempt, task: TaskSpec, *,
                 max_output_bytes: int | None = None) -> None:
@@ -209,7 +215,7 @@ class WorkerHub:
         try:
             order = self._order(cmd, task)
         except (OsmoError, OSError) as exc:
-            self._post(AttemptStartFailed(cmd.attempt_id, str(exc)))
+            self._emit(AttemptStartFailed(cmd.attempt_id, str(exc)))
             return
         order["max_output_bytes"] = max_output_bytes
         self._send(cmd.node_id, order)
@@ -245,13 +251,14 @@ class WorkerHub:
             body = self._artifacts.ingest(Path(ref)).to_json()
         return body
 
-    def run(self, node_id: str, attempt_id: str) -> None:
+    def run(self, cmd: RunAttempt) -> None:
         """Start a prepared attempt (its group's barrier released)."""
-        self._send(node_id, {"op": "run", "attempt_id": attempt_id})
+        self._send(cmd.node_id, {"op": "run", "attempt_id": cmd.attempt_id})
 
-    def kill(self, node_id: str, attempt_id: str, reason: str) -> None:
+    def kill(self, cmd: KillAttempt) -> None:
         """Stop an attempt on its worker."""
-        self._send(node_id, {"op": "kill", "attempt_id": attempt_id, "reason": reason})
+        self._send(cmd.node_id, {"op": "kill", "attempt_id": cmd.attempt_id,
+                                 "reason": cmd.reason})
 
     def _send(self, wid: str, order: dict[str, Any]) -> None:
         self._link.put(self._link.key("to-worker", wid), json.dumps(order).encode())
@@ -282,7 +289,7 @@ class WorkerHub:
             return
         if isinstance(event, (AttemptStartFailed, AttemptLost)):
             self._close_log(event.attempt_id)
-        self._post(event)
+        self._emit(event)
 
     def _nothing_to_fetch(self, manifest: Manifest | None) -> bool:
         if manifest is None:
@@ -311,14 +318,14 @@ class WorkerHub:
                 event = replace(event, output=None)
         except (OsmoError, OSError) as exc:
             log.warning("outputs of %s from worker %s: %s", event.attempt_id, wid, exc)
-            self._post(AttemptLost(event.attempt_id, f"outputs could not be taken from worker "
-                                                     f"{wid}: {exc}"))
+            self._emit(AttemptLost(event.attempt_id, f"outputs could not be taken from worker "
+                                                      f"{wid}: {exc}"))
             return
         except Exception as exc:  # noqa: BLE001 - a bug: fail the attempt, never leave it open
             log.exception("outputs of %s from worker %s", event.attempt_id, wid)
             event = replace(event, output=None, manifest=None,
                             message=f"outputs could not be promoted: {exc!r}")
-        self._post(event)
+        self._emit(event)
         self._send(wid, {"op": "ack", "attempt_id": event.attempt_id})
 
     def _on_log(self, _key: str, records: bytes, attachment: bytes | None) -> None:
@@ -328,7 +335,7 @@ class WorkerHub:
         with self._lock:
             fd = self._logs.get(aid)
             if fd is None:
-                dirs = AttemptDirs.of_attempt(self._home, aid)
+                dirs = Home(self._home).attempt_of(aid)
                 if dirs is None:
                     return  # not an attempt id
                 path = dirs.log
@@ -359,7 +366,7 @@ class WorkerHub:
 
 
 def _dirs(home: Path, attempt_id: str) -> AttemptDirs:
-    dirs = AttemptDirs.of_attempt(home, attempt_id)
+    dirs = Home(home).attempt_of(attempt_id)
     if dirs is None:
         raise OsmoError(f"malformed attempt id {attempt_id!r}")
     return dirs

@@ -1,5 +1,7 @@
-"""Workflow specs: OSMO v2 YAML (with Jinja templating) or the Python builder → a validated,
-frozen :class:`WorkflowSpec`, and back to plain data/YAML.
+"""Workflow specs: YAML or the Python builder to a validated, frozen model, and back.
+
+OSMO v2 YAML (with Jinja templating) or the Python builder → a validated, frozen
+:class:`WorkflowSpec`, and back to plain data/YAML.
 
 Public API::
 

@@ -131,8 +131,11 @@ _JINJA_OPEN = re.compile(r"\{[{%#]")
 
 
 def jinja_literal(text: str) -> str:
-    """``text`` made to render to itself: every ``{{``/``{%``/``{#`` that is not a special
-    token is wrapped in ``{% raw %}``; inserts no quotes, so YAML quoting stays valid."""
+    """``text`` made to render to itself.
+
+    Every ``{{``/``{%``/``{#`` that is not a special token is wrapped in ``{% raw %}``; inserts no
+    quotes, so YAML quoting stays valid.
+    """
     protected, saved = tokens.protect(text)
     escaped = _JINJA_OPEN.sub(lambda m: "{% raw %}" + m.group(0) + "{% endraw %}", protected)
     return tokens.restore(escaped, saved)

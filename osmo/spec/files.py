@@ -1,6 +1,7 @@
-"""Reading the files a spec is or names (the spec file, ``localpath`` files): regular files
-only, bounded in size, and never blocking. Light on purpose: the SDK reads a spec file with
-it without loading the parsers.
+"""Reading the files a spec is or names (the spec file, ``localpath`` files).
+
+Regular files only, bounded in size, and never blocking. Light on purpose: the SDK reads a spec file
+with it without loading the parsers.
 
 A FIFO with no writer blocks ``open()`` forever and ``/dev/zero`` never ends, so anything but
 a regular file is refused by what it is, before a byte is read. The file is opened
@@ -57,8 +58,10 @@ def read_regular_file(path: str | os.PathLike[str], *, limit: int) -> bytes:
 
 
 def read_spec_file(path: str | os.PathLike[str], name: str | None = None) -> str:
-    """The text of a spec file: a regular file of UTF-8 text, at most :data:`MAX_SPEC_FILE`
-    bytes; ``name`` is the file's name in messages (default: ``path``).
+    """The text of a spec file.
+
+    A regular file of UTF-8 text, at most :data:`MAX_SPEC_FILE` bytes; ``name`` is the file's name
+    in messages (default: ``path``).
 
     Raises:
         SpecError: it cannot be read, or is a folder, FIFO or device, or too large.

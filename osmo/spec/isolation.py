@@ -75,7 +75,7 @@ def needs_jinja(text: str) -> bool:
 
 
 def _plain(text: str, file: str) -> tuple[str | None, list[Diagnostic]]:
-    """What Jinja renders from text with no Jinja syntax: the text, line endings as ``\\n``."""
+    r"""What Jinja renders from text with no Jinja syntax: the text, line endings as ``\n``."""
     if len(text) > MAX_RENDERED:
         return None, [Diagnostic(file, 0, 0, f"spec exceeds {MAX_RENDERED // 2**20} MiB")]
     protected, saved = tokens.protect(text)
@@ -262,8 +262,10 @@ def _child(conn: socket.socket) -> None:
 
 
 def serve_helper(fd: int) -> None:
-    """The helper process: one forked child per socket received on the unix socket ``fd``,
-    until the caller is gone. Started by the caller; not for direct use."""
+    """The helper process: one forked child per socket received on the unix socket ``fd``.
+
+    It runs until the caller is gone. Started by the caller; not for direct use.
+    """
     from osmo.spec import template, values  # imported once here, inherited by every child
 
     # one rendering here fills jinja's lexer and regex caches, which every child inherits

@@ -20,8 +20,8 @@ from osmo.spec.model import WorkflowSpec
 from osmo.spec.parse import parse_document
 from osmo.spec.reader import Ctx
 from osmo.spec.typed import TypeResolver, apply_resolved, check_types
-from osmo.spec.values import split_items
 from osmo.spec.validate import validate
+from osmo.spec.values import split_items
 
 __all__ = ["load_spec", "render_spec", "spec_from_dict"]
 

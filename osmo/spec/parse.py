@@ -1,6 +1,8 @@
-"""Parsing of the document and ``workflow:`` mapping: name, pool, labels, timeouts, resources,
-groups and bare tasks. Produces a :class:`WorkflowSpec` plus the task nodes that ``validate``
-needs for positions. Per-task fields live in ``parse_task``; cross-references in ``validate``.
+"""Parsing of the document and ``workflow:`` mapping.
+
+Name, pool, labels, timeouts, resources, groups and bare tasks. Produces a :class:`WorkflowSpec`
+plus the task nodes that ``validate`` needs for positions. Per-task fields live in ``parse_task``;
+cross-references in ``validate``.
 """
 
 from __future__ import annotations

@@ -110,8 +110,11 @@ def _file(ctx: Ctx, node: Node, base_dir: Path, where: str) -> FileSpec | None:
 
 
 def _path_problem(path: str) -> str | None:
-    """Why a ``files:`` path cannot name a file the task gets, or None (see ``workdir``:
-    absolute paths go under the attempt's ``files/``, relative ones under ``work/``)."""
+    """Why a ``files:`` path cannot name a file the task gets, or None.
+
+    See ``workdir``: absolute paths go under the attempt's ``files/``, relative ones under
+    ``work/``.
+    """
     if ".." in PurePosixPath(path).parts:
         return "must not contain '..'"
     if "\0" in path:

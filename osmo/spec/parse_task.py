@@ -12,11 +12,11 @@ import re
 from pathlib import Path
 from typing import Any
 
+from osmo.names import did_you_mean
 from osmo.spec.model import DEFAULT_RESOURCE, ExitAction, ExitRule, TaskSpec
 from osmo.spec.parse_io import parse_checkpoint, parse_files, parse_inputs, parse_outputs
 from osmo.spec.reader import (
     Ctx,
-    did_you_mean,
     is_empty,
     read_bool,
     read_fields,
@@ -155,8 +155,11 @@ def task_name(node: Node) -> str:
 
 
 def parse_task(ctx: Ctx, node: Node, base_dir: Path) -> TaskSpec | None:
-    """One task mapping → ``TaskSpec`` (None if it is not a mapping). A missing name is
-    reported and kept as ``""`` so positions stay aligned; validation skips empty names."""
+    """One task mapping → ``TaskSpec`` (None if it is not a mapping).
+
+    A missing name is reported and kept as ``""`` so positions stay aligned; validation skips empty
+    names.
+    """
     label = task_name(node)
     where = f"task '{label}'" if label else "a task"
     fields = read_fields(ctx, node, TASK_KEYS, where, required=("name",))

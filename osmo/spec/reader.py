@@ -7,24 +7,17 @@ and every problem in a file is reported once. Knows no workflow field names.
 
 from __future__ import annotations
 
-import difflib
-from collections.abc import Iterable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 from osmo.errors import Diagnostic
-from osmo.names import name_problem
+from osmo.names import did_you_mean, name_problem
 from osmo.spec.model import Pos
 from osmo.spec.yamlnodes import Map, Node, Scalar, Seq
 
 __all__ = ["Ctx", "did_you_mean", "is_empty", "read_bool", "read_fields", "read_int",
            "read_list", "read_map", "read_name", "read_str", "read_str_list", "scalar_text"]
-
-
-def did_you_mean(word: str, choices: Iterable[str]) -> str:
-    """`` (did you mean 'x'?)`` for the closest choice, or an empty string."""
-    close = difflib.get_close_matches(word, list(choices), n=1, cutoff=0.6)
-    return f" (did you mean '{close[0]}'?)" if close else ""
 
 
 @dataclass
@@ -155,8 +148,9 @@ def read_str_list(ctx: Ctx, node: Node, what: str) -> tuple[str, ...]:
 
 
 def read_name(ctx: Ctx, node: Node, what: str) -> str | None:
-    """A user-chosen name (workflow, group, task, dataset): ``osmo.names.NAME_RE``, at most
-    ``osmo.names.MAX_NAME`` characters.
+    """A user-chosen name (workflow, group, task, dataset).
+
+    It matches ``osmo.names.NAME_RE``, at most ``osmo.names.MAX_NAME`` characters.
 
     A malformed name is reported and still returned, so later checks can use it.
     """

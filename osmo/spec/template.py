@@ -25,8 +25,8 @@ import jinja2
 from jinja2.sandbox import SandboxedEnvironment
 
 from osmo.errors import Diagnostic
+from osmo.names import did_you_mean
 from osmo.spec import isolation, tokens
-from osmo.spec.reader import did_you_mean
 
 __all__ = ["MAX_NESTING", "MAX_RANGE", "nesting_message", "render"]
 
@@ -95,8 +95,10 @@ _JINJA_SPAN = re.compile(r"\{\{.*?\}\}|\{%.*?%\}")
 
 
 def _find(source_lines: list[str], name: str, lineno: int | None) -> tuple[int, int]:
-    """Line and column of ``name`` inside a ``{{ }}``/``{% %}`` of the source, preferring
-    line ``lineno`` (jinja's) when given."""
+    """Line and column of ``name`` inside a ``{{ }}``/``{% %}`` of the source.
+
+    Line ``lineno`` (jinja's) is preferred when given.
+    """
     word = re.compile(rf"\b{re.escape(name)}\b")
     order = [lineno] if lineno else []
     for number in order + list(range(1, len(source_lines) + 1)):
@@ -154,9 +156,11 @@ _OPEN, _CLOSE, _QUOTES = "([{", ")]}", "'\""
 
 
 def _too_deep(text: str) -> tuple[int, int] | None:
-    """Where (line, col) a ``{{ }}``/``{% %}`` first nests brackets deeper than
-    :data:`MAX_NESTING`, skipping string literals; None if nowhere. Checked before jinja
-    parses, since its parser recurses once per level and would fail without a position."""
+    """Where (line, col) a tag first nests brackets deeper than :data:`MAX_NESTING`.
+
+    Tags are ``{{ }}``/``{% %}``; string literals are skipped; None if nowhere. Checked before jinja
+    parses, since its parser recurses once per level and would fail without a position.
+    """
     pos = 0
     while (start := _SPAN_START.search(text, pos)) is not None:
         i, depth, quote = start.end(), 0, ""

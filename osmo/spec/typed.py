@@ -18,13 +18,13 @@ from collections.abc import Iterator, Mapping
 from typing import Any, Protocol
 
 from osmo.errors import OsmoError
+from osmo.names import did_you_mean
+from osmo.params import REQUIRED, type_label, value_problem
 from osmo.spec.model import Pos, ResolvedType, ResourceSpec, TaskSpec, WorkflowSpec
 from osmo.spec.parse import Parsed
-from osmo.spec.reader import Ctx, did_you_mean
+from osmo.spec.reader import Ctx
 from osmo.spec.units import parse_size
 from osmo.spec.yamlnodes import Map, Node, to_plain
-from osmo.tasktypes.api import REQUIRED
-from osmo.tasktypes.params import type_label, value_problem
 
 __all__ = ["TypeResolver", "apply_resolved", "check_types"]
 
@@ -35,12 +35,16 @@ class TypeResolver(Protocol):
     """Finds a task type by the name a spec writes (``osmo.tasktypes.registry.Resolver``)."""
 
     def resolve(self, ref: str) -> Any:
-        """The task type (see ``osmo.tasktypes.api.TaskType``); raises ``OsmoError`` with a
-        message saying what is wrong and how to fix it."""
+        """The task type (see ``osmo.tasktypes.api.TaskType``).
+
+        Raises ``OsmoError`` with a message saying what is wrong and how to fix it.
+        """
 
     def paths_for(self, ref: str) -> tuple[str, ...]:
-        """Folders the resolved type is imported from (recorded with the task, so the
-        worker imports it from the same place); empty for installed types."""
+        """Folders the resolved type is imported from; empty for installed types.
+
+        Recorded with the task, so the worker imports it from the same place.
+        """
 
 
 def _key_pos(node: Node, key: str) -> Pos | None:

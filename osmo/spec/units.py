@@ -129,8 +129,10 @@ def parse_exit_codes(value: Any) -> tuple[tuple[int, int], ...]:
 
 
 def overlap(a: tuple[tuple[int, int], ...], b: tuple[tuple[int, int], ...]) -> str | None:
-    """A description of the first overlap between two range lists (a range with itself is
-    ignored when ``a is b``), or None."""
+    """A description of the first overlap between two range lists, or None.
+
+    A range with itself is ignored when ``a is b``.
+    """
     for i, (lo1, hi1) in enumerate(a):
         for j, (lo2, hi2) in enumerate(b):
             if a is b and i >= j:

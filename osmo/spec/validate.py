@@ -23,9 +23,10 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 
+from osmo.names import did_you_mean
 from osmo.spec.model import DEFAULT_RESOURCE, GroupSpec, Pos, TaskSpec
 from osmo.spec.parse import Parsed
-from osmo.spec.reader import Ctx, did_you_mean
+from osmo.spec.reader import Ctx
 from osmo.spec.tokens import find_tokens
 from osmo.spec.yamlnodes import Map, Node, Scalar, Seq
 

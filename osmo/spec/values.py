@@ -47,8 +47,11 @@ def item_diags(file: str, set_values: Sequence[str],
 
 
 def _default_values_block(text: str) -> str | None:
-    """The top-level ``default-values:`` block, with earlier lines blanked so that line
-    numbers stay those of the file (the raw file may not be YAML before rendering)."""
+    """The top-level ``default-values:`` block, with the other lines blanked.
+
+    Earlier lines are blanked so that line numbers stay those of the file (the raw file may not be
+    YAML before rendering).
+    """
     lines = text.splitlines()
     for start, line in enumerate(lines):
         if re.match(r"default-values\s*:", line):
@@ -61,8 +64,11 @@ def _default_values_block(text: str) -> str | None:
 
 def build_context(text: str, file: str, set_values: Sequence[str] = (),
                   set_strings: Sequence[str] = ()) -> tuple[dict[str, Any], list[Diagnostic]]:
-    """The template context: ``default-values`` of ``text``, then ``--set`` (cast to int,
-    then float, else kept as a string), then ``--set-string`` (kept as a string)."""
+    """The template context: default values, then ``--set``, then ``--set-string``.
+
+    ``default-values`` of ``text``, then ``--set`` (cast to int, then float, else kept as a string),
+    then ``--set-string`` (kept as a string).
+    """
     context: dict[str, Any] = {}
     diags: list[Diagnostic] = []
     block = _default_values_block(text)

@@ -93,9 +93,11 @@ def _depth_message() -> str:
 
 
 def _flow_depth(text: str, limit: int) -> int | None:
-    """How deep the brackets of ``text`` nest, if at most ``limit``; None if deeper or if they
-    do not pair up. Brackets in strings and comments count too, so it never says less than
-    the document's flow nesting."""
+    """How deep the brackets of ``text`` nest, if at most ``limit``.
+
+    None if deeper or if they do not pair up. Brackets in strings and comments count too, so it
+    never says less than the document's flow nesting.
+    """
     brackets = _NOT_BRACKET.sub("", text)
     for depth in range(limit + 1):
         if not brackets:
@@ -108,9 +110,11 @@ def _flow_depth(text: str, limit: int) -> int | None:
 
 
 def _surely_shallow(text: str) -> bool:
-    """True if ``text`` cannot nest deeper than :data:`MAX_DEPTH` (cheap, conservative): a
-    block level takes a column of indentation or an indicator (``- ``, ``? ``), a flow level
-    a bracket."""
+    """True if ``text`` cannot nest deeper than :data:`MAX_DEPTH` (cheap, conservative).
+
+    A block level takes a column of indentation or an indicator (``- ``, ``? ``), a flow level a
+    bracket.
+    """
     if len(text) <= _SHORT:
         return True
     block = 2 * (max(map(len, _PREFIX.findall(text)), default=0) + 1)
@@ -119,8 +123,11 @@ def _surely_shallow(text: str) -> bool:
 
 
 def _depth_problem(text: str, file: str) -> Diagnostic | None:
-    """Where the document first nests deeper than :data:`MAX_DEPTH`, read from the parser's
-    events (which keep no stack of their own), before any recursive composition."""
+    """Where the document first nests deeper than :data:`MAX_DEPTH`.
+
+    Read from the parser's events (which keep no stack of their own), before any recursive
+    composition.
+    """
     if _surely_shallow(text):
         return None
     depth = 0

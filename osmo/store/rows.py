@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-__all__ = ["AttemptRow", "DatasetRow", "LineageRow", "WorkflowRow"]
+__all__ = ["AttemptRow", "DatasetRow", "LineageRow", "NewWorkflowRow", "TagRow", "WorkflowRow"]
 
 
 @dataclass(frozen=True)
@@ -19,6 +19,27 @@ class WorkflowRow:
     spec: dict[str, Any]
     options: dict[str, Any]
     state: dict[str, Any]
+
+
+@dataclass(frozen=True)
+class NewWorkflowRow:
+    """A workflow to create: its id ``name-n``, submit time, spec (dict form) and options."""
+
+    id: str
+    name: str
+    n: int
+    submitted_at: float
+    spec: dict[str, Any]
+    options: dict[str, Any]
+
+
+@dataclass(frozen=True)
+class TagRow:
+    """Dataset ``name``'s ``tag`` pointing at ``version``."""
+
+    name: str
+    tag: str
+    version: int
 
 
 @dataclass(frozen=True)

@@ -17,7 +17,7 @@ from __future__ import annotations
 import json
 import sqlite3
 import threading
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -25,10 +25,18 @@ from typing import Any
 from osmo.errors import InfrastructureError
 from osmo.scheduler.types import Changes
 from osmo.store.lineage import LineageQueries
-from osmo.store.rows import AttemptRow, DatasetRow, LineageRow, WorkflowRow
+from osmo.store.rows import (
+    AttemptRow,
+    DatasetRow,
+    LineageRow,
+    NewWorkflowRow,
+    TagRow,
+    WorkflowRow,
+)
 from osmo.store.writes import text_value, write_dataset, write_lineage, write_manifest
 
-__all__ = ["AttemptRow", "DatasetRow", "LineageRow", "Store", "WorkflowRow"]
+__all__ = ["AttemptRow", "DatasetRow", "LineageRow", "NewWorkflowRow", "Store", "TagRow",
+           "WorkflowRow"]
 
 
 def _v1(db: sqlite3.Connection) -> None:
@@ -213,29 +221,34 @@ class Store(LineageQueries):
         self,
         changes: Changes,
         *,
-        new_workflows: list[tuple[str, str, int, float, dict[str, Any], dict[str, Any]]] = (),  # type: ignore[assignment]
-        attempts: list[AttemptRow] = (),  # type: ignore[assignment]
-        lineage: list[LineageRow] = (),  # type: ignore[assignment]
-        datasets: list[DatasetRow] = (),  # type: ignore[assignment]
-        tags: list[tuple[str, str, int]] = (),  # type: ignore[assignment]
+        new_workflows: Sequence[NewWorkflowRow] = (),
+        attempts: Sequence[AttemptRow] = (),
+        lineage: Sequence[LineageRow] = (),
+        datasets: Sequence[DatasetRow] = (),
+        tags: Sequence[TagRow] = (),
+        pids: Sequence[tuple[str, int, float | None]] = (),
     ) -> None:
         """Write one batch atomically.
 
         Args:
             changes: scheduler snapshots and transitions.
-            new_workflows: ``(id, name, n, submitted_at, spec_dict, options)`` rows to create.
+            new_workflows: workflows to create.
             attempts: attempt rows to insert or replace (placement, pid).
             lineage: outputs and lineage of attempts that completed in this batch.
-            datasets: new dataset versions; tags: ``(name, tag, version)`` to (re)point.
+            datasets: new dataset versions.
+            tags: dataset tags to (re)point.
+            pids: ``(attempt id, pid, pid start time)`` of attempts whose process started
+                (their rows exist: written with their placement).
         """
         with self._tx() as db:
-            for wf_id, name, n, at, spec, options in new_workflows:
+            for new in new_workflows:
                 db.execute(
                     "INSERT INTO workflows VALUES (?,?,?,?,?,?,?,?)",
-                    (wf_id, name, n, "PENDING", at, json.dumps(spec), json.dumps(options), "{}"),
+                    (new.id, new.name, new.n, "PENDING", new.submitted_at,
+                     json.dumps(new.spec), json.dumps(new.options), "{}"),
                 )
             for wf in changes.workflows:
-                state = wf.to_dict()  # type: ignore[attr-defined]
+                state = wf.to_dict()
                 db.execute(
                     "UPDATE workflows SET status = ?, state = ? WHERE id = ?",
                     (state["status"], json.dumps(state), state["id"]),
@@ -244,7 +257,7 @@ class Store(LineageQueries):
                 "INSERT OR REPLACE INTO tasks VALUES (?,?,?,?)",
                 [
                     (s["workflow_id"], s["name"], s["status"], json.dumps(s))
-                    for s in (t.to_dict() for t in changes.tasks)  # type: ignore[attr-defined]
+                    for s in (t.to_dict() for t in changes.tasks)
                 ],
             )
             db.executemany(
@@ -262,11 +275,14 @@ class Store(LineageQueries):
                     for a in attempts
                 ],
             )
+            db.executemany("UPDATE attempts SET pid = ?, pid_start = ? WHERE id = ?",
+                           [(pid, start, aid) for aid, pid, start in pids])
             for row in lineage:
                 write_lineage(db, row)
             for ds in datasets:
                 write_dataset(db, ds)
-            db.executemany("INSERT OR REPLACE INTO dataset_tags VALUES (?,?,?)", list(tags))
+            db.executemany("INSERT OR REPLACE INTO dataset_tags VALUES (?,?,?)",
+                           [(t.name, t.tag, t.version) for t in tags])
 
     def set_credential(self, name: str, payload: dict[str, str], now: float) -> None:
         """Store (or replace) credential ``name``."""

@@ -1,9 +1,9 @@
-"""How the store writes rows that carry task-chosen text: outputs, lineage, dataset versions.
+r"""How the store writes rows that carry task-chosen text: outputs, lineage, dataset versions.
 
 Text from tasks may hold bytes that are not UTF-8 (see ``osmo.artifacts.manifest`` for the
 one rule on file names). SQLite only takes valid UTF-8 text, so a file name that is not
 valid UTF-8 is stored as a ``BLOB`` of its exact bytes (:func:`name_value`; ``CAST(path AS
-BLOB)`` gives the bytes of either form), and a message has such bytes shown as ``\\xNN``
+BLOB)`` gives the bytes of either form), and a message has such bytes shown as ``\xNN``
 (:func:`text_value`). ``osmo.store.sqlite`` calls these inside its transactions; this
 module does not import ``sqlite3`` (it only needs a connection's ``execute``).
 """
@@ -67,7 +67,7 @@ def name_value(path: str) -> str | bytes:
 
 
 def text_value(message: str) -> str:
-    """A message as valid UTF-8 text: bytes that are not UTF-8 shown as ``\\xNN``."""
+    r"""A message as valid UTF-8 text: bytes that are not UTF-8 shown as ``\xNN``."""
     try:
         message.encode("utf-8")
     except UnicodeEncodeError:

@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
 from osmo.errors import OsmoError
+from osmo.params import REQUIRED, Param
 
 __all__ = [
     "PROGRESS_PREFIX",
@@ -38,36 +39,6 @@ __all__ = [
 
 PROGRESS_PREFIX = "[osmo:progress]"
 """How a progress line starts in a task's log (``osmo query`` shows the latest one)."""
-
-
-class _Required:
-    def __repr__(self) -> str:
-        return "REQUIRED"
-
-
-REQUIRED: Any = _Required()
-"""Default of a :class:`Param` that the task must be given."""
-
-
-@dataclass(frozen=True)
-class Param:
-    """One parameter of a task type, checked at submit (errors point at the spec's line).
-
-    Attributes:
-        type: ``int``, ``float``, ``str``, ``bool``, ``list`` or ``dict`` (an ``int`` is
-            accepted where ``float`` is asked for).
-        default: value when the spec omits it; :data:`REQUIRED` makes it mandatory.
-        help: one line shown by ``osmo plugins list -v`` and in error messages.
-        choices: allowed values (empty: any value of the type).
-        min, max: inclusive bounds for numbers.
-    """
-
-    type: type
-    default: Any = REQUIRED
-    help: str = ""
-    choices: tuple[Any, ...] = ()
-    min: float | None = None
-    max: float | None = None
 
 
 class TaskCancelled(OsmoError):
@@ -99,8 +70,10 @@ class TaskContext(Protocol):
     attempt_id: str
 
     def progress(self, done: float, total: float | None = None, message: str = "") -> None:
-        """Report progress: a ``[osmo:progress] done/total message`` line in the task's log;
-        ``osmo query`` shows the latest while the task runs."""
+        """Report progress: a ``[osmo:progress] done/total message`` line in the task's log.
+
+        ``osmo query`` shows the latest while the task runs.
+        """
 
     def cancelled(self) -> bool:
         """True once the attempt was asked to stop (SIGTERM); finish up quickly."""
@@ -109,8 +82,11 @@ class TaskContext(Protocol):
         """Raise :class:`TaskCancelled` if the attempt was asked to stop."""
 
     def mcap_writer(self, path: str | Path, *, metadata: Mapping[str, str] | None = None) -> Any:
-        """Open an ``osmo.record.LineageMcapWriter`` at ``path`` (relative: under ``output``)
-        that stamps this attempt's lineage into the file."""
+        """Open an ``osmo.record.LineageMcapWriter`` at ``path``.
+
+        A relative ``path`` is under ``output``; the writer stamps this attempt's lineage into the
+        file.
+        """
 
 
 @runtime_checkable
@@ -177,8 +153,12 @@ def task_type(
 
     Args:
         name: defaults to the function's ``module:name``.
-        version, params, resources, extra, description: see :class:`TaskType`
-            (description defaults to the docstring's first line).
+        version: the type's version (see :class:`TaskType`).
+        params: parameter name → :class:`Param`.
+        resources: default resources, spec keys.
+        extra: the pip extra that provides its dependencies.
+        description: one line for ``osmo plugins list`` (default: the docstring's first
+            line).
     """
 
     def wrap(fn: Callable[[TaskContext], None]) -> _FunctionTaskType:

@@ -40,8 +40,10 @@ class _Below(logging.Filter):
 
 
 class _Std(logging.Handler):
-    """Writes to ``sys.stdout``/``sys.stderr`` as they are when a record comes (not as they
-    were when the logger was made: test runners swap them)."""
+    """Writes to ``sys.stdout``/``sys.stderr`` as they are when a record comes.
+
+    Not as they were when the logger was made: test runners swap them.
+    """
 
     def __init__(self, which: str) -> None:
         super().__init__()

@@ -1,7 +1,7 @@
 """Runs one typed task inside its own process: ``python -m osmo.tasktypes.runner task.json``.
 
 The worker starts this like any command (same process runtime, logs, kill and exit codes);
-the context file's format is in ``osmo.tasktypes.launch``. The runner puts the type's
+the context file's format is in ``osmo.worker.launch``, which writes it. The runner puts the type's
 folders on ``sys.path``, resolves the type, checks it is still the version the workflow was
 submitted against, fills in parameter defaults, builds a
 :class:`~osmo.tasktypes.context.RunContext` and calls ``run(ctx)``.
@@ -25,10 +25,13 @@ from typing import Any
 
 from osmo.tasktypes.api import TaskCancelled
 
-__all__ = ["CANCELLED", "main", "run_context_file"]
+__all__ = ["CANCELLED", "FORMAT", "main", "run_context_file"]
 
 CANCELLED = 128 + signal.SIGTERM
 """The exit code of a task that stopped because it was asked to."""
+
+FORMAT = 1
+"""The version of the context file this runner reads (written by ``osmo.worker.launch``)."""
 
 
 def _fail(message: str) -> int:
@@ -56,8 +59,7 @@ def _context(data: dict[str, Any], params: dict[str, Any], plugin: str) -> Any:
 def run_context_file(path: Path) -> int:
     """Run the typed task described by the context file at ``path``; return the exit code."""
     from osmo.errors import OsmoError
-    from osmo.tasktypes.launch import FORMAT
-    from osmo.tasktypes.params import fill_defaults
+    from osmo.params import fill_defaults
     from osmo.tasktypes.registry import resolve
 
     try:

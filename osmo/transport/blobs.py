@@ -30,14 +30,18 @@ from osmo.artifacts import ArtifactStore, Manifest
 from osmo.artifacts.manifest import check_digest
 from osmo.config import host_id
 from osmo.errors import InfrastructureError
+from osmo.layout import BlobDirs
 from osmo.transport.zenoh_link import Link, Request, Subscription
 
-__all__ = ["BlobServer", "SameHost", "TransferError", "fetch_blob", "fetch_manifest",
+__all__ = ["SERVER", "BlobServer", "SameHost", "TransferError", "fetch_blob", "fetch_manifest",
            "host_id"]
 
 CHUNK = 512 << 10
 WINDOW = 16  # chunks in flight per blob
 _TIMEOUT = 30.0
+
+SERVER = "server"
+"""The owner name the server serves its blobs as (no worker or client may take it)."""
 
 
 class TransferError(InfrastructureError):
@@ -52,8 +56,7 @@ class SameHost:
 
     def blob(self, digest: str) -> Path:
         """Where the sender keeps ``digest``."""
-        hex_ = check_digest(digest)
-        return self.root / "blobs" / "sha256" / hex_[:2] / hex_[2:]
+        return BlobDirs(self.root).blob(check_digest(digest))
 
 
 class BlobServer:
@@ -86,8 +89,10 @@ class BlobServer:
 def fetch_blob(link: Link, owner: str, digest: str, size: int, store: ArtifactStore, *,
                same_host: SameHost | None = None,
                on_bytes: Callable[[int], None] | None = None) -> int:
-    """Make ``store`` hold blob ``digest`` (``size`` bytes) from ``owner``; return the bytes
-    sent over the network (0 when it was there already or linked on the same host).
+    """Make ``store`` hold blob ``digest`` (``size`` bytes) from ``owner``.
+
+    Returns the bytes sent over the network (0 when it was there already or linked on the same
+    host).
 
     Raises:
         TransferError: the owner did not answer, lacks the blob, or sent bytes that do not

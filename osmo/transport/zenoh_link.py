@@ -1,7 +1,7 @@
 """The one module that imports zenoh: sessions, puts, subscriptions, queries, liveliness.
 
 Everything osmo sends travels under one key prefix per cluster, ``osmo/<cluster>/...``; the
-key layout is documented by the modules that use it (``osmo.transport.api`` for the client
+key layout is documented by the modules that use it (``osmo.transport.rpc`` for the client
 API, ``osmo.transport.blobs`` for artifact transfer, ``osmo.server.workers`` and
 ``osmo.worker.remote`` for worker traffic).
 
@@ -24,6 +24,7 @@ from typing import Any
 
 import zenoh
 
+from osmo.config import DEFAULT_CLUSTER
 from osmo.errors import InfrastructureError, ServerUnreachable, UsageError
 
 __all__ = ["Link", "Request", "Subscription"]
@@ -115,10 +116,13 @@ class Link:
         self.prefix = f"osmo/{cluster}"
 
     @classmethod
-    def router(cls, listen: Sequence[str], cluster: str = "local", *,
+    def router(cls, listen: Sequence[str], cluster: str = DEFAULT_CLUSTER, *,
                connect: Sequence[str] = (), config_file: str | None = None) -> Link:
-        """Open the server's session: a router listening on ``listen``, or, with
-        ``connect`` and no ``listen``, a peer of an existing ``zenohd`` router."""
+        """Open the server's session.
+
+        A router listening on ``listen``, or, with ``connect`` and no ``listen``, a peer of an
+        existing ``zenohd`` router.
+        """
         mode = "router" if listen or not connect else "peer"
         try:
             conf = _config(mode, listen=listen, connect=connect, config_file=config_file)
@@ -128,7 +132,7 @@ class Link:
             raise InfrastructureError(f"cannot listen on / connect to {where}: {exc}") from exc
 
     @classmethod
-    def client(cls, connect: Sequence[str], cluster: str = "local", *,
+    def client(cls, connect: Sequence[str], cluster: str = DEFAULT_CLUSTER, *,
                config_file: str | None = None) -> Link:
         """Open a client session to a router; ServerUnreachable if none answers."""
         config_file = config_file or os.environ.get("OSMO_ZENOH_CONFIG") or None
@@ -164,8 +168,10 @@ class Link:
 
     def subscribe_raw(self, key: str,
                       callback: Callable[[str, bytes, bytes | None], None]) -> Subscription:
-        """Call ``callback(key, payload, attachment)`` for every sample on ``key``
-        (on a zenoh thread: keep it short)."""
+        """Call ``callback(key, payload, attachment)`` for every sample on ``key``.
+
+        It runs on a zenoh thread: keep it short.
+        """
 
         def on_sample(sample: zenoh.Sample) -> None:
             att = sample.attachment.to_bytes() if sample.attachment is not None else None
@@ -176,15 +182,19 @@ class Link:
     # -- queries ---------------------------------------------------------------------------
 
     def serve(self, key: str, callback: Callable[[Request], object]) -> Subscription:
-        """Declare a queryable on ``key``; ``callback`` gets each :class:`Request` (on a
-        zenoh thread: hand slow work to another thread and reply from there)."""
+        """Declare a queryable on ``key``; ``callback`` gets each :class:`Request`.
+
+        It runs on a zenoh thread: hand slow work to another thread and reply from there.
+        """
         return Subscription(self._session.declare_queryable(
             key, lambda query: callback(Request(query))))
 
     def ask(self, key: str, payload: bytes = b"", *, attachment: bytes | None = None,
             timeout: float = 30.0) -> Any:
-        """Send a query now; returns a pending answer for :meth:`answer` (so several queries
-        can be in flight at once)."""
+        """Send a query now; returns a pending answer for :meth:`answer`.
+
+        So several queries can be in flight at once.
+        """
         try:
             return self._session.get(key, payload=payload, attachment=attachment,
                                      timeout=timeout)
@@ -193,8 +203,10 @@ class Link:
 
     @staticmethod
     def answer(pending: Any) -> tuple[bytes, bytes | None] | None:
-        """Wait for the first good reply of a pending query: ``(payload, attachment)``, or
-        None when nobody answered before the timeout."""
+        """Wait for the first good reply of a pending query.
+
+        Returns ``(payload, attachment)``, or None when nobody answered before the timeout.
+        """
         try:
             for reply in pending:
                 if reply.ok is not None:
@@ -213,16 +225,21 @@ class Link:
     # -- liveliness ------------------------------------------------------------------------
 
     def token(self, key: str) -> Subscription:
-        """Declare a liveliness token: peers watching see ``key`` alive until it is closed
-        or this process dies or is cut off (noticed within the lease)."""
+        """Declare a liveliness token.
+
+        Peers watching see ``key`` alive until it is closed or this process dies or is cut off
+        (noticed within the lease).
+        """
         try:
             return Subscription(self._session.liveliness().declare_token(key))
         except zenoh.ZError as exc:
             raise InfrastructureError(f"cannot declare liveliness token {key}: {exc}") from exc
 
     def watch(self, key: str, callback: Callable[[str, bool], None]) -> Subscription:
-        """Call ``callback(key, alive)`` when a token matching ``key`` appears or goes away,
-        including the tokens that exist already."""
+        """Call ``callback(key, alive)`` when a token matching ``key`` comes or goes.
+
+        The tokens that exist already count too.
+        """
 
         def on_sample(sample: zenoh.Sample) -> None:
             callback(str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT)

@@ -1,4 +1,4 @@
-"""Moving a folder to and from a URL (task ``inputs:``/``outputs:`` ``url:`` entries).
+r"""Moving a folder to and from a URL (task ``inputs:``/``outputs:`` ``url:`` entries).
 
 Owns the public surface of the URL adapters: :func:`for_url` picks a :class:`Remote` for a URL
 (``file://``, ``s3://``), whose ``upload``/``download`` move a folder as a whole and never leave
@@ -10,7 +10,7 @@ Example::
     from osmo.urls import for_url
     remote = for_url("s3://bucket/run-7", {"endpoint": "http://127.0.0.1:9000",
                                            "access_key": "...", "secret_key": "..."})
-    remote.upload(Path("out"), regex=r"\\.mcap$")
+    remote.upload(Path("out"), regex=r"\.mcap$")
     remote.download(Path("in"))
 """
 

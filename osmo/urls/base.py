@@ -1,10 +1,10 @@
 """The contract for moving a folder to and from a URL, and the protocol that makes it atomic.
 
-Owns :class:`Remote` (what callers use), :class:`Store` (the few object primitives a URL scheme
-implements), :func:`for_url` (scheme dispatch, resolved lazily) and :class:`Transfer`, the one
-implementation of the completion-marker protocol on top of any :class:`Store`. Must not speak
-any wire protocol or touch a URL's storage directly: that is each scheme module's job
-(:mod:`osmo.urls.local`, :mod:`osmo.urls.s3`).
+Owns :class:`Remote` (what callers use), :class:`ObjectStore` (the few object primitives a
+URL scheme implements), :func:`for_url` (scheme dispatch, resolved lazily) and
+:class:`Transfer`, the one implementation of the completion-marker protocol on top of any
+:class:`ObjectStore`. Must not speak any wire protocol or touch a URL's storage directly: that
+is each scheme module's job (:mod:`osmo.urls.local`, :mod:`osmo.urls.s3`).
 
 The protocol (a reader never takes a partial upload for a complete one):
 
@@ -38,7 +38,8 @@ from typing import BinaryIO, Protocol
 
 from osmo.errors import InfrastructureError, UsageError
 
-__all__ = ["MARKER", "PENDING", "Entry", "Remote", "Store", "Transfer", "UrlError", "for_url"]
+__all__ = ["MARKER", "PENDING", "Entry", "ObjectStore", "Remote", "Transfer", "UrlError",
+           "for_url"]
 
 MARKER = ".osmo-complete.json"
 PENDING = ".osmo-pending.json"
@@ -89,7 +90,7 @@ class Remote(Protocol):
         ...
 
 
-class Store(Protocol):
+class ObjectStore(Protocol):
     """The object primitives one URL scheme implements; paths are relative posix paths.
 
     Attributes:
@@ -153,7 +154,7 @@ def for_url(url: str, credential: Mapping[str, str] | None = None) -> Remote:
         supported = ", ".join(f"{s}://" for s in SCHEMES)
         raise UsageError(f"unsupported URL {url!r}: supported schemes are {supported}")
     module, attr = SCHEMES[scheme].split(":")
-    factory: Callable[[str, Mapping[str, str] | None], Store]
+    factory: Callable[[str, Mapping[str, str] | None], ObjectStore]
     factory = getattr(importlib.import_module(module), attr)
     return Transfer(factory(url, credential))
 
@@ -192,13 +193,13 @@ def check_path(path: str, url: str) -> str:
 
 
 class Transfer:
-    """:class:`Remote` implemented over a :class:`Store` with the module's marker protocol.
+    """:class:`Remote` implemented over a :class:`ObjectStore` with the module's marker protocol.
 
     Attributes:
         store: the scheme's store.
     """
 
-    def __init__(self, store: Store) -> None:
+    def __init__(self, store: ObjectStore) -> None:
         self.store = store
 
     def __repr__(self) -> str:
@@ -283,7 +284,8 @@ def _compile(regex: str | None) -> re.Pattern[str] | None:
         raise UsageError(f"invalid regex {regex!r}: {e}") from None
 
 
-def _scan(folder: Path, pattern: re.Pattern[str] | None, store: Store) -> list[tuple[str, Path]]:
+def _scan(folder: Path, pattern: re.Pattern[str] | None,
+          store: ObjectStore) -> list[tuple[str, Path]]:
     """List ``(relative path, file)`` to upload, sorted; checks that need no writes first.
 
     Symlinks to files are read through (a dangling one fails when read, mid-upload, which the
@@ -310,7 +312,7 @@ def _scan(folder: Path, pattern: re.Pattern[str] | None, store: Store) -> list[t
     return out
 
 
-def _check_size(rel: str, src: Path, store: Store) -> None:
+def _check_size(rel: str, src: Path, store: ObjectStore) -> None:
     """Refuse, before anything is written, a file larger than one object can be."""
     try:
         size = src.stat().st_size

@@ -1,6 +1,6 @@
 """``file://`` URLs: a folder on this host (or a shared mount) as the object store.
 
-Owns parsing ``file:///abs/path`` and the :class:`~osmo.urls.base.Store` primitives on a
+Owns parsing ``file:///abs/path`` and the :class:`~osmo.urls.base.ObjectStore` primitives on a
 folder: every object is written to a temporary name beside its final one and renamed, so a
 reader never sees a half-written file under its final name. Must not implement the marker
 protocol (that is :class:`osmo.urls.base.Transfer`) nor fsync: a write survives a crash of the

@@ -99,7 +99,7 @@ def sign(method: str, path: str, query: Mapping[str, str], headers: Mapping[str,
 
 
 class S3Store:
-    """The objects under ``s3://bucket/prefix/`` as a :class:`~osmo.urls.base.Store`.
+    """The objects under ``s3://bucket/prefix/`` as a :class:`~osmo.urls.base.ObjectStore`.
 
     Not thread-safe: one store holds one connection. ``repr`` shows no credential.
 

@@ -1,19 +1,8 @@
-"""Workers: attempt folders, log records, and the local pool of host processes."""
+"""Workers: what runs attempts, on the server's host (the local pool) or on a remote worker.
 
-from osmo.worker.logs import LogRecord, LogWriter, read_log
-from osmo.worker.pool import LocalPool, kill_stale, process_start_time
-from osmo.worker.workdir import AttemptDirs, Launch, PrepareError, prepare, promote
-
-__all__ = [
-    "AttemptDirs",
-    "Launch",
-    "LocalPool",
-    "LogRecord",
-    "LogWriter",
-    "PrepareError",
-    "kill_stale",
-    "prepare",
-    "process_start_time",
-    "promote",
-    "read_log",
-]
+Modules: ``pool`` (the local pool of host processes, an ``osmo.executor.Executor``),
+``endings`` (how its attempts end), ``remote`` (``osmo worker``), ``options`` (its flags),
+``workdir`` and ``transfer`` (an attempt's folder, inputs and outputs), ``launch`` (typed
+tasks), ``logs``, ``masking``, ``secrets``, ``checkpoints``, ``reactor``, ``live``,
+``machine``. Nothing is imported here: ``osmo worker --help`` stays fast.
+"""

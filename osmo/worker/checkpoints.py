@@ -22,13 +22,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from osmo.errors import OsmoError
+from osmo.layout import AttemptDirs
 from osmo.spec.model import TaskSpec
 from osmo.spec.tokens import substitute
 from osmo.spec.units import parse_duration
 from osmo.urls import for_url
 from osmo.worker.reactor import Reactor, Timer
 from osmo.worker.transfer import CredentialLookup
-from osmo.worker.workdir import AttemptDirs
 
 __all__ = ["Checkpoint", "Checkpointer", "plan", "start_checkpoints"]
 

@@ -1,6 +1,6 @@
-"""How an attempt of the local pool ends: its exit, the promotion of its outputs, and its
-one final report (a mixin of :class:`osmo.worker.pool.LocalPool`; see its module docstring
-for the threads).
+"""How an attempt of the local pool ends: its exit, its outputs, its final report.
+
+A mixin of :class:`osmo.worker.pool.LocalPool`; see its module docstring for the threads.
 
 Whatever happens after the process exits — a promotion or ingest that raises anything, a log
 that cannot be written — the attempt gets exactly one ``AttemptExited`` (a failure carries
@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import collections
 import logging
-import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 
@@ -43,8 +42,6 @@ class AttemptEndings:
     _io: ThreadPoolExecutor
     _attempts: dict[str, LiveAttempt]
     _finished: collections.OrderedDict[str, None]
-    _pids: dict[str, int]
-    _pids_lock: threading.Lock
     _artifacts: ArtifactStore | None
     _credential_for: CredentialLookup | None
     _max_output_files: int | None
@@ -81,7 +78,8 @@ class AttemptEndings:
         """I/O thread: last checkpoint, promote the outputs; report the exit.
 
         Whatever is raised, the attempt gets its one final report (a failure, exit code
-        3005, with the reason) and its credential files are deleted."""
+        3005, with the reason) and its credential files are deleted.
+        """
         try:
             ref, manifest = deliver(attempt.dirs, attempt.task, checkpoints=attempt.checkpoints,
                                     artifacts=self._artifacts,
@@ -102,8 +100,6 @@ class AttemptEndings:
             remove_secret_files(attempt.launch)
         # Reported from here, one thread hop sooner; the reactor's bookkeeping follows (a
         # kill() that comes meanwhile finds it FINISHING and is ignored).
-        with self._pids_lock:
-            self._pids.pop(attempt.id, None)
         self._emit(event)
         self._reactor.call_soon(self._finish, attempt, None)
 
@@ -123,8 +119,6 @@ class AttemptEndings:
             remove_secret_files(attempt.launch)
             self._drop_scratch(attempt.launch)
             self._attempts.pop(attempt.id, None)
-            with self._pids_lock:
-                self._pids.pop(attempt.id, None)
             self._remember(attempt.id)
             if event is not None:
                 self._emit(event)

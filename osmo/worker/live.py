@@ -10,12 +10,13 @@ import enum
 import os
 from dataclasses import dataclass, field
 
+from osmo.layout import AttemptDirs
 from osmo.runtime.process import ProcessHandle
 from osmo.spec.model import TaskSpec
 from osmo.worker.checkpoints import Checkpointer
 from osmo.worker.logs import LogWriter
 from osmo.worker.reactor import Reactor, Timer
-from osmo.worker.workdir import AttemptDirs, Launch
+from osmo.worker.workdir import Launch
 
 __all__ = ["AttemptState", "LiveAttempt"]
 

@@ -1,8 +1,9 @@
 """The local pool: runs attempts as host processes on this machine, within its capacity.
 
-``LocalPool`` turns the scheduler's commands into processes and reports what happened as
-events (``AttemptPrepared``, ``AttemptStarted``, ``AttemptExited``, ``AttemptStartFailed``)
-through ``emit``. Every ``prepare`` gets exactly one final report — ``AttemptStartFailed`` or
+``LocalPool`` is the executor (``osmo.executor.Executor``) of one node: it turns the
+scheduler's commands into processes and reports what happened as events
+(``AttemptPrepared``, ``AttemptStarted``, ``AttemptExited``, ``AttemptStartFailed``) through
+``emit``. Every ``prepare`` gets exactly one final report — ``AttemptStartFailed`` or
 ``AttemptExited`` — whatever happens (kill before start, spawn failure, promotion failure).
 
 Threading: public methods may be called from any thread; they only queue work for the pool's
@@ -39,7 +40,6 @@ import functools
 import logging
 import os
 import signal
-import threading
 from collections.abc import Callable, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
@@ -48,6 +48,7 @@ from pathlib import Path
 from osmo.artifacts import ArtifactStore
 from osmo.artifacts.store import DEFAULT_MAX_FILES
 from osmo.errors import OsmoError
+from osmo.layout import AttemptDirs, Home
 from osmo.runtime.process import (
     ProcessHandle,
     ProcessRuntime,
@@ -57,24 +58,28 @@ from osmo.runtime.process import (
     process_start_time,
 )
 from osmo.scheduler.types import (
+    LOCAL_NODE,
     AttemptExited,
     AttemptPrepared,
     AttemptStarted,
     AttemptStartFailed,
     Event,
+    KillAttempt,
     Node,
     PrepareAttempt,
+    RunAttempt,
 )
 from osmo.spec.model import TaskSpec
 from osmo.worker.checkpoints import start_checkpoints
 from osmo.worker.endings import AttemptEndings
+from osmo.worker.live import AttemptState, LiveAttempt
 from osmo.worker.logs import LogWriter, image_note
 from osmo.worker.machine import detect_capacity, raise_fd_limit
-from osmo.worker.live import AttemptState, LiveAttempt
+from osmo.worker.options import DEFAULT_KILL_GRACE
 from osmo.worker.reactor import Reactor
 from osmo.worker.secrets import SecretLookup, Secrets, gather
 from osmo.worker.transfer import CredentialLookup, ManifestLookup, make_ready
-from osmo.worker.workdir import AttemptDirs, Launch, remove_secret_files
+from osmo.worker.workdir import Launch, remove_secret_files
 
 __all__ = ["LocalPool", "kill_stale", "process_start_time"]
 
@@ -112,12 +117,12 @@ class LocalPool(AttemptEndings):
         *,
         home: Path,
         emit: Callable[[Event], None],
-        node_id: str = "local",
-        pool: str = "local",
+        node_id: str = LOCAL_NODE,
+        pool: str = LOCAL_NODE,
         cpus: float | None = None,
         gpus: int | None = None,
         memory: int | None = None,
-        kill_grace: float = 3.0,
+        kill_grace: float = DEFAULT_KILL_GRACE,
         runtime: Runtime | None = None,
         env: Mapping[str, str] | None = None,
         artifacts: ArtifactStore | None = None,
@@ -129,6 +134,7 @@ class LocalPool(AttemptEndings):
     ) -> None:
         self.home = Path(home).absolute()
         self.home.mkdir(parents=True, exist_ok=True)
+        self._layout = Home(self.home)
         raise_fd_limit()
         self._emit = emit
         self._node_id, self._pool = node_id, pool
@@ -144,8 +150,6 @@ class LocalPool(AttemptEndings):
         self._log_sink = log_sink
         self._attempts: dict[str, LiveAttempt] = {}
         self._finished: collections.OrderedDict[str, None] = collections.OrderedDict()
-        self._pids: dict[str, int] = {}
-        self._pids_lock = threading.Lock()
         self._reactor = Reactor(f"osmo-pool-{pool}")
         self._io = ThreadPoolExecutor(_IO_THREADS, thread_name_prefix=f"osmo-io-{pool}")
         self._preparing: dict[str, str | None] = {}  # attempt id → kill reason, if killed
@@ -168,35 +172,27 @@ class LocalPool(AttemptEndings):
         """
         self._reactor.call_soon(self._prepare, cmd, task, secrets, max_output_bytes)
 
-    def run(self, attempt_id: str) -> None:
+    def owns(self, node_id: str) -> bool:
+        """Whether ``node_id`` is this pool's node."""
+        return node_id == self._node_id
+
+    def run(self, cmd: RunAttempt) -> None:
         """Start a prepared attempt: AttemptStarted, then one AttemptExited.
 
         AttemptStartFailed instead if the command cannot be spawned.
         """
-        self._reactor.call_soon(self._run, attempt_id)
+        self._reactor.call_soon(self._run, cmd.attempt_id)
 
-    def kill(self, attempt_id: str, reason: str) -> None:
+    def kill(self, cmd: KillAttempt) -> None:
         """Kill an attempt's process group (SIGTERM, SIGKILL after the grace period)."""
-        self._reactor.call_soon(self._kill, attempt_id, reason)
-
-    def attempt_dir(self, attempt_id: str) -> Path | None:
-        """The folder of an attempt (live or finished on this node), or None."""
-        attempt = self._attempts.get(attempt_id)
-        if attempt is not None:
-            return attempt.dirs.root
-        dirs = AttemptDirs.of_attempt(self.home, attempt_id)
-        return dirs.root if dirs is not None and dirs.root.is_dir() else None
-
-    def running(self) -> dict[str, int]:
-        """Map attempt id → pid (= process group id) of every running attempt."""
-        with self._pids_lock:
-            return dict(self._pids)
+        self._reactor.call_soon(self._kill, cmd.attempt_id, cmd.reason)
 
     def close(self) -> None:
         """Kill every running process group and stop the threads (no more events).
 
         The I/O threads are drained first: a process one of them just spawned is handed to
-        the reactor before the reactor's final sweep kills everything."""
+        the reactor before the reactor's final sweep kills everything.
+        """
         self._io.shutdown(wait=True, cancel_futures=True)
         self._reactor.stop(self._shutdown)
 
@@ -215,7 +211,7 @@ class LocalPool(AttemptEndings):
                     max_output_bytes: int | None) -> None:
         """I/O thread: make the folders and files; hand the outcome back to the reactor."""
         try:
-            dirs = AttemptDirs.at(self.home, cmd.workflow_id, cmd.task, cmd.retry)
+            dirs = self._layout.attempt(cmd.workflow_id, cmd.task, cmd.retry)
             if secrets is None:
                 secrets = gather(task, self._task_secrets)
             launch = make_ready(dirs, cmd, task, env=self._env, secrets=secrets,
@@ -273,7 +269,7 @@ class LocalPool(AttemptEndings):
             return
         self._emit(AttemptPrepared(attempt.id))
         if isinstance(started, ProcessHandle):
-            self._emit(AttemptStarted(attempt.id))
+            self._emit(_started(attempt.id, started))
         elif isinstance(started, str):
             attempt.log.line("osmo", f"start failed: {started}")
             self._finish(attempt, AttemptStartFailed(attempt.id, started))
@@ -300,12 +296,10 @@ class LocalPool(AttemptEndings):
             self._finish(attempt, AttemptStartFailed(attempt_id, str(exc)))
             return
         self._watch(attempt, handle)
-        self._emit(AttemptStarted(attempt_id))
+        self._emit(_started(attempt_id, handle))
 
     def _watch(self, attempt: LiveAttempt, handle: ProcessHandle) -> None:
         attempt.handle, attempt.state = handle, AttemptState.RUNNING
-        with self._pids_lock:
-            self._pids[attempt.id] = handle.pid
         reactor = self._reactor
         for fd, stream in ((handle.stdout_fd, "stdout"), (handle.stderr_fd, "stderr")):
             attempt.open_fds.add(fd)
@@ -349,5 +343,11 @@ class LocalPool(AttemptEndings):
             attempt.log.close()
             remove_secret_files(attempt.launch)
         self._attempts.clear()
-        with self._pids_lock:
-            self._pids.clear()
+
+
+def _started(attempt_id: str, handle: ProcessHandle) -> AttemptStarted:
+    """The start report, with the process (group) id and its start time.
+
+    The server records them, so that a restarted server can kill what is left of it.
+    """
+    return AttemptStarted(attempt_id, handle.pid, process_start_time(handle.pid))

@@ -3,7 +3,7 @@
 It dials out to the server (so it may sit behind a firewall), registers its capacity, keeps
 a liveliness token alive, and runs the server's orders with the same :class:`LocalPool` the
 server uses on its own host — one runtime implementation. The wire protocol is described in
-``osmo.worker.wire``.
+``osmo.transport.wire``.
 
 Data: an attempt's inputs are fetched by digest from the server's artifact store (only the
 blobs this worker lacks; hard links when both share a host and filesystem), and the pool
@@ -29,55 +29,40 @@ import socket
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 from osmo.artifacts import ArtifactStore, Manifest
 from osmo.config import write_json_atomic
 from osmo.errors import OsmoError
+from osmo.layout import Home
+from osmo.names import check_worker_name
 from osmo.scheduler.types import (
+    LOCAL_NODE,
     AttemptExited,
     AttemptLost,
     AttemptStartFailed,
-    Capacity,
     Event,
+    KillAttempt,
     PrepareAttempt,
+    RunAttempt,
 )
 from osmo.spec.model import TaskSpec, WorkflowSpec
-from osmo.transport.api import ApiClient
-from osmo.transport.blobs import BlobServer, SameHost, fetch_manifest, host_id
+from osmo.transport.blobs import SERVER, BlobServer, SameHost, fetch_manifest, host_id
+from osmo.transport.rpc import ApiClient
+from osmo.transport.wire import Hello, event_to_dict, prepare_from_dict, spec_from_wire
 from osmo.transport.zenoh_link import Link, Subscription
+from osmo.worker.options import WorkerOptions
 from osmo.worker.pool import LocalPool
-from osmo.worker.wire import event_to_dict, prepare_from_dict, spec_from_wire
 
-__all__ = ["RemoteWorker", "WorkerOptions"]
+__all__ = ["RemoteWorker"]
 
 log = logging.getLogger("osmo.worker")
 
-HEALTH_FILE = "worker.json"
 _HEALTH_EVERY = 5.0
 _INPUT = "artifact:"  # an input reference of this worker: "artifact:<manifest digest>"
 _KEEP_MANIFESTS = 4096  # input manifests remembered (each was fetched whole)
-
-
-@dataclass
-class WorkerOptions:
-    """How a worker presents itself (see ``osmo worker --help``)."""
-
-    connect: list[str]
-    pool: str = "default"
-    name: str | None = None
-    platform: str | None = None
-    cpus: float | None = None
-    gpus: int | None = None
-    memory: int | None = None
-    labels: dict[str, str] = field(default_factory=dict)
-    cluster: str = "local"
-    zenoh_config: str | None = None
-    drain_timeout: float = 600.0
-    kill_grace: float = 3.0
-    address: str | None = None
 
 
 @dataclass
@@ -95,9 +80,11 @@ class RemoteWorker:
         self.home = Path(home).absolute()
         self.home.mkdir(parents=True, exist_ok=True)
         self.opts = options
-        self.id = options.name or f"{socket.gethostname()}-{os.getpid()}"
-        self.store = ArtifactStore(self.home / "artifacts")
-        self.link = Link.client(options.connect, options.cluster,
+        self.id = check_worker_name(options.name or f"{socket.gethostname()}-{os.getpid()}",
+                                    reserved=(LOCAL_NODE, SERVER))
+        self._layout = Home(self.home)
+        self.store = ArtifactStore(self._layout.artifacts)
+        self.link = Link.client(list(options.connect), options.cluster,
                                 config_file=options.zenoh_config)
         self._api = ApiClient(self.link, timeout=10.0)
         self._lock = threading.Lock()
@@ -128,12 +115,15 @@ class RemoteWorker:
     # ------------------------------------------------------------------ life cycle
 
     def run(self) -> None:
-        """Register (retrying until the server answers), serve orders, re-register whenever
-        the server comes back; return after :meth:`stop` or a finished :meth:`drain`."""
+        """Register, serve orders, register again whenever the server comes back.
+
+        Registering is retried until the server answers. Returns after :meth:`stop` or a finished
+        :meth:`drain`.
+        """
         self._subs = [
             self.link.subscribe(self.link.key("to-worker", self.id), self._on_order),
             BlobServer(self.link, self.id, self.store),
-            self.link.watch(self.link.key("alive", "server"), self._on_server),
+            self.link.watch(self.link.key("alive", SERVER), self._on_server),
         ]
         delay = 0.2
         self._register_now.set()
@@ -154,8 +144,10 @@ class RemoteWorker:
         self._stop.set()
 
     def drain(self) -> None:
-        """Stop taking work, let running attempts finish (up to ``drain_timeout``), hand
-        back what is still running, wait until outputs were taken, then stop."""
+        """Stop taking work, let running attempts finish, hand back the rest, then stop.
+
+        Running attempts get up to ``drain_timeout``; it waits until their outputs were taken.
+        """
         with self._lock:
             self._draining = True
         self._write_health()
@@ -173,7 +165,7 @@ class RemoteWorker:
             log.info("handing back %s (still running at the end of the drain)", aid)
             self._send({"op": "lost", "attempt_id": aid,
                         "message": f"worker {self.id} drained; attempt handed back"})
-            self.pool.kill(aid, "worker draining")
+            self.pool.kill(KillAttempt(aid, self.id, "worker draining"))
         with self._changed:
             self._changed.wait_for(lambda: not self._unacked, timeout=30.0)
         self._stop.set()
@@ -186,13 +178,15 @@ class RemoteWorker:
         self.pool.close()
         self._io.shutdown(wait=False, cancel_futures=True)
         self.link.close()
-        (self.home / HEALTH_FILE).unlink(missing_ok=True)
+        self._layout.worker_health.unlink(missing_ok=True)
 
     # ------------------------------------------------------------------ registration
 
     def _on_server(self, _key: str, alive: bool) -> None:
-        """The server's token: gone means it stopped or is cut off; back means register
-        again (a new server process knows nothing of this worker yet)."""
+        """The server's token: gone means it stopped, back means register again.
+
+        Gone: it stopped or is cut off. Back: a new server process knows nothing of this worker yet.
+        """
         with self._lock:
             self._connected = self._connected and alive
             came_back = alive and self._server_lost
@@ -203,16 +197,13 @@ class RemoteWorker:
             self._register_now.set()
 
     def _register(self) -> bool:
+        node = replace(self.pool.node(), platform=self.opts.platform,
+                       address=self.opts.address or _address(), labels=dict(self.opts.labels))
         with self._lock:
-            hello = {
-                "id": self.id, "pool": self.opts.pool, "platform": self.opts.platform,
-                "capacity": _capacity_dict(self.pool.node().capacity),
-                "draining": self._draining, "labels": self.opts.labels,
-                "address": self.opts.address or _address(), "host_id": host_id(),
-                "artifacts": str(self.store.root), "pid": os.getpid(),
-                "active": sorted(self._active | set(self._pending)),
-                "finished": list(self._unacked.values()),
-            }
+            hello = Hello(node, pid=os.getpid(), host_id=host_id(),
+                          artifacts=str(self.store.root), draining=self._draining,
+                          active=tuple(sorted(self._active | set(self._pending))),
+                          finished=tuple(self._unacked.values())).to_dict()
         try:
             reply = self._api.call("worker_register", hello)
         except OsmoError as exc:
@@ -232,7 +223,7 @@ class RemoteWorker:
             state = {"id": self.id, "pid": os.getpid(), "connected": self._connected,
                      "draining": self._draining, "running": len(self._active),
                      "updated_at": time.time()}
-        write_json_atomic(self.home / HEALTH_FILE, state)
+        write_json_atomic(self._layout.worker_health, state)
 
     # ------------------------------------------------------------------ orders
 
@@ -250,9 +241,9 @@ class RemoteWorker:
                         pending.kill = pending.kill or str(order.get("reason"))
                     return
             if op == "run":
-                self.pool.run(aid)
+                self.pool.run(RunAttempt(aid, self.id))
             else:
-                self.pool.kill(aid, str(order.get("reason")))
+                self.pool.kill(KillAttempt(aid, self.id, str(order.get("reason"))))
         elif op == "ack":
             with self._changed:
                 self._unacked.pop(aid, None)
@@ -294,9 +285,9 @@ class RemoteWorker:
         self.pool.prepare(cmd, task, order.get("secrets") or {},
                           max_output_bytes=limit if isinstance(limit, int) else None)
         if pending.kill is not None:
-            self.pool.kill(cmd.attempt_id, pending.kill)
+            self.pool.kill(KillAttempt(cmd.attempt_id, self.id, pending.kill))
         elif pending.run:
-            self.pool.run(cmd.attempt_id)
+            self.pool.run(RunAttempt(cmd.attempt_id, self.id))
 
     def _task(self, cmd: PrepareAttempt) -> TaskSpec:
         with self._lock:
@@ -306,12 +297,14 @@ class RemoteWorker:
         return spec.task(cmd.task)
 
     def _fetch_input(self, manifest: Manifest) -> str:
-        """Make this worker's store hold ``manifest``'s blobs; return the reference the
-        pool's ``input_manifests`` knows it by."""
+        """Make this worker's store hold ``manifest``'s blobs.
+
+        Returns the reference the pool's ``input_manifests`` knows it by.
+        """
         with self._lock:
             fetched = manifest.digest in self._manifests
         if not fetched:
-            fetch_manifest(self.link, "server", manifest, self.store,
+            fetch_manifest(self.link, SERVER, manifest, self.store,
                            same_host=self._server_host)
         with self._lock:
             self._manifests[manifest.digest] = manifest
@@ -351,11 +344,6 @@ class RemoteWorker:
     def _send_log(self, attempt_id: str, records: bytes) -> None:
         self.link.put(self.link.key("from-worker", self.id, "log"), records,
                       attachment=attempt_id.encode())
-
-
-def _capacity_dict(capacity: Capacity) -> dict[str, Any]:
-    return {"cpu": capacity.cpu, "gpu": capacity.gpu, "memory": capacity.memory,
-            "storage": capacity.storage}
 
 
 def _address() -> str:

@@ -1,6 +1,7 @@
-"""An attempt's data in and out: before it runs, ``url`` inputs and private copies of its
-artifact inputs; after a successful exit, the last checkpoint, promotion, ingest into the
-artifact store, and ``url`` output uploads.
+"""An attempt's data in and out.
+
+Before it runs, ``url`` inputs and private copies of its artifact inputs; after a successful exit,
+the last checkpoint, promotion, ingest into the artifact store, and ``url`` output uploads.
 
 Runs on the pool's I/O threads. Inputs land beside the attempt folder (kept apart because
 preparing an attempt again clears its folder) and reach the command through
@@ -30,11 +31,12 @@ from osmo.artifacts import ArtifactStore, Manifest
 from osmo.artifacts.fsops import make_dirs, remove_tree
 from osmo.artifacts.store import DEFAULT_MAX_FILES
 from osmo.errors import OsmoError
+from osmo.layout import AttemptDirs
 from osmo.scheduler.types import PrepareAttempt
 from osmo.spec.model import TaskSpec
 from osmo.urls import for_url
 from osmo.worker.secrets import Secrets
-from osmo.worker.workdir import AttemptDirs, Launch, prepare, promote, remove_secret_files
+from osmo.worker.workdir import Launch, prepare, promote, remove_secret_files
 
 __all__ = ["CredentialLookup", "DeliveryError", "InputCopies", "ManifestLookup", "copy_inputs",
            "deliver", "fetch_inputs", "make_ready", "plan_input_copies", "push_outputs"]
@@ -48,10 +50,6 @@ InputCopies = list[tuple[Manifest, Path]]
 _KEEP_COPIES = 1 << 20  # input copies up to this size stay with the attempt's folder
 
 
-def _inputs_dir(dirs: AttemptDirs) -> Path:
-    return dirs.root.with_name(f"{dirs.root.name}.inputs")
-
-
 def fetch_inputs(cmd: PrepareAttempt, task: TaskSpec, dirs: AttemptDirs,
                  credential_for: CredentialLookup | None) -> PrepareAttempt:
     """Download every ``url`` input; returns ``cmd`` with their folders as inputs.
@@ -60,7 +58,7 @@ def fetch_inputs(cmd: PrepareAttempt, task: TaskSpec, dirs: AttemptDirs,
         OsmoError: a download failed (``UrlError``) or a URL is malformed (``UsageError``).
     """
     extra: dict[str, str] = {}
-    base = _inputs_dir(dirs)
+    base = dirs.url_inputs
     for index, spec in enumerate(task.inputs):
         if spec.url is None:
             continue
@@ -77,8 +75,10 @@ def make_ready(dirs: AttemptDirs, cmd: PrepareAttempt, task: TaskSpec, *,
                env: Mapping[str, str], secrets: Secrets,
                credential_for: CredentialLookup | None, artifacts: ArtifactStore | None,
                input_manifests: ManifestLookup | None) -> Launch:
-    """Everything an attempt needs before it can start, in order: its ``url`` inputs, its
-    folder and files (``workdir.prepare``), its own copies of its artifact inputs.
+    """Everything an attempt needs before it can start, in order.
+
+    Its ``url`` inputs, its folder and files (``workdir.prepare``), its own copies of its artifact
+    inputs.
 
     Raises:
         OsmoError: a download, a token, a file, a credential or a blob failed (a blob that
@@ -100,8 +100,10 @@ def make_ready(dirs: AttemptDirs, cmd: PrepareAttempt, task: TaskSpec, *,
 
 def plan_input_copies(cmd: PrepareAttempt, dirs: AttemptDirs,
                       manifest_of: ManifestLookup | None) -> tuple[PrepareAttempt, InputCopies]:
-    """Where the attempt's own copy of each artifact input goes (``inputs/<input name>``):
-    ``cmd`` with those folders as its inputs, and what :func:`copy_inputs` must write."""
+    """Where the attempt's own copy of each artifact input goes (``inputs/<input name>``).
+
+    Returns ``cmd`` with those folders as its inputs, and what :func:`copy_inputs` must write.
+    """
     if manifest_of is None or not cmd.inputs:
         return cmd, []
     names: dict[str, list[str]] = {}
@@ -121,8 +123,10 @@ def plan_input_copies(cmd: PrepareAttempt, dirs: AttemptDirs,
 
 
 def copy_inputs(plan: InputCopies, artifacts: ArtifactStore) -> tuple[Path, ...]:
-    """Write the planned copies (after the attempt's folder was made); return those to delete
-    when the attempt ends: copies over 1 MiB (small ones stay with the attempt's folder).
+    """Write the planned copies (after the attempt's folder was made).
+
+    Returns those to delete when the attempt ends: copies over 1 MiB (small ones stay with the
+    attempt's folder).
 
     Raises:
         ArtifactCorrupted: a blob is missing or no longer matches its digest.
@@ -167,9 +171,10 @@ def deliver(dirs: AttemptDirs, task: TaskSpec, *, checkpoints: _FinalCheckpoint 
             artifacts: ArtifactStore | None, credential_for: CredentialLookup | None,
             max_bytes: int | None = None,
             max_files: int | None = DEFAULT_MAX_FILES) -> tuple[str, str | None]:
-    """Finish a successful attempt's outputs, in order: last checkpoint upload, promotion of
-    ``output.partial`` to ``output``, ingest (within ``max_bytes`` and ``max_files``), ``url``
-    uploads (I/O thread).
+    """Finish a successful attempt's outputs, in order (I/O thread).
+
+    Last checkpoint upload, promotion of ``output.partial`` to ``output``, ingest (within
+    ``max_bytes`` and ``max_files``), ``url`` uploads.
 
     Returns:
         the output reference and its manifest JSON (None without an artifact store).

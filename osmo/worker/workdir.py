@@ -1,16 +1,8 @@
-"""An attempt's private folder: its layout, its preparation, and output promotion.
+"""An attempt's private folder: its preparation and output promotion.
 
-Layout, one folder per attempt::
-
-    <home>/runs/<workflow_id>/<task>/<retry>/
-        work/            the command's working folder (cwd)
-        inputs/<name>/   the attempt's own checked copy of each artifact input
-                         (``osmo.worker.transfer.copy_inputs``)
-        files/           private root for absolute ``files:`` paths and credential mounts
-                         (``OSMO_FILES_ROOT``)
-        output.partial/  what ``{{output}}`` and ``OSMO_OUTPUT`` point to while running
-        output/          the same folder after promotion (success only)
-        log.txt          the attempt's log records (see ``osmo.worker.logs``)
+The folder's layout (``work/``, ``inputs/``, ``files/``, ``output.partial/``, ``output/``,
+``log.txt``, ``task.json``) is :class:`osmo.layout.AttemptDirs`; this module makes and
+fills it.
 
 File mapping — how two parallel tasks that both declare ``/tmp/run.sh`` never see each
 other's file, without containers:
@@ -47,7 +39,7 @@ absolute path of ``output``. A failed or killed attempt's ``output.partial`` sta
 nobody references it.
 
 Typed tasks (``type:``) run ``python -m osmo.tasktypes.runner <attempt>/task.json``; the
-context file is written here (see ``osmo.tasktypes.launch`` for its format).
+context file is written here (see ``osmo.worker.launch`` for its format).
 
 This module does file-system work only; it spawns nothing and reports nothing.
 """
@@ -66,73 +58,18 @@ from pathlib import Path
 
 from osmo.artifacts.fsops import remove_tree
 from osmo.errors import OsmoError
+from osmo.layout import AttemptDirs
 from osmo.scheduler.types import PrepareAttempt
 from osmo.spec.model import InputSpec, TaskSpec
 from osmo.spec.tokens import substitute
+from osmo.worker import launch
 from osmo.worker.secrets import Secrets, mounts, secret_env, secret_values
-from osmo.tasktypes import launch
 
-__all__ = ["AttemptDirs", "Launch", "PrepareError", "prepare", "promote", "remove_secret_files"]
+__all__ = ["Launch", "PrepareError", "prepare", "promote", "remove_secret_files"]
 
 
 class PrepareError(OsmoError):
     """An attempt's folder, files or tokens could not be prepared (message says which)."""
-
-
-@dataclass(frozen=True)
-class AttemptDirs:
-    """The paths of one attempt's folder (see the module docstring for the layout)."""
-
-    root: Path
-
-    @classmethod
-    def of_attempt(cls, home: Path, attempt_id: str) -> AttemptDirs | None:
-        """The folders of attempt ``<workflow>:<task>:<retry>``, or None for a malformed id."""
-        parts = attempt_id.rsplit(":", 2)
-        if len(parts) != 3 or not parts[2].isdigit():
-            return None
-        try:
-            return cls.at(home, parts[0], parts[1], int(parts[2]))
-        except PrepareError:
-            return None
-
-    @classmethod
-    def at(cls, home: Path, workflow_id: str, task: str, retry: int) -> AttemptDirs:
-        """The folder of retry ``retry`` of ``task`` in ``workflow_id`` under ``home``."""
-        for name in (workflow_id, task):
-            if not name or "/" in name or name in (".", ".."):
-                raise PrepareError(f"unusable name for a folder: {name!r}")
-        return cls(Path(home).absolute() / "runs" / workflow_id / task / str(retry))
-
-    @property
-    def work(self) -> Path:
-        """The command's working folder."""
-        return self.root / "work"
-
-    @property
-    def files(self) -> Path:
-        """Private root of absolute ``files:`` paths."""
-        return self.root / "files"
-
-    @property
-    def inputs(self) -> Path:
-        """The attempt's own copies of its artifact inputs, one folder per input."""
-        return self.root / "inputs"
-
-    @property
-    def output_partial(self) -> Path:
-        """The output folder while the command runs."""
-        return self.root / "output.partial"
-
-    @property
-    def output(self) -> Path:
-        """The output folder after promotion."""
-        return self.root / "output"
-
-    @property
-    def log(self) -> Path:
-        """The attempt's log file."""
-        return self.root / "log.txt"
 
 
 @dataclass(frozen=True)
@@ -159,6 +96,10 @@ def prepare(
     """Create the attempt's folder, write its files and resolve its command.
 
     Args:
+        dirs: the attempt's folder (made here; an earlier one of the same attempt is cleared).
+        cmd: the placement: inputs, peers' addresses, the attempt's id.
+        task: what to run.
+        base_env: the environment the command starts from.
         secrets: the payloads of the credentials ``task`` names (credential name → payload).
 
     Raises:
@@ -182,8 +123,8 @@ def prepare(
     env.update({key: text(str(value)) for key, value in task.environment.items()})
     env.update(secret_env(task, secrets))
     env.update(_osmo_env(dirs, cmd))
-    if task.type:  # a typed task: the runner reads its context file (osmo.tasktypes.launch)
-        argv = launch.runner_argv(dirs.root / launch.CONTEXT_FILE)
+    if task.type:  # a typed task: the runner reads its context file (osmo.worker.launch)
+        argv = launch.runner_argv(dirs.context)
         env.update(launch.runner_env(task, env))
     try:
         _make_folders(dirs, with_files=bool(task.files or mounted))
@@ -234,7 +175,7 @@ def _write_context(dirs: AttemptDirs, cmd: PrepareAttempt, task: TaskSpec) -> No
         if ref is None:
             raise PrepareError(f"task '{task.name}': input {index} is not available")
         inputs.append((launch.input_name(spec), ref))
-    launch.write_context(dirs.root / launch.CONTEXT_FILE, task=task, inputs=inputs,
+    launch.write_context(dirs.context, task=task, inputs=inputs,
                          output=dirs.output_partial, workdir=dirs.work,
                          workflow_id=cmd.workflow_id, retry=cmd.retry, attempt_id=cmd.attempt_id)
 

@@ -87,7 +87,7 @@ def test_conflicting_paths_are_refused(paths: list[str]) -> None:
 @pytest.mark.parametrize("text", [
     "", "[]", "{}", '{"version": 2, "entries": []}', '{"version": 1}',
     '{"version": 1, "entries": {}}', '{"version": 1, "entries": [{"path": "a"}]}',
-    '{"version": 1, "entries": [{"path": "../a", "digest": "%s", "size": 1}]}' % D1,
+    '{"version": 1, "entries": [{"path": "../a", "digest": "' + D1 + '", "size": 1}]}',
 ])
 def test_from_json_rejects_bad_text(text: str) -> None:
     with pytest.raises(InfrastructureError, match="invalid artifact manifest"):

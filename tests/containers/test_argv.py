@@ -15,7 +15,7 @@ from osmo.runtime.container_run import (
     SECRET_ENV_PATH,
     ContainerError,
     ContainerRun,
-    Engine,
+    EngineInfo,
     Mount,
     RegistryAuth,
     login_argv,
@@ -26,9 +26,9 @@ from osmo.runtime.container_run import (
     secret_env_text,
 )
 
-PODMAN = Engine("podman", "/usr/bin/podman", "4.3.1")
-ROOTLESS = Engine("podman", "/usr/bin/podman", "4.3.1", rootless=True)
-DOCKER = Engine("docker", "/usr/bin/docker", "28.2.2")
+PODMAN = EngineInfo("podman", "/usr/bin/podman", "4.3.1")
+ROOTLESS = EngineInfo("podman", "/usr/bin/podman", "4.3.1", rootless=True)
+DOCKER = EngineInfo("docker", "/usr/bin/docker", "28.2.2")
 
 FULL = ContainerRun(
     image="sha256:" + "ab" * 32, name="osmo-wf-1-train-0-123456789abc",
@@ -70,7 +70,7 @@ def test_rootless_podman_keeps_the_callers_uid() -> None:
 
 
 @pytest.mark.parametrize("engine", [PODMAN, DOCKER], ids=["podman", "docker"])
-def test_no_gpu_means_none_visible(engine: Engine) -> None:
+def test_no_gpu_means_none_visible(engine: EngineInfo) -> None:
     run = ContainerRun("alpine:3.18", "c", ("true",), env={"NVIDIA_VISIBLE_DEVICES": "all"})
     argv = run_argv(engine, run)
     assert [a for a in argv if "NVIDIA" in a] == ["--env=NVIDIA_VISIBLE_DEVICES="]

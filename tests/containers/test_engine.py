@@ -357,8 +357,9 @@ def test_missing_image_pull_failure_says_what_and_why(engine: ContainerEngine,
 
 def test_registry_password_never_leaks(engine: ContainerEngine, podman_env: dict[str, str],
                                        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    from osmo.runtime.container import ImageError, RegistryAuth
     import tempfile
+
+    from osmo.runtime.container import ImageError, RegistryAuth
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
     password = "pw-Zq81-never-shown"
     lines: list[str] = []

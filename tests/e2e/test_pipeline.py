@@ -68,8 +68,9 @@ def test_pendulum_bc_tiny(shared_osmo: Osmo, tmp_path: Path) -> None:
 
 def _check_shard(osmo: Osmo, wf: str, tmp: Path) -> None:
     """A rollout shard as a task wrote it: Foxglove-native, with the attempt's lineage."""
-    from osmo.record import McapFile, read_lineage
     from osmo_plugins.episodes import read_episodes
+
+    from osmo.record import McapFile, read_lineage
 
     osmo("artifacts", "get", f"{wf}:rollout-1:episodes-shard001.mcap", "-o", str(tmp / "s"),
          check=True)

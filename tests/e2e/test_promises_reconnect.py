@@ -8,7 +8,6 @@ where the server's options define it.
 from __future__ import annotations
 
 import argparse
-import inspect
 import os
 import signal
 import time
@@ -17,8 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from osmo.server.app import serve
-from osmo.server.options import add_server_options, server_args, server_kwargs
+from osmo.server.options import ServerOptions
 from tests.conftest import ended, wait_gone, write
 from tests.e2e.cluster import Cluster
 
@@ -35,13 +33,12 @@ workflow:
 
 def test_the_default_grace_is_thirty_seconds() -> None:
     parser = argparse.ArgumentParser()
-    add_server_options(parser)
-    args = parser.parse_args([])
-    assert server_kwargs(args)["reconnect_grace"] == 30.0
-    assert "--reconnect-grace" not in server_args(args)  # the background server gets 30 too
-    assert inspect.signature(serve).parameters["reconnect_grace"].default == 30.0
-    short = parser.parse_args(["--reconnect-grace", "3"])
-    assert server_args(short)[-2:] == ["--reconnect-grace", "3.0"]
+    ServerOptions.add_arguments(parser)
+    options = ServerOptions.from_args(parser.parse_args([]))
+    assert options == ServerOptions() and options.reconnect_grace == 30.0  # serve()'s too
+    assert "--reconnect-grace" not in options.to_argv()  # the background server gets 30 too
+    short = ServerOptions.from_args(parser.parse_args(["--reconnect-grace", "3"]))
+    assert short.to_argv() == ["--reconnect-grace", "3.0"]
 
 
 @pytest.fixture

@@ -15,8 +15,8 @@ import pytest
 
 from osmo.config import free_port
 from tests.conftest import REPO, Osmo, ended, write
-from tests.e2e.cluster import Cluster
 from tests.e2e.certs import make_certs
+from tests.e2e.cluster import Cluster
 
 SPEC = """
 workflow:

@@ -2,7 +2,7 @@
 log line, never an infrastructure error and never a traceback in ``server.log``.
 
 The table covers every client verb with wrong types, missing fields, huge strings and nested
-junk. Requests go through :class:`~osmo.transport.api.ApiClient` (JSON the client would never
+junk. Requests go through :class:`~osmo.transport.rpc.ApiClient` (JSON the client would never
 send) or straight onto the zenoh key (bytes that are not JSON at all).
 """
 
@@ -22,6 +22,8 @@ from tests.hostile.test_names_datasets import raw_api
 HUGE = "x" * 100_000
 JUNK: Any = {"a": [1, {"b": None}], "c": [[[]]]}
 DEEP: Any = [[[[[[[[[[["deep"]]]]]]]]]]]
+EMPTY = '{"entries": [], "version": 1}'  # a valid manifest of no files
+HELLO = {"id": "w", "pool": "p", "address": "127.0.0.1"}  # what a hello needs, no more
 
 CASES: list[Any] = [
     ("submit", {}),
@@ -63,22 +65,26 @@ CASES: list[Any] = [
     ("lineage", {"target": "dataset:x:99999999999999999999999"}),
     ("lineage", {"target": "dataset:../x"}),
     ("lineage", {"target": "ok-1:a", "downstream": "yes"}),
-    ("artifacts_list", {"workflow_id": "ok-1", "task": ["a"]}),
-    ("artifacts_get", {}),
-    ("artifacts_get", {"target": JUNK}),
-    ("datasets_list", {"name": 5}),
-    ("datasets_info", {}),
-    ("datasets_info", {"ref": None}),
-    ("datasets_tag", {"ref": "ds:1"}),
-    ("datasets_tag", {"ref": "ds:1", "tag": JUNK}),
-    ("datasets_download", {"ref": "ds", "regex": "("}),
-    ("datasets_download", {"ref": "ds", "regex": 5}),
-    ("datasets_upload", {"name": "ds"}),
-    ("datasets_upload", {"name": "ds", "manifest": "not json", "source": {}}),
-    ("datasets_upload", {"name": "ds", "manifest": "{}", "source": "x"}),
-    ("datasets_upload", {"name": "ds", "manifest": '{"entries": 5}', "source": {}}),
-    ("datasets_upload", {"name": "ds", "manifest": '{"entries": []}', "source": {},
+    ("artifact_list", {"workflow_id": "ok-1", "task": ["a"]}),
+    ("artifact_get", {}),
+    ("artifact_get", {"target": JUNK}),
+    ("dataset_list", {"name": 5}),
+    ("dataset_info", {}),
+    ("dataset_info", {"ref": None}),
+    ("dataset_tag", {"ref": "ds:1"}),
+    ("dataset_tag", {"ref": "ds:1", "tag": JUNK}),
+    ("dataset_download", {"ref": "ds", "regex": "("}),
+    ("dataset_download", {"ref": "ds", "regex": 5}),
+    ("dataset_upload", {"name": "ds"}),
+    ("dataset_upload", {"name": "ds", "manifest": "not json", "source": {}}),
+    ("dataset_upload", {"name": "ds", "manifest": "{}", "source": "x"}),
+    ("dataset_upload", {"name": "ds", "manifest": '{"entries": 5}', "source": {}}),
+    ("dataset_upload", {"name": "ds", "manifest": '{"entries": []}', "source": {},
                          "metadata": [1]}),
+    ("dataset_upload", {"name": "ds", "manifest": EMPTY, "source": {}}),
+    ("dataset_upload", {"name": "ds", "manifest": EMPTY, "source": {"owner": "../x"}}),
+    ("dataset_upload", {"name": "ds", "manifest": EMPTY,
+                         "source": {"owner": "client-1", "host_id": 5}}),
     ("credential_set", {}),
     ("credential_set", {"name": "c", "payload": "x"}),
     ("credential_set", {"name": "c", "payload": {"k": JUNK}}),
@@ -86,14 +92,23 @@ CASES: list[Any] = [
     ("credential_delete", {}),
     ("credential_delete", {"name": JUNK}),
     ("no_such_verb", {}),
-]
-_WORKERS = pytest.mark.xfail(strict=True, reason="osmo/server/workers.py (another helper's) "
-                             "does not check its requests yet: AttributeError, exit 3")
-CASES += [
-    pytest.param("worker_register", {"id": "w", "capacity": "junk"}, marks=_WORKERS),
-    pytest.param("worker_register", {"id": "w", "labels": 5}, marks=_WORKERS),
-    pytest.param("worker_register", {"id": ["x"]}, marks=_WORKERS),
-    pytest.param("worker_drain", {}, marks=_WORKERS),
+    ("worker_register", {**HELLO, "capacity": "junk"}),
+    ("worker_register", {**HELLO, "capacity": {"cpu": "x"}}),
+    ("worker_register", {**HELLO, "capacity": {"gpu": -1}}),
+    ("worker_register", {**HELLO, "capacity": {"memory": 2**70}}),
+    ("worker_register", {**HELLO, "labels": 5}),
+    ("worker_register", {**HELLO, "labels": {"a": JUNK}}),
+    ("worker_register", {**HELLO, "active": "wf-1:a:0"}),
+    ("worker_register", {**HELLO, "finished": [5]}),
+    ("worker_register", {**HELLO, "pool": JUNK}),
+    ("worker_register", {**HELLO, "draining": "yes"}),
+    ("worker_register", {"id": ["x"]}),
+    ("worker_register", {"id": "w", "address": "127.0.0.1"}),  # no pool
+    ("worker_register", {"id": "local"}),
+    ("worker_register", {"id": "w\n2026-01-01 00:00:00 INFO fake log line"}),
+    ("worker_register", {"id": "a/b"}),
+    ("worker_drain", {}),
+    ("worker_drain", {"id": 5}),
 ]
 RAW_PAYLOADS = [b"not json", b"[1, 2]", b"1" * 5000, b'"a string"', b"[" * 100_000,
                 b'{"workflow_id": ' + b"[" * 100_000, b"\xff\xfe"]

@@ -24,8 +24,8 @@ workflow:
   name: evil
   tasks:
   - name: make
-    command: [python3, -c, "import os, sys; [open(os.path.join(sys.argv[1], n), 'w').write('x') for n in sys.argv[2:]]", "{{output}}", %s]
-""" % ", ".join(json.dumps(n) for n in EVIL)
+    command: [python3, -c, "import os, sys; [open(os.path.join(sys.argv[1], n), 'w').write('x') for n in sys.argv[2:]]", "{{output}}", NAMES]
+""".replace("NAMES", ", ".join(json.dumps(n) for n in EVIL))
 
 
 @pytest.mark.parametrize("raw,shown", [

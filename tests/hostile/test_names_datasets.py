@@ -89,10 +89,10 @@ def test_sdk_refuses_hostile_names_before_calling(home: Osmo, tmp_path: Path) ->
             with pytest.raises(UsageError, match="dataset name"):
                 client.upload_dataset(name, tmp_path)
             with pytest.raises(UsageError, match="dataset name"):
-                client.dataset_info(name)
+                client.dataset(name)
         with pytest.raises(UsageError, match="dataset tag"):
             client.tag_dataset("good:1", "../x")
-        assert client.dataset_info("good:1")["version"] == 1
+        assert client.dataset("good:1")["version"] == 1
 
 
 def test_spec_outputs_and_inputs_refuse_hostile_names(home: Osmo, tmp_path: Path) -> None:
@@ -115,7 +115,7 @@ def test_server_api_refuses_a_hostile_upload(raw: Connection, tmp_path: Path, ke
     offer = transfer.upload(raw.link, src)
     try:
         with pytest.raises(UsageError, match="dataset name"):
-            raw.api.call("datasets_upload", {"name": name, "manifest": offer.manifest.to_json(),
+            raw.api.call("dataset_upload", {"name": name, "manifest": offer.manifest.to_json(),
                                              "source": offer.source, "metadata": {}})
     finally:
         offer.close()
@@ -127,18 +127,18 @@ def test_server_api_refuses_a_hostile_upload(raw: Connection, tmp_path: Path, ke
 
 
 @pytest.mark.parametrize("verb,request_", [
-    ("datasets_info", {"ref": "../../escape/ds"}),
-    ("datasets_info", {"ref": "good:../1"}),
-    ("datasets_download", {"ref": "/etc"}),
-    ("datasets_list", {"name": "a/b"}),
-    ("datasets_tag", {"ref": "good:1", "tag": "../x"}),
-    ("datasets_tag", {"ref": "good:1", "tag": "latest"}),
-    ("datasets_tag", {"ref": "good:1", "tag": "x" * 5000}),
-    ("datasets_tag", {"ref": "../good:1", "tag": "gold"}),
+    ("dataset_info", {"ref": "../../escape/ds"}),
+    ("dataset_info", {"ref": "good:../1"}),
+    ("dataset_download", {"ref": "/etc"}),
+    ("dataset_list", {"name": "a/b"}),
+    ("dataset_tag", {"ref": "good:1", "tag": "../x"}),
+    ("dataset_tag", {"ref": "good:1", "tag": "latest"}),
+    ("dataset_tag", {"ref": "good:1", "tag": "x" * 5000}),
+    ("dataset_tag", {"ref": "../good:1", "tag": "gold"}),
 ])
 def test_server_api_refuses_hostile_refs_and_tags(raw: Connection, verb: str,
                                                   request_: dict[str, str]) -> None:
     with pytest.raises(UsageError):
         raw.api.call(verb, request_)
-    assert [d["tags"] for d in json.loads(json.dumps(raw.api.call("datasets_list", {})))] \
+    assert [d["tags"] for d in json.loads(json.dumps(raw.api.call("dataset_list", {})))] \
         == [[]]  # nothing was tagged

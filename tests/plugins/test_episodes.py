@@ -13,12 +13,19 @@ import pytest
 np = pytest.importorskip("numpy")
 pytest.importorskip("foxglove")
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory  # noqa: E402
-
-from osmo.record import Lineage, LineageMcapWriter, McapFile, RecordError  # noqa: E402
 from osmo_plugins._stepcodec import encode_steps  # noqa: E402
 from osmo_plugins.episodes import (  # noqa: E402
-    EPISODE_METADATA, FRAME_TOPIC, METADATA_NAME, STEP_TOPIC, EpisodeWriter, episode_files,
-    read_episodes, step_schema)
+    EPISODE_METADATA,
+    FRAME_TOPIC,
+    METADATA_NAME,
+    STEP_TOPIC,
+    EpisodeWriter,
+    episode_files,
+    read_episodes,
+    step_schema,
+)
+
+from osmo.record import Lineage, LineageMcapWriter, McapFile, RecordError  # noqa: E402
 
 DT = 0.04
 DT_NS = 40_000_000

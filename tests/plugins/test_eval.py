@@ -16,6 +16,7 @@ from osmo_plugins.episodes import read_episodes  # noqa: E402
 from osmo_plugins.sim.envs import EpisodeResult  # noqa: E402
 from osmo_plugins.sim.eval import EVAL  # noqa: E402
 from osmo_plugins.sim.metrics import add_normalized, ci95, parse_success  # noqa: E402
+
 from tests.plugins.fakectx import make_ctx  # noqa: E402
 
 SIGNAL_ENV = "OsmoTest/Signal-v0"

@@ -15,6 +15,7 @@ from osmo_plugins.lerobot.dataset import DATASET  # noqa: E402
 from osmo_plugins.lerobot.train import TRAIN  # noqa: E402
 from osmo_plugins.sim.eval import EVAL  # noqa: E402
 from osmo_plugins.sim.rollout import ROLLOUT  # noqa: E402
+
 from tests.plugins.fakectx import make_ctx  # noqa: E402
 
 
@@ -100,9 +101,8 @@ def test_backbone_norms_train_and_fold_back_unchanged() -> None:
     ones, the saved network computes exactly what the trained one does in eval mode."""
     import torch
     import torchvision
-    from torchvision.ops.misc import FrozenBatchNorm2d
-
     from osmo_plugins.lerobot._train import _norms
+    from torchvision.ops.misc import FrozenBatchNorm2d
 
     torch.manual_seed(0)
     net = torchvision.models.resnet18(weights=None, norm_layer=FrozenBatchNorm2d)

@@ -16,6 +16,7 @@ from osmo_plugins.sim._rollout import shard_seeds  # noqa: E402
 from osmo_plugins.sim.envs import make_env, run_episodes  # noqa: E402
 from osmo_plugins.sim.policies import make_policy  # noqa: E402
 from osmo_plugins.sim.rollout import ROLLOUT  # noqa: E402
+
 from tests.plugins.fakectx import make_ctx  # noqa: E402
 
 

@@ -9,9 +9,10 @@ import pytest
 pytest.importorskip("numpy")
 pytest.importorskip("rerun")
 
-from osmo.record import LineageMcapWriter  # noqa: E402
 from osmo_plugins.episodes import EpisodeWriter  # noqa: E402
 from osmo_plugins.viz.rerun_view import RERUN  # noqa: E402
+
+from osmo.record import LineageMcapWriter  # noqa: E402
 from tests.plugins.fakectx import make_ctx  # noqa: E402
 
 

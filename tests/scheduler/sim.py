@@ -163,7 +163,7 @@ class Sim:
                 and self.task(name, wid).status.name == "INITIALIZING"):
             self.self_started.add(aid)
             assert not [c for c in out if isinstance(c, RunAttempt) and c.attempt_id == aid]
-            out = [*out, RunAttempt(aid)]
+            out = [*out, RunAttempt(aid, placed[-1].node_id)]
             self.last = out
         return out
 

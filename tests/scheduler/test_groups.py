@@ -83,8 +83,8 @@ def test_lead_completion_stops_nonleads_with_kill() -> None:
     sim.submit(workflow(trio()))
     play(sim, "prepare lead; prepare w1; prepare w2; start lead; start w1")
     emitted = play(sim, "exit lead")
-    assert emitted == [KillAttempt("wf-1:w1:0", "stopped: lead finished"),
-                       KillAttempt("wf-1:w2:0", "stopped: lead finished")]
+    assert emitted == [KillAttempt("wf-1:w1:0", "n1", "stopped: lead finished"),
+                       KillAttempt("wf-1:w2:0", "n1", "stopped: lead finished")]
     w1 = sim.task("w1")
     assert (w1.status.name, w1.exit_code, w1.message) == (
         "COMPLETED", ExitCode.STOPPED, "stopped: lead finished")

@@ -1,8 +1,9 @@
 """Property: random DAGs of groups driven by a random (but honest) worker world.
 
 Every workflow ends terminal; no task is placed before its upstream groups completed; no
-RunAttempt before the attempt reported prepared, none twice; resources are never
-over-committed; duplicate reports change nothing; everything is released at the end.
+RunAttempt before the attempt reported prepared, none twice; every RunAttempt and KillAttempt
+names the node its attempt was placed on; resources are never over-committed; duplicate
+reports change nothing; everything is released at the end.
 """
 
 from __future__ import annotations
@@ -97,6 +98,8 @@ class World:
         for n in self.nodes.values():
             assert self.s.used(n.id).fits_in(n.capacity), (n.id, self.s.used(n.id))
         for command in commands:
+            if isinstance(command, RunAttempt | KillAttempt) and command.attempt_id in self.where:
+                assert command.node_id == self.where[command.attempt_id], command  # its node
             if isinstance(command, PrepareAttempt):
                 self.check_upstream(command)
             elif isinstance(command, RunAttempt):

@@ -28,8 +28,8 @@ def test_exec_timeout_runs_from_the_groups_first_running() -> None:
     assert sim.s.next_deadline() == 15  # per group, not per task
     assert sim.send(Tick(), at=14.9) == []
     emitted = sim.send(Tick(), at=15)
-    assert emitted == [KillAttempt("wf-1:a:0", "exec timeout"),
-                       KillAttempt("wf-1:b:0", "exec timeout")]
+    assert emitted == [KillAttempt("wf-1:a:0", "n1", "exec timeout"),
+                       KillAttempt("wf-1:b:0", "n1", "exec timeout")]
     assert sim.statuses() == parse_statuses(
         "a=FAILED_EXEC_TIMEOUT b=FAILED_EXEC_TIMEOUT c=FAILED_UPSTREAM")
     a = sim.task("a")

@@ -5,8 +5,7 @@ from __future__ import annotations
 import pytest
 
 from osmo.errors import SpecError
-from osmo.spec import load_spec, render_spec
-from osmo.spec import isolation
+from osmo.spec import isolation, load_spec, render_spec
 from osmo.spec import template as template_module
 
 SPEC = """\

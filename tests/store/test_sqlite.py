@@ -12,7 +12,7 @@ from osmo.errors import InfrastructureError
 from osmo.scheduler import TaskState, WorkflowState
 from osmo.scheduler.types import Changes, Transition
 from osmo.status import TaskStatus, WorkflowStatus
-from osmo.store.sqlite import SCHEMA_VERSION, AttemptRow, Store
+from osmo.store.sqlite import SCHEMA_VERSION, AttemptRow, NewWorkflowRow, Store
 
 
 def _wf(status: WorkflowStatus = WorkflowStatus.PENDING) -> WorkflowState:
@@ -30,7 +30,8 @@ def _task(name: str, status: TaskStatus) -> TaskState:
 def _submit(store: Store) -> None:
     changes = Changes(workflows=[_wf()], tasks=[_task("a", TaskStatus.SCHEDULING)],
                       transitions=[Transition(1.0, "w-1", "a", 0, "SCHEDULING")])
-    store.commit(changes, new_workflows=[("w-1", "w", 1, 1.0, {"workflow": {"name": "w"}}, {})])
+    store.commit(changes, new_workflows=[NewWorkflowRow("w-1", "w", 1, 1.0,
+                                                        {"workflow": {"name": "w"}}, {})])
 
 
 def test_schema_is_created_and_versioned(tmp_path: Path) -> None:
@@ -70,7 +71,7 @@ def test_a_failing_batch_leaves_nothing_behind(tmp_path: Path) -> None:
     duplicate = Changes(workflows=[_wf(WorkflowStatus.RUNNING)],
                         tasks=[_task("a", TaskStatus.RUNNING)])
     with pytest.raises(InfrastructureError):  # same id again violates the primary key
-        store.commit(duplicate, new_workflows=[("w-1", "w", 1, 1.0, {}, {})])
+        store.commit(duplicate, new_workflows=[NewWorkflowRow("w-1", "w", 1, 1.0, {}, {})])
     assert store.workflow("w-1").status == "PENDING"  # type: ignore[union-attr]
     assert store.tasks("w-1")[0]["status"] == "SCHEDULING"
 

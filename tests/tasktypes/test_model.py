@@ -6,7 +6,10 @@ import dataclasses
 import sys
 from pathlib import Path
 
+import pytest
+
 import osmo
+from osmo.errors import UsageError
 from osmo.server.cache import fingerprint
 from osmo.spec import ResolvedType, ResourceSpec, load_spec, spec_from_dict
 from osmo.tasktypes.registry import Resolver
@@ -34,6 +37,21 @@ def test_builder_takes_a_type_object_or_name(on_path: Path) -> None:
     assert spec.task("a").resolved == ResolvedType(
         "2", ResourceSpec(cpu=3, memory=1 << 30), (str(on_path),))
     assert spec == wf.build()  # resolution is derived data, outside equality
+
+
+def test_builder_names_an_instance_and_refuses_what_a_worker_cannot_import(
+        on_path: Path) -> None:
+    write(on_path / "itypes.py", TYPES + "\nclass T:\n    pass\n\nINSTANCE = T()\n")
+    import itypes  # type: ignore[import-not-found]
+
+    wf = osmo.Workflow("typed").task("a", type=itypes.INSTANCE)
+    assert wf.to_dict()["workflow"]["tasks"][0]["type"] == "itypes:INSTANCE"
+    in_main = osmo.task_type(version="1")(lambda ctx: None)
+    in_main.fn.__module__ = "__main__"
+    with pytest.raises(UsageError, match="move them into a module"):
+        osmo.Workflow("typed").task("a", type=in_main).to_dict()
+    with pytest.raises(UsageError, match="cannot find .* in its module 'itypes'"):
+        osmo.Workflow("typed").task("a", type=itypes.T()).to_dict()
 
 
 def test_type_resources_apply_unless_a_resource_is_named(tmp_path: Path) -> None:

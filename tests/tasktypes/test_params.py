@@ -6,8 +6,8 @@ from typing import Any
 
 import pytest
 
+from osmo.params import fill_defaults, schema_problems, value_problem
 from osmo.tasktypes import REQUIRED, Param
-from osmo.tasktypes.params import fill_defaults, schema_problems, value_problem
 
 
 @pytest.mark.parametrize(("param", "value", "problem"), [

@@ -11,13 +11,17 @@ from pathlib import Path
 
 import pytest
 
+from osmo.layout import Home
 from osmo.scheduler.types import (
+    LOCAL_NODE,
     AttemptExited,
     AttemptPrepared,
     AttemptStarted,
     AttemptStartFailed,
     Event,
+    KillAttempt,
     PrepareAttempt,
+    RunAttempt,
 )
 from osmo.spec.model import ExitAction, ExitRule, FileSpec, TaskSpec
 from osmo.worker.logs import read_log
@@ -70,6 +74,12 @@ def alive(pid: int) -> bool:
     return state not in ("Z", "X")
 
 
+def attempt_dir(pool: LocalPool, attempt_id: str) -> Path | None:
+    """The attempt's folder on this pool's home, if it exists."""
+    dirs = Home(pool.home).attempt_of(attempt_id)
+    return dirs.root if dirs is not None and dirs.root.is_dir() else None
+
+
 def wait_until(condition: Callable[[], bool]) -> None:
     deadline = time.monotonic() + TIMEOUT
     while not condition():
@@ -103,7 +113,7 @@ def submit(
     )
     pool.prepare(cmd, task)
     if run:
-        pool.run(cmd.attempt_id)
+        pool.run(RunAttempt(cmd.attempt_id, LOCAL_NODE))
     return cmd.attempt_id
 
 
@@ -112,7 +122,7 @@ def sh(name: str, script: str, **kw: object) -> TaskSpec:
 
 
 def log_of(pool: LocalPool, attempt_id: str) -> list[tuple[str, str]]:
-    folder = pool.attempt_dir(attempt_id)
+    folder = attempt_dir(pool, attempt_id)
     assert folder is not None
     return [(r.stream, r.text) for r in read_log(folder / "log.txt")[0]]
 
@@ -137,7 +147,7 @@ def test_failure_is_not_promoted(pool: LocalPool, events: Events) -> None:
     final = events.final(aid)
     assert isinstance(final, AttemptExited)
     assert (final.exit_code, final.output) == (3, None)
-    folder = pool.attempt_dir(aid)
+    folder = attempt_dir(pool, aid)
     assert folder is not None
     assert not (folder / "output").exists()
     assert (folder / "output.partial" / "x").read_text() == "partial\n"
@@ -211,7 +221,7 @@ def test_prepare_failure(pool: LocalPool, events: Events) -> None:
 
 
 def test_run_without_prepare(pool: LocalPool, events: Events) -> None:
-    pool.run("wf-1:ghost:0")
+    pool.run(RunAttempt("wf-1:ghost:0", LOCAL_NODE))
     assert isinstance(events.final("wf-1:ghost:0"), AttemptStartFailed)
 
 
@@ -223,7 +233,7 @@ def test_logs_capture_both_streams(pool: LocalPool, events: Events) -> None:
     task = sh("logs", "echo out; echo err >&2; printf 'tab\\there'; exit 0", image="ubuntu:24.04")
     aid = submit(pool, task)
     events.final(aid)
-    folder = pool.attempt_dir(aid)
+    folder = attempt_dir(pool, aid)
     assert folder is not None
     records = read_log(folder / "log.txt")[0]
     lines = [(r.stream, r.text) for r in records]
@@ -250,13 +260,14 @@ def test_large_output_is_not_lost(pool: LocalPool, events: Events) -> None:
 
 def test_kill_running_kills_grandchildren(pool: LocalPool, events: Events) -> None:
     aid = submit(pool, sh("k", "sleep 100 & echo $! > bg.pid; echo started; sleep 100"))
-    events.wait_for(lambda e: isinstance(e, AttemptStarted))
-    folder = pool.attempt_dir(aid)
+    started = events.wait_for(lambda e: isinstance(e, AttemptStarted))
+    assert isinstance(started, AttemptStarted) and started.pid is not None
+    folder = attempt_dir(pool, aid)
     assert folder is not None
     wait_until(lambda: ("stdout", "started") in log_of(pool, aid))
     grandchild = int((folder / "work" / "bg.pid").read_text())
-    assert aid in pool.running()
-    pool.kill(aid, "exec timeout")
+    assert alive(started.pid) and started.pid_start is not None
+    pool.kill(KillAttempt(aid, LOCAL_NODE, "exec timeout"))
     final = events.final(aid)
     assert isinstance(final, AttemptExited)
     assert (final.exit_code, final.output) == (128 + signal.SIGTERM, None)
@@ -264,15 +275,15 @@ def test_kill_running_kills_grandchildren(pool: LocalPool, events: Events) -> No
     assert ("osmo", "killed: exec timeout") in log_of(pool, aid)
     assert not (folder / "output").exists()
     wait_until(lambda: not alive(grandchild))
-    assert aid not in pool.running()
+    assert not alive(started.pid)
 
 
 def test_kill_escalates_to_sigkill(pool: LocalPool, events: Events) -> None:
     aid = submit(pool, sh("stubborn", "trap '' TERM; echo ready; sleep 100"))
     wait_until(
-        lambda: pool.attempt_dir(aid) is not None and ("stdout", "ready") in log_of(pool, aid)
+        lambda: attempt_dir(pool, aid) is not None and ("stdout", "ready") in log_of(pool, aid)
     )
-    pool.kill(aid, "canceled")
+    pool.kill(KillAttempt(aid, LOCAL_NODE, "canceled"))
     final = events.final(aid)
     assert isinstance(final, AttemptExited)
     assert final.exit_code == 128 + signal.SIGKILL
@@ -285,9 +296,9 @@ def test_killed_attempt_is_not_promoted_even_if_it_exits_zero(
         pool, sh("graceful", "trap 'touch {{output}}/x; exit 0' TERM; echo ready; sleep 100 & wait")
     )
     wait_until(
-        lambda: pool.attempt_dir(aid) is not None and ("stdout", "ready") in log_of(pool, aid)
+        lambda: attempt_dir(pool, aid) is not None and ("stdout", "ready") in log_of(pool, aid)
     )
-    pool.kill(aid, "canceled")
+    pool.kill(KillAttempt(aid, LOCAL_NODE, "canceled"))
     final = events.final(aid)
     assert isinstance(final, AttemptExited)
     assert (final.exit_code, final.output) == (0, None)
@@ -295,9 +306,9 @@ def test_killed_attempt_is_not_promoted_even_if_it_exits_zero(
 
 def test_kill_before_start_reports_once(pool: LocalPool, events: Events) -> None:
     aid = submit(pool, sh("never", "echo ran > {{output}}/x"), run=False)
-    pool.kill(aid, "canceled")
-    pool.run(aid)  # too late: must neither start nor report again
-    pool.kill(aid, "again")
+    pool.kill(KillAttempt(aid, LOCAL_NODE, "canceled"))
+    pool.run(RunAttempt(aid, LOCAL_NODE))  # too late: must neither start nor report again
+    pool.kill(KillAttempt(aid, LOCAL_NODE, "again"))
     sentinel = submit(pool, TaskSpec(name="sentinel", command=("true",)))
     final = events.final(aid)
     assert final == AttemptExited(aid, 137, None, "killed: canceled")
@@ -309,8 +320,8 @@ def test_kill_before_start_reports_once(pool: LocalPool, events: Events) -> None
 def test_kill_of_finished_or_unknown_attempt_is_ignored(pool: LocalPool, events: Events) -> None:
     aid = submit(pool, TaskSpec(name="quick", command=("true",)))
     events.final(aid)
-    pool.kill(aid, "late")
-    pool.kill("wf-1:unknown:0", "nothing")
+    pool.kill(KillAttempt(aid, LOCAL_NODE, "late"))
+    pool.kill(KillAttempt("wf-1:unknown:0", LOCAL_NODE, "nothing"))
     sentinel = submit(pool, TaskSpec(name="sentinel", command=("true",)))
     events.final(sentinel)
     assert events.of(aid) == [AttemptPrepared, AttemptStarted, AttemptExited]
@@ -320,11 +331,10 @@ def test_kill_of_finished_or_unknown_attempt_is_ignored(pool: LocalPool, events:
 def test_close_kills_running_processes(tmp_path: Path, events: Events) -> None:
     pool = LocalPool(home=tmp_path, emit=events)
     aid = submit(pool, sh("long", "sleep 100"))
-    events.wait_for(lambda e: isinstance(e, AttemptStarted))
-    pid = pool.running()[aid]
+    started = events.wait_for(lambda e: isinstance(e, AttemptStarted) and e.attempt_id == aid)
+    assert isinstance(started, AttemptStarted) and started.pid is not None
     pool.close()
-    assert not alive(pid)
-    assert pool.running() == {}
+    assert not alive(started.pid)
     pool.close()  # idempotent
 
 
@@ -360,7 +370,7 @@ def test_parallel_tasks_see_their_own_files(
         assert isinstance(final, AttemptExited) and final.output is not None, final
         assert Path(final.output, "seen").read_text() == f"{name}\n"
         assert f"echo {name} >" in Path(final.output, "script").read_text()
-        folder = pool.attempt_dir(aid)
+        folder = attempt_dir(pool, aid)
         assert folder is not None
         assert (
             Path(final.output, "script").read_text().count(str(folder / "files" / "tmp" / "run.sh"))
@@ -394,12 +404,12 @@ def test_node_capacity(tmp_path: Path, events: Events) -> None:
         pool.close()
 
 
-def test_attempt_dir(pool: LocalPool, events: Events) -> None:
+def test_attempt_folders_follow_the_home_layout(pool: LocalPool, events: Events) -> None:
     aid = submit(pool, TaskSpec(name="d", command=("true",)))
     events.final(aid)
-    assert pool.attempt_dir(aid) == pool.home / "runs" / "wf-1" / "d" / "0"
-    assert pool.attempt_dir("wf-1:nothing:0") is None
-    assert pool.attempt_dir("garbage") is None
+    assert attempt_dir(pool, aid) == pool.home / "runs" / "wf-1" / "d" / "0"
+    assert attempt_dir(pool, "wf-1:nothing:0") is None
+    assert attempt_dir(pool, "garbage") is None
 
 
 def test_many_trivial_attempts_each_report_once(pool: LocalPool, events: Events) -> None:
@@ -415,7 +425,7 @@ def test_background_children_end_with_the_main_process(pool: LocalPool, events: 
     aid = submit(pool, sh("bg", "sleep 100 & echo $! > bg.pid"))
     final = events.final(aid)
     assert isinstance(final, AttemptExited) and final.exit_code == 0
-    folder = pool.attempt_dir(aid)
+    folder = attempt_dir(pool, aid)
     assert folder is not None
     grandchild = int((folder / "work" / "bg.pid").read_text())
     wait_until(lambda: not alive(grandchild))
@@ -434,7 +444,7 @@ def test_environment_reaches_the_command(tmp_path: Path, events: Events) -> None
         final = events.final(aid)
         assert isinstance(final, AttemptExited) and final.output is not None
         out = Path(final.output)
-        folder = pool.attempt_dir(aid)
+        folder = attempt_dir(pool, aid)
         assert folder is not None
         assert (out / "env").read_text() == "srv wf-1-x wf-1 env 2\n"
         assert (out / "root").read_text() == f"{folder / 'files'}\n"

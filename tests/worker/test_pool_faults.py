@@ -13,7 +13,7 @@ from osmo.artifacts import ArtifactStore, Manifest
 from osmo.artifacts.fsops import remove_tree
 from osmo.scheduler.types import AttemptExited, PrepareAttempt
 from osmo.worker.pool import LocalPool
-from tests.worker.test_pool import Events, sh
+from tests.worker.test_pool import Events, attempt_dir, sh
 
 PAYLOAD = {"key": "s3cr3t-value"}
 
@@ -33,7 +33,7 @@ def _run(pool: LocalPool, events: Events, script: str) -> tuple[AttemptExited, P
     assert isinstance(final, AttemptExited), final
     assert [type(e) for e in events.seen if getattr(e, "attempt_id", "") == cmd.attempt_id
             and isinstance(e, AttemptExited)] == [AttemptExited]
-    folder = pool.attempt_dir(cmd.attempt_id)
+    folder = attempt_dir(pool, cmd.attempt_id)
     assert folder is not None
     return final, folder / "files" / "etc" / "vault"
 

@@ -8,10 +8,16 @@ from pathlib import Path
 
 import pytest
 
-from osmo.scheduler.types import AttemptExited, AttemptStartFailed, PrepareAttempt
+from osmo.scheduler.types import (
+    LOCAL_NODE,
+    AttemptExited,
+    AttemptStartFailed,
+    KillAttempt,
+    PrepareAttempt,
+)
 from osmo.spec.model import TaskSpec
 from osmo.worker.pool import LocalPool
-from tests.worker.test_pool import Events, log_of, sh
+from tests.worker.test_pool import Events, attempt_dir, log_of, sh
 
 SECRET = "s3cr3t-V4lue"
 PAYLOAD = {"token": SECRET, "user": "robot-user"}
@@ -59,7 +65,7 @@ def check_ran_with_secret(pool: LocalPool, final: AttemptExited | AttemptStartFa
     assert (out / "keys").read_text().split() == ["token", "user"]
     assert sorted(log_of(pool, final.attempt_id)) == [  # the file has no final newline
         ("osmo", "exit code 0"), ("stderr", "****"), ("stdout", "token=****")]
-    folder = pool.attempt_dir(final.attempt_id)
+    folder = attempt_dir(pool, final.attempt_id)
     assert folder is not None
     assert not any((folder / "files" / "etc" / "creds").iterdir())  # deleted at the end
     for path in folder.rglob("*"):
@@ -103,9 +109,9 @@ def test_killed_before_start_removes_mounted_files(pool: LocalPool, events: Even
     cmd = PrepareAttempt("wf-1:api:0", "wf-1", "api", 0, "local", {}, {})
     pool.prepare(cmd, task)
     events.wait_for(lambda e: getattr(e, "attempt_id", None) == cmd.attempt_id)
-    pool.kill(cmd.attempt_id, "cancelled")
+    pool.kill(KillAttempt(cmd.attempt_id, LOCAL_NODE, "cancelled"))
     final = events.final(cmd.attempt_id)
     assert isinstance(final, AttemptExited) and final.exit_code == 137
-    folder = pool.attempt_dir(cmd.attempt_id)
+    folder = attempt_dir(pool, cmd.attempt_id)
     assert folder is not None
     assert not any((folder / "files" / "etc" / "creds").iterdir())

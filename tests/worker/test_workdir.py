@@ -10,10 +10,11 @@ from pathlib import Path
 
 import pytest
 
+from osmo.errors import OsmoError
+from osmo.layout import Home
 from osmo.scheduler.types import PrepareAttempt
 from osmo.spec.model import FileSpec, InputSpec, ResolvedType, TaskSpec
-from osmo.errors import OsmoError
-from osmo.worker.workdir import AttemptDirs, PrepareError, prepare, promote, remove_secret_files
+from osmo.worker.workdir import PrepareError, prepare, promote, remove_secret_files
 
 
 def command(
@@ -31,7 +32,7 @@ def prep(
     home: Path, task: TaskSpec, cmd: PrepareAttempt | None = None, env: dict[str, str] | None = None
 ):
     cmd = cmd or command(task.name)
-    dirs = AttemptDirs.at(home, cmd.workflow_id, cmd.task, cmd.retry)
+    dirs = Home(home).attempt(cmd.workflow_id, cmd.task, cmd.retry)
     return dirs, prepare(dirs, cmd, task, env or {"BASE": "1"})
 
 
@@ -202,12 +203,6 @@ def test_typed_task_runs_the_runner_on_its_context_file(tmp_path: Path) -> None:
     assert data["output"] == str(dirs.output_partial) and data["attempt_id"] == cmd.attempt_id
 
 
-@pytest.mark.parametrize("name", ["a/b", "..", ""])
-def test_unusable_names_fail(tmp_path: Path, name: str) -> None:
-    with pytest.raises(PrepareError):
-        AttemptDirs.at(tmp_path, "wf-1", name, 0)
-
-
 def test_preparing_again_starts_clean(tmp_path: Path) -> None:
     task = TaskSpec(name="t", command=("true",))
     dirs, _ = prep(tmp_path, task)
@@ -239,7 +234,7 @@ def test_credentials_as_environment_and_files(tmp_path: Path) -> None:
         credentials={"db": "/etc/creds", "api": {"TOKEN": "token", "OSMO_TASK": "token"}},
     )
     cmd = command("t")
-    dirs = AttemptDirs.at(tmp_path, cmd.workflow_id, cmd.task, cmd.retry)
+    dirs = Home(tmp_path).attempt(cmd.workflow_id, cmd.task, cmd.retry)
     secrets = {"db": {"user": "alice", "password": "pa55word"}, "api": {"token": "tok-123"}}
     launch = prepare(dirs, cmd, task, {"TOKEN": "server"}, secrets)
     mount = dirs.files / "etc" / "creds"
@@ -261,7 +256,7 @@ def test_credentials_as_environment_and_files(tmp_path: Path) -> None:
 def test_relative_credential_mount_is_under_work(tmp_path: Path) -> None:
     task = TaskSpec(name="t", command=("true",), credentials={"db": "creds"})
     cmd = command("t")
-    dirs = AttemptDirs.at(tmp_path, cmd.workflow_id, cmd.task, cmd.retry)
+    dirs = Home(tmp_path).attempt(cmd.workflow_id, cmd.task, cmd.retry)
     launch = prepare(dirs, cmd, task, {}, {"db": {"k": "v"}})
     assert launch.secret_files == (dirs.work / "creds" / "k",)
 
@@ -286,7 +281,7 @@ def test_unusable_credentials_fail(tmp_path: Path, credentials: dict[str, object
                                    secrets: dict[str, dict[str, str]], message: str) -> None:
     task = TaskSpec(name="t", command=("true",), credentials=credentials)
     cmd = command("t")
-    dirs = AttemptDirs.at(tmp_path, cmd.workflow_id, cmd.task, cmd.retry)
+    dirs = Home(tmp_path).attempt(cmd.workflow_id, cmd.task, cmd.retry)
     with pytest.raises(OsmoError) as info:
         prepare(dirs, cmd, task, {}, secrets)
     assert str(info.value) == message
@@ -296,7 +291,7 @@ def test_failed_mount_leaves_no_secret(tmp_path: Path) -> None:
     task = TaskSpec(name="t", command=("true",), credentials={"a": "/m", "b": "/m/k1"},
                     files=(FileSpec(path="/m/k1/k2", contents="x"),))
     cmd = command("t")
-    dirs = AttemptDirs.at(tmp_path, cmd.workflow_id, cmd.task, cmd.retry)
+    dirs = Home(tmp_path).attempt(cmd.workflow_id, cmd.task, cmd.retry)
     with pytest.raises(PrepareError, match="cannot prepare"):  # /m/k1 is a folder: no file
         prepare(dirs, cmd, task, {}, {"a": {"k0": "secret0", "k1": "secret1"}, "b": {"k": "v"}})
     assert not (dirs.files / "m" / "k0").exists()

@@ -117,7 +117,7 @@ def parse_success(value: Mapping[str, Any], envs: Sequence[str]
 
 
 def _gym_threshold(env_id: str, max_steps: int) -> tuple[float | None, str]:
-    """gymnasium's ``reward_threshold`` when it applies to ``max_steps``-step episodes."""
+    """Gymnasium's ``reward_threshold`` when it applies to ``max_steps``-step episodes."""
     try:
         import gymnasium
 
@@ -138,9 +138,11 @@ def choose_criterion(env_id: str, results: Sequence[EpisodeResult], *, max_steps
     """Decide how success is measured on ``env_id`` (see the module docstring for the order).
 
     Args:
+        env_id: the gymnasium id of the env.
         results: every episode of every policy on this env (an env signal shows up here).
         max_steps: the suite's episode step limit.
-        default, per_env: thresholds from the workflow (:func:`parse_success`).
+        default: the workflow's threshold for every env (:func:`parse_success`).
+        per_env: the workflow's thresholds by env id.
     """
     keys = {r.signal for r in results if r.signal}
     if keys:

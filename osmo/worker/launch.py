@@ -4,7 +4,8 @@ A typed task runs like any command, through the worker's process runtime::
 
     [sys.executable, "-m", "osmo.tasktypes.runner", "<attempt>/task.json"]
 
-``task.json`` (format 1) holds everything the runner needs; paths are absolute::
+``task.json`` (format 1: ``osmo.tasktypes.runner.FORMAT``) holds everything the runner needs;
+paths are absolute::
 
     {"format": 1,
      "type": "tasks:count",            # what the spec's ``type:`` says
@@ -19,7 +20,8 @@ An input's ``name`` is the upstream task (``WORKFLOW_ID:TASK`` for another workf
 the dataset (``NAME[:TAG]`` as written) or the URL. The environment gets the ``paths`` in
 front of ``PYTHONPATH`` so processes the task starts can import the same modules.
 
-File-system work only; imports no plugin.
+File-system work only; imports no plugin. The runner that reads the file is
+``osmo.tasktypes.runner``, which owns the format's version.
 """
 
 from __future__ import annotations
@@ -32,15 +34,11 @@ from pathlib import Path
 from typing import Any
 
 from osmo.spec.model import InputSpec, TaskSpec
+from osmo.tasktypes.runner import FORMAT
 
-__all__ = ["CONTEXT_FILE", "FORMAT", "input_name", "runner_argv", "runner_env",
+__all__ = ["input_name", "runner_argv", "runner_env",
            "write_context"]
 
-CONTEXT_FILE = "task.json"
-"""The context file's name inside the attempt folder."""
-
-FORMAT = 1
-"""The context file's format version."""
 
 
 def input_name(spec: InputSpec) -> str:

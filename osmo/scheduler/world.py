@@ -2,7 +2,7 @@
 
 This module owns the containers (runs, the attempt index, the node ledger, the queue, the
 deadlines), the outgoing commands of the event being handled, the change journal, and the
-single choke point for status changes (:meth:`Engine.set_status`), which keeps the per-run
+single choke point for status changes (:meth:`World.set_status`), which keeps the per-run
 counters, the transition log and the barrier membership consistent. Rules live in
 ``placement``, ``groups`` and ``attempts``; they call into this module, never the reverse.
 """
@@ -18,10 +18,10 @@ from osmo.scheduler.state import TaskState, WorkflowState
 from osmo.scheduler.types import Changes, Command, KillAttempt, RunAttempt, Transition
 from osmo.status import TaskStatus, WorkflowStatus
 
-__all__ = ["Engine"]
+__all__ = ["World"]
 
 
-class Engine:
+class World:
     """State shared by the scheduler's rules while they handle one event at ``now``."""
 
     def __init__(self, *, default_max_retries: int, max_lost_retries: int) -> None:
@@ -95,7 +95,8 @@ class Engine:
         The attempt's resources stay reserved until its final report arrives.
         """
         if kill is not None and task.status.active and task.attempt_id is not None:
-            self.out.append(KillAttempt(task.attempt_id, kill))
+            assert task.node_id is not None  # an active attempt is placed
+            self.out.append(KillAttempt(task.attempt_id, task.node_id, kill))
         task.exit_code = exit_code
         self.set_status(run, task, status, message)
 
@@ -110,9 +111,9 @@ class Engine:
             return
         batch.released = True
         for name in batch.members:
-            attempt = run.tasks[name].attempt_id
-            assert attempt is not None
-            self.out.append(RunAttempt(attempt))
+            task = run.tasks[name]
+            assert task.attempt_id is not None and task.node_id is not None
+            self.out.append(RunAttempt(task.attempt_id, task.node_id))
 
     def _leave_batch(self, run: Run, group: Group, name: str) -> None:
         group.prepared.discard(name)

@@ -11,26 +11,35 @@ from __future__ import annotations
 
 import re
 import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from osmo.artifacts import ArtifactStore, Manifest
 from osmo.errors import InfrastructureError, NotFoundError, UsageError
-from osmo.names import check_name, check_tag, parse_ref, shown
+from osmo.names import check_name, check_tag, check_worker_name, parse_ref, shown
 from osmo.server.datasets import select
-from osmo.server.engine import Engine, _Batch
-from osmo.transport.api import field, str_map
+from osmo.server.engine import Engine
+from osmo.server.requests import AddDatasetVersion, TagDataset
+from osmo.transport.blobs import SERVER, SameHost, fetch_manifest, host_id
+from osmo.transport.rpc import field, str_map
+from osmo.transport.zenoh_link import Link
 
-__all__ = ["DatasetApi"]
+__all__ = ["DatasetHandlers"]
+
+_MAX_TEXT = 4096  # characters of an owner, a host id or a folder in a request
 
 
-class DatasetApi:
-    """Handlers for ``datasets_*`` verbs."""
+class DatasetHandlers:
+    """Handlers for ``dataset_*`` verbs.
+
+    Args:
+        link: the server's session, to pull an upload's blobs from its client (None: this
+            server takes no uploads).
+    """
 
     def __init__(self, engine: Engine, artifacts: ArtifactStore, home: Path,
-                 pull: Callable[[dict[str, Any], Manifest], None] | None = None) -> None:
-        self._pull = pull  # fetch a manifest's blobs from a client (see WorkerHub.pull)
+                 link: Link | None = None) -> None:
+        self._link = link
         self._engine = engine
         self._store = engine.store
         self._artifacts = artifacts
@@ -38,9 +47,9 @@ class DatasetApi:
 
     def verbs(self) -> dict[str, Any]:
         """Verb name → handler."""
-        return {"datasets_list": self.list, "datasets_info": self.info,
-                "datasets_tag": self.tag, "datasets_download": self.download,
-                "datasets_upload": self.upload}
+        return {"dataset_list": self.list, "dataset_info": self.info,
+                "dataset_tag": self.tag, "dataset_download": self.download,
+                "dataset_upload": self.upload}
 
     def list(self, request: dict[str, Any]) -> list[dict[str, Any]]:
         """Every version (of one dataset), newest first, with size and tags."""
@@ -60,11 +69,7 @@ class DatasetApi:
         """Point ``tag`` at a version (moving it if it pointed elsewhere)."""
         tag = check_tag(request.get("tag"))
         row = self._row(request.get("ref"))
-
-        def do(engine: Engine, batch: _Batch, now: float) -> None:
-            batch.tags.append((row["name"], tag, row["version"]))
-
-        self._engine.call(do)
+        self._engine.ask(TagDataset(row["name"], tag, row["version"]))
         return {"name": row["name"], "version": row["version"], "tag": tag}
 
     def download(self, request: dict[str, Any]) -> dict[str, Any]:
@@ -82,9 +87,11 @@ class DatasetApi:
         return {"manifest": manifest.to_json(), "version": row["version"]}
 
     def upload(self, request: dict[str, Any]) -> dict[str, Any]:
-        """Make a new version of ``name`` from the manifest of a client's folder: the blobs
-        this server lacks are pulled from the client (``request["source"]``) first."""
-        if self._pull is None:
+        """Make a new version of ``name`` from the manifest of a client's folder.
+
+        The blobs this server lacks are pulled from the client (``request["source"]``) first.
+        """
+        if self._link is None:
             raise UsageError("this server cannot receive uploads")
         name = check_name(request.get("name"), "dataset name")
         try:
@@ -93,18 +100,27 @@ class DatasetApi:
             raise UsageError(f"'manifest' is not one: {str(exc)[:300]}") from None
         source = field(request, "source", dict)
         metadata = str_map(request, "metadata")
-        self._pull(source, manifest)
-        datasets = self._engine.datasets
-        assert datasets is not None
-
-        def do(engine: Engine, batch: _Batch, now: float) -> int:
-            row = datasets.version_row(name, manifest, source=None,
-                                       attempt_id=None, now=now, metadata=metadata)
-            batch.datasets.append(row)
-            return row.version
-
-        version = self._engine.call(do)
+        self._pull(self._link, source, manifest)
+        version = self._engine.ask(AddDatasetVersion(name, manifest, metadata))
         return {"name": name, "version": version, "manifest": manifest.digest}
+
+    def _pull(self, link: Link, source: dict[str, Any], manifest: Manifest) -> None:
+        """Fetch ``manifest``'s blobs from the client that serves them.
+
+        It serves them as ``source["owner"]``; they are linked from ``source["artifacts"]`` instead
+        when ``source["host_id"]`` is this host.
+
+        Raises:
+            UsageError: ``source`` is not such an object.
+        """
+        owner = check_worker_name(field(source, "owner", str, max_len=_MAX_TEXT,
+                                        what="'source.owner'"), reserved=(SERVER,))
+        host = field(source, "host_id", str, default=None, max_len=_MAX_TEXT,
+                     what="'source.host_id'")
+        artifacts = field(source, "artifacts", str, default=None, max_len=_MAX_TEXT,
+                          what="'source.artifacts'")
+        same = SameHost(Path(artifacts)) if host == host_id() and artifacts else None
+        fetch_manifest(link, owner, manifest, self._artifacts, same_host=same)
 
     def _row(self, ref: object) -> dict[str, Any]:
         name, tag = parse_ref(ref)

@@ -1,8 +1,9 @@
 """The server's request handlers: one function per API verb, JSON in and JSON out.
 
-Mutating verbs (submit, cancel, restart) run on the engine thread through ``Engine.call`` and
-reply only after their changes are committed. Read verbs read the store directly from the
-calling API thread. Handlers raise ``OsmoError`` subclasses for the client's mistakes.
+Mutating verbs (submit, cancel, restart) ask the engine with a typed request
+(``osmo.server.requests``) and reply only after their changes are committed. Read verbs read
+the store directly from the calling API thread. Handlers raise ``OsmoError`` subclasses for
+the client's mistakes.
 """
 
 from __future__ import annotations
@@ -14,40 +15,42 @@ from pathlib import Path
 from typing import Any
 
 from osmo.artifacts import ArtifactStore, Manifest
-from osmo.errors import NotFoundError, SubmitError, UsageError
-from osmo.names import MAX_NAME, check_name, check_workflow_id, parse_ref, shown
-from osmo.scheduler.types import CancelWorkflow, WorkflowSubmitted
-from osmo.server.api_datasets import DatasetApi
-from osmo.server.credentials import CredentialApi, check_task_credentials
-from osmo.server.engine import Engine, _Batch
+from osmo.errors import NotFoundError, UsageError
+from osmo.layout import Home
+from osmo.names import MAX_NAME, check_name, check_workflow_id, did_you_mean, shown
+from osmo.scheduler.types import CancelWorkflow
+from osmo.server.credentials import CredentialHandlers, check_task_credentials
+from osmo.server.dataset_handlers import DatasetHandlers
+from osmo.server.engine import Engine
 from osmo.server.lineage_query import lineage_graph, resolve_target
 from osmo.server.logview import last_progress, read_logs
+from osmo.server.requests import ListNodes, SubmitWorkflow
+from osmo.server.workers import WorkerHub
 from osmo.spec import isolation, load_spec, spec_from_dict, spec_to_dict
 from osmo.status import WorkflowStatus
 from osmo.store.sqlite import WorkflowRow
-from osmo.spec.reader import did_you_mean
-from osmo.transport.api import MAX_INT, field, str_list
-from osmo.worker.workdir import AttemptDirs
+from osmo.transport.rpc import MAX_INT, field, str_list
+from osmo.transport.zenoh_link import Link
 
-__all__ = ["Api"]
+__all__ = ["Handlers"]
 
-DEFAULT_MAX_RETRIES = 3
 MAX_LIST = 1_000_000  # workflows one ``list`` may ask for
 _MAX_TEXT = 4096  # characters of a path, a pool or an artifact target in a request
 
 
-class Api:
+class Handlers:
     """Dispatches ``verb`` → handler. ``info`` is returned by ``ping``."""
 
     def __init__(self, engine: Engine, home: Path, info: dict[str, Any],
-                 on_shutdown: Callable[[], None], workers: Any = None) -> None:
+                 on_shutdown: Callable[[], None], workers: WorkerHub | None = None,
+                 link: Link | None = None) -> None:
         self._workers = workers  # the WorkerHub: its verbs, and worker status for pools
         self._engine = engine
         self._store = engine.store
         self._home = home
         self._info = info
         self._on_shutdown = on_shutdown
-        self._artifacts = ArtifactStore(home / "artifacts")
+        self._artifacts = ArtifactStore(Home(home).artifacts)
         self._verbs: dict[str, Callable[[dict[str, Any]], Any]] = {
             "ping": lambda _r: self._info,
             "submit": self.submit,
@@ -60,16 +63,15 @@ class Api:
             "spec": self.spec,
             "pools": self.pools,
             "lineage": self.lineage,
-            "artifacts_list": self.artifacts_list,
-            "artifacts_get": self.artifacts_get,
-            "artifacts_gc": self.artifacts_gc,
+            "artifact_list": self.artifact_list,
+            "artifact_get": self.artifact_get,
+            "artifact_gc": self.artifact_gc,
             "shutdown": self.shutdown,
         }
         if workers is not None:
             self._verbs.update(workers.verbs())
-        self._verbs.update(DatasetApi(engine, self._artifacts, home,
-                                      workers.pull if workers else None).verbs())
-        self._verbs.update(CredentialApi(self._store).verbs())
+        self._verbs.update(DatasetHandlers(engine, self._artifacts, home, link).verbs())
+        self._verbs.update(CredentialHandlers(self._store).verbs())
         isolation.warm()  # the template renderer, started now so no submit waits for it
 
     def handle(self, verb: str, request: dict[str, Any]) -> Any:
@@ -82,16 +84,18 @@ class Api:
     # ------------------------------------------------------------------ mutating verbs
 
     def submit(self, request: dict[str, Any]) -> dict[str, Any]:
-        """Create a workflow from a spec dict. Request: spec, pool?, filename?, no_cache?,
-        type_paths? (folders custom task types are imported from: the spec file's folder).
-        Instead of ``spec``, a client on this host may send ``source`` (``{path, text}``) and
-        the template values (set_values, set_strings, set_env): the file is then rendered and
-        checked here, with the same loader and the same messages, saving the client the
-        template engine and YAML parser.
+        """Create a workflow from a spec dict.
+
+        Request: spec, pool?, filename?, no_cache?, type_paths? (folders custom task types are
+        imported from: the spec file's folder). Instead of ``spec``, a client on this host may send
+        ``source`` (``{path, text}``) and the template values (set_values, set_strings, set_env):
+        the file is then rendered and checked here, with the same loader and the same messages,
+        saving the client the template engine and YAML parser.
 
         Task types are resolved here, with this server's installed plugins; what was
         resolved (version, resources, folders) is kept in the workflow's options. Outputs
-        to reuse are for ``restart`` to give, never a request."""
+        to reuse are for ``restart`` to give, never a request.
+        """
         if "reused" in request or "reused_from" in request:
             raise UsageError("'reused' and 'reused_from' are set by `osmo restart` only")
         return self._submit(request, {}, None)
@@ -119,42 +123,17 @@ class Api:
             spec = spec_from_dict(stored, filename=filename or "<submitted>",
                                   types=Resolver(type_paths))
         check_task_credentials(spec, self._store)
-        pool = pool or spec.pool
-        options = {"pool": pool, "filename": filename, "reused_from": reused_from,
+        options = {"pool": pool or spec.pool, "filename": filename, "reused_from": reused_from,
                    "no_cache": field(request, "no_cache", bool, default=False),
                    "type_paths": type_paths,
                    "types": {t.name: t.resolved.to_dict() for t in spec.all_tasks()
                              if t.resolved is not None}}
-
-        def do(engine: Engine, batch: _Batch, now: float) -> str:
-            reasons = engine.scheduler.check_fit(spec, pool)
-            if reasons:
-                raise SubmitError("cannot run this workflow:\n  " + "\n  ".join(reasons))
-            n = engine.next_number(spec.name)
-            wf_id = f"{spec.name}-{n}"
-            max_retries = spec.max_retries if spec.max_retries is not None else DEFAULT_MAX_RETRIES
-            batch.commands += engine.scheduler.handle(
-                WorkflowSubmitted(wf_id, spec, max_retries, pool, reused), now)
-            engine.specs[wf_id] = spec
-            if options["no_cache"]:
-                engine.no_cache.add(wf_id)
-            batch.new_workflows.append((wf_id, spec.name, n, now, stored, options))
-            return wf_id
-
-        return {"workflow_id": self._engine.call(do)}
+        return {"workflow_id": self._engine.ask(SubmitWorkflow(spec, stored, options, reused))}
 
     def cancel(self, request: dict[str, Any]) -> dict[str, Any]:
         """Cancel a workflow; a no-op for one already ended."""
         row = self._row(request.get("workflow_id"))
-
-        def do(engine: Engine, batch: _Batch, now: float) -> None:
-            try:
-                engine.scheduler.workflow(row.id)
-            except KeyError:
-                return  # already terminal and forgotten
-            batch.commands += engine.scheduler.handle(CancelWorkflow(row.id), now)
-
-        self._engine.call(do)
+        self._engine.ask(CancelWorkflow(row.id))
         return {"workflow_id": row.id, "status": self._row(row.id).status}
 
     def restart(self, request: dict[str, Any]) -> dict[str, Any]:
@@ -182,7 +161,7 @@ class Api:
         tasks = _ordered_tasks(row, self._store.tasks(row.id))
         for task in tasks:  # typed tasks report progress as log lines; show the latest
             if task.get("status") == "RUNNING":
-                dirs = AttemptDirs.at(self._home, row.id, task["name"], int(task.get("retry", 0)))
+                dirs = Home(self._home).attempt(row.id, task["name"], int(task.get("retry", 0)))
                 task["progress"] = last_progress(dirs.log)
         return {"workflow": _workflow_dict(row), "tasks": tasks}
 
@@ -210,11 +189,9 @@ class Api:
 
     def pools(self, _request: dict[str, Any]) -> builtins.list[dict[str, Any]]:
         """Known nodes with their pool, platform and capacity used/total."""
-        sched = self._engine.scheduler
         remote = {w["id"]: w for w in self._workers.workers()} if self._workers else {}
         out = []
-        for node in sched.nodes():
-            used = sched.used(node.id)
+        for node, used in self._engine.ask(ListNodes()):
             worker = remote.get(node.id, {})
             out.append({"node": node.id, "pool": node.pool, "platform": node.platform,
                         "status": worker.get("status", "online"),
@@ -229,7 +206,7 @@ class Api:
         return lineage_graph(self._store, _target(request),
                              downstream=field(request, "downstream", bool, default=False))
 
-    def artifacts_list(self, request: dict[str, Any]) -> builtins.list[dict[str, Any]]:
+    def artifact_list(self, request: dict[str, Any]) -> builtins.list[dict[str, Any]]:
         """Promoted outputs of a workflow (optionally one task) with their files."""
         row = self._row(request.get("workflow_id"))
         task = field(request, "task", str, default=None)
@@ -244,9 +221,11 @@ class Api:
             raise NotFoundError(f"task '{task}' of {row.id} has no recorded output")
         return out
 
-    def artifacts_get(self, request: dict[str, Any]) -> dict[str, Any]:
-        """A target's manifest (and the one file meant, if it names a file); the client
-        fetches the blobs and writes the files."""
+    def artifact_get(self, request: dict[str, Any]) -> dict[str, Any]:
+        """A target's manifest, and the one file meant if it names a file.
+
+        The client fetches the blobs and writes the files.
+        """
         manifests, blob = resolve_target(self._store, _target(request))
         body = self._store.manifest_body(manifests[0])
         assert body is not None
@@ -254,7 +233,7 @@ class Api:
         only = next((e.path for e in manifest.entries if e.digest == blob), None) if blob else None
         return {"manifest": manifests[0], "body": body, "only": only}
 
-    def artifacts_gc(self, _request: dict[str, Any]) -> dict[str, Any]:
+    def artifact_gc(self, _request: dict[str, Any]) -> dict[str, Any]:
         """Remove blobs no recorded manifest references (recent blobs are kept)."""
         count, size = self._artifacts.gc(self._store.all_blob_digests())
         return {"removed": count, "bytes": size}
@@ -299,10 +278,10 @@ def _statuses(request: dict[str, Any]) -> builtins.list[str] | None:
 
 def _limit(request: dict[str, Any]) -> int | None:
     what = "the count of workflows to list"
-    limit = field(request, "limit", int, default=None, what=what)
+    limit: int | None = field(request, "limit", int, default=None, what=what)
     if limit is not None and not 1 <= limit <= MAX_LIST:
         raise UsageError(f"{what} must be from 1 to {MAX_LIST}, not {limit}")
-    return limit  # type: ignore[no-any-return]
+    return limit
 
 
 def _cursor(request: dict[str, Any]) -> dict[str, Any] | None:
@@ -319,10 +298,11 @@ def _cursor(request: dict[str, Any]) -> dict[str, Any] | None:
 
 
 def _target(request: dict[str, Any]) -> str:
-    """An artifact target (``sha256:...``, ``WORKFLOW_ID:TASK[:PATH]``, ``dataset:REF``)."""
+    """An artifact target: ``sha256:...``, ``WORKFLOW_ID:TASK[:PATH]`` or ``dataset:REF``.
+
+    ``osmo.server.lineage_query`` checks what it names.
+    """
     target: str = field(request, "target", str, max_len=_MAX_TEXT)
-    if target.startswith("dataset:"):
-        parse_ref(target[len("dataset:"):])
     return target
 
 

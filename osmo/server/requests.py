@@ -1,0 +1,80 @@
+"""The engine's typed API: what API handlers and executors may ask of it (``Engine.ask``).
+
+A request is applied on the engine thread, in the batch of events it arrives with, and its
+answer is given after that batch is committed. What applying a request raises (a
+``SubmitError`` for a workflow that can never fit) goes back to the asker, and nothing of
+that request is stored. No handler touches the engine's state; the requests and what each
+one answers:
+
+- :class:`SubmitWorkflow` → the new workflow's id;
+- ``osmo.scheduler.CancelWorkflow`` (the scheduler's own event) → None;
+- :class:`TagDataset` → None;
+- :class:`AddDatasetVersion` → the new version's number;
+- :class:`AttemptsOn` → the ids of the attempts placed on a node (how the hub reconciles a
+  worker that registers again);
+- :class:`ListNodes` → every node with the resources its attempts hold.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from osmo.artifacts import Manifest
+from osmo.scheduler.types import CancelWorkflow
+from osmo.spec.model import WorkflowSpec
+
+__all__ = ["AddDatasetVersion", "AttemptsOn", "ListNodes", "Request", "SubmitWorkflow",
+           "TagDataset"]
+
+
+@dataclass(frozen=True)
+class SubmitWorkflow:
+    """Create workflow ``<spec.name>-N`` from a checked spec.
+
+    Attributes:
+        spec: the spec, task types resolved.
+        stored: the spec as the store keeps it (its dict form).
+        options: the submission as the store keeps it: ``pool``, ``filename``,
+            ``no_cache``, ``reused_from``, ``type_paths``, ``types``.
+        reused: task name → output of an earlier run to reuse (``osmo restart``).
+    """
+
+    spec: WorkflowSpec
+    stored: dict[str, Any]
+    options: dict[str, Any]
+    reused: dict[str, str] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class TagDataset:
+    """Point ``tag`` of dataset ``name`` at ``version`` (moving it if it pointed elsewhere)."""
+
+    name: str
+    tag: str
+    version: int
+
+
+@dataclass(frozen=True)
+class AddDatasetVersion:
+    """Make the next version of dataset ``name`` hold ``manifest`` (an upload)."""
+
+    name: str
+    manifest: Manifest
+    metadata: dict[str, str] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class AttemptsOn:
+    """The attempts placed on ``node_id`` that have not sent their final report."""
+
+    node_id: str
+
+
+@dataclass(frozen=True)
+class ListNodes:
+    """Every known node with what its attempts hold: ``[(Node, Capacity used)]``."""
+
+
+Request = (SubmitWorkflow | CancelWorkflow | TagDataset | AddDatasetVersion | AttemptsOn
+           | ListNodes)

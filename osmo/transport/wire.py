@@ -1,0 +1,212 @@
+"""What the server and a remote worker say to each other: keys and JSON messages.
+
+The server's side is ``osmo.server.workers.WorkerHub``, the worker's
+``osmo.worker.remote.RemoteWorker``; both speak only through this module's functions.
+
+Keys, under the cluster prefix ``osmo/<cluster>``:
+
+- ``alive/server`` and ``alive/worker/<id>`` — liveliness tokens. A worker's token going
+  away (process killed, network cut: noticed within the 1 s lease) is its ``NodeDown``; the
+  server's token coming back tells a worker to register again.
+- ``api/worker_register`` — a worker's :class:`Hello`, answered with the server's host id and
+  artifact folder (a worker on the same host links blobs instead of fetching);
+  ``api/worker_drain`` — ``{"id": <worker>}``: it takes no more work.
+- ``to-worker/<id>`` — the server's orders: ``prepare`` (the attempt, the task's workflow
+  spec the first time, input manifests, secrets, ``max_output_bytes``: the task's storage
+  limit), ``run``, ``kill``, ``ack`` (an exit report
+  was received and its outputs are safe on the server), ``drain`` notices.
+- ``from-worker/<id>`` — the worker's reports: ``prepared``, ``started``, ``exited``,
+  ``start_failed``, ``lost`` (handed back while draining); ``from-worker/<id>/log`` carries
+  log records (attachment: the attempt id), appended by the server to its copy of the log.
+
+Attempt ids fence everything: a report about an attempt the scheduler has superseded is
+ignored, so a worker that returns late can never commit stale work.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import Any
+
+from osmo.errors import UsageError
+from osmo.names import check_worker_name, shown
+from osmo.scheduler.types import (
+    LOCAL_NODE,
+    AttemptExited,
+    AttemptLost,
+    AttemptPrepared,
+    AttemptStarted,
+    AttemptStartFailed,
+    Capacity,
+    Event,
+    Node,
+    PrepareAttempt,
+)
+from osmo.spec.model import WorkflowSpec
+from osmo.transport.blobs import SERVER
+from osmo.transport.rpc import MAX_INT, field, str_list, str_map
+
+__all__ = ["Hello", "capacity_from_dict", "capacity_to_dict", "event_from_dict",
+           "event_to_dict", "prepare_from_dict", "prepare_to_dict", "spec_from_wire",
+           "spec_to_wire", "worker_id"]
+
+_TEXT = 4096  # characters of a name, an address or a folder in a worker's message
+
+
+def event_to_dict(event: Event) -> dict[str, Any]:
+    """A worker's report as JSON-safe data."""
+    if isinstance(event, AttemptPrepared):
+        return {"op": "prepared", "attempt_id": event.attempt_id}
+    if isinstance(event, AttemptStarted):
+        return {"op": "started", "attempt_id": event.attempt_id}
+    if isinstance(event, AttemptStartFailed):
+        return {"op": "start_failed", "attempt_id": event.attempt_id, "message": event.message}
+    if isinstance(event, AttemptLost):
+        return {"op": "lost", "attempt_id": event.attempt_id, "message": event.message}
+    if isinstance(event, AttemptExited):
+        out = asdict(event)
+        out["op"] = "exited"
+        return out
+    raise TypeError(f"not a worker report: {event!r}")
+
+
+def event_from_dict(data: dict[str, Any]) -> Event:
+    """The inverse of :func:`event_to_dict`.
+
+    Raises:
+        ValueError: an unknown ``op``.
+    """
+    op, aid = data.get("op"), str(data.get("attempt_id"))
+    if op == "prepared":
+        return AttemptPrepared(aid)
+    if op == "started":
+        return AttemptStarted(aid)
+    if op == "start_failed":
+        return AttemptStartFailed(aid, str(data.get("message", "")))
+    if op == "lost":
+        return AttemptLost(aid, str(data.get("message", "worker lost")))
+    if op == "exited":
+        command = data.get("command")
+        return AttemptExited(aid, int(data["exit_code"]), data.get("output"),
+                             str(data.get("message") or ""), data.get("manifest"),
+                             bool(data.get("cached")),
+                             tuple(command) if command is not None else None)
+    raise ValueError(f"unknown report {op!r}")
+
+
+def prepare_to_dict(cmd: PrepareAttempt) -> dict[str, Any]:
+    """A placement as JSON-safe data."""
+    return asdict(cmd)
+
+
+def prepare_from_dict(data: dict[str, Any]) -> PrepareAttempt:
+    """The inverse of :func:`prepare_to_dict`."""
+    return PrepareAttempt(
+        attempt_id=str(data["attempt_id"]), workflow_id=str(data["workflow_id"]),
+        task=str(data["task"]), retry=int(data["retry"]), node_id=str(data["node_id"]),
+        inputs={str(k): str(v) for k, v in data["inputs"].items()},
+        hosts={str(k): str(v) for k, v in data["hosts"].items()}, run=bool(data["run"]))
+
+
+def capacity_to_dict(capacity: Capacity) -> dict[str, Any]:
+    """A worker's capacity as it advertises it."""
+    return {"cpu": capacity.cpu, "gpu": capacity.gpu, "memory": capacity.memory,
+            "storage": capacity.storage}
+
+
+def capacity_from_dict(data: dict[str, Any]) -> Capacity:
+    """The inverse of :func:`capacity_to_dict`; absent amounts are zero.
+
+    Raises:
+        UsageError: an amount that is not a number of the right kind, or is negative.
+    """
+    cpu = data.get("cpu", 0)
+    if isinstance(cpu, bool) or not isinstance(cpu, int | float) or not 0 <= cpu <= MAX_INT:
+        raise UsageError(f"'capacity.cpu' must be a number from 0, not {shown(cpu)}")
+    amounts = {key: field(data, key, int, default=0, what=f"'capacity.{key}'")
+               for key in ("gpu", "memory", "storage")}
+    negative = [key for key, value in amounts.items() if value < 0]
+    if negative:
+        raise UsageError(f"'capacity.{negative[0]}' must not be negative")
+    return Capacity(cpu=float(cpu), **amounts)
+
+
+def worker_id(request: dict[str, Any]) -> str:
+    """The worker a request comes from (its ``id``), checked as a worker name.
+
+    Raises:
+        UsageError: not a string, or not a name a worker may have.
+    """
+    return check_worker_name(field(request, "id", str, max_len=_TEXT),
+                             reserved=(LOCAL_NODE, SERVER))
+
+
+@dataclass(frozen=True)
+class Hello:
+    """A worker's registration: who it is, and what it holds.
+
+    It says hello again after a server restart.
+
+    Attributes:
+        node: its name, pool, capacity, platform, address and labels.
+        pid: its process id (shown by ``osmo resource list``).
+        host_id, artifacts: its host and its artifact folder (a server on the same host
+            links blobs from there instead of fetching them).
+        draining: it takes no more work.
+        active: the attempts it still runs.
+        finished: its exit reports the server has not acknowledged yet.
+    """
+
+    node: Node
+    pid: int | None = None
+    host_id: str | None = None
+    artifacts: str | None = None
+    draining: bool = False
+    active: tuple[str, ...] = ()
+    finished: tuple[dict[str, Any], ...] = ()
+
+    def to_dict(self) -> dict[str, Any]:
+        """The hello as JSON-safe data."""
+        node = self.node
+        return {"id": node.id, "pool": node.pool, "platform": node.platform,
+                "capacity": capacity_to_dict(node.capacity), "labels": dict(node.labels),
+                "address": node.address, "host_id": self.host_id, "artifacts": self.artifacts,
+                "pid": self.pid, "draining": self.draining, "active": list(self.active),
+                "finished": list(self.finished)}
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> Hello:
+        """The inverse of :meth:`to_dict`, every field checked.
+
+        Raises:
+            UsageError: a field missing, of the wrong type or out of range.
+        """
+        node = Node(id=worker_id(data), pool=field(data, "pool", str, max_len=_TEXT),
+                    capacity=capacity_from_dict(field(data, "capacity", dict, default={})),
+                    platform=field(data, "platform", str, default=None, max_len=_TEXT),
+                    address=field(data, "address", str, max_len=_TEXT),
+                    labels=str_map(data, "labels"))
+        finished = field(data, "finished", list, default=[])
+        if not all(isinstance(report, dict) for report in finished):
+            raise UsageError("'finished' must be a list of reports (objects)")
+        return cls(node, pid=field(data, "pid", int, default=None),
+                   host_id=field(data, "host_id", str, default=None, max_len=_TEXT),
+                   artifacts=field(data, "artifacts", str, default=None, max_len=_TEXT),
+                   draining=field(data, "draining", bool, default=False),
+                   active=tuple(str_list(data, "active")), finished=tuple(finished))
+
+
+def spec_to_wire(spec: dict[str, Any], filename: str, types: dict[str, Any]) -> dict[str, Any]:
+    """A stored workflow spec (its dict form), its file name and resolved task types."""
+    return {"spec": spec, "filename": filename, "types": types}
+
+
+def spec_from_wire(data: dict[str, Any]) -> WorkflowSpec:
+    """The spec a worker runs tasks from (task types as the server resolved them)."""
+    from osmo.spec import spec_from_dict
+    from osmo.spec.model import ResolvedType
+    from osmo.spec.typed import apply_resolved
+
+    spec = spec_from_dict(data["spec"], filename=data.get("filename") or "<submitted>")
+    return apply_resolved(spec, {name: ResolvedType.from_dict(t)
+                                 for name, t in (data.get("types") or {}).items()})

@@ -1,0 +1,107 @@
+"""A remote worker's options, defined once.
+
+``osmo worker``'s flags and ``osmo.worker.remote.RemoteWorker`` both use :class:`WorkerOptions`.
+
+Light on purpose: the CLI imports it to build its parser.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+from dataclasses import dataclass, field
+
+from osmo.config import DEFAULT_CLUSTER
+from osmo.errors import UsageError
+
+__all__ = ["DEFAULT_KILL_GRACE", "DEFAULT_POOL", "WorkerOptions"]
+
+DEFAULT_POOL = "default"
+"""The pool a worker serves unless told another."""
+
+DEFAULT_KILL_GRACE = 3.0
+"""Seconds between SIGTERM and SIGKILL when an attempt is killed."""
+
+
+@dataclass(frozen=True)
+class WorkerOptions:
+    """How a worker presents itself (see ``osmo worker --help``; every default is here).
+
+    Attributes:
+        connect: the server's zenoh endpoints.
+        pool: the pool it serves.
+        name: its unique name (default: ``HOSTNAME-PID``; ``osmo.names.check_worker_name``).
+        platform: matched against resource specs' ``platform``.
+        cpus, gpus, memory: capacity to offer (default: what the machine has).
+        labels: free ``key: value`` labels, shown with the worker.
+        cluster: the server's cluster name.
+        zenoh_config: a zenoh JSON5 file (TLS, user/password).
+        drain_timeout: on SIGTERM, how long running attempts may finish before they are
+            handed back.
+        kill_grace: seconds between SIGTERM and SIGKILL when an attempt is killed.
+        address: how peers reach its tasks (default: the outbound interface's address).
+    """
+
+    connect: tuple[str, ...]
+    pool: str = DEFAULT_POOL
+    name: str | None = None
+    platform: str | None = None
+    cpus: float | None = None
+    gpus: int | None = None
+    memory: int | None = None
+    labels: dict[str, str] = field(default_factory=dict)
+    cluster: str = DEFAULT_CLUSTER
+    zenoh_config: str | None = None
+    drain_timeout: float = 600.0
+    kill_grace: float = DEFAULT_KILL_GRACE
+    address: str | None = None
+
+    @staticmethod
+    def add_arguments(w: argparse.ArgumentParser) -> None:
+        """Add ``osmo worker``'s flags (``--home`` is the caller's)."""
+        d = WorkerOptions(connect=())
+        w.add_argument("--connect", action="append", required=True, metavar="ENDPOINT",
+                       help="the server's zenoh endpoint, e.g. tcp/10.0.0.5:7447 (repeatable)")
+        w.add_argument("--pool", default=d.pool, help=f"pool this worker serves ({d.pool})")
+        w.add_argument("--name", help="unique worker name (default: HOSTNAME-PID)")
+        w.add_argument("--platform", help="platform name matched against resource specs")
+        w.add_argument("--cpus", type=float, help="CPU slots to offer (default: cores)")
+        w.add_argument("--gpus", type=int, help="GPUs to offer (default: detected)")
+        w.add_argument("--memory", help="memory to offer, e.g. 8Gi (default: detected)")
+        w.add_argument("--label", action="append", default=[], metavar="KEY=VALUE")
+        w.add_argument("--zenoh-config", metavar="FILE",
+                       default=os.environ.get("OSMO_ZENOH_CONFIG"),
+                       help="zenoh JSON5 config for TLS / user-password (OSMO_ZENOH_CONFIG)")
+        w.add_argument("--cluster", default=d.cluster, help="the server's cluster name")
+        w.add_argument("--drain-timeout", type=float, default=d.drain_timeout,
+                       metavar="SECONDS", help="on SIGTERM, how long running tasks may finish "
+                                               f"before being handed back ({d.drain_timeout:g})")
+
+    @classmethod
+    def from_args(cls, args: argparse.Namespace) -> WorkerOptions:
+        """The options parsed by a parser that :meth:`add_arguments` set up.
+
+        Raises:
+            UsageError: a ``--memory`` or ``--label`` that cannot be read.
+        """
+        from osmo.spec.units import parse_size
+
+        try:
+            memory = (int(args.memory) if args.memory and args.memory.isdigit() else
+                      parse_size(args.memory) if args.memory else None)
+        except ValueError as exc:
+            raise UsageError(f"--memory {args.memory!r}: {exc} (e.g. 8Gi, 512Mi)") from None
+        return cls(connect=tuple(args.connect), pool=args.pool, name=args.name,
+                   platform=args.platform, cpus=args.cpus, gpus=args.gpus, memory=memory,
+                   labels=_labels(args.label), cluster=args.cluster,
+                   zenoh_config=args.zenoh_config, drain_timeout=args.drain_timeout)
+
+
+def _labels(items: list[str]) -> dict[str, str]:
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise UsageError(f"--label {item!r}: write KEY=VALUE")
+        out[key] = value
+    return out
