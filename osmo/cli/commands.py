@@ -18,6 +18,7 @@ from osmo.cli.render import (
     format_log,
     info_dict,
     live_progress,
+    print_error,
     print_json,
     safe,
     task_table,
@@ -25,7 +26,7 @@ from osmo.cli.render import (
     workflows_table,
 )
 from osmo.cli.robotics import run_eval, run_view
-from osmo.errors import WorkflowFailed
+from osmo.errors import OsmoError, WorkflowFailed
 from osmo.sdk.client import Client, WorkflowInfo
 from osmo.sdk.connect import server_status, start_server, stop_server
 from osmo.server.options import ServerOptions
@@ -125,12 +126,14 @@ def _list(args: argparse.Namespace) -> int:
 
 
 def _logs(args: argparse.Namespace) -> int:
+    stream = "stderr" if args.error else None
     with _client(args) as client:
         if args.follow:
-            records = client.follow_logs(args.workflow_id, task=args.task, retry=args.retry)
+            records = client.follow_logs(args.workflow_id, task=args.task, retry=args.retry,
+                                         stream=stream)
         else:
             records = iter(client.logs(args.workflow_id, task=args.task, retry=args.retry,
-                                       tail=args.lines))
+                                       tail=args.lines, stream=stream))
         for record in records:
             sys.stdout.write(format_log(record) + "\n")
             sys.stdout.flush()
@@ -138,10 +141,18 @@ def _logs(args: argparse.Namespace) -> int:
 
 
 def _cancel(args: argparse.Namespace) -> int:
+    """Cancel each workflow named; one that cannot be cancelled does not stop the others."""
+    code = 0
     with _client(args) as client:
-        status = client.cancel(args.workflow_id)
-    console.print(f"Workflow {safe(args.workflow_id)}: {status.name}", markup=False)
-    return 0
+        for wf_id in dict.fromkeys(args.workflow_ids):
+            try:
+                status = client.cancel(wf_id)
+            except OsmoError as exc:
+                print_error(f"{safe(wf_id)}: {exc}")
+                code = max(code, exc.exit_code)
+                continue
+            console.print(f"Workflow {safe(wf_id)}: {status.name}", markup=False)
+    return code
 
 
 def _restart(args: argparse.Namespace) -> int:

@@ -212,21 +212,35 @@ class Client:
         return builtins.list(self._call("pools"))
 
     def logs(self, workflow_id: str, *, task: str | None = None, retry: int | None = None,
-             tail: int | None = None) -> builtins.list[LogRecord]:
-        """All log records of a workflow so far (optionally of one task/retry, last N)."""
+             tail: int | None = None, stream: str | None = None) -> builtins.list[LogRecord]:
+        """All log records of a workflow so far.
+
+        Args:
+            workflow_id: the workflow.
+            task: only this task's records.
+            retry: only this retry's records.
+            tail: only the last N records (after the other filters).
+            stream: only this stream (``stdout``, ``stderr`` or ``osmo``).
+        """
         records = [_record(r) for r in self._call("logs", workflow_id=workflow_id, task=task,
                                                   retry=retry)["records"]]
+        records = [r for r in records if stream is None or r.stream == stream]
         return records[-tail:] if tail else records
 
     def follow_logs(self, workflow_id: str, *, task: str | None = None,
-                    retry: int | None = None, interval: float = 0.25) -> Iterator[LogRecord]:
-        """Yield log records as they are written, until the workflow has ended."""
+                    retry: int | None = None, interval: float = 0.25,
+                    stream: str | None = None) -> Iterator[LogRecord]:
+        """Yield log records as they are written, until the workflow has ended.
+
+        ``stream`` keeps only that stream's records (``stdout``, ``stderr`` or ``osmo``).
+        """
         cursor: dict[str, Any] | None = None
         while True:
             reply = self._call("logs", workflow_id=workflow_id, task=task, retry=retry,
                                cursor=cursor)
             cursor = reply["cursor"]
-            yield from (_record(r) for r in reply["records"])
+            yield from (r for r in map(_record, reply["records"])
+                        if stream is None or r.stream == stream)
             if reply["done"]:
                 return
             self._wait_change(workflow_id, interval)

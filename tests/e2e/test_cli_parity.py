@@ -1,0 +1,68 @@
+"""OSMO's argument forms through the real CLI and a real server (issue 17, item 1)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from tests.conftest import Osmo, ended, write
+
+SPEC = """
+workflow:
+  name: hello
+  tasks:
+  - name: say
+    command: [sh, -c, 'echo "{{ greeting }} {{ count }} {{ word }} $A $B"; echo oops >&2']
+default-values:
+  greeting: hi
+  count: 1
+  word: none
+"""
+
+
+def test_set_values_as_osmo_takes_them(osmo: Osmo, tmp_path: Path) -> None:
+    spec = write(tmp_path / "hello.yaml", SPEC)
+    wf = osmo.submit(spec, "--set", "greeting=hola", "count=3", "--set", "count=4",
+                     "--set-string", "word=007", "--set-env", "A=1", "B=2", "--set-env", "A=5",
+                     "--wait")
+    out = osmo("logs", wf, "-t", "say", check=True).out
+    assert "hola 4 007 5 2" in out  # several K=V per flag, flags repeated, later wins
+
+
+def test_a_swallowed_spec_file_is_named_with_the_fix(osmo: Osmo, tmp_path: Path) -> None:
+    spec = write(tmp_path / "hello.yaml", SPEC)
+    r = osmo("submit", "--set", "greeting=hola", "count=3", str(spec))
+    assert r.code == 2 and "Traceback" not in r.err
+    assert (f"--set takes every K=V after it, and it took '{spec}'. Put the file first: "
+            f"osmo submit {spec} --set greeting=hola count=3") in r.err.replace("\n", " ")
+    assert osmo.server_pid() is None  # nothing was submitted: no server was even started
+
+
+def test_global_options_after_the_verb_cancel_several_and_stderr_logs(
+        osmo: Osmo, tmp_path: Path) -> None:
+    spec = write(tmp_path / "hello.yaml", SPEC)
+    done = osmo.submit(spec, "--wait")
+    status = osmo("server", "status", "--format", "json", check=True).json()
+    endpoint = status["endpoint"]  # type: ignore[index]
+
+    # --server and --format after the verb, as OSMO users type them
+    info = osmo("query", done, "--server", endpoint, "--format", "json", check=True).json()
+    assert info["id"] == done and ended(info)  # type: ignore[index]
+    assert json.loads(osmo("list", "-t", "json", "--server", endpoint, check=True).out)
+    assert json.loads(osmo("-t", "json", "list", check=True).out)
+
+    # logs --error: stderr lines only
+    errors = osmo("logs", done, "--error", check=True).out
+    assert "oops" in errors and "hi 1" not in errors
+    assert "hi 1" in osmo("logs", done, check=True).out
+
+    # cancel takes several ids; one that fails does not stop the others
+    sleepy = write(tmp_path / "sleepy.yaml", "workflow:\n  name: sleepy\n  tasks:\n"
+                   "  - {name: nap, command: [sleep, '60']}\n")
+    first, second = osmo.submit(sleepy), osmo.submit(sleepy)
+    r = osmo("cancel", first, "nope-9", second)
+    assert r.code == 2, r
+    assert f"Workflow {first}: " in r.out and f"Workflow {second}: " in r.out
+    assert "nope-9" in r.err and "Traceback" not in r.err
+    for wf in (first, second):
+        assert osmo.wait_for(wf, ended)["status"] == "FAILED_CANCELED"
