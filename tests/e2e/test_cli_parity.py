@@ -66,3 +66,20 @@ def test_global_options_after_the_verb_cancel_several_and_stderr_logs(
     assert "nope-9" in r.err and "Traceback" not in r.err
     for wf in (first, second):
         assert osmo.wait_for(wf, ended)["status"] == "FAILED_CANCELED"
+
+
+def test_args_expand_kubernetes_style_vars(osmo: Osmo, tmp_path: Path) -> None:
+    spec = write(tmp_path / "vars.yaml", """
+workflow:
+  name: vars
+  tasks:
+  - name: show
+    command: [printf]
+    args: ['%s|%s|%s|%s|%s\\n', '$(GREETING)', '$$(GREETING)', '$(OSMO_TASK)', '$(NOPE)',
+           '$(WHO)']
+    environment:
+      GREETING: hello
+""")
+    wf = osmo.submit(spec, "--set-env", "WHO=osmo", "--wait")
+    out = osmo("logs", wf, "-t", "show", check=True).out
+    assert "hello|$(GREETING)|show|$(NOPE)|osmo" in out
