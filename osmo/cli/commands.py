@@ -15,6 +15,7 @@ from osmo.cli.pools import run_pool, run_resource
 from osmo.cli.remote import run_health, run_profile, run_worker
 from osmo.cli.render import (
     console,
+    events_text,
     format_log,
     info_dict,
     live_progress,
@@ -140,6 +141,16 @@ def _logs(args: argparse.Namespace) -> int:
     return 0
 
 
+def _events(args: argparse.Namespace) -> int:
+    with _client(args) as client:
+        events = client.events(args.workflow_id, task=args.task)
+    if args.format == "json":
+        print_json(events)
+    elif events:
+        console.print(events_text(events), markup=False, highlight=False, soft_wrap=True)
+    return 0
+
+
 def _cancel(args: argparse.Namespace) -> int:
     """Cancel each workflow named; one that cannot be cancelled does not stop the others."""
     code = 0
@@ -203,6 +214,7 @@ _VERBS: dict[str, Callable[[argparse.Namespace], int]] = {
     "status": _query,
     "list": _list,
     "logs": _logs,
+    "events": _events,
     "cancel": _cancel,
     "restart": _restart,
     "spec": _spec,

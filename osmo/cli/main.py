@@ -29,8 +29,8 @@ from osmo.server.options import ServerOptions
 
 __all__ = ["build_parser", "main"]
 
-_WORKFLOW_VERBS = ("submit", "validate", "query", "status", "list", "logs", "cancel", "restart",
-                   "spec")
+_WORKFLOW_VERBS = ("submit", "validate", "query", "status", "list", "logs", "events", "cancel",
+                   "restart", "spec")
 
 
 def _add_format(p: argparse.ArgumentParser) -> None:
@@ -103,6 +103,13 @@ def _add_workflow_verbs(sub: argparse._SubParsersAction) -> None:  # type: ignor
     p.add_argument("-n", "--lines", type=int, help="last N lines")
     p.add_argument("-f", "--follow", action="store_true", help="follow until the workflow ends")
     p.add_argument("--error", action="store_true", help="stderr lines only")
+
+    p = sub.add_parser("events", help="a workflow's scheduling timeline (queued, placed, "
+                       "started, retried, why it failed)")
+    p.add_argument("workflow_id")
+    p.add_argument("-t", "--task", help="only this task's events")
+    p.add_argument("--format", dest="format", choices=("text", "json"), default="text",
+                   help="output format (-t is the task here, as in logs)")
 
     p = sub.add_parser("cancel", help="cancel workflows")
     p.add_argument("workflow_ids", nargs="+", metavar="workflow_id")

@@ -26,7 +26,7 @@ if TYPE_CHECKING:  # the spec package (YAML, Jinja) loads only when a spec is ha
     from osmo.spec.model import WorkflowSpec
 from osmo.status import TaskStatus, WorkflowStatus
 
-__all__ = ["Client", "LogRecord", "TaskInfo", "WorkflowInfo"]
+__all__ = ["Client", "EventInfo", "LogRecord", "TaskInfo", "WorkflowInfo"]
 
 SpecLike: TypeAlias = "str | os.PathLike[str] | dict[str, Any] | WorkflowSpec | Workflow"
 
@@ -92,6 +92,27 @@ class LogRecord:
     retry: int | None
     stream: str
     text: str
+
+
+@dataclass(frozen=True)
+class EventInfo:
+    """One scheduling event of a workflow (``task`` None) or of a task retry.
+
+    Attributes:
+        at: unix seconds.
+        task: the task, None for the workflow's own events.
+        retry: the task's retry.
+        status: the status it entered.
+        message: why (waiting, failed, retried...), "" when nothing was said.
+        node: the node the retry's attempt was placed on (None until placed).
+    """
+
+    at: float
+    task: str | None
+    retry: int | None
+    status: str
+    message: str
+    node: str | None
 
 
 def _task_info(d: dict[str, Any]) -> TaskInfo:
@@ -226,6 +247,11 @@ class Client:
                                                   retry=retry)["records"]]
         records = [r for r in records if stream is None or r.stream == stream]
         return records[-tail:] if tail else records
+
+    def events(self, workflow_id: str, *, task: str | None = None) -> builtins.list[EventInfo]:
+        """The workflow's scheduling timeline, oldest first (optionally of one task)."""
+        return [EventInfo(e["at"], e["task"], e["retry"], e["status"], e["message"], e["node"])
+                for e in self._call("events", workflow_id=workflow_id, task=task)]
 
     def follow_logs(self, workflow_id: str, *, task: str | None = None,
                     retry: int | None = None, interval: float = 0.25,

@@ -60,6 +60,7 @@ class Handlers:
             "status": self.status,
             "list": self.list,
             "logs": self.logs,
+            "events": self.events,
             "spec": self.spec,
             "pools": self.pools,
             "lineage": self.lineage,
@@ -182,6 +183,21 @@ class Handlers:
         row = self._row(request.get("workflow_id"))
         task, retry = self._attempt(row, request)
         return read_logs(self._store, row, task=task, retry=retry, cursor=_cursor(request))
+
+    def events(self, request: dict[str, Any]) -> builtins.list[dict[str, Any]]:
+        """The workflow's scheduling timeline, oldest first (optionally of one task).
+
+        Each event is a status change of the workflow (``task`` None) or of a task retry, with
+        its message (why it waits, failed or was retried) and, for a retry, the node its
+        attempt was placed on (None until placed).
+        """
+        row = self._row(request.get("workflow_id"))
+        task, _ = self._attempt(row, request)
+        nodes = {(a.task, a.retry): a.node_id for a in self._store.attempts(row.id, task)}
+        return [{"at": e["at"], "task": e["task"], "retry": e["retry"], "status": e["status"],
+                 "message": e["message"], "node": nodes.get((e["task"], e["retry"]))}
+                for e in self._store.transitions(row.id)
+                if task is None or e["task"] == task]
 
     def spec(self, request: dict[str, Any]) -> dict[str, Any]:
         """The stored (rendered) spec of a workflow, as a dict."""

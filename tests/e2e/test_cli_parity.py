@@ -83,3 +83,33 @@ workflow:
     wf = osmo.submit(spec, "--set-env", "WHO=osmo", "--wait")
     out = osmo("logs", wf, "-t", "show", check=True).out
     assert "hello|$(GREETING)|show|$(NOPE)|osmo" in out
+
+
+def test_events_show_the_timeline_after_a_retry(osmo: Osmo, tmp_path: Path) -> None:
+    marker = tmp_path / "tried"
+    spec = write(tmp_path / "flaky.yaml", f"""
+workflow:
+  name: flaky
+  tasks:
+  - name: flaky
+    command: [sh, -c, 'if [ -e {marker} ]; then echo ok; else touch {marker}; exit 7; fi']
+    exitActions:
+      RESCHEDULE: 7
+""")
+    wf = osmo.submit(spec, "--wait")
+    events = osmo("workflow", "events", wf, "--format", "json", check=True).json()
+    mine = [(e["retry"], e["status"]) for e in events if e["task"] == "flaky"]  # type: ignore[index]
+    # retry 0 ran and failed with 7, was rescheduled as retry 1, which completed
+    assert (0, "RUNNING") in mine and (1, "RUNNING") in mine and mine[-1] == (1, "COMPLETED")
+    assert mine.index((0, "RUNNING")) < mine.index((1, "RUNNING"))
+    retried = [e for e in events if e["task"] == "flaky" and e["retry"] == 0  # type: ignore[index]
+               and e["status"] not in ("PENDING", "SCHEDULING", "INITIALIZING", "RUNNING")]
+    assert retried and "7" in retried[0]["message"], retried  # why retry 0 ended
+    assert all(e["node"] == "local" for e in events  # type: ignore[index]
+               if e["task"] and e["status"] == "RUNNING")
+    assert [e["status"] for e in events if e["task"] is None][-1] == "COMPLETED"  # type: ignore[index]
+
+    text = osmo("events", wf, "-t", "flaky", check=True).out.splitlines()
+    assert any("[flaky retry-1]  RUNNING  on " in line for line in text), text
+    assert not any("[workflow]" in line for line in text)
+    assert osmo("events", "nope-1").code == 2
