@@ -27,7 +27,8 @@ from osmo.cli.render import (
     workflows_table,
 )
 from osmo.cli.robotics import run_eval, run_view
-from osmo.errors import OsmoError, WorkflowFailed
+from osmo.errors import OsmoError, UsageError, WorkflowFailed
+from osmo.names import check_label
 from osmo.sdk.client import Client, WorkflowInfo
 from osmo.sdk.connect import server_status, start_server, stop_server
 from osmo.server.options import ServerOptions
@@ -58,7 +59,7 @@ def _submit(args: argparse.Namespace) -> int:
     with _client(args) as client:
         wf_id = client.submit(args.file, set_values=args.set_values,
                               set_strings=args.set_strings, set_env=args.set_env, pool=args.pool,
-                              no_cache=args.no_cache)
+                              no_cache=args.no_cache, labels=_label_args(args.labels))
         if args.format == "json" and not args.wait:
             print_json({"workflow_id": wf_id})
             return 0
@@ -116,7 +117,8 @@ def _query(args: argparse.Namespace) -> int:
 def _list(args: argparse.Namespace) -> int:
     statuses = [s.upper() for s in args.status]
     with _client(args) as client:
-        rows = client.list(statuses=statuses, name=args.name, limit=args.count)
+        rows = client.list(statuses=statuses, name=args.name, limit=args.count,
+                           labels=_label_args(args.labels))
     if args.format == "json":
         print_json([info_dict(r) for r in rows])
     elif rows:
@@ -138,6 +140,30 @@ def _logs(args: argparse.Namespace) -> int:
         for record in records:
             sys.stdout.write(format_log(record) + "\n")
             sys.stdout.flush()
+    return 0
+
+
+def _label_args(items: list[str]) -> dict[str, str]:
+    """``--label K=V`` values → a dict (later wins); checked as the server checks them."""
+    labels: dict[str, str] = {}
+    for item in items:
+        key, eq, value = item.partition("=")
+        if not eq:
+            raise UsageError(f"--label {safe(item)}: expected K=V")
+        labels.update([check_label(key, value)])
+    return labels
+
+
+def _tag(args: argparse.Namespace) -> int:
+    if not args.add and not args.remove:
+        raise UsageError("osmo workflow tag: give --add TAG... and/or --remove TAG...")
+    with _client(args) as client:
+        tags = client.tag(args.workflow_id, add=args.add, remove=args.remove)
+    if args.format == "json":
+        print_json({"workflow_id": args.workflow_id, "tags": tags})
+    else:
+        console.print(f"Workflow {safe(args.workflow_id)} tags: "
+                      f"{', '.join(map(safe, tags)) or '(none)'}", markup=False)
     return 0
 
 
@@ -215,6 +241,7 @@ _VERBS: dict[str, Callable[[argparse.Namespace], int]] = {
     "list": _list,
     "logs": _logs,
     "events": _events,
+    "tag": _tag,
     "cancel": _cancel,
     "restart": _restart,
     "spec": _spec,

@@ -29,8 +29,8 @@ from osmo.server.options import ServerOptions
 
 __all__ = ["build_parser", "main"]
 
-_WORKFLOW_VERBS = ("submit", "validate", "query", "status", "list", "logs", "events", "cancel",
-                   "restart", "spec")
+_WORKFLOW_VERBS = ("submit", "validate", "query", "status", "list", "logs", "events", "tag",
+                   "cancel", "restart", "spec")
 
 
 def _add_format(p: argparse.ArgumentParser) -> None:
@@ -74,7 +74,9 @@ def _check_spec_file(args: argparse.Namespace) -> None:
 def _add_workflow_verbs(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = sub.add_parser("submit", help="submit a workflow")
     _add_template_args(p)
-    p.add_argument("--pool", help="target pool (overrides workflow.pool)")
+    p.add_argument("--pool", "-p", help="target pool (overrides workflow.pool)")
+    p.add_argument("--label", dest="labels", action="append", default=[], metavar="K=V",
+                   help="a workflow label, merged over workflow.labels (repeatable)")
     p.add_argument("--wait", action="store_true", help="show progress; exit 0 only if COMPLETED")
     p.add_argument("--dry-run", action="store_true", help="print the rendered spec; submit nothing")
     p.add_argument("--no-cache", action="store_true",
@@ -94,6 +96,8 @@ def _add_workflow_verbs(sub: argparse._SubParsersAction) -> None:  # type: ignor
     p.add_argument("-s", "--status", action="append", default=[], help="filter by status")
     p.add_argument("--name", help="filter by name (substring)")
     p.add_argument("-c", "--count", type=int, default=20, help="how many (default 20)")
+    p.add_argument("--label", dest="labels", action="append", default=[], metavar="K=V",
+                   help="only workflows with this label (repeatable: all of them)")
     _add_format(p)
 
     p = sub.add_parser("logs", help="a workflow's logs")
@@ -110,6 +114,12 @@ def _add_workflow_verbs(sub: argparse._SubParsersAction) -> None:  # type: ignor
     p.add_argument("-t", "--task", help="only this task's events")
     p.add_argument("--format", dest="format", choices=("text", "json"), default="text",
                    help="output format (-t is the task here, as in logs)")
+
+    p = sub.add_parser("tag", help="add or remove a workflow's tags")
+    p.add_argument("workflow_id")
+    p.add_argument("--add", nargs="+", action="extend", default=[], metavar="TAG")
+    p.add_argument("--remove", nargs="+", action="extend", default=[], metavar="TAG")
+    _add_format(p)
 
     p = sub.add_parser("cancel", help="cancel workflows")
     p.add_argument("workflow_ids", nargs="+", metavar="workflow_id")

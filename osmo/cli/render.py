@@ -143,6 +143,11 @@ def workflow_header(info: WorkflowInfo) -> str:
     ]
     if info.reused_from:
         lines.append(f"Restart of  : {safe(info.reused_from)}")
+    if info.labels:
+        lines.append("Labels      : " + ", ".join(f"{safe(k)}={safe(v)}"
+                                                  for k, v in sorted(info.labels.items())))
+    if info.tags:
+        lines.append(f"Tags        : {', '.join(map(safe, info.tags))}")
     return "\n".join(lines)
 
 

@@ -12,7 +12,7 @@ import json
 import os
 import threading
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeAlias
@@ -69,6 +69,8 @@ class WorkflowInfo:
     pool: str | None
     tasks: list[TaskInfo] = field(default_factory=list)
     reused_from: str | None = None
+    labels: dict[str, str] = field(default_factory=dict)
+    tags: list[str] = field(default_factory=list)
 
     @property
     def ok(self) -> bool:
@@ -125,7 +127,8 @@ def _task_info(d: dict[str, Any]) -> TaskInfo:
 def _workflow_info(wf: dict[str, Any], tasks: list[dict[str, Any]] = ()) -> WorkflowInfo:  # type: ignore[assignment]
     return WorkflowInfo(wf["id"], wf["name"], WorkflowStatus[wf["status"]],
                         wf.get("submitted_at", 0.0), wf.get("started_at"), wf.get("ended_at"),
-                        wf.get("pool"), [_task_info(t) for t in tasks], wf.get("reused_from"))
+                        wf.get("pool"), [_task_info(t) for t in tasks], wf.get("reused_from"),
+                        dict(wf.get("labels") or {}), list(wf.get("tags") or []))
 
 
 class Client:
@@ -173,11 +176,13 @@ class Client:
 
     def submit(self, spec: SpecLike, *, set_values: Sequence[str] = (),
                set_strings: Sequence[str] = (), set_env: Sequence[str] = (),
-               pool: str | None = None, no_cache: bool = False) -> str:
+               pool: str | None = None, no_cache: bool = False,
+               labels: Mapping[str, str] | None = None) -> str:
         """Validate ``spec`` (a path, a dict, a model or a builder) and submit it.
 
         Tasks whose definition and input contents match an earlier success reuse its
         outputs (marked cached) unless ``no_cache`` or the task says ``cache: false``.
+        ``labels`` are merged over the spec's ``workflow.labels`` (``--label k=v``).
 
         Returns:
             the new workflow's id (``<name>-<N>``).
@@ -193,19 +198,27 @@ class Client:
             text = read_spec_file(path, os.fspath(spec))
             result = self._call("submit", source={"path": str(path), "text": text},
                                 set_values=list(set_values), set_strings=list(set_strings),
-                                set_env=list(set_env), pool=pool, no_cache=no_cache)
+                                set_env=list(set_env), pool=pool, no_cache=no_cache,
+                                labels=dict(labels or {}))
             return str(result["workflow_id"])
         from osmo.spec import spec_to_dict
 
         model, filename = _to_model(spec, set_values, set_strings, set_env)
         type_paths = sorted({p for t in model.all_tasks() if t.resolved for p in t.resolved.paths})
         result = self._call("submit", spec=spec_to_dict(model), pool=pool, filename=filename,
-                            no_cache=no_cache, type_paths=type_paths)
+                            no_cache=no_cache, type_paths=type_paths, labels=dict(labels or {}))
         return str(result["workflow_id"])
 
     def cancel(self, workflow_id: str) -> WorkflowStatus:
         """Cancel a workflow; returns its status after the cancel was committed."""
         return WorkflowStatus[self._call("cancel", workflow_id=workflow_id)["status"]]
+
+    def tag(self, workflow_id: str, *, add: Sequence[str] = (),
+            remove: Sequence[str] = ()) -> builtins.list[str]:
+        """Add and remove a workflow's tags; returns its tags after the change."""
+        reply = self._call("workflow_tag", workflow_id=workflow_id, add=list(add),
+                           remove=list(remove))
+        return builtins.list(reply["tags"])
 
     def restart(self, workflow_id: str) -> str:
         """Submit a finished workflow again, reusing outputs of its completed tasks."""
@@ -219,9 +232,11 @@ class Client:
         return _workflow_info(reply["workflow"], reply["tasks"])
 
     def list(self, *, statuses: Sequence[str] = (), name: str | None = None,
-             limit: int | None = None) -> list[WorkflowInfo]:
-        """Workflows, newest first."""
-        rows = self._call("list", statuses=list(statuses) or None, name=name, limit=limit)
+             limit: int | None = None,
+             labels: Mapping[str, str] | None = None) -> builtins.list[WorkflowInfo]:
+        """Workflows, newest first; ``labels``: only those with every one of these labels."""
+        rows = self._call("list", statuses=list(statuses) or None, name=name, limit=limit,
+                          labels=dict(labels or {}) or None)
         return [_workflow_info(r) for r in rows]
 
     def spec(self, workflow_id: str) -> dict[str, Any]:

@@ -113,3 +113,45 @@ workflow:
     assert any("[flaky retry-1]  RUNNING  on " in line for line in text), text
     assert not any("[workflow]" in line for line in text)
     assert osmo("events", "nope-1").code == 2
+
+
+def test_labels_filter_and_tags(osmo: Osmo, tmp_path: Path) -> None:
+    spec = write(tmp_path / "lab.yaml", """
+workflow:
+  name: lab
+  labels: {team: perception, stage: dev}
+  tasks:
+  - {name: a, command: ['true']}
+""")
+    first = osmo.submit(spec, "--label", "stage=prod", "--label", "run=1", "--wait")
+    second = osmo.submit(spec, "--label", "run=2", "--wait")
+    info = osmo.query(first)
+    assert info["labels"] == {"team": "perception", "stage": "prod", "run": "1"}  # merged
+
+    def listed(*labels: str) -> list[str]:
+        args = [a for label in labels for a in ("--label", label)]
+        rows = osmo("list", *args, "--format", "json", check=True).json()
+        return [r["id"] for r in rows]  # type: ignore[union-attr, index]
+
+    assert listed("team=perception") == [second, first]
+    assert listed("stage=prod") == [first]
+    assert listed("stage=dev", "run=2") == [second]
+    assert listed("stage=prod", "run=2") == []
+    assert listed("nope=x") == []
+    bad = osmo("list", "--label", "bad key=x")
+    assert bad.code == 2 and "label key" in bad.err
+
+    r = osmo("workflow", "tag", first, "--add", "best", "baseline", check=True)
+    assert "best" in r.out and "baseline" in r.out
+    tags = osmo("workflow", "tag", first, "--remove", "baseline", "--add", "v2",
+                "--format", "json", check=True).json()
+    assert tags == {"workflow_id": first, "tags": ["best", "v2"]}
+    assert osmo.query(first)["tags"] == ["best", "v2"]
+    assert osmo.query(second)["tags"] == []
+    assert "Tags        : best, v2" in osmo("query", first, check=True).out
+    assert osmo("workflow", "tag", first, "--add", "no spaces").code == 2
+    assert osmo("workflow", "tag", "nope-1", "--add", "x").code == 2
+
+    # a restart keeps the labels given at submit
+    again = osmo("restart", first, check=True).out.split(" - ")[1].strip()
+    assert osmo.query(again)["labels"]["stage"] == "prod"
