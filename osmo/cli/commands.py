@@ -59,7 +59,8 @@ def _submit(args: argparse.Namespace) -> int:
     with _client(args) as client:
         wf_id = client.submit(args.file, set_values=args.set_values,
                               set_strings=args.set_strings, set_env=args.set_env, pool=args.pool,
-                              no_cache=args.no_cache, labels=_label_args(args.labels))
+                              no_cache=args.no_cache, labels=_label_args(args.labels),
+                              priority=args.priority)
         if args.format == "json" and not args.wait:
             print_json({"workflow_id": wf_id})
             return 0

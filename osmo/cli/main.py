@@ -77,6 +77,9 @@ def _add_workflow_verbs(sub: argparse._SubParsersAction) -> None:  # type: ignor
     p.add_argument("--pool", "-p", help="target pool (overrides workflow.pool)")
     p.add_argument("--label", dest="labels", action="append", default=[], metavar="K=V",
                    help="a workflow label, merged over workflow.labels (repeatable)")
+    p.add_argument("--priority", type=str.upper, choices=("HIGH", "NORMAL", "LOW"),
+                   default="NORMAL", help="placement order when resources are short, with "
+                   "ageing: nothing waits forever (default NORMAL)")
     p.add_argument("--wait", action="store_true", help="show progress; exit 0 only if COMPLETED")
     p.add_argument("--dry-run", action="store_true", help="print the rendered spec; submit nothing")
     p.add_argument("--no-cache", action="store_true",

@@ -138,6 +138,7 @@ def workflow_header(info: WorkflowInfo) -> str:
         f"Workflow ID : {safe(info.id)}",
         f"Status      : {info.status.name}",
         f"Pool        : {safe(info.pool or '-')}",
+        f"Priority    : {info.priority}",
         f"Submitted   : {_when(info.submitted_at)}",
         f"Duration    : {_dur(_elapsed(info))}",
     ]

@@ -71,6 +71,7 @@ class WorkflowInfo:
     reused_from: str | None = None
     labels: dict[str, str] = field(default_factory=dict)
     tags: list[str] = field(default_factory=list)
+    priority: str = "NORMAL"
 
     @property
     def ok(self) -> bool:
@@ -128,7 +129,8 @@ def _workflow_info(wf: dict[str, Any], tasks: list[dict[str, Any]] = ()) -> Work
     return WorkflowInfo(wf["id"], wf["name"], WorkflowStatus[wf["status"]],
                         wf.get("submitted_at", 0.0), wf.get("started_at"), wf.get("ended_at"),
                         wf.get("pool"), [_task_info(t) for t in tasks], wf.get("reused_from"),
-                        dict(wf.get("labels") or {}), list(wf.get("tags") or []))
+                        dict(wf.get("labels") or {}), list(wf.get("tags") or []),
+                        wf.get("priority") or "NORMAL")
 
 
 class Client:
@@ -177,12 +179,13 @@ class Client:
     def submit(self, spec: SpecLike, *, set_values: Sequence[str] = (),
                set_strings: Sequence[str] = (), set_env: Sequence[str] = (),
                pool: str | None = None, no_cache: bool = False,
-               labels: Mapping[str, str] | None = None) -> str:
+               labels: Mapping[str, str] | None = None, priority: str = "NORMAL") -> str:
         """Validate ``spec`` (a path, a dict, a model or a builder) and submit it.
 
         Tasks whose definition and input contents match an earlier success reuse its
         outputs (marked cached) unless ``no_cache`` or the task says ``cache: false``.
-        ``labels`` are merged over the spec's ``workflow.labels`` (``--label k=v``).
+        ``labels`` are merged over the spec's ``workflow.labels`` (``--label k=v``);
+        ``priority`` is HIGH, NORMAL or LOW (placement order when resources are short).
 
         Returns:
             the new workflow's id (``<name>-<N>``).
@@ -199,14 +202,15 @@ class Client:
             result = self._call("submit", source={"path": str(path), "text": text},
                                 set_values=list(set_values), set_strings=list(set_strings),
                                 set_env=list(set_env), pool=pool, no_cache=no_cache,
-                                labels=dict(labels or {}))
+                                labels=dict(labels or {}), priority=priority)
             return str(result["workflow_id"])
         from osmo.spec import spec_to_dict
 
         model, filename = _to_model(spec, set_values, set_strings, set_env)
         type_paths = sorted({p for t in model.all_tasks() if t.resolved for p in t.resolved.paths})
         result = self._call("submit", spec=spec_to_dict(model), pool=pool, filename=filename,
-                            no_cache=no_cache, type_paths=type_paths, labels=dict(labels or {}))
+                            no_cache=no_cache, type_paths=type_paths, labels=dict(labels or {}),
+                            priority=priority)
         return str(result["workflow_id"])
 
     def cancel(self, workflow_id: str) -> WorkflowStatus:

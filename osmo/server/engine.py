@@ -308,7 +308,8 @@ class Engine:
         wf_id = f"{spec.name}-{n}"
         retries = spec.max_retries if spec.max_retries is not None else DEFAULT_MAX_RETRIES
         batch.commands += self.scheduler.handle(
-            WorkflowSubmitted(wf_id, spec, retries, pool, dict(request.reused)), now)
+            WorkflowSubmitted(wf_id, spec, retries, pool, dict(request.reused),
+                              request.options.get("priority", "NORMAL")), now)
         self.specs[wf_id] = spec
         if request.options.get("no_cache"):
             self.no_cache.add(wf_id)

@@ -25,7 +25,7 @@ from osmo.names import (
     did_you_mean,
     shown,
 )
-from osmo.scheduler.types import CancelWorkflow
+from osmo.scheduler.types import PRIORITIES, CancelWorkflow
 from osmo.server.credentials import CredentialHandlers, check_task_credentials
 from osmo.server.dataset_handlers import DatasetHandlers
 from osmo.server.engine import Engine
@@ -137,8 +137,12 @@ class Handlers:
         if len(labels) > MAX_LABELS:
             raise UsageError(f"a workflow has at most {MAX_LABELS} labels; with --label this "
                              f"one would have {len(labels)}")
+        priority = field(request, "priority", str, default="NORMAL", max_len=16).upper()
+        if priority not in PRIORITIES:
+            raise UsageError(f"priority must be one of {', '.join(PRIORITIES)}, not "
+                             f"{shown(priority)}")
         options = {"pool": pool or spec.pool, "filename": filename, "reused_from": reused_from,
-                   "labels": labels,
+                   "labels": labels, "priority": priority,
                    "no_cache": field(request, "no_cache", bool, default=False),
                    "type_paths": type_paths,
                    "types": {t.name: t.resolved.to_dict() for t in spec.all_tasks()
@@ -170,6 +174,7 @@ class Handlers:
         return self._submit({"spec": row.spec, "pool": row.options.get("pool"),
                              "filename": row.options.get("filename"),
                              "labels": row.options.get("labels") or {},
+                             "priority": row.options.get("priority"),
                              "type_paths": row.options.get("type_paths")}, reused, row.id)
 
     def shutdown(self, _request: dict[str, Any]) -> dict[str, Any]:

@@ -155,3 +155,34 @@ workflow:
     # a restart keeps the labels given at submit
     again = osmo("restart", first, check=True).out.split(" - ")[1].strip()
     assert osmo.query(again)["labels"]["stage"] == "prod"
+
+
+def test_priority_orders_waiting_work(osmo: Osmo, tmp_path: Path) -> None:
+    osmo("server", "start", "--cpus", "1", check=True)
+    gate = tmp_path / "gate"
+    busy = write(tmp_path / "busy.yaml", f"""
+workflow:
+  name: busy
+  resources: {{default: {{cpu: 1}}}}
+  tasks:
+  - {{name: t, command: [sh, -c, 'while [ ! -e {gate} ]; do sleep 0.05; done']}}
+""")
+    quick = write(tmp_path / "quick.yaml", """
+workflow:
+  name: quick
+  resources: {default: {cpu: 1}}
+  tasks:
+  - {name: t, command: ['true']}
+""")
+    holder = osmo.submit(busy)
+    osmo.wait_for(holder, lambda i: i["tasks"][0]["status"] == "RUNNING")
+    low = osmo.submit(quick, "--priority", "low")
+    normal = osmo.submit(quick)
+    high = osmo.submit(quick, "--priority", "HIGH")
+    assert osmo.query(high)["priority"] == "HIGH" and osmo.query(normal)["priority"] == "NORMAL"
+    gate.touch()
+    started = {wf: osmo.wait_for(wf, ended)["tasks"][0]["started_at"]
+               for wf in (low, normal, high)}
+    assert started[high] < started[normal] < started[low], started
+    assert "Priority    : LOW" in osmo("query", low, check=True).out
+    assert osmo("submit", str(quick), "--priority", "urgent").code == 2
