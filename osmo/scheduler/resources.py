@@ -18,11 +18,12 @@ Rules (documented behaviour):
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
 from osmo.scheduler.types import Capacity, Node
-from osmo.spec.model import TaskSpec, WorkflowSpec
+from osmo.spec.model import ResourceSpec, TaskSpec, WorkflowSpec
 
 __all__ = ["ZERO", "Ledger", "Request", "first_fit", "request_for", "total"]
 
@@ -46,7 +47,12 @@ class Request:
 
 def request_for(spec: WorkflowSpec, task: TaskSpec) -> Request:
     """The request of ``task``: its resource spec with the documented defaults."""
-    res = spec.resource_for(task)
+    return _request(spec.resource_for(task))
+
+
+@functools.lru_cache(maxsize=4096)
+def _request(res: ResourceSpec) -> Request:
+    """A resource spec's request (cached: the tasks of a workflow share a few specs)."""
     capacity = Capacity(
         cpu=float(res.cpu if res.cpu is not None else 1),
         gpu=res.gpu or 0,

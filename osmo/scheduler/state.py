@@ -9,6 +9,7 @@ store payload can still be read by an older reader; missing optional keys take d
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 from dataclasses import dataclass
 from typing import Any
@@ -61,8 +62,8 @@ class TaskState:
     ended_at: float | None = None
 
     def copy(self) -> TaskState:
-        """An independent copy (a snapshot)."""
-        return dataclasses.replace(self)
+        """An independent copy (a snapshot; its fields are immutable values)."""
+        return copy.copy(self)  # several times faster than dataclasses.replace
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-safe dict: the status as its name."""
@@ -111,8 +112,8 @@ class WorkflowState:
     priority: str = "NORMAL"
 
     def copy(self) -> WorkflowState:
-        """An independent copy (a snapshot)."""
-        return dataclasses.replace(self)
+        """An independent copy (a snapshot; its fields are immutable values)."""
+        return copy.copy(self)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-safe dict: the status as its name."""
