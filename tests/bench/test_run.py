@@ -37,6 +37,9 @@ EXPECTED = [
     "remote: what the remote hop adds to a task's round trip, p50",
     "remote: output transfer (8 MiB, worker → server)",
     "remote: fan-out/join 20 `true` tasks over 2 workers",
+    "submit: 2,000-task fan-out",
+    "query: running 2,000-task workflow",
+    "list (20 rows): 50 finished workflows",
 ]
 DATAGEN = [
     "datagen: 2 workers / 1 worker",
@@ -49,7 +52,7 @@ PIPELINE = [
 ]
 
 
-def run(*args: str, timeout: float = 240) -> subprocess.CompletedProcess[str]:
+def run(*args: str, timeout: float = 480) -> subprocess.CompletedProcess[str]:
     """bench/run with this interpreter's environment (no pip)."""
     return subprocess.run([sys.executable, str(REPO / "bench" / "suite.py"), *args],
                           capture_output=True, text=True, timeout=timeout, cwd=REPO)
