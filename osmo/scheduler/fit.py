@@ -51,33 +51,39 @@ def check_fit(spec: WorkflowSpec, pool: str | None, nodes: Sequence[Node]) -> li
     if not members:
         return [f"no node is available in {where}"]
     reasons: list[str] = []
+    problems: dict[Request, str | None] = {}  # the tasks of a big workflow share few requests
     for group in spec.groups:
         requests = [(t.name, request_for(spec, t)) for t in group.tasks]
-        task_reasons = [r for name, req in requests if (r := _task_reason(name, req, members,
-                                                                           where))]
+        task_reasons = []
+        for name, req in requests:
+            if req not in problems:
+                problems[req] = _request_problem(req, members, where)
+            if problems[req] is not None:
+                task_reasons.append(f"task '{name}' {problems[req]}")
         reasons.extend(task_reasons)
-        if not task_reasons and first_fit(requests, members, {}) is None:
+        if not task_reasons and len(requests) > 1 and first_fit(requests, members, {}) is None:
             reasons.append(_group_reason(group, requests, members, where))
     return reasons
 
 
-def _task_reason(name: str, req: Request, nodes: Sequence[Node], where: str) -> str | None:
+def _request_problem(req: Request, nodes: Sequence[Node], where: str) -> str | None:
+    """Why no node can ever take a task with ``req`` (after "task 'NAME' "), or None."""
     if req.platform is not None and not any(n.platform == req.platform for n in nodes):
         platforms = sorted({n.platform for n in nodes if n.platform}) or ["none"]
-        return (f"task '{name}' requests platform '{req.platform}' but no node in {where} has "
-                f"it (platforms: {', '.join(platforms)})")
+        return (f"requests platform '{req.platform}' but no node in {where} has it "
+                f"(platforms: {', '.join(platforms)})")
     eligible = [n for n in nodes if req.allows(n)]
     if not eligible:
-        return f"task '{name}' excludes every eligible node in {where}"
+        return f"excludes every eligible node in {where}"
     for dim in _DIMENSIONS:
         need = getattr(req.capacity, dim)
         best = max(getattr(n.capacity, dim) for n in eligible)
         if need > best + 1e-9:
-            return (f"task '{name}' requests {dim}={format_amount(dim, need)} but no node in "
-                    f"{where} has more than {format_amount(dim, best)} {dim}")
+            return (f"requests {dim}={format_amount(dim, need)} but no node in {where} has "
+                    f"more than {format_amount(dim, best)} {dim}")
     if not any(req.capacity.fits_in(n.capacity) for n in eligible):
-        return (f"task '{name}' requests {_format_capacity(req.capacity)} but no single node "
-                f"in {where} has all of it")
+        return (f"requests {_format_capacity(req.capacity)} but no single node in {where} "
+                "has all of it")
     return None
 
 
