@@ -187,10 +187,17 @@ class AttemptStartFailed:
 
 @dataclass(frozen=True)
 class AttemptLost:
-    """The attempt's worker (or the server that ran it) went away; outcome unknown."""
+    """The attempt's worker (or the server that ran it) went away; outcome unknown.
+
+    Attributes:
+        server_restart: the attempt died with the server that ran it (a crash of the
+            server, not of the task): if its command had not started yet (INITIALIZING),
+            the loss is not counted against the lost-attempt cap.
+    """
 
     attempt_id: str
     message: str = "worker lost"
+    server_restart: bool = False
 
 
 @dataclass(frozen=True)

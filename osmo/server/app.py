@@ -129,7 +129,8 @@ def serve(home: str | os.PathLike[str] | None = None, options: ServerOptions | N
     for event in failed:
         engine.post(event)
     for task in lost:
-        engine.post(AttemptLost(str(task.attempt_id), "server restarted; attempt lost"))
+        engine.post(AttemptLost(str(task.attempt_id), "server restarted; attempt lost",
+                                server_restart=True))
     engine.start()
     hub.expect(remote_nodes, options.reconnect_grace)
 
