@@ -139,7 +139,7 @@ def serve(home: str | os.PathLike[str] | None = None, options: ServerOptions | N
             "zenoh_config": (str(Path(options.zenoh_config).absolute())
                              if options.zenoh_config else None),
             "host_id": host_id(), "artifacts": str(artifacts.root),
-            "started_at": time.time(), "home": str(home_path)}
+            "started_at": time.time(), "home": str(home_path), "options": options.to_argv()}
     handlers = Handlers(engine, home_path, info, on_shutdown=stopping.set, workers=hub,
                         link=link)
     api_server = ApiServer(link, handlers.handle,
