@@ -8,6 +8,10 @@ group while small ones keep arriving: a known trade-off, bounded by ``queue_time
 Requests of a *shape* (pool and per-task requests) that failed are not tried again until
 capacity grows (see ``queue.PlacementQueue``), so a pass costs O(shapes) plus O(nodes) per
 placement attempt, not O(queue).
+
+A request that names no ``queue_timeout`` and does not fit because its pool has no node at
+all arms the pool's alarm (``World.arm_alarm``): the no-worker timeout then fails what still
+waits there (``groups.expire_no_worker``).
 """
 
 from __future__ import annotations
@@ -35,12 +39,12 @@ def enqueue(world: World, run: Run, group: Group, names: tuple[str, ...], *, gan
     """
     tasks = run.tasks
     shape = (run.state.pool, tuple(run.requests[n] for n in names))
+    start = world.now if since is None else since
     request = Queued(run, group, names, tuple(tasks[n].retry for n in names),
-                     (run.seq, group.index, next(world.seq)), shape, gang)
+                     (run.seq, group.index, next(world.seq)), shape, gang, start)
     world.queue.push(request)
     timeout = run.spec.timeout.queue_timeout
     if timeout is not None:
-        start = world.now if since is None else since
         world.deadlines.push(Deadline(start + timeout, request=request))
 
 
@@ -55,6 +59,8 @@ def place_pending(world: World) -> None:
         plan = world.ledger.place([(n, run.requests[n]) for n in request.tasks], run.state.pool)
         if plan is None:
             queue.block(request.shape)
+            if run.spec.timeout.queue_timeout is None:
+                world.arm_alarm(run.state.pool)
             continue
         queue.done(request)
         _commit(world, request, plan)

@@ -24,6 +24,7 @@ __all__ = [
     "AttemptStarted",
     "AttemptStartFailed",
     "DEFAULT_MAX_RETRIES",
+    "DEFAULT_NO_WORKER_TIMEOUT",
     "LOCAL_NODE",
     "CancelWorkflow",
     "Capacity",
@@ -38,6 +39,7 @@ __all__ = [
     "RunAttempt",
     "Tick",
     "Transition",
+    "Waiting",
     "WorkflowSubmitted",
     "attempt_id",
 ]
@@ -46,6 +48,11 @@ __all__ = [
 DEFAULT_MAX_RETRIES = 3
 """How many times a task that exits with a RESCHEDULE action is retried, unless its workflow's
 ``maxRetries`` says otherwise."""
+
+DEFAULT_NO_WORKER_TIMEOUT = 1800.0
+"""Seconds a task waits on a pool with no online worker before it fails as
+FAILED_QUEUE_TIMEOUT, unless its workflow names a ``queue_timeout`` (which then applies
+instead). Counted from the later of: the task started waiting, the pool lost its last worker."""
 
 LOCAL_NODE = "local"
 """The node id of the server's own pool (a remote worker may not call itself so)."""
@@ -89,6 +96,22 @@ class Capacity:
             self.memory - other.memory,
             self.storage - other.storage,
         )
+
+
+@dataclass(frozen=True)
+class Waiting:
+    """Why a task has not started yet (``Scheduler.waiting``).
+
+    Attributes:
+        reason: what it waits for, e.g. ``pool 'gpu' has no online worker`` or ``needs 4
+            gpu, largest free is 2``.
+        since: when that condition began, when known (a pool's last worker left).
+        fails_at: when the task fails if nothing changes (a queue timeout), when known.
+    """
+
+    reason: str
+    since: float | None = None
+    fails_at: float | None = None
 
 
 @dataclass(frozen=True)

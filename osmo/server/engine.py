@@ -68,6 +68,7 @@ from osmo.server.requests import (
     Request,
     SubmitWorkflow,
     TagDataset,
+    WaitReasons,
 )
 from osmo.spec.model import WorkflowSpec
 from osmo.status import TaskStatus
@@ -280,6 +281,8 @@ class Engine:
                 return self.scheduler.attempts_on(node_id)
             case ListNodes():
                 return [(node, self.scheduler.used(node.id)) for node in self.scheduler.nodes()]
+            case WaitReasons(workflow_id=wf_id):
+                return self.scheduler.waiting(wf_id)
         raise TypeError(f"not a request: {request!r}")
 
     def _submit(self, request: SubmitWorkflow, batch: Batch, now: float) -> str:

@@ -24,7 +24,7 @@ from osmo.server.dataset_handlers import DatasetHandlers
 from osmo.server.engine import Engine
 from osmo.server.lineage_query import lineage_graph, resolve_target
 from osmo.server.logview import last_progress, read_logs
-from osmo.server.requests import ListNodes, SubmitWorkflow
+from osmo.server.requests import ListNodes, SubmitWorkflow, WaitReasons
 from osmo.server.workers import WorkerHub
 from osmo.spec import isolation, load_spec, spec_from_dict, spec_to_dict
 from osmo.status import WorkflowStatus
@@ -35,6 +35,7 @@ from osmo.transport.zenoh_link import Link
 __all__ = ["Handlers"]
 
 MAX_LIST = 1_000_000  # workflows one ``list`` may ask for
+_WAITS = ("WAITING", "SCHEDULING")  # task statuses that have a reason to wait
 _MAX_TEXT = 4096  # characters of a path, a pool or an artifact target in a request
 
 
@@ -163,6 +164,11 @@ class Handlers:
             if task.get("status") == "RUNNING":
                 dirs = Home(self._home).attempt(row.id, task["name"], int(task.get("retry", 0)))
                 task["progress"] = last_progress(dirs.log)
+        if any(t.get("status") in _WAITS for t in tasks):  # ask the engine only then
+            reasons = self._engine.ask(WaitReasons(row.id))
+            for task in tasks:
+                if task["name"] in reasons:
+                    task["waiting"] = vars(reasons[task["name"]])
         return {"workflow": _workflow_dict(row), "tasks": tasks}
 
     def status(self, request: dict[str, Any]) -> dict[str, Any]:
