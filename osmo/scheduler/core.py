@@ -23,7 +23,7 @@ from collections import defaultdict
 
 from osmo.scheduler import attempts, groups
 from osmo.scheduler.fit import check_fit
-from osmo.scheduler.placement import enqueue, place_pending
+from osmo.scheduler.placement import enqueue, place_pending, placement_of
 from osmo.scheduler.runs import Run, group_outcome
 from osmo.scheduler.state import TaskState, WorkflowState
 from osmo.scheduler.types import (
@@ -42,6 +42,7 @@ from osmo.scheduler.types import (
     Node,
     NodeDown,
     NodeUp,
+    PrepareAttempt,
     Tick,
     Waiting,
     WorkflowSubmitted,
@@ -202,6 +203,21 @@ class Scheduler:
     def tasks(self, workflow_id: str) -> list[TaskState]:
         """Copies of the workflow's tasks in spec order. Raises KeyError if unknown."""
         return [t.copy() for t in self._world.runs[workflow_id].tasks.values()]
+
+    def placement(self, attempt_id: str) -> PrepareAttempt | None:
+        """The command that placed ``attempt_id``, if it is a task's current active attempt.
+
+        For a restarted server: what it must know of an attempt an earlier server placed
+        (its inputs, for the attempt's lineage). Changes nothing.
+        """
+        found = self._world.attempts.get(attempt_id)
+        if found is None:
+            return None
+        run, name = found
+        task = run.tasks[name]
+        if task.attempt_id != attempt_id or not task.status.active:
+            return None
+        return placement_of(self._world, run, name)
 
     def waiting(self, workflow_id: str) -> dict[str, Waiting]:
         """Why each WAITING or SCHEDULING task of the workflow waits (computed now).

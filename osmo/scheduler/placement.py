@@ -22,7 +22,7 @@ from osmo.scheduler.types import PrepareAttempt, attempt_id
 from osmo.scheduler.world import World
 from osmo.status import TaskStatus
 
-__all__ = ["enqueue", "place_pending"]
+__all__ = ["enqueue", "place_pending", "placement_of"]
 
 
 def enqueue(world: World, run: Run, group: Group, names: tuple[str, ...], *, gang: bool,
@@ -80,11 +80,25 @@ def _commit(world: World, request: Queued, plan: dict[str, str]) -> None:
         group.batch = Batch(list(request.tasks))
     hosts = _hosts(world, run, group)
     for name in request.tasks:
-        task = run.tasks[name]
-        assert task.attempt_id is not None and task.node_id is not None
-        world.out.append(PrepareAttempt(
-            attempt_id=task.attempt_id, workflow_id=run.id, task=name, retry=task.retry,
-            node_id=task.node_id, inputs=_inputs(run, name), hosts=hosts, run=not held))
+        world.out.append(_command(run, name, hosts, start=not held))
+
+
+def placement_of(world: World, run: Run, name: str) -> PrepareAttempt:
+    """The ``PrepareAttempt`` that placed the current attempt of active task ``name``.
+
+    Derived again from the state (inputs and hosts are what they were at placement: upstream
+    outputs and group placements do not change while the attempt is active), for a restarted
+    server that must know an attempt it did not place. ``run`` is False: nothing is started.
+    """
+    return _command(run, name, _hosts(world, run, run.group_of(run.tasks[name])), start=False)
+
+
+def _command(run: Run, name: str, hosts: dict[str, str], *, start: bool) -> PrepareAttempt:
+    task = run.tasks[name]
+    assert task.attempt_id is not None and task.node_id is not None
+    return PrepareAttempt(
+        attempt_id=task.attempt_id, workflow_id=run.id, task=name, retry=task.retry,
+        node_id=task.node_id, inputs=_inputs(run, name), hosts=hosts, run=start)
 
 
 def _hosts(world: World, run: Run, group: Group) -> dict[str, str]:

@@ -124,6 +124,11 @@ def serve(home: str | os.PathLike[str] | None = None, options: ServerOptions | N
                     on_finished=records.finished, datasets=Datasets(store, artifacts, home_path),
                     no_cache=restored.no_cache, restore=lambda: restore(store),
                     inflight=inflight, on_fatal=on_fatal)
+    lost_ids = {t.attempt_id for t in lost}
+    for task in active:  # still running on remote workers: placed by the old server
+        cmd = restored.scheduler.placement(str(task.attempt_id))
+        if task.attempt_id not in lost_ids and cmd is not None:
+            engine.placements.recall(cmd)  # so that their outputs get lineage here too
     if pool is not None:
         engine.post(NodeUp(pool.node()))
     for event in failed:
