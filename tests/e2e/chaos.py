@@ -12,7 +12,8 @@ A trial, from a seed (everything random comes from ``random.Random(seed)``):
 2. ``kills`` SIGKILLs at random moments (0-1.5 s after the previous recovery), of the server
    (``mode="local"``: its local pool runs the tasks) or of the server or one of two workers
    (``mode="remote"``). After a server kill, the next CLI call starts a new server (with the
-   saved options); a killed worker starts again under the same name and home.
+   saved options); a killed worker starts again under the same name and home, and counts
+   as back once its new process says it registered (``worker.json``).
 3. Checks, after the workflow ended and everything was stopped: the workflow COMPLETED;
    every task has exactly one committed attempt (one lineage record for its output, one
    COMPLETED transition); every output's digest is the expected one; no task saw a partial
@@ -36,6 +37,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from osmo.layout import Home
 from osmo.store.sqlite import Store
 from tests.conftest import Osmo, process_alive, wait_gone
 from tests.e2e.cluster import Cluster
@@ -194,9 +196,21 @@ class Trial:
             os.kill(proc.pid, signal.SIGKILL)
             proc.wait(timeout=30)
             time.sleep(self.rng.uniform(0.0, 0.5))
-            self.cluster.start_worker(target, "--cpus", "1", wait=False)
-            self.cluster.wait_online(target, timeout=60)
+            new = self.cluster.start_worker(target, "--cpus", "1", wait=False)
+            self._wait_registered(target, new.pid)
         self.result.kills.append((target, time.monotonic() - killed))
+
+    def _wait_registered(self, name: str, pid: int, timeout: float = 60) -> None:
+        """Until worker ``name``'s new process ``pid`` says it registered with the server."""
+        health = Home(self.root / name / "worker").worker_health  # `osmo worker`: OSMO_HOME/worker
+        deadline = time.monotonic() + timeout
+        while True:
+            with contextlib.suppress(OSError, ValueError):
+                state = json.loads(health.read_text())
+                if state.get("pid") == pid and state.get("connected"):
+                    return
+            assert time.monotonic() < deadline, f"worker {name} never registered again"
+            time.sleep(0.05)
 
     def _ended(self, wf: str) -> bool:
         return self.osmo.query(wf)["status"] not in ("PENDING", "RUNNING", "WAITING")
