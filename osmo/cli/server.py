@@ -14,14 +14,8 @@ import shlex
 from osmo.cli.render import console, print_json
 from osmo.config import home_dir
 from osmo.sdk.connect import running_options, server_status, start_server, stop_server
-from osmo.server.options import (
-    ServerOptions,
-    absolute,
-    option_changes,
-    options_from_argv,
-    remember,
-    saved_options,
-)
+from osmo.server import options as opts
+from osmo.server.options import ServerOptions
 
 __all__ = ["run_server"]
 
@@ -32,7 +26,7 @@ def run_server(args: argparse.Namespace) -> int:
     if args.action == "run":
         from osmo.server.app import serve
 
-        _say_changes(remember(home_dir(), options))
+        _say_changes(opts.remember(home_dir(), options))
         console.print("osmo server running in the foreground (Ctrl-C to stop)", markup=False)
         serve(options=options)
         return 0
@@ -50,14 +44,14 @@ def _start(options: ServerOptions) -> int:
     status = server_status()
     if status is not None:
         running = _parsed(running_options())
-        changes = option_changes(running, absolute(options)) if running else []
+        changes = opts.option_changes(running, opts.absolute(options)) if running else []
         console.print(f"osmo server already running: pid {status.pid}, {status.endpoint}",
                       markup=False)
         if changes:
             console.print("it runs with other options; to use the new ones, `osmo server "
                           "stop` and start again:\n  " + "\n  ".join(changes), markup=False)
         return 0
-    _say_changes(remember(home_dir(), options))
+    _say_changes(opts.remember(home_dir(), options))
     info = start_server(options=options)
     console.print(f"osmo server running: pid {info.pid}, {info.endpoint}", markup=False)
     return 0
@@ -83,7 +77,7 @@ def _status(fmt: str) -> int:
             console.print(f"options: {shlex.join(options) or '(defaults)'}", markup=False)
     else:
         console.print("not running", markup=False)
-        saved = saved_options(home)
+        saved = opts.saved_options(home)
         if saved is not None:
             console.print(f"an automatic start uses: {shlex.join(saved.to_argv()) or '(defaults)'}"
                           f" (saved in {home / 'server-options.json'})", markup=False)
@@ -93,6 +87,6 @@ def _status(fmt: str) -> int:
 def _parsed(argv: list[str] | None) -> ServerOptions | None:
     """The options a running server reported as flags (None: unknown or unreadable)."""
     try:
-        return options_from_argv(argv) if argv is not None else None
+        return opts.options_from_argv(argv) if argv is not None else None
     except ValueError:
         return None

@@ -8,11 +8,8 @@ and say when they will fail.
 
 from __future__ import annotations
 
-import contextlib
-import os
 import signal
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -22,25 +19,28 @@ from tests.conftest import write
 from tests.e2e.cluster import Cluster
 
 
-@pytest.fixture
-def cluster(tmp_path: Path) -> Iterator[Cluster]:
-    c = Cluster(tmp_path, env={"OSMO_HOST_ID": "shared-host"})
-    c.start_server()
-    yield c
-    c.stop()
-    _kill_tasks(tmp_path / "pids")
+def test_query_says_why_each_task_waits(tmp_path: Path) -> None:
+    cluster = Cluster(tmp_path, env={"OSMO_HOST_ID": "shared-host"})
+    go = tmp_path / "go"  # the tasks end once it exists (also one left by its killed worker)
+    try:
+        cluster.start_server()
+        cluster.start_worker("w1", "--cpus", "1", pool="gpu")
+        _check_reasons(cluster, tmp_path, go)
+    finally:
+        go.touch()
+        cluster.stop()
 
 
-def test_query_says_why_each_task_waits(cluster: Cluster, tmp_path: Path) -> None:
-    cluster.start_worker("w1", "--cpus", "1", pool="gpu")
+def _check_reasons(cluster: Cluster, tmp_path: Path, go: Path) -> None:
+    wait = f"while [ ! -e {go} ]; do sleep 0.05; done"
     spec = write(tmp_path / "wf.yaml", f"""
 workflow:
   name: stuck
   tasks:
   - name: a
-    command: [sh, -c, "echo $$ >> {tmp_path}/pids; exec sleep 600"]
+    command: [sh, -c, "{wait}"]
   - name: b
-    command: [sh, -c, "echo $$ >> {tmp_path}/pids; exec sleep 600"]
+    command: [sh, -c, "{wait}"]
   - name: c
     command: ["true"]
     inputs: [{{task: a}}]
@@ -72,13 +72,3 @@ workflow:
 
 def _statuses(info: dict) -> dict[str, str]:
     return {t["name"]: t["status"] for t in info["tasks"]}
-
-
-def _kill_tasks(pids: Path) -> None:
-    """A task may outlive its SIGKILLed worker until issue 15 item 1 lands: kill the test's
-    own tasks by the pids they wrote."""
-    if not pids.exists():
-        return
-    for line in pids.read_text().split():
-        with contextlib.suppress(ProcessLookupError):
-            os.kill(int(line), signal.SIGKILL)
