@@ -124,7 +124,7 @@ def options_from_argv(argv: list[str]) -> ServerOptions:
     ServerOptions.add_arguments(parser)
     try:
         return ServerOptions.from_args(parser.parse_args(argv))
-    except argparse.ArgumentError as exc:
+    except (argparse.ArgumentError, UsageError) as exc:
         raise ValueError(str(exc)) from None
 
 
@@ -173,7 +173,8 @@ def remember(home: Path, options: ServerOptions) -> list[str]:
     options = absolute(options)
     path = Home(home).server_options
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    tmp.unlink(missing_ok=True)  # a crashed start's; O_EXCL then never follows a planted link
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
     with os.fdopen(fd, "w") as out:
         json.dump({"argv": options.to_argv(), "saved_at": time.time()}, out)
     os.replace(tmp, path)
