@@ -9,13 +9,14 @@ the client's mistakes.
 from __future__ import annotations
 
 import builtins
+import logging
 import os
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from osmo.artifacts import ArtifactStore, Manifest
-from osmo.errors import NotFoundError, UsageError
+from osmo.errors import NotFoundError, OsmoError, UsageError
 from osmo.layout import Home
 from osmo.names import MAX_NAME, check_name, check_workflow_id, did_you_mean, shown
 from osmo.scheduler.types import CancelWorkflow
@@ -33,6 +34,8 @@ from osmo.transport.rpc import MAX_INT, field, str_list
 from osmo.transport.zenoh_link import Link
 
 __all__ = ["Handlers"]
+
+log = logging.getLogger("osmo.server")
 
 MAX_LIST = 1_000_000  # workflows one ``list`` may ask for
 _WAITS = ("WAITING", "SCHEDULING")  # task statuses that have a reason to wait
@@ -165,11 +168,19 @@ class Handlers:
                 dirs = Home(self._home).attempt(row.id, task["name"], int(task.get("retry", 0)))
                 task["progress"] = last_progress(dirs.log)
         if any(t.get("status") in _WAITS for t in tasks):  # ask the engine only then
-            reasons = self._engine.ask(WaitReasons(row.id))
-            for task in tasks:
-                if task["name"] in reasons:
-                    task["waiting"] = vars(reasons[task["name"]])
+            self._add_reasons(row.id, tasks)
         return {"workflow": _workflow_dict(row), "tasks": tasks}
+
+    def _add_reasons(self, workflow_id: str, tasks: builtins.list[dict[str, Any]]) -> None:
+        """Say why each waiting task waits; a busy or stopped engine leaves them out."""
+        try:
+            reasons = self._engine.ask(WaitReasons(workflow_id), timeout=5)
+        except (OsmoError, TimeoutError) as exc:
+            log.warning("no waiting reasons for %s: %s", workflow_id, exc or "engine busy")
+            return
+        for task in tasks:
+            if task["name"] in reasons:
+                task["waiting"] = vars(reasons[task["name"]])
 
     def status(self, request: dict[str, Any]) -> dict[str, Any]:
         """Only the workflow's own state (cheap: for waiting on big workflows)."""
