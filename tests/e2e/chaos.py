@@ -78,6 +78,7 @@ class TrialResult:
     status: str = "?"
     kills: list[tuple[str, float]] = field(default_factory=list)  # (target, recovery s)
     reruns: int = 0  # task starts beyond one per task
+    uncounted: int = 0  # attempts lost to a server restart before they ran (not capped)
     lost: list[str] = field(default_factory=list)  # tasks not COMPLETED
     duplicated: list[str] = field(default_factory=list)  # tasks committed more than once
     bad_digests: list[str] = field(default_factory=list)
@@ -253,6 +254,8 @@ class Trial:
             for event in store.transitions(wf):
                 if event["task"] is not None and event["status"] == "COMPLETED":
                     completed[event["task"]] = completed.get(event["task"], 0) + 1
+                if event["status"] == "RESCHEDULED" and "not counted" in event["message"]:
+                    self.result.uncounted += 1
             for output in store.outputs(wf):
                 commits = len(store.lineage_of_manifest(output["manifest"]))
                 if commits != 1 or completed.get(output["task"], 0) != 1:
