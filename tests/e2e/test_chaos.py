@@ -6,6 +6,10 @@ failure shows it); ``OSMO_CHAOS_SEED=N`` replays a trial.
 Remote trials do not yet require that a SIGKILLed worker's tasks die with it (issue 15 item
 1, another change): their leftover *task* processes are killed and reported, and every other
 promise is checked. Server and worker processes left behind always fail the trial.
+
+A kill that lands while the server applies an attempt's final report fails that attempt as
+"quarantined" (README, Limits → Engine faults; about 1 kill in 70 here): the trials accept
+that documented outcome, and ``bench/bench_chaos.py`` counts it in a row of its own.
 """
 
 from __future__ import annotations
@@ -32,7 +36,7 @@ def test_chaos_server_kills_on_the_local_pool(tmp_path: Path, offset: int) -> No
     print(result)
     assert [k for k, _ in result.kills] == ["server"] * len(result.kills)
     assert result.kills, f"seed {seed}: the workflow ended before the first kill"
-    assert result.problems() == [], f"seed {seed}: {result}"
+    assert result.problems(quarantine=True) == [], f"seed {seed}: {result}"
 
 
 def test_chaos_server_and_worker_kills_with_remote_workers(tmp_path: Path) -> None:
@@ -41,7 +45,8 @@ def test_chaos_server_and_worker_kills_with_remote_workers(tmp_path: Path) -> No
     result = Trial(tmp_path / "t", seed, mode="remote", kills=3).run()
     print(result)
     assert result.kills, f"seed {seed}: the workflow ended before the first kill"
-    assert result.problems(task_leftovers=False) == [], f"seed {seed}: {result}"
+    problems = result.problems(task_leftovers=False, quarantine=True)
+    assert problems == [], f"seed {seed}: {result}"
 
 
 def test_an_output_that_finishes_across_a_server_restart_keeps_its_lineage(
