@@ -97,7 +97,7 @@ def rows_of(mode: str, results: list[TrialResult]) -> list[dict]:
     ]
     if worker:
         out.append(row(f"chaos {mode}: worker back after SIGKILL", "s", worker,
-                       higher_is_better=False, notes="SIGKILL → restarted, listed online"))
+                       higher_is_better=False, notes="SIGKILL → its new process registered (worker.json), incl. a 0–0.5 s pause"))
     return out
 
 
