@@ -97,7 +97,9 @@ def rows_of(mode: str, results: list[TrialResult]) -> list[dict]:
     ]
     if worker:
         out.append(row(f"chaos {mode}: worker back after SIGKILL", "s", worker,
-                       higher_is_better=False, notes="SIGKILL → its new process registered (worker.json), incl. a 0–0.5 s pause"))
+                       higher_is_better=False,
+                       notes="SIGKILL → its new process registered (worker.json); includes "
+                             "a random 0-0.5 s pause before the restart"))
     return out
 
 
