@@ -217,9 +217,15 @@ class Client:
 
     # ------------------------------------------------------------------ read
 
-    def get(self, workflow_id: str) -> WorkflowInfo:
-        """The workflow's current status and tasks."""
-        reply = self._call("get", workflow_id=workflow_id)
+    def get(self, workflow_id: str, *, waiting: bool = True) -> WorkflowInfo:
+        """The workflow's current status and tasks.
+
+        Args:
+            workflow_id: the workflow.
+            waiting: also say why each waiting task waits (``TaskInfo.waiting``); the
+                server's scheduler computes that, so a frequent poller may leave it out.
+        """
+        reply = self._call("get", workflow_id=workflow_id, waiting=waiting)
         return _workflow_info(reply["workflow"], reply["tasks"])
 
     def list(self, *, statuses: Sequence[str] = (), name: str | None = None,
@@ -276,8 +282,8 @@ class Client:
         try:
             while True:
                 changed.clear()
-                if on_update is not None:
-                    on_update(self.get(workflow_id))
+                if on_update is not None:  # (no waiting reasons: they cost the engine)
+                    on_update(self.get(workflow_id, waiting=False))
                 status = WorkflowStatus[self._call("status", workflow_id=workflow_id)["status"]]
                 if status.terminal:
                     return self.get(workflow_id)

@@ -160,14 +160,15 @@ class Handlers:
     # ------------------------------------------------------------------ read verbs
 
     def get(self, request: dict[str, Any]) -> dict[str, Any]:
-        """A workflow's state and its tasks' states."""
+        """A workflow's state and its tasks' states (``waiting``: and why waiting tasks wait)."""
         row = self._row(request.get("workflow_id"), with_spec=True)
+        reasons = field(request, "waiting", bool, default=False)
         tasks = _ordered_tasks(row, self._store.tasks(row.id))
         for task in tasks:  # typed tasks report progress as log lines; show the latest
             if task.get("status") == "RUNNING":
                 dirs = Home(self._home).attempt(row.id, task["name"], int(task.get("retry", 0)))
                 task["progress"] = last_progress(dirs.log)
-        if any(t.get("status") in _WAITS for t in tasks):  # ask the engine only then
+        if reasons and any(t.get("status") in _WAITS for t in tasks):  # only then: it costs
             self._add_reasons(row.id, tasks)
         return {"workflow": _workflow_dict(row), "tasks": tasks}
 
