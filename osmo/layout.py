@@ -7,6 +7,7 @@
         server.json           the running server's endpoint and pid (written atomically)
         server.lock           held (flock) by the running server for its life
         server.log            a background server's own output
+        server-options.json   the options of the last explicit ``osmo server start`` (0600)
         applying.json         ids of the attempt reports being applied (the quarantine file)
         profile.json          the client profile (``osmo profile set``)
         worker.json           a remote worker's health (in the worker's home)
@@ -144,6 +145,11 @@ class Home:
     def server_log(self) -> Path:
         """A background server's output."""
         return self.root / "server.log"
+
+    @property
+    def server_options(self) -> Path:
+        """The options of the last explicit start, reused by an automatic start."""
+        return self.root / "server-options.json"
 
     @property
     def applying(self) -> Path:

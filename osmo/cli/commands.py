@@ -27,11 +27,10 @@ from osmo.cli.render import (
     workflows_table,
 )
 from osmo.cli.robotics import run_eval, run_view
+from osmo.cli.server import run_server
 from osmo.errors import OsmoError, UsageError, WorkflowFailed
 from osmo.names import check_label
 from osmo.sdk.client import Client, WorkflowInfo
-from osmo.sdk.connect import server_status, start_server, stop_server
-from osmo.server.options import ServerOptions
 
 __all__ = ["run"]
 
@@ -209,31 +208,6 @@ def _spec(args: argparse.Namespace) -> int:
     return 0
 
 
-def _server(args: argparse.Namespace) -> int:
-    if args.action == "run":
-        from osmo.server.app import serve
-
-        console.print("osmo server running in the foreground (Ctrl-C to stop)", markup=False)
-        serve(options=ServerOptions.from_args(args))
-        return 0
-    if args.action == "start":
-        info = start_server(options=ServerOptions.from_args(args))
-        console.print(f"osmo server running: pid {info.pid}, {info.endpoint}", markup=False)
-        return 0
-    if args.action == "stop":
-        pid = stop_server()
-        console.print(f"stopped osmo server (pid {pid})" if pid else "no osmo server running",
-                      markup=False)
-        return 0
-    status = server_status()
-    if args.format == "json":
-        print_json(status.__dict__ if status else None)
-    else:
-        console.print(f"running: pid {status.pid}, {status.endpoint}" if status
-                      else "not running", markup=False)
-    return 0 if status else 3
-
-
 _VERBS: dict[str, Callable[[argparse.Namespace], int]] = {
     "submit": _submit,
     "validate": _validate,
@@ -246,7 +220,7 @@ _VERBS: dict[str, Callable[[argparse.Namespace], int]] = {
     "cancel": _cancel,
     "restart": _restart,
     "spec": _spec,
-    "server": _server,
+    "server": run_server,
     "artifacts": run_artifacts,
     "lineage": run_lineage,
     "dataset": run_dataset,

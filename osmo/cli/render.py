@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     from rich.table import Table
 
-    from osmo.sdk.client import EventInfo, LogRecord, TaskInfo, WorkflowInfo
+    from osmo.sdk.client import EventInfo, LogRecord, TaskInfo, TaskWaiting, WorkflowInfo
 
 __all__ = ["console", "err_console", "events_text", "format_log", "info_dict",
            "live_progress", "plugin_table", "print_error", "print_json", "resource_table",
@@ -166,6 +166,9 @@ def task_table(tasks: list[TaskInfo], verbose: bool = False) -> Table:
     progress = any(t.progress for t in tasks)
     if progress:
         table.add_column("Progress")
+    waits = any(t.waiting for t in tasks)
+    if waits:
+        table.add_column("Waiting For")
     if verbose:
         table.add_column("Group")
         table.add_column("Node")
@@ -177,10 +180,28 @@ def task_table(tasks: list[TaskInfo], verbose: bool = False) -> Table:
             "-" if t.exit_code is None else str(t.exit_code)]
         if progress:
             row.append(Text(safe(t.progress or "")))
+        if waits:
+            row.append(Text(safe(waiting_text(t.waiting) if t.waiting else "")))
         if verbose:
             row += [Text(safe(t.group)), Text(safe(t.node or "-")), Text(safe(t.message or ""))]
         table.add_row(*row)
     return table
+
+
+def waiting_text(waiting: TaskWaiting) -> str:
+    """``pool 'gpu' has no online worker since 12:03; fails at 12:33 unless that changes``."""
+    text = waiting.reason
+    if waiting.since is not None:
+        text += f" since {_clock(waiting.since)}"
+    if waiting.fails_at is not None:
+        text += f"; fails at {_clock(waiting.fails_at)} unless that changes"
+    return text
+
+
+def _clock(ts: float) -> str:
+    """A local time of day, with the date when it is not today."""
+    same_day = time.localtime(ts)[:3] == time.localtime()[:3]
+    return time.strftime("%H:%M" if same_day else "%Y/%m/%d %H:%M", time.localtime(ts))
 
 
 def workflows_table(rows: list[WorkflowInfo]) -> Table:

@@ -2,14 +2,15 @@
 
 Public names: :class:`Scheduler`, the persisted state records (:class:`TaskState`,
 :class:`WorkflowState`) and the contract types of ``osmo.scheduler.types`` (events,
-commands, ``Capacity``, ``Node``, ``Changes``, ``Transition``, ``attempt_id``). Every other
-module of this package is private.
+commands, ``Capacity``, ``Node``, ``Changes``, ``Transition``, ``Waiting``,
+``attempt_id``). Every other module of this package is private.
 """
 
 from osmo.scheduler.core import Scheduler
 from osmo.scheduler.state import TaskState, WorkflowState
 from osmo.scheduler.types import (
     DEFAULT_MAX_RETRIES,
+    DEFAULT_NO_WORKER_TIMEOUT,
     LOCAL_NODE,
     PRIORITIES,
     AttemptExited,
@@ -30,12 +31,14 @@ from osmo.scheduler.types import (
     RunAttempt,
     Tick,
     Transition,
+    Waiting,
     WorkflowSubmitted,
     attempt_id,
 )
 
 __all__ = [
     "DEFAULT_MAX_RETRIES",
+    "DEFAULT_NO_WORKER_TIMEOUT",
     "LOCAL_NODE",
     "PRIORITIES",
     "AttemptExited",
@@ -58,6 +61,7 @@ __all__ = [
     "TaskState",
     "Tick",
     "Transition",
+    "Waiting",
     "WorkflowState",
     "WorkflowSubmitted",
     "attempt_id",

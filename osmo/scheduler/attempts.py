@@ -10,7 +10,10 @@ This module owns fencing and the per-task outcome of an attempt (documented beha
   promotion failed: FAILED with ``ExitCode.OUTPUT_ERROR``). RESCHEDULE retries while the
   task's ``user_retries`` < the workflow's ``max_retries``, else FAILED "retry cap N reached".
 - A lost attempt (worker gone, node down) is RESCHEDULED without using a user retry, up to
-  ``max_lost_retries`` times, then FAILED_SERVER_ERROR with ``ExitCode.LOST``.
+  ``max_lost_retries`` times, then FAILED_SERVER_ERROR with ``ExitCode.LOST`` and a message
+  saying that ``osmo restart`` runs it again. An attempt lost to a restart of the server
+  before its command started (INITIALIZING: placed or preparing) is rescheduled without
+  counting: a crash loop of the server is not the task's fault.
 - A retried task is queued alone; it is not held by its group's barrier.
 """
 
@@ -58,6 +61,9 @@ def on_report(world: World, report: Report) -> None:
     elif isinstance(report, AttemptStartFailed):
         _finish(world, run, task, TaskStatus.FAILED_START_ERROR, ExitCode.START_ERROR,
                 report.message)
+    elif report.server_restart and task.status is TaskStatus.INITIALIZING:
+        _retry(world, run, task, f"{report.message} before it started running (not counted "
+                                 f"against the lost-attempt cap)")
     else:
         lose(world, run, task, report.message)
 
@@ -110,7 +116,8 @@ def lose(world: World, run: Run, task: TaskState, message: str) -> None:
         _retry(world, run, task, message)
     else:
         _finish(world, run, task, TaskStatus.FAILED_SERVER_ERROR, ExitCode.LOST,
-                f"{message}; lost-attempt cap {world.max_lost_retries} reached")
+                f"{message}; lost-attempt cap {world.max_lost_retries} reached; once the "
+                f"cause is fixed, `osmo restart {run.id}` runs it again")
 
 
 def _finish(world: World, run: Run, task: TaskState, status: TaskStatus, code: int,

@@ -23,11 +23,12 @@ from collections import defaultdict
 
 from osmo.scheduler import attempts, groups
 from osmo.scheduler.fit import check_fit
-from osmo.scheduler.placement import enqueue, place_pending
+from osmo.scheduler.placement import enqueue, place_pending, placement_of
 from osmo.scheduler.runs import Run, group_outcome
 from osmo.scheduler.state import TaskState, WorkflowState
 from osmo.scheduler.types import (
     DEFAULT_MAX_RETRIES,
+    DEFAULT_NO_WORKER_TIMEOUT,
     PRIORITIES,
     AttemptExited,
     AttemptLost,
@@ -42,9 +43,12 @@ from osmo.scheduler.types import (
     Node,
     NodeDown,
     NodeUp,
+    PrepareAttempt,
     Tick,
+    Waiting,
     WorkflowSubmitted,
 )
+from osmo.scheduler.waiting import waiting
 from osmo.scheduler.world import World
 from osmo.spec.model import WorkflowSpec
 from osmo.status import TaskStatus
@@ -64,12 +68,16 @@ class Scheduler:
         default_max_retries: RESCHEDULE cap for restored workflows whose state has none
             (submits carry their own cap in ``WorkflowSubmitted.max_retries``).
         max_lost_retries: how many times a task is retried after lost attempts.
+        no_worker_timeout: seconds a task of a workflow with no ``queue_timeout`` waits on a
+            pool with no node before it fails (None: forever); see ``groups``.
     """
 
     def __init__(self, *, default_max_retries: int = DEFAULT_MAX_RETRIES,
-                 max_lost_retries: int = 5) -> None:
+                 max_lost_retries: int = 5,
+                 no_worker_timeout: float | None = DEFAULT_NO_WORKER_TIMEOUT) -> None:
         self._world = World(default_max_retries=default_max_retries,
-                            max_lost_retries=max_lost_retries)
+                            max_lost_retries=max_lost_retries,
+                            no_worker_timeout=no_worker_timeout)
 
     # ------------------------------------------------------------------ events
 
@@ -94,8 +102,7 @@ class Scheduler:
             if run is not None:
                 groups.cancel(world, run)
         elif isinstance(event, NodeUp):
-            world.ledger.up(event.node)
-            world.queue.capacity_grew()
+            world.node_up(event.node)
         elif isinstance(event, NodeDown):
             self._node_down(event.node_id)
         else:
@@ -108,7 +115,9 @@ class Scheduler:
     def _fire_due(self) -> None:
         world = self._world
         while (due := world.deadlines.pop_due(world.now)) is not None:
-            if due.request is not None:
+            if due.alarm is not None:
+                groups.expire_no_worker(world, due.alarm.pool)
+            elif due.request is not None:
                 groups.expire_queue(world, due.request)
             else:
                 assert due.run is not None and due.group is not None
@@ -117,7 +126,7 @@ class Scheduler:
     def _node_down(self, node_id: str) -> None:
         world = self._world
         lost: list[tuple[Run, TaskState]] = []
-        for aid in world.ledger.down(node_id):
+        for aid in world.node_down(node_id):
             found = world.attempts.get(aid)
             if found is None:
                 continue
@@ -199,6 +208,29 @@ class Scheduler:
     def tasks(self, workflow_id: str) -> list[TaskState]:
         """Copies of the workflow's tasks in spec order. Raises KeyError if unknown."""
         return [t.copy() for t in self._world.runs[workflow_id].tasks.values()]
+
+    def placement(self, attempt_id: str) -> PrepareAttempt | None:
+        """The command that placed ``attempt_id``, if it is a task's current active attempt.
+
+        For a restarted server: what it must know of an attempt an earlier server placed
+        (its inputs, for the attempt's lineage). Changes nothing.
+        """
+        found = self._world.attempts.get(attempt_id)
+        if found is None:
+            return None
+        run, name = found
+        task = run.tasks[name]
+        if task.attempt_id != attempt_id or not task.status.active:
+            return None
+        return placement_of(self._world, run, name)
+
+    def waiting(self, workflow_id: str) -> dict[str, Waiting]:
+        """Why each WAITING or SCHEDULING task of the workflow waits (computed now).
+
+        Unknown (or forgotten, terminal) workflows have nothing waiting.
+        """
+        run = self._world.runs.get(workflow_id)
+        return waiting(self._world, run) if run is not None else {}
 
     def attempt(self, attempt_id: str) -> TaskState | None:
         """A copy of the task whose current attempt is ``attempt_id``, if any."""

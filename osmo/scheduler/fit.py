@@ -14,9 +14,9 @@ from osmo.scheduler.resources import Request, first_fit, request_for, total
 from osmo.scheduler.types import Capacity, Node
 from osmo.spec.model import GroupSpec, WorkflowSpec
 
-__all__ = ["check_fit", "format_amount"]
+__all__ = ["DIMENSIONS", "check_fit", "format_amount", "format_capacity"]
 
-_DIMENSIONS = ("cpu", "gpu", "memory", "storage")
+DIMENSIONS = ("cpu", "gpu", "memory", "storage")
 _BINARY_UNITS = (("Ti", 1 << 40), ("Gi", 1 << 30), ("Mi", 1 << 20), ("Ki", 1 << 10))
 
 
@@ -30,8 +30,9 @@ def format_amount(dimension: str, value: float) -> str:
     return str(int(value)) if float(value).is_integer() else f"{value:g}"
 
 
-def _format_capacity(cap: Capacity) -> str:
-    parts = [f"{d}={format_amount(d, getattr(cap, d))}" for d in _DIMENSIONS if getattr(cap, d)]
+def format_capacity(cap: Capacity) -> str:
+    """The non-zero dimensions of ``cap`` for people: ``cpu=2, gpu=1``."""
+    parts = [f"{d}={format_amount(d, getattr(cap, d))}" for d in DIMENSIONS if getattr(cap, d)]
     return ", ".join(parts) or "nothing"
 
 
@@ -75,14 +76,14 @@ def _request_problem(req: Request, nodes: Sequence[Node], where: str) -> str | N
     eligible = [n for n in nodes if req.allows(n)]
     if not eligible:
         return f"excludes every eligible node in {where}"
-    for dim in _DIMENSIONS:
+    for dim in DIMENSIONS:
         need = getattr(req.capacity, dim)
         best = max(getattr(n.capacity, dim) for n in eligible)
         if need > best + 1e-9:
             return (f"requests {dim}={format_amount(dim, need)} but no node in {where} has "
                     f"more than {format_amount(dim, best)} {dim}")
     if not any(req.capacity.fits_in(n.capacity) for n in eligible):
-        return (f"requests {_format_capacity(req.capacity)} but no single node in {where} "
+        return (f"requests {format_capacity(req.capacity)} but no single node in {where} "
                 "has all of it")
     return None
 
@@ -91,10 +92,10 @@ def _group_reason(group: GroupSpec, requests: Sequence[tuple[str, Request]],
                   nodes: Sequence[Node], where: str) -> str:
     need = total(req.capacity for _, req in requests)
     have = total(n.capacity for n in nodes)
-    for dim in _DIMENSIONS:
+    for dim in DIMENSIONS:
         if getattr(need, dim) > getattr(have, dim) + 1e-9:
             return (f"group '{group.name}' needs {dim}={format_amount(dim, getattr(need, dim))} "
                     f"at once; the largest placement possible is "
                     f"{format_amount(dim, getattr(have, dim))}")
-    return (f"group '{group.name}' needs {_format_capacity(need)} at once but its "
+    return (f"group '{group.name}' needs {format_capacity(need)} at once but its "
             f"{len(requests)} tasks cannot be packed onto the nodes of {where}")

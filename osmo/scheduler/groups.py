@@ -14,6 +14,10 @@ This module owns what happens to a group as a unit (documented behaviour):
   it expires every non-terminal task becomes FAILED_EXEC_TIMEOUT. ``queue_timeout`` counts
   from each request entering the queue (the group's gang, or one retried task) until it is
   placed; on expiry its tasks become FAILED_QUEUE_TIMEOUT and the group rules apply.
+- No worker: a request whose workflow names no ``queue_timeout`` and whose pool has no node
+  at all fails the same way once both it has waited and the pool has been empty for the
+  scheduler's ``no_worker_timeout`` (``DEFAULT_NO_WORKER_TIMEOUT``); a node joining the pool
+  in time stops that clock.
 - Cancel ends every open group with its non-terminal tasks FAILED_CANCELED.
 """
 
@@ -30,6 +34,7 @@ __all__ = [
     "cancel",
     "close_group",
     "expire_exec",
+    "expire_no_worker",
     "expire_queue",
     "open_group",
     "settle",
@@ -121,14 +126,45 @@ def expire_exec(world: World, run: Run, group: Group) -> None:
 
 def expire_queue(world: World, request: Queued) -> None:
     """``request`` waited longer than the queue timeout: fail its tasks."""
+    _time_out(world, request,
+              f"queue timeout ({request.run.spec.timeout.queue_timeout:g}s) exceeded")
+
+
+def _time_out(world: World, request: Queued, message: str) -> None:
+    """Fail the tasks of waiting ``request`` as FAILED_QUEUE_TIMEOUT with ``message``."""
     run = request.run
     world.queue.done(request)
-    message = f"queue timeout ({run.spec.timeout.queue_timeout:g}s) exceeded"
     tasks = [run.tasks[n] for n in request.tasks]
     for task in tasks:
         world.end_task(run, task, TaskStatus.FAILED_QUEUE_TIMEOUT, ExitCode.QUEUE_TIMEOUT, message)
     for task in tasks:
         settle(world, run, task)
+
+
+def expire_no_worker(world: World, pool: str | None) -> None:
+    """``pool``'s alarm is due: fail what has waited on it, empty, for the no-worker timeout.
+
+    Re-arms the alarm for the next request to reach it, if any still waits.
+    """
+    world.alarms.discard(pool)
+    empty = world.pool_empty_since(pool)
+    limit = world.no_worker_timeout
+    if empty is None or limit is None:
+        return
+    where = f"pool '{pool}'" if pool is not None else "the cluster"
+    later: list[float] = []
+    for request in world.queue.waiting_in(pool):
+        if not request.valid() or request.run.spec.timeout.queue_timeout is not None:
+            continue  # (ended by an earlier request's failure, or it has its own timeout)
+        due = max(request.since, empty) + limit
+        if due > world.now:
+            later.append(due)
+            continue
+        _time_out(world, request, f"{where} has had no online worker for {limit:g}s (the "
+                                  f"queue timeout of a pool with no worker; set "
+                                  f"timeout.queue_timeout to wait longer)")
+    if later:
+        world.arm_alarm(pool, at=min(later))
 
 
 def cancel(world: World, run: Run) -> None:

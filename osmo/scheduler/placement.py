@@ -11,6 +11,10 @@ starve a big group while small ones keep arriving: a known trade-off, bounded by
 Requests of a *shape* (pool and per-task requests) that failed are not tried again until
 capacity grows (see ``queue.PlacementQueue``), so a pass costs O(shapes) plus O(nodes) per
 placement attempt, not O(queue).
+
+A request that names no ``queue_timeout`` and does not fit because its pool has no node at
+all arms the pool's alarm (``World.arm_alarm``): the no-worker timeout then fails what still
+waits there (``groups.expire_no_worker``).
 """
 
 from __future__ import annotations
@@ -21,7 +25,7 @@ from osmo.scheduler.types import PrepareAttempt, attempt_id, priority_key
 from osmo.scheduler.world import World
 from osmo.status import TaskStatus
 
-__all__ = ["enqueue", "place_pending"]
+__all__ = ["enqueue", "place_pending", "placement_of"]
 
 
 def enqueue(world: World, run: Run, group: Group, names: tuple[str, ...], *, gang: bool,
@@ -38,13 +42,13 @@ def enqueue(world: World, run: Run, group: Group, names: tuple[str, ...], *, gan
     """
     tasks = run.tasks
     shape = (run.state.pool, tuple(run.requests[n] for n in names))
+    start = world.now if since is None else since
     key = priority_key(run.state.priority, run.state.submitted_at)
     request = Queued(run, group, names, tuple(tasks[n].retry for n in names),
-                     (key, run.seq, group.index, next(world.seq)), shape, gang)
+                     (key, run.seq, group.index, next(world.seq)), shape, gang, start)
     world.queue.push(request)
     timeout = run.spec.timeout.queue_timeout
     if timeout is not None:
-        start = world.now if since is None else since
         world.deadlines.push(Deadline(start + timeout, request=request))
 
 
@@ -59,6 +63,8 @@ def place_pending(world: World) -> None:
         plan = world.ledger.place([(n, run.requests[n]) for n in request.tasks], run.state.pool)
         if plan is None:
             queue.block(request.shape)
+            if run.spec.timeout.queue_timeout is None:
+                world.arm_alarm(run.state.pool)
             continue
         queue.done(request)
         _commit(world, request, plan)
@@ -78,11 +84,25 @@ def _commit(world: World, request: Queued, plan: dict[str, str]) -> None:
         group.batch = Batch(list(request.tasks))
     hosts = _hosts(world, run, group)
     for name in request.tasks:
-        task = run.tasks[name]
-        assert task.attempt_id is not None and task.node_id is not None
-        world.out.append(PrepareAttempt(
-            attempt_id=task.attempt_id, workflow_id=run.id, task=name, retry=task.retry,
-            node_id=task.node_id, inputs=_inputs(run, name), hosts=hosts, run=not held))
+        world.out.append(_command(run, name, hosts, start=not held))
+
+
+def placement_of(world: World, run: Run, name: str) -> PrepareAttempt:
+    """The ``PrepareAttempt`` that placed the current attempt of active task ``name``.
+
+    Derived again from the state (inputs and hosts are what they were at placement: upstream
+    outputs and group placements do not change while the attempt is active), for a restarted
+    server that must know an attempt it did not place. ``run`` is False: nothing is started.
+    """
+    return _command(run, name, _hosts(world, run, run.group_of(run.tasks[name])), start=False)
+
+
+def _command(run: Run, name: str, hosts: dict[str, str], *, start: bool) -> PrepareAttempt:
+    task = run.tasks[name]
+    assert task.attempt_id is not None and task.node_id is not None
+    return PrepareAttempt(
+        attempt_id=task.attempt_id, workflow_id=run.id, task=name, retry=task.retry,
+        node_id=task.node_id, inputs=_inputs(run, name), hosts=hosts, run=start)
 
 
 def _hosts(world: World, run: Run, group: Group) -> dict[str, str]:

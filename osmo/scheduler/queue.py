@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 from osmo.scheduler.runs import Group, Queued, Run
 
-__all__ = ["Deadline", "Deadlines", "PlacementQueue"]
+__all__ = ["Deadline", "Deadlines", "PlacementQueue", "PoolAlarm"]
 
 
 class PlacementQueue:
@@ -46,6 +46,15 @@ class PlacementQueue:
     def done(self, request: Queued) -> None:
         """Mark ``request`` placed or stale; it leaves the queue lazily."""
         request.live = False
+
+    def waiting_in(self, pool: str | None) -> list[Queued]:
+        """Every live request that targets ``pool`` (None: any pool), in no set order.
+
+        O(shapes + requests of that pool): for the rare pool alarm, never for placement.
+        """
+        return [request for items in self._by_shape.values()
+                if items and items[0][1].run.state.pool == pool  # one shape: one pool
+                for _, request in items if request.valid()]
 
     def pending(self) -> Iterator[Queued]:
         """Heads of unblocked shapes in FIFO order, until every shape is blocked or empty.
@@ -79,17 +88,31 @@ class PlacementQueue:
         return items
 
 
+@dataclass(frozen=True)
+class PoolAlarm:
+    """A check of the requests waiting on ``pool`` (None: any pool), which has no node."""
+
+    pool: str | None
+
+
 @dataclass(frozen=True, eq=False)
 class Deadline:
-    """A timeout due at ``at``: a queued request's queue timeout or a group's exec timeout."""
+    """A timeout due at ``at``.
+
+    A queued request's queue timeout, a group's exec timeout, or an ``alarm``: the time the
+    first request waiting on a pool with no node reaches the no-worker timeout.
+    """
 
     at: float
     request: Queued | None = None
     run: Run | None = None
     group: Group | None = None
+    alarm: PoolAlarm | None = None
 
     def pending(self) -> bool:
         """True while firing it would still change something."""
+        if self.alarm is not None:
+            return True  # the world checks the pool when it fires (at most one per pool)
         if self.request is not None:
             return self.request.valid()
         assert self.group is not None

@@ -132,6 +132,7 @@ class Queued:
     key: tuple[float, int, int, int]
     shape: Hashable  # equal shapes fit or fail alike in one placement pass
     gang: bool
+    since: float = 0.0  # when it started waiting (queue timeouts count from here)
     live: bool = True
 
     def valid(self) -> bool:

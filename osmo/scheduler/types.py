@@ -24,6 +24,7 @@ __all__ = [
     "AttemptStarted",
     "AttemptStartFailed",
     "DEFAULT_MAX_RETRIES",
+    "DEFAULT_NO_WORKER_TIMEOUT",
     "LOCAL_NODE",
     "PRIORITIES",
     "PRIORITY_AGEING",
@@ -40,6 +41,7 @@ __all__ = [
     "RunAttempt",
     "Tick",
     "Transition",
+    "Waiting",
     "WorkflowSubmitted",
     "attempt_id",
     "priority_key",
@@ -66,6 +68,10 @@ def priority_key(priority: str, submitted_at: float) -> float:
     """Where a request of a workflow with ``priority`` submitted at ``submitted_at`` queues."""
     return submitted_at + PRIORITIES.index(priority) * PRIORITY_AGEING
 
+DEFAULT_NO_WORKER_TIMEOUT = 1800.0
+"""Seconds a task waits on a pool with no online worker before it fails as
+FAILED_QUEUE_TIMEOUT, unless its workflow names a ``queue_timeout`` (which then applies
+instead). Counted from the later of: the task started waiting, the pool lost its last worker."""
 
 LOCAL_NODE = "local"
 """The node id of the server's own pool (a remote worker may not call itself so)."""
@@ -109,6 +115,22 @@ class Capacity:
             self.memory - other.memory,
             self.storage - other.storage,
         )
+
+
+@dataclass(frozen=True)
+class Waiting:
+    """Why a task has not started yet (``Scheduler.waiting``).
+
+    Attributes:
+        reason: what it waits for, e.g. ``pool 'gpu' has no online worker`` or ``needs 4
+            gpu, largest free is 2``.
+        since: when that condition began, when known (a pool's last worker left).
+        fails_at: when the task fails if nothing changes (a queue timeout), when known.
+    """
+
+    reason: str
+    since: float | None = None
+    fails_at: float | None = None
 
 
 @dataclass(frozen=True)
@@ -209,10 +231,17 @@ class AttemptStartFailed:
 
 @dataclass(frozen=True)
 class AttemptLost:
-    """The attempt's worker (or the server that ran it) went away; outcome unknown."""
+    """The attempt's worker (or the server that ran it) went away; outcome unknown.
+
+    Attributes:
+        server_restart: the attempt died with the server that ran it (a crash of the
+            server, not of the task): if its command had not started yet (INITIALIZING),
+            the loss is not counted against the lost-attempt cap.
+    """
 
     attempt_id: str
     message: str = "worker lost"
+    server_restart: bool = False
 
 
 @dataclass(frozen=True)

@@ -11,11 +11,11 @@ from __future__ import annotations
 
 import itertools
 
-from osmo.scheduler.queue import Deadlines, PlacementQueue
+from osmo.scheduler.queue import Deadline, Deadlines, PlacementQueue, PoolAlarm
 from osmo.scheduler.resources import Ledger
 from osmo.scheduler.runs import Group, Run, workflow_outcome
 from osmo.scheduler.state import TaskState, WorkflowState
-from osmo.scheduler.types import Changes, Command, KillAttempt, RunAttempt, Transition
+from osmo.scheduler.types import Changes, Command, KillAttempt, Node, RunAttempt, Transition
 from osmo.status import TaskStatus, WorkflowStatus
 
 __all__ = ["World"]
@@ -24,9 +24,14 @@ __all__ = ["World"]
 class World:
     """State shared by the scheduler's rules while they handle one event at ``now``."""
 
-    def __init__(self, *, default_max_retries: int, max_lost_retries: int) -> None:
+    def __init__(self, *, default_max_retries: int, max_lost_retries: int,
+                 no_worker_timeout: float | None = None) -> None:
         self.default_max_retries = default_max_retries
         self.max_lost_retries = max_lost_retries
+        self.no_worker_timeout = no_worker_timeout
+        # pool (None: any pool) → since when it has had no node; first noticed, if never had
+        self.empty_since: dict[str | None, float] = {}
+        self.alarms: set[str | None] = set()  # pools with a PoolAlarm deadline pending
         self.runs: dict[str, Run] = {}
         self.attempts: dict[str, tuple[Run, str]] = {}  # current attempt id → (run, task)
         self.ledger = Ledger()
@@ -39,6 +44,47 @@ class World:
         self._tasks: dict[tuple[str, str], TaskState] = {}
         self._workflows: dict[str, WorkflowState] = {}
         self._transitions: list[Transition] = []
+
+    # ------------------------------------------------------------------ nodes
+
+    def node_up(self, node: Node) -> None:
+        """Add or replace ``node``: its pool, and the cluster, are no longer empty."""
+        self.ledger.up(node)
+        self.empty_since.pop(node.pool, None)
+        self.empty_since.pop(None, None)
+        self.queue.capacity_grew()
+
+    def node_down(self, node_id: str) -> list[str]:
+        """Remove a node; return the attempts it held. Its pool may become empty now."""
+        node = self.ledger.node(node_id)
+        held = self.ledger.down(node_id)
+        if node is not None and not self.ledger.candidates(node.pool):
+            self.empty_since[node.pool] = self.now
+            self.arm_alarm(node.pool)
+        if not self.ledger.candidates(None):
+            self.empty_since.setdefault(None, self.now)
+            self.arm_alarm(None)
+        return held
+
+    def pool_empty_since(self, pool: str | None) -> float | None:
+        """Since when ``pool`` (None: the cluster) has had no node; None while it has one."""
+        if self.ledger.candidates(pool):
+            return None
+        return self.empty_since.setdefault(pool, self.now)
+
+    def arm_alarm(self, pool: str | None, at: float | None = None) -> None:
+        """Make sure a ``PoolAlarm`` checks the requests waiting on empty ``pool``.
+
+        Due at ``at``, by default when the pool has been empty for the no-worker timeout.
+        """
+        if self.no_worker_timeout is None or pool in self.alarms:
+            return
+        since = self.pool_empty_since(pool)
+        if since is None:
+            return
+        self.alarms.add(pool)
+        due = since + self.no_worker_timeout if at is None else at
+        self.deadlines.push(Deadline(due, alarm=PoolAlarm(pool)))
 
     # ------------------------------------------------------------------ journal
 

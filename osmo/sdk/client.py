@@ -26,9 +26,24 @@ if TYPE_CHECKING:  # the spec package (YAML, Jinja) loads only when a spec is ha
     from osmo.spec.model import WorkflowSpec
 from osmo.status import TaskStatus, WorkflowStatus
 
-__all__ = ["Client", "EventInfo", "LogRecord", "TaskInfo", "WorkflowInfo"]
+__all__ = ["Client", "EventInfo", "LogRecord", "TaskInfo", "TaskWaiting", "WorkflowInfo"]
 
 SpecLike: TypeAlias = "str | os.PathLike[str] | dict[str, Any] | WorkflowSpec | Workflow"
+
+
+@dataclass(frozen=True)
+class TaskWaiting:
+    """Why a WAITING or SCHEDULING task waits (computed by the server's scheduler).
+
+    Attributes:
+        reason: e.g. ``pool 'gpu' has no online worker`` or ``needs 4 gpu, largest free is 2``.
+        since: when that condition began, when known.
+        fails_at: when the task fails if nothing changes (a queue timeout), when known.
+    """
+
+    reason: str
+    since: float | None = None
+    fails_at: float | None = None
 
 
 @dataclass(frozen=True)
@@ -47,6 +62,7 @@ class TaskInfo:
     reused: bool  # its outputs came from an earlier identical run (cache or restart)
     node: str | None = None  # where its latest attempt was placed ("local" or a worker)
     progress: str | None = None  # a running typed task's latest progress ("3/10 message")
+    waiting: TaskWaiting | None = None  # why it waits, while WAITING or SCHEDULING
 
     @property
     def duration(self) -> float | None:
@@ -122,7 +138,16 @@ def _task_info(d: dict[str, Any]) -> TaskInfo:
     return TaskInfo(d["name"], d.get("group", d["name"]), TaskStatus[d["status"]],
                     d.get("retry", 0), d.get("exit_code"), d.get("started_at"),
                     d.get("ended_at"), d.get("output"), d.get("message", ""),
-                    bool(d.get("reused")), d.get("node_id"), d.get("progress"))
+                    bool(d.get("reused")), d.get("node_id"), d.get("progress"),
+                    _waiting(d.get("waiting")))
+
+
+def _waiting(d: Any) -> TaskWaiting | None:
+    if not isinstance(d, dict) or not isinstance(d.get("reason"), str):
+        return None
+    since, fails_at = d.get("since"), d.get("fails_at")
+    return TaskWaiting(d["reason"], float(since) if isinstance(since, (int, float)) else None,
+                       float(fails_at) if isinstance(fails_at, (int, float)) else None)
 
 
 def _workflow_info(wf: dict[str, Any], tasks: list[dict[str, Any]] = ()) -> WorkflowInfo:  # type: ignore[assignment]
@@ -230,9 +255,15 @@ class Client:
 
     # ------------------------------------------------------------------ read
 
-    def get(self, workflow_id: str) -> WorkflowInfo:
-        """The workflow's current status and tasks."""
-        reply = self._call("get", workflow_id=workflow_id)
+    def get(self, workflow_id: str, *, waiting: bool = True) -> WorkflowInfo:
+        """The workflow's current status and tasks.
+
+        Args:
+            workflow_id: the workflow.
+            waiting: also say why each waiting task waits (``TaskInfo.waiting``); the
+                server's scheduler computes that, so a frequent poller may leave it out.
+        """
+        reply = self._call("get", workflow_id=workflow_id, waiting=waiting)
         return _workflow_info(reply["workflow"], reply["tasks"])
 
     def list(self, *, statuses: Sequence[str] = (), name: str | None = None,
@@ -310,8 +341,8 @@ class Client:
         try:
             while True:
                 changed.clear()
-                if on_update is not None:
-                    on_update(self.get(workflow_id))
+                if on_update is not None:  # (no waiting reasons: they cost the engine)
+                    on_update(self.get(workflow_id, waiting=False))
                 status = WorkflowStatus[self._call("status", workflow_id=workflow_id)["status"]]
                 if status.terminal:
                     return self.get(workflow_id)

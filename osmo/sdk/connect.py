@@ -4,7 +4,8 @@ The endpoint used: an explicit ``server`` argument > ``OSMO_SERVER`` > the saved
 (``osmo profile set server ENDPOINT``, kept in ``OSMO_HOME/profile.json``) > the home's
 ``server.json``. With none of them and ``autostart`` on, a server is started in the
 background for the home (``python -m osmo.server.app``, its own session, output in
-``server.log``) and the call waits until it answers.
+``server.log``), with the options the last explicit start saved in the home
+(``osmo.server.options.saved_options``), and the call waits until it answers.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 from osmo.config import (
     DEFAULT_CLUSTER,
@@ -25,11 +27,11 @@ from osmo.config import (
 )
 from osmo.errors import InfrastructureError, ServerUnreachable
 from osmo.layout import Home
-from osmo.server.options import ServerOptions
+from osmo.server.options import ServerOptions, saved_options
 from osmo.transport.rpc import ApiClient
 from osmo.transport.zenoh_link import Link
 
-__all__ = ["Connection", "server_status", "start_server", "stop_server"]
+__all__ = ["Connection", "running_options", "server_status", "start_server", "stop_server"]
 
 START_TIMEOUT = 20.0
 
@@ -66,14 +68,24 @@ def start_server(home: str | os.PathLike[str] | None = None,
                  options: ServerOptions | None = None) -> ServerInfo:
     """Start a background server for ``home`` with ``options`` unless one runs.
 
+    Args:
+        home: the osmo home (default: ``OSMO_HOME`` / XDG data folder).
+        options: how it runs; None: the options saved by the last explicit start, else the
+            defaults.
+
     Returns:
         the running server's info (``server.json``), once it answers.
+
+    Raises:
+        UsageError: ``options`` is None and the saved options are damaged.
     """
     home_path = home_dir(home)
     if lock_is_held(home_path):
         return _wait_ready(home_path, None, START_TIMEOUT)
+    if options is None:
+        options = saved_options(home_path) or ServerOptions()
     args = [sys.executable, "-m", "osmo.server.app", "--home", str(home_path),
-            *(options or ServerOptions()).to_argv()]
+            *options.to_argv()]
     with open(Home(home_path).server_log, "ab") as out:
         proc = subprocess.Popen(args, stdin=subprocess.DEVNULL, stdout=out, stderr=out,
                                 start_new_session=True, close_fds=True)
@@ -141,13 +153,26 @@ def _local_config(home: Path) -> str | None:
 
     The same credentials serve the local CLI, unless ``OSMO_ZENOH_CONFIG`` says otherwise.
     """
-    import json
-
     if os.environ.get("OSMO_ZENOH_CONFIG"):
         return None  # Link.client takes it from the environment
+    value = _server_json(home).get("zenoh_config")
+    return str(value) if value else None
+
+
+def running_options(home: str | os.PathLike[str] | None = None) -> list[str] | None:
+    """The options (as flags) the home's running server was started with; None: not known."""
+    home_path = home_dir(home)
+    if not lock_is_held(home_path):
+        return None
+    value = _server_json(home_path).get("options")
+    return [str(v) for v in value] if isinstance(value, list) else None
+
+
+def _server_json(home: Path) -> dict[str, Any]:
+    import json
+
     try:
         data = json.loads(Home(home).server_info.read_text())
     except (OSError, ValueError):
-        return None
-    value = data.get("zenoh_config")
-    return str(value) if value else None
+        return {}
+    return data if isinstance(data, dict) else {}

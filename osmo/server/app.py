@@ -126,12 +126,18 @@ def serve(home: str | os.PathLike[str] | None = None, options: ServerOptions | N
                     on_finished=records.finished, datasets=Datasets(store, artifacts, home_path),
                     no_cache=restored.no_cache, restore=lambda: restore(store),
                     inflight=inflight, on_fatal=on_fatal)
+    lost_ids = {t.attempt_id for t in lost}
+    for task in active:  # still running on remote workers: placed by the old server
+        cmd = restored.scheduler.placement(str(task.attempt_id))
+        if task.attempt_id not in lost_ids and cmd is not None:
+            engine.placements.recall(cmd)  # so that their outputs get lineage here too
     if pool is not None:
         engine.post(NodeUp(pool.node()))
     for event in failed:
         engine.post(event)
     for task in lost:
-        engine.post(AttemptLost(str(task.attempt_id), "server restarted; attempt lost"))
+        engine.post(AttemptLost(str(task.attempt_id), "server restarted; attempt lost",
+                                server_restart=True))
     engine.start()
     hub.expect(remote_nodes, options.reconnect_grace)
 
@@ -140,7 +146,7 @@ def serve(home: str | os.PathLike[str] | None = None, options: ServerOptions | N
             "zenoh_config": (str(Path(options.zenoh_config).absolute())
                              if options.zenoh_config else None),
             "host_id": host_id(), "artifacts": str(artifacts.root),
-            "started_at": time.time(), "home": str(home_path)}
+            "started_at": time.time(), "home": str(home_path), "options": options.to_argv()}
     handlers = Handlers(engine, home_path, info, on_shutdown=stopping.set, workers=hub,
                         link=link)
     api_server = ApiServer(link, handlers.handle,

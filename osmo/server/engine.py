@@ -69,6 +69,7 @@ from osmo.server.requests import (
     SubmitWorkflow,
     TagDataset,
     TagWorkflow,
+    WaitReasons,
 )
 from osmo.spec.model import WorkflowSpec
 from osmo.status import TaskStatus
@@ -283,6 +284,8 @@ class Engine:
                 return self.scheduler.attempts_on(node_id)
             case ListNodes():
                 return [(node, self.scheduler.used(node.id)) for node in self.scheduler.nodes()]
+            case WaitReasons(workflow_id=wf_id):
+                return self.scheduler.waiting(wf_id)
         raise TypeError(f"not a request: {request!r}")
 
     def _tag_workflow(self, request: TagWorkflow, batch: Batch) -> list[str]:

@@ -9,13 +9,14 @@ the client's mistakes.
 from __future__ import annotations
 
 import builtins
+import logging
 import os
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from osmo.artifacts import ArtifactStore, Manifest
-from osmo.errors import NotFoundError, UsageError
+from osmo.errors import NotFoundError, OsmoError, UsageError
 from osmo.layout import Home
 from osmo.names import (
     MAX_NAME,
@@ -31,7 +32,7 @@ from osmo.server.dataset_handlers import DatasetHandlers
 from osmo.server.engine import Engine
 from osmo.server.lineage_query import lineage_graph, resolve_target
 from osmo.server.logview import last_progress, read_logs
-from osmo.server.requests import ListNodes, SubmitWorkflow, TagWorkflow
+from osmo.server.requests import ListNodes, SubmitWorkflow, TagWorkflow, WaitReasons
 from osmo.server.workers import WorkerHub
 from osmo.spec import isolation, load_spec, spec_from_dict, spec_to_dict
 from osmo.spec.parse import MAX_LABELS
@@ -42,7 +43,10 @@ from osmo.transport.zenoh_link import Link
 
 __all__ = ["Handlers"]
 
+log = logging.getLogger("osmo.server")
+
 MAX_LIST = 1_000_000  # workflows one ``list`` may ask for
+_WAITS = ("WAITING", "SCHEDULING")  # task statuses that have a reason to wait
 _MAX_TEXT = 4096  # characters of a path, a pool or an artifact target in a request
 
 
@@ -185,14 +189,28 @@ class Handlers:
     # ------------------------------------------------------------------ read verbs
 
     def get(self, request: dict[str, Any]) -> dict[str, Any]:
-        """A workflow's state and its tasks' states."""
+        """A workflow's state and its tasks' states (``waiting``: and why waiting tasks wait)."""
         row = self._row(request.get("workflow_id"), with_spec=True)
+        reasons = field(request, "waiting", bool, default=False)
         tasks = _ordered_tasks(row, self._store.tasks(row.id))
         for task in tasks:  # typed tasks report progress as log lines; show the latest
             if task.get("status") == "RUNNING":
                 dirs = Home(self._home).attempt(row.id, task["name"], int(task.get("retry", 0)))
                 task["progress"] = last_progress(dirs.log)
+        if reasons and any(t.get("status") in _WAITS for t in tasks):  # only then: it costs
+            self._add_reasons(row.id, tasks)
         return {"workflow": _workflow_dict(row), "tasks": tasks}
+
+    def _add_reasons(self, workflow_id: str, tasks: builtins.list[dict[str, Any]]) -> None:
+        """Say why each waiting task waits; a busy or stopped engine leaves them out."""
+        try:
+            reasons = self._engine.ask(WaitReasons(workflow_id), timeout=5)
+        except (OsmoError, TimeoutError) as exc:
+            log.warning("no waiting reasons for %s: %s", workflow_id, exc or "engine busy")
+            return
+        for task in tasks:
+            if task["name"] in reasons:
+                task["waiting"] = vars(reasons[task["name"]])
 
     def status(self, request: dict[str, Any]) -> dict[str, Any]:
         """Only the workflow's own state (cheap: for waiting on big workflows)."""

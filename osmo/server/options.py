@@ -4,16 +4,32 @@
 osmo.server.app``) and ``serve()`` all use :class:`ServerOptions`.
 
 Light on purpose: the CLI imports it to build its parser.
+
+Persisted options: an explicit ``osmo server start`` (or ``osmo server``) saves its options in
+``OSMO_HOME/server-options.json`` (:func:`remember`, mode 0600), and the automatic start of a
+later CLI call reuses them (:func:`saved_options`), so a server brought back after a crash
+listens where its workers look for it. The file holds the options as flags (``to_argv``),
+read back through the same parser, so a field added to :class:`ServerOptions` is saved with
+no change here. A start with other options replaces the saved ones: the new ones win.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import json
+import os
+import time
 from dataclasses import dataclass
+from pathlib import Path
+from typing import NoReturn
 
 from osmo.config import DEFAULT_CLUSTER
+from osmo.errors import UsageError
+from osmo.layout import Home
 
-__all__ = ["ServerOptions"]
+__all__ = ["ServerOptions", "absolute", "option_changes", "options_from_argv", "remember",
+           "saved_options"]
 
 
 @dataclass(frozen=True)
@@ -89,3 +105,104 @@ class ServerOptions:
             if value != getattr(d, flag[2:].replace("-", "_")):
                 out += [flag, str(value)]
         return out + ([] if self.local_pool else ["--no-local-pool"])
+
+
+class _Refusing(argparse.ArgumentParser):
+    """A parser that raises instead of printing usage and exiting."""
+
+    def error(self, message: str) -> NoReturn:
+        raise ValueError(message)
+
+
+def options_from_argv(argv: list[str]) -> ServerOptions:
+    """The options that flags ``argv`` (as :meth:`ServerOptions.to_argv` writes them) give.
+
+    Raises:
+        ValueError: a flag the server does not take, or a bad value.
+    """
+    parser = _Refusing(prog="osmo server", add_help=False, exit_on_error=False)
+    ServerOptions.add_arguments(parser)
+    try:
+        return ServerOptions.from_args(parser.parse_args(argv))
+    except (argparse.ArgumentError, UsageError) as exc:
+        raise ValueError(str(exc)) from None
+
+
+def saved_options(home: Path) -> ServerOptions | None:
+    """The options the last explicit start saved in ``home``; None when none were saved.
+
+    Raises:
+        UsageError: the file is unreadable or holds options the server does not take.
+    """
+    path = Home(home).server_options
+    try:
+        data = json.loads(path.read_bytes())
+    except FileNotFoundError:
+        return None
+    except (OSError, ValueError) as exc:
+        raise _damaged(path, str(exc)) from None
+    argv = data.get("argv") if isinstance(data, dict) else None
+    if not isinstance(argv, list) or not all(isinstance(a, str) for a in argv):
+        raise _damaged(path, "no list of flags under 'argv'")
+    try:
+        return options_from_argv(argv)
+    except ValueError as exc:
+        raise _damaged(path, str(exc)) from None
+
+
+def _damaged(path: Path, why: str) -> UsageError:
+    return UsageError(f"{path}: unusable saved server options ({why}); fix or delete the "
+                      f"file, or start the server with the options you want (`osmo server "
+                      f"start ...` saves them)")
+
+
+def remember(home: Path, options: ServerOptions) -> list[str]:
+    """Save ``options`` as ``home``'s server options; return what changed (see below).
+
+    A relative ``zenoh_config`` is saved as an absolute path, so an automatic start from
+    another folder finds it. The file is written atomically with mode 0600.
+
+    Returns:
+        :func:`option_changes` from the saved options (the defaults when none were saved or
+        the file was damaged) to ``options``.
+    """
+    try:
+        before = saved_options(home) or ServerOptions()
+    except UsageError:
+        before = ServerOptions()
+    options = absolute(options)
+    path = Home(home).server_options
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.unlink(missing_ok=True)  # a crashed start's; O_EXCL then never follows a planted link
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    with os.fdopen(fd, "w") as out:
+        json.dump({"argv": options.to_argv(), "saved_at": time.time()}, out)
+    os.replace(tmp, path)
+    return option_changes(before, options)
+
+
+def absolute(options: ServerOptions) -> ServerOptions:
+    """``options`` with a relative ``zenoh_config`` made absolute (from the current folder)."""
+    if options.zenoh_config is None:
+        return options
+    return dataclasses.replace(options, zenoh_config=str(Path(options.zenoh_config).absolute()))
+
+
+def option_changes(before: ServerOptions, after: ServerOptions) -> list[str]:
+    """One ``name: old → new`` line per option that differs (empty: the same options)."""
+    out = []
+    for f in dataclasses.fields(ServerOptions):
+        old, new = getattr(before, f.name), getattr(after, f.name)
+        if old != new:
+            out.append(f"{f.name}: {_shown(old)} → {_shown(new)}")
+    return out
+
+
+def _shown(value: object) -> str:
+    if value is None or value == ():
+        return "(default)"
+    if isinstance(value, tuple):
+        return " ".join(str(v) for v in value)
+    if isinstance(value, float) and value.is_integer():
+        return str(int(value))
+    return str(value)

@@ -64,6 +64,32 @@ class Placements:
         Its dataset and other-workflow inputs, its cache key, and a cache hit if there is one. Never
         raises: a failure is kept as the reason the attempt cannot start.
         """
+        settled = self._settle(cmd)
+        if isinstance(settled, str):
+            self._ready[cmd.attempt_id] = settled
+            return
+        cmd, hit = settled
+        self._ready[cmd.attempt_id] = cmd
+        if hit is not None:
+            self._hits[cmd.attempt_id] = hit
+
+    def recall(self, cmd: PrepareAttempt) -> None:
+        """Remember an attempt an earlier server placed, for its lineage; nothing is prepared.
+
+        A restarted server calls this for each attempt still running on a remote worker, so
+        that its exit under this server records its output and lineage. Never raises.
+        """
+        settled = self._settle(cmd)
+        if isinstance(settled, str):
+            log.warning("attempt %s: its inputs cannot be resolved again (%s); its output "
+                        "will have no lineage", cmd.attempt_id, settled)
+
+    def _settle(self, cmd: PrepareAttempt) -> tuple[PrepareAttempt, CacheHit | None] | str:
+        """Resolve ``cmd``'s inputs and cache key and remember its placement in provenance.
+
+        Returns:
+            the resolved command and a cache hit (or None), or why its inputs cannot be had.
+        """
         try:
             if self._datasets is not None:
                 cmd = self._datasets.resolve_inputs(cmd, self._specs[cmd.workflow_id].task(
@@ -73,16 +99,12 @@ class Placements:
                             no_cache=cmd.workflow_id in self._no_cache)
             hit = cache.lookup(self._store, key) if key else None
         except OsmoError as exc:
-            self._ready[cmd.attempt_id] = str(exc)
-            return
+            return str(exc)
         except Exception as exc:  # noqa: BLE001 - fails this attempt's start, nothing else
             log.exception("resolving the inputs of %s failed", cmd.attempt_id)
-            self._ready[cmd.attempt_id] = f"cannot resolve its inputs: {exc!r}"
-            return
-        self._ready[cmd.attempt_id] = cmd
+            return f"cannot resolve its inputs: {exc!r}"
         self._provenance.placed(cmd, cmd.hosts.get(cmd.task, cmd.node_id), key, sources)
-        if hit is not None:
-            self._hits[cmd.attempt_id] = hit
+        return cmd, hit
 
     def prepare(self, cmd: PrepareAttempt, executor: Executor | None) -> None:
         """Execute a placement: prepare it, complete it from the cache, or fail its start.

@@ -13,7 +13,8 @@ one answers:
 - :class:`AddDatasetVersion` → the new version's number;
 - :class:`AttemptsOn` → the ids of the attempts placed on a node (how the hub reconciles a
   worker that registers again);
-- :class:`ListNodes` → every node with the resources its attempts hold.
+- :class:`ListNodes` → every node with the resources its attempts hold;
+- :class:`WaitReasons` → why each waiting task of a workflow waits (``Scheduler.waiting``).
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from osmo.scheduler.types import CancelWorkflow
 from osmo.spec.model import WorkflowSpec
 
 __all__ = ["AddDatasetVersion", "AttemptsOn", "ListNodes", "Request", "SubmitWorkflow",
-           "TagDataset", "TagWorkflow"]
+           "TagDataset", "TagWorkflow", "WaitReasons"]
 
 
 @dataclass(frozen=True)
@@ -86,5 +87,12 @@ class ListNodes:
     """Every known node with what its attempts hold: ``[(Node, Capacity used)]``."""
 
 
+@dataclass(frozen=True)
+class WaitReasons:
+    """Task name → ``osmo.scheduler.Waiting`` for the waiting tasks of ``workflow_id``."""
+
+    workflow_id: str
+
+
 Request = (SubmitWorkflow | CancelWorkflow | TagDataset | TagWorkflow | AddDatasetVersion
-           | AttemptsOn | ListNodes)
+           | AttemptsOn | ListNodes | WaitReasons)

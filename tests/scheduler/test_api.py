@@ -21,7 +21,8 @@ def test_exported_members_exist_and_are_documented() -> None:
 def test_scheduler_api_shape() -> None:
     public = {n for n in dir(Scheduler) if not n.startswith("_")}
     assert public == {"handle", "take_changes", "next_deadline", "check_fit", "restore",
-                      "workflow", "tasks", "attempt", "attempts_on", "nodes", "used", "forget"}
+                      "workflow", "tasks", "attempt", "attempts_on", "nodes", "used", "forget",
+                      "waiting", "placement"}
 
 
 @pytest.mark.parametrize(("event", "error"), [

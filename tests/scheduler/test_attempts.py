@@ -92,6 +92,39 @@ def test_lost_attempts_retry_without_using_user_retries(losses: int, cap: int, s
         assert sim.wf() == "FAILED_SERVER_ERROR"
 
 
+@pytest.mark.parametrize(("steps", "counted"), [
+    ("", 0),  # placed (INITIALIZING) when the server died: not the task's fault
+    ("prepare t", 0),  # prepared, its command not started yet
+    ("prepare t; start t", 1),  # RUNNING when the server died: counted like any loss
+])
+def test_a_server_restart_counts_only_attempts_that_were_running(steps: str,
+                                                                 counted: int) -> None:
+    sim = Sim(max_lost_retries=2)
+    sim.submit(workflow(task("t")), max_retries=0)
+    for _ in range(10):  # a crash loop of the server, each time at the same point
+        play(sim, steps)
+        sim.send(AttemptLost(sim.aid("t"), "server restarted; attempt lost",
+                             server_restart=True))
+        if sim.task("t").status.terminal:
+            break
+    t = sim.task("t")
+    if counted:
+        assert (t.status.name, t.lost_retries) == ("FAILED_SERVER_ERROR", 2)
+    else:
+        assert (t.status.name, t.retry, t.lost_retries) == ("INITIALIZING", 10, 0)
+        assert "not counted against the lost-attempt cap" in sim.transitions[-2].message
+
+
+def test_the_lost_attempt_cap_message_says_how_to_run_it_again() -> None:
+    sim = Sim(max_lost_retries=0)
+    sim.submit(workflow(task("t")))
+    play(sim, "prepare t; start t; lost t")
+    t = sim.task("t")
+    assert t.status.name == "FAILED_SERVER_ERROR"
+    assert t.message == ("worker lost; lost-attempt cap 0 reached; once the cause is fixed, "
+                         "`osmo restart wf-1` runs it again")
+
+
 def test_node_down_loses_its_attempts_and_they_move_to_another_node() -> None:
     sim = Sim(node("n1", cpu=1), node("n2", cpu=1))
     sim.submit(workflow(task("a"), task("b")))

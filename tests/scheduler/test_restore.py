@@ -29,6 +29,21 @@ def mid_run() -> Sim:
     return sim
 
 
+def test_a_restored_scheduler_knows_how_each_active_attempt_was_placed() -> None:
+    before = mid_run()
+    placed = {c.attempt_id: c for c in before.commands if isinstance(c, PrepareAttempt)}
+    sim = before.restored({"wf-1": SPEC, "wf-2": workflow(task("x"))}, node(cpu=2))
+    for aid in ("wf-1:b:0", "wf-1:c:0"):
+        original = placed[aid]
+        assert sim.s.placement(aid) == PrepareAttempt(
+            aid, "wf-1", original.task, 0, "n1", original.inputs, original.hosts, run=False)
+    assert sim.s.placement("wf-1:b:0").inputs == {"a": "out:a"}  # type: ignore[union-attr]
+    assert sim.s.placement("wf-1:a:0") is None  # completed: not active
+    assert sim.s.placement("wf-9:z:0") is None
+    assert sim.send(AttemptLost("wf-1:b:0", "lost")) is not None
+    assert sim.s.placement("wf-1:b:0") is None  # superseded by retry 1
+
+
 @pytest.mark.parametrize("node_first", [False, True])
 def test_restore_mid_run_then_lost_attempts_are_rescheduled(node_first: bool) -> None:
     before = mid_run()
