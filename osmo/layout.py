@@ -9,6 +9,7 @@
         server.log            a background server's own output
         server-options.json   the options of the last explicit ``osmo server start`` (0600)
         applying.json         ids of the attempt reports being applied (the quarantine file)
+        crashes.json          tasks a server died applying a report of, and how often
         profile.json          the client profile (``osmo profile set``)
         worker.json           a remote worker's health (in the worker's home)
         artifacts/            the content-addressed store (see :class:`BlobDirs`)
@@ -155,6 +156,11 @@ class Home:
     def applying(self) -> Path:
         """The quarantine file (``osmo.server.recovery.InFlight``)."""
         return self.root / "applying.json"
+
+    @property
+    def crashes(self) -> Path:
+        """Tasks a server died while applying a report of (``InFlight.strike``)."""
+        return self.root / "crashes.json"
 
     @property
     def profile(self) -> Path:

@@ -11,8 +11,9 @@ scheduler from the store; attempts that were placed or running on the local pool
 the server (their leftover processes are killed by pid, after checking the pid still names
 the same process), so each is reported lost and rescheduled as a new retry. Completed tasks
 are never re-run; the lost attempt's id is fenced, so it can never be committed. An attempt
-whose report the old server was applying when it died is quarantined instead: failed with
-the reason, never run again on its own (see ``osmo.server.recovery``).
+whose report the old server was applying when it died is recovered the same way the first
+time; the second time a server dies applying a report of that task, it is quarantined
+instead: failed with the reason, never run again on its own (see ``osmo.server.recovery``).
 
 If the engine cannot go on (the state store is gone or unwritable), the server stops and
 exits with code 3, so that a supervisor or health check sees it instead of a server that
@@ -90,9 +91,9 @@ def serve(home: str | os.PathLike[str] | None = None, options: ServerOptions | N
     listen, connect = list(options.listen), list(options.connect)
     endpoints = listen or ([] if connect else [f"tcp/127.0.0.1:{free_port()}"])
     store = Store(layout.state_db)
-    inflight = InFlight(layout.applying)
+    inflight = InFlight(layout.applying, layout.crashes)
     restored = restore(store)
-    active, failed = quarantine(restored.active, inflight.left)
+    active, failed = quarantine(restored.active, inflight.strike(inflight.left))
     lost, remote_nodes = split_lost(active)
     kill_leftovers(store, lost)
 

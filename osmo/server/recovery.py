@@ -9,12 +9,15 @@ Quarantine: the engine applies each attempt's final report (an exit or a start f
 reports that carry a task's outputs and messages into the server) in a transaction of its
 own, writing its id to ``OSMO_HOME/applying.json`` (:class:`InFlight`) before and emptying
 the file once it is committed. A file still holding an id when a server starts means the
-previous server died while applying that report (a crash no exception handler saw: a
-segfault, the kernel's OOM killer, ``kill -9`` at that very instant). That attempt is failed
-with :data:`QUARANTINED` instead of being run again, so one attempt cannot crash a server
-over and over; ``osmo restart`` runs the task again once its cause is fixed. The file is
-written without fsync: a process crash leaves the page cache intact, and a power cut is no
-attempt's fault.
+previous server died while applying that report: a crash no exception handler saw (a
+segfault, the kernel's OOM killer), or a ``kill -9`` from outside at that very instant, which
+nothing tells apart. The first time, the task is given the benefit of the doubt: its attempt
+is recovered like any other lost one (run again as a new retry) and the crash is counted in
+``OSMO_HOME/crashes.json`` (:meth:`InFlight.strike`). If a server dies again while applying a
+report of the same task, that attempt is failed with :data:`QUARANTINED` instead of being run
+again, so one task cannot crash a server over and over; ``osmo restart`` runs it again once
+its cause is fixed. The files are written without fsync: a process crash leaves the page
+cache intact, and a power cut is no attempt's fault.
 
 Must not run tasks or talk to workers; it only reads the store and that one file.
 """
@@ -150,14 +153,41 @@ class InFlight:
     Args:
         path: the file; created if missing. What an earlier server left in it is kept in
             :attr:`left` before the file is emptied.
+        crashes: the file counting, per task, the servers that died applying its reports
+            (default: ``crashes.json`` beside ``path``).
     """
 
-    def __init__(self, path: Path) -> None:
+    def __init__(self, path: Path, crashes: Path | None = None) -> None:
         self.path = Path(path)
+        self.crashes = Path(crashes) if crashes else self.path.with_name("crashes.json")
         self.left: set[str] = _read_ids(self.path)
         self._fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o600)
         self._dirty = True
         self.clear()
+
+    def strike(self, attempt_ids: set[str]) -> set[str]:
+        """Count a crash against each attempt's task; the attempts to quarantine.
+
+        Returns:
+            the attempts whose task a server had already died on once before (their second
+            strike); the others are to be recovered as lost attempts.
+        """
+        counts = _read_counts(self.crashes)
+        repeat = set()
+        for aid in sorted(attempt_ids):
+            task = aid.rsplit(":", 1)[0]  # workflow:task, the same for every retry
+            counts[task] = counts.get(task, 0) + 1
+            if counts[task] > 1:
+                repeat.add(aid)
+            else:
+                log.warning("attempt %s: a server died while applying its report; it runs "
+                            "again (a second such crash quarantines the task)", aid)
+        if attempt_ids:
+            tmp = self.crashes.with_suffix(".tmp")
+            tmp.write_text(json.dumps(counts))
+            os.chmod(tmp, 0o600)
+            tmp.replace(self.crashes)
+        return repeat
 
     def mark(self, attempt_ids: list[str]) -> None:
         """Note the attempts about to be applied (replaces what was there)."""
@@ -174,6 +204,18 @@ class InFlight:
     def close(self) -> None:
         """Close the file (it stays, empty)."""
         os.close(self._fd)
+
+
+def _read_counts(path: Path) -> dict[str, int]:
+    try:
+        data = json.loads(path.read_bytes() or b"{}")
+    except FileNotFoundError:
+        return {}
+    except ValueError:  # torn: start counting again
+        return {}
+    if not isinstance(data, dict):
+        return {}
+    return {str(k): int(v) for k, v in data.items() if isinstance(v, int)}
 
 
 def _read_ids(path: Path) -> set[str]:

@@ -123,19 +123,37 @@ workflow:
     assert osmo.server_pid() is None  # its address is gone: clients see it is down
 
 
-def test_an_attempt_that_crashed_the_server_is_quarantined(osmo: Osmo, faulty: list[Faulty],
-                                                           tmp_path: Path) -> None:
+def test_a_task_that_crashed_the_server_twice_is_quarantined(osmo: Osmo, faulty: list[Faulty],
+                                                              tmp_path: Path) -> None:
     server = Faulty(osmo, "crash:boom")
     faulty.append(server)
     wf = osmo.submit(write(tmp_path / "m.yaml", SPEC))
     assert server.proc.wait(timeout=90) == -9  # it crashed applying boom's exit
+    # The next server crashes on boom again (its retry's exit): the second strike.
+    again = Faulty(osmo, "crash:boom")
+    faulty.append(again)
+    assert again.proc.wait(timeout=90) == -9
     # The next server (started by the CLI, no fault) fails boom instead of running it again.
     osmo.wait_for(wf, lambda i: i["status"] not in ("PENDING", "RUNNING", "WAITING"))
     by_name = tasks(osmo, wf)
     boom = by_name["boom"]
     assert boom["status"] == "FAILED" and "quarantined" in boom["message"], boom
-    assert boom["retry"] == 0  # never run again
+    assert boom["retry"] == 1  # run again once after the first crash, never after the second
     assert by_name["a"]["status"] == "COMPLETED" and by_name["after"]["status"] == "COMPLETED"
     assert "quarantined" in osmo("logs", wf, check=True).out + (
         osmo.home / "server.log").read_text()
     assert not os.path.getsize(osmo.home / "applying.json")
+
+
+def test_one_crash_while_applying_a_report_runs_the_task_again(
+        osmo: Osmo, faulty: list[Faulty], tmp_path: Path) -> None:
+    """A kill -9 from outside at the instant a report is applied is not the task's fault."""
+    server = Faulty(osmo, "crash:boom")
+    faulty.append(server)
+    wf = osmo.submit(write(tmp_path / "m.yaml", SPEC))
+    assert server.proc.wait(timeout=90) == -9
+    info = osmo.wait_for(wf, lambda i: i["status"] not in ("PENDING", "RUNNING", "WAITING"))
+    assert info["status"] == "COMPLETED", info
+    boom = tasks(osmo, wf)["boom"]
+    assert boom["status"] == "COMPLETED" and boom["retry"] == 1, boom
+    assert "a second such crash quarantines the task" in (osmo.home / "server.log").read_text()
