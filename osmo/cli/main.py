@@ -14,6 +14,7 @@ verb's own ``-t`` keeps its meaning: ``osmo logs -t`` is the task).
 from __future__ import annotations
 
 import argparse
+import gc
 import sys
 from collections.abc import Iterator, Sequence
 
@@ -229,7 +230,13 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def entry() -> None:
-    """Console-script entry point."""
+    """Console-script entry point.
+
+    A CLI process is short-lived: it collects garbage every 50,000 allocations instead of
+    700, which makes checking a 100,000-task spec several times faster (see the server's
+    ``_tune_interpreter``).
+    """
+    gc.set_threshold(50_000, 20, 50)
     sys.exit(main())
 
 
