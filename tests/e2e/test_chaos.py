@@ -7,9 +7,9 @@ Remote trials do not yet require that a SIGKILLed worker's tasks die with it (is
 1, another change): their leftover *task* processes are killed and reported, and every other
 promise is checked. Server and worker processes left behind always fail the trial.
 
-A kill that lands while the server applies an attempt's final report fails that attempt as
-"quarantined" (README, Limits → Engine faults; about 1 kill in 70 here): the trials accept
-that documented outcome, and ``bench/bench_chaos.py`` counts it in a row of its own.
+A kill that lands while the server applies an attempt's final report (about 1 kill in 70
+here) makes the task run again; only a second such crash on the same task quarantines it
+(README, Limits → Engine faults). The trials do not excuse a quarantined task.
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ def test_chaos_server_kills_on_the_local_pool(tmp_path: Path, offset: int) -> No
     print(result)
     assert [k for k, _ in result.kills] == ["server"] * len(result.kills)
     assert result.kills, f"seed {seed}: the workflow ended before the first kill"
-    assert result.problems(quarantine=True) == [], f"seed {seed}: {result}"
+    assert result.problems() == [], f"seed {seed}: {result}"
 
 
 def test_chaos_server_and_worker_kills_with_remote_workers(tmp_path: Path) -> None:
@@ -45,7 +45,7 @@ def test_chaos_server_and_worker_kills_with_remote_workers(tmp_path: Path) -> No
     result = Trial(tmp_path / "t", seed, mode="remote", kills=3).run()
     print(result)
     assert result.kills, f"seed {seed}: the workflow ended before the first kill"
-    problems = result.problems(task_leftovers=False, quarantine=True)
+    problems = result.problems(task_leftovers=False)
     assert problems == [], f"seed {seed}: {result}"
 
 
