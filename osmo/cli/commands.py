@@ -25,6 +25,7 @@ from osmo.cli.render import (
     workflows_table,
 )
 from osmo.cli.robotics import run_eval, run_view
+from osmo.cli.tokens import run_token
 from osmo.errors import WorkflowFailed
 from osmo.sdk.client import Client, WorkflowInfo
 from osmo.sdk.connect import server_status, start_server, stop_server
@@ -209,6 +210,7 @@ _VERBS: dict[str, Callable[[argparse.Namespace], int]] = {
     "profile": run_profile,
     "eval": run_eval,
     "view": run_view,
+    "token": run_token,
 }
 
 

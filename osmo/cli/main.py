@@ -19,6 +19,7 @@ from osmo.cli.plugins import add_parsers as add_plugin_parsers
 from osmo.cli.pools import add_parsers as add_pool_parsers
 from osmo.cli.remote import add_parsers as add_remote_parsers
 from osmo.cli.robotics import add_parsers as add_robotics_parsers
+from osmo.cli.tokens import add_parsers as add_token_parsers
 from osmo.errors import OsmoError
 from osmo.server.options import ServerOptions
 
@@ -93,6 +94,8 @@ def build_parser() -> argparse.ArgumentParser:
         "failed, 2 invalid input or usage, 3 server unreachable or infrastructure error."))
     parser.add_argument("--server", help="server endpoint, e.g. tcp/127.0.0.1:7447 "
                         "(default: OSMO_SERVER, else the local server, started if needed)")
+    parser.add_argument("--token", help="API token for a remote server (default: OSMO_TOKEN, "
+                        "the profile's token, or this home's admin token for its own server)")
     sub = parser.add_subparsers(dest="verb", metavar="COMMAND")
     _add_workflow_verbs(sub)
     wf = sub.add_parser("workflow", help="the same verbs, OSMO style: osmo workflow submit ...")
@@ -104,6 +107,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_pool_parsers(sub)
     add_plugin_parsers(sub)
     add_robotics_parsers(sub)
+    add_token_parsers(sub)
 
     p = sub.add_parser("server", help="run the server in the foreground, or start|stop|status")
     p.add_argument("action", nargs="?", choices=("start", "stop", "status", "run"), default="run")
@@ -124,6 +128,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except SystemExit as exc:  # argparse exits 2 on usage errors, 0 on --help
         return int(exc.code or 0)
     verb = getattr(args, "wf_verb", None) or args.verb
+    if getattr(args, "token", None) and verb != "worker":
+        import os
+
+        os.environ["OSMO_TOKEN"] = args.token  # every Client this command opens sends it
     if verb is None:
         parser.print_help()
         return 2

@@ -69,6 +69,7 @@ class WorkflowInfo:
     pool: str | None
     tasks: list[TaskInfo] = field(default_factory=list)
     reused_from: str | None = None
+    submitted_by: str | None = None  # the name of the token it was submitted with
 
     @property
     def ok(self) -> bool:
@@ -104,7 +105,8 @@ def _task_info(d: dict[str, Any]) -> TaskInfo:
 def _workflow_info(wf: dict[str, Any], tasks: list[dict[str, Any]] = ()) -> WorkflowInfo:  # type: ignore[assignment]
     return WorkflowInfo(wf["id"], wf["name"], WorkflowStatus[wf["status"]],
                         wf.get("submitted_at", 0.0), wf.get("started_at"), wf.get("ended_at"),
-                        wf.get("pool"), [_task_info(t) for t in tasks], wf.get("reused_from"))
+                        wf.get("pool"), [_task_info(t) for t in tasks], wf.get("reused_from"),
+                        wf.get("submitted_by"))
 
 
 class Client:
@@ -118,11 +120,13 @@ class Client:
             the local server of ``home``, started in the background if needed.
         home: the osmo home of the local server (default ``OSMO_HOME``).
         autostart: start a local server when none runs (default True).
+        token: the API token to send (default: ``OSMO_TOKEN``, the profile's ``token``, or
+            for the home's own server its owner's admin token; see ``osmo.sdk.connect``).
     """
 
     def __init__(self, server: str | None = None, *, home: str | os.PathLike[str] | None = None,
-                 autostart: bool = True) -> None:
-        self._conn: Connection = connect(server, home, autostart=autostart)
+                 autostart: bool = True, token: str | None = None) -> None:
+        self._conn: Connection = connect(server, home, autostart=autostart, token=token)
         self._here: bool | None = None
 
     def close(self) -> None:
@@ -206,6 +210,18 @@ class Client:
     def spec(self, workflow_id: str) -> dict[str, Any]:
         """The rendered spec the workflow was submitted with."""
         return dict(self._call("spec", workflow_id=workflow_id)["spec"])
+
+    def create_token(self, name: str, role: str = "user") -> str:
+        """A new API token ``name`` with ``role`` (admin only); returned once, never again."""
+        return str(self._call("token_create", name=name, role=role)["token"])
+
+    def tokens(self) -> builtins.list[dict[str, Any]]:
+        """Every token's name, role, created and revoked times (admin only)."""
+        return builtins.list(self._call("token_list"))
+
+    def revoke_token(self, name: str) -> None:
+        """Revoke token ``name``: its next request is refused (admin only)."""
+        self._call("token_revoke", name=name)
 
     def pools(self) -> builtins.list[dict[str, Any]]:
         """Nodes of the server's pools with capacity used/total."""
@@ -291,7 +307,8 @@ class Client:
         from osmo.artifacts import Manifest
 
         written = transfer.download(self._conn.link, self.ping(), Manifest.from_json(
-            reply["body"]), Path(dest).absolute(), only=reply.get("only"))
+            reply["body"]), Path(dest).absolute(), only=reply.get("only"),
+            token=self._conn.api.token)
         return [str(p) for p in written]
 
     def gc_artifacts(self) -> tuple[int, int]:
@@ -329,7 +346,8 @@ class Client:
         parse_ref(ref)
         reply = self._call("dataset_download", ref=ref, regex=regex)
         written = transfer.download(self._conn.link, self.ping(),
-                                    Manifest.from_json(reply["manifest"]), Path(dest).absolute())
+                                    Manifest.from_json(reply["manifest"]), Path(dest).absolute(),
+                                    token=self._conn.api.token)
         return [str(p) for p in written]
 
     def upload_dataset(self, name: str, path: str | os.PathLike[str], *,

@@ -1,5 +1,9 @@
 """The server's request handlers: one function per API verb, JSON in and JSON out.
 
+Every request arrives with its caller's identity (``osmo.server.auth``): ``handle`` checks
+the role policy first; cancel and restart also check that a ``user`` submitted the
+workflow (workflows record their submitter in ``options.submitted_by``).
+
 Mutating verbs (submit, cancel, restart) ask the engine with a typed request
 (``osmo.server.requests``) and reply only after their changes are committed. Read verbs read
 the store directly from the calling API thread. Handlers raise ``OsmoError`` subclasses for
@@ -19,6 +23,7 @@ from osmo.errors import NotFoundError, UsageError
 from osmo.layout import Home
 from osmo.names import MAX_NAME, check_name, check_workflow_id, did_you_mean, shown
 from osmo.scheduler.types import CancelWorkflow
+from osmo.server.auth import TokenHandlers, authorize, refuse
 from osmo.server.credentials import CredentialHandlers, check_task_credentials
 from osmo.server.dataset_handlers import DatasetHandlers
 from osmo.server.engine import Engine
@@ -29,6 +34,7 @@ from osmo.server.workers import WorkerHub
 from osmo.spec import isolation, load_spec, spec_from_dict, spec_to_dict
 from osmo.status import WorkflowStatus
 from osmo.store.sqlite import WorkflowRow
+from osmo.transport.auth import Identity, Role
 from osmo.transport.rpc import MAX_INT, field, str_list
 from osmo.transport.zenoh_link import Link
 
@@ -38,12 +44,17 @@ MAX_LIST = 1_000_000  # workflows one ``list`` may ask for
 _MAX_TEXT = 4096  # characters of a path, a pool or an artifact target in a request
 
 
+Verb = Callable[[dict[str, Any]], Any]
+CallerVerb = Callable[[dict[str, Any], Identity], Any]
+_PRIVATE_INFO = ("home", "artifacts", "zenoh_config", "endpoints")  # ping shows admins only
+
+
 class Handlers:
     """Dispatches ``verb`` → handler. ``info`` is returned by ``ping``."""
 
     def __init__(self, engine: Engine, home: Path, info: dict[str, Any],
                  on_shutdown: Callable[[], None], workers: WorkerHub | None = None,
-                 link: Link | None = None) -> None:
+                 link: Link | None = None, tokens: TokenHandlers | None = None) -> None:
         self._workers = workers  # the WorkerHub: its verbs, and worker status for pools
         self._engine = engine
         self._store = engine.store
@@ -51,11 +62,10 @@ class Handlers:
         self._info = info
         self._on_shutdown = on_shutdown
         self._artifacts = ArtifactStore(Home(home).artifacts)
-        self._verbs: dict[str, Callable[[dict[str, Any]], Any]] = {
-            "ping": lambda _r: self._info,
-            "submit": self.submit,
-            "cancel": self.cancel,
-            "restart": self.restart,
+        self._callers: dict[str, CallerVerb] = {
+            "ping": self.ping, "submit": self.submit, "cancel": self.cancel,
+            "restart": self.restart}
+        self._verbs: dict[str, Verb] = {
             "get": self.get,
             "status": self.status,
             "list": self.list,
@@ -69,21 +79,38 @@ class Handlers:
             "shutdown": self.shutdown,
         }
         if workers is not None:
-            self._verbs.update(workers.verbs())
+            self._callers.update(workers.verbs())
+        if tokens is not None:
+            self._verbs.update(tokens.verbs())
         self._verbs.update(DatasetHandlers(engine, self._artifacts, home, link).verbs())
         self._verbs.update(CredentialHandlers(self._store).verbs())
         isolation.warm()  # the template renderer, started now so no submit waits for it
 
-    def handle(self, verb: str, request: dict[str, Any]) -> Any:
-        """Run the handler for ``verb``; UsageError for an unknown verb."""
+    def handle(self, verb: str, request: dict[str, Any], who: Identity) -> Any:
+        """Run the handler for ``verb`` as ``who``.
+
+        Raises:
+            UsageError: an unknown verb.
+            NotAllowed: ``who``'s role may not (``osmo.server.auth.authorize``).
+        """
+        caller = self._callers.get(verb)
         handler = self._verbs.get(verb)
-        if handler is None:
+        if caller is None and handler is None:
             raise UsageError(f"unknown API verb {shown(verb)}")
-        return handler(request)
+        authorize(verb, who)
+        return caller(request, who) if caller is not None else handler(request)  # type: ignore[misc]
+
+    def ping(self, _request: dict[str, Any], who: Identity) -> dict[str, Any]:
+        """The server's info, and who the caller is; paths only for an admin."""
+        info = dict(self._info, identity={"name": who.name, "role": who.role.value})
+        if who.role is not Role.ADMIN:
+            for key in _PRIVATE_INFO:
+                info.pop(key, None)
+        return info
 
     # ------------------------------------------------------------------ mutating verbs
 
-    def submit(self, request: dict[str, Any]) -> dict[str, Any]:
+    def submit(self, request: dict[str, Any], who: Identity) -> dict[str, Any]:
         """Create a workflow from a spec dict.
 
         Request: spec, pool?, filename?, no_cache?, type_paths? (folders custom task types are
@@ -98,10 +125,10 @@ class Handlers:
         """
         if "reused" in request or "reused_from" in request:
             raise UsageError("'reused' and 'reused_from' are set by `osmo restart` only")
-        return self._submit(request, {}, None)
+        return self._submit(request, {}, None, who)
 
     def _submit(self, request: dict[str, Any], reused: dict[str, str],
-                reused_from: str | None) -> dict[str, Any]:
+                reused_from: str | None, who: Identity) -> dict[str, Any]:
         from osmo.tasktypes.registry import Resolver
 
         pool = field(request, "pool", str, default=None, max_len=_MAX_TEXT)
@@ -125,20 +152,20 @@ class Handlers:
         check_task_credentials(spec, self._store)
         options = {"pool": pool or spec.pool, "filename": filename, "reused_from": reused_from,
                    "no_cache": field(request, "no_cache", bool, default=False),
-                   "type_paths": type_paths,
+                   "type_paths": type_paths, "submitted_by": who.name,
                    "types": {t.name: t.resolved.to_dict() for t in spec.all_tasks()
                              if t.resolved is not None}}
         return {"workflow_id": self._engine.ask(SubmitWorkflow(spec, stored, options, reused))}
 
-    def cancel(self, request: dict[str, Any]) -> dict[str, Any]:
+    def cancel(self, request: dict[str, Any], who: Identity) -> dict[str, Any]:
         """Cancel a workflow; a no-op for one already ended."""
-        row = self._row(request.get("workflow_id"))
+        row = self._own(self._row(request.get("workflow_id")), who, "cancel")
         self._engine.ask(CancelWorkflow(row.id))
         return {"workflow_id": row.id, "status": self._row(row.id).status}
 
-    def restart(self, request: dict[str, Any]) -> dict[str, Any]:
+    def restart(self, request: dict[str, Any], who: Identity) -> dict[str, Any]:
         """Submit the same spec again, reusing the outputs of tasks that completed."""
-        row = self._row(request.get("workflow_id"), with_spec=True)
+        row = self._own(self._row(request.get("workflow_id"), with_spec=True), who, "restart")
         if not WorkflowStatus[row.status].terminal:
             raise UsageError(f"workflow {row.id} is still {row.status}; "
                              f"cancel it first (`osmo cancel {row.id}`)")
@@ -146,7 +173,22 @@ class Handlers:
                   if t["status"] == "COMPLETED" and t.get("output")}
         return self._submit({"spec": row.spec, "pool": row.options.get("pool"),
                              "filename": row.options.get("filename"),
-                             "type_paths": row.options.get("type_paths")}, reused, row.id)
+                             "type_paths": row.options.get("type_paths")}, reused, row.id,
+                            who)
+
+    @staticmethod
+    def _own(row: WorkflowRow, who: Identity, verb: str) -> WorkflowRow:
+        """``row`` if ``who`` may change it: an admin, or the user who submitted it.
+
+        Raises:
+            NotAllowed: another user's workflow (logged once).
+        """
+        owner = row.options.get("submitted_by")
+        if who.role is Role.ADMIN or owner == who.name:
+            return row
+        raise refuse(verb, who, f"workflow {row.id} was submitted by "
+                                f"{shown(owner) if owner else 'another user'}; only they or "
+                                "an admin may change it")
 
     def shutdown(self, _request: dict[str, Any]) -> dict[str, Any]:
         """Stop the server (after replying)."""
@@ -311,6 +353,7 @@ def _workflow_dict(row: WorkflowRow) -> dict[str, Any]:
                                 "submitted_at": row.submitted_at}
     state["pool"] = row.options.get("pool")
     state["reused_from"] = row.options.get("reused_from")
+    state["submitted_by"] = row.options.get("submitted_by")
     return state
 
 
