@@ -127,7 +127,6 @@ class Client:
     def __init__(self, server: str | None = None, *, home: str | os.PathLike[str] | None = None,
                  autostart: bool = True, token: str | None = None) -> None:
         self._conn: Connection = connect(server, home, autostart=autostart, token=token)
-        self._here: bool | None = None
 
     def close(self) -> None:
         """Close the connection."""
@@ -143,14 +142,6 @@ class Client:
         if "workflow_id" in request:  # checked here, so a mistyped id never leaves this host
             check_workflow_id(request["workflow_id"])
         return self._conn.api.call(verb, request, timeout=timeout)
-
-    def _server_is_here(self) -> bool:
-        """Whether the server runs on this host (it can then read files named here)."""
-        if self._here is None:
-            from osmo.config import host_id
-
-            self._here = self.ping().get("host_id") == host_id()
-        return self._here
 
     # ------------------------------------------------------------------ submit & control
 
@@ -169,21 +160,12 @@ class Client:
             SpecError: the spec is invalid (nothing was created).
             SubmitError: the server cannot run it (e.g. no pool fits a task).
         """
-        if isinstance(spec, (str, os.PathLike)) and self._server_is_here():
-            from osmo.spec.files import read_spec_file
-
-            path = Path(spec).absolute()
-            text = read_spec_file(path, os.fspath(spec))
-            result = self._call("submit", source={"path": str(path), "text": text},
-                                set_values=list(set_values), set_strings=list(set_strings),
-                                set_env=list(set_env), pool=pool, no_cache=no_cache)
-            return str(result["workflow_id"])
         from osmo.spec import spec_to_dict
 
         model, filename = _to_model(spec, set_values, set_strings, set_env)
-        type_paths = sorted({p for t in model.all_tasks() if t.resolved for p in t.resolved.paths})
+        types = {t.name: t.resolved.to_dict() for t in model.all_tasks() if t.resolved}
         result = self._call("submit", spec=spec_to_dict(model), pool=pool, filename=filename,
-                            no_cache=no_cache, type_paths=type_paths)
+                            no_cache=no_cache, types=types)
         return str(result["workflow_id"])
 
     def cancel(self, workflow_id: str) -> WorkflowStatus:

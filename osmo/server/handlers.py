@@ -30,8 +30,10 @@ from osmo.server.engine import Engine
 from osmo.server.lineage_query import lineage_graph, resolve_target
 from osmo.server.logview import last_progress, read_logs
 from osmo.server.requests import ListNodes, SubmitWorkflow
+from osmo.server.submitted import ClientTypes, check_no_localpath
 from osmo.server.workers import WorkerHub
-from osmo.spec import isolation, load_spec, spec_from_dict, spec_to_dict
+from osmo.spec import isolation, spec_from_dict
+from osmo.spec.typed import apply_resolved
 from osmo.status import WorkflowStatus
 from osmo.store.sqlite import WorkflowRow
 from osmo.transport.auth import Identity, Role
@@ -46,7 +48,7 @@ _MAX_TEXT = 4096  # characters of a path, a pool or an artifact target in a requ
 
 Verb = Callable[[dict[str, Any]], Any]
 CallerVerb = Callable[[dict[str, Any], Identity], Any]
-_PRIVATE_INFO = ("home", "artifacts", "zenoh_config", "endpoints")  # ping shows admins only
+_PRIVATE_INFO = ("home", "artifacts", "zenoh_config", "endpoint", "endpoints")  # ping shows admins only
 
 
 class Handlers:
@@ -113,15 +115,13 @@ class Handlers:
     def submit(self, request: dict[str, Any], who: Identity) -> dict[str, Any]:
         """Create a workflow from a spec dict.
 
-        Request: spec, pool?, filename?, no_cache?, type_paths? (folders custom task types are
-        imported from: the spec file's folder). Instead of ``spec``, a client on this host may send
-        ``source`` (``{path, text}``) and the template values (set_values, set_strings, set_env):
-        the file is then rendered and checked here, with the same loader and the same messages,
-        saving the client the template engine and YAML parser.
-
-        Task types are resolved here, with this server's installed plugins; what was
-        resolved (version, resources, folders) is kept in the workflow's options. Outputs
-        to reuse are for ``restart`` to give, never a request.
+        Request: spec (rendered by the client, ``localpath`` files already read), pool?,
+        filename?, no_cache?, types? (``task -> ResolvedType`` of its custom ``module:attr``
+        types, which the client imported from the spec's folder). The server reads no file
+        and imports no code a client names (``osmo.server.submitted``); installed task types
+        are resolved here, with this server's plugins. What was resolved (version,
+        resources, folders) is kept in the workflow's options. Outputs to reuse are for
+        ``restart`` to give, never a request.
         """
         if "reused" in request or "reused_from" in request:
             raise UsageError("'reused' and 'reused_from' are set by `osmo restart` only")
@@ -129,26 +129,18 @@ class Handlers:
 
     def _submit(self, request: dict[str, Any], reused: dict[str, str],
                 reused_from: str | None, who: Identity) -> dict[str, Any]:
-        from osmo.tasktypes.registry import Resolver
-
+        if "source" in request:
+            raise UsageError("'source' is no longer accepted: the server reads no file a "
+                             "client names; send the rendered 'spec' (the CLI and SDK do)")
         pool = field(request, "pool", str, default=None, max_len=_MAX_TEXT)
         filename = field(request, "filename", str, default=None, max_len=_MAX_TEXT)
-        if "source" in request:  # a spec file on this server's host: read and checked here
-            source = field(request, "source", dict)
-            filename = field(source, "path", str, max_len=_MAX_TEXT, what="'source.path'")
-            spec = load_spec(text=field(source, "text", str, what="'source.text'"),
-                             filename=filename, set_values=str_list(request, "set_values"),
-                             set_strings=str_list(request, "set_strings"),
-                             set_env=str_list(request, "set_env"),
-                             types=Resolver([str(Path(filename).parent)]))
-            stored = spec_to_dict(spec)
-            type_paths = sorted({p for t in spec.all_tasks() if t.resolved
-                                 for p in t.resolved.paths})
-        else:
-            type_paths = str_list(request, "type_paths")
-            stored = field(request, "spec", dict)
-            spec = spec_from_dict(stored, filename=filename or "<submitted>",
-                                  types=Resolver(type_paths))
+        stored = field(request, "spec", dict)
+        check_no_localpath(stored)
+        types = ClientTypes(field(request, "types", dict, default={}), stored)
+        spec = apply_resolved(spec_from_dict(stored, filename=filename or "<submitted>",
+                                             types=types), types.described)
+        type_paths = sorted({p for t in spec.all_tasks() if t.resolved
+                             for p in t.resolved.paths})
         check_task_credentials(spec, self._store)
         options = {"pool": pool or spec.pool, "filename": filename, "reused_from": reused_from,
                    "no_cache": field(request, "no_cache", bool, default=False),
@@ -166,6 +158,7 @@ class Handlers:
     def restart(self, request: dict[str, Any], who: Identity) -> dict[str, Any]:
         """Submit the same spec again, reusing the outputs of tasks that completed."""
         row = self._own(self._row(request.get("workflow_id"), with_spec=True), who, "restart")
+        # the types as resolved at the first submit (never imported here)
         if not WorkflowStatus[row.status].terminal:
             raise UsageError(f"workflow {row.id} is still {row.status}; "
                              f"cancel it first (`osmo cancel {row.id}`)")
@@ -173,7 +166,7 @@ class Handlers:
                   if t["status"] == "COMPLETED" and t.get("output")}
         return self._submit({"spec": row.spec, "pool": row.options.get("pool"),
                              "filename": row.options.get("filename"),
-                             "type_paths": row.options.get("type_paths")}, reused, row.id,
+                             "types": row.options.get("types") or {}}, reused, row.id,
                             who)
 
     @staticmethod

@@ -97,7 +97,10 @@ class WorkerAccess:
             grants.update(inputs)
 
     def restored(self, wid: str, attempts: Iterable[str]) -> None:
-        """Attempts the scheduler restored on ``wid`` after a restart (their task unknown here)."""
+        """Attempts the engine says are on ``wid``: restored, or named by a run or kill order.
+
+        Their task is unknown here unless it was placed before.
+        """
         with self._lock:
             for aid in attempts:
                 if self._placed.get(aid, (None, None))[0] != wid:

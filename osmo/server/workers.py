@@ -205,9 +205,10 @@ class WorkerHub:
         for report in finished:
             if str(report.get("attempt_id")) in known:
                 self._handle(wid, report)
-            else:
+            else:  # superseded (fenced) or never its own; acked so it stops resending it
                 log.warning("refused a finished report of worker %s: attempt %r is not "
                             "placed on it", wid, report.get("attempt_id"))
+                self._send(wid, {"op": "ack", "attempt_id": str(report.get("attempt_id"))})
         for aid in sorted(known - active - done):
             self._emit(AttemptLost(aid, f"worker {wid} no longer runs this attempt"))
 
@@ -303,10 +304,12 @@ class WorkerHub:
 
     def run(self, cmd: RunAttempt) -> None:
         """Start a prepared attempt (its group's barrier released)."""
+        self._access.restored(cmd.node_id, [cmd.attempt_id])
         self._send(cmd.node_id, {"op": "run", "attempt_id": cmd.attempt_id})
 
     def kill(self, cmd: KillAttempt) -> None:
         """Stop an attempt on its worker."""
+        self._access.restored(cmd.node_id, [cmd.attempt_id])
         self._send(cmd.node_id, {"op": "kill", "attempt_id": cmd.attempt_id,
                                  "reason": cmd.reason})
 
