@@ -48,7 +48,8 @@ _MAX_TEXT = 4096  # characters of a path, a pool or an artifact target in a requ
 
 Verb = Callable[[dict[str, Any]], Any]
 CallerVerb = Callable[[dict[str, Any], Identity], Any]
-_PRIVATE_INFO = ("home", "artifacts", "zenoh_config", "endpoint", "endpoints")  # ping shows admins only
+# what ``ping`` shows admins only: paths and addresses of the server's host
+_PRIVATE_INFO = ("home", "artifacts", "zenoh_config", "endpoint", "endpoints")
 
 
 class Handlers:
