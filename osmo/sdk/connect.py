@@ -165,7 +165,10 @@ def _local_endpoints(home: Path) -> list[str]:
         data = json.loads(Home(home).server_info.read_text())
     except (OSError, ValueError):
         return []
-    return [str(e) for e in [data.get("endpoint"), *data.get("endpoints", [])] if e]
+    out = [str(e) for e in [data.get("endpoint"), *data.get("endpoints", [])] if e]
+    wildcard = {"tcp/0.0.0.0:": "tcp/127.0.0.1:", "tcp/[::]:": "tcp/[::1]:"}
+    return out + [e.replace(w, local, 1) for e in out for w, local in wildcard.items()
+                  if e.startswith(w)]
 
 
 def _local_config(home: Path) -> str | None:

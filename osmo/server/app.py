@@ -36,7 +36,7 @@ from osmo.errors import InfrastructureError, OsmoError
 from osmo.executor import Executor
 from osmo.layout import Home
 from osmo.scheduler.types import AttemptLost, NodeUp
-from osmo.server.auth import Authenticator, TokenHandlers, owner_token
+from osmo.server.auth import Authenticator, TokenHandlers, accept_tokens, owner_token
 from osmo.server.credentials import url_credential
 from osmo.server.datasets import Datasets
 from osmo.server.engine import Engine
@@ -92,6 +92,7 @@ def serve(home: str | os.PathLike[str] | None = None, options: ServerOptions | N
     endpoints = [local, *listen]
     store = Store(layout.state_db)
     owner_token(home_path, store)
+    accept_tokens(store, options.accept_tokens)
     authenticate = Authenticator(store)
     inflight = InFlight(layout.applying)
     restored = restore(store)

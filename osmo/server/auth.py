@@ -38,8 +38,8 @@ from osmo.store.sqlite import Store
 from osmo.transport.auth import Identity, Role, new_token, token_digest
 from osmo.transport.rpc import field
 
-__all__ = ["OWNER", "WORKER_VERBS", "Authenticator", "TokenHandlers", "authorize", "owner_token",
-           "refuse"]
+__all__ = ["OWNER", "WORKER_VERBS", "Authenticator", "TokenHandlers", "accept_tokens",
+           "authorize", "owner_token", "refuse"]
 
 log = logging.getLogger("osmo.server.auth")
 
@@ -149,6 +149,34 @@ def owner_token(home: Path, store: Store) -> None:
         f.write(token + "\n")
     os.replace(tmp, layout.admin_token)
     log.info("created the admin token '%s' in %s", name, layout.admin_token)
+
+
+def accept_tokens(store: Store, specs: tuple[str, ...]) -> None:
+    """Accept the tokens of ``--accept-token NAME:ROLE:FILE`` (e.g. Kubernetes Secrets).
+
+    Each file's token becomes the live token ``NAME`` with ``ROLE`` (replacing an earlier
+    one of that name: a rotated Secret takes effect at the next start).
+
+    Raises:
+        UsageError: a spec that is not ``NAME:ROLE:FILE``, an unknown role, an unreadable or
+            empty file.
+    """
+    for spec in specs:
+        name, _, rest = spec.partition(":")
+        role_name, _, path = rest.partition(":")
+        try:
+            role = Role(role_name)
+            token = Path(path).read_text().strip() if path else ""
+        except ValueError:
+            raise UsageError(f"--accept-token {spec}: the role must be one of "
+                             f"{', '.join(r.value for r in Role)}") from None
+        except OSError as exc:
+            raise UsageError(f"--accept-token {spec}: cannot read {path}: {exc.strerror}") from None
+        if not token:
+            raise UsageError(f"--accept-token {spec}: write NAME:ROLE:FILE, FILE holding a token")
+        store.set_token(check_name(name, "token name"), role.value, token_digest(token),
+                        time.time())
+        log.info("accepted token '%s' (role %s) from %s", name, role.value, path)
 
 
 class TokenHandlers:

@@ -32,6 +32,7 @@ class ServerOptions:
         reconnect_grace: seconds remote workers get to come back after a restart.
         insecure: allow a network listener without zenoh authentication (warned at every
             start; see :func:`check_listeners`).
+        accept_tokens: ``NAME:ROLE:FILE`` tokens to accept (Kubernetes Secrets).
     """
 
     listen: tuple[str, ...] = ()
@@ -43,6 +44,7 @@ class ServerOptions:
     local_pool: bool = True
     reconnect_grace: float = 30.0
     insecure: bool = False
+    accept_tokens: tuple[str, ...] = ()
 
     @staticmethod
     def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -70,6 +72,9 @@ class ServerOptions:
         p.add_argument("--reconnect-grace", type=float, default=d.reconnect_grace,
                        metavar="SECONDS", help="after a restart, how long remote workers get "
                                                f"to come back ({d.reconnect_grace:g})")
+        p.add_argument("--accept-token", action="append", metavar="NAME:ROLE:FILE",
+                       help="accept the API token in FILE as token NAME with ROLE "
+                            "(repeatable; e.g. a mounted Kubernetes Secret)")
         p.add_argument("--insecure", action="store_true",
                        help="allow --listen on a network address without zenoh "
                             "authentication (usrpwd or mTLS in --zenoh-config); tokens then "
@@ -82,7 +87,8 @@ class ServerOptions:
                    zenoh_config=args.zenoh_config, cluster=args.cluster, cpus=args.cpus,
                    gpus=args.gpus, local_pool=args.local_pool,
                    reconnect_grace=args.reconnect_grace,
-                   insecure=getattr(args, "insecure", False))
+                   insecure=getattr(args, "insecure", False),
+                   accept_tokens=tuple(getattr(args, "accept_token", None) or ()))
 
     def to_argv(self) -> list[str]:
         """The same options as flags, to start the server in another process.
@@ -98,6 +104,7 @@ class ServerOptions:
             if value != getattr(d, flag[2:].replace("-", "_")):
                 out += [flag, str(value)]
         out += [] if self.local_pool else ["--no-local-pool"]
+        out += [arg for spec in self.accept_tokens for arg in ("--accept-token", spec)]
         return out + (["--insecure"] if self.insecure else [])
 
 

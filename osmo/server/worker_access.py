@@ -1,8 +1,9 @@
 """Which worker may speak for which attempt: the server's side of worker authorization.
 
-A worker's token is bound to the worker id it registered (:meth:`WorkerAccess.bind`): again
-after a restart, or to a new id once its old worker is gone; an id registered with one token
-cannot be taken by another while its worker is alive. Every placement the hub sends is
+A worker id belongs to the token that registered it (:meth:`WorkerAccess.bind`): it may
+register again after a restart, and an id cannot be taken by another token while its worker
+is alive. One token may register several ids (the replicas of a Kubernetes pool share one
+Secret); they are one trust domain. Every placement the hub sends is
 remembered (:meth:`place`), so a report, log batch or secret request is accepted only from
 the worker the attempt is placed on (:meth:`placed_on`). A worker reads from the server's
 blob server only the inputs its placements listed (:meth:`may_read`); the server reads from a
@@ -44,29 +45,25 @@ class WorkerAccess:
                  alive: Callable[[str], bool]) -> None:
         self._authenticate, self._alive = authenticate, alive
         self._lock = threading.Lock()
-        self._bound: dict[str, str] = {}  # token name -> the worker id it registered
         self._owner: dict[str, str] = {}  # worker id -> the token name that registered it
         self._keys: dict[str, bytes] = {}  # worker id -> key for reading its blob server
         self._placed: OrderedDict[str, tuple[str, TaskSpec | None]] = OrderedDict()
         self._grants: dict[str, set[str]] = {}  # worker id -> input blobs it may read
 
     def bind(self, who: Identity, wid: str) -> bytes:
-        """Bind ``who``'s token to worker ``wid``; returns a fresh key for its blob server.
+        """Give worker ``wid`` to ``who``'s token; returns a fresh key for its blob server.
 
         Raises:
-            NotAllowed: the token serves another live worker, or ``wid`` is another token's.
+            NotAllowed: ``wid`` is a live worker of another token.
         """
         with self._lock:
-            bound, owner = self._bound.get(who.name), self._owner.get(wid)
-        if bound not in (None, wid) and self._alive(bound):
-            raise refuse("worker_register", who,
-                         f"token '{who.name}' already serves the live worker {bound}")
+            owner = self._owner.get(wid)
         if owner not in (None, who.name) and self._alive(wid):
             raise refuse("worker_register", who, f"worker {wid} is registered with another "
-                                                 "token")
+                                                 "token and is alive")
         key = secrets.token_bytes(16)
         with self._lock:
-            self._bound[who.name], self._owner[wid], self._keys[wid] = wid, who.name, key
+            self._owner[wid], self._keys[wid] = who.name, key
         return key
 
     def speaker(self, verb: str, request: dict[str, Any], who: Identity) -> str:
@@ -78,7 +75,7 @@ class WorkerAccess:
         """
         wid = worker_id(request)
         with self._lock:
-            ok = self._bound.get(who.name) == wid
+            ok = self._owner.get(wid) == who.name
         if not ok:
             raise refuse(verb, who, f"token '{who.name}' has not registered worker {wid}")
         return wid
@@ -127,8 +124,8 @@ class WorkerAccess:
         if who.role is not Role.WORKER:
             return True
         with self._lock:
-            wid = self._bound.get(who.name)
-            return wid is not None and digest in self._grants.get(wid, ())
+            return any(digest in self._grants.get(wid, ()) for wid, name in self._owner.items()
+                       if name == who.name)
 
     def key(self, wid: str) -> bytes | None:
         """The key to read ``wid``'s blob server with (None before it registered)."""

@@ -30,6 +30,12 @@ class TokenRows:
                              (name, role, digest, now))
             return bool(cur.rowcount)
 
+    def set_token(self, name: str, role: str, digest: str, now: float) -> None:
+        """Make ``name`` a live token with this role and digest (a rotated Secret replaces it)."""
+        with self._tx() as db:
+            db.execute("DELETE FROM tokens WHERE name = ? OR digest = ?", (name, digest))
+            db.execute("INSERT INTO tokens VALUES (?,?,?,?,NULL)", (name, role, digest, now))
+
     def revoke_token(self, name: str, now: float) -> bool:
         """Revoke token ``name``; False if there is no live token of that name."""
         with self._tx() as db:
