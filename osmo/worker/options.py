@@ -105,23 +105,18 @@ class WorkerOptions:
                    token=_token(args.token, args.token_file))
 
 
-def _token(token: str | None, token_file: str | None) -> str:
-    """The worker's token: ``--token`` > ``--token-file`` > ``OSMO_TOKEN``.
+def _token(token: str | None, token_file: str | None) -> str | None:
+    """The worker's token: ``--token`` > ``--token-file`` > ``OSMO_TOKEN`` (None: none given).
 
     Raises:
-        UsageError: none given, or the file cannot be read.
+        UsageError: the file cannot be read.
     """
     if token_file and not token:
         try:
             token = Path(token_file).read_text().strip()
         except OSError as exc:
             raise UsageError(f"--token-file {token_file}: {exc.strerror}") from None
-    token = token or os.environ.get("OSMO_TOKEN")
-    if not token:
-        raise UsageError("a worker needs a token with role worker: --token, --token-file or "
-                         "OSMO_TOKEN (an admin makes one with `osmo token create NAME --role "
-                         "worker`)")
-    return token
+    return token or os.environ.get("OSMO_TOKEN") or None
 
 
 def _labels(items: list[str]) -> dict[str, str]:

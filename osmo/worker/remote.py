@@ -40,7 +40,7 @@ from typing import Any
 
 from osmo.artifacts import ArtifactStore, Manifest
 from osmo.config import write_json_atomic
-from osmo.errors import OsmoError
+from osmo.errors import OsmoError, UsageError
 from osmo.layout import Home
 from osmo.names import check_worker_name
 from osmo.scheduler.types import (
@@ -87,6 +87,10 @@ class RemoteWorker:
         self.opts = options
         self.id = check_worker_name(options.name or f"{socket.gethostname()}-{os.getpid()}",
                                     reserved=(LOCAL_NODE, SERVER))
+        if not options.token:
+            raise UsageError("a worker needs a token with role worker: --token, --token-file "
+                             "or OSMO_TOKEN (an admin makes one with `osmo token create NAME "
+                             "--role worker`)")
         self._layout = Home(self.home)
         self.store = ArtifactStore(self._layout.artifacts)
         self.link = Link.client(list(options.connect), options.cluster,

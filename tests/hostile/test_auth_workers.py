@@ -145,3 +145,12 @@ def test_a_fake_worker_gets_no_secret_and_cannot_speak_for_another(tmp_path: Pat
         sniffer.close()
         link.close()
         c.stop()
+
+
+def test_a_worker_without_a_token_is_told_how_to_get_one(tmp_path: Path) -> None:
+    osmo = Osmo(tmp_path / "home")
+    osmo.env.pop("OSMO_TOKEN", None)
+    r = osmo("worker", "--connect", "tcp/127.0.0.1:9", "--name", "w1", "--home",
+             str(tmp_path / "w"), timeout=60)
+    assert r.code == 2 and "osmo token create NAME --role worker" in r.err, r
+    assert "Traceback" not in r.err
