@@ -10,6 +10,7 @@ CLI first and then drops to ``nobody`` with ``setuid`` — the same switch setpr
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import stat
@@ -136,5 +137,19 @@ def test_a_password_protected_listener_starts_without_insecure(tmp_path: Path) -
         r = osmo("server", "start", "--listen", f"tcp/0.0.0.0:{free_port(0)}",
                  "--zenoh-config", str(conf))
         assert r.code == 0 and "INSECURE" not in r.err, r
+    finally:
+        osmo.stop_server()
+
+
+def test_a_home_too_deep_for_a_socket_path_gets_a_private_short_one(tmp_path: Path) -> None:
+    home = tmp_path / ("deep-" * 20) / "home"
+    osmo = Osmo(home)
+    try:
+        osmo("list", check=True)
+        endpoint = json.loads((osmo.home / "server.json").read_text())["endpoint"]
+        sock = Path(endpoint.removeprefix("unixsock-stream/"))
+        assert sock.parent == Path(f"/tmp/osmo-{os.geteuid()}") and sock.is_socket()
+        assert stat.S_IMODE(sock.parent.stat().st_mode) == 0o700
+        assert len(str(sock)) < 100
     finally:
         osmo.stop_server()
