@@ -34,6 +34,7 @@ from pathlib import Path
 from typing import Any
 
 from osmo.artifacts import ArtifactStore, Manifest
+from osmo.artifacts.errors import ArtifactCorrupted
 from osmo.artifacts.manifest import check_digest
 from osmo.config import host_id
 from osmo.errors import InfrastructureError
@@ -143,7 +144,11 @@ def _adopt_checked(store: ArtifactStore, src: Path, digest: str) -> bool:
     """Hard-link a same-host peer's blob into ``store`` if its bytes hash to ``digest``.
 
     The file is linked into ``store.tmp`` first and that inode is hashed, so what was checked
-    is what is kept. False when it cannot be linked or does not match (the caller fetches).
+    is what is kept. False when it cannot be linked (the caller fetches it).
+
+    Raises:
+        ArtifactCorrupted: the peer's blob does not hash to ``digest`` (it serves the same
+            bytes over the network: fetching them would not help).
     """
     hex_ = check_digest(digest)
     tmp = store.tmp / f"{hex_}.{uuid.uuid4().hex}.adopt"
@@ -157,7 +162,9 @@ def _adopt_checked(store: ArtifactStore, src: Path, digest: str) -> bool:
         with open(tmp, "rb") as f:
             while data := f.read(CHUNK):
                 h.update(data)
-        return h.hexdigest() == hex_ and store.adopt_link(tmp, digest)
+        if h.hexdigest() != hex_:
+            raise ArtifactCorrupted(digest, str(src), "sha256:" + h.hexdigest())
+        return store.adopt_link(tmp, digest)
     except OSError:
         return False
     finally:

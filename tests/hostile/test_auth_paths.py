@@ -3,9 +3,10 @@
 - A submitted spec naming a ``localpath`` (here: the server's own write-ahead log) is
   refused; so is the old ``source`` form that had the server render a client's file.
 - A custom task type named with a client-chosen folder is never imported by the server.
-- A same-host peer's blob whose bytes do not match its digest is not adopted: the genuine
-  content is fetched instead (transport level), and an upload pointing the server at a
-  forged folder leaves nothing behind, so genuine content with that digest still gets in.
+- A same-host peer's blob whose bytes do not match its digest is not adopted (a clear
+  ``ArtifactCorrupted``, naming the file and what it hashes to), and an upload pointing the
+  server at a forged folder leaves nothing behind, so genuine content with that digest
+  still gets in.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from pathlib import Path
 import pytest
 
 from osmo.artifacts import ArtifactStore
+from osmo.artifacts.errors import ArtifactCorrupted
 from osmo.config import read_server_info
 from osmo.errors import UsageError
 from osmo.layout import BlobDirs
@@ -101,9 +103,13 @@ def test_a_same_host_blob_is_hashed_before_it_is_adopted(tmp_path: Path) -> None
     client = Link.client([sock], "blobs")
     served = BlobServer(router, "peer", genuine, lambda _att, _digest: True)
     try:
-        sent = fetch_blob(client, "peer", DIGEST, len(GENUINE), receiver,
-                          same_host=SameHost(tmp_path / "forged"))
-        assert sent == len(GENUINE), "the forged same-host file was adopted instead"
+        with pytest.raises(ArtifactCorrupted, match="now hashes to"):
+            fetch_blob(client, "peer", DIGEST, len(GENUINE), receiver,
+                       same_host=SameHost(tmp_path / "forged"))
+        assert not receiver.has(DIGEST), "the forged same-host file was adopted"
+        assert not list(receiver.tmp.iterdir()), "nothing left behind"
+        # over the network, the genuine bytes arrive
+        assert fetch_blob(client, "peer", DIGEST, len(GENUINE), receiver) == len(GENUINE)
         assert receiver.path(DIGEST).read_bytes() == GENUINE
         # a same-host blob that does match is linked, not sent
         again = ArtifactStore(tmp_path / "again")
@@ -124,7 +130,7 @@ def test_an_upload_from_a_forged_same_host_folder_leaves_nothing(
     manifest = json.dumps({"version": 1, "entries": [
         {"path": "f.bin", "digest": DIGEST, "size": len(GENUINE)}]})
     host = api.call("ping")["host_id"]
-    with pytest.raises(Exception, match="no answer|does not match"):
+    with pytest.raises(Exception, match="now hashes to"):
         api.call("dataset_upload", {"name": "forged", "manifest": manifest, "source": {
             "owner": "client-nobody", "host_id": host, "artifacts": str(tmp_path / "forged"),
             "key": "00"}}, timeout=120)
