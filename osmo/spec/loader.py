@@ -69,14 +69,21 @@ def _build(text: str, file: str, base_dir: Path, env: dict[str, str],
     if root is None and diags:
         raise SpecError(diags)
     ctx = Ctx(file, diags)
+    spec = _check(ctx, root, base_dir, types)
+    if spec is None:
+        raise SpecError(ctx.diags)
+    return _with_env(spec, env)
+
+
+def _check(ctx: Ctx, root: yamlnodes.Node | None, base_dir: Path,
+           types: TypeResolver | None) -> WorkflowSpec | None:
+    """Parse and validate a node tree; None when ``ctx`` holds a problem afterwards."""
     parsed = parse_document(ctx, root, base_dir)
     if parsed is not None:
         if types is not None:
             parsed.spec = apply_resolved(parsed.spec, check_types(ctx, parsed, types))
         validate(ctx, parsed)
-    if ctx.diags or parsed is None:
-        raise SpecError(ctx.diags)
-    return _with_env(parsed.spec, env)
+    return None if ctx.diags or parsed is None else parsed.spec
 
 
 def load_spec(path: str | os.PathLike[str] | None = None, *, text: str | None = None,
@@ -133,6 +140,13 @@ def spec_from_dict(d: dict[str, Any], *, filename: str = "<stored>",
     """
     if not isinstance(d, dict):
         raise SpecError([Diagnostic(filename, 0, 0, "a stored spec must be a mapping")])
+    # Valid data is checked without YAML text (fast: no dump, no parse); data with a problem
+    # is checked again the YAML way, so its messages carry positions in that text.
+    root = yamlnodes.from_plain(d, filename)
+    if root is not None:
+        spec = _check(Ctx(filename, []), root, Path(), types)
+        if spec is not None:
+            return spec
     try:
         text = yamlnodes.dump(d)
     except TypeError as exc:

@@ -23,7 +23,7 @@ from yaml import nodes as ynodes
 from osmo.errors import Diagnostic
 from osmo.spec.model import Pos
 
-__all__ = ["Map", "Node", "Scalar", "Seq", "dump", "load_nodes", "to_plain"]
+__all__ = ["Map", "Node", "Scalar", "Seq", "dump", "from_plain", "load_nodes", "to_plain"]
 
 # libyaml (C) is ~10x faster than the pure-Python parser; both keep positions.
 _LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
@@ -314,6 +314,59 @@ def to_plain(node: Node) -> Any:
     return node.value
 
 
+_REPRESENTER = yaml.representer.SafeRepresenter()
+_LONE_SURROGATE = re.compile("[\ud800-\udfff]")
+_MAX_INT_BITS = 14_000  # ints longer than ~4,300 digits: the YAML path reports them
+
+
+class _NotPlain(Exception):
+    pass
+
+
+def from_plain(data: Any, file: str) -> Node | None:
+    """Plain data as a node tree, as :func:`load_nodes` would read :func:`dump`'s text of it.
+
+    The fast way to check a spec given as data (the SDK's, a stored one): no YAML text is
+    written or parsed. Values and scalar texts are those the YAML round trip gives (a float's
+    text is its YAML form, a bool's ``true``/``false``); every position is line 0 of ``file``.
+    None when the data holds anything the round trip would change or refuse (another type, a
+    lone surrogate, an integer longer than Python reads back, nesting deeper than
+    :data:`MAX_DEPTH`): the caller then takes the YAML way, which reports it.
+    """
+    pos = Pos(file, 0, 0)
+    try:
+        return _plain_node(data, pos, 0)
+    except _NotPlain:
+        return None
+
+
+def _plain_node(data: Any, pos: Pos, depth: int) -> Node:
+    if isinstance(data, dict | list):
+        if depth >= MAX_DEPTH:
+            raise _NotPlain
+        if isinstance(data, list):
+            return Seq(pos, [_plain_node(item, pos, depth + 1) for item in data])
+        return Map(pos, [(_plain_scalar(key, pos), _plain_node(value, pos, depth + 1))
+                         for key, value in data.items()])
+    return _plain_scalar(data, pos)
+
+
+def _plain_scalar(value: Any, pos: Pos) -> Scalar:
+    if isinstance(value, str):
+        if not value.isascii() and _LONE_SURROGATE.search(value):
+            raise _NotPlain
+        return Scalar(pos, value, value)
+    if value is None or isinstance(value, bool):
+        return Scalar(pos, value, "null" if value is None else "true" if value else "false")
+    if isinstance(value, int):
+        if value.bit_length() > _MAX_INT_BITS:
+            raise _NotPlain
+        return Scalar(pos, value, str(value))
+    if isinstance(value, float):
+        return Scalar(pos, value, _REPRESENTER.represent_float(value).value)
+    raise _NotPlain
+
+
 def dump(data: Any) -> str:
     """Plain data (dicts, lists, str, int, float, bool, None) as block-style YAML text.
 
@@ -325,3 +378,9 @@ def dump(data: Any) -> str:
                              default_flow_style=False, width=100))
     except yaml.YAMLError as exc:
         raise TypeError(f"cannot write as YAML: {exc}") from None
+    except UnicodeEncodeError as exc:  # a lone surrogate (JSON can carry one)
+        raise TypeError(f"cannot write as YAML: a string holds {exc.object[exc.start:exc.end]!r}, "
+                        "which is not a character") from None
+    except ValueError:  # str() of an integer longer than Python converts
+        raise TypeError(f"cannot write as YAML: an integer has more than "
+                        f"{sys.get_int_max_str_digits()} digits, the limit") from None
