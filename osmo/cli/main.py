@@ -180,8 +180,7 @@ def _verb_parsers(parser: argparse.ArgumentParser) -> Iterator[argparse.Argument
 
 
 def _accept_global_options(p: argparse.ArgumentParser) -> None:
-    """Let ``--server``, ``--token`` and ``--format`` follow the verb without overriding one
-    before it.
+    """Let ``--server``, ``--token`` and ``--format`` follow the verb, not overriding one before.
 
     A verb's ``--format`` default becomes None (so it cannot hide a global ``--format``) and
     is kept as ``_format_default``; :func:`_resolve_format` puts the answer back.
