@@ -39,7 +39,7 @@ from osmo.server.logview import last_progress, read_logs
 from osmo.server.requests import ListNodes, SubmitWorkflow, TagWorkflow
 from osmo.server.submitted import ClientTypes, check_no_localpath
 from osmo.server.workers import WorkerHub
-from osmo.spec import isolation, spec_from_dict
+from osmo.spec import spec_from_dict
 from osmo.spec.parse import MAX_LABELS
 from osmo.spec.typed import apply_resolved
 from osmo.status import WorkflowStatus
@@ -96,7 +96,6 @@ class Handlers:
             self._verbs.update(tokens.verbs())
         self._verbs.update(DatasetHandlers(engine, self._artifacts, home, link).verbs())
         self._verbs.update(CredentialHandlers(self._store).verbs())
-        isolation.warm()  # the template renderer, started now so no submit waits for it
 
     def handle(self, verb: str, request: dict[str, Any], who: Identity) -> Any:
         """Run the handler for ``verb`` as ``who``.
