@@ -77,7 +77,7 @@ class Cluster:
             time.sleep(0.1)
 
     def client(self) -> osmo.Client:
-        return osmo.Client(self.endpoint)
+        return osmo.Client(self.endpoint, home=self.root / "server")  # its admin token
 
     def close(self) -> None:
         for proc in self.workers:
