@@ -1,8 +1,9 @@
 """Remote workers: dispatch latency, output transfer throughput, fan-out over two workers.
 
 Everything runs as real processes on loopback: a server (``--no-local-pool``) and workers
-started with ``osmo worker --connect``. Workers get their own ``OSMO_HOST_ID`` so data goes
-through the network path (zenoh), not same-host hard links.
+started with ``osmo worker --connect`` and a worker token of their own (every report is an
+authenticated request). Workers get their own ``OSMO_HOST_ID`` so data goes through the
+network path (zenoh), not same-host hard links.
 
 - **dispatch round trip:** a chain of ``--chain`` no-op tasks (``true``) on one remote
   worker. For each task, from its placement (INITIALIZING) to COMPLETED, read from the
@@ -61,7 +62,9 @@ class Cluster:
                               capture_output=True, text=True).stdout
 
     def worker(self, name: str, cpus: int) -> None:
-        env = dict(self.env, OSMO_HOME=str(self.root / name), OSMO_HOST_ID=f"host-{name}")
+        token = self.osmo("token", "create", name, "--role", "worker").strip()
+        env = dict(self.env, OSMO_HOME=str(self.root / name), OSMO_HOST_ID=f"host-{name}",
+                   OSMO_TOKEN=token)
         log = open(self.root / f"{name}.log", "wb")
         self.workers.append(subprocess.Popen(
             [sys.executable, "-m", "osmo", "worker", "--connect", self.endpoint, "--name", name,
@@ -74,7 +77,7 @@ class Cluster:
             time.sleep(0.1)
 
     def client(self) -> osmo.Client:
-        return osmo.Client(self.endpoint)
+        return osmo.Client(self.endpoint, home=self.root / "server")  # its admin token
 
     def close(self) -> None:
         for proc in self.workers:

@@ -13,10 +13,13 @@ import fcntl
 import json
 import os
 import socket
+import stat
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from osmo.errors import NotAuthenticated
 from osmo.layout import Home
 
 __all__ = [
@@ -26,6 +29,7 @@ __all__ = [
     "free_port",
     "home_dir",
     "lock_is_held",
+    "private_file",
     "read_server_info",
     "write_json_atomic",
 ]
@@ -39,15 +43,50 @@ told another."""
 
 
 def home_dir(home: str | os.PathLike[str] | None = None) -> Path:
-    """The osmo home folder (created if missing)."""
+    """The osmo home folder: created 0700 if missing, checked to be this user's own.
+
+    A home that other users may read or enter (wider than 0700) is made 0700, with a one-line
+    notice on stderr: it holds the state store, credentials and the admin token.
+
+    Raises:
+        NotAuthenticated: the folder belongs to another OS user (exit 3).
+    """
     if home is None:
         home = os.environ.get("OSMO_HOME")
     if home is None:
         xdg = os.environ.get("XDG_DATA_HOME") or str(Path.home() / ".local" / "share")
         home = Path(xdg) / "osmo"
     path = Path(home).expanduser().resolve()
-    path.mkdir(parents=True, exist_ok=True)
+    path.mkdir(mode=0o700, parents=True, exist_ok=True)
+    _check_owner(path)
     return path
+
+
+def _check_owner(path: Path) -> None:
+    """Refuse another user's home; make ours 0700 if it is wider."""
+    try:
+        st = path.stat()
+    except PermissionError:
+        st = None
+    if st is None or st.st_uid != os.geteuid():
+        owner = f"uid {st.st_uid}" if st is not None else "another user"
+        raise NotAuthenticated(
+            f"OSMO_HOME {path} belongs to {owner}, not to you (uid {os.geteuid()}): its server "
+            "answers only its owner; use your own OSMO_HOME, or a token the owner created for "
+            "you (`osmo token create NAME --role user`) with --server and --token")
+    if stat.S_IMODE(st.st_mode) & 0o077:
+        os.chmod(path, 0o700)
+        print(f"osmo: {path} was open to other users (mode {stat.S_IMODE(st.st_mode):o}); "
+              "made it 0700", file=sys.stderr)
+
+
+def private_file(path: Path) -> None:
+    """Make ``path`` readable and writable by its owner only (if it exists)."""
+    try:
+        if stat.S_IMODE(path.stat().st_mode) & 0o077:
+            os.chmod(path, 0o600)
+    except FileNotFoundError:
+        pass
 
 
 @dataclass(frozen=True)
@@ -61,9 +100,14 @@ class ServerInfo:
 
 
 def write_json_atomic(path: Path, data: dict[str, Any]) -> None:
-    """Write JSON to a temp file and rename it over ``path`` (never a partial file)."""
+    """Write JSON to a temp file and rename it over ``path`` (never a partial file).
+
+    The file is its owner's only (0600): some of these hold a token.
+    """
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(data, indent=2))
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_CLOEXEC, 0o600)
+    with os.fdopen(fd, "w") as f:
+        f.write(json.dumps(data, indent=2))
     os.replace(tmp, path)
 
 
@@ -80,7 +124,7 @@ def read_server_info(home: Path) -> ServerInfo | None:
 def lock_is_held(home: Path) -> bool:
     """True if a server process holds ``server.lock`` of ``home`` (it is alive)."""
     try:
-        fd = os.open(Home(home).server_lock, os.O_RDWR | os.O_CREAT, 0o644)
+        fd = os.open(Home(home).server_lock, os.O_RDWR | os.O_CREAT, 0o600)
     except OSError:
         return False
     try:
@@ -106,7 +150,7 @@ def free_port(preferred: int = DEFAULT_PORT, host: str = "127.0.0.1") -> int:
     raise OSError("no free TCP port on loopback")
 
 
-PROFILE_KEYS = ("server", "cluster", "zenoh-config")
+PROFILE_KEYS = ("server", "cluster", "zenoh-config", "token")
 """What ``osmo profile set`` accepts."""
 
 

@@ -8,6 +8,8 @@
     ├── NotFoundError               a workflow, task or attempt that does not exist (exit 2)
     ├── SubmitError                 a valid spec the server refuses (e.g. no pool fits) (exit 2)
     ├── ServerUnreachable           no server answered (exit 3)
+    ├── NotAuthenticated            no valid token, or an OSMO_HOME of another user (exit 3)
+    ├── NotAllowed                  a known identity lacks the role for a request (exit 2)
     ├── InfrastructureError         the server, store or a worker failed (exit 3)
     │   └── ArtifactCorrupted       a stored blob does not match its digest (osmo.artifacts)
     ├── OutputRejected              an output holds what cannot be stored (osmo.artifacts)
@@ -28,6 +30,8 @@ from dataclasses import dataclass
 __all__ = [
     "Diagnostic",
     "InfrastructureError",
+    "NotAllowed",
+    "NotAuthenticated",
     "NotFoundError",
     "OsmoError",
     "ServerUnreachable",
@@ -106,6 +110,22 @@ class ServerUnreachable(OsmoError):
     """No osmo server answered at the configured endpoint."""
 
     exit_code = 3
+
+
+class NotAuthenticated(OsmoError):
+    """The server does not know who is asking.
+
+    No token, an unknown or revoked token, or a home that belongs to another OS user.
+    Exit 3, like an unreachable server: for this caller there is no server to talk to.
+    """
+
+    exit_code = 3
+
+
+class NotAllowed(OsmoError):
+    """The caller is known but its role does not allow the request (exit 2)."""
+
+    exit_code = 2
 
 
 class InfrastructureError(OsmoError):

@@ -8,6 +8,8 @@
         server.lock           held (flock) by the running server for its life
         server.log            a background server's own output
         server-options.json   the options of the last explicit ``osmo server start`` (0600)
+        server.sock           the local server's Unix socket (owner-only: see ``server_socket``)
+        auth/admin.token      the home owner's admin token (0600; used by the local CLI/SDK)
         applying.json         ids of the attempt reports being applied (the quarantine file)
         crashes.json          tasks a server died applying a report of, and how often
         profile.json          the client profile (``osmo profile set``)
@@ -33,6 +35,8 @@ from pathlib import Path
 from osmo.errors import UsageError
 
 __all__ = ["AttemptDirs", "BlobDirs", "Home"]
+
+_MAX_SOCKET_PATH = 100  # sun_path holds 108 bytes with its NUL; leave room
 
 
 @dataclass(frozen=True)
@@ -151,6 +155,33 @@ class Home:
     def server_options(self) -> Path:
         """The options of the last explicit start, reused by an automatic start."""
         return self.root / "server-options.json"
+
+    @property
+    def server_socket(self) -> Path:
+        """The Unix socket the local server listens on and the local CLI connects to.
+
+        ``server.sock`` in the home, unless that path is too long for a socket address
+        (about 108 bytes on Linux): then a short name under ``/tmp/osmo-<uid>/`` (a folder
+        that must be its owner's only; the server creates and checks it).
+        """
+        path = self.root.absolute() / "server.sock"
+        if len(str(path).encode()) < _MAX_SOCKET_PATH:
+            return path
+        import hashlib
+        import os
+
+        digest = hashlib.sha256(str(self.root.absolute()).encode()).hexdigest()[:16]
+        return Path(f"/tmp/osmo-{os.geteuid()}") / f"{digest}.sock"
+
+    @property
+    def auth(self) -> Path:
+        """The folder of the home owner's tokens (0700)."""
+        return self.root / "auth"
+
+    @property
+    def admin_token(self) -> Path:
+        """The home owner's admin token, created by the server at first start (0600)."""
+        return self.auth / "admin.token"
 
     @property
     def applying(self) -> Path:

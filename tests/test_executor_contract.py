@@ -24,11 +24,13 @@ from osmo.config import free_port
 from osmo.executor import Executor
 from osmo.layout import Home
 from osmo.scheduler.types import LOCAL_NODE, Changes, NodeUp
+from osmo.server.auth import Authenticator
 from osmo.server.workers import WorkerHub
 from osmo.spec import spec_to_dict
 from osmo.spec.model import WorkflowSpec
 from osmo.store.sqlite import NewWorkflowRow, Store
 from osmo.testing import check_executor
+from osmo.transport.auth import new_token, token_digest
 from osmo.transport.rpc import ApiServer
 from osmo.transport.zenoh_link import Link
 from osmo.worker.pool import LocalPool
@@ -62,11 +64,17 @@ def _worker_hub(tmp_path: Path) -> Iterator[Harness]:
     endpoint = f"tcp/127.0.0.1:{free_port(0)}"
     link = Link.router([endpoint], "contract")
     store = Store(home.state_db)
+    authenticate = Authenticator(store)
+    token = new_token()
+    store.add_token("w1", "worker", token_digest(token), time.time())
     hub = WorkerHub(link=link, emit=events.put, store=store,
                     artifacts=ArtifactStore(home.artifacts), home=home.root,
-                    url_credential=lambda _url: None, attempts_on=lambda _node: [])
-    api = ApiServer(link, lambda verb, request: hub.verbs()[verb](request))
-    env = dict(os.environ, OSMO_HOME=str(tmp_path / "w1"), OSMO_HOST_ID="another-host")
+                    url_credential=lambda _url: None, attempts_on=lambda _node: [],
+                    authenticate=authenticate)
+    api = ApiServer(link, lambda verb, request, who: hub.verbs()[verb](request, who),
+                    authenticate, inline=WorkerHub.INLINE)
+    env = dict(os.environ, OSMO_HOME=str(tmp_path / "w1"), OSMO_HOST_ID="another-host",
+               OSMO_TOKEN=token)
     with open(tmp_path / "w1.log", "ab") as log:
         worker = subprocess.Popen(
             [sys.executable, "-m", "osmo", "worker", "--connect", endpoint, "--cluster",

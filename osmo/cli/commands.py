@@ -28,6 +28,7 @@ from osmo.cli.render import (
 )
 from osmo.cli.robotics import run_eval, run_view
 from osmo.cli.server import run_server
+from osmo.cli.tokens import run_token
 from osmo.errors import OsmoError, UsageError, WorkflowFailed
 from osmo.names import check_label
 from osmo.sdk.client import Client, WorkflowInfo
@@ -234,6 +235,7 @@ _VERBS: dict[str, Callable[[argparse.Namespace], int]] = {
     "profile": run_profile,
     "eval": run_eval,
     "view": run_view,
+    "token": run_token,
 }
 
 

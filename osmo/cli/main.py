@@ -25,6 +25,7 @@ from osmo.cli.plugins import add_parsers as add_plugin_parsers
 from osmo.cli.pools import add_parsers as add_pool_parsers
 from osmo.cli.remote import add_parsers as add_remote_parsers
 from osmo.cli.robotics import add_parsers as add_robotics_parsers
+from osmo.cli.tokens import add_parsers as add_token_parsers
 from osmo.errors import OsmoError, UsageError
 from osmo.server.options import ServerOptions
 
@@ -143,6 +144,8 @@ def build_parser() -> argparse.ArgumentParser:
         "failed, 2 invalid input or usage, 3 server unreachable or infrastructure error."))
     parser.add_argument("--server", help="server endpoint, e.g. tcp/127.0.0.1:7447 "
                         "(default: OSMO_SERVER, else the local server, started if needed)")
+    parser.add_argument("--token", help="API token for a remote server (default: OSMO_TOKEN, "
+                        "the profile's token, or this home's admin token for its own server)")
     parser.add_argument("--format", "-t", "--format-type", dest="global_format",
                         metavar="FORMAT", help="output format of the verb (text, json, ...)")
     sub = parser.add_subparsers(dest="verb", metavar="COMMAND")
@@ -156,6 +159,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_pool_parsers(sub)
     add_plugin_parsers(sub)
     add_robotics_parsers(sub)
+    add_token_parsers(sub)
 
     p = sub.add_parser("server", help="run the server in the foreground, or start|stop|status")
     p.add_argument("action", nargs="?", choices=("start", "stop", "status", "run"), default="run")
@@ -177,7 +181,7 @@ def _verb_parsers(parser: argparse.ArgumentParser) -> Iterator[argparse.Argument
 
 
 def _accept_global_options(p: argparse.ArgumentParser) -> None:
-    """Let ``--server`` and ``--format`` follow the verb without overriding one before it.
+    """Let ``--server``, ``--token`` and ``--format`` follow the verb, not overriding one before.
 
     A verb's ``--format`` default becomes None (so it cannot hide a global ``--format``) and
     is kept as ``_format_default``; :func:`_resolve_format` puts the answer back.
@@ -185,6 +189,8 @@ def _accept_global_options(p: argparse.ArgumentParser) -> None:
     options = {o for a in p._actions for o in a.option_strings}
     if "--server" not in options:
         p.add_argument("--server", default=argparse.SUPPRESS, help=argparse.SUPPRESS)
+    if "--token" not in options:  # ``osmo worker`` has its own
+        p.add_argument("--token", default=argparse.SUPPRESS, help=argparse.SUPPRESS)
     for action in p._actions:
         if action.dest == "format":
             p.set_defaults(_format_default=action.default, _format_choices=action.choices)
@@ -215,6 +221,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except SystemExit as exc:  # argparse exits 2 on usage errors, 0 on --help
         return int(exc.code or 0)
     verb = getattr(args, "wf_verb", None) or args.verb
+    if getattr(args, "token", None) and verb != "worker":
+        import os
+
+        os.environ["OSMO_TOKEN"] = args.token  # every Client this command opens sends it
     if verb is None:
         parser.print_help()
         return 2

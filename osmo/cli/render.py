@@ -138,6 +138,7 @@ def workflow_header(info: WorkflowInfo) -> str:
         f"Workflow ID : {safe(info.id)}",
         f"Status      : {info.status.name}",
         f"Pool        : {safe(info.pool or '-')}",
+        f"Submitted by: {safe(info.submitted_by or '-')}",
         f"Priority    : {info.priority}",
         f"Submitted   : {_when(info.submitted_at)}",
         f"Duration    : {_dur(_elapsed(info))}",
@@ -209,11 +210,11 @@ def workflows_table(rows: list[WorkflowInfo]) -> Table:
     from rich.table import Table
 
     table = Table(box=None, pad_edge=False)
-    for col in ("Workflow ID", "Status", "Submitted", "Duration", "Pool"):
+    for col in ("Workflow ID", "Status", "Submitted", "Duration", "Pool", "By"):
         table.add_column(col)
     for w in rows:
         table.add_row(safe(w.id), w.status.name, _when(w.submitted_at), _dur(_elapsed(w)),
-                      safe(w.pool or "-"))
+                      safe(w.pool or "-"), safe(w.submitted_by or "-"))
     return table
 
 

@@ -85,6 +85,7 @@ class WorkflowInfo:
     pool: str | None
     tasks: list[TaskInfo] = field(default_factory=list)
     reused_from: str | None = None
+    submitted_by: str | None = None  # the name of the token it was submitted with
     labels: dict[str, str] = field(default_factory=dict)
     tags: list[str] = field(default_factory=list)
     priority: str = "NORMAL"
@@ -154,6 +155,7 @@ def _workflow_info(wf: dict[str, Any], tasks: list[dict[str, Any]] = ()) -> Work
     return WorkflowInfo(wf["id"], wf["name"], WorkflowStatus[wf["status"]],
                         wf.get("submitted_at", 0.0), wf.get("started_at"), wf.get("ended_at"),
                         wf.get("pool"), [_task_info(t) for t in tasks], wf.get("reused_from"),
+                        wf.get("submitted_by"),
                         dict(wf.get("labels") or {}), list(wf.get("tags") or []),
                         wf.get("priority") or "NORMAL")
 
@@ -169,12 +171,13 @@ class Client:
             the local server of ``home``, started in the background if needed.
         home: the osmo home of the local server (default ``OSMO_HOME``).
         autostart: start a local server when none runs (default True).
+        token: the API token to send (default: ``OSMO_TOKEN``, the profile's ``token``, or
+            for the home's own server its owner's admin token; see ``osmo.sdk.connect``).
     """
 
     def __init__(self, server: str | None = None, *, home: str | os.PathLike[str] | None = None,
-                 autostart: bool = True) -> None:
-        self._conn: Connection = connect(server, home, autostart=autostart)
-        self._here: bool | None = None
+                 autostart: bool = True, token: str | None = None) -> None:
+        self._conn: Connection = connect(server, home, autostart=autostart, token=token)
 
     def close(self) -> None:
         """Close the connection."""
@@ -190,14 +193,6 @@ class Client:
         if "workflow_id" in request:  # checked here, so a mistyped id never leaves this host
             check_workflow_id(request["workflow_id"])
         return self._conn.api.call(verb, request, timeout=timeout)
-
-    def _server_is_here(self) -> bool:
-        """Whether the server runs on this host (it can then read files named here)."""
-        if self._here is None:
-            from osmo.config import host_id
-
-            self._here = self.ping().get("host_id") == host_id()
-        return self._here
 
     # ------------------------------------------------------------------ submit & control
 
@@ -219,22 +214,12 @@ class Client:
             SpecError: the spec is invalid (nothing was created).
             SubmitError: the server cannot run it (e.g. no pool fits a task).
         """
-        if isinstance(spec, (str, os.PathLike)) and self._server_is_here():
-            from osmo.spec.files import read_spec_file
-
-            path = Path(spec).absolute()
-            text = read_spec_file(path, os.fspath(spec))
-            result = self._call("submit", source={"path": str(path), "text": text},
-                                set_values=list(set_values), set_strings=list(set_strings),
-                                set_env=list(set_env), pool=pool, no_cache=no_cache,
-                                labels=dict(labels or {}), priority=priority)
-            return str(result["workflow_id"])
         from osmo.spec import spec_to_dict
 
         model, filename = _to_model(spec, set_values, set_strings, set_env)
-        type_paths = sorted({p for t in model.all_tasks() if t.resolved for p in t.resolved.paths})
+        types = {t.name: t.resolved.to_dict() for t in model.all_tasks() if t.resolved}
         result = self._call("submit", spec=spec_to_dict(model), pool=pool, filename=filename,
-                            no_cache=no_cache, type_paths=type_paths, labels=dict(labels or {}),
+                            no_cache=no_cache, types=types, labels=dict(labels or {}),
                             priority=priority)
         return str(result["workflow_id"])
 
@@ -277,6 +262,18 @@ class Client:
     def spec(self, workflow_id: str) -> dict[str, Any]:
         """The rendered spec the workflow was submitted with."""
         return dict(self._call("spec", workflow_id=workflow_id)["spec"])
+
+    def create_token(self, name: str, role: str = "user") -> str:
+        """A new API token ``name`` with ``role`` (admin only); returned once, never again."""
+        return str(self._call("token_create", name=name, role=role)["token"])
+
+    def tokens(self) -> builtins.list[dict[str, Any]]:
+        """Every token's name, role, created and revoked times (admin only)."""
+        return builtins.list(self._call("token_list"))
+
+    def revoke_token(self, name: str) -> None:
+        """Revoke token ``name``: its next request is refused (admin only)."""
+        self._call("token_revoke", name=name)
 
     def pools(self) -> builtins.list[dict[str, Any]]:
         """Nodes of the server's pools with capacity used/total."""
@@ -381,7 +378,8 @@ class Client:
         from osmo.artifacts import Manifest
 
         written = transfer.download(self._conn.link, self.ping(), Manifest.from_json(
-            reply["body"]), Path(dest).absolute(), only=reply.get("only"))
+            reply["body"]), Path(dest).absolute(), only=reply.get("only"),
+            token=self._conn.api.token)
         return [str(p) for p in written]
 
     def gc_artifacts(self) -> tuple[int, int]:
@@ -419,7 +417,8 @@ class Client:
         parse_ref(ref)
         reply = self._call("dataset_download", ref=ref, regex=regex)
         written = transfer.download(self._conn.link, self.ping(),
-                                    Manifest.from_json(reply["manifest"]), Path(dest).absolute())
+                                    Manifest.from_json(reply["manifest"]), Path(dest).absolute(),
+                                    token=self._conn.api.token)
         return [str(p) for p in written]
 
     def upload_dataset(self, name: str, path: str | os.PathLike[str], *,

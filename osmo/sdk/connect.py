@@ -2,10 +2,15 @@
 
 The endpoint used: an explicit ``server`` argument > ``OSMO_SERVER`` > the saved profile
 (``osmo profile set server ENDPOINT``, kept in ``OSMO_HOME/profile.json``) > the home's
-``server.json``. With none of them and ``autostart`` on, a server is started in the
-background for the home (``python -m osmo.server.app``, its own session, output in
-``server.log``), with the options the last explicit start saved in the home
-(``osmo.server.options.saved_options``), and the call waits until it answers.
+``server.json`` (the local server's Unix socket, ``OSMO_HOME/server.sock``). With none of
+them and ``autostart`` on, a server is started in the background for the home (``python -m
+osmo.server.app``, its own session, output in ``server.log``), with the options the last
+explicit start saved in the home (``osmo.server.options.saved_options``), and the call waits
+until it answers.
+
+The token sent with every request: an explicit ``token`` > ``OSMO_TOKEN`` > the profile's
+``token`` > the home owner's admin token (``OSMO_HOME/auth/admin.token``), this last one only
+to the home's own server (its socket or an endpoint it listens on), never to another.
 """
 
 from __future__ import annotations
@@ -27,7 +32,7 @@ from osmo.config import (
 )
 from osmo.errors import InfrastructureError, ServerUnreachable
 from osmo.layout import Home
-from osmo.server.options import ServerOptions, saved_options
+from osmo.server.options import ServerOptions, check_listeners, saved_options
 from osmo.transport.rpc import ApiClient
 from osmo.transport.zenoh_link import Link
 
@@ -40,10 +45,10 @@ class Connection:
     """An open API connection (a zenoh client session plus the request helper)."""
 
     def __init__(self, endpoint: str, cluster: str = DEFAULT_CLUSTER,
-                 zenoh_config: str | None = None) -> None:
+                 zenoh_config: str | None = None, token: str | None = None) -> None:
         self.endpoint = endpoint
         self.link = Link.client([endpoint], cluster, config_file=zenoh_config)
-        self.api = ApiClient(self.link)
+        self.api = ApiClient(self.link, token=token)
 
     def close(self) -> None:
         """Close the session."""
@@ -80,13 +85,17 @@ def start_server(home: str | os.PathLike[str] | None = None,
         UsageError: ``options`` is None and the saved options are damaged.
     """
     home_path = home_dir(home)
+    if options is not None:
+        check_listeners(options.listen, options.zenoh_config, insecure=options.insecure)
     if lock_is_held(home_path):
         return _wait_ready(home_path, None, START_TIMEOUT)
     if options is None:
         options = saved_options(home_path) or ServerOptions()
+        check_listeners(options.listen, options.zenoh_config, insecure=options.insecure)
     args = [sys.executable, "-m", "osmo.server.app", "--home", str(home_path),
             *options.to_argv()]
-    with open(Home(home_path).server_log, "ab") as out:
+    log_fd = os.open(Home(home_path).server_log, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o600)
+    with open(log_fd, "ab") as out:
         proc = subprocess.Popen(args, stdin=subprocess.DEVNULL, stdout=out, stderr=out,
                                 start_new_session=True, close_fds=True)
     return _wait_ready(home_path, proc, START_TIMEOUT)
@@ -131,21 +140,48 @@ def _running(pid: int) -> bool:
 
 
 def connect(server: str | None = None, home: str | os.PathLike[str] | None = None,
-            *, autostart: bool = True) -> Connection:
+            *, autostart: bool = True, token: str | None = None) -> Connection:
     """Open a connection to the server chosen as described in the module docstring."""
     home_path = home_dir(home)
     profile = read_profile(home_path)
+    token = token or os.environ.get("OSMO_TOKEN") or profile.get("token")
     endpoint = server or os.environ.get("OSMO_SERVER") or profile.get("server")
     if endpoint:
+        if token is None and endpoint in _local_endpoints(home_path):
+            token = _owner_token(home_path)
         return Connection(endpoint, os.environ.get("OSMO_CLUSTER") or
-                          profile.get("cluster") or DEFAULT_CLUSTER, profile.get("zenoh-config"))
+                          profile.get("cluster") or DEFAULT_CLUSTER, profile.get("zenoh-config"),
+                          token)
     info = server_status(home_path)
     if info is None:
         if not autostart:
             raise ServerUnreachable(f"no osmo server running for {home_path} "
                                     "(start one with `osmo server start`)")
         info = start_server(home_path)
-    return Connection(info.endpoint, info.cluster, _local_config(home_path))
+    return Connection(info.endpoint, info.cluster, _local_config(home_path),
+                      token or _owner_token(home_path))
+
+
+def _owner_token(home: Path) -> str | None:
+    """The home owner's admin token, if the home's server made one."""
+    try:
+        return Home(home).admin_token.read_text().strip() or None
+    except OSError:
+        return None
+
+
+def _local_endpoints(home: Path) -> list[str]:
+    """Every endpoint the home's running server listens on (its socket first)."""
+    import json
+
+    try:
+        data = json.loads(Home(home).server_info.read_text())
+    except (OSError, ValueError):
+        return []
+    out = [str(e) for e in [data.get("endpoint"), *data.get("endpoints", [])] if e]
+    wildcard = {"tcp/0.0.0.0:": "tcp/127.0.0.1:", "tcp/[::]:": "tcp/[::1]:"}
+    return out + [e.replace(w, local, 1) for e in out for w, local in wildcard.items()
+                  if e.startswith(w)]
 
 
 def _local_config(home: Path) -> str | None:

@@ -8,6 +8,7 @@ the cache and serve it while the server pulls what it lacks. The cache is
 
 from __future__ import annotations
 
+import secrets
 import shutil
 import tempfile
 import uuid
@@ -34,16 +35,24 @@ def _same_host(server: dict[str, Any]) -> SameHost | None:
 
 
 def download(link: Link, server: dict[str, Any], manifest: Manifest, dest: Path,
-             only: str | None = None) -> list[Path]:
-    """Write ``manifest``'s files (or just ``only``) under ``dest``, verified."""
+             only: str | None = None, token: bytes | None = None) -> list[Path]:
+    """Write ``manifest``'s files (or just ``only``) under ``dest``, verified.
+
+    ``token`` goes with every blob request (the server's blob server checks it).
+    """
     cache = _cache()
     wanted = Manifest(tuple(e for e in manifest.entries if only is None or e.path == only))
-    fetch_manifest(link, SERVER, wanted, cache, same_host=_same_host(server))
+    fetch_manifest(link, SERVER, wanted, cache, same_host=_same_host(server),
+                   attachment=token)
     return cache.materialize(manifest, dest, only=only)
 
 
 class Upload:
-    """A folder offered to the server: ``source`` tells the server where to pull from."""
+    """A folder offered to the server: ``source`` tells the server where to pull from.
+
+    Its blob server answers only requests carrying ``source["key"]``, a random key that
+    reaches the server inside the (authenticated) upload request.
+    """
 
     def __init__(self, link: Link, folder: Path) -> None:
         cache = _cache()
@@ -54,8 +63,10 @@ class Upload:
         finally:
             shutil.rmtree(staging, ignore_errors=True)
         owner = f"client-{uuid.uuid4().hex[:12]}"
-        self.source = {"owner": owner, "host_id": host_id(), "artifacts": str(cache.root)}
-        self._server = BlobServer(link, owner, cache)
+        key = secrets.token_bytes(16)
+        self.source = {"owner": owner, "host_id": host_id(), "artifacts": str(cache.root),
+                       "key": key.hex()}
+        self._server = BlobServer(link, owner, cache, lambda att, _digest: att == key)
 
     def close(self) -> None:
         """Stop serving."""

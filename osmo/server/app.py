@@ -33,11 +33,12 @@ import time
 from pathlib import Path
 
 from osmo.artifacts import ArtifactStore
-from osmo.config import free_port, home_dir, write_json_atomic
+from osmo.config import home_dir, write_json_atomic
 from osmo.errors import InfrastructureError, OsmoError
 from osmo.executor import Executor
 from osmo.layout import Home
 from osmo.scheduler.types import AttemptLost, NodeUp
+from osmo.server.auth import Authenticator, TokenHandlers, accept_tokens, owner_token
 from osmo.server.credentials import url_credential
 from osmo.server.datasets import Datasets
 from osmo.server.engine import Engine
@@ -45,7 +46,7 @@ from osmo.server.handlers import Handlers
 from osmo.server.inbox import Inbox
 from osmo.server.isolation import reason
 from osmo.server.notices import Notifier
-from osmo.server.options import ServerOptions
+from osmo.server.options import ServerOptions, check_listeners
 from osmo.server.placing import output_manifests
 from osmo.server.records import RunRecords
 from osmo.server.recovery import InFlight, kill_leftovers, quarantine, restore, split_lost
@@ -63,7 +64,7 @@ log = logging.getLogger("osmo.server")
 
 
 def _take_lock(home: Home) -> int:
-    fd = os.open(home.server_lock, os.O_RDWR | os.O_CREAT, 0o644)
+    fd = os.open(home.server_lock, os.O_RDWR | os.O_CREAT, 0o600)
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:
@@ -89,8 +90,13 @@ def serve(home: str | os.PathLike[str] | None = None, options: ServerOptions | N
     layout.server_info.unlink(missing_ok=True)  # a crashed server's stale address
     options = options or ServerOptions()
     listen, connect = list(options.listen), list(options.connect)
-    endpoints = listen or ([] if connect else [f"tcp/127.0.0.1:{free_port()}"])
+    check_listeners(listen, options.zenoh_config, insecure=options.insecure)
+    local = f"unixsock-stream/{_socket(layout)}"
+    endpoints = [local, *listen]
     store = Store(layout.state_db)
+    owner_token(home_path, store)
+    accept_tokens(store, options.accept_tokens)
+    authenticate = Authenticator(store)
     inflight = InFlight(layout.applying, layout.crashes)
     restored = restore(store)
     active, failed = quarantine(restored.active, inflight.strike(inflight.left))
@@ -98,7 +104,7 @@ def serve(home: str | os.PathLike[str] | None = None, options: ServerOptions | N
     kill_leftovers(store, lost)
 
     link = Link.router(endpoints, options.cluster, connect=connect,
-                       config_file=options.zenoh_config)
+                       config_file=options.zenoh_config, peer=bool(connect) and not listen)
     stopping = threading.Event()
 
     notifier = Notifier(link)
@@ -113,7 +119,8 @@ def serve(home: str | os.PathLike[str] | None = None, options: ServerOptions | N
                      task_secrets=store.credential) if options.local_pool else None
     hub = WorkerHub(link=link, emit=inbox.post, store=store,
                     artifacts=artifacts, home=home_path, url_credential=url_credential(store),
-                    attempts_on=lambda node: list(inbox.ask(AttemptsOn(node))))
+                    attempts_on=lambda node: list(inbox.ask(AttemptsOn(node))),
+                    authenticate=authenticate)
     records = RunRecords(store, home_path)
     fatal: list[BaseException] = []
 
@@ -142,15 +149,15 @@ def serve(home: str | os.PathLike[str] | None = None, options: ServerOptions | N
     engine.start()
     hub.expect(remote_nodes, options.reconnect_grace)
 
-    info = {"endpoint": _local_endpoint(endpoints) if endpoints else (connect or [""])[0],
+    info = {"endpoint": local,
             "endpoints": endpoints, "pid": os.getpid(), "cluster": options.cluster,
             "zenoh_config": (str(Path(options.zenoh_config).absolute())
                              if options.zenoh_config else None),
             "host_id": host_id(), "artifacts": str(artifacts.root),
             "started_at": time.time(), "home": str(home_path), "options": options.to_argv()}
     handlers = Handlers(engine, home_path, info, on_shutdown=stopping.set, workers=hub,
-                        link=link)
-    api_server = ApiServer(link, handlers.handle,
+                        link=link, tokens=TokenHandlers(store, authenticate))
+    api_server = ApiServer(link, handlers.handle, authenticate, inline=WorkerHub.INLINE,
                            on_crash=lambda exc: log.error("API handler crashed", exc_info=exc))
     write_json_atomic(layout.server_info, info)
     log.info("osmo server %s listening on %s (home %s)", os.getpid(),
@@ -179,19 +186,21 @@ def serve(home: str | os.PathLike[str] | None = None, options: ServerOptions | N
                                   f"({reason(fatal[0])}); see the log above")
 
 
-def _local_endpoint(endpoints: list[str]) -> str:
-    """Where this host's CLI should connect.
+def _socket(layout: Home) -> Path:
+    """The local Unix socket's path, ready to listen on.
 
-    A loopback TCP endpoint if there is one (a wildcard address counts as loopback), else the first
-    endpoint.
+    A stale socket of a dead server is removed (this server holds the home's lock); the short
+    fallback folder under /tmp must be this user's only.
     """
-    for ep in endpoints:
-        proto, _, rest = ep.partition("/")
-        host, _, port = rest.rpartition(":")
-        if proto == "tcp" and host in ("127.0.0.1", "localhost", "0.0.0.0", "[::]", "[::1]"):
-            local = {"0.0.0.0": "127.0.0.1", "[::]": "[::1]"}.get(host, host)
-            return f"tcp/{local}:{port}"
-    return endpoints[0]
+    path = layout.server_socket
+    if path.parent != layout.root.absolute():
+        path.parent.mkdir(mode=0o700, exist_ok=True)
+        st = path.parent.stat()
+        if st.st_uid != os.geteuid() or st.st_mode & 0o077:
+            raise InfrastructureError(f"{path.parent} must be a folder of yours with mode 0700 "
+                                      "(it holds the local server's socket); remove it")
+    path.unlink(missing_ok=True)
+    return path
 
 
 def _tune_interpreter() -> None:

@@ -119,8 +119,14 @@ class DatasetHandlers:
                      what="'source.host_id'")
         artifacts = field(source, "artifacts", str, default=None, max_len=_MAX_TEXT,
                           what="'source.artifacts'")
+        key = field(source, "key", str, default="", max_len=64, what="'source.key'")
+        try:
+            attachment = bytes.fromhex(key)
+        except ValueError:
+            raise UsageError("'source.key' must be hexadecimal") from None
         same = SameHost(Path(artifacts)) if host == host_id() and artifacts else None
-        fetch_manifest(link, owner, manifest, self._artifacts, same_host=same)
+        fetch_manifest(link, owner, manifest, self._artifacts, same_host=same,
+                       attachment=attachment)
 
     def _row(self, ref: object) -> dict[str, Any]:
         name, tag = parse_ref(ref)

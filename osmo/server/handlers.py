@@ -1,5 +1,9 @@
 """The server's request handlers: one function per API verb, JSON in and JSON out.
 
+Every request arrives with its caller's identity (``osmo.server.auth``): ``handle`` checks
+the role policy first; cancel and restart also check that a ``user`` submitted the
+workflow (workflows record their submitter in ``options.submitted_by``).
+
 Mutating verbs (submit, cancel, restart) ask the engine with a typed request
 (``osmo.server.requests``) and reply only after their changes are committed. Read verbs read
 the store directly from the calling API thread. Handlers raise ``OsmoError`` subclasses for
@@ -27,17 +31,21 @@ from osmo.names import (
     shown,
 )
 from osmo.scheduler.types import PRIORITIES, CancelWorkflow
+from osmo.server.auth import TokenHandlers, authorize, refuse
 from osmo.server.credentials import CredentialHandlers, check_task_credentials
 from osmo.server.dataset_handlers import DatasetHandlers
 from osmo.server.engine import Engine
 from osmo.server.lineage_query import lineage_graph, resolve_target
 from osmo.server.logview import last_progress, read_logs
 from osmo.server.requests import ListNodes, SubmitWorkflow, TagWorkflow, WaitReasons
+from osmo.server.submitted import ClientTypes, check_no_localpath
 from osmo.server.workers import WorkerHub
-from osmo.spec import isolation, load_spec, spec_from_dict, spec_to_dict
+from osmo.spec import spec_from_dict
 from osmo.spec.parse import MAX_LABELS
+from osmo.spec.typed import apply_resolved
 from osmo.status import WorkflowStatus
 from osmo.store.sqlite import WorkflowRow
+from osmo.transport.auth import Identity, Role
 from osmo.transport.rpc import MAX_INT, field, str_list
 from osmo.transport.zenoh_link import Link
 
@@ -50,12 +58,18 @@ _WAITS = ("WAITING", "SCHEDULING")  # task statuses that have a reason to wait
 _MAX_TEXT = 4096  # characters of a path, a pool or an artifact target in a request
 
 
+Verb = Callable[[dict[str, Any]], Any]
+CallerVerb = Callable[[dict[str, Any], Identity], Any]
+# what ``ping`` shows admins only: paths and addresses of the server's host
+_PRIVATE_INFO = ("home", "artifacts", "zenoh_config", "endpoint", "endpoints")
+
+
 class Handlers:
     """Dispatches ``verb`` → handler. ``info`` is returned by ``ping``."""
 
     def __init__(self, engine: Engine, home: Path, info: dict[str, Any],
                  on_shutdown: Callable[[], None], workers: WorkerHub | None = None,
-                 link: Link | None = None) -> None:
+                 link: Link | None = None, tokens: TokenHandlers | None = None) -> None:
         self._workers = workers  # the WorkerHub: its verbs, and worker status for pools
         self._engine = engine
         self._store = engine.store
@@ -63,17 +77,15 @@ class Handlers:
         self._info = info
         self._on_shutdown = on_shutdown
         self._artifacts = ArtifactStore(Home(home).artifacts)
-        self._verbs: dict[str, Callable[[dict[str, Any]], Any]] = {
-            "ping": lambda _r: self._info,
-            "submit": self.submit,
-            "cancel": self.cancel,
-            "restart": self.restart,
+        self._callers: dict[str, CallerVerb] = {
+            "ping": self.ping, "submit": self.submit, "cancel": self.cancel,
+            "restart": self.restart, "workflow_tag": self.workflow_tag}
+        self._verbs: dict[str, Verb] = {
             "get": self.get,
             "status": self.status,
             "list": self.list,
             "logs": self.logs,
             "events": self.events,
-            "workflow_tag": self.workflow_tag,
             "spec": self.spec,
             "pools": self.pools,
             "lineage": self.lineage,
@@ -83,59 +95,65 @@ class Handlers:
             "shutdown": self.shutdown,
         }
         if workers is not None:
-            self._verbs.update(workers.verbs())
+            self._callers.update(workers.verbs())
+        if tokens is not None:
+            self._verbs.update(tokens.verbs())
         self._verbs.update(DatasetHandlers(engine, self._artifacts, home, link).verbs())
         self._verbs.update(CredentialHandlers(self._store).verbs())
-        isolation.warm()  # the template renderer, started now so no submit waits for it
 
-    def handle(self, verb: str, request: dict[str, Any]) -> Any:
-        """Run the handler for ``verb``; UsageError for an unknown verb."""
+    def handle(self, verb: str, request: dict[str, Any], who: Identity) -> Any:
+        """Run the handler for ``verb`` as ``who``.
+
+        Raises:
+            UsageError: an unknown verb.
+            NotAllowed: ``who``'s role may not (``osmo.server.auth.authorize``).
+        """
+        caller = self._callers.get(verb)
         handler = self._verbs.get(verb)
-        if handler is None:
+        if caller is None and handler is None:
             raise UsageError(f"unknown API verb {shown(verb)}")
-        return handler(request)
+        authorize(verb, who)
+        return caller(request, who) if caller is not None else handler(request)  # type: ignore[misc]
+
+    def ping(self, _request: dict[str, Any], who: Identity) -> dict[str, Any]:
+        """The server's info, and who the caller is; paths only for an admin."""
+        info = dict(self._info, identity={"name": who.name, "role": who.role.value})
+        if who.role is not Role.ADMIN:
+            for key in _PRIVATE_INFO:
+                info.pop(key, None)
+        return info
 
     # ------------------------------------------------------------------ mutating verbs
 
-    def submit(self, request: dict[str, Any]) -> dict[str, Any]:
+    def submit(self, request: dict[str, Any], who: Identity) -> dict[str, Any]:
         """Create a workflow from a spec dict.
 
-        Request: spec, pool?, filename?, no_cache?, type_paths? (folders custom task types are
-        imported from: the spec file's folder). Instead of ``spec``, a client on this host may send
-        ``source`` (``{path, text}``) and the template values (set_values, set_strings, set_env):
-        the file is then rendered and checked here, with the same loader and the same messages,
-        saving the client the template engine and YAML parser.
-
-        Task types are resolved here, with this server's installed plugins; what was
-        resolved (version, resources, folders) is kept in the workflow's options. Outputs
-        to reuse are for ``restart`` to give, never a request.
+        Request: spec (rendered by the client, ``localpath`` files already read), pool?,
+        filename?, no_cache?, types? (``task -> ResolvedType`` of its custom ``module:attr``
+        types, which the client imported from the spec's folder). The server reads no file
+        and imports no code a client names (``osmo.server.submitted``); installed task types
+        are resolved here, with this server's plugins. What was resolved (version,
+        resources, folders) is kept in the workflow's options. Outputs to reuse are for
+        ``restart`` to give, never a request.
         """
         if "reused" in request or "reused_from" in request:
             raise UsageError("'reused' and 'reused_from' are set by `osmo restart` only")
-        return self._submit(request, {}, None)
+        return self._submit(request, {}, None, who)
 
     def _submit(self, request: dict[str, Any], reused: dict[str, str],
-                reused_from: str | None) -> dict[str, Any]:
-        from osmo.tasktypes.registry import Resolver
-
+                reused_from: str | None, who: Identity) -> dict[str, Any]:
+        if "source" in request:
+            raise UsageError("'source' is no longer accepted: the server reads no file a "
+                             "client names; send the rendered 'spec' (the CLI and SDK do)")
         pool = field(request, "pool", str, default=None, max_len=_MAX_TEXT)
         filename = field(request, "filename", str, default=None, max_len=_MAX_TEXT)
-        if "source" in request:  # a spec file on this server's host: read and checked here
-            source = field(request, "source", dict)
-            filename = field(source, "path", str, max_len=_MAX_TEXT, what="'source.path'")
-            spec = load_spec(text=field(source, "text", str, what="'source.text'"),
-                             filename=filename, set_values=str_list(request, "set_values"),
-                             set_strings=str_list(request, "set_strings"),
-                             set_env=str_list(request, "set_env"),
-                             types=Resolver([str(Path(filename).parent)]))
-            stored = spec_to_dict(spec)
-            type_paths = sorted({p for t in spec.all_tasks() if t.resolved
-                                 for p in t.resolved.paths})
-        else:
-            type_paths = str_list(request, "type_paths")
-            stored = field(request, "spec", dict)
-            spec = spec_from_dict(stored, filename=filename or "<submitted>",
-                                  types=Resolver(type_paths))
+        stored = field(request, "spec", dict)
+        check_no_localpath(stored)
+        types = ClientTypes(field(request, "types", dict, default={}), stored)
+        spec = apply_resolved(spec_from_dict(stored, filename=filename or "<submitted>",
+                                             types=types), types.described)
+        type_paths = sorted({p for t in spec.all_tasks() if t.resolved
+                             for p in t.resolved.paths})
         check_task_credentials(spec, self._store)
         labels = {**spec.labels, **_labels(request, "labels")}
         if len(labels) > MAX_LABELS:
@@ -148,28 +166,29 @@ class Handlers:
         options = {"pool": pool or spec.pool, "filename": filename, "reused_from": reused_from,
                    "labels": labels, "priority": priority,
                    "no_cache": field(request, "no_cache", bool, default=False),
-                   "type_paths": type_paths,
+                   "type_paths": type_paths, "submitted_by": who.name,
                    "types": {t.name: t.resolved.to_dict() for t in spec.all_tasks()
                              if t.resolved is not None}}
         return {"workflow_id": self._engine.ask(SubmitWorkflow(spec, stored, options, reused))}
 
-    def workflow_tag(self, request: dict[str, Any]) -> dict[str, Any]:
+    def workflow_tag(self, request: dict[str, Any], who: Identity) -> dict[str, Any]:
         """Add and remove a workflow's tags (names); replies with its tags after the change."""
-        row = self._row(request.get("workflow_id"))
+        row = self._own(self._row(request.get("workflow_id")), who, "workflow_tag")
         add, remove = ([check_name(t, "workflow tag") for t in str_list(request, key)]
                        for key in ("add", "remove"))
         tags = self._engine.ask(TagWorkflow(row.id, tuple(add), tuple(remove)))
         return {"workflow_id": row.id, "tags": tags}
 
-    def cancel(self, request: dict[str, Any]) -> dict[str, Any]:
+    def cancel(self, request: dict[str, Any], who: Identity) -> dict[str, Any]:
         """Cancel a workflow; a no-op for one already ended."""
-        row = self._row(request.get("workflow_id"))
+        row = self._own(self._row(request.get("workflow_id")), who, "cancel")
         self._engine.ask(CancelWorkflow(row.id))
         return {"workflow_id": row.id, "status": self._row(row.id).status}
 
-    def restart(self, request: dict[str, Any]) -> dict[str, Any]:
+    def restart(self, request: dict[str, Any], who: Identity) -> dict[str, Any]:
         """Submit the same spec again, reusing the outputs of tasks that completed."""
-        row = self._row(request.get("workflow_id"), with_spec=True)
+        row = self._own(self._row(request.get("workflow_id"), with_spec=True), who, "restart")
+        # the types as resolved at the first submit (never imported here)
         if not WorkflowStatus[row.status].terminal:
             raise UsageError(f"workflow {row.id} is still {row.status}; "
                              f"cancel it first (`osmo cancel {row.id}`)")
@@ -179,7 +198,22 @@ class Handlers:
                              "filename": row.options.get("filename"),
                              "labels": row.options.get("labels") or {},
                              "priority": row.options.get("priority"),
-                             "type_paths": row.options.get("type_paths")}, reused, row.id)
+                             "types": row.options.get("types") or {}}, reused, row.id,
+                            who)
+
+    @staticmethod
+    def _own(row: WorkflowRow, who: Identity, verb: str) -> WorkflowRow:
+        """``row`` if ``who`` may change it: an admin, or the user who submitted it.
+
+        Raises:
+            NotAllowed: another user's workflow (logged once).
+        """
+        owner = row.options.get("submitted_by")
+        if who.role is Role.ADMIN or owner == who.name:
+            return row
+        raise refuse(verb, who, f"workflow {row.id} was submitted by "
+                                f"{shown(owner) if owner else 'another user'}; only they or "
+                                "an admin may change it")
 
     def shutdown(self, _request: dict[str, Any]) -> dict[str, Any]:
         """Stop the server (after replying)."""
@@ -373,6 +407,7 @@ def _workflow_dict(row: WorkflowRow) -> dict[str, Any]:
                                 "submitted_at": row.submitted_at}
     state["pool"] = row.options.get("pool")
     state["reused_from"] = row.options.get("reused_from")
+    state["submitted_by"] = row.options.get("submitted_by")
     state["labels"] = row.options.get("labels") or {}
     state["tags"] = row.options.get("tags") or []
     return state

@@ -28,8 +28,8 @@ from osmo.config import DEFAULT_CLUSTER
 from osmo.errors import UsageError
 from osmo.layout import Home
 
-__all__ = ["ServerOptions", "absolute", "option_changes", "options_from_argv", "remember",
-           "saved_options"]
+__all__ = ["ServerOptions", "absolute", "check_listeners", "network_listeners",
+           "option_changes", "options_from_argv", "remember", "saved_options"]
 
 
 @dataclass(frozen=True)
@@ -45,6 +45,9 @@ class ServerOptions:
         cpus, gpus: override the local pool's detected capacity.
         local_pool: run tasks on the server's host too (off: remote workers only).
         reconnect_grace: seconds remote workers get to come back after a restart.
+        insecure: allow a network listener without zenoh authentication (warned at every
+            start; see :func:`check_listeners`).
+        accept_tokens: ``NAME:ROLE:FILE`` tokens to accept (Kubernetes Secrets).
     """
 
     listen: tuple[str, ...] = ()
@@ -55,6 +58,8 @@ class ServerOptions:
     gpus: int | None = None
     local_pool: bool = True
     reconnect_grace: float = 30.0
+    insecure: bool = False
+    accept_tokens: tuple[str, ...] = ()
 
     @staticmethod
     def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -82,6 +87,13 @@ class ServerOptions:
         p.add_argument("--reconnect-grace", type=float, default=d.reconnect_grace,
                        metavar="SECONDS", help="after a restart, how long remote workers get "
                                                f"to come back ({d.reconnect_grace:g})")
+        p.add_argument("--accept-token", action="append", metavar="NAME:ROLE:FILE",
+                       help="accept the API token in FILE as token NAME with ROLE "
+                            "(repeatable; e.g. a mounted Kubernetes Secret)")
+        p.add_argument("--insecure", action="store_true",
+                       help="allow --listen on a network address without zenoh "
+                            "authentication (usrpwd or mTLS in --zenoh-config); tokens then "
+                            "travel in clear")
 
     @classmethod
     def from_args(cls, args: argparse.Namespace) -> ServerOptions:
@@ -89,7 +101,9 @@ class ServerOptions:
         return cls(listen=tuple(args.listen or ()), connect=tuple(args.connect or ()),
                    zenoh_config=args.zenoh_config, cluster=args.cluster, cpus=args.cpus,
                    gpus=args.gpus, local_pool=args.local_pool,
-                   reconnect_grace=args.reconnect_grace)
+                   reconnect_grace=args.reconnect_grace,
+                   insecure=getattr(args, "insecure", False),
+                   accept_tokens=tuple(getattr(args, "accept_token", None) or ()))
 
     def to_argv(self) -> list[str]:
         """The same options as flags, to start the server in another process.
@@ -104,7 +118,9 @@ class ServerOptions:
                             ("--reconnect-grace", self.reconnect_grace)):
             if value != getattr(d, flag[2:].replace("-", "_")):
                 out += [flag, str(value)]
-        return out + ([] if self.local_pool else ["--no-local-pool"])
+        out += [] if self.local_pool else ["--no-local-pool"]
+        out += [arg for spec in self.accept_tokens for arg in ("--accept-token", spec)]
+        return out + (["--insecure"] if self.insecure else [])
 
 
 class _Refusing(argparse.ArgumentParser):
@@ -206,3 +222,49 @@ def _shown(value: object) -> str:
     if isinstance(value, float) and value.is_integer():
         return str(int(value))
     return str(value)
+
+
+_LOOPBACK = ("127.", "localhost", "[::1]")
+
+
+def network_listeners(listen: tuple[str, ...] | list[str]) -> list[str]:
+    """The endpoints of ``listen`` that other machines could reach (not loopback or a socket)."""
+    out = []
+    for endpoint in listen:
+        proto, _, rest = endpoint.partition("/")
+        host = rest.rpartition(":")[0] if proto not in ("unixsock-stream", "unixpipe") else ""
+        if host and not host.startswith(_LOOPBACK):
+            out.append(endpoint)
+    return out
+
+
+def check_listeners(listen: tuple[str, ...] | list[str], zenoh_config: str | None, *,
+                    insecure: bool) -> None:
+    """Refuse a network listener without zenoh authentication, unless ``insecure``.
+
+    Authentication means user/password (``transport.auth.usrpwd``) or mutual TLS
+    (``transport.link.tls.enable_mtls``) in the zenoh config. With ``insecure``, a warning is
+    logged at every start (stderr and ``server.log``).
+
+    Raises:
+        UsageError: a network listener, no authentication, no ``--insecure``.
+    """
+    import logging
+
+    from osmo.transport.zenoh_link import authenticates
+
+    exposed = network_listeners(listen)
+    if not exposed or authenticates(zenoh_config):
+        return
+    what = ", ".join(exposed)
+    if insecure:
+        logging.getLogger("osmo.server").warning(
+            "INSECURE: listening on %s without zenoh authentication (--insecure): anyone who "
+            "can reach it can connect, and API tokens travel in clear over plain TCP", what)
+        return
+    raise UsageError(
+        f"refusing to listen on {what} without authentication: anyone who can reach it "
+        "could connect, and API tokens would travel in clear over plain TCP. Give a "
+        "--zenoh-config with TLS and mutual TLS (enable_mtls) or user/password (usrpwd); "
+        "see README 'Run across machines'. To accept the risk (a trusted network only), add "
+        "--insecure")

@@ -8,12 +8,16 @@ turns the engine's commands into orders to workers and worker traffic into event
   the token going away is ``NodeDown`` (its attempts are rescheduled). A draining worker is
   re-announced with no capacity, so nothing new is placed on it.
 - ``prepare`` sends the attempt with the input manifests it needs (the task's workflow spec
-  only the first time a worker hears of that workflow), its secrets and URL credentials.
+  only the first time a worker hears of that workflow). Secrets never travel in an order
+  (any subscriber of ``to-worker/**`` receives it): the worker asks ``worker_secrets``.
 - An exit report with outputs is handled on a transfer thread: the blobs the server lacks
   are fetched from the worker, verified, the output folder is linked into the server's
   ``runs/`` tree (so downstream tasks and ``osmo artifacts`` find it where local outputs
   live), and only then does the engine see the exit; the worker then gets its ``ack``. A
   transfer that fails makes the attempt lost (rescheduled).
+- Reports, log batches and secret requests are authenticated API requests, accepted only
+  for attempts placed on the worker the caller's token registered
+  (``osmo.server.worker_access``).
 - After a server restart, attempts restored on remote nodes are given ``grace`` seconds for
   their worker to register again (reporting what is still running and what finished
   meanwhile); a node that does not come back is taken down.
@@ -49,18 +53,20 @@ from osmo.scheduler.types import (
     PrepareAttempt,
     RunAttempt,
 )
+from osmo.server.auth import refuse
+from osmo.server.worker_access import WorkerAccess, task_secrets, task_urls
 from osmo.spec.model import TaskSpec
 from osmo.store.sqlite import Store
+from osmo.transport.auth import Identity
 from osmo.transport.blobs import SERVER, BlobServer, SameHost, fetch_manifest, host_id
-from osmo.transport.wire import Hello, event_from_dict, prepare_to_dict, spec_to_wire, worker_id
+from osmo.transport.rpc import field
+from osmo.transport.wire import Hello, event_from_dict, prepare_to_dict, spec_to_wire
 from osmo.transport.zenoh_link import Link, Subscription
-from osmo.worker.secrets import SecretError, gather
 
 __all__ = ["WorkerHub"]
 
 log = logging.getLogger("osmo.server.workers")
-
-
+_MAX_RECORDS = 4 << 20  # characters of one log batch
 
 class WorkerHub:
     """Remote workers, as seen by the server (see the module docstring).
@@ -74,12 +80,17 @@ class WorkerHub:
         url_credential: ``url -> credential`` for data URLs.
         attempts_on: the ids of the attempts the scheduler placed on a node (asked of the
             engine when a worker registers again).
+        authenticate: ``token -> Identity`` (for the server's blob server).
     """
+
+    INLINE = frozenset({"worker_report", "worker_log"})
+    """Verbs answered in arrival order on the zenoh thread (``ApiServer(inline=...)``)."""
 
     def __init__(self, *, link: Link, emit: Callable[[Event], None], store: Store,
                  artifacts: ArtifactStore, home: Path,
                  url_credential: Callable[[str], dict[str, str] | None],
-                 attempts_on: Callable[[str], list[str]]) -> None:
+                 attempts_on: Callable[[str], list[str]],
+                 authenticate: Callable[[bytes | None], Identity]) -> None:
         self._link, self._emit, self._store = link, emit, store
         self._artifacts, self._home = artifacts, home
         self._url_credential, self._attempts_on = url_credential, attempts_on
@@ -91,32 +102,36 @@ class WorkerHub:
         self._same_host: dict[str, SameHost | None] = {}
         self._sent_specs: dict[str, set[str]] = {}
         self._logs: dict[str, int] = {}
+        self._access = WorkerAccess(authenticate, lambda wid: wid in self._alive)
         self._transfers = ThreadPoolExecutor(4, thread_name_prefix="osmo-pull")
         self._host = host_id()
         self._subs: list[Subscription] = [
             link.watch(link.key("alive", "worker", "*"), self._on_token),
-            link.subscribe_raw(link.key("from-worker", "*"), self._on_report),
-            link.subscribe_raw(link.key("from-worker", "*", "log"), self._on_log),
         ]
-        self._blobs = BlobServer(link, SERVER, artifacts)
+        self._blobs = BlobServer(link, SERVER, artifacts, self._access.may_read)
         self._server_token = link.token(link.key("alive", SERVER))
 
     # ------------------------------------------------------------------ membership
 
-    def verbs(self) -> dict[str, Callable[[dict[str, Any]], Any]]:
-        """API verbs served for workers."""
-        return {"worker_register": self.register, "worker_drain": self.drain}
+    def verbs(self) -> dict[str, Callable[[dict[str, Any], Identity], Any]]:
+        """API verbs served for workers (each gets the caller's identity)."""
+        return {"worker_register": self.register, "worker_drain": self.drain,
+                "worker_report": self.report, "worker_log": self.log,
+                "worker_secrets": self.secrets}
 
-    def register(self, request: dict[str, Any]) -> dict[str, Any]:
+    def register(self, request: dict[str, Any], who: Identity) -> dict[str, Any]:
         """A worker says hello (``osmo.transport.wire.Hello``).
 
-        On its first start, or again after a server restart.
+        On its first start, or again after a server restart. The caller's token is bound to
+        this worker id (see the module docstring).
 
         Raises:
             UsageError: a field of the wrong type or out of range (nothing is changed).
+            NotAllowed: the token serves another live worker, or the id is another token's.
         """
         hello = Hello.from_dict(request)
         node, wid = hello.node, hello.node.id
+        key = self._access.bind(who, wid)
         with self._lock:
             self._nodes[wid] = node
             self._info[wid] = {"pid": hello.pid, "address": node.address,
@@ -131,11 +146,42 @@ class WorkerHub:
         if alive:
             self._emit(NodeUp(self._announced(wid)))
         log.info("worker %s registered (pool %s, %s)", wid, node.pool, node.capacity)
-        return {"host_id": self._host, "artifacts": str(self._artifacts.root)}
+        return {"host_id": self._host, "artifacts": str(self._artifacts.root),
+                "blob_key": key.hex()}
 
-    def drain(self, request: dict[str, Any]) -> dict[str, Any]:
+    def report(self, request: dict[str, Any], who: Identity) -> dict[str, Any]:
+        """One report of a worker (``osmo.transport.wire.event_to_dict``) about its attempt."""
+        wid = self._access.speaker("worker_report", request, who)
+        report = field(request, "report", dict)
+        self._access.placed_on("worker_report", wid, str(report.get("attempt_id")), who)
+        self._handle(wid, report)
+        return {}
+
+    def log(self, request: dict[str, Any], who: Identity) -> dict[str, Any]:
+        """A batch of an attempt's log records, appended to the server's copy of its log."""
+        wid = self._access.speaker("worker_log", request, who)
+        aid = field(request, "attempt_id", str, max_len=4096)
+        self._access.placed_on("worker_log", wid, aid, who)
+        self._append_log(aid, field(request, "records", str, max_len=_MAX_RECORDS).encode())
+        return {}
+
+    def secrets(self, request: dict[str, Any], who: Identity) -> dict[str, Any]:
+        """The secrets and data-URL credentials of an attempt placed on the asking worker.
+
+        Raises:
+            NotAllowed: the attempt is not placed on it.
+        """
+        wid = self._access.speaker("worker_secrets", request, who)
+        aid = field(request, "attempt_id", str, max_len=4096)
+        task = self._access.placed_on("worker_secrets", wid, aid, who)
+        if task is None:
+            raise refuse("worker_secrets", who, f"attempt {aid!r} was prepared before the "
+                                                "server restarted; its secrets were sent then")
+        return task_secrets(task, self._store.credential, self._url_credential)
+
+    def drain(self, request: dict[str, Any], who: Identity) -> dict[str, Any]:
         """A worker stops taking work: announce it with no capacity."""
-        wid = worker_id(request)
+        wid = self._access.speaker("worker_drain", request, who)
         with self._lock:
             known = wid in self._nodes
             self._draining.add(wid)
@@ -155,8 +201,14 @@ class WorkerHub:
         """
         known = set(self._attempts_on(wid))
         done = {str(r.get("attempt_id")) for r in finished}
+        self._access.restored(wid, known)
         for report in finished:
-            self._handle(wid, report)
+            if str(report.get("attempt_id")) in known:
+                self._handle(wid, report)
+            else:  # superseded (fenced) or never its own; acked so it stops resending it
+                log.warning("refused a finished report of worker %s: attempt %r is not "
+                            "placed on it", wid, report.get("attempt_id"))
+                self._send(wid, {"op": "ack", "attempt_id": str(report.get("attempt_id"))})
         for aid in sorted(known - active - done):
             self._emit(AttemptLost(aid, f"worker {wid} no longer runs this attempt"))
 
@@ -218,6 +270,9 @@ class WorkerHub:
             self._emit(AttemptStartFailed(cmd.attempt_id, str(exc)))
             return
         order["max_output_bytes"] = max_output_bytes
+        digests = {e.digest for body in order["manifests"].values()
+                   for e in Manifest.from_json(body).entries}
+        self._access.place(cmd.attempt_id, cmd.node_id, task, digests)
         self._send(cmd.node_id, order)
 
     def _order(self, cmd: PrepareAttempt, task: TaskSpec) -> dict[str, Any]:
@@ -235,13 +290,9 @@ class WorkerHub:
                                          row.options.get("types") or {})
         order["manifests"] = {ref: self._manifest_of(ref) for ref in set(cmd.inputs.values())
                               if not _is_url(ref)}
-        try:
-            order["secrets"] = gather(task, self._store.credential) if task.credentials else {}
-        except SecretError as exc:
-            raise OsmoError(str(exc)) from exc
-        urls = [i.url for i in task.inputs if i.url] + [o.url for o in task.outputs if o.url]
-        urls += [str(c["url"]) for c in task.checkpoint if c.get("url")]
-        order["url_credentials"] = {u: c for u in urls if (c := self._url_credential(u))}
+        # the values are asked for by the worker (``worker_secrets``), never sent here
+        order["secrets"] = bool(task.credentials) or any(
+            self._url_credential(u) for u in task_urls(task))
         return order
 
     def _manifest_of(self, ref: str) -> str:
@@ -253,10 +304,12 @@ class WorkerHub:
 
     def run(self, cmd: RunAttempt) -> None:
         """Start a prepared attempt (its group's barrier released)."""
+        self._access.restored(cmd.node_id, [cmd.attempt_id])
         self._send(cmd.node_id, {"op": "run", "attempt_id": cmd.attempt_id})
 
     def kill(self, cmd: KillAttempt) -> None:
         """Stop an attempt on its worker."""
+        self._access.restored(cmd.node_id, [cmd.attempt_id])
         self._send(cmd.node_id, {"op": "kill", "attempt_id": cmd.attempt_id,
                                  "reason": cmd.reason})
 
@@ -264,15 +317,6 @@ class WorkerHub:
         self._link.put(self._link.key("to-worker", wid), json.dumps(order).encode())
 
     # ------------------------------------------------------------------ reports
-
-    def _on_report(self, key: str, data: bytes, _att: bytes | None) -> None:
-        wid = key.rsplit("/", 1)[1]
-        try:
-            report = json.loads(data)
-        except ValueError:
-            log.warning("unreadable report from worker %s", wid)
-            return
-        self._handle(wid, report)
 
     def _handle(self, wid: str, report: dict[str, Any]) -> None:
         try:
@@ -305,7 +349,9 @@ class WorkerHub:
                 with self._lock:
                     same = self._same_host.get(wid)
                 t0 = time.perf_counter()
-                sent = fetch_manifest(self._link, wid, manifest, self._artifacts, same_host=same)
+                key = self._access.key(wid)
+                sent = fetch_manifest(self._link, wid, manifest, self._artifacts, same_host=same,
+                                      attachment=key)
                 if sent:
                     took = time.perf_counter() - t0
                     log.info("outputs of %s: %d bytes fetched from worker %s in %.3fs "
@@ -328,10 +374,7 @@ class WorkerHub:
         self._emit(event)
         self._send(wid, {"op": "ack", "attempt_id": event.attempt_id})
 
-    def _on_log(self, _key: str, records: bytes, attachment: bytes | None) -> None:
-        if not attachment:
-            return
-        aid = attachment.decode()
+    def _append_log(self, aid: str, records: bytes) -> None:
         with self._lock:
             fd = self._logs.get(aid)
             if fd is None:

@@ -15,6 +15,7 @@ Text from tasks may hold bytes that are not UTF-8 (file names): see ``osmo.store
 from __future__ import annotations
 
 import json
+import os
 import sqlite3
 import threading
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -22,6 +23,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+from osmo.config import private_file
 from osmo.errors import InfrastructureError
 from osmo.scheduler.types import Changes
 from osmo.store.lineage import LineageQueries
@@ -33,6 +35,7 @@ from osmo.store.rows import (
     TagRow,
     WorkflowRow,
 )
+from osmo.store.tokens import TokenRows
 from osmo.store.writes import text_value, write_dataset, write_lineage, write_manifest
 
 __all__ = ["AttemptRow", "DatasetRow", "LineageRow", "NewWorkflowRow", "Store", "TagRow",
@@ -120,6 +123,12 @@ def _v5(db: sqlite3.Connection) -> None:
                "updated_at REAL NOT NULL)")
 
 
+def _v6(db: sqlite3.Connection) -> None:
+    """API tokens (``osmo.store.tokens``): only each token's sha256 is kept."""
+    db.execute("CREATE TABLE tokens (name TEXT PRIMARY KEY, role TEXT NOT NULL, "
+               "digest TEXT NOT NULL UNIQUE, created_at REAL NOT NULL, revoked_at REAL)")
+
+
 def _run_script(db: sqlite3.Connection, script: str) -> None:
     """Run ``;``-separated DDL inside the caller's transaction (``executescript`` would commit)."""
     for statement in script.split(";"):
@@ -130,11 +139,11 @@ def _run_script(db: sqlite3.Connection, script: str) -> None:
 _NO_SPEC = "id, name, status, submitted_at, '{}' AS spec, options, state"
 
 _MIGRATIONS: dict[int, Callable[[sqlite3.Connection], None]] = {
-    1: _v1, 2: _v2, 3: _v3, 4: _v4, 5: _v5}
+    1: _v1, 2: _v2, 3: _v3, 4: _v4, 5: _v5, 6: _v6}
 SCHEMA_VERSION = max(_MIGRATIONS)
 
 
-class Store(LineageQueries):
+class Store(LineageQueries, TokenRows):
     """The SQLite state store under ``OSMO_HOME``.
 
     Args:
@@ -144,6 +153,11 @@ class Store(LineageQueries):
     def __init__(self, path: Path) -> None:
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        # The store holds credentials and token digests: its owner's only. SQLite gives the
+        # -wal and -shm files the database file's mode.
+        os.close(os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o600))
+        for suffix in ("", "-wal", "-shm"):
+            private_file(self.path.with_name(self.path.name + suffix))
         self._local = threading.local()
         with self._tx() as db:
             self._migrate(db)

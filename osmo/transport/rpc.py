@@ -5,6 +5,11 @@
 - ``osmo/<cluster>/events/<workflow_id>`` — the server publishes a small JSON notice whenever
   a workflow's state changes (clients waiting on it re-query instead of polling fast).
 
+Every request carries its caller's token as the zenoh attachment (``osmo.transport.auth``);
+the server authenticates it once per request and hands the handler the caller's
+:class:`~osmo.transport.auth.Identity`. A request without a valid token is refused
+(``NotAuthenticated``, exit 3) and logged in one line, before its body is read.
+
 Server-side errors travel as their class name, message and exit code and are rebuilt as the
 matching ``osmo.errors`` class on the client. A request that is not a JSON object, or whose
 fields have the wrong type (see :func:`field`), is the client's mistake: a ``UsageError``
@@ -19,13 +24,15 @@ from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
-from osmo.errors import OsmoError, ServerUnreachable, UsageError
+from osmo.errors import NotAuthenticated, OsmoError, ServerUnreachable, UsageError
 from osmo.names import shown
+from osmo.transport.auth import Identity
 from osmo.transport.zenoh_link import Link, Request
 
 __all__ = ["ApiClient", "ApiServer", "RemoteError", "field", "str_list", "str_map"]
 
-Handler = Callable[[str, dict[str, Any]], Any]
+Handler = Callable[[str, dict[str, Any], Identity], Any]
+Authenticate = Callable[[bytes | None], Identity]
 log = logging.getLogger("osmo.api")
 _REQUIRED: Any = object()
 _KINDS = {str: "a string", int: "a whole number", bool: "true or false", dict: "an object",
@@ -111,26 +118,42 @@ class RemoteError(OsmoError):
 
 
 class ApiServer:
-    """Serves ``<prefix>/api/<verb>`` queries with ``handler(verb, request) -> result``.
+    """Serves ``<prefix>/api/<verb>`` queries with ``handler(verb, request, identity)``.
 
-    Handlers run on a small thread pool so a slow request never blocks zenoh's own threads.
-    An ``OsmoError`` becomes an error reply with its class name and exit code; any other
-    exception becomes an ``InfrastructureError`` reply (the server logs the traceback).
+    ``authenticate(attachment)`` names the caller of each request, once, before anything
+    else. Handlers run on a small thread pool so a slow request never blocks zenoh's own
+    threads, except the ``inline`` verbs: cheap ones whose order matters (a worker's
+    reports), answered on the zenoh thread in the order they arrived. An ``OsmoError``
+    becomes an error reply with its class name and exit code; any other exception becomes
+    an ``InfrastructureError`` reply (the server logs the traceback).
     """
 
-    def __init__(self, link: Link, handler: Handler, *, threads: int = 8,
-                 on_crash: Callable[[BaseException], None] | None = None) -> None:
+    def __init__(self, link: Link, handler: Handler, authenticate: Authenticate, *,
+                 threads: int = 8, on_crash: Callable[[BaseException], None] | None = None,
+                 inline: frozenset[str] = frozenset()) -> None:
         self._handler = handler
+        self._authenticate = authenticate
         self._on_crash = on_crash
+        self._inline = inline
         self._pool = ThreadPoolExecutor(threads, thread_name_prefix="osmo-api")
         self._prefix = link.key("api") + "/"
-        self._queryable = link.serve(link.key("api", "**"),
-                                     lambda req: self._pool.submit(self._serve, req))
+        self._queryable = link.serve(link.key("api", "**"), self._dispatch)
+
+    def _dispatch(self, request: Request) -> None:
+        if request.key[len(self._prefix):] in self._inline:
+            self._serve(request)
+        else:
+            self._pool.submit(self._serve, request)
 
     def _serve(self, request: Request) -> None:
         verb = request.key[len(self._prefix):]
         try:
-            reply: dict[str, Any] = {"ok": self._handler(verb, _request_body(request.payload))}
+            who = self._authenticate(request.attachment)
+            reply: dict[str, Any] = {
+                "ok": self._handler(verb, _request_body(request.payload), who)}
+        except NotAuthenticated as exc:
+            log.warning("refused %s from an unauthenticated caller: %s", shown(verb), exc)
+            reply = {"error": _error_dict(exc)}
         except UsageError as exc:  # the client's mistake: one line, no traceback
             log.warning("refused a %s request: %r", shown(verb), str(exc)[:300])
             reply = {"error": _error_dict(exc)}
@@ -159,11 +182,26 @@ def _error_dict(exc: OsmoError) -> dict[str, Any]:
 
 
 class ApiClient:
-    """Calls the server's API over a client ``Link``."""
+    """Calls the server's API over a client ``Link``, every request carrying ``token``."""
 
-    def __init__(self, link: Link, *, timeout: float = 30.0) -> None:
+    def __init__(self, link: Link, *, timeout: float = 30.0, token: str | None = None) -> None:
         self._link = link
         self._timeout = timeout
+        self._token = token.strip().encode() if token else None
+
+    @property
+    def token(self) -> bytes | None:
+        """The token every request carries (also for blob requests to the server)."""
+        return self._token
+
+    def send(self, verb: str, request: dict[str, Any]) -> None:
+        """Send ``request`` to ``verb`` without waiting for the answer.
+
+        For a stream of small reports whose order matters and whose loss is repaired
+        elsewhere (a worker's reports; its exit reports are resent until acknowledged).
+        """
+        self._link.ask(self._link.key("api", verb), json.dumps(request).encode(),
+                       attachment=self._token, timeout=self._timeout)
 
     def call(self, verb: str, request: dict[str, Any] | None = None,
              *, timeout: float | None = None) -> Any:
@@ -175,6 +213,7 @@ class ApiClient:
         """
         payload = json.dumps(request or {}).encode()
         answer = self._link.request(self._link.key("api", verb), payload,
+                                    attachment=self._token,
                                     timeout=timeout if timeout is not None else self._timeout)
         if answer is None:
             raise ServerUnreachable(

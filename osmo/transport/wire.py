@@ -8,16 +8,22 @@ Keys, under the cluster prefix ``osmo/<cluster>``:
 - ``alive/server`` and ``alive/worker/<id>`` — liveliness tokens. A worker's token going
   away (process killed, network cut: noticed within the 1 s lease) is its ``NodeDown``; the
   server's token coming back tells a worker to register again.
-- ``api/worker_register`` — a worker's :class:`Hello`, answered with the server's host id and
-  artifact folder (a worker on the same host links blobs instead of fetching);
+- ``api/worker_register`` — a worker's :class:`Hello`, answered with the server's host id,
+  artifact folder (a worker on the same host links blobs instead of fetching) and
+  ``blob_key``, the key the server's requests to this worker's blob server carry;
   ``api/worker_drain`` — ``{"id": <worker>}``: it takes no more work.
 - ``to-worker/<id>`` — the server's orders: ``prepare`` (the attempt, the task's workflow
-  spec the first time, input manifests, secrets, ``max_output_bytes``: the task's storage
-  limit), ``run``, ``kill``, ``ack`` (an exit report
-  was received and its outputs are safe on the server), ``drain`` notices.
-- ``from-worker/<id>`` — the worker's reports: ``prepared``, ``started``, ``exited``,
-  ``start_failed``, ``lost`` (handed back while draining); ``from-worker/<id>/log`` carries
-  log records (attachment: the attempt id), appended by the server to its copy of the log.
+  spec the first time, input manifests, ``secrets``: whether to ask for the attempt's
+  secrets, ``max_output_bytes``: the task's storage limit), ``run``, ``kill``, ``ack`` (an
+  exit report was received and its outputs are safe on the server), ``drain`` notices.
+  Orders are published: they never carry a secret value.
+- ``api/worker_report`` — ``{"id", "report"}``: the worker's reports, ``prepared``,
+  ``started``, ``exited``, ``start_failed``, ``lost`` (handed back while draining);
+  ``api/worker_log`` — ``{"id", "attempt_id", "records"}``: log records, appended by the
+  server to its copy of the log; ``api/worker_secrets`` — ``{"id", "attempt_id"}``: the
+  attempt's secrets and data-URL credentials. Like every API request they carry the
+  worker's token and are accepted only for attempts placed on that worker
+  (``osmo.server.worker_access``).
 
 Attempt ids fence everything: a report about an attempt the scheduler has superseded is
 ignored, so a worker that returns late can never commit stale work.

@@ -27,7 +27,7 @@ import zenoh
 from osmo.config import DEFAULT_CLUSTER
 from osmo.errors import InfrastructureError, ServerUnreachable, UsageError
 
-__all__ = ["Link", "Request", "Subscription"]
+__all__ = ["Link", "Request", "Subscription", "authenticates"]
 
 LEASE_MS = 1000
 
@@ -52,6 +52,26 @@ def _config(mode: str, *, listen: Sequence[str] = (), connect: Sequence[str] = (
         conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
         conf.insert_json5("connect/timeout_ms", "5000")
     return conf
+
+
+def authenticates(config_file: str | None) -> bool:
+    """True if the zenoh config ``config_file`` makes peers authenticate.
+
+    User/password (``transport.auth.usrpwd`` with a dictionary file) or mutual TLS
+    (``transport.link.tls.enable_mtls``).
+
+    Raises:
+        UsageError: the file cannot be read.
+    """
+    if not config_file:
+        return False
+    try:
+        conf = zenoh.Config.from_file(config_file)
+        usrpwd = json.loads(conf.get_json("transport/auth/usrpwd") or "{}")
+        tls = json.loads(conf.get_json("transport/link/tls") or "{}")
+    except (zenoh.ZError, OSError, ValueError) as exc:
+        raise UsageError(f"cannot read zenoh config {config_file}: {exc}") from exc
+    return bool(usrpwd.get("dictionary_file")) or bool(tls.get("enable_mtls"))
 
 
 def _refused(connect: Sequence[str], config_file: str | None, exc: Exception) -> ServerUnreachable:
@@ -117,13 +137,14 @@ class Link:
 
     @classmethod
     def router(cls, listen: Sequence[str], cluster: str = DEFAULT_CLUSTER, *,
-               connect: Sequence[str] = (), config_file: str | None = None) -> Link:
+               connect: Sequence[str] = (), config_file: str | None = None,
+               peer: bool | None = None) -> Link:
         """Open the server's session.
 
-        A router listening on ``listen``, or, with ``connect`` and no ``listen``, a peer of an
-        existing ``zenohd`` router.
+        A router listening on ``listen``, or, with ``connect`` (and ``peer``, by default when
+        ``listen`` is empty), a peer of an existing ``zenohd`` router.
         """
-        mode = "router" if listen or not connect else "peer"
+        mode = "peer" if (peer if peer is not None else connect and not listen) else "router"
         try:
             conf = _config(mode, listen=listen, connect=connect, config_file=config_file)
             return cls(zenoh.open(conf), cluster)

@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import os
 from dataclasses import dataclass, field
+from pathlib import Path
 
 from osmo.config import DEFAULT_CLUSTER
 from osmo.errors import UsageError
@@ -40,6 +41,7 @@ class WorkerOptions:
             handed back.
         kill_grace: seconds between SIGTERM and SIGKILL when an attempt is killed.
         address: how peers reach its tasks (default: the outbound interface's address).
+        token: its API token, role worker (``osmo token create NAME --role worker``).
     """
 
     connect: tuple[str, ...]
@@ -55,6 +57,7 @@ class WorkerOptions:
     drain_timeout: float = 600.0
     kill_grace: float = DEFAULT_KILL_GRACE
     address: str | None = None
+    token: str | None = None
 
     @staticmethod
     def add_arguments(w: argparse.ArgumentParser) -> None:
@@ -73,6 +76,10 @@ class WorkerOptions:
                        default=os.environ.get("OSMO_ZENOH_CONFIG"),
                        help="zenoh JSON5 config for TLS / user-password (OSMO_ZENOH_CONFIG)")
         w.add_argument("--cluster", default=d.cluster, help="the server's cluster name")
+        w.add_argument("--token", help="API token with role worker (default: OSMO_TOKEN); "
+                                       "an admin makes one: osmo token create NAME --role worker")
+        w.add_argument("--token-file", metavar="FILE",
+                       help="read the token from FILE (e.g. a mounted Kubernetes Secret)")
         w.add_argument("--drain-timeout", type=float, default=d.drain_timeout,
                        metavar="SECONDS", help="on SIGTERM, how long running tasks may finish "
                                                f"before being handed back ({d.drain_timeout:g})")
@@ -94,7 +101,22 @@ class WorkerOptions:
         return cls(connect=tuple(args.connect), pool=args.pool, name=args.name,
                    platform=args.platform, cpus=args.cpus, gpus=args.gpus, memory=memory,
                    labels=_labels(args.label), cluster=args.cluster,
-                   zenoh_config=args.zenoh_config, drain_timeout=args.drain_timeout)
+                   zenoh_config=args.zenoh_config, drain_timeout=args.drain_timeout,
+                   token=_token(args.token, args.token_file))
+
+
+def _token(token: str | None, token_file: str | None) -> str | None:
+    """The worker's token: ``--token`` > ``--token-file`` > ``OSMO_TOKEN`` (None: none given).
+
+    Raises:
+        UsageError: the file cannot be read.
+    """
+    if token_file and not token:
+        try:
+            token = Path(token_file).read_text().strip()
+        except OSError as exc:
+            raise UsageError(f"--token-file {token_file}: {exc.strerror}") from None
+    return token or os.environ.get("OSMO_TOKEN") or None
 
 
 def _labels(items: list[str]) -> dict[str, str]:

@@ -13,6 +13,12 @@ pulled by the server, which acknowledges each exit report once every byte is saf
 Unacknowledged reports are kept and sent again whenever the worker registers again (after a
 server restart), so a result that finished while the server was away is not lost.
 
+Trust: every request carries the worker's token (role worker); its reports and log batches
+are requests the server checks against the attempts placed on this worker. An attempt's
+secrets and data-URL credentials are asked for (``worker_secrets``) rather than carried by
+the ``prepare`` order, which any subscriber could read. This worker's blob server answers only
+requests carrying the key the server's registration reply gave it.
+
 Drain (SIGTERM): the worker stops taking work (it re-registers with no capacity), lets
 running attempts finish for up to ``drain_timeout`` seconds and waits until their outputs
 were taken; attempts still running then are killed and handed back (reported lost, so they
@@ -22,7 +28,6 @@ are rescheduled without using a retry). Then it exits.
 from __future__ import annotations
 
 import collections
-import json
 import logging
 import os
 import socket
@@ -35,7 +40,7 @@ from typing import Any
 
 from osmo.artifacts import ArtifactStore, Manifest
 from osmo.config import write_json_atomic
-from osmo.errors import OsmoError
+from osmo.errors import OsmoError, UsageError
 from osmo.layout import Home
 from osmo.names import check_worker_name
 from osmo.scheduler.types import (
@@ -82,11 +87,17 @@ class RemoteWorker:
         self.opts = options
         self.id = check_worker_name(options.name or f"{socket.gethostname()}-{os.getpid()}",
                                     reserved=(LOCAL_NODE, SERVER))
+        if not options.token:
+            raise UsageError("a worker needs a token with role worker: --token, --token-file "
+                             "or OSMO_TOKEN (an admin makes one with `osmo token create NAME "
+                             "--role worker`)")
         self._layout = Home(self.home)
         self.store = ArtifactStore(self._layout.artifacts)
         self.link = Link.client(list(options.connect), options.cluster,
                                 config_file=options.zenoh_config)
-        self._api = ApiClient(self.link, timeout=10.0)
+        self._api = ApiClient(self.link, timeout=10.0, token=options.token)
+        self._token_bytes = options.token.encode() if options.token else None
+        self._blob_key: bytes | None = None  # the server reads this worker's blobs with it
         self._lock = threading.Lock()
         self._changed = threading.Condition(self._lock)
         self._specs: dict[str, WorkflowSpec] = {}
@@ -122,7 +133,8 @@ class RemoteWorker:
         """
         self._subs = [
             self.link.subscribe(self.link.key("to-worker", self.id), self._on_order),
-            BlobServer(self.link, self.id, self.store),
+            BlobServer(self.link, self.id, self.store,
+                       lambda key, _digest: key is not None and key == self._blob_key),
             self.link.watch(self.link.key("alive", SERVER), self._on_server),
         ]
         delay = 0.2
@@ -209,6 +221,7 @@ class RemoteWorker:
         except OsmoError as exc:
             log.info("server not reachable yet (%s); retrying", exc)
             return False
+        self._blob_key = bytes.fromhex(str(reply.get("blob_key") or ""))
         same = reply.get("host_id") == hello["host_id"] and reply.get("artifacts")
         self._server_host = SameHost(Path(reply["artifacts"])) if same else None
         if self._token is None:
@@ -254,21 +267,27 @@ class RemoteWorker:
         with self._lock:
             if order.get("spec") is not None:
                 self._specs[cmd.workflow_id] = spec_from_wire(order["spec"])
-            self._url_creds.update(order.get("url_credentials") or {})
             self._pending[cmd.attempt_id] = _Pending()
         manifests = {ref: Manifest.from_json(body)
                      for ref, body in (order.get("manifests") or {}).items()}
         with self._lock:
             fetched = all(m.digest in self._manifests for m in manifests.values())
-        if fetched:
+        if fetched and not order.get("secrets"):
             self._fetch_and_prepare(cmd, order, manifests)  # nothing to fetch: no thread hop
         else:
             self._io.submit(self._fetch_and_prepare, cmd, order, manifests)
 
     def _fetch_and_prepare(self, cmd: PrepareAttempt, order: dict[str, Any],
                            manifests: dict[str, Manifest]) -> None:
+        values: dict[str, Any] = {}
         try:
             task = self._task(cmd)
+            if order.get("secrets"):  # asked for: an order is no place for a secret
+                got = self._api.call("worker_secrets", {"id": self.id,
+                                                        "attempt_id": cmd.attempt_id})
+                values = got.get("secrets") or {}
+                with self._lock:
+                    self._url_creds.update(got.get("url_credentials") or {})
             local = {ref: self._fetch_input(m) for ref, m in manifests.items()}
             cmd = replace(cmd, inputs={k: local.get(v, v) for k, v in cmd.inputs.items()})
         except Exception as exc:  # noqa: BLE001 - every prepare gets one final report
@@ -282,7 +301,7 @@ class RemoteWorker:
             pending = self._pending.pop(cmd.attempt_id, _Pending())
             self._active.add(cmd.attempt_id)
         limit = order.get("max_output_bytes")
-        self.pool.prepare(cmd, task, order.get("secrets") or {},
+        self.pool.prepare(cmd, task, values,
                           max_output_bytes=limit if isinstance(limit, int) else None)
         if pending.kill is not None:
             self.pool.kill(KillAttempt(cmd.attempt_id, self.id, pending.kill))
@@ -305,7 +324,7 @@ class RemoteWorker:
             fetched = manifest.digest in self._manifests
         if not fetched:
             fetch_manifest(self.link, SERVER, manifest, self.store,
-                           same_host=self._server_host)
+                           same_host=self._server_host, attachment=self._token_bytes)
         with self._lock:
             self._manifests[manifest.digest] = manifest
             self._manifests.move_to_end(manifest.digest)
@@ -339,11 +358,11 @@ class RemoteWorker:
         self._send(data)
 
     def _send(self, data: dict[str, Any]) -> None:
-        self.link.put(self.link.key("from-worker", self.id), json.dumps(data).encode())
+        self._api.send("worker_report", {"id": self.id, "report": data})
 
     def _send_log(self, attempt_id: str, records: bytes) -> None:
-        self.link.put(self.link.key("from-worker", self.id, "log"), records,
-                      attachment=attempt_id.encode())
+        self._api.send("worker_log", {"id": self.id, "attempt_id": attempt_id,
+                                      "records": records.decode(errors="replace")})
 
 
 def _address() -> str:

@@ -1,8 +1,9 @@
 """A server and remote workers as real processes on loopback, for the remote-worker tests.
 
 The server is started through the real CLI with ``--listen`` on a free loopback port and no
-local pool; each worker is ``osmo worker --connect ...`` in its own process and folder. All
-of them are stopped by PID at the end (never by name).
+local pool; each worker is ``osmo worker --connect ...`` in its own process and folder, with
+its own worker token (``osmo token create NAME --role worker``, made through the server
+home's admin CLI). All of them are stopped by PID at the end (never by name).
 """
 
 from __future__ import annotations
@@ -36,17 +37,30 @@ class Cluster:
         self.server_args = ("--listen", self.endpoint, "--no-local-pool", *server_args)
         self.workers: dict[str, subprocess.Popen[bytes]] = {}
         self.env = env or {}
+        self.tokens: dict[str, str] = {}
+
+    def token(self, name: str, role: str = "worker") -> str:
+        """A token ``name`` with ``role`` (made once, through the admin CLI)."""
+        if name not in self.tokens:
+            self.tokens[name] = self.osmo("token", "create", name, "--role", role,
+                                          check=True).out.strip()
+        return self.tokens[name]
 
     def start_server(self) -> None:
         self.osmo("server", "start", *self.server_args, check=True)
 
     def start_worker(self, name: str, *args: str, pool: str = "default",
                      host: str | None = None, env: dict[str, str] | None = None,
-                     wait: bool = True, connect: str | None = None) -> subprocess.Popen[bytes]:
-        """Start ``osmo worker`` as its own process; wait until the server lists it."""
+                     wait: bool = True, connect: str | None = None,
+                     token: str | None = None) -> subprocess.Popen[bytes]:
+        """Start ``osmo worker`` as its own process; wait until the server lists it.
+
+        Its token is ``token``, else one made for it (named after it, role worker).
+        """
         worker_env = dict(os.environ, OSMO_HOME=str(self.root / name), PYTHONUNBUFFERED="1",
                           **self.env, **(env or {}))
         worker_env.pop("OSMO_SERVER", None)
+        worker_env["OSMO_TOKEN"] = token if token is not None else self.token(name)
         if host is not None:
             worker_env["OSMO_HOST_ID"] = host
         log = open(self.root / f"{name}.log", "ab")

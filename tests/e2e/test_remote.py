@@ -214,7 +214,9 @@ def test_a_cut_off_worker_is_rescheduled_and_its_late_report_ignored(
     (tmp_path / f"release-{victim}").touch()
     _wait_file(tmp_path / f"done-{victim}")
     cluster.signal(victim, signal.SIGCONT)  # it wakes up and reports its stale attempt
-    cluster.server_log_line(f"report on {wf}:slow:0 ignored")
+    # refused: the attempt is no longer placed on that worker (the engine would fence it too)
+    cluster.server_log_line(f"refused a finished report of worker {victim}: attempt "
+                            f"'{wf}:slow:0' is not placed on it")
     slow = _task(cluster.osmo.query(wf), "slow")
     assert (slow["status"], slow["retry"], slow["node"]) == ("RUNNING", 1, survivor), slow
     (tmp_path / f"release-{survivor}").touch()
@@ -330,13 +332,20 @@ workflow:
     from tests.conftest import Osmo
 
     laptop = Osmo(tmp_path / "laptop")  # a different machine: no server of its own
-    r = laptop("--server", cluster.endpoint, "submit", str(spec), "--wait")
+    r = laptop("--server", cluster.endpoint, "list")  # no token: refused, exit 3
+    assert r.code == 3 and "needs a token" in r.err and "Traceback" not in r.err
+    token = cluster.token("laptop", "user")
+    r = laptop("--server", cluster.endpoint, "--token", token, "submit", str(spec), "--wait")
     assert r.code == 0, r.err
-    laptop.env["OSMO_SERVER"] = cluster.endpoint
+    laptop.env.update(OSMO_SERVER=cluster.endpoint, OSMO_TOKEN=token)
     assert laptop("list", "--format", "json", check=True).json()[0]["name"] == "remote-client"  # type: ignore[index]
-    del laptop.env["OSMO_SERVER"]
+    del laptop.env["OSMO_SERVER"], laptop.env["OSMO_TOKEN"]
     laptop("profile", "set", "server", cluster.endpoint, check=True)
+    laptop("profile", "set", "token", token, check=True)
+    assert (laptop.home / "profile.json").stat().st_mode & 0o777 == 0o600
     assert "remote-client" in laptop("list", check=True).out
+    assert laptop("query", r.out.splitlines()[0].split(" - ")[1], "--format", "json",
+                  check=True).json()["submitted_by"] == "laptop"  # type: ignore[index]
     assert laptop.server_pid() is None  # nothing was started on the laptop
     unreachable = Osmo(tmp_path / "other")
     r = unreachable("--server", "tcp/127.0.0.1:9", "list")
@@ -357,36 +366,43 @@ def test_readme_run_across_machines(tmp_path: Path) -> None:
     block = re.search(r"## Run across machines\n.*?```sh\n(.*?)```", readme, re.S)
     assert block is not None
     port = str(free_port(0))
-    lines = [ln.split("  #")[0].strip() for ln in block.group(1).splitlines()
-             if ln.startswith("osmo ")]
-    lines = [ln.replace("0.0.0.0:7447", f"127.0.0.1:{port}").replace("SERVER:7447",
-             f"127.0.0.1:{port}") for ln in lines]
     server, laptop = Osmo(tmp_path / "server"), Osmo(tmp_path / "laptop")
-    worker_proc = None
+    worker_env = dict(server.env, OSMO_HOME=str(tmp_path / "worker"))
+    envs = {"server": server.env, "worker": worker_env, "laptop": laptop.env}
+    where, worker_proc = "server", None
     try:
-        for line in lines:
-            argv = line.split()[1:]
-            if argv[0] == "server":
-                server(*argv, check=True)
-            elif argv[0] == "worker":
-                env = dict(server.env, OSMO_HOME=str(tmp_path / "worker"))
-                worker_proc = subprocess.Popen([sys.executable, "-m", "osmo", *argv], env=env,
-                                               cwd=REPO, stdout=subprocess.DEVNULL,
+        for line in block.group(1).splitlines():  # each line as a shell runs it, in one folder
+            if line.startswith("# on "):
+                where = next((w for w in ("worker", "laptop") if w in line), "server")
+                continue
+            if not line.startswith("osmo "):
+                continue
+            line = line.split("  #")[0].strip().replace("0.0.0.0:7447", f"127.0.0.1:{port}")
+            line = line.replace("SERVER:7447", f"127.0.0.1:{port}").replace(
+                " workflows/", f" {REPO}/workflows/")
+            cmd = ["bash", "-euo", "pipefail", "-c",
+                   f'osmo() {{ exec "{sys.executable}" -m osmo "$@"; }}; {line}']
+            if where == "worker":
+                worker_proc = subprocess.Popen(cmd, env=worker_env, cwd=tmp_path,
+                                               stdout=subprocess.DEVNULL,
                                                stderr=subprocess.DEVNULL)
                 deadline = time.monotonic() + 30
                 while "gpu-1" not in server("workers").out:
                     assert time.monotonic() < deadline, "the README's worker never came online"
                     time.sleep(0.1)
-            else:
-                r = laptop(*argv, check=True)
-                if argv[0] == "workers":
-                    assert "gpu-1" in r.out and "x86-l4" in r.out and "online" in r.out
-                if argv[0] == "submit":
-                    assert "COMPLETED" in r.out
+                continue
+            r = subprocess.run(cmd, env=envs[where], cwd=tmp_path, capture_output=True,
+                               text=True, timeout=180)
+            assert r.returncode == 0, (line, r.stdout, r.stderr)
+            if " workers" in line:
+                assert "gpu-1" in r.stdout and "x86-l4" in r.stdout and "online" in r.stdout
+            if " submit" in line:
+                assert "COMPLETED" in r.stdout
         assert laptop.server_pid() is None
+        assert (tmp_path / "gpu-1.token").stat().st_size > 0
     finally:
         if worker_proc is not None:
-            worker_proc.kill()
+            worker_proc.kill()  # bash exec'd the worker: this pid is the worker
             worker_proc.wait()
         server.stop_server()
 
@@ -397,7 +413,8 @@ def test_remote_client_moves_files_both_ways(cluster: Cluster, tmp_path: Path) -
 
     cluster.start_worker("w1", host="worker-host")
     laptop = Osmo(tmp_path / "laptop")
-    laptop.env.update(OSMO_SERVER=cluster.endpoint, OSMO_HOST_ID="laptop-host")
+    laptop.env.update(OSMO_SERVER=cluster.endpoint, OSMO_HOST_ID="laptop-host",
+                      OSMO_TOKEN=cluster.token("laptop", "user"))
     data = tmp_path / "mine"
     (data / "sub").mkdir(parents=True)
     (data / "a.bin").write_bytes(bytes(range(256)) * 4000)

@@ -57,7 +57,7 @@ def test_user_password_auth_refuses_strangers(password_cluster: Cluster, tmp_pat
     assert r.code == 3 and "--zenoh-config / OSMO_ZENOH_CONFIG" in r.err
     # with the password, the worker joins and runs work; the client sees it
     c.start_worker("w1", "--zenoh-config", str(good))
-    laptop.env["OSMO_ZENOH_CONFIG"] = str(good)
+    laptop.env.update(OSMO_ZENOH_CONFIG=str(good), OSMO_TOKEN=c.token("laptop", "user"))
     wf = laptop("--server", c.endpoint, "submit", str(write(tmp_path / "wf.yaml", SPEC)),
                 "--wait")
     assert wf.code == 0, wf.err
@@ -144,7 +144,9 @@ def test_readme_mutual_tls_walkthrough(tmp_path: Path) -> None:
     lines = found.group(1).splitlines(keepends=True)
     first_osmo = next(i for i, line in enumerate(lines) if line.startswith("osmo "))
     setup, commands = "".join(lines[:first_osmo]), [ln.split() for ln in lines[first_osmo:]]
-    assert [c[:2] for c in commands] == [["osmo", "server"], ["osmo", "worker"]]
+    assert [c[:2] for c in commands] == [["osmo", "server"], ["osmo", "token"],
+                                         ["osmo", "worker"]]
+    assert commands[1][-2:] == [">", "gpu-1.token"]
     folder = tmp_path / "keys"
     folder.mkdir()
     subprocess.run(["bash", "-euo", "pipefail", "-c", setup], cwd=folder, check=True,
@@ -161,13 +163,14 @@ def test_readme_mutual_tls_walkthrough(tmp_path: Path) -> None:
 
     server = Osmo(tmp_path / "server")
     server(*ports(commands[0])[1:], check=True, cwd=folder)
+    (folder / "gpu-1.token").write_text(server(*commands[1][1:-2], check=True).out)
     hosts = write(tmp_path / "hosts", "127.0.0.1 localhost osmo.example.org\n")
     env = dict(server.env, OSMO_HOME=str(tmp_path / "worker"))
     log = open(tmp_path / "worker.log", "wb")
     worker = subprocess.Popen(
         ["bwrap", "--dev-bind", "/", "/", "--ro-bind", str(hosts), "/etc/hosts",
          "--chdir", str(folder), "--die-with-parent", "--",
-         sys.executable, "-m", "osmo", *ports(commands[1])[1:]],
+         sys.executable, "-m", "osmo", *ports(commands[2])[1:]],
         env=env, stdout=log, stderr=log)
     log.close()
     try:

@@ -120,7 +120,7 @@ def test_server_statefulset_keeps_osmo_home_on_a_volume_claim() -> None:
     assert claim["spec"]["resources"]["requests"]["storage"] == "20Gi"
     c = container(sts, "server")
     assert mounts(c)["data"] == "/var/lib/osmo"
-    assert env(c)["OSMO_HOME"] == "/var/lib/osmo"
+    assert env(c)["OSMO_HOME"] == "/var/lib/osmo/home"  # its own folder on the volume
     assert c["args"][:2] == ["server", "run"]
     assert flag(c["args"], "--listen") == ["tcp/0.0.0.0:7447"]
 
@@ -151,7 +151,7 @@ def test_probes_run_osmo_health() -> None:
         c = container(dep, "worker")
         for probe in ("startupProbe", "livenessProbe", "readinessProbe"):
             assert c[probe]["exec"]["command"] == ["osmo", "health", "--worker"]
-        assert env(c)["OSMO_HOME"] == "/var/lib/osmo"
+        assert env(c)["OSMO_HOME"] == "/var/lib/osmo/home"
         assert env(c)["OSMO_SERVER"] == f"tcp/{FULLNAME}:7447"
 
 
@@ -200,7 +200,8 @@ def test_tls_only_keeps_tcp_on_loopback_for_the_probes() -> None:
 def test_existing_secrets_are_used_and_none_created() -> None:
     values = {"tls": {"enabled": True, "mtls": True, "existingSecret": "my-server-tls",
                       "client": {"existingSecret": "my-worker-tls"}},
-              "auth": {"enabled": True, "existingSecret": "my-auth"}}
+              "auth": {"enabled": True, "existingSecret": "my-auth"},
+              "tokens": {"existingSecret": "my-tokens"}}
     out = render(values)
     assert out.of_kind("Secret") == []
     sts = out.get("StatefulSet", f"{FULLNAME}-server")
@@ -211,6 +212,42 @@ def test_existing_secrets_are_used_and_none_created() -> None:
         assert vols["auth"]["secret"]["secretName"] == "my-auth"
     assert volumes(dep)["tls-client"]["secret"]["secretName"] == "my-worker-tls"
     assert mounts(container(dep, "worker"))["tls-client"] == "/etc/osmo/tls/client"
+    assert volumes(sts)["tokens"]["secret"]["secretName"] == "my-tokens"
+    ref = next(e for e in container(dep, "worker")["env"] if e["name"] == "OSMO_TOKEN")
+    assert ref["valueFrom"]["secretKeyRef"] == {"name": "my-tokens", "key": "worker"}
+
+
+def test_api_tokens_are_on_by_default() -> None:
+    out = render(TWO_POOLS)
+    secret = out.get("Secret", f"{FULLNAME}-tokens")
+    tokens = {k: base64.b64decode(v).decode() for k, v in secret["data"].items()}
+    assert sorted(tokens) == ["admin", "worker"]
+    assert all(t.startswith("osmo_") and len(t) > 40 for t in tokens.values())
+    assert tokens["admin"] != tokens["worker"]
+    assert secret["metadata"]["annotations"]["helm.sh/resource-policy"] == "keep"
+    sts = out.get("StatefulSet", f"{FULLNAME}-server")
+    server = container(sts, "server")
+    assert flag(server["args"], "--accept-token") == [
+        "helm-admin:admin:/etc/osmo/tokens/admin", "helm-workers:worker:/etc/osmo/tokens/worker"]
+    assert mounts(server)["tokens"] == "/etc/osmo/tokens"
+    assert volumes(sts)["tokens"]["secret"] == {"secretName": f"{FULLNAME}-tokens",
+                                                "defaultMode": 0o400}
+    for dep in workers(TWO_POOLS).values():
+        ref = next(e for e in container(dep, "worker")["env"] if e["name"] == "OSMO_TOKEN")
+        assert ref["valueFrom"]["secretKeyRef"] == {"name": f"{FULLNAME}-tokens", "key": "worker"}
+        assert not any("osmo_" in a for a in container(dep, "worker")["args"])  # env only
+    # no zenoh authentication by default: the network listener needs --insecure, and says so
+    assert "--insecure" in server["args"]
+    assert "WARNING: zenoh authentication is off" in out.notes
+    assert "osmo token create" in out.notes
+    mtls = {"tls": {"enabled": True, "mtls": True, "existingSecret": "s",
+                    "client": {"existingSecret": "c"}}}
+    secured = container(render(mtls).get("StatefulSet", f"{FULLNAME}-server"), "server")
+    assert "--insecure" not in secured["args"]
+    passworded = render({"auth": {"enabled": True, "password": "pw"}})
+    assert "--insecure" not in container(passworded.get("StatefulSet", f"{FULLNAME}-server"),
+                                         "server")["args"]
+    assert "WARNING" not in passworded.notes
 
 
 def test_auth_secret_and_init_container_fill_in_the_client_config() -> None:

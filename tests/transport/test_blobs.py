@@ -20,6 +20,8 @@ from osmo.transport import blobs
 from osmo.transport.blobs import BlobServer, SameHost, TransferError, fetch_blob, fetch_manifest
 from osmo.transport.zenoh_link import Link
 
+ANYONE = lambda _attachment, _digest: True  # noqa: E731 - these tests are about transfer
+
 
 @pytest.fixture
 def links() -> Iterator[tuple[Link, Link]]:
@@ -52,7 +54,7 @@ def _store_with(tmp: Path, name: str, data: bytes) -> tuple[ArtifactStore, str]:
 def test_fetch_is_verified_and_counted(links: tuple[Link, Link], tmp_path: Path) -> None:
     data = os.urandom(3 * blobs.CHUNK + 123)
     sender, digest = _store_with(tmp_path, "a", data)
-    server = BlobServer(links[0], "server", sender)
+    server = BlobServer(links[0], "server", sender, ANYONE)
     receiver = ArtifactStore(tmp_path / "b")
     assert fetch_blob(links[1], "server", digest, len(data), receiver) == len(data)
     assert receiver.read(digest) == data
@@ -68,7 +70,7 @@ from osmo.artifacts import ArtifactStore
 from osmo.transport.blobs import BlobServer
 from osmo.transport.zenoh_link import Link
 link = Link.client([sys.argv[1]])
-BlobServer(link, "sender", ArtifactStore(Path(sys.argv[2])))
+BlobServer(link, "sender", ArtifactStore(Path(sys.argv[2])), lambda _att, _digest: True)
 print("serving", flush=True)
 sys.stdin.read()  # until the test closes stdin, or kills this process
 """
@@ -136,7 +138,7 @@ def test_damaged_bytes_are_never_published(links: tuple[Link, Link], tmp_path: P
     receiver = ArtifactStore(tmp_path / "b")
     partial = receiver.tmp / f"{digest.split(':')[1]}.partial"
     partial.write_bytes(b"x" * 100)  # garbage left by someone else
-    server = BlobServer(links[0], "server", sender)
+    server = BlobServer(links[0], "server", sender, ANYONE)
     with pytest.raises(TransferError, match="does not match"):
         fetch_blob(links[1], "server", digest, len(data), receiver)
     assert not receiver.has(digest) and not partial.exists()
@@ -149,7 +151,7 @@ def test_damaged_bytes_are_never_published(links: tuple[Link, Link], tmp_path: P
 def test_missing_blob_or_gone_peer(links: tuple[Link, Link], tmp_path: Path) -> None:
     sender = ArtifactStore(tmp_path / "a")
     receiver = ArtifactStore(tmp_path / "b")
-    server = BlobServer(links[0], "server", sender)
+    server = BlobServer(links[0], "server", sender, ANYONE)
     digest = "sha256:" + hashlib.sha256(b"nobody has this").hexdigest()
     with pytest.raises(TransferError, match="lacks the blob"):
         fetch_blob(links[1], "server", digest, 15, receiver)
@@ -170,3 +172,19 @@ def test_same_host_links_instead_of_sending(links: tuple[Link, Link], tmp_path: 
                           same_host=SameHost(sender.root))
     assert sent == 0
     assert receiver.path(digest).stat().st_ino == sender.path(digest).stat().st_ino
+
+
+def test_a_blob_server_answers_only_whom_it_allows(links: tuple[Link, Link],
+                                                   tmp_path: Path) -> None:
+    sender, digest = _store_with(tmp_path, "a", b"for the server only\n")
+    server = BlobServer(links[0], "worker", sender, lambda att, _digest: att == b"the-key")
+    try:
+        for key in (None, b"a-guess"):
+            with pytest.raises(TransferError):
+                fetch_blob(links[1], "worker", digest, 20, ArtifactStore(tmp_path / "thief"),
+                           attachment=key)
+        receiver = ArtifactStore(tmp_path / "server")
+        assert fetch_blob(links[1], "worker", digest, 20, receiver, attachment=b"the-key") == 20
+        assert receiver.path(digest).read_bytes() == b"for the server only\n"
+    finally:
+        server.close()

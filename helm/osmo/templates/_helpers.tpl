@@ -70,6 +70,16 @@ app.kubernetes.io/instance: {{ .Release.Name }}
 {{- default (printf "%s-auth" (include "osmo.fullname" .)) .Values.auth.existingSecret -}}
 {{- end -}}
 
+{{- define "osmo.tokensSecretName" -}}
+{{- default (printf "%s-tokens" (include "osmo.fullname" .)) .Values.tokens.existingSecret -}}
+{{- end -}}
+
+{{/* Does zenoh authenticate every peer (user/password or mutual TLS)? "true" or "". Without
+     it the server's network listener needs --insecure (API tokens still guard each request). */}}
+{{- define "osmo.zenohAuthenticates" -}}
+{{- if or .Values.auth.enabled (and .Values.tls.enabled .Values.tls.mtls) -}}true{{- end -}}
+{{- end -}}
+
 {{/* Is a zenoh config needed at all (TLS or user/password)? "true" or "". */}}
 {{- define "osmo.zenohConfigured" -}}
 {{- if or .Values.tls.enabled .Values.auth.enabled -}}true{{- end -}}
