@@ -12,6 +12,7 @@ import argparse
 from dataclasses import dataclass
 
 from osmo.config import DEFAULT_CLUSTER
+from osmo.runtime.sandbox import MODES, SandboxMode
 
 __all__ = ["ServerOptions"]
 
@@ -29,6 +30,7 @@ class ServerOptions:
         cpus, gpus: override the local pool's detected capacity.
         local_pool: run tasks on the server's host too (off: remote workers only).
         reconnect_grace: seconds remote workers get to come back after a restart.
+        sandbox: run the local pool's tasks in bubblewrap: ``auto``, ``on``, ``off``.
     """
 
     listen: tuple[str, ...] = ()
@@ -39,13 +41,14 @@ class ServerOptions:
     gpus: int | None = None
     local_pool: bool = True
     reconnect_grace: float = 30.0
+    sandbox: SandboxMode = "auto"
 
     @staticmethod
     def add_arguments(p: argparse.ArgumentParser) -> None:
         """Add the server's flags to ``p``.
 
         ``--listen``, ``--connect``, ``--zenoh-config``, ``--cluster``, ``--cpus``, ``--gpus``,
-        ``--no-local-pool``, ``--reconnect-grace``.
+        ``--no-local-pool``, ``--reconnect-grace``, ``--sandbox``.
         """
         d = ServerOptions()
         p.add_argument("--listen", action="append", metavar="ENDPOINT",
@@ -66,6 +69,9 @@ class ServerOptions:
         p.add_argument("--reconnect-grace", type=float, default=d.reconnect_grace,
                        metavar="SECONDS", help="after a restart, how long remote workers get "
                                                f"to come back ({d.reconnect_grace:g})")
+        p.add_argument("--sandbox", choices=MODES, default=d.sandbox,
+                       help="run local tasks in a bubblewrap sandbox: auto (when bwrap works "
+                            f"here), on (required), off ({d.sandbox})")
 
     @classmethod
     def from_args(cls, args: argparse.Namespace) -> ServerOptions:
@@ -73,7 +79,7 @@ class ServerOptions:
         return cls(listen=tuple(args.listen or ()), connect=tuple(args.connect or ()),
                    zenoh_config=args.zenoh_config, cluster=args.cluster, cpus=args.cpus,
                    gpus=args.gpus, local_pool=args.local_pool,
-                   reconnect_grace=args.reconnect_grace)
+                   reconnect_grace=args.reconnect_grace, sandbox=args.sandbox)
 
     def to_argv(self) -> list[str]:
         """The same options as flags, to start the server in another process.
@@ -85,7 +91,8 @@ class ServerOptions:
         out += [arg for ep in self.connect for arg in ("--connect", ep)]
         for flag, value in (("--zenoh-config", self.zenoh_config), ("--cluster", self.cluster),
                             ("--cpus", self.cpus), ("--gpus", self.gpus),
-                            ("--reconnect-grace", self.reconnect_grace)):
+                            ("--reconnect-grace", self.reconnect_grace),
+                            ("--sandbox", self.sandbox)):
             if value != getattr(d, flag[2:].replace("-", "_")):
                 out += [flag, str(value)]
         return out + ([] if self.local_pool else ["--no-local-pool"])

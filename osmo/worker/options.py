@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 
 from osmo.config import DEFAULT_CLUSTER
 from osmo.errors import UsageError
+from osmo.runtime.sandbox import MODES, SandboxMode
 
 __all__ = ["DEFAULT_KILL_GRACE", "DEFAULT_POOL", "WorkerOptions"]
 
@@ -40,6 +41,7 @@ class WorkerOptions:
             handed back.
         kill_grace: seconds between SIGTERM and SIGKILL when an attempt is killed.
         address: how peers reach its tasks (default: the outbound interface's address).
+        sandbox: run commands in bubblewrap: ``auto`` (when it works here), ``on``, ``off``.
     """
 
     connect: tuple[str, ...]
@@ -55,6 +57,7 @@ class WorkerOptions:
     drain_timeout: float = 600.0
     kill_grace: float = DEFAULT_KILL_GRACE
     address: str | None = None
+    sandbox: SandboxMode = "auto"
 
     @staticmethod
     def add_arguments(w: argparse.ArgumentParser) -> None:
@@ -76,6 +79,9 @@ class WorkerOptions:
         w.add_argument("--drain-timeout", type=float, default=d.drain_timeout,
                        metavar="SECONDS", help="on SIGTERM, how long running tasks may finish "
                                                f"before being handed back ({d.drain_timeout:g})")
+        w.add_argument("--sandbox", choices=MODES, default=d.sandbox,
+                       help="run tasks in a bubblewrap sandbox: auto (when bwrap works here), "
+                            f"on (required), off ({d.sandbox})")
 
     @classmethod
     def from_args(cls, args: argparse.Namespace) -> WorkerOptions:
@@ -94,7 +100,8 @@ class WorkerOptions:
         return cls(connect=tuple(args.connect), pool=args.pool, name=args.name,
                    platform=args.platform, cpus=args.cpus, gpus=args.gpus, memory=memory,
                    labels=_labels(args.label), cluster=args.cluster,
-                   zenoh_config=args.zenoh_config, drain_timeout=args.drain_timeout)
+                   zenoh_config=args.zenoh_config, drain_timeout=args.drain_timeout,
+                   sandbox=args.sandbox)
 
 
 def _labels(items: list[str]) -> dict[str, str]:

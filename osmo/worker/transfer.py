@@ -15,6 +15,12 @@ preparing an attempt again clears its folder) and reach the command through
   no other reader sees it. A blob that no longer matches its digest fails the attempt's
   start. Copies over 1 MiB are deleted when the attempt ends.
 
+  In a sandbox (``make_ready(hide=home)``) an input that is a folder on this host (an
+  upstream output, a dataset version) is not copied: the sandbox binds it read-only at its
+  own path (``workdir.attempt_view``), so the task cannot change it and the copy's cost is
+  saved. Only inputs with no folder here (a remote worker's ``artifact:`` references) are
+  still copied.
+
 Outputs are uploaded from the promoted ``output/`` folder after it was ingested; a failed
 upload fails the attempt (its output is never handed downstream), and the URL's completion
 marker is only written when every file arrived (see ``osmo.urls``).
@@ -22,6 +28,7 @@ marker is only written when every file arrived (see ``osmo.urls``).
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable, Mapping
 from dataclasses import replace
 from pathlib import Path
@@ -36,7 +43,7 @@ from osmo.scheduler.types import PrepareAttempt
 from osmo.spec.model import TaskSpec
 from osmo.urls import for_url
 from osmo.worker.secrets import Secrets
-from osmo.worker.workdir import Launch, prepare, promote, remove_secret_files
+from osmo.worker.workdir import Launch, attempt_view, prepare, promote, remove_secret_files
 
 __all__ = ["CredentialLookup", "DeliveryError", "InputCopies", "ManifestLookup", "copy_inputs",
            "deliver", "fetch_inputs", "make_ready", "plan_input_copies", "push_outputs"]
@@ -74,11 +81,12 @@ def fetch_inputs(cmd: PrepareAttempt, task: TaskSpec, dirs: AttemptDirs,
 def make_ready(dirs: AttemptDirs, cmd: PrepareAttempt, task: TaskSpec, *,
                env: Mapping[str, str], secrets: Secrets,
                credential_for: CredentialLookup | None, artifacts: ArtifactStore | None,
-               input_manifests: ManifestLookup | None) -> Launch:
+               input_manifests: ManifestLookup | None, hide: Path | None = None) -> Launch:
     """Everything an attempt needs before it can start, in order.
 
     Its ``url`` inputs, its folder and files (``workdir.prepare``), its own copies of its artifact
-    inputs.
+    inputs. ``hide``: the attempt runs in a sandbox that hides this home; its launch then
+    carries its view, and its inputs that are folders here are bound, not copied.
 
     Raises:
         OsmoError: a download, a token, a file, a credential or a blob failed (a blob that
@@ -87,8 +95,11 @@ def make_ready(dirs: AttemptDirs, cmd: PrepareAttempt, task: TaskSpec, *,
         OSError: the attempt's folder cannot be written.
     """
     cmd = fetch_inputs(cmd, task, dirs, credential_for)
-    cmd, copies = plan_input_copies(cmd, dirs, input_manifests if artifacts else None)
+    cmd, copies = plan_input_copies(cmd, dirs, input_manifests if artifacts else None,
+                                    bound=hide is not None)
     launch = prepare(dirs, cmd, task, env, secrets)
+    if hide is not None:
+        launch = replace(launch, view=attempt_view(dirs, cmd, hide))
     if copies and artifacts is not None:
         try:
             launch = replace(launch, scratch=copy_inputs(copies, artifacts))
@@ -98,11 +109,13 @@ def make_ready(dirs: AttemptDirs, cmd: PrepareAttempt, task: TaskSpec, *,
     return launch
 
 
-def plan_input_copies(cmd: PrepareAttempt, dirs: AttemptDirs,
-                      manifest_of: ManifestLookup | None) -> tuple[PrepareAttempt, InputCopies]:
+def plan_input_copies(cmd: PrepareAttempt, dirs: AttemptDirs, manifest_of: ManifestLookup | None,
+                      *, bound: bool = False) -> tuple[PrepareAttempt, InputCopies]:
     """Where the attempt's own copy of each artifact input goes (``inputs/<input name>``).
 
-    Returns ``cmd`` with those folders as its inputs, and what :func:`copy_inputs` must write.
+    ``bound``: inputs that are folders on this host are bound read-only (a sandbox), not
+    copied. Returns ``cmd`` with the copies' folders as its inputs, and what
+    :func:`copy_inputs` must write.
     """
     if manifest_of is None or not cmd.inputs:
         return cmd, []
@@ -112,6 +125,8 @@ def plan_input_copies(cmd: PrepareAttempt, dirs: AttemptDirs,
     plan: InputCopies = []
     copies: dict[str, str] = {}
     for ref, keys in names.items():
+        if bound and os.path.isabs(ref) and os.path.isdir(ref):
+            continue  # the sandbox binds it read-only
         manifest = manifest_of(ref)
         if manifest is None:
             continue  # a downloaded url input (already private), or nothing osmo stored
