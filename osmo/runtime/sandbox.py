@@ -2,9 +2,10 @@
 
 A sandboxed command sees (``Sandbox.argv``, from an attempt's :class:`View`):
 
-- the host's file system **read-only** (``--ro-bind / /``), a private ``/tmp`` (tmpfs), a
-  minimal ``/dev`` (null, zero, random, tty, shm, ...) plus the GPU device nodes found at
-  probe time (``/dev/nvidia*``, ``/dev/dri``, bound as they are, so CUDA and EGL work);
+- the host's file system **read-only** (``--ro-bind / /``) but for the host's ``/tmp``,
+  which stays writable and shared (see below); a minimal ``/dev`` (null, zero, random, tty,
+  a private ``shm``, ...) plus the GPU device nodes found at probe time (``/dev/nvidia*``,
+  ``/dev/dri``, bound as they are, so CUDA and EGL work);
 - osmo's home **hidden** under an empty tmpfs (state store, blobs, other attempts' folders,
   credentials), with only the attempt's own paths bound back at the same absolute paths, so
   ``{{output}}``, ``{{input:N}}`` and ``OSMO_OUTPUT`` work unchanged: its folder read-only,
@@ -18,9 +19,14 @@ thread that spawned it) ends, so no task outlives its worker or server. Everythi
 sandbox shares bwrap's process group; the pid namespace ends, and the kernel kills every
 process left in it, when the command ends (a daemon that called ``setsid`` included).
 
-What it does not do: limit CPU, memory or disk; filter system calls (the kernel's attack
-surface is the host's); change the user (the task runs as the worker's uid, so anything that
-uid can reach over the network, it can reach too).
+Why ``/tmp`` is shared, not private: workflows (and this project's own tests) hand files to
+and from tasks through ``/tmp`` on one host; a private ``/tmp`` broke them. osmo's home
+stays hidden even when it lies under ``/tmp``. ``Sandbox(private_tmp=True)`` gives each task
+its own empty ``/tmp`` instead.
+
+What it does not do: keep tasks apart in ``/tmp``; limit CPU, memory or disk; filter system
+calls (the kernel's attack surface is the host's); change the user (the task runs as the
+worker's uid, so anything that uid can reach over the network, it can reach too).
 
 Availability: :func:`choose` probes once per process whether ``bwrap`` exists and can make
 the namespaces (some machines forbid unprivileged user namespaces).
@@ -75,10 +81,13 @@ class Sandbox:
     Attributes:
         bwrap: the ``bwrap`` executable.
         devices: host device nodes bound into the sandbox's ``/dev`` (GPUs).
+        private_tmp: an empty tmpfs on ``/tmp`` instead of the host's (see the module
+            docstring).
     """
 
     bwrap: str
     devices: tuple[str, ...] = ()
+    private_tmp: bool = False
 
     def argv(self, command: Sequence[str], view: View) -> list[str]:
         """``command`` wrapped in bwrap with ``view`` (see the module docstring).
@@ -89,7 +98,9 @@ class Sandbox:
         out = [self.bwrap, "--ro-bind", "/", "/", "--dev", "/dev"]
         for device in self.devices:
             out += ["--dev-bind-try", device, device]
-        out += ["--proc", "/proc", "--tmpfs", "/tmp", "--unshare-pid", "--die-with-parent"]
+        out += ["--proc", "/proc", *(["--tmpfs", "/tmp"] if self.private_tmp else
+                                     ["--bind-try", "/tmp", "/tmp"]),
+                "--unshare-pid", "--die-with-parent"]
         for folder in sorted({_real(p) for p in view.hidden}, key=_depth):
             out += ["--tmpfs", folder]
         binds = [(_real(p), "--ro-bind-try") for p in view.readonly]

@@ -125,13 +125,9 @@ workflow:
 """
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "issue 19/13: each task gets its own checked copy of a dataset version, so other consumers "
-    "never see a change (test_dataset_inputs_are_private below), but the copy itself is "
-    "writable: mode bits cannot stop a task running as root; a read-only bind mount can."))
 def test_dataset_inputs_are_read_only(osmo: Osmo, tmp_path: Path) -> None:
-    """A dataset version is handed to a task read-only (DESIGN: inputs read-only). The
-    README promised "a read-only folder" until this test showed it is not; it now says so."""
+    """A dataset version is handed to a task read-only (DESIGN: inputs read-only): the process
+    sandbox binds it read-only, so append, create, delete and chmod all fail."""
     src = tmp_path / "data"
     write(src / "a.txt", "alpha\n")
     write(src / "sub" / "b.txt", "beta\n")
@@ -145,8 +141,9 @@ def test_dataset_inputs_are_read_only(osmo: Osmo, tmp_path: Path) -> None:
 
 
 def test_dataset_inputs_are_private(osmo: Osmo, tmp_path: Path) -> None:
-    """Whatever a task does to its dataset input, the next consumer of the version reads the
-    version as uploaded (each attempt gets its own checked copy)."""
+    """Without a sandbox, whatever a task does to its dataset input, the next consumer of the
+    version reads the version as uploaded (each attempt gets its own checked copy)."""
+    osmo("server", "start", "--sandbox", "off", check=True)
     src = tmp_path / "data"
     write(src / "a.txt", "alpha\n")
     write(src / "sub" / "b.txt", "beta\n")
