@@ -29,14 +29,12 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_engine import chain  # noqa: E402
+from bench_engine import chain, run_once  # noqa: E402
 from bench_inputs import fan_out_reading  # noqa: E402
 from benchlib import quick, row, write_rows  # noqa: E402
 
-import osmo  # noqa: E402
 from osmo.runtime import ProcessRuntime  # noqa: E402
 from osmo.runtime.sandbox import View, choose  # noqa: E402
-from osmo.sdk.connect import start_server, stop_server  # noqa: E402
 from osmo.server.options import ServerOptions  # noqa: E402
 
 
@@ -54,23 +52,6 @@ def spawn_ms(runtime: ProcessRuntime, folder: Path, n: int, sandboxed: bool) -> 
         runtime.release(handle)
         times.append((time.perf_counter() - t0) * 1e3)
     return statistics.median(times)
-
-
-def run_once(spec: osmo.WorkflowSpec, base: str | None, sandbox: str) -> float:
-    """Seconds from submit to COMPLETED on a fresh server with ``--sandbox sandbox``."""
-    with tempfile.TemporaryDirectory(prefix="osmo-bench-", dir=base) as home:
-        start_server(home, ServerOptions(sandbox=sandbox))  # type: ignore[arg-type]
-        try:
-            with osmo.Client(home=home) as client:
-                t0 = time.perf_counter()
-                result = client.wait(client.submit(spec, no_cache=True))
-                elapsed = time.perf_counter() - t0
-                if not result.ok:
-                    raise SystemExit(f"benchmark workflow ended {result.status.name}")
-        finally:
-            stop_server(home)
-    os.sync()
-    return elapsed
 
 
 def main() -> None:
@@ -102,7 +83,8 @@ def main() -> None:
         times: dict[str, list[float]] = {"off": [], "on": []}
         for _ in range(args.runs):
             for mode in times:
-                times[mode].append(run_once(spec, args.base, mode))
+                options = ServerOptions(sandbox=mode)  # type: ignore[arg-type]
+                times[mode].append(run_once(spec, args.base, options))
         for mode, runs in times.items():
             rows.append(row(f"{name}, sandbox {mode}", "tasks/s", [n / t for t in runs],
                             higher_is_better=True,

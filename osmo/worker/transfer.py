@@ -43,6 +43,7 @@ from osmo.scheduler.types import PrepareAttempt
 from osmo.spec.model import TaskSpec
 from osmo.urls import for_url
 from osmo.worker.secrets import Secrets
+from osmo.worker.taskenv import sandbox_env
 from osmo.worker.workdir import Launch, attempt_view, prepare, promote, remove_secret_files
 
 __all__ = ["CredentialLookup", "DeliveryError", "InputCopies", "ManifestLookup", "copy_inputs",
@@ -99,7 +100,8 @@ def make_ready(dirs: AttemptDirs, cmd: PrepareAttempt, task: TaskSpec, *,
                                     bound=hide is not None)
     launch = prepare(dirs, cmd, task, env, secrets)
     if hide is not None:
-        launch = replace(launch, view=attempt_view(dirs, cmd, hide))
+        launch = replace(launch, view=attempt_view(dirs, cmd, hide),
+                         env={**launch.env, **sandbox_env(launch.env, dirs.work)})
     if copies and artifacts is not None:
         try:
             launch = replace(launch, scratch=copy_inputs(copies, artifacts))

@@ -5,8 +5,6 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import pytest
-
 from tests.conftest import Osmo, write
 
 MAKE = r"""
@@ -92,12 +90,7 @@ def test_upload_download_and_the_callers_files_stay_writable(osmo: Osmo,
     assert _datasets(osmo)[0]["made_by"] is None
 
 
-TAMPER = r"""
-workflow:
-  name: tamper
-  tasks:
-  - name: t
-    command: [sh, /opt/tamper.sh, "{{input:0}}", "{{output}}/ops.txt"]
+TAMPER_FILE = r"""
     files:
     - path: /opt/tamper.sh
       contents: |
@@ -109,6 +102,16 @@ workflow:
           try rm "$d/sub/b.txt"
           try chmod 777 "$d/a.txt"
         } > "$2"
+"""
+"""A task's ``files:`` entry: ``sh /opt/tamper.sh FOLDER REPORT`` tries 4 changes in FOLDER
+(``a.txt``, ``sub/b.txt``) and writes ``allowed: ...`` or ``denied: ...`` for each."""
+
+TAMPER = r"""
+workflow:
+  name: tamper
+  tasks:
+  - name: t
+    command: [sh, /opt/tamper.sh, "{{input:0}}", "{{output}}/ops.txt"]""" + TAMPER_FILE + """\
     inputs:
     - dataset: {name: kept}
 """

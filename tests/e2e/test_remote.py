@@ -438,8 +438,7 @@ workflow:
     command: [sh, -c, "echo started; sleep 600 & echo $! > {pidfile}; wait"]
 """)
     wf = cluster.osmo.submit(spec)
-    cluster.osmo.wait_for(wf, lambda i: pidfile.exists() and pidfile.read_text().strip() != "")
-    child = int(pidfile.read_text())
+    child = read_pid(pidfile)
     cluster.osmo("cancel", wf, check=True)
     info = cluster.osmo.wait_for(wf, ended)
     assert info["status"] == "FAILED_CANCELED"

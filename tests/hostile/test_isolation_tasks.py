@@ -9,6 +9,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from tests.conftest import Osmo, ended, write
+from tests.e2e.test_datasets import TAMPER_FILE
 
 SECRET = "environ-secret-5b2f7a"
 
@@ -50,18 +51,7 @@ workflow:
     command: [sh, -c, 'echo alpha > {{output}}/a.txt; mkdir {{output}}/sub;
       echo beta > {{output}}/sub/b.txt']
   - name: tamper
-    command: [sh, /opt/tamper.sh, "{{input:make}}", "{{output}}/ops.txt"]
-    files:
-    - path: /opt/tamper.sh
-      contents: |
-        d=$1
-        try() { if "$@" 2>/dev/null; then echo "allowed: $*"; else echo "denied: $*"; fi; }
-        {
-          try sh -c 'echo evil >> "$1"' - "$d/a.txt"
-          try touch "$d/new.txt"
-          try rm "$d/sub/b.txt"
-          try chmod 777 "$d/a.txt"
-        } > "$2"
+    command: [sh, /opt/tamper.sh, "{{input:make}}", "{{output}}/ops.txt"]""" + TAMPER_FILE + """\
     inputs:
     - task: make
   - name: read
