@@ -127,12 +127,11 @@ class ProcessRuntime:
         """
         if not argv:
             raise StartError("empty command")
-        sandboxed = self.sandbox is not None and view is not None
         command = list(argv)
         preexec: Callable[[], object] | None = _die_with_parent()
         if self.sandbox is not None and view is not None:
             _check_command(argv[0], cwd, env)
-            command, preexec = self.sandbox.argv(argv, view), None
+            command, preexec = self.sandbox.argv(argv, view), None  # bwrap dies with us
         try:
             popen = subprocess.Popen(
                 command,
@@ -149,7 +148,7 @@ class ProcessRuntime:
         except subprocess.SubprocessError as exc:  # the preexec_fn failed in the child
             raise StartError(f"cannot start '{argv[0]}': {exc}") from exc
         try:
-            return _handle(popen, sandboxed)
+            return _handle(popen, sandboxed=preexec is None)
         except OSError as exc:  # e.g. out of file descriptors: do not leave it running
             os.killpg(popen.pid, signal.SIGKILL)
             popen.wait()
@@ -190,7 +189,7 @@ def _close_pipes(popen: subprocess.Popen[bytes]) -> None:
             pipe.close()
 
 
-def _handle(popen: subprocess.Popen[bytes], sandboxed: bool) -> ProcessHandle:
+def _handle(popen: subprocess.Popen[bytes], *, sandboxed: bool) -> ProcessHandle:
     assert popen.stdout is not None and popen.stderr is not None
     out, err = popen.stdout.fileno(), popen.stderr.fileno()
     os.set_blocking(out, False)

@@ -36,7 +36,7 @@ only (``workdir.attempt_view``), and the node's ``sandbox`` label says ``bwrap``
 the label says ``none`` and every attempt's log starts with an osmo line saying so.
 A remote worker's pool also records each running command's pid and start time in
 ``procs_dir`` (one file per process, removed when it is reaped), so that a worker restarted
-after a crash can kill what its previous life left (:func:`kill_recorded`).
+after a crash can kill what its previous life left (``osmo.worker.procs``).
 Creating a pool lifts the process's soft open-files limit (each running attempt holds four
 descriptors).
 """
