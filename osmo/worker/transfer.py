@@ -15,11 +15,10 @@ preparing an attempt again clears its folder) and reach the command through
   no other reader sees it. A blob that no longer matches its digest fails the attempt's
   start. Copies over 1 MiB are deleted when the attempt ends.
 
-  In a sandbox (``make_ready(hide=home)``) an input that is a folder on this host (an
-  upstream output, a dataset version) is not copied: the sandbox binds it read-only at its
-  own path (``workdir.attempt_view``), so the task cannot change it and the copy's cost is
-  saved. Only inputs with no folder here (a remote worker's ``artifact:`` references) are
-  still copied.
+  In a sandbox (``make_ready(hide=home)``) the same folder holds hard links of the checked
+  blobs instead of copies (``ArtifactStore.link_checked``): the sandbox binds the attempt's
+  folder read-only (``workdir.attempt_view``), so the task cannot change them, and no data is
+  copied.
 
 Outputs are uploaded from the promoted ``output/`` folder after it was ingested; a failed
 upload fails the attempt (its output is never handed downstream), and the URL's completion
@@ -28,7 +27,6 @@ marker is only written when every file arrived (see ``osmo.urls``).
 
 from __future__ import annotations
 
-import os
 from collections.abc import Callable, Mapping
 from dataclasses import replace
 from pathlib import Path
@@ -96,28 +94,26 @@ def make_ready(dirs: AttemptDirs, cmd: PrepareAttempt, task: TaskSpec, *,
         OSError: the attempt's folder cannot be written.
     """
     cmd = fetch_inputs(cmd, task, dirs, credential_for)
-    cmd, copies = plan_input_copies(cmd, dirs, input_manifests if artifacts else None,
-                                    bound=hide is not None)
+    cmd, copies = plan_input_copies(cmd, dirs, input_manifests if artifacts else None)
     launch = prepare(dirs, cmd, task, env, secrets)
     if hide is not None:
         launch = replace(launch, view=attempt_view(dirs, cmd, hide),
                          env={**launch.env, **sandbox_env(launch.env, dirs.work)})
     if copies and artifacts is not None:
         try:
-            launch = replace(launch, scratch=copy_inputs(copies, artifacts))
+            launch = replace(launch, scratch=copy_inputs(copies, artifacts,
+                                                         links=hide is not None))
         except BaseException:
             remove_secret_files(launch)
             raise
     return launch
 
 
-def plan_input_copies(cmd: PrepareAttempt, dirs: AttemptDirs, manifest_of: ManifestLookup | None,
-                      *, bound: bool = False) -> tuple[PrepareAttempt, InputCopies]:
+def plan_input_copies(cmd: PrepareAttempt, dirs: AttemptDirs,
+                      manifest_of: ManifestLookup | None) -> tuple[PrepareAttempt, InputCopies]:
     """Where the attempt's own copy of each artifact input goes (``inputs/<input name>``).
 
-    ``bound``: inputs that are folders on this host are bound read-only (a sandbox), not
-    copied. Returns ``cmd`` with the copies' folders as its inputs, and what
-    :func:`copy_inputs` must write.
+    Returns ``cmd`` with those folders as its inputs, and what :func:`copy_inputs` must write.
     """
     if manifest_of is None or not cmd.inputs:
         return cmd, []
@@ -127,8 +123,6 @@ def plan_input_copies(cmd: PrepareAttempt, dirs: AttemptDirs, manifest_of: Manif
     plan: InputCopies = []
     copies: dict[str, str] = {}
     for ref, keys in names.items():
-        if bound and os.path.isabs(ref) and os.path.isdir(ref):
-            continue  # the sandbox binds it read-only
         manifest = manifest_of(ref)
         if manifest is None:
             continue  # a downloaded url input (already private), or nothing osmo stored
@@ -139,11 +133,13 @@ def plan_input_copies(cmd: PrepareAttempt, dirs: AttemptDirs, manifest_of: Manif
             plan)
 
 
-def copy_inputs(plan: InputCopies, artifacts: ArtifactStore) -> tuple[Path, ...]:
+def copy_inputs(plan: InputCopies, artifacts: ArtifactStore, *,
+                links: bool = False) -> tuple[Path, ...]:
     """Write the planned copies (after the attempt's folder was made).
 
+    ``links``: checked hard links instead of copies (a sandboxed task: it cannot write them).
     Returns those to delete when the attempt ends: copies over 1 MiB (small ones stay with the
-    attempt's folder).
+    attempt's folder; links hold no space of their own, and stay).
 
     Raises:
         ArtifactCorrupted: a blob is missing or no longer matches its digest.
@@ -151,8 +147,9 @@ def copy_inputs(plan: InputCopies, artifacts: ArtifactStore) -> tuple[Path, ...]
     if plan:
         make_dirs(plan[0][1].parent)
     for manifest, dest in plan:
-        artifacts.copy_tree(manifest, dest)
-    return tuple(dest for manifest, dest in plan if manifest.size > _KEEP_COPIES)
+        (artifacts.link_checked if links else artifacts.copy_tree)(manifest, dest)
+    return () if links else tuple(dest for manifest, dest in plan
+                                  if manifest.size > _KEEP_COPIES)
 
 
 def _folder_name(keys: list[str], manifest: Manifest) -> str:
