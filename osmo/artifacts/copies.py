@@ -117,14 +117,7 @@ class HandOut:
             ArtifactCorrupted: a blob is missing or no longer matches its digest.
             OSError: ``dest`` exists or cannot be written.
         """
-        os.mkdir(dest)
-        made = {dest}
-        for e in manifest.entries:
-            final = dest / e.path
-            if final.parent not in made:
-                make_dirs(final.parent)
-                made.add(final.parent)
-            self._copy(e, final)
+        self._fill(manifest, dest, self._copy)
 
     def link_checked(self, manifest: Manifest, dest: Path) -> None:
         """Fill the new folder ``dest`` with hard links of the manifest's blobs, each checked.
@@ -139,6 +132,16 @@ class HandOut:
             ArtifactCorrupted: a blob is missing or no longer matches its digest.
             OSError: ``dest`` exists or cannot be written.
         """
+        self._fill(manifest, dest, self._link_checked)
+
+    def _link_checked(self, entry: Entry, final: Path) -> None:
+        if not link_out(self.path(entry.digest), entry.digest, entry.size, final,
+                        self._verifier):
+            self._copy(entry, final)
+
+    def _fill(self, manifest: Manifest, dest: Path,
+              place: Callable[[Entry, Path], None]) -> None:
+        """Make the new folder ``dest`` and ``place`` each entry in it, in place (not staged)."""
         os.mkdir(dest)
         made = {dest}
         for e in manifest.entries:
@@ -146,8 +149,7 @@ class HandOut:
             if final.parent not in made:
                 make_dirs(final.parent)
                 made.add(final.parent)
-            if not link_out(self.path(e.digest), e.digest, e.size, final, self._verifier):
-                self._copy(e, final)
+            place(e, final)
 
     def _build(self, manifest: Manifest, dest: Path,
                place: Callable[[Entry, Path], None]) -> None:
