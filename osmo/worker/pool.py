@@ -165,6 +165,7 @@ class LocalPool(AttemptEndings):
             f"({'--sandbox off' if sandbox == 'off' else unavailable_reason()})")
         self._runtime: Runtime = runtime or ProcessRuntime(self.sandbox)
         self._procs = ProcessRecords(procs_dir) if procs_dir is not None else None
+        self._hidden = [self.home]  # folders a sandboxed task never sees (see hide())
         self._env = base_env(os.environ) if env is None else dict(env)
         self._artifacts = artifacts
         self._credential_for = credential_for
@@ -196,6 +197,11 @@ class LocalPool(AttemptEndings):
         ``max_output_bytes``: the task's ``storage`` request; a larger output fails it.
         """
         self._reactor.call_soon(self._prepare, cmd, task, secrets, max_output_bytes)
+
+    def hide(self, folder: Path) -> None:
+        """Also hide ``folder`` from sandboxed tasks (another osmo home on this host)."""
+        if folder not in self._hidden:
+            self._hidden.append(folder)
 
     def owns(self, node_id: str) -> bool:
         """Whether ``node_id`` is this pool's node."""
@@ -242,7 +248,7 @@ class LocalPool(AttemptEndings):
             launch = make_ready(dirs, cmd, task, env=self._env, secrets=secrets,
                                 credential_for=self._credential_for, artifacts=self._artifacts,
                                 input_manifests=self._input_manifests,
-                                hide=self.home if self.sandbox else None)
+                                hide=tuple(self._hidden) if self.sandbox else None)
             launch = replace(launch, max_output_bytes=max_output_bytes)
         except Exception as exc:  # every prepare must get its one final report
             message = str(exc) if isinstance(exc, OsmoError) else f"cannot prepare: {exc!r}"

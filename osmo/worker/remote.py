@@ -220,6 +220,8 @@ class RemoteWorker:
             return False
         same = reply.get("host_id") == hello["host_id"] and reply.get("artifacts")
         self._server_host = SameHost(Path(reply["artifacts"])) if same else None
+        if same:  # its tasks must not see the server's home (its state store) either
+            self.pool.hide(Path(reply["artifacts"]).parent)
         if self._token is None:
             self._token = self.link.token(self.link.key("alive", "worker", self.id))
         with self._lock:

@@ -15,7 +15,7 @@ preparing an attempt again clears its folder) and reach the command through
   no other reader sees it. A blob that no longer matches its digest fails the attempt's
   start. Copies over 1 MiB are deleted when the attempt ends.
 
-  In a sandbox (``make_ready(hide=home)``) the same folder holds hard links of the checked
+  In a sandbox (``make_ready(hide=(home, ...))``) the same folder holds hard links of the checked
   blobs instead of copies (``ArtifactStore.link_checked``): the sandbox binds the attempt's
   folder read-only (``workdir.attempt_view``), so the task cannot change them, and no data is
   copied.
@@ -80,11 +80,13 @@ def fetch_inputs(cmd: PrepareAttempt, task: TaskSpec, dirs: AttemptDirs,
 def make_ready(dirs: AttemptDirs, cmd: PrepareAttempt, task: TaskSpec, *,
                env: Mapping[str, str], secrets: Secrets,
                credential_for: CredentialLookup | None, artifacts: ArtifactStore | None,
-               input_manifests: ManifestLookup | None, hide: Path | None = None) -> Launch:
+               input_manifests: ManifestLookup | None,
+               hide: tuple[Path, ...] | None = None) -> Launch:
     """Everything an attempt needs before it can start, in order.
 
     Its ``url`` inputs, its folder and files (``workdir.prepare``), its own copies of its artifact
-    inputs. ``hide``: the attempt runs in a sandbox that hides this home; its launch then
+    inputs. ``hide``: the attempt runs in a sandbox that hides these folders (osmo's
+    homes); its launch then
     carries its view, and its inputs that are folders here are bound, not copied.
 
     Raises:

@@ -146,14 +146,14 @@ def prepare(
     return Launch(argv, dirs.work, env, tuple(secret_values(task, secrets)), written)
 
 
-def attempt_view(dirs: AttemptDirs, cmd: PrepareAttempt, home: Path) -> View:
-    """What a sandboxed attempt sees of ``home`` (see the module docstring).
+def attempt_view(dirs: AttemptDirs, cmd: PrepareAttempt, hidden: tuple[Path, ...]) -> View:
+    """What a sandboxed attempt sees of the ``hidden`` folders (osmo's homes; the docstring).
 
     ``cmd.inputs`` are its resolved input references; those that are folders are bound
     read-only (a ``url`` input's download and a copy sit in paths bound read-only already).
     """
     inputs = sorted({Path(ref) for ref in cmd.inputs.values() if ref.startswith("/")})
-    return View(hidden=(home,), readonly=(dirs.root, dirs.url_inputs, *inputs),
+    return View(hidden=hidden, readonly=(dirs.root, dirs.url_inputs, *inputs),
                 writable=(dirs.work, dirs.output_partial, dirs.files), cwd=dirs.work)
 
 

@@ -10,6 +10,7 @@ import shutil
 from pathlib import Path
 
 from tests.conftest import Osmo, ended, write
+from tests.e2e.cluster import Cluster
 
 MARKER = "server-only-7c1d9e"
 
@@ -47,3 +48,28 @@ def test_task_sees_no_server_environment_nor_its_home(osmo: Osmo, tmp_path: Path
     assert (out / "db").read_text() == "hidden\n"
     listing = (out / "home").read_text().split()
     assert "state.db" not in listing and "artifacts" not in listing, listing
+
+
+def test_a_worker_task_sees_neither_its_workers_home_nor_the_servers(tmp_path: Path) -> None:
+    """A worker on the server's host hides the server's home too (it learns it on register)."""
+    cluster = Cluster(tmp_path)
+    try:
+        cluster.start_server()
+        cluster.start_worker("w1")
+        spec = write(tmp_path / "snoop.yaml", f"""
+workflow:
+  name: snoop
+  tasks:
+  - name: look
+    command: [sh, -c, 'for f in {tmp_path}/server/state.db {tmp_path}/w1/worker/worker.json; do
+      if cat "$f" > /dev/null 2>&1; then echo "readable $f"; else echo hidden; fi;
+      done > {{{{output}}}}/seen']
+""")
+        assert (tmp_path / "server" / "state.db").exists()
+        assert (tmp_path / "w1" / "worker" / "worker.json").exists()
+        wf = cluster.osmo.submit(spec)
+        assert cluster.osmo.wait_for(wf, ended)["status"] == "COMPLETED"
+        cluster.osmo("artifacts", "get", f"{wf}:look", "-o", str(tmp_path / "got"), check=True)
+        assert (tmp_path / "got" / "seen").read_text() == "hidden\nhidden\n"
+    finally:
+        cluster.stop()
