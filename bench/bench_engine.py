@@ -34,6 +34,7 @@ from benchlib import quick, row, write_rows  # noqa: E402
 
 import osmo  # noqa: E402
 from osmo.sdk.connect import start_server, stop_server  # noqa: E402
+from osmo.server.options import ServerOptions  # noqa: E402
 
 SPAWN_LIMIT = "limit: spawn `true`, 2 parallel, no orchestrator"
 
@@ -58,10 +59,11 @@ def chain(n: int) -> osmo.Workflow:
     return wf
 
 
-def run_once(spec: osmo.WorkflowSpec, base: str | None) -> float:
+def run_once(spec: osmo.WorkflowSpec, base: str | None,
+             options: ServerOptions | None = None) -> float:
     """Seconds from submit to COMPLETED on a fresh server (started before the clock)."""
     with tempfile.TemporaryDirectory(prefix="osmo-bench-", dir=base) as home:
-        start_server(home)
+        start_server(home, options)
         try:
             with osmo.Client(home=home) as client:
                 t0 = time.perf_counter()

@@ -209,8 +209,61 @@ def wait_gone(pid: int, timeout: float = 15) -> float:
     return time.monotonic()
 
 
+def unique_sleep() -> str:
+    """A ``sleep`` argument no other process has (600 s and a bit): a task's processes are
+    then found by it (:func:`wait_no_process`), where a sandboxed ``$$`` means nothing."""
+    return f"600.{os.getpid()}{time.monotonic_ns() % 10**9:09d}"
+
+
+def wait_no_process(arg: str, timeout: float = 15) -> None:
+    """Wait until no live process has ``arg`` as one of its arguments."""
+    deadline = time.monotonic() + timeout
+    while True:
+        left = []
+        for name in os.listdir("/proc"):
+            try:
+                if name.isdigit() and arg.encode() in Path(
+                        f"/proc/{name}/cmdline").read_bytes().split(b"\0"):
+                    left.append(int(name))
+            except OSError:
+                pass
+        if not [pid for pid in left if process_alive(pid)]:
+            return
+        if time.monotonic() > deadline:
+            raise AssertionError(f"processes {left} ({arg}) still alive after {timeout}s")
+        time.sleep(0.02)
+
+
+def host_pid(task_pid: int, marker: str) -> int | None:
+    """The pid on this host of a task's process whose own pid is ``task_pid``.
+
+    A sandboxed task has its own pid namespace, so the ``$$`` it writes is not a pid here:
+    its process is the one whose ``NSpid`` (``/proc/<pid>/status``) ends with ``task_pid``
+    and whose environment holds ``marker`` (the test's folder: its osmo homes, hence
+    ``OSMO_OUTPUT``, lie there). Unsandboxed, ``task_pid`` itself (its environment holds the
+    marker too). None: no such process.
+    """
+    for name in os.listdir("/proc"):
+        if not name.isdigit():
+            continue
+        try:
+            status = Path(f"/proc/{name}/status").read_text()
+            nspid = [line.split()[1:] for line in status.splitlines()
+                     if line.startswith("NSpid:")][0]
+            if int(nspid[-1]) != task_pid or marker.encode() not in Path(
+                    f"/proc/{name}/environ").read_bytes():
+                continue
+        except (OSError, IndexError, ValueError):
+            continue
+        return int(name)
+    return None
+
+
 def read_pid(path: Path, timeout: float = 60) -> int:
-    """Wait for a task to write its pid (``echo $$ > FILE``) and return it."""
+    """Wait for a task to write its pid (``echo $$ > FILE``); return its pid on this host.
+
+    (Mapped by :func:`host_pid`, with the pid file's folder as the marker.)
+    """
     deadline = time.monotonic() + timeout
     while True:
         try:
@@ -218,7 +271,9 @@ def read_pid(path: Path, timeout: float = 60) -> int:
         except FileNotFoundError:
             text = ""
         if text.endswith("\n"):
-            return int(text)
+            pid = host_pid(int(text), str(path.parent))
+            if pid is not None:
+                return pid
         if time.monotonic() > deadline:
             raise AssertionError(f"no pid was written to {path}")
         time.sleep(0.02)

@@ -1,9 +1,12 @@
-"""Handing blobs out as private, verified copies: what a task reads is never a blob itself.
+"""Handing blobs out as private, verified copies: what a task can write is never a blob itself.
 
 A task may write to any file it is given (tasks run as root here, so a 0o444 mode protects
 nothing); a blob shared by hard link would then change for every later reader. So whatever
 leaves the store for a task or a user is a copy (:func:`copy_out`; :class:`HandOut` builds
-folders of them, and of links for the few folders no task is handed):
+folders of them, and of links for the few folders no task is handed), unless the task
+cannot write to it: a sandboxed task's inputs are bound read-only, so they are hard links of
+the checked blobs (:func:`link_out`, :meth:`HandOut.link_checked`), and no data is copied.
+The copy, for everyone else:
 
 - a **reflink** (``ioctl(FICLONE)``: btrfs, XFS, ...) when the filesystem can share the data
   copy-on-write, which costs no data writes and keeps the copy private;
@@ -22,6 +25,7 @@ store (``osmo.artifacts.store``).
 
 from __future__ import annotations
 
+import errno
 import fcntl
 import hashlib
 import os
@@ -38,7 +42,7 @@ from osmo.artifacts.fsops import CHUNK, hash_fd, make_dirs, remove_tree
 from osmo.artifacts.manifest import Entry, Manifest
 from osmo.errors import NotFoundError, UsageError
 
-__all__ = ["HandOut", "Verifier", "copy_out"]
+__all__ = ["HandOut", "Verifier", "copy_out", "link_out"]
 
 _FICLONE = 0x40049409  # _IOW(0x94, 9, int), linux/fs.h
 _SETTLED_NS = 1_000_000_000
@@ -113,6 +117,31 @@ class HandOut:
             ArtifactCorrupted: a blob is missing or no longer matches its digest.
             OSError: ``dest`` exists or cannot be written.
         """
+        self._fill(manifest, dest, self._copy)
+
+    def link_checked(self, manifest: Manifest, dest: Path) -> None:
+        """Fill the new folder ``dest`` with hard links of the manifest's blobs, each checked.
+
+        For a task that cannot write to ``dest`` (a sandbox binds it read-only): no data is
+        copied, and a blob that no longer matches its digest is never handed out (checked as
+        :func:`copy_out` checks, so a blob known intact is not hashed again). A plain checked
+        copy where a link is refused (another filesystem). Written in place, like
+        :meth:`copy_tree`.
+
+        Raises:
+            ArtifactCorrupted: a blob is missing or no longer matches its digest.
+            OSError: ``dest`` exists or cannot be written.
+        """
+        self._fill(manifest, dest, self._link_checked)
+
+    def _link_checked(self, entry: Entry, final: Path) -> None:
+        if not link_out(self.path(entry.digest), entry.digest, entry.size, final,
+                        self._verifier):
+            self._copy(entry, final)
+
+    def _fill(self, manifest: Manifest, dest: Path,
+              place: Callable[[Entry, Path], None]) -> None:
+        """Make the new folder ``dest`` and ``place`` each entry in it, in place (not staged)."""
         os.mkdir(dest)
         made = {dest}
         for e in manifest.entries:
@@ -120,7 +149,7 @@ class HandOut:
             if final.parent not in made:
                 make_dirs(final.parent)
                 made.add(final.parent)
-            self._copy(e, final)
+            place(e, final)
 
     def _build(self, manifest: Manifest, dest: Path,
                place: Callable[[Entry, Path], None]) -> None:
@@ -286,6 +315,38 @@ def copy_out(blob: Path, digest: str, size: int, dest: Path, verifier: Verifier)
         raise ArtifactCorrupted(digest, str(blob), actual)
     if unchanged:
         verifier.note(digest, before)
+
+
+def link_out(blob: Path, digest: str, size: int, dest: Path, verifier: Verifier) -> bool:
+    """Hard-link ``blob`` at the new name ``dest`` once it is known to hash to ``digest``.
+
+    Returns:
+        False when the link is refused (``dest`` on another filesystem): nothing was made.
+
+    Raises:
+        ArtifactCorrupted: the blob is missing or does not hash to ``digest``.
+    """
+    try:
+        src = open(blob, "rb", buffering=0)
+    except FileNotFoundError:
+        verifier.forget(digest)
+        raise ArtifactCorrupted(digest, str(blob), None) from None
+    with src:
+        before = os.fstat(src.fileno())
+        if not verifier.intact(digest, before):
+            actual = hash_fd(src, size)[0]
+            if actual != digest:
+                verifier.forget(digest)
+                raise ArtifactCorrupted(digest, str(blob), actual)
+            if _key(os.fstat(src.fileno())) == _key(before):
+                verifier.note(digest, before)
+    try:
+        os.link(blob, dest)
+    except OSError as exc:
+        if exc.errno in (errno.EXDEV, errno.EMLINK, errno.EPERM):
+            return False
+        raise
+    return True
 
 
 def _key(st: os.stat_result) -> tuple[int, int, int]:

@@ -41,17 +41,28 @@ def run_resource(args: argparse.Namespace) -> int:
     return 0
 
 
+def _sandbox(kinds: list[str]) -> str:
+    """A pool's sandbox: its nodes' one kind, or how many lack one (``none`` on 2 of 5)."""
+    if len(set(kinds)) == 1:
+        return kinds[0]
+    return f"none on {kinds.count('none')} of {len(kinds)}"
+
+
 def run_pool(args: argparse.Namespace) -> int:
-    """``osmo pool list``: nodes summed per pool."""
+    """``osmo pool list``: nodes summed per pool, with their sandbox (``bwrap`` or ``none``)."""
     pools: dict[str, dict[str, Any]] = {}
     for node in _nodes(args):
         pool = pools.setdefault(node["pool"], {"pool": node["pool"], "nodes": 0,
-                                               "platforms": set(), "used": {}, "total": {}})
+                                               "platforms": set(), "used": {}, "total": {},
+                                               "sandboxes": []})
         pool["nodes"] += 1
         pool["platforms"].add(node["platform"] or "-")
+        pool["sandboxes"].append(node.get("sandbox", "none"))
         for side in ("used", "total"):
             for key, value in node[side].items():
                 pool[side][key] = pool[side].get(key, 0) + value
+    for pool in pools.values():
+        pool["sandbox"] = _sandbox(pool.pop("sandboxes"))
     rows = [{**p, "platforms": sorted(p["platforms"])} for p in pools.values()]
     if args.format == "json":
         print_json(rows)

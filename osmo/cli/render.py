@@ -303,7 +303,7 @@ def resource_table(rows: list[dict[str, Any]], *, by: str) -> Table:
     table = Table(box=None, pad_edge=False)
     first = (["Node", "Pool", "Platform", "Status"] if by == "node"
              else ["Pool", "Nodes", "Platforms"])
-    for col in (*first, "CPU", "GPU", "Memory"):
+    for col in (*first, "CPU", "GPU", "Memory", "Sandbox"):
         table.add_column(col)
     for r in rows:
         used, total = r["used"], r["total"]
@@ -312,7 +312,8 @@ def resource_table(rows: list[dict[str, Any]], *, by: str) -> Table:
                 else [safe(r["pool"]), str(r["nodes"]), safe(", ".join(r["platforms"]))])
         table.add_row(*head, f"{used['cpu']:g}/{total['cpu']:g}",
                       f"{used['gpu']}/{total['gpu']}",
-                      f"{_gib(used['memory'])}/{_gib(total['memory'])}")
+                      f"{_gib(used['memory'])}/{_gib(total['memory'])}",
+                      safe(r.get("sandbox", "-")))
     return table
 
 

@@ -28,6 +28,7 @@ from pathlib import Path
 from osmo.runtime.container import ContainerEngine
 from osmo.runtime.container_run import ContainerError, ContainerRun, run_argv, secret_env_text
 from osmo.runtime.process import ProcessHandle, ProcessRuntime, Runtime, StartError
+from osmo.runtime.sandbox import View
 
 __all__ = ["ContainerRuntime"]
 
@@ -63,10 +64,14 @@ class ContainerRuntime:
         self._lock = threading.Lock()
 
     def start(self, argv: Sequence[str], *, cwd: Path, env: Mapping[str, str],
-              container: ContainerRun | None = None) -> ProcessHandle:
-        """Start the command (in ``container`` if given). Raises StartError."""
+              view: View | None = None, container: ContainerRun | None = None) -> ProcessHandle:
+        """Start the command (in ``container`` if given). Raises StartError.
+
+        Without ``container``, a host process (sandboxed with ``view`` as ``ProcessRuntime``
+        is); a container is its own isolation, so ``view`` does not apply to it.
+        """
         if container is None:
-            return self._processes.start(argv, cwd=cwd, env=env)
+            return self._processes.start(argv, cwd=cwd, env=env, view=view)
         run = replace(container, argv=tuple(argv), env=dict(env))
         try:
             cli = run_argv(self.engine.engine, run)

@@ -4,12 +4,20 @@ What it owns:
 
 - spawning: the command starts in a new session (``start_new_session=True``, so its process
   group id is its pid), with the given working folder and environment, stdin from
-  ``/dev/null``, stdout and stderr as non-blocking pipes. No ``preexec_fn``, so CPython can
-  use ``vfork`` and spawning stays cheap.
+  ``/dev/null``, stdout and stderr as non-blocking pipes.
+- the sandbox: given a :class:`~osmo.runtime.sandbox.Sandbox` and a start's ``view``, the
+  command runs inside bubblewrap (``osmo.runtime.sandbox``); bwrap's two processes then lead
+  the group. ``--die-with-parent`` ends the sandbox when the spawning thread's process dies.
+  Unsandboxed, a ``preexec_fn`` sets ``PR_SET_PDEATHSIG`` (SIGKILL) on the command, so it
+  too dies with its worker (that costs CPython its ``vfork``: about 1 ms more per spawn;
+  the command's own children are then left to ``kill_stale`` after a restart).
 - waiting without polling: a ``pidfd`` (``os.pidfd_open``) becomes readable when the process
   ends, so a caller's selector watches exits and pipes together.
 - killing: a signal always goes to the whole process group (grandchildren included). The
-  caller sends ``SIGTERM`` first and ``SIGKILL`` after its grace period.
+  caller sends ``SIGTERM`` first and ``SIGKILL`` after its grace period. In a sandbox,
+  ``SIGTERM`` goes to every member of the group but bwrap's own two processes (bwrap does not
+  forward signals, and its death would SIGKILL the sandbox at once: no grace); the command
+  then ends, and bwrap exits with its exit code. ``SIGKILL`` goes to the whole group.
 - exit codes: killed by signal N → ``128 + N`` (the shell's convention).
 - crash clean-up: ``kill_stale`` kills a process group left over by a crashed server, only if
   the pid still belongs to the process that was started (its start time matches).
@@ -22,16 +30,19 @@ It must not know about attempts, logs or the scheduler; the worker pool drives i
 
 from __future__ import annotations
 
+import ctypes
 import functools
 import os
+import shutil
 import signal
 import subprocess
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
 
 from osmo.errors import OsmoError
+from osmo.runtime.sandbox import Sandbox, View
 
 __all__ = [
     "ProcessHandle",
@@ -57,6 +68,7 @@ class ProcessHandle:
         exit_fd: a file descriptor that becomes readable when the main process has ended.
         stdout_fd: read end of the stdout pipe (non-blocking).
         stderr_fd: read end of the stderr pipe (non-blocking).
+        sandboxed: the command runs in a sandbox (``pid`` is bwrap's).
     """
 
     pid: int
@@ -64,13 +76,18 @@ class ProcessHandle:
     stdout_fd: int
     stderr_fd: int
     popen: subprocess.Popen[bytes]
+    sandboxed: bool = False
 
 
 class Runtime(Protocol):
     """How attempts' commands are run (process today; a container runtime can follow)."""
 
-    def start(self, argv: Sequence[str], *, cwd: Path, env: Mapping[str, str]) -> ProcessHandle:
-        """Start ``argv`` in ``cwd`` with exactly ``env``. Raises StartError."""
+    def start(self, argv: Sequence[str], *, cwd: Path, env: Mapping[str, str],
+              view: View | None = None) -> ProcessHandle:
+        """Start ``argv`` in ``cwd`` with exactly ``env``. Raises StartError.
+
+        ``view``: what of osmo's folders the command may see, when the runtime sandboxes.
+        """
         ...
 
     def kill(self, handle: ProcessHandle, *, force: bool = False) -> None:
@@ -92,26 +109,46 @@ def exit_code_of(returncode: int) -> int:
 
 
 class ProcessRuntime:
-    """Runs commands as host processes, one process group each (see the module docstring)."""
+    """Runs commands as host processes, one process group each (see the module docstring).
 
-    def start(self, argv: Sequence[str], *, cwd: Path, env: Mapping[str, str]) -> ProcessHandle:
-        """Start ``argv`` in its own session. Raises StartError with a user-facing message."""
+    Args:
+        sandbox: run every start that has a ``view`` in this sandbox (None: never).
+    """
+
+    def __init__(self, sandbox: Sandbox | None = None) -> None:
+        self.sandbox = sandbox
+
+    def start(self, argv: Sequence[str], *, cwd: Path, env: Mapping[str, str],
+              view: View | None = None) -> ProcessHandle:
+        """Start ``argv`` in its own session. Raises StartError with a user-facing message.
+
+        With a sandbox and a ``view``, in the sandbox (the command is looked up first, so a
+        missing one fails the start as it does outside).
+        """
         if not argv:
             raise StartError("empty command")
+        command = list(argv)
+        preexec: Callable[[], object] | None = _die_with_parent()
+        if self.sandbox is not None and view is not None:
+            _check_command(argv[0], cwd, env)
+            command, preexec = self.sandbox.argv(argv, view), None  # bwrap dies with us
         try:
             popen = subprocess.Popen(
-                list(argv),
+                command,
                 cwd=cwd,
                 env=dict(env),
                 stdin=subprocess.DEVNULL,
                 stdout=subprocess.PIPE,
                 stderr=subprocess.PIPE,
                 start_new_session=True,
+                preexec_fn=preexec,
             )
         except OSError as exc:
             raise StartError(_start_message(argv[0], cwd, exc)) from exc
+        except subprocess.SubprocessError as exc:  # the preexec_fn failed in the child
+            raise StartError(f"cannot start '{argv[0]}': {exc}") from exc
         try:
-            return _handle(popen)
+            return _handle(popen, sandboxed=preexec is None)
         except OSError as exc:  # e.g. out of file descriptors: do not leave it running
             os.killpg(popen.pid, signal.SIGKILL)
             popen.wait()
@@ -122,6 +159,9 @@ class ProcessRuntime:
         """Send SIGTERM (SIGKILL when ``force``) to the handle's process group."""
         if handle.popen.returncode is not None:
             return  # reaped: the group id may name someone else's group now
+        if handle.sandboxed and not force:
+            _terminate_inside(handle.pid)
+            return
         try:
             os.killpg(handle.pid, signal.SIGKILL if force else signal.SIGTERM)
         except (ProcessLookupError, PermissionError):
@@ -149,12 +189,49 @@ def _close_pipes(popen: subprocess.Popen[bytes]) -> None:
             pipe.close()
 
 
-def _handle(popen: subprocess.Popen[bytes]) -> ProcessHandle:
+def _handle(popen: subprocess.Popen[bytes], *, sandboxed: bool) -> ProcessHandle:
     assert popen.stdout is not None and popen.stderr is not None
     out, err = popen.stdout.fileno(), popen.stderr.fileno()
     os.set_blocking(out, False)
     os.set_blocking(err, False)
-    return ProcessHandle(popen.pid, os.pidfd_open(popen.pid), out, err, popen)
+    return ProcessHandle(popen.pid, os.pidfd_open(popen.pid), out, err, popen, sandboxed)
+
+
+_PR_SET_PDEATHSIG = 1
+
+
+@functools.cache  # loaded in the parent: the child between fork and exec only calls it
+def _die_with_parent() -> Callable[[], object]:
+    """A ``preexec_fn``: SIGKILL the child when the thread that spawned it ends."""
+    prctl = ctypes.CDLL(None, use_errno=True).prctl
+    return functools.partial(prctl, _PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+
+
+def _check_command(program: str, cwd: Path, env: Mapping[str, str]) -> None:
+    """Fail a sandboxed start the way an unsandboxed one fails (bwrap would only exit 1)."""
+    if not cwd.is_dir():
+        raise StartError(f"working folder not found: '{cwd}'")
+    path = str(cwd / program) if "/" in program else shutil.which(
+        program, path=env.get("PATH", os.defpath))
+    if path is None or not os.path.exists(path):
+        raise StartError(f"command not found: '{program}'")
+    if not os.access(path, os.X_OK) or os.path.isdir(path):
+        raise StartError(f"command not executable: '{program}' (permission denied)")
+
+
+def _terminate_inside(pgid: int) -> None:
+    """SIGTERM to every process of a sandbox's group but bwrap's own two (the module docstring).
+
+    bwrap's outer process is the group leader; its child is pid 1 of the sandbox.
+    """
+    for pid in _group_members(pgid):
+        fields = _stat_fields(pid)
+        if pid == pgid or fields is None or int(fields[1]) == pgid:
+            continue
+        try:
+            os.kill(pid, signal.SIGTERM)
+        except (ProcessLookupError, PermissionError):
+            pass
 
 
 def _start_message(program: str, cwd: Path, exc: OSError) -> str:

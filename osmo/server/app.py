@@ -116,7 +116,8 @@ def serve(home: str | os.PathLike[str] | None = None, options: ServerOptions | N
                      cpus=options.cpus, gpus=options.gpus, artifacts=artifacts,
                      credential_for=url_credential(store),
                      input_manifests=output_manifests(store),
-                     task_secrets=store.credential) if options.local_pool else None
+                     task_secrets=store.credential,
+                     sandbox=options.sandbox) if options.local_pool else None
     hub = WorkerHub(link=link, emit=inbox.post, store=store,
                     artifacts=artifacts, home=home_path, url_credential=url_credential(store),
                     attempts_on=lambda node: list(inbox.ask(AttemptsOn(node))),

@@ -292,6 +292,7 @@ class Handlers:
             out.append({"node": node.id, "pool": node.pool, "platform": node.platform,
                         "status": worker.get("status", "online"),
                         "kind": "remote" if worker else "local",
+                        "sandbox": node.labels.get("sandbox", "none"),
                         "total": vars(node.capacity), "used": vars(used)})
         return out
 

@@ -27,6 +27,7 @@ from typing import NoReturn
 from osmo.config import DEFAULT_CLUSTER
 from osmo.errors import UsageError
 from osmo.layout import Home
+from osmo.runtime.sandbox import MODES, SandboxMode
 
 __all__ = ["ServerOptions", "absolute", "check_listeners", "network_listeners",
            "option_changes", "options_from_argv", "remember", "saved_options"]
@@ -48,6 +49,7 @@ class ServerOptions:
         insecure: allow a network listener without zenoh authentication (warned at every
             start; see :func:`check_listeners`).
         accept_tokens: ``NAME:ROLE:FILE`` tokens to accept (Kubernetes Secrets).
+        sandbox: run the local pool's tasks in bubblewrap: ``auto``, ``on``, ``off``.
     """
 
     listen: tuple[str, ...] = ()
@@ -60,13 +62,14 @@ class ServerOptions:
     reconnect_grace: float = 30.0
     insecure: bool = False
     accept_tokens: tuple[str, ...] = ()
+    sandbox: SandboxMode = "auto"
 
     @staticmethod
     def add_arguments(p: argparse.ArgumentParser) -> None:
         """Add the server's flags to ``p``.
 
         ``--listen``, ``--connect``, ``--zenoh-config``, ``--cluster``, ``--cpus``, ``--gpus``,
-        ``--no-local-pool``, ``--reconnect-grace``.
+        ``--no-local-pool``, ``--reconnect-grace``, ``--sandbox``.
         """
         d = ServerOptions()
         p.add_argument("--listen", action="append", metavar="ENDPOINT",
@@ -94,6 +97,9 @@ class ServerOptions:
                        help="allow --listen on a network address without zenoh "
                             "authentication (usrpwd or mTLS in --zenoh-config); tokens then "
                             "travel in clear")
+        p.add_argument("--sandbox", choices=MODES, default=d.sandbox,
+                       help="run local tasks in a bubblewrap sandbox: auto (when bwrap works "
+                            f"here), on (required), off ({d.sandbox})")
 
     @classmethod
     def from_args(cls, args: argparse.Namespace) -> ServerOptions:
@@ -103,7 +109,8 @@ class ServerOptions:
                    gpus=args.gpus, local_pool=args.local_pool,
                    reconnect_grace=args.reconnect_grace,
                    insecure=getattr(args, "insecure", False),
-                   accept_tokens=tuple(getattr(args, "accept_token", None) or ()))
+                   accept_tokens=tuple(getattr(args, "accept_token", None) or ()),
+                   sandbox=args.sandbox)
 
     def to_argv(self) -> list[str]:
         """The same options as flags, to start the server in another process.
@@ -115,7 +122,8 @@ class ServerOptions:
         out += [arg for ep in self.connect for arg in ("--connect", ep)]
         for flag, value in (("--zenoh-config", self.zenoh_config), ("--cluster", self.cluster),
                             ("--cpus", self.cpus), ("--gpus", self.gpus),
-                            ("--reconnect-grace", self.reconnect_grace)):
+                            ("--reconnect-grace", self.reconnect_grace),
+                            ("--sandbox", self.sandbox)):
             if value != getattr(d, flag[2:].replace("-", "_")):
                 out += [flag, str(value)]
         out += [] if self.local_pool else ["--no-local-pool"]

@@ -17,7 +17,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 from osmo.artifacts import ArtifactStore
 from osmo.artifacts.fsops import remove_tree
-from osmo.runtime.process import Runtime
+from osmo.runtime.process import ProcessHandle, Runtime
 from osmo.scheduler.types import AttemptExited, AttemptStartFailed, Event
 from osmo.spec.model import ExitAction
 from osmo.worker.live import AttemptState, LiveAttempt
@@ -45,12 +45,13 @@ class AttemptEndings:
     _artifacts: ArtifactStore | None
     _credential_for: CredentialLookup | None
     _max_output_files: int | None
+    _reap: Callable[[ProcessHandle], int]
 
     def _exited(self, attempt: LiveAttempt) -> None:
         handle = attempt.handle
         assert handle is not None
         self._reactor.remove_reader(handle.exit_fd)
-        code = self._runtime.reap(handle)
+        code = self._reap(handle)
         try:
             attempt.drain(self._reactor, handle)
             self._runtime.release(handle)

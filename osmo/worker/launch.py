@@ -17,8 +17,10 @@ paths are absolute::
      "workflow_id": "wf-1", "task": "count", "retry": 0, "attempt_id": "wf-1:count:0"}
 
 An input's ``name`` is the upstream task (``WORKFLOW_ID:TASK`` for another workflow's),
-the dataset (``NAME[:TAG]`` as written) or the URL. The environment gets the ``paths`` in
-front of ``PYTHONPATH`` so processes the task starts can import the same modules.
+the dataset (``NAME[:TAG]`` as written) or the URL. The environment gets ``PYTHONPATH``: the
+``paths`` first (so processes the task starts can import the same modules), then the folders
+osmo and ``osmo_plugins`` were imported from (the worker's install; a task's environment does
+not inherit the worker's ``PYTHONPATH``, see ``osmo.worker.taskenv``).
 
 File-system work only; imports no plugin. The runner that reads the file is
 ``osmo.tasktypes.runner``, which owns the format's version.
@@ -26,6 +28,8 @@ File-system work only; imports no plugin. The runner that reads the file is
 
 from __future__ import annotations
 
+import functools
+import importlib.util
 import json
 import os
 import sys
@@ -36,9 +40,7 @@ from typing import Any
 from osmo.spec.model import InputSpec, TaskSpec
 from osmo.tasktypes.runner import FORMAT
 
-__all__ = ["input_name", "runner_argv", "runner_env",
-           "write_context"]
-
+__all__ = ["input_name", "osmo_paths", "runner_argv", "runner_env", "write_context"]
 
 
 def input_name(spec: InputSpec) -> str:
@@ -54,12 +56,24 @@ def runner_argv(context_file: Path) -> tuple[str, ...]:
 
 
 def runner_env(task: TaskSpec, env: Mapping[str, str]) -> dict[str, str]:
-    """Variables to add for a typed task: ``PYTHONPATH`` with the type's folders first."""
+    """Variables to add for a typed task: ``PYTHONPATH`` with the type's folders first.
+
+    Then the spec's own ``PYTHONPATH`` (in ``env``), then osmo's install (:func:`osmo_paths`).
+    """
     paths = list(task.resolved.paths) if task.resolved else []
-    if not paths:
-        return {}
     current = env.get("PYTHONPATH", "")
-    return {"PYTHONPATH": os.pathsep.join([*paths, *([current] if current else [])])}
+    parts = [*paths, *([current] if current else []), *osmo_paths()]
+    return {"PYTHONPATH": os.pathsep.join(dict.fromkeys(parts))}
+
+
+@functools.cache  # where a package was imported from does not change while we run
+def osmo_paths() -> tuple[str, ...]:
+    """The folders that hold the ``osmo`` and ``osmo_plugins`` packages this process uses."""
+    out = [str(Path(__file__).resolve().parents[2])]  # .../osmo/worker/launch.py
+    spec = importlib.util.find_spec("osmo_plugins")  # locates it without importing it
+    if spec is not None and spec.submodule_search_locations:
+        out.append(str(Path(next(iter(spec.submodule_search_locations))).resolve().parent))
+    return tuple(dict.fromkeys(out))
 
 
 def write_context(path: Path, *, task: TaskSpec, inputs: Sequence[tuple[str, str]],

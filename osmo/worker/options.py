@@ -14,6 +14,7 @@ from pathlib import Path
 
 from osmo.config import DEFAULT_CLUSTER
 from osmo.errors import UsageError
+from osmo.runtime.sandbox import MODES, SandboxMode
 
 __all__ = ["DEFAULT_KILL_GRACE", "DEFAULT_POOL", "WorkerOptions"]
 
@@ -42,6 +43,7 @@ class WorkerOptions:
         kill_grace: seconds between SIGTERM and SIGKILL when an attempt is killed.
         address: how peers reach its tasks (default: the outbound interface's address).
         token: its API token, role worker (``osmo token create NAME --role worker``).
+        sandbox: run commands in bubblewrap: ``auto`` (when it works here), ``on``, ``off``.
     """
 
     connect: tuple[str, ...]
@@ -58,6 +60,7 @@ class WorkerOptions:
     kill_grace: float = DEFAULT_KILL_GRACE
     address: str | None = None
     token: str | None = None
+    sandbox: SandboxMode = "auto"
 
     @staticmethod
     def add_arguments(w: argparse.ArgumentParser) -> None:
@@ -83,6 +86,9 @@ class WorkerOptions:
         w.add_argument("--drain-timeout", type=float, default=d.drain_timeout,
                        metavar="SECONDS", help="on SIGTERM, how long running tasks may finish "
                                                f"before being handed back ({d.drain_timeout:g})")
+        w.add_argument("--sandbox", choices=MODES, default=d.sandbox,
+                       help="run tasks in a bubblewrap sandbox: auto (when bwrap works here), "
+                            f"on (required), off ({d.sandbox})")
 
     @classmethod
     def from_args(cls, args: argparse.Namespace) -> WorkerOptions:
@@ -102,7 +108,7 @@ class WorkerOptions:
                    platform=args.platform, cpus=args.cpus, gpus=args.gpus, memory=memory,
                    labels=_labels(args.label), cluster=args.cluster,
                    zenoh_config=args.zenoh_config, drain_timeout=args.drain_timeout,
-                   token=_token(args.token, args.token_file))
+                   token=_token(args.token, args.token_file), sandbox=args.sandbox)
 
 
 def _token(token: str | None, token_file: str | None) -> str | None:

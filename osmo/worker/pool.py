@@ -29,6 +29,14 @@ How an attempt ends (exit, promotion, its one final report in every path) is
 ``osmo.worker.endings``.
 
 The ``image`` field is recorded in the log and otherwise ignored by the process runtime.
+
+Sandbox (``sandbox``: ``auto``, ``on``, ``off``; ``osmo.runtime.sandbox``): chosen once, when
+the pool is made; commands then run in bubblewrap with a view of their own attempt's folders
+only (``workdir.attempt_view``), and the node's ``sandbox`` label says ``bwrap``. Without one,
+the label says ``none`` and every attempt's log starts with an osmo line saying so.
+A remote worker's pool also records each running command's pid and start time in
+``procs_dir`` (one file per process, removed when it is reaped), so that a worker restarted
+after a crash can kill what its previous life left (``osmo.worker.procs``).
 Creating a pool lifts the process's soft open-files limit (each running attempt holds four
 descriptors).
 """
@@ -57,6 +65,7 @@ from osmo.runtime.process import (
     kill_stale,
     process_start_time,
 )
+from osmo.runtime.sandbox import SandboxMode, choose, unavailable_reason
 from osmo.scheduler.types import (
     LOCAL_NODE,
     AttemptExited,
@@ -76,8 +85,10 @@ from osmo.worker.live import AttemptState, LiveAttempt
 from osmo.worker.logs import LogWriter, image_note
 from osmo.worker.machine import detect_capacity, raise_fd_limit
 from osmo.worker.options import DEFAULT_KILL_GRACE
+from osmo.worker.procs import ProcessRecords
 from osmo.worker.reactor import Reactor
 from osmo.worker.secrets import SecretLookup, Secrets, gather
+from osmo.worker.taskenv import base_env
 from osmo.worker.transfer import CredentialLookup, ManifestLookup, make_ready
 from osmo.worker.workdir import Launch, remove_secret_files
 
@@ -100,7 +111,8 @@ class LocalPool(AttemptEndings):
         cpus, gpus, memory: capacity to advertise (default: what the machine has).
         kill_grace: seconds between SIGTERM and SIGKILL when killing an attempt.
         runtime: how commands run (default: ``ProcessRuntime``).
-        env: the base environment of every command (default: this process's environment).
+        env: the base environment of every command (default: ``taskenv.base_env`` of this
+            process's environment).
         artifacts: where promoted outputs are ingested (content-addressed, verified); the
             exit report then carries the output's manifest. None: outputs are not ingested.
         credential_for: ``url -> credential`` for ``url`` inputs and outputs.
@@ -110,6 +122,11 @@ class LocalPool(AttemptEndings):
         task_secrets: credential name → payload, for tasks' ``credentials:`` when
             ``prepare`` is not given them.
         log_sink: also gets ``(attempt id, records)`` for every log record written.
+        sandbox: ``auto`` (when bubblewrap works here), ``on`` (required) or ``off``.
+        procs_dir: record running commands' pids here (see the module docstring).
+
+    Raises:
+        InfrastructureError: ``sandbox="on"`` and no sandbox works here.
     """
 
     def __init__(
@@ -131,6 +148,8 @@ class LocalPool(AttemptEndings):
         max_output_files: int | None = DEFAULT_MAX_FILES,
         task_secrets: SecretLookup | None = None,
         log_sink: Callable[[str, bytes], None] | None = None,
+        sandbox: SandboxMode = "auto",
+        procs_dir: Path | None = None,
     ) -> None:
         self.home = Path(home).absolute()
         self.home.mkdir(parents=True, exist_ok=True)
@@ -140,8 +159,14 @@ class LocalPool(AttemptEndings):
         self._node_id, self._pool = node_id, pool
         self._cpus, self._gpus, self._memory = cpus, gpus, memory
         self._grace = kill_grace
-        self._runtime: Runtime = runtime or ProcessRuntime()
-        self._env = dict(os.environ if env is None else env)
+        self.sandbox = choose(sandbox)
+        self._no_sandbox = None if self.sandbox else (
+            "no sandbox: this task sees the host as the worker's user "
+            f"({'--sandbox off' if sandbox == 'off' else unavailable_reason()})")
+        self._runtime: Runtime = runtime or ProcessRuntime(self.sandbox)
+        self._procs = ProcessRecords(procs_dir) if procs_dir is not None else None
+        self._hidden = [self.home]  # folders a sandboxed task never sees (see hide())
+        self._env = base_env(os.environ) if env is None else dict(env)
         self._artifacts = artifacts
         self._credential_for = credential_for
         self._input_manifests = input_manifests
@@ -161,7 +186,8 @@ class LocalPool(AttemptEndings):
         """This machine as a scheduler node, with its (or the configured) capacity."""
         capacity = detect_capacity(self.home, cpus=self._cpus, gpus=self._gpus,
                                    memory=self._memory)
-        return Node(id=self._node_id, pool=self._pool, capacity=capacity)
+        return Node(id=self._node_id, pool=self._pool, capacity=capacity,
+                    labels={"sandbox": "bwrap" if self.sandbox else "none"})
 
     def prepare(self, cmd: PrepareAttempt, task: TaskSpec, secrets: Secrets | None = None,
                 *, max_output_bytes: int | None = None) -> None:
@@ -171,6 +197,11 @@ class LocalPool(AttemptEndings):
         ``max_output_bytes``: the task's ``storage`` request; a larger output fails it.
         """
         self._reactor.call_soon(self._prepare, cmd, task, secrets, max_output_bytes)
+
+    def hide(self, folder: Path) -> None:
+        """Also hide ``folder`` from sandboxed tasks (another osmo home on this host)."""
+        if folder not in self._hidden:
+            self._hidden.append(folder)
 
     def owns(self, node_id: str) -> bool:
         """Whether ``node_id`` is this pool's node."""
@@ -216,7 +247,8 @@ class LocalPool(AttemptEndings):
                 secrets = gather(task, self._task_secrets)
             launch = make_ready(dirs, cmd, task, env=self._env, secrets=secrets,
                                 credential_for=self._credential_for, artifacts=self._artifacts,
-                                input_manifests=self._input_manifests)
+                                input_manifests=self._input_manifests,
+                                hide=tuple(self._hidden) if self.sandbox else None)
             launch = replace(launch, max_output_bytes=max_output_bytes)
         except Exception as exc:  # every prepare must get its one final report
             message = str(exc) if isinstance(exc, OsmoError) else f"cannot prepare: {exc!r}"
@@ -228,7 +260,7 @@ class LocalPool(AttemptEndings):
             # (pipes, exits) never waits on fork/exec. A kill that came meanwhile is applied
             # by _prepared.
             try:
-                started = self._runtime.start(launch.argv, cwd=launch.cwd, env=launch.env)
+                started = self._start(launch)
             except (StartError, OSError) as exc:
                 started = str(exc)
             except Exception as exc:  # noqa: BLE001 - a bug: fail the start, report it
@@ -252,13 +284,15 @@ class LocalPool(AttemptEndings):
         except OSError as exc:  # no log, no attempt: undo what preparing made, report once
             if isinstance(started, ProcessHandle):
                 self._runtime.kill(started, force=True)
-                self._runtime.reap(started)
+                self._reap(started)
                 self._runtime.release(started)
             remove_secret_files(launch)
             self._remember(cmd.attempt_id)
             self._emit(AttemptStartFailed(cmd.attempt_id, f"cannot write its log: {exc}"))
             return
         attempt = LiveAttempt(cmd.attempt_id, task, dirs, launch, log)
+        if self._no_sandbox is not None:
+            attempt.log.line("osmo", self._no_sandbox)
         if task.image:
             attempt.log.line("osmo", image_note(task.image))
         self._attempts[attempt.id] = attempt
@@ -290,13 +324,27 @@ class LocalPool(AttemptEndings):
             return
         launch = attempt.launch
         try:
-            handle = self._runtime.start(launch.argv, cwd=launch.cwd, env=launch.env)
+            handle = self._start(launch)
         except (StartError, OSError) as exc:
             attempt.log.line("osmo", f"start failed: {exc}")
             self._finish(attempt, AttemptStartFailed(attempt_id, str(exc)))
             return
         self._watch(attempt, handle)
         self._emit(_started(attempt_id, handle))
+
+    def _start(self, launch: Launch) -> ProcessHandle:
+        """Spawn a prepared command (any thread); a remote worker's pool records its pid."""
+        handle = self._runtime.start(launch.argv, cwd=launch.cwd, env=launch.env,
+                                     view=launch.view)
+        if self._procs is not None:
+            self._procs.add(handle.pid)
+        return handle
+
+    def _reap(self, handle: ProcessHandle) -> int:
+        code = self._runtime.reap(handle)
+        if self._procs is not None:
+            self._procs.remove(handle.pid)
+        return code
 
     def _watch(self, attempt: LiveAttempt, handle: ProcessHandle) -> None:
         attempt.handle, attempt.state = handle, AttemptState.RUNNING
@@ -338,7 +386,7 @@ class LocalPool(AttemptEndings):
             if attempt.state is AttemptState.RUNNING and handle is not None:
                 attempt.log.line("osmo", "killed: pool closed")
                 self._runtime.kill(handle, force=True)
-                self._runtime.reap(handle)
+                self._reap(handle)
                 self._runtime.release(handle)
             attempt.log.close()
             remove_secret_files(attempt.launch)

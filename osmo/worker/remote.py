@@ -19,6 +19,11 @@ secrets and data-URL credentials are asked for (``worker_secrets``) rather than 
 the ``prepare`` order, which any subscriber could read. This worker's blob server answers only
 requests carrying the key the server's registration reply gave it.
 
+Leftovers: the pool records each running command's pid and start time under ``<home>/procs``;
+a worker started on a home kills whatever a previous life left there before it announces
+itself (:func:`kill_leftovers`), so a SIGKILLed worker's task never runs beside its
+rescheduled copy (tasks also die with their worker: ``osmo.runtime.process``).
+
 Drain (SIGTERM): the worker stops taking work (it re-registers with no capacity), lets
 running attempts finish for up to ``drain_timeout`` seconds and waits until their outputs
 were taken; attempts still running then are killed and handed back (reported lost, so they
@@ -60,8 +65,9 @@ from osmo.transport.wire import Hello, event_to_dict, prepare_from_dict, spec_fr
 from osmo.transport.zenoh_link import Link, Subscription
 from osmo.worker.options import WorkerOptions
 from osmo.worker.pool import LocalPool
+from osmo.worker.procs import kill_recorded
 
-__all__ = ["RemoteWorker"]
+__all__ = ["RemoteWorker", "kill_leftovers", "procs_dir"]
 
 log = logging.getLogger("osmo.worker")
 
@@ -115,12 +121,14 @@ class RemoteWorker:
         self._stop = threading.Event()
         self._io = ThreadPoolExecutor(4, thread_name_prefix="osmo-inputs")
         self._token: Subscription | None = None
+        kill_leftovers(self.home)
         self.pool = LocalPool(
             home=self.home, emit=self._emit, node_id=self.id, pool=options.pool,
             cpus=options.cpus, gpus=options.gpus, memory=options.memory,
             kill_grace=options.kill_grace, artifacts=self.store,
             credential_for=self._url_creds.get, log_sink=self._send_log,
-            input_manifests=self._manifest_of)
+            input_manifests=self._manifest_of, sandbox=options.sandbox,
+            procs_dir=procs_dir(self.home))
         self._subs: list[Any] = []
 
     # ------------------------------------------------------------------ life cycle
@@ -209,8 +217,9 @@ class RemoteWorker:
             self._register_now.set()
 
     def _register(self) -> bool:
-        node = replace(self.pool.node(), platform=self.opts.platform,
-                       address=self.opts.address or _address(), labels=dict(self.opts.labels))
+        own = self.pool.node()  # its labels (the sandbox) win over the user's
+        node = replace(own, platform=self.opts.platform, address=self.opts.address or _address(),
+                       labels={**self.opts.labels, **own.labels})
         with self._lock:
             hello = Hello(node, pid=os.getpid(), host_id=host_id(),
                           artifacts=str(self.store.root), draining=self._draining,
@@ -224,6 +233,8 @@ class RemoteWorker:
         self._blob_key = bytes.fromhex(str(reply.get("blob_key") or ""))
         same = reply.get("host_id") == hello["host_id"] and reply.get("artifacts")
         self._server_host = SameHost(Path(reply["artifacts"])) if same else None
+        if same:  # its tasks must not see the server's home (its state store) either
+            self.pool.hide(Path(reply["artifacts"]).parent)
         if self._token is None:
             self._token = self.link.token(self.link.key("alive", "worker", self.id))
         with self._lock:
@@ -373,3 +384,14 @@ def _address() -> str:
             return str(s.getsockname()[0])
     except OSError:
         return "127.0.0.1"
+
+
+def procs_dir(home: Path) -> Path:
+    """Where a worker's pool records its running commands (``osmo.worker.procs``)."""
+    return home / "procs"
+
+
+def kill_leftovers(home: Path) -> int:
+    """Kill what a previous life of the worker on ``home`` left running (before announcing)."""
+    return kill_recorded(procs_dir(home))
+

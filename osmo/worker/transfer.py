@@ -15,6 +15,11 @@ preparing an attempt again clears its folder) and reach the command through
   no other reader sees it. A blob that no longer matches its digest fails the attempt's
   start. Copies over 1 MiB are deleted when the attempt ends.
 
+  In a sandbox (``make_ready(hide=(home, ...))``) the same folder holds hard links of the checked
+  blobs instead of copies (``ArtifactStore.link_checked``): the sandbox binds the attempt's
+  folder read-only (``workdir.attempt_view``), so the task cannot change them, and no data is
+  copied.
+
 Outputs are uploaded from the promoted ``output/`` folder after it was ingested; a failed
 upload fails the attempt (its output is never handed downstream), and the URL's completion
 marker is only written when every file arrived (see ``osmo.urls``).
@@ -36,7 +41,8 @@ from osmo.scheduler.types import PrepareAttempt
 from osmo.spec.model import TaskSpec
 from osmo.urls import for_url
 from osmo.worker.secrets import Secrets
-from osmo.worker.workdir import Launch, prepare, promote, remove_secret_files
+from osmo.worker.taskenv import sandbox_env
+from osmo.worker.workdir import Launch, attempt_view, prepare, promote, remove_secret_files
 
 __all__ = ["CredentialLookup", "DeliveryError", "InputCopies", "ManifestLookup", "copy_inputs",
            "deliver", "fetch_inputs", "make_ready", "plan_input_copies", "push_outputs"]
@@ -74,11 +80,14 @@ def fetch_inputs(cmd: PrepareAttempt, task: TaskSpec, dirs: AttemptDirs,
 def make_ready(dirs: AttemptDirs, cmd: PrepareAttempt, task: TaskSpec, *,
                env: Mapping[str, str], secrets: Secrets,
                credential_for: CredentialLookup | None, artifacts: ArtifactStore | None,
-               input_manifests: ManifestLookup | None) -> Launch:
+               input_manifests: ManifestLookup | None,
+               hide: tuple[Path, ...] | None = None) -> Launch:
     """Everything an attempt needs before it can start, in order.
 
     Its ``url`` inputs, its folder and files (``workdir.prepare``), its own copies of its artifact
-    inputs.
+    inputs. ``hide``: the attempt runs in a sandbox that hides these folders (osmo's
+    homes); its launch then
+    carries its view, and its inputs that are folders here are bound, not copied.
 
     Raises:
         OsmoError: a download, a token, a file, a credential or a blob failed (a blob that
@@ -89,9 +98,13 @@ def make_ready(dirs: AttemptDirs, cmd: PrepareAttempt, task: TaskSpec, *,
     cmd = fetch_inputs(cmd, task, dirs, credential_for)
     cmd, copies = plan_input_copies(cmd, dirs, input_manifests if artifacts else None)
     launch = prepare(dirs, cmd, task, env, secrets)
+    if hide is not None:
+        launch = replace(launch, view=attempt_view(dirs, cmd, hide),
+                         env={**launch.env, **sandbox_env(launch.env, dirs.work)})
     if copies and artifacts is not None:
         try:
-            launch = replace(launch, scratch=copy_inputs(copies, artifacts))
+            launch = replace(launch, scratch=copy_inputs(copies, artifacts,
+                                                         links=hide is not None))
         except BaseException:
             remove_secret_files(launch)
             raise
@@ -122,11 +135,13 @@ def plan_input_copies(cmd: PrepareAttempt, dirs: AttemptDirs,
             plan)
 
 
-def copy_inputs(plan: InputCopies, artifacts: ArtifactStore) -> tuple[Path, ...]:
+def copy_inputs(plan: InputCopies, artifacts: ArtifactStore, *,
+                links: bool = False) -> tuple[Path, ...]:
     """Write the planned copies (after the attempt's folder was made).
 
+    ``links``: checked hard links instead of copies (a sandboxed task: it cannot write them).
     Returns those to delete when the attempt ends: copies over 1 MiB (small ones stay with the
-    attempt's folder).
+    attempt's folder; links hold no space of their own, and stay).
 
     Raises:
         ArtifactCorrupted: a blob is missing or no longer matches its digest.
@@ -134,8 +149,9 @@ def copy_inputs(plan: InputCopies, artifacts: ArtifactStore) -> tuple[Path, ...]
     if plan:
         make_dirs(plan[0][1].parent)
     for manifest, dest in plan:
-        artifacts.copy_tree(manifest, dest)
-    return tuple(dest for manifest, dest in plan if manifest.size > _KEEP_COPIES)
+        (artifacts.link_checked if links else artifacts.copy_tree)(manifest, dest)
+    return () if links else tuple(dest for manifest, dest in plan
+                                  if manifest.size > _KEEP_COPIES)
 
 
 def _folder_name(keys: list[str], manifest: Manifest) -> str:

@@ -33,10 +33,16 @@ variables the task defines (its ``environment``, its credentials' variables and 
 not the base environment): ``$$`` is an escaped ``$``, an undefined ``$(NAME)`` stays as
 written (``osmo.spec.tokens.expand_vars``).
 
-Environment: the server's environment, then the task's ``environment`` (tokens substituted),
-then the variables its credentials set (``NAME: {ENV: key}``, verbatim), then osmo's own
-variables, which a task cannot override: ``OSMO_WORKFLOW_ID``, ``OSMO_TASK``, ``OSMO_RETRY``,
-``OSMO_OUTPUT``, ``OSMO_FILES_ROOT``.
+Environment: a small base taken from the worker's (``osmo.worker.taskenv``: ``PATH``,
+``HOME``, locale; never the whole environment, never ``OSMO_HOME``), then the task's
+``environment`` (tokens substituted), then the variables its credentials set (``NAME: {ENV:
+key}``, verbatim), then osmo's own variables, which a task cannot override:
+``OSMO_WORKFLOW_ID``, ``OSMO_TASK``, ``OSMO_RETRY``, ``OSMO_NODE``, ``OSMO_OUTPUT``,
+``OSMO_FILES_ROOT``.
+
+Sandbox view (:func:`attempt_view`): what of osmo's home a sandboxed attempt sees: its own
+folder read-only, its ``work/``, ``output.partial/`` and ``files/`` writable, its inputs
+read-only; the rest of the home is hidden (``osmo.runtime.sandbox``).
 
 Promotion: after a COMPLETE exit of an attempt that was not killed, ``output.partial`` is
 renamed to ``output`` (atomic) and the attempt folder is fsynced; the output reference is the
@@ -64,13 +70,14 @@ from pathlib import Path
 from osmo.artifacts.fsops import remove_tree
 from osmo.errors import OsmoError
 from osmo.layout import AttemptDirs
+from osmo.runtime.sandbox import View
 from osmo.scheduler.types import PrepareAttempt
 from osmo.spec.model import InputSpec, TaskSpec
 from osmo.spec.tokens import expand_vars, substitute
 from osmo.worker import launch
 from osmo.worker.secrets import Secrets, mounts, secret_env, secret_values
 
-__all__ = ["Launch", "PrepareError", "prepare", "promote", "remove_secret_files"]
+__all__ = ["Launch", "PrepareError", "attempt_view", "prepare", "promote", "remove_secret_files"]
 
 
 class PrepareError(OsmoError):
@@ -83,6 +90,7 @@ class Launch:
 
     ``secrets`` are the values of the task's credentials (for masking its logs) and
     ``secret_files`` the files its credential mounts wrote; neither is shown by ``repr``.
+    ``view`` is what a sandbox lets it see (None: it runs unsandboxed).
     """
 
     argv: tuple[str, ...]
@@ -92,6 +100,7 @@ class Launch:
     secret_files: tuple[Path, ...] = ()
     scratch: tuple[Path, ...] = ()  # deleted when the attempt ends (large input copies)
     max_output_bytes: int | None = None  # the task's ``storage``: its output may hold no more
+    view: View | None = None
 
 
 def prepare(
@@ -142,6 +151,17 @@ def prepare(
     except OSError as exc:
         raise PrepareError(f"cannot prepare {exc.filename or dirs.root}: {exc.strerror}") from exc
     return Launch(argv, dirs.work, env, tuple(secret_values(task, secrets)), written)
+
+
+def attempt_view(dirs: AttemptDirs, cmd: PrepareAttempt, hidden: tuple[Path, ...]) -> View:
+    """What a sandboxed attempt sees of the ``hidden`` folders (osmo's homes; the docstring).
+
+    ``cmd.inputs`` are its resolved input references; those that are folders are bound
+    read-only (a ``url`` input's download and a copy sit in paths bound read-only already).
+    """
+    inputs = sorted({Path(ref) for ref in cmd.inputs.values() if ref.startswith("/")})
+    return View(hidden=hidden, readonly=(dirs.root, dirs.url_inputs, *inputs),
+                writable=(dirs.work, dirs.output_partial, dirs.files), cwd=dirs.work)
 
 
 def remove_secret_files(launch: Launch) -> None:

@@ -5,8 +5,6 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import pytest
-
 from tests.conftest import Osmo, write
 
 MAKE = r"""
@@ -92,12 +90,7 @@ def test_upload_download_and_the_callers_files_stay_writable(osmo: Osmo,
     assert _datasets(osmo)[0]["made_by"] is None
 
 
-TAMPER = r"""
-workflow:
-  name: tamper
-  tasks:
-  - name: t
-    command: [sh, /opt/tamper.sh, "{{input:0}}", "{{output}}/ops.txt"]
+TAMPER_FILE = r"""
     files:
     - path: /opt/tamper.sh
       contents: |
@@ -109,6 +102,16 @@ workflow:
           try rm "$d/sub/b.txt"
           try chmod 777 "$d/a.txt"
         } > "$2"
+"""
+"""A task's ``files:`` entry: ``sh /opt/tamper.sh FOLDER REPORT`` tries 4 changes in FOLDER
+(``a.txt``, ``sub/b.txt``) and writes ``allowed: ...`` or ``denied: ...`` for each."""
+
+TAMPER = r"""
+workflow:
+  name: tamper
+  tasks:
+  - name: t
+    command: [sh, /opt/tamper.sh, "{{input:0}}", "{{output}}/ops.txt"]""" + TAMPER_FILE + """\
     inputs:
     - dataset: {name: kept}
 """
@@ -125,13 +128,9 @@ workflow:
 """
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "issue 19/13: each task gets its own checked copy of a dataset version, so other consumers "
-    "never see a change (test_dataset_inputs_are_private below), but the copy itself is "
-    "writable: mode bits cannot stop a task running as root; a read-only bind mount can."))
 def test_dataset_inputs_are_read_only(osmo: Osmo, tmp_path: Path) -> None:
-    """A dataset version is handed to a task read-only (DESIGN: inputs read-only). The
-    README promised "a read-only folder" until this test showed it is not; it now says so."""
+    """A dataset version is handed to a task read-only (DESIGN: inputs read-only): the process
+    sandbox binds it read-only, so append, create, delete and chmod all fail."""
     src = tmp_path / "data"
     write(src / "a.txt", "alpha\n")
     write(src / "sub" / "b.txt", "beta\n")
@@ -145,8 +144,9 @@ def test_dataset_inputs_are_read_only(osmo: Osmo, tmp_path: Path) -> None:
 
 
 def test_dataset_inputs_are_private(osmo: Osmo, tmp_path: Path) -> None:
-    """Whatever a task does to its dataset input, the next consumer of the version reads the
-    version as uploaded (each attempt gets its own checked copy)."""
+    """Without a sandbox, whatever a task does to its dataset input, the next consumer of the
+    version reads the version as uploaded (each attempt gets its own checked copy)."""
+    osmo("server", "start", "--sandbox", "off", check=True)
     src = tmp_path / "data"
     write(src / "a.txt", "alpha\n")
     write(src / "sub" / "b.txt", "beta\n")

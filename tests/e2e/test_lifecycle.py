@@ -23,6 +23,19 @@ def _alive(pid: int) -> bool:
     return Path(f"/proc/{pid}").exists() and "Z" not in Path(f"/proc/{pid}/stat").read_text().split()[2]
 
 
+def _pids_with(text: str) -> set[int]:
+    """Live processes whose command line holds ``text``: a sandboxed task's ``$$`` is a pid of
+    its own namespace, so the tests find its processes by a unique argument instead."""
+    found = set()
+    for name in os.listdir("/proc"):
+        try:
+            if name.isdigit() and text.encode() in Path(f"/proc/{name}/cmdline").read_bytes():
+                found.add(int(name))
+        except OSError:
+            pass
+    return {pid for pid in found if _alive(pid)}
+
+
 def _wait_file(path: Path, timeout: float = 60) -> str:
     deadline = time.monotonic() + timeout
     while not path.exists() or not path.read_text().strip():
@@ -54,26 +67,28 @@ def test_unreachable_server_exit_code(osmo: Osmo) -> None:
 
 def test_cancel_kills_the_process_group(osmo: Osmo, tmp_path: Path) -> None:
     pidfile = tmp_path / "pid"
+    marker = f"600.{os.getpid()}{time.monotonic_ns() % 10**6}"  # a unique `sleep` argument
     spec = write(tmp_path / "c.yaml", f"""
 workflow:
   name: cancelme
   tasks:
   - name: long
-    command: [sh, -c, "sleep 600 & echo $! > {pidfile}; wait"]
+    command: [sh, -c, "sleep {marker} & echo $! > {pidfile}; wait"]
   - name: next
     command: ["true"]
     inputs: [{{task: long}}]
 """)
     wf_id = osmo.submit(spec)
-    child = int(_wait_file(pidfile))
-    assert _alive(child)
+    _wait_file(pidfile)
+    task = _pids_with(marker)  # the task's shell, its `sleep` child (and a sandbox's bwrap)
+    assert task
     r = osmo("cancel", wf_id, check=True)
     assert "FAILED_CANCELED" in r.out
     info = osmo.wait_for(wf_id, lambda i: i["status"] == "FAILED_CANCELED")
     assert {t["name"]: t["status"] for t in info["tasks"]} == {
         "long": "FAILED_CANCELED", "next": "FAILED_CANCELED"}
     deadline = time.monotonic() + 30
-    while _alive(child):  # the grandchild `sleep` dies with the process group
+    while any(map(_alive, task)):  # the grandchild `sleep` dies with the process group
         assert time.monotonic() < deadline, "task's child process survived cancel"
         time.sleep(0.05)
 
@@ -122,7 +137,9 @@ workflow:
     inputs: [{{task: second}}]
 """)
     wf_id = osmo.submit(spec)
-    old_task_pid = int(_wait_file(started))
+    _wait_file(started)
+    old_task = _pids_with(str(release))
+    assert old_task
     server = osmo.server_pid()
     assert server is not None
     os.kill(server, signal.SIGKILL)
@@ -135,7 +152,7 @@ workflow:
     assert osmo("query", wf_id, check=True).code == 0
     _wait_file(started)
     deadline = time.monotonic() + 30
-    while _alive(old_task_pid):  # the orphaned attempt was killed by pid, not left running
+    while any(map(_alive, old_task)):  # the orphaned attempt was killed, not left running
         assert time.monotonic() < deadline, "the lost attempt's process was left running"
         time.sleep(0.05)
     release.write_text("go")

@@ -7,6 +7,7 @@ SIGKILL that follows can end them, and the time it took is the grace.
 
 from __future__ import annotations
 
+import os
 import time
 from pathlib import Path
 
@@ -52,11 +53,12 @@ workflow:
     while len(pids := _pids(tmp_path / "pids")) < 2:
         assert time.monotonic() < deadline, "the task never started"
         time.sleep(0.02)
+    host = _host_pids(str(tmp_path), pids)  # in a sandbox the task's pids are its own
     canceled_at = time.time()
     osmo("cancel", wf, check=True)
     gone_at = {}
     for pid in pids:
-        wait_gone(pid, timeout=GRACE + MARGIN + 10)
+        wait_gone(host[pid], timeout=GRACE + MARGIN + 10)
         gone_at[pid] = time.time()
     for pid in pids:
         assert gone_at[pid] - canceled_at >= GRACE, "SIGKILL came before the grace ran out"
@@ -75,6 +77,25 @@ def _pids(path: Path) -> list[int]:
         return [int(p) for p in path.read_text().split()]
     except FileNotFoundError:
         return []
+
+
+def _host_pids(marker: str, pids: list[int]) -> dict[int, int]:
+    """The task's own pid → its pid on this host, for processes whose command line holds
+    ``marker`` (``NSpid`` in ``/proc/<pid>/status``: its pid in each pid namespace)."""
+    found = {}
+    for name in os.listdir("/proc"):
+        try:
+            if not name.isdigit() or marker.encode() not in Path(
+                    f"/proc/{name}/cmdline").read_bytes():
+                continue
+            status = Path(f"/proc/{name}/status").read_text()
+        except OSError:
+            continue
+        nspid = [line.split()[-1] for line in status.splitlines() if line.startswith("NSpid:")]
+        if nspid and int(nspid[0]) in pids:
+            found[int(nspid[0])] = int(name)
+    assert set(found) == set(pids), (found, pids)
+    return found
 
 
 def _indent(text: str, n: int) -> str:

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.conftest import Osmo, ended, write
+from tests.conftest import Osmo, ended, host_pid, write
 from tests.e2e.cluster import Cluster
 
 
@@ -85,5 +85,7 @@ def _kill_orphans(pids: Path) -> None:
     if not pids.exists():
         return
     for line in pids.read_text().split():
-        with contextlib.suppress(ProcessLookupError):
-            os.kill(int(line), signal.SIGKILL)
+        pid = host_pid(int(line), str(pids.parent))  # a sandboxed task's $$ is its own
+        if pid is not None:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)

@@ -12,7 +12,15 @@ from pathlib import Path
 
 import pytest
 
-from tests.conftest import ended, process_alive, read_pid, wait_gone, write
+from tests.conftest import (
+    ended,
+    process_alive,
+    read_pid,
+    unique_sleep,
+    wait_gone,
+    wait_no_process,
+    write,
+)
 from tests.e2e.cluster import Cluster
 
 
@@ -455,22 +463,23 @@ workflow:
     command: [sh, -c, "echo started; sleep 600 & echo $! > {pidfile}; wait"]
 """)
     wf = cluster.osmo.submit(spec)
-    cluster.osmo.wait_for(wf, lambda i: pidfile.exists() and pidfile.read_text().strip() != "")
-    child = int(pidfile.read_text())
+    child = read_pid(pidfile)
     cluster.osmo("cancel", wf, check=True)
     info = cluster.osmo.wait_for(wf, ended)
     assert info["status"] == "FAILED_CANCELED"
     wait_gone(child, timeout=10)  # the remote task's whole process group was killed
     logs = cluster.osmo("logs", wf, check=True).out
     assert "[long] started" in logs  # streamed from the worker
+    marker = unique_sleep()
     timed = write(tmp_path / "timeout.yaml", f"""
 workflow:
   name: timed
   timeout: {{exec_timeout: 2s}}
   tasks:
   - name: slow
-    command: [sh, -c, "echo $$ > {tmp_path}/timed-pid; exec sleep 600"]
+    command: [sh, -c, "echo $$ > {tmp_path}/timed-pid; exec sleep {marker}"]
 """)
     info = cluster.osmo.wait_for(cluster.osmo.submit(timed), ended, timeout=60)
     assert info["status"] == "FAILED_EXEC_TIMEOUT", info
-    wait_gone(read_pid(tmp_path / "timed-pid"), timeout=10)  # the worker killed it
+    assert (tmp_path / "timed-pid").exists()  # it ran
+    wait_no_process(marker, timeout=10)  # the worker killed it

@@ -6,7 +6,7 @@ import shutil
 import socket
 from pathlib import Path
 
-from tests.conftest import REPO, Osmo, read_pid, wait_gone, write
+from tests.conftest import REPO, Osmo, unique_sleep, wait_no_process, write
 
 
 def _statuses(info: dict) -> dict[str, str]:
@@ -196,13 +196,14 @@ workflow:
 
 
 def test_exec_timeout_kills_and_fails(shared_osmo: Osmo, tmp_path: Path) -> None:
+    marker = unique_sleep()
     spec = write(tmp_path / "slow.yaml", f"""
 workflow:
   name: slow
   timeout: {{exec_timeout: 1s}}
   tasks:
   - name: sleeper
-    command: [sh, -c, "echo $$ > {tmp_path}/pid; exec sleep 600"]
+    command: [sh, -c, "echo $$ > {tmp_path}/pid; exec sleep {marker}"]
   - name: after
     command: ["true"]
     inputs: [{{task: sleeper}}]
@@ -212,7 +213,8 @@ workflow:
     info = shared_osmo.query(r.out.splitlines()[0].split(" - ")[1])
     assert info["status"] == "FAILED_EXEC_TIMEOUT"
     assert _statuses(info) == {"sleeper": "FAILED_EXEC_TIMEOUT", "after": "FAILED_UPSTREAM"}
-    wait_gone(read_pid(tmp_path / "pid"), timeout=10)  # killed, not just marked
+    assert (tmp_path / "pid").exists()  # it ran
+    wait_no_process(marker, timeout=10)  # killed, not just marked
 
 
 def test_upstream_failure_cascades(shared_osmo: Osmo, tmp_path: Path) -> None:

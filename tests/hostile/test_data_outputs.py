@@ -89,7 +89,8 @@ def test_a_hard_link_to_an_outside_file_is_copied_never_changed(osmo: Osmo,
     outside = tmp_path / "outside.txt"
     outside.write_text("before\n")
     outside.chmod(0o644)
-    osmo("server", "start", check=True)
+    # unsandboxed: in the sandbox OSMO_HOME is hidden and a link across its mounts fails
+    osmo("server", "start", "--sandbox", "off", check=True)
     db = osmo.home / "state.db"
     db_mode = db.stat().st_mode
     spec = write(tmp_path / "link.yaml", f"""

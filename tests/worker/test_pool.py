@@ -99,6 +99,17 @@ def pool(tmp_path: Path, events: Events) -> Iterator[LocalPool]:
     pool.close()
 
 
+@pytest.fixture
+def bare_pool(tmp_path: Path, events: Events) -> Iterator[LocalPool]:
+    """Unsandboxed: for tests that read host pids (``$!``) or share host files with a task.
+
+    (In the sandbox, pids are its own and ``/tmp`` is private: tests/runtime/test_sandbox.py.)
+    """
+    pool = LocalPool(home=tmp_path / "home", emit=events, kill_grace=0.5, sandbox="off")
+    yield pool
+    pool.close()
+
+
 def submit(
     pool: LocalPool, task: TaskSpec, retry: int = 0, *, run: bool = True, **kw: dict[str, str]
 ) -> str:
@@ -168,8 +179,8 @@ def test_exit_by_signal(pool: LocalPool, events: Events) -> None:
     assert final.exit_code == 128 + signal.SIGUSR1
 
 
-def test_promotion_failure_is_reported(pool: LocalPool, events: Events) -> None:
-    final = events.final(submit(pool, sh("gone", 'rmdir "$OSMO_OUTPUT"')))
+def test_promotion_failure_is_reported(bare_pool: LocalPool, events: Events) -> None:
+    final = events.final(submit(bare_pool, sh("gone", 'rmdir "$OSMO_OUTPUT"')))
     assert isinstance(final, AttemptExited)
     assert (final.exit_code, final.output) == (0, None)
     assert "outputs could not be promoted" in final.message
@@ -258,21 +269,21 @@ def test_large_output_is_not_lost(pool: LocalPool, events: Events) -> None:
 # ---------------------------------------------------------------- kill
 
 
-def test_kill_running_kills_grandchildren(pool: LocalPool, events: Events) -> None:
-    aid = submit(pool, sh("k", "sleep 100 & echo $! > bg.pid; echo started; sleep 100"))
+def test_kill_running_kills_grandchildren(bare_pool: LocalPool, events: Events) -> None:
+    aid = submit(bare_pool, sh("k", "sleep 100 & echo $! > bg.pid; echo started; sleep 100"))
     started = events.wait_for(lambda e: isinstance(e, AttemptStarted))
     assert isinstance(started, AttemptStarted) and started.pid is not None
-    folder = attempt_dir(pool, aid)
+    folder = attempt_dir(bare_pool, aid)
     assert folder is not None
-    wait_until(lambda: ("stdout", "started") in log_of(pool, aid))
+    wait_until(lambda: ("stdout", "started") in log_of(bare_pool, aid))
     grandchild = int((folder / "work" / "bg.pid").read_text())
     assert alive(started.pid) and started.pid_start is not None
-    pool.kill(KillAttempt(aid, LOCAL_NODE, "exec timeout"))
+    bare_pool.kill(KillAttempt(aid, LOCAL_NODE, "exec timeout"))
     final = events.final(aid)
     assert isinstance(final, AttemptExited)
     assert (final.exit_code, final.output) == (128 + signal.SIGTERM, None)
     assert "exec timeout" in final.message
-    assert ("osmo", "killed: exec timeout") in log_of(pool, aid)
+    assert ("osmo", "killed: exec timeout") in log_of(bare_pool, aid)
     assert not (folder / "output").exists()
     wait_until(lambda: not alive(grandchild))
     assert not alive(started.pid)
@@ -342,7 +353,7 @@ def test_close_kills_running_processes(tmp_path: Path, events: Events) -> None:
 
 
 def test_parallel_tasks_see_their_own_files(
-    pool: LocalPool, events: Events, tmp_path: Path
+    bare_pool: LocalPool, events: Events, tmp_path: Path
 ) -> None:
     """Both tasks declare /tmp/run.sh; each runs its own script while the other is alive."""
     gate = tmp_path / "gate"
@@ -361,7 +372,7 @@ def test_parallel_tasks_see_their_own_files(
             name=name, command=("/tmp/run.sh",), files=(FileSpec("/tmp/run.sh", script),)
         )
 
-    ids = [submit(pool, task(name)) for name in ("first", "second")]
+    ids = [submit(bare_pool, task(name)) for name in ("first", "second")]
     for aid in ids:
         events.wait_for(lambda e: isinstance(e, AttemptStarted) and e.attempt_id == aid)  # noqa: B023
     gate.touch()
@@ -370,7 +381,7 @@ def test_parallel_tasks_see_their_own_files(
         assert isinstance(final, AttemptExited) and final.output is not None, final
         assert Path(final.output, "seen").read_text() == f"{name}\n"
         assert f"echo {name} >" in Path(final.output, "script").read_text()
-        folder = attempt_dir(pool, aid)
+        folder = attempt_dir(bare_pool, aid)
         assert folder is not None
         assert (
             Path(final.output, "script").read_text().count(str(folder / "files" / "tmp" / "run.sh"))
@@ -421,11 +432,11 @@ def test_many_trivial_attempts_each_report_once(pool: LocalPool, events: Events)
         assert events.of(aid) == [AttemptPrepared, AttemptStarted, AttemptExited]
 
 
-def test_background_children_end_with_the_main_process(pool: LocalPool, events: Events) -> None:
-    aid = submit(pool, sh("bg", "sleep 100 & echo $! > bg.pid"))
+def test_background_children_end_with_the_main_process(bare_pool: LocalPool, events: Events) -> None:
+    aid = submit(bare_pool, sh("bg", "sleep 100 & echo $! > bg.pid"))
     final = events.final(aid)
     assert isinstance(final, AttemptExited) and final.exit_code == 0
-    folder = attempt_dir(pool, aid)
+    folder = attempt_dir(bare_pool, aid)
     assert folder is not None
     grandchild = int((folder / "work" / "bg.pid").read_text())
     wait_until(lambda: not alive(grandchild))

@@ -14,6 +14,7 @@ from osmo.errors import OsmoError
 from osmo.layout import Home
 from osmo.scheduler.types import PrepareAttempt
 from osmo.spec.model import FileSpec, InputSpec, ResolvedType, TaskSpec
+from osmo.worker.launch import osmo_paths
 from osmo.worker.workdir import PrepareError, prepare, promote, remove_secret_files
 
 
@@ -195,7 +196,7 @@ def test_typed_task_runs_the_runner_on_its_context_file(tmp_path: Path) -> None:
     dirs, launch = prep(tmp_path, task, cmd, {"PYTHONPATH": "/old"})
     context = dirs.root / "task.json"
     assert launch.argv == (sys.executable, "-m", "osmo.tasktypes.runner", str(context))
-    assert launch.env["PYTHONPATH"] == f"/src{os.pathsep}/old"
+    assert launch.env["PYTHONPATH"] == os.pathsep.join(["/src", "/old", *osmo_paths()])
     data = json.loads(context.read_text())
     assert (data["type"], data["type_version"], data["params"], data["paths"]) == (
         "mod:fn", "3", {"n": 1}, ["/src"])

@@ -1,0 +1,98 @@
+"""What the process sandbox (bubblewrap) costs per task, and what skipping input copies saves.
+
+Rows:
+
+- spawn + reap of `true` through ``ProcessRuntime``, unsandboxed (with its parent-death
+  ``preexec_fn``) and in the sandbox, in ms per spawn (one at a time);
+- a chain of ``--tasks`` `true` tasks (one task at a time: per-task latency) with
+  ``--sandbox off`` and ``on``;
+- bench_inputs.py's fan-out whose tasks read their inputs, ``off`` (each attempt gets its own
+  copy) and ``on`` (inputs bound read-only, no copies).
+
+Same method as bench_engine.py (fresh server per run, ``no_cache``, submit → COMPLETED).
+
+Usage: python bench/bench_sandbox.py [--runs 3] [--tasks 300] [--fanout 1000] [--spawns 200]
+       [--base DIR] [--json out.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import select
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from bench_engine import chain, run_once  # noqa: E402
+from bench_inputs import fan_out_reading  # noqa: E402
+from benchlib import quick, row, write_rows  # noqa: E402
+
+from osmo.runtime import ProcessRuntime  # noqa: E402
+from osmo.runtime.sandbox import View, choose  # noqa: E402
+from osmo.server.options import ServerOptions  # noqa: E402
+
+
+def spawn_ms(runtime: ProcessRuntime, folder: Path, n: int, sandboxed: bool) -> float:
+    """Median ms to start `true` and collect its exit."""
+    work = folder / "work"
+    work.mkdir(exist_ok=True)
+    view = View(hidden=(folder,), readonly=(), writable=(work,), cwd=work) if sandboxed else None
+    times = []
+    for _ in range(n):
+        t0 = time.perf_counter()
+        handle = runtime.start(["true"], cwd=work, env={"PATH": os.environ["PATH"]}, view=view)
+        select.select([handle.exit_fd], [], [])
+        runtime.reap(handle)
+        runtime.release(handle)
+        times.append((time.perf_counter() - t0) * 1e3)
+    return statistics.median(times)
+
+
+def main() -> None:
+    """Run every shape ``--runs`` times, alternating off/on, and write the rows."""
+    small = quick()
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--runs", type=int, default=1 if small else 3)
+    parser.add_argument("--tasks", type=int, default=20 if small else 300)
+    parser.add_argument("--fanout", type=int, default=20 if small else 1000)
+    parser.add_argument("--spawns", type=int, default=10 if small else 200)
+    parser.add_argument("--json")
+    parser.add_argument("--base", help="folder for the OSMO_HOMEs (default: system temp)")
+    args = parser.parse_args()
+    sandbox = choose("on")
+    rows = []
+    spawns: dict[str, list[float]] = {"off": [], "on": []}
+    with tempfile.TemporaryDirectory(dir=args.base) as folder:
+        for _ in range(args.runs):
+            spawns["off"].append(spawn_ms(ProcessRuntime(), Path(folder), args.spawns, False))
+            spawns["on"].append(spawn_ms(ProcessRuntime(sandbox), Path(folder), args.spawns,
+                                         True))
+    for mode, values in spawns.items():
+        rows.append(row(f"spawn+reap `true`, sandbox {mode}", "ms", values,
+                        higher_is_better=False, notes=f"median of {args.spawns} spawns per run"))
+    shapes = {f"osmo chain {args.tasks:,} `true` tasks": (chain(args.tasks).build(), args.tasks)}
+    if not small:  # the smoke run (bench/run --quick) skips the slowest shape
+        shapes[f"osmo fan-out/join {args.fanout:,} tasks reading 3 x 1024 B inputs"] = (
+            fan_out_reading(args.fanout, 3, 1024).build(), args.fanout)
+    for name, (spec, n) in shapes.items():
+        times: dict[str, list[float]] = {"off": [], "on": []}
+        for _ in range(args.runs):
+            for mode in times:
+                options = ServerOptions(sandbox=mode)  # type: ignore[arg-type]
+                times[mode].append(run_once(spec, args.base, options))
+        for mode, runs in times.items():
+            rows.append(row(f"{name}, sandbox {mode}", "tasks/s", [n / t for t in runs],
+                            higher_is_better=True,
+                            notes=f"submit→COMPLETED median {statistics.median(runs):.2f} s, "
+                                  f"{1000 * statistics.median(runs) / n:.2f} ms/task"))
+    write_rows(args.json, rows)
+
+
+if __name__ == "__main__":
+    main()

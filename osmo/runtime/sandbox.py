@@ -1,0 +1,166 @@
+"""The process runtime's sandbox: bubblewrap (``bwrap``), the one module that knows its flags.
+
+A sandboxed command sees (``Sandbox.argv``, from an attempt's :class:`View`):
+
+- the host's file system **read-only** (``--ro-bind / /``) but for the host's ``/tmp``,
+  which stays writable and shared (see below); a minimal ``/dev`` (null, zero, random, tty,
+  a private ``shm``, ...) plus the GPU device nodes found at probe time (``/dev/nvidia*``,
+  ``/dev/dri``, bound as they are, so CUDA and EGL work);
+- osmo's home **hidden** under an empty tmpfs (state store, blobs, other attempts' folders,
+  credentials), with only the attempt's own paths bound back at the same absolute paths, so
+  ``{{output}}``, ``{{input:N}}`` and ``OSMO_OUTPUT`` work unchanged: its folder read-only,
+  its ``work/``, ``output.partial/`` and ``files/`` writable, its inputs read-only;
+- its own **pid namespace** with its own ``/proc``: other tasks' processes, and their
+  ``/proc/<pid>/environ``, do not exist for it;
+- the host's network (tasks reach each other through ``{{host:NAME}}``), user and ipc.
+
+``--die-with-parent``: the sandbox is SIGKILLed when the process that started it (the pool
+thread that spawned it) ends, so no task outlives its worker or server. Everything in the
+sandbox shares bwrap's process group; the pid namespace ends, and the kernel kills every
+process left in it, when the command ends (a daemon that called ``setsid`` included).
+
+Why ``/tmp`` is shared, not private: workflows (and this project's own tests) hand files to
+and from tasks through ``/tmp`` on one host; a private ``/tmp`` broke them. osmo's home
+stays hidden even when it lies under ``/tmp``. ``Sandbox(private_tmp=True)`` gives each task
+its own empty ``/tmp`` instead.
+
+What it does not do: keep tasks apart in ``/tmp``; limit CPU, memory or disk; filter system
+calls (the kernel's attack surface is the host's); change the user (the task runs as the
+worker's uid, so anything that uid can reach over the network, it can reach too).
+
+Availability: :func:`choose` probes once per process whether ``bwrap`` exists and can make
+the namespaces (some machines forbid unprivileged user namespaces).
+"""
+
+from __future__ import annotations
+
+import functools
+import glob
+import os
+import shutil
+import subprocess
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+from osmo.errors import InfrastructureError, UsageError
+
+__all__ = ["MODES", "Sandbox", "SandboxMode", "View", "choose", "unavailable_reason"]
+
+SandboxMode = Literal["auto", "on", "off"]
+MODES: tuple[SandboxMode, ...] = ("auto", "on", "off")
+"""``auto``: sandbox when bubblewrap works here; ``on``: required; ``off``: never."""
+
+_PACKAGE = "bubblewrap"
+_PROBE_TIMEOUT = 10.0
+_GPU_DEVICES = ("/dev/nvidia*", "/dev/dri")
+
+
+@dataclass(frozen=True)
+class View:
+    """What one attempt may see of osmo's folders (every path absolute).
+
+    Attributes:
+        hidden: folders replaced by an empty tmpfs (osmo's home).
+        readonly: paths bound back read-only (the attempt's folder, its inputs).
+        writable: paths bound back writable (``work/``, ``output.partial/``, ``files/``).
+        cwd: the command's working folder inside the sandbox.
+    """
+
+    hidden: tuple[Path, ...]
+    readonly: tuple[Path, ...]
+    writable: tuple[Path, ...]
+    cwd: Path
+
+
+@dataclass(frozen=True)
+class Sandbox:
+    """A working bubblewrap: builds the argv that runs a command in an attempt's view.
+
+    Attributes:
+        bwrap: the ``bwrap`` executable.
+        devices: host device nodes bound into the sandbox's ``/dev`` (GPUs).
+        private_tmp: an empty tmpfs on ``/tmp`` instead of the host's (see the module
+            docstring).
+    """
+
+    bwrap: str
+    devices: tuple[str, ...] = ()
+    private_tmp: bool = False
+
+    def argv(self, command: Sequence[str], view: View) -> list[str]:
+        """``command`` wrapped in bwrap with ``view`` (see the module docstring).
+
+        Mounts are applied in order, so the binds come after the tmpfs that hides their
+        parent, and a parent's read-only bind before its writable children.
+        """
+        out = [self.bwrap, "--ro-bind", "/", "/", "--dev", "/dev"]
+        for device in self.devices:
+            out += ["--dev-bind-try", device, device]
+        out += ["--proc", "/proc", *(["--tmpfs", "/tmp"] if self.private_tmp else
+                                     ["--bind-try", "/tmp", "/tmp"]),
+                "--unshare-pid", "--die-with-parent"]
+        for folder in sorted({_real(p) for p in view.hidden}, key=_depth):
+            out += ["--tmpfs", folder]
+        binds = [(_real(p), "--ro-bind-try") for p in view.readonly]
+        binds += [(_real(p), "--bind-try") for p in view.writable]
+        for path, flag in sorted(binds, key=lambda b: (_depth(b[0]), b[1] == "--bind-try")):
+            out += [flag, path, path]
+        return [*out, "--chdir", _real(view.cwd), "--", *command]
+
+
+def _real(path: Path) -> str:
+    return os.path.realpath(path)
+
+
+def _depth(path: str) -> int:
+    return path.rstrip("/").count("/")
+
+
+def choose(mode: SandboxMode) -> Sandbox | None:
+    """The sandbox to use for ``mode`` (None: run commands unsandboxed).
+
+    Raises:
+        UsageError: ``mode`` is not one of :data:`MODES`.
+        InfrastructureError: ``mode`` is ``on`` and bubblewrap is missing or does not work
+            here (the message names the package and the reason).
+    """
+    if mode not in MODES:
+        raise UsageError(f"sandbox mode {mode!r}: choose one of {', '.join(MODES)}")
+    if mode == "off":
+        return None
+    sandbox = _probe()
+    if sandbox is None and mode == "on":
+        raise InfrastructureError(f"--sandbox on: {unavailable_reason()}")
+    return sandbox
+
+
+def unavailable_reason() -> str:
+    """Why no sandbox is available here (empty when one is)."""
+    return _probe_result()[1]
+
+
+def _probe() -> Sandbox | None:
+    return _probe_result()[0]
+
+
+@functools.cache  # once per process: whether bwrap works does not change while we run
+def _probe_result() -> tuple[Sandbox | None, str]:
+    bwrap = shutil.which("bwrap")
+    if bwrap is None:
+        return None, (f"bubblewrap is not installed (install the '{_PACKAGE}' package, "
+                      "e.g. apt-get install bubblewrap)")
+    probe = [bwrap, "--ro-bind", "/", "/", "--dev", "/dev", "--proc", "/proc",
+             "--unshare-pid", "--die-with-parent", "--", "true"]
+    try:
+        done = subprocess.run(probe, stdin=subprocess.DEVNULL, capture_output=True,
+                              timeout=_PROBE_TIMEOUT, check=False)
+    except (OSError, subprocess.SubprocessError) as exc:
+        return None, f"bubblewrap ({bwrap}) cannot run: {exc}"
+    if done.returncode != 0:
+        message = done.stderr.decode("utf-8", "replace").strip() or f"exit {done.returncode}"
+        return None, (f"bubblewrap ({bwrap}) cannot make namespaces here: {message} "
+                      "(are user namespaces disabled?)")
+    devices = tuple(sorted(d for pattern in _GPU_DEVICES for d in glob.glob(pattern)))
+    return Sandbox(bwrap, devices), ""

@@ -1,0 +1,51 @@
+"""The environment a task starts from: a small documented base, never the worker's own.
+
+A task's environment is built from its spec (``osmo.worker.workdir.prepare`` adds the spec's
+``environment``, its credentials' variables and osmo's ``OSMO_*`` variables on top of this
+base). The server's or worker's environment is not inherited: it may hold the server's
+secrets, ``OSMO_HOME``, cloud credentials or a zenoh config, none of which is the task's.
+Like a container, which gets only its image's variables and the spec's.
+
+The base (:data:`BASE_VARIABLES`), copied from the worker's environment when set there:
+
+- ``PATH``, so commands are found as on the worker (``/usr/local/bin:/usr/bin:/bin`` if unset);
+- ``HOME``, ``USER``, ``LOGNAME``, ``SHELL``: who runs it (read-only in the sandbox);
+- ``LANG``, ``LANGUAGE``, ``LC_ALL``, ``LC_CTYPE``, ``TZ``: how text and time read.
+
+``TMPDIR`` is left out on purpose: the default ``/tmp`` is the task's own in the sandbox,
+while the worker's ``TMPDIR`` may be shared or read-only there.
+
+In the sandbox, where the host (``HOME`` included) is read-only, ``XDG_CACHE_HOME`` is the
+attempt's ``work/.cache`` unless the spec sets it (:func:`sandbox_env`): libraries that cache
+under ``~/.cache`` (Hugging Face datasets, torch, matplotlib) then write there.
+
+Typed tasks get one more variable (``osmo.worker.launch.runner_env``): ``PYTHONPATH`` with the
+task type's folders and the folders osmo and its plugins were imported from, so the runner
+imports the same osmo as the worker.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+
+__all__ = ["BASE_VARIABLES", "DEFAULT_PATH", "base_env", "sandbox_env"]
+
+BASE_VARIABLES = ("PATH", "HOME", "USER", "LOGNAME", "SHELL",
+                  "LANG", "LANGUAGE", "LC_ALL", "LC_CTYPE", "TZ")
+"""The worker's variables every task gets (when set)."""
+
+DEFAULT_PATH = "/usr/local/bin:/usr/bin:/bin"
+"""``PATH`` when the worker has none."""
+
+
+def base_env(environ: Mapping[str, str]) -> dict[str, str]:
+    """The base of every task's environment, taken from ``environ`` (the worker's)."""
+    env = {name: environ[name] for name in BASE_VARIABLES if name in environ}
+    env.setdefault("PATH", DEFAULT_PATH)
+    return env
+
+
+def sandbox_env(env: Mapping[str, str], work: Path) -> dict[str, str]:
+    """Variables to add for a sandboxed task whose complete environment is ``env``."""
+    return {} if "XDG_CACHE_HOME" in env else {"XDG_CACHE_HOME": str(work / ".cache")}

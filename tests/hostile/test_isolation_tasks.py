@@ -1,0 +1,91 @@
+"""Tasks are isolated from each other: environ, attempt folders, inputs (end to end, CLI).
+
+The process sandbox (default wherever bubblewrap works) gives each task its own pid namespace
+and ``/proc``, hides osmo's home but for the task's own folders, and binds inputs read-only.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from tests.conftest import Osmo, ended, write
+from tests.e2e.test_datasets import TAMPER_FILE
+
+SECRET = "environ-secret-5b2f7a"
+
+ENVIRON = """
+workflow:
+  name: environ
+  tasks:
+  - name: holder
+    command: [sh, -c, 'sleep 6']
+    credentials:
+      api: {API_TOKEN: token}
+  - name: thief
+    command: [sh, -c, 'for i in $(seq 40); do
+        if cat /proc/[0-9]*/environ 2>/dev/null | tr "\\0" "\\n" | grep -q "^API_TOKEN=";
+        then echo found > {{output}}/seen; exit 0; fi; sleep 0.1; done;
+      echo nothing > {{output}}/seen']
+"""
+
+FOLDERS = """
+workflow:
+  name: folders
+  tasks:
+  - name: a
+    command: [sh, -c, 'echo private > note; echo shared > {{output}}/out']
+  - name: b
+    command: [sh, -c, 'A=@HOME@/runs/{{workflow_id}}/a/0;
+      if cat "$A/work/note" > /dev/null 2>&1; then echo readable; else echo hidden; fi
+        > {{output}}/work;
+      ls "$A" > {{output}}/listing 2>&1; cat {{input:a}}/out > {{output}}/input; exit 0']
+    inputs:
+    - task: a
+"""
+
+TAMPER = r"""
+workflow:
+  name: tamper
+  tasks:
+  - name: make
+    command: [sh, -c, 'echo alpha > {{output}}/a.txt; mkdir {{output}}/sub;
+      echo beta > {{output}}/sub/b.txt']
+  - name: tamper
+    command: [sh, /opt/tamper.sh, "{{input:make}}", "{{output}}/ops.txt"]""" + TAMPER_FILE + """\
+    inputs:
+    - task: make
+  - name: read
+    command: [sh, -c, 'cat {{input:make}}/a.txt {{input:make}}/sub/b.txt > {{output}}/seen.txt;
+      ls {{input:make}} >> {{output}}/seen.txt']
+    inputs:
+    - task: make
+    - task: tamper
+"""
+
+
+def _done(osmo: Osmo, spec: Path) -> dict[str, Path]:
+    info = osmo.wait_for(osmo.submit(spec), ended)
+    assert info["status"] == "COMPLETED", info
+    return {t["name"]: Path(t["output"]) for t in info["tasks"]}
+
+
+def test_task_cannot_read_another_tasks_environ(osmo: Osmo, tmp_path: Path) -> None:
+    osmo("credential", "set", "api", "--payload", f"token={SECRET}", check=True)
+    out = _done(osmo, write(tmp_path / "environ.yaml", ENVIRON))
+    assert (out["thief"] / "seen").read_text() == "nothing\n"
+
+
+def test_task_cannot_see_another_attempts_folder(osmo: Osmo, tmp_path: Path) -> None:
+    home = str(osmo.home.absolute())
+    out = _done(osmo, write(tmp_path / "folders.yaml", FOLDERS.replace("@HOME@", home)))
+    assert (out["b"] / "work").read_text() == "hidden\n"
+    assert "work" not in (out["b"] / "listing").read_text().split()
+    assert (out["b"] / "input").read_text() == "shared\n"  # its own input is there
+
+
+def test_task_cannot_modify_its_inputs(osmo: Osmo, tmp_path: Path) -> None:
+    out = _done(osmo, write(tmp_path / "tamper.yaml", TAMPER))
+    ops = (out["tamper"] / "ops.txt").read_text()
+    assert "allowed" not in ops and ops.count("denied") == 4, ops
+    assert (out["read"] / "seen.txt").read_text() == "alpha\nbeta\na.txt\nsub\n"
+    assert (out["make"] / "a.txt").read_text() == "alpha\n"

@@ -1,0 +1,150 @@
+"""The bubblewrap sandbox with real processes: what a command sees, signals, exit codes, choice."""
+
+from __future__ import annotations
+
+import os
+import signal
+from pathlib import Path
+
+import pytest
+
+from osmo.errors import InfrastructureError, UsageError
+from osmo.runtime import ProcessRuntime, StartError
+from osmo.runtime import sandbox as sandbox_mod
+from osmo.runtime.sandbox import Sandbox, View, choose
+from tests.runtime.test_process_runtime import read_all, wait_exit, wait_until
+
+ENV = {"PATH": os.environ["PATH"]}
+
+
+@pytest.fixture
+def box() -> Sandbox:
+    found = choose("on")  # ./dev test installs bubblewrap; CI runs with it
+    assert found is not None
+    return found
+
+
+@pytest.fixture
+def home(tmp_path: Path) -> Path:
+    """An osmo-like home: a secret beside one attempt's folders, and another attempt."""
+    root = tmp_path / "home"
+    for folder in ("a/work", "a/output.partial", "a/files", "other/work", "input"):
+        (root / folder).mkdir(parents=True)
+    (root / "state.db").write_text("secret")
+    (root / "other" / "work" / "note").write_text("other's")
+    (root / "input" / "data.txt").write_text("input")
+    return root
+
+
+def view(home: Path) -> View:
+    a = home / "a"
+    return View(hidden=(home,), readonly=(a, home / "input"),
+                writable=(a / "work", a / "output.partial", a / "files"), cwd=a / "work")
+
+
+def run(box: Sandbox, home: Path, script: str) -> tuple[int, str]:
+    runtime = ProcessRuntime(box)
+    handle = runtime.start(["sh", "-c", script], cwd=home / "a" / "work", env=ENV,
+                           view=view(home))
+    try:
+        out = read_all(handle.stdout_fd).decode()
+        wait_exit(handle)
+        return runtime.reap(handle), out
+    finally:
+        runtime.release(handle)
+
+
+def test_command_sees_only_its_own_folders(box: Sandbox, home: Path) -> None:
+    a = home / "a"
+    code, out = run(box, home, f"""
+        pwd; ls -a {home}; cat {home}/state.db || echo no-db; cat {home}/other/work/note || echo no-other
+        echo made > {a}/output.partial/o && echo wrote-output
+        echo x > {a}/work/w && echo wrote-work
+        echo x > {a}/task.json || echo ro-folder
+        echo x > {home}/input/data.txt || echo ro-input
+        touch /usr/evil || echo ro-host
+        echo x > {home.parent}/shared && echo shared-tmp
+        exit 3""")
+    lines = out.split()
+    assert code == 3
+    assert lines[0] == str(a / "work")
+    assert "state.db" not in lines and "other" not in out.split("no-db")[0]
+    for word in ("no-db", "no-other", "wrote-output", "wrote-work", "ro-folder", "ro-input",
+                 "ro-host", "shared-tmp"):
+        assert word in lines, (word, out)
+    assert (a / "output.partial" / "o").read_text() == "made\n"
+    assert (home / "state.db").read_text() == "secret"
+    assert not (home / "a" / "task.json").exists()
+    assert (home.parent / "shared").read_text() == "x\n"  # the host's /tmp is shared
+
+
+def test_private_tmp_is_the_tasks_own(box: Sandbox, home: Path) -> None:
+    private = Sandbox(box.bwrap, box.devices, private_tmp=True)
+    name = f"/tmp/osmo-private-{os.getpid()}-{id(home)}"
+    (home.parent / "shared").write_text("host")
+    code, out = run(private, home, f"echo x > {name} && cat {name}; ls {home.parent / 'shared'}")
+    assert code != 0 and out == "x\n"  # written in its own /tmp; the host's is not there
+    assert not os.path.exists(name)
+
+
+def test_command_has_its_own_pids(box: Sandbox, home: Path) -> None:
+    code, out = run(box, home, "echo $$; ls /proc | grep -c '^[0-9]'")
+    pid, count = out.split()
+    assert code == 0 and int(pid) <= 3 and int(count) <= 4, out  # bwrap, sh, ls (and grep)
+
+
+@pytest.mark.parametrize(("script", "code"), [("exit 0", 0), ("exit 42", 42),
+                                               ("kill -USR1 $$", 128 + signal.SIGUSR1)])
+def test_exit_codes_are_the_commands_own(box: Sandbox, home: Path, script: str,
+                                         code: int) -> None:
+    assert run(box, home, script)[0] == code
+
+
+def test_sigterm_reaches_the_command_and_grace_is_kept(box: Sandbox, home: Path) -> None:
+    """A SIGTERM must not kill bwrap (that would SIGKILL the sandbox at once)."""
+    runtime = ProcessRuntime(box)
+    out = home / "a" / "output.partial"
+    handle = runtime.start(
+        ["sh", "-c", f"trap 'echo term > {out}/t; exit 7' TERM; touch {out}/ready; "
+                     "while :; do sleep 0.05; done"],
+        cwd=home / "a" / "work", env=ENV, view=view(home))
+    try:
+        wait_until(lambda: (out / "ready").exists())
+        runtime.kill(handle)
+        wait_exit(handle)
+        assert runtime.reap(handle) == 7
+        assert (out / "t").read_text() == "term\n"
+    finally:
+        runtime.release(handle)
+
+
+def test_missing_command_fails_the_start(box: Sandbox, home: Path) -> None:
+    runtime = ProcessRuntime(box)
+    with pytest.raises(StartError, match="command not found: 'no-such-cmd-x'"):
+        runtime.start(["no-such-cmd-x"], cwd=home / "a" / "work", env=ENV, view=view(home))
+
+
+def test_choose_modes(monkeypatch: pytest.MonkeyPatch) -> None:
+    assert choose("off") is None
+    with pytest.raises(UsageError, match="choose one of auto, on, off"):
+        choose("sometimes")  # type: ignore[arg-type]
+    sandbox_mod._probe_result.cache_clear()
+    monkeypatch.setenv("PATH", "/nonexistent")
+    try:
+        assert choose("auto") is None
+        with pytest.raises(InfrastructureError, match="install the 'bubblewrap' package"):
+            choose("on")
+    finally:
+        monkeypatch.undo()
+        sandbox_mod._probe_result.cache_clear()
+
+
+def test_argv_orders_mounts_parents_first(home: Path) -> None:
+    argv = Sandbox("bwrap").argv(["true"], view(home))
+    real = os.path.realpath
+    assert argv.index(real(home)) < argv.index(real(home / "a")) < argv.index(
+        real(home / "a" / "work"))
+    assert argv[argv.index(real(home / "a")) - 1] == "--ro-bind-try"
+    assert argv[argv.index(real(home / "a" / "work")) - 1] == "--bind-try"
+    assert "--die-with-parent" in argv and "--unshare-pid" in argv
+    assert argv[-2:] == ["--", "true"]
