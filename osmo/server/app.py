@@ -53,6 +53,7 @@ from osmo.store.sqlite import Store
 from osmo.transport.blobs import host_id
 from osmo.transport.rpc import ApiServer
 from osmo.transport.zenoh_link import Link
+from osmo.worker import containers
 from osmo.worker.pool import LocalPool
 
 __all__ = ["serve"]
@@ -85,6 +86,8 @@ def serve(home: str | os.PathLike[str] | None = None, options: ServerOptions | N
     lock_fd = _take_lock(layout)
     layout.server_info.unlink(missing_ok=True)  # a crashed server's stale address
     options = options or ServerOptions()
+    boxes = containers.for_node(options.runtime, options.container_engine,
+                                home_path) if options.local_pool else None
     listen, connect = list(options.listen), list(options.connect)
     endpoints = listen or ([] if connect else [f"tcp/127.0.0.1:{free_port()}"])
     store = Store(layout.state_db)
@@ -107,7 +110,8 @@ def serve(home: str | os.PathLike[str] | None = None, options: ServerOptions | N
                      cpus=options.cpus, gpus=options.gpus, artifacts=artifacts,
                      credential_for=url_credential(store),
                      input_manifests=output_manifests(store),
-                     task_secrets=store.credential) if options.local_pool else None
+                     task_secrets=store.credential,
+                     containers=boxes) if options.local_pool else None
     hub = WorkerHub(link=link, emit=inbox.post, store=store,
                     artifacts=artifacts, home=home_path, url_credential=url_credential(store),
                     attempts_on=lambda node: list(inbox.ask(AttemptsOn(node))))

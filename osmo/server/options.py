@@ -12,6 +12,7 @@ import argparse
 from dataclasses import dataclass
 
 from osmo.config import DEFAULT_CLUSTER
+from osmo.worker.options import add_runtime_arguments
 
 __all__ = ["ServerOptions"]
 
@@ -29,6 +30,9 @@ class ServerOptions:
         cpus, gpus: override the local pool's detected capacity.
         local_pool: run tasks on the server's host too (off: remote workers only).
         reconnect_grace: seconds remote workers get to come back after a restart.
+        runtime: how the local pool runs image tasks: ``auto``, ``container`` or ``process``
+            (``osmo.worker.containers.choose``).
+        container_engine: ``podman`` or ``docker`` (default: the first that answers).
     """
 
     listen: tuple[str, ...] = ()
@@ -39,6 +43,8 @@ class ServerOptions:
     gpus: int | None = None
     local_pool: bool = True
     reconnect_grace: float = 30.0
+    runtime: str = "auto"
+    container_engine: str | None = None
 
     @staticmethod
     def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -66,6 +72,7 @@ class ServerOptions:
         p.add_argument("--reconnect-grace", type=float, default=d.reconnect_grace,
                        metavar="SECONDS", help="after a restart, how long remote workers get "
                                                f"to come back ({d.reconnect_grace:g})")
+        add_runtime_arguments(p)
 
     @classmethod
     def from_args(cls, args: argparse.Namespace) -> ServerOptions:
@@ -73,7 +80,8 @@ class ServerOptions:
         return cls(listen=tuple(args.listen or ()), connect=tuple(args.connect or ()),
                    zenoh_config=args.zenoh_config, cluster=args.cluster, cpus=args.cpus,
                    gpus=args.gpus, local_pool=args.local_pool,
-                   reconnect_grace=args.reconnect_grace)
+                   reconnect_grace=args.reconnect_grace, runtime=args.runtime,
+                   container_engine=args.container_engine)
 
     def to_argv(self) -> list[str]:
         """The same options as flags, to start the server in another process.
@@ -85,7 +93,9 @@ class ServerOptions:
         out += [arg for ep in self.connect for arg in ("--connect", ep)]
         for flag, value in (("--zenoh-config", self.zenoh_config), ("--cluster", self.cluster),
                             ("--cpus", self.cpus), ("--gpus", self.gpus),
-                            ("--reconnect-grace", self.reconnect_grace)):
+                            ("--reconnect-grace", self.reconnect_grace),
+                            ("--runtime", self.runtime),
+                            ("--container-engine", self.container_engine)):
             if value != getattr(d, flag[2:].replace("-", "_")):
                 out += [flag, str(value)]
         return out + ([] if self.local_pool else ["--no-local-pool"])

@@ -102,7 +102,8 @@ class Placements:
         else:
             spec = self._specs[ready.workflow_id]
             task = spec.task(ready.task)
-            executor.prepare(ready, task, max_output_bytes=spec.resource_for(task).storage)
+            request = spec.resource_for(task)
+            executor.prepare(ready, task, max_output_bytes=request.storage, resources=request)
 
     def _replay(self, cmd: PrepareAttempt, hit: CacheHit) -> None:
         """Complete a cache hit at once: the scheduler sees an ordinary successful attempt."""

@@ -49,7 +49,7 @@ from osmo.scheduler.types import (
     PrepareAttempt,
     RunAttempt,
 )
-from osmo.spec.model import TaskSpec
+from osmo.spec.model import ResourceSpec, TaskSpec
 from osmo.store.sqlite import Store
 from osmo.transport.blobs import SERVER, BlobServer, SameHost, fetch_manifest, host_id
 from osmo.transport.wire import Hello, event_from_dict, prepare_to_dict, spec_to_wire, worker_id
@@ -210,8 +210,12 @@ class WorkerHub:
         return node_id != LOCAL_NODE
 
     def prepare(self, cmd: PrepareAttempt, task: TaskSpec, *,
-                max_output_bytes: int | None = None) -> None:
-        """Send a placement to its worker (engine thread)."""
+                max_output_bytes: int | None = None,
+                resources: ResourceSpec | None = None) -> None:
+        """Send a placement to its worker (engine thread).
+
+        ``resources`` is not sent: the worker reads the request from the spec it holds.
+        """
         try:
             order = self._order(cmd, task)
         except (OsmoError, OSError) as exc:

@@ -25,6 +25,7 @@ ignored, so a worker that returns late can never commit stale work.
 
 from __future__ import annotations
 
+import re
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -90,8 +91,16 @@ def event_from_dict(data: dict[str, Any]) -> Event:
         return AttemptExited(aid, int(data["exit_code"]), data.get("output"),
                              str(data.get("message") or ""), data.get("manifest"),
                              bool(data.get("cached")),
-                             tuple(command) if command is not None else None)
+                             tuple(command) if command is not None else None,
+                             _image_id(data.get("image_id")))
     raise ValueError(f"unknown report {op!r}")
+
+
+def _image_id(value: object) -> str | None:
+    """An image id a worker reported (``sha256:<hex>``); anything else is dropped."""
+    if isinstance(value, str) and re.fullmatch(r"sha256:[0-9a-f]{64}", value):
+        return value
+    return None
 
 
 def prepare_to_dict(cmd: PrepareAttempt) -> dict[str, Any]:

@@ -45,6 +45,7 @@ class AttemptEndings:
     _artifacts: ArtifactStore | None
     _credential_for: CredentialLookup | None
     _max_output_files: int | None
+    _ended: Callable[[str, Launch], None]  # frees an ended attempt's GPUs and network
 
     def _exited(self, attempt: LiveAttempt) -> None:
         handle = attempt.handle
@@ -86,8 +87,10 @@ class AttemptEndings:
                                     credential_for=self._credential_for,
                                     max_bytes=attempt.launch.max_output_bytes,
                                     max_files=self._max_output_files)
+            box = attempt.launch.container
             event = AttemptExited(attempt.id, code, ref, manifest=manifest,
-                                  command=tuple(attempt.launch.argv))
+                                  command=tuple(attempt.launch.argv),
+                                  image_id=box.image if box is not None else None)
         except Exception as exc:  # noqa: BLE001 - DeliveryError, or a bug: still one report
             if not isinstance(exc, DeliveryError):
                 _log.exception("promoting the outputs of %s failed", attempt.id)
@@ -118,6 +121,7 @@ class AttemptEndings:
         finally:  # a log that cannot be written must not keep the report (or a secret) back
             remove_secret_files(attempt.launch)
             self._drop_scratch(attempt.launch)
+            self._ended(attempt.id, attempt.launch)
             self._attempts.pop(attempt.id, None)
             self._remember(attempt.id)
             if event is not None:

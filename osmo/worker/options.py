@@ -14,13 +14,26 @@ from dataclasses import dataclass, field
 from osmo.config import DEFAULT_CLUSTER
 from osmo.errors import UsageError
 
-__all__ = ["DEFAULT_KILL_GRACE", "DEFAULT_POOL", "WorkerOptions"]
+__all__ = ["DEFAULT_KILL_GRACE", "DEFAULT_POOL", "WorkerOptions", "add_runtime_arguments"]
 
 DEFAULT_POOL = "default"
 """The pool a worker serves unless told another."""
 
 DEFAULT_KILL_GRACE = 3.0
 """Seconds between SIGTERM and SIGKILL when an attempt is killed."""
+
+
+def add_runtime_arguments(p: argparse.ArgumentParser) -> None:
+    """``--runtime`` and ``--container-engine``, shared by ``osmo server`` and ``osmo worker``."""
+    p.add_argument("--runtime", choices=("auto", "container", "process"),
+                   default=os.environ.get("OSMO_RUNTIME") or "auto",
+                   help="run tasks that name an image in containers (container), as host "
+                        "processes (process), or in containers when an engine is installed "
+                        "(auto, the default; OSMO_RUNTIME)")
+    p.add_argument("--container-engine", choices=("podman", "docker"),
+                   default=os.environ.get("OSMO_CONTAINER_ENGINE") or None,
+                   help="the container engine (default: podman, else docker; "
+                        "OSMO_CONTAINER_ENGINE)")
 
 
 @dataclass(frozen=True)
@@ -40,6 +53,8 @@ class WorkerOptions:
             handed back.
         kill_grace: seconds between SIGTERM and SIGKILL when an attempt is killed.
         address: how peers reach its tasks (default: the outbound interface's address).
+        runtime: how it runs image tasks: ``auto``, ``container`` or ``process``.
+        container_engine: ``podman`` or ``docker`` (default: the first that answers).
     """
 
     connect: tuple[str, ...]
@@ -55,6 +70,8 @@ class WorkerOptions:
     drain_timeout: float = 600.0
     kill_grace: float = DEFAULT_KILL_GRACE
     address: str | None = None
+    runtime: str = "auto"
+    container_engine: str | None = None
 
     @staticmethod
     def add_arguments(w: argparse.ArgumentParser) -> None:
@@ -76,6 +93,7 @@ class WorkerOptions:
         w.add_argument("--drain-timeout", type=float, default=d.drain_timeout,
                        metavar="SECONDS", help="on SIGTERM, how long running tasks may finish "
                                                f"before being handed back ({d.drain_timeout:g})")
+        add_runtime_arguments(w)
 
     @classmethod
     def from_args(cls, args: argparse.Namespace) -> WorkerOptions:
@@ -94,7 +112,8 @@ class WorkerOptions:
         return cls(connect=tuple(args.connect), pool=args.pool, name=args.name,
                    platform=args.platform, cpus=args.cpus, gpus=args.gpus, memory=memory,
                    labels=_labels(args.label), cluster=args.cluster,
-                   zenoh_config=args.zenoh_config, drain_timeout=args.drain_timeout)
+                   zenoh_config=args.zenoh_config, drain_timeout=args.drain_timeout,
+                   runtime=args.runtime, container_engine=args.container_engine)
 
 
 def _labels(items: list[str]) -> dict[str, str]:

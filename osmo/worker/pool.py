@@ -28,7 +28,10 @@ Credentials (``osmo.worker.secrets``) are given to ``prepare`` or looked up via
 How an attempt ends (exit, promotion, its one final report in every path) is
 ``osmo.worker.endings``.
 
-The ``image`` field is recorded in the log and otherwise ignored by the process runtime.
+Containers: with ``containers`` (``osmo.worker.containers.ContainerTasks``), a task with an
+``image:`` (and no ``type:``) runs in its image through the container runtime; everything
+else, and every task without ``containers``, runs as a host process, its ``image`` only noted
+in the log.
 Creating a pool lifts the process's soft open-files limit (each running attempt holds four
 descriptors).
 """
@@ -69,8 +72,9 @@ from osmo.scheduler.types import (
     PrepareAttempt,
     RunAttempt,
 )
-from osmo.spec.model import TaskSpec
+from osmo.spec.model import ResourceSpec, TaskSpec
 from osmo.worker.checkpoints import start_checkpoints
+from osmo.worker.containers import ContainerTasks, GpuSlots, Limits, registry_auth
 from osmo.worker.endings import AttemptEndings
 from osmo.worker.live import AttemptState, LiveAttempt
 from osmo.worker.logs import LogWriter, image_note
@@ -110,6 +114,8 @@ class LocalPool(AttemptEndings):
         task_secrets: credential name → payload, for tasks' ``credentials:`` when
             ``prepare`` is not given them.
         log_sink: also gets ``(attempt id, records)`` for every log record written.
+        containers: runs image tasks in containers (its runtime replaces ``runtime``); its
+            orphans are removed here, before anything starts.
     """
 
     def __init__(
@@ -131,6 +137,7 @@ class LocalPool(AttemptEndings):
         max_output_files: int | None = DEFAULT_MAX_FILES,
         task_secrets: SecretLookup | None = None,
         log_sink: Callable[[str, bytes], None] | None = None,
+        containers: ContainerTasks | None = None,
     ) -> None:
         self.home = Path(home).absolute()
         self.home.mkdir(parents=True, exist_ok=True)
@@ -141,6 +148,11 @@ class LocalPool(AttemptEndings):
         self._cpus, self._gpus, self._memory = cpus, gpus, memory
         self._grace = kill_grace
         self._runtime: Runtime = runtime or ProcessRuntime()
+        self._containers = containers
+        if containers is not None:
+            containers.clean_orphans()  # a crashed predecessor's, before anything new runs
+            self._runtime = containers.runtime
+        self._gpus_held: GpuSlots | None = None
         self._env = dict(os.environ if env is None else env)
         self._artifacts = artifacts
         self._credential_for = credential_for
@@ -164,13 +176,16 @@ class LocalPool(AttemptEndings):
         return Node(id=self._node_id, pool=self._pool, capacity=capacity)
 
     def prepare(self, cmd: PrepareAttempt, task: TaskSpec, secrets: Secrets | None = None,
-                *, max_output_bytes: int | None = None) -> None:
+                *, max_output_bytes: int | None = None,
+                resources: ResourceSpec | None = None) -> None:
         """Prepare an attempt's folder; later emits AttemptPrepared or AttemptStartFailed.
 
         ``secrets``: payloads of the credentials ``task`` names (None: ask ``task_secrets``).
         ``max_output_bytes``: the task's ``storage`` request; a larger output fails it.
+        ``resources``: its request (a container's cpu/memory limits and GPUs).
         """
-        self._reactor.call_soon(self._prepare, cmd, task, secrets, max_output_bytes)
+        self._reactor.call_soon(self._prepare, cmd, task, secrets,
+                                replace(resources or ResourceSpec(), storage=max_output_bytes))
 
     def owns(self, node_id: str) -> bool:
         """Whether ``node_id`` is this pool's node."""
@@ -195,29 +210,74 @@ class LocalPool(AttemptEndings):
         """
         self._io.shutdown(wait=True, cancel_futures=True)
         self._reactor.stop(self._shutdown)
+        if self._containers is not None:
+            self._containers.close()
+
+    # -------------------------------------------------------------- containers
+
+    def _contain(self, launch: Launch, cmd: PrepareAttempt, task: TaskSpec,
+                 dirs: AttemptDirs, resources: ResourceSpec) -> Launch:
+        """I/O thread: finish a container task's launch (image, limits, GPUs, network)."""
+        assert self._containers is not None
+        if self._gpus_held is None:
+            self._gpus_held = GpuSlots(self.node().capacity.gpu)
+        gpus = self._gpus_held.take(cmd.attempt_id, resources.gpu or 0)
+        limits = Limits(cpus=float(resources.cpu or 0), memory=resources.memory, gpus=gpus)
+        try:
+            return self._containers.finish(launch, cmd, task, dirs, limits=limits,
+                                           auth=registry_auth(task, self._task_secrets))
+        except BaseException:
+            self._gpus_held.give_back(cmd.attempt_id)
+            remove_secret_files(launch)
+            raise
+
+    def _spawn(self, launch: Launch, *, wait: bool = False) -> ProcessHandle:
+        """Start a launch: in its container, or as a process. ``wait``: on an I/O thread."""
+        if launch.container is None or self._containers is None:
+            return self._runtime.start(launch.argv, cwd=launch.cwd, env=launch.env)
+        if wait:
+            self._containers.wait_for_lead(launch.container)
+        handle = self._containers.runtime.start(launch.argv, cwd=launch.cwd, env=launch.env,
+                                                container=launch.container)
+        self._containers.started(launch.container)
+        return handle
+
+    def _ended(self, attempt_id: str, launch: Launch) -> None:
+        """An attempt is over: its GPUs are free, its group network may go (I/O thread)."""
+        if self._gpus_held is not None:
+            self._gpus_held.give_back(attempt_id)
+        if launch.container is not None and self._containers is not None:
+            try:
+                self._io.submit(self._containers.ended, launch.container)
+            except RuntimeError:  # closing: ContainerTasks.close removes the networks
+                pass
 
     # -------------------------------------------------------------- reactor thread
 
     def _prepare(self, cmd: PrepareAttempt, task: TaskSpec, secrets: Secrets | None,
-                 max_output_bytes: int | None) -> None:
+                 resources: ResourceSpec) -> None:
         if cmd.attempt_id in self._attempts or cmd.attempt_id in self._preparing:
             _log.warning("attempt %s is already active; prepare ignored", cmd.attempt_id)
             return
         self._finished.pop(cmd.attempt_id, None)
         self._preparing[cmd.attempt_id] = None
-        self._io.submit(self._prepare_io, cmd, task, secrets, max_output_bytes)
+        self._io.submit(self._prepare_io, cmd, task, secrets, resources)
 
     def _prepare_io(self, cmd: PrepareAttempt, task: TaskSpec, secrets: Secrets | None,
-                    max_output_bytes: int | None) -> None:
+                    resources: ResourceSpec) -> None:
         """I/O thread: make the folders and files; hand the outcome back to the reactor."""
         try:
             dirs = self._layout.attempt(cmd.workflow_id, cmd.task, cmd.retry)
             if secrets is None:
                 secrets = gather(task, self._task_secrets)
-            launch = make_ready(dirs, cmd, task, env=self._env, secrets=secrets,
+            boxed = self._containers is not None and self._containers.applies(task)
+            placed = self._containers.placement(cmd) if self._containers and boxed else cmd
+            launch = make_ready(dirs, placed, task, env=self._env, secrets=secrets,
                                 credential_for=self._credential_for, artifacts=self._artifacts,
-                                input_manifests=self._input_manifests)
-            launch = replace(launch, max_output_bytes=max_output_bytes)
+                                input_manifests=self._input_manifests, boxed=boxed)
+            launch = replace(launch, max_output_bytes=resources.storage)
+            if boxed:
+                launch = self._contain(launch, cmd, task, dirs, resources)
         except Exception as exc:  # every prepare must get its one final report
             message = str(exc) if isinstance(exc, OsmoError) else f"cannot prepare: {exc!r}"
             self._reactor.call_soon(self._prepared, cmd, task, None, None, message)
@@ -228,7 +288,7 @@ class LocalPool(AttemptEndings):
             # (pipes, exits) never waits on fork/exec. A kill that came meanwhile is applied
             # by _prepared.
             try:
-                started = self._runtime.start(launch.argv, cwd=launch.cwd, env=launch.env)
+                started = self._spawn(launch, wait=True)
             except (StartError, OSError) as exc:
                 started = str(exc)
             except Exception as exc:  # noqa: BLE001 - a bug: fail the start, report it
@@ -255,11 +315,14 @@ class LocalPool(AttemptEndings):
                 self._runtime.reap(started)
                 self._runtime.release(started)
             remove_secret_files(launch)
+            self._ended(cmd.attempt_id, launch)
             self._remember(cmd.attempt_id)
             self._emit(AttemptStartFailed(cmd.attempt_id, f"cannot write its log: {exc}"))
             return
         attempt = LiveAttempt(cmd.attempt_id, task, dirs, launch, log)
-        if task.image:
+        for note in launch.notes:
+            attempt.log.line("osmo", note)
+        if task.image and launch.container is None:
             attempt.log.line("osmo", image_note(task.image))
         self._attempts[attempt.id] = attempt
         if isinstance(started, ProcessHandle):
@@ -289,8 +352,25 @@ class LocalPool(AttemptEndings):
         if attempt.state is not AttemptState.PREPARED:
             return
         launch = attempt.launch
+        if launch.container is not None and launch.container.labels.get("osmo.lead") == "0":
+            # a peer starts once its lead runs: wait off the reactor, then start (below)
+            attempt.state = AttemptState.STARTING
+            self._io.submit(self._after_lead, attempt)
+            return
+        self._start(attempt)
+
+    def _after_lead(self, attempt: LiveAttempt) -> None:
+        """I/O thread: wait for the group's lead to run, then start ``attempt``."""
+        if self._containers is not None and attempt.launch.container is not None:
+            self._containers.wait_for_lead(attempt.launch.container)
+        self._reactor.call_soon(self._start, attempt)
+
+    def _start(self, attempt: LiveAttempt) -> None:
+        if attempt.state not in (AttemptState.PREPARED, AttemptState.STARTING):
+            return  # killed meanwhile
+        attempt_id, launch = attempt.id, attempt.launch
         try:
-            handle = self._runtime.start(launch.argv, cwd=launch.cwd, env=launch.env)
+            handle = self._spawn(launch)
         except (StartError, OSError) as exc:
             attempt.log.line("osmo", f"start failed: {exc}")
             self._finish(attempt, AttemptStartFailed(attempt_id, str(exc)))
@@ -320,7 +400,7 @@ class LocalPool(AttemptEndings):
             return  # it already exited; its report is on the way
         attempt.kill_reason = reason
         attempt.log.line("osmo", f"killed: {reason}")
-        if attempt.state is AttemptState.PREPARED:
+        if attempt.state in (AttemptState.PREPARED, AttemptState.STARTING):
             event = AttemptExited(attempt_id, KILLED_BEFORE_START, None, f"killed: {reason}")
             self._finish(attempt, event)
         elif attempt.handle is not None:
@@ -342,6 +422,7 @@ class LocalPool(AttemptEndings):
                 self._runtime.release(handle)
             attempt.log.close()
             remove_secret_files(attempt.launch)
+            self._ended(attempt.id, attempt.launch)
         self._attempts.clear()
 
 

@@ -74,11 +74,11 @@ def fetch_inputs(cmd: PrepareAttempt, task: TaskSpec, dirs: AttemptDirs,
 def make_ready(dirs: AttemptDirs, cmd: PrepareAttempt, task: TaskSpec, *,
                env: Mapping[str, str], secrets: Secrets,
                credential_for: CredentialLookup | None, artifacts: ArtifactStore | None,
-               input_manifests: ManifestLookup | None) -> Launch:
+               input_manifests: ManifestLookup | None, boxed: bool = False) -> Launch:
     """Everything an attempt needs before it can start, in order.
 
     Its ``url`` inputs, its folder and files (``workdir.prepare``), its own copies of its artifact
-    inputs.
+    inputs. ``boxed``: it runs in its image (``workdir.prepare``).
 
     Raises:
         OsmoError: a download, a token, a file, a credential or a blob failed (a blob that
@@ -88,7 +88,7 @@ def make_ready(dirs: AttemptDirs, cmd: PrepareAttempt, task: TaskSpec, *,
     """
     cmd = fetch_inputs(cmd, task, dirs, credential_for)
     cmd, copies = plan_input_copies(cmd, dirs, input_manifests if artifacts else None)
-    launch = prepare(dirs, cmd, task, env, secrets)
+    launch = prepare(dirs, cmd, task, env, secrets, boxed=boxed)
     if copies and artifacts is not None:
         try:
             launch = replace(launch, scratch=copy_inputs(copies, artifacts))

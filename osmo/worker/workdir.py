@@ -59,10 +59,11 @@ from pathlib import Path
 from osmo.artifacts.fsops import remove_tree
 from osmo.errors import OsmoError
 from osmo.layout import AttemptDirs
+from osmo.runtime.container_run import ContainerRun
 from osmo.scheduler.types import PrepareAttempt
 from osmo.spec.model import InputSpec, TaskSpec
 from osmo.spec.tokens import substitute
-from osmo.worker import launch
+from osmo.worker import containers, launch
 from osmo.worker.secrets import Secrets, mounts, secret_env, secret_values
 
 __all__ = ["Launch", "PrepareError", "prepare", "promote", "remove_secret_files"]
@@ -87,11 +88,13 @@ class Launch:
     secret_files: tuple[Path, ...] = ()
     scratch: tuple[Path, ...] = ()  # deleted when the attempt ends (large input copies)
     max_output_bytes: int | None = None  # the task's ``storage``: its output may hold no more
+    container: ContainerRun | None = None  # run in this container (``osmo.worker.containers``)
+    notes: tuple[str, ...] = ()  # osmo lines for its log, from before the log existed (a pull)
 
 
 def prepare(
     dirs: AttemptDirs, cmd: PrepareAttempt, task: TaskSpec, base_env: Mapping[str, str],
-    secrets: Secrets | None = None,
+    secrets: Secrets | None = None, *, boxed: bool = False,
 ) -> Launch:
     """Create the attempt's folder, write its files and resolve its command.
 
@@ -101,6 +104,9 @@ def prepare(
         task: what to run.
         base_env: the environment the command starts from.
         secrets: the payloads of the credentials ``task`` names (credential name → payload).
+        boxed: the task runs in its image (``osmo.worker.containers``): tokens name the
+            container's paths, nothing is rewritten, ``base_env`` is not used, and the launch
+            carries the container's layout (``containers.layout``) for the pool to finish.
 
     Raises:
         PrepareError: a token cannot be resolved, a file path is unusable, or the folder
@@ -112,17 +118,17 @@ def prepare(
     secrets = secrets or {}
     mounted = mounts(task, secrets)
     mapping = _file_mapping(dirs, task, mounted)
-    rewrite = _rewriter(mapping)
-    resolve = _resolver(dirs, cmd, task)
+    rewrite = (lambda value: value) if boxed else _rewriter(mapping)
+    resolve = _resolver(dirs, cmd, task, boxed=boxed)
 
     def text(value: str) -> str:
         return substitute(rewrite(value), resolve)
 
     argv = tuple(text(word) for word in (*task.command, *task.args))
-    env = dict(base_env)
+    env = {} if boxed else dict(base_env)
     env.update({key: text(str(value)) for key, value in task.environment.items()})
-    env.update(secret_env(task, secrets))
-    env.update(_osmo_env(dirs, cmd))
+    env.update({} if boxed else secret_env(task, secrets))  # boxed: in its secret file
+    env.update(containers.osmo_env(cmd) if boxed else _osmo_env(dirs, cmd))
     if task.type:  # a typed task: the runner reads its context file (osmo.worker.launch)
         argv = launch.runner_argv(dirs.context)
         env.update(launch.runner_env(task, env))
@@ -134,7 +140,10 @@ def prepare(
             _write_context(dirs, cmd, task)
     except OSError as exc:
         raise PrepareError(f"cannot prepare {exc.filename or dirs.root}: {exc.strerror}") from exc
-    return Launch(argv, dirs.work, env, tuple(secret_values(task, secrets)), written)
+    box = containers.layout(dirs, task, mapping, _input_refs(cmd, task),
+                            secret_env(task, secrets)) if boxed else None
+    return Launch(argv, dirs.work, env, tuple(secret_values(task, secrets)), written,
+                  container=box)
 
 
 def remove_secret_files(launch: Launch) -> None:
@@ -280,6 +289,11 @@ def _decode(contents: str, path: str) -> bytes:
         raise PrepareError(f"file {path!r}: invalid base64 contents ({exc})") from exc
 
 
+def _input_refs(cmd: PrepareAttempt, task: TaskSpec) -> list[str | None]:
+    """The reference of each ``inputs:`` entry, in order (None: not available)."""
+    return [_input_ref(i, spec, cmd.inputs) for i, spec in enumerate(task.inputs)]
+
+
 def _input_ref(index: int, spec: InputSpec, inputs: Mapping[str, str]) -> str | None:
     """The reference of one ``inputs:`` entry, looked up by its most specific key."""
     keys: list[str | None]
@@ -293,13 +307,16 @@ def _input_ref(index: int, spec: InputSpec, inputs: Mapping[str, str]) -> str | 
     return None
 
 
-def _resolver(dirs: AttemptDirs, cmd: PrepareAttempt, task: TaskSpec) -> Callable[[str], str]:
+def _resolver(dirs: AttemptDirs, cmd: PrepareAttempt, task: TaskSpec, *,
+              boxed: bool = False) -> Callable[[str], str]:
     attempt_uuid = uuid.uuid4().hex
 
     def resolve(token: str) -> str:
         kind, _, arg = token.partition(":")
         value: str | None = None
-        if kind == "output":
+        if boxed and kind in ("output", "input"):  # the container's own paths
+            value = containers.data_path(token, task, _input_refs(cmd, task))
+        elif kind == "output":
             value = str(dirs.output_partial)
         elif kind == "workflow_id":
             value = cmd.workflow_id
