@@ -127,7 +127,9 @@ def serve(home: str | os.PathLike[str] | None = None, options: ServerOptions | N
                     specs=restored.specs, on_changed=on_changed, home=home_path,
                     on_finished=records.finished, datasets=Datasets(store, artifacts, home_path),
                     no_cache=restored.no_cache, restore=lambda: restore(store),
-                    inflight=inflight, on_fatal=on_fatal)
+                    inflight=inflight, on_fatal=on_fatal,
+                    image_ids=containers.image_ids(options.runtime, options.container_engine,
+                                                   boxes))
     if pool is not None:
         engine.post(NodeUp(pool.node()))
     for event in failed:
@@ -142,7 +144,8 @@ def serve(home: str | os.PathLike[str] | None = None, options: ServerOptions | N
             "zenoh_config": (str(Path(options.zenoh_config).absolute())
                              if options.zenoh_config else None),
             "host_id": host_id(), "artifacts": str(artifacts.root),
-            "started_at": time.time(), "home": str(home_path)}
+            "started_at": time.time(), "home": str(home_path),
+            "runtime": pool.runtime_name() if pool is not None else None}
     handlers = Handlers(engine, home_path, info, on_shutdown=stopping.set, workers=hub,
                         link=link)
     api_server = ApiServer(link, handlers.handle,

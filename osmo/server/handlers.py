@@ -196,6 +196,7 @@ class Handlers:
             out.append({"node": node.id, "pool": node.pool, "platform": node.platform,
                         "status": worker.get("status", "online"),
                         "kind": "remote" if worker else "local",
+                        "runtime": worker.get("runtime") if worker else self._info.get("runtime"),
                         "total": vars(node.capacity), "used": vars(used)})
         return out
 

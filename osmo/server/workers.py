@@ -120,7 +120,7 @@ class WorkerHub:
         with self._lock:
             self._nodes[wid] = node
             self._info[wid] = {"pid": hello.pid, "address": node.address,
-                               "host_id": hello.host_id}
+                               "host_id": hello.host_id, "runtime": hello.runtime}
             same = hello.host_id == self._host and hello.artifacts
             self._same_host[wid] = SameHost(Path(hello.artifacts or "")) if same else None
             self._sent_specs[wid] = set()

@@ -164,6 +164,7 @@ class Hello:
         draining: it takes no more work.
         active: the attempts it still runs.
         finished: its exit reports the server has not acknowledged yet.
+        runtime: how it runs image tasks: ``container (podman 4.3.1)`` or ``process``.
     """
 
     node: Node
@@ -173,6 +174,7 @@ class Hello:
     draining: bool = False
     active: tuple[str, ...] = ()
     finished: tuple[dict[str, Any], ...] = ()
+    runtime: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """The hello as JSON-safe data."""
@@ -181,7 +183,7 @@ class Hello:
                 "capacity": capacity_to_dict(node.capacity), "labels": dict(node.labels),
                 "address": node.address, "host_id": self.host_id, "artifacts": self.artifacts,
                 "pid": self.pid, "draining": self.draining, "active": list(self.active),
-                "finished": list(self.finished)}
+                "finished": list(self.finished), "runtime": self.runtime}
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> Hello:
@@ -202,7 +204,8 @@ class Hello:
                    host_id=field(data, "host_id", str, default=None, max_len=_TEXT),
                    artifacts=field(data, "artifacts", str, default=None, max_len=_TEXT),
                    draining=field(data, "draining", bool, default=False),
-                   active=tuple(str_list(data, "active")), finished=tuple(finished))
+                   active=tuple(str_list(data, "active")), finished=tuple(finished),
+                   runtime=field(data, "runtime", str, default=None, max_len=_TEXT))
 
 
 def spec_to_wire(spec: dict[str, Any], filename: str, types: dict[str, Any]) -> dict[str, Any]:

@@ -5,18 +5,7 @@ A task with an ``image:`` and no ``type:`` runs in that image when the node's ru
 that decision, made once when a server or worker starts. Typed plugin tasks and tasks with no
 image stay host processes (``osmo.runtime.process``).
 
-OSMO's data layout inside the container (:func:`layout`, built when the attempt's folder is
-prepared, ``workdir.prepare(boxed=True)``):
-
-- ``{{output}}`` is ``/osmo/data/output``, a read-write bind of the attempt's private
-  ``output.partial`` (promotion, ingest and lineage are unchanged);
-- ``{{input:N}}`` and ``{{input:NAME}}`` are ``/osmo/data/input/N``, read-only binds of the
-  attempt's own input copies;
-- ``files:`` and credential mounts are bound read-only at their declared absolute paths (no
-  path rewriting); relative ones live in the working folder, bound at ``/osmo/run/work``,
-  which is then the container's working folder (else the image's own);
-- the environment is the task's, then osmo's (``OSMO_OUTPUT`` etc.), never the host's;
-  credential variables go through the runtime's 0600 secret file, never ``--env``.
+The data layout inside the container is ``osmo.worker.container_layout``'s.
 
 :class:`ContainerTasks` finishes a prepared launch (:meth:`ContainerTasks.finish`): resolves
 the image to its id (pulling a missing one, progress lines kept for the task's log, registry
@@ -37,44 +26,38 @@ from __future__ import annotations
 
 import hashlib
 import os
-import posixpath
 import re
 import socket
 import threading
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 from osmo.runtime.container import ContainerEngine, EngineNotFound, detect_engine
 from osmo.runtime.container_run import (
-    DATA_OUTPUT,
     ContainerError,
     ContainerRun,
-    Mount,
     RegistryAuth,
-    data_input,
     pull_reference,
     safe_name,
 )
 from osmo.runtime.container_runtime import ContainerRuntime
+from osmo.runtime.process import ProcessHandle
 from osmo.scheduler.types import PrepareAttempt
-from osmo.spec.model import TaskSpec
-from osmo.worker import launch as typed
+from osmo.spec.model import ResourceSpec, TaskSpec
 from osmo.worker.secrets import SecretLookup
+from osmo.worker.workdir import Launch, remove_secret_files
 
 if TYPE_CHECKING:
     from osmo.layout import AttemptDirs
-    from osmo.worker.workdir import Launch
 
-__all__ = ["REGISTRY_PREFIX", "RUNTIMES", "WORKDIR", "ContainerTasks", "GpuSlots", "Limits",
-           "choose", "data_path", "for_node", "layout", "osmo_env", "owner_id", "registry_auth"]
+__all__ = ["REGISTRY_PREFIX", "RUNTIMES", "ContainerTasks", "GpuSlots", "Limits", "choose",
+           "for_node", "image_ids", "owner_id", "registry_auth"]
 
 RUNTIMES = ("auto", "container", "process")
 """The values of ``--runtime``."""
-WORKDIR = "/osmo/run/work"
-"""Where the attempt's working folder is bound when the task has relative ``files:``."""
 
 _ALIAS = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,62}")
 _LEAD_WAIT = 30.0  # s: a peer waits this long for its lead's container, then starts anyway
@@ -114,57 +97,6 @@ def owner_id(home: Path) -> str:
     return hashlib.sha256(where.encode()).hexdigest()[:20]
 
 
-def osmo_env(cmd: PrepareAttempt) -> dict[str, str]:
-    """The variables osmo sets inside a container (the task cannot override them)."""
-    return {"OSMO_WORKFLOW_ID": cmd.workflow_id, "OSMO_TASK": cmd.task,
-            "OSMO_RETRY": str(cmd.retry), "OSMO_NODE": cmd.node_id,
-            "OSMO_OUTPUT": DATA_OUTPUT, "OSMO_FILES_ROOT": "/"}
-
-
-def data_path(token: str, task: TaskSpec, refs: Sequence[str | None]) -> str | None:
-    """The container path of an ``output``/``input:N``/``input:NAME`` token (None: unknown).
-
-    An input resolves only when the attempt has it (``refs``: each input's reference).
-    """
-    kind, _, arg = token.partition(":")
-    if kind == "output":
-        return DATA_OUTPUT
-    for index, spec in enumerate(task.inputs):
-        names = (str(index),) if arg.isdigit() else (typed.input_name(spec), spec.task)
-        if arg in names and refs[index] is not None:
-            return data_input(index)
-    return None
-
-
-def layout(dirs: AttemptDirs, task: TaskSpec, files: Mapping[str, Path],
-           refs: Sequence[str | None], secret_env: Mapping[str, str]) -> ContainerRun:
-    """The container's data layout for a prepared attempt (see the module docstring).
-
-    Args:
-        dirs: the attempt's folder.
-        task: what runs (its image).
-        files: each declared ``files:``/credential path → where it was written.
-        refs: each input's reference (a folder on this node), None when it has none.
-        secret_env: the credential variables (written to the runtime's secret file).
-
-    The result still lacks its name, labels, user and image id (:meth:`ContainerTasks.finish`).
-    """
-    assert task.image is not None
-    mounts = [Mount(dirs.output_partial, DATA_OUTPUT, read_only=False)]
-    mounts += [Mount(Path(ref), data_input(i)) for i, ref in enumerate(refs)
-               if ref is not None and ref.startswith("/")]
-    relative = False
-    for declared, written in files.items():
-        if declared.startswith("/"):
-            mounts.append(Mount(written, posixpath.normpath(declared)))
-        else:
-            relative = True
-    if relative:
-        mounts.append(Mount(dirs.work, WORKDIR, read_only=False))
-    return ContainerRun(image=task.image, name="", secret_env=dict(secret_env),
-                        mounts=tuple(mounts), workdir=WORKDIR if relative else None)
-
-
 @dataclass(frozen=True)
 class Limits:
     """What a task may use: ``cpus`` (0: no limit), ``memory`` bytes (None: no limit), GPUs."""
@@ -191,6 +123,7 @@ class ContainerTasks:
         self._lock = threading.Lock()
         self._networks: dict[str, int] = {}  # network → attempts of this pool using it
         self._leads: dict[str, threading.Event] = {}  # network → its lead was started
+        self._gpus: GpuSlots | None = None  # made with the node's GPU count on first use
 
     def describe(self) -> str:
         """``podman 4.3.1``: what ``osmo pool list`` shows."""
@@ -212,19 +145,46 @@ class ContainerTasks:
         return replace(cmd, hosts={name: _alias(name) for name in cmd.hosts})
 
     def finish(self, launch: Launch, cmd: PrepareAttempt, task: TaskSpec, dirs: AttemptDirs, *,
-               limits: Limits | None = None, auth: RegistryAuth | None = None) -> Launch:
+               request: ResourceSpec, gpus: int, auth: RegistryAuth | None = None) -> Launch:
         """The launch with its container complete: image id, name, labels, user, network.
 
-        ``cmd`` is the placement as sent (not :meth:`placement`'s). Runs on an I/O thread
-        (it may pull). Raises ImageError (``image 'x' not found: …``)
-        or ContainerError (the network cannot be made).
+        ``cmd`` is the placement as sent (not :meth:`placement`'s); ``request`` the task's
+        resources (cpu/memory limits, GPU count) and ``gpus`` how many the node has. Runs
+        on an I/O thread (it may pull). Raises ImageError (``image 'x' not found: …``)
+        or ContainerError (the network cannot be made); nothing stays held then.
         """
+        if self._gpus is None:
+            self._gpus = GpuSlots(gpus)
+        held = self._gpus.take(cmd.attempt_id, request.gpu or 0)
+        limits = Limits(cpus=float(request.cpu or 0), memory=request.memory, gpus=held)
+        try:
+            return self._finish(launch, cmd, task, dirs, limits, auth)
+        except BaseException:
+            self._gpus.give_back(cmd.attempt_id)
+            remove_secret_files(launch)  # a failed preparation leaves no secret behind
+            raise
+
+    def start(self, launch: Launch, *, wait_for_lead: bool = False) -> ProcessHandle:
+        """Start ``launch`` in its container (after its lead, if told: on an I/O thread).
+
+        Raises:
+            StartError: the engine's CLI cannot be started or the run cannot be expressed.
+        """
+        assert launch.container is not None
+        if wait_for_lead:
+            self.wait_for_lead(launch.container)
+        handle = self.runtime.start(launch.argv, cwd=launch.cwd, env=launch.env,
+                                    container=launch.container)
+        self.started(launch.container)
+        return handle
+
+    def _finish(self, launch: Launch, cmd: PrepareAttempt, task: TaskSpec, dirs: AttemptDirs,
+                limits: Limits, auth: RegistryAuth | None) -> Launch:
         assert launch.container is not None and task.image is not None
         notes: list[str] = []
         image = self.engine.resolve(task.image, pull=self._pull, auth=auth,
                                     progress=lambda line: notes.append(f"pull: {line}"))
         notes.append(f"image '{task.image}' is {image.id} ({self.describe()})")
-        limits = limits or Limits()
         network = self._network(cmd)
         lead = task.lead or next(iter(cmd.hosts), cmd.task) == cmd.task
         labels = {**self.labels, "osmo.workflow": cmd.workflow_id, "osmo.task": cmd.task,
@@ -269,7 +229,12 @@ class ContainerTasks:
             time.sleep(0.05)
 
     def ended(self, run: ContainerRun) -> None:
-        """An attempt that used ``run`` ended: its group network goes with its last member."""
+        """An attempt that used ``run`` ended (I/O thread).
+
+        Its GPUs are free again; its group network goes with its last member here.
+        """
+        if self._gpus is not None:
+            self._gpus.give_back(run.labels.get("osmo.attempt", ""))
         if run.network is None or run.network == "host" or "osmo.network" not in run.labels:
             return
         with self._lock:
@@ -378,3 +343,32 @@ def for_node(runtime: str, engine: str | None, home: Path) -> ContainerTasks | N
     """
     found = choose(runtime, engine)
     return ContainerTasks(found, owner=owner_id(home)) if found is not None else None
+
+
+def image_ids(runtime: str, engine: str | None,
+              boxes: ContainerTasks | None) -> Callable[[str], str | None] | None:
+    """The server's ``image → id`` lookup for cache fingerprints (None: tags are used).
+
+    The local pool's engine, else the one ``runtime`` would choose (a server with remote
+    workers only); an image not on this host gives None. Never pulls.
+    """
+    engine_of = boxes.engine if boxes is not None else _quiet_choose(runtime, engine)
+    if engine_of is None:
+        return None
+    found = engine_of
+
+    def lookup(image: str) -> str | None:
+        try:
+            info = found.image(image)
+        except ContainerError:
+            return None
+        return info.id if info is not None else None
+
+    return lookup
+
+
+def _quiet_choose(runtime: str, engine: str | None) -> ContainerEngine | None:
+    try:
+        return choose(runtime, engine)
+    except EngineNotFound:
+        return None

@@ -45,7 +45,7 @@ class AttemptEndings:
     _artifacts: ArtifactStore | None
     _credential_for: CredentialLookup | None
     _max_output_files: int | None
-    _ended: Callable[[str, Launch], None]  # frees an ended attempt's GPUs and network
+    _ended: Callable[[Launch], None]  # lets an ended container's GPUs and network go
 
     def _exited(self, attempt: LiveAttempt) -> None:
         handle = attempt.handle
@@ -121,7 +121,7 @@ class AttemptEndings:
         finally:  # a log that cannot be written must not keep the report (or a secret) back
             remove_secret_files(attempt.launch)
             self._drop_scratch(attempt.launch)
-            self._ended(attempt.id, attempt.launch)
+            self._ended(attempt.launch)
             self._attempts.pop(attempt.id, None)
             self._remember(attempt.id)
             if event is not None:

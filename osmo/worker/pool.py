@@ -74,7 +74,7 @@ from osmo.scheduler.types import (
 )
 from osmo.spec.model import ResourceSpec, TaskSpec
 from osmo.worker.checkpoints import start_checkpoints
-from osmo.worker.containers import ContainerTasks, GpuSlots, Limits, registry_auth
+from osmo.worker.containers import ContainerTasks, registry_auth
 from osmo.worker.endings import AttemptEndings
 from osmo.worker.live import AttemptState, LiveAttempt
 from osmo.worker.logs import LogWriter, image_note
@@ -152,7 +152,6 @@ class LocalPool(AttemptEndings):
         if containers is not None:
             containers.clean_orphans()  # a crashed predecessor's, before anything new runs
             self._runtime = containers.runtime
-        self._gpus_held: GpuSlots | None = None
         self._env = dict(os.environ if env is None else env)
         self._artifacts = artifacts
         self._credential_for = credential_for
@@ -187,6 +186,10 @@ class LocalPool(AttemptEndings):
         self._reactor.call_soon(self._prepare, cmd, task, secrets,
                                 replace(resources or ResourceSpec(), storage=max_output_bytes))
 
+    def runtime_name(self) -> str:
+        """How this pool runs image tasks: ``container (podman 4.3.1)`` or ``process``."""
+        return f"container ({self._containers.describe()})" if self._containers else "process"
+
     def owns(self, node_id: str) -> bool:
         """Whether ``node_id`` is this pool's node."""
         return node_id == self._node_id
@@ -215,37 +218,14 @@ class LocalPool(AttemptEndings):
 
     # -------------------------------------------------------------- containers
 
-    def _contain(self, launch: Launch, cmd: PrepareAttempt, task: TaskSpec,
-                 dirs: AttemptDirs, resources: ResourceSpec) -> Launch:
-        """I/O thread: finish a container task's launch (image, limits, GPUs, network)."""
-        assert self._containers is not None
-        if self._gpus_held is None:
-            self._gpus_held = GpuSlots(self.node().capacity.gpu)
-        gpus = self._gpus_held.take(cmd.attempt_id, resources.gpu or 0)
-        limits = Limits(cpus=float(resources.cpu or 0), memory=resources.memory, gpus=gpus)
-        try:
-            return self._containers.finish(launch, cmd, task, dirs, limits=limits,
-                                           auth=registry_auth(task, self._task_secrets))
-        except BaseException:
-            self._gpus_held.give_back(cmd.attempt_id)
-            remove_secret_files(launch)
-            raise
-
     def _spawn(self, launch: Launch, *, wait: bool = False) -> ProcessHandle:
         """Start a launch: in its container, or as a process. ``wait``: on an I/O thread."""
         if launch.container is None or self._containers is None:
             return self._runtime.start(launch.argv, cwd=launch.cwd, env=launch.env)
-        if wait:
-            self._containers.wait_for_lead(launch.container)
-        handle = self._containers.runtime.start(launch.argv, cwd=launch.cwd, env=launch.env,
-                                                container=launch.container)
-        self._containers.started(launch.container)
-        return handle
+        return self._containers.start(launch, wait_for_lead=wait)
 
-    def _ended(self, attempt_id: str, launch: Launch) -> None:
-        """An attempt is over: its GPUs are free, its group network may go (I/O thread)."""
-        if self._gpus_held is not None:
-            self._gpus_held.give_back(attempt_id)
+    def _ended(self, launch: Launch) -> None:
+        """An attempt is over: its container's GPUs and group network are let go."""
         if launch.container is not None and self._containers is not None:
             try:
                 self._io.submit(self._containers.ended, launch.container)
@@ -276,8 +256,10 @@ class LocalPool(AttemptEndings):
                                 credential_for=self._credential_for, artifacts=self._artifacts,
                                 input_manifests=self._input_manifests, boxed=boxed)
             launch = replace(launch, max_output_bytes=resources.storage)
-            if boxed:
-                launch = self._contain(launch, cmd, task, dirs, resources)
+            if self._containers is not None and boxed:
+                launch = self._containers.finish(
+                    launch, cmd, task, dirs, request=resources, gpus=self.node().capacity.gpu,
+                    auth=registry_auth(task, self._task_secrets))
         except Exception as exc:  # every prepare must get its one final report
             message = str(exc) if isinstance(exc, OsmoError) else f"cannot prepare: {exc!r}"
             self._reactor.call_soon(self._prepared, cmd, task, None, None, message)
@@ -315,7 +297,7 @@ class LocalPool(AttemptEndings):
                 self._runtime.reap(started)
                 self._runtime.release(started)
             remove_secret_files(launch)
-            self._ended(cmd.attempt_id, launch)
+            self._ended(launch)
             self._remember(cmd.attempt_id)
             self._emit(AttemptStartFailed(cmd.attempt_id, f"cannot write its log: {exc}"))
             return
@@ -422,7 +404,7 @@ class LocalPool(AttemptEndings):
                 self._runtime.release(handle)
             attempt.log.close()
             remove_secret_files(attempt.launch)
-            self._ended(attempt.id, attempt.launch)
+            self._ended(attempt.launch)
         self._attempts.clear()
 
 

@@ -205,7 +205,8 @@ class RemoteWorker:
             hello = Hello(node, pid=os.getpid(), host_id=host_id(),
                           artifacts=str(self.store.root), draining=self._draining,
                           active=tuple(sorted(self._active | set(self._pending))),
-                          finished=tuple(self._unacked.values())).to_dict()
+                          finished=tuple(self._unacked.values()),
+                          runtime=self.pool.runtime_name()).to_dict()
         try:
             reply = self._api.call("worker_register", hello)
         except OsmoError as exc:

@@ -63,7 +63,8 @@ from osmo.runtime.container_run import ContainerRun
 from osmo.scheduler.types import PrepareAttempt
 from osmo.spec.model import InputSpec, TaskSpec
 from osmo.spec.tokens import substitute
-from osmo.worker import containers, launch
+from osmo.worker import container_layout as containers
+from osmo.worker import launch
 from osmo.worker.secrets import Secrets, mounts, secret_env, secret_values
 
 __all__ = ["Launch", "PrepareError", "prepare", "promote", "remove_secret_files"]
