@@ -12,7 +12,8 @@ from osmo.worker.containers import owner_id
 from tests.conftest import Osmo
 
 _SYSLOG = "failed to connect to syslog"
-_LOG_LINE = re.compile(r"^\d{4}/\d\d/\d\d \d\d:\d\d:\d\d \[([^\]]+)\](\[osmo\])? ?(.*)$")
+_LOG_LINE = re.compile(
+    r"^\d{4}/\d\d/\d\d \d\d:\d\d:\d\d \[([^\] ]+)(?: retry-\d+)?\](\[osmo\])? ?(.*)$")
 
 
 def container_osmo(home: Path, env: dict[str, str]) -> Osmo:
