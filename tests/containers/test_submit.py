@@ -104,13 +104,13 @@ def test_a_secret_is_not_in_inspect_but_the_task_has_it(cosmo: Osmo, engine: Con
                                                         tmp_path: Path) -> None:
     secret = f"s3cr3t-{uuid.uuid4().hex}"
     cosmo("credential", "set", "api", "--payload", f"token={secret}", check=True)
-    spec = write(tmp_path / "secret.yaml", f"""
+    spec = write(tmp_path / "secret.yaml", """
 workflow:
   name: secret
   tasks:
   - name: use
     image: alpine:3.18
-    credentials: {{api: {{API_TOKEN: token}}}}
+    credentials: {api: {API_TOKEN: token}}
     command: [sh, -c, 'printf %s "$API_TOKEN" | md5sum; sleep 30']
 """)
     wf = cosmo.submit(spec)
