@@ -209,7 +209,7 @@ workflow:
         assert task_lines(cosmo, wf3)["once"] == ["ran"]
         assert lineage_of(cosmo, f"{wf3}:once")["image_id"] == second
     finally:
-        engine.call("untag", tag)
+        engine.call("untag", tag, tag)  # only this name (no name: every name of it)
 
 
 def test_orphans_are_removed_after_a_server_kill_9(cosmo: Osmo, engine: ContainerEngine,
