@@ -97,8 +97,8 @@ class Engine:
         inflight: the quarantine file (``osmo.server.recovery.InFlight``), if any.
         on_fatal: called (on the engine thread) when the engine cannot go on.
         clock: time source (injectable for tests).
-        image_ids: image → its id on this host, when image tasks run in containers (the
-            cache fingerprints the id; ``osmo.server.placing.Placements``).
+        image_ids: ``(workflow id, image) → id`` on this host, when image tasks run in
+            containers (the cache fingerprints the id; ``osmo.server.placing.Placements``).
     """
 
     def __init__(self, *, store: Store, scheduler: Scheduler, executors: Sequence[Executor],
@@ -110,7 +110,7 @@ class Engine:
                  inflight: InFlight | None = None,
                  on_fatal: Callable[[BaseException], None] = lambda _exc: None,
                  clock: Callable[[], float] = time.time,
-                 image_ids: Callable[[str], str | None] | None = None) -> None:
+                 image_ids: Callable[[str, str], str | None] | None = None) -> None:
         self.store = store
         self.scheduler = scheduler
         self._executors = tuple(executors)

@@ -10,7 +10,6 @@ resolved. Runs on the engine thread only; must not touch the scheduler.
 
 from __future__ import annotations
 
-import collections
 import functools
 import logging
 from collections.abc import Callable
@@ -37,8 +36,6 @@ __all__ = ["Placements", "output_manifests"]
 
 log = logging.getLogger("osmo.server")
 
-_KEEP_IMAGE_IDS = 1024  # (workflow, image) → id pairs remembered
-
 
 class Placements:
     """Placed attempts between their commit and their preparation (engine thread).
@@ -50,22 +47,20 @@ class Placements:
         post: queues an event for the engine.
         provenance: remembers each placement for its lineage.
         datasets: resolves dataset and other-workflow inputs (None: none to resolve).
-        image_ids: image name → its id on this host (None: not here), when image tasks run
-            in containers; each workflow resolves an image once (``cache`` uses the id).
+        image_ids: ``(workflow id, image) → id`` on this host (None: not here), when image
+            tasks run in containers (``cache`` uses the id).
     """
 
     def __init__(self, *, store: Store, specs: dict[str, WorkflowSpec], no_cache: set[str],
                  post: Callable[[Event], None], provenance: Provenance,
                  datasets: Datasets | None,
-                 image_ids: Callable[[str], str | None] | None = None) -> None:
+                 image_ids: Callable[[str, str], str | None] | None = None) -> None:
         self._store, self._specs, self._no_cache = store, specs, no_cache
         self._post = post
         self._provenance, self._datasets = provenance, datasets
         self._ready: dict[str, PrepareAttempt | str] = {}  # the final command, or why not
         self._hits: dict[str, CacheHit] = {}
         self._image_ids = image_ids
-        self._resolved: collections.OrderedDict[tuple[str, str], str | None] = (
-            collections.OrderedDict())
 
     def resolve(self, cmd: PrepareAttempt) -> None:
         """Settle what a placed attempt needs before it is prepared.
@@ -80,7 +75,8 @@ class Placements:
             sources = cache.input_sources(self._store, cmd)
             task = self._specs[cmd.workflow_id].task(cmd.task)
             contained = self._image_ids is not None and task.image is not None and not task.type
-            image_id = self._image_id(cmd.workflow_id, task.image) if contained else None
+            image_id = (self._image_ids(cmd.workflow_id, task.image)
+                        if self._image_ids is not None and task.image is not None else None)
             key = cache.key(cmd, task, sources, no_cache=cmd.workflow_id in self._no_cache,
                             contained=contained, image_id=image_id)
             hit = cache.lookup(self._store, key) if key else None
@@ -96,17 +92,6 @@ class Placements:
                                 image_id=image_id)
         if hit is not None:
             self._hits[cmd.attempt_id] = hit
-
-    def _image_id(self, workflow_id: str, image: str | None) -> str | None:
-        """``image``'s id as this workflow first saw it (one engine call per image)."""
-        if image is None or self._image_ids is None:
-            return None
-        memo = (workflow_id, image)
-        if memo not in self._resolved:
-            self._resolved[memo] = self._image_ids(image)
-            while len(self._resolved) > _KEEP_IMAGE_IDS:
-                self._resolved.popitem(last=False)
-        return self._resolved[memo]
 
     def prepare(self, cmd: PrepareAttempt, executor: Executor | None) -> None:
         """Execute a placement: prepare it, complete it from the cache, or fail its start.

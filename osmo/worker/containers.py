@@ -40,21 +40,20 @@ from osmo.runtime.container_run import (
     ContainerError,
     ContainerRun,
     RegistryAuth,
-    pull_reference,
     safe_name,
 )
 from osmo.runtime.container_runtime import ContainerRuntime
 from osmo.runtime.process import ProcessHandle
 from osmo.scheduler.types import PrepareAttempt
 from osmo.spec.model import ResourceSpec, TaskSpec
-from osmo.worker.secrets import SecretLookup
+from osmo.worker.container_images import ImageIds
 from osmo.worker.workdir import Launch, remove_secret_files
 
 if TYPE_CHECKING:
     from osmo.layout import AttemptDirs
 
-__all__ = ["REGISTRY_PREFIX", "RUNTIMES", "ContainerTasks", "GpuSlots", "Limits", "choose",
-           "for_node", "image_ids", "owner_id", "registry_auth"]
+__all__ = ["RUNTIMES", "ContainerTasks", "GpuSlots", "Limits", "choose",
+           "for_node", "image_ids", "owner_id"]
 
 RUNTIMES = ("auto", "container", "process")
 """The values of ``--runtime``."""
@@ -118,6 +117,7 @@ class ContainerTasks:
     def __init__(self, engine: ContainerEngine, *, owner: str, pull: bool = True) -> None:
         self.engine = engine
         self.runtime = ContainerRuntime(engine)
+        self.images = ImageIds(engine)
         self.labels = {"osmo.owner": owner}
         self._pull = pull
         self._lock = threading.Lock()
@@ -182,9 +182,9 @@ class ContainerTasks:
                 limits: Limits, auth: RegistryAuth | None) -> Launch:
         assert launch.container is not None and task.image is not None
         notes: list[str] = []
-        image = self.engine.resolve(task.image, pull=self._pull, auth=auth,
+        image = self.images.resolve(cmd.workflow_id, task.image, pull=self._pull, auth=auth,
                                     progress=lambda line: notes.append(f"pull: {line}"))
-        notes.append(f"image '{task.image}' is {image.id} ({self.describe()})")
+        notes.append(f"image '{task.image}' is {image} ({self.describe()})")
         network = self._network(cmd)
         lead = task.lead or next(iter(cmd.hosts), cmd.task) == cmd.task
         labels = {**self.labels, "osmo.workflow": cmd.workflow_id, "osmo.task": cmd.task,
@@ -193,7 +193,7 @@ class ContainerTasks:
             labels.update({"osmo.network": network, "osmo.lead": "1" if lead else "0"})
             self._join(network)
         run = replace(
-            launch.container, image=image.id, name=safe_name(cmd.attempt_id), labels=labels,
+            launch.container, image=image, name=safe_name(cmd.attempt_id), labels=labels,
             user=f"{os.getuid()}:{os.getgid()}", network=network,
             aliases=(_alias(cmd.task),) if network not in (None, "host") else (),
             hostname=_alias(cmd.task) if network not in (None, "host") else None,
@@ -316,25 +316,6 @@ class GpuSlots:
             self._free = sorted([*self._free, *self._held.pop(attempt_id, ())])
 
 
-REGISTRY_PREFIX = "registry://"
-"""A registry's credential is named ``registry://HOST`` (keys ``username``, ``password``)."""
-
-
-def registry_auth(task: TaskSpec, lookup: SecretLookup | None) -> RegistryAuth | None:
-    """The stored credential for pulling ``task``'s image, if there is one.
-
-    Found by the image's registry host (``docker.io`` for short names), like a data URL's
-    credential; used for the pull only.
-    """
-    if lookup is None or task.image is None:
-        return None
-    host = pull_reference(task.image).split("/", 1)[0]
-    payload = lookup(REGISTRY_PREFIX + host)
-    if not payload or "username" not in payload or "password" not in payload:
-        return None
-    return RegistryAuth(host, payload["username"], payload["password"])
-
-
 def for_node(runtime: str, engine: str | None, home: Path) -> ContainerTasks | None:
     """The container side of a server's or worker's pool (None: image tasks are processes).
 
@@ -346,25 +327,17 @@ def for_node(runtime: str, engine: str | None, home: Path) -> ContainerTasks | N
 
 
 def image_ids(runtime: str, engine: str | None,
-              boxes: ContainerTasks | None) -> Callable[[str], str | None] | None:
-    """The server's ``image → id`` lookup for cache fingerprints (None: tags are used).
+              boxes: ContainerTasks | None) -> Callable[[str, str], str | None] | None:
+    """The server's ``(workflow id, image) → id`` lookup for cache fingerprints.
 
-    The local pool's engine, else the one ``runtime`` would choose (a server with remote
-    workers only); an image not on this host gives None. Never pulls.
+    The local pool's (so server and pool resolve each image once per workflow), else one
+    for the engine ``runtime`` would choose (a server with remote workers only); None when
+    there is none (tags are used). An image not on this host gives None; never pulls.
     """
-    engine_of = boxes.engine if boxes is not None else _quiet_choose(runtime, engine)
-    if engine_of is None:
-        return None
-    found = engine_of
-
-    def lookup(image: str) -> str | None:
-        try:
-            info = found.image(image)
-        except ContainerError:
-            return None
-        return info.id if info is not None else None
-
-    return lookup
+    if boxes is not None:
+        return boxes.images.known
+    found = _quiet_choose(runtime, engine)
+    return ImageIds(found).known if found is not None else None
 
 
 def _quiet_choose(runtime: str, engine: str | None) -> ContainerEngine | None:

@@ -74,7 +74,8 @@ from osmo.scheduler.types import (
 )
 from osmo.spec.model import ResourceSpec, TaskSpec
 from osmo.worker.checkpoints import start_checkpoints
-from osmo.worker.containers import ContainerTasks, registry_auth
+from osmo.worker.container_images import registry_auth
+from osmo.worker.containers import ContainerTasks
 from osmo.worker.endings import AttemptEndings
 from osmo.worker.live import AttemptState, LiveAttempt
 from osmo.worker.logs import LogWriter, image_note

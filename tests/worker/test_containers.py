@@ -14,8 +14,9 @@ from osmo.runtime.container_run import DATA_OUTPUT, Mount
 from osmo.scheduler.types import AttemptExited, Capacity, Node, PrepareAttempt
 from osmo.spec.model import FileSpec, InputSpec, TaskSpec
 from osmo.transport.wire import Hello, event_from_dict, event_to_dict
+from osmo.worker.container_images import registry_auth
 from osmo.worker.container_layout import WORKDIR, data_path, layout
-from osmo.worker.containers import GpuSlots, choose, owner_id, registry_auth
+from osmo.worker.containers import GpuSlots, choose, owner_id
 from osmo.worker.workdir import prepare
 
 
