@@ -86,6 +86,10 @@ class UsageError(OsmoError):
     exit_code = 2
 
 
+class MissingExtra(UsageError):
+    """A plugin's optional dependency is not installed; the message names the pip extra."""
+
+
 class NotFoundError(OsmoError):
     """A named workflow, task, retry or attempt does not exist."""
 

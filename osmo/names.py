@@ -21,7 +21,7 @@ from collections.abc import Iterable
 
 from osmo.errors import UsageError
 
-__all__ = ["MAX_NAME", "NAME_RE", "check_name", "check_tag", "check_worker_name",
+__all__ = ["MAX_NAME", "NAME_RE", "check_label", "check_name", "check_tag", "check_worker_name",
            "check_workflow_id", "did_you_mean", "name_problem", "parse_ref", "ref_problem",
            "shown", "workflow_id_problem"]
 
@@ -101,6 +101,31 @@ def check_tag(tag: object, what: str = "dataset tag") -> str:
         raise UsageError(f"{what} {shown(tag)} is not allowed: numbers and '{_LATEST}' name "
                          "versions; pick a name that starts with a letter")
     return check_name(tag, what)
+
+
+_LABEL_KEY = re.compile(r"[A-Za-z0-9](?:[A-Za-z0-9._/-]*[A-Za-z0-9])?")
+_MAX_LABEL_KEY, _MAX_LABEL_VALUE = 128, 256
+
+
+def check_label(key: object, value: object) -> tuple[str, str]:
+    """``(key, value)`` if they make a workflow label (``--label k=v``, ``list --label``).
+
+    A key is letters, digits and ``._/-`` (Kubernetes-like: ``team``, ``app.example/run``),
+    starting and ending with a letter or digit, at most 128 characters; a value is non-empty
+    text of at most 256 characters with no control characters.
+
+    Raises:
+        UsageError: naming what is wrong.
+    """
+    if not isinstance(key, str) or len(key) > _MAX_LABEL_KEY or not _LABEL_KEY.fullmatch(key):
+        raise UsageError(f"label key {shown(key)} is not valid: letters, digits and ._/- "
+                         f"starting and ending with a letter or digit, at most "
+                         f"{_MAX_LABEL_KEY} characters")
+    if not isinstance(value, str) or not value or len(value) > _MAX_LABEL_VALUE \
+            or any(ord(c) < 32 or ord(c) == 127 for c in value):
+        raise UsageError(f"label {key}'s value {shown(value)} is not valid: non-empty text of "
+                         f"at most {_MAX_LABEL_VALUE} characters, no control characters")
+    return key, value
 
 
 def ref_problem(ref: object, what: str = "dataset") -> str | None:

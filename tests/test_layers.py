@@ -40,11 +40,7 @@ is the package's lazy public facade)."""
 RANK = {part: rank for rank, (_, parts) in enumerate(LAYERS) for part in parts}
 
 # Known exceptions, each with its reason; the test fails when one is no longer needed.
-ALLOWED: dict[tuple[str, str], str] = {
-    ("cli", "osmo_plugins"): "osmo/cli/robotics.py imports the viz and sim plugins' private "
-                             "modules (issue 12, item 5: a plugin should contribute its viewer "
-                             "through an entry point; that file is being changed elsewhere)",
-}
+ALLOWED: dict[tuple[str, str], str] = {}
 
 
 def _part(module: str) -> str:

@@ -15,9 +15,11 @@ from osmo.cli.pools import run_pool, run_resource
 from osmo.cli.remote import run_health, run_profile, run_worker
 from osmo.cli.render import (
     console,
+    events_text,
     format_log,
     info_dict,
     live_progress,
+    print_error,
     print_json,
     safe,
     task_table,
@@ -25,7 +27,8 @@ from osmo.cli.render import (
     workflows_table,
 )
 from osmo.cli.robotics import run_eval, run_view
-from osmo.errors import WorkflowFailed
+from osmo.errors import OsmoError, UsageError, WorkflowFailed
+from osmo.names import check_label
 from osmo.sdk.client import Client, WorkflowInfo
 from osmo.sdk.connect import server_status, start_server, stop_server
 from osmo.server.options import ServerOptions
@@ -56,7 +59,8 @@ def _submit(args: argparse.Namespace) -> int:
     with _client(args) as client:
         wf_id = client.submit(args.file, set_values=args.set_values,
                               set_strings=args.set_strings, set_env=args.set_env, pool=args.pool,
-                              no_cache=args.no_cache)
+                              no_cache=args.no_cache, labels=_label_args(args.labels),
+                              priority=args.priority)
         if args.format == "json" and not args.wait:
             print_json({"workflow_id": wf_id})
             return 0
@@ -114,7 +118,8 @@ def _query(args: argparse.Namespace) -> int:
 def _list(args: argparse.Namespace) -> int:
     statuses = [s.upper() for s in args.status]
     with _client(args) as client:
-        rows = client.list(statuses=statuses, name=args.name, limit=args.count)
+        rows = client.list(statuses=statuses, name=args.name, limit=args.count,
+                           labels=_label_args(args.labels))
     if args.format == "json":
         print_json([info_dict(r) for r in rows])
     elif rows:
@@ -125,23 +130,67 @@ def _list(args: argparse.Namespace) -> int:
 
 
 def _logs(args: argparse.Namespace) -> int:
+    stream = "stderr" if args.error else None
     with _client(args) as client:
         if args.follow:
-            records = client.follow_logs(args.workflow_id, task=args.task, retry=args.retry)
+            records = client.follow_logs(args.workflow_id, task=args.task, retry=args.retry,
+                                         stream=stream)
         else:
             records = iter(client.logs(args.workflow_id, task=args.task, retry=args.retry,
-                                       tail=args.lines))
+                                       tail=args.lines, stream=stream))
         for record in records:
             sys.stdout.write(format_log(record) + "\n")
             sys.stdout.flush()
     return 0
 
 
-def _cancel(args: argparse.Namespace) -> int:
+def _label_args(items: list[str]) -> dict[str, str]:
+    """``--label K=V`` values → a dict (later wins); checked as the server checks them."""
+    labels: dict[str, str] = {}
+    for item in items:
+        key, eq, value = item.partition("=")
+        if not eq:
+            raise UsageError(f"--label {safe(item)}: expected K=V")
+        labels.update([check_label(key, value)])
+    return labels
+
+
+def _tag(args: argparse.Namespace) -> int:
+    if not args.add and not args.remove:
+        raise UsageError("osmo workflow tag: give --add TAG... and/or --remove TAG...")
     with _client(args) as client:
-        status = client.cancel(args.workflow_id)
-    console.print(f"Workflow {safe(args.workflow_id)}: {status.name}", markup=False)
+        tags = client.tag(args.workflow_id, add=args.add, remove=args.remove)
+    if args.format == "json":
+        print_json({"workflow_id": args.workflow_id, "tags": tags})
+    else:
+        console.print(f"Workflow {safe(args.workflow_id)} tags: "
+                      f"{', '.join(map(safe, tags)) or '(none)'}", markup=False)
     return 0
+
+
+def _events(args: argparse.Namespace) -> int:
+    with _client(args) as client:
+        events = client.events(args.workflow_id, task=args.task)
+    if args.format == "json":
+        print_json(events)
+    elif events:
+        console.print(events_text(events), markup=False, highlight=False, soft_wrap=True)
+    return 0
+
+
+def _cancel(args: argparse.Namespace) -> int:
+    """Cancel each workflow named; one that cannot be cancelled does not stop the others."""
+    code = 0
+    with _client(args) as client:
+        for wf_id in dict.fromkeys(args.workflow_ids):
+            try:
+                status = client.cancel(wf_id)
+            except OsmoError as exc:
+                print_error(f"{safe(wf_id)}: {exc}")
+                code = max(code, exc.exit_code)
+                continue
+            console.print(f"Workflow {safe(wf_id)}: {status.name}", markup=False)
+    return code
 
 
 def _restart(args: argparse.Namespace) -> int:
@@ -192,6 +241,8 @@ _VERBS: dict[str, Callable[[argparse.Namespace], int]] = {
     "status": _query,
     "list": _list,
     "logs": _logs,
+    "events": _events,
+    "tag": _tag,
     "cancel": _cancel,
     "restart": _restart,
     "spec": _spec,

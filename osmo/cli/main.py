@@ -4,13 +4,18 @@ Exit codes (documented in the README): 0 ok; 1 workflow failed; 2 invalid input 
 3 server unreachable or infrastructure error; 130 interrupted. A user mistake never prints a
 traceback. Verbs exist both at the top level (``osmo submit``) and under ``osmo workflow``
 for OSMO parity.
+
+Arguments are taken as OSMO's CLI takes them: ``--set``, ``--set-string`` and ``--set-env``
+each take one or more ``K=V`` and may be repeated (later values win); the global options
+``--server`` and ``--format``/``-t`` are accepted before or after the verb (after it, a
+verb's own ``-t`` keeps its meaning: ``osmo logs -t`` is the task).
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 
 from osmo.cli.artifacts import add_parsers as add_artifact_parsers
 from osmo.cli.datasets import add_credential_parsers
@@ -19,13 +24,13 @@ from osmo.cli.plugins import add_parsers as add_plugin_parsers
 from osmo.cli.pools import add_parsers as add_pool_parsers
 from osmo.cli.remote import add_parsers as add_remote_parsers
 from osmo.cli.robotics import add_parsers as add_robotics_parsers
-from osmo.errors import OsmoError
+from osmo.errors import OsmoError, UsageError
 from osmo.server.options import ServerOptions
 
 __all__ = ["build_parser", "main"]
 
-_WORKFLOW_VERBS = ("submit", "validate", "query", "status", "list", "logs", "cancel", "restart",
-                   "spec")
+_WORKFLOW_VERBS = ("submit", "validate", "query", "status", "list", "logs", "events", "tag",
+                   "cancel", "restart", "spec")
 
 
 def _add_format(p: argparse.ArgumentParser) -> None:
@@ -33,20 +38,48 @@ def _add_format(p: argparse.ArgumentParser) -> None:
                    default="text", help="output format")
 
 
+_TEMPLATE_FLAGS = (("--set", "set_values"), ("--set-string", "set_strings"),
+                   ("--set-env", "set_env"))
+
+
 def _add_template_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("file", help="workflow spec (YAML)")
-    p.add_argument("--set", dest="set_values", action="append", default=[], metavar="K=V",
-                   help="template variable (cast to int, then float, else string)")
-    p.add_argument("--set-string", dest="set_strings", action="append", default=[],
-                   metavar="K=V", help="template variable kept as a string")
-    p.add_argument("--set-env", dest="set_env", action="append", default=[], metavar="K=V",
-                   help="environment variable added to every task")
+    # nargs="?": a spec file swallowed by a --set gets its own error (see _check_spec_file)
+    p.add_argument("file", nargs="?", help="workflow spec (YAML)")
+    helps = ("template variables (cast to int, then float, else string)",
+             "template variables kept as strings", "environment variables added to every task")
+    for (flag, dest), text in zip(_TEMPLATE_FLAGS, helps, strict=True):
+        p.add_argument(flag, dest=dest, nargs="+", action="extend", default=[], metavar="K=V",
+                       help=f"{text}; one or more, repeatable, later values win")
+
+
+def _check_spec_file(args: argparse.Namespace) -> None:
+    """A verb with a spec file has one: else say whether a ``--set`` took it, and the fix."""
+    if not hasattr(args, "set_values") or args.file is not None:
+        return
+    verb = getattr(args, "wf_verb", None) or args.verb
+    for flag, dest in _TEMPLATE_FLAGS:
+        values = getattr(args, dest)
+        taken = [v for v in values if "=" not in v]
+        if len(taken) == 1:
+            rest = " ".join(v for v in values if v != taken[0])
+            raise UsageError(f"no workflow spec file: {flag} takes every K=V after it, and it "
+                             f"took {taken[0]!r}. Put the file first: osmo {verb} {taken[0]} "
+                             f"{flag} {rest}")
+        if taken:
+            raise UsageError(f"no workflow spec file, and {flag} got values that are not "
+                             f"K=V: {' '.join(taken)}")
+    raise UsageError(f"no workflow spec file: give its path, e.g. osmo {verb} workflow.yaml")
 
 
 def _add_workflow_verbs(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     p = sub.add_parser("submit", help="submit a workflow")
     _add_template_args(p)
-    p.add_argument("--pool", help="target pool (overrides workflow.pool)")
+    p.add_argument("--pool", "-p", help="target pool (overrides workflow.pool)")
+    p.add_argument("--label", dest="labels", action="append", default=[], metavar="K=V",
+                   help="a workflow label, merged over workflow.labels (repeatable)")
+    p.add_argument("--priority", type=str.upper, choices=("HIGH", "NORMAL", "LOW"),
+                   default="NORMAL", help="placement order when resources are short, with "
+                   "ageing: nothing waits forever (default NORMAL)")
     p.add_argument("--wait", action="store_true", help="show progress; exit 0 only if COMPLETED")
     p.add_argument("--dry-run", action="store_true", help="print the rendered spec; submit nothing")
     p.add_argument("--no-cache", action="store_true",
@@ -66,6 +99,8 @@ def _add_workflow_verbs(sub: argparse._SubParsersAction) -> None:  # type: ignor
     p.add_argument("-s", "--status", action="append", default=[], help="filter by status")
     p.add_argument("--name", help="filter by name (substring)")
     p.add_argument("-c", "--count", type=int, default=20, help="how many (default 20)")
+    p.add_argument("--label", dest="labels", action="append", default=[], metavar="K=V",
+                   help="only workflows with this label (repeatable: all of them)")
     _add_format(p)
 
     p = sub.add_parser("logs", help="a workflow's logs")
@@ -74,9 +109,23 @@ def _add_workflow_verbs(sub: argparse._SubParsersAction) -> None:  # type: ignor
     p.add_argument("-r", "--retry", type=int)
     p.add_argument("-n", "--lines", type=int, help="last N lines")
     p.add_argument("-f", "--follow", action="store_true", help="follow until the workflow ends")
+    p.add_argument("--error", action="store_true", help="stderr lines only")
 
-    p = sub.add_parser("cancel", help="cancel a workflow")
+    p = sub.add_parser("events", help="a workflow's scheduling timeline (queued, placed, "
+                       "started, retried, why it failed)")
     p.add_argument("workflow_id")
+    p.add_argument("-t", "--task", help="only this task's events")
+    p.add_argument("--format", dest="format", choices=("text", "json"), default="text",
+                   help="output format (-t is the task here, as in logs)")
+
+    p = sub.add_parser("tag", help="add or remove a workflow's tags")
+    p.add_argument("workflow_id")
+    p.add_argument("--add", nargs="+", action="extend", default=[], metavar="TAG")
+    p.add_argument("--remove", nargs="+", action="extend", default=[], metavar="TAG")
+    _add_format(p)
+
+    p = sub.add_parser("cancel", help="cancel workflows")
+    p.add_argument("workflow_ids", nargs="+", metavar="workflow_id")
 
     p = sub.add_parser("restart", help="rerun what did not complete, reusing completed outputs")
     p.add_argument("workflow_id")
@@ -93,6 +142,8 @@ def build_parser() -> argparse.ArgumentParser:
         "failed, 2 invalid input or usage, 3 server unreachable or infrastructure error."))
     parser.add_argument("--server", help="server endpoint, e.g. tcp/127.0.0.1:7447 "
                         "(default: OSMO_SERVER, else the local server, started if needed)")
+    parser.add_argument("--format", "-t", "--format-type", dest="global_format",
+                        metavar="FORMAT", help="output format of the verb (text, json, ...)")
     sub = parser.add_subparsers(dest="verb", metavar="COMMAND")
     _add_workflow_verbs(sub)
     wf = sub.add_parser("workflow", help="the same verbs, OSMO style: osmo workflow submit ...")
@@ -110,7 +161,46 @@ def build_parser() -> argparse.ArgumentParser:
     ServerOptions.add_arguments(p)
     _add_format(p)
     add_remote_parsers(sub)
+    for verb in _verb_parsers(parser):
+        _accept_global_options(verb)
     return parser
+
+
+def _verb_parsers(parser: argparse.ArgumentParser) -> Iterator[argparse.ArgumentParser]:
+    """Every sub-parser, at any depth (``osmo workflow submit``, ``osmo dataset info``)."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in dict.fromkeys(action.choices.values()):  # aliases share a parser
+                yield sub
+                yield from _verb_parsers(sub)
+
+
+def _accept_global_options(p: argparse.ArgumentParser) -> None:
+    """Let ``--server`` and ``--format`` follow the verb without overriding one before it.
+
+    A verb's ``--format`` default becomes None (so it cannot hide a global ``--format``) and
+    is kept as ``_format_default``; :func:`_resolve_format` puts the answer back.
+    """
+    options = {o for a in p._actions for o in a.option_strings}
+    if "--server" not in options:
+        p.add_argument("--server", default=argparse.SUPPRESS, help=argparse.SUPPRESS)
+    for action in p._actions:
+        if action.dest == "format":
+            p.set_defaults(_format_default=action.default, _format_choices=action.choices)
+            action.default = None
+    if "--format" not in options:
+        p.add_argument("--format", dest="global_format", default=argparse.SUPPRESS,
+                       help=argparse.SUPPRESS)
+
+
+def _resolve_format(args: argparse.Namespace) -> None:
+    """The verb's format: its own option, else the global one, else its default."""
+    chosen = getattr(args, "global_format", None)
+    if getattr(args, "format", None) is None and hasattr(args, "_format_default"):
+        choices = args._format_choices
+        if chosen is not None and choices and chosen not in choices:
+            raise UsageError(f"--format {chosen!r} is not one of {', '.join(choices)} here")
+        args.format = chosen if chosen is not None else args._format_default
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -128,6 +218,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.print_help()
         return 2
     try:
+        _resolve_format(args)
+        _check_spec_file(args)
         return commands.run(verb, args)
     except OsmoError as exc:
         print_error(str(exc) or type(exc).__name__)

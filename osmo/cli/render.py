@@ -17,9 +17,9 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     from rich.table import Table
 
-    from osmo.sdk.client import LogRecord, TaskInfo, WorkflowInfo
+    from osmo.sdk.client import EventInfo, LogRecord, TaskInfo, WorkflowInfo
 
-__all__ = ["console", "err_console", "format_log", "info_dict", "leaderboard_table",
+__all__ = ["console", "err_console", "events_text", "format_log", "info_dict",
            "live_progress", "plugin_table", "print_error", "print_json", "resource_table",
            "safe", "task_table", "workflow_header", "workflows_table"]
 
@@ -138,11 +138,17 @@ def workflow_header(info: WorkflowInfo) -> str:
         f"Workflow ID : {safe(info.id)}",
         f"Status      : {info.status.name}",
         f"Pool        : {safe(info.pool or '-')}",
+        f"Priority    : {info.priority}",
         f"Submitted   : {_when(info.submitted_at)}",
         f"Duration    : {_dur(_elapsed(info))}",
     ]
     if info.reused_from:
         lines.append(f"Restart of  : {safe(info.reused_from)}")
+    if info.labels:
+        lines.append("Labels      : " + ", ".join(f"{safe(k)}={safe(v)}"
+                                                  for k, v in sorted(info.labels.items())))
+    if info.tags:
+        lines.append(f"Tags        : {', '.join(map(safe, info.tags))}")
     return "\n".join(lines)
 
 
@@ -197,6 +203,22 @@ def format_log(r: LogRecord) -> str:
         who += f" retry-{r.retry}"
     tag = f"[{who}][osmo]" if r.stream == "osmo" else f"[{who}]"
     return f"{_when(r.ts)} {tag} {r.text}"
+
+
+def events_text(events: list[EventInfo]) -> str:
+    """``osmo workflow events``: one line per event, OSMO style, oldest first.
+
+    ``YYYY/MM/DD HH:MM:SS  [task retry-N]  STATUS  on NODE  message``; the workflow's own
+    events are marked ``[workflow]``.
+    """
+    lines = []
+    for e in events:
+        who = safe(e.task) + (f" retry-{e.retry}" if e.retry else "") if e.task else "workflow"
+        waiting = e.status in ("PENDING", "WAITING", "SCHEDULING")
+        where = f"  on {safe(e.node)}" if e.node and not waiting else ""
+        message = f"  {safe(e.message)}" if e.message else ""
+        lines.append(f"{_when(e.at)}  [{who}]  {e.status}{where}{message}")
+    return "\n".join(lines)
 
 
 def print_json(data: Any) -> None:
@@ -298,22 +320,4 @@ def plugin_table(rows: list[dict[str, Any]], *, verbose: bool = False) -> Table:
                 lines += [_param_line(n, p) for n, p in row["params"].items()] or ["  (no params)"]
             about = Text("\n".join(lines))
         table.add_row(row["name"], row["version"] or "-", row["extra"] or "-", about)
-    return table
-
-
-def leaderboard_table(rows: list[dict[str, Any]]) -> Table:
-    """``osmo eval report``: policies ranked per env (rows from ``leaderboard_rows``)."""
-    from rich.table import Table
-
-    table = Table(box=None, pad_edge=False)
-    for col in ("Env", "#", "Policy", "Workflow", "Task", "Success", "Return (95% CI)",
-                "Length", "Episodes"):
-        table.add_column(col)
-    for r in rows:
-        lo, hi = r["return_ci95"]
-        table.add_row(safe(r["env"]), str(r["rank"]), safe(r["policy"]), safe(r["workflow"]),
-                      safe(r["task"]),
-                      f"{100 * r['success_rate']:.0f}%",
-                      f"{r['mean_return']:.1f} [{lo:.1f}, {hi:.1f}]",
-                      f"{r['mean_length']:.0f}", str(r["episodes"]))
     return table

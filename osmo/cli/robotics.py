@@ -7,8 +7,8 @@ as a footnote (``n/a`` where the suite had none) and the normalised score. ``osm
 TARGET`` turns an MCAP artifact or file into a rerun ``.rrd`` and opens the viewer only with
 ``--open``.
 
-The MCAP→rrd conversion lives in the ``osmo_plugins`` package (installed with osmo) and needs
-the ``viz`` extra; it is imported only when ``view`` runs, so ``import osmo`` stays light.
+The conversion is a viewer plugin's (``osmo.tasktypes.viewers``: the ``viz`` extra's
+``rerun``); it is loaded only when ``view`` runs, so ``import osmo`` stays light.
 """
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ from typing import Any
 from osmo.cli.render import console, print_json, safe
 from osmo.errors import NotFoundError, UsageError
 from osmo.sdk.client import Client
+from osmo.tasktypes.viewers import Viewer, find_viewer
 
 __all__ = ["add_parsers", "leaderboard_rows", "leaderboard_text", "run_eval", "run_view"]
 
@@ -41,7 +42,9 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
     p = sub.add_parser("view", help="MCAP artifact or file → rerun .rrd (viewer with --open)")
     p.add_argument("target", help="a local .mcap/.rrd file, WORKFLOW_ID:TASK[:PATH] or sha256:…")
     p.add_argument("--out", help="the .rrd to write (default: <name>.rrd here)")
-    p.add_argument("--open", action="store_true", help="open the rerun viewer on the result")
+    p.add_argument("--open", action="store_true", help="open the viewer on the result")
+    p.add_argument("--viewer", metavar="NAME",
+                   help="a viewer plugin (osmo.viewers entry points; default: rerun)")
 
 
 def leaderboard_rows(sources: list[tuple[str, str, dict[str, Any]]]) -> list[dict[str, Any]]:
@@ -151,25 +154,17 @@ def run_eval(args: argparse.Namespace) -> int:
     return 0 if rows or args.format == "json" else 1
 
 
-def _convert(path: Path, out: Path) -> Path:
-    if path.suffix == ".rrd":
+def _convert(viewer: Viewer, path: Path, out: Path) -> Path:
+    if path.suffix == viewer.suffix:
         if path.resolve() != out.resolve():
             shutil.copyfile(path, out)
         return out
-    try:
-        from osmo_plugins.sim.envs import MissingExtra
-        from osmo_plugins.viz._rerun import mcap_to_rrd
-    except ImportError as exc:
-        raise UsageError(f'osmo view needs the viz extra: pip install "osmo[viz]" ({exc})') \
-            from exc
-    try:
-        return Path(mcap_to_rrd(path, out))
-    except MissingExtra as exc:
-        raise UsageError(str(exc)) from exc
+    return viewer.convert(path, out)
 
 
 def run_view(args: argparse.Namespace) -> int:
     """``osmo view TARGET``."""
+    viewer = find_viewer(args.viewer)
     local = Path(args.target)
     with tempfile.TemporaryDirectory() as tmp:
         if local.is_file():
@@ -177,21 +172,20 @@ def run_view(args: argparse.Namespace) -> int:
         else:
             with Client(args.server) as client:
                 client.get_artifact(args.target, tmp)
-            candidates = sorted(p for p in Path(tmp).rglob("*") if p.suffix in (".mcap", ".rrd"))
+            candidates = sorted(p for p in Path(tmp).rglob("*")
+                                if p.suffix in (".mcap", viewer.suffix))
             if not candidates:
-                raise NotFoundError(f"{args.target}: no .mcap or .rrd file in that artifact")
+                raise NotFoundError(f"{args.target}: no .mcap or {viewer.suffix} file in that "
+                                    "artifact")
             if len(candidates) > 1:
                 names = ", ".join(str(p.relative_to(tmp)) for p in candidates[:8])
                 raise UsageError(f"{args.target} holds several files ({names}); name one as "
                                  "WORKFLOW_ID:TASK:PATH")
             source = candidates[0]
-        out = Path(args.out) if args.out else Path(f"{source.stem}.rrd")
-        _convert(source, out)
+        out = Path(args.out) if args.out else Path(f"{source.stem}{viewer.suffix}")
+        _convert(viewer, source, out)
     console.print(f"wrote {out}", markup=False)
-    if args.open:
-        from osmo_plugins.viz._rerun import open_viewer
-
-        if not open_viewer(out):
-            console.print(f"no display or rerun viewer here; open it elsewhere: rerun {out}",
-                          markup=False)
+    if args.open and not viewer.open(out):
+        console.print(f"no display or {viewer.name} viewer here; open it elsewhere: "
+                      f"{viewer.name} {out}", markup=False)
     return 0

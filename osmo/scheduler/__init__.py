@@ -11,6 +11,7 @@ from osmo.scheduler.state import TaskState, WorkflowState
 from osmo.scheduler.types import (
     DEFAULT_MAX_RETRIES,
     LOCAL_NODE,
+    PRIORITIES,
     AttemptExited,
     AttemptLost,
     AttemptPrepared,
@@ -36,6 +37,7 @@ from osmo.scheduler.types import (
 __all__ = [
     "DEFAULT_MAX_RETRIES",
     "LOCAL_NODE",
+    "PRIORITIES",
     "AttemptExited",
     "AttemptLost",
     "AttemptPrepared",

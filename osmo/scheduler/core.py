@@ -28,6 +28,7 @@ from osmo.scheduler.runs import Run, group_outcome
 from osmo.scheduler.state import TaskState, WorkflowState
 from osmo.scheduler.types import (
     DEFAULT_MAX_RETRIES,
+    PRIORITIES,
     AttemptExited,
     AttemptLost,
     AttemptPrepared,
@@ -137,8 +138,12 @@ class Scheduler:
                             f"{type(spec).__name__}")
         if event.workflow_id in self._world.runs:
             raise ValueError(f"workflow '{event.workflow_id}' is already known")
+        if event.priority not in PRIORITIES:
+            raise ValueError(f"priority must be one of {', '.join(PRIORITIES)}, not "
+                             f"{event.priority!r}")
         state = WorkflowState(event.workflow_id, spec.name, pool=event.pool,
-                              max_retries=event.max_retries, submitted_at=self._world.now)
+                              max_retries=event.max_retries, submitted_at=self._world.now,
+                              priority=event.priority)
         run = Run.build(spec, state, next(self._world.seq), event.max_retries)
         for spec_task in spec.all_tasks():
             name = spec_task.name

@@ -1,9 +1,12 @@
 """Gang placement: turn queued requests into reserved attempts and PrepareAttempt commands.
 
-This module owns the placement pass. Requests are tried in FIFO order (workflow submit
-order, then group order, then enqueue order); a request that does not fit is skipped, so it
-does not block smaller requests behind it. That keeps the cluster busy but can starve a big
-group while small ones keep arriving: a known trade-off, bounded by ``queue_timeout``.
+This module owns the placement pass. Requests are tried by priority with ageing
+(``types.priority_key``: HIGH before NORMAL before LOW, unless the lower one has waited a
+level's ``PRIORITY_AGEING`` longer), then in FIFO order (workflow submit order, then group
+order, then enqueue order); a request that does not fit is skipped, so it does not block
+smaller requests behind it, whatever their priority. That keeps the cluster busy but can
+starve a big group while small ones keep arriving: a known trade-off, bounded by
+``queue_timeout``.
 
 Requests of a *shape* (pool and per-task requests) that failed are not tried again until
 capacity grows (see ``queue.PlacementQueue``), so a pass costs O(shapes) plus O(nodes) per
@@ -14,7 +17,7 @@ from __future__ import annotations
 
 from osmo.scheduler.queue import Deadline
 from osmo.scheduler.runs import Batch, Group, Queued, Run
-from osmo.scheduler.types import PrepareAttempt, attempt_id
+from osmo.scheduler.types import PrepareAttempt, attempt_id, priority_key
 from osmo.scheduler.world import World
 from osmo.status import TaskStatus
 
@@ -35,8 +38,9 @@ def enqueue(world: World, run: Run, group: Group, names: tuple[str, ...], *, gan
     """
     tasks = run.tasks
     shape = (run.state.pool, tuple(run.requests[n] for n in names))
+    key = priority_key(run.state.priority, run.state.submitted_at)
     request = Queued(run, group, names, tuple(tasks[n].retry for n in names),
-                     (run.seq, group.index, next(world.seq)), shape, gang)
+                     (key, run.seq, group.index, next(world.seq)), shape, gang)
     world.queue.push(request)
     timeout = run.spec.timeout.queue_timeout
     if timeout is not None:

@@ -1,7 +1,8 @@
 """The placement queue and the deadline heap.
 
-This module owns two orderings and nothing else: which placement requests wait (FIFO by
-workflow submit order, then group order, then enqueue order) and which timeouts are due.
+This module owns two orderings and nothing else: which placement requests wait (by their
+``Queued.key``: priority with ageing, then workflow submit order, group order and enqueue
+order) and which timeouts are due.
 Both drop stale entries lazily, so removing a request or a deadline is O(1).
 """
 
@@ -27,11 +28,11 @@ class PlacementQueue:
     """
 
     def __init__(self) -> None:
-        self._by_shape: dict[Hashable, list[tuple[tuple[int, int, int], Queued]]] = {}
+        self._by_shape: dict[Hashable, list[tuple[tuple[float, int, int, int], Queued]]] = {}
         self._blocked: set[Hashable] = set()
 
     def push(self, request: Queued) -> None:
-        """Queue ``request`` in FIFO position."""
+        """Queue ``request`` in its ``key``'s position."""
         heapq.heappush(self._by_shape.setdefault(request.shape, []), (request.key, request))
 
     def capacity_grew(self) -> None:
@@ -67,7 +68,7 @@ class PlacementQueue:
             if head:
                 heapq.heappush(heads, (head[0][0], i, shape))
 
-    def _head(self, shape: Hashable) -> list[tuple[tuple[int, int, int], Queued]]:
+    def _head(self, shape: Hashable) -> list[tuple[tuple[float, int, int, int], Queued]]:
         """The shape's heap with dead heads dropped (emptied shapes are forgotten)."""
         items = self._by_shape[shape]
         while items and not items[0][1].live:

@@ -128,7 +128,8 @@ class Queued:
     group: Group
     tasks: tuple[str, ...]
     retries: tuple[int, ...]
-    key: tuple[int, int, int]  # FIFO: workflow submit order, group order, enqueue order
+    # priority then FIFO: priority_key, workflow submit order, group order, enqueue order
+    key: tuple[float, int, int, int]
     shape: Hashable  # equal shapes fit or fail alike in one placement pass
     gang: bool
     live: bool = True

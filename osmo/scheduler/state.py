@@ -96,6 +96,7 @@ class WorkflowState:
         started_at: first task RUNNING.
         ended_at: when the workflow became terminal.
         message: human detail (which groups did not complete).
+        priority: HIGH, NORMAL or LOW (``osmo.scheduler.types.PRIORITIES``).
     """
 
     id: str
@@ -107,6 +108,7 @@ class WorkflowState:
     started_at: float | None = None
     ended_at: float | None = None
     message: str = ""
+    priority: str = "NORMAL"
 
     def copy(self) -> WorkflowState:
         """An independent copy (a snapshot)."""

@@ -25,6 +25,8 @@ __all__ = [
     "AttemptStartFailed",
     "DEFAULT_MAX_RETRIES",
     "LOCAL_NODE",
+    "PRIORITIES",
+    "PRIORITY_AGEING",
     "CancelWorkflow",
     "Capacity",
     "Changes",
@@ -40,12 +42,30 @@ __all__ = [
     "Transition",
     "WorkflowSubmitted",
     "attempt_id",
+    "priority_key",
 ]
 
 
 DEFAULT_MAX_RETRIES = 3
 """How many times a task that exits with a RESCHEDULE action is retried, unless its workflow's
 ``maxRetries`` says otherwise."""
+
+PRIORITIES = ("HIGH", "NORMAL", "LOW")
+"""A workflow's priority (``submit --priority``), highest first; NORMAL by default."""
+
+PRIORITY_AGEING = 600.0
+"""Seconds of waiting that make up one priority level (the ageing rule).
+
+Waiting requests are placed in order of ``submitted_at + level * PRIORITY_AGEING`` (HIGH
+level 0, NORMAL 1, LOW 2), ties in submit order. So a HIGH workflow goes before NORMAL and
+LOW ones submitted up to 10 (20) minutes earlier, and a LOW one is never overtaken by work
+submitted more than 20 minutes after it: nothing starves."""
+
+
+def priority_key(priority: str, submitted_at: float) -> float:
+    """Where a request of a workflow with ``priority`` submitted at ``submitted_at`` queues."""
+    return submitted_at + PRIORITIES.index(priority) * PRIORITY_AGEING
+
 
 LOCAL_NODE = "local"
 """The node id of the server's own pool (a remote worker may not call itself so)."""
@@ -123,6 +143,7 @@ class WorkflowSubmitted:
             instead of running (``osmo restart``); such tasks complete at once.
         max_retries: the RESCHEDULE cap for this workflow (spec's value or server default).
         pool: the target pool (``--pool`` or ``workflow.pool``); ``None`` = any pool.
+        priority: one of :data:`PRIORITIES` (see :data:`PRIORITY_AGEING`).
     """
 
     workflow_id: str
@@ -130,6 +151,7 @@ class WorkflowSubmitted:
     max_retries: int = DEFAULT_MAX_RETRIES
     pool: str | None = None
     reused: dict[str, str] = field(default_factory=dict)
+    priority: str = "NORMAL"
 
 
 @dataclass(frozen=True)

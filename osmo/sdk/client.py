@@ -12,7 +12,7 @@ import json
 import os
 import threading
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeAlias
@@ -26,7 +26,7 @@ if TYPE_CHECKING:  # the spec package (YAML, Jinja) loads only when a spec is ha
     from osmo.spec.model import WorkflowSpec
 from osmo.status import TaskStatus, WorkflowStatus
 
-__all__ = ["Client", "LogRecord", "TaskInfo", "WorkflowInfo"]
+__all__ = ["Client", "EventInfo", "LogRecord", "TaskInfo", "WorkflowInfo"]
 
 SpecLike: TypeAlias = "str | os.PathLike[str] | dict[str, Any] | WorkflowSpec | Workflow"
 
@@ -69,6 +69,9 @@ class WorkflowInfo:
     pool: str | None
     tasks: list[TaskInfo] = field(default_factory=list)
     reused_from: str | None = None
+    labels: dict[str, str] = field(default_factory=dict)
+    tags: list[str] = field(default_factory=list)
+    priority: str = "NORMAL"
 
     @property
     def ok(self) -> bool:
@@ -94,6 +97,27 @@ class LogRecord:
     text: str
 
 
+@dataclass(frozen=True)
+class EventInfo:
+    """One scheduling event of a workflow (``task`` None) or of a task retry.
+
+    Attributes:
+        at: unix seconds.
+        task: the task, None for the workflow's own events.
+        retry: the task's retry.
+        status: the status it entered.
+        message: why (waiting, failed, retried...), "" when nothing was said.
+        node: the node the retry's attempt was placed on (None until placed).
+    """
+
+    at: float
+    task: str | None
+    retry: int | None
+    status: str
+    message: str
+    node: str | None
+
+
 def _task_info(d: dict[str, Any]) -> TaskInfo:
     return TaskInfo(d["name"], d.get("group", d["name"]), TaskStatus[d["status"]],
                     d.get("retry", 0), d.get("exit_code"), d.get("started_at"),
@@ -104,7 +128,9 @@ def _task_info(d: dict[str, Any]) -> TaskInfo:
 def _workflow_info(wf: dict[str, Any], tasks: list[dict[str, Any]] = ()) -> WorkflowInfo:  # type: ignore[assignment]
     return WorkflowInfo(wf["id"], wf["name"], WorkflowStatus[wf["status"]],
                         wf.get("submitted_at", 0.0), wf.get("started_at"), wf.get("ended_at"),
-                        wf.get("pool"), [_task_info(t) for t in tasks], wf.get("reused_from"))
+                        wf.get("pool"), [_task_info(t) for t in tasks], wf.get("reused_from"),
+                        dict(wf.get("labels") or {}), list(wf.get("tags") or []),
+                        wf.get("priority") or "NORMAL")
 
 
 class Client:
@@ -152,11 +178,14 @@ class Client:
 
     def submit(self, spec: SpecLike, *, set_values: Sequence[str] = (),
                set_strings: Sequence[str] = (), set_env: Sequence[str] = (),
-               pool: str | None = None, no_cache: bool = False) -> str:
+               pool: str | None = None, no_cache: bool = False,
+               labels: Mapping[str, str] | None = None, priority: str = "NORMAL") -> str:
         """Validate ``spec`` (a path, a dict, a model or a builder) and submit it.
 
         Tasks whose definition and input contents match an earlier success reuse its
         outputs (marked cached) unless ``no_cache`` or the task says ``cache: false``.
+        ``labels`` are merged over the spec's ``workflow.labels`` (``--label k=v``);
+        ``priority`` is HIGH, NORMAL or LOW (placement order when resources are short).
 
         Returns:
             the new workflow's id (``<name>-<N>``).
@@ -172,19 +201,28 @@ class Client:
             text = read_spec_file(path, os.fspath(spec))
             result = self._call("submit", source={"path": str(path), "text": text},
                                 set_values=list(set_values), set_strings=list(set_strings),
-                                set_env=list(set_env), pool=pool, no_cache=no_cache)
+                                set_env=list(set_env), pool=pool, no_cache=no_cache,
+                                labels=dict(labels or {}), priority=priority)
             return str(result["workflow_id"])
         from osmo.spec import spec_to_dict
 
         model, filename = _to_model(spec, set_values, set_strings, set_env)
         type_paths = sorted({p for t in model.all_tasks() if t.resolved for p in t.resolved.paths})
         result = self._call("submit", spec=spec_to_dict(model), pool=pool, filename=filename,
-                            no_cache=no_cache, type_paths=type_paths)
+                            no_cache=no_cache, type_paths=type_paths, labels=dict(labels or {}),
+                            priority=priority)
         return str(result["workflow_id"])
 
     def cancel(self, workflow_id: str) -> WorkflowStatus:
         """Cancel a workflow; returns its status after the cancel was committed."""
         return WorkflowStatus[self._call("cancel", workflow_id=workflow_id)["status"]]
+
+    def tag(self, workflow_id: str, *, add: Sequence[str] = (),
+            remove: Sequence[str] = ()) -> builtins.list[str]:
+        """Add and remove a workflow's tags; returns its tags after the change."""
+        reply = self._call("workflow_tag", workflow_id=workflow_id, add=list(add),
+                           remove=list(remove))
+        return builtins.list(reply["tags"])
 
     def restart(self, workflow_id: str) -> str:
         """Submit a finished workflow again, reusing outputs of its completed tasks."""
@@ -198,9 +236,11 @@ class Client:
         return _workflow_info(reply["workflow"], reply["tasks"])
 
     def list(self, *, statuses: Sequence[str] = (), name: str | None = None,
-             limit: int | None = None) -> list[WorkflowInfo]:
-        """Workflows, newest first."""
-        rows = self._call("list", statuses=list(statuses) or None, name=name, limit=limit)
+             limit: int | None = None,
+             labels: Mapping[str, str] | None = None) -> builtins.list[WorkflowInfo]:
+        """Workflows, newest first; ``labels``: only those with every one of these labels."""
+        rows = self._call("list", statuses=list(statuses) or None, name=name, limit=limit,
+                          labels=dict(labels or {}) or None)
         return [_workflow_info(r) for r in rows]
 
     def spec(self, workflow_id: str) -> dict[str, Any]:
@@ -212,21 +252,40 @@ class Client:
         return builtins.list(self._call("pools"))
 
     def logs(self, workflow_id: str, *, task: str | None = None, retry: int | None = None,
-             tail: int | None = None) -> builtins.list[LogRecord]:
-        """All log records of a workflow so far (optionally of one task/retry, last N)."""
+             tail: int | None = None, stream: str | None = None) -> builtins.list[LogRecord]:
+        """All log records of a workflow so far.
+
+        Args:
+            workflow_id: the workflow.
+            task: only this task's records.
+            retry: only this retry's records.
+            tail: only the last N records (after the other filters).
+            stream: only this stream (``stdout``, ``stderr`` or ``osmo``).
+        """
         records = [_record(r) for r in self._call("logs", workflow_id=workflow_id, task=task,
                                                   retry=retry)["records"]]
+        records = [r for r in records if stream is None or r.stream == stream]
         return records[-tail:] if tail else records
 
+    def events(self, workflow_id: str, *, task: str | None = None) -> builtins.list[EventInfo]:
+        """The workflow's scheduling timeline, oldest first (optionally of one task)."""
+        return [EventInfo(e["at"], e["task"], e["retry"], e["status"], e["message"], e["node"])
+                for e in self._call("events", workflow_id=workflow_id, task=task)]
+
     def follow_logs(self, workflow_id: str, *, task: str | None = None,
-                    retry: int | None = None, interval: float = 0.25) -> Iterator[LogRecord]:
-        """Yield log records as they are written, until the workflow has ended."""
+                    retry: int | None = None, interval: float = 0.25,
+                    stream: str | None = None) -> Iterator[LogRecord]:
+        """Yield log records as they are written, until the workflow has ended.
+
+        ``stream`` keeps only that stream's records (``stdout``, ``stderr`` or ``osmo``).
+        """
         cursor: dict[str, Any] | None = None
         while True:
             reply = self._call("logs", workflow_id=workflow_id, task=task, retry=retry,
                                cursor=cursor)
             cursor = reply["cursor"]
-            yield from (_record(r) for r in reply["records"])
+            yield from (r for r in map(_record, reply["records"])
+                        if stream is None or r.stream == stream)
             if reply["done"]:
                 return
             self._wait_change(workflow_id, interval)

@@ -28,6 +28,7 @@ class Batch:
     Attributes:
         commands: the scheduler's commands, executed after the commit.
         workflows, attempts, lineage, datasets, tags: rows to write with the changes.
+        workflow_tags: workflow id → its whole new tag list (``osmo workflow tag``).
         pids: ``(attempt id, pid, its start time)`` of attempts started as local processes.
         replies: answers to requests, given after the commit.
         ended: attempts whose final report was applied (provenance forgets them).
@@ -39,6 +40,7 @@ class Batch:
     lineage: list[LineageRow] = field(default_factory=list)
     datasets: list[DatasetRow] = field(default_factory=list)
     tags: list[TagRow] = field(default_factory=list)
+    workflow_tags: dict[str, list[str]] = field(default_factory=dict)
     pids: list[tuple[str, int, float | None]] = field(default_factory=list)
     replies: list[tuple[Future[Any], Any]] = field(default_factory=list)
     ended: list[str] = field(default_factory=list)
@@ -56,8 +58,8 @@ class Batch:
         placed = [c for c in self.commands if isinstance(c, PrepareAttempt)]
         self.attempts += [attempt_row(home, p.attempt_id, p.node_id) for p in placed]
         if (changes or self.workflows or self.attempts or self.lineage or self.datasets
-                or self.tags or self.pids):
+                or self.tags or self.pids or self.workflow_tags):
             store.commit(changes, new_workflows=self.workflows, attempts=self.attempts,
                          lineage=self.lineage, datasets=self.datasets, tags=self.tags,
-                         pids=self.pids)
+                         pids=self.pids, workflow_tags=self.workflow_tags)
         return changes, placed

@@ -34,7 +34,7 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 from osmo.artifacts import Manifest
-from osmo.errors import InfrastructureError, SubmitError, UsageError
+from osmo.errors import InfrastructureError, NotFoundError, SubmitError, UsageError
 from osmo.executor import Executor
 from osmo.scheduler import Scheduler
 from osmo.scheduler.types import (
@@ -68,6 +68,7 @@ from osmo.server.requests import (
     Request,
     SubmitWorkflow,
     TagDataset,
+    TagWorkflow,
 )
 from osmo.spec.model import WorkflowSpec
 from osmo.status import TaskStatus
@@ -271,6 +272,8 @@ class Engine:
             case TagDataset(name=name, tag=tag, version=version):
                 batch.tags.append(TagRow(name, tag, version))
                 return None
+            case TagWorkflow(workflow_id=wf_id):
+                return self._tag_workflow(request, batch)
             case AddDatasetVersion():
                 if self.datasets is None:
                     raise UsageError("this server keeps no datasets")
@@ -285,6 +288,19 @@ class Engine:
                 return [(node, self.scheduler.used(node.id)) for node in self.scheduler.nodes()]
         raise TypeError(f"not a request: {request!r}")
 
+    def _tag_workflow(self, request: TagWorkflow, batch: Batch) -> list[str]:
+        """The workflow's tags with ``add`` added and ``remove`` removed, to be committed."""
+        tags = batch.workflow_tags.get(request.workflow_id)
+        if tags is None:  # not changed earlier in this batch: as committed
+            row = self.store.workflow(request.workflow_id, with_spec=False)
+            if row is None:
+                raise NotFoundError(f"no workflow {request.workflow_id}")
+            tags = list(row.options.get("tags", []))
+        kept = [t for t in tags if t not in request.remove]
+        new = sorted(set(kept) | set(request.add))
+        batch.workflow_tags[request.workflow_id] = new
+        return new
+
     def _submit(self, request: SubmitWorkflow, batch: Batch, now: float) -> str:
         spec, pool = request.spec, request.options.get("pool")
         reasons = self.scheduler.check_fit(spec, pool)
@@ -295,7 +311,8 @@ class Engine:
         wf_id = f"{spec.name}-{n}"
         retries = spec.max_retries if spec.max_retries is not None else DEFAULT_MAX_RETRIES
         batch.commands += self.scheduler.handle(
-            WorkflowSubmitted(wf_id, spec, retries, pool, dict(request.reused)), now)
+            WorkflowSubmitted(wf_id, spec, retries, pool, dict(request.reused),
+                              request.options.get("priority", "NORMAL")), now)
         self.specs[wf_id] = spec
         if request.options.get("no_cache"):
             self.no_cache.add(wf_id)

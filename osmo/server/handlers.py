@@ -17,16 +17,24 @@ from typing import Any
 from osmo.artifacts import ArtifactStore, Manifest
 from osmo.errors import NotFoundError, UsageError
 from osmo.layout import Home
-from osmo.names import MAX_NAME, check_name, check_workflow_id, did_you_mean, shown
-from osmo.scheduler.types import CancelWorkflow
+from osmo.names import (
+    MAX_NAME,
+    check_label,
+    check_name,
+    check_workflow_id,
+    did_you_mean,
+    shown,
+)
+from osmo.scheduler.types import PRIORITIES, CancelWorkflow
 from osmo.server.credentials import CredentialHandlers, check_task_credentials
 from osmo.server.dataset_handlers import DatasetHandlers
 from osmo.server.engine import Engine
 from osmo.server.lineage_query import lineage_graph, resolve_target
 from osmo.server.logview import last_progress, read_logs
-from osmo.server.requests import ListNodes, SubmitWorkflow
+from osmo.server.requests import ListNodes, SubmitWorkflow, TagWorkflow
 from osmo.server.workers import WorkerHub
 from osmo.spec import isolation, load_spec, spec_from_dict, spec_to_dict
+from osmo.spec.parse import MAX_LABELS
 from osmo.status import WorkflowStatus
 from osmo.store.sqlite import WorkflowRow
 from osmo.transport.rpc import MAX_INT, field, str_list
@@ -60,6 +68,8 @@ class Handlers:
             "status": self.status,
             "list": self.list,
             "logs": self.logs,
+            "events": self.events,
+            "workflow_tag": self.workflow_tag,
             "spec": self.spec,
             "pools": self.pools,
             "lineage": self.lineage,
@@ -123,12 +133,29 @@ class Handlers:
             spec = spec_from_dict(stored, filename=filename or "<submitted>",
                                   types=Resolver(type_paths))
         check_task_credentials(spec, self._store)
+        labels = {**spec.labels, **_labels(request, "labels")}
+        if len(labels) > MAX_LABELS:
+            raise UsageError(f"a workflow has at most {MAX_LABELS} labels; with --label this "
+                             f"one would have {len(labels)}")
+        priority = field(request, "priority", str, default="NORMAL", max_len=16).upper()
+        if priority not in PRIORITIES:
+            raise UsageError(f"priority must be one of {', '.join(PRIORITIES)}, not "
+                             f"{shown(priority)}")
         options = {"pool": pool or spec.pool, "filename": filename, "reused_from": reused_from,
+                   "labels": labels, "priority": priority,
                    "no_cache": field(request, "no_cache", bool, default=False),
                    "type_paths": type_paths,
                    "types": {t.name: t.resolved.to_dict() for t in spec.all_tasks()
                              if t.resolved is not None}}
         return {"workflow_id": self._engine.ask(SubmitWorkflow(spec, stored, options, reused))}
+
+    def workflow_tag(self, request: dict[str, Any]) -> dict[str, Any]:
+        """Add and remove a workflow's tags (names); replies with its tags after the change."""
+        row = self._row(request.get("workflow_id"))
+        add, remove = ([check_name(t, "workflow tag") for t in str_list(request, key)]
+                       for key in ("add", "remove"))
+        tags = self._engine.ask(TagWorkflow(row.id, tuple(add), tuple(remove)))
+        return {"workflow_id": row.id, "tags": tags}
 
     def cancel(self, request: dict[str, Any]) -> dict[str, Any]:
         """Cancel a workflow; a no-op for one already ended."""
@@ -146,6 +173,8 @@ class Handlers:
                   if t["status"] == "COMPLETED" and t.get("output")}
         return self._submit({"spec": row.spec, "pool": row.options.get("pool"),
                              "filename": row.options.get("filename"),
+                             "labels": row.options.get("labels") or {},
+                             "priority": row.options.get("priority"),
                              "type_paths": row.options.get("type_paths")}, reused, row.id)
 
     def shutdown(self, _request: dict[str, Any]) -> dict[str, Any]:
@@ -174,7 +203,7 @@ class Handlers:
         rows = self._store.workflows(statuses=_statuses(request),
                                      name=field(request, "name", str, default=None,
                                                 max_len=MAX_NAME),
-                                     limit=_limit(request))
+                                     limit=_limit(request), labels=_labels(request, "labels"))
         return [_workflow_dict(r) for r in rows]
 
     def logs(self, request: dict[str, Any]) -> dict[str, Any]:
@@ -182,6 +211,21 @@ class Handlers:
         row = self._row(request.get("workflow_id"))
         task, retry = self._attempt(row, request)
         return read_logs(self._store, row, task=task, retry=retry, cursor=_cursor(request))
+
+    def events(self, request: dict[str, Any]) -> builtins.list[dict[str, Any]]:
+        """The workflow's scheduling timeline, oldest first (optionally of one task).
+
+        Each event is a status change of the workflow (``task`` None) or of a task retry, with
+        its message (why it waits, failed or was retried) and, for a retry, the node its
+        attempt was placed on (None until placed).
+        """
+        row = self._row(request.get("workflow_id"))
+        task, _ = self._attempt(row, request)
+        nodes = {(a.task, a.retry): a.node_id for a in self._store.attempts(row.id, task)}
+        return [{"at": e["at"], "task": e["task"], "retry": e["retry"], "status": e["status"],
+                 "message": e["message"], "node": nodes.get((e["task"], e["retry"]))}
+                for e in self._store.transitions(row.id)
+                if task is None or e["task"] == task]
 
     def spec(self, request: dict[str, Any]) -> dict[str, Any]:
         """The stored (rendered) spec of a workflow, as a dict."""
@@ -312,7 +356,17 @@ def _workflow_dict(row: WorkflowRow) -> dict[str, Any]:
                                 "submitted_at": row.submitted_at}
     state["pool"] = row.options.get("pool")
     state["reused_from"] = row.options.get("reused_from")
+    state["labels"] = row.options.get("labels") or {}
+    state["tags"] = row.options.get("tags") or []
     return state
+
+
+def _labels(request: dict[str, Any], key: str) -> dict[str, str]:
+    """A request's ``{key: value}`` labels, each checked (``osmo.names.check_label``)."""
+    labels = field(request, key, dict, default={})
+    if len(labels) > MAX_LABELS:
+        raise UsageError(f"at most {MAX_LABELS} labels, not {len(labels)}")
+    return dict(check_label(k, v) for k, v in labels.items())
 
 
 def _ordered_tasks(row: WorkflowRow, tasks: list[dict[str, Any]]) -> list[dict[str, Any]]:

@@ -9,6 +9,7 @@ one answers:
 - :class:`SubmitWorkflow` → the new workflow's id;
 - ``osmo.scheduler.CancelWorkflow`` (the scheduler's own event) → None;
 - :class:`TagDataset` → None;
+- :class:`TagWorkflow` → the workflow's tags after the change;
 - :class:`AddDatasetVersion` → the new version's number;
 - :class:`AttemptsOn` → the ids of the attempts placed on a node (how the hub reconciles a
   worker that registers again);
@@ -25,7 +26,7 @@ from osmo.scheduler.types import CancelWorkflow
 from osmo.spec.model import WorkflowSpec
 
 __all__ = ["AddDatasetVersion", "AttemptsOn", "ListNodes", "Request", "SubmitWorkflow",
-           "TagDataset"]
+           "TagDataset", "TagWorkflow"]
 
 
 @dataclass(frozen=True)
@@ -56,6 +57,15 @@ class TagDataset:
 
 
 @dataclass(frozen=True)
+class TagWorkflow:
+    """Add ``add`` to workflow ``workflow_id``'s tags and take ``remove`` away (checked names)."""
+
+    workflow_id: str
+    add: tuple[str, ...] = ()
+    remove: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
 class AddDatasetVersion:
     """Make the next version of dataset ``name`` hold ``manifest`` (an upload)."""
 
@@ -76,5 +86,5 @@ class ListNodes:
     """Every known node with what its attempts hold: ``[(Node, Capacity used)]``."""
 
 
-Request = (SubmitWorkflow | CancelWorkflow | TagDataset | AddDatasetVersion | AttemptsOn
-           | ListNodes)
+Request = (SubmitWorkflow | CancelWorkflow | TagDataset | TagWorkflow | AddDatasetVersion
+           | AttemptsOn | ListNodes)

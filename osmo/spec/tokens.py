@@ -8,9 +8,9 @@ Pure string functions; no I/O.
 from __future__ import annotations
 
 import re
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 
-__all__ = ["TOKEN_RE", "find_tokens", "protect", "restore", "substitute"]
+__all__ = ["TOKEN_RE", "expand_vars", "find_tokens", "protect", "restore", "substitute"]
 
 # {{ output }}, {{input:0}}, {{input:task-a}}, {{workflow_id}}, {{host:peer}}, {{uuid}}
 TOKEN_RE = re.compile(
@@ -62,3 +62,35 @@ def substitute(text: str, resolve: Callable[[str], str | None]) -> str:
         return match.group(0) if value is None else value
 
     return TOKEN_RE.sub(sub, text)
+
+
+def expand_vars(text: str, env: Mapping[str, str]) -> str:
+    """Kubernetes-style ``$(NAME)`` references in ``text``, expanded from ``env``.
+
+    As Kubernetes expands a container's ``args``: ``$(NAME)`` becomes ``env[NAME]`` when
+    NAME is defined, and stays as written when it is not; ``$$`` is an escaped ``$`` (so
+    ``$$(NAME)`` is the literal ``$(NAME)``); a ``$`` before anything else, and an unclosed
+    ``$(``, stay as written. One pass: an expanded value is not expanded again.
+    """
+    if "$" not in text:
+        return text
+    out: list[str] = []
+    i, n = 0, len(text)
+    while i < n:
+        dollar = text.find("$", i)
+        if dollar < 0 or dollar == n - 1:
+            out.append(text[i:])
+            break
+        out.append(text[i:dollar])
+        after = text[dollar + 1]
+        if after == "$":
+            out.append("$")
+            i = dollar + 2
+        elif after == "(" and (close := text.find(")", dollar + 2)) >= 0:
+            name = text[dollar + 2:close]
+            out.append(env[name] if name in env else text[dollar:close + 1])
+            i = close + 1
+        else:
+            out.append("$" + after)
+            i = dollar + 2
+    return "".join(out)

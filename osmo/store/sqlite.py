@@ -17,7 +17,7 @@ from __future__ import annotations
 import json
 import sqlite3
 import threading
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -227,6 +227,7 @@ class Store(LineageQueries):
         datasets: Sequence[DatasetRow] = (),
         tags: Sequence[TagRow] = (),
         pids: Sequence[tuple[str, int, float | None]] = (),
+        workflow_tags: Mapping[str, Sequence[str]] | None = None,
     ) -> None:
         """Write one batch atomically.
 
@@ -239,6 +240,7 @@ class Store(LineageQueries):
             tags: dataset tags to (re)point.
             pids: ``(attempt id, pid, pid start time)`` of attempts whose process started
                 (their rows exist: written with their placement).
+            workflow_tags: workflow id → its new tag list (kept in its options).
         """
         with self._tx() as db:
             for new in new_workflows:
@@ -277,6 +279,9 @@ class Store(LineageQueries):
             )
             db.executemany("UPDATE attempts SET pid = ?, pid_start = ? WHERE id = ?",
                            [(pid, start, aid) for aid, pid, start in pids])
+            db.executemany("UPDATE workflows SET options = json_set(options, '$.tags', json(?)) "
+                           "WHERE id = ?", [(json.dumps(list(tags)), wf)
+                                            for wf, tags in (workflow_tags or {}).items()])
             for row in lineage:
                 write_lineage(db, row)
             for ds in datasets:
@@ -329,10 +334,12 @@ class Store(LineageQueries):
         name: str | None = None,
         limit: int | None = None,
         active_only: bool = False,
+        labels: Mapping[str, str] | None = None,
     ) -> list[WorkflowRow]:
-        """Workflows, newest first, filtered by status names and/or a name substring.
+        """Workflows, newest first, filtered by status names, a name substring and labels.
 
-        Rows come without their spec (``spec == {}``); use ``workflow()`` for it.
+        ``labels``: a workflow must have every one of them (key and value). Rows come without
+        their spec (``spec == {}``); use ``workflow()`` for it.
         """
         sql = f"SELECT {_NO_SPEC} FROM workflows WHERE 1=1"
         args: list[Any] = []
@@ -344,6 +351,10 @@ class Store(LineageQueries):
         if name:
             sql += " AND (name LIKE ? OR id LIKE ?)"
             args += [f"%{name}%", f"%{name}%"]
+        for key, value in (labels or {}).items():
+            sql += (" AND EXISTS (SELECT 1 FROM json_each(workflows.options, '$.labels') "
+                    "WHERE key = ? AND value = ?)")
+            args += [key, value]
         sql += " ORDER BY submitted_at DESC, rowid DESC"
         if limit:
             sql += " LIMIT ?"

@@ -6,8 +6,7 @@ A task's ``type:`` is one of:
   (``"sim.rollout" = "osmo_plugins.sim.rollout:ROLLOUT [sim]"`` in a plugin's
   ``pyproject.toml``). The optional ``[extra]`` after the object reference is the standard
   entry-point syntax for extras; osmo reads it to say ``pip install "osmo[sim]"`` when the
-  type's dependencies are missing (without it, a small built-in table of name prefixes is
-  used: ``sim.`` → ``sim``, ``lerobot.`` → ``learn``, ``viz.`` → ``viz``);
+  type's dependencies are missing (a type that loads says it itself: ``TaskType.extra``);
 - a **custom type**: ``"module:attr"`` (``mypkg.tasks:rollout``). The module is imported
   with the given search folders first on ``sys.path`` (for a YAML file, its folder).
 
@@ -38,13 +37,12 @@ from osmo.errors import UsageError
 from osmo.tasktypes.api import Param, TaskType
 from osmo.tasktypes.params import schema_problems
 
-__all__ = ["GROUP", "Resolver", "TaskTypeError", "TypeEntry", "is_custom", "list_types",
-           "ref_of", "resolve", "shape_problems"]
+__all__ = ["GROUP", "Resolver", "TaskTypeError", "TypeEntry", "entry_points", "extra_of",
+           "import_failure", "is_custom", "list_types", "ref_of", "resolve", "shape_problems"]
 
 GROUP = "osmo.task_types"
 """The entry-point group plugins register their task types in."""
 
-_EXTRA_BY_PREFIX = {"sim": "sim", "lerobot": "learn", "viz": "viz"}
 _IMPORT_LOCK = threading.RLock()
 
 
@@ -80,20 +78,21 @@ def is_custom(ref: str) -> bool:
     return ":" in ref
 
 
-def _entry_points() -> dict[str, importlib.metadata.EntryPoint]:
+def entry_points(group: str = GROUP) -> dict[str, importlib.metadata.EntryPoint]:
+    """The installed entry points of ``group`` by name (the first on ``sys.path`` wins)."""
     found: dict[str, importlib.metadata.EntryPoint] = {}
-    for ep in importlib.metadata.entry_points(group=GROUP):
+    for ep in importlib.metadata.entry_points(group=group):
         found.setdefault(ep.name, ep)  # the first distribution on sys.path wins
     return found
 
 
-def _extra_of(ep: importlib.metadata.EntryPoint) -> str | None:
-    if ep.extras:
-        return ep.extras[0]
-    return _EXTRA_BY_PREFIX.get(ep.name.split(".", 1)[0])
+def extra_of(ep: importlib.metadata.EntryPoint) -> str | None:
+    """The extra an entry point names (``module:attr [extra]``), None without one."""
+    return ep.extras[0] if ep.extras else None
 
 
-def _import_failure(what: str, module: str, exc: BaseException, extra: str | None) -> str:
+def import_failure(what: str, module: str, exc: BaseException, extra: str | None) -> str:
+    """Why importing ``module`` for ``what`` failed; a pip hint when a dependency is missing."""
     if isinstance(exc, ModuleNotFoundError) and exc.name and not (
             module == exc.name or module.startswith(exc.name + ".")):
         hint = f"; install it with: pip install \"osmo[{extra}]\"" if extra else ""
@@ -186,7 +185,7 @@ def _load_custom(ref: str, paths: Sequence[str]) -> tuple[TaskType, str | None]:
             module = importlib.import_module(module_name)
         except Exception as exc:
             where = f" (searched {', '.join(paths)} first)" if paths else ""
-            raise TaskTypeError(_import_failure(what, module_name, exc, None) + where) from exc
+            raise TaskTypeError(import_failure(what, module_name, exc, None) + where) from exc
         obj: Any = module
         for part in attr.split("."):
             if not hasattr(obj, part):
@@ -202,7 +201,7 @@ def _load_custom(ref: str, paths: Sequence[str]) -> tuple[TaskType, str | None]:
 def _load_installed(name: str) -> TaskType:
     from osmo.spec.reader import did_you_mean
 
-    eps = _entry_points()
+    eps = entry_points()
     ep = eps.get(name)
     if ep is None:
         known = ", ".join(sorted(eps)) or "none are installed"
@@ -211,8 +210,8 @@ def _load_installed(name: str) -> TaskType:
     try:
         obj = ep.load()
     except Exception as exc:
-        raise TaskTypeError(_import_failure(f"task type '{name}'", ep.module, exc,
-                                            _extra_of(ep))) from exc
+        raise TaskTypeError(import_failure(f"task type '{name}'", ep.module, exc,
+                                            extra_of(ep))) from exc
     return _checked(obj, f"task type '{name}' ({ep.value})")
 
 
@@ -273,12 +272,12 @@ class Resolver:
 def list_types() -> list[TypeEntry]:
     """Every installed task type, sorted by name; broken ones carry their import error."""
     out = []
-    for name, ep in sorted(_entry_points().items()):
+    for name, ep in sorted(entry_points().items()):
         dist = ep.dist.name if ep.dist is not None else None
         try:
             obj = _load_installed(name)
         except TaskTypeError as exc:
-            out.append(TypeEntry(name, ep.value, extra=_extra_of(ep), error=str(exc),
+            out.append(TypeEntry(name, ep.value, extra=extra_of(ep), error=str(exc),
                                  distribution=dist))
             continue
         out.append(TypeEntry(name, ep.value, obj.version, obj.description, obj.extra,

@@ -28,6 +28,12 @@ output reference of the N-th ``inputs:`` entry; ``{{input:NAME}}`` → upstream 
 output reference; ``{{workflow_id}}``; ``{{host:NAME}}`` → the address of group member NAME;
 ``{{uuid}}`` → one random uuid4 hex per attempt. An unknown token fails the preparation.
 
+``args`` (not ``command``) then expand Kubernetes-style ``$(NAME)`` references from the
+variables the task defines (its ``environment``, its credentials' variables and osmo's own;
+not the base environment): ``$$`` is an escaped ``$``, an undefined ``$(NAME)`` stays as
+written (``osmo.spec.tokens.expand_vars``). In a container (``boxed``) credentials'
+variables are not expanded: args show in ``podman inspect``; the shell's ``$NAME`` has them.
+
 Environment: the server's environment, then the task's ``environment`` (tokens substituted),
 then the variables its credentials set (``NAME: {ENV: key}``, verbatim), then osmo's own
 variables, which a task cannot override: ``OSMO_WORKFLOW_ID``, ``OSMO_TASK``, ``OSMO_RETRY``,
@@ -62,7 +68,7 @@ from osmo.layout import AttemptDirs
 from osmo.runtime.container_run import ContainerRun
 from osmo.scheduler.types import PrepareAttempt
 from osmo.spec.model import InputSpec, TaskSpec
-from osmo.spec.tokens import substitute
+from osmo.spec.tokens import expand_vars, substitute
 from osmo.worker import container_layout as containers
 from osmo.worker import launch
 from osmo.worker.secrets import Secrets, mounts, secret_env, secret_values
@@ -125,11 +131,15 @@ def prepare(
     def text(value: str) -> str:
         return substitute(rewrite(value), resolve)
 
-    argv = tuple(text(word) for word in (*task.command, *task.args))
-    env = {} if boxed else dict(base_env)
-    env.update({key: text(str(value)) for key, value in task.environment.items()})
-    env.update({} if boxed else secret_env(task, secrets))  # boxed: in its secret file
-    env.update(containers.osmo_env(cmd) if boxed else _osmo_env(dirs, cmd))
+    defined = {key: text(str(value)) for key, value in task.environment.items()}
+    # boxed: credential variables live in the container's secret file; expanded into args
+    # they would show in `podman inspect`, so $(SECRET) stays as written there
+    defined.update({} if boxed else secret_env(task, secrets))
+    defined.update(containers.osmo_env(cmd) if boxed else _osmo_env(dirs, cmd))
+    # args expand $(NAME) from the variables the task defines, as Kubernetes does
+    argv = (*(text(word) for word in task.command),
+            *(expand_vars(text(word), defined) for word in task.args))
+    env = dict(defined) if boxed else {**base_env, **defined}
     if task.type:  # a typed task: the runner reads its context file (osmo.worker.launch)
         argv = launch.runner_argv(dirs.context)
         env.update(launch.runner_env(task, env))

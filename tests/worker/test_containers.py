@@ -103,3 +103,15 @@ def test_the_hello_and_the_exit_report_carry_runtime_and_image_id() -> None:
     assert event_from_dict(sent) == AttemptExited("wf:t:0", 0, image_id=image_id)
     sent["image_id"] = "alpine; rm -rf /"  # a worker's report is checked
     assert event_from_dict(sent) == AttemptExited("wf:t:0", 0)
+
+
+def test_a_boxed_secret_is_never_in_argv_or_env_only_in_the_secret_file(tmp_path: Path) -> None:
+    task = TaskSpec("t", image="alpine:3.18", command=("sh", "-c"),
+                    args=("echo $(API_TOKEN) $(PLAIN) $$API_TOKEN",),
+                    environment={"PLAIN": "p"}, credentials={"api": {"API_TOKEN": "token"}})
+    cmd = PrepareAttempt("wf:t:0", "wf", "t", 0, "local", {}, {})
+    launch = prepare(AttemptDirs(tmp_path / "a"), cmd, task, {}, {"api": {"token": "s3cr3t"}},
+                     boxed=True)
+    assert launch.argv == ("sh", "-c", "echo $(API_TOKEN) p $API_TOKEN")
+    assert "API_TOKEN" not in launch.env and "s3cr3t" in launch.secrets
+    assert launch.container is not None and launch.container.secret_env == {"API_TOKEN": "s3cr3t"}

@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from osmo.errors import MissingExtra
 from osmo_plugins.episodes import EpisodeWriter
 
 __all__ = ["OSMO_ENVS", "SUCCESS_KEYS", "EpisodeResult", "MissingExtra", "make_env", "require",
@@ -26,10 +27,6 @@ OSMO_ENVS = ("osmo/ReacherVision-v0",)
 
 SUCCESS_KEYS = ("is_success", "success")
 """``info`` keys an env may use for its own success signal, in order of preference."""
-
-
-class MissingExtra(RuntimeError):
-    """A plugin's optional dependency is not installed; the message names the pip extra."""
 
 
 def require(module: str, extra: str) -> Any:
