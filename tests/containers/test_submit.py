@@ -267,3 +267,28 @@ def test_pool_list_shows_the_runtime(cosmo: Osmo) -> None:
 def _podman_version() -> str:
     return subprocess.run(["podman", "version", "--format", "{{.Client.Version}}"],
                           capture_output=True, text=True, check=True).stdout.strip()
+
+
+@pytest.mark.parametrize("image", ["--privileged", "alpine:3.18;id", "../../etc/passwd"])
+def test_a_hostile_image_name_fails_that_task_only(cosmo: Osmo, tmp_path: Path,
+                                                   image: str) -> None:
+    spec = write(tmp_path / "hostile.yaml", f"""
+workflow:
+  name: hostile
+  tasks:
+  - name: bad
+    image: {json.dumps(image)}
+    command: ["true"]
+  - name: good
+    image: alpine:3.18
+    command: [sh, -c, "echo fine"]
+""")
+    r = cosmo("submit", str(spec), "--wait", timeout=300)
+    if r.code == 2:  # refused at submit, with its position
+        assert "hostile.yaml:" in r.err and "Traceback" not in r.err
+        return
+    wf = submitted_id(r.out)
+    rows = tasks(cosmo, wf)
+    assert rows["bad"]["status"] == "FAILED_START_ERROR"
+    assert f"image '{image}' not found:" in rows["bad"]["message"]
+    assert rows["good"]["status"] == "COMPLETED" and task_lines(cosmo, wf)["good"] == ["fine"]
