@@ -9,13 +9,21 @@ one warm-up run:
 - **`podman run` with osmo's options** — the argv ``osmo.runtime.container_run.run_argv``
   makes for a task (``--init``, ``--user``, labels, an input and an output bind, a few
   variables) running ``true``: what osmo's choice of options costs, without the pool.
+- **`osmo submit` of a 1-task container workflow** — SDK submit of one task with
+  ``image: alpine:3.18`` and ``command: [true]`` to a server with ``--runtime container``,
+  until the workflow is COMPLETED (``no_cache``): the whole per-task cost through osmo
+  (placement, preparation, image id, the container, output promotion and ingest). Its limit
+  is the bare ``podman run`` row (target: ≤ 20 % over it).
+- **the same as a process** — the same task without ``image:`` on the same server.
+- **200-task container fan-out** — one workflow of 200 such tasks (``--cpus 2``: two at a
+  time), wall time per task from submit to COMPLETED.
 
 The image is the busybox ``alpine:3.18`` of the container tests (``tests/containers/images.py``,
 built offline in well under a second). On machines that need it (FACTS.md: no
 CAP_SYS_RESOURCE, hybrid cgroups) the tests' containers.conf is used when ``CONTAINERS_CONF``
 is not set. Without podman the script writes no rows (the harness marks it skipped).
 
-Usage: python bench/bench_container.py [--runs 15] [--json out.json]
+Usage: python bench/bench_container.py [--runs 15] [--fanout 200] [--json out.json]
 """
 
 from __future__ import annotations
@@ -23,6 +31,7 @@ from __future__ import annotations
 import argparse
 import os
 import shutil
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -35,6 +44,7 @@ sys.path.insert(0, str(ROOT / "bench"))
 
 from benchlib import quick, row, timed, write_rows  # noqa: E402
 
+import osmo  # noqa: E402
 from osmo.runtime.container import (  # noqa: E402
     DATA_OUTPUT,
     ContainerRun,
@@ -45,6 +55,8 @@ from osmo.runtime.container import (  # noqa: E402
     run_argv,
     safe_name,
 )
+from osmo.sdk.connect import start_server, stop_server  # noqa: E402
+from osmo.server.options import ServerOptions  # noqa: E402
 
 IMAGE = "alpine:3.18"
 LIMIT = "limit: bare `podman run --rm` of `true`"
@@ -67,12 +79,47 @@ def with_osmo_options(env: dict[str, str], folder: Path, engine: EngineInfo) -> 
     subprocess.run(run_argv(engine, run), check=True, env=env, stdin=subprocess.DEVNULL)
 
 
+def through_osmo(home: str, runs: int, fanout: int) -> tuple[list[float], list[float], float]:
+    """(1-task container workflow ms, the same as a process ms, fan-out ms per task)."""
+    def one(client: osmo.Client, i: int, image: str | None) -> float:
+        wf = osmo.Workflow(f"bench-{'box' if image else 'proc'}-{i}")
+        wf.task("t", ["true"], image=image)
+        t0 = time.perf_counter()
+        info = client.wait(client.submit(wf, no_cache=True), min_interval=0.005)
+        if not info.ok:
+            raise SystemExit(f"bench workflow ended {info.status.name}: {info.task('t').message}")
+        return (time.perf_counter() - t0) * 1000
+
+    start_server(home, ServerOptions(runtime="container", cpus=2))
+    try:
+        with osmo.Client(home=home) as client:
+            one(client, -1, IMAGE)  # warm-up
+            one(client, -2, None)
+            boxed, plain = [], []
+            for i in range(runs):  # interleaved, as above
+                boxed.append(one(client, i, IMAGE))
+                plain.append(one(client, i, None))
+            wf = osmo.Workflow("bench-fanout")
+            for i in range(fanout):
+                wf.task(f"t{i}", ["true"], image=IMAGE)
+            t0 = time.perf_counter()
+            info = client.wait(client.submit(wf, no_cache=True), min_interval=0.05)
+            per_task = (time.perf_counter() - t0) * 1000 / fanout
+            if not info.ok:
+                raise SystemExit(f"fan-out ended {info.status.name}")
+    finally:
+        stop_server(home)
+    return boxed, plain, per_task
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--runs", type=int, default=15)
+    parser.add_argument("--fanout", type=int, default=200)
     parser.add_argument("--json")
     args = parser.parse_args()
     runs = 2 if quick() else args.runs
+    fanout = 4 if quick() else args.fanout
     if shutil.which("podman") is None:
         print("podman is not installed: no container rows")
         write_rows(args.json, [])
@@ -95,11 +142,22 @@ def main() -> None:
             limit += timed(lambda: bare(env), 1)
             osmo += timed(lambda: with_osmo_options(env, folder, engine), 1)
         limit, osmo = [t * 1000 for t in limit], [t * 1000 for t in osmo]
+        os.environ["CONTAINERS_CONF"] = env["CONTAINERS_CONF"]  # the server inherits it
+        boxed, plain, per_task = through_osmo(str(folder / "home"), runs, fanout)
     rows = [row(LIMIT, "ms", limit, higher_is_better=False,
                 notes=f"{version}, busybox image, sequential, default network"),
             row("container: `podman run` with osmo's options (run_argv), no pool", "ms", osmo,
                 higher_is_better=False, limit_of=LIMIT,
-                notes="--init, --user, labels, 2 binds, 3 variables")]
+                notes="--init, --user, labels, 2 binds, 3 variables"),
+            row("container: `osmo submit` of a 1-task container workflow (SDK, to COMPLETED)",
+                "ms", boxed, higher_is_better=False, limit_of=LIMIT,
+                target=1.2 * statistics.median(limit),
+                notes="image: alpine:3.18, command: [true], --runtime container, no_cache"),
+            row("container: the same task as a process (no image)", "ms", plain,
+                higher_is_better=False, notes="same server, interleaved runs"),
+            row(f"container: {fanout}-task container fan-out, per task (2 at a time)", "ms",
+                [per_task], higher_is_better=False,
+                notes="one workflow, --cpus 2, wall time submit → COMPLETED / tasks")]
     write_rows(args.json, rows)
 
 

@@ -21,7 +21,7 @@ from __future__ import annotations
 from typing import Protocol
 
 from osmo.scheduler.types import KillAttempt, PrepareAttempt, RunAttempt
-from osmo.spec.model import TaskSpec
+from osmo.spec.model import ResourceSpec, TaskSpec
 
 __all__ = ["Executor"]
 
@@ -33,7 +33,8 @@ class Executor(Protocol):
         """Whether attempts placed on ``node_id`` are this executor's to run."""
 
     def prepare(self, cmd: PrepareAttempt, task: TaskSpec, *,
-                max_output_bytes: int | None = None) -> None:
+                max_output_bytes: int | None = None,
+                resources: ResourceSpec | None = None) -> None:
         """Make the attempt ready on ``cmd.node_id``.
 
         ``AttemptPrepared`` follows (and, with ``cmd.run``, the start at once), or a final report
@@ -43,6 +44,7 @@ class Executor(Protocol):
             cmd: the placement: attempt, node, inputs, peers' addresses, whether to start.
             task: the task's definition (command or type, files, resources, outputs).
             max_output_bytes: the task's ``storage`` request; a larger output fails it.
+            resources: the task's whole request (a container's limits and GPUs).
         """
 
     def run(self, cmd: RunAttempt) -> None:

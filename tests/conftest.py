@@ -121,6 +121,7 @@ class Osmo:
         self.home = home
         self.env = dict(os.environ, OSMO_HOME=str(home), PYTHONUNBUFFERED="1")
         self.env.pop("OSMO_SERVER", None)
+        self.env.setdefault("OSMO_RUNTIME", "process")  # image tasks: tests/containers
 
     def __call__(self, *args: str, timeout: float = 180, check: bool = False,
                  cwd: Path = REPO) -> Result:

@@ -53,17 +53,19 @@ def run_pool(args: argparse.Namespace) -> int:
     pools: dict[str, dict[str, Any]] = {}
     for node in _nodes(args):
         pool = pools.setdefault(node["pool"], {"pool": node["pool"], "nodes": 0,
-                                               "platforms": set(), "used": {}, "total": {},
-                                               "sandboxes": []})
+                                               "platforms": set(), "runtimes": set(),
+                                               "used": {}, "total": {}, "sandboxes": []})
         pool["nodes"] += 1
         pool["platforms"].add(node["platform"] or "-")
+        pool["runtimes"].add(node.get("runtime") or "-")
         pool["sandboxes"].append(node.get("sandbox", "none"))
         for side in ("used", "total"):
             for key, value in node[side].items():
                 pool[side][key] = pool[side].get(key, 0) + value
     for pool in pools.values():
         pool["sandbox"] = _sandbox(pool.pop("sandboxes"))
-    rows = [{**p, "platforms": sorted(p["platforms"])} for p in pools.values()]
+    rows = [{**p, "platforms": sorted(p["platforms"]), "runtimes": sorted(p["runtimes"])}
+            for p in pools.values()]
     if args.format == "json":
         print_json(rows)
     else:

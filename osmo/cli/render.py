@@ -301,15 +301,16 @@ def resource_table(rows: list[dict[str, Any]], *, by: str) -> Table:
     from rich.table import Table
 
     table = Table(box=None, pad_edge=False)
-    first = (["Node", "Pool", "Platform", "Status"] if by == "node"
-             else ["Pool", "Nodes", "Platforms"])
+    first = (["Node", "Pool", "Platform", "Status", "Runtime"] if by == "node"
+             else ["Pool", "Nodes", "Platforms", "Runtimes"])
     for col in (*first, "CPU", "GPU", "Memory", "Sandbox"):
         table.add_column(col)
     for r in rows:
         used, total = r["used"], r["total"]
         head = ([safe(r["node"]), safe(r["pool"]), safe(r["platform"] or "-"),
-                 safe(r.get("status", "online"))] if by == "node"
-                else [safe(r["pool"]), str(r["nodes"]), safe(", ".join(r["platforms"]))])
+                 safe(r.get("status", "online")), safe(r.get("runtime") or "-")] if by == "node"
+                else [safe(r["pool"]), str(r["nodes"]), safe(", ".join(r["platforms"])),
+                      safe(", ".join(r.get("runtimes", ())) or "-")])
         table.add_row(*head, f"{used['cpu']:g}/{total['cpu']:g}",
                       f"{used['gpu']}/{total['gpu']}",
                       f"{_gib(used['memory'])}/{_gib(total['memory'])}",

@@ -31,7 +31,7 @@ LINEAGE_VERSION = "1"
 # Flat-map encoding, per field: plain strings stay raw (readable in Foxglove/rerun), optional
 # strings are omitted when None (so "" and None stay distinct), everything else is JSON.
 _STR_FIELDS = ("workflow_id", "task", "node", "osmo_version")
-_OPT_STR_FIELDS = ("attempt_id", "plugin", "image", "manifest_digest")
+_OPT_STR_FIELDS = ("attempt_id", "plugin", "image", "image_id", "manifest_digest")
 _JSON_FIELDS = (
     "retry", "command", "params", "inputs", "started_at", "ended_at", "exit_code",
 )
@@ -89,6 +89,8 @@ class Lineage:
         plugin: ``"type@version"`` for plugin tasks, else None.
         params: the task's resolved plugin parameters (JSON-safe).
         image: the container image, None when run without one.
+        image_id: the id (``sha256:...``) the image resolved to when the task ran in it,
+            None when it ran as a process.
         inputs: the upstream manifests the attempt consumed.
         started_at: start time (unix seconds), None when unknown.
         ended_at: end time (unix seconds), None when unknown or still running.
@@ -107,6 +109,7 @@ class Lineage:
     params: dict[str, Any] = field(default_factory=dict, hash=False)
     image: str | None = None
     inputs: tuple[LineageInput, ...] = ()
+    image_id: str | None = None
     started_at: float | None = None
     ended_at: float | None = None
     exit_code: int | None = None
@@ -127,6 +130,7 @@ class Lineage:
             "plugin": self.plugin,
             "params": dict(self.params),
             "image": self.image,
+            "image_id": self.image_id,
             "inputs": [i.to_dict() for i in self.inputs],
             "started_at": self.started_at,
             "ended_at": self.ended_at,
@@ -153,6 +157,7 @@ class Lineage:
                 plugin=_typed(data, "plugin", str, optional=True),
                 params=dict(_typed(data, "params", dict, default={})),
                 image=_typed(data, "image", str, optional=True),
+                image_id=_typed(data, "image_id", str, optional=True),
                 inputs=tuple(LineageInput.from_dict(i)
                              for i in _typed(data, "inputs", list, default=[])),
                 started_at=_time(data, "started_at"),

@@ -78,6 +78,7 @@ LINEAGE_SCHEMA: dict[str, Any] = {
         "plugin": {**_OPT_STR, "description": "type@version"},
         "params": {"type": "object"},
         "image": _OPT_STR,
+        "image_id": _OPT_STR,
         "inputs": {
             "type": "array",
             "items": {

@@ -268,6 +268,11 @@ class ContainerEngine:
         return self.call("ps", "-a", "--no-trunc", *_filters(labels),
                          "--format", "{{.ID}}").split()
 
+    def running(self, labels: Mapping[str, str]) -> list[str]:
+        """Ids of the running containers that carry every one of ``labels``."""
+        return self.call("ps", "--no-trunc", *_filters(labels), "--filter=status=running",
+                         "--format", "{{.ID}}").split()
+
     def kill(self, container: str, signal: str = "TERM") -> bool:
         """Send ``signal`` to a running container; False when it is not running (yet)."""
         try:

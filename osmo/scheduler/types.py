@@ -219,6 +219,7 @@ class AttemptExited:
     manifest: str | None = None
     cached: bool = False  # the outputs are an earlier identical attempt's (no process ran)
     command: tuple[str, ...] | None = None  # the argv that ran, tokens resolved (lineage)
+    image_id: str | None = None  # the id of the image it ran in (a container task; lineage)
 
 
 @dataclass(frozen=True)

@@ -56,6 +56,7 @@ from osmo.store.sqlite import Store
 from osmo.transport.blobs import host_id
 from osmo.transport.rpc import ApiServer
 from osmo.transport.zenoh_link import Link
+from osmo.worker import containers
 from osmo.worker.pool import LocalPool
 
 __all__ = ["serve"]
@@ -89,6 +90,8 @@ def serve(home: str | os.PathLike[str] | None = None, options: ServerOptions | N
     lock_fd = _take_lock(layout)
     layout.server_info.unlink(missing_ok=True)  # a crashed server's stale address
     options = options or ServerOptions()
+    boxes = containers.for_node(options.runtime, options.container_engine,
+                                home_path) if options.local_pool else None
     listen, connect = list(options.listen), list(options.connect)
     check_listeners(listen, options.zenoh_config, insecure=options.insecure)
     local = f"unixsock-stream/{_socket(layout)}"
@@ -117,7 +120,7 @@ def serve(home: str | os.PathLike[str] | None = None, options: ServerOptions | N
                      credential_for=url_credential(store),
                      input_manifests=output_manifests(store),
                      task_secrets=store.credential,
-                     sandbox=options.sandbox) if options.local_pool else None
+                     sandbox=options.sandbox, containers=boxes) if options.local_pool else None
     hub = WorkerHub(link=link, emit=inbox.post, store=store,
                     artifacts=artifacts, home=home_path, url_credential=url_credential(store),
                     attempts_on=lambda node: list(inbox.ask(AttemptsOn(node))),
@@ -134,7 +137,9 @@ def serve(home: str | os.PathLike[str] | None = None, options: ServerOptions | N
                     specs=restored.specs, on_changed=on_changed, home=home_path,
                     on_finished=records.finished, datasets=Datasets(store, artifacts, home_path),
                     no_cache=restored.no_cache, restore=lambda: restore(store),
-                    inflight=inflight, on_fatal=on_fatal)
+                    inflight=inflight, on_fatal=on_fatal,
+                    image_ids=containers.image_ids(options.runtime, options.container_engine,
+                                                   boxes))
     lost_ids = {t.attempt_id for t in lost}
     for task in active:  # still running on remote workers: placed by the old server
         cmd = restored.scheduler.placement(str(task.attempt_id))
@@ -155,7 +160,8 @@ def serve(home: str | os.PathLike[str] | None = None, options: ServerOptions | N
             "zenoh_config": (str(Path(options.zenoh_config).absolute())
                              if options.zenoh_config else None),
             "host_id": host_id(), "artifacts": str(artifacts.root),
-            "started_at": time.time(), "home": str(home_path), "options": options.to_argv()}
+            "started_at": time.time(), "home": str(home_path), "options": options.to_argv(),
+            "runtime": pool.runtime_name() if pool is not None else None}
     handlers = Handlers(engine, home_path, info, on_shutdown=stopping.set, workers=hub,
                         link=link, tokens=TokenHandlers(store, authenticate))
     api_server = ApiServer(link, handlers.handle, authenticate, inline=WorkerHub.INLINE,

@@ -4,7 +4,11 @@ A fingerprint is the sha256 of the task's definition as submitted (command, args
 environment including ``--set-env``, files, image, plugin type, its version and params,
 and its ``credentials:`` — names, variables, keys and mount paths, never the secret
 values, so a rotated secret does not invalidate the cache) and the manifest digests of
-its inputs, in input order. Tokens are hashed as written: they resolve the same
+its inputs, in input order. A task that runs in its image (a server with a container
+engine, ``--runtime`` not ``process``) is fingerprinted by the image's **id**, resolved on
+the server when the task is placed, not by its tag: a retagged image runs the task again, and
+an image the server does not hold yet is not cached (its content is unknown). Tokens are
+hashed as written: they resolve the same
 way for the same inputs; ``{{workflow_id}}``/``{{uuid}}`` are not treated as changes.
 
 Only attempts that no group barrier holds are cached (single-task groups and
@@ -33,14 +37,18 @@ __all__ = ["CacheHit", "fingerprint", "input_sources", "key", "lookup"]
 _VERSION = 1  # bump when the fingerprint's content changes
 
 
-def fingerprint(task: TaskSpec, inputs: list[tuple[str, str]]) -> str:
-    """The fingerprint of ``task`` given ``(input name, manifest digest)`` pairs."""
+def fingerprint(task: TaskSpec, inputs: list[tuple[str, str]],
+                image_id: str | None = None) -> str:
+    """The fingerprint of ``task`` given ``(input name, manifest digest)`` pairs.
+
+    ``image_id``: the id its image resolved to (it stands for the tag), if it runs in it.
+    """
     body: dict[str, object] = {
         "v": _VERSION,
         "command": list(task.command), "args": list(task.args),
         "environment": sorted(task.environment.items()),
         "files": [[f.path, f.contents, f.base64] for f in task.files],
-        "image": task.image, "type": task.type, "params": task.params,
+        "image": image_id or task.image, "type": task.type, "params": task.params,
         "inputs": inputs,
     }
     if task.credentials:  # only when present: earlier fingerprints stay valid
@@ -52,7 +60,7 @@ def fingerprint(task: TaskSpec, inputs: list[tuple[str, str]]) -> str:
 
 
 def key(cmd: PrepareAttempt, task: TaskSpec, sources: list[LineageInput | None], *,
-        no_cache: bool) -> str | None:
+        no_cache: bool, contained: bool = False, image_id: str | None = None) -> str | None:
     """The cache key of a placed attempt, or None when it must run.
 
     The key is the attempt's fingerprint; the rules are the module docstring's.
@@ -62,6 +70,8 @@ def key(cmd: PrepareAttempt, task: TaskSpec, sources: list[LineageInput | None],
         task: its task's definition.
         sources: what each of its inputs is (:func:`input_sources`).
         no_cache: its workflow was submitted with ``--no-cache``.
+        contained: it runs in its image.
+        image_id: that image's id (None: unknown, so not cached).
     """
     if not cmd.run or not task.cache or no_cache:
         return None  # held by a group barrier, or caching is off for it
@@ -69,7 +79,10 @@ def key(cmd: PrepareAttempt, task: TaskSpec, sources: list[LineageInput | None],
         return None  # URL contents are unknown at placement; a hit would skip the upload
     if any(s is None for s in sources):
         return None  # an input without a recorded manifest: its content is unknown
-    return fingerprint(task, [(s.task, s.manifest_digest) for s in sources if s])
+    if contained and image_id is None:
+        return None  # an image the server cannot name: its content is unknown
+    return fingerprint(task, [(s.task, s.manifest_digest) for s in sources if s],
+                       image_id if contained else None)
 
 
 @dataclass(frozen=True)

@@ -99,6 +99,8 @@ class Engine:
         inflight: the quarantine file (``osmo.server.recovery.InFlight``), if any.
         on_fatal: called (on the engine thread) when the engine cannot go on.
         clock: time source (injectable for tests).
+        image_ids: ``(workflow id, image) → id`` on this host, when image tasks run in
+            containers (the cache fingerprints the id; ``osmo.server.placing.Placements``).
     """
 
     def __init__(self, *, store: Store, scheduler: Scheduler, executors: Sequence[Executor],
@@ -109,7 +111,8 @@ class Engine:
                  restore: Callable[[], Restored] | None = None,
                  inflight: InFlight | None = None,
                  on_fatal: Callable[[BaseException], None] = lambda _exc: None,
-                 clock: Callable[[], float] = time.time) -> None:
+                 clock: Callable[[], float] = time.time,
+                 image_ids: Callable[[str, str], str | None] | None = None) -> None:
         self.store = store
         self.scheduler = scheduler
         self._executors = tuple(executors)
@@ -124,7 +127,7 @@ class Engine:
         self._home = home
         self.placements = Placements(store=store, specs=specs, no_cache=self.no_cache,
                                      post=inbox.post, provenance=self.provenance,
-                                     datasets=datasets)
+                                     datasets=datasets, image_ids=image_ids)
         self._numbers: dict[str, int] = {}
         self._restore, self._inflight, self._on_fatal = restore, inflight, on_fatal
         self._isolation = Isolation(apply=self._apply, rebuild=self._rebuild,

@@ -293,6 +293,7 @@ class Handlers:
                         "status": worker.get("status", "online"),
                         "kind": "remote" if worker else "local",
                         "sandbox": node.labels.get("sandbox", "none"),
+                        "runtime": worker.get("runtime") if worker else self._info.get("runtime"),
                         "total": vars(node.capacity), "used": vars(used)})
         return out
 

@@ -28,6 +28,7 @@ from osmo.config import DEFAULT_CLUSTER
 from osmo.errors import UsageError
 from osmo.layout import Home
 from osmo.runtime.sandbox import MODES, SandboxMode
+from osmo.worker.options import add_runtime_arguments
 
 __all__ = ["ServerOptions", "absolute", "check_listeners", "network_listeners",
            "option_changes", "options_from_argv", "remember", "saved_options"]
@@ -50,6 +51,9 @@ class ServerOptions:
             start; see :func:`check_listeners`).
         accept_tokens: ``NAME:ROLE:FILE`` tokens to accept (Kubernetes Secrets).
         sandbox: run the local pool's tasks in bubblewrap: ``auto``, ``on``, ``off``.
+        runtime: how the local pool runs image tasks: ``auto``, ``container`` or ``process``
+            (``osmo.worker.containers.choose``).
+        container_engine: ``podman`` or ``docker`` (default: the first that answers).
     """
 
     listen: tuple[str, ...] = ()
@@ -63,6 +67,8 @@ class ServerOptions:
     insecure: bool = False
     accept_tokens: tuple[str, ...] = ()
     sandbox: SandboxMode = "auto"
+    runtime: str = "auto"
+    container_engine: str | None = None
 
     @staticmethod
     def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -100,6 +106,7 @@ class ServerOptions:
         p.add_argument("--sandbox", choices=MODES, default=d.sandbox,
                        help="run local tasks in a bubblewrap sandbox: auto (when bwrap works "
                             f"here), on (required), off ({d.sandbox})")
+        add_runtime_arguments(p)
 
     @classmethod
     def from_args(cls, args: argparse.Namespace) -> ServerOptions:
@@ -110,7 +117,8 @@ class ServerOptions:
                    reconnect_grace=args.reconnect_grace,
                    insecure=getattr(args, "insecure", False),
                    accept_tokens=tuple(getattr(args, "accept_token", None) or ()),
-                   sandbox=args.sandbox)
+                   sandbox=args.sandbox, runtime=args.runtime,
+                   container_engine=args.container_engine)
 
     def to_argv(self) -> list[str]:
         """The same options as flags, to start the server in another process.
@@ -123,7 +131,9 @@ class ServerOptions:
         for flag, value in (("--zenoh-config", self.zenoh_config), ("--cluster", self.cluster),
                             ("--cpus", self.cpus), ("--gpus", self.gpus),
                             ("--reconnect-grace", self.reconnect_grace),
-                            ("--sandbox", self.sandbox)):
+                            ("--sandbox", self.sandbox),
+                            ("--runtime", self.runtime),
+                            ("--container-engine", self.container_engine)):
             if value != getattr(d, flag[2:].replace("-", "_")):
                 out += [flag, str(value)]
         out += [] if self.local_pool else ["--no-local-pool"]

@@ -47,16 +47,20 @@ class Placements:
         post: queues an event for the engine.
         provenance: remembers each placement for its lineage.
         datasets: resolves dataset and other-workflow inputs (None: none to resolve).
+        image_ids: ``(workflow id, image) → id`` on this host (None: not here), when image
+            tasks run in containers (``cache`` uses the id).
     """
 
     def __init__(self, *, store: Store, specs: dict[str, WorkflowSpec], no_cache: set[str],
                  post: Callable[[Event], None], provenance: Provenance,
-                 datasets: Datasets | None) -> None:
+                 datasets: Datasets | None,
+                 image_ids: Callable[[str, str], str | None] | None = None) -> None:
         self._store, self._specs, self._no_cache = store, specs, no_cache
         self._post = post
         self._provenance, self._datasets = provenance, datasets
         self._ready: dict[str, PrepareAttempt | str] = {}  # the final command, or why not
         self._hits: dict[str, CacheHit] = {}
+        self._image_ids = image_ids
 
     def resolve(self, cmd: PrepareAttempt) -> None:
         """Settle what a placed attempt needs before it is prepared.
@@ -95,15 +99,20 @@ class Placements:
                 cmd = self._datasets.resolve_inputs(cmd, self._specs[cmd.workflow_id].task(
                     cmd.task))
             sources = cache.input_sources(self._store, cmd)
-            key = cache.key(cmd, self._specs[cmd.workflow_id].task(cmd.task), sources,
-                            no_cache=cmd.workflow_id in self._no_cache)
+            task = self._specs[cmd.workflow_id].task(cmd.task)
+            contained = self._image_ids is not None and task.image is not None and not task.type
+            image_id = (self._image_ids(cmd.workflow_id, task.image)
+                        if self._image_ids is not None and task.image is not None else None)
+            key = cache.key(cmd, task, sources, no_cache=cmd.workflow_id in self._no_cache,
+                            contained=contained, image_id=image_id)
             hit = cache.lookup(self._store, key) if key else None
         except OsmoError as exc:
             return str(exc)
         except Exception as exc:  # noqa: BLE001 - fails this attempt's start, nothing else
             log.exception("resolving the inputs of %s failed", cmd.attempt_id)
             return f"cannot resolve its inputs: {exc!r}"
-        self._provenance.placed(cmd, cmd.hosts.get(cmd.task, cmd.node_id), key, sources)
+        self._provenance.placed(cmd, cmd.hosts.get(cmd.task, cmd.node_id), key, sources,
+                                image_id=image_id)
         return cmd, hit
 
     def prepare(self, cmd: PrepareAttempt, executor: Executor | None) -> None:
@@ -124,7 +133,8 @@ class Placements:
         else:
             spec = self._specs[ready.workflow_id]
             task = spec.task(ready.task)
-            executor.prepare(ready, task, max_output_bytes=spec.resource_for(task).storage)
+            request = spec.resource_for(task)
+            executor.prepare(ready, task, max_output_bytes=request.storage, resources=request)
 
     def _replay(self, cmd: PrepareAttempt, hit: CacheHit) -> None:
         """Complete a cache hit at once: the scheduler sees an ordinary successful attempt."""

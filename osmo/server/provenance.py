@@ -28,6 +28,7 @@ class _Placed:
     node_address: str
     fingerprint: str | None
     inputs: tuple[LineageInput, ...]
+    image_id: str | None = None
 
 
 @dataclass
@@ -37,10 +38,14 @@ class Provenance:
     _placed: dict[str, _Placed] = field(default_factory=dict)
 
     def placed(self, cmd: PrepareAttempt, node_address: str, fingerprint: str | None = None,
-               inputs: list[LineageInput | None] | None = None) -> None:
-        """Note an attempt's node, cache fingerprint and recorded inputs when it is placed."""
+               inputs: list[LineageInput | None] | None = None, *,
+               image_id: str | None = None) -> None:
+        """Note an attempt's node, cache fingerprint and recorded inputs when it is placed.
+
+        ``image_id``: the image id its fingerprint was made with (the worker's must match).
+        """
         known = tuple(i for i in inputs or () if i is not None)
-        self._placed[cmd.attempt_id] = _Placed(cmd, node_address, fingerprint, known)
+        self._placed[cmd.attempt_id] = _Placed(cmd, node_address, fingerprint, known, image_id)
 
     def exited(self, event: AttemptExited, task: TaskSpec, *, started_at: float | None,
                now: float) -> LineageRow | None:
@@ -59,6 +64,7 @@ class Provenance:
             command=None if task.type else (
                 event.command or (tuple(task.command) + tuple(task.args) or None)),
             plugin=_plugin(task), params=dict(task.params), image=task.image,
+            image_id=event.image_id,
             inputs=placed.inputs,
             started_at=started_at, ended_at=now, exit_code=event.exit_code,
             manifest_digest=manifest.digest, osmo_version=__version__)
@@ -68,11 +74,16 @@ class Provenance:
             entries=tuple((e.path, e.digest, e.size) for e in manifest.entries),
             output_path=event.output, record=json.dumps(record.to_dict()),
             consumed=tuple(i.manifest_digest for i in record.inputs),
-            fingerprint=None if event.cached else placed.fingerprint)
+            fingerprint=None if event.cached or _other_image(placed, event) else placed.fingerprint)
 
     def forget(self, attempt_id: str) -> None:
         """Drop what was remembered of an attempt whose final report was committed."""
         self._placed.pop(attempt_id, None)
+
+
+def _other_image(placed: _Placed, event: AttemptExited) -> bool:
+    """Whether the attempt ran another image than its fingerprint names (moved meanwhile)."""
+    return placed.image_id is not None and event.image_id != placed.image_id
 
 
 def _plugin(task: TaskSpec) -> str | None:

@@ -55,7 +55,7 @@ from osmo.scheduler.types import (
 )
 from osmo.server.auth import refuse
 from osmo.server.worker_access import WorkerAccess, task_secrets, task_urls
-from osmo.spec.model import TaskSpec
+from osmo.spec.model import ResourceSpec, TaskSpec
 from osmo.store.sqlite import Store
 from osmo.transport.auth import Identity
 from osmo.transport.blobs import SERVER, BlobServer, SameHost, fetch_manifest, host_id
@@ -135,7 +135,7 @@ class WorkerHub:
         with self._lock:
             self._nodes[wid] = node
             self._info[wid] = {"pid": hello.pid, "address": node.address,
-                               "host_id": hello.host_id}
+                               "host_id": hello.host_id, "runtime": hello.runtime}
             same = hello.host_id == self._host and hello.artifacts
             self._same_host[wid] = SameHost(Path(hello.artifacts or "")) if same else None
             self._sent_specs[wid] = set()
@@ -262,8 +262,12 @@ class WorkerHub:
         return node_id != LOCAL_NODE
 
     def prepare(self, cmd: PrepareAttempt, task: TaskSpec, *,
-                max_output_bytes: int | None = None) -> None:
-        """Send a placement to its worker (engine thread)."""
+                max_output_bytes: int | None = None,
+                resources: ResourceSpec | None = None) -> None:
+        """Send a placement to its worker (engine thread).
+
+        ``resources`` is not sent: the worker reads the request from the spec it holds.
+        """
         try:
             order = self._order(cmd, task)
         except (OsmoError, OSError) as exc:

@@ -31,6 +31,7 @@ ignored, so a worker that returns late can never commit stale work.
 
 from __future__ import annotations
 
+import re
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -96,8 +97,16 @@ def event_from_dict(data: dict[str, Any]) -> Event:
         return AttemptExited(aid, int(data["exit_code"]), data.get("output"),
                              str(data.get("message") or ""), data.get("manifest"),
                              bool(data.get("cached")),
-                             tuple(command) if command is not None else None)
+                             tuple(command) if command is not None else None,
+                             _image_id(data.get("image_id")))
     raise ValueError(f"unknown report {op!r}")
+
+
+def _image_id(value: object) -> str | None:
+    """An image id a worker reported (``sha256:<hex>``); anything else is dropped."""
+    if isinstance(value, str) and re.fullmatch(r"sha256:[0-9a-f]{64}", value):
+        return value
+    return None
 
 
 def prepare_to_dict(cmd: PrepareAttempt) -> dict[str, Any]:
@@ -161,6 +170,7 @@ class Hello:
         draining: it takes no more work.
         active: the attempts it still runs.
         finished: its exit reports the server has not acknowledged yet.
+        runtime: how it runs image tasks: ``container (podman 4.3.1)`` or ``process``.
     """
 
     node: Node
@@ -170,6 +180,7 @@ class Hello:
     draining: bool = False
     active: tuple[str, ...] = ()
     finished: tuple[dict[str, Any], ...] = ()
+    runtime: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """The hello as JSON-safe data."""
@@ -178,7 +189,7 @@ class Hello:
                 "capacity": capacity_to_dict(node.capacity), "labels": dict(node.labels),
                 "address": node.address, "host_id": self.host_id, "artifacts": self.artifacts,
                 "pid": self.pid, "draining": self.draining, "active": list(self.active),
-                "finished": list(self.finished)}
+                "finished": list(self.finished), "runtime": self.runtime}
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> Hello:
@@ -199,7 +210,8 @@ class Hello:
                    host_id=field(data, "host_id", str, default=None, max_len=_TEXT),
                    artifacts=field(data, "artifacts", str, default=None, max_len=_TEXT),
                    draining=field(data, "draining", bool, default=False),
-                   active=tuple(str_list(data, "active")), finished=tuple(finished))
+                   active=tuple(str_list(data, "active")), finished=tuple(finished),
+                   runtime=field(data, "runtime", str, default=None, max_len=_TEXT))
 
 
 def spec_to_wire(spec: dict[str, Any], filename: str, types: dict[str, Any]) -> dict[str, Any]:

@@ -46,6 +46,7 @@ class AttemptEndings:
     _credential_for: CredentialLookup | None
     _max_output_files: int | None
     _reap: Callable[[ProcessHandle], int]
+    _ended: Callable[[Launch], None]  # lets an ended container's GPUs and network go
 
     def _exited(self, attempt: LiveAttempt) -> None:
         handle = attempt.handle
@@ -87,8 +88,10 @@ class AttemptEndings:
                                     credential_for=self._credential_for,
                                     max_bytes=attempt.launch.max_output_bytes,
                                     max_files=self._max_output_files)
+            box = attempt.launch.container
             event = AttemptExited(attempt.id, code, ref, manifest=manifest,
-                                  command=tuple(attempt.launch.argv))
+                                  command=tuple(attempt.launch.argv),
+                                  image_id=box.image if box is not None else None)
         except Exception as exc:  # noqa: BLE001 - DeliveryError, or a bug: still one report
             if not isinstance(exc, DeliveryError):
                 _log.exception("promoting the outputs of %s failed", attempt.id)
@@ -119,6 +122,7 @@ class AttemptEndings:
         finally:  # a log that cannot be written must not keep the report (or a secret) back
             remove_secret_files(attempt.launch)
             self._drop_scratch(attempt.launch)
+            self._ended(attempt.launch)
             self._attempts.pop(attempt.id, None)
             self._remember(attempt.id)
             if event is not None:

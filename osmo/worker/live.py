@@ -28,6 +28,7 @@ class AttemptState(enum.Enum):
     """Where an attempt is in the pool."""
 
     PREPARED = "prepared"
+    STARTING = "starting"  # a container group's peer, waiting for its lead to run
     RUNNING = "running"
     FINISHING = "finishing"  # exited; outputs being promoted on an I/O thread
     DONE = "done"

@@ -16,13 +16,26 @@ from osmo.config import DEFAULT_CLUSTER
 from osmo.errors import UsageError
 from osmo.runtime.sandbox import MODES, SandboxMode
 
-__all__ = ["DEFAULT_KILL_GRACE", "DEFAULT_POOL", "WorkerOptions"]
+__all__ = ["DEFAULT_KILL_GRACE", "DEFAULT_POOL", "WorkerOptions", "add_runtime_arguments"]
 
 DEFAULT_POOL = "default"
 """The pool a worker serves unless told another."""
 
 DEFAULT_KILL_GRACE = 3.0
 """Seconds between SIGTERM and SIGKILL when an attempt is killed."""
+
+
+def add_runtime_arguments(p: argparse.ArgumentParser) -> None:
+    """``--runtime`` and ``--container-engine``, shared by ``osmo server`` and ``osmo worker``."""
+    p.add_argument("--runtime", choices=("auto", "container", "process"),
+                   default=os.environ.get("OSMO_RUNTIME") or "auto",
+                   help="run tasks that name an image in containers (container), as host "
+                        "processes (process), or in containers when an engine is installed "
+                        "(auto, the default; OSMO_RUNTIME)")
+    p.add_argument("--container-engine", choices=("podman", "docker"),
+                   default=os.environ.get("OSMO_CONTAINER_ENGINE") or None,
+                   help="the container engine (default: podman, else docker; "
+                        "OSMO_CONTAINER_ENGINE)")
 
 
 @dataclass(frozen=True)
@@ -44,6 +57,8 @@ class WorkerOptions:
         address: how peers reach its tasks (default: the outbound interface's address).
         token: its API token, role worker (``osmo token create NAME --role worker``).
         sandbox: run commands in bubblewrap: ``auto`` (when it works here), ``on``, ``off``.
+        runtime: how it runs image tasks: ``auto``, ``container`` or ``process``.
+        container_engine: ``podman`` or ``docker`` (default: the first that answers).
     """
 
     connect: tuple[str, ...]
@@ -61,6 +76,8 @@ class WorkerOptions:
     address: str | None = None
     token: str | None = None
     sandbox: SandboxMode = "auto"
+    runtime: str = "auto"
+    container_engine: str | None = None
 
     @staticmethod
     def add_arguments(w: argparse.ArgumentParser) -> None:
@@ -89,6 +106,7 @@ class WorkerOptions:
         w.add_argument("--sandbox", choices=MODES, default=d.sandbox,
                        help="run tasks in a bubblewrap sandbox: auto (when bwrap works here), "
                             f"on (required), off ({d.sandbox})")
+        add_runtime_arguments(w)
 
     @classmethod
     def from_args(cls, args: argparse.Namespace) -> WorkerOptions:
@@ -108,7 +126,8 @@ class WorkerOptions:
                    platform=args.platform, cpus=args.cpus, gpus=args.gpus, memory=memory,
                    labels=_labels(args.label), cluster=args.cluster,
                    zenoh_config=args.zenoh_config, drain_timeout=args.drain_timeout,
-                   token=_token(args.token, args.token_file), sandbox=args.sandbox)
+                   token=_token(args.token, args.token_file), sandbox=args.sandbox,
+                   runtime=args.runtime, container_engine=args.container_engine)
 
 
 def _token(token: str | None, token_file: str | None) -> str | None:

@@ -28,7 +28,10 @@ Credentials (``osmo.worker.secrets``) are given to ``prepare`` or looked up via
 How an attempt ends (exit, promotion, its one final report in every path) is
 ``osmo.worker.endings``.
 
-The ``image`` field is recorded in the log and otherwise ignored by the process runtime.
+Containers: with ``containers`` (``osmo.worker.containers.ContainerTasks``), a task with an
+``image:`` (and no ``type:``) runs in its image through the container runtime; everything
+else, and every task without ``containers``, runs as a host process, its ``image`` only noted
+in the log.
 
 Sandbox (``sandbox``: ``auto``, ``on``, ``off``; ``osmo.runtime.sandbox``): chosen once, when
 the pool is made; commands then run in bubblewrap with a view of their own attempt's folders
@@ -57,6 +60,7 @@ from osmo.artifacts import ArtifactStore
 from osmo.artifacts.store import DEFAULT_MAX_FILES
 from osmo.errors import OsmoError
 from osmo.layout import AttemptDirs, Home
+from osmo.runtime.container_runtime import ContainerRuntime
 from osmo.runtime.process import (
     ProcessHandle,
     ProcessRuntime,
@@ -78,8 +82,10 @@ from osmo.scheduler.types import (
     PrepareAttempt,
     RunAttempt,
 )
-from osmo.spec.model import TaskSpec
+from osmo.spec.model import ResourceSpec, TaskSpec
 from osmo.worker.checkpoints import start_checkpoints
+from osmo.worker.container_images import registry_auth
+from osmo.worker.containers import ContainerTasks
 from osmo.worker.endings import AttemptEndings
 from osmo.worker.live import AttemptState, LiveAttempt
 from osmo.worker.logs import LogWriter, image_note
@@ -124,6 +130,8 @@ class LocalPool(AttemptEndings):
         log_sink: also gets ``(attempt id, records)`` for every log record written.
         sandbox: ``auto`` (when bubblewrap works here), ``on`` (required) or ``off``.
         procs_dir: record running commands' pids here (see the module docstring).
+        containers: runs image tasks in containers (its runtime replaces ``runtime``); its
+            orphans are removed here, before anything starts.
 
     Raises:
         InfrastructureError: ``sandbox="on"`` and no sandbox works here.
@@ -150,6 +158,7 @@ class LocalPool(AttemptEndings):
         log_sink: Callable[[str, bytes], None] | None = None,
         sandbox: SandboxMode = "auto",
         procs_dir: Path | None = None,
+        containers: ContainerTasks | None = None,
     ) -> None:
         self.home = Path(home).absolute()
         self.home.mkdir(parents=True, exist_ok=True)
@@ -167,6 +176,13 @@ class LocalPool(AttemptEndings):
         self._procs = ProcessRecords(procs_dir) if procs_dir is not None else None
         self._hidden = [self.home]  # folders a sandboxed task never sees (see hide())
         self._env = base_env(os.environ) if env is None else dict(env)
+        self._containers = containers
+        if containers is not None:
+            containers.clean_orphans()  # a crashed predecessor's, before anything new runs
+            # image tasks run in containers; every other one as a (sandboxed) process
+            containers.runtime = ContainerRuntime(containers.engine,
+                                                  processes=ProcessRuntime(self.sandbox))
+            self._runtime = containers.runtime
         self._artifacts = artifacts
         self._credential_for = credential_for
         self._input_manifests = input_manifests
@@ -190,13 +206,20 @@ class LocalPool(AttemptEndings):
                     labels={"sandbox": "bwrap" if self.sandbox else "none"})
 
     def prepare(self, cmd: PrepareAttempt, task: TaskSpec, secrets: Secrets | None = None,
-                *, max_output_bytes: int | None = None) -> None:
+                *, max_output_bytes: int | None = None,
+                resources: ResourceSpec | None = None) -> None:
         """Prepare an attempt's folder; later emits AttemptPrepared or AttemptStartFailed.
 
         ``secrets``: payloads of the credentials ``task`` names (None: ask ``task_secrets``).
         ``max_output_bytes``: the task's ``storage`` request; a larger output fails it.
+        ``resources``: its request (a container's cpu/memory limits and GPUs).
         """
-        self._reactor.call_soon(self._prepare, cmd, task, secrets, max_output_bytes)
+        self._reactor.call_soon(self._prepare, cmd, task, secrets,
+                                replace(resources or ResourceSpec(), storage=max_output_bytes))
+
+    def runtime_name(self) -> str:
+        """How this pool runs image tasks: ``container (podman 4.3.1)`` or ``process``."""
+        return f"container ({self._containers.describe()})" if self._containers else "process"
 
     def hide(self, folder: Path) -> None:
         """Also hide ``folder`` from sandboxed tasks (another osmo home on this host)."""
@@ -226,30 +249,64 @@ class LocalPool(AttemptEndings):
         """
         self._io.shutdown(wait=True, cancel_futures=True)
         self._reactor.stop(self._shutdown)
+        if self._containers is not None:
+            self._containers.close()
+
+    # -------------------------------------------------------------- containers
+
+    def _spawn(self, launch: Launch, *, wait: bool = False) -> ProcessHandle:
+        """Start a launch (any thread): in its container, or as a (sandboxed) process.
+
+        ``wait``: on an I/O thread (a container peer may wait for its lead). A remote
+        worker's pool records the pid.
+        """
+        if launch.container is None or self._containers is None:
+            handle = self._runtime.start(launch.argv, cwd=launch.cwd, env=launch.env,
+                                         view=launch.view)
+        else:
+            handle = self._containers.start(launch, wait_for_lead=wait)
+        if self._procs is not None:
+            self._procs.add(handle.pid)
+        return handle
+
+    def _ended(self, launch: Launch) -> None:
+        """An attempt is over: its container's GPUs and group network are let go."""
+        if launch.container is not None and self._containers is not None:
+            try:
+                self._io.submit(self._containers.ended, launch.container)
+            except RuntimeError:  # closing: ContainerTasks.close removes the networks
+                pass
 
     # -------------------------------------------------------------- reactor thread
 
     def _prepare(self, cmd: PrepareAttempt, task: TaskSpec, secrets: Secrets | None,
-                 max_output_bytes: int | None) -> None:
+                 resources: ResourceSpec) -> None:
         if cmd.attempt_id in self._attempts or cmd.attempt_id in self._preparing:
             _log.warning("attempt %s is already active; prepare ignored", cmd.attempt_id)
             return
         self._finished.pop(cmd.attempt_id, None)
         self._preparing[cmd.attempt_id] = None
-        self._io.submit(self._prepare_io, cmd, task, secrets, max_output_bytes)
+        self._io.submit(self._prepare_io, cmd, task, secrets, resources)
 
     def _prepare_io(self, cmd: PrepareAttempt, task: TaskSpec, secrets: Secrets | None,
-                    max_output_bytes: int | None) -> None:
+                    resources: ResourceSpec) -> None:
         """I/O thread: make the folders and files; hand the outcome back to the reactor."""
         try:
             dirs = self._layout.attempt(cmd.workflow_id, cmd.task, cmd.retry)
             if secrets is None:
                 secrets = gather(task, self._task_secrets)
-            launch = make_ready(dirs, cmd, task, env=self._env, secrets=secrets,
+            boxed = self._containers is not None and self._containers.applies(task)
+            placed = self._containers.placement(cmd) if self._containers and boxed else cmd
+            launch = make_ready(dirs, placed, task, env=self._env, secrets=secrets,
                                 credential_for=self._credential_for, artifacts=self._artifacts,
                                 input_manifests=self._input_manifests,
-                                hide=tuple(self._hidden) if self.sandbox else None)
-            launch = replace(launch, max_output_bytes=max_output_bytes)
+                                hide=tuple(self._hidden) if self.sandbox and not boxed else None,
+                                boxed=boxed)
+            launch = replace(launch, max_output_bytes=resources.storage)
+            if self._containers is not None and boxed:
+                launch = self._containers.finish(
+                    launch, cmd, task, dirs, request=resources, gpus=self.node().capacity.gpu,
+                    auth=registry_auth(task, self._task_secrets))
         except Exception as exc:  # every prepare must get its one final report
             message = str(exc) if isinstance(exc, OsmoError) else f"cannot prepare: {exc!r}"
             self._reactor.call_soon(self._prepared, cmd, task, None, None, message)
@@ -260,7 +317,7 @@ class LocalPool(AttemptEndings):
             # (pipes, exits) never waits on fork/exec. A kill that came meanwhile is applied
             # by _prepared.
             try:
-                started = self._start(launch)
+                started = self._spawn(launch, wait=True)
             except (StartError, OSError) as exc:
                 started = str(exc)
             except Exception as exc:  # noqa: BLE001 - a bug: fail the start, report it
@@ -287,13 +344,16 @@ class LocalPool(AttemptEndings):
                 self._reap(started)
                 self._runtime.release(started)
             remove_secret_files(launch)
+            self._ended(launch)
             self._remember(cmd.attempt_id)
             self._emit(AttemptStartFailed(cmd.attempt_id, f"cannot write its log: {exc}"))
             return
         attempt = LiveAttempt(cmd.attempt_id, task, dirs, launch, log)
-        if self._no_sandbox is not None:
+        for note in launch.notes:
+            attempt.log.line("osmo", note)
+        if self._no_sandbox is not None and launch.container is None:
             attempt.log.line("osmo", self._no_sandbox)
-        if task.image:
+        if task.image and launch.container is None:
             attempt.log.line("osmo", image_note(task.image))
         self._attempts[attempt.id] = attempt
         if isinstance(started, ProcessHandle):
@@ -323,22 +383,31 @@ class LocalPool(AttemptEndings):
         if attempt.state is not AttemptState.PREPARED:
             return
         launch = attempt.launch
+        if launch.container is not None and launch.container.labels.get("osmo.lead") == "0":
+            # a peer starts once its lead runs: wait off the reactor, then start (below)
+            attempt.state = AttemptState.STARTING
+            self._io.submit(self._after_lead, attempt)
+            return
+        self._start(attempt)
+
+    def _after_lead(self, attempt: LiveAttempt) -> None:
+        """I/O thread: wait for the group's lead to run, then start ``attempt``."""
+        if self._containers is not None and attempt.launch.container is not None:
+            self._containers.wait_for_lead(attempt.launch.container)
+        self._reactor.call_soon(self._start, attempt)
+
+    def _start(self, attempt: LiveAttempt) -> None:
+        if attempt.state not in (AttemptState.PREPARED, AttemptState.STARTING):
+            return  # killed meanwhile
+        attempt_id, launch = attempt.id, attempt.launch
         try:
-            handle = self._start(launch)
+            handle = self._spawn(launch)
         except (StartError, OSError) as exc:
             attempt.log.line("osmo", f"start failed: {exc}")
             self._finish(attempt, AttemptStartFailed(attempt_id, str(exc)))
             return
         self._watch(attempt, handle)
         self._emit(_started(attempt_id, handle))
-
-    def _start(self, launch: Launch) -> ProcessHandle:
-        """Spawn a prepared command (any thread); a remote worker's pool records its pid."""
-        handle = self._runtime.start(launch.argv, cwd=launch.cwd, env=launch.env,
-                                     view=launch.view)
-        if self._procs is not None:
-            self._procs.add(handle.pid)
-        return handle
 
     def _reap(self, handle: ProcessHandle) -> int:
         code = self._runtime.reap(handle)
@@ -368,7 +437,7 @@ class LocalPool(AttemptEndings):
             return  # it already exited; its report is on the way
         attempt.kill_reason = reason
         attempt.log.line("osmo", f"killed: {reason}")
-        if attempt.state is AttemptState.PREPARED:
+        if attempt.state in (AttemptState.PREPARED, AttemptState.STARTING):
             event = AttemptExited(attempt_id, KILLED_BEFORE_START, None, f"killed: {reason}")
             self._finish(attempt, event)
         elif attempt.handle is not None:
@@ -390,6 +459,7 @@ class LocalPool(AttemptEndings):
                 self._runtime.release(handle)
             attempt.log.close()
             remove_secret_files(attempt.launch)
+            self._ended(attempt.launch)
         self._attempts.clear()
 
 

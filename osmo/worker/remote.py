@@ -58,11 +58,12 @@ from osmo.scheduler.types import (
     PrepareAttempt,
     RunAttempt,
 )
-from osmo.spec.model import TaskSpec, WorkflowSpec
+from osmo.spec.model import ResourceSpec, TaskSpec, WorkflowSpec
 from osmo.transport.blobs import SERVER, BlobServer, SameHost, fetch_manifest, host_id
 from osmo.transport.rpc import ApiClient
 from osmo.transport.wire import Hello, event_to_dict, prepare_from_dict, spec_from_wire
 from osmo.transport.zenoh_link import Link, Subscription
+from osmo.worker import containers
 from osmo.worker.options import WorkerOptions
 from osmo.worker.pool import LocalPool
 from osmo.worker.procs import kill_recorded
@@ -128,7 +129,8 @@ class RemoteWorker:
             kill_grace=options.kill_grace, artifacts=self.store,
             credential_for=self._url_creds.get, log_sink=self._send_log,
             input_manifests=self._manifest_of, sandbox=options.sandbox,
-            procs_dir=procs_dir(self.home))
+            procs_dir=procs_dir(self.home),
+            containers=containers.for_node(options.runtime, options.container_engine, self.home))
         self._subs: list[Any] = []
 
     # ------------------------------------------------------------------ life cycle
@@ -224,7 +226,8 @@ class RemoteWorker:
             hello = Hello(node, pid=os.getpid(), host_id=host_id(),
                           artifacts=str(self.store.root), draining=self._draining,
                           active=tuple(sorted(self._active | set(self._pending))),
-                          finished=tuple(self._unacked.values())).to_dict()
+                          finished=tuple(self._unacked.values()),
+                          runtime=self.pool.runtime_name()).to_dict()
         try:
             reply = self._api.call("worker_register", hello)
         except OsmoError as exc:
@@ -313,11 +316,17 @@ class RemoteWorker:
             self._active.add(cmd.attempt_id)
         limit = order.get("max_output_bytes")
         self.pool.prepare(cmd, task, values,
-                          max_output_bytes=limit if isinstance(limit, int) else None)
+                          max_output_bytes=limit if isinstance(limit, int) else None,
+                          resources=self._request(cmd, task))
         if pending.kill is not None:
             self.pool.kill(KillAttempt(cmd.attempt_id, self.id, pending.kill))
         elif pending.run:
             self.pool.run(RunAttempt(cmd.attempt_id, self.id))
+
+    def _request(self, cmd: PrepareAttempt, task: TaskSpec) -> ResourceSpec | None:
+        with self._lock:
+            spec = self._specs.get(cmd.workflow_id)
+        return spec.resource_for(task) if spec is not None else None
 
     def _task(self, cmd: PrepareAttempt) -> TaskSpec:
         with self._lock:

@@ -81,13 +81,13 @@ def make_ready(dirs: AttemptDirs, cmd: PrepareAttempt, task: TaskSpec, *,
                env: Mapping[str, str], secrets: Secrets,
                credential_for: CredentialLookup | None, artifacts: ArtifactStore | None,
                input_manifests: ManifestLookup | None,
-               hide: tuple[Path, ...] | None = None) -> Launch:
+               hide: tuple[Path, ...] | None = None, boxed: bool = False) -> Launch:
     """Everything an attempt needs before it can start, in order.
 
     Its ``url`` inputs, its folder and files (``workdir.prepare``), its own copies of its artifact
     inputs. ``hide``: the attempt runs in a sandbox that hides these folders (osmo's
-    homes); its launch then
-    carries its view, and its inputs that are folders here are bound, not copied.
+    homes); its launch then carries its view, and its inputs that are folders here are bound,
+    not copied. ``boxed``: it runs in its image (``workdir.prepare``).
 
     Raises:
         OsmoError: a download, a token, a file, a credential or a blob failed (a blob that
@@ -97,7 +97,7 @@ def make_ready(dirs: AttemptDirs, cmd: PrepareAttempt, task: TaskSpec, *,
     """
     cmd = fetch_inputs(cmd, task, dirs, credential_for)
     cmd, copies = plan_input_copies(cmd, dirs, input_manifests if artifacts else None)
-    launch = prepare(dirs, cmd, task, env, secrets)
+    launch = prepare(dirs, cmd, task, env, secrets, boxed=boxed)
     if hide is not None:
         launch = replace(launch, view=attempt_view(dirs, cmd, hide),
                          env={**launch.env, **sandbox_env(launch.env, dirs.work)})

@@ -31,7 +31,8 @@ output reference; ``{{workflow_id}}``; ``{{host:NAME}}`` → the address of grou
 ``args`` (not ``command``) then expand Kubernetes-style ``$(NAME)`` references from the
 variables the task defines (its ``environment``, its credentials' variables and osmo's own;
 not the base environment): ``$$`` is an escaped ``$``, an undefined ``$(NAME)`` stays as
-written (``osmo.spec.tokens.expand_vars``).
+written (``osmo.spec.tokens.expand_vars``). In a container (``boxed``) credentials'
+variables are not expanded: args show in ``podman inspect``; the shell's ``$NAME`` has them.
 
 Environment: a small base taken from the worker's (``osmo.worker.taskenv``: ``PATH``,
 ``HOME``, locale; never the whole environment, never ``OSMO_HOME``), then the task's
@@ -70,10 +71,12 @@ from pathlib import Path
 from osmo.artifacts.fsops import remove_tree
 from osmo.errors import OsmoError
 from osmo.layout import AttemptDirs
+from osmo.runtime.container_run import ContainerRun
 from osmo.runtime.sandbox import View
 from osmo.scheduler.types import PrepareAttempt
 from osmo.spec.model import InputSpec, TaskSpec
 from osmo.spec.tokens import expand_vars, substitute
+from osmo.worker import container_layout as containers
 from osmo.worker import launch
 from osmo.worker.secrets import Secrets, mounts, secret_env, secret_values
 
@@ -101,11 +104,13 @@ class Launch:
     scratch: tuple[Path, ...] = ()  # deleted when the attempt ends (large input copies)
     max_output_bytes: int | None = None  # the task's ``storage``: its output may hold no more
     view: View | None = None
+    container: ContainerRun | None = None  # run in this container (``osmo.worker.containers``)
+    notes: tuple[str, ...] = ()  # osmo lines for its log, from before the log existed (a pull)
 
 
 def prepare(
     dirs: AttemptDirs, cmd: PrepareAttempt, task: TaskSpec, base_env: Mapping[str, str],
-    secrets: Secrets | None = None,
+    secrets: Secrets | None = None, *, boxed: bool = False,
 ) -> Launch:
     """Create the attempt's folder, write its files and resolve its command.
 
@@ -115,6 +120,9 @@ def prepare(
         task: what to run.
         base_env: the environment the command starts from.
         secrets: the payloads of the credentials ``task`` names (credential name → payload).
+        boxed: the task runs in its image (``osmo.worker.containers``): tokens name the
+            container's paths, nothing is rewritten, ``base_env`` is not used, and the launch
+            carries the container's layout (``containers.layout``) for the pool to finish.
 
     Raises:
         PrepareError: a token cannot be resolved, a file path is unusable, or the folder
@@ -126,19 +134,21 @@ def prepare(
     secrets = secrets or {}
     mounted = mounts(task, secrets)
     mapping = _file_mapping(dirs, task, mounted)
-    rewrite = _rewriter(mapping)
-    resolve = _resolver(dirs, cmd, task)
+    rewrite = (lambda value: value) if boxed else _rewriter(mapping)
+    resolve = _resolver(dirs, cmd, task, boxed=boxed)
 
     def text(value: str) -> str:
         return substitute(rewrite(value), resolve)
 
     defined = {key: text(str(value)) for key, value in task.environment.items()}
-    defined.update(secret_env(task, secrets))
-    defined.update(_osmo_env(dirs, cmd))
+    # boxed: credential variables live in the container's secret file; expanded into args
+    # they would show in `podman inspect`, so $(SECRET) stays as written there
+    defined.update({} if boxed else secret_env(task, secrets))
+    defined.update(containers.osmo_env(cmd) if boxed else _osmo_env(dirs, cmd))
     # args expand $(NAME) from the variables the task defines, as Kubernetes does
     argv = (*(text(word) for word in task.command),
             *(expand_vars(text(word), defined) for word in task.args))
-    env = {**base_env, **defined}
+    env = dict(defined) if boxed else {**base_env, **defined}
     if task.type:  # a typed task: the runner reads its context file (osmo.worker.launch)
         argv = launch.runner_argv(dirs.context)
         env.update(launch.runner_env(task, env))
@@ -150,7 +160,10 @@ def prepare(
             _write_context(dirs, cmd, task)
     except OSError as exc:
         raise PrepareError(f"cannot prepare {exc.filename or dirs.root}: {exc.strerror}") from exc
-    return Launch(argv, dirs.work, env, tuple(secret_values(task, secrets)), written)
+    box = containers.layout(dirs, task, mapping, _input_refs(cmd, task),
+                            secret_env(task, secrets)) if boxed else None
+    return Launch(argv, dirs.work, env, tuple(secret_values(task, secrets)), written,
+                  container=box)
 
 
 def attempt_view(dirs: AttemptDirs, cmd: PrepareAttempt, hidden: tuple[Path, ...]) -> View:
@@ -307,6 +320,11 @@ def _decode(contents: str, path: str) -> bytes:
         raise PrepareError(f"file {path!r}: invalid base64 contents ({exc})") from exc
 
 
+def _input_refs(cmd: PrepareAttempt, task: TaskSpec) -> list[str | None]:
+    """The reference of each ``inputs:`` entry, in order (None: not available)."""
+    return [_input_ref(i, spec, cmd.inputs) for i, spec in enumerate(task.inputs)]
+
+
 def _input_ref(index: int, spec: InputSpec, inputs: Mapping[str, str]) -> str | None:
     """The reference of one ``inputs:`` entry, looked up by its most specific key."""
     keys: list[str | None]
@@ -320,13 +338,16 @@ def _input_ref(index: int, spec: InputSpec, inputs: Mapping[str, str]) -> str | 
     return None
 
 
-def _resolver(dirs: AttemptDirs, cmd: PrepareAttempt, task: TaskSpec) -> Callable[[str], str]:
+def _resolver(dirs: AttemptDirs, cmd: PrepareAttempt, task: TaskSpec, *,
+              boxed: bool = False) -> Callable[[str], str]:
     attempt_uuid = uuid.uuid4().hex
 
     def resolve(token: str) -> str:
         kind, _, arg = token.partition(":")
         value: str | None = None
-        if kind == "output":
+        if boxed and kind in ("output", "input"):  # the container's own paths
+            value = containers.data_path(token, task, _input_refs(cmd, task))
+        elif kind == "output":
             value = str(dirs.output_partial)
         elif kind == "workflow_id":
             value = cmd.workflow_id

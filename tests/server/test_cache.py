@@ -32,3 +32,19 @@ def test_a_free_attempt_with_known_inputs_has_its_fingerprint() -> None:
 def test_what_always_runs(cmd: PrepareAttempt, task: TaskSpec,
                           sources: list[LineageInput | None], no_cache: bool) -> None:
     assert key(cmd, task, sources, no_cache=no_cache) is None
+
+
+IMAGE_TASK = dataclasses.replace(TASK, image="alpine:3.18")
+ID_A, ID_B = "sha256:" + "1" * 64, "sha256:" + "2" * 64
+
+
+def test_a_contained_task_is_fingerprinted_by_its_image_id_not_its_tag() -> None:
+    by_a = key(CMD, IMAGE_TASK, [UP], no_cache=False, contained=True, image_id=ID_A)
+    by_b = key(CMD, IMAGE_TASK, [UP], no_cache=False, contained=True, image_id=ID_B)
+    retagged = dataclasses.replace(IMAGE_TASK, image="localhost/other:2")
+    assert by_a is not None and by_b is not None and by_a != by_b  # the tag moved: rerun
+    assert by_a == key(CMD, retagged, [UP], no_cache=False, contained=True, image_id=ID_A)
+    # an image the server cannot name is not cached; a process task keeps its tag
+    assert key(CMD, IMAGE_TASK, [UP], no_cache=False, contained=True, image_id=None) is None
+    assert key(CMD, IMAGE_TASK, [UP], no_cache=False) == fingerprint(
+        IMAGE_TASK, [("up", UP.manifest_digest)])

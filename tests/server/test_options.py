@@ -26,6 +26,8 @@ def _server(argv: list[str]) -> ServerOptions:
     ServerOptions(listen=("tcp/0.0.0.0:7447", "tls/localhost:7448"), cluster="lab", cpus=1.5,
                   gpus=2, local_pool=False, reconnect_grace=3.0),
     ServerOptions(connect=("tcp/10.0.0.5:7447",), zenoh_config="/etc/osmo/zenoh.json5"),
+    ServerOptions(runtime="container", container_engine="docker"),
+    ServerOptions(runtime="process"),
 ])
 def test_server_options_survive_the_command_line(options: ServerOptions) -> None:
     assert _server(options.to_argv()) == options

@@ -1,0 +1,91 @@
+"""Images of a node's container tasks: their ids per workflow, and registry credentials.
+
+:class:`ImageIds` resolves an image to its id (``sha256:...``) once per workflow and host;
+the server's placement (cache fingerprints) and the local pool share one.
+:func:`registry_auth` finds the stored credential for pulling a task's image. Engine calls
+go through ``osmo.runtime.container``.
+"""
+
+from __future__ import annotations
+
+import collections
+import threading
+from collections.abc import Callable
+
+from osmo.runtime.container import ContainerEngine
+from osmo.runtime.container_run import ContainerError, RegistryAuth, pull_reference
+from osmo.spec.model import TaskSpec
+from osmo.worker.secrets import SecretLookup
+
+__all__ = ["REGISTRY_PREFIX", "ImageIds", "registry_auth"]
+
+_KEEP_IMAGE_IDS = 1024  # (workflow, image) → id pairs remembered
+
+
+REGISTRY_PREFIX = "registry://"
+"""A registry's credential is named ``registry://HOST`` (keys ``username``, ``password``)."""
+
+
+def registry_auth(task: TaskSpec, lookup: SecretLookup | None) -> RegistryAuth | None:
+    """The stored credential for pulling ``task``'s image, if there is one.
+
+    Found by the image's registry host (``docker.io`` for short names), like a data URL's
+    credential; used for the pull only.
+    """
+    if lookup is None or task.image is None:
+        return None
+    host = pull_reference(task.image).split("/", 1)[0]
+    payload = lookup(REGISTRY_PREFIX + host)
+    if not payload or "username" not in payload or "password" not in payload:
+        return None
+    return RegistryAuth(host, payload["username"], payload["password"])
+
+
+
+class ImageIds:
+    """Image ids as each workflow first resolved them on this host (thread-safe).
+
+    A workflow's tasks all run the image its tag named when the first of them was placed or
+    prepared: one engine call per image and workflow, and a tag moved meanwhile changes no
+    task of it (the next workflow sees the move).
+    """
+
+    def __init__(self, engine: ContainerEngine) -> None:
+        self._engine = engine
+        self._ids: collections.OrderedDict[tuple[str, str], str] = collections.OrderedDict()
+        self._lock = threading.Lock()
+
+    def known(self, workflow_id: str, image: str) -> str | None:
+        """``image``'s id for ``workflow_id`` if it is on this host (no pull)."""
+        found = self._get(workflow_id, image)
+        if found is None:
+            try:
+                info = self._engine.image(image)
+            except ContainerError:
+                return None
+            found = self._put(workflow_id, image, info.id) if info is not None else None
+        return found
+
+    def resolve(self, workflow_id: str, image: str, *, pull: bool,
+                auth: RegistryAuth | None, progress: Callable[[str], None]) -> str:
+        """``image``'s id for ``workflow_id``, pulling it when missing (and ``pull``).
+
+        Raises:
+            ImageError: ``image 'x' not found: <why>``.
+        """
+        found = self._get(workflow_id, image)
+        if found is None:
+            info = self._engine.resolve(image, pull=pull, auth=auth, progress=progress)
+            found = self._put(workflow_id, image, info.id)
+        return found
+
+    def _get(self, workflow_id: str, image: str) -> str | None:
+        with self._lock:
+            return self._ids.get((workflow_id, image))
+
+    def _put(self, workflow_id: str, image: str, ident: str) -> str:
+        with self._lock:
+            ident = self._ids.setdefault((workflow_id, image), ident)
+            while len(self._ids) > _KEEP_IMAGE_IDS:
+                self._ids.popitem(last=False)
+            return ident
