@@ -13,151 +13,30 @@ import os
 import threading
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeAlias
 
 from osmo.errors import UsageError
 from osmo.names import check_name, check_tag, check_workflow_id, parse_ref
 from osmo.sdk.connect import Connection, connect
+from osmo.sdk.records import (
+    EventInfo,
+    LogRecord,
+    TaskInfo,
+    TaskWaiting,
+    WorkflowInfo,
+    log_record,
+    workflow_info,
+)
 
 if TYPE_CHECKING:  # the spec package (YAML, Jinja) loads only when a spec is handled here
     from osmo.spec import Workflow
     from osmo.spec.model import WorkflowSpec
-from osmo.status import TaskStatus, WorkflowStatus
+from osmo.status import WorkflowStatus
 
 __all__ = ["Client", "EventInfo", "LogRecord", "TaskInfo", "TaskWaiting", "WorkflowInfo"]
 
 SpecLike: TypeAlias = "str | os.PathLike[str] | dict[str, Any] | WorkflowSpec | Workflow"
-
-
-@dataclass(frozen=True)
-class TaskWaiting:
-    """Why a WAITING or SCHEDULING task waits (computed by the server's scheduler).
-
-    Attributes:
-        reason: e.g. ``pool 'gpu' has no online worker`` or ``needs 4 gpu, largest free is 2``.
-        since: when that condition began, when known.
-        fails_at: when the task fails if nothing changes (a queue timeout), when known.
-    """
-
-    reason: str
-    since: float | None = None
-    fails_at: float | None = None
-
-
-@dataclass(frozen=True)
-class TaskInfo:
-    """One task of a workflow as the server sees it now (its latest retry)."""
-
-    name: str
-    group: str
-    status: TaskStatus
-    retry: int
-    exit_code: int | None
-    started_at: float | None
-    ended_at: float | None
-    output: str | None
-    message: str
-    reused: bool  # its outputs came from an earlier identical run (cache or restart)
-    node: str | None = None  # where its latest attempt was placed ("local" or a worker)
-    progress: str | None = None  # a running typed task's latest progress ("3/10 message")
-    waiting: TaskWaiting | None = None  # why it waits, while WAITING or SCHEDULING
-
-    @property
-    def duration(self) -> float | None:
-        """Seconds from RUNNING to end (or until now while running)."""
-        if self.started_at is None:
-            return None
-        return (self.ended_at or time.time()) - self.started_at
-
-
-@dataclass(frozen=True)
-class WorkflowInfo:
-    """A workflow's status and its tasks."""
-
-    id: str
-    name: str
-    status: WorkflowStatus
-    submitted_at: float
-    started_at: float | None
-    ended_at: float | None
-    pool: str | None
-    tasks: list[TaskInfo] = field(default_factory=list)
-    reused_from: str | None = None
-    submitted_by: str | None = None  # the name of the token it was submitted with
-    labels: dict[str, str] = field(default_factory=dict)
-    tags: list[str] = field(default_factory=list)
-    priority: str = "NORMAL"
-
-    @property
-    def ok(self) -> bool:
-        """True iff the workflow COMPLETED."""
-        return self.status is WorkflowStatus.COMPLETED
-
-    def task(self, name: str) -> TaskInfo:
-        """The task called ``name`` (KeyError if absent)."""
-        for t in self.tasks:
-            if t.name == name:
-                return t
-        raise KeyError(name)
-
-
-@dataclass(frozen=True)
-class LogRecord:
-    """One log line: time, task, retry, stream (stdout/stderr/osmo) and text."""
-
-    ts: float
-    task: str | None
-    retry: int | None
-    stream: str
-    text: str
-
-
-@dataclass(frozen=True)
-class EventInfo:
-    """One scheduling event of a workflow (``task`` None) or of a task retry.
-
-    Attributes:
-        at: unix seconds.
-        task: the task, None for the workflow's own events.
-        retry: the task's retry.
-        status: the status it entered.
-        message: why (waiting, failed, retried...), "" when nothing was said.
-        node: the node the retry's attempt was placed on (None until placed).
-    """
-
-    at: float
-    task: str | None
-    retry: int | None
-    status: str
-    message: str
-    node: str | None
-
-
-def _task_info(d: dict[str, Any]) -> TaskInfo:
-    return TaskInfo(d["name"], d.get("group", d["name"]), TaskStatus[d["status"]],
-                    d.get("retry", 0), d.get("exit_code"), d.get("started_at"),
-                    d.get("ended_at"), d.get("output"), d.get("message", ""),
-                    bool(d.get("reused")), d.get("node_id"), d.get("progress"),
-                    _waiting(d.get("waiting")))
-
-
-def _waiting(d: Any) -> TaskWaiting | None:
-    if not isinstance(d, dict) or not isinstance(d.get("reason"), str):
-        return None
-    since, fails_at = d.get("since"), d.get("fails_at")
-    return TaskWaiting(d["reason"], float(since) if isinstance(since, (int, float)) else None,
-                       float(fails_at) if isinstance(fails_at, (int, float)) else None)
-
-
-def _workflow_info(wf: dict[str, Any], tasks: list[dict[str, Any]] = ()) -> WorkflowInfo:  # type: ignore[assignment]
-    return WorkflowInfo(wf["id"], wf["name"], WorkflowStatus[wf["status"]],
-                        wf.get("submitted_at", 0.0), wf.get("started_at"), wf.get("ended_at"),
-                        wf.get("pool"), [_task_info(t) for t in tasks], wf.get("reused_from"),
-                        wf.get("submitted_by"),
-                        dict(wf.get("labels") or {}), list(wf.get("tags") or []),
-                        wf.get("priority") or "NORMAL")
 
 
 class Client:
@@ -249,7 +128,7 @@ class Client:
                 server's scheduler computes that, so a frequent poller may leave it out.
         """
         reply = self._call("get", workflow_id=workflow_id, waiting=waiting)
-        return _workflow_info(reply["workflow"], reply["tasks"])
+        return workflow_info(reply["workflow"], reply["tasks"])
 
     def list(self, *, statuses: Sequence[str] = (), name: str | None = None,
              limit: int | None = None,
@@ -257,7 +136,7 @@ class Client:
         """Workflows, newest first; ``labels``: only those with every one of these labels."""
         rows = self._call("list", statuses=list(statuses) or None, name=name, limit=limit,
                           labels=dict(labels or {}) or None)
-        return [_workflow_info(r) for r in rows]
+        return [workflow_info(r) for r in rows]
 
     def spec(self, workflow_id: str) -> dict[str, Any]:
         """The rendered spec the workflow was submitted with."""
@@ -290,7 +169,7 @@ class Client:
             tail: only the last N records (after the other filters).
             stream: only this stream (``stdout``, ``stderr`` or ``osmo``).
         """
-        records = [_record(r) for r in self._call("logs", workflow_id=workflow_id, task=task,
+        records = [log_record(r) for r in self._call("logs", workflow_id=workflow_id, task=task,
                                                   retry=retry)["records"]]
         records = [r for r in records if stream is None or r.stream == stream]
         return records[-tail:] if tail else records
@@ -312,7 +191,7 @@ class Client:
             reply = self._call("logs", workflow_id=workflow_id, task=task, retry=retry,
                                cursor=cursor)
             cursor = reply["cursor"]
-            yield from (r for r in map(_record, reply["records"])
+            yield from (r for r in map(log_record, reply["records"])
                         if stream is None or r.stream == stream)
             if reply["done"]:
                 return
@@ -462,10 +341,6 @@ class Client:
     def shutdown(self) -> None:
         """Ask the server to stop."""
         self._call("shutdown")
-
-
-def _record(r: dict[str, Any]) -> LogRecord:
-    return LogRecord(r["ts"], r.get("task"), r.get("retry"), r["stream"], r["text"])
 
 
 def _to_model(spec: SpecLike, set_values: Sequence[str], set_strings: Sequence[str],

@@ -19,7 +19,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from osmo.artifacts import ArtifactStore, Manifest
+from osmo.artifacts import ArtifactStore
 from osmo.errors import NotFoundError, OsmoError, UsageError
 from osmo.layout import Home
 from osmo.names import (
@@ -31,11 +31,11 @@ from osmo.names import (
     shown,
 )
 from osmo.scheduler.types import PRIORITIES, CancelWorkflow
+from osmo.server.artifact_handlers import ArtifactHandlers
 from osmo.server.auth import TokenHandlers, authorize, refuse
 from osmo.server.credentials import CredentialHandlers, check_task_credentials
 from osmo.server.dataset_handlers import DatasetHandlers
 from osmo.server.engine import Engine
-from osmo.server.lineage_query import lineage_graph, resolve_target
 from osmo.server.logview import last_progress, read_logs
 from osmo.server.requests import ListNodes, SubmitWorkflow, TagWorkflow, WaitReasons
 from osmo.server.submitted import ClientTypes, check_no_localpath
@@ -88,16 +88,13 @@ class Handlers:
             "events": self.events,
             "spec": self.spec,
             "pools": self.pools,
-            "lineage": self.lineage,
-            "artifact_list": self.artifact_list,
-            "artifact_get": self.artifact_get,
-            "artifact_gc": self.artifact_gc,
             "shutdown": self.shutdown,
         }
         if workers is not None:
             self._callers.update(workers.verbs())
         if tokens is not None:
             self._verbs.update(tokens.verbs())
+        self._verbs.update(ArtifactHandlers(self._store, self._artifacts, self._row).verbs())
         self._verbs.update(DatasetHandlers(engine, self._artifacts, home, link).verbs())
         self._verbs.update(CredentialHandlers(self._store).verbs())
 
@@ -297,45 +294,6 @@ class Handlers:
                         "total": vars(node.capacity), "used": vars(used)})
         return out
 
-    # ------------------------------------------------------------------ artifacts & lineage
-
-    def lineage(self, request: dict[str, Any]) -> dict[str, Any]:
-        """The lineage graph of a target (see ``osmo.server.lineage_query``)."""
-        return lineage_graph(self._store, _target(request),
-                             downstream=field(request, "downstream", bool, default=False))
-
-    def artifact_list(self, request: dict[str, Any]) -> builtins.list[dict[str, Any]]:
-        """Promoted outputs of a workflow (optionally one task) with their files."""
-        row = self._row(request.get("workflow_id"))
-        task = field(request, "task", str, default=None)
-        if task is not None:
-            check_name(task, "task name")
-        out = []
-        for output in self._store.outputs(row.id, task):
-            body = self._store.manifest_body(output["manifest"]) or '{"entries": []}'
-            files = [vars(e) for e in Manifest.from_json(body).entries]
-            out.append({**output, "files": files})
-        if task and not out:
-            raise NotFoundError(f"task '{task}' of {row.id} has no recorded output")
-        return out
-
-    def artifact_get(self, request: dict[str, Any]) -> dict[str, Any]:
-        """A target's manifest, and the one file meant if it names a file.
-
-        The client fetches the blobs and writes the files.
-        """
-        manifests, blob = resolve_target(self._store, _target(request))
-        body = self._store.manifest_body(manifests[0])
-        assert body is not None
-        manifest = Manifest.from_json(body)
-        only = next((e.path for e in manifest.entries if e.digest == blob), None) if blob else None
-        return {"manifest": manifests[0], "body": body, "only": only}
-
-    def artifact_gc(self, _request: dict[str, Any]) -> dict[str, Any]:
-        """Remove blobs no recorded manifest references (recent blobs are kept)."""
-        count, size = self._artifacts.gc(self._store.all_blob_digests())
-        return {"removed": count, "bytes": size}
-
     def _attempt(self, row: WorkflowRow, request: dict[str, Any]) -> tuple[str | None,
                                                                           int | None]:
         """The ``task`` and ``retry`` a request names, checked to exist in ``row``."""
@@ -393,15 +351,6 @@ def _cursor(request: dict[str, Any]) -> dict[str, Any] | None:
                           for k, v in files.items()):
         raise UsageError("'cursor' is not one this server gave out; start again without it")
     return {"files": files, "seq": seq}
-
-
-def _target(request: dict[str, Any]) -> str:
-    """An artifact target: ``sha256:...``, ``WORKFLOW_ID:TASK[:PATH]`` or ``dataset:REF``.
-
-    ``osmo.server.lineage_query`` checks what it names.
-    """
-    target: str = field(request, "target", str, max_len=_MAX_TEXT)
-    return target
 
 
 def _workflow_dict(row: WorkflowRow) -> dict[str, Any]:

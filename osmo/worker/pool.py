@@ -25,8 +25,8 @@ store, see ``kill_stale``).
 
 Credentials (``osmo.worker.secrets``) are given to ``prepare`` or looked up via
 ``task_secrets``; their values are masked in the log, their mounted files deleted at the end.
-How an attempt ends (exit, promotion, its one final report in every path) is
-``osmo.worker.endings``.
+How an attempt starts (preparation, spawn, watch) is ``osmo.worker.starts``; how it ends
+(exit, promotion, its one final report in every path) is ``osmo.worker.endings``.
 
 Containers: with ``containers`` (``osmo.worker.containers.ContainerTasks``), a task with an
 ``image:`` (and no ``type:``) runs in its image through the container runtime; everything
@@ -47,7 +47,6 @@ descriptors).
 from __future__ import annotations
 
 import collections
-import functools
 import logging
 import os
 import signal
@@ -58,14 +57,12 @@ from pathlib import Path
 
 from osmo.artifacts import ArtifactStore
 from osmo.artifacts.store import DEFAULT_MAX_FILES
-from osmo.errors import OsmoError
-from osmo.layout import AttemptDirs, Home
+from osmo.layout import Home
 from osmo.runtime.container_runtime import ContainerRuntime
 from osmo.runtime.process import (
     ProcessHandle,
     ProcessRuntime,
     Runtime,
-    StartError,
     kill_stale,
     process_start_time,
 )
@@ -73,9 +70,6 @@ from osmo.runtime.sandbox import SandboxMode, choose, unavailable_reason
 from osmo.scheduler.types import (
     LOCAL_NODE,
     AttemptExited,
-    AttemptPrepared,
-    AttemptStarted,
-    AttemptStartFailed,
     Event,
     KillAttempt,
     Node,
@@ -83,19 +77,16 @@ from osmo.scheduler.types import (
     RunAttempt,
 )
 from osmo.spec.model import ResourceSpec, TaskSpec
-from osmo.worker.checkpoints import start_checkpoints
-from osmo.worker.container_images import registry_auth
 from osmo.worker.containers import ContainerTasks
-from osmo.worker.endings import AttemptEndings
 from osmo.worker.live import AttemptState, LiveAttempt
-from osmo.worker.logs import LogWriter, image_note
 from osmo.worker.machine import detect_capacity, raise_fd_limit
 from osmo.worker.options import DEFAULT_KILL_GRACE
 from osmo.worker.procs import ProcessRecords
 from osmo.worker.reactor import Reactor
-from osmo.worker.secrets import SecretLookup, Secrets, gather
+from osmo.worker.secrets import SecretLookup, Secrets
+from osmo.worker.starts import AttemptStarts
 from osmo.worker.taskenv import base_env
-from osmo.worker.transfer import CredentialLookup, ManifestLookup, make_ready
+from osmo.worker.transfer import CredentialLookup, ManifestLookup
 from osmo.worker.workdir import Launch, remove_secret_files
 
 __all__ = ["LocalPool", "kill_stale", "process_start_time"]
@@ -106,7 +97,7 @@ KILLED_BEFORE_START = 128 + signal.SIGKILL
 _IO_THREADS = 4
 
 
-class LocalPool(AttemptEndings):
+class LocalPool(AttemptStarts):
     """A resource-aware pool of host processes on this machine (see the module docstring).
 
     Args:
@@ -254,21 +245,6 @@ class LocalPool(AttemptEndings):
 
     # -------------------------------------------------------------- containers
 
-    def _spawn(self, launch: Launch, *, wait: bool = False) -> ProcessHandle:
-        """Start a launch (any thread): in its container, or as a (sandboxed) process.
-
-        ``wait``: on an I/O thread (a container peer may wait for its lead). A remote
-        worker's pool records the pid.
-        """
-        if launch.container is None or self._containers is None:
-            handle = self._runtime.start(launch.argv, cwd=launch.cwd, env=launch.env,
-                                         view=launch.view)
-        else:
-            handle = self._containers.start(launch, wait_for_lead=wait)
-        if self._procs is not None:
-            self._procs.add(handle.pid)
-        return handle
-
     def _ended(self, launch: Launch) -> None:
         """An attempt is over: its container's GPUs and group network are let go."""
         if launch.container is not None and self._containers is not None:
@@ -279,152 +255,11 @@ class LocalPool(AttemptEndings):
 
     # -------------------------------------------------------------- reactor thread
 
-    def _prepare(self, cmd: PrepareAttempt, task: TaskSpec, secrets: Secrets | None,
-                 resources: ResourceSpec) -> None:
-        if cmd.attempt_id in self._attempts or cmd.attempt_id in self._preparing:
-            _log.warning("attempt %s is already active; prepare ignored", cmd.attempt_id)
-            return
-        self._finished.pop(cmd.attempt_id, None)
-        self._preparing[cmd.attempt_id] = None
-        self._io.submit(self._prepare_io, cmd, task, secrets, resources)
-
-    def _prepare_io(self, cmd: PrepareAttempt, task: TaskSpec, secrets: Secrets | None,
-                    resources: ResourceSpec) -> None:
-        """I/O thread: make the folders and files; hand the outcome back to the reactor."""
-        try:
-            dirs = self._layout.attempt(cmd.workflow_id, cmd.task, cmd.retry)
-            if secrets is None:
-                secrets = gather(task, self._task_secrets)
-            boxed = self._containers is not None and self._containers.applies(task)
-            placed = self._containers.placement(cmd) if self._containers and boxed else cmd
-            launch = make_ready(dirs, placed, task, env=self._env, secrets=secrets,
-                                credential_for=self._credential_for, artifacts=self._artifacts,
-                                input_manifests=self._input_manifests,
-                                hide=tuple(self._hidden) if self.sandbox and not boxed else None,
-                                boxed=boxed)
-            launch = replace(launch, max_output_bytes=resources.storage)
-            if self._containers is not None and boxed:
-                launch = self._containers.finish(
-                    launch, cmd, task, dirs, request=resources, gpus=self.node().capacity.gpu,
-                    auth=registry_auth(task, self._task_secrets))
-        except Exception as exc:  # every prepare must get its one final report
-            message = str(exc) if isinstance(exc, OsmoError) else f"cannot prepare: {exc!r}"
-            self._reactor.call_soon(self._prepared, cmd, task, None, None, message)
-            return
-        started: ProcessHandle | str | None = None
-        if cmd.run and self._preparing.get(cmd.attempt_id) is None:
-            # No barrier: spawn here, so the slots' spawns overlap and the reactor thread
-            # (pipes, exits) never waits on fork/exec. A kill that came meanwhile is applied
-            # by _prepared.
-            try:
-                started = self._spawn(launch, wait=True)
-            except (StartError, OSError) as exc:
-                started = str(exc)
-            except Exception as exc:  # noqa: BLE001 - a bug: fail the start, report it
-                _log.exception("starting %s failed", cmd.attempt_id)
-                started = f"cannot start: {exc!r}"
-        self._reactor.call_soon(self._prepared, cmd, task, dirs, launch, None, started)
-
-    def _prepared(self, cmd: PrepareAttempt, task: TaskSpec, dirs: AttemptDirs | None,
-                  launch: Launch | None, error: str | None,
-                  started: ProcessHandle | str | None = None) -> None:
-        kill_reason = self._preparing.pop(cmd.attempt_id, None)
-        run_now = cmd.run or cmd.attempt_id in self._run_pending
-        self._run_pending.discard(cmd.attempt_id)
-        if error is not None or dirs is None or launch is None:
-            self._remember(cmd.attempt_id)
-            self._emit(AttemptStartFailed(cmd.attempt_id, error or "cannot prepare"))
-            return
-        sink = functools.partial(self._log_sink, cmd.attempt_id) if self._log_sink else None
-        try:
-            log = LogWriter(dirs.log, launch.secrets, sink)
-        except OSError as exc:  # no log, no attempt: undo what preparing made, report once
-            if isinstance(started, ProcessHandle):
-                self._runtime.kill(started, force=True)
-                self._reap(started)
-                self._runtime.release(started)
-            remove_secret_files(launch)
-            self._ended(launch)
-            self._remember(cmd.attempt_id)
-            self._emit(AttemptStartFailed(cmd.attempt_id, f"cannot write its log: {exc}"))
-            return
-        attempt = LiveAttempt(cmd.attempt_id, task, dirs, launch, log)
-        for note in launch.notes:
-            attempt.log.line("osmo", note)
-        if self._no_sandbox is not None and launch.container is None:
-            attempt.log.line("osmo", self._no_sandbox)
-        if task.image and launch.container is None:
-            attempt.log.line("osmo", image_note(task.image))
-        self._attempts[attempt.id] = attempt
-        if isinstance(started, ProcessHandle):
-            self._watch(attempt, started)
-        if kill_reason is not None:  # killed while its folders were being made
-            self._kill(attempt.id, kill_reason)
-            return
-        self._emit(AttemptPrepared(attempt.id))
-        if isinstance(started, ProcessHandle):
-            self._emit(_started(attempt.id, started))
-        elif isinstance(started, str):
-            attempt.log.line("osmo", f"start failed: {started}")
-            self._finish(attempt, AttemptStartFailed(attempt.id, started))
-        elif run_now:  # no barrier holds it (or run() already came): start now
-            self._run(attempt.id)
-
-    def _run(self, attempt_id: str) -> None:
-        if attempt_id in self._preparing:
-            self._run_pending.add(attempt_id)
-            return
-        attempt = self._attempts.get(attempt_id)
-        if attempt is None:
-            if attempt_id not in self._finished:
-                self._remember(attempt_id)
-                self._emit(AttemptStartFailed(attempt_id, "attempt was not prepared here"))
-            return
-        if attempt.state is not AttemptState.PREPARED:
-            return
-        launch = attempt.launch
-        if launch.container is not None and launch.container.labels.get("osmo.lead") == "0":
-            # a peer starts once its lead runs: wait off the reactor, then start (below)
-            attempt.state = AttemptState.STARTING
-            self._io.submit(self._after_lead, attempt)
-            return
-        self._start(attempt)
-
-    def _after_lead(self, attempt: LiveAttempt) -> None:
-        """I/O thread: wait for the group's lead to run, then start ``attempt``."""
-        if self._containers is not None and attempt.launch.container is not None:
-            self._containers.wait_for_lead(attempt.launch.container)
-        self._reactor.call_soon(self._start, attempt)
-
-    def _start(self, attempt: LiveAttempt) -> None:
-        if attempt.state not in (AttemptState.PREPARED, AttemptState.STARTING):
-            return  # killed meanwhile
-        attempt_id, launch = attempt.id, attempt.launch
-        try:
-            handle = self._spawn(launch)
-        except (StartError, OSError) as exc:
-            attempt.log.line("osmo", f"start failed: {exc}")
-            self._finish(attempt, AttemptStartFailed(attempt_id, str(exc)))
-            return
-        self._watch(attempt, handle)
-        self._emit(_started(attempt_id, handle))
-
     def _reap(self, handle: ProcessHandle) -> int:
         code = self._runtime.reap(handle)
         if self._procs is not None:
             self._procs.remove(handle.pid)
         return code
-
-    def _watch(self, attempt: LiveAttempt, handle: ProcessHandle) -> None:
-        attempt.handle, attempt.state = handle, AttemptState.RUNNING
-        reactor = self._reactor
-        for fd, stream in ((handle.stdout_fd, "stdout"), (handle.stderr_fd, "stderr")):
-            attempt.open_fds.add(fd)
-            reactor.add_reader(fd, lambda a=attempt, f=fd, s=stream: a.read(reactor, f, s))
-        self._reactor.add_reader(handle.exit_fd, lambda a=attempt: self._exited(a))
-        attempt.checkpoints = start_checkpoints(
-            attempt.task, attempt.dirs, attempt.id, reactor=self._reactor, io=self._io,
-            credential_for=self._credential_for, log=functools.partial(attempt.log.line, "osmo"))
 
     def _kill(self, attempt_id: str, reason: str) -> None:
         if attempt_id in self._preparing:  # acted on when its folders are ready
@@ -461,11 +296,3 @@ class LocalPool(AttemptEndings):
             remove_secret_files(attempt.launch)
             self._ended(attempt.launch)
         self._attempts.clear()
-
-
-def _started(attempt_id: str, handle: ProcessHandle) -> AttemptStarted:
-    """The start report, with the process (group) id and its start time.
-
-    The server records them, so that a restarted server can kill what is left of it.
-    """
-    return AttemptStarted(attempt_id, handle.pid, process_start_time(handle.pid))
