@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import threading
 import time
 from collections.abc import Callable
@@ -54,6 +53,7 @@ from osmo.scheduler.types import (
     RunAttempt,
 )
 from osmo.server.auth import refuse
+from osmo.server.remote_logs import RemoteLogs
 from osmo.server.worker_access import WorkerAccess, task_secrets, task_urls
 from osmo.spec.model import ResourceSpec, TaskSpec
 from osmo.store.sqlite import Store
@@ -101,7 +101,7 @@ class WorkerHub:
         self._draining: set[str] = set()
         self._same_host: dict[str, SameHost | None] = {}
         self._sent_specs: dict[str, set[str]] = {}
-        self._logs: dict[str, int] = {}
+        self._logs = RemoteLogs(home)
         self._access = WorkerAccess(authenticate, lambda wid: wid in self._alive)
         self._transfers = ThreadPoolExecutor(4, thread_name_prefix="osmo-pull")
         self._host = host_id()
@@ -162,7 +162,7 @@ class WorkerHub:
         wid = self._access.speaker("worker_log", request, who)
         aid = field(request, "attempt_id", str, max_len=4096)
         self._access.placed_on("worker_log", wid, aid, who)
-        self._append_log(aid, field(request, "records", str, max_len=_MAX_RECORDS).encode())
+        self._logs.append(aid, field(request, "records", str, max_len=_MAX_RECORDS).encode())
         return {}
 
     def secrets(self, request: dict[str, Any], who: Identity) -> dict[str, Any]:
@@ -336,7 +336,7 @@ class WorkerHub:
                 self._transfers.submit(self._exited, wid, event, manifest)
             return
         if isinstance(event, (AttemptStartFailed, AttemptLost)):
-            self._close_log(event.attempt_id)
+            self._logs.end(event.attempt_id)
         self._emit(event)
 
     def _nothing_to_fetch(self, manifest: Manifest | None) -> bool:
@@ -347,7 +347,7 @@ class WorkerHub:
 
     def _exited(self, wid: str, event: AttemptExited, manifest: Manifest | None) -> None:
         """Take the outputs, then let the engine see the exit, then ack."""
-        self._close_log(event.attempt_id)
+        self._logs.end(event.attempt_id)
         try:
             if manifest is not None:
                 with self._lock:
@@ -378,27 +378,6 @@ class WorkerHub:
         self._emit(event)
         self._send(wid, {"op": "ack", "attempt_id": event.attempt_id})
 
-    def _append_log(self, aid: str, records: bytes) -> None:
-        with self._lock:
-            fd = self._logs.get(aid)
-            if fd is None:
-                dirs = Home(self._home).attempt_of(aid)
-                if dirs is None:
-                    return  # not an attempt id
-                path = dirs.log
-                path.parent.mkdir(parents=True, exist_ok=True)
-                fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND | os.O_CLOEXEC, 0o644)
-                self._logs[aid] = fd
-                while len(self._logs) > 4096:  # never more open than this
-                    os.close(self._logs.pop(next(iter(self._logs))))
-            os.write(fd, records)
-
-    def _close_log(self, aid: str) -> None:
-        with self._lock:
-            fd = self._logs.pop(aid, None)
-        if fd is not None:
-            os.close(fd)
-
     def close(self) -> None:
         """Stop listening (workers keep running; they register again with the next server)."""
         for sub in self._subs:
@@ -406,10 +385,7 @@ class WorkerHub:
         self._server_token.close()
         self._blobs.close()
         self._transfers.shutdown(wait=False, cancel_futures=True)
-        with self._lock:
-            for fd in self._logs.values():
-                os.close(fd)
-            self._logs.clear()
+        self._logs.close()
 
 
 def _dirs(home: Path, attempt_id: str) -> AttemptDirs:
