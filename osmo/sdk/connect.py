@@ -110,7 +110,12 @@ def server_status(home: str | os.PathLike[str] | None = None) -> ServerInfo | No
 
 
 def stop_server(home: str | os.PathLike[str] | None = None, timeout: float = 30.0) -> int | None:
-    """Stop the local server of ``home`` (SIGTERM to its pid); return the pid or None."""
+    """Stop the local server of ``home``; return its pid, or None when none was running.
+
+    SIGTERM first; a server still running ``timeout`` seconds later (a shutdown stuck behind
+    a huge workflow) gets SIGKILL, which loses nothing: the next start recovers from the
+    store as after any crash.
+    """
     import signal
 
     info = server_status(home)
@@ -123,6 +128,14 @@ def stop_server(home: str | os.PathLike[str] | None = None, timeout: float = 30.
         time.sleep(0.05)
     while _running(info.pid) and time.monotonic() < deadline:  # the lock goes just before exit
         time.sleep(0.01)
+    if _running(info.pid):
+        try:
+            os.kill(info.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            return info.pid
+        deadline = time.monotonic() + 10
+        while _running(info.pid) and time.monotonic() < deadline:
+            time.sleep(0.01)
     return info.pid
 
 

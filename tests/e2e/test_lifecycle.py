@@ -188,3 +188,16 @@ workflow:
     osmo.wait_for(wf, lambda i: i["status"] == "COMPLETED")
     nodes = json.loads(osmo("workers", "--format", "json", check=True).out)
     assert nodes[0]["used"]["cpu"] == 0
+
+
+def test_server_stop_kills_a_server_that_does_not_stop(osmo: Osmo) -> None:
+    """A server that does not stop on SIGTERM in time (here: SIGSTOPped) gets SIGKILL."""
+    from osmo.sdk.connect import stop_server
+
+    osmo("server", "start", check=True)
+    pid = osmo.server_pid()
+    assert pid is not None
+    os.kill(pid, signal.SIGSTOP)
+    assert stop_server(osmo.home, timeout=1.0) == pid
+    assert not _alive(pid)
+    assert osmo("list", check=True).code == 0  # the next call starts a new server
