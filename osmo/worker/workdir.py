@@ -166,14 +166,26 @@ def prepare(
                   container=box)
 
 
+_MAX_INPUT_BINDS = 2000  # each is 3 bubblewrap arguments; bubblewrap takes at most 9,000
+
+
 def attempt_view(dirs: AttemptDirs, cmd: PrepareAttempt, hidden: tuple[Path, ...]) -> View:
     """What a sandboxed attempt sees of the ``hidden`` folders (osmo's homes; the docstring).
 
     ``cmd.inputs`` are its resolved input references; those that are folders are bound
     read-only (a ``url`` input's download and a copy sit in paths bound read-only already).
     """
-    inputs = sorted({Path(ref) for ref in cmd.inputs.values() if ref.startswith("/")})
-    return View(hidden=hidden, readonly=(dirs.root, dirs.url_inputs, *inputs),
+    bound: list[Path] = []
+    for path in sorted({Path(ref) for ref in cmd.inputs.values() if ref.startswith("/")}):
+        # inputs inside the attempt's folder (its checked links) are bound with it, and a
+        # folder inside one already bound needs nothing more (bubblewrap takes ≤ 9,000 args)
+        if not path.is_relative_to(dirs.root) and not (bound and path.is_relative_to(bound[-1])):
+            bound.append(path)
+    if len(bound) > _MAX_INPUT_BINDS:
+        raise PrepareError(f"{len(bound):,} input folders outside osmo's store are more than a "
+                           f"sandbox can bind ({_MAX_INPUT_BINDS:,}); run it with --sandbox off "
+                           "or give it fewer, larger inputs")
+    return View(hidden=hidden, readonly=(dirs.root, dirs.url_inputs, *bound),
                 writable=(dirs.work, dirs.output_partial, dirs.files), cwd=dirs.work)
 
 

@@ -296,3 +296,22 @@ def test_failed_mount_leaves_no_secret(tmp_path: Path) -> None:
     with pytest.raises(PrepareError, match="cannot prepare"):  # /m/k1 is a folder: no file
         prepare(dirs, cmd, task, {}, {"a": {"k0": "secret0", "k1": "secret1"}, "b": {"k": "v"}})
     assert not (dirs.files / "m" / "k0").exists()
+
+
+def test_a_sandbox_view_binds_inputs_once_and_within_bubblewraps_limits(tmp_path: Path) -> None:
+    """A join of 9,998 inputs failed with 'bwrap: Exceeded maximum number of arguments 9000'."""
+    from osmo.worker.workdir import attempt_view
+
+    home = tmp_path / "home"
+    dirs = Home(home).attempt("wf-1", "join", 0)
+    inside = {f"m{i}": str(dirs.inputs / f"m{i}") for i in range(9998)}  # checked links
+    view = attempt_view(dirs, command(inputs=inside), (home,))
+    assert len(view.readonly) == 2  # the attempt's folder and its url inputs, nothing more
+
+    outside = {"a": "/data/set", "b": "/data/set/sub", "c": "/data/other"}
+    view = attempt_view(dirs, command(inputs=outside), (home,))
+    assert [str(p) for p in view.readonly[2:]] == ["/data/other", "/data/set"]
+
+    many = {f"d{i}": f"/data/d{i}" for i in range(2001)}
+    with pytest.raises(PrepareError, match="2,001 input folders .* more than a sandbox can bind"):
+        attempt_view(dirs, command(inputs=many), (home,))
