@@ -143,8 +143,10 @@ def _checked(obj: Any, what: str) -> TaskType:
 
 @contextmanager
 def _search(paths: Sequence[str]) -> Iterator[None]:
-    """Import with ``paths`` first on sys.path; forget the modules this import loaded from
-    them afterwards (modules imported earlier, e.g. by the user's own script, stay)."""
+    """Import with ``paths`` first on sys.path, then forget what it loaded from them.
+
+    Modules imported earlier (e.g. by the user's own script) stay.
+    """
     if not paths:
         yield
         return
@@ -263,8 +265,10 @@ class Resolver:
         return self._lookup(ref)[0]
 
     def paths_for(self, ref: str) -> tuple[str, ...]:
-        """The folder a resolved custom type's module is imported from (empty for an
-        installed type or a module installed in site-packages)."""
+        """The folder a resolved custom type's module is imported from.
+
+        Empty for an installed type or a module installed in site-packages.
+        """
         root = self._lookup(ref)[1]
         return (root,) if root else ()
 

@@ -20,8 +20,11 @@ __all__ = ["Committing", "PluginType", "find_folder_with", "offline"]
 
 
 class Committing:
-    """A writer used as a context manager: ``close()`` (commit) after a clean block,
-    ``abort()`` (discard) after an exception. Subclasses define both."""
+    """A writer used as a context manager.
+
+    ``close()`` (commit) after a clean block, ``abort()`` (discard) after an exception.
+    Subclasses define both.
+    """
 
     def __enter__(self) -> Self:
         return self
@@ -61,8 +64,10 @@ class PluginType:
 
 
 def find_folder_with(folders: Any, marker: str) -> Any:
-    """The first folder (searching each input folder, recursively) holding a file ``marker``,
-    or None."""
+    """The first folder holding a file ``marker``, or None.
+
+    Each input folder is searched recursively, in order.
+    """
     from pathlib import Path
 
     for folder in folders:
@@ -72,8 +77,11 @@ def find_folder_with(folders: Any, marker: str) -> Any:
 
 
 def offline() -> None:
-    """Make Hugging Face libraries work from local files only: plugins never download
-    weights or datasets at run time (set before ``lerobot``/``huggingface_hub`` import)."""
+    """Make Hugging Face libraries work from local files only.
+
+    Plugins never download weights or datasets at run time (set before ``lerobot`` or
+    ``huggingface_hub`` is imported).
+    """
     import os
 
     os.environ.setdefault("HF_HUB_OFFLINE", "1")

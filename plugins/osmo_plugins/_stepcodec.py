@@ -58,8 +58,9 @@ def _layout(sizes: dict[str, int]) -> tuple[np.dtype, dict[str, bytes]]:
 
 
 def encode_steps(rows: Sequence[tuple[Any, ...]]) -> list[bytes]:
-    """Encode steps ``(episode, t, observation, action, reward, terminated, truncated)`` as
-    one ``osmo.EpisodeStep`` message each.
+    """Encode steps as one ``osmo.EpisodeStep`` message each.
+
+    A step is ``(episode, t, observation, action, reward, terminated, truncated)``.
 
     Raises:
         ValueError: the observation or action size changes between the rows.

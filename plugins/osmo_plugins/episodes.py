@@ -176,8 +176,10 @@ class EpisodeWriter(Committing):
 
     def end(self, episode: int, seed: int, total: float, length: int, terminated: bool,
             truncated: bool) -> None:
-        """Close the episode (its ``length`` steps were the last ones recorded): its
-        boundaries and summary become an ``osmo.episode`` record."""
+        """Close the episode whose ``length`` steps were the last ones recorded.
+
+        Its boundaries and summary become an ``osmo.episode`` record.
+        """
         self.flush()
         start = max(0, self._clock - length) * self._dt_ns
         self._episodes.append({

@@ -75,8 +75,9 @@ class ProtoSchema:
 
 def protobuf_decoder(schema_name: str, schema_data: bytes, path: Path | str
                      ) -> Callable[[bytes], Any]:
-    """A function decoding one message of a ``protobuf`` channel, built from the schema the
-    file declares (a serialized ``FileDescriptorSet``).
+    """A function decoding one message of a ``protobuf`` channel.
+
+    It is built from the schema the file declares (a serialized ``FileDescriptorSet``).
 
     Raises:
         RecordError: the schema does not parse or lacks the named message type.

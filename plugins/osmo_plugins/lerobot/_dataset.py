@@ -30,8 +30,11 @@ def pad(values: np.ndarray, width: int) -> np.ndarray:
 
 def features_for(obs_dim: int, act_dim: int, frame_shape: tuple[int, ...] | None,
                  min_dims: int) -> dict[str, Any]:
-    """LeRobot feature specs. The state is stored twice: ACT needs an image or an
-    ``environment_state`` input, and state-only datasets have no image."""
+    """LeRobot feature specs.
+
+    The state is stored twice: ACT needs an image or an ``environment_state`` input, and
+    state-only datasets have no image.
+    """
     o, a = max(obs_dim, min_dims), max(act_dim, min_dims)
     feats: dict[str, Any] = {
         STATE: {"dtype": "float32", "shape": (o,), "names": [f"s{i}" for i in range(o)]},

@@ -107,10 +107,13 @@ def _norms(torch: Any, module: Any, *, trainable: bool) -> None:
 
 def _memory_batches(torch: Any, dataset: Any, chunk: int, batch_size: int, seed: int,
                     images: list[str]) -> Any:
-    """Random batches of the dataset held in memory: the same keys, dtypes and padding as
-    LeRobot's ``delta_timestamps`` loader (action chunks clamped at the episode's end, with
-    ``action_is_pad``; images as float CHW in [0, 1]), about 50× faster than reading frame
-    by frame on this CPU. Frames stay uint8 until a batch is drawn (64×64: 12 KB each)."""
+    """Random batches of the dataset held in memory.
+
+    The same keys, dtypes and padding as LeRobot's ``delta_timestamps`` loader (action chunks
+    clamped at the episode's end, with ``action_is_pad``; images as float CHW in [0, 1]),
+    about 50× faster than reading frame by frame on this CPU. Frames stay uint8 until a batch
+    is drawn (64×64: 12 KB each).
+    """
     hf = dataset.hf_dataset.with_format("numpy")
     cols = {k: np.asarray(np.stack(hf[k]), dtype=np.float32) for k in
             ("observation.state", "observation.environment_state", "action")}

@@ -20,8 +20,10 @@ POLICY_MARKER = "osmo_policy.json"
 
 
 def frame_size(folder: Path | None) -> int | None:
-    """The camera frame size a checkpoint was trained on, or None for a state-only one: its
-    env must then be made with ``render=True`` at that size."""
+    """The camera frame size a checkpoint was trained on, or None for a state-only one.
+
+    Its env must then be made with ``render=True`` at that size.
+    """
     if folder is None:
         return None
     info = json.loads((Path(folder) / POLICY_MARKER).read_text())

@@ -177,8 +177,10 @@ def summarize(policy: str, kind: str, env_id: str, results: Sequence[EpisodeResu
 
 
 def add_normalized(rows: list[dict[str, Any]]) -> None:
-    """Fill ``normalized_score`` (and its interval) in place for envs where both a random
-    and an expert row ran and their mean returns differ."""
+    """Fill ``normalized_score`` (and its interval) in place.
+
+    Only for envs where both a random and an expert row ran and their mean returns differ.
+    """
     base: dict[str, dict[str, float]] = {}
     for row in rows:
         if row["kind"] in ("random", "expert"):

@@ -68,8 +68,11 @@ def lqr_gain(a: np.ndarray, b: np.ndarray, q: np.ndarray, r: np.ndarray,
 
 
 def linearize(model: Any, eps: float = 1e-6) -> tuple[np.ndarray, np.ndarray]:
-    """One ``mj_step`` linearised about the rest pose (qpos0, zero velocity and control) by
-    central differences; works with any integrator (``mjd_transitionFD`` rejects RK4)."""
+    """One ``mj_step`` linearised about the rest pose by central differences.
+
+    The rest pose is qpos0 with zero velocity and control. It works with any integrator
+    (``mjd_transitionFD`` rejects RK4).
+    """
     import mujoco
 
     data = mujoco.MjData(model)

@@ -80,8 +80,10 @@ def _wrap(angle: float) -> float:
 
 
 class ReacherExpert:
-    """Inverse kinematics to the target, then joint velocity control: reads the true state
-    (including the target, which the policy being taught never gets as a number).
+    """Inverse kinematics to the target, then joint velocity control.
+
+    It reads the true state, including the target, which the policy being taught never gets
+    as a number.
 
     The joints are driven at a velocity proportional to their angle error, capped, rather
     than by a stiff PD: a PD's actions are one saturated jolt and then near zero, which
@@ -115,8 +117,10 @@ class ReacherExpert:
         self._rng = np.random.default_rng(seed)
 
     def _ik(self, x: float, y: float, elbow_now: float) -> tuple[float, float]:
-        """Joint angles that put the fingertip at (x, y); of the two elbow solutions, the
-        one nearer the current elbow angle."""
+        """Joint angles that put the fingertip at (x, y).
+
+        Of the two elbow solutions, the one nearer the current elbow angle.
+        """
         l1, l2 = self._l1, self._l2
         cos_elbow = np.clip((x * x + y * y - l1 * l1 - l2 * l2) / (2 * l1 * l2), -1.0, 1.0)
         options = []

@@ -79,8 +79,10 @@ def mcap_to_rrd(path: Path, out: Path, app_id: str = "osmo") -> Path:
 
 
 def open_viewer(rrd: Path) -> bool:
-    """Start the rerun viewer on ``rrd`` in the background; False when there is no viewer
-    binary or no display."""
+    """Start the rerun viewer on ``rrd`` in the background.
+
+    Returns False when there is no viewer binary or no display.
+    """
     import os
 
     exe = shutil.which("rerun")
