@@ -16,14 +16,17 @@ Pure functions; the bottom layer (imports only ``osmo.errors``).
 from __future__ import annotations
 
 import difflib
+import inspect
 import re
+import sys
 from collections.abc import Iterable
+from typing import Any
 
 from osmo.errors import UsageError
 
 __all__ = ["MAX_NAME", "NAME_RE", "check_label", "check_name", "check_tag", "check_worker_name",
-           "check_workflow_id", "did_you_mean", "name_problem", "parse_ref", "ref_problem",
-           "shown", "workflow_id_problem"]
+           "check_workflow_id", "did_you_mean", "name_problem", "object_ref", "parse_ref",
+           "ref_problem", "shown", "workflow_id_problem"]
 
 NAME_RE = re.compile(r"[a-zA-Z](?:[a-zA-Z0-9_-]*[a-zA-Z0-9])?")
 MAX_NAME = 64
@@ -194,3 +197,29 @@ def check_worker_name(name: object, *, reserved: tuple[str, ...] = ()) -> str:
                          f"'-' and '_', starting and ending with a letter or digit, at most "
                          f"{_MAX_WORKER} characters{taken}")
     return name
+
+
+def object_ref(obj: Any) -> str:
+    """The ``module:attr`` reference under which ``obj``'s module holds it (a task type).
+
+    A ``@task_type`` function is named by its wrapped function's module. Found in the module's
+    globals, so a worker can import it by that reference.
+
+    Raises:
+        UsageError: the object is not in its module's globals, or lives in ``__main__`` (a
+            worker cannot import the script being run).
+    """
+    fn = getattr(obj, "fn", None)
+    module_name = getattr(fn, "__module__", None) or getattr(obj, "__module__", None)
+    if module_name is None and not inspect.isclass(obj):
+        module_name = type(obj).__module__
+    if module_name == "__main__":
+        raise UsageError("task types defined in the script being run cannot be imported by "
+                         "the worker; move them into a module next to it (e.g. tasks.py) "
+                         "and import them from there")
+    module = sys.modules.get(module_name or "")
+    for attr, value in vars(module).items() if module is not None else ():
+        if value is obj:
+            return f"{module_name}:{attr}"
+    raise UsageError(f"cannot find {obj!r} in its module '{module_name}'; pass the type as "
+                     "a 'module:attr' string")

@@ -27,7 +27,7 @@ from typing import NoReturn
 from osmo.config import DEFAULT_CLUSTER
 from osmo.errors import UsageError
 from osmo.layout import Home
-from osmo.runtime.sandbox import MODES, SandboxMode
+from osmo.runtime.sandbox import SandboxMode
 from osmo.worker.options import add_runtime_arguments
 
 __all__ = ["ServerOptions", "absolute", "check_listeners", "network_listeners",
@@ -103,9 +103,6 @@ class ServerOptions:
                        help="allow --listen on a network address without zenoh "
                             "authentication (usrpwd or mTLS in --zenoh-config); tokens then "
                             "travel in clear")
-        p.add_argument("--sandbox", choices=MODES, default=d.sandbox,
-                       help="run local tasks in a bubblewrap sandbox: auto (when bwrap works "
-                            f"here), on (required), off ({d.sandbox})")
         add_runtime_arguments(p)
 
     @classmethod

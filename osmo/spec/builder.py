@@ -31,14 +31,12 @@ every rule (and every error message) is the same; positions in those messages re
 from __future__ import annotations
 
 import base64
-import inspect
 import shlex
-import sys
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from osmo.errors import UsageError
+from osmo.names import object_ref
 from osmo.spec import yamlnodes
 from osmo.spec.dump import jinja_literal
 from osmo.spec.loader import spec_from_dict
@@ -138,20 +136,7 @@ def _type_ref(value: Any) -> str | None:
     """
     if value is None or isinstance(value, str):
         return value
-    fn = getattr(value, "fn", None)  # a @task_type function: named by its module
-    module_name = getattr(fn, "__module__", None) or getattr(value, "__module__", None)
-    if module_name is None and not inspect.isclass(value):
-        module_name = type(value).__module__
-    if module_name == "__main__":
-        raise UsageError("task types defined in the script being run cannot be imported by "
-                         "the worker; move them into a module next to it (e.g. tasks.py) "
-                         "and import them from there")
-    module = sys.modules.get(module_name or "")
-    for attr, found in vars(module).items() if module is not None else ():
-        if found is value:
-            return f"{module_name}:{attr}"
-    raise UsageError(f"cannot find {value!r} in its module '{module_name}'; pass the type as "
-                     "a 'module:attr' string")
+    return object_ref(value)
 
 
 def _env_value(value: Any) -> str:

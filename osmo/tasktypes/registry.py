@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from osmo.errors import UsageError
+from osmo.names import object_ref
 from osmo.tasktypes.api import Param, TaskType
 from osmo.tasktypes.params import schema_problems
 
@@ -296,17 +297,7 @@ def ref_of(obj: Any) -> str:
         TaskTypeError: the object is not found in its module's globals, or lives in
             ``__main__`` (a worker cannot import the script being run).
     """
-    fn = getattr(obj, "fn", None)
-    module_name = getattr(fn, "__module__", None) or getattr(obj, "__module__", None)
-    if module_name is None and not inspect.isclass(obj):
-        module_name = type(obj).__module__
-    if module_name == "__main__":
-        raise TaskTypeError("task types defined in the script being run cannot be imported by "
-                            "the worker; move them into a module next to it (e.g. tasks.py) "
-                            "and import them from there")
-    module = sys.modules.get(module_name or "")
-    for attr, value in vars(module).items() if module is not None else ():
-        if value is obj:
-            return f"{module_name}:{attr}"
-    raise TaskTypeError(f"cannot find {obj!r} in its module '{module_name}'; pass the type as "
-                        "a 'module:attr' string")
+    try:
+        return object_ref(obj)
+    except UsageError as exc:
+        raise TaskTypeError(str(exc)) from None

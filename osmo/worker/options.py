@@ -26,7 +26,10 @@ DEFAULT_KILL_GRACE = 3.0
 
 
 def add_runtime_arguments(p: argparse.ArgumentParser) -> None:
-    """``--runtime`` and ``--container-engine``, shared by ``osmo server`` and ``osmo worker``."""
+    """How tasks run: ``--sandbox``, ``--runtime``, ``--container-engine`` (server and worker)."""
+    p.add_argument("--sandbox", choices=MODES, default="auto",
+                   help="run process tasks in a bubblewrap sandbox: auto (when bwrap works "
+                        "here; the default), on (required), off")
     p.add_argument("--runtime", choices=("auto", "container", "process"),
                    default=os.environ.get("OSMO_RUNTIME") or "auto",
                    help="run tasks that name an image in containers (container), as host "
@@ -103,9 +106,6 @@ class WorkerOptions:
         w.add_argument("--drain-timeout", type=float, default=d.drain_timeout,
                        metavar="SECONDS", help="on SIGTERM, how long running tasks may finish "
                                                f"before being handed back ({d.drain_timeout:g})")
-        w.add_argument("--sandbox", choices=MODES, default=d.sandbox,
-                       help="run tasks in a bubblewrap sandbox: auto (when bwrap works here), "
-                            f"on (required), off ({d.sandbox})")
         add_runtime_arguments(w)
 
     @classmethod
