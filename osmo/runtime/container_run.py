@@ -39,6 +39,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from osmo.errors import OsmoError
+from osmo.names import image_problem
 
 __all__ = ["DATA_OUTPUT", "SECRET_ENV_PATH", "ContainerError", "ContainerRun", "EngineInfo",
            "Mount", "RegistryAuth", "data_input", "login_argv", "pull_argv",
@@ -50,7 +51,6 @@ SECRET_ENV_PATH = "/osmo/run/secret.env"
 """Where a run's secret-variables file is bound (read-only) inside its container."""
 
 _WRAPPER = f'. {SECRET_ENV_PATH} && exec "$@"'
-_IMAGE = re.compile(r"[A-Za-z0-9][A-Za-z0-9._/:@+-]{0,511}")
 _NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,127}")
 _SHELL_VAR = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 
@@ -210,8 +210,7 @@ def login_argv(engine: EngineInfo, auth: RegistryAuth, config_dir: Path
 def pull_argv(engine: EngineInfo, image: str, config_dir: Path | None = None
               ) -> tuple[list[str], dict[str, str]]:
     """``(argv, extra environment)`` of pulling ``image`` (with ``login_argv``'s folder)."""
-    if not _IMAGE.fullmatch(image):
-        raise ContainerError(f"unusable image reference {image!r}")
+    _check_image(image)
     argv = [engine.path, "pull"]
     env: dict[str, str] = {}
     if config_dir is not None and engine.name == "podman":
@@ -241,9 +240,15 @@ def _gpu_args(engine: EngineInfo, gpus: tuple[int, ...]) -> list[str]:
     return [f"--device=nvidia.com/gpu={g}" for g in gpus]  # CDI (`nvidia-ctk cdi generate`)
 
 
+def _check_image(image: str) -> None:
+    """The spec refuses these already; this keeps a stored or hand-made run honest too."""
+    problem = image_problem(image)
+    if problem is not None:
+        raise ContainerError(f"unusable image reference: {problem}")
+
+
 def _check(run: ContainerRun) -> None:
-    if not _IMAGE.fullmatch(run.image):
-        raise ContainerError(f"unusable image reference {run.image!r}")
+    _check_image(run.image)
     names = [("container name", run.name), *(("alias", a) for a in run.aliases)]
     names += [("network", run.network)] if run.network else []
     names += [("hostname", run.hostname)] if run.hostname else []
