@@ -5,9 +5,9 @@ What it owns:
 - **engines** — :func:`detect_engine` finds ``podman`` (first) or ``docker`` (or the one
   named) and its version; none usable is :class:`EngineNotFound`, naming the package.
 - **images, networks, clean-up** — :class:`ContainerEngine`: an image's id (pulling a missing
-  image, progress lines to a callback, registry credentials on stdin into a private folder
-  that is deleted afterwards), group networks, and containers/networks found and removed by
-  label (orphans after a ``kill -9``).
+  image, progress lines to a callback as the engine prints them, registry credentials in a
+  0600 auth file of a private folder that is deleted after the pull), group networks, and
+  containers/networks found and removed by label (orphans after a ``kill -9``).
 
 The runs themselves are described, and turned into argv, by ``osmo.runtime.container_run``
 (pure; its names are re-exported here); ``osmo.runtime.container_runtime`` spawns them
@@ -43,8 +43,8 @@ from osmo.runtime.container_run import (
     Mount,
     RegistryAuth,
     data_input,
-    login_argv,
     pull_argv,
+    registry_config,
     run_argv,
     safe_name,
 )
@@ -201,18 +201,18 @@ class ContainerEngine:
              auth: RegistryAuth | None = None) -> None:
         """Pull ``image``; each progress line goes to ``progress`` as it comes.
 
-        With ``auth``, a login into a private folder (deleted afterwards) comes first.
+        With ``auth``, the pull reads it from an auth file (0600) in a private folder that
+        is deleted when the pull ends.
 
         Raises:
-            ImageError: the login or the pull failed (the engine's reason; never a password).
+            ImageError: the pull failed (the engine's reason; never a password).
         """
         with tempfile.TemporaryDirectory(prefix="osmo-registry-") as folder:
             config = Path(folder) if auth is not None else None
             secrets = [auth.password] if auth is not None else []
             try:
                 if auth is not None and config is not None:
-                    argv, extra, stdin = login_argv(self.engine, auth, config)
-                    _call(argv, {**self.env, **extra}, timeout=120, stdin=stdin)
+                    _write_private(*registry_config(self.engine, auth, config))
                 argv, extra = pull_argv(self.engine, image, config)
                 self._stream(argv, {**self.env, **extra}, progress, secrets)
             except ContainerError as exc:
@@ -321,6 +321,14 @@ def _filters(labels: Mapping[str, str]) -> list[str]:
     if not labels:  # no filter would match every container on the machine
         raise ContainerError("refusing to list containers without a label filter")
     return [f"--filter=label={key}={value}" for key, value in sorted(labels.items())]
+
+
+def _write_private(path: Path, text: str) -> None:
+    """A new 0600 file (never through a planted file or symlink)."""
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC,
+                 0o600)
+    with os.fdopen(fd, "w") as out:
+        out.write(text)
 
 
 def _scrub(text: str, secrets: list[str]) -> str:

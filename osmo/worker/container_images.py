@@ -2,7 +2,9 @@
 
 :class:`ImageIds` resolves an image to its id (``sha256:...``) once per workflow and host;
 the server's placement (cache fingerprints) and the local pool share one.
-:func:`registry_auth` finds the stored credential for pulling a task's image. Engine calls
+:func:`registry_auth` finds the stored credential for pulling a task's image
+(:func:`registry_credential` names it; a remote worker is given it by the server with the
+attempt's other secrets). Engine calls
 go through ``osmo.runtime.container``.
 """
 
@@ -17,7 +19,7 @@ from osmo.runtime.container_run import ContainerError, RegistryAuth, pull_refere
 from osmo.spec.model import TaskSpec
 from osmo.worker.secrets import SecretLookup
 
-__all__ = ["REGISTRY_PREFIX", "ImageIds", "registry_auth"]
+__all__ = ["REGISTRY_PREFIX", "ImageIds", "registry_auth", "registry_credential"]
 
 _KEEP_IMAGE_IDS = 1024  # (workflow, image) → id pairs remembered
 
@@ -26,20 +28,25 @@ REGISTRY_PREFIX = "registry://"
 """A registry's credential is named ``registry://HOST`` (keys ``username``, ``password``)."""
 
 
-def registry_auth(task: TaskSpec, lookup: SecretLookup | None) -> RegistryAuth | None:
-    """The stored credential for pulling ``task``'s image, if there is one.
+def registry_credential(task: TaskSpec) -> str | None:
+    """The name of the credential that pulls ``task``'s image, if it runs in one.
 
-    Found by the image's registry host (``docker.io`` for short names), like a data URL's
-    credential; used for the pull only.
+    ``registry://HOST``, HOST the image's registry (``docker.io`` for short names), like a
+    data URL's credential.
     """
-    if lookup is None or task.image is None:
+    if task.image is None or task.type is not None:
         return None
-    host = pull_reference(task.image).split("/", 1)[0]
-    payload = lookup(REGISTRY_PREFIX + host)
-    if not payload or "username" not in payload or "password" not in payload:
-        return None
-    return RegistryAuth(host, payload["username"], payload["password"])
+    return REGISTRY_PREFIX + pull_reference(task.image).split("/", 1)[0]
 
+
+def registry_auth(task: TaskSpec, lookup: SecretLookup | None) -> RegistryAuth | None:
+    """The stored credential for pulling ``task``'s image, if there is one (pull only)."""
+    name = registry_credential(task)
+    payload = lookup(name) if lookup is not None and name is not None else None
+    if name is None or not payload or "username" not in payload or "password" not in payload:
+        return None
+    return RegistryAuth(name.removeprefix(REGISTRY_PREFIX), payload["username"],
+                        payload["password"])
 
 
 class ImageIds:

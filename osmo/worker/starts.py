@@ -103,7 +103,8 @@ class AttemptStarts(AttemptEndings):
             if self._containers is not None and boxed:
                 launch = self._containers.finish(
                     launch, cmd, task, dirs, request=resources, gpus=self.node().capacity.gpu,
-                    auth=registry_auth(task, self._task_secrets))
+                    auth=registry_auth(task, self._task_secrets if self._task_secrets
+                                       is not None else secrets.get))
         except Exception as exc:  # every prepare must get its one final report
             message = str(exc) if isinstance(exc, OsmoError) else f"cannot prepare: {exc!r}"
             self._reactor.call_soon(self._prepared, cmd, task, None, None, message)
