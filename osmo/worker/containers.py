@@ -8,10 +8,11 @@ image stay host processes (``osmo.runtime.process``).
 The data layout inside the container is ``osmo.worker.container_layout``'s.
 
 :class:`ContainerTasks` finishes a prepared launch (:meth:`ContainerTasks.finish`): resolves
-the image to its id (pulling a missing one, progress lines kept for the task's log, registry
-credentials for the pull only), names and labels the container (``osmo.owner``,
-``osmo.workflow``, ``osmo.task``, ``osmo.attempt``), runs it as the invoking uid:gid with
-``--init``, applies cpu/memory limits and GPU indices, and puts a group on its network.
+the image to its id (pulling a missing one, its progress lines to the task's log as the
+engine prints them, registry credentials for the pull only), names and labels the container
+(``osmo.owner``, ``osmo.workflow``, ``osmo.task``, ``osmo.attempt``), runs it as the
+invoking uid:gid with ``--init``, applies cpu/memory limits and GPU indices, and puts a
+group on its network.
 
 Groups: when every member of a group runs at one address (this host), the group gets its own
 network and ``{{host:NAME}}`` is NAME's alias on it (the task name). Members spread over
@@ -145,20 +146,22 @@ class ContainerTasks:
         return replace(cmd, hosts={name: _alias(name) for name in cmd.hosts})
 
     def finish(self, launch: Launch, cmd: PrepareAttempt, task: TaskSpec, dirs: AttemptDirs, *,
-               request: ResourceSpec, gpus: int, auth: RegistryAuth | None = None) -> Launch:
+               request: ResourceSpec, gpus: int, auth: RegistryAuth | None = None,
+               progress: Callable[[str], None] = lambda line: None) -> Launch:
         """The launch with its container complete: image id, name, labels, user, network.
 
         ``cmd`` is the placement as sent (not :meth:`placement`'s); ``request`` the task's
         resources (cpu/memory limits, GPU count) and ``gpus`` how many the node has. Runs
-        on an I/O thread (it may pull). Raises ImageError (``image 'x' not found: …``)
-        or ContainerError (the network cannot be made); nothing stays held then.
+        on an I/O thread (it may pull: each line the engine prints goes to ``progress`` as
+        it comes). Raises ImageError (``image 'x' not found: …``) or ContainerError (the
+        network cannot be made); nothing stays held then.
         """
         if self._gpus is None:
             self._gpus = GpuSlots(gpus)
         held = self._gpus.take(cmd.attempt_id, request.gpu or 0)
         limits = Limits(cpus=float(request.cpu or 0), memory=request.memory, gpus=held)
         try:
-            return self._finish(launch, cmd, task, dirs, limits, auth)
+            return self._finish(launch, cmd, task, dirs, limits, auth, progress)
         except BaseException:
             self._gpus.give_back(cmd.attempt_id)
             remove_secret_files(launch)  # a failed preparation leaves no secret behind
@@ -179,12 +182,12 @@ class ContainerTasks:
         return handle
 
     def _finish(self, launch: Launch, cmd: PrepareAttempt, task: TaskSpec, dirs: AttemptDirs,
-                limits: Limits, auth: RegistryAuth | None) -> Launch:
+                limits: Limits, auth: RegistryAuth | None,
+                progress: Callable[[str], None]) -> Launch:
         assert launch.container is not None and task.image is not None
-        notes: list[str] = []
         image = self.images.resolve(cmd.workflow_id, task.image, pull=self._pull, auth=auth,
-                                    progress=lambda line: notes.append(f"pull: {line}"))
-        notes.append(f"image '{task.image}' is {image} ({self.describe()})")
+                                    progress=progress)
+        note = f"image '{task.image}' is {image} ({self.describe()})"
         network = self._network(cmd)
         lead = task.lead or next(iter(cmd.hosts), cmd.task) == cmd.task
         labels = {**self.labels, "osmo.workflow": cmd.workflow_id, "osmo.task": cmd.task,
@@ -200,7 +203,7 @@ class ContainerTasks:
             cpus=limits.cpus or None, memory=limits.memory, gpus=limits.gpus,
             shm_size=_GPU_SHM if limits.gpus else None,
             secret_env_file=dirs.root / "secret.env" if launch.container.secret_env else None)
-        return replace(launch, container=run, notes=(*launch.notes, *notes))
+        return replace(launch, container=run, notes=(*launch.notes, note))
 
     # -------------------------------------------------------------- groups
 

@@ -2,7 +2,9 @@
 
 No image registry is reachable here. This one answers the distribution API's first step
 (``GET /v2/``: 401 with a Basic challenge until the right credential comes) and says every
-manifest is unknown, so a pull fails after showing what credential it carried. While a
+manifest is unknown, so a pull fails after showing what credential it carried. Manifest
+requests wait until ``release`` is set (at most ``HOLD`` seconds): a test sees what the
+pull printed while the pull is still under way. While a
 request is being answered it also looks, like ``ps e`` would, at every process's argv and
 environment for the password (``seen_in_processes``).
 
@@ -19,6 +21,8 @@ from contextlib import contextmanager
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
+HOLD = 60.0  # s: the longest a manifest request waits for ``release``
+
 
 class FakeRegistry:
     """The stand-in's state: ``host`` (``127.0.0.1:PORT``), what came, what leaked."""
@@ -29,6 +33,8 @@ class FakeRegistry:
         self.authorizations: list[str] = []  # every Authorization header, decoded
         self.paths: list[str] = []
         self.seen_in_processes: list[str] = []
+        self.release = threading.Event()
+        self.release.set()  # clear it to hold manifest requests
 
     def registries_conf(self, folder: Path, *others: FakeRegistry) -> Path:
         """A ``registries.conf`` marking this registry (and ``others``) insecure (HTTP)."""
@@ -62,6 +68,8 @@ def fake_registry(password: str) -> Iterator[FakeRegistry]:
             if header.startswith("Basic "):
                 state.authorizations.append(base64.b64decode(header[6:]).decode(errors="replace"))
             state._scan_processes()
+            if "/manifests/" in self.path:
+                state.release.wait(HOLD)
             if not header:
                 self.send_response(401)
                 self.send_header("WWW-Authenticate", 'Basic realm="osmo-test"')

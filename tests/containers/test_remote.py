@@ -129,6 +129,7 @@ workflow:
     assert private.authorizations and set(private.authorizations) == {f"robot:{password}"}
     assert all(password not in a for a in other.authorizations)  # nor any other registry
     assert private.seen_in_processes == [] and other.seen_in_processes == []  # argv, env
+    assert f"pull: Trying to pull {private.host}/team/img:1..." in shown  # the worker's log
     assert password not in shown and basic not in shown
     assert _files_holding(tmp_path / "w1", password, basic) == []
     assert list(scratch.iterdir()) == []  # the private auth folder is gone
