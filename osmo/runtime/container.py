@@ -30,6 +30,7 @@ import os
 import shutil
 import subprocess
 import tempfile
+import threading
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -272,6 +273,38 @@ class ContainerEngine:
         """Ids of the running containers that carry every one of ``labels``."""
         return self.call("ps", "--no-trunc", *_filters(labels), "--filter=status=running",
                          "--format", "{{.ID}}").split()
+
+    def wait_started(self, label: tuple[str, str], where: tuple[str, str], *, since: float,
+                     timeout: float) -> bool:
+        """Wait for a container labelled ``label`` whose label ``where`` holds to start.
+
+        A start at or after ``since`` (epoch seconds) counts, also one before this call:
+        the engine's event stream (``events --since``) is read, nothing is polled.
+
+        Returns:
+            True once one started; False when ``timeout`` seconds passed first or the
+            engine cannot say.
+        """
+        key, want = where
+        attributes = ".Attributes" if self.engine.name == "podman" else ".Actor.Attributes"
+        # the engines OR label filters: filter by one, read the other from each event
+        argv = [self.engine.path, "events", f"--since={since:.3f}", *_filters(dict([label])),
+                "--filter=event=start", "--format", f'{{{{index {attributes} "{key}"}}}}']
+        try:
+            proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+                                    stderr=subprocess.DEVNULL, env=self.env)
+        except OSError:
+            return False
+        timer = threading.Timer(timeout, proc.kill)  # ends the stream: readline sees EOF
+        timer.start()
+        assert proc.stdout is not None
+        try:
+            return any(line.decode(errors="replace").strip() == want for line in proc.stdout)
+        finally:
+            timer.cancel()
+            proc.kill()
+            proc.wait()
+            proc.stdout.close()
 
     def kill(self, container: str, signal: str = "TERM") -> bool:
         """Send ``signal`` to a running container; False when it is not running (yet)."""

@@ -61,6 +61,7 @@ RUNTIMES = ("auto", "container", "process")
 
 _ALIAS = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,62}")
 _LEAD_WAIT = 30.0  # s: a peer waits this long for its lead's container, then starts anyway
+_CLOCK_SLACK = 1.0  # s: events are stamped by the engine; read a little before the spawn
 _GPU_SHM = 1 << 30  # bytes of /dev/shm for a GPU task (the engines' 64 MiB starves loaders)
 
 
@@ -124,6 +125,7 @@ class ContainerTasks:
         self._lock = threading.Lock()
         self._networks: dict[str, int] = {}  # network → attempts of this pool using it
         self._leads: dict[str, threading.Event] = {}  # network → its lead was started
+        self._lead_since: dict[str, float] = {}  # network → when its lead's CLI was spawned
         self._gpus: GpuSlots | None = None  # made with the node's GPU count on first use
 
     def describe(self) -> str:
@@ -176,9 +178,10 @@ class ContainerTasks:
         assert launch.container is not None
         if wait_for_lead:
             self.wait_for_lead(launch.container)
+        spawned = time.time()  # its container starts after this (what a peer waits for)
         handle = self.runtime.start(launch.argv, cwd=launch.cwd, env=launch.env,
                                     container=launch.container)
-        self.started(launch.container)
+        self.started(launch.container, since=spawned)
         return handle
 
     def _finish(self, launch: Launch, cmd: PrepareAttempt, task: TaskSpec, dirs: AttemptDirs,
@@ -207,29 +210,33 @@ class ContainerTasks:
 
     # -------------------------------------------------------------- groups
 
-    def started(self, run: ContainerRun) -> None:
-        """Note that ``run`` was started (a lead releases its waiting peers)."""
+    def started(self, run: ContainerRun, *, since: float | None = None) -> None:
+        """Note that ``run``'s engine CLI was spawned (at ``since``, epoch seconds, or now).
+
+        A lead releases its waiting peers, which then wait for its container's start.
+        """
         if run.labels.get("osmo.lead") == "1" and run.network is not None:
+            with self._lock:
+                self._lead_since[run.network] = time.time() if since is None else since
             self._lead_event(run.network).set()
 
     def wait_for_lead(self, run: ContainerRun) -> None:
         """Block (I/O thread) until the lead of ``run``'s group network runs, at most 30 s.
 
         The start barrier starts a group's members together; a peer that calls its lead at
-        once (OSMO's ``nc`` tutorial) needs the lead to be listening first.
+        once (OSMO's ``nc`` tutorial) needs the lead to be listening first. The wait is the
+        engine's event stream (``ContainerEngine.wait_started``), not a poll; an engine that
+        cannot say lets the peer start.
         """
         if run.labels.get("osmo.lead") != "0" or run.network is None:
             return
         deadline = time.monotonic() + _LEAD_WAIT
-        self._lead_event(run.network).wait(_LEAD_WAIT)
-        lead = {**self.labels, "osmo.network": run.network, "osmo.lead": "1"}
-        while time.monotonic() < deadline:
-            try:
-                if self.engine.running(lead):
-                    return
-            except ContainerError:
-                return
-            time.sleep(0.05)
+        if not self._lead_event(run.network).wait(_LEAD_WAIT):
+            return
+        with self._lock:
+            since = self._lead_since.get(run.network, time.time()) - _CLOCK_SLACK
+        self.engine.wait_started(("osmo.network", run.network), ("osmo.lead", "1"),
+                                 since=since, timeout=max(0.0, deadline - time.monotonic()))
 
     def ended(self, run: ContainerRun) -> None:
         """An attempt that used ``run`` ended (I/O thread).
@@ -247,6 +254,7 @@ class ContainerTasks:
                 return
             self._networks.pop(run.network, None)
             self._leads.pop(run.network, None)
+            self._lead_since.pop(run.network, None)
         try:
             self.engine.remove_network(run.network)
         except ContainerError:
