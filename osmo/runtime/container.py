@@ -147,6 +147,7 @@ class ContainerEngine:
     def __init__(self, engine: EngineInfo, *, env: Mapping[str, str] | None = None) -> None:
         self.engine = engine
         self._env = None if env is None else dict(env)
+        self._store_file: Path | None | bool = False  # False: not looked for yet
 
     @property
     def env(self) -> dict[str, str]:
@@ -175,6 +176,36 @@ class ContainerEngine:
         ident, *digests = out.split()
         return ImageInfo(ident if ident.startswith("sha256:") else f"sha256:{ident}",
                          tuple(digests))
+
+    def store_stamp(self) -> tuple[int, int, int] | None:
+        """A fingerprint of the local image store that changes with every image change.
+
+        podman replaces its store's ``images.json`` (a new inode) on each pull, tag,
+        untag and removal, and leaves it alone when containers run: its inode, mtime and
+        size are the stamp, read with one ``stat``. None when there is none to read
+        (docker's daemon owns its store; an engine that cannot say where its store is).
+        """
+        if self._store_file is False:
+            self._store_file = self._find_store_file()
+        if not isinstance(self._store_file, Path):
+            return None
+        try:
+            found = os.stat(self._store_file)
+        except OSError:
+            return None
+        return found.st_ino, found.st_mtime_ns, found.st_size
+
+    def _find_store_file(self) -> Path | None:
+        if self.engine.name != "podman":
+            return None
+        try:
+            root, _, driver = self.call("info", "--format",
+                                        "{{.Store.GraphRoot}}\t{{.Store.GraphDriverName}}"
+                                        ).strip().partition("\t")
+        except ContainerError:
+            return None
+        path = Path(root) / f"{driver}-images" / "images.json"
+        return path if root and driver and path.is_file() else None
 
     def resolve(self, image: str, *, pull: bool = True,
                 progress: Callable[[str], None] | None = None,

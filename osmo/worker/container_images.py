@@ -53,13 +53,16 @@ class ImageIds:
     """Image ids as each workflow first resolved them on this host (thread-safe).
 
     A workflow's tasks all run the image its tag named when the first of them was placed or
-    prepared: one engine call per image and workflow, and a tag moved meanwhile changes no
-    task of it (the next workflow sees the move).
+    prepared, and a tag moved meanwhile changes no task of it (the next workflow sees the
+    move). Across workflows an id is looked up again only when the engine's image store
+    changed (``ContainerEngine.store_stamp``: one ``stat``, where an ``image inspect`` costs
+    ≈ 40 ms); an engine with no stamp is asked once per image and workflow.
     """
 
     def __init__(self, engine: ContainerEngine) -> None:
         self._engine = engine
         self._ids: collections.OrderedDict[tuple[str, str], str] = collections.OrderedDict()
+        self._host: collections.OrderedDict[str, tuple[str, object]] = collections.OrderedDict()
         self._lock = threading.Lock()
 
     def known(self, workflow_id: str, image: str) -> str | None:
@@ -67,10 +70,10 @@ class ImageIds:
         found = self._get(workflow_id, image)
         if found is None:
             try:
-                info = self._engine.image(image)
+                found = self._local(image)
             except ContainerError:
                 return None
-            found = self._put(workflow_id, image, info.id) if info is not None else None
+            found = self._put(workflow_id, image, found) if found is not None else None
         return found
 
     def resolve(self, workflow_id: str, image: str, *, pull: bool,
@@ -82,9 +85,30 @@ class ImageIds:
         """
         found = self._get(workflow_id, image)
         if found is None:
-            info = self._engine.resolve(image, pull=pull, auth=auth, progress=progress)
-            found = self._put(workflow_id, image, info.id)
+            try:
+                found = self._local(image)
+            except ContainerError:
+                found = None  # resolve() below says why, as an ImageError
+            if found is None:
+                found = self._engine.resolve(image, pull=pull, auth=auth, progress=progress).id
+            found = self._put(workflow_id, image, found)
         return found
+
+    def _local(self, image: str) -> str | None:
+        """``image``'s id on this host now: remembered while the image store is unchanged."""
+        stamp = self._engine.store_stamp()  # before the inspect: a change meanwhile shows
+        with self._lock:
+            hit = self._host.get(image)
+        if stamp is not None and hit is not None and hit[1] == stamp:
+            return hit[0]
+        info = self._engine.image(image)
+        if info is not None and stamp is not None:
+            with self._lock:
+                self._host[image] = (info.id, stamp)
+                self._host.move_to_end(image)
+                while len(self._host) > _KEEP_IMAGE_IDS:
+                    self._host.popitem(last=False)
+        return info.id if info is not None else None
 
     def _get(self, workflow_id: str, image: str) -> str | None:
         with self._lock:
