@@ -313,8 +313,11 @@ class ContainerEngine:
         the engine's event stream (``events --since``) is read, nothing is polled.
 
         Returns:
-            True once one started; False when ``timeout`` seconds passed first or the
-            engine cannot say.
+            True once one started; False when ``timeout`` seconds passed first.
+
+        Raises:
+            ContainerError: the engine has no event stream here (it ended by itself, e.g.
+                a journald event log this user cannot read).
         """
         key, want = where
         attributes = ".Attributes" if self.engine.name == "podman" else ".Actor.Attributes"
@@ -324,18 +327,22 @@ class ContainerEngine:
         try:
             proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
                                     stderr=subprocess.DEVNULL, env=self.env)
-        except OSError:
-            return False
+        except OSError as exc:
+            raise ContainerError(f"cannot run {argv[0]}: {exc.strerror or exc}") from exc
         timer = threading.Timer(timeout, proc.kill)  # ends the stream: readline sees EOF
         timer.start()
         assert proc.stdout is not None
         try:
-            return any(line.decode(errors="replace").strip() == want for line in proc.stdout)
+            if any(line.decode(errors="replace").strip() == want for line in proc.stdout):
+                return True
         finally:
             timer.cancel()
             proc.kill()
-            proc.wait()
+            code = proc.wait()
             proc.stdout.close()
+        if code >= 0:  # it ended by itself, not by the timer's kill
+            raise ContainerError(f"`{self.engine.name} events` ended with exit code {code}")
+        return False
 
     def kill(self, container: str, signal: str = "TERM") -> bool:
         """Send ``signal`` to a running container; False when it is not running (yet)."""

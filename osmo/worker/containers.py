@@ -225,8 +225,8 @@ class ContainerTasks:
 
         The start barrier starts a group's members together; a peer that calls its lead at
         once (OSMO's ``nc`` tutorial) needs the lead to be listening first. The wait is the
-        engine's event stream (``ContainerEngine.wait_started``), not a poll; an engine that
-        cannot say lets the peer start.
+        engine's event stream (``ContainerEngine.wait_started``); only an engine without
+        one is asked every 50 ms whether the lead runs.
         """
         if run.labels.get("osmo.lead") != "0" or run.network is None:
             return
@@ -235,8 +235,21 @@ class ContainerTasks:
             return
         with self._lock:
             since = self._lead_since.get(run.network, time.time()) - _CLOCK_SLACK
-        self.engine.wait_started(("osmo.network", run.network), ("osmo.lead", "1"),
-                                 since=since, timeout=max(0.0, deadline - time.monotonic()))
+        try:
+            self.engine.wait_started(("osmo.network", run.network), ("osmo.lead", "1"),
+                                     since=since, timeout=max(0.0, deadline - time.monotonic()))
+        except ContainerError:
+            self._poll_lead(run.network, deadline)
+
+    def _poll_lead(self, network: str, deadline: float) -> None:
+        lead = {**self.labels, "osmo.network": network, "osmo.lead": "1"}
+        while time.monotonic() < deadline:
+            try:
+                if self.engine.running(lead):
+                    return
+            except ContainerError:
+                return
+            time.sleep(0.05)
 
     def ended(self, run: ContainerRun) -> None:
         """An attempt that used ``run`` ended (I/O thread).

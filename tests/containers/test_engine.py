@@ -18,7 +18,9 @@ import pytest
 from osmo.runtime.container import (
     DATA_OUTPUT,
     ContainerEngine,
+    ContainerError,
     ContainerRun,
+    EngineInfo,
     EngineNotFound,
     Mount,
     data_input,
@@ -411,3 +413,15 @@ def test_wait_started_follows_the_event_stream(
     for run in (peer, lead):
         runtime.kill(run.handle, force=True)
         run.finish()
+
+
+def test_wait_started_without_an_event_stream_is_an_error(
+        engine: ContainerEngine, tmp_path: Path) -> None:
+    """An engine whose ``events`` ends by itself cannot say: the caller falls back."""
+    broken = tmp_path / "podman"
+    broken.write_text("#!/bin/sh\necho 'Error: no events here' >&2\nexit 125\n")
+    broken.chmod(0o755)
+    without = ContainerEngine(EngineInfo("podman", str(broken), engine.engine.version))
+    with pytest.raises(ContainerError, match="events"):
+        without.wait_started(("osmo.network", "n"), ("osmo.lead", "1"), since=time.time(),
+                             timeout=30)
