@@ -11,7 +11,7 @@ What it owns:
 
 The runs themselves are described, and turned into argv, by ``osmo.runtime.container_run``
 (pure; its names are re-exported here); ``osmo.runtime.container_runtime`` spawns them
-behind the runtime contract.
+behind the runtime contract; ``osmo.runtime.container_pull`` runs a pull.
 
 Decisions, checked with podman 4.3 and the docker 28 CLI (``tests/containers``):
 
@@ -29,12 +29,12 @@ from __future__ import annotations
 import os
 import shutil
 import subprocess
-import tempfile
 import threading
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+from osmo.runtime.container_pull import ImageError, pull_image
 from osmo.runtime.container_run import (
     DATA_OUTPUT,
     SECRET_ENV_PATH,
@@ -44,8 +44,6 @@ from osmo.runtime.container_run import (
     Mount,
     RegistryAuth,
     data_input,
-    pull_argv,
-    registry_config,
     run_argv,
     safe_name,
 )
@@ -64,10 +62,6 @@ _NO_CONTAINER = ("no such container", "no container with")
 
 class EngineNotFound(ContainerError):
     """No usable container engine on this machine (the message names what to install)."""
-
-
-class ImageError(ContainerError):
-    """An image is missing and cannot be pulled: ``image 'x' not found: <why>``."""
 
 
 @dataclass(frozen=True)
@@ -239,36 +233,7 @@ class ContainerEngine:
         Raises:
             ImageError: the pull failed (the engine's reason; never a password).
         """
-        with tempfile.TemporaryDirectory(prefix="osmo-registry-") as folder:
-            config = Path(folder) if auth is not None else None
-            secrets = [auth.password] if auth is not None else []
-            try:
-                if auth is not None and config is not None:
-                    _write_private(*registry_config(self.engine, auth, config))
-                argv, extra = pull_argv(self.engine, image, config)
-                self._stream(argv, {**self.env, **extra}, progress, secrets)
-            except ContainerError as exc:
-                raise ImageError(_scrub(f"image '{image}' not found: not on this node and the "
-                                        f"pull failed: {exc}", secrets)) from None
-
-    def _stream(self, argv: list[str], env: Mapping[str, str],
-                progress: Callable[[str], None] | None, secrets: list[str]) -> None:
-        try:
-            proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
-                                    stderr=subprocess.STDOUT, env=dict(env))
-        except OSError as exc:
-            raise ContainerError(f"cannot run {argv[0]}: {exc.strerror or exc}") from exc
-        last = ""
-        assert proc.stdout is not None
-        with proc.stdout:
-            for raw in proc.stdout:
-                line = _scrub(raw.decode(errors="replace").rstrip(), secrets)
-                if line.strip():
-                    last = line.strip()
-                    if progress is not None:
-                        progress(line)
-        if proc.wait() != 0:
-            raise ContainerError(last.removeprefix("Error: ") or f"exit code {proc.returncode}")
+        pull_image(self.engine, self.env, image, progress=progress, auth=auth)
 
     # -------------------------------------------------------------- networks
 
@@ -392,18 +357,3 @@ def _filters(labels: Mapping[str, str]) -> list[str]:
     if not labels:  # no filter would match every container on the machine
         raise ContainerError("refusing to list containers without a label filter")
     return [f"--filter=label={key}={value}" for key, value in sorted(labels.items())]
-
-
-def _write_private(path: Path, text: str) -> None:
-    """A new 0600 file (never through a planted file or symlink)."""
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC,
-                 0o600)
-    with os.fdopen(fd, "w") as out:
-        out.write(text)
-
-
-def _scrub(text: str, secrets: list[str]) -> str:
-    for secret in secrets:
-        if secret:
-            text = text.replace(secret, "***")
-    return text
