@@ -21,6 +21,7 @@ from collections.abc import Iterator, Sequence
 from osmo.cli.artifacts import add_parsers as add_artifact_parsers
 from osmo.cli.datasets import add_credential_parsers
 from osmo.cli.datasets import add_parsers as add_dataset_parsers
+from osmo.cli.interactive import add_parsers as add_interactive_parsers
 from osmo.cli.plugins import add_parsers as add_plugin_parsers
 from osmo.cli.pools import add_parsers as add_pool_parsers
 from osmo.cli.remote import add_parsers as add_remote_parsers
@@ -32,7 +33,7 @@ from osmo.server.options import ServerOptions
 __all__ = ["build_parser", "main"]
 
 _WORKFLOW_VERBS = ("submit", "validate", "query", "status", "list", "logs", "events", "tag",
-                   "cancel", "restart", "spec")
+                   "cancel", "restart", "spec", "exec", "port-forward")
 
 
 def _add_format(p: argparse.ArgumentParser) -> None:
@@ -135,6 +136,7 @@ def _add_workflow_verbs(sub: argparse._SubParsersAction) -> None:  # type: ignor
 
     p = sub.add_parser("spec", help="print the spec a workflow was submitted with")
     p.add_argument("workflow_id")
+    add_interactive_parsers(sub)
 
 
 def build_parser() -> argparse.ArgumentParser:
