@@ -191,7 +191,7 @@ def run_exec(args: argparse.Namespace) -> int:
         saved = termios.tcgetattr(0) if tty_mode else None
         try:
             if saved is not None:
-                tty.setraw(0)
+                tty.setraw(0, termios.TCSANOW)  # keep what was typed already
                 signal.signal(signal.SIGWINCH, lambda *_: _send_size(session))
             threading.Thread(target=_pump_stdin, args=(session,),
                              kwargs={"eof": not tty_mode}, daemon=True).start()
