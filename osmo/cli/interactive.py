@@ -52,8 +52,8 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
     p.add_argument("workflow_id")
     p.add_argument("task")
     p.add_argument("--group", help="the task's group (checked)")
-    p.add_argument("command", nargs=argparse.REMAINDER, metavar="-- CMD...",
-                   help="the command and its arguments (default /bin/sh)")
+    p.add_argument("command", nargs="*", metavar="-- CMD",
+                   help="the command and its arguments, after -- (default /bin/sh)")
     p = sub.add_parser("port-forward", help="forward local ports to a running task's ports")
     p.add_argument("workflow_id")
     p.add_argument("task")
@@ -166,8 +166,6 @@ def _pump_stdin(session: _Session, *, eof: bool) -> None:
 
 def _exec_request(args: argparse.Namespace, tty_mode: bool) -> dict[str, Any]:
     command = list(args.command)
-    if command[:1] == ["--"]:
-        command = command[1:]
     rows, cols = (24, 80)
     if tty_mode:
         rows, cols = _terminal_size()

@@ -232,6 +232,12 @@ def _forward(osmo: Osmo, wf: str, *args: str) -> subprocess.Popen[str]:
     return proc
 
 
+def _stop(proc: subprocess.Popen[str]) -> None:
+    if proc.poll() is None:
+        proc.kill()
+    proc.communicate(timeout=30)  # and close its pipes
+
+
 def _retry(fn, timeout: float = 30):  # type: ignore[no-untyped-def]
     deadline = time.monotonic() + timeout
     while True:
@@ -266,11 +272,10 @@ workflow:
         assert {len(body) for body in got} == {2_500_000}
         # a port the session was not granted is refused by the node, not connected
         cluster.osmo("cancel", wf)  # the task ends: port-forward says so and exits
-        assert proc.wait(timeout=30) == 0
-        assert proc.stderr is not None and "the task ended" in proc.stderr.read()
+        _, err = proc.communicate(timeout=30)
+        assert proc.returncode == 0 and "port-forward stopped: the task ended" in err
     finally:
-        if proc.poll() is None:
-            proc.kill()
+        _stop(proc)
         cluster.osmo("cancel", wf)
 
 
@@ -305,15 +310,15 @@ workflow:
             big = os.urandom(40_000)
             assert _retry(lambda: echo_once(big)) == big[::-1]
         os.kill(proc.pid, signal.SIGINT)
-        assert proc.wait(timeout=30) == 0
+        _, err = proc.communicate(timeout=30)
+        assert proc.returncode == 0 and "port-forward stopped" in err
     finally:
-        if proc.poll() is None:
-            proc.kill()
+        _stop(proc)
         cluster.osmo("cancel", wf)
 
 
 def test_port_forward_arguments(cluster: Cluster) -> None:
-    for bad in ("x", "80-81:90", "0", "70000", "5:6,5:7"):
+    for bad in ("x", "80-81:90-95", "0", "70000", "5:6,5:7", "9-8"):
         r = cluster.osmo("workflow", "port-forward", "wf-1", "t", "--port", bad)
         assert r.code == 2 and "--port" in r.err, (bad, r.err)
     from osmo.cli.interactive import parse_ports
@@ -322,3 +327,4 @@ def test_port_forward_arguments(cluster: Cluster) -> None:
     assert parse_ports("9000:80,7000-7001:6000-6001") == [(9000, 80), (7000, 6000),
                                                          (7001, 6001)]
     assert json.dumps(parse_ports("1-2")) == "[[1, 1], [2, 2]]"
+    assert parse_ports("80-81:90") == [(80, 90), (81, 91)]  # R starts the remote range
