@@ -116,8 +116,10 @@ class Sessions:
         """
         ticket = field(request, "ticket", str, max_len=64)
         wid = self._hub.speaker("worker_session", request, who)
-        with self._lock:
-            found = self._tickets.pop(ticket, None)
+        with self._lock:  # taken only by its worker: a peer that read it cannot spend it
+            found = self._tickets.get(ticket)
+            if found is not None and found[0] == wid:
+                del self._tickets[ticket]
         if found is None or found[2] < time.monotonic() or found[0] != wid:
             raise refuse("worker_session", who, "unknown, used or expired session ticket, "
                                                 "or one for another worker")

@@ -15,6 +15,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 import urllib.request
 from collections.abc import Iterator
@@ -25,6 +26,7 @@ import pytest
 from osmo.config import free_port
 from osmo.errors import NotAllowed
 from osmo.transport.rpc import ApiClient
+from osmo.transport.streams import Frame, Kind, SessionGrant, Stream
 from osmo.transport.zenoh_link import Link
 from tests.conftest import REPO, Osmo, unique_sleep, wait_no_process, write
 from tests.e2e.cluster import Cluster
@@ -165,23 +167,51 @@ workflow:
 
 
 def test_a_session_order_is_useless_to_another_worker(cluster: Cluster, tmp_path: Path) -> None:
-    """Orders are puts any zenoh peer reads: a rogue worker that reads one gets no grant."""
+    """Orders are puts any zenoh peer reads: a rogue worker that reads one gets no grant.
+
+    The worker the order is for is paused (well within its 1 s lease) so that the rogue
+    tries the ticket first; the ticket still works for its own worker afterwards.
+    """
     rogue_token = cluster.token("rogue")
     cluster.start_worker("rogue", "--cpus", "1", pool="other", token=rogue_token)
     wf = _running(cluster.osmo, _sleeper(tmp_path, "rogue"), REMOTE)
     link = Link.client([cluster.endpoint])
     orders: list[dict] = []
-    sub = link.subscribe(link.key("to-worker", "w1"), orders.append)
+    got = threading.Event()
+    sub = link.subscribe(link.key("to-worker", "w1"),
+                         lambda order: (orders.append(order), got.set()))
+    admin = ApiClient(link, token=(cluster.osmo.home / "auth" / "admin.token").read_text())
+    rogue = ApiClient(link, token=rogue_token)
+    refusals = []
     try:
-        r = cluster.osmo("workflow", "exec", wf, "t", "--", "echo", "ok")
-        assert r.code == 0 and r.out == "ok\n", r.err
-        sessions = [o for o in orders if o.get("op") == "session"]
-        # the order holds a ticket only: no session id, no key (only the user's reply has them)
-        assert len(sessions) == 1 and set(sessions[0]) == {"op", "ticket"}
-        api = ApiClient(link, token=rogue_token)
-        for speaks_for in ("rogue", "w1"):  # its own id, or the id of the worker it spies on
-            with pytest.raises(NotAllowed, match="not allowed"):
-                api.call("worker_session", {"id": speaks_for, "ticket": sessions[0]["ticket"]})
+        cluster.signal("w1", signal.SIGSTOP)
+        try:
+            reply = admin.call("exec_open", {"workflow_id": wf, "task": "t",
+                                             "command": ["true"]})
+            assert got.wait(5)
+            for speaks_for in ("rogue", "w1"):  # its own id, or the id it spies on
+                try:
+                    rogue.call("worker_session", {"id": speaks_for,
+                                                  "ticket": orders[0].get("ticket")})
+                except NotAllowed as exc:
+                    refusals.append(str(exc))
+        finally:
+            cluster.signal("w1", signal.SIGCONT)
+        assert len(refusals) == 2 and all("not allowed" in r for r in refusals)
+        # the order held a ticket only: no session id, no key (the user's reply has them)
+        assert set(orders[0]) == {"op", "ticket"}
+        assert reply["grant"]["session_id"] not in json.dumps(orders)
+        assert reply["grant"]["key"] not in json.dumps(orders)
+        # and the worker it was for still got its grant: the session runs its command
+        ends: list[Frame] = []
+        stream = Stream(link, SessionGrant.from_dict(reply["grant"]), "client",
+                        lambda f: ends.append(f) if f.kind is Kind.END else None, lambda: None)
+        deadline = time.monotonic() + 30
+        while not ends and time.monotonic() < deadline:
+            stream.send(Kind.HELLO)
+            time.sleep(0.2)
+        stream.close()
+        assert ends and json.loads(ends[0].data) == {"code": 0, "message": ""}
     finally:
         sub.close()
         link.close()
