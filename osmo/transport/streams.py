@@ -162,21 +162,24 @@ class Stream:
 
     def send(self, kind: Kind, channel: int = 0, data: bytes | memoryview = b"") -> bool:
         """Send one frame (``data`` split into :data:`CHUNK` pieces); False once closed."""
+        if isinstance(data, bytes) and len(data) <= CHUNK:
+            return self._send_one(kind, channel, data)  # most socket reads: no copy
         view = memoryview(data)
-        while True:
-            # a frame's worth is sent as it is (most socket reads): no copy
-            piece = data if len(view) <= CHUNK and isinstance(data, bytes) else bytes(view[:CHUNK])
+        while view:
+            if not self._send_one(kind, channel, bytes(view[:CHUNK])):
+                return False
             view = view[CHUNK:]
-            with self._send_lock:
-                if self._closed.is_set():
-                    return False
-                self._seq_out += 1
-                header = _HEADER.pack(self._seq_out, kind, channel)
-                attachment = header + self._tag(self._dir_out, header, piece)
-                if not self._link.put(self._out, piece, attachment):
-                    return False
-            if not view:
-                return True
+        return True
+
+    def _send_one(self, kind: Kind, channel: int, piece: bytes) -> bool:
+        # numbered and put under one lock: the receiver drops any frame older than the last
+        with self._send_lock:
+            if self._closed.is_set():
+                return False
+            self._seq_out += 1
+            header = _HEADER.pack(self._seq_out, kind, channel)
+            attachment = header + self._tag(self._dir_out, header, piece)
+            return self._link.put(self._out, piece, attachment)
 
     def send_json(self, kind: Kind, channel: int, value: Any) -> bool:
         """Send a frame whose payload is ``value`` as JSON."""
