@@ -7,24 +7,10 @@ import subprocess
 import sys
 import time
 import urllib.request
-from collections.abc import Iterator
 from pathlib import Path
 
-import pytest
-
 from osmo.config import free_port
-from osmo.runtime.container import ContainerEngine
 from tests.conftest import REPO, Osmo, write
-from tests.containers.submitting import container_osmo, leftovers, owner_labels
-
-
-@pytest.fixture
-def cosmo(podman_env: dict[str, str], images: dict[str, str], engine: ContainerEngine,
-          tmp_path: Path) -> Iterator[Osmo]:
-    runner = container_osmo(tmp_path / "home", podman_env)
-    yield runner
-    runner.stop_server()
-    assert leftovers(engine, owner_labels(runner)) == ([], [])
 
 
 def _running(osmo: Osmo, spec: Path) -> str:

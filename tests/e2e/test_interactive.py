@@ -300,7 +300,6 @@ workflow:
         digests = {hashlib.sha256(body).hexdigest() for body in got}
         assert digests == {want.split()[0].decode()}
         assert {len(body) for body in got} == {2_500_000}
-        # a port the session was not granted is refused by the node, not connected
         cluster.osmo("cancel", wf)  # the task ends: port-forward says so and exits
         _, err = proc.communicate(timeout=30)
         assert proc.returncode == 0 and "port-forward stopped: the task ended" in err
@@ -344,6 +343,38 @@ workflow:
         assert proc.returncode == 0 and "port-forward stopped" in err
     finally:
         _stop(proc)
+        cluster.osmo("cancel", wf)
+
+
+def test_the_node_connects_only_to_the_ports_a_session_was_granted(
+        cluster: Cluster, tmp_path: Path) -> None:
+    """A client speaking the stream itself still reaches only its granted port, over TCP."""
+    wf = _running(cluster.osmo, _sleeper(tmp_path, "granted"), LOCAL)
+    link = Link.client([cluster.endpoint])
+    admin = ApiClient(link, token=(cluster.osmo.home / "auth" / "admin.token").read_text())
+    frames: list[Frame] = []
+    try:
+        reply = admin.call("forward_open", {"workflow_id": wf, "task": "t", "ports": [22]})
+        stream = Stream(link, SessionGrant.from_dict(reply["grant"]), "client",
+                        frames.append, lambda: None)
+        deadline = time.monotonic() + 30
+        while not any(f.kind is Kind.READY for f in frames):
+            assert time.monotonic() < deadline, frames
+            stream.send(Kind.HELLO)
+            time.sleep(0.2)
+        stream.send_json(Kind.OPEN, 1, {"port": 23})
+        stream.send_json(Kind.OPEN, 2, {"port": 22, "udp": True})
+        stream.send(Kind.OPEN, 3, b"{not json")
+        while len([f for f in frames if f.kind is Kind.CLOSE]) < 3:
+            assert time.monotonic() < deadline, frames
+            time.sleep(0.1)
+        closes = {f.channel: f.data for f in frames if f.kind is Kind.CLOSE}
+        assert closes == {1: b"port not granted to this session",
+                          2: b"port not granted to this session", 3: b"malformed OPEN"}
+        stream.send(Kind.CLOSE, 0)
+        stream.close()
+    finally:
+        link.close()
         cluster.osmo("cancel", wf)
 
 

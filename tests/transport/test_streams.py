@@ -83,16 +83,19 @@ def test_forged_replayed_and_reflected_frames_are_dropped(links: tuple[Link, Lin
     first = inbox.wait(1)
     assert [f.data for f in first] == [b"ls\n"]
     # replay what the spy saw of the genuine frame, and garbage
-    genuine = [(d, a) for d, a in seen if d == b"ls\n"]
-    assert genuine
+    deadline = time.monotonic() + 10
+    while not (genuine := [(d, a) for d, a in seen if d == b"ls\n"]):
+        assert time.monotonic() < deadline, "the spy never saw the frame"
+        time.sleep(0.05)
     client_link.put(up, *genuine[0])
     client_link.put(up, b"junk", b"\0" * 29)
     client_link.put(up, b"junk")
     # the node's own frames reflected back up are refused too
     node.send(Kind.DATA, 1, b"reflect")
-    time.sleep(0.3)
-    for data, att in [(d, a) for d, a in seen if d == b"reflect"]:
-        client_link.put(up, data, att)
+    while not (reflected := [(d, a) for d, a in seen if d == b"reflect"]):
+        assert time.monotonic() < deadline, "the spy never saw the node's frame"
+        time.sleep(0.05)
+    client_link.put(up, *reflected[0])
     client.send(Kind.DATA, 0, b"pwd\n")
     time.sleep(0.5)
     assert [f.data for f in inbox.wait(2)] == [b"ls\n", b"pwd\n"]
