@@ -241,6 +241,29 @@ def test_the_session_ends_and_its_process_dies_when_the_client_is_killed(
         cluster.osmo("cancel", wf)
 
 
+def test_sessions_end_when_their_worker_stops(cluster: Cluster, tmp_path: Path) -> None:
+    cluster.start_worker("w2", "--cpus", "1", pool="edge")
+    wf = _running(cluster.osmo, _sleeper(tmp_path, "stopping"), "edge")
+    marker = unique_sleep()
+    proc = subprocess.Popen([sys.executable, "-m", "osmo", "workflow", "exec", wf, "t", "--",
+                             "sleep", marker], stdin=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            text=True, env=cluster.osmo.env, cwd=REPO, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 30
+        while not _has_process(marker):
+            assert time.monotonic() < deadline and proc.poll() is None, "exec never started"
+            time.sleep(0.1)
+        cluster.signal("w2", signal.SIGINT)  # stop now (SIGTERM would drain)
+        _, err = proc.communicate(timeout=30)
+        assert proc.returncode == 3 and "the worker is stopping" in err
+        wait_no_process(marker, timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+        cluster.osmo("cancel", wf)
+
+
 def _has_process(arg: str) -> bool:
     for name in os.listdir("/proc"):
         try:
