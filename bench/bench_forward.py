@@ -164,7 +164,7 @@ def main() -> None:
     p.add_argument("--json")
     args = p.parse_args()
     if quick():
-        args.runs, args.size_mib, args.streams, args.pings = 1, 8, 4, 50
+        args.runs, args.size_mib, args.pings = 1, 8, 50
     print(machine_info(), flush=True)
     limit, fwd = raw(args), forwarded(args)
     one, many = f"{args.size_mib} MiB, 1 stream", f"{args.size_mib} MiB, {args.streams} streams"
