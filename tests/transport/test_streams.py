@@ -6,24 +6,12 @@ import os
 import secrets
 import threading
 import time
-from collections.abc import Iterator
 
 import pytest
 
-from osmo.config import free_port
 from osmo.errors import UsageError
 from osmo.transport.streams import CHUNK, Frame, Kind, SessionGrant, Stream
 from osmo.transport.zenoh_link import Link
-
-
-@pytest.fixture
-def links() -> Iterator[tuple[Link, Link]]:
-    port = free_port(0)
-    node = Link.router([f"tcp/127.0.0.1:{port}"])
-    client = Link.client([f"tcp/127.0.0.1:{port}"])
-    yield node, client
-    client.close()
-    node.close()
 
 
 def _grant(key: bytes | None = None) -> SessionGrant:
