@@ -10,6 +10,7 @@ from typing import Any
 
 from osmo.cli.artifacts import run_artifacts, run_lineage
 from osmo.cli.datasets import run_credential, run_dataset
+from osmo.cli.interactive import run_exec, run_forward
 from osmo.cli.plugins import run_plugins
 from osmo.cli.pools import run_pool, run_resource
 from osmo.cli.remote import run_health, run_profile, run_worker
@@ -221,6 +222,8 @@ _VERBS: dict[str, Callable[[argparse.Namespace], int]] = {
     "cancel": _cancel,
     "restart": _restart,
     "spec": _spec,
+    "exec": run_exec,
+    "port-forward": run_forward,
     "server": run_server,
     "artifacts": run_artifacts,
     "lineage": run_lineage,

@@ -21,6 +21,7 @@ from collections.abc import Iterator, Sequence
 from osmo.cli.artifacts import add_parsers as add_artifact_parsers
 from osmo.cli.datasets import add_credential_parsers
 from osmo.cli.datasets import add_parsers as add_dataset_parsers
+from osmo.cli.interactive import add_parsers as add_interactive_parsers
 from osmo.cli.plugins import add_parsers as add_plugin_parsers
 from osmo.cli.pools import add_parsers as add_pool_parsers
 from osmo.cli.remote import add_parsers as add_remote_parsers
@@ -32,7 +33,7 @@ from osmo.server.options import ServerOptions
 __all__ = ["build_parser", "main"]
 
 _WORKFLOW_VERBS = ("submit", "validate", "query", "status", "list", "logs", "events", "tag",
-                   "cancel", "restart", "spec")
+                   "cancel", "restart", "spec", "exec", "port-forward")
 
 
 def _add_format(p: argparse.ArgumentParser) -> None:
@@ -135,6 +136,7 @@ def _add_workflow_verbs(sub: argparse._SubParsersAction) -> None:  # type: ignor
 
     p = sub.add_parser("spec", help="print the spec a workflow was submitted with")
     p.add_argument("workflow_id")
+    add_interactive_parsers(sub)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -210,6 +212,21 @@ def _resolve_format(args: argparse.Namespace) -> None:
         args.format = chosen if chosen is not None else args._format_default
 
 
+def _parse(parser: argparse.ArgumentParser, argv: list[str]) -> argparse.Namespace:
+    """Parse ``argv``; for ``exec``, everything after the first ``--`` is the command.
+
+    (argparse would read a ``--group`` after the task as part of a trailing command.)
+    """
+    if "--" in argv:
+        cut = argv.index("--")
+        head = parser.parse_known_args(argv[:cut])[0] if argv[:cut] else None
+        if head is not None and (getattr(head, "wf_verb", None) or head.verb) == "exec":
+            args = parser.parse_args(argv[:cut])
+            args.command = argv[cut + 1:]
+            return args
+    return parser.parse_args(argv)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the CLI; returns (and, as a console script, exits with) the exit code."""
     from osmo.cli import commands
@@ -217,7 +234,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     parser = build_parser()
     try:
-        args = parser.parse_args(argv)
+        args = _parse(parser, list(sys.argv[1:] if argv is None else argv))
     except SystemExit as exc:  # argparse exits 2 on usage errors, 0 on --help
         return int(exc.code or 0)
     verb = getattr(args, "wf_verb", None) or args.verb

@@ -49,6 +49,7 @@ __all__ = [
     "ProcessRuntime",
     "Runtime",
     "StartError",
+    "die_with_parent",
     "exit_code_of",
     "kill_stale",
     "process_start_time",
@@ -128,7 +129,7 @@ class ProcessRuntime:
         if not argv:
             raise StartError("empty command")
         command = list(argv)
-        preexec: Callable[[], object] | None = _die_with_parent()
+        preexec: Callable[[], object] | None = die_with_parent()
         if self.sandbox is not None and view is not None:
             _check_command(argv[0], cwd, env)
             command, preexec = self.sandbox.argv(argv, view), None  # bwrap dies with us
@@ -201,7 +202,7 @@ _PR_SET_PDEATHSIG = 1
 
 
 @functools.cache  # loaded in the parent: the child between fork and exec only calls it
-def _die_with_parent() -> Callable[[], object]:
+def die_with_parent() -> Callable[[], object]:
     """A ``preexec_fn``: SIGKILL the child when the thread that spawned it ends."""
     prctl = ctypes.CDLL(None, use_errno=True).prctl
     return functools.partial(prctl, _PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)

@@ -33,6 +33,8 @@ if TYPE_CHECKING:  # the spec package (YAML, Jinja) loads only when a spec is ha
     from osmo.spec import Workflow
     from osmo.spec.model import WorkflowSpec
 from osmo.status import WorkflowStatus
+from osmo.transport.streams import SessionGrant
+from osmo.transport.zenoh_link import Link
 
 __all__ = ["Client", "EventInfo", "LogRecord", "TaskInfo", "TaskWaiting", "WorkflowInfo"]
 
@@ -333,6 +335,19 @@ class Client:
     def delete_credential(self, name: str) -> None:
         """Remove a stored credential."""
         self._call("credential_delete", name=name)
+
+    def open_session(self, verb: str, **request: Any) -> tuple[SessionGrant, Link]:
+        """Open an interactive session: ``exec_open`` or ``forward_open``.
+
+        Returns its grant and the link its stream runs on (``osmo.transport.streams``;
+        ``osmo.cli.interactive`` drives both ends of it).
+
+        Raises:
+            NotFoundError: no such workflow or task. NotAllowed: not the caller's workflow.
+            UsageError: the task is not running.
+        """
+        reply = self._call(verb, **request)
+        return SessionGrant.from_dict(reply["grant"]), self._conn.link
 
     def ping(self) -> dict[str, Any]:
         """The server's info (endpoint, pid, home)."""

@@ -51,6 +51,7 @@ from osmo.server.placing import output_manifests
 from osmo.server.records import RunRecords
 from osmo.server.recovery import InFlight, kill_leftovers, quarantine, restore, split_lost
 from osmo.server.requests import AttemptsOn
+from osmo.server.sessions import Sessions
 from osmo.server.workers import WorkerHub
 from osmo.store.sqlite import Store
 from osmo.transport.blobs import host_id
@@ -58,6 +59,7 @@ from osmo.transport.rpc import ApiServer
 from osmo.transport.zenoh_link import Link
 from osmo.worker import containers
 from osmo.worker.pool import LocalPool
+from osmo.worker.sessions import NodeSessions
 
 __all__ = ["serve"]
 
@@ -162,8 +164,10 @@ def serve(home: str | os.PathLike[str] | None = None, options: ServerOptions | N
             "host_id": host_id(), "artifacts": str(artifacts.root),
             "started_at": time.time(), "home": str(home_path), "options": options.to_argv(),
             "runtime": pool.runtime_name() if pool is not None else None}
+    local_sessions = NodeSessions(link, pool) if pool is not None else None
     handlers = Handlers(engine, home_path, info, on_shutdown=stopping.set, workers=hub,
-                        link=link, tokens=TokenHandlers(store, authenticate))
+                        link=link, tokens=TokenHandlers(store, authenticate),
+                        sessions=Sessions(store, hub, local_sessions))
     api_server = ApiServer(link, handlers.handle, authenticate, inline=WorkerHub.INLINE,
                            on_crash=lambda exc: log.error("API handler crashed", exc_info=exc))
     write_json_atomic(layout.server_info, info)
@@ -181,6 +185,8 @@ def serve(home: str | os.PathLike[str] | None = None, options: ServerOptions | N
         time.sleep(0.05)  # let the reply to a `shutdown` request leave
         layout.server_info.unlink(missing_ok=True)
         api_server.close()
+        if local_sessions is not None:
+            local_sessions.close("the server is stopping")
         engine.stop()  # and its executors: the local pool's processes die with the server
         notifier.close()
         records.close()

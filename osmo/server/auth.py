@@ -39,7 +39,7 @@ from osmo.transport.auth import Identity, Role, new_token, token_digest
 from osmo.transport.rpc import field
 
 __all__ = ["OWNER", "WORKER_VERBS", "Authenticator", "TokenHandlers", "accept_tokens",
-           "authorize", "owner_token", "refuse"]
+           "authorize", "check_owner", "owner_token", "refuse"]
 
 log = logging.getLogger("osmo.server.auth")
 
@@ -47,7 +47,7 @@ OWNER = "admin"
 """The name of the home owner's admin token."""
 
 WORKER_VERBS = frozenset({"worker_register", "worker_drain", "worker_report", "worker_log",
-                          "worker_secrets"})
+                          "worker_secrets", "worker_session"})
 """The verbs a worker speaks (and only a worker or an admin)."""
 
 _ADMIN_ONLY = frozenset({"shutdown", "token_create", "token_list", "token_revoke",
@@ -81,6 +81,19 @@ def authorize(verb: str, who: Identity) -> None:
                                 "`osmo token create NAME --role worker`)")
     if verb in _ADMIN_ONLY:
         raise refuse(verb, who, f"'{verb}' needs role admin; token '{who.name}' has role user")
+
+
+def check_owner(workflow_id: str, owner: str | None, who: Identity, verb: str) -> None:
+    """Let ``who`` act on workflow ``workflow_id`` only as an admin or its submitter ``owner``.
+
+    Raises:
+        NotAllowed: another user's workflow (logged once).
+    """
+    if who.role is Role.ADMIN or owner == who.name:
+        return
+    raise refuse(verb, who, f"workflow {workflow_id} was submitted by "
+                            f"{shown(owner) if owner else 'another user'}; only they or "
+                            "an admin may change it")
 
 
 class Authenticator:

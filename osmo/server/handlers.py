@@ -32,12 +32,13 @@ from osmo.names import (
 )
 from osmo.scheduler.types import PRIORITIES, CancelWorkflow
 from osmo.server.artifact_handlers import ArtifactHandlers
-from osmo.server.auth import TokenHandlers, authorize, refuse
+from osmo.server.auth import TokenHandlers, authorize, check_owner
 from osmo.server.credentials import CredentialHandlers, check_task_credentials
 from osmo.server.dataset_handlers import DatasetHandlers
 from osmo.server.engine import Engine
 from osmo.server.logview import last_progress, read_logs
 from osmo.server.requests import ListNodes, SubmitWorkflow, TagWorkflow, WaitReasons
+from osmo.server.sessions import Sessions
 from osmo.server.submitted import ClientTypes, check_no_localpath
 from osmo.server.workers import WorkerHub
 from osmo.spec import spec_from_dict
@@ -69,7 +70,8 @@ class Handlers:
 
     def __init__(self, engine: Engine, home: Path, info: dict[str, Any],
                  on_shutdown: Callable[[], None], workers: WorkerHub | None = None,
-                 link: Link | None = None, tokens: TokenHandlers | None = None) -> None:
+                 link: Link | None = None, tokens: TokenHandlers | None = None,
+                 sessions: Sessions | None = None) -> None:
         self._workers = workers  # the WorkerHub: its verbs, and worker status for pools
         self._engine = engine
         self._store = engine.store
@@ -92,6 +94,8 @@ class Handlers:
         }
         if workers is not None:
             self._callers.update(workers.verbs())
+        if sessions is not None:
+            self._callers.update(sessions.verbs())
         if tokens is not None:
             self._verbs.update(tokens.verbs())
         self._verbs.update(ArtifactHandlers(self._store, self._artifacts, self._row).verbs())
@@ -205,12 +209,8 @@ class Handlers:
         Raises:
             NotAllowed: another user's workflow (logged once).
         """
-        owner = row.options.get("submitted_by")
-        if who.role is Role.ADMIN or owner == who.name:
-            return row
-        raise refuse(verb, who, f"workflow {row.id} was submitted by "
-                                f"{shown(owner) if owner else 'another user'}; only they or "
-                                "an admin may change it")
+        check_owner(row.id, row.options.get("submitted_by"), who, verb)
+        return row
 
     def shutdown(self, _request: dict[str, Any]) -> dict[str, Any]:
         """Stop the server (after replying)."""

@@ -323,6 +323,18 @@ class WorkerHub:
         self._send(cmd.node_id, {"op": "kill", "attempt_id": cmd.attempt_id,
                                  "reason": cmd.reason})
 
+    def tell(self, wid: str, order: dict[str, Any]) -> None:
+        """Send worker ``wid`` an order (a put any zenoh peer may read: nothing secret)."""
+        self._send(wid, order)
+
+    def speaker(self, verb: str, request: dict[str, Any], who: Identity) -> str:
+        """The worker id a request of ``who`` speaks for (``WorkerAccess.speaker``)."""
+        return self._access.speaker(verb, request, who)
+
+    def check_placed(self, verb: str, wid: str, aid: str, who: Identity) -> None:
+        """Refuse (NotAllowed) unless attempt ``aid`` is placed on worker ``wid``."""
+        self._access.placed_on(verb, wid, aid, who)
+
     def _send(self, wid: str, order: dict[str, Any]) -> None:
         self._link.put(self._link.key("to-worker", wid), json.dumps(order).encode())
 

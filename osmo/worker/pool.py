@@ -58,6 +58,7 @@ from pathlib import Path
 from osmo.artifacts import ArtifactStore
 from osmo.artifacts.store import DEFAULT_MAX_FILES
 from osmo.layout import Home
+from osmo.runtime.container import ContainerEngine
 from osmo.runtime.container_runtime import ContainerRuntime
 from osmo.runtime.process import (
     ProcessHandle,
@@ -220,6 +221,21 @@ class LocalPool(AttemptStarts):
     def owns(self, node_id: str) -> bool:
         """Whether ``node_id`` is this pool's node."""
         return node_id == self._node_id
+
+    def running_launch(self, attempt_id: str) -> Launch | None:
+        """What ``attempt_id`` runs with while it runs here (None otherwise).
+
+        For interactive sessions (``osmo.worker.sessions``), from any thread: one read of the
+        reactor's table (atomic under the GIL) of a frozen ``Launch``.
+        """
+        attempt = self._attempts.get(attempt_id)
+        running = attempt is not None and attempt.state is AttemptState.RUNNING
+        return attempt.launch if running and attempt is not None else None
+
+    @property
+    def container_engine(self) -> ContainerEngine | None:
+        """The engine that runs this pool's image tasks (None: they run as processes)."""
+        return self._containers.engine if self._containers is not None else None
 
     def run(self, cmd: RunAttempt) -> None:
         """Start a prepared attempt: AttemptStarted, then one AttemptExited.

@@ -67,6 +67,7 @@ from osmo.worker import containers
 from osmo.worker.options import WorkerOptions
 from osmo.worker.pool import LocalPool
 from osmo.worker.procs import kill_recorded
+from osmo.worker.sessions import NodeSessions
 
 __all__ = ["RemoteWorker", "kill_leftovers", "procs_dir"]
 
@@ -131,6 +132,8 @@ class RemoteWorker:
             input_manifests=self._manifest_of, sandbox=options.sandbox,
             procs_dir=procs_dir(self.home),
             containers=containers.for_node(options.runtime, options.container_engine, self.home))
+        self.sessions = NodeSessions(self.link, self.pool, lambda ticket: self._api.call(
+            "worker_session", {"id": self.id, "ticket": ticket}))
         self._subs: list[Any] = []
 
     # ------------------------------------------------------------------ life cycle
@@ -197,6 +200,7 @@ class RemoteWorker:
             sub.close()
         if self._token is not None:
             self._token.close()
+        self.sessions.close("the worker is stopping")
         self.pool.close()
         self._io.shutdown(wait=False, cancel_futures=True)
         self.link.close()
@@ -271,6 +275,8 @@ class RemoteWorker:
                 self.pool.run(RunAttempt(aid, self.id))
             else:
                 self.pool.kill(KillAttempt(aid, self.id, str(order.get("reason"))))
+        elif op == "session":  # exec / port-forward: a ticket for its grant
+            self.sessions.order(order)
         elif op == "ack":
             with self._changed:
                 self._unacked.pop(aid, None)

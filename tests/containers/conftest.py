@@ -7,6 +7,7 @@
 - ``images`` (session): the tutorials' images, built offline (``ensure_images``).
 - ``labels``: the labels every container and network a test makes must carry; at the end
   the test must have removed them all (it fails otherwise, and the leftovers are removed).
+- ``cosmo``: a CLI whose server runs image tasks in containers; nothing of it may be left.
 - ``engine`` / ``runtime``: osmo's adapter for podman, and a ``ContainerRuntime`` that is
   closed (its background kills and removals finished) before ``labels`` checks.
 """
@@ -17,12 +18,15 @@ import os
 import shutil
 import uuid
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
 
 from osmo.runtime.container import ContainerEngine, detect_engine
 from osmo.runtime.container_runtime import ContainerRuntime
+from tests.conftest import Osmo
 from tests.containers.images import KINDS_PYTHON, ensure_images, write_containers_conf
+from tests.containers.submitting import container_osmo, leftovers, owner_labels
 
 TEST_LABEL = "osmo.test-session"
 
@@ -85,3 +89,13 @@ def runtime(engine: ContainerEngine, labels: dict[str, str]) -> Iterator[Contain
     rt = ContainerRuntime(engine)
     yield rt
     rt.close()
+
+
+@pytest.fixture
+def cosmo(podman_env: dict[str, str], images: dict[str, str], engine: ContainerEngine,
+          tmp_path: Path) -> Iterator[Osmo]:
+    """A CLI whose server runs image tasks in containers; nothing of it may be left after."""
+    runner = container_osmo(tmp_path / "home", podman_env)
+    yield runner
+    runner.stop_server()
+    assert leftovers(engine, owner_labels(runner)) == ([], [])

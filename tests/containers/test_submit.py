@@ -13,7 +13,6 @@ import subprocess
 import sys
 import time
 import uuid
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -21,7 +20,6 @@ import pytest
 from osmo.runtime.container import ContainerEngine
 from tests.conftest import Osmo, ended, write
 from tests.containers.submitting import (
-    container_osmo,
     leftovers,
     lineage_of,
     osmo_lines,
@@ -30,16 +28,6 @@ from tests.containers.submitting import (
     task_lines,
     tasks,
 )
-
-
-@pytest.fixture
-def cosmo(podman_env: dict[str, str], images: dict[str, str], engine: ContainerEngine,
-          tmp_path: Path) -> Iterator[Osmo]:
-    """A CLI whose server runs image tasks in containers; nothing of it may be left after."""
-    runner = container_osmo(tmp_path / "home", podman_env)
-    yield runner
-    runner.stop_server()
-    assert leftovers(engine, owner_labels(runner)) == ([], [])
 
 
 def submit_wait(osmo: Osmo, spec: Path, *args: str) -> tuple[int, str]:

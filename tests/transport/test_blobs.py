@@ -23,14 +23,6 @@ from osmo.transport.zenoh_link import Link
 ANYONE = lambda _attachment, _digest: True  # noqa: E731 - these tests are about transfer
 
 
-@pytest.fixture
-def links() -> Iterator[tuple[Link, Link]]:
-    port = free_port(0)
-    server = Link.router([f"tcp/127.0.0.1:{port}"])
-    client = Link.client([f"tcp/127.0.0.1:{port}"])
-    yield server, client
-    client.close()
-    server.close()
 
 
 @pytest.fixture
