@@ -55,6 +55,7 @@ from osmo.server.workers import WorkerHub
 from osmo.store.sqlite import Store
 from osmo.transport.blobs import host_id
 from osmo.transport.rpc import ApiServer
+from osmo.transport.wire import SERVER_ONLY
 from osmo.transport.zenoh_link import Link
 from osmo.worker import containers
 from osmo.worker.pool import LocalPool
@@ -107,7 +108,8 @@ def serve(home: str | os.PathLike[str] | None = None, options: ServerOptions | N
     kill_leftovers(store, lost)
 
     link = Link.router(endpoints, options.cluster, connect=connect,
-                       config_file=options.zenoh_config, peer=bool(connect) and not listen)
+                       config_file=options.zenoh_config, peer=bool(connect) and not listen,
+                       reserved=SERVER_ONLY)
     stopping = threading.Event()
 
     notifier = Notifier(link)
