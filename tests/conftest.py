@@ -122,6 +122,9 @@ class Osmo:
         self.env = dict(os.environ, OSMO_HOME=str(home), PYTHONUNBUFFERED="1")
         self.env.pop("OSMO_SERVER", None)
         self.env.setdefault("OSMO_RUNTIME", "process")  # image tasks: tests/containers
+        # Tests hand gate and marker files to tasks through their tmp folder: shared with the
+        # sandbox explicitly (a sandboxed task has its own empty /tmp otherwise).
+        self.env.setdefault("OSMO_SANDBOX_SHARE", str(home.parent))
 
     def __call__(self, *args: str, timeout: float = 180, check: bool = False,
                  cwd: Path = REPO) -> Result:

@@ -122,7 +122,8 @@ def serve(home: str | os.PathLike[str] | None = None, options: ServerOptions | N
                      credential_for=url_credential(store),
                      input_manifests=output_manifests(store),
                      task_secrets=store.credential,
-                     sandbox=options.sandbox, containers=boxes) if options.local_pool else None
+                     sandbox=options.sandbox, sandbox_share=options.sandbox_share,
+                     containers=boxes) if options.local_pool else None
     hub = WorkerHub(link=link, emit=inbox.post, store=store,
                     artifacts=artifacts, home=home_path, url_credential=url_credential(store),
                     attempts_on=lambda node: list(inbox.ask(AttemptsOn(node))),
