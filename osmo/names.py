@@ -5,6 +5,7 @@ letters, digits, ``-`` and ``_``, starting with a letter and ending with a lette
 at most :data:`MAX_NAME` characters. Such a name is safe as one path component, a zenoh key
 chunk and a log label, so whatever takes a name from a user (a spec, the CLI, the SDK, the
 server API) checks it here before the name touches a path. Workflow ids are ``NAME-N``.
+Container image references follow the OCI reference grammar (:func:`image_problem`).
 Dataset references are ``NAME[:TAG|VERSION|latest]``; ``latest`` and numbers name versions,
 so they cannot be tags (a tag starts with a letter, and ``latest`` is reserved). A worker's
 name is looser, so that its default (``HOSTNAME-PID``) passes: letters, digits, ``.``, ``-``
@@ -25,8 +26,8 @@ from typing import Any
 from osmo.errors import UsageError
 
 __all__ = ["MAX_NAME", "NAME_RE", "check_label", "check_name", "check_tag", "check_worker_name",
-           "check_workflow_id", "did_you_mean", "name_problem", "object_ref", "parse_ref",
-           "ref_problem", "shown", "workflow_id_problem"]
+           "check_workflow_id", "did_you_mean", "image_problem", "name_problem", "object_ref",
+           "parse_ref", "ref_problem", "shown", "workflow_id_problem"]
 
 NAME_RE = re.compile(r"[a-zA-Z](?:[a-zA-Z0-9_-]*[a-zA-Z0-9])?")
 MAX_NAME = 64
@@ -156,6 +157,47 @@ def parse_ref(ref: object, what: str = "dataset") -> tuple[str, str | None]:
     assert isinstance(ref, str)
     name, _, tag = ref.partition(":")
     return name, tag or None
+
+
+# The OCI image reference grammar (github.com/distribution/reference, regexp.go):
+# [HOST[:PORT]/]PATH[:TAG][@DIGEST], PATH lower-case components joined by '/'.
+_PATH_PART = r"[a-z0-9]+(?:(?:[._]|__|-+)[a-z0-9]+)*"
+_HOST_PART = r"(?:[a-zA-Z0-9]|[a-zA-Z0-9][a-zA-Z0-9-]*[a-zA-Z0-9])"
+_HOST = rf"(?:{_HOST_PART}(?:\.{_HOST_PART})*|\[[a-fA-F0-9:]+\])(?::[0-9]+)?"
+_IMAGE_RE = re.compile(
+    rf"(?P<name>(?:{_HOST}/)?{_PATH_PART}(?:/{_PATH_PART})*)"
+    r"(?::[\w][\w.-]{0,127})?"
+    r"(?:@(?P<algo>[A-Za-z][A-Za-z0-9]*(?:[-_+.][A-Za-z][A-Za-z0-9]*)*)"
+    r":(?P<hex>[0-9a-fA-F]{32,}))?", re.ASCII)
+_MAX_IMAGE_NAME = 255  # the grammar's limit on HOST/PATH
+_MAX_IMAGE = _MAX_IMAGE_NAME + 1 + 128 + 1 + 7 + 1 + 128  # with a tag and a sha512 digest
+_DIGEST_HEX = {"sha256": 64, "sha512": 128}
+_IMAGE_FORM = ("write [REGISTRY[:PORT]/]NAME[:TAG][@sha256:HEX], NAME in lower case, like "
+               "nvcr.io/nvidia/pytorch:24.01-py3")
+
+
+def image_problem(image: str) -> str | None:
+    """Why ``image`` is not a container image reference of the OCI grammar, or None.
+
+    What passes can go to an engine's CLI as one word: it never starts with ``-``, holds no
+    whitespace, control character, quote or shell character.
+    """
+    if not image:
+        return "an image reference must not be empty"
+    if image.startswith("-"):
+        return f"{shown(image)} starts with '-' (an engine would read it as an option)"
+    if any(c.isspace() or ord(c) < 32 or ord(c) == 127 for c in image):
+        return f"{shown(image)} holds whitespace or a control character"
+    match = _IMAGE_RE.fullmatch(image) if len(image) <= _MAX_IMAGE else None
+    if len(image) > _MAX_IMAGE or (match is not None and len(match["name"]) > _MAX_IMAGE_NAME):
+        return (f"{shown(image)} is too long: a repository name has at most "
+                f"{_MAX_IMAGE_NAME} characters")
+    if match is None:
+        return f"{shown(image)} is not an image reference: {_IMAGE_FORM}"
+    want = _DIGEST_HEX.get((match["algo"] or "").lower())
+    if want is not None and len(match["hex"]) != want:
+        return f"{shown(image)} has a {match['algo']} digest of {want} hex digits"
+    return None
 
 
 def workflow_id_problem(workflow_id: object) -> str | None:

@@ -5,13 +5,13 @@ What it owns:
 - **engines** — :func:`detect_engine` finds ``podman`` (first) or ``docker`` (or the one
   named) and its version; none usable is :class:`EngineNotFound`, naming the package.
 - **images, networks, clean-up** — :class:`ContainerEngine`: an image's id (pulling a missing
-  image, progress lines to a callback, registry credentials on stdin into a private folder
-  that is deleted afterwards), group networks, and containers/networks found and removed by
-  label (orphans after a ``kill -9``).
+  image, progress lines to a callback as the engine prints them, registry credentials in a
+  0600 auth file of a private folder that is deleted after the pull), group networks, and
+  containers/networks found and removed by label (orphans after a ``kill -9``).
 
 The runs themselves are described, and turned into argv, by ``osmo.runtime.container_run``
 (pure; its names are re-exported here); ``osmo.runtime.container_runtime`` spawns them
-behind the runtime contract.
+behind the runtime contract; ``osmo.runtime.container_pull`` runs a pull.
 
 Decisions, checked with podman 4.3 and the docker 28 CLI (``tests/containers``):
 
@@ -29,11 +29,12 @@ from __future__ import annotations
 import os
 import shutil
 import subprocess
-import tempfile
+import threading
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+from osmo.runtime.container_pull import ImageError, pull_image
 from osmo.runtime.container_run import (
     DATA_OUTPUT,
     SECRET_ENV_PATH,
@@ -43,8 +44,6 @@ from osmo.runtime.container_run import (
     Mount,
     RegistryAuth,
     data_input,
-    login_argv,
-    pull_argv,
     run_argv,
     safe_name,
 )
@@ -63,10 +62,6 @@ _NO_CONTAINER = ("no such container", "no container with")
 
 class EngineNotFound(ContainerError):
     """No usable container engine on this machine (the message names what to install)."""
-
-
-class ImageError(ContainerError):
-    """An image is missing and cannot be pulled: ``image 'x' not found: <why>``."""
 
 
 @dataclass(frozen=True)
@@ -146,6 +141,7 @@ class ContainerEngine:
     def __init__(self, engine: EngineInfo, *, env: Mapping[str, str] | None = None) -> None:
         self.engine = engine
         self._env = None if env is None else dict(env)
+        self._store_file: Path | None | bool = False  # False: not looked for yet
 
     @property
     def env(self) -> dict[str, str]:
@@ -175,6 +171,36 @@ class ContainerEngine:
         return ImageInfo(ident if ident.startswith("sha256:") else f"sha256:{ident}",
                          tuple(digests))
 
+    def store_stamp(self) -> tuple[int, int, int] | None:
+        """A fingerprint of the local image store that changes with every image change.
+
+        podman replaces its store's ``images.json`` (a new inode) on each pull, tag,
+        untag and removal, and leaves it alone when containers run: its inode, mtime and
+        size are the stamp, read with one ``stat``. None when there is none to read
+        (docker's daemon owns its store; an engine that cannot say where its store is).
+        """
+        if self._store_file is False:
+            self._store_file = self._find_store_file()
+        if not isinstance(self._store_file, Path):
+            return None
+        try:
+            found = os.stat(self._store_file)
+        except OSError:
+            return None
+        return found.st_ino, found.st_mtime_ns, found.st_size
+
+    def _find_store_file(self) -> Path | None:
+        if self.engine.name != "podman":
+            return None
+        try:
+            root, _, driver = self.call("info", "--format",
+                                        "{{.Store.GraphRoot}}\t{{.Store.GraphDriverName}}"
+                                        ).strip().partition("\t")
+        except ContainerError:
+            return None
+        path = Path(root) / f"{driver}-images" / "images.json"
+        return path if root and driver and path.is_file() else None
+
     def resolve(self, image: str, *, pull: bool = True,
                 progress: Callable[[str], None] | None = None,
                 auth: RegistryAuth | None = None) -> ImageInfo:
@@ -201,42 +227,13 @@ class ContainerEngine:
              auth: RegistryAuth | None = None) -> None:
         """Pull ``image``; each progress line goes to ``progress`` as it comes.
 
-        With ``auth``, a login into a private folder (deleted afterwards) comes first.
+        With ``auth``, the pull reads it from an auth file (0600) in a private folder that
+        is deleted when the pull ends.
 
         Raises:
-            ImageError: the login or the pull failed (the engine's reason; never a password).
+            ImageError: the pull failed (the engine's reason; never a password).
         """
-        with tempfile.TemporaryDirectory(prefix="osmo-registry-") as folder:
-            config = Path(folder) if auth is not None else None
-            secrets = [auth.password] if auth is not None else []
-            try:
-                if auth is not None and config is not None:
-                    argv, extra, stdin = login_argv(self.engine, auth, config)
-                    _call(argv, {**self.env, **extra}, timeout=120, stdin=stdin)
-                argv, extra = pull_argv(self.engine, image, config)
-                self._stream(argv, {**self.env, **extra}, progress, secrets)
-            except ContainerError as exc:
-                raise ImageError(_scrub(f"image '{image}' not found: not on this node and the "
-                                        f"pull failed: {exc}", secrets)) from None
-
-    def _stream(self, argv: list[str], env: Mapping[str, str],
-                progress: Callable[[str], None] | None, secrets: list[str]) -> None:
-        try:
-            proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
-                                    stderr=subprocess.STDOUT, env=dict(env))
-        except OSError as exc:
-            raise ContainerError(f"cannot run {argv[0]}: {exc.strerror or exc}") from exc
-        last = ""
-        assert proc.stdout is not None
-        with proc.stdout:
-            for raw in proc.stdout:
-                line = _scrub(raw.decode(errors="replace").rstrip(), secrets)
-                if line.strip():
-                    last = line.strip()
-                    if progress is not None:
-                        progress(line)
-        if proc.wait() != 0:
-            raise ContainerError(last.removeprefix("Error: ") or f"exit code {proc.returncode}")
+        pull_image(self.engine, self.env, image, progress=progress, auth=auth)
 
     # -------------------------------------------------------------- networks
 
@@ -272,6 +269,45 @@ class ContainerEngine:
         """Ids of the running containers that carry every one of ``labels``."""
         return self.call("ps", "--no-trunc", *_filters(labels), "--filter=status=running",
                          "--format", "{{.ID}}").split()
+
+    def wait_started(self, label: tuple[str, str], where: tuple[str, str], *, since: float,
+                     timeout: float) -> bool:
+        """Wait for a container labelled ``label`` whose label ``where`` holds to start.
+
+        A start at or after ``since`` (epoch seconds) counts, also one before this call:
+        the engine's event stream (``events --since``) is read, nothing is polled.
+
+        Returns:
+            True once one started; False when ``timeout`` seconds passed first.
+
+        Raises:
+            ContainerError: the engine has no event stream here (it ended by itself, e.g.
+                a journald event log this user cannot read).
+        """
+        key, want = where
+        attributes = ".Attributes" if self.engine.name == "podman" else ".Actor.Attributes"
+        # the engines OR label filters: filter by one, read the other from each event
+        argv = [self.engine.path, "events", f"--since={since:.3f}", *_filters(dict([label])),
+                "--filter=event=start", "--format", f'{{{{index {attributes} "{key}"}}}}']
+        try:
+            proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+                                    stderr=subprocess.DEVNULL, env=self.env)
+        except OSError as exc:
+            raise ContainerError(f"cannot run {argv[0]}: {exc.strerror or exc}") from exc
+        timer = threading.Timer(timeout, proc.kill)  # ends the stream: readline sees EOF
+        timer.start()
+        assert proc.stdout is not None
+        try:
+            if any(line.decode(errors="replace").strip() == want for line in proc.stdout):
+                return True
+        finally:
+            timer.cancel()
+            proc.kill()
+            code = proc.wait()
+            proc.stdout.close()
+        if code >= 0:  # it ended by itself, not by the timer's kill
+            raise ContainerError(f"`{self.engine.name} events` ended with exit code {code}")
+        return False
 
     def kill(self, container: str, signal: str = "TERM") -> bool:
         """Send ``signal`` to a running container; False when it is not running (yet)."""
@@ -321,10 +357,3 @@ def _filters(labels: Mapping[str, str]) -> list[str]:
     if not labels:  # no filter would match every container on the machine
         raise ContainerError("refusing to list containers without a label filter")
     return [f"--filter=label={key}={value}" for key, value in sorted(labels.items())]
-
-
-def _scrub(text: str, secrets: list[str]) -> str:
-    for secret in secrets:
-        if secret:
-            text = text.replace(secret, "***")
-    return text

@@ -22,12 +22,16 @@ Decisions, each checked with podman 4.3 and the docker 28 CLI (``tests/container
 - ``NVIDIA_VISIBLE_DEVICES`` is always set to exactly the assigned GPUs (empty: none), after
   the task's own variables, so neither the task nor a CUDA image's ``all`` widens it. GPUs
   themselves: docker ``--gpus="device=0,1"``, podman CDI ``--device=nvidia.com/gpu=0``.
-- Logins and pulls get a private credentials folder (``config_dir``): podman's
-  ``--authfile``, docker's ``DOCKER_CONFIG``; the password goes on stdin only.
+- A pull with credentials gets a private folder (``config_dir``) holding one auth file
+  (:func:`registry_config`: podman's ``--authfile``, docker's ``DOCKER_CONFIG``), written
+  0600 by ``ContainerEngine`` and deleted after the pull; no ``login`` (it would be a
+  second round trip, and a login of the engine's own config would outlive the pull). The
+  password is in neither argv nor environment.
 """
 
 from __future__ import annotations
 
+import base64
 import csv
 import hashlib
 import io
@@ -39,10 +43,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from osmo.errors import OsmoError
+from osmo.names import image_problem
 
 __all__ = ["DATA_OUTPUT", "SECRET_ENV_PATH", "ContainerError", "ContainerRun", "EngineInfo",
-           "Mount", "RegistryAuth", "data_input", "login_argv", "pull_argv",
-           "pull_reference", "run_argv", "safe_name", "secret_env_text"]
+           "Mount", "RegistryAuth", "data_input", "pull_argv", "pull_reference",
+           "registry_config", "run_argv", "safe_name", "secret_env_text"]
 
 DATA_OUTPUT = "/osmo/data/output"
 """Where a task's output folder is bound inside its container."""
@@ -50,7 +55,6 @@ SECRET_ENV_PATH = "/osmo/run/secret.env"
 """Where a run's secret-variables file is bound (read-only) inside its container."""
 
 _WRAPPER = f'. {SECRET_ENV_PATH} && exec "$@"'
-_IMAGE = re.compile(r"[A-Za-z0-9][A-Za-z0-9._/:@+-]{0,511}")
 _NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,127}")
 _SHELL_VAR = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 
@@ -193,25 +197,26 @@ def run_argv(engine: EngineInfo, run: ContainerRun) -> list[str]:
     return [*argv, run.image, *command[1:]]
 
 
-def login_argv(engine: EngineInfo, auth: RegistryAuth, config_dir: Path
-               ) -> tuple[list[str], dict[str, str], bytes]:
-    """``(argv, extra environment, stdin)`` of a login into ``config_dir`` only.
+def registry_config(engine: EngineInfo, auth: RegistryAuth, config_dir: Path
+                    ) -> tuple[Path, str]:
+    """``(path, text)`` of the auth file in ``config_dir`` that ``pull_argv`` points at.
 
-    The password is stdin, never argv or environment.
+    The engines' common ``{"auths": {HOST: {"auth": base64(user:password)}}}``; Docker Hub
+    is also written under the key docker's CLI looks it up by.
     """
     _check_registry(auth.registry)
-    argv = [engine.path, "login", f"--username={auth.username}", "--password-stdin"]
-    if engine.name == "podman":
-        argv.insert(2, f"--authfile={config_dir / 'auth.json'}")
-    env = {"DOCKER_CONFIG": str(config_dir)} if engine.name == "docker" else {}
-    return [*argv, auth.registry], env, auth.password.encode()
+    token = base64.b64encode(f"{auth.username}:{auth.password}".encode()).decode()
+    hosts = [auth.registry]
+    if auth.registry == "docker.io":
+        hosts.append("https://index.docker.io/v1/")
+    name = "auth.json" if engine.name == "podman" else "config.json"
+    return config_dir / name, json.dumps({"auths": {h: {"auth": token} for h in hosts}})
 
 
 def pull_argv(engine: EngineInfo, image: str, config_dir: Path | None = None
               ) -> tuple[list[str], dict[str, str]]:
-    """``(argv, extra environment)`` of pulling ``image`` (with ``login_argv``'s folder)."""
-    if not _IMAGE.fullmatch(image):
-        raise ContainerError(f"unusable image reference {image!r}")
+    """``(argv, extra environment)`` of pulling ``image`` (with ``registry_config``'s folder)."""
+    _check_image(image)
     argv = [engine.path, "pull"]
     env: dict[str, str] = {}
     if config_dir is not None and engine.name == "podman":
@@ -241,9 +246,15 @@ def _gpu_args(engine: EngineInfo, gpus: tuple[int, ...]) -> list[str]:
     return [f"--device=nvidia.com/gpu={g}" for g in gpus]  # CDI (`nvidia-ctk cdi generate`)
 
 
+def _check_image(image: str) -> None:
+    """The spec refuses these already; this keeps a stored or hand-made run honest too."""
+    problem = image_problem(image)
+    if problem is not None:
+        raise ContainerError(f"unusable image reference: {problem}")
+
+
 def _check(run: ContainerRun) -> None:
-    if not _IMAGE.fullmatch(run.image):
-        raise ContainerError(f"unusable image reference {run.image!r}")
+    _check_image(run.image)
     names = [("container name", run.name), *(("alias", a) for a in run.aliases)]
     names += [("network", run.network)] if run.network else []
     names += [("hostname", run.hostname)] if run.hostname else []

@@ -25,9 +25,13 @@ from osmo.server.auth import refuse
 from osmo.spec.model import TaskSpec
 from osmo.transport.auth import Identity, Role
 from osmo.transport.wire import worker_id
+from osmo.worker.container_images import registry_credential
 from osmo.worker.secrets import SecretError, gather
 
-__all__ = ["WorkerAccess", "task_secrets", "task_urls"]
+__all__ = ["WorkerAccess", "has_secrets", "task_secrets", "task_urls"]
+
+Credential = Callable[[str], dict[str, str] | None]
+"""A credential's name or a data URL → its payload (None: there is none)."""
 
 _KEEP_PLACED = 1 << 16  # attempt placements remembered (the engine fences older ones anyway)
 _KEEP_GRANTS = 1 << 20  # input blobs remembered per worker
@@ -139,9 +143,30 @@ def task_urls(task: TaskSpec) -> list[str]:
     return urls + [str(c["url"]) for c in task.checkpoint if c.get("url")]
 
 
-def task_secrets(task: TaskSpec, credential: Callable[[str], dict[str, str] | None],
-                 url_credential: Callable[[str], dict[str, str] | None]) -> dict[str, Any]:
+def _registry(task: TaskSpec, credential: Credential, containers: bool
+              ) -> dict[str, dict[str, str]]:
+    """The stored credential of ``task``'s image registry, for a worker that pulls it."""
+    name = registry_credential(task) if containers else None
+    payload = credential(name) if name is not None else None
+    return {name: payload} if name is not None and payload is not None else {}
+
+
+def has_secrets(task: TaskSpec, credential: Credential, url_credential: Credential, *,
+                containers: bool) -> bool:
+    """Whether a worker must ask for secrets (``task_secrets``) before it prepares ``task``.
+
+    ``containers``: the worker runs image tasks in containers (so it pulls their images).
+    """
+    return (bool(task.credentials) or any(url_credential(u) for u in task_urls(task))
+            or bool(_registry(task, credential, containers)))
+
+
+def task_secrets(task: TaskSpec, credential: Credential, url_credential: Credential, *,
+                 containers: bool = False) -> dict[str, Any]:
     """What a worker gets for an attempt of ``task``: its secrets and URL credentials.
+
+    A worker that runs containers (``containers``) also gets the stored credential of the
+    registry ``task``'s image is on (``registry://HOST``), and no other registry's.
 
     Raises:
         OsmoError: a credential it names is gone.
@@ -150,5 +175,6 @@ def task_secrets(task: TaskSpec, credential: Callable[[str], dict[str, str] | No
         values = gather(task, credential) if task.credentials else {}
     except SecretError as exc:
         raise OsmoError(str(exc)) from exc
+    values.update(_registry(task, credential, containers))
     return {"secrets": values,
             "url_credentials": {u: c for u in task_urls(task) if (c := url_credential(u))}}

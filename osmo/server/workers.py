@@ -54,7 +54,7 @@ from osmo.scheduler.types import (
 )
 from osmo.server.auth import refuse
 from osmo.server.remote_logs import RemoteLogs
-from osmo.server.worker_access import WorkerAccess, task_secrets, task_urls
+from osmo.server.worker_access import WorkerAccess, has_secrets, task_secrets
 from osmo.spec.model import ResourceSpec, TaskSpec
 from osmo.store.sqlite import Store
 from osmo.transport.auth import Identity
@@ -177,7 +177,8 @@ class WorkerHub:
         if task is None:
             raise refuse("worker_secrets", who, f"attempt {aid!r} was prepared before the "
                                                 "server restarted; its secrets were sent then")
-        return task_secrets(task, self._store.credential, self._url_credential)
+        return task_secrets(task, self._store.credential, self._url_credential,
+                            containers=self._contained(wid))
 
     def drain(self, request: dict[str, Any], who: Identity) -> dict[str, Any]:
         """A worker stops taking work: announce it with no capacity."""
@@ -295,9 +296,14 @@ class WorkerHub:
         order["manifests"] = {ref: self._manifest_of(ref) for ref in set(cmd.inputs.values())
                               if not _is_url(ref)}
         # the values are asked for by the worker (``worker_secrets``), never sent here
-        order["secrets"] = bool(task.credentials) or any(
-            self._url_credential(u) for u in task_urls(task))
+        order["secrets"] = has_secrets(task, self._store.credential, self._url_credential,
+                                       containers=self._contained(cmd.node_id))
         return order
+
+    def _contained(self, wid: str) -> bool:
+        """Whether worker ``wid`` runs image tasks in containers (pulling their images)."""
+        with self._lock:
+            return str(self._info.get(wid, {}).get("runtime") or "").startswith("container")
 
     def _manifest_of(self, ref: str) -> str:
         found = self._store.output_of(ref)

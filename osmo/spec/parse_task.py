@@ -12,7 +12,7 @@ import re
 from pathlib import Path
 from typing import Any
 
-from osmo.names import did_you_mean
+from osmo.names import did_you_mean, image_problem
 from osmo.spec.model import DEFAULT_RESOURCE, ExitAction, ExitRule, TaskSpec
 from osmo.spec.parse_io import parse_checkpoint, parse_files, parse_inputs, parse_outputs
 from osmo.spec.reader import (
@@ -80,6 +80,15 @@ def _credentials(ctx: Ctx, node: Node, where: str) -> dict[str, Any]:
             ctx.error(value, f"credential '{key.text}' of {where} must be a mount path or a "
                              "mapping ENV_NAME: secret_key")
     return out
+
+
+def _image(ctx: Ctx, node: Node, where: str) -> str | None:
+    """An OCI image reference; anything else is refused here, before an engine sees it."""
+    image = read_str(ctx, node, f"'image' of {where}")
+    problem = image_problem(image) if image is not None else None
+    if problem is not None:
+        ctx.error(node, f"'image' of {where} is not a usable image reference: {problem}")
+    return image
 
 
 def _codes_value(ctx: Ctx, node: Node, what: str) -> Any:
@@ -173,7 +182,7 @@ def parse_task(ctx: Ctx, node: Node, base_dir: Path) -> TaskSpec | None:
     f = fields  # short alias: the constructor call below reads one field per line
     return TaskSpec(
         name=name or "",
-        image=_optional(ctx, f, "image", read_str, f"'image' of {where}"),
+        image=_optional(ctx, f, "image", _image, where),
         command=_command(ctx, f, node, where),
         args=_optional(ctx, f, "args", read_str_list, f"'args' of {where}") or (),
         environment=_optional(ctx, f, "environment", _str_map, "environment variable") or {},

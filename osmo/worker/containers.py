@@ -8,10 +8,11 @@ image stay host processes (``osmo.runtime.process``).
 The data layout inside the container is ``osmo.worker.container_layout``'s.
 
 :class:`ContainerTasks` finishes a prepared launch (:meth:`ContainerTasks.finish`): resolves
-the image to its id (pulling a missing one, progress lines kept for the task's log, registry
-credentials for the pull only), names and labels the container (``osmo.owner``,
-``osmo.workflow``, ``osmo.task``, ``osmo.attempt``), runs it as the invoking uid:gid with
-``--init``, applies cpu/memory limits and GPU indices, and puts a group on its network.
+the image to its id (pulling a missing one, its progress lines to the task's log as the
+engine prints them, registry credentials for the pull only), names and labels the container
+(``osmo.owner``, ``osmo.workflow``, ``osmo.task``, ``osmo.attempt``), runs it as the
+invoking uid:gid with ``--init``, applies cpu/memory limits and GPU indices, and puts a
+group on its network.
 
 Groups: when every member of a group runs at one address (this host), the group gets its own
 network and ``{{host:NAME}}`` is NAME's alias on it (the task name). Members spread over
@@ -60,6 +61,7 @@ RUNTIMES = ("auto", "container", "process")
 
 _ALIAS = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,62}")
 _LEAD_WAIT = 30.0  # s: a peer waits this long for its lead's container, then starts anyway
+_CLOCK_SLACK = 1.0  # s: events are stamped by the engine; read a little before the spawn
 _GPU_SHM = 1 << 30  # bytes of /dev/shm for a GPU task (the engines' 64 MiB starves loaders)
 
 
@@ -123,6 +125,7 @@ class ContainerTasks:
         self._lock = threading.Lock()
         self._networks: dict[str, int] = {}  # network → attempts of this pool using it
         self._leads: dict[str, threading.Event] = {}  # network → its lead was started
+        self._lead_since: dict[str, float] = {}  # network → when its lead's CLI was spawned
         self._gpus: GpuSlots | None = None  # made with the node's GPU count on first use
 
     def describe(self) -> str:
@@ -145,20 +148,22 @@ class ContainerTasks:
         return replace(cmd, hosts={name: _alias(name) for name in cmd.hosts})
 
     def finish(self, launch: Launch, cmd: PrepareAttempt, task: TaskSpec, dirs: AttemptDirs, *,
-               request: ResourceSpec, gpus: int, auth: RegistryAuth | None = None) -> Launch:
+               request: ResourceSpec, gpus: int, auth: RegistryAuth | None = None,
+               progress: Callable[[str], None] = lambda line: None) -> Launch:
         """The launch with its container complete: image id, name, labels, user, network.
 
         ``cmd`` is the placement as sent (not :meth:`placement`'s); ``request`` the task's
         resources (cpu/memory limits, GPU count) and ``gpus`` how many the node has. Runs
-        on an I/O thread (it may pull). Raises ImageError (``image 'x' not found: …``)
-        or ContainerError (the network cannot be made); nothing stays held then.
+        on an I/O thread (it may pull: each line the engine prints goes to ``progress`` as
+        it comes). Raises ImageError (``image 'x' not found: …``) or ContainerError (the
+        network cannot be made); nothing stays held then.
         """
         if self._gpus is None:
             self._gpus = GpuSlots(gpus)
         held = self._gpus.take(cmd.attempt_id, request.gpu or 0)
         limits = Limits(cpus=float(request.cpu or 0), memory=request.memory, gpus=held)
         try:
-            return self._finish(launch, cmd, task, dirs, limits, auth)
+            return self._finish(launch, cmd, task, dirs, limits, auth, progress)
         except BaseException:
             self._gpus.give_back(cmd.attempt_id)
             remove_secret_files(launch)  # a failed preparation leaves no secret behind
@@ -173,18 +178,19 @@ class ContainerTasks:
         assert launch.container is not None
         if wait_for_lead:
             self.wait_for_lead(launch.container)
+        spawned = time.time()  # its container starts after this (what a peer waits for)
         handle = self.runtime.start(launch.argv, cwd=launch.cwd, env=launch.env,
                                     container=launch.container)
-        self.started(launch.container)
+        self.started(launch.container, since=spawned)
         return handle
 
     def _finish(self, launch: Launch, cmd: PrepareAttempt, task: TaskSpec, dirs: AttemptDirs,
-                limits: Limits, auth: RegistryAuth | None) -> Launch:
+                limits: Limits, auth: RegistryAuth | None,
+                progress: Callable[[str], None]) -> Launch:
         assert launch.container is not None and task.image is not None
-        notes: list[str] = []
         image = self.images.resolve(cmd.workflow_id, task.image, pull=self._pull, auth=auth,
-                                    progress=lambda line: notes.append(f"pull: {line}"))
-        notes.append(f"image '{task.image}' is {image} ({self.describe()})")
+                                    progress=progress)
+        note = f"image '{task.image}' is {image} ({self.describe()})"
         network = self._network(cmd)
         lead = task.lead or next(iter(cmd.hosts), cmd.task) == cmd.task
         labels = {**self.labels, "osmo.workflow": cmd.workflow_id, "osmo.task": cmd.task,
@@ -200,26 +206,43 @@ class ContainerTasks:
             cpus=limits.cpus or None, memory=limits.memory, gpus=limits.gpus,
             shm_size=_GPU_SHM if limits.gpus else None,
             secret_env_file=dirs.root / "secret.env" if launch.container.secret_env else None)
-        return replace(launch, container=run, notes=(*launch.notes, *notes))
+        return replace(launch, container=run, notes=(*launch.notes, note))
 
     # -------------------------------------------------------------- groups
 
-    def started(self, run: ContainerRun) -> None:
-        """Note that ``run`` was started (a lead releases its waiting peers)."""
+    def started(self, run: ContainerRun, *, since: float | None = None) -> None:
+        """Note that ``run``'s engine CLI was spawned (at ``since``, epoch seconds, or now).
+
+        A lead releases its waiting peers, which then wait for its container's start.
+        """
         if run.labels.get("osmo.lead") == "1" and run.network is not None:
+            with self._lock:
+                self._lead_since[run.network] = time.time() if since is None else since
             self._lead_event(run.network).set()
 
     def wait_for_lead(self, run: ContainerRun) -> None:
         """Block (I/O thread) until the lead of ``run``'s group network runs, at most 30 s.
 
         The start barrier starts a group's members together; a peer that calls its lead at
-        once (OSMO's ``nc`` tutorial) needs the lead to be listening first.
+        once (OSMO's ``nc`` tutorial) needs the lead to be listening first. The wait is the
+        engine's event stream (``ContainerEngine.wait_started``); only an engine without
+        one is asked every 50 ms whether the lead runs.
         """
         if run.labels.get("osmo.lead") != "0" or run.network is None:
             return
         deadline = time.monotonic() + _LEAD_WAIT
-        self._lead_event(run.network).wait(_LEAD_WAIT)
-        lead = {**self.labels, "osmo.network": run.network, "osmo.lead": "1"}
+        if not self._lead_event(run.network).wait(_LEAD_WAIT):
+            return
+        with self._lock:
+            since = self._lead_since.get(run.network, time.time()) - _CLOCK_SLACK
+        try:
+            self.engine.wait_started(("osmo.network", run.network), ("osmo.lead", "1"),
+                                     since=since, timeout=max(0.0, deadline - time.monotonic()))
+        except ContainerError:
+            self._poll_lead(run.network, deadline)
+
+    def _poll_lead(self, network: str, deadline: float) -> None:
+        lead = {**self.labels, "osmo.network": network, "osmo.lead": "1"}
         while time.monotonic() < deadline:
             try:
                 if self.engine.running(lead):
@@ -244,6 +267,7 @@ class ContainerTasks:
                 return
             self._networks.pop(run.network, None)
             self._leads.pop(run.network, None)
+            self._lead_since.pop(run.network, None)
         try:
             self.engine.remove_network(run.network)
         except ContainerError:

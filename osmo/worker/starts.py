@@ -87,7 +87,12 @@ class AttemptStarts(AttemptEndings):
 
     def _prepare_io(self, cmd: PrepareAttempt, task: TaskSpec, secrets: Secrets | None,
                     resources: ResourceSpec) -> None:
-        """I/O thread: make the folders and files; hand the outcome back to the reactor."""
+        """I/O thread: make the folders and files; hand the outcome back to the reactor.
+
+        A container task's log is opened here, before its image is resolved, so that a
+        pull's progress reaches it line by line (the writer is the reactor's afterwards).
+        """
+        log: LogWriter | None = None
         try:
             dirs = self._layout.attempt(cmd.workflow_id, cmd.task, cmd.retry)
             if secrets is None:
@@ -101,11 +106,17 @@ class AttemptStarts(AttemptEndings):
                                 boxed=boxed)
             launch = replace(launch, max_output_bytes=resources.storage)
             if self._containers is not None and boxed:
+                log = self._open_log(cmd, dirs, launch)
+                pulled = functools.partial(_pull_line, log)
                 launch = self._containers.finish(
                     launch, cmd, task, dirs, request=resources, gpus=self.node().capacity.gpu,
-                    auth=registry_auth(task, self._task_secrets))
+                    auth=registry_auth(task, self._task_secrets if self._task_secrets
+                                       is not None else secrets.get), progress=pulled)
         except Exception as exc:  # every prepare must get its one final report
             message = str(exc) if isinstance(exc, OsmoError) else f"cannot prepare: {exc!r}"
+            if log is not None:
+                log.line("osmo", f"start failed: {message}")
+                log.close()
             self._reactor.call_soon(self._prepared, cmd, task, None, None, message)
             return
         started: ProcessHandle | str | None = None
@@ -120,11 +131,17 @@ class AttemptStarts(AttemptEndings):
             except Exception as exc:  # noqa: BLE001 - a bug: fail the start, report it
                 _log.exception("starting %s failed", cmd.attempt_id)
                 started = f"cannot start: {exc!r}"
-        self._reactor.call_soon(self._prepared, cmd, task, dirs, launch, None, started)
+        self._reactor.call_soon(self._prepared, cmd, task, dirs, launch, None, started, log)
+
+    def _open_log(self, cmd: PrepareAttempt, dirs: AttemptDirs, launch: Launch) -> LogWriter:
+        """The attempt's log writer (opened on its first record; raises OSError if it can't)."""
+        sink = functools.partial(self._log_sink, cmd.attempt_id) if self._log_sink else None
+        return LogWriter(dirs.log, launch.secrets, sink)
 
     def _prepared(self, cmd: PrepareAttempt, task: TaskSpec, dirs: AttemptDirs | None,
                   launch: Launch | None, error: str | None,
-                  started: ProcessHandle | str | None = None) -> None:
+                  started: ProcessHandle | str | None = None,
+                  log: LogWriter | None = None) -> None:
         kill_reason = self._preparing.pop(cmd.attempt_id, None)
         run_now = cmd.run or cmd.attempt_id in self._run_pending
         self._run_pending.discard(cmd.attempt_id)
@@ -132,9 +149,8 @@ class AttemptStarts(AttemptEndings):
             self._remember(cmd.attempt_id)
             self._emit(AttemptStartFailed(cmd.attempt_id, error or "cannot prepare"))
             return
-        sink = functools.partial(self._log_sink, cmd.attempt_id) if self._log_sink else None
         try:
-            log = LogWriter(dirs.log, launch.secrets, sink)
+            log = log or self._open_log(cmd, dirs, launch)
         except OSError as exc:  # no log, no attempt: undo what preparing made, report once
             if isinstance(started, ProcessHandle):
                 self._runtime.kill(started, force=True)
@@ -216,6 +232,10 @@ class AttemptStarts(AttemptEndings):
         attempt.checkpoints = start_checkpoints(
             attempt.task, attempt.dirs, attempt.id, reactor=self._reactor, io=self._io,
             credential_for=self._credential_for, log=functools.partial(attempt.log.line, "osmo"))
+
+
+def _pull_line(log: LogWriter, line: str) -> None:
+    log.line("osmo", f"pull: {line}")
 
 
 def _started(attempt_id: str, handle: ProcessHandle) -> AttemptStarted:

@@ -7,6 +7,8 @@ no secret in argv) are asserted where they are made.
 
 from __future__ import annotations
 
+import base64
+import json
 from pathlib import Path
 
 import pytest
@@ -18,9 +20,9 @@ from osmo.runtime.container_run import (
     EngineInfo,
     Mount,
     RegistryAuth,
-    login_argv,
     pull_argv,
     pull_reference,
+    registry_config,
     run_argv,
     safe_name,
     secret_env_text,
@@ -147,22 +149,25 @@ def test_hostile_values_are_refused(run: ContainerRun, message: str) -> None:
         run_argv(PODMAN, run)
 
 
-def test_login_puts_the_password_on_stdin_only(tmp_path: Path) -> None:
+def test_the_registry_password_goes_into_the_auth_file_only(tmp_path: Path) -> None:
     auth = RegistryAuth("registry.example.com:5000", "robot", "pa55-word")
-    argv, env, stdin = login_argv(PODMAN, auth, tmp_path)
-    assert argv == ["/usr/bin/podman", "login", f"--authfile={tmp_path}/auth.json",
-                    "--username=robot", "--password-stdin", "registry.example.com:5000"]
-    assert env == {} and stdin == b"pa55-word"
-    argv, env, stdin = login_argv(DOCKER, auth, tmp_path)
-    assert argv == ["/usr/bin/docker", "login", "--username=robot", "--password-stdin",
-                    "registry.example.com:5000"]
-    assert env == {"DOCKER_CONFIG": str(tmp_path)} and stdin == b"pa55-word"
+    token = base64.b64encode(b"robot:pa55-word").decode()
+    path, text = registry_config(PODMAN, auth, tmp_path)
+    assert path == tmp_path / "auth.json"
+    assert json.loads(text) == {"auths": {"registry.example.com:5000": {"auth": token}}}
+    path, text = registry_config(DOCKER, RegistryAuth("docker.io", "robot", "pa55-word"),
+                                 tmp_path)
+    assert path == tmp_path / "config.json"
+    assert set(json.loads(text)["auths"]) == {"docker.io", "https://index.docker.io/v1/"}
+    for engine in (PODMAN, DOCKER):
+        argv, env = pull_argv(engine, "registry.example.com:5000/x:1", tmp_path)
+        assert "pa55-word" not in repr((argv, env)) and token not in repr((argv, env))
     assert "pa55-word" not in repr(auth)
     with pytest.raises(ContainerError, match="registry"):
-        login_argv(PODMAN, RegistryAuth("--tls-verify=false", "u", "p"), tmp_path)
+        registry_config(PODMAN, RegistryAuth("--tls-verify=false", "u", "p"), tmp_path)
 
 
-def test_pull_uses_the_login_folder_and_qualifies_short_names(tmp_path: Path) -> None:
+def test_pull_uses_the_auth_folder_and_qualifies_short_names(tmp_path: Path) -> None:
     assert pull_argv(PODMAN, "ubuntu:24.04") == (
         ["/usr/bin/podman", "pull", "docker.io/library/ubuntu:24.04"], {})
     assert pull_argv(PODMAN, "nvcr.io/nvidia/pytorch:24.01", tmp_path) == (

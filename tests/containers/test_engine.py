@@ -10,6 +10,7 @@ import json
 import os
 import subprocess
 import time
+import uuid
 from pathlib import Path
 
 import pytest
@@ -17,7 +18,9 @@ import pytest
 from osmo.runtime.container import (
     DATA_OUTPUT,
     ContainerEngine,
+    ContainerError,
     ContainerRun,
+    EngineInfo,
     EngineNotFound,
     Mount,
     data_input,
@@ -387,3 +390,38 @@ def test_digest_is_the_image_id_and_follows_a_retag(
     assert first.id == busybox and second.id == bash and first.id != second.id
     assert first.repo_digests and all("@sha256:" in d for d in first.repo_digests)
     assert engine.resolve(ALPINE).id == images[ALPINE]
+
+
+def test_wait_started_follows_the_event_stream(
+        engine: ContainerEngine, runtime: ContainerRuntime, images: dict[str, str],
+        labels: dict[str, str], tmp_path: Path) -> None:
+    """A start before the wait counts (``--since``); a container of another role does not."""
+    group = ("osmo.network", f"osmo-test-{uuid.uuid4().hex[:12]}")
+    since = time.time()
+    peer = start(runtime, run_of({**labels, group[0]: group[1], "osmo.lead": "0"},
+                                 ["sh", "-c", "echo up; sleep 300"]), tmp_path)
+    peer.read_until(b"up\n")
+    lead_before = time.monotonic()
+    assert not engine.wait_started(group, ("osmo.lead", "1"), since=since, timeout=2)
+    assert time.monotonic() - lead_before >= 2  # waited, found only the peer
+    lead = start(runtime, run_of({**labels, group[0]: group[1], "osmo.lead": "1"},
+                                 ["sh", "-c", "echo up; sleep 300"]), tmp_path)
+    lead.read_until(b"up\n")  # it started before the wait began
+    assert engine.wait_started(group, ("osmo.lead", "1"), since=since, timeout=30)
+    assert not engine.wait_started(group, ("osmo.lead", "1"), since=time.time() + 1,
+                                   timeout=1)  # nothing started after that
+    for run in (peer, lead):
+        runtime.kill(run.handle, force=True)
+        run.finish()
+
+
+def test_wait_started_without_an_event_stream_is_an_error(
+        engine: ContainerEngine, tmp_path: Path) -> None:
+    """An engine whose ``events`` ends by itself cannot say: the caller falls back."""
+    broken = tmp_path / "podman"
+    broken.write_text("#!/bin/sh\necho 'Error: no events here' >&2\nexit 125\n")
+    broken.chmod(0o755)
+    without = ContainerEngine(EngineInfo("podman", str(broken), engine.engine.version))
+    with pytest.raises(ContainerError, match="events"):
+        without.wait_started(("osmo.network", "n"), ("osmo.lead", "1"), since=time.time(),
+                             timeout=30)

@@ -8,9 +8,11 @@ which is the case the restart must clean up.
 
 from __future__ import annotations
 
+import base64
 import json
 import signal
 import time
+import uuid
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -19,6 +21,7 @@ import pytest
 from osmo.runtime.container import ContainerEngine
 from osmo.worker.containers import owner_id
 from tests.conftest import ended, write
+from tests.containers.registry import fake_registry
 from tests.containers.submitting import leftovers, task_lines, tasks
 from tests.e2e.cluster import Cluster
 
@@ -70,3 +73,63 @@ def test_a_remote_worker_runs_a_container_and_cleans_up_after_a_kill_9(
     assert boxed["retry"] == 1
     assert Path(boxed["output"], "node").read_text().strip() == "w1"
     assert task_lines(cluster.osmo, wf)["boxed"] == [f"in {ident[:12]}"]  # in its container
+
+
+def _files_holding(folder: Path, *needles: str) -> list[str]:
+    found = []
+    for path in folder.rglob("*"):
+        try:
+            data = path.read_bytes() if path.is_file() and not path.is_symlink() else b""
+        except OSError:
+            continue
+        if any(n.encode() in data for n in needles):
+            found.append(str(path))
+    return found
+
+
+def test_a_remote_worker_pulls_with_the_stored_registry_credential_only(
+        podman_env: dict[str, str], images: dict[str, str], engine: ContainerEngine,
+        tmp_path: Path) -> None:
+    """The worker gets the credential of its task's registry, uses it for the pull only."""
+    password = f"pw-{uuid.uuid4().hex}"
+    basic = base64.b64encode(f"robot:{password}".encode()).decode()
+    with fake_registry(password) as private, fake_registry(password) as other:
+        conf = private.registries_conf(tmp_path, other)
+        scratch = tmp_path / "w1-tmp"
+        scratch.mkdir()
+        c = Cluster(tmp_path, env={"CONTAINERS_CONF": podman_env["CONTAINERS_CONF"],
+                                   "CONTAINERS_REGISTRIES_CONF": str(conf)})
+        c.start_server()
+        try:
+            c.osmo("credential", "set", f"registry://{private.host}", "--payload",
+                   "username=robot", "--payload", f"password={password}", check=True)
+            c.start_worker("w1", "--runtime", "container", env={"TMPDIR": str(scratch)})
+            wf = c.osmo.submit(write(tmp_path / "wf.yaml", f"""
+workflow:
+  name: private
+  tasks:
+  - name: mine
+    image: {private.host}/team/img:1
+    command: ["true"]
+  - name: theirs
+    image: {other.host}/team/img:1
+    command: ["true"]
+"""))
+            info = c.osmo.wait_for(wf, ended, timeout=120)
+            rows = tasks(c.osmo, wf)
+            shown = json.dumps(c.osmo.query(wf)) + c.osmo("logs", wf).out
+            shown += c.worker_log("w1") + (c.osmo.home / "server.log").read_text()
+        finally:
+            c.stop()
+    assert info["status"] == "FAILED", json.dumps(info)
+    for name, registry in (("mine", private), ("theirs", other)):
+        assert rows[name]["status"] == "FAILED_START_ERROR", rows[name]
+        assert f"image '{registry.host}/team/img:1' not found:" in rows[name]["message"]
+        assert "manifest unknown" in rows[name]["message"]  # the registry was asked
+    assert private.authorizations and set(private.authorizations) == {f"robot:{password}"}
+    assert all(password not in a for a in other.authorizations)  # nor any other registry
+    assert private.seen_in_processes == [] and other.seen_in_processes == []  # argv, env
+    assert f"pull: Trying to pull {private.host}/team/img:1..." in shown  # the worker's log
+    assert password not in shown and basic not in shown
+    assert _files_holding(tmp_path / "w1", password, basic) == []
+    assert list(scratch.iterdir()) == []  # the private auth folder is gone
