@@ -135,7 +135,8 @@ class WorkerOptions:
                    labels=_labels(args.label), cluster=args.cluster,
                    zenoh_config=args.zenoh_config, drain_timeout=args.drain_timeout,
                    token=_token(args.token, args.token_file), sandbox=args.sandbox,
-                   sandbox_share=shares(args.sandbox_share), runtime=args.runtime, container_engine=args.container_engine)
+                   sandbox_share=shares(args.sandbox_share), runtime=args.runtime,
+                   container_engine=args.container_engine)
 
 
 def shares(folders: list[str] | None) -> tuple[str, ...]:
