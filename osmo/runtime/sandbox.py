@@ -5,8 +5,8 @@ A sandboxed command sees (``Sandbox.argv``, from an attempt's :class:`View`):
 - the host's file system **read-only** (``--ro-bind / /``), with its **own empty ``/tmp``**
   (a tmpfs, gone when the task ends) instead of the host's, and the folders the operator
   shares with every task (``--sandbox-share DIR``) writable; a minimal ``/dev`` (null,
-  zero, random, tty, a private ``shm``, ...) plus the GPU device nodes found at probe time (``/dev/nvidia*``,
-  ``/dev/dri``, bound as they are, so CUDA and EGL work);
+  zero, random, tty, a private ``shm``, ...) plus the GPU device nodes found at probe time
+  (``/dev/nvidia*``, ``/dev/dri``, bound as they are, so CUDA and EGL work);
 - osmo's home **hidden** under an empty tmpfs (state store, blobs, other attempts' folders,
   credentials), with only the attempt's own paths bound back at the same absolute paths, so
   ``{{output}}``, ``{{input:N}}`` and ``OSMO_OUTPUT`` work unchanged: its folder read-only,
