@@ -295,6 +295,8 @@ def osmo(tmp_path: Path) -> Iterator[Osmo]:
 def shared_osmo(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Osmo]:
     """One server shared by a test module (for tests that do not kill it)."""
     runner = Osmo(tmp_path_factory.mktemp("osmo") / "home")
+    # its tasks use each test's tmp_path: share the session's base folder with them
+    runner.env["OSMO_SANDBOX_SHARE"] = str(tmp_path_factory.getbasetemp())
     runner("server", "start", check=True)
     yield runner
     runner.stop_server()
