@@ -122,6 +122,9 @@ class Osmo:
         self.env = dict(os.environ, OSMO_HOME=str(home), PYTHONUNBUFFERED="1")
         self.env.pop("OSMO_SERVER", None)
         self.env.setdefault("OSMO_RUNTIME", "process")  # image tasks: tests/containers
+        # Tests hand gate and marker files to tasks through their tmp folder: shared with the
+        # sandbox explicitly (a sandboxed task has its own empty /tmp otherwise).
+        self.env.setdefault("OSMO_SANDBOX_SHARE", str(home.parent))
 
     def __call__(self, *args: str, timeout: float = 180, check: bool = False,
                  cwd: Path = REPO) -> Result:
@@ -292,6 +295,8 @@ def osmo(tmp_path: Path) -> Iterator[Osmo]:
 def shared_osmo(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Osmo]:
     """One server shared by a test module (for tests that do not kill it)."""
     runner = Osmo(tmp_path_factory.mktemp("osmo") / "home")
+    # its tasks use each test's tmp_path: share the session's base folder with them
+    runner.env["OSMO_SANDBOX_SHARE"] = str(tmp_path_factory.getbasetemp())
     runner("server", "start", check=True)
     yield runner
     runner.stop_server()

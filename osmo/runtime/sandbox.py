@@ -2,10 +2,11 @@
 
 A sandboxed command sees (``Sandbox.argv``, from an attempt's :class:`View`):
 
-- the host's file system **read-only** (``--ro-bind / /``) but for the host's ``/tmp``,
-  which stays writable and shared (see below); a minimal ``/dev`` (null, zero, random, tty,
-  a private ``shm``, ...) plus the GPU device nodes found at probe time (``/dev/nvidia*``,
-  ``/dev/dri``, bound as they are, so CUDA and EGL work);
+- the host's file system **read-only** (``--ro-bind / /``), with its **own empty ``/tmp``**
+  (a tmpfs, gone when the task ends) instead of the host's, and the folders the operator
+  shares with every task (``--sandbox-share DIR``) writable; a minimal ``/dev`` (null,
+  zero, random, tty, a private ``shm``, ...) plus the GPU device nodes found at probe time
+  (``/dev/nvidia*``, ``/dev/dri``, bound as they are, so CUDA and EGL work);
 - osmo's home **hidden** under an empty tmpfs (state store, blobs, other attempts' folders,
   credentials), with only the attempt's own paths bound back at the same absolute paths, so
   ``{{output}}``, ``{{input:N}}`` and ``OSMO_OUTPUT`` work unchanged: its folder read-only,
@@ -19,12 +20,13 @@ thread that spawned it) ends, so no task outlives its worker or server. Everythi
 sandbox shares bwrap's process group; the pid namespace ends, and the kernel kills every
 process left in it, when the command ends (a daemon that called ``setsid`` included).
 
-Why ``/tmp`` is shared, not private: workflows (and this project's own tests) hand files to
-and from tasks through ``/tmp`` on one host; a private ``/tmp`` broke them. osmo's home
-stays hidden even when it lies under ``/tmp``. ``Sandbox(private_tmp=True)`` gives each task
-its own empty ``/tmp`` instead.
+Why a private ``/tmp``: the host's holds other tasks' scratch files and the sockets of the
+user's agents (ssh-agent, tmux, X11), through which a task could act outside its sandbox.
+Tasks hand files to each other through outputs and inputs; a host folder every task may
+write (a shared scratch disk) is the operator's explicit choice: ``shared``. osmo's home
+stays hidden even when it lies inside a shared folder.
 
-What it does not do: keep tasks apart in ``/tmp``; limit CPU, memory or disk; filter system
+What it does not do: limit CPU, memory or disk; filter system
 calls (the kernel's attack surface is the host's); change the user (the task runs as the
 worker's uid, so anything that uid can reach over the network, it can reach too).
 
@@ -34,6 +36,7 @@ the namespaces (some machines forbid unprivileged user namespaces).
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import glob
 import os
@@ -81,13 +84,12 @@ class Sandbox:
     Attributes:
         bwrap: the ``bwrap`` executable.
         devices: host device nodes bound into the sandbox's ``/dev`` (GPUs).
-        private_tmp: an empty tmpfs on ``/tmp`` instead of the host's (see the module
-            docstring).
+        shared: host folders bound writable into every sandbox (``--sandbox-share``).
     """
 
     bwrap: str
     devices: tuple[str, ...] = ()
-    private_tmp: bool = False
+    shared: tuple[str, ...] = ()
 
     def argv(self, command: Sequence[str], view: View) -> list[str]:
         """``command`` wrapped in bwrap with ``view`` (see the module docstring).
@@ -98,9 +100,9 @@ class Sandbox:
         out = [self.bwrap, "--ro-bind", "/", "/", "--dev", "/dev"]
         for device in self.devices:
             out += ["--dev-bind-try", device, device]
-        out += ["--proc", "/proc", *(["--tmpfs", "/tmp"] if self.private_tmp else
-                                     ["--bind-try", "/tmp", "/tmp"]),
-                "--unshare-pid", "--die-with-parent"]
+        out += ["--proc", "/proc", "--tmpfs", "/tmp", "--unshare-pid", "--die-with-parent"]
+        for folder in self.shared:  # before the home is hidden: it stays hidden inside one
+            out += ["--bind-try", folder, folder]
         for folder in sorted({_real(p) for p in view.hidden}, key=_depth):
             out += ["--tmpfs", folder]
         binds = [(_real(p), "--ro-bind-try") for p in view.readonly]
@@ -118,8 +120,10 @@ def _depth(path: str) -> int:
     return path.rstrip("/").count("/")
 
 
-def choose(mode: SandboxMode) -> Sandbox | None:
+def choose(mode: SandboxMode, shared: Sequence[str | Path] = ()) -> Sandbox | None:
     """The sandbox to use for ``mode`` (None: run commands unsandboxed).
+
+    ``shared``: host folders every sandboxed command may read and write (absolute).
 
     Raises:
         UsageError: ``mode`` is not one of :data:`MODES`.
@@ -133,7 +137,12 @@ def choose(mode: SandboxMode) -> Sandbox | None:
     sandbox = _probe()
     if sandbox is None and mode == "on":
         raise InfrastructureError(f"--sandbox on: {unavailable_reason()}")
-    return sandbox
+    if sandbox is None or not shared:
+        return sandbox
+    relative = [str(p) for p in shared if not os.path.isabs(p)]
+    if relative:
+        raise UsageError(f"--sandbox-share needs absolute folders, not {', '.join(relative)}")
+    return dataclasses.replace(sandbox, shared=tuple(_real(Path(p)) for p in shared))
 
 
 def unavailable_reason() -> str:

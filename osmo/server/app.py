@@ -56,6 +56,7 @@ from osmo.server.workers import WorkerHub
 from osmo.store.sqlite import Store
 from osmo.transport.blobs import host_id
 from osmo.transport.rpc import ApiServer
+from osmo.transport.wire import SERVER_ONLY
 from osmo.transport.zenoh_link import Link
 from osmo.worker import containers
 from osmo.worker.pool import LocalPool
@@ -109,7 +110,8 @@ def serve(home: str | os.PathLike[str] | None = None, options: ServerOptions | N
     kill_leftovers(store, lost)
 
     link = Link.router(endpoints, options.cluster, connect=connect,
-                       config_file=options.zenoh_config, peer=bool(connect) and not listen)
+                       config_file=options.zenoh_config, peer=bool(connect) and not listen,
+                       reserved=SERVER_ONLY)
     stopping = threading.Event()
 
     notifier = Notifier(link)
@@ -122,7 +124,8 @@ def serve(home: str | os.PathLike[str] | None = None, options: ServerOptions | N
                      credential_for=url_credential(store),
                      input_manifests=output_manifests(store),
                      task_secrets=store.credential,
-                     sandbox=options.sandbox, containers=boxes) if options.local_pool else None
+                     sandbox=options.sandbox, sandbox_share=options.sandbox_share,
+                     containers=boxes) if options.local_pool else None
     hub = WorkerHub(link=link, emit=inbox.post, store=store,
                     artifacts=artifacts, home=home_path, url_credential=url_credential(store),
                     attempts_on=lambda node: list(inbox.ask(AttemptsOn(node))),

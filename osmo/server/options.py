@@ -28,7 +28,7 @@ from osmo.config import DEFAULT_CLUSTER
 from osmo.errors import UsageError
 from osmo.layout import Home
 from osmo.runtime.sandbox import SandboxMode
-from osmo.worker.options import add_runtime_arguments
+from osmo.worker.options import add_runtime_arguments, shares
 
 __all__ = ["ServerOptions", "absolute", "check_listeners", "network_listeners",
            "option_changes", "options_from_argv", "remember", "saved_options"]
@@ -51,6 +51,7 @@ class ServerOptions:
             start; see :func:`check_listeners`).
         accept_tokens: ``NAME:ROLE:FILE`` tokens to accept (Kubernetes Secrets).
         sandbox: run the local pool's tasks in bubblewrap: ``auto``, ``on``, ``off``.
+        sandbox_share: host folders every sandboxed task may write (``--sandbox-share``).
         runtime: how the local pool runs image tasks: ``auto``, ``container`` or ``process``
             (``osmo.worker.containers.choose``).
         container_engine: ``podman`` or ``docker`` (default: the first that answers).
@@ -67,6 +68,7 @@ class ServerOptions:
     insecure: bool = False
     accept_tokens: tuple[str, ...] = ()
     sandbox: SandboxMode = "auto"
+    sandbox_share: tuple[str, ...] = ()
     runtime: str = "auto"
     container_engine: str | None = None
 
@@ -114,8 +116,8 @@ class ServerOptions:
                    reconnect_grace=args.reconnect_grace,
                    insecure=getattr(args, "insecure", False),
                    accept_tokens=tuple(getattr(args, "accept_token", None) or ()),
-                   sandbox=args.sandbox, runtime=args.runtime,
-                   container_engine=args.container_engine)
+                   sandbox=args.sandbox, sandbox_share=shares(args.sandbox_share),
+                   runtime=args.runtime, container_engine=args.container_engine)
 
     def to_argv(self) -> list[str]:
         """The same options as flags, to start the server in another process.
@@ -133,6 +135,7 @@ class ServerOptions:
                             ("--container-engine", self.container_engine)):
             if value != getattr(d, flag[2:].replace("-", "_")):
                 out += [flag, str(value)]
+        out += [arg for d in self.sandbox_share for arg in ("--sandbox-share", d)]
         out += [] if self.local_pool else ["--no-local-pool"]
         out += [arg for spec in self.accept_tokens for arg in ("--accept-token", spec)]
         return out + (["--insecure"] if self.insecure else [])

@@ -16,7 +16,8 @@ Keys, under the cluster prefix ``osmo/<cluster>``:
   spec the first time, input manifests, ``secrets``: whether to ask for the attempt's
   secrets, ``max_output_bytes``: the task's storage limit), ``run``, ``kill``, ``ack`` (an
   exit report was received and its outputs are safe on the server), ``drain`` notices.
-  Orders are published: they never carry a secret value.
+  Orders are published: they never carry a secret value, and any peer may read them;
+  only the server may put them (:data:`SERVER_ONLY`).
 - ``api/worker_report`` — ``{"id", "report"}``: the worker's reports, ``prepared``,
   ``started``, ``exited``, ``start_failed``, ``lost`` (handed back while draining);
   ``api/worker_log`` — ``{"id", "attempt_id", "records"}``: log records, appended by the
@@ -24,6 +25,11 @@ Keys, under the cluster prefix ``osmo/<cluster>``:
   attempt's secrets and data-URL credentials. Like every API request they carry the
   worker's token and are accepted only for attempts placed on that worker
   (``osmo.server.worker_access``).
+
+:data:`SERVER_ONLY` names the keys only the server's own session may put on, serve or hold
+a token on; its router refuses them from every remote peer (zenoh access control, set up by
+``osmo.transport.zenoh_link.Link.router``): orders, workflow events, the API, the server's
+blobs and its liveliness token.
 
 Attempt ids fence everything: a report about an attempt the scheduler has superseded is
 ignored, so a worker that returns late can never commit stale work.
@@ -53,9 +59,17 @@ from osmo.spec.model import WorkflowSpec
 from osmo.transport.blobs import SERVER
 from osmo.transport.rpc import MAX_INT, field, str_list, str_map
 
-__all__ = ["Hello", "capacity_from_dict", "capacity_to_dict", "event_from_dict",
+__all__ = ["SERVER_ONLY", "Hello", "capacity_from_dict", "capacity_to_dict", "event_from_dict",
            "event_to_dict", "prepare_from_dict", "prepare_to_dict", "spec_from_wire",
            "spec_to_wire", "worker_id"]
+
+#: zenoh access-control message -> keys (under the cluster prefix) only the server may use.
+SERVER_ONLY: dict[str, tuple[str, ...]] = {
+    "put": ("to-worker/**", "events/**"),
+    "delete": ("to-worker/**", "events/**"),
+    "declare_queryable": ("api/**", f"blob/{SERVER}/**"),
+    "liveliness_token": (f"alive/{SERVER}",),
+}
 
 _TEXT = 4096  # characters of a name, an address or a folder in a worker's message
 

@@ -5,6 +5,11 @@ key layout is documented by the modules that use it (``osmo.transport.rpc`` for 
 API, ``osmo.transport.blobs`` for artifact transfer, ``osmo.server.workers`` and
 ``osmo.worker.remote`` for worker traffic).
 
+Keys only the server may use: :meth:`Link.router` takes the key expressions its own session
+alone may put on, serve, or hold a liveliness token on, and turns them into zenoh access
+control on the router (deny, on ingress, for every remote peer; the server's own session is
+inside the router and not subject to it). Rules already in the configuration file are kept.
+
 Defaults keep everything on loopback with scouting off. A zenoh configuration file (JSON5,
 zenoh's own format) can be given for TLS, mutual TLS and user/password authentication; osmo
 only adds its mode, endpoints, scouting and lease settings on top of it. The transport lease
@@ -19,7 +24,7 @@ from __future__ import annotations
 import json
 import os
 import re
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any
 
 import zenoh
@@ -32,8 +37,13 @@ __all__ = ["Link", "Request", "Subscription", "authenticates"]
 LEASE_MS = 1000
 
 
+#: Messages of zenoh's access control that :meth:`Link.router` can reserve for the server.
+RESERVABLE = ("put", "delete", "declare_queryable", "liveliness_token")
+
+
 def _config(mode: str, *, listen: Sequence[str] = (), connect: Sequence[str] = (),
-            config_file: str | None = None) -> zenoh.Config:
+            config_file: str | None = None,
+            reserved: Mapping[str, Sequence[str]] | None = None) -> zenoh.Config:
     if config_file:
         try:
             conf = zenoh.Config.from_file(config_file)
@@ -51,7 +61,29 @@ def _config(mode: str, *, listen: Sequence[str] = (), connect: Sequence[str] = (
     if connect:
         conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
         conf.insert_json5("connect/timeout_ms", "5000")
+    if reserved:
+        _reserve(conf, reserved)
     return conf
+
+
+def _reserve(conf: zenoh.Config, reserved: Mapping[str, Sequence[str]]) -> None:
+    """Deny every remote peer the ``message -> key expressions`` of ``reserved``.
+
+    One subject with no criteria matches every remote peer (zenoh's rule for an empty
+    subject); a configuration's own rules, subjects and policies are kept beside these.
+    """
+    acl = json.loads(conf.get_json("access_control") or "{}") or {}
+    if not acl.get("enabled"):
+        acl = {"enabled": True, "default_permission": "allow"}
+    rules = [{"id": f"osmo-server-only-{message}", "messages": [message], "flows": ["ingress"],
+              "permission": "deny", "key_exprs": list(keys)}
+             for message, keys in reserved.items() if keys]
+    acl["rules"] = [*(acl.get("rules") or []), *rules]
+    acl["subjects"] = [*(acl.get("subjects") or []), {"id": "osmo-every-peer"}]
+    acl["policies"] = [*(acl.get("policies") or []),
+                       {"id": "osmo-server-only", "subjects": ["osmo-every-peer"],
+                        "rules": [r["id"] for r in rules]}]
+    conf.insert_json5("access_control", json.dumps(acl))
 
 
 def authenticates(config_file: str | None) -> bool:
@@ -138,15 +170,24 @@ class Link:
     @classmethod
     def router(cls, listen: Sequence[str], cluster: str = DEFAULT_CLUSTER, *,
                connect: Sequence[str] = (), config_file: str | None = None,
-               peer: bool | None = None) -> Link:
+               peer: bool | None = None,
+               reserved: Mapping[str, Sequence[str]] | None = None) -> Link:
         """Open the server's session.
 
         A router listening on ``listen``, or, with ``connect`` (and ``peer``, by default when
-        ``listen`` is empty), a peer of an existing ``zenohd`` router.
+        ``listen`` is empty), a peer of an existing ``zenohd`` router. ``reserved`` maps
+        messages of :data:`RESERVABLE` to key expressions under the cluster's prefix that no
+        remote peer may use them on (a router joined with ``connect`` needs the same rules
+        in its own configuration).
         """
         mode = "peer" if (peer if peer is not None else connect and not listen) else "router"
+        unknown = set(reserved or ()) - set(RESERVABLE)
+        if unknown:
+            raise ValueError(f"cannot reserve {sorted(unknown)}: not one of {RESERVABLE}")
         try:
-            conf = _config(mode, listen=listen, connect=connect, config_file=config_file)
+            conf = _config(mode, listen=listen, connect=connect, config_file=config_file,
+                           reserved={m: [f"osmo/{cluster}/{k}" for k in keys]
+                                     for m, keys in (reserved or {}).items()})
             return cls(zenoh.open(conf), cluster)
         except zenoh.ZError as exc:
             where = ", ".join([*listen, *connect])

@@ -30,6 +30,12 @@ def add_runtime_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--sandbox", choices=MODES, default="auto",
                    help="run process tasks in a bubblewrap sandbox: auto (when bwrap works "
                         "here; the default), on (required), off")
+    shared = os.environ.get("OSMO_SANDBOX_SHARE") or ""
+    p.add_argument("--sandbox-share", action="append", metavar="DIR",
+                   default=[d for d in shared.split(os.pathsep) if d],
+                   help="a host folder every sandboxed task may read and write, at the same "
+                        "path (repeatable; OSMO_SANDBOX_SHARE, ':'-separated). Tasks get "
+                        "their own empty /tmp otherwise")
     p.add_argument("--runtime", choices=("auto", "container", "process"),
                    default=os.environ.get("OSMO_RUNTIME") or "auto",
                    help="run tasks that name an image in containers (container), as host "
@@ -60,6 +66,7 @@ class WorkerOptions:
         address: how peers reach its tasks (default: the outbound interface's address).
         token: its API token, role worker (``osmo token create NAME --role worker``).
         sandbox: run commands in bubblewrap: ``auto`` (when it works here), ``on``, ``off``.
+        sandbox_share: host folders every sandboxed task may write (``--sandbox-share``).
         runtime: how it runs image tasks: ``auto``, ``container`` or ``process``.
         container_engine: ``podman`` or ``docker`` (default: the first that answers).
     """
@@ -79,6 +86,7 @@ class WorkerOptions:
     address: str | None = None
     token: str | None = None
     sandbox: SandboxMode = "auto"
+    sandbox_share: tuple[str, ...] = ()
     runtime: str = "auto"
     container_engine: str | None = None
 
@@ -127,7 +135,13 @@ class WorkerOptions:
                    labels=_labels(args.label), cluster=args.cluster,
                    zenoh_config=args.zenoh_config, drain_timeout=args.drain_timeout,
                    token=_token(args.token, args.token_file), sandbox=args.sandbox,
-                   runtime=args.runtime, container_engine=args.container_engine)
+                   sandbox_share=shares(args.sandbox_share), runtime=args.runtime,
+                   container_engine=args.container_engine)
+
+
+def shares(folders: list[str] | None) -> tuple[str, ...]:
+    """``--sandbox-share`` folders, absolute (relative to the working folder)."""
+    return tuple(dict.fromkeys(os.path.abspath(d) for d in folders or ()))
 
 
 def _token(token: str | None, token_file: str | None) -> str | None:

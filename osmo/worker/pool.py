@@ -50,13 +50,14 @@ import collections
 import logging
 import os
 import signal
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 from pathlib import Path
 
 from osmo.artifacts import ArtifactStore
 from osmo.artifacts.store import DEFAULT_MAX_FILES
+from osmo.errors import UsageError
 from osmo.layout import Home
 from osmo.runtime.container import ContainerEngine
 from osmo.runtime.container_runtime import ContainerRuntime
@@ -121,12 +122,14 @@ class LocalPool(AttemptStarts):
             ``prepare`` is not given them.
         log_sink: also gets ``(attempt id, records)`` for every log record written.
         sandbox: ``auto`` (when bubblewrap works here), ``on`` (required) or ``off``.
+        sandbox_share: host folders every sandboxed task may write (never inside ``home``).
         procs_dir: record running commands' pids here (see the module docstring).
         containers: runs image tasks in containers (its runtime replaces ``runtime``); its
             orphans are removed here, before anything starts.
 
     Raises:
         InfrastructureError: ``sandbox="on"`` and no sandbox works here.
+        UsageError: a ``sandbox_share`` folder is relative or inside ``home``.
     """
 
     def __init__(
@@ -149,6 +152,7 @@ class LocalPool(AttemptStarts):
         task_secrets: SecretLookup | None = None,
         log_sink: Callable[[str, bytes], None] | None = None,
         sandbox: SandboxMode = "auto",
+        sandbox_share: Sequence[str] = (),
         procs_dir: Path | None = None,
         containers: ContainerTasks | None = None,
     ) -> None:
@@ -160,7 +164,11 @@ class LocalPool(AttemptStarts):
         self._node_id, self._pool = node_id, pool
         self._cpus, self._gpus, self._memory = cpus, gpus, memory
         self._grace = kill_grace
-        self.sandbox = choose(sandbox)
+        inside = [d for d in sandbox_share if Path(d).absolute().is_relative_to(self.home)]
+        if inside:
+            raise UsageError(f"--sandbox-share {inside[0]}: it is inside osmo's home "
+                             f"{self.home}, which tasks must never see")
+        self.sandbox = choose(sandbox, sandbox_share)
         self._no_sandbox = None if self.sandbox else (
             "no sandbox: this task sees the host as the worker's user "
             f"({'--sandbox off' if sandbox == 'off' else unavailable_reason()})")

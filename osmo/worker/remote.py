@@ -130,6 +130,7 @@ class RemoteWorker:
             kill_grace=options.kill_grace, artifacts=self.store,
             credential_for=self._url_creds.get, log_sink=self._send_log,
             input_manifests=self._manifest_of, sandbox=options.sandbox,
+            sandbox_share=options.sandbox_share,
             procs_dir=procs_dir(self.home),
             containers=containers.for_node(options.runtime, options.container_engine, self.home))
         self.sessions = NodeSessions(self.link, self.pool, lambda ticket: self._api.call(

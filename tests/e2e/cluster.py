@@ -60,6 +60,7 @@ class Cluster:
         worker_env = dict(os.environ, OSMO_HOME=str(self.root / name), PYTHONUNBUFFERED="1",
                           **self.env, **(env or {}))
         worker_env.pop("OSMO_SERVER", None)
+        worker_env.setdefault("OSMO_SANDBOX_SHARE", str(self.root))  # as tests.conftest.Osmo
         worker_env["OSMO_TOKEN"] = token if token is not None else self.token(name)
         if host is not None:
             worker_env["OSMO_HOST_ID"] = host

@@ -6,6 +6,7 @@ and ``/proc``, hides osmo's home but for the task's own folders, and binds input
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 from tests.conftest import Osmo, ended, write
@@ -89,3 +90,32 @@ def test_task_cannot_modify_its_inputs(osmo: Osmo, tmp_path: Path) -> None:
     assert "allowed" not in ops and ops.count("denied") == 4, ops
     assert (out["read"] / "seen.txt").read_text() == "alpha\nbeta\na.txt\nsub\n"
     assert (out["make"] / "a.txt").read_text() == "alpha\n"
+
+
+HOST_TMP = """
+workflow:
+  name: host-tmp
+  tasks:
+  - name: writer
+    command: [sh, -c, 'echo mine > /tmp/scratch-@ID@; echo leak > /tmp/leak-@ID@;
+      sleep 2; cat /tmp/scratch-@ID@ > {{output}}/own']
+  - name: reader
+    command: [sh, -c, 'sleep 1; for f in @PLANTED@ /tmp/scratch-@ID@; do
+        if [ -e "$f" ]; then echo "seen $f"; else echo "absent $f"; fi; done > {{output}}/seen']
+"""
+
+
+def test_task_sees_neither_the_hosts_tmp_nor_another_tasks(osmo: Osmo, tmp_path: Path) -> None:
+    """The host's /tmp holds agents' sockets and other users' scratch: a task has its own."""
+    planted = Path(f"/tmp/osmo-agent-{tmp_path.name}-{os.getpid()}")
+    planted.mkdir()
+    ident = f"{tmp_path.name}-{os.getpid()}"
+    try:
+        spec = HOST_TMP.replace("@ID@", ident).replace("@PLANTED@", str(planted))
+        out = _done(osmo, write(tmp_path / "host-tmp.yaml", spec))
+        assert (out["writer"] / "own").read_text() == "mine\n"  # its own /tmp works
+        assert (out["reader"] / "seen").read_text().split("\n")[:2] == [
+            f"absent {planted}", f"absent /tmp/scratch-{ident}"]
+        assert not Path(f"/tmp/leak-{ident}").exists(), "a task wrote into the host's /tmp"
+    finally:
+        planted.rmdir()

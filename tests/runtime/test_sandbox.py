@@ -63,28 +63,43 @@ def test_command_sees_only_its_own_folders(box: Sandbox, home: Path) -> None:
         echo x > {a}/task.json || echo ro-folder
         echo x > {home}/input/data.txt || echo ro-input
         touch /usr/evil || echo ro-host
-        echo x > {home.parent}/shared && echo shared-tmp
+        echo x > {home.parent}/shared  # the private /tmp's copy of the path, if any
         exit 3""")
     lines = out.split()
     assert code == 3
     assert lines[0] == str(a / "work")
     assert "state.db" not in lines and "other" not in out.split("no-db")[0]
     for word in ("no-db", "no-other", "wrote-output", "wrote-work", "ro-folder", "ro-input",
-                 "ro-host", "shared-tmp"):
+                 "ro-host"):
         assert word in lines, (word, out)
     assert (a / "output.partial" / "o").read_text() == "made\n"
     assert (home / "state.db").read_text() == "secret"
     assert not (home / "a" / "task.json").exists()
-    assert (home.parent / "shared").read_text() == "x\n"  # the host's /tmp is shared
+    assert not (home.parent / "shared").exists()  # the host's /tmp is not the task's
 
 
-def test_private_tmp_is_the_tasks_own(box: Sandbox, home: Path) -> None:
-    private = Sandbox(box.bwrap, box.devices, private_tmp=True)
+def test_tmp_is_the_tasks_own(box: Sandbox, home: Path) -> None:
     name = f"/tmp/osmo-private-{os.getpid()}-{id(home)}"
-    (home.parent / "shared").write_text("host")
-    code, out = run(private, home, f"echo x > {name} && cat {name}; ls {home.parent / 'shared'}")
+    (home.parent / "planted").write_text("host")
+    code, out = run(box, home, f"echo x > {name} && cat {name}; ls {home.parent / 'planted'}")
     assert code != 0 and out == "x\n"  # written in its own /tmp; the host's is not there
     assert not os.path.exists(name)
+
+
+def test_a_shared_folder_is_writable_and_the_home_inside_it_stays_hidden(
+        box: Sandbox, home: Path) -> None:
+    shared = choose("on", [home.parent])
+    assert shared is not None and shared.shared == (os.path.realpath(home.parent),)
+    code, out = run(shared, home, f"""
+        echo x > {home.parent}/note && echo wrote-shared
+        cat {home}/state.db || echo no-db""")
+    assert code == 0 and out.split() == ["wrote-shared", "no-db"], out
+    assert (home.parent / "note").read_text() == "x\n"
+
+
+def test_a_relative_shared_folder_is_refused() -> None:
+    with pytest.raises(UsageError, match="absolute"):
+        choose("on", ["scratch"])
 
 
 def test_command_has_its_own_pids(box: Sandbox, home: Path) -> None:
