@@ -19,11 +19,15 @@ from tests.conftest import Osmo, wait_gone
 
 
 def _flags(options: list[str]) -> list[str]:
-    """Saved flags without ``--runtime process`` (the test fixture's OSMO_RUNTIME)."""
+    """Saved flags without the test fixture's environment.
+
+    ``--runtime process`` (OSMO_RUNTIME) and ``--sandbox-share`` (OSMO_SANDBOX_SHARE).
+    """
     out = list(options)
-    if "--runtime" in out:
-        i = out.index("--runtime")
-        del out[i:i + 2]
+    for flag in ("--runtime", "--sandbox-share"):
+        while flag in out:
+            i = out.index(flag)
+            del out[i:i + 2]
     return out
 
 
