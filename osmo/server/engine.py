@@ -290,8 +290,8 @@ class Engine:
                 return self.scheduler.attempts_on(node_id)
             case ListNodes():
                 return [(node, self.scheduler.used(node.id)) for node in self.scheduler.nodes()]
-            case WaitReasons(workflow_id=wf_id):
-                return self.scheduler.waiting(wf_id)
+            case WaitReasons(workflow_id=wf_id, names=names):
+                return self.scheduler.waiting(wf_id, names)
         raise TypeError(f"not a request: {request!r}")
 
     def _tag_workflow(self, request: TagWorkflow, batch: Batch) -> list[str]:
