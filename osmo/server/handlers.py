@@ -16,6 +16,7 @@ import builtins
 import logging
 import os
 from collections.abc import Callable
+from enum import Enum
 from pathlib import Path
 from typing import Any
 
@@ -231,7 +232,7 @@ class Handlers:
         """
         reasons = field(request, "waiting", bool, default=False)
         limit = field(request, "limit", int, default=None, what="the count of tasks to show")
-        statuses = _task_statuses(request)
+        statuses = _statuses(request, TaskStatus, "task status")
         extra: dict[str, Any] = {}
         if limit is None and statuses is None:
             row = self._row(request.get("workflow_id"), with_spec=True)
@@ -345,21 +346,14 @@ class Handlers:
         return row
 
 
-def _statuses(request: dict[str, Any]) -> builtins.list[str] | None:
+def _statuses(request: dict[str, Any], kind: type[Enum] = WorkflowStatus,
+              what: str = "status") -> builtins.list[str] | None:
+    """The request's ``statuses``, each a member of ``kind`` (None: not given)."""
     statuses = str_list(request, "statuses")
     for status in statuses:
-        if status not in WorkflowStatus.__members__:
-            raise UsageError(f"unknown status {shown(status)}; the statuses are "
-                             f"{', '.join(WorkflowStatus.__members__)}")
-    return statuses or None
-
-
-def _task_statuses(request: dict[str, Any]) -> builtins.list[str] | None:
-    statuses = str_list(request, "statuses")
-    for status in statuses:
-        if status not in TaskStatus.__members__:
-            raise UsageError(f"unknown task status {shown(status)}; the statuses are "
-                             f"{', '.join(TaskStatus.__members__)}")
+        if status not in kind.__members__:
+            raise UsageError(f"unknown {what} {shown(status)}; the statuses are "
+                             f"{', '.join(kind.__members__)}")
     return statuses or None
 
 
