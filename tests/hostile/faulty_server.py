@@ -10,7 +10,7 @@ Run as ``python -m tests.hostile.faulty_server --home HOME`` with ``OSMO_FAULT``
   the outputs of N or more tasks at once: ``before`` the transaction, ``during`` it (after its
   first lineage row) or ``after`` its commit (before any command of the batch leaves). MARKER
   is created first, so that only one server of a test is killed. To make reports arrive
-  together, the engine waits 0.3 s after the first final report it takes before it takes the
+  together, the engine waits 1 s after the first final report it takes before it takes the
   rest.
 
 Everything else is the real server (``osmo.server.app.main``).
@@ -103,7 +103,7 @@ def _batch_kill(phase: str, least: str, marker: str) -> None:
     def gathering_take(self: inbox.Inbox, timeout: float | None) -> list[Any]:
         items = take(self, timeout)
         if any(isinstance(i, AttemptExited) for i in items):
-            time.sleep(0.3)  # let the other exits arrive: they are applied together
+            time.sleep(1.0)  # let the other exits arrive: they are applied together
             items += take(self, 0)
         return items
 
