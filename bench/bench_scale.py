@@ -6,7 +6,11 @@ Rows (median of ``--runs`` fresh servers; issue 16's targets in brackets):
   beforehand (the SDK builder's own time is its own row), until the server has committed the
   workflow and answered.
 - **SDK builder for an N-task fan-out**: ``osmo.Workflow(...).build()``, on the client.
-- **query of the running N-task workflow** [≤ 1 s]: ``Client.get`` while it runs.
+- **query of the running N-task workflow** [≤ 1 s]: what ``osmo query`` asks (``Client.get``
+  with ``limit=1000``: the first 1,000 tasks and the count per status), right after the
+  submit, while it runs; and ``osmo query`` itself (a new CLI process, its start included).
+- **every task of the running N-task workflow**: ``Client.get`` with no limit (the SDK can
+  still fetch them all; ~30 MB of JSON for 100,000).
 - **server RSS with the N-task workflow** [≤ 1 GiB]: after the submit, from /proc.
 - **list / query with M finished workflows in the store** [≤ 200 ms]: ``Client.list``
   (20 rows) and ``Client.get`` of one of them, after M one-task workflows completed.
@@ -20,6 +24,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import subprocess
 import sys
 import tempfile
 import time
@@ -33,6 +39,7 @@ from bench_engine import fan_out  # noqa: E402
 from benchlib import quick, row, write_rows  # noqa: E402
 
 import osmo  # noqa: E402
+from osmo.cli.render import QUERY_LIMIT  # noqa: E402
 from osmo.layout import Home  # noqa: E402
 from osmo.sdk.connect import start_server, stop_server  # noqa: E402
 
@@ -58,8 +65,15 @@ def big_fan_out(n: int) -> dict[str, list[float]]:
                 out["submit"] = [time.perf_counter() - t0]
                 out["rss"] = [_rss_mib(home)]
                 t0 = time.perf_counter()
-                client.get(wf)
+                client.get(wf, limit=QUERY_LIMIT)
                 out["query"] = [time.perf_counter() - t0]
+                t0 = time.perf_counter()
+                subprocess.run([sys.executable, "-m", "osmo", "query", wf], check=True,
+                               env=dict(os.environ, OSMO_HOME=home), stdout=subprocess.DEVNULL)
+                out["cli"] = [time.perf_counter() - t0]
+                t0 = time.perf_counter()
+                client.get(wf)
+                out["query_all"] = [time.perf_counter() - t0]
                 client.cancel(wf)
         finally:
             stop_server(home)
@@ -111,7 +125,12 @@ def main() -> None:
         row(f"submit: {n}-task fan-out", "s", runs["submit"], higher_is_better=False,
             target=10.0 if args.tasks >= 100_000 else None),
         row(f"query: running {n}-task workflow", "s", runs["query"], higher_is_better=False,
-            target=1.0 if args.tasks >= 100_000 else None),
+            target=1.0 if args.tasks >= 100_000 else None,
+            notes=f"Client.get(limit={QUERY_LIMIT:,}), what `osmo query` asks"),
+        row(f"osmo query (CLI process): running {n}-task workflow", "s", runs["cli"],
+            higher_is_better=False, notes="a new CLI process: interpreter start included"),
+        row(f"query, every task: running {n}-task workflow", "s", runs["query_all"],
+            higher_is_better=False, notes="Client.get() with no limit"),
         row(f"server RSS: {n}-task workflow", "MiB", runs["rss"], higher_is_better=False,
             target=1024.0 if args.tasks >= 100_000 else None),
     ]

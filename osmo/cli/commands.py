@@ -15,11 +15,13 @@ from osmo.cli.plugins import run_plugins
 from osmo.cli.pools import run_pool, run_resource
 from osmo.cli.remote import run_health, run_profile, run_worker
 from osmo.cli.render import (
+    QUERY_LIMIT,
     console,
     events_text,
     format_log,
     info_dict,
     live_progress,
+    not_shown_line,
     print_error,
     print_json,
     safe,
@@ -105,14 +107,21 @@ def _validate(args: argparse.Namespace) -> int:
 
 
 def _query(args: argparse.Namespace) -> int:
+    limit = args.limit if args.limit is not None or args.format == "json" else QUERY_LIMIT
+    if limit is not None and limit < 0:
+        raise UsageError(f"--limit must be 0 or more, not {limit}")
     with _client(args) as client:
-        info = client.get(args.workflow_id)
+        info = client.get(args.workflow_id, limit=limit,
+                          statuses=[s.upper() for s in args.status])
     if args.format == "json":
         print_json(info_dict(info))
     else:
         console.print(workflow_header(info), markup=False)
         console.print()
-        console.print(task_table(info.tasks, verbose=args.verbose))
+        if info.tasks:
+            console.print(task_table(info.tasks, verbose=args.verbose))
+        if info.not_shown or args.status:
+            console.print(not_shown_line(info), markup=False)
     return 0
 
 

@@ -25,6 +25,7 @@ from osmo.cli.interactive import add_parsers as add_interactive_parsers
 from osmo.cli.plugins import add_parsers as add_plugin_parsers
 from osmo.cli.pools import add_parsers as add_pool_parsers
 from osmo.cli.remote import add_parsers as add_remote_parsers
+from osmo.cli.render import QUERY_LIMIT
 from osmo.cli.robotics import add_parsers as add_robotics_parsers
 from osmo.cli.tokens import add_parsers as add_token_parsers
 from osmo.errors import OsmoError, UsageError
@@ -96,6 +97,11 @@ def _add_workflow_verbs(sub: argparse._SubParsersAction) -> None:  # type: ignor
         p = sub.add_parser(name, help="a workflow's status and task table")
         p.add_argument("workflow_id")
         p.add_argument("-v", "--verbose", action="store_true")
+        p.add_argument("-s", "--status", action="append", default=[],
+                       help="only tasks with this status (repeatable)")
+        p.add_argument("-n", "--limit", type=int, default=None,
+                       help=f"show at most this many tasks (default {QUERY_LIMIT:,} in the "
+                            "table, all with --format json; 0: none, only the counts)")
         _add_format(p)
 
     p = sub.add_parser("list", help="list workflows")

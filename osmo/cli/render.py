@@ -19,9 +19,12 @@ if TYPE_CHECKING:
 
     from osmo.sdk.client import EventInfo, LogRecord, TaskInfo, TaskWaiting, WorkflowInfo
 
-__all__ = ["console", "err_console", "events_text", "format_log", "info_dict",
-           "live_progress", "plugin_table", "print_error", "print_json", "resource_table",
-           "safe", "task_table", "workflow_header", "workflows_table"]
+__all__ = ["QUERY_LIMIT", "console", "err_console", "events_text", "format_log", "info_dict",
+           "live_progress", "not_shown_line", "plugin_table", "print_error", "print_json",
+           "resource_table", "safe", "task_table", "workflow_header", "workflows_table"]
+
+QUERY_LIMIT = 1000
+"""The most tasks ``osmo query`` shows in its table unless told (``--limit``)."""
 
 _PLAIN_WIDTH = 160
 
@@ -153,6 +156,14 @@ def workflow_header(info: WorkflowInfo) -> str:
     return "\n".join(lines)
 
 
+def not_shown_line(info: WorkflowInfo) -> str:
+    """``99,000 more task(s) not shown; tasks by status: ...`` under a limited task table."""
+    counts = ", ".join(f"{status} {n:,}" for status, n in sorted(info.counts.items()))
+    head = (f"{info.not_shown:,} more task(s) not shown (--limit N, --status S); "
+            if info.not_shown else "")
+    return f"{head}tasks by status: {counts or 'none'}"
+
+
 def task_table(tasks: list[TaskInfo], verbose: bool = False) -> Table:
     """A table of tasks: name, retry, status, start, duration, exit code.
 
@@ -260,6 +271,8 @@ def info_dict(info: WorkflowInfo) -> dict[str, Any]:
     """A JSON-ready dict of a workflow with its tasks."""
     out = asdict(info)
     out["status"] = info.status.name
+    if info.matched is None:  # every task is in it: no counts (as before they existed)
+        del out["counts"], out["matched"]
     for t, src in zip(out["tasks"], info.tasks, strict=True):
         t["status"] = src.status.name
         t["duration"] = src.duration

@@ -20,6 +20,7 @@ an entry; otherwise the whole group runs (a gang is never half reused).
 from __future__ import annotations
 
 from collections import defaultdict
+from collections.abc import Collection
 
 from osmo.scheduler import attempts, groups
 from osmo.scheduler.fit import check_fit
@@ -224,13 +225,14 @@ class Scheduler:
             return None
         return placement_of(self._world, run, name)
 
-    def waiting(self, workflow_id: str) -> dict[str, Waiting]:
-        """Why each WAITING or SCHEDULING task of the workflow waits (computed now).
+    def waiting(self, workflow_id: str,
+                names: Collection[str] | None = None) -> dict[str, Waiting]:
+        """Why each WAITING or SCHEDULING task of the workflow (of ``names``) waits, now.
 
         Unknown (or forgotten, terminal) workflows have nothing waiting.
         """
         run = self._world.runs.get(workflow_id)
-        return waiting(self._world, run) if run is not None else {}
+        return waiting(self._world, run, names) if run is not None else {}
 
     def attempt(self, attempt_id: str) -> TaskState | None:
         """A copy of the task whose current attempt is ``attempt_id``, if any."""

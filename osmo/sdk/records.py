@@ -70,6 +70,13 @@ class WorkflowInfo:
     labels: dict[str, str] = field(default_factory=dict)
     tags: list[str] = field(default_factory=list)
     priority: str = "NORMAL"
+    counts: dict[str, int] = field(default_factory=dict)  # status → tasks; asked with a limit
+    matched: int | None = None  # tasks with the statuses asked for; None: all are in ``tasks``
+
+    @property
+    def not_shown(self) -> int:
+        """How many tasks the query matched but left out of :attr:`tasks` (its ``limit``)."""
+        return 0 if self.matched is None else self.matched - len(self.tasks)
 
     @property
     def ok(self) -> bool:
@@ -133,14 +140,16 @@ def _waiting_of(d: Any) -> TaskWaiting | None:
                        float(fails_at) if isinstance(fails_at, (int, float)) else None)
 
 
-def workflow_info(wf: dict[str, Any], tasks: list[dict[str, Any]] = ()) -> WorkflowInfo:  # type: ignore[assignment]
+def workflow_info(wf: dict[str, Any], tasks: list[dict[str, Any]] = (),  # type: ignore[assignment]
+                  counts: dict[str, int] | None = None,
+                  matched: int | None = None) -> WorkflowInfo:
     """A workflow of a ``get`` or ``list`` reply (with its tasks when given)."""
     return WorkflowInfo(wf["id"], wf["name"], WorkflowStatus[wf["status"]],
                         wf.get("submitted_at", 0.0), wf.get("started_at"), wf.get("ended_at"),
                         wf.get("pool"), [task_info(t) for t in tasks], wf.get("reused_from"),
                         wf.get("submitted_by"),
                         dict(wf.get("labels") or {}), list(wf.get("tags") or []),
-                        wf.get("priority") or "NORMAL")
+                        wf.get("priority") or "NORMAL", dict(counts or {}), matched)
 
 
 def log_record(r: dict[str, Any]) -> LogRecord:

@@ -179,11 +179,14 @@ class Engine:
     def _step(self, items: list[Any]) -> bool:
         """Apply what was queued (isolating a culprit if it raises); False after ``stop()``.
 
-        A final report (which carries a task's outputs or messages) is applied and committed
-        on its own, so the quarantine file names exactly the report being applied; the
-        other events go in batches.
+        Everything queued together is applied and committed in one transaction, the final
+        reports of many attempts included (the quarantine file names them all while they
+        are applied). A final report of a task a server already died on (a suspect,
+        ``InFlight.suspect``) is applied and committed on its own, so that a second crash
+        names exactly that report.
         """
-        for part in _parts(items):
+        suspect = self._inflight.suspect if self._inflight is not None else None
+        for part in _parts(items, suspect):
             self._applying = part
             try:
                 self._apply(part)
@@ -287,8 +290,8 @@ class Engine:
                 return self.scheduler.attempts_on(node_id)
             case ListNodes():
                 return [(node, self.scheduler.used(node.id)) for node in self.scheduler.nodes()]
-            case WaitReasons(workflow_id=wf_id):
-                return self.scheduler.waiting(wf_id)
+            case WaitReasons(workflow_id=wf_id, names=names):
+                return self.scheduler.waiting(wf_id, names)
         raise TypeError(f"not a request: {request!r}")
 
     def _tag_workflow(self, request: TagWorkflow, batch: Batch) -> list[str]:
@@ -401,11 +404,12 @@ class Engine:
         return task.node_id if task is not None else None
 
 
-def _parts(items: list[Any]) -> list[list[Any]]:
-    """``items`` cut so that each attempt's exit or start failure stands alone."""
+def _parts(items: list[Any], suspect: Callable[[str], bool] | None) -> list[list[Any]]:
+    """``items`` cut so that each suspect attempt's exit or start failure stands alone."""
     parts: list[list[Any]] = [[]]
     for item in items:
-        if isinstance(item, (AttemptExited, AttemptStartFailed)):
+        if (suspect is not None and isinstance(item, (AttemptExited, AttemptStartFailed))
+                and suspect(item.attempt_id)):
             parts += [[item], []]
         else:
             parts[-1].append(item)

@@ -5,19 +5,21 @@ commands runs. So a scheduler built from the store (:func:`restore`) is exactly 
 workers were last told about. The server does this when it starts; the engine does it when
 applying a batch raised (``osmo.server.engine``), to drop the half-applied batch from memory.
 
-Quarantine: the engine applies each attempt's final report (an exit or a start failure: the
-reports that carry a task's outputs and messages into the server) in a transaction of its
-own, writing its id to ``OSMO_HOME/applying.json`` (:class:`InFlight`) before and emptying
-the file once it is committed. A file still holding an id when a server starts means the
-previous server died while applying that report: a crash no exception handler saw (a
+Quarantine: the engine applies the final reports (exits and start failures: the reports
+that carry a task's outputs and messages into the server) that arrived together in one
+transaction, writing their ids to ``OSMO_HOME/applying.json`` (:class:`InFlight`) before and
+emptying the file once it is committed. A file still holding ids when a server starts means
+the previous server died while applying those reports: a crash no exception handler saw (a
 segfault, the kernel's OOM killer), or a ``kill -9`` from outside at that very instant, which
 nothing tells apart. The first time, the task is given the benefit of the doubt: its attempt
 is recovered like any other lost one (run again as a new retry) and the crash is counted in
-``OSMO_HOME/crashes.json`` (:meth:`InFlight.strike`). If a server dies again while applying a
-report of the same task, that attempt is failed with :data:`QUARANTINED` instead of being run
-again, so one task cannot crash a server over and over; ``osmo restart`` runs it again once
-its cause is fixed. The files are written without fsync: a process crash leaves the page
-cache intact, and a power cut is no attempt's fault.
+``OSMO_HOME/crashes.json`` (:meth:`InFlight.strike`). From then on a report of that task is
+applied in a transaction of its own (:meth:`InFlight.suspect`), so that a second crash names
+it alone. If a server dies again while applying a report of the same task, that attempt is
+failed with :data:`QUARANTINED` instead of being run again, so one task cannot crash a server
+over and over; ``osmo restart`` runs it again once its cause is fixed. The files are written
+without fsync: a process crash leaves the page cache intact, and a power cut is no attempt's
+fault.
 
 Must not run tasks or talk to workers; it only reads the store and that one file.
 """
@@ -161,6 +163,7 @@ class InFlight:
         self.path = Path(path)
         self.crashes = Path(crashes) if crashes else self.path.with_name("crashes.json")
         self.left: set[str] = _read_ids(self.path)
+        self._struck = set(_read_counts(self.crashes))  # tasks a server already died on
         self._fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o600)
         self._dirty = True
         self.clear()
@@ -182,12 +185,21 @@ class InFlight:
             else:
                 log.warning("attempt %s: a server died while applying its report; it runs "
                             "again (a second such crash quarantines the task)", aid)
+        self._struck |= set(counts)
         if attempt_ids:
             tmp = self.crashes.with_suffix(".tmp")
             tmp.write_text(json.dumps(counts))
             os.chmod(tmp, 0o600)
             tmp.replace(self.crashes)
         return repeat
+
+    def suspect(self, attempt_id: str) -> bool:
+        """Whether a server already died applying a report of ``attempt_id``'s task.
+
+        The engine applies such a report on its own, so that a second crash is this task's
+        alone (the first one may have hit a batch of many tasks' reports).
+        """
+        return attempt_id.rsplit(":", 1)[0] in self._struck
 
     def mark(self, attempt_ids: list[str]) -> None:
         """Note the attempts about to be applied (replaces what was there)."""

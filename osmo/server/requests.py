@@ -89,9 +89,13 @@ class ListNodes:
 
 @dataclass(frozen=True)
 class WaitReasons:
-    """Task name → ``osmo.scheduler.Waiting`` for the waiting tasks of ``workflow_id``."""
+    """Task name → ``osmo.scheduler.Waiting`` for the waiting tasks of ``workflow_id``.
+
+    ``names``: only for these tasks (None: every one).
+    """
 
     workflow_id: str
+    names: frozenset[str] | None = None
 
 
 Request = (SubmitWorkflow | CancelWorkflow | TagDataset | TagWorkflow | AddDatasetVersion

@@ -35,6 +35,7 @@ from osmo.store.rows import (
     TagRow,
     WorkflowRow,
 )
+from osmo.store.taskrows import TaskQueries
 from osmo.store.tokens import TokenRows
 from osmo.store.writes import text_value, write_dataset, write_lineage, write_manifest
 
@@ -143,7 +144,7 @@ _MIGRATIONS: dict[int, Callable[[sqlite3.Connection], None]] = {
 SCHEMA_VERSION = max(_MIGRATIONS)
 
 
-class Store(LineageQueries, TokenRows):
+class Store(LineageQueries, TaskQueries, TokenRows):
     """The SQLite state store under ``OSMO_HOME``.
 
     Args:

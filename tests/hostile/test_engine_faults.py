@@ -48,14 +48,14 @@ workflow:
 class Faulty:
     """A server process with ``OSMO_FAULT`` set, started and stopped by this test."""
 
-    def __init__(self, osmo: Osmo, fault: str) -> None:
+    def __init__(self, osmo: Osmo, fault: str, *args: str) -> None:
         self.osmo = osmo
         self.log = osmo.home / "faulty.log"
         osmo.home.mkdir(parents=True, exist_ok=True)
         with open(self.log, "ab") as out:
             self.proc = subprocess.Popen(
                 [sys.executable, "-m", "tests.hostile.faulty_server", "--home",
-                 str(osmo.home)], env={**osmo.env, "OSMO_FAULT": fault}, cwd=REPO,
+                 str(osmo.home), *args], env={**osmo.env, "OSMO_FAULT": fault}, cwd=REPO,
                 stdin=subprocess.DEVNULL, stdout=out, stderr=out, start_new_session=True)
         deadline = time.monotonic() + 60
         while osmo.server_pid() != self.proc.pid:
