@@ -10,11 +10,9 @@ turns the engine's commands into orders to workers and worker traffic into event
 - ``prepare`` sends the attempt with the input manifests it needs (the task's workflow spec
   only the first time a worker hears of that workflow). Secrets never travel in an order
   (any subscriber of ``to-worker/**`` receives it): the worker asks ``worker_secrets``.
-- An exit report with outputs is handled on a transfer thread: the blobs the server lacks
-  are fetched from the worker, verified, the output folder is linked into the server's
-  ``runs/`` tree (so downstream tasks and ``osmo artifacts`` find it where local outputs
-  live), and only then does the engine see the exit; the worker then gets its ``ack``. A
-  transfer that fails makes the attempt lost (rescheduled).
+- An exit report's outputs are fetched, verified and linked into the server's ``runs/``
+  tree before the engine sees the exit, then the worker gets its ``ack``
+  (``osmo.server.worker_outputs``); a transfer that fails makes the attempt lost.
 - Reports, log batches and secret requests are authenticated API requests, accepted only
   for attempts placed on the worker the caller's token registered
   (``osmo.server.worker_access``).
@@ -28,16 +26,13 @@ from __future__ import annotations
 import json
 import logging
 import threading
-import time
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 from osmo.artifacts import ArtifactStore, Manifest
 from osmo.errors import OsmoError
-from osmo.layout import AttemptDirs, Home
 from osmo.scheduler.types import (
     LOCAL_NODE,
     AttemptExited,
@@ -55,10 +50,11 @@ from osmo.scheduler.types import (
 from osmo.server.auth import refuse
 from osmo.server.remote_logs import RemoteLogs
 from osmo.server.worker_access import WorkerAccess, has_secrets, task_secrets
+from osmo.server.worker_outputs import OutputIntake
 from osmo.spec.model import ResourceSpec, TaskSpec
 from osmo.store.sqlite import Store
 from osmo.transport.auth import Identity
-from osmo.transport.blobs import SERVER, BlobServer, SameHost, fetch_manifest, host_id
+from osmo.transport.blobs import SERVER, BlobServer, SameHost, host_id
 from osmo.transport.rpc import field
 from osmo.transport.wire import Hello, event_from_dict, prepare_to_dict, spec_to_wire
 from osmo.transport.zenoh_link import Link, Subscription
@@ -103,7 +99,9 @@ class WorkerHub:
         self._sent_specs: dict[str, set[str]] = {}
         self._logs = RemoteLogs(home)
         self._access = WorkerAccess(authenticate, lambda wid: wid in self._alive)
-        self._transfers = ThreadPoolExecutor(4, thread_name_prefix="osmo-pull")
+        self._outputs = OutputIntake(link=link, artifacts=artifacts, home=home, emit=emit,
+                                     send=self._send, blob_key=self._access.key,
+                                     same_host=self._same_host_of)
         self._host = host_id()
         self._subs: list[Subscription] = [
             link.watch(link.key("alive", "worker", "*"), self._on_token),
@@ -335,6 +333,10 @@ class WorkerHub:
         """Refuse (NotAllowed) unless attempt ``aid`` is placed on worker ``wid``."""
         self._access.placed_on(verb, wid, aid, who)
 
+    def _same_host_of(self, wid: str) -> SameHost | None:
+        with self._lock:
+            return self._same_host.get(wid)
+
     def _send(self, wid: str, order: dict[str, Any]) -> None:
         self._link.put(self._link.key("to-worker", wid), json.dumps(order).encode())
 
@@ -347,54 +349,12 @@ class WorkerHub:
             log.warning("unknown report from worker %s: %r", wid, report)
             return
         if isinstance(event, AttemptExited):
-            manifest = Manifest.from_json(event.manifest) if event.manifest else None
-            if self._nothing_to_fetch(manifest):
-                self._exited(wid, event, manifest)  # a few links at most: no other thread
-            else:
-                self._transfers.submit(self._exited, wid, event, manifest)
+            self._logs.end(event.attempt_id)
+            self._outputs.exited(wid, event)
             return
         if isinstance(event, (AttemptStartFailed, AttemptLost)):
             self._logs.end(event.attempt_id)
         self._emit(event)
-
-    def _nothing_to_fetch(self, manifest: Manifest | None) -> bool:
-        if manifest is None:
-            return True
-        entries = manifest.entries
-        return len(entries) <= 16 and all(self._artifacts.has(e.digest) for e in entries)
-
-    def _exited(self, wid: str, event: AttemptExited, manifest: Manifest | None) -> None:
-        """Take the outputs, then let the engine see the exit, then ack."""
-        self._logs.end(event.attempt_id)
-        try:
-            if manifest is not None:
-                with self._lock:
-                    same = self._same_host.get(wid)
-                t0 = time.perf_counter()
-                key = self._access.key(wid)
-                sent = fetch_manifest(self._link, wid, manifest, self._artifacts, same_host=same,
-                                      attachment=key)
-                if sent:
-                    took = time.perf_counter() - t0
-                    log.info("outputs of %s: %d bytes fetched from worker %s in %.3fs "
-                             "(%.0f MiB/s)", event.attempt_id, sent, wid, took,
-                             sent / max(took, 1e-9) / 2**20)
-                dirs = _dirs(self._home, event.attempt_id)
-                self._artifacts.link_tree(manifest, dirs.output)
-                event = replace(event, output=str(dirs.output))
-            else:
-                event = replace(event, output=None)
-        except (OsmoError, OSError) as exc:
-            log.warning("outputs of %s from worker %s: %s", event.attempt_id, wid, exc)
-            self._emit(AttemptLost(event.attempt_id, f"outputs could not be taken from worker "
-                                                      f"{wid}: {exc}"))
-            return
-        except Exception as exc:  # noqa: BLE001 - a bug: fail the attempt, never leave it open
-            log.exception("outputs of %s from worker %s", event.attempt_id, wid)
-            event = replace(event, output=None, manifest=None,
-                            message=f"outputs could not be promoted: {exc!r}")
-        self._emit(event)
-        self._send(wid, {"op": "ack", "attempt_id": event.attempt_id})
 
     def close(self) -> None:
         """Stop listening (workers keep running; they register again with the next server)."""
@@ -402,15 +362,8 @@ class WorkerHub:
             sub.close()
         self._server_token.close()
         self._blobs.close()
-        self._transfers.shutdown(wait=False, cancel_futures=True)
+        self._outputs.close()
         self._logs.close()
-
-
-def _dirs(home: Path, attempt_id: str) -> AttemptDirs:
-    dirs = Home(home).attempt_of(attempt_id)
-    if dirs is None:
-        raise OsmoError(f"malformed attempt id {attempt_id!r}")
-    return dirs
 
 
 def _is_url(ref: str) -> bool:
