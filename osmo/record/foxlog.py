@@ -22,7 +22,8 @@ from google.protobuf.message import DecodeError
 
 from osmo.errors import UsageError
 
-__all__ = ["LEVELS", "LOG_SCHEMA", "LogEntry", "encode_log", "log_decoder", "log_schema"]
+__all__ = ["LEVELS", "LOG_SCHEMA", "LogEntry", "encode_log", "log_decoder", "log_schema",
+           "message_class"]
 
 LOG_SCHEMA = Log.DESCRIPTOR.full_name
 """The schema name a ``foxglove.Log`` channel declares."""
@@ -88,11 +89,31 @@ def encode_log(entry: LogEntry) -> bytes:
     return bytes(message.SerializeToString())
 
 
+def message_class(schema_name: str, descriptor_set: bytes) -> Any:
+    """The protobuf message class ``schema_name`` as a serialized ``FileDescriptorSet`` declares it.
+
+    What an MCAP ``protobuf`` channel's schema holds; the class is built from it, not taken
+    from the classes installed here.
+
+    Raises:
+        UsageError: the descriptor set does not parse or lacks ``schema_name``.
+    """
+    try:
+        fds = descriptor_pb2.FileDescriptorSet.FromString(descriptor_set)
+        pool = descriptor_pool.DescriptorPool()
+        for proto in fds.file:
+            pool.Add(proto)
+        return message_factory.GetMessageClass(pool.FindMessageTypeByName(schema_name))
+    except (DecodeError, KeyError, TypeError, ValueError) as exc:
+        raise UsageError(f"schema {schema_name!r} is not a protobuf descriptor set declaring "
+                         f"it: {exc}") from exc
+
+
 def log_decoder(schema_name: str, descriptor_set: bytes) -> Callable[[bytes], LogEntry]:
     """A decoder for messages of a channel declaring ``schema_name`` with ``descriptor_set``.
 
-    The message type is built from the declared schema (not from the classes installed here)
-    and must be ``foxglove.Log``.
+    The message type is built from the declared schema (:func:`message_class`) and must be
+    ``foxglove.Log``.
 
     Raises:
         UsageError: the schema is not ``foxglove.Log`` or does not parse; the decoder raises it
@@ -100,14 +121,7 @@ def log_decoder(schema_name: str, descriptor_set: bytes) -> Callable[[bytes], Lo
     """
     if schema_name != LOG_SCHEMA:
         raise UsageError(f"expected a {LOG_SCHEMA} channel, found schema {schema_name!r}")
-    try:
-        fds = descriptor_pb2.FileDescriptorSet.FromString(descriptor_set)
-        pool = descriptor_pool.DescriptorPool()
-        for proto in fds.file:
-            pool.Add(proto)
-        cls = message_factory.GetMessageClass(pool.FindMessageTypeByName(schema_name))
-    except (DecodeError, KeyError, TypeError, ValueError) as exc:
-        raise UsageError(f"unreadable {schema_name} schema: {exc}") from exc
+    cls = message_class(schema_name, descriptor_set)
 
     def decode(data: bytes) -> LogEntry:
         try:
