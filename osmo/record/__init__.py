@@ -9,11 +9,13 @@ Public API (import from here; the submodules are private)::
     JsonMcapWriter                  the same without lineage
     McapFile                        read any MCAP file (channels, messages, metadata, attachments)
     read_lineage(path)              the lineage an MCAP file carries, or None
-    write_run_record(path, ...)     a finished workflow's run record (status, lineage, logs)
+    write_run_record(path, ...)     a finished workflow's run record (status, lineage, and
+                                    foxglove.Log lines on LOG_TOPIC)
     read_run_record(path)           and back
     RecordError                     an unreadable MCAP file (a UsageError, exit code 2)
 
-Only :mod:`osmo.record.mcapio` imports ``mcap``. Nothing here imports the server or scheduler.
+Only :mod:`osmo.record.mcapio` imports ``mcap``; only :mod:`osmo.record.foxlog` imports
+protobuf. Nothing here imports the server or scheduler.
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ from osmo.record.mcapio import (
 )
 from osmo.record.runrecord import (
     LINEAGE_TOPIC,
+    LOG_TOPIC,
     LOGS_TOPIC,
     STATUS_TOPIC,
     WORKFLOW_METADATA,
@@ -38,6 +41,7 @@ from osmo.record.runrecord import (
 __all__ = [
     "LINEAGE_METADATA",
     "LINEAGE_TOPIC",
+    "LOG_TOPIC",
     "LOGS_TOPIC",
     "STATUS_TOPIC",
     "WORKFLOW_METADATA",

@@ -1,7 +1,8 @@
-"""The one module of osmo that imports ``mcap``: JSON-channel MCAP writing and reading.
+"""The one module of osmo that imports ``mcap``: MCAP writing and reading.
 
-Owns :class:`JsonMcapWriter` (one MCAP file of JSON-schema channels, metadata and attachments,
-written atomically: a hidden temp file renamed into place on close), :class:`LineageMcapWriter`
+Owns :class:`JsonMcapWriter` (one MCAP file of JSON-schema channels, protobuf channels whose
+messages the caller encodes, metadata and attachments, written atomically: a hidden temp file
+renamed into place on close), :class:`LineageMcapWriter`
 (the same, stamping an ``osmo.lineage`` metadata record; what task code uses), and
 :class:`McapFile` / :func:`read_lineage` (reading any MCAP file back).
 
@@ -153,15 +154,32 @@ class JsonMcapWriter:
         Returns:
             the channel id to pass to :meth:`write`.
         """
+        data = json_bytes(schema, f"JSON schema {schema_name!r}")
+        return self._add_channel(topic, schema_name, "jsonschema", data, "json")
+
+    def add_protobuf_channel(self, topic: str, schema_name: str, descriptor_set: bytes) -> int:
+        """Register a channel of protobuf messages of type ``schema_name`` (e.g. ``foxglove.Log``).
+
+        ``descriptor_set`` is the serialized ``FileDescriptorSet`` declaring that type, which is
+        what MCAP readers (Foxglove among them) decode a ``protobuf`` channel with.
+
+        Returns:
+            the channel id to pass to :meth:`write_encoded`.
+        """
+        if not isinstance(descriptor_set, bytes) or not descriptor_set:
+            raise UsageError(f"protobuf schema {schema_name!r} needs a FileDescriptorSet")
+        return self._add_channel(topic, schema_name, "protobuf", descriptor_set, "protobuf")
+
+    def _add_channel(self, topic: str, schema_name: str, schema_encoding: str, data: bytes,
+                     message_encoding: str) -> int:
         if not topic or not schema_name:
             raise UsageError("an MCAP channel needs a non-empty topic and schema name")
-        data = json_bytes(schema, f"JSON schema {schema_name!r}")
         with self._writing():
             schema_id = self._schemas.get((schema_name, data))
             if schema_id is None:
-                schema_id = self._writer.register_schema(schema_name, "jsonschema", data)
+                schema_id = self._writer.register_schema(schema_name, schema_encoding, data)
                 self._schemas[(schema_name, data)] = schema_id
-            channel_id: int = self._writer.register_channel(topic, "json", schema_id)
+            channel_id: int = self._writer.register_channel(topic, message_encoding, schema_id)
         self._topics[channel_id] = topic
         self._sequence[channel_id] = 0
         return channel_id
@@ -176,7 +194,17 @@ class JsonMcapWriter:
         """
         if channel_id not in self._topics:
             raise UsageError(f"unknown MCAP channel id {channel_id!r}: use add_json_channel()")
-        data = json_bytes(obj, f"message on {self._topics[channel_id]}")
+        self.write_encoded(channel_id, json_bytes(obj, f"message on {self._topics[channel_id]}"),
+                           log_time_ns)
+
+    def write_encoded(self, channel_id: int, data: bytes, log_time_ns: int | None = None) -> None:
+        """Write one message already encoded in its channel's encoding (e.g. protobuf bytes).
+
+        Raises:
+            UsageError: unknown channel or bad time.
+        """
+        if channel_id not in self._topics:
+            raise UsageError(f"unknown MCAP channel id {channel_id!r}: add the channel first")
         stamp = _check_time(log_time_ns, "log_time_ns")
         with self._writing():
             self._writer.add_message(channel_id, log_time=stamp, data=data, publish_time=stamp,
@@ -308,7 +336,9 @@ class McapFile:
             self._file: IO[bytes] = open(self.path, "rb")
         try:
             with self._reading():
-                self._reader: McapReader = make_reader(self._file)
+                # CRCs checked: a corrupt chunk of protobuf (no JSON to fail parsing) must not
+                # read as data.
+                self._reader: McapReader = make_reader(self._file, validate_crcs=True)
                 self._summary = self._reader.get_summary()
         except BaseException:
             self._file.close()

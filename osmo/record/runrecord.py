@@ -1,17 +1,25 @@
 """The run record: one MCAP file per finished workflow that Foxglove and rerun open directly.
 
-Layout (every channel has a JSON Schema, encoding ``jsonschema``; messages are ``json``; a
-message's log time is its event's time in ns since the unix epoch)::
+Layout, record version 2 (a message's log time is its event's time in ns since the unix
+epoch; every channel's log times are in order)::
 
-    /osmo/status   one message per status transition  (osmo.StatusTransition)
-    /osmo/lineage  one message per attempt             (osmo.Lineage, Lineage.to_dict())
-    /osmo/logs     one message per log line            (osmo.LogLine)
+    /osmo/log      foxglove.Log (protobuf, Foxglove's own schema), what the Log panel shows:
+                   one per task output line   name = task, file = "<task>/<retry>/<stream>",
+                                              line = its line number in that stream, level
+                                              INFO (stdout) or WARNING (stderr)
+                   one per status transition  name = task (the workflow id for the workflow's
+                                              own), file empty, level ERROR for a FAILED*
+                                              status, WARNING for RESCHEDULED, else INFO
+    /osmo/status   one message per status transition  (JSON, osmo.StatusTransition)
+    /osmo/lineage  one message per attempt             (JSON, osmo.Lineage, Lineage.to_dict())
     metadata "osmo.workflow": id, name, status, submitted_at, ended_at (strings), record_version,
                               and "workflow": the whole workflow dict as JSON
 
+Version 1 records (log lines as JSON ``osmo.LogLine`` on ``/osmo/logs``) still read.
+
 This module owns that layout and nothing else: it builds messages from plain dicts the server
-already has and leaves the MCAP encoding to :mod:`osmo.record.mcapio`. It must not import
-``mcap`` or the server.
+already has and leaves the MCAP encoding to :mod:`osmo.record.mcapio` and the protobuf to
+:mod:`osmo.record.foxlog`. It must not import ``mcap``, protobuf or the server.
 """
 
 from __future__ import annotations
@@ -24,11 +32,13 @@ from pathlib import Path
 from typing import Any
 
 from osmo.errors import UsageError
+from osmo.record.foxlog import LOG_SCHEMA, LogEntry, encode_log, log_decoder, log_schema
 from osmo.record.lineage import Lineage, compact_json
-from osmo.record.mcapio import JsonMcapWriter, McapFile, RecordError
+from osmo.record.mcapio import JsonMcapWriter, McapFile, McapMessage, RecordError
 
 __all__ = [
     "LINEAGE_TOPIC",
+    "LOG_TOPIC",
     "LOGS_TOPIC",
     "RECORD_VERSION",
     "STATUS_TOPIC",
@@ -39,9 +49,12 @@ __all__ = [
 
 STATUS_TOPIC = "/osmo/status"
 LINEAGE_TOPIC = "/osmo/lineage"
+LOG_TOPIC = "/osmo/log"
 LOGS_TOPIC = "/osmo/logs"
+"""Where version 1 records kept log lines (JSON); read, never written."""
 WORKFLOW_METADATA = "osmo.workflow"
-RECORD_VERSION = "1"
+RECORD_VERSION = "2"
+READS_VERSIONS = ("1", "2")
 
 _STR = {"type": "string"}
 _OPT_STR = {"type": ["string", "null"]}
@@ -96,21 +109,6 @@ LINEAGE_SCHEMA: dict[str, Any] = {
     "required": ["workflow_id", "task", "retry"],
 }
 
-LOGS_SCHEMA: dict[str, Any] = {
-    "title": "osmo.LogLine",
-    "description": "One line a task retry wrote to stdout or stderr.",
-    "type": "object",
-    "properties": {
-        "ts": {"type": "number", "description": "unix seconds"},
-        "task": _STR,
-        "retry": {"type": "integer"},
-        "stream": _STR,
-        "text": _STR,
-    },
-    "required": ["ts", "task", "retry", "stream", "text"],
-}
-
-
 def write_run_record(path: Path, *, workflow: Mapping[str, Any],
                      transitions: Sequence[Mapping[str, Any]], lineage: Sequence[Lineage],
                      logs: Sequence[Mapping[str, Any]]) -> None:
@@ -131,23 +129,21 @@ def write_run_record(path: Path, *, workflow: Mapping[str, Any],
         InfrastructureError: the file cannot be written.
     """
     workflow_id = _text(workflow, "id", "workflow")
+    events = sorted((_transition(e, workflow_id) for e in transitions), key=lambda m: m["at"])
+    lines = [_log_line(line) for line in logs]
+    fallback = _opt_time(workflow.get("submitted_at"), "workflow submitted_at") or 0.0
+    attempts = sorted((_lineage_time(r, fallback), n, r) for n, r in enumerate(lineage))
     with JsonMcapWriter(path) as out:
+        log = out.add_protobuf_channel(LOG_TOPIC, LOG_SCHEMA, log_schema())
         status = out.add_json_channel(STATUS_TOPIC, "osmo.StatusTransition", STATUS_SCHEMA)
-        attempts = out.add_json_channel(LINEAGE_TOPIC, "osmo.Lineage", LINEAGE_SCHEMA)
-        lines = out.add_json_channel(LOGS_TOPIC, "osmo.LogLine", LOGS_SCHEMA)
-        for event in transitions:
-            message = _transition(event, workflow_id)
+        lineage_channel = out.add_json_channel(LINEAGE_TOPIC, "osmo.Lineage", LINEAGE_SCHEMA)
+        for entry in sorted([*map(_status_entry, events, [workflow_id] * len(events)),
+                             *_line_entries(lines)], key=lambda e: e.time_ns):
+            out.write_encoded(log, encode_log(entry), entry.time_ns)
+        for message in events:
             out.write(status, message, _ns(message["at"], "transition 'at'"))
-        fallback = _opt_time(workflow.get("submitted_at"), "workflow submitted_at") or 0.0
-        for record in lineage:
-            if not isinstance(record, Lineage):
-                raise UsageError(f"lineage entries must be Lineage, got {type(record).__name__}")
-            when = record.ended_at if record.ended_at is not None else record.started_at
-            out.write(attempts, record.to_dict(), _ns(when if when is not None else fallback,
-                                                      "lineage time"))
-        for line in logs:
-            message = _log_line(line)
-            out.write(lines, message, _ns(message["ts"], "log 'ts'"))
+        for when, _, record in attempts:
+            out.write(lineage_channel, record.to_dict(), when)
         out.add_metadata(WORKFLOW_METADATA, _workflow_metadata(workflow))
 
 
@@ -164,22 +160,62 @@ def read_run_record(path: Path) -> dict[str, Any]:
     """
     with McapFile(path) as record:
         meta = record.metadata(WORKFLOW_METADATA)
-        messages = record.messages([STATUS_TOPIC, LINEAGE_TOPIC, LOGS_TOPIC])
-    if not meta:
-        raise RecordError(path, f"no {WORKFLOW_METADATA} metadata: not an osmo run record")
-    by_topic: dict[str, list[Any]] = {STATUS_TOPIC: [], LINEAGE_TOPIC: [], LOGS_TOPIC: []}
+        if not meta:
+            raise RecordError(path, f"no {WORKFLOW_METADATA} metadata: not an osmo run record")
+        version = meta[-1][1].get("record_version") or "1"
+        if version not in READS_VERSIONS:
+            raise RecordError(path, f"run record version {version!r}; this osmo reads versions "
+                                    f"{', '.join(READS_VERSIONS)} (upgrade osmo)")
+        log_topic = LOG_TOPIC if version == "2" else LOGS_TOPIC
+        schemas = {c.topic: c for c in record.channels()}
+        messages = record.messages([STATUS_TOPIC, LINEAGE_TOPIC, log_topic])
+    by_topic: dict[str, list[McapMessage]] = {STATUS_TOPIC: [], LINEAGE_TOPIC: [], log_topic: []}
     for message in messages:
-        by_topic[message.topic].append(message.value)
+        by_topic[message.topic].append(message)
     try:
-        lineage = [Lineage.from_dict(v) for v in by_topic[LINEAGE_TOPIC]]
+        lineage = [Lineage.from_dict(m.value) for m in by_topic[LINEAGE_TOPIC]]
     except UsageError as exc:
         raise RecordError(path, f"malformed {LINEAGE_TOPIC} message: {exc}") from exc
+    if version == "1":
+        logs = [m.value for m in by_topic[LOGS_TOPIC]]
+    else:
+        logs = _logs_from_entries(path, schemas.get(LOG_TOPIC), by_topic[LOG_TOPIC])
     return {
         "workflow": _workflow_from_metadata(meta[-1][1]),
-        "status": by_topic[STATUS_TOPIC],
+        "status": [m.value for m in by_topic[STATUS_TOPIC]],
         "lineage": lineage,
-        "logs": by_topic[LOGS_TOPIC],
+        "logs": logs,
     }
+
+
+def _logs_from_entries(path: Path, channel: Any, messages: Sequence[McapMessage]
+                       ) -> list[dict[str, Any]]:
+    """The task output lines among a version 2 record's ``foxglove.Log`` messages."""
+    if channel is None:
+        return []
+    try:
+        decode = log_decoder(channel.schema_name, channel.schema)
+        entries = [decode(m.data) for m in messages]
+    except UsageError as exc:
+        raise RecordError(path, f"{LOG_TOPIC}: {exc}") from exc
+    logs = []
+    for entry in entries:
+        if not entry.file:  # a status transition; /osmo/status has it structured
+            continue
+        task, retry, stream = _split_source(path, entry.file)
+        logs.append({"ts": entry.time_ns / 1e9, "task": task, "retry": retry, "stream": stream,
+                     "text": entry.message})
+    return logs
+
+
+def _split_source(path: Path, source: str) -> tuple[str, int, str]:
+    """``<task>/<retry>/<stream>`` back into its parts."""
+    task, _, rest = source.rpartition("/")
+    task, _, retry = task.rpartition("/")
+    if not task or not retry.isdigit() or not rest:
+        raise RecordError(path, f"{LOG_TOPIC}: a log line's file {source!r} is not "
+                                "<task>/<retry>/<stream>")
+    return task, int(retry), rest
 
 
 # ------------------------------------------------------------------------------ helpers
@@ -227,6 +263,47 @@ def _transition(event: Mapping[str, Any], workflow_id: str) -> dict[str, Any]:
     }
     _ns(message["at"], "transition 'at'")
     return message
+
+
+def _lineage_time(record: Any, fallback: float) -> int:
+    """An attempt's log time: its end, else its start, else the workflow's submission."""
+    if not isinstance(record, Lineage):
+        raise UsageError(f"lineage entries must be Lineage, got {type(record).__name__}")
+    when = record.ended_at if record.ended_at is not None else record.started_at
+    return _ns(when if when is not None else fallback, "lineage time")
+
+
+def _status_entry(event: Mapping[str, Any], workflow_id: str) -> LogEntry:
+    """A status transition as a readable ``foxglove.Log`` line."""
+    status, task = event["status"], event["task"]
+    level = "ERROR" if status.startswith("FAILED") else \
+        "WARNING" if status == "RESCHEDULED" else "INFO"
+    text = f"{status}" if task is not None else f"workflow {status}"
+    if event["retry"]:
+        text += f" (retry {event['retry']})"
+    if event["message"]:
+        text += f": {event['message']}"
+    return LogEntry(_ns(event["at"], "transition 'at'"), level, text,
+                    str(task) if task is not None else workflow_id)
+
+
+def _line_entries(lines: Sequence[Mapping[str, Any]]) -> list[LogEntry]:
+    """Task output lines as ``foxglove.Log`` lines, numbered per task, retry and stream."""
+    numbers: dict[str, int] = {}
+    out = []
+    for line in lines:
+        if not isinstance(line["text"], str) or not isinstance(line["task"], str) \
+                or not line["task"] or isinstance(line["retry"], bool) \
+                or not isinstance(line["retry"], int) or line["retry"] < 0 \
+                or not isinstance(line["stream"], str) or not line["stream"]:
+            raise UsageError(f"log line {dict(line)!r}: task, stream and text must be "
+                             "strings and retry an integer >= 0")
+        source = f"{line['task']}/{line['retry']}/{line['stream']}"
+        numbers[source] = numbers.get(source, 0) + 1
+        out.append(LogEntry(_ns(line["ts"], "log 'ts'"),
+                            "WARNING" if line["stream"] == "stderr" else "INFO",
+                            line["text"], line["task"], source, numbers[source]))
+    return out
 
 
 def _log_line(line: Mapping[str, Any]) -> dict[str, Any]:

@@ -82,18 +82,14 @@ def protobuf_decoder(schema_name: str, schema_data: bytes, path: Path | str
     Raises:
         RecordError: the schema does not parse or lacks the named message type.
     """
-    from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
     from google.protobuf.message import DecodeError
 
+    from osmo.record.foxlog import message_class
+
     try:
-        files = descriptor_pb2.FileDescriptorSet.FromString(schema_data)
-        pool = descriptor_pool.DescriptorPool()
-        for proto in files.file:
-            pool.Add(proto)
-        cls = message_factory.GetMessageClass(pool.FindMessageTypeByName(schema_name))
-    except (DecodeError, KeyError, TypeError, ValueError) as exc:
-        raise RecordError(path, f"schema {schema_name!r} is not a protobuf descriptor set: "
-                          f"{exc}") from exc
+        cls = message_class(schema_name, schema_data)
+    except UsageError as exc:
+        raise RecordError(path, str(exc)) from exc
 
     def decode(data: bytes) -> Any:
         try:

@@ -115,6 +115,21 @@ def test_view_local_mcap(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> 
     assert out.stat().st_size > 0 and f"wrote {out}" in capsys.readouterr().out
 
 
+def test_view_a_run_record(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A run record (foxglove.Log on /osmo/log, JSON status and lineage) converts too."""
+    pytest.importorskip("rerun")
+    from osmo.record import write_run_record
+
+    src = tmp_path / "run.mcap"
+    write_run_record(src, workflow={"id": "wf-1", "name": "wf", "status": "COMPLETED"},
+                     transitions=[{"at": 1.0, "task": "a", "retry": 0, "status": "RUNNING"}],
+                     lineage=[], logs=[{"ts": 1.5, "task": "a", "retry": 0,
+                                        "stream": "stdout", "text": "hello"}])
+    out = tmp_path / "run.rrd"
+    assert main(["view", str(src), "--out", str(out)]) == 0
+    assert out.stat().st_size > 0 and f"wrote {out}" in capsys.readouterr().out
+
+
 def test_report_escapes_hostile_names(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """Names in metrics files are data: they cannot clear the screen or forge a line."""
     path = _metrics(tmp_path / "m.json", [("evil\x1b[2J\nrandom  Pend-v5  1", "Pend-v5", 5.0)])

@@ -9,8 +9,10 @@ import sys
 import time
 from pathlib import Path
 
+from foxglove_schemas_protobuf.Log_pb2 import Log
 from mcap.reader import make_reader
 
+from osmo.record import read_run_record
 from tests.conftest import Osmo, write
 
 PIPELINE = """
@@ -118,15 +120,23 @@ def test_run_record_is_an_mcap_with_status_lineage_and_logs(shared_osmo: Osmo,
         summary = reader.get_summary()
         assert summary is not None
         channels = {c.topic: c for c in summary.channels.values()}
-        assert {"/osmo/status", "/osmo/lineage", "/osmo/logs"} <= set(channels)
+        assert {"/osmo/status", "/osmo/lineage", "/osmo/log"} == set(channels)
         schemas = {s.id: s for s in summary.schemas.values()}
-        assert all(schemas[c.schema_id].encoding == "jsonschema" for c in channels.values())
-        by_topic: dict[str, list[dict]] = {}
+        assert schemas[channels["/osmo/status"].schema_id].encoding == "jsonschema"
+        assert schemas[channels["/osmo/lineage"].schema_id].encoding == "jsonschema"
+        log_schema = schemas[channels["/osmo/log"].schema_id]
+        assert (log_schema.name, log_schema.encoding) == ("foxglove.Log", "protobuf")
+        by_topic: dict[str, list] = {}
         for _schema, channel, message in reader.iter_messages():
-            by_topic.setdefault(channel.topic, []).append(json.loads(message.data))
+            value = (Log.FromString(message.data) if channel.topic == "/osmo/log"
+                     else json.loads(message.data))
+            by_topic.setdefault(channel.topic, []).append(value)
     assert {m["task"] for m in by_topic["/osmo/lineage"]} == {"raw", "clean", "model"}
     assert by_topic["/osmo/status"][-1]["status"] == "COMPLETED"
     assert any(m["task"] is None for m in by_topic["/osmo/status"])
+    assert by_topic["/osmo/log"][-1].message.startswith("workflow COMPLETED")
+    assert {m.name for m in by_topic["/osmo/log"]} >= {"raw", "clean", "model", wf}
+    assert read_run_record(record)["status"][-1]["status"] == "COMPLETED"
 
 
 def test_mcap_written_by_a_task_carries_its_lineage_away(osmo: Osmo, tmp_path: Path) -> None:
