@@ -4,8 +4,9 @@ served without a token check.
 Two real servers' API plumbing (``osmo.transport.rpc.ApiServer`` on a zenoh router, on a
 Unix socket, a client session connected to it): one authenticates every request with
 ``osmo.server.auth.Authenticator`` over a real SQLite token store (a sha256 of the token,
-then the cache of digest → identity), the other hands every request a fixed identity. The
-row is the difference of their p50 round trips (target: at most 0.2 ms, issue 13).
+then the cache of digest → identity) on a router that also applies the server's zenoh
+access control (``SERVER_ONLY``), the other hands every request a fixed identity on a plain
+router. The row is the difference of their p50 round trips (target: at most 0.2 ms, issue 13).
 
 Usage: python bench/bench_auth.py [--runs 5] [--requests 2000] [--json out.json]
 """
@@ -26,6 +27,7 @@ from osmo.server.auth import Authenticator  # noqa: E402
 from osmo.store.sqlite import Store  # noqa: E402
 from osmo.transport.auth import Identity, Role, new_token, token_digest  # noqa: E402
 from osmo.transport.rpc import ApiClient, ApiServer  # noqa: E402
+from osmo.transport.wire import SERVER_ONLY  # noqa: E402
 from osmo.transport.zenoh_link import Link  # noqa: E402
 
 
@@ -59,7 +61,8 @@ def measure(root: Path, runs: int, requests: int) -> tuple[list[float], list[flo
     out: tuple[list[float], list[float]] = ([], [])
     for index, authenticate in enumerate((Authenticator(store), lambda _token: fixed)):
         sock = f"unixsock-stream/{root}/api{index}.sock"
-        router = Link.router([sock], "bench")
+        # the checked server's router also refuses the server's keys to peers, as a real one
+        router = Link.router([sock], "bench", reserved=SERVER_ONLY if index == 0 else None)
         server = ApiServer(router, lambda _verb, _request, who: {"name": who.name},
                            authenticate)
         link = Link.client([sock], "bench")
