@@ -24,7 +24,10 @@ Why a private ``/tmp``: the host's holds other tasks' scratch files and the sock
 user's agents (ssh-agent, tmux, X11), through which a task could act outside its sandbox.
 Tasks hand files to each other through outputs and inputs; a host folder every task may
 write (a shared scratch disk) is the operator's explicit choice: ``shared``. osmo's home
-stays hidden even when it lies inside a shared folder.
+stays hidden even when it lies inside a shared folder. What osmo itself runs tasks with stays
+visible, read-only, when it lives under ``/tmp`` (a clone or a virtualenv there): the
+interpreter's prefixes, the folders of ``osmo`` and its plugins, and ``sys.path``
+(``Sandbox.runtime``).
 
 What it does not do: limit CPU, memory or disk; filter system
 calls (the kernel's attack surface is the host's); change the user (the task runs as the
@@ -39,9 +42,11 @@ from __future__ import annotations
 import dataclasses
 import functools
 import glob
+import importlib.util
 import os
 import shutil
 import subprocess
+import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -85,11 +90,14 @@ class Sandbox:
         bwrap: the ``bwrap`` executable.
         devices: host device nodes bound into the sandbox's ``/dev`` (GPUs).
         shared: host folders bound writable into every sandbox (``--sandbox-share``).
+        runtime: folders under ``/tmp`` that osmo's own interpreter and code live in, bound
+            back read-only (:func:`runtime_folders`).
     """
 
     bwrap: str
     devices: tuple[str, ...] = ()
     shared: tuple[str, ...] = ()
+    runtime: tuple[str, ...] = ()
 
     def argv(self, command: Sequence[str], view: View) -> list[str]:
         """``command`` wrapped in bwrap with ``view`` (see the module docstring).
@@ -101,7 +109,9 @@ class Sandbox:
         for device in self.devices:
             out += ["--dev-bind-try", device, device]
         out += ["--proc", "/proc", "--tmpfs", "/tmp", "--unshare-pid", "--die-with-parent"]
-        for folder in self.shared:  # before the home is hidden: it stays hidden inside one
+        for folder in self.runtime:  # before the home is hidden: it stays hidden inside one
+            out += ["--ro-bind-try", folder, folder]
+        for folder in self.shared:
             out += ["--bind-try", folder, folder]
         for folder in sorted({_real(p) for p in view.hidden}, key=_depth):
             out += ["--tmpfs", folder]
@@ -137,12 +147,34 @@ def choose(mode: SandboxMode, shared: Sequence[str | Path] = ()) -> Sandbox | No
     sandbox = _probe()
     if sandbox is None and mode == "on":
         raise InfrastructureError(f"--sandbox on: {unavailable_reason()}")
-    if sandbox is None or not shared:
+    if sandbox is None:
+        return None
+    sandbox = dataclasses.replace(sandbox, runtime=runtime_folders())
+    if not shared:
         return sandbox
     relative = [str(p) for p in shared if not os.path.isabs(p)]
     if relative:
         raise UsageError(f"--sandbox-share needs absolute folders, not {', '.join(relative)}")
     return dataclasses.replace(sandbox, shared=tuple(_real(Path(p)) for p in shared))
+
+
+def runtime_folders(paths: Sequence[str] | None = None) -> tuple[str, ...]:
+    """The folders under ``/tmp`` that tasks need from osmo's own installation.
+
+    ``paths`` (default: this interpreter's prefixes, the folders holding the ``osmo`` and
+    ``osmo_plugins`` packages, and ``sys.path``), reduced to those inside ``/tmp`` (which a
+    sandbox replaces by its own), without the ones inside another.
+    """
+    if paths is None:
+        paths = [sys.prefix, sys.base_prefix, sys.exec_prefix, *sys.path]
+        for package in ("osmo", "osmo_plugins"):
+            spec = importlib.util.find_spec(package)
+            if spec is not None and spec.origin:
+                paths.append(str(Path(spec.origin).parent.parent))
+    tmp = _real(Path("/tmp"))
+    found = sorted({_real(Path(p)) for p in paths if p and os.path.isabs(p)
+                    and _real(Path(p)).startswith(tmp + "/") and os.path.isdir(p)})
+    return tuple(p for p in found if not any(p.startswith(q + "/") for q in found))
 
 
 def unavailable_reason() -> str:

@@ -163,3 +163,21 @@ def test_argv_orders_mounts_parents_first(home: Path) -> None:
     assert argv[argv.index(real(home / "a" / "work")) - 1] == "--bind-try"
     assert "--die-with-parent" in argv and "--unshare-pid" in argv
     assert argv[-2:] == ["--", "true"]
+
+
+def test_osmos_own_folders_under_tmp_stay_visible_read_only(box: Sandbox, home: Path,
+                                                            tmp_path: Path) -> None:
+    """A clone or a virtualenv under /tmp: the sandbox's own /tmp must not hide it."""
+    venv = tmp_path / "venv"
+    (venv / "bin").mkdir(parents=True)
+    (venv / "bin" / "tool").write_text("#!/bin/sh\necho from-the-venv\n")
+    (venv / "bin" / "tool").chmod(0o755)
+    nested, outside = venv / "lib", Path("/usr")
+    nested.mkdir()
+    found = sandbox_mod.runtime_folders([str(venv), str(nested), str(outside), "relative", ""])
+    assert found == (os.path.realpath(venv),)
+    runtime = Sandbox(box.bwrap, box.devices, runtime=found)
+    code, out = run(runtime, home, f"{venv}/bin/tool; touch {venv}/x || echo read-only")
+    assert code == 0 and out.split() == ["from-the-venv", "read-only"], out
+    code, out = run(box, home, f"{venv}/bin/tool || echo hidden")
+    assert out.split()[-1] == "hidden"  # without it, the task's own /tmp hides the venv
