@@ -149,13 +149,11 @@ def choose(mode: SandboxMode, shared: Sequence[str | Path] = ()) -> Sandbox | No
         raise InfrastructureError(f"--sandbox on: {unavailable_reason()}")
     if sandbox is None:
         return None
-    sandbox = dataclasses.replace(sandbox, runtime=runtime_folders())
-    if not shared:
-        return sandbox
     relative = [str(p) for p in shared if not os.path.isabs(p)]
     if relative:
         raise UsageError(f"--sandbox-share needs absolute folders, not {', '.join(relative)}")
-    return dataclasses.replace(sandbox, shared=tuple(_real(Path(p)) for p in shared))
+    return dataclasses.replace(sandbox, runtime=runtime_folders(),
+                               shared=tuple(_real(Path(p)) for p in shared))
 
 
 def runtime_folders(paths: Sequence[str] | None = None) -> tuple[str, ...]:
@@ -171,9 +169,9 @@ def runtime_folders(paths: Sequence[str] | None = None) -> tuple[str, ...]:
             spec = importlib.util.find_spec(package)
             if spec is not None and spec.origin:
                 paths.append(str(Path(spec.origin).parent.parent))
-    tmp = _real(Path("/tmp"))
-    found = sorted({_real(Path(p)) for p in paths if p and os.path.isabs(p)
-                    and _real(Path(p)).startswith(tmp + "/") and os.path.isdir(p)})
+    inside = _real(Path("/tmp")) + "/"
+    real = {_real(Path(p)) for p in paths if p and os.path.isabs(p) and os.path.isdir(p)}
+    found = sorted(p for p in real if p.startswith(inside))
     return tuple(p for p in found if not any(p.startswith(q + "/") for q in found))
 
 
