@@ -32,7 +32,7 @@ from osmo.server.workers import WorkerHub
 from osmo.store.sqlite import Store
 from osmo.transport.auth import Identity
 from osmo.transport.rpc import field, str_list
-from osmo.transport.streams import SessionGrant
+from osmo.transport.streams import MAX_COMMAND, MAX_PORTS, SessionGrant
 from osmo.worker.sessions import NodeSessions
 
 __all__ = ["TICKET_TTL", "Sessions"]
@@ -67,7 +67,7 @@ class Sessions:
     def exec_open(self, request: dict[str, Any], who: Identity) -> dict[str, Any]:
         """Open an exec session: ``command`` (words; empty: a shell), ``tty``, ``size``."""
         command = str_list(request, "command")
-        if len(command) > 256 or any(len(w) > _MAX_WORD or "\0" in w for w in command):
+        if len(command) > MAX_COMMAND or any(len(w) > _MAX_WORD or "\0" in w for w in command):
             raise UsageError("the command has too many or too long words (or a NUL byte)")
         size = field(request, "size", list, default=[24, 80])
         if len(size) != 2 or not all(type(x) is int and 0 < x < 10_000 for x in size):
@@ -80,9 +80,9 @@ class Sessions:
     def forward_open(self, request: dict[str, Any], who: Identity) -> dict[str, Any]:
         """Open a port-forward session to the task ports ``ports`` (TCP, or ``udp``)."""
         ports = field(request, "ports", list)
-        if not ports or len(ports) > 1024 or not all(
+        if not ports or len(ports) > MAX_PORTS or not all(
                 type(p) is int and 0 < p < 65536 for p in ports):
-            raise UsageError("'ports' must be 1 to 1024 port numbers (1-65535)")
+            raise UsageError(f"'ports' must be 1 to {MAX_PORTS} port numbers (1-65535)")
         return self._open(request, who, "forward_open", kind="forward",
                           ports=tuple(sorted(set(ports))),
                           udp=field(request, "udp", bool, default=False))

@@ -35,7 +35,8 @@ from typing import Any
 from osmo.errors import UsageError
 from osmo.transport.zenoh_link import Link, Subscription
 
-__all__ = ["BEAT_EVERY", "CHUNK", "Frame", "Kind", "SessionGrant", "Stream"]
+__all__ = ["BEAT_EVERY", "CHUNK", "MAX_COMMAND", "MAX_PORTS", "Frame", "Kind", "SessionGrant",
+           "Stream"]
 
 CHUNK = 128 << 10
 """Largest frame payload (bytes); FACTS.md: 64–256 KiB puts move fastest."""
@@ -46,8 +47,10 @@ TIMEOUT = 8.0
 _HEADER = struct.Struct(">QBI")
 _TAG = 16
 _SESSION_ID = re.compile(r"[0-9a-f]{32}")
-_MAX_COMMAND = 256  # words of an exec command
-_MAX_PORTS = 1024
+MAX_COMMAND = 256
+"""Most words of an exec command (the server checks requests, the node grants)."""
+MAX_PORTS = 1024
+"""Most ports one port-forward session may open."""
 
 
 class Kind(enum.IntEnum):
@@ -117,8 +120,8 @@ class SessionGrant:
         except (KeyError, TypeError, ValueError) as exc:
             raise UsageError(f"malformed session grant: {exc}") from None
         if (not _SESSION_ID.fullmatch(sid) or len(key) != 32
-                or grant.kind not in ("exec", "forward") or len(command) > _MAX_COMMAND
-                or len(ports) > _MAX_PORTS or not all(0 < p < 65536 for p in ports)):
+                or grant.kind not in ("exec", "forward") or len(command) > MAX_COMMAND
+                or len(ports) > MAX_PORTS or not all(0 < p < 65536 for p in ports)):
             raise UsageError("malformed session grant")
         return grant
 
