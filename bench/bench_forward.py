@@ -12,6 +12,14 @@ every byte goes client → CLI → zenoh router (in the server) → worker → t
 The limit of each is the same task script run as a plain process and reached over raw
 loopback TCP (no osmo). The target (issue 17) is ≥ 50% of the raw throughput.
 
+Two bounds say what any relayed design can reach on this machine:
+
+- **3 bare relays:** the raw task reached through three relay processes that only copy
+  bytes (``recv_into`` a 1 MiB buffer, ``sendall``; no framing, no authentication, no
+  zenoh), the hop count of port-forward's path (CLI, router, worker);
+- **HMAC-SHA256 of the stream on one core:** what authenticating every frame costs one side
+  (the trust model: any zenoh peer may publish, so a frame must prove its sender).
+
 Usage: python bench/bench_forward.py [--runs 3] [--size-mib 1024] [--streams 20]
        [--pings 2000] [--json out.json]
 """
@@ -20,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import concurrent.futures
+import hmac
 import socket
 import statistics
 import struct
@@ -51,6 +60,28 @@ def serve(conn):
             while data := conn.recv(65536):
                 conn.sendall(data)
 srv = socket.create_server(("127.0.0.1", int(sys.argv[1])), backlog=128)
+while True:
+    threading.Thread(target=serve, args=(srv.accept()[0],), daemon=True).start()
+"""
+# A relay: each accepted connection is copied both ways to argv[1]'s port.
+RELAY = """
+import socket, sys, threading
+def pump(src, dst):
+    buf = bytearray(1 << 20); view = memoryview(buf)
+    try:
+        while k := src.recv_into(buf):
+            dst.sendall(view[:k])
+    except OSError:
+        pass
+    for s in (src, dst):
+        try: s.shutdown(socket.SHUT_RDWR)
+        except OSError: pass
+def serve(conn):
+    up = socket.create_connection(("127.0.0.1", int(sys.argv[1])))
+    for s in (conn, up): s.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+    threading.Thread(target=pump, args=(up, conn), daemon=True).start()
+    pump(conn, up)
+srv = socket.create_server(("127.0.0.1", int(sys.argv[2])), backlog=128)
 while True:
     threading.Thread(target=serve, args=(srv.accept()[0],), daemon=True).start()
 """
@@ -129,6 +160,33 @@ def raw(args: argparse.Namespace) -> dict[str, list[float]]:
         proc.wait()
 
 
+def relayed(args: argparse.Namespace, hops: int = 3) -> dict[str, list[float]]:
+    """The raw task reached through ``hops`` bare copy relays (no osmo, no authentication)."""
+    port = free_port(0)
+    procs = [subprocess.Popen([sys.executable, "-c", SERVER, str(port)])]
+    try:
+        for _ in range(hops):
+            upstream, port = port, free_port(0)
+            procs.append(subprocess.Popen([sys.executable, "-c", RELAY, str(upstream),
+                                           str(port)]))
+        return measure(port, args)
+    finally:
+        for proc in procs:
+            proc.kill()
+            proc.wait()
+
+
+def hmac_mib_s(size_mib: int, runs: int) -> list[float]:
+    """MiB/s of HMAC-SHA256 over 1 MiB frames on one core (what a relay pays per side)."""
+    key, frame, out = bytes(32), bytes(MIB), []
+    for _ in range(runs):
+        t0 = time.perf_counter()
+        for _ in range(size_mib):
+            hmac.digest(key, frame, "sha256")
+        out.append(size_mib / (time.perf_counter() - t0))
+    return out
+
+
 def forwarded(args: argparse.Namespace) -> dict[str, list[float]]:
     import osmo
 
@@ -166,13 +224,19 @@ def main() -> None:
     if quick():
         args.runs, args.size_mib, args.pings = 1, 8, 50
     print(machine_info(), flush=True)
-    limit, fwd = raw(args), forwarded(args)
+    limit, bare, fwd = raw(args), relayed(args), forwarded(args)
     one, many = f"{args.size_mib} MiB, 1 stream", f"{args.size_mib} MiB, {args.streams} streams"
     rows = [
         row(f"limit: raw loopback TCP, {one}", "MiB/s", limit["one"], higher_is_better=True),
         row(f"limit: raw loopback TCP, {many}", "MiB/s", limit["many"], higher_is_better=True),
         row("limit: raw loopback TCP, 1-byte round trip p50", "ms", limit["rtt"],
             higher_is_better=False),
+        row(f"bound: 3 bare copy relays (no framing, no authentication), {one}", "MiB/s",
+            bare["one"], higher_is_better=True, limit_of=f"limit: raw loopback TCP, {one}"),
+        row(f"bound: 3 bare copy relays (no framing, no authentication), {many}", "MiB/s",
+            bare["many"], higher_is_better=True, limit_of=f"limit: raw loopback TCP, {many}"),
+        row("bound: HMAC-SHA256 of 1 MiB frames, one core", "MiB/s",
+            hmac_mib_s(args.size_mib, args.runs), higher_is_better=True),
         row(f"port-forward (remote worker), {one}", "MiB/s", fwd["one"], higher_is_better=True,
             limit_of=f"limit: raw loopback TCP, {one}",
             target=0.5 * statistics.median(limit["one"])),
