@@ -3,7 +3,9 @@
 A forward session multiplexes connections on one :class:`~osmo.transport.streams.Stream`,
 one channel each. The client opens a channel (``OPEN`` with ``{"port": R, "udp": bool}``)
 for every accepted TCP connection or every new UDP sender; the node connects to the task's
-port R and answers ``CLOSE`` (with the reason) if it cannot. Bytes go both ways as
+port R off the stream's thread (a :class:`Deferred` end holds what the client sends
+meanwhile, so a port that does not answer stalls only its own channel) and answers ``CLOSE``
+(with the reason) if it cannot. Bytes go both ways as
 ``DATA``; a TCP side that reads end-of-file sends ``EOF`` and the other side shuts down
 its write half; a channel is closed when both halves ended, or at once on ``CLOSE``.
 
@@ -23,7 +25,7 @@ from typing import Protocol
 
 from osmo.transport.streams import CHUNK, Frame, Kind
 
-__all__ = ["Channels", "TcpEnd", "UdpConnected", "UdpPeer"]
+__all__ = ["Channels", "Deferred", "TcpEnd", "UdpConnected", "UdpPeer"]
 
 log = logging.getLogger("osmo.forward")
 
@@ -31,6 +33,8 @@ Send = Callable[[Kind, int, bytes], bool]
 MAX_CHANNELS = 4096
 """Channels one session may have open at once."""
 _DATAGRAM = 65535
+_PENDING_BYTES = 4 * CHUNK
+"""What a channel still connecting holds for the task; more ends the channel."""
 
 
 class End(Protocol):
@@ -91,6 +95,74 @@ class UdpPeer:
 
     def close(self) -> None:
         """The listening socket is shared: nothing to close."""
+
+
+class Deferred:
+    """A channel's end while the node still connects to the task's port.
+
+    It keeps what the peer sends (up to a few frames: a client sends its request, then
+    waits for an answer) and hands it over, in order, to the connected end.
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._pending: list[bytes] = []
+        self._size = 0
+        self._eof = False
+        self._closed = False
+        self._end: End | None = None
+
+    def write(self, data: bytes) -> None:
+        """Pass ``data`` on, or keep it until connected.
+
+        Raises:
+            OSError: more than the channel may hold arrived before the connection.
+        """
+        with self._lock:
+            if self._end is None:
+                self._size += len(data)
+                if self._size > _PENDING_BYTES:
+                    raise OSError("too much data before the task's port answered")
+                self._pending.append(data)
+                return
+            end = self._end
+        end.write(data)
+
+    def eof(self) -> None:
+        """Pass end-of-file on, or remember it until connected."""
+        with self._lock:
+            if self._end is None:
+                self._eof = True
+                return
+            end = self._end
+        end.eof()
+
+    def attach(self, end: End) -> bool:
+        """Hand what was kept to ``end`` and pass everything on from now.
+
+        Returns:
+            False when the channel was closed meanwhile (``end`` is then closed).
+
+        Raises:
+            OSError: ``end`` refused what was kept.
+        """
+        with self._lock:
+            if not self._closed:
+                for data in self._pending:
+                    end.write(data)
+                if self._eof:
+                    end.eof()
+                self._pending, self._end = [], end
+                return True
+        end.close()
+        return False
+
+    def close(self) -> None:
+        """Close the connected end, or refuse the one still coming."""
+        with self._lock:
+            self._closed, end = True, self._end
+        if end is not None:
+            end.close()
 
 
 class Channels:

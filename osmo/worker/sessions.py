@@ -31,7 +31,7 @@ from typing import Any, Protocol
 from osmo.errors import OsmoError
 from osmo.runtime.container import ContainerEngine
 from osmo.runtime.sandbox import Sandbox
-from osmo.transport.forwarding import Channels, TcpEnd, UdpConnected
+from osmo.transport.forwarding import Channels, Deferred, TcpEnd, UdpConnected
 from osmo.transport.streams import TIMEOUT, Frame, Kind, SessionGrant, Stream
 from osmo.transport.zenoh_link import Link
 from osmo.worker.exec_process import ExecProcess, exec_argv
@@ -192,19 +192,34 @@ class _Forward(_Session):
         if port not in self.grant.ports or udp != self.grant.udp:
             self.stream.send(Kind.CLOSE, frame.channel, b"port not granted to this session")
             return
+        pending = Deferred()
+        if not self._channels.add(frame.channel, pending):
+            self.stream.send(Kind.CLOSE, frame.channel, b"too many connections")
+            return
+        # off the stream's thread: a port that does not answer stalls only this channel
+        threading.Thread(target=self._connect, args=(frame.channel, port, udp, pending),
+                         name="osmo-forward-connect", daemon=True).start()
+
+    def _connect(self, channel: int, port: int, udp: bool, pending: Deferred) -> None:
         try:
             sock = socket.create_connection((self._host, port), timeout=_CONNECT_TIMEOUT) \
                 if not udp else _udp_socket(self._host, port)
             sock.settimeout(None)
         except OSError as exc:
-            self.stream.send(Kind.CLOSE, frame.channel,
-                             f"cannot connect to {self._host}:{port}: {exc.strerror or exc}"
-                             .encode())
+            if self._channels.drop(channel):
+                self.stream.send(Kind.CLOSE, channel,
+                                 f"cannot connect to {self._host}:{port}: "
+                                 f"{exc.strerror or exc}".encode())
             return
-        if self._channels.add(frame.channel, UdpConnected(sock) if udp else TcpEnd(sock)):
-            self._channels.pump(frame.channel, sock, datagrams=udp)
-        else:
-            self.stream.send(Kind.CLOSE, frame.channel, b"too many connections")
+        try:
+            attached = pending.attach(UdpConnected(sock) if udp else TcpEnd(sock))
+        except OSError:
+            sock.close()
+            if self._channels.drop(channel):
+                self.stream.send(Kind.CLOSE, channel, b"")
+            return
+        if attached:
+            self._channels.pump(channel, sock, datagrams=udp)
 
     def stop(self) -> None:
         self._channels.close()

@@ -412,3 +412,55 @@ def test_port_forward_arguments(cluster: Cluster) -> None:
                                                          (7001, 6001)]
     assert json.dumps(parse_ports("1-2")) == "[[1, 1], [2, 2]]"
     assert parse_ports("80-81:90") == [(80, 90), (81, 91)]  # R starts the remote range
+
+
+def test_a_port_that_does_not_answer_stalls_only_its_own_connection(
+        cluster: Cluster, tmp_path: Path) -> None:
+    """The node connects to the task off the stream: a clogged port never holds up the others.
+
+    The task's port ``clogged`` listens with a full accept queue, so a connection to it hangs
+    until the node's connect timeout; meanwhile a connection to ``echo`` on the same session
+    must work, and the clogged one must still be waiting when it does.
+    """
+    echo, clogged = free_port(0), free_port(0)
+    local_echo, local_clogged = free_port(0), free_port(0)
+    spec = write(tmp_path / "clog.yaml", f"""
+workflow:
+  name: clog
+  tasks:
+  - name: t
+    command: [{sys.executable}, -c]
+    args:
+    - |
+      import socket, threading
+      jam = socket.socket(); jam.bind(("127.0.0.1", {clogged})); jam.listen(0)
+      fill = []
+      for _ in range(3):
+          c = socket.socket(); c.setblocking(False); c.connect_ex(("127.0.0.1", {clogged}))
+          fill.append(c)
+      srv = socket.create_server(("127.0.0.1", {echo}))
+      def serve(conn):
+          while data := conn.recv(65536):
+              conn.sendall(data)
+      while True:
+          threading.Thread(target=serve, args=(srv.accept()[0],), daemon=True).start()
+""")
+    wf = _running(cluster.osmo, spec, REMOTE)
+    proc = _forward(cluster.osmo, wf, "--port", f"{local_echo}:{echo},{local_clogged}:{clogged}")
+    try:
+        def echo_once() -> bytes:
+            with socket.create_connection(("127.0.0.1", local_echo), timeout=30) as sock:
+                sock.sendall(b"ping")
+                return sock.recv(4)
+
+        assert _retry(echo_once) == b"ping"  # the session is up
+        with socket.create_connection(("127.0.0.1", local_clogged), timeout=30) as stuck:
+            time.sleep(0.5)  # its OPEN reaches the node, which starts connecting
+            assert echo_once() == b"ping"
+            readable, _, _ = select.select([stuck], [], [], 0)
+            assert not readable, "the clogged connection ended before the echo answered"
+            stuck.settimeout(30)  # the node gives up on it: closed, with nothing sent
+            assert stuck.recv(1) == b""
+    finally:
+        _stop(proc)
+        cluster.osmo("cancel", wf)
