@@ -68,6 +68,9 @@ BAD_COMBINATIONS = [
     ({"tls": {"enabled": True, "mtls": True, "existingSecret": "s"}}, "tls.client.existingSecret"),
     ({"auth": {"enabled": True}}, "auth.password"),
     ({"server": {"plainTcp": False}}, "needs tls.enabled"),
+    ({"router": {"enabled": True}}, "router.enabled needs auth.enabled"),
+    ({"router": {"enabled": True}, "auth": {"enabled": True, "password": "pw", "serverUser": "osmo"}},
+     "auth.serverUser must differ from auth.user"),
 ]
 
 

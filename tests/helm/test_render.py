@@ -275,9 +275,12 @@ def test_auth_secret_and_init_container_fill_in_the_client_config() -> None:
     assert "s3cret" not in str(config_map)
 
 
+ROUTER = {"router": {"enabled": True}, "auth": {"enabled": True, "password": "pw"}}
+
+
 def test_router_only_when_enabled() -> None:
     assert [d for d in render().of_kind("Deployment") if d["metadata"]["name"].endswith("-router")] == []
-    out = render({"router": {"enabled": True}})
+    out = render(ROUTER)
     router = out.get("Deployment", f"{FULLNAME}-router")
     zenohd = container(router, "zenohd")
     assert zenohd["image"] == "eclipse/zenoh:1.10.2"
@@ -302,7 +305,7 @@ def test_example_values_render_cpu_and_gpu_pools_with_existing_tls() -> None:
     assert render(values).of_kind("Secret") == []
 
 
-@pytest.mark.parametrize("values", [{}, TWO_POOLS, {"router": {"enabled": True}}])
+@pytest.mark.parametrize("values", [{}, TWO_POOLS, ROUTER])
 def test_notes_tell_how_to_reach_the_server(values: dict) -> None:
     notes = render(values).notes
     assert f"port-forward svc/{FULLNAME} 7447:7447" in notes

@@ -5,7 +5,8 @@ Names, labels, endpoints and the pieces every osmo pod shares. File paths inside
   /run/osmo/zenoh      client.json5 with the user/password filled in (auth.enabled only)
   /etc/osmo/tls/server the server certificate Secret (ca.crt, tls.crt, tls.key)
   /etc/osmo/tls/client the client certificate Secret (mtls only)
-  /etc/osmo/auth       the user/password Secret (user, password, dictionary)
+  /etc/osmo/auth       the user/password Secret (user, password, dictionary; with the router
+                       also server-user, server-password)
 */}}
 
 {{- define "osmo.name" -}}
@@ -203,7 +204,9 @@ user/password are filled in at pod start from the auth Secret (see render-client
 {{- end -}}
 
 {{/* With user/password auth, an init container writes the client config with the credentials
-from the Secret into a memory-backed volume, so the password never sits in a ConfigMap. */}}
+from the Secret into a memory-backed volume, so the password never sits in a ConfigMap. Args:
+root, image, pullPolicy, server (true: the server's own user, which the router's access
+control lets use the server's keys). */}}
 {{- define "osmo.clientConfigInitContainer" -}}
 {{- if .root.Values.auth.enabled }}
 - name: zenoh-client-config
@@ -213,8 +216,13 @@ from the Secret into a memory-backed volume, so the password never sits in a Con
     - python
     - /etc/osmo/zenoh/render-client-config.py
     - /etc/osmo/zenoh/client.json5
+    {{- if .server }}
+    - /etc/osmo/auth/server-user
+    - /etc/osmo/auth/server-password
+    {{- else }}
     - /etc/osmo/auth/user
     - /etc/osmo/auth/password
+    {{- end }}
     - /run/osmo/zenoh/client.json5
   securityContext:
     {{- toYaml .root.Values.containerSecurityContext | nindent 4 }}
@@ -257,4 +265,30 @@ not 8.589934592e+09), other numbers as they print. */}}
 {{- else -}}
 {{- toString . -}}
 {{- end -}}
+{{- end -}}
+
+{{/* The router's access control: the keys only the server may use (osmo.transport.wire
+SERVER_ONLY, under the cluster prefix osmo/local/), refused on ingress to every user but the
+server's. zenoh matches a subject by its authenticated user name; the dictionary holds only
+auth.user and auth.serverUser, so "auth.user" is every peer but the server. */}}
+{{- define "osmo.routerAccessControl" -}}
+{{- $p := "osmo/local/" -}}
+{{- $reserved := list
+  (list "put" (list "to-worker/**" "events/**"))
+  (list "delete" (list "to-worker/**" "events/**"))
+  (list "declare_queryable" (list "api/**" "blob/server/**"))
+  (list "liveliness_token" (list "alive/server")) -}}
+{{- $rules := list -}}
+{{- $ids := list -}}
+{{- range $reserved -}}
+{{- $message := index . 0 -}}
+{{- $keys := list -}}
+{{- range index . 1 }}{{ $keys = append $keys (printf "%s%s" $p .) }}{{ end -}}
+{{- $id := printf "osmo-server-only-%s" $message -}}
+{{- $rules = append $rules (dict "id" $id "messages" (list $message) "flows" (list "ingress") "permission" "deny" "key_exprs" $keys) -}}
+{{- $ids = append $ids $id -}}
+{{- end -}}
+{{- $subjects := list (dict "id" "osmo-not-the-server" "usernames" (list .Values.auth.user)) -}}
+{{- $policies := list (dict "id" "osmo-server-only" "subjects" (list "osmo-not-the-server") "rules" $ids) -}}
+{{- dict "enabled" true "default_permission" "allow" "rules" $rules "subjects" $subjects "policies" $policies | toJson -}}
 {{- end -}}

@@ -1,0 +1,130 @@
+"""The chart's standalone router refuses the server's keys to every peer but the server.
+
+With ``router.enabled`` the server is one more client of the router, so the router itself
+must hold the access control the server's own router holds (``osmo.transport.wire``
+``SERVER_ONLY``). It tells the server apart by its zenoh user (``auth.serverUser``). The
+attack test runs the rendered ``router.json5`` in a real zenoh router on loopback, with the
+rendered Secret's password dictionary, and real sessions logging in as the server, a worker
+and a rogue peer holding the workers' credentials.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import ExitStack, contextmanager
+from pathlib import Path
+from typing import Any
+
+import pytest
+import zenoh
+
+from osmo.config import DEFAULT_CLUSTER, free_port
+from osmo.transport.wire import SERVER_ONLY
+from tests.helm.chart import FULLNAME, container, render
+
+ROUTER = {"router": {"enabled": True}, "auth": {"enabled": True, "password": "pw"}}
+PREFIX = f"osmo/{DEFAULT_CLUSTER}/"
+
+
+def _secret(values: dict[str, Any]) -> dict[str, str]:
+    data = render(values).get("Secret", f"{FULLNAME}-auth")["data"]
+    return {k: base64.b64decode(v).decode() for k, v in data.items()}
+
+
+def _router_config(values: dict[str, Any]) -> dict[str, Any]:
+    files = render(values).get("ConfigMap", f"{FULLNAME}-zenoh")["data"]
+    config: dict[str, Any] = json.loads(files["router.json5"])
+    return config
+
+
+def test_the_router_reserves_exactly_the_servers_keys_for_the_servers_user() -> None:
+    acl = _router_config(ROUTER)["access_control"]
+    assert acl["enabled"] is True and acl["default_permission"] == "allow"
+    reserved = {rule["messages"][0]: tuple(k.removeprefix(PREFIX) for k in rule["key_exprs"])
+                for rule in acl["rules"]}
+    assert reserved == SERVER_ONLY
+    assert all(rule["permission"] == "deny" and rule["flows"] == ["ingress"] for rule in acl["rules"])
+    assert acl["subjects"] == [{"id": "osmo-not-the-server", "usernames": ["osmo"]}]
+    assert acl["policies"][0]["rules"] == [rule["id"] for rule in acl["rules"]]
+
+
+def test_the_server_logs_in_to_the_router_as_its_own_user() -> None:
+    secret = _secret(ROUTER)
+    assert secret["server-user"] == "osmo-server"
+    assert len(secret["server-password"]) >= 32  # generated
+    assert secret["dictionary"].splitlines() == ["osmo:pw", f"osmo-server:{secret['server-password']}"]
+    given = _secret({**ROUTER, "auth": {**ROUTER["auth"], "serverPassword": "sp"}})
+    assert given["server-password"] == "sp" and "osmo-server:sp" in given["dictionary"]
+    out = render(ROUTER)
+    init = out.get("StatefulSet", f"{FULLNAME}-server")["spec"]["template"]["spec"]["initContainers"][0]
+    assert init["command"][3:5] == ["/etc/osmo/auth/server-user", "/etc/osmo/auth/server-password"]
+    # without the router there is no server user: the server is the listener itself
+    assert "server-user" not in _secret({"auth": {"enabled": True, "password": "pw"}})
+    assert container(out.get("StatefulSet", f"{FULLNAME}-server"), "server")["args"][:2] == ["server", "run"]
+
+
+@contextmanager
+def _router(config: dict[str, Any], dictionary: str, tmp_path: Path) -> Iterator[str]:
+    port = free_port(0)
+    (tmp_path / "dictionary").write_text(dictionary)
+    config = json.loads(json.dumps(config))
+    config["listen"]["endpoints"] = [f"tcp/127.0.0.1:{port}"]
+    config["transport"]["auth"]["usrpwd"]["dictionary_file"] = str(tmp_path / "dictionary")
+    session = zenoh.open(zenoh.Config.from_json5(json.dumps(config)))
+    try:
+        yield f"tcp/127.0.0.1:{port}"
+    finally:
+        session.close()
+
+
+def _login(endpoint: str, user: str, password: str) -> zenoh.Session:
+    return zenoh.open(zenoh.Config.from_json5(json.dumps({
+        "mode": "client", "connect": {"endpoints": [endpoint]},
+        "scouting": {"multicast": {"enabled": False}},
+        "transport": {"auth": {"usrpwd": {"user": user, "password": password}}}})))
+
+
+@pytest.mark.parametrize("rules", ["rendered", "none"])
+def test_a_peer_with_the_workers_credentials_cannot_speak_as_the_server(
+        rules: str, tmp_path: Path) -> None:
+    """A forged order and a fake API never reach anyone; without the rules (control) they do."""
+    config, secret = _router_config(ROUTER), _secret(ROUTER)
+    if rules == "none":
+        del config["access_control"]
+    with ExitStack() as stack, _router(config, secret["dictionary"], tmp_path) as endpoint:
+        def login(user: str, password: str) -> zenoh.Session:
+            session = _login(endpoint, user, password)
+            stack.callback(session.close)
+            return session
+
+        server = login(secret["server-user"], secret["server-password"])
+        worker, rogue = login("osmo", "pw"), login("osmo", "pw")
+        got: list[bytes] = []
+        marker = threading.Event()
+        order = f"{PREFIX}to-worker/w1"
+        worker.declare_subscriber(order, lambda s: got.append(s.payload.to_bytes()))
+        worker.declare_subscriber(f"{PREFIX}from-worker/marker", lambda s: marker.set())
+        server.declare_queryable(f"{PREFIX}api/**", lambda q: q.reply(q.key_expr, b"real"))
+        rogue.declare_queryable(f"{PREFIX}api/**", lambda q: q.reply(q.key_expr, b"fake"))
+        time.sleep(0.5)  # declarations propagate through the router
+
+        rogue.put(order, b"kill everything")
+        rogue.put(f"{PREFIX}from-worker/marker", b"")  # same session: after the forgery
+        assert marker.wait(10)
+        server.put(order, b"real order")
+        deadline = time.monotonic() + 10
+        while b"real order" not in got and time.monotonic() < deadline:
+            time.sleep(0.05)
+        answers = sorted(r.ok.payload.to_bytes() for r in worker.get(f"{PREFIX}api/list", timeout=5)
+                         if r.ok is not None)
+
+    if rules == "rendered":
+        assert got == [b"real order"]
+        assert answers == [b"real"]
+    else:  # the control: the same attack succeeds on a router without the rules
+        assert b"kill everything" in got
+        assert b"fake" in answers
