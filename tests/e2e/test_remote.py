@@ -151,8 +151,9 @@ def _running_on(cluster: Cluster, wf: str, task: str) -> tuple[dict, str]:
 # The README: a killed or cut-off worker "is noticed within about a second (the zenoh lease
 # is 1 s)". Measured on a 2-core machine at load ~4, from the signal to the server's log line:
 # SIGSTOP 0.76-0.99 s (6 runs), SIGKILL 2-6 ms (its TCP link closes at once). The margin
-# covers a loaded CI machine; zenoh's default lease (10 s) would fail it.
-NOTICED_WITHIN = 2.0
+# covers a loaded CI machine (2.0 s failed now and then with the suite and other work at load
+# 8+ on 2 cores); zenoh's default lease (10 s) still fails it.
+NOTICED_WITHIN = 4.0
 
 # One task that records its pid and start, then holds until the test releases the node it
 # runs on (so nothing depends on how long a sleep lasts).
