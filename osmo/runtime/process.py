@@ -18,7 +18,11 @@ What it owns:
   ``SIGTERM`` goes to every member of the group but bwrap's own two processes (bwrap does not
   forward signals, and its death would SIGKILL the sandbox at once: no grace); the command
   then ends, and bwrap exits with its exit code. ``SIGKILL`` goes to the whole group.
-- exit codes: killed by signal N → ``128 + N`` (the shell's convention).
+- exit codes: killed by signal N → ``128 + N`` (the shell's convention). A sandbox that
+  could not be set up (bwrap exits 1 before the command runs: a mount that vanished under
+  it, a folder it cannot make) is told from the command's own exit: bwrap reports the
+  command's exit code on its status pipe (``--json-status-fd``) only when the command ran,
+  and ``reap`` marks the handle ``setup_failed`` otherwise (the caller may start it again).
 - crash clean-up: ``kill_stale`` kills a process group left over by a crashed server, only if
   the pid still belongs to the process that was started (its start time matches).
 
@@ -70,6 +74,9 @@ class ProcessHandle:
         stdout_fd: read end of the stdout pipe (non-blocking).
         stderr_fd: read end of the stderr pipe (non-blocking).
         sandboxed: the command runs in a sandbox (``pid`` is bwrap's).
+        status_fd: read end of bwrap's status pipe (non-blocking; -1: none).
+        setup_failed: set by ``reap``: the sandbox could not be set up, the command never ran
+            (its exit code is bwrap's 1; bwrap's message is on stderr).
     """
 
     pid: int
@@ -78,6 +85,8 @@ class ProcessHandle:
     stderr_fd: int
     popen: subprocess.Popen[bytes]
     sandboxed: bool = False
+    status_fd: int = -1
+    setup_failed: bool = False
 
 
 class Runtime(Protocol):
@@ -130,9 +139,12 @@ class ProcessRuntime:
             raise StartError("empty command")
         command = list(argv)
         preexec: Callable[[], object] | None = die_with_parent()
+        status_r = status_w = -1
         if self.sandbox is not None and view is not None:
             _check_command(argv[0], cwd, env)
-            command, preexec = self.sandbox.argv(argv, view), None  # bwrap dies with us
+            if self.sandbox.status:
+                status_r, status_w = _status_pipe(argv[0])
+            command, preexec = self.sandbox.argv(argv, view, status_w), None  # dies with us
         try:
             popen = subprocess.Popen(
                 command,
@@ -143,17 +155,23 @@ class ProcessRuntime:
                 stderr=subprocess.PIPE,
                 start_new_session=True,
                 preexec_fn=preexec,
+                pass_fds=(status_w,) if status_w >= 0 else (),
             )
         except OSError as exc:
+            _close_fds(status_r)
             raise StartError(_start_message(argv[0], cwd, exc)) from exc
         except subprocess.SubprocessError as exc:  # the preexec_fn failed in the child
+            _close_fds(status_r)
             raise StartError(f"cannot start '{argv[0]}': {exc}") from exc
+        finally:
+            _close_fds(status_w)  # bwrap has its copy
         try:
-            return _handle(popen, sandboxed=preexec is None)
+            return _handle(popen, sandboxed=preexec is None, status_fd=status_r)
         except OSError as exc:  # e.g. out of file descriptors: do not leave it running
             os.killpg(popen.pid, signal.SIGKILL)
             popen.wait()
             _close_pipes(popen)
+            _close_fds(status_r)
             raise StartError(f"cannot watch '{argv[0]}': {exc.strerror or exc}") from exc
 
     def kill(self, handle: ProcessHandle, *, force: bool = False) -> None:
@@ -174,14 +192,49 @@ class ProcessRuntime:
         The main process is a zombie until collected, so its group id is still ours.
         """
         self.kill(handle, force=True)
-        return exit_code_of(handle.popen.wait())
+        code = exit_code_of(handle.popen.wait())
+        if handle.status_fd >= 0 and code == _BWRAP_FAILED:
+            handle.setup_failed = not _command_ran(handle.status_fd)
+        return code
 
     def release(self, handle: ProcessHandle) -> None:
-        """Close the pidfd and both pipes (idempotent)."""
+        """Close the pidfd, both pipes and the status pipe (idempotent)."""
         _close_pipes(handle.popen)
-        if handle.exit_fd >= 0:
-            os.close(handle.exit_fd)
-            handle.exit_fd = -1
+        _close_fds(handle.exit_fd, handle.status_fd)
+        handle.exit_fd = handle.status_fd = -1
+
+
+_BWRAP_FAILED = 1  # bwrap's own exit code when it fails
+
+
+def _status_pipe(program: str) -> tuple[int, int]:
+    """The status pipe bwrap writes to: its read end non-blocking (read once bwrap exited)."""
+    try:
+        read, write = os.pipe2(os.O_CLOEXEC)
+    except OSError as exc:
+        raise StartError(f"cannot start '{program}': {exc.strerror or exc}") from exc
+    os.set_blocking(read, False)
+    return read, write
+
+
+def _command_ran(status_fd: int) -> bool:
+    """Whether bwrap's status says the command ran (its exit code is there).
+
+    bwrap writes ``{ "child-pid": N ... }`` once it has forked and ``{ "exit-code": N }``
+    when the command it started ends, but only if its setup finished and it ran the
+    command; the sandboxed command itself never holds this pipe.
+    """
+    try:
+        data = os.read(status_fd, 65536)
+    except BlockingIOError:
+        return False
+    return b'"exit-code"' in data
+
+
+def _close_fds(*fds: int) -> None:
+    for fd in fds:
+        if fd >= 0:
+            os.close(fd)
 
 
 def _close_pipes(popen: subprocess.Popen[bytes]) -> None:
@@ -190,12 +243,13 @@ def _close_pipes(popen: subprocess.Popen[bytes]) -> None:
             pipe.close()
 
 
-def _handle(popen: subprocess.Popen[bytes], *, sandboxed: bool) -> ProcessHandle:
+def _handle(popen: subprocess.Popen[bytes], *, sandboxed: bool, status_fd: int) -> ProcessHandle:
     assert popen.stdout is not None and popen.stderr is not None
     out, err = popen.stdout.fileno(), popen.stderr.fileno()
     os.set_blocking(out, False)
     os.set_blocking(err, False)
-    return ProcessHandle(popen.pid, os.pidfd_open(popen.pid), out, err, popen, sandboxed)
+    return ProcessHandle(popen.pid, os.pidfd_open(popen.pid), out, err, popen, sandboxed,
+                         status_fd)
 
 
 _PR_SET_PDEATHSIG = 1

@@ -34,7 +34,10 @@ calls (the kernel's attack surface is the host's); change the user (the task run
 worker's uid, so anything that uid can reach over the network, it can reach too).
 
 Availability: :func:`choose` probes once per process whether ``bwrap`` exists and can make
-the namespaces (some machines forbid unprivileged user namespaces).
+the namespaces (some machines forbid unprivileged user namespaces), and whether it reports
+the command's exit code on a status pipe (``--json-status-fd``): with it, a failure of
+bwrap's own setup (its exit 1, before the command runs) is told from the command's exit 1
+(``osmo.runtime.process``; the pool starts it again, ``osmo.worker.starts``).
 """
 
 from __future__ import annotations
@@ -92,20 +95,27 @@ class Sandbox:
         shared: host folders bound writable into every sandbox (``--sandbox-share``).
         runtime: folders under ``/tmp`` that osmo's own interpreter and code live in, bound
             back read-only (:func:`runtime_folders`).
+        status: this bwrap reports the command's exit code on a status pipe
+            (``--json-status-fd``, bubblewrap >= 0.5), so a setup failure can be told from it.
     """
 
     bwrap: str
     devices: tuple[str, ...] = ()
     shared: tuple[str, ...] = ()
     runtime: tuple[str, ...] = ()
+    status: bool = False
 
-    def argv(self, command: Sequence[str], view: View) -> list[str]:
+    def argv(self, command: Sequence[str], view: View, status_fd: int = -1) -> list[str]:
         """``command`` wrapped in bwrap with ``view`` (see the module docstring).
 
         Mounts are applied in order, so the binds come after the tmpfs that hides their
-        parent, and a parent's read-only bind before its writable children.
+        parent, and a parent's read-only bind before its writable children. ``status_fd``:
+        an inherited descriptor bwrap writes its status to (``osmo.runtime.process``).
         """
-        out = [self.bwrap, "--ro-bind", "/", "/", "--dev", "/dev"]
+        out = [self.bwrap]
+        if status_fd >= 0:
+            out += ["--json-status-fd", str(status_fd)]
+        out += ["--ro-bind", "/", "/", "--dev", "/dev"]
         for device in self.devices:
             out += ["--dev-bind-try", device, device]
         out += ["--proc", "/proc", "--tmpfs", "/tmp", "--unshare-pid", "--die-with-parent"]
@@ -202,4 +212,22 @@ def _probe_result() -> tuple[Sandbox | None, str]:
         return None, (f"bubblewrap ({bwrap}) cannot make namespaces here: {message} "
                       "(are user namespaces disabled?)")
     devices = tuple(sorted(d for pattern in _GPU_DEVICES for d in glob.glob(pattern)))
-    return Sandbox(bwrap, devices), ""
+    return Sandbox(bwrap, devices, status=_reports_status(probe)), ""
+
+
+def _reports_status(probe: list[str]) -> bool:
+    """Whether this bwrap writes the command's exit code to ``--json-status-fd``."""
+    read, write = os.pipe()
+    try:
+        done = subprocess.run([probe[0], "--json-status-fd", str(write), *probe[1:]],
+                              stdin=subprocess.DEVNULL, capture_output=True, pass_fds=(write,),
+                              timeout=_PROBE_TIMEOUT, check=False)
+        os.close(write)
+        write = -1
+        return done.returncode == 0 and b'"exit-code": 0' in os.read(read, 65536)
+    except (OSError, subprocess.SubprocessError):
+        return False
+    finally:
+        os.close(read)
+        if write >= 0:
+            os.close(write)

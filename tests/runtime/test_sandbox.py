@@ -12,6 +12,7 @@ from osmo.errors import InfrastructureError, UsageError
 from osmo.runtime import ProcessRuntime, StartError
 from osmo.runtime import sandbox as sandbox_mod
 from osmo.runtime.sandbox import Sandbox, View, choose
+from tests.runtime.churn import churning_mounts
 from tests.runtime.test_process_runtime import read_all, wait_exit, wait_until
 
 ENV = {"PATH": os.environ["PATH"]}
@@ -181,3 +182,31 @@ def test_osmos_own_folders_under_tmp_stay_visible_read_only(box: Sandbox, home: 
     assert code == 0 and out.split() == ["from-the-venv", "read-only"], out
     code, out = run(box, home, f"{venv}/bin/tool || echo hidden")
     assert out.split()[-1] == "hidden"  # without it, the task's own /tmp hides the venv
+
+
+def test_a_sandbox_that_cannot_be_set_up_is_told_from_the_commands_exit(
+        box: Sandbox, home: Path) -> None:
+    """A mount vanishing under bwrap's setup fails it with exit 1: never the command's own.
+
+    The command is ``false`` (exit 1 too): a start whose sandbox failed is marked
+    ``setup_failed`` (bwrap's message on its stderr), one whose command ran never is.
+    """
+    runtime = ProcessRuntime(box)
+    seen = {"ran": 0, "setup failed": 0}
+    with churning_mounts():
+        for _ in range(60):
+            handle = runtime.start(["false"], cwd=home / "a" / "work", env=ENV,
+                                   view=view(home))
+            try:
+                err = read_all(handle.stderr_fd).decode()
+                wait_exit(handle)
+                code = runtime.reap(handle)
+            finally:
+                runtime.release(handle)
+            if handle.setup_failed:
+                assert err.startswith("bwrap: "), err
+                seen["setup failed"] += 1
+            else:
+                assert (code, err) == (1, ""), err
+                seen["ran"] += 1
+    assert seen["setup failed"] > 0 and seen["ran"] > 0, seen  # the race did happen
