@@ -40,6 +40,7 @@ import os
 import shutil
 import signal
 import subprocess
+import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -75,6 +76,8 @@ class ProcessHandle:
         stderr_fd: read end of the stderr pipe (non-blocking).
         sandboxed: the command runs in a sandbox (``pid`` is bwrap's).
         status_fd: read end of bwrap's status pipe (non-blocking; -1: none).
+        started_at: the clock of :func:`process_start_time` read just before the spawn: at
+            most a moment before the process's own start time, without reading ``/proc``.
         setup_failed: set by ``reap``: the sandbox could not be set up, the command never ran
             (its exit code is bwrap's 1; bwrap's message is on stderr).
     """
@@ -87,6 +90,7 @@ class ProcessHandle:
     sandboxed: bool = False
     status_fd: int = -1
     setup_failed: bool = False
+    started_at: float | None = None
 
 
 class Runtime(Protocol):
@@ -145,6 +149,7 @@ class ProcessRuntime:
             if self.sandbox.status:
                 status_r, status_w = _status_pipe(argv[0])
             command, preexec = self.sandbox.argv(argv, view, status_w), None  # dies with us
+        started_at = _start_clock()
         try:
             popen = subprocess.Popen(
                 command,
@@ -166,13 +171,15 @@ class ProcessRuntime:
         finally:
             _close_fds(status_w)  # bwrap has its copy
         try:
-            return _handle(popen, sandboxed=preexec is None, status_fd=status_r)
+            handle = _handle(popen, sandboxed=preexec is None, status_fd=status_r)
         except OSError as exc:  # e.g. out of file descriptors: do not leave it running
             os.killpg(popen.pid, signal.SIGKILL)
             popen.wait()
             _close_pipes(popen)
             _close_fds(status_r)
             raise StartError(f"cannot watch '{argv[0]}': {exc.strerror or exc}") from exc
+        handle.started_at = started_at
+        return handle
 
     def kill(self, handle: ProcessHandle, *, force: bool = False) -> None:
         """Send SIGTERM (SIGKILL when ``force``) to the handle's process group."""
@@ -266,12 +273,35 @@ def _check_command(program: str, cwd: Path, env: Mapping[str, str]) -> None:
     """Fail a sandboxed start the way an unsandboxed one fails (bwrap would only exit 1)."""
     if not cwd.is_dir():
         raise StartError(f"working folder not found: '{cwd}'")
-    path = str(cwd / program) if "/" in program else shutil.which(
-        program, path=env.get("PATH", os.defpath))
-    if path is None or not os.path.exists(path):
+    if "/" not in program:
+        if _which(program, env.get("PATH", os.defpath)) is None:
+            raise StartError(f"command not found: '{program}'")
+        return
+    path = str(cwd / program)
+    if not os.path.exists(path):
         raise StartError(f"command not found: '{program}'")
     if not os.access(path, os.X_OK) or os.path.isdir(path):
         raise StartError(f"command not executable: '{program}' (permission denied)")
+
+
+_FOUND: dict[tuple[str, str], str] = {}  # (program, PATH) → where it was found
+_FOUND_MAX = 1024
+
+
+def _which(program: str, search: str) -> str | None:
+    """``shutil.which``, remembered: a program found before is checked in one call.
+
+    (Only whether it can be run matters here; the sandbox's own lookup runs the command.)
+    """
+    found = _FOUND.get((program, search))
+    if found is not None and os.access(found, os.X_OK):
+        return found
+    found = shutil.which(program, path=search)
+    if found is not None:
+        if len(_FOUND) >= _FOUND_MAX:
+            _FOUND.clear()
+        _FOUND[program, search] = found
+    return found
 
 
 def _terminate_inside(pgid: int) -> None:
@@ -319,6 +349,15 @@ def _boot_time() -> float:
             if line.startswith("btime "):
                 return float(line.split()[1])
     return 0.0
+
+
+def _start_clock() -> float:
+    """Now, on the clock :func:`process_start_time` reads: boot time + time since boot.
+
+    A process's start time is its fork's ``CLOCK_BOOTTIME`` (in clock ticks, truncated), so
+    this read just before a spawn is within a tick or a scheduling delay of it.
+    """
+    return _boot_time() + time.clock_gettime(time.CLOCK_BOOTTIME)
 
 
 def process_start_time(pid: int) -> float | None:

@@ -272,4 +272,6 @@ def _started(attempt_id: str, handle: ProcessHandle) -> AttemptStarted:
 
     The server records them, so that a restarted server can kill what is left of it.
     """
-    return AttemptStarted(attempt_id, handle.pid, process_start_time(handle.pid))
+    started = handle.started_at
+    return AttemptStarted(attempt_id, handle.pid,
+                          process_start_time(handle.pid) if started is None else started)

@@ -210,3 +210,30 @@ def test_a_sandbox_that_cannot_be_set_up_is_told_from_the_commands_exit(
                 assert (code, err) == (1, ""), err
                 seen["ran"] += 1
     assert seen["setup failed"] > 0 and seen["ran"] > 0, seen  # the race did happen
+
+
+def test_a_home_reached_through_a_symlink_is_hidden_at_its_real_path(
+        box: Sandbox, home: Path, tmp_path: Path) -> None:
+    """The sandbox resolves osmo's home once; what it binds below it is at the real path."""
+    link = tmp_path / "link"
+    link.symlink_to(home)
+    a = link / "a"
+    linked = View(hidden=(link,), readonly=(a, link / "input"),
+                  writable=(a / "work", a / "output.partial", a / "files"), cwd=a / "work")
+    argv = box.argv(["true"], linked)
+    assert argv[argv.index("--tmpfs", argv.index("/tmp") + 1) + 1] == os.path.realpath(home)
+    assert os.path.realpath(home / "a" / "work") in argv and str(a / "work") not in argv
+    runtime = ProcessRuntime(box)
+    handle = runtime.start(["sh", "-c", f"""
+        pwd; cat {home}/state.db || echo no-db
+        echo x > {home}/a/output.partial/o && echo wrote-output
+        echo x > {home}/a/task.json || echo ro-folder"""], cwd=a / "work", env=ENV, view=linked)
+    try:
+        out = read_all(handle.stdout_fd).decode()
+        wait_exit(handle)
+        assert runtime.reap(handle) == 0, out
+    finally:
+        runtime.release(handle)
+    assert out.split() == [os.path.realpath(home / "a" / "work"), "no-db", "wrote-output",
+                           "ro-folder"], out
+    assert (home / "a" / "output.partial" / "o").read_text() == "x\n"
