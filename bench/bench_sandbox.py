@@ -4,6 +4,10 @@ Rows:
 
 - spawn + reap of `true` through ``ProcessRuntime``, unsandboxed (with its parent-death
   ``preexec_fn``) and in the sandbox, in ms per spawn (one at a time);
+- what each part of the sandbox's argv costs: `bwrap ... true` with ``--ro-bind / /`` alone,
+  then one part added (``--dev /dev``; the alternative of a tmpfs ``/dev`` with only the
+  device nodes bound; ``--proc`` with ``--unshare-pid``; the private ``/tmp``; an attempt's
+  view), and osmo's whole argv, in ms per run (one at a time, the variants interleaved);
 - a chain of ``--tasks`` `true` tasks (one task at a time: per-task latency) with
   ``--sandbox off`` and ``on``;
 - bench_inputs.py's fan-out whose tasks read their inputs, ``off`` (each attempt gets its own
@@ -12,7 +16,7 @@ Rows:
 Same method as bench_engine.py (fresh server per run, ``no_cache``, submit → COMPLETED).
 
 Usage: python bench/bench_sandbox.py [--runs 3] [--tasks 300] [--fanout 1000] [--spawns 200]
-       [--base DIR] [--json out.json]
+       [--flags 100] [--base DIR] [--json out.json]
 """
 
 from __future__ import annotations
@@ -21,6 +25,7 @@ import argparse
 import os
 import select
 import statistics
+import subprocess
 import sys
 import tempfile
 import time
@@ -34,7 +39,7 @@ from bench_inputs import fan_out_reading  # noqa: E402
 from benchlib import quick, row, write_rows  # noqa: E402
 
 from osmo.runtime import ProcessRuntime  # noqa: E402
-from osmo.runtime.sandbox import View, choose  # noqa: E402
+from osmo.runtime.sandbox import Sandbox, View, choose  # noqa: E402
 from osmo.server.options import ServerOptions  # noqa: E402
 
 
@@ -54,6 +59,38 @@ def spawn_ms(runtime: ProcessRuntime, folder: Path, n: int, sandboxed: bool) -> 
     return statistics.median(times)
 
 
+_NODES = ("null", "zero", "full", "random", "urandom", "tty")  # what bwrap's --dev binds
+
+
+def flag_costs(sandbox: Sandbox, folder: Path, n: int) -> dict[str, list[float]]:
+    """ms per `bwrap ... true` for each part of the sandbox's argv (interleaved, one at a time)."""
+    work = folder / "work"
+    work.mkdir(exist_ok=True)
+    view = View(hidden=(folder,), readonly=(folder,), writable=(work,), cwd=work)
+    root = [sandbox.bwrap, "--ro-bind", "/", "/"]
+    tmpfs_dev = ["--tmpfs", "/dev", "--tmpfs", "/dev/shm"]
+    for node in _NODES:
+        tmpfs_dev += ["--dev-bind", f"/dev/{node}", f"/dev/{node}"]
+    whole = sandbox.argv(["true"], view)[:-2]
+    variants = {
+        "--ro-bind / / alone": root,
+        "+ --dev /dev": [*root, "--dev", "/dev"],
+        "+ a tmpfs /dev with its 6 nodes bound (instead of --dev)": [*root, *tmpfs_dev],
+        "+ --proc /proc --unshare-pid": [*root, "--proc", "/proc", "--unshare-pid"],
+        "+ --tmpfs /tmp": [*root, "--tmpfs", "/tmp"],
+        "+ an attempt's view (home hidden, its folders bound)": [*root, *whole[whole.index(
+            "--die-with-parent") + 1:]],
+        "osmo's whole argv": whole,
+    }
+    times: dict[str, list[float]] = {name: [] for name in variants}
+    for _ in range(n):
+        for name, argv in variants.items():
+            t0 = time.perf_counter()
+            subprocess.run([*argv, "--", "true"], check=True, stdin=subprocess.DEVNULL)
+            times[name].append((time.perf_counter() - t0) * 1e3)
+    return times
+
+
 def main() -> None:
     """Run every shape ``--runs`` times, alternating off/on, and write the rows."""
     small = quick()
@@ -62,6 +99,8 @@ def main() -> None:
     parser.add_argument("--tasks", type=int, default=20 if small else 300)
     parser.add_argument("--fanout", type=int, default=20 if small else 1000)
     parser.add_argument("--spawns", type=int, default=10 if small else 200)
+    parser.add_argument("--flags", type=int, default=5 if small else 100,
+                        help="runs of each bwrap variant (the per-flag rows)")
     parser.add_argument("--json")
     parser.add_argument("--base", help="folder for the OSMO_HOMEs (default: system temp)")
     args = parser.parse_args()
@@ -73,9 +112,13 @@ def main() -> None:
             spawns["off"].append(spawn_ms(ProcessRuntime(), Path(folder), args.spawns, False))
             spawns["on"].append(spawn_ms(ProcessRuntime(sandbox), Path(folder), args.spawns,
                                          True))
+        flags = flag_costs(sandbox, Path(folder), args.flags)
     for mode, values in spawns.items():
         rows.append(row(f"spawn+reap `true`, sandbox {mode}", "ms", values,
                         higher_is_better=False, notes=f"median of {args.spawns} spawns per run"))
+    for name, values in flags.items():
+        rows.append(row(f"bwrap {name}", "ms", [statistics.median(values)],
+                        higher_is_better=False, notes=f"median of {args.flags} runs of `true`"))
     shapes = {f"osmo chain {args.tasks:,} `true` tasks": (chain(args.tasks).build(), args.tasks)}
     if not small:  # the smoke run (bench/run --quick) skips the slowest shape
         shapes[f"osmo fan-out/join {args.fanout:,} tasks reading 3 x 1024 B inputs"] = (

@@ -18,7 +18,11 @@ What it owns:
   ``SIGTERM`` goes to every member of the group but bwrap's own two processes (bwrap does not
   forward signals, and its death would SIGKILL the sandbox at once: no grace); the command
   then ends, and bwrap exits with its exit code. ``SIGKILL`` goes to the whole group.
-- exit codes: killed by signal N → ``128 + N`` (the shell's convention).
+- exit codes: killed by signal N → ``128 + N`` (the shell's convention). A sandbox that
+  could not be set up (bwrap exits 1 before the command runs: a mount that vanished under
+  it, a folder it cannot make) is told from the command's own exit: bwrap reports the
+  command's exit code on its status pipe (``--json-status-fd``) only when the command ran,
+  and ``reap`` marks the handle ``setup_failed`` otherwise (the caller may start it again).
 - crash clean-up: ``kill_stale`` kills a process group left over by a crashed server, only if
   the pid still belongs to the process that was started (its start time matches).
 
@@ -36,6 +40,7 @@ import os
 import shutil
 import signal
 import subprocess
+import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -70,6 +75,11 @@ class ProcessHandle:
         stdout_fd: read end of the stdout pipe (non-blocking).
         stderr_fd: read end of the stderr pipe (non-blocking).
         sandboxed: the command runs in a sandbox (``pid`` is bwrap's).
+        status_fd: read end of bwrap's status pipe (non-blocking; -1: none).
+        started_at: the clock of :func:`process_start_time` read just before the spawn: at
+            most a moment before the process's own start time, without reading ``/proc``.
+        setup_failed: set by ``reap``: the sandbox could not be set up, the command never ran
+            (its exit code is bwrap's 1; bwrap's message is on stderr).
     """
 
     pid: int
@@ -78,6 +88,9 @@ class ProcessHandle:
     stderr_fd: int
     popen: subprocess.Popen[bytes]
     sandboxed: bool = False
+    status_fd: int = -1
+    setup_failed: bool = False
+    started_at: float | None = None
 
 
 class Runtime(Protocol):
@@ -130,9 +143,13 @@ class ProcessRuntime:
             raise StartError("empty command")
         command = list(argv)
         preexec: Callable[[], object] | None = die_with_parent()
+        status_r = status_w = -1
         if self.sandbox is not None and view is not None:
             _check_command(argv[0], cwd, env)
-            command, preexec = self.sandbox.argv(argv, view), None  # bwrap dies with us
+            if self.sandbox.status:
+                status_r, status_w = _status_pipe(argv[0])
+            command, preexec = self.sandbox.argv(argv, view, status_w), None  # dies with us
+        started_at = _start_clock()
         try:
             popen = subprocess.Popen(
                 command,
@@ -143,18 +160,26 @@ class ProcessRuntime:
                 stderr=subprocess.PIPE,
                 start_new_session=True,
                 preexec_fn=preexec,
+                pass_fds=(status_w,) if status_w >= 0 else (),
             )
         except OSError as exc:
+            _close_fds(status_r)
             raise StartError(_start_message(argv[0], cwd, exc)) from exc
         except subprocess.SubprocessError as exc:  # the preexec_fn failed in the child
+            _close_fds(status_r)
             raise StartError(f"cannot start '{argv[0]}': {exc}") from exc
+        finally:
+            _close_fds(status_w)  # bwrap has its copy
         try:
-            return _handle(popen, sandboxed=preexec is None)
+            handle = _handle(popen, sandboxed=preexec is None, status_fd=status_r)
         except OSError as exc:  # e.g. out of file descriptors: do not leave it running
             os.killpg(popen.pid, signal.SIGKILL)
             popen.wait()
             _close_pipes(popen)
+            _close_fds(status_r)
             raise StartError(f"cannot watch '{argv[0]}': {exc.strerror or exc}") from exc
+        handle.started_at = started_at
+        return handle
 
     def kill(self, handle: ProcessHandle, *, force: bool = False) -> None:
         """Send SIGTERM (SIGKILL when ``force``) to the handle's process group."""
@@ -174,14 +199,49 @@ class ProcessRuntime:
         The main process is a zombie until collected, so its group id is still ours.
         """
         self.kill(handle, force=True)
-        return exit_code_of(handle.popen.wait())
+        code = exit_code_of(handle.popen.wait())
+        if handle.status_fd >= 0 and code == _BWRAP_FAILED:
+            handle.setup_failed = not _command_ran(handle.status_fd)
+        return code
 
     def release(self, handle: ProcessHandle) -> None:
-        """Close the pidfd and both pipes (idempotent)."""
+        """Close the pidfd, both pipes and the status pipe (idempotent)."""
         _close_pipes(handle.popen)
-        if handle.exit_fd >= 0:
-            os.close(handle.exit_fd)
-            handle.exit_fd = -1
+        _close_fds(handle.exit_fd, handle.status_fd)
+        handle.exit_fd = handle.status_fd = -1
+
+
+_BWRAP_FAILED = 1  # bwrap's own exit code when it fails
+
+
+def _status_pipe(program: str) -> tuple[int, int]:
+    """The status pipe bwrap writes to: its read end non-blocking (read once bwrap exited)."""
+    try:
+        read, write = os.pipe2(os.O_CLOEXEC)
+    except OSError as exc:
+        raise StartError(f"cannot start '{program}': {exc.strerror or exc}") from exc
+    os.set_blocking(read, False)
+    return read, write
+
+
+def _command_ran(status_fd: int) -> bool:
+    """Whether bwrap's status says the command ran (its exit code is there).
+
+    bwrap writes ``{ "child-pid": N ... }`` once it has forked and ``{ "exit-code": N }``
+    when the command it started ends, but only if its setup finished and it ran the
+    command; the sandboxed command itself never holds this pipe.
+    """
+    try:
+        data = os.read(status_fd, 65536)
+    except BlockingIOError:
+        return False
+    return b'"exit-code"' in data
+
+
+def _close_fds(*fds: int) -> None:
+    for fd in fds:
+        if fd >= 0:
+            os.close(fd)
 
 
 def _close_pipes(popen: subprocess.Popen[bytes]) -> None:
@@ -190,12 +250,13 @@ def _close_pipes(popen: subprocess.Popen[bytes]) -> None:
             pipe.close()
 
 
-def _handle(popen: subprocess.Popen[bytes], *, sandboxed: bool) -> ProcessHandle:
+def _handle(popen: subprocess.Popen[bytes], *, sandboxed: bool, status_fd: int) -> ProcessHandle:
     assert popen.stdout is not None and popen.stderr is not None
     out, err = popen.stdout.fileno(), popen.stderr.fileno()
     os.set_blocking(out, False)
     os.set_blocking(err, False)
-    return ProcessHandle(popen.pid, os.pidfd_open(popen.pid), out, err, popen, sandboxed)
+    return ProcessHandle(popen.pid, os.pidfd_open(popen.pid), out, err, popen, sandboxed,
+                         status_fd)
 
 
 _PR_SET_PDEATHSIG = 1
@@ -212,12 +273,35 @@ def _check_command(program: str, cwd: Path, env: Mapping[str, str]) -> None:
     """Fail a sandboxed start the way an unsandboxed one fails (bwrap would only exit 1)."""
     if not cwd.is_dir():
         raise StartError(f"working folder not found: '{cwd}'")
-    path = str(cwd / program) if "/" in program else shutil.which(
-        program, path=env.get("PATH", os.defpath))
-    if path is None or not os.path.exists(path):
+    if "/" not in program:
+        if _which(program, env.get("PATH", os.defpath)) is None:
+            raise StartError(f"command not found: '{program}'")
+        return
+    path = str(cwd / program)
+    if not os.path.exists(path):
         raise StartError(f"command not found: '{program}'")
     if not os.access(path, os.X_OK) or os.path.isdir(path):
         raise StartError(f"command not executable: '{program}' (permission denied)")
+
+
+_FOUND: dict[tuple[str, str], str] = {}  # (program, PATH) → where it was found
+_FOUND_MAX = 1024
+
+
+def _which(program: str, search: str) -> str | None:
+    """``shutil.which``, remembered: a program found before is checked in one call.
+
+    (Only whether it can be run matters here; the sandbox's own lookup runs the command.)
+    """
+    found = _FOUND.get((program, search))
+    if found is not None and os.access(found, os.X_OK):
+        return found
+    found = shutil.which(program, path=search)
+    if found is not None:
+        if len(_FOUND) >= _FOUND_MAX:
+            _FOUND.clear()
+        _FOUND[program, search] = found
+    return found
 
 
 def _terminate_inside(pgid: int) -> None:
@@ -265,6 +349,15 @@ def _boot_time() -> float:
             if line.startswith("btime "):
                 return float(line.split()[1])
     return 0.0
+
+
+def _start_clock() -> float:
+    """Now, on the clock :func:`process_start_time` reads: boot time + time since boot.
+
+    A process's start time is its fork's ``CLOCK_BOOTTIME`` (in clock ticks, truncated), so
+    this read just before a spawn is within a tick or a scheduling delay of it.
+    """
+    return _boot_time() + time.clock_gettime(time.CLOCK_BOOTTIME)
 
 
 def process_start_time(pid: int) -> float | None:

@@ -34,7 +34,10 @@ calls (the kernel's attack surface is the host's); change the user (the task run
 worker's uid, so anything that uid can reach over the network, it can reach too).
 
 Availability: :func:`choose` probes once per process whether ``bwrap`` exists and can make
-the namespaces (some machines forbid unprivileged user namespaces).
+the namespaces (some machines forbid unprivileged user namespaces), and whether it reports
+the command's exit code on a status pipe (``--json-status-fd``): with it, a failure of
+bwrap's own setup (its exit 1, before the command runs) is told from the command's exit 1
+(``osmo.runtime.process``; the pool starts it again, ``osmo.worker.starts``).
 """
 
 from __future__ import annotations
@@ -92,20 +95,27 @@ class Sandbox:
         shared: host folders bound writable into every sandbox (``--sandbox-share``).
         runtime: folders under ``/tmp`` that osmo's own interpreter and code live in, bound
             back read-only (:func:`runtime_folders`).
+        status: this bwrap reports the command's exit code on a status pipe
+            (``--json-status-fd``, bubblewrap >= 0.5), so a setup failure can be told from it.
     """
 
     bwrap: str
     devices: tuple[str, ...] = ()
     shared: tuple[str, ...] = ()
     runtime: tuple[str, ...] = ()
+    status: bool = False
 
-    def argv(self, command: Sequence[str], view: View) -> list[str]:
+    def argv(self, command: Sequence[str], view: View, status_fd: int = -1) -> list[str]:
         """``command`` wrapped in bwrap with ``view`` (see the module docstring).
 
         Mounts are applied in order, so the binds come after the tmpfs that hides their
-        parent, and a parent's read-only bind before its writable children.
+        parent, and a parent's read-only bind before its writable children. ``status_fd``:
+        an inherited descriptor bwrap writes its status to (``osmo.runtime.process``).
         """
-        out = [self.bwrap, "--ro-bind", "/", "/", "--dev", "/dev"]
+        out = [self.bwrap]
+        if status_fd >= 0:
+            out += ["--json-status-fd", str(status_fd)]
+        out += ["--ro-bind", "/", "/", "--dev", "/dev"]
         for device in self.devices:
             out += ["--dev-bind-try", device, device]
         out += ["--proc", "/proc", "--tmpfs", "/tmp", "--unshare-pid", "--die-with-parent"]
@@ -113,17 +123,37 @@ class Sandbox:
             out += ["--ro-bind-try", folder, folder]
         for folder in self.shared:
             out += ["--bind-try", folder, folder]
-        for folder in sorted({_real(p) for p in view.hidden}, key=_depth):
+        hidden = sorted({_real_root(str(p)) for p in view.hidden}, key=_depth)
+        for folder in hidden:
             out += ["--tmpfs", folder]
-        binds = [(_real(p), "--ro-bind-try") for p in view.readonly]
-        binds += [(_real(p), "--bind-try") for p in view.writable]
+        roots = [(str(p), _real_root(str(p))) for p in view.hidden]
+        binds = [(_real_under(p, roots), "--ro-bind-try") for p in view.readonly]
+        binds += [(_real_under(p, roots), "--bind-try") for p in view.writable]
         for path, flag in sorted(binds, key=lambda b: (_depth(b[0]), b[1] == "--bind-try")):
             out += [flag, path, path]
-        return [*out, "--chdir", _real(view.cwd), "--", *command]
+        return [*out, "--chdir", _real_under(view.cwd, roots), "--", *command]
 
 
 def _real(path: Path) -> str:
     return os.path.realpath(path)
+
+
+@functools.lru_cache(maxsize=64)  # osmo's homes: resolved once, not for every start
+def _real_root(path: str) -> str:
+    return os.path.realpath(path)
+
+
+def _real_under(path: Path, roots: Sequence[tuple[str, str]]) -> str:
+    """The real path of ``path``; below a hidden root, the root's real path and the rest.
+
+    What lies below osmo's home was made by osmo (no symlinks): resolving the root alone
+    gives the same path as resolving every part, without an ``lstat`` per part per start.
+    """
+    text = str(path)
+    for root, real in roots:
+        if text.startswith(root + "/") and "/../" not in text[len(root):] + "/":
+            return real + text[len(root):]
+    return os.path.realpath(text)
 
 
 def _depth(path: str) -> int:
@@ -202,4 +232,22 @@ def _probe_result() -> tuple[Sandbox | None, str]:
         return None, (f"bubblewrap ({bwrap}) cannot make namespaces here: {message} "
                       "(are user namespaces disabled?)")
     devices = tuple(sorted(d for pattern in _GPU_DEVICES for d in glob.glob(pattern)))
-    return Sandbox(bwrap, devices), ""
+    return Sandbox(bwrap, devices, status=_reports_status(probe)), ""
+
+
+def _reports_status(probe: list[str]) -> bool:
+    """Whether this bwrap writes the command's exit code to ``--json-status-fd``."""
+    read, write = os.pipe()
+    try:
+        done = subprocess.run([probe[0], "--json-status-fd", str(write), *probe[1:]],
+                              stdin=subprocess.DEVNULL, capture_output=True, pass_fds=(write,),
+                              timeout=_PROBE_TIMEOUT, check=False)
+        os.close(write)
+        write = -1
+        return done.returncode == 0 and b'"exit-code": 0' in os.read(read, 65536)
+    except (OSError, subprocess.SubprocessError):
+        return False
+    finally:
+        os.close(read)
+        if write >= 0:
+            os.close(write)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import collections
 import logging
+import signal
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 
@@ -26,11 +27,12 @@ from osmo.worker.reactor import Reactor
 from osmo.worker.transfer import CredentialLookup, DeliveryError, deliver
 from osmo.worker.workdir import Launch, remove_secret_files
 
-__all__ = ["AttemptEndings"]
+__all__ = ["KILLED_BEFORE_START", "AttemptEndings"]
 
 _log = logging.getLogger("osmo.worker.pool")
 
 _REMEMBER_FINISHED = 4096  # finished ids kept to ignore late run()/kill() for them
+KILLED_BEFORE_START = 128 + signal.SIGKILL  # the exit code of an attempt killed before it ran
 
 
 class AttemptEndings:
@@ -47,6 +49,7 @@ class AttemptEndings:
     _max_output_files: int | None
     _reap: Callable[[ProcessHandle], int]
     _ended: Callable[[Launch], None]  # lets an ended container's GPUs and network go
+    _setup_failed: Callable[[LiveAttempt], None]  # its sandbox could not be set up
 
     def _exited(self, attempt: LiveAttempt) -> None:
         handle = attempt.handle
@@ -61,6 +64,11 @@ class AttemptEndings:
             if attempt.checkpoints is not None:
                 attempt.checkpoints.stop()
             attempt.log.flush_partial()
+            if handle.setup_failed:  # the command never ran
+                if attempt.kill_reason is None:
+                    self._setup_failed(attempt)  # try again, or fail its start
+                    return
+                code = KILLED_BEFORE_START
             attempt.log.line("osmo", exit_note(code))
         except Exception as exc:  # noqa: BLE001 - e.g. a full disk: still one final report
             _log.exception("finishing %s failed", attempt.id)

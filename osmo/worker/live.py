@@ -22,6 +22,7 @@ __all__ = ["AttemptState", "LiveAttempt"]
 
 _READ_SIZE = 65536
 _DRAIN_READS = 64  # at exit, read at most this many chunks more per pipe
+_TAIL = 512  # bytes of stderr kept: a sandbox's setup failure quotes bwrap's message
 
 
 class AttemptState(enum.Enum):
@@ -49,6 +50,8 @@ class LiveAttempt:
     kill_reason: str | None = None
     escalation: Timer | None = None
     checkpoints: Checkpointer | None = None
+    setup_failures: int = 0  # starts whose sandbox could not be set up
+    stderr_tail: bytes = b""  # the end of what was read from stderr (at most 2 x _TAIL)
 
     def read(self, reactor: Reactor, fd: int, stream: str) -> bool:
         """Log one chunk from a pipe; False when nothing was there (closed at EOF)."""
@@ -60,6 +63,8 @@ class LiveAttempt:
             return False
         if data:
             self.log.write(stream, data)
+            if stream == "stderr":
+                self.stderr_tail = self.stderr_tail[-_TAIL:] + data[-_TAIL:]
         else:
             self.unwatch(reactor, fd)
         return bool(data)

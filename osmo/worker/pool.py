@@ -49,7 +49,6 @@ from __future__ import annotations
 import collections
 import logging
 import os
-import signal
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
@@ -80,6 +79,7 @@ from osmo.scheduler.types import (
 )
 from osmo.spec.model import ResourceSpec, TaskSpec
 from osmo.worker.containers import ContainerTasks
+from osmo.worker.endings import KILLED_BEFORE_START
 from osmo.worker.live import AttemptState, LiveAttempt
 from osmo.worker.machine import detect_capacity, raise_fd_limit
 from osmo.worker.options import DEFAULT_KILL_GRACE
@@ -95,7 +95,6 @@ __all__ = ["LocalPool", "kill_stale", "process_start_time"]
 
 _log = logging.getLogger(__name__)
 
-KILLED_BEFORE_START = 128 + signal.SIGKILL
 _IO_THREADS = 4
 
 

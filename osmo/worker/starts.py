@@ -5,6 +5,11 @@ see the pool's module docstring for the threads. ``prepare`` makes the attempt's
 I/O thread (``osmo.worker.transfer.make_ready``) and, with no barrier, spawns it there too, so
 the slots' spawns overlap and the reactor thread never waits on fork/exec; a container peer
 starts once its group's lead runs.
+
+A start whose sandbox could not be set up (bubblewrap failed before the command ran, e.g. a
+mount vanished under it while containers started or stopped) is started again, up to
+:data:`SETUP_TRIES` times in all with a growing pause; then the attempt fails to start (an
+infrastructure error, exit code 3004), never with bwrap's exit code 1 as the command's.
 """
 
 from __future__ import annotations
@@ -38,9 +43,13 @@ from osmo.worker.secrets import SecretLookup, Secrets, gather
 from osmo.worker.transfer import ManifestLookup, make_ready
 from osmo.worker.workdir import Launch, remove_secret_files
 
-__all__ = ["AttemptStarts"]
+__all__ = ["SETUP_TRIES", "AttemptStarts"]
 
 _log = logging.getLogger("osmo.worker.pool")
+
+SETUP_TRIES = 8
+"""Starts of one attempt whose sandbox could not be set up, before it fails to start."""
+_SETUP_PAUSE = 0.005  # seconds before the second try, doubled for each next one (0.6 s in all)
 
 
 class AttemptStarts(AttemptEndings):
@@ -209,6 +218,26 @@ class AttemptStarts(AttemptEndings):
             self._containers.wait_for_lead(attempt.launch.container)
         self._reactor.call_soon(self._start, attempt)
 
+    def _setup_failed(self, attempt: LiveAttempt) -> None:
+        """Its sandbox could not be set up and the command never ran: start it again, or fail.
+
+        Until it starts again it waits as STARTING (a kill meanwhile ends it at once).
+        """
+        attempt.setup_failures += 1
+        tail = attempt.stderr_tail.decode("utf-8", "replace").strip().splitlines()
+        why = tail[-1] if tail else "bwrap exited 1 before the command ran"
+        attempt.stderr_tail = b""
+        if attempt.setup_failures >= SETUP_TRIES:
+            message = f"the sandbox could not be set up ({SETUP_TRIES} tries): {why}"
+            attempt.log.line("osmo", f"start failed: {message}")
+            self._finish(attempt, AttemptStartFailed(attempt.id, message))
+            return
+        attempt.log.line("osmo", f"the sandbox could not be set up ({why}); trying again "
+                                 f"({attempt.setup_failures + 1} of {SETUP_TRIES})")
+        attempt.state, attempt.handle = AttemptState.STARTING, None
+        self._reactor.call_later(_SETUP_PAUSE * 2 ** (attempt.setup_failures - 1),
+                                 self._start, attempt)
+
     def _start(self, attempt: LiveAttempt) -> None:
         if attempt.state not in (AttemptState.PREPARED, AttemptState.STARTING):
             return  # killed meanwhile
@@ -243,4 +272,6 @@ def _started(attempt_id: str, handle: ProcessHandle) -> AttemptStarted:
 
     The server records them, so that a restarted server can kill what is left of it.
     """
-    return AttemptStarted(attempt_id, handle.pid, process_start_time(handle.pid))
+    started = handle.started_at
+    return AttemptStarted(attempt_id, handle.pid,
+                          process_start_time(handle.pid) if started is None else started)

@@ -12,6 +12,7 @@ from osmo.errors import InfrastructureError, UsageError
 from osmo.runtime import ProcessRuntime, StartError
 from osmo.runtime import sandbox as sandbox_mod
 from osmo.runtime.sandbox import Sandbox, View, choose
+from tests.runtime.churn import churning_mounts
 from tests.runtime.test_process_runtime import read_all, wait_exit, wait_until
 
 ENV = {"PATH": os.environ["PATH"]}
@@ -181,3 +182,60 @@ def test_osmos_own_folders_under_tmp_stay_visible_read_only(box: Sandbox, home: 
     assert code == 0 and out.split() == ["from-the-venv", "read-only"], out
     code, out = run(box, home, f"{venv}/bin/tool || echo hidden")
     assert out.split()[-1] == "hidden"  # without it, the task's own /tmp hides the venv
+
+
+def test_a_sandbox_that_cannot_be_set_up_is_told_from_the_commands_exit(
+        box: Sandbox, home: Path) -> None:
+    """A mount vanishing under bwrap's setup fails it with exit 1: never the command's own.
+
+    The command is ``false`` (exit 1 too): a start whose sandbox failed is marked
+    ``setup_failed`` (bwrap's message on its stderr), one whose command ran never is.
+    """
+    runtime = ProcessRuntime(box)
+    seen = {"ran": 0, "setup failed": 0}
+    with churning_mounts():
+        for _ in range(400):  # until both were seen a few times (usually about 30 starts)
+            if min(seen.values()) >= 3:
+                break
+            handle = runtime.start(["false"], cwd=home / "a" / "work", env=ENV,
+                                   view=view(home))
+            try:
+                err = read_all(handle.stderr_fd).decode()
+                wait_exit(handle)
+                code = runtime.reap(handle)
+            finally:
+                runtime.release(handle)
+            if handle.setup_failed:
+                assert err.startswith("bwrap: "), err
+                seen["setup failed"] += 1
+            else:
+                assert (code, err) == (1, ""), err
+                seen["ran"] += 1
+    assert seen["setup failed"] > 0 and seen["ran"] > 0, seen  # the race did happen
+
+
+def test_a_home_reached_through_a_symlink_is_hidden_at_its_real_path(
+        box: Sandbox, home: Path, tmp_path: Path) -> None:
+    """The sandbox resolves osmo's home once; what it binds below it is at the real path."""
+    link = tmp_path / "link"
+    link.symlink_to(home)
+    a = link / "a"
+    linked = View(hidden=(link,), readonly=(a, link / "input"),
+                  writable=(a / "work", a / "output.partial", a / "files"), cwd=a / "work")
+    argv = box.argv(["true"], linked)
+    assert argv[argv.index("--tmpfs", argv.index("/tmp") + 1) + 1] == os.path.realpath(home)
+    assert os.path.realpath(home / "a" / "work") in argv and str(a / "work") not in argv
+    runtime = ProcessRuntime(box)
+    handle = runtime.start(["sh", "-c", f"""
+        pwd; cat {home}/state.db || echo no-db
+        echo x > {home}/a/output.partial/o && echo wrote-output
+        echo x > {home}/a/task.json || echo ro-folder"""], cwd=a / "work", env=ENV, view=linked)
+    try:
+        out = read_all(handle.stdout_fd).decode()
+        wait_exit(handle)
+        assert runtime.reap(handle) == 0, out
+    finally:
+        runtime.release(handle)
+    assert out.split() == [os.path.realpath(home / "a" / "work"), "no-db", "wrote-output",
+                           "ro-folder"], out
+    assert (home / "a" / "output.partial" / "o").read_text() == "x\n"
