@@ -33,7 +33,7 @@ sys.path[:0] = [str(ROOT), str(ROOT / "bench")]
 
 from benchlib import quick, row, write_rows  # noqa: E402
 
-ENV = "osmo/ReacherVision-v0"
+ENV = "osmo/ReachVision-v1"
 TINY = ["shards=2", "episodes=2", "steps=20", "eval_episodes=2"]
 
 

@@ -116,7 +116,7 @@ def test_reach_vision_tiny(shared_osmo: Osmo, tmp_path: Path) -> None:
                             "--set", "eval_episodes=2")
     assert shared_osmo.query(wf)["status"] == "COMPLETED", shared_osmo("logs", wf).out
     rows = shared_osmo("eval", "report", wf, "--format", "json", check=True).json()
-    got = _by_policy(rows, "osmo/ReacherVision-v0")
+    got = _by_policy(rows, "osmo/ReachVision-v1")
     assert set(got) == {"train", "expert", "random"}
     assert {r["criterion"] for r in rows} == {"info['is_success'] (the env's own success signal)"}
     assert got["expert"]["success_rate"] == 1.0 and got["random"]["success_rate"] == 0.0
@@ -134,8 +134,8 @@ def test_reach_vision_tiny(shared_osmo: Osmo, tmp_path: Path) -> None:
 
     with McapFile(shard) as f:
         chans = {c.topic: (c.schema_name, c.message_count) for c in f.channels()}
-    assert chans == {"/episode/step": ("osmo.EpisodeStep", 100),
-                     "/camera/rgb": ("foxglove.RawImage", 100)}
+    assert chans == {"/episode/step": ("osmo.EpisodeStep", 50),  # 2 episodes × 25 steps
+                     "/camera/rgb": ("foxglove.RawImage", 50)}
 
 
 SWEEP = ["--set", "lrs=0.003,0.001", "--set", "episodes=2", "--set", "max_steps=50",

@@ -1,5 +1,6 @@
-"""osmo/ReacherVision-v0: the target is in the pixels only, the expert reaches it, random
-does not; the IK expert also solves gymnasium's own Reacher-v5."""
+"""osmo/ReachVision-v1: the target is in the pixels only, the position actuators reach the
+commanded angles, the expert reaches every target and random does not; the torque expert
+solves gymnasium's own Reacher-v5."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ pytest.importorskip("mujoco")
 
 from osmo_plugins.sim.envs import make_env, run_episodes  # noqa: E402
 from osmo_plugins.sim.policies import has_expert, make_policy  # noqa: E402
-from osmo_plugins.sim.reacher import ENV_ID  # noqa: E402
+from osmo_plugins.sim.reach_vision import ENV_ID  # noqa: E402
 
 
 def _red_centre(frame: np.ndarray) -> np.ndarray:
@@ -45,15 +46,49 @@ def test_the_target_is_in_the_pixels_only() -> None:
     assert np.corrcoef(xs, cols)[0, 1] > 0.95 and np.corrcoef(ys, rows)[0, 1] < -0.95
 
 
+def test_targets_cover_the_three_quarters_in_front_of_the_arm() -> None:
+    env = make_env(ENV_ID)
+    base = env.unwrapped
+    radii, angles = [], []
+    for seed in range(300):
+        env.reset(seed=seed)
+        x, y = base.data.qpos[2:4]
+        radii.append(np.hypot(x, y))
+        angles.append(np.arctan2(y, x))
+    assert 0.05 <= min(radii) and max(radii) <= 0.2 and max(np.abs(angles)) <= 0.75 * np.pi
+    assert min(radii) < 0.07 and max(radii) > 0.19  # and all of it
+    assert min(angles) < -0.7 * np.pi and max(angles) > 0.7 * np.pi
+
+
+def test_the_position_actuators_reach_the_commanded_angles() -> None:
+    env = make_env(ENV_ID)
+    base = env.unwrapped
+    low, high = base.model.actuator_ctrlrange.T
+    for seed, action in enumerate([(-1.0, -1.0), (1.0, 1.0), (0.3, -0.6), (-0.8, 0.2)]):
+        env.reset(seed=seed)
+        angles = base.to_ctrl(action)
+        assert np.allclose(angles, low + (np.array(action) + 1) / 2 * (high - low))
+        assert np.allclose(base.to_action(angles), action, atol=1e-6)
+        for _ in range(30):  # 0.6 s: from straight to either end of the range
+            env.step(np.array(action, dtype=np.float32))
+        assert np.abs(base.data.qpos[:2] - angles).max() < 0.01, (action, base.data.qpos[:2])
+        assert np.abs(base.data.qvel[:2]).max() < 0.2  # and all but still
+    env.step(np.array([5.0, -5.0]))  # out of range: clipped to the range, not beyond
+    assert np.allclose(base.data.ctrl, [high[0], low[1]])
+
+
 def test_the_expert_reaches_and_random_does_not() -> None:
     env = make_env(ENV_ID)
     assert has_expert(ENV_ID)
-    expert = run_episodes(env, make_policy("expert", env, env_id=ENV_ID), range(100, 110))
-    rand = run_episodes(env, make_policy("random", env, env_id=ENV_ID), range(100, 130))
+    expert = run_episodes(env, make_policy("expert", env, env_id=ENV_ID), range(100, 140))
+    rand = run_episodes(env, make_policy("random", env, env_id=ENV_ID), range(100, 140))
     assert all(r.success for r in expert) and all(r.length == 50 for r in expert)
     assert sum(bool(r.success) for r in rand) <= 3  # reached and held by chance: rare
     assert {r.signal for r in expert + rand} == {"is_success"}
-    assert min(r.total_reward for r in expert) > max(r.total_reward for r in rand)
+    # the reward is minus the distance: random flails about the middle of the arena
+    returns = {name: np.mean([r.total_reward for r in rs])
+               for name, rs in (("expert", expert), ("random", rand))}
+    assert returns["expert"] > 0.5 * returns["random"], returns
 
 
 def test_the_expert_solves_gymnasiums_reacher_too() -> None:

@@ -22,7 +22,7 @@ from osmo_plugins.episodes import EpisodeWriter
 __all__ = ["OSMO_ENVS", "SUCCESS_KEYS", "EpisodeResult", "MissingExtra", "make_env", "require",
            "run_episodes"]
 
-OSMO_ENVS = ("osmo/ReacherVision-v0",)
+OSMO_ENVS = ("osmo/ReachVision-v1",)
 """Env ids osmo itself provides (registered with gymnasium when first made)."""
 
 SUCCESS_KEYS = ("is_success", "success")
@@ -66,9 +66,9 @@ def make_env(env_id: str, *, xml_file: str | Path | None = None, render: bool = 
     gym = require("gymnasium", "sim")
     require("mujoco", "sim")
     if env_id in OSMO_ENVS:
-        from osmo_plugins.sim import reacher
+        from osmo_plugins.sim import reach_vision
 
-        reacher.register()
+        reach_vision.register()
     kwargs: dict[str, Any] = {}
     if xml_file:
         path = Path(xml_file).resolve()

@@ -4,8 +4,9 @@ A policy is anything with ``reset(seed)`` and ``act(observation) -> action`` (nu
 experts read the env's true MuJoCo state. For the inverted pendulums, LQR: it linearises the
 env's own model about its upright rest pose (central differences of ``mj_step``), folds in
 the env's frame skip and solves the discrete-time LQR, so it works on any pendulum XML passed
-to the env, not only the stock one. For the reachers (Reacher-v5, osmo/ReacherVision-v0),
-inverse kinematics plus joint PD (:mod:`osmo_plugins.sim.reacher`). A ``checkpoint`` policy is
+to the env, not only the stock one. For Reacher-v5, inverse kinematics plus joint velocity
+control (:mod:`osmo_plugins.sim.reacher`); for osmo/ReachVision-v1, the inverse-kinematics
+pose as a position command (:mod:`osmo_plugins.sim.reach_vision`). A ``checkpoint`` policy is
 a LeRobot policy saved by ``lerobot.train`` (loaded lazily: importing this module needs numpy
 only; gymnasium/mujoco/torch are imported when used).
 """
@@ -20,7 +21,7 @@ import numpy as np
 __all__ = ["EXPERT_ENVS", "ExpertPolicy", "Policy", "RandomPolicy", "has_expert", "linearize",
            "lqr_gain", "make_policy"]
 
-EXPERT_ENVS = ("InvertedPendulum", "InvertedDoublePendulum", "Reacher", "osmo/ReacherVision")
+EXPERT_ENVS = ("InvertedPendulum", "InvertedDoublePendulum", "Reacher", "osmo/ReachVision")
 """Env families (id without the ``-vN`` suffix) that have an expert."""
 
 
@@ -152,6 +153,10 @@ def make_policy(kind: str, env: Any, *, env_id: str, checkpoint: Path | None = N
         if env_id.split("-")[0] not in EXPERT_ENVS:
             raise ValueError(f"no expert policy for {env_id}; experts exist for "
                              f"{', '.join(EXPERT_ENVS)} (use policy: random or checkpoint)")
+        if env_id.startswith("osmo/ReachVision"):
+            from osmo_plugins.sim.reach_vision import ReachVisionExpert
+
+            return ReachVisionExpert(env, noise=noise)
         if "Reacher" in env_id:
             from osmo_plugins.sim.reacher import ReacherExpert
 

@@ -1,78 +1,31 @@
-"""``osmo/ReacherVision-v0``: reaching that can only be learnt from pixels, and its expert.
+"""An expert for gymnasium's ``Reacher-v5``, and the two-link inverse kinematics it shares.
 
-gymnasium's Reacher-v5 (a 2-link arm in the plane, a target drawn at random within 0.2 of its
-base, 50 steps of 0.02 s) with three changes, so that a policy must look at the camera:
-
-- the observation is the arm's proprioception only — cos and sin of both joint angles and
-  their velocities (6 numbers); the target's position appears only in the camera image;
-- the camera looks straight down on the arena, and the target is drawn larger and pure red
-  on a dark floor (``assets/reacher_vision.xml``), so it covers ~50 pixels at 64×64;
-- ``info["is_success"]`` turns true once the fingertip has touched the target (centres within
-  3 cm: the two spheres' radii) for 10 consecutive steps (0.2 s): reached and held, which
-  random flailing does not do.
-
-The reward is Reacher-v5's (minus the distance, minus the squared action). The env is
-registered with gymnasium when :func:`osmo_plugins.sim.envs.make_env` first needs it; this
-module imports gymnasium, so only code that runs a task imports it.
-
-:class:`ReacherExpert` solves any Reacher-like model from its true state: inverse kinematics
+:class:`ReacherExpert` solves a torque-driven Reacher from its true state: inverse kinematics
 of the two links (lengths read from the model) for the target, then joint velocity control.
+``osmo/ReachVision-v1`` (:mod:`osmo_plugins.sim.reach_vision`) commands the same inverse
+kinematics as joint positions.
 """
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any
 
 import numpy as np
-from gymnasium.envs.mujoco.reacher_v5 import ReacherEnv
-from gymnasium.spaces import Box
 
-__all__ = ["ENV_ID", "HOLD_STEPS", "SUCCESS_RADIUS", "ReacherExpert", "ReacherVisionEnv",
-           "register"]
-
-ENV_ID = "osmo/ReacherVision-v0"
-SUCCESS_RADIUS = 0.03
-HOLD_STEPS = 10
-XML = Path(__file__).parent / "assets" / "reacher_vision.xml"
-TOP_DOWN = {"distance": 0.55, "elevation": -90.0, "azimuth": 90.0, "lookat": (0.0, 0.0, 0.0)}
+__all__ = ["ReacherExpert", "two_link_ik"]
 
 
-def register() -> None:
-    """Register :data:`ENV_ID` with gymnasium (once per process)."""
-    import gymnasium
+def two_link_ik(l1: float, l2: float, x: float, y: float,
+                elbow_sign: float) -> tuple[float, float]:
+    """Shoulder and elbow angles that put a planar two-link arm's tip at (x, y).
 
-    if ENV_ID not in gymnasium.registry:
-        gymnasium.register(id=ENV_ID, entry_point="osmo_plugins.sim.reacher:ReacherVisionEnv",
-                           max_episode_steps=50)
-
-
-class ReacherVisionEnv(ReacherEnv):  # type: ignore[misc]
-    """Reacher-v5 seen from above, observing only the arm (see the module docstring)."""
-
-    def __init__(self, **kwargs: Any) -> None:
-        kwargs.setdefault("xml_file", str(XML))
-        kwargs.setdefault("default_camera_config",
-                          {**TOP_DOWN, "lookat": np.array(TOP_DOWN["lookat"])})
-        super().__init__(**kwargs)
-        self.observation_space = Box(-np.inf, np.inf, (6,), np.float64)
-        self._held = 0
-
-    def _get_obs(self) -> np.ndarray:
-        theta = self.data.qpos[:2]
-        return np.concatenate([np.cos(theta), np.sin(theta), self.data.qvel[:2]])
-
-    def reset_model(self) -> np.ndarray:
-        """Reacher-v5's reset (arm near straight, target anywhere within 0.2)."""
-        self._held = 0
-        return super().reset_model()
-
-    def step(self, action: Any) -> Any:
-        """Reacher-v5's step, plus ``info["is_success"]`` (reached and held)."""
-        obs, reward, terminated, truncated, info = super().step(action)
-        self._held = self._held + 1 if -info["reward_dist"] < SUCCESS_RADIUS else 0
-        info["is_success"] = self._held >= HOLD_STEPS
-        return obs, reward, terminated, truncated, info
+    ``elbow_sign`` picks the solution: the elbow angle has that sign (a point out of reach
+    gives the nearest pose on the line to it). The shoulder angle is not wrapped.
+    """
+    cos_elbow = np.clip((x * x + y * y - l1 * l1 - l2 * l2) / (2 * l1 * l2), -1.0, 1.0)
+    elbow = float(np.copysign(np.arccos(cos_elbow), elbow_sign))
+    shoulder = np.arctan2(y, x) - np.arctan2(l2 * np.sin(elbow), l1 + l2 * np.cos(elbow))
+    return float(shoulder), elbow
 
 
 def _wrap(angle: float) -> float:
@@ -91,7 +44,7 @@ class ReacherExpert:
     approach over ~20 steps (0.4 s) and still reach every target (return ≈ -3.9).
 
     Args:
-        env: a Reacher-v5 or ReacherVision env (joints ``joint0``, ``joint1``, target joints
+        env: a Reacher-v5 env (joints ``joint0``, ``joint1``, target joints
             ``target_x``, ``target_y``).
         noise: std of Gaussian noise added to each action (fraction of the range).
     """
@@ -117,18 +70,9 @@ class ReacherExpert:
         self._rng = np.random.default_rng(seed)
 
     def _ik(self, x: float, y: float, elbow_now: float) -> tuple[float, float]:
-        """Joint angles that put the fingertip at (x, y).
-
-        Of the two elbow solutions, the one nearer the current elbow angle.
-        """
-        l1, l2 = self._l1, self._l2
-        cos_elbow = np.clip((x * x + y * y - l1 * l1 - l2 * l2) / (2 * l1 * l2), -1.0, 1.0)
-        options = []
-        for elbow in (float(np.arccos(cos_elbow)), -float(np.arccos(cos_elbow))):
-            shoulder = np.arctan2(y, x) - np.arctan2(l2 * np.sin(elbow), l1 + l2 * np.cos(elbow))
-            options.append((abs(elbow - elbow_now), float(shoulder), elbow))
-        _, shoulder, elbow = min(options)
-        return shoulder, elbow
+        """Joint angles that put the fingertip at (x, y), the elbow solution nearer now's."""
+        options = [two_link_ik(self._l1, self._l2, x, y, sign) for sign in (1.0, -1.0)]
+        return min(options, key=lambda q: abs(q[1] - elbow_now))
 
     def act(self, observation: np.ndarray) -> np.ndarray:
         """Track a capped joint velocity towards the IK solution (plus noise), in [-1, 1]."""
