@@ -2,10 +2,10 @@
 
 ``osmo eval report [WORKFLOW_IDS...]`` finds the ``metrics.json`` outputs of ``sim.eval``
 tasks (in the artifact store, through the SDK; or local files given as paths) and shows one
-leaderboard across runs, best mean return first per env, with each success rate's criterion
-as a footnote (``n/a`` where the suite had none) and the normalised score. ``osmo view
-TARGET`` turns an MCAP artifact or file into a rerun ``.rrd`` and opens the viewer only with
-``--open``.
+leaderboard across runs, best mean return first per env, with each success rate's 95%
+Wilson interval and its criterion as a footnote (``n/a`` where the suite had none) and the
+normalised score. ``osmo view TARGET`` turns an MCAP artifact or file into a rerun ``.rrd``
+and opens the viewer only with ``--open``.
 
 The conversion is a viewer plugin's (``osmo.tasktypes.viewers``: the ``viz`` extra's
 ``rerun``); it is loaded only when ``view`` runs, so ``import osmo`` stays light.
@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import shutil
 import tempfile
 from pathlib import Path
@@ -61,6 +62,7 @@ def leaderboard_rows(sources: list[tuple[str, str, dict[str, Any]]]) -> list[dic
                 "policy", "kind", "env", "episodes", "success_rate", "mean_return",
                 "return_ci95", "mean_length")},
                 "criterion": r.get("success_criterion") or _old_criterion(suite),
+                "success_ci95": _success_ci(r),
                 "normalized_score": r.get("normalized_score"),
                 "normalized_ci95": r.get("normalized_ci95")})
     rows.sort(key=lambda r: (r["env"], -r["mean_return"], r["workflow"], r["policy"]))
@@ -70,6 +72,30 @@ def leaderboard_rows(sources: list[tuple[str, str, dict[str, Any]]]) -> list[dic
         env = row["env"]
         row["rank"] = rank
     return rows
+
+
+def wilson95(successes: int, n: int) -> tuple[float, float] | None:
+    """The 95% Wilson score interval of a success rate (None for no episodes).
+
+    Unlike the normal approximation it stays inside [0, 1] and is not a point at 0 or n
+    successes: 20 of 20 is [0.84, 1].
+    """
+    if n <= 0:
+        return None
+    z = 1.959964
+    p = successes / n
+    scale = 1 + z * z / n
+    centre = (p + z * z / (2 * n)) / scale
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / scale
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
+def _success_ci(row: dict[str, Any]) -> list[float] | None:
+    rate, n = row.get("success_rate"), row.get("episodes")
+    if rate is None or not isinstance(n, int):
+        return None
+    ci = wilson95(round(rate * n), n)
+    return None if ci is None else list(ci)
 
 
 def _old_criterion(suite: dict[str, Any]) -> str | None:
@@ -84,7 +110,7 @@ def leaderboard_text(rows: list[dict[str, Any]]) -> str:
     Each success rate is marked with its criterion's footnote (``n/a`` where there was none).
     """
     notes: dict[str, int] = {}
-    table = [["Env", "#", "Policy", "Workflow", "Task", "Success", "Return (95% CI)",
+    table = [["Env", "#", "Policy", "Workflow", "Task", "Success (95% CI)", "Return (95% CI)",
               "Normalised", "Length", "Episodes"]]
     for r in rows:
         mark = notes.setdefault(r["criterion"] or "not recorded", len(notes) + 1)
@@ -94,7 +120,7 @@ def leaderboard_text(rows: list[dict[str, Any]]) -> str:
         table.append([
             safe(r["env"]), str(r["rank"]), safe(r["policy"]), safe(r["workflow"]),
             safe(r["task"]),
-            f"{'n/a' if rate is None else f'{100 * rate:.0f}%'} [{mark}]",
+            f"{_rate_text(rate, r['success_ci95'])} [{mark}]",
             f"{r['mean_return']:.1f} [{lo:.1f}, {hi:.1f}]",
             "-" if norm is None else f"{norm:.2f}", f"{r['mean_length']:.0f}",
             str(r["episodes"])])
@@ -107,6 +133,13 @@ def leaderboard_text(rows: list[dict[str, Any]]) -> str:
     if any(r["normalized_score"] is not None for r in rows):
         lines.append("Normalised: (return - random) / (expert - random) in the same suite.")
     return "\n".join(lines)
+
+
+def _rate_text(rate: float | None, ci: list[float] | None) -> str:
+    if rate is None:
+        return "n/a"
+    return f"{100 * rate:.0f}%" + ("" if ci is None else
+                                   f" [{100 * ci[0]:.0f}, {100 * ci[1]:.0f}]")
 
 
 def _is_metrics(data: Any) -> bool:

@@ -42,10 +42,25 @@ def test_report_from_files(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -
     lines = [ln for ln in out.splitlines() if "Pend-v5" in ln]
     assert [ln.split()[2] for ln in lines] == ["train", "expert", "random"]
     assert "1000.0 [999.0, 1001.0]" in out
-    assert "100% [1]" in lines[0] and "1% [1]" in lines[2]
+    # 3 episodes: 100% has a Wilson interval of [44, 100], 1% (0 of 3 rounded) of [0, 56]
+    assert "100% [44, 100] [1]" in lines[0] and "1% [0, 56] [1]" in lines[2]
     assert "[1] return >= 500 (workflow params)" in out
     assert main(["eval", "report", str(a), "--format", "json"]) == 0
-    assert [r["policy"] for r in json.loads(capsys.readouterr().out)] == ["train", "random"]
+    got = json.loads(capsys.readouterr().out)
+    assert [r["policy"] for r in got] == ["train", "random"]
+    assert [round(100 * x) for x in got[0]["success_ci95"]] == [44, 100]
+
+
+def test_success_rates_carry_a_wilson_interval() -> None:
+    from osmo.cli.robotics import wilson95
+
+    lo, hi = wilson95(20, 20)
+    assert (round(100 * lo), hi) == (84, 1.0)  # 20 of 20 does not prove 100%
+    lo, hi = wilson95(0, 20)
+    assert (lo, round(100 * hi)) == (0.0, 16)
+    lo, hi = wilson95(99, 100)
+    assert (round(100 * lo, 1), round(100 * hi, 1)) == (94.6, 99.8)
+    assert wilson95(0, 0) is None
 
 
 def test_report_shows_na_criteria_and_normalised(tmp_path: Path,
@@ -73,7 +88,7 @@ def test_report_shows_na_criteria_and_normalised(tmp_path: Path,
     assert "[1] n/a: no success signal" in out
     assert "[2] info['is_success'] (the env's own)" in out
     expert = next(ln for ln in out.splitlines() if "expert" in ln)
-    assert "100% [2]" in expert and " 1.00 " in expert
+    assert "100% [34, 100] [2]" in expert and " 1.00 " in expert
     assert main(["eval", "report", str(path), "--format", "json"]) == 0
     got = {r["policy"] + r["env"]: r for r in json.loads(capsys.readouterr().out)}
     assert got["randomHalfCheetah-v5"]["success_rate"] is None
