@@ -93,6 +93,9 @@ class ResourceSpec:
     pos: Pos | None = _pos()
 
 
+_NO_RESOURCES = ResourceSpec()  # frozen: one shared "nothing specific"
+
+
 @dataclass(frozen=True)
 class Timeouts:
     """Per-group timeouts in seconds (OSMO 6.4 semantics).
@@ -272,4 +275,4 @@ class WorkflowSpec:
         """
         if task.resource == DEFAULT_RESOURCE and task.resolved and task.resolved.resources:
             return task.resolved.resources
-        return self.resources.get(task.resource, ResourceSpec())
+        return self.resources.get(task.resource, _NO_RESOURCES)
