@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import operator
 from dataclasses import dataclass
 from typing import Any
 
@@ -70,7 +69,7 @@ class TaskState:
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-safe dict: the status as its name."""
-        data = dict(zip(_TASK_FIELDS, _task_values(self), strict=True))
+        data = {name: getattr(self, name) for name in _TASK_FIELDS}
         data["status"] = self.status.name
         return data
 
@@ -138,4 +137,3 @@ class WorkflowState:
 
 _TASK_FIELDS = tuple(f.name for f in dataclasses.fields(TaskState))
 _WORKFLOW_FIELDS = tuple(f.name for f in dataclasses.fields(WorkflowState))
-_task_values = operator.attrgetter(*_TASK_FIELDS)
