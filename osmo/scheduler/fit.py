@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from osmo.scheduler.resources import Request, first_fit, requests_of, total
+from osmo.scheduler.resources import Request, first_fit, request_for, total
 from osmo.scheduler.types import Capacity, Node
 from osmo.spec.model import GroupSpec, WorkflowSpec
 
@@ -52,17 +52,15 @@ def check_fit(spec: WorkflowSpec, pool: str | None, nodes: Sequence[Node]) -> li
     if not members:
         return [f"no node is available in {where}"]
     reasons: list[str] = []
-    problems: dict[int, str | None] = {}  # by id: the tasks of a big workflow share requests
-    of_task = requests_of(spec)
+    problems: dict[Request, str | None] = {}  # the tasks of a big workflow share few requests
     for group in spec.groups:
-        requests = [(t.name, of_task[t.name]) for t in group.tasks]
+        requests = [(t.name, request_for(spec, t)) for t in group.tasks]
         task_reasons = []
         for name, req in requests:
-            if id(req) not in problems:
-                problems[id(req)] = _request_problem(req, members, where)
-            problem = problems[id(req)]
-            if problem is not None:
-                task_reasons.append(f"task '{name}' {problem}")
+            if req not in problems:
+                problems[req] = _request_problem(req, members, where)
+            if problems[req] is not None:
+                task_reasons.append(f"task '{name}' {problems[req]}")
         reasons.extend(task_reasons)
         if not task_reasons and len(requests) > 1 and first_fit(requests, members, {}) is None:
             reasons.append(_group_reason(group, requests, members, where))

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 from osmo.scheduler.types import Capacity, Node
 from osmo.spec.model import ResourceSpec, TaskSpec, WorkflowSpec
 
-__all__ = ["ZERO", "Ledger", "Request", "first_fit", "request_for", "requests_of", "total"]
+__all__ = ["ZERO", "Ledger", "Request", "first_fit", "request_for", "total"]
 
 ZERO = Capacity()
 
@@ -48,23 +48,6 @@ class Request:
 def request_for(spec: WorkflowSpec, task: TaskSpec) -> Request:
     """The request of ``task``: its resource spec with the documented defaults."""
     return _request(spec.resource_for(task))
-
-
-def requests_of(spec: WorkflowSpec) -> dict[str, Request]:
-    """Task name → its request, for every task of ``spec``.
-
-    The tasks of a big workflow share a few resource specs: each is turned into a request
-    once (not hashed again for every task).
-    """
-    made: dict[int, Request] = {}  # id of a ResourceSpec that ``spec`` keeps alive
-    out = {}
-    for task in spec.all_tasks():
-        res = spec.resource_for(task)
-        req = made.get(id(res))
-        if req is None:
-            req = made[id(res)] = _request(res)
-        out[task.name] = req
-    return out
 
 
 @functools.lru_cache(maxsize=4096)

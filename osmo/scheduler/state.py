@@ -63,9 +63,7 @@ class TaskState:
 
     def copy(self) -> TaskState:
         """An independent copy (a snapshot; its fields are immutable values)."""
-        new = object.__new__(TaskState)  # what copy.copy does, without its dispatch
-        new.__dict__.update(self.__dict__)
-        return new
+        return copy.copy(self)  # several times faster than dataclasses.replace
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-safe dict: the status as its name."""

@@ -68,42 +68,25 @@ def _output(o: OutputSpec) -> dict[str, Any]:
 
 
 def _task(t: TaskSpec) -> dict[str, Any]:
-    # only the fields a task sets, in this order (a spec of 100,000 tasks sets few of them)
-    out: dict[str, Any] = {"name": t.name}
-    if t.image is not None:
-        out["image"] = t.image
-    if t.type is not None:
-        out["type"] = t.type
-    for key, value in (("params", t.params), ("command", t.command), ("args", t.args),
-                       ("environment", t.environment)):
-        if value:
-            out[key] = _plain(value)
-    if t.files:
-        out["files"] = [_file(f) for f in t.files]
-    if t.inputs:
-        out["inputs"] = [_input(i) for i in t.inputs]
-    if t.outputs:
-        out["outputs"] = [_output(o) for o in t.outputs]
-    if t.credentials:
-        out["credentials"] = dict(t.credentials)
-    if t.resource != DEFAULT_RESOURCE:
-        out["resource"] = t.resource
-    if t.lead:
-        out["lead"] = True
-    if t.exit_actions:
-        out["exitActions"] = {r.action.value: format_exit_codes(r.ranges)
-                              for r in t.exit_actions}
-    if t.checkpoint:
-        out["checkpoint"] = [dict(c) for c in t.checkpoint]
-    if not t.cache:
-        out["cache"] = False
-    return out
-
-
-def _plain(value: Any) -> Any:
-    """A copy of a task's field as plain data: tuples as lists, mappings as dicts."""
-    return list(value) if isinstance(value, tuple) else dict(value) if isinstance(
-        value, dict) else value
+    return _drop_none({
+        "name": t.name,
+        "image": t.image,
+        "type": t.type,
+        "params": dict(t.params) or None,
+        "command": list(t.command) or None,
+        "args": list(t.args) or None,
+        "environment": dict(t.environment) or None,
+        "files": [_file(f) for f in t.files] or None,
+        "inputs": [_input(i) for i in t.inputs] or None,
+        "outputs": [_output(o) for o in t.outputs] or None,
+        "credentials": dict(t.credentials) or None,
+        "resource": None if t.resource == DEFAULT_RESOURCE else t.resource,
+        "lead": True if t.lead else None,
+        "exitActions": {r.action.value: format_exit_codes(r.ranges) for r in t.exit_actions}
+        or None,
+        "checkpoint": [dict(c) for c in t.checkpoint] or None,
+        "cache": None if t.cache else False,
+    })
 
 
 def _group(g: GroupSpec) -> dict[str, Any]:

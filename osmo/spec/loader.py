@@ -18,7 +18,6 @@ from osmo.spec import isolation, yamlnodes
 from osmo.spec.files import read_spec_file
 from osmo.spec.model import WorkflowSpec
 from osmo.spec.parse import parse_document
-from osmo.spec.plain import from_plain
 from osmo.spec.reader import Ctx
 from osmo.spec.typed import TypeResolver, apply_resolved, check_types
 from osmo.spec.validate import validate
@@ -143,7 +142,7 @@ def spec_from_dict(d: dict[str, Any], *, filename: str = "<stored>",
         raise SpecError([Diagnostic(filename, 0, 0, "a stored spec must be a mapping")])
     # Valid data is checked without YAML text (fast: no dump, no parse); data with a problem
     # is checked again the YAML way, so its messages carry positions in that text.
-    root = from_plain(d, filename)
+    root = yamlnodes.from_plain(d, filename)
     if root is not None:
         spec = _check(Ctx(filename, []), root, Path(), types)
         if spec is not None:

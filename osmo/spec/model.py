@@ -93,9 +93,6 @@ class ResourceSpec:
     pos: Pos | None = _pos()
 
 
-_NO_RESOURCES = ResourceSpec()  # frozen: one shared "nothing specific"
-
-
 @dataclass(frozen=True)
 class Timeouts:
     """Per-group timeouts in seconds (OSMO 6.4 semantics).
@@ -275,4 +272,4 @@ class WorkflowSpec:
         """
         if task.resource == DEFAULT_RESOURCE and task.resolved and task.resolved.resources:
             return task.resolved.resources
-        return self.resources.get(task.resource, _NO_RESOURCES)
+        return self.resources.get(task.resource, ResourceSpec())

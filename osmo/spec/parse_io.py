@@ -27,7 +27,7 @@ from osmo.spec.reader import (
 )
 from osmo.spec.support import UNSUPPORTED
 from osmo.spec.units import parse_duration
-from osmo.spec.yamlnodes import Map, Node, Scalar, to_plain
+from osmo.spec.yamlnodes import Map, Node, to_plain
 
 __all__ = ["MAX_LOCAL_FILE", "parse_checkpoint", "parse_files", "parse_inputs", "parse_outputs"]
 
@@ -38,7 +38,6 @@ MAX_PATH_PART = 255  # bytes of one of its components (NAME_MAX)
 _FILE_KEYS = ("path", "contents", "base64", "localpath")
 _INPUT_KINDS = ("task", "url", "dataset")
 _CHECKPOINT_KEYS = ("path", "url", "frequency", "regex")
-_TASK_INPUT_UNSUPPORTED = "inputs.task" in UNSUPPORTED
 
 
 def _read_regex(ctx: Ctx, fields: dict[str, Node], what: str) -> str | None:
@@ -170,9 +169,6 @@ def _dataset(ctx: Ctx, node: Node, keys: tuple[str, ...], what: str) -> dict[str
 
 
 def _input(ctx: Ctx, node: Node, where: str) -> InputSpec | None:
-    plain = _plain_task_input(node)
-    if plain is not None:
-        return plain
     what = f"an input of {where}"
     fields = read_fields(ctx, node, (*_INPUT_KINDS, "regex"), what)
     if fields is None:
@@ -207,21 +203,6 @@ def _input(ctx: Ctx, node: Node, where: str) -> InputSpec | None:
         if problem is not None:
             ctx.error(fields["task"], f"{problem} (in '- task: WORKFLOW_ID:NAME')")
     return InputSpec(task=task, workflow=workflow or None, regex=regex, pos=node.pos)
-
-
-def _plain_task_input(node: Node) -> InputSpec | None:
-    """The entry ``- task: NAME`` (nothing else, no ``:``) read at once, else None.
-
-    Most inputs are written so (a join of 100,000 tasks has 100,000 of them); everything
-    else takes the checks of :func:`_input`, which accept this form unchanged.
-    """
-    if not isinstance(node, Map) or len(node.entries) != 1 or _TASK_INPUT_UNSUPPORTED:
-        return None
-    key, value = node.entries[0]
-    name = value.value if key.text == "task" and isinstance(value, Scalar) else None
-    if not isinstance(name, str) or not name or ":" in name:
-        return None
-    return InputSpec(task=name, pos=node.pos)
 
 
 def parse_inputs(ctx: Ctx, node: Node, where: str) -> tuple[InputSpec, ...]:

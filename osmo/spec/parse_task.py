@@ -36,8 +36,6 @@ TASK_KEYS = ("name", "image", "command", "args", "environment", "files", "inputs
              "credentials", "resource", "lead", "exitActions", "checkpoint", "volumeMounts",
              "privileged", "hostNetwork", "type", "params", "cache")
 _ACTIONS = [a.value for a in ExitAction]
-_UNSUPPORTED = {key.removeprefix("task."): why for key, why in UNSUPPORTED.items()
-                if key.startswith("task.")}
 _ENV_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 
 
@@ -154,27 +152,9 @@ def _command(ctx: Ctx, fields: dict[str, Node], node: Node, where: str) -> tuple
     return command
 
 
-#: TaskSpec field ← (key, reader of its node). Only the keys a task writes are read: a spec
-#: of 100,000 tasks that write 3 keys each builds no messages for the 14 others.
-_READERS: dict[str, tuple[str, Any]] = {
-    "image": ("image", lambda ctx, n, where, _: _image(ctx, n, where)),
-    "args": ("args", lambda ctx, n, where, _: read_str_list(ctx, n, f"'args' of {where}")),
-    "environment": ("environment",
-                    lambda ctx, n, where, _: _str_map(ctx, n, "environment variable")),
-    "files": ("files", lambda ctx, n, where, base: parse_files(ctx, n, base, where) or ()),
-    "inputs": ("inputs", lambda ctx, n, where, _: parse_inputs(ctx, n, where)),
-    "outputs": ("outputs", lambda ctx, n, where, _: parse_outputs(ctx, n, where)),
-    "credentials": ("credentials", lambda ctx, n, where, _: _credentials(ctx, n, where)),
-    "resource": ("resource", lambda ctx, n, where, _: read_str(
-        ctx, n, f"'resource' of {where}") or DEFAULT_RESOURCE),
-    "lead": ("lead", lambda ctx, n, where, _: bool(read_bool(ctx, n, f"'lead' of {where}"))),
-    "exitActions": ("exit_actions", lambda ctx, n, where, _: _exit_actions(ctx, n, where)),
-    "checkpoint": ("checkpoint", lambda ctx, n, where, _: parse_checkpoint(ctx, n, where)),
-    "type": ("type", lambda ctx, n, where, _: read_str(ctx, n, f"'type' of {where}")),
-    "params": ("params", lambda ctx, n, where, _: _params(ctx, n, where)),
-    "cache": ("cache", lambda ctx, n, where, _: read_bool(
-        ctx, n, f"'cache' of {where}") is not False),
-}
+def _optional(ctx: Ctx, fields: dict[str, Node], key: str, reader: Any, *args: Any) -> Any:
+    node = fields.get(key)
+    return None if node is None else reader(ctx, node, *args)
 
 
 def task_name(node: Node) -> str:
@@ -194,18 +174,32 @@ def parse_task(ctx: Ctx, node: Node, base_dir: Path) -> TaskSpec | None:
     fields = read_fields(ctx, node, TASK_KEYS, where, required=("name",))
     if fields is None:
         return None
-    for key in [k for k in fields if k in _UNSUPPORTED]:
-        ctx.error(fields[key], f"{where}: {_UNSUPPORTED[key]}")
+    for key in fields:
+        if f"task.{key}" in UNSUPPORTED:
+            ctx.error(fields[key], f"{where}: {UNSUPPORTED['task.' + key]}")
     _typed_fields(ctx, fields, where)
-    node_name = fields.get("name")
-    name = read_name(ctx, node_name, "task name") if node_name is not None else None
-    command = _command(ctx, fields, node, where)
-    values: dict[str, Any] = {}
-    for key, value in fields.items():
-        reader = _READERS.get(key)
-        if reader is not None:
-            values[reader[0]] = reader[1](ctx, value, where, base_dir)
-    return TaskSpec(name=name or "", command=command, pos=node.pos, **values)
+    name = _optional(ctx, fields, "name", read_name, "task name")
+    f = fields  # short alias: the constructor call below reads one field per line
+    return TaskSpec(
+        name=name or "",
+        image=_optional(ctx, f, "image", _image, where),
+        command=_command(ctx, f, node, where),
+        args=_optional(ctx, f, "args", read_str_list, f"'args' of {where}") or (),
+        environment=_optional(ctx, f, "environment", _str_map, "environment variable") or {},
+        files=_optional(ctx, f, "files", parse_files, base_dir, where) or (),
+        inputs=_optional(ctx, f, "inputs", parse_inputs, where) or (),
+        outputs=_optional(ctx, f, "outputs", parse_outputs, where) or (),
+        credentials=_optional(ctx, f, "credentials", _credentials, where) or {},
+        resource=_optional(ctx, f, "resource", read_str, f"'resource' of {where}")
+        or DEFAULT_RESOURCE,
+        lead=bool(_optional(ctx, f, "lead", read_bool, f"'lead' of {where}")),
+        exit_actions=_optional(ctx, f, "exitActions", _exit_actions, where) or (),
+        checkpoint=_optional(ctx, f, "checkpoint", parse_checkpoint, where) or (),
+        type=_optional(ctx, f, "type", read_str, f"'type' of {where}"),
+        params=_params(ctx, f.get("params"), where),
+        cache=_optional(ctx, f, "cache", read_bool, f"'cache' of {where}") is not False,
+        pos=node.pos,
+    )
 
 
 def _typed_fields(ctx: Ctx, fields: dict[str, Node], where: str) -> None:
@@ -217,7 +211,7 @@ def _typed_fields(ctx: Ctx, fields: dict[str, Node], where: str) -> None:
         ctx.error(fields["args"], f"{where} has 'args' and 'type'; a task type takes 'params'")
 
 
-def _params(ctx: Ctx, node: Node, where: str) -> dict[str, Any]:
-    if read_map(ctx, node, f"'params' of {where}") is None:
+def _params(ctx: Ctx, node: Node | None, where: str) -> dict[str, Any]:
+    if node is None or read_map(ctx, node, f"'params' of {where}") is None:
         return {}
     return to_plain(node) if isinstance(node, Map) else {}

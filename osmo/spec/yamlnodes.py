@@ -23,7 +23,7 @@ from yaml import nodes as ynodes
 from osmo.errors import Diagnostic
 from osmo.spec.model import Pos
 
-__all__ = ["Map", "Node", "Scalar", "Seq", "dump", "float_text", "load_nodes", "to_plain"]
+__all__ = ["Map", "Node", "Scalar", "Seq", "dump", "from_plain", "load_nodes", "to_plain"]
 
 # libyaml (C) is ~10x faster than the pure-Python parser; both keep positions.
 _LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
@@ -42,14 +42,14 @@ _NOT_BRACKET = re.compile(r"[^\[\]{}]+")
 _PAIR = re.compile(r"\[\]|\{\}")
 
 
-@dataclass(slots=True)
+@dataclass
 class Node:
     """A YAML node and where it starts."""
 
     pos: Pos
 
 
-@dataclass(slots=True)
+@dataclass
 class Scalar(Node):
     """A scalar: ``value`` is the resolved Python value, ``text`` the scalar's string form."""
 
@@ -57,14 +57,14 @@ class Scalar(Node):
     text: str = ""
 
 
-@dataclass(slots=True)
+@dataclass
 class Seq(Node):
     """A sequence of nodes."""
 
     items: list[Node] = field(default_factory=list)
 
 
-@dataclass(slots=True)
+@dataclass
 class Map(Node):
     """A mapping. Keys are scalars (compared by their text); merge keys (``<<``) are applied."""
 
@@ -315,11 +315,56 @@ def to_plain(node: Node) -> Any:
 
 
 _REPRESENTER = yaml.representer.SafeRepresenter()
+_LONE_SURROGATE = re.compile("[\ud800-\udfff]")
+_MAX_INT_BITS = 14_000  # ints longer than ~4,300 digits: the YAML path reports them
 
 
-def float_text(value: float) -> str:
-    """A float's text as :func:`dump` writes it (``.inf``, ``1.0e+20``...)."""
-    return str(_REPRESENTER.represent_float(value).value)
+class _NotPlain(Exception):
+    pass
+
+
+def from_plain(data: Any, file: str) -> Node | None:
+    """Plain data as a node tree, as :func:`load_nodes` would read :func:`dump`'s text of it.
+
+    The fast way to check a spec given as data (the SDK's, a stored one): no YAML text is
+    written or parsed. Values and scalar texts are those the YAML round trip gives (a float's
+    text is its YAML form, a bool's ``true``/``false``); every position is line 0 of ``file``.
+    None when the data holds anything the round trip would change or refuse (another type, a
+    lone surrogate, an integer longer than Python reads back, nesting deeper than
+    :data:`MAX_DEPTH`): the caller then takes the YAML way, which reports it.
+    """
+    pos = Pos(file, 0, 0)
+    try:
+        return _plain_node(data, pos, 0)
+    except _NotPlain:
+        return None
+
+
+def _plain_node(data: Any, pos: Pos, depth: int) -> Node:
+    if isinstance(data, dict | list):
+        if depth >= MAX_DEPTH:
+            raise _NotPlain
+        if isinstance(data, list):
+            return Seq(pos, [_plain_node(item, pos, depth + 1) for item in data])
+        return Map(pos, [(_plain_scalar(key, pos), _plain_node(value, pos, depth + 1))
+                         for key, value in data.items()])
+    return _plain_scalar(data, pos)
+
+
+def _plain_scalar(value: Any, pos: Pos) -> Scalar:
+    if isinstance(value, str):
+        if not value.isascii() and _LONE_SURROGATE.search(value):
+            raise _NotPlain
+        return Scalar(pos, value, value)
+    if value is None or isinstance(value, bool):
+        return Scalar(pos, value, "null" if value is None else "true" if value else "false")
+    if isinstance(value, int):
+        if value.bit_length() > _MAX_INT_BITS:
+            raise _NotPlain
+        return Scalar(pos, value, str(value))
+    if isinstance(value, float):
+        return Scalar(pos, value, _REPRESENTER.represent_float(value).value)
+    raise _NotPlain
 
 
 def dump(data: Any) -> str:
