@@ -13,7 +13,9 @@ network path (zenoh), not same-host hard links.
 - **output transfer:** one task writes a ``--size-mib`` file on a worker "on another host";
   the server fetches it (chunked, pipelined, verified). The rate is what the server logs
   for the fetch (bytes / seconds).
-- **fan-out:** 1 → ``--fanout`` → 1 no-op tasks over two remote workers with 2 cpus each.
+- **fan-out:** 1 → ``--fanout`` → 1 no-op tasks over two remote workers with 2 cpus each,
+  and in the same run (interleaved) the same fan-out on the server's own local pool with the
+  same 4 cpu slots; the ratio of the two is issue 16's row (target ≥ 80%).
 
 Usage: python bench/bench_remote.py [--runs 3] [--chain 300] [--fanout 1000]
        [--size-mib 1024] [--json out.json]
@@ -46,7 +48,7 @@ from osmo.config import free_port  # noqa: E402
 class Cluster:
     """A server and workers in their own processes under one temp folder."""
 
-    def __init__(self, root: Path, *, local_pool: bool = False) -> None:
+    def __init__(self, root: Path, *, local_pool: bool = False, cpus: int | None = None) -> None:
         self.root = root
         self.endpoint = f"tcp/127.0.0.1:{free_port(0)}"
         self.env = dict(os.environ, OSMO_HOME=str(root / "server"))
@@ -54,6 +56,8 @@ class Cluster:
         args = ["server", "start", "--listen", self.endpoint]
         if not local_pool:
             args.append("--no-local-pool")
+        if cpus is not None:
+            args += ["--cpus", str(cpus)]
         self.osmo(*args)
         self.workers: list[subprocess.Popen[bytes]] = []
 
@@ -120,10 +124,14 @@ def round_trips(home: Path, wf_id: str) -> list[float]:
 
 
 @contextlib.contextmanager
-def cluster(workers: int, *, local_pool: bool = False) -> Iterator[Cluster]:
-    """A fresh server with ``workers`` remote workers of 2 cpus each, torn down after."""
+def cluster(workers: int, *, local_pool: bool = False,
+            cpus: int | None = None) -> Iterator[Cluster]:
+    """A fresh server with ``workers`` remote workers of 2 cpus each, torn down after.
+
+    ``cpus``: the local pool's cpu slots (default: the cores).
+    """
     with tempfile.TemporaryDirectory(prefix="osmo-bench-remote-") as root:
-        c = Cluster(Path(root), local_pool=local_pool)
+        c = Cluster(Path(root), local_pool=local_pool, cpus=cpus)
         try:
             for i in range(workers):
                 c.worker(f"w{i + 1}", 2)
@@ -157,14 +165,21 @@ def transfer(runs: int, size_mib: int) -> list[float]:
     return rates
 
 
-def fanout(runs: int, n: int) -> list[float]:
-    rates = []
+def fanout(runs: int, n: int) -> tuple[list[float], list[float]]:
+    """Tasks/s of the fan-out per run: over 2 remote workers, and on the local pool.
+
+    Each run measures both, one after the other, so both see the same load; the local pool
+    gets the 4 cpu slots the two workers offer together.
+    """
+    remote, local = [], []
     for _ in range(runs):
-        with cluster(2) as c, c.client() as client:
-            t0 = time.perf_counter()
-            assert client.wait(client.submit(fan_out(n), no_cache=True)).ok
-            rates.append((n + 2) / (time.perf_counter() - t0))
-    return rates
+        for workers, out in ((2, remote), (0, local)):
+            with cluster(workers, local_pool=not workers,
+                         cpus=None if workers else 4) as c, c.client() as client:
+                t0 = time.perf_counter()
+                assert client.wait(client.submit(fan_out(n), no_cache=True)).ok
+                out.append((n + 2) / (time.perf_counter() - t0))
+    return remote, local
 
 
 def pct(values: list[float], q: float) -> float:
@@ -202,8 +217,16 @@ def main() -> None:
     rows.append(row(f"remote: output transfer ({args.size_mib} MiB, worker → server)", "MiB/s",
                     transfer(args.runs, args.size_mib), higher_is_better=True, target=300.0,
                     limit_of="limit: zenoh put throughput"))
+    over_two, on_pool = fanout(args.runs, args.fanout)
     rows.append(row(f"remote: fan-out/join {args.fanout} `true` tasks over 2 workers",
-                    "tasks/s", fanout(args.runs, args.fanout), higher_is_better=True))
+                    "tasks/s", over_two, higher_is_better=True,
+                    notes="2 remote workers × 2 cpus"))
+    rows.append(row(f"remote: fan-out/join {args.fanout} `true` tasks on the local pool",
+                    "tasks/s", on_pool, higher_is_better=True,
+                    notes="the server's own pool with --cpus 4, same runs (interleaved)"))
+    rows.append(row("remote: fan-out over 2 workers ÷ the same on the local pool", "%",
+                    [100 * r / lo for r, lo in zip(over_two, on_pool, strict=True)],
+                    higher_is_better=True, target=80.0, notes="per run, then the median"))
     write_rows(args.json, rows)
 
 

@@ -19,12 +19,14 @@ import math
 import shutil
 import tempfile
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from osmo.cli.render import console, print_json, safe
 from osmo.errors import NotFoundError, UsageError
 from osmo.sdk.client import Client
-from osmo.tasktypes.viewers import Viewer, find_viewer
+
+if TYPE_CHECKING:  # the registry reads entry points: imported when a viewer is asked for
+    from osmo.tasktypes.viewers import Viewer
 
 __all__ = ["add_parsers", "leaderboard_rows", "leaderboard_text", "run_eval", "run_view"]
 
@@ -197,6 +199,8 @@ def _convert(viewer: Viewer, path: Path, out: Path) -> Path:
 
 def run_view(args: argparse.Namespace) -> int:
     """``osmo view TARGET``."""
+    from osmo.tasktypes.viewers import find_viewer
+
     viewer = find_viewer(args.viewer)
     local = Path(args.target)
     with tempfile.TemporaryDirectory() as tmp:

@@ -58,9 +58,10 @@ def _names(ctx: Ctx, parsed: Parsed) -> dict[str, Where]:
     def claim(kind: str, name: str, pos: Pos) -> None:
         if not name:
             return
-        first = seen.get(_key(name))
+        key = _key(name)
+        first = seen.get(key)
         if first is None:
-            seen[_key(name)] = (kind, name, pos)
+            seen[key] = (kind, name, pos)
             return
         ctx.error(pos, f"duplicate name: {kind} '{name}' clashes with {first[0]} '{first[1]}' "
                        f"at line {first[2].line} (names are compared ignoring case, with '-' "
@@ -115,6 +116,24 @@ def _inputs(ctx: Ctx, parsed: Parsed, index: dict[str, Where]) -> dict[tuple[int
             else:
                 edges.setdefault((target[0], gi), pos)
     return edges
+
+
+def _acyclic(count: int, edges: dict[tuple[int, int], Pos]) -> bool:
+    """True if the groups form no cycle (Kahn's sort: cheaper than finding components)."""
+    waits = [0] * count
+    out: list[list[int]] = [[] for _ in range(count)]
+    for u, v in edges:
+        out[u].append(v)
+        waits[v] += 1
+    ready = [n for n in range(count) if not waits[n]]
+    done = 0
+    while ready:
+        done += 1
+        for v in out[ready.pop()]:
+            waits[v] -= 1
+            if not waits[v]:
+                ready.append(v)
+    return done == count
 
 
 def _components(count: int, edges: dict[tuple[int, int], Pos]) -> list[list[int]]:
@@ -182,6 +201,8 @@ def _cycle_path(start: int, members: set[int], edges: dict[tuple[int, int], Pos]
 
 def _cycles(ctx: Ctx, parsed: Parsed, edges: dict[tuple[int, int], Pos]) -> None:
     groups = parsed.spec.groups
+    if _acyclic(len(groups), edges):
+        return
     for component in _components(len(groups), edges):
         if len(component) < 2:
             continue
@@ -238,6 +259,8 @@ def _token_problem(token: str, task: TaskSpec, group: GroupSpec) -> str | None:
 def _tokens(ctx: Ctx, parsed: Parsed) -> None:
     for _, group, task, node in _tasks(parsed):
         for text, pos in _strings(task, node):
+            if "{{" not in text:  # most strings hold no token: skip the search
+                continue
             for token in dict.fromkeys(find_tokens(text)):
                 problem = _token_problem(token, task, group)
                 if problem:

@@ -352,12 +352,16 @@ class RemoteWorker:
         if not fetched:
             fetch_manifest(self.link, SERVER, manifest, self.store,
                            same_host=self._server_host, attachment=self._token_bytes)
+        self._held(manifest)
+        return f"{_INPUT}{manifest.digest}"
+
+    def _held(self, manifest: Manifest) -> None:
+        """Remember that this worker's store holds ``manifest``'s blobs (the newest kept)."""
         with self._lock:
             self._manifests[manifest.digest] = manifest
             self._manifests.move_to_end(manifest.digest)
             while len(self._manifests) > _KEEP_MANIFESTS:
                 self._manifests.popitem(last=False)
-        return f"{_INPUT}{manifest.digest}"
 
     def _manifest_of(self, ref: str) -> Manifest | None:
         with self._lock:
@@ -383,6 +387,10 @@ class RemoteWorker:
             if isinstance(event, AttemptExited):
                 self._unacked[aid] = data
         self._send(data)
+        if isinstance(event, AttemptExited) and event.manifest:
+            # its output was ingested here: a next task of a chain placed on this worker
+            # takes it as input with no fetch (and no thread hop to fetch nothing)
+            self._held(Manifest.from_json(event.manifest))
 
     def _send(self, data: dict[str, Any]) -> None:
         self._api.send("worker_report", {"id": self.id, "report": data})

@@ -37,6 +37,8 @@ EXPECTED = [
     "remote: what the remote hop adds to a task's round trip, p50",
     "remote: output transfer (8 MiB, worker → server)",
     "remote: fan-out/join 20 `true` tasks over 2 workers",
+    "remote: fan-out/join 20 `true` tasks on the local pool",
+    "remote: fan-out over 2 workers ÷ the same on the local pool",
     "limit: raw loopback TCP, 8 MiB, 1 stream",
     "port-forward (remote worker), 8 MiB, 1 stream",
     "port-forward (remote worker), 8 MiB, 20 streams",
