@@ -6,7 +6,8 @@ server uses on its own host — one runtime implementation. The wire protocol is
 ``osmo.transport.wire``.
 
 Data: an attempt's inputs are fetched by digest from the server's artifact store (only the
-blobs this worker lacks; hard links when both share a host and filesystem), and the pool
+blobs this worker lacks; hard links when both share a host and filesystem;
+``osmo.worker.held_inputs``), and the pool
 hands the attempt its own checked copy of them, as on the server (``transfer.copy_inputs``);
 its outputs are ingested into this worker's own store and
 pulled by the server, which acknowledges each exit report once every byte is safe with it.
@@ -32,7 +33,6 @@ are rescheduled without using a retry). Then it exits.
 
 from __future__ import annotations
 
-import collections
 import logging
 import os
 import socket
@@ -59,11 +59,12 @@ from osmo.scheduler.types import (
     RunAttempt,
 )
 from osmo.spec.model import ResourceSpec, TaskSpec, WorkflowSpec
-from osmo.transport.blobs import SERVER, BlobServer, SameHost, fetch_manifest, host_id
+from osmo.transport.blobs import SERVER, BlobServer, SameHost, host_id
 from osmo.transport.rpc import ApiClient
 from osmo.transport.wire import Hello, event_to_dict, prepare_from_dict, spec_from_wire
 from osmo.transport.zenoh_link import Link, Subscription
 from osmo.worker import containers
+from osmo.worker.held_inputs import HeldInputs
 from osmo.worker.options import WorkerOptions
 from osmo.worker.pool import LocalPool
 from osmo.worker.procs import kill_recorded
@@ -74,8 +75,6 @@ __all__ = ["RemoteWorker", "kill_leftovers", "procs_dir"]
 log = logging.getLogger("osmo.worker")
 
 _HEALTH_EVERY = 5.0
-_INPUT = "artifact:"  # an input reference of this worker: "artifact:<manifest digest>"
-_KEEP_MANIFESTS = 4096  # input manifests remembered (each was fetched whole)
 
 
 @dataclass
@@ -111,7 +110,7 @@ class RemoteWorker:
         self._specs: dict[str, WorkflowSpec] = {}
         self._url_creds: dict[str, dict[str, str]] = {}
         self._pending: dict[str, _Pending] = {}
-        self._manifests: collections.OrderedDict[str, Manifest] = collections.OrderedDict()
+        self._inputs = HeldInputs(self.link, self.store, self._token_bytes)
         self._active: set[str] = set()
         self._unacked: dict[str, dict[str, Any]] = {}
         self._handed_back: set[str] = set()
@@ -129,7 +128,7 @@ class RemoteWorker:
             cpus=options.cpus, gpus=options.gpus, memory=options.memory,
             kill_grace=options.kill_grace, artifacts=self.store,
             credential_for=self._url_creds.get, log_sink=self._send_log,
-            input_manifests=self._manifest_of, sandbox=options.sandbox,
+            input_manifests=self._inputs.manifest_of, sandbox=options.sandbox,
             sandbox_share=options.sandbox_share,
             procs_dir=procs_dir(self.home),
             containers=containers.for_node(options.runtime, options.container_engine, self.home))
@@ -291,8 +290,7 @@ class RemoteWorker:
             self._pending[cmd.attempt_id] = _Pending()
         manifests = {ref: Manifest.from_json(body)
                      for ref, body in (order.get("manifests") or {}).items()}
-        with self._lock:
-            fetched = all(m.digest in self._manifests for m in manifests.values())
+        fetched = all(self._inputs.holds(m) for m in manifests.values())
         if fetched and not order.get("secrets"):
             self._fetch_and_prepare(cmd, order, manifests)  # nothing to fetch: no thread hop
         else:
@@ -309,7 +307,8 @@ class RemoteWorker:
                 values = got.get("secrets") or {}
                 with self._lock:
                     self._url_creds.update(got.get("url_credentials") or {})
-            local = {ref: self._fetch_input(m) for ref, m in manifests.items()}
+            local = {ref: self._inputs.fetch(m, self._server_host)
+                     for ref, m in manifests.items()}
             cmd = replace(cmd, inputs={k: local.get(v, v) for k, v in cmd.inputs.items()})
         except Exception as exc:  # noqa: BLE001 - every prepare gets one final report
             with self._changed:
@@ -342,31 +341,6 @@ class RemoteWorker:
             raise OsmoError(f"no spec of workflow {cmd.workflow_id} was sent to this worker")
         return spec.task(cmd.task)
 
-    def _fetch_input(self, manifest: Manifest) -> str:
-        """Make this worker's store hold ``manifest``'s blobs.
-
-        Returns the reference the pool's ``input_manifests`` knows it by.
-        """
-        with self._lock:
-            fetched = manifest.digest in self._manifests
-        if not fetched:
-            fetch_manifest(self.link, SERVER, manifest, self.store,
-                           same_host=self._server_host, attachment=self._token_bytes)
-        self._held(manifest)
-        return f"{_INPUT}{manifest.digest}"
-
-    def _held(self, manifest: Manifest) -> None:
-        """Remember that this worker's store holds ``manifest``'s blobs (the newest kept)."""
-        with self._lock:
-            self._manifests[manifest.digest] = manifest
-            self._manifests.move_to_end(manifest.digest)
-            while len(self._manifests) > _KEEP_MANIFESTS:
-                self._manifests.popitem(last=False)
-
-    def _manifest_of(self, ref: str) -> Manifest | None:
-        with self._lock:
-            return self._manifests.get(ref[len(_INPUT):]) if ref.startswith(_INPUT) else None
-
     # ------------------------------------------------------------------ reports
 
     def _emit(self, event: Event) -> None:
@@ -390,7 +364,7 @@ class RemoteWorker:
         if isinstance(event, AttemptExited) and event.manifest:
             # its output was ingested here: a next task of a chain placed on this worker
             # takes it as input with no fetch (and no thread hop to fetch nothing)
-            self._held(Manifest.from_json(event.manifest))
+            self._inputs.hold(Manifest.from_json(event.manifest))
 
     def _send(self, data: dict[str, Any]) -> None:
         self._api.send("worker_report", {"id": self.id, "report": data})
