@@ -6,9 +6,8 @@ from osmo.runtime.process import (
     Runtime,
     StartError,
     exit_code_of,
-    kill_stale,
-    process_start_time,
 )
+from osmo.runtime.proctable import kill_stale, process_start_time
 
 __all__ = [
     "ProcessHandle",

@@ -23,8 +23,9 @@ What it owns:
   it, a folder it cannot make) is told from the command's own exit: bwrap reports the
   command's exit code on its status pipe (``--json-status-fd``) only when the command ran,
   and ``reap`` marks the handle ``setup_failed`` otherwise (the caller may start it again).
-- crash clean-up: ``kill_stale`` kills a process group left over by a crashed server, only if
-  the pid still belongs to the process that was started (its start time matches).
+- crash clean-up: ``osmo.runtime.proctable.kill_stale`` kills a process group left over by a
+  crashed server, only if the pid still belongs to the process that was started (its start
+  time matches); a handle's ``started_at`` is read on that module's clock.
 
 When the main process ends, whatever is left of its group is killed: like a container, an
 attempt ends when its main process does, and background children do not outlive it.
@@ -40,13 +41,13 @@ import os
 import shutil
 import signal
 import subprocess
-import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
 
 from osmo.errors import OsmoError
+from osmo.runtime.proctable import group_members, start_clock, stat_fields
 from osmo.runtime.sandbox import Sandbox, View
 
 __all__ = [
@@ -56,8 +57,6 @@ __all__ = [
     "StartError",
     "die_with_parent",
     "exit_code_of",
-    "kill_stale",
-    "process_start_time",
 ]
 
 
@@ -149,7 +148,7 @@ class ProcessRuntime:
             if self.sandbox.status:
                 status_r, status_w = _status_pipe(argv[0])
             command, preexec = self.sandbox.argv(argv, view, status_w), None  # dies with us
-        started_at = _start_clock()
+        started_at = start_clock()
         try:
             popen = subprocess.Popen(
                 command,
@@ -309,8 +308,8 @@ def _terminate_inside(pgid: int) -> None:
 
     bwrap's outer process is the group leader; its child is pid 1 of the sandbox.
     """
-    for pid in _group_members(pgid):
-        fields = _stat_fields(pid)
+    for pid in group_members(pgid):
+        fields = stat_fields(pid)
         if pid == pgid or fields is None or int(fields[1]) == pgid:
             continue
         try:
@@ -327,86 +326,3 @@ def _start_message(program: str, cwd: Path, exc: OSError) -> str:
     if isinstance(exc, PermissionError):
         return f"command not executable: '{program}' (permission denied)"
     return f"cannot start '{program}': {exc.strerror or exc}"
-
-
-# ---------------------------------------------------------------- crash clean-up
-
-
-def _stat_fields(pid: int) -> list[str] | None:
-    """Fields of ``/proc/<pid>/stat`` after the command name (field 3 onwards)."""
-    try:
-        with open(f"/proc/{pid}/stat", "rb") as f:
-            data = f.read().decode("ascii", "replace")
-    except OSError:
-        return None
-    return data[data.rfind(")") + 2 :].split()
-
-
-@functools.cache  # the boot time does not change while this process lives
-def _boot_time() -> float:
-    with open("/proc/stat") as f:
-        for line in f:
-            if line.startswith("btime "):
-                return float(line.split()[1])
-    return 0.0
-
-
-def _start_clock() -> float:
-    """Now, on the clock :func:`process_start_time` reads: boot time + time since boot.
-
-    A process's start time is its fork's ``CLOCK_BOOTTIME`` (in clock ticks, truncated), so
-    this read just before a spawn is within a tick or a scheduling delay of it.
-    """
-    return _boot_time() + time.clock_gettime(time.CLOCK_BOOTTIME)
-
-
-def process_start_time(pid: int) -> float | None:
-    """When process ``pid`` started, in seconds since the epoch (``None`` if it is gone).
-
-    Computed from ``/proc/<pid>/stat`` (clock ticks since boot) and the boot time, so the
-    same process always gives the same value; store it beside the pid to check later.
-    """
-    fields = _stat_fields(pid)
-    if fields is None:
-        return None
-    ticks = int(fields[19])  # field 22 of stat(5), counted from field 3
-    return _boot_time() + ticks / os.sysconf("SC_CLK_TCK")
-
-
-def _group_members(pgid: int) -> list[int]:
-    members = []
-    for name in os.listdir("/proc"):
-        if name.isdigit():
-            fields = _stat_fields(int(name))
-            if fields is not None and int(fields[2]) == pgid:
-                members.append(int(name))
-    return members
-
-
-def kill_stale(pid: int, started_at: float, *, tolerance: float = 0.5) -> bool:
-    """Kill the process group a crashed server left behind, if it is still the same one.
-
-    The group is killed (SIGKILL) only when process ``pid`` is still running with the start
-    time recorded (``started_at``, from ``process_start_time``) and leads its group; or,
-    when ``pid`` itself is gone, when every remaining member of group ``pid`` started after
-    ``started_at`` (a group id stays reserved while members live, so those are its
-    leftovers). Never kills by name.
-
-    Returns:
-        True if a group was signalled.
-    """
-    now_start = process_start_time(pid)
-    if now_start is not None:
-        fields = _stat_fields(pid)
-        if abs(now_start - started_at) > tolerance or fields is None or int(fields[2]) != pid:
-            return False
-    else:
-        members = _group_members(pid)
-        starts = [process_start_time(m) for m in members]
-        if not members or any(s is None or s < started_at - tolerance for s in starts):
-            return False
-    try:
-        os.killpg(pid, signal.SIGKILL)
-    except (ProcessLookupError, PermissionError):
-        return False
-    return True

@@ -60,13 +60,8 @@ from osmo.errors import UsageError
 from osmo.layout import Home
 from osmo.runtime.container import ContainerEngine
 from osmo.runtime.container_runtime import ContainerRuntime
-from osmo.runtime.process import (
-    ProcessHandle,
-    ProcessRuntime,
-    Runtime,
-    kill_stale,
-    process_start_time,
-)
+from osmo.runtime.process import ProcessHandle, ProcessRuntime, Runtime
+from osmo.runtime.proctable import kill_stale, process_start_time
 from osmo.runtime.sandbox import SandboxMode, choose, unavailable_reason
 from osmo.scheduler.types import (
     LOCAL_NODE,

@@ -4,7 +4,7 @@ A task dies with its worker (``osmo.runtime.process``: bwrap's ``--die-with-pare
 parent-death signal). What may still be left after a crash — an unsandboxed command's
 children, a process that escaped its parent's death — is found through this record: one
 file per running command, ``<folder>/<pid>``, holding the process's start time (so a pid
-reused by an unrelated process is never killed; ``osmo.runtime.process.kill_stale``). The
+reused by an unrelated process is never killed; ``osmo.runtime.proctable.kill_stale``). The
 file is written when the command starts and removed once it has been reaped.
 
 The server's local pool does not need it: the server records each attempt's pid and start
@@ -17,7 +17,7 @@ import logging
 import os
 from pathlib import Path
 
-from osmo.runtime.process import kill_stale, process_start_time
+from osmo.runtime.proctable import kill_stale, process_start_time
 
 __all__ = ["ProcessRecords", "kill_recorded"]
 

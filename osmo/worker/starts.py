@@ -22,7 +22,8 @@ from pathlib import Path
 
 from osmo.errors import OsmoError
 from osmo.layout import AttemptDirs, Home
-from osmo.runtime.process import ProcessHandle, StartError, process_start_time
+from osmo.runtime.process import ProcessHandle, StartError
+from osmo.runtime.proctable import process_start_time
 from osmo.runtime.sandbox import Sandbox
 from osmo.scheduler.types import (
     AttemptPrepared,
