@@ -275,10 +275,17 @@ def _has_process(arg: str) -> bool:
     return False
 
 
+def _interactive_signals() -> None:
+    """In the child: SIGINT as a terminal gives it (a runner that started the suite as a
+    background job, ``cmd &`` in a script, passes SIGINT down ignored, and Python keeps it)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _forward(osmo: Osmo, wf: str, *args: str) -> subprocess.Popen[str]:
     proc = subprocess.Popen([sys.executable, "-m", "osmo", "workflow", "port-forward", wf, "t",
                              *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            env=osmo.env, cwd=REPO, start_new_session=True)
+                            env=osmo.env, cwd=REPO, start_new_session=True,
+                            preexec_fn=_interactive_signals)
     assert proc.stdout is not None
     line = proc.stdout.readline()
     assert line.startswith("Forwarding from"), (line, proc.stderr and proc.stderr.read())
