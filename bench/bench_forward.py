@@ -150,18 +150,9 @@ def measure(port: int, args: argparse.Namespace) -> dict[str, list[float]]:
     return out
 
 
-def raw(args: argparse.Namespace) -> dict[str, list[float]]:
-    port = free_port(0)
-    proc = subprocess.Popen([sys.executable, "-c", SERVER, str(port)])
-    try:
-        return measure(port, args)
-    finally:
-        proc.kill()
-        proc.wait()
-
-
-def relayed(args: argparse.Namespace, hops: int = 3) -> dict[str, list[float]]:
-    """The raw task reached through ``hops`` bare copy relays (no osmo, no authentication)."""
+def relayed(args: argparse.Namespace, hops: int) -> dict[str, list[float]]:
+    """The task as a plain process, reached through ``hops`` bare copy relays (0: raw TCP;
+    no osmo, no authentication)."""
     port = free_port(0)
     procs = [subprocess.Popen([sys.executable, "-c", SERVER, str(port)])]
     try:
@@ -224,7 +215,7 @@ def main() -> None:
     if quick():
         args.runs, args.size_mib, args.pings = 1, 8, 50
     print(machine_info(), flush=True)
-    limit, bare, fwd = raw(args), relayed(args), forwarded(args)
+    limit, bare, fwd = relayed(args, 0), relayed(args, 3), forwarded(args)
     one, many = f"{args.size_mib} MiB, 1 stream", f"{args.size_mib} MiB, {args.streams} streams"
     rows = [
         row(f"limit: raw loopback TCP, {one}", "MiB/s", limit["one"], higher_is_better=True),
