@@ -130,19 +130,31 @@ def _depth_problem(text: str, file: str) -> Diagnostic | None:
     """
     if _surely_shallow(text):
         return None
-    depth = 0
     try:
-        for event in yaml.parse(text, Loader=_LOADER):
-            if isinstance(event, yaml.CollectionStartEvent):
-                depth += 1
-                if depth > MAX_DEPTH:
-                    mark = event.start_mark
-                    line, col = (mark.line + 1, mark.column + 1) if mark else (0, 0)
-                    return Diagnostic(file, line, col, _depth_message())
-            elif isinstance(event, yaml.CollectionEndEvent):
-                depth -= 1
+        return _first_too_deep(text, file, _LOADER)
+    except yaml.YAMLError:
+        pass
+    if _LOADER is yaml.SafeLoader:
+        return None  # composing reports it, with its position
+    # libyaml (PyYAML >= 6.0.4) refuses flow nesting past its own limit while its scanner reads
+    # ahead of the events, before they reach ours; the pure-Python parser has no such limit
+    try:
+        return _first_too_deep(text, file, yaml.SafeLoader)
     except yaml.YAMLError:
         return None  # composing reports it, with its position
+
+
+def _first_too_deep(text: str, file: str, loader: Any) -> Diagnostic | None:
+    depth = 0
+    for event in yaml.parse(text, Loader=loader):
+        if isinstance(event, yaml.CollectionStartEvent):
+            depth += 1
+            if depth > MAX_DEPTH:
+                mark = event.start_mark
+                line, col = (mark.line + 1, mark.column + 1) if mark else (0, 0)
+                return Diagnostic(file, line, col, _depth_message())
+        elif isinstance(event, yaml.CollectionEndEvent):
+            depth -= 1
     return None
 
 
