@@ -88,6 +88,7 @@ class TrialResult:
     partial: list[str] = field(default_factory=list)  # a task saw a wrong input
     leftover_tasks: list[int] = field(default_factory=list)
     leftover_other: list[int] = field(default_factory=list)  # servers, workers
+    leftover_detail: list[str] = field(default_factory=list)  # what each leftover was
     seconds: float = 0.0
 
     def problems(self, *, task_leftovers: bool = True, quarantine: bool = False) -> list[str]:
@@ -298,8 +299,21 @@ class Trial:
                 continue
             is_task = str(self.shared).encode() in cmdline
             (self.result.leftover_tasks if is_task else self.result.leftover_other).append(pid)
+            self.result.leftover_detail.append(_describe(pid, cmdline))
             with contextlib.suppress(ProcessLookupError):
                 os.kill(pid, signal.SIGKILL)
+
+
+def _describe(pid: int, cmdline: bytes) -> str:
+    """A leftover process, for the failure message: its state, parent, age and command."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        state, ppid, start = fields[0], fields[1], int(fields[19]) / os.sysconf("SC_CLK_TCK")
+        age = float(Path("/proc/uptime").read_text().split()[0]) - start
+    except (OSError, IndexError, ValueError):
+        return f"{pid}: gone"
+    words = [w.decode(errors="replace")[-60:] for w in cmdline.split(b"\0") if w]
+    return f"{pid}: state {state}, parent {ppid}, age {age:.2f} s: {' '.join(words)[:600]}"
 
 
 def _pids() -> list[int]:
