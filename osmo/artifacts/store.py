@@ -337,6 +337,14 @@ class ArtifactStore(HandOut):
                     tmp.unlink(missing_ok=True)
         return count, freed
 
+    def size(self) -> int:
+        """Bytes the blobs take (a blob shared with an output file counts once)."""
+        total = 0
+        for blob in files(self._blobs, depth=2):
+            with contextlib.suppress(FileNotFoundError):  # removed by a gc meanwhile
+                total += blob.stat().st_size
+        return total
+
     @contextmanager
     def _lock(self, *, exclusive: bool) -> Iterator[None]:
         """Hold the store lock: shared for ingest, exclusive for gc (one fd per call)."""

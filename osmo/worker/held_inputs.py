@@ -60,6 +60,17 @@ class HeldInputs:
             while len(self._manifests) > self._keep:
                 self._manifests.popitem(last=False)
 
+    def snapshot(self) -> list[Manifest]:
+        """The manifests remembered, oldest first."""
+        with self._lock:
+            return list(self._manifests.values())
+
+    def forget(self, digests: list[str]) -> None:
+        """Stop remembering these manifests (their blobs may be removed next)."""
+        with self._lock:
+            for digest in digests:
+                self._manifests.pop(digest, None)
+
     def manifest_of(self, ref: str) -> Manifest | None:
         """The manifest behind a reference :meth:`fetch` returned (None if not one)."""
         if not ref.startswith(_REF):

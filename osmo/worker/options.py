@@ -69,6 +69,8 @@ class WorkerOptions:
         sandbox_share: host folders every sandboxed task may write (``--sandbox-share``).
         runtime: how it runs image tasks: ``auto``, ``container`` or ``process``.
         container_engine: ``podman`` or ``docker`` (default: the first that answers).
+        store_limit: bytes its artifact store may hold before cached blobs are removed
+            (``osmo.worker.store_keeper``; None: a quarter of its filesystem; 0: no limit).
     """
 
     connect: tuple[str, ...]
@@ -89,6 +91,7 @@ class WorkerOptions:
     sandbox_share: tuple[str, ...] = ()
     runtime: str = "auto"
     container_engine: str | None = None
+    store_limit: int | None = None
 
     @staticmethod
     def add_arguments(w: argparse.ArgumentParser) -> None:
@@ -114,6 +117,11 @@ class WorkerOptions:
         w.add_argument("--drain-timeout", type=float, default=d.drain_timeout,
                        metavar="SECONDS", help="on SIGTERM, how long running tasks may finish "
                                                f"before being handed back ({d.drain_timeout:g})")
+        w.add_argument("--store-limit", metavar="SIZE",
+                       help="how much its artifact store may hold before cached outputs and "
+                            "inputs are removed, oldest first, e.g. 50Gi; 0: no limit "
+                            "(default: a quarter of its disk). Outputs the server has not "
+                            "taken yet are never removed")
         add_runtime_arguments(w)
 
     @classmethod
@@ -130,13 +138,18 @@ class WorkerOptions:
                       parse_size(args.memory) if args.memory else None)
         except ValueError as exc:
             raise UsageError(f"--memory {args.memory!r}: {exc} (e.g. 8Gi, 512Mi)") from None
+        try:
+            store_limit = None if args.store_limit is None else parse_size(args.store_limit)
+        except ValueError as exc:
+            raise UsageError(f"--store-limit {args.store_limit!r}: {exc} (e.g. 50Gi, 0 for "
+                             "no limit)") from None
         return cls(connect=tuple(args.connect), pool=args.pool, name=args.name,
                    platform=args.platform, cpus=args.cpus, gpus=args.gpus, memory=memory,
                    labels=_labels(args.label), cluster=args.cluster,
                    zenoh_config=args.zenoh_config, drain_timeout=args.drain_timeout,
                    token=_token(args.token, args.token_file), sandbox=args.sandbox,
                    sandbox_share=shares(args.sandbox_share), runtime=args.runtime,
-                   container_engine=args.container_engine)
+                   container_engine=args.container_engine, store_limit=store_limit)
 
 
 def shares(folders: list[str] | None) -> tuple[str, ...]:
@@ -166,3 +179,4 @@ def _labels(items: list[str]) -> dict[str, str]:
             raise UsageError(f"--label {item!r}: write KEY=VALUE")
         out[key] = value
     return out
+

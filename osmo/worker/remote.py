@@ -69,6 +69,7 @@ from osmo.worker.options import WorkerOptions
 from osmo.worker.pool import LocalPool
 from osmo.worker.procs import kill_recorded
 from osmo.worker.sessions import NodeSessions
+from osmo.worker.store_keeper import StoreKeeper, clear_runs, default_limit
 
 __all__ = ["RemoteWorker", "kill_leftovers", "procs_dir"]
 
@@ -112,7 +113,9 @@ class RemoteWorker:
         self._pending: dict[str, _Pending] = {}
         self._inputs = HeldInputs(self.link, self.store, self._token_bytes)
         self._active: set[str] = set()
+        self._inputs_of: dict[str, list[Manifest]] = {}  # of attempts not ended yet
         self._unacked: dict[str, dict[str, Any]] = {}
+        self._unacked_outputs: dict[str, Manifest] = {}  # only here until acknowledged
         self._handed_back: set[str] = set()
         self._server_host: SameHost | None = None
         self._draining = False
@@ -123,6 +126,10 @@ class RemoteWorker:
         self._io = ThreadPoolExecutor(4, thread_name_prefix="osmo-inputs")
         self._token: Subscription | None = None
         kill_leftovers(self.home)
+        clear_runs(self._layout, self._io)  # a previous life's attempts were all rescheduled
+        limit = default_limit(self.home) if options.store_limit is None else options.store_limit
+        self._keeper = StoreKeeper(self.home, self.store, self._inputs, limit,
+                                   self._protected, self._io)
         self.pool = LocalPool(
             home=self.home, emit=self._emit, node_id=self.id, pool=options.pool,
             cpus=options.cpus, gpus=options.gpus, memory=options.memory,
@@ -279,8 +286,11 @@ class RemoteWorker:
             self.sessions.order(order)
         elif op == "ack":
             with self._changed:
-                self._unacked.pop(aid, None)
+                acked = self._unacked.pop(aid, None) is not None
+                self._unacked_outputs.pop(aid, None)
                 self._changed.notify_all()
+            if acked:
+                self._keeper.acknowledged(aid)
 
     def _prepare(self, order: dict[str, Any]) -> None:
         cmd = prepare_from_dict(order["cmd"])
@@ -290,7 +300,10 @@ class RemoteWorker:
             self._pending[cmd.attempt_id] = _Pending()
         manifests = {ref: Manifest.from_json(body)
                      for ref, body in (order.get("manifests") or {}).items()}
-        fetched = all(self._inputs.holds(m) for m in manifests.values())
+        with self._keeper.gate:  # protected before it is checked: no collection between
+            with self._lock:
+                self._inputs_of[cmd.attempt_id] = list(manifests.values())
+            fetched = all(self._inputs.holds(m) for m in manifests.values())
         if fetched and not order.get("secrets"):
             self._fetch_and_prepare(cmd, order, manifests)  # nothing to fetch: no thread hop
         else:
@@ -307,12 +320,16 @@ class RemoteWorker:
                 values = got.get("secrets") or {}
                 with self._lock:
                     self._url_creds.update(got.get("url_credentials") or {})
+            new = [m for m in manifests.values() if not self._inputs.holds(m)]
             local = {ref: self._inputs.fetch(m, self._server_host)
                      for ref, m in manifests.items()}
+            for manifest in new:
+                self._keeper.added(manifest)
             cmd = replace(cmd, inputs={k: local.get(v, v) for k, v in cmd.inputs.items()})
         except Exception as exc:  # noqa: BLE001 - every prepare gets one final report
             with self._changed:
                 self._pending.pop(cmd.attempt_id, None)
+                self._inputs_of.pop(cmd.attempt_id, None)
                 self._changed.notify_all()
             self._send(event_to_dict(AttemptLost(  # rescheduled: maybe another worker can
                 cmd.attempt_id, f"inputs could not be fetched to worker {self.id}: {exc}")))
@@ -352,19 +369,31 @@ class RemoteWorker:
             final = isinstance(event, (AttemptExited, AttemptStartFailed, AttemptLost))
             if final:
                 self._active.discard(aid)
+                self._inputs_of.pop(aid, None)
                 self._changed.notify_all()
             if aid in self._handed_back:
                 if final:
                     self._handed_back.discard(aid)
                 return
             data = event_to_dict(event)
+            output = (Manifest.from_json(event.manifest)
+                      if isinstance(event, AttemptExited) and event.manifest else None)
             if isinstance(event, AttemptExited):
                 self._unacked[aid] = data
+                if output is not None:
+                    self._unacked_outputs[aid] = output
         self._send(data)
-        if isinstance(event, AttemptExited) and event.manifest:
+        if output is not None:
             # its output was ingested here: a next task of a chain placed on this worker
             # takes it as input with no fetch (and no thread hop to fetch nothing)
-            self._inputs.hold(Manifest.from_json(event.manifest))
+            self._inputs.hold(output)
+            self._keeper.added(output)
+
+    def _protected(self) -> list[Manifest]:
+        """What the store must keep: outputs not acknowledged, inputs of live attempts."""
+        with self._lock:
+            return [*self._unacked_outputs.values(),
+                    *(m for ms in self._inputs_of.values() for m in ms)]
 
     def _send(self, data: dict[str, Any]) -> None:
         self._api.send("worker_report", {"id": self.id, "report": data})
