@@ -317,3 +317,14 @@ def test_numeric_quantities_become_plain_numbers() -> None:
                          "resources": {"limits": {"cpu": 0.5, "memory": 8589934592, "nvidia.com/gpu": 8}}}]}
     args = container(workers(values)["p"], "worker")["args"]
     assert (flag(args, "--cpus"), flag(args, "--memory"), flag(args, "--gpus")) == (["0.5"], ["8589934592"], ["8"])
+
+
+@pytest.mark.parametrize(("worker", "expected"), [
+    ({}, []),                                            # the worker's own default
+    ({"workdirSizeLimit": "100Gi"}, [str(50 << 30)]),    # half the emptyDir's limit
+    ({"workdirSizeLimit": "10G"}, [str(5 * 10**9)]),
+    ({"workdirSizeLimit": "100Gi", "storeLimit": "20Gi"}, ["20Gi"]),
+])
+def test_the_worker_store_limit_stays_below_the_scratch_limit(worker: dict, expected: list) -> None:
+    args = container(workers({**TWO_POOLS, "worker": worker})["cpu"], "worker")["args"]
+    assert flag(args, "--store-limit") == expected

@@ -292,3 +292,22 @@ auth.user and auth.serverUser, so "auth.user" is every peer but the server. */}}
 {{- $policies := list (dict "id" "osmo-server-only" "subjects" (list "osmo-not-the-server") "rules" $ids) -}}
 {{- dict "enabled" true "default_permission" "allow" "rules" $rules "subjects" $subjects "policies" $policies | toJson -}}
 {{- end -}}
+
+{{/*
+The worker's --store-limit: worker.storeLimit, else half of worker.workdirSizeLimit (the kubelet
+evicts a pod whose emptyDir passes its limit, so the store must stay well below it), else none
+(the worker's own default: a quarter of its disk).
+*/}}
+{{- define "osmo.workerStoreLimit" -}}
+{{- $w := .Values.worker -}}
+{{- if $w.storeLimit -}}
+{{- $w.storeLimit -}}
+{{- else if $w.workdirSizeLimit -}}
+{{- $n := regexFind "^[0-9]+$" (regexReplaceAll "[A-Za-z]+$" $w.workdirSizeLimit "") -}}
+{{- $unit := regexFind "[A-Za-z]+$" $w.workdirSizeLimit -}}
+{{- $factor := get (dict "" 1 "k" 1000 "M" 1000000 "G" 1000000000 "T" 1000000000000 "Ki" 1024 "Mi" 1048576 "Gi" 1073741824 "Ti" 1099511627776) $unit -}}
+{{- if and $n $factor -}}
+{{- div (mul (atoi $n) $factor) 2 -}}
+{{- end -}}
+{{- end -}}
+{{- end }}
