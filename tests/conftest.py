@@ -142,9 +142,9 @@ class Osmo:
                                  f"stdout:\n{result.out}\nstderr:\n{result.err}")
         return result
 
-    def submit(self, spec: Path | str, *args: str) -> str:
+    def submit(self, spec: Path | str, *args: str, timeout: float = 180) -> str:
         """Submit and return the workflow id (asserts success)."""
-        r = self("submit", str(spec), *args, check=True)
+        r = self("submit", str(spec), *args, check=True, timeout=timeout)
         line = [ln for ln in r.out.splitlines() if ln.startswith("Workflow ID - ")][0]
         return line.split(" - ", 1)[1].strip()
 

@@ -18,6 +18,9 @@ from tests.conftest import REPO, Osmo
 pytest.importorskip("gymnasium")
 pytest.importorskip("rerun")
 
+#: a tiny pipeline takes about a minute alone; ample room for a loaded machine, never a hang
+WAIT = 480
+
 PENDULUMS = ("InvertedPendulum-v5", "InvertedDoublePendulum-v5")
 
 # 100 training steps on 200 frames is the least that reliably balances the pole for 50 steps
@@ -32,7 +35,7 @@ def _by_policy(rows: list[dict[str, Any]], env: str) -> dict[str, dict[str, Any]
 
 def test_pendulum_bc_tiny(shared_osmo: Osmo, tmp_path: Path) -> None:
     pytest.importorskip("lerobot")
-    wf = shared_osmo.submit(REPO / "workflows/pendulum-bc.yaml", "--wait", *TINY)
+    wf = shared_osmo.submit(REPO / "workflows/pendulum-bc.yaml", "--wait", *TINY, timeout=WAIT)
     info = shared_osmo.query(wf)
     assert info["status"] == "COMPLETED", shared_osmo("logs", wf).out
     assert {t["name"] for t in info["tasks"]} == {
@@ -87,7 +90,7 @@ def _check_shard(osmo: Osmo, wf: str, tmp: Path) -> None:
 
 def test_arena_eval_tiny(shared_osmo: Osmo) -> None:
     wf = shared_osmo.submit(REPO / "workflows/arena-eval.yaml", "--wait", "--set", "episodes=2",
-                            "--set", "max_steps=30")
+                            "--set", "max_steps=30", timeout=WAIT)
     assert shared_osmo.query(wf)["status"] == "COMPLETED", shared_osmo("logs", wf).out
     rows = shared_osmo("eval", "report", wf, "--format", "json", check=True).json()
     pairs = {(r["policy"], r["env"]) for r in rows}
@@ -113,7 +116,7 @@ def test_reach_vision_tiny(shared_osmo: Osmo, tmp_path: Path) -> None:
     pytest.importorskip("lerobot")
     wf = shared_osmo.submit(REPO / "workflows/reach-vision.yaml", "--wait", "--set", "shards=2",
                             "--set", "episodes=2", "--set", "steps=20",
-                            "--set", "eval_episodes=2")
+                            "--set", "eval_episodes=2", timeout=WAIT)
     assert shared_osmo.query(wf)["status"] == "COMPLETED", shared_osmo("logs", wf).out
     rows = shared_osmo("eval", "report", wf, "--format", "json", check=True).json()
     got = _by_policy(rows, "osmo/ReachVision-v1")
@@ -145,10 +148,10 @@ SWEEP = ["--set", "lrs=0.003,0.001", "--set", "episodes=2", "--set", "max_steps=
 def test_sweep_reruns_only_evaluation_when_only_evaluation_changes(shared_osmo: Osmo) -> None:
     pytest.importorskip("lerobot")
     spec = REPO / "workflows/sweep.yaml"
-    first = shared_osmo.submit(spec, "--wait", *SWEEP, "--set", "eval_episodes=2")
+    first = shared_osmo.submit(spec, "--wait", *SWEEP, "--set", "eval_episodes=2", timeout=WAIT)
     assert shared_osmo.query(first)["status"] == "COMPLETED", shared_osmo("logs", first).out
     trains = {"train-lr0-s0", "train-lr1-s0"}
-    second = shared_osmo.submit(spec, "--wait", *SWEEP, "--set", "eval_episodes=3")
+    second = shared_osmo.submit(spec, "--wait", *SWEEP, "--set", "eval_episodes=3", timeout=WAIT)
     tasks = {t["name"]: t for t in shared_osmo.query(second)["tasks"]}
     assert set(tasks) == {"rollout-0", "rollout-1", "dataset", "eval"} | trains
     for name, task in tasks.items():  # only the evaluation ran again
