@@ -13,7 +13,10 @@ A sandboxed command sees (``Sandbox.argv``, from an attempt's :class:`View`):
   its ``work/``, ``output.partial/`` and ``files/`` writable, its inputs read-only;
 - its own **pid namespace** with its own ``/proc``: other tasks' processes, and their
   ``/proc/<pid>/environ``, do not exist for it;
-- the host's network (tasks reach each other through ``{{host:NAME}}``), user and ipc.
+- the host's network (tasks reach each other through ``{{host:NAME}}``), user and ipc;
+- **no capabilities**, under a root worker too (``--cap-drop ALL``; bwrap run by root keeps
+  root's otherwise, and a task could unmount the tmpfs that hides osmo's home or remount the
+  host writable); bwrap sets ``no_new_privs``, so no exec (a setuid file) gives them back.
 
 ``--die-with-parent``: the sandbox is SIGKILLed when the process that started it (the pool
 thread that spawned it) ends, so no task outlives its worker or server. Everything in the
@@ -115,7 +118,7 @@ class Sandbox:
         out = [self.bwrap]
         if status_fd >= 0:
             out += ["--json-status-fd", str(status_fd)]
-        out += ["--ro-bind", "/", "/", "--dev", "/dev"]
+        out += ["--cap-drop", "ALL", "--ro-bind", "/", "/", "--dev", "/dev"]
         for device in self.devices:
             out += ["--dev-bind-try", device, device]
         out += ["--proc", "/proc", "--tmpfs", "/tmp", "--unshare-pid", "--die-with-parent"]
@@ -220,7 +223,7 @@ def _probe_result() -> tuple[Sandbox | None, str]:
     if bwrap is None:
         return None, (f"bubblewrap is not installed (install the '{_PACKAGE}' package, "
                       "e.g. apt-get install bubblewrap)")
-    probe = [bwrap, "--ro-bind", "/", "/", "--dev", "/dev", "--proc", "/proc",
+    probe = [bwrap, "--cap-drop", "ALL", "--ro-bind", "/", "/", "--dev", "/dev", "--proc", "/proc",
              "--unshare-pid", "--die-with-parent", "--", "true"]
     try:
         done = subprocess.run(probe, stdin=subprocess.DEVNULL, capture_output=True,

@@ -239,3 +239,19 @@ def test_a_home_reached_through_a_symlink_is_hidden_at_its_real_path(
     assert out.split() == [os.path.realpath(home / "a" / "work"), "no-db", "wrote-output",
                            "ro-folder"], out
     assert (home / "a" / "output.partial" / "o").read_text() == "x\n"
+
+
+def test_a_task_cannot_undo_its_mounts(box: Sandbox, home: Path) -> None:
+    """Whatever uid the worker runs as (root too), a task holds no capability to unmount the
+    tmpfs that hides osmo's home, remount the host writable, or mount anything of its own."""
+    code, out = run(box, home, f"""
+        umount {home} 2>/dev/null; umount -l {home} 2>/dev/null
+        cat {home}/state.db 2>/dev/null || echo no-db
+        mount -o remount,rw / 2>/dev/null; touch /usr/osmo-evil-{os.getpid()} 2>/dev/null \
+            || echo ro-host
+        mount -t tmpfs none {home}/a/work 2>/dev/null || echo no-mount
+        grep '^CapEff' /proc/self/status""")
+    assert code == 0, out
+    assert out.split()[:3] == ["no-db", "ro-host", "no-mount"], out
+    assert out.split()[-1] == "0000000000000000", out
+    assert not os.path.exists(f"/usr/osmo-evil-{os.getpid()}")
