@@ -119,3 +119,31 @@ def test_task_sees_neither_the_hosts_tmp_nor_another_tasks(osmo: Osmo, tmp_path:
         assert not Path(f"/tmp/leak-{ident}").exists(), "a task wrote into the host's /tmp"
     finally:
         planted.rmdir()
+
+
+UNDO = """
+workflow:
+  name: undo
+  tasks:
+  - name: escape
+    command: [sh, -c, 'umount @HOME@ 2>/dev/null; umount -l @HOME@ 2>/dev/null;
+      if [ -e @HOME@/state.db ]; then echo db-seen; else echo no-db; fi > {{output}}/seen;
+      mount -o remount,rw / 2>/dev/null;
+      if touch @EVIL@ 2>/dev/null; then echo wrote-host; else echo ro-host; fi >> {{output}}/seen;
+      grep "^CapEff" /proc/self/status >> {{output}}/seen']
+"""
+
+
+def test_a_task_cannot_unmount_what_hides_the_control_plane(osmo: Osmo, tmp_path: Path) -> None:
+    """A task of a server run as root tries to undo its sandbox: unmount the tmpfs hiding
+    osmo's home (the state store, every token) and remount the host writable."""
+    evil = Path(f"/usr/osmo-evil-{tmp_path.name}-{os.getpid()}")
+    spec = UNDO.replace("@HOME@", str(osmo.home.absolute())).replace("@EVIL@", str(evil))
+    try:
+        out = _done(osmo, write(tmp_path / "undo.yaml", spec))
+        seen = (out["escape"] / "seen").read_text().split()
+        assert seen[:2] == ["no-db", "ro-host"], seen
+        assert seen[-1] == "0000000000000000", seen  # CapEff: no capability at all
+        assert not evil.exists(), "a task wrote to the host's /usr"
+    finally:
+        evil.unlink(missing_ok=True)
