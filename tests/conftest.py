@@ -46,7 +46,7 @@ ALLOWED_SKIPS: tuple[AllowedSkip, ...] = (
     # Reproducing bubblewrap's setup race makes and removes mounts (tests/runtime/churn.py),
     # which only root can; the rest of the sandbox's tests run as any user.
     *(AllowedSkip(test, r"needs root", when=os.geteuid() != 0) for test in (
-        "tests/runtime/test_sandbox.py::test_a_sandbox_that_cannot_be_set_up",
+        "tests/runtime/test_sandbox.py::test_a_sandbox_that_cannot_be_set_up",  # both tests
         "tests/worker/test_pool_sandbox.py::test_a_setup_that_fails_for_a_moment",
         "tests/e2e/test_sandbox_setup.py")),
 )

@@ -53,7 +53,8 @@ import os
 import shutil
 import subprocess
 import sys
-from collections.abc import Sequence
+import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -68,6 +69,7 @@ MODES: tuple[SandboxMode, ...] = ("auto", "on", "off")
 
 _PACKAGE = "bubblewrap"
 _PROBE_TIMEOUT = 10.0
+_PROBE_TRIES = 8  # 5 ms doubling: 0.6 s in all, as a task's start (osmo.worker.starts)
 _GPU_DEVICES = ("/dev/nvidia*", "/dev/dri")
 
 
@@ -225,9 +227,16 @@ def _probe_result() -> tuple[Sandbox | None, str]:
                       "e.g. apt-get install bubblewrap)")
     probe = [bwrap, "--cap-drop", "ALL", "--ro-bind", "/", "/", "--dev", "/dev", "--proc", "/proc",
              "--unshare-pid", "--die-with-parent", "--", "true"]
+    runs: list[subprocess.CompletedProcess[bytes]] = []
+
+    def once() -> bool:
+        runs.append(subprocess.run(probe, stdin=subprocess.DEVNULL, capture_output=True,
+                                   timeout=_PROBE_TIMEOUT, check=False))
+        return runs[-1].returncode == 0
+
     try:
-        done = subprocess.run(probe, stdin=subprocess.DEVNULL, capture_output=True,
-                              timeout=_PROBE_TIMEOUT, check=False)
+        _tried(once)
+        done = runs[-1]
     except (OSError, subprocess.SubprocessError) as exc:
         return None, f"bubblewrap ({bwrap}) cannot run: {exc}"
     if done.returncode != 0:
@@ -238,8 +247,28 @@ def _probe_result() -> tuple[Sandbox | None, str]:
     return Sandbox(bwrap, devices, status=_reports_status(probe)), ""
 
 
+def _tried(attempt: Callable[[], object]) -> object:
+    """``attempt()`` until it returns something true, :data:`_PROBE_TRIES` times at most.
+
+    A probe loses the same setup race as a task (a mount vanishing under ``--ro-bind / /``,
+    module docstring); one lost race must not decide a whole server's sandbox.
+    """
+    delay = 0.005
+    for _ in range(_PROBE_TRIES - 1):
+        result = attempt()
+        if result:
+            return result
+        time.sleep(delay)
+        delay *= 2
+    return attempt()
+
+
 def _reports_status(probe: list[str]) -> bool:
     """Whether this bwrap writes the command's exit code to ``--json-status-fd``."""
+    return bool(_tried(lambda: _status_once(probe)))
+
+
+def _status_once(probe: list[str]) -> bool:
     read, write = os.pipe()
     try:
         done = subprocess.run([probe[0], "--json-status-fd", str(write), *probe[1:]],

@@ -184,6 +184,21 @@ def test_osmos_own_folders_under_tmp_stay_visible_read_only(box: Sandbox, home: 
     assert out.split()[-1] == "hidden"  # without it, the task's own /tmp hides the venv
 
 
+def test_a_sandbox_that_cannot_be_set_up_for_a_moment_is_still_found_by_the_probe() -> None:
+    """A server started while mounts come and go probes bubblewrap under the same race: a
+    probe that loses it once must not leave the server without a sandbox, or without the
+    status pipe that tells a setup failure from the command's exit 1."""
+    with churning_mounts():
+        for _ in range(15):
+            sandbox_mod._probe_result.cache_clear()
+            try:
+                found, why = sandbox_mod._probe_result()
+            finally:
+                sandbox_mod._probe_result.cache_clear()
+            assert found is not None, why
+            assert found.status
+
+
 def test_a_sandbox_that_cannot_be_set_up_is_told_from_the_commands_exit(
         box: Sandbox, home: Path) -> None:
     """A mount vanishing under bwrap's setup fails it with exit 1: never the command's own.
