@@ -21,8 +21,8 @@ from osmo.transport.zenoh_link import Link
 
 __all__ = ["NOTICE_INTERVAL", "Notifier"]
 
-NOTICE_INTERVAL = 0.02
-"""Seconds between two sends of notices (a 1,000-task workflow commits ~2,000 times)."""
+NOTICE_INTERVAL = 0.05
+"""Seconds between two sends of notices: a waiting client re-reads at most this often anyway."""
 
 
 class Notifier:
