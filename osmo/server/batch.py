@@ -14,15 +14,11 @@ from pathlib import Path
 from typing import Any
 
 from osmo.scheduler import Scheduler
-from osmo.scheduler.types import AttemptPrepared, AttemptStarted, Changes, Command, PrepareAttempt
+from osmo.scheduler.types import Changes, Command, PrepareAttempt
 from osmo.server.recovery import attempt_row
 from osmo.store.sqlite import AttemptRow, DatasetRow, LineageRow, NewWorkflowRow, Store, TagRow
 
-__all__ = ["HOLD_STARTS", "Batch", "HeldStarts"]
-
-HOLD_STARTS = 0.01
-"""Seconds start reports may wait, uncommitted, for the next commit (``HeldStarts``)."""
-_HOLD_MOST = 256  # start reports held at once, at the most
+__all__ = ["Batch"]
 
 
 @dataclass
@@ -67,49 +63,3 @@ class Batch:
                          lineage=self.lineage, datasets=self.datasets, tags=self.tags,
                          pids=self.pids, workflow_tags=self.workflow_tags)
         return changes, placed
-
-
-class HeldStarts:
-    """A turn of start reports kept in hand until the next commit (engine thread).
-
-    A turn that applied nothing but ``AttemptPrepared``/``AttemptStarted`` reports and made no
-    command needs no commit before anything (``osmo.server.engine``): its batch (the pids)
-    is kept, the next turn goes on filling it, and its commit stores both. It is committed
-    :data:`HOLD_STARTS` seconds later at the latest (the engine's wait ends then).
-
-    Args:
-        seconds: how long a held turn may wait (0: never hold).
-    """
-
-    def __init__(self, seconds: float = HOLD_STARTS) -> None:
-        self._seconds = seconds
-        self._batch: Batch | None = None
-        self._items: list[Any] = []
-        self._until = 0.0
-
-    def batch(self) -> Batch:
-        """The held batch, to go on filling, or a new one."""
-        return self._batch if self._batch is not None else Batch()
-
-    def hold(self, items: list[Any], batch: Batch, now: float) -> bool:
-        """Keep ``batch`` uncommitted if this turn (``items``) may wait; True if kept."""
-        if (self._seconds <= 0 or not items or batch.commands
-                or len(self._items) + len(items) > _HOLD_MOST
-                or not all(isinstance(i, (AttemptPrepared, AttemptStarted)) for i in items)):
-            return False
-        if self._batch is None:
-            self._until = now + self._seconds
-        self._batch = batch
-        self._items += items
-        return True
-
-    def release(self) -> list[Any]:
-        """Forget the held turn (it is being committed, or lost); returns its reports."""
-        items, self._batch, self._items = self._items, None, []
-        return items
-
-    def deadline(self, other: float | None) -> float | None:
-        """The earlier of ``other`` and when the held turn must be committed."""
-        if self._batch is None:
-            return other
-        return self._until if other is None else min(other, self._until)

@@ -22,16 +22,6 @@ exits non-zero, so a supervisor sees it) and every waiting request gets an error
 crash while reports are applied is covered by the quarantine file
 (``osmo.server.recovery.InFlight``).
 
-Start reports are committed with what follows them: a turn that holds nothing but
-``AttemptPrepared``/``AttemptStarted`` reports and makes no command is kept in hand (its
-changes and pids stay in the scheduler and the held :class:`Batch`) until the next turn
-commits, or for :data:`HOLD_STARTS` seconds at the most. No command waits on such a commit,
-so the rule above holds; what it saves is one transaction per task (a task's start and
-the previous task's exit arrive milliseconds apart). A crash meanwhile loses only those
-starts: their attempts are recovered as lost and run again, their processes die with the
-server (``--die-with-parent``, ``PR_SET_PDEATHSIG``). A held turn is applied again with
-the next one if that one must be isolated.
-
 It must not parse specs, talk zenoh or format output; those belong to other layers.
 """
 
@@ -64,7 +54,7 @@ from osmo.scheduler.types import (
     Tick,
     WorkflowSubmitted,
 )
-from osmo.server.batch import HOLD_STARTS, Batch, HeldStarts
+from osmo.server.batch import Batch
 from osmo.server.datasets import Datasets
 from osmo.server.inbox import STOP, Asked, Inbox
 from osmo.server.isolation import REBUILT, Isolation, guard, reason, restarting
@@ -90,7 +80,6 @@ __all__ = ["Engine"]
 log = logging.getLogger("osmo.server")
 
 
-
 class Engine:
     """Runs the scheduler on its own thread.
 
@@ -112,7 +101,6 @@ class Engine:
         clock: time source (injectable for tests).
         image_ids: ``(workflow id, image) → id`` on this host, when image tasks run in
             containers (the cache fingerprints the id; ``osmo.server.placing.Placements``).
-        hold_starts: seconds start reports may wait for the next commit (0: never held).
     """
 
     def __init__(self, *, store: Store, scheduler: Scheduler, executors: Sequence[Executor],
@@ -124,8 +112,7 @@ class Engine:
                  inflight: InFlight | None = None,
                  on_fatal: Callable[[BaseException], None] = lambda _exc: None,
                  clock: Callable[[], float] = time.time,
-                 image_ids: Callable[[str, str], str | None] | None = None,
-                 hold_starts: float = HOLD_STARTS) -> None:
+                 image_ids: Callable[[str, str], str | None] | None = None) -> None:
         self.store = store
         self.scheduler = scheduler
         self._executors = tuple(executors)
@@ -146,7 +133,6 @@ class Engine:
         self._isolation = Isolation(apply=self._apply, rebuild=self._rebuild,
                                     execute=self._execute, node_of=self._node_of)
         self._applying: list[Any] = []  # the batch in hand (its requests fail if we stop)
-        self._held = HeldStarts(hold_starts)  # start reports applied, not committed yet
         self._thread = threading.Thread(target=self._loop, name="osmo-engine", daemon=True)
 
     # ------------------------------------------------------------------ public API
@@ -186,7 +172,7 @@ class Engine:
             self._on_fatal(exc)
 
     def _wait(self) -> list[Any]:
-        deadline = self._held.deadline(self.scheduler.next_deadline())
+        deadline = self.scheduler.next_deadline()
         timeout = None if deadline is None else max(0.0, deadline - self._clock())
         return self._inbox.take(timeout) or [Tick()]
 
@@ -207,8 +193,7 @@ class Engine:
             except Exception as exc:  # noqa: BLE001 - isolated below; only a double fault stops
                 log.error("applying %d event(s) failed (%s); applying them one at a time to "
                           "isolate the cause", len(part), reason(exc), exc_info=exc)
-                # the held starts were not committed: the rebuilt scheduler lacks them too
-                self._isolation.isolate(self._held.release() + part)
+                self._isolation.isolate(part)
             finally:
                 if self._inflight is not None:
                     self._inflight.clear()
@@ -221,7 +206,7 @@ class Engine:
         Raises only before the commit succeeded (then nothing of ``items`` is stored, though the
         scheduler may hold some of it).
         """
-        batch = self._held.batch()
+        batch = Batch()
         now = self._clock()
         self._mark(items)
         for item in items:
@@ -233,10 +218,7 @@ class Engine:
             deadline = self.scheduler.next_deadline()
             if deadline is not None and deadline <= now:
                 batch.commands += self.scheduler.handle(Tick(), now)
-        if tick and self._held.hold(items, batch, now):
-            return  # only start reports: committed with the next turn
         changes, placed = batch.commit(self.store, self.scheduler, self._home)
-        self._held.release()  # committed (if the commit raised, isolation applies them again)
         self._after_commit(batch, changes, placed)
 
     def _mark(self, items: list[Any]) -> None:
@@ -405,7 +387,6 @@ class Engine:
             raise InfrastructureError("the scheduler cannot be rebuilt (no store to rebuild "
                                       "it from)")
         nodes = self.scheduler.nodes()
-        self._held.release()  # a held turn is lost with the scheduler (re-applied by isolate)
         restored = self._restore()
         self.scheduler = restored.scheduler
         self.specs.clear()
