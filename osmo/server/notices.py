@@ -39,6 +39,7 @@ class Notifier:
         self._pending: set[str] = set()
         self._cond = threading.Condition()
         self._closed = False
+        self._idle = False  # the thread waits for changes (not out its interval)
         self._thread = threading.Thread(target=self._run, name="osmo-notices", daemon=True)
         self._thread.start()
 
@@ -46,12 +47,15 @@ class Notifier:
         """Queue notices for ``ids`` (cheap; called by the engine after each commit)."""
         with self._cond:
             self._pending |= ids
-            self._cond.notify()
+            if self._idle:  # within its interval the thread would only wake to wait again
+                self._cond.notify()
 
     def _run(self) -> None:
         while True:
             with self._cond:
+                self._idle = True
                 self._cond.wait_for(lambda: self._pending or self._closed)
+                self._idle = False
                 if self._closed:
                     return
                 ids, self._pending = self._pending, set()
