@@ -8,7 +8,9 @@ Every task requests 1 cpu, so on 2 cores 2 run at once. Submitted with ``no_cach
 ``true`` tasks of a shape have identical definitions and inputs, so with caching on all but
 the first few would complete as cache hits without running. The limit these rows are compared
 with is bench_limits.py's spawn row (spawning ``true`` with the same parallelism and no
-orchestrator).
+orchestrator). Each shape also gets a row of the server process's own CPU time per task
+(utime + stime from ``/proc/<pid>/stat``, from submit to COMPLETED; the tasks' processes are
+its children and not counted): on a shared machine a steadier figure than tasks/s.
 
 Usage: python bench/bench_engine.py [--runs 3] [--tasks 1000] [--big 10000] [--base DIR]
        [--json out.json]
@@ -59,22 +61,35 @@ def chain(n: int) -> osmo.Workflow:
     return wf
 
 
+def cpu_seconds(pid: int) -> float:
+    """CPU time (user + system) process ``pid`` used so far, its children not counted."""
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
 def run_once(spec: osmo.WorkflowSpec, base: str | None,
              options: ServerOptions | None = None) -> float:
     """Seconds from submit to COMPLETED on a fresh server (started before the clock)."""
+    return run_measured(spec, base, options)[0]
+
+
+def run_measured(spec: osmo.WorkflowSpec, base: str | None,
+                 options: ServerOptions | None = None) -> tuple[float, float]:
+    """:func:`run_once`'s seconds, and the server's CPU seconds over that time."""
     with tempfile.TemporaryDirectory(prefix="osmo-bench-", dir=base) as home:
-        start_server(home, options)
+        pid = start_server(home, options).pid
         try:
             with osmo.Client(home=home) as client:
-                t0 = time.perf_counter()
+                cpu0, t0 = cpu_seconds(pid), time.perf_counter()
                 result = client.wait(client.submit(spec, no_cache=True))
-                elapsed = time.perf_counter() - t0
+                elapsed, cpu = time.perf_counter() - t0, cpu_seconds(pid) - cpu0
                 if not result.ok:
                     raise SystemExit(f"benchmark workflow ended {result.status.name}")
         finally:
             stop_server(home)
     os.sync()  # flush this run's writeback now, not during the next run
-    return elapsed
+    return elapsed, cpu
 
 
 def mkdir_us(base: str | None, n: int = 500) -> list[float]:
@@ -106,11 +121,14 @@ def main() -> None:
     }
     sizes = [args.tasks, args.tasks, args.big]
     times: dict[str, list[float]] = {name: [] for name in shapes}
+    cpus: dict[str, list[float]] = {name: [] for name in shapes}
     mkdirs: list[float] = []
     for _ in range(args.runs):
         mkdirs.append(statistics.median(mkdir_us(args.base)))
         for name, spec in shapes.items():
-            times[name].append(run_once(spec, args.base))
+            elapsed, cpu = run_measured(spec, args.base)
+            times[name].append(elapsed)
+            cpus[name].append(cpu)
     rows = [row(f"filesystem: mkdir under {where}", "µs", mkdirs, higher_is_better=False,
                 notes="attempt folders cost mostly this; a slow disk moment shows here")]
     for (name, runs), n in zip(times.items(), sizes, strict=True):
@@ -118,6 +136,9 @@ def main() -> None:
                         limit_of=SPAWN_LIMIT,
                         notes=f"submit→COMPLETED median {statistics.median(runs):.2f} s, "
                               f"{1000 * statistics.median(runs) / n:.2f} ms/task"))
+        rows.append(row(f"{name}: server CPU", "ms/task", [1000 * c / n for c in cpus[name]],
+                        higher_is_better=False,
+                        notes="the server process's user+system time, submit→COMPLETED"))
     write_rows(args.json, rows)
 
 

@@ -29,6 +29,7 @@ them (the bottom layer; imports only ``osmo.errors``). Workers make and fill att
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -56,17 +57,17 @@ class AttemptDirs:
 
     root: Path
 
-    @property
+    @functools.cached_property
     def work(self) -> Path:
         """The command's working folder."""
         return self.root / "work"
 
-    @property
+    @functools.cached_property
     def files(self) -> Path:
         """Private root of absolute ``files:`` paths."""
         return self.root / "files"
 
-    @property
+    @functools.cached_property
     def inputs(self) -> Path:
         """The attempt's own copies of its artifact inputs, one folder per input."""
         return self.root / "inputs"
@@ -79,17 +80,17 @@ class AttemptDirs:
         """
         return self.root.with_name(f"{self.root.name}.inputs")
 
-    @property
+    @functools.cached_property
     def output_partial(self) -> Path:
         """The output folder while the command runs."""
         return self.root / "output.partial"
 
-    @property
+    @functools.cached_property
     def output(self) -> Path:
         """The output folder after promotion."""
         return self.root / "output"
 
-    @property
+    @functools.cached_property
     def log(self) -> Path:
         """The attempt's log file."""
         return self.root / "log.txt"

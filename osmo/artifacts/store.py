@@ -179,6 +179,8 @@ class ArtifactStore(HandOut):
 
     def _ingest_all(self, files: list[tuple[str, str, int]]) -> list[Entry]:
         """Ingest each ``(name, real path, size)``; entries in the same order."""
+        if not files:  # an empty output: no blob to keep from gc, no lock to take
+            return []
         with self._lock(exclusive=False):
             big = [i for i, (_rel, _src, size) in enumerate(files) if size >= _PARALLEL_SIZE]
             if len(big) < 2:

@@ -5,6 +5,12 @@ subscribe to ``events/<workflow_id>`` and re-read its state when a notice arrive
 zenoh message costs the engine thread most of a millisecond, so :class:`Notifier` hands the
 ids to its own thread, which sends one notice per workflow for everything that piled up
 meanwhile (a burst of changes becomes one notice).
+
+After sending, the thread lets ``interval`` seconds pass before it sends again: the first
+change after a quiet spell is told at once, and a busy workflow gets at most one notice per
+interval (a waiting client re-reads at most every 50 ms anyway, ``Client.wait``), carrying
+every change since the last one. A change is never told more than ``interval`` late, and
+none is dropped: what is pending when the notifier closes is sent then.
 """
 
 from __future__ import annotations
@@ -13,17 +19,27 @@ import threading
 
 from osmo.transport.zenoh_link import Link
 
-__all__ = ["Notifier"]
+__all__ = ["NOTICE_INTERVAL", "Notifier"]
+
+NOTICE_INTERVAL = 0.05
+"""Seconds between two sends of notices: a waiting client re-reads at most this often anyway."""
 
 
 class Notifier:
-    """Publishes ``{"workflow_id": ...}`` on ``events/<id>`` for changed workflows."""
+    """Publishes ``{"workflow_id": ...}`` on ``events/<id>`` for changed workflows.
 
-    def __init__(self, link: Link) -> None:
+    Args:
+        link: the server's zenoh link.
+        interval: seconds to wait after a send before the next (see the module docstring).
+    """
+
+    def __init__(self, link: Link, interval: float = NOTICE_INTERVAL) -> None:
         self._link = link
+        self._interval = interval
         self._pending: set[str] = set()
         self._cond = threading.Condition()
         self._closed = False
+        self._idle = False  # the thread waits for changes (not out its interval)
         self._thread = threading.Thread(target=self._run, name="osmo-notices", daemon=True)
         self._thread.start()
 
@@ -31,17 +47,25 @@ class Notifier:
         """Queue notices for ``ids`` (cheap; called by the engine after each commit)."""
         with self._cond:
             self._pending |= ids
-            self._cond.notify()
+            if self._idle:  # within its interval the thread would only wake to wait again
+                self._cond.notify()
 
     def _run(self) -> None:
         while True:
             with self._cond:
+                self._idle = True
                 self._cond.wait_for(lambda: self._pending or self._closed)
+                self._idle = False
                 if self._closed:
                     return
                 ids, self._pending = self._pending, set()
-            for wf_id in ids:
-                self._link.publish(self._link.key("events", wf_id), {"workflow_id": wf_id})
+            self._send(ids)
+            with self._cond:  # coalesce what changes meanwhile into the next send
+                self._cond.wait_for(lambda: self._closed, timeout=self._interval)
+
+    def _send(self, ids: set[str]) -> None:
+        for wf_id in ids:
+            self._link.publish(self._link.key("events", wf_id), {"workflow_id": wf_id})
 
     def close(self) -> None:
         """Send what is pending, then stop."""
@@ -49,6 +73,5 @@ class Notifier:
             ids, self._pending = self._pending, set()
             self._closed = True
             self._cond.notify()
-        for wf_id in ids:
-            self._link.publish(self._link.key("events", wf_id), {"workflow_id": wf_id})
+        self._send(ids)
         self._thread.join(timeout=5)

@@ -27,6 +27,7 @@ marker is only written when every file arrived (see ``osmo.urls``).
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable, Mapping
 from dataclasses import replace
 from pathlib import Path
@@ -147,7 +148,12 @@ def copy_inputs(plan: InputCopies, artifacts: ArtifactStore, *,
         ArtifactCorrupted: a blob is missing or no longer matches its digest.
     """
     if plan:
-        make_dirs(plan[0][1].parent)
+        try:  # the attempt's folder was just made: one mkdir, not a walk up (make_dirs)
+            os.mkdir(plan[0][1].parent)
+        except FileExistsError:
+            pass
+        except FileNotFoundError:
+            make_dirs(plan[0][1].parent)
     for manifest, dest in plan:
         (artifacts.link_checked if links else artifacts.copy_tree)(manifest, dest)
     return () if links else tuple(dest for manifest, dest in plan

@@ -246,6 +246,13 @@ def _osmo_env(dirs: AttemptDirs, cmd: PrepareAttempt) -> dict[str, str]:
 def _make_folders(dirs: AttemptDirs, *, with_files: bool) -> None:
     # Each mkdir costs tens of microseconds here; only the folders an attempt needs are made,
     # and the parents only when missing (the common case is a new task folder per attempt).
+    if dirs.root.name == "0":  # a first attempt: its task's folder is new too, as a rule
+        try:
+            os.mkdir(dirs.root.parent)
+        except FileExistsError:
+            pass
+        except FileNotFoundError:
+            dirs.root.parent.mkdir(parents=True, exist_ok=True)
     try:
         dirs.root.mkdir()
     except FileExistsError:  # the same attempt prepared again (e.g. after a server restart)
