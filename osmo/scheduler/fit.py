@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from osmo.scheduler.resources import Request, first_fit, request_for, total
+from osmo.scheduler.resources import Request, first_fit, requests_of, total
 from osmo.scheduler.types import Capacity, Node
 from osmo.spec.model import GroupSpec, WorkflowSpec
 
@@ -53,8 +53,9 @@ def check_fit(spec: WorkflowSpec, pool: str | None, nodes: Sequence[Node]) -> li
         return [f"no node is available in {where}"]
     reasons: list[str] = []
     problems: dict[Request, str | None] = {}  # the tasks of a big workflow share few requests
+    of_task = requests_of(spec)
     for group in spec.groups:
-        requests = [(t.name, request_for(spec, t)) for t in group.tasks]
+        requests = [(t.name, of_task[t.name]) for t in group.tasks]
         task_reasons = []
         for name, req in requests:
             if req not in problems:
