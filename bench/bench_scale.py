@@ -5,6 +5,8 @@ Rows (median of ``--runs`` fresh servers; issue 16's targets in brackets):
 - **submit of an N-task fan-out** [≤ 10 s for 100,000]: ``Client.submit`` of a spec built
   beforehand (the SDK builder's own time is its own row), until the server has committed the
   workflow and answered.
+- **server CPU for the submit**: user + system seconds the server process spent from the
+  request to the answer (from /proc), which the machine's other load changes little.
 - **SDK builder for an N-task fan-out**: ``osmo.Workflow(...).build()``, on the client.
 - **query of the running N-task workflow** [≤ 1 s]: what ``osmo query`` asks (``Client.get``
   with ``limit=1000``: the first 1,000 tasks and the count per status), right after the
@@ -44,10 +46,19 @@ from osmo.layout import Home  # noqa: E402
 from osmo.sdk.connect import start_server, stop_server  # noqa: E402
 
 
+def _server_pid(home: str) -> int:
+    return int(json.loads(Home(Path(home)).server_info.read_text())["pid"])
+
+
 def _rss_mib(home: str) -> float:
-    pid = json.loads(Home(Path(home)).server_info.read_text())["pid"]
-    status = Path(f"/proc/{pid}/status").read_text()
+    status = Path(f"/proc/{_server_pid(home)}/status").read_text()
     return int(status.split("VmRSS:")[1].split()[0]) / 1024
+
+
+def _cpu_s(home: str) -> float:
+    """User + system CPU seconds of the server process so far."""
+    fields = Path(f"/proc/{_server_pid(home)}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def big_fan_out(n: int) -> dict[str, list[float]]:
@@ -60,9 +71,10 @@ def big_fan_out(n: int) -> dict[str, list[float]]:
         start_server(home)
         try:
             with osmo.Client(home=home) as client:
-                t0 = time.perf_counter()
+                cpu, t0 = _cpu_s(home), time.perf_counter()
                 wf = client.submit(spec, no_cache=True)
                 out["submit"] = [time.perf_counter() - t0]
+                out["server_cpu"] = [_cpu_s(home) - cpu]
                 out["rss"] = [_rss_mib(home)]
                 t0 = time.perf_counter()
                 client.get(wf, limit=QUERY_LIMIT)
@@ -124,6 +136,8 @@ def main() -> None:
         row(f"SDK builder: {n}-task fan-out", "s", runs["build"], higher_is_better=False),
         row(f"submit: {n}-task fan-out", "s", runs["submit"], higher_is_better=False,
             target=10.0 if args.tasks >= 100_000 else None),
+        row(f"server CPU for the submit: {n}-task fan-out", "s", runs["server_cpu"],
+            higher_is_better=False, notes="user + system seconds of the server process"),
         row(f"query: running {n}-task workflow", "s", runs["query"], higher_is_better=False,
             target=1.0 if args.tasks >= 100_000 else None,
             notes=f"Client.get(limit={QUERY_LIMIT:,}), what `osmo query` asks"),

@@ -20,6 +20,8 @@ from osmo.spec.model import WorkflowSpec
 
 __all__ = ["WorkflowGraph"]
 
+_NONE: frozenset[str] = frozenset()
+
 
 class WorkflowGraph:
     """An immutable DAG of groups.
@@ -40,13 +42,17 @@ class WorkflowGraph:
         self._groups = tuple(groups)
         self._index = MappingProxyType({g: i for i, g in enumerate(self._groups)})
         self._group_of = MappingProxyType(dict(group_of))
-        self._up = MappingProxyType({g: frozenset(upstream.get(g, ())) for g in self._groups})
-        children: dict[str, set[str]] = {g: set() for g in self._groups}
-        for group, ups in self._up.items():
-            for up in ups:
-                if up not in children:
-                    raise ValueError(f"group '{group}' depends on unknown group '{up}'")
-                children[up].add(group)
+        # most groups of a big fan-out have no edge on one side: they share one empty set
+        up: dict[str, frozenset[str]] = {}
+        children: dict[str, set[str]] = {}
+        for group in self._groups:
+            ups = upstream.get(group)
+            up[group] = frozenset(ups) if ups else _NONE
+            for name in up[group]:
+                if name not in self._index:
+                    raise ValueError(f"group '{group}' depends on unknown group '{name}'")
+                children.setdefault(name, set()).add(group)
+        self._up = MappingProxyType(up)
         self._children = MappingProxyType({g: frozenset(c) for g, c in children.items()})
         self._order = self._topological()
         self._downstream: dict[str, frozenset[str]] = {}  # memo; derived, never observable
@@ -60,7 +66,7 @@ class WorkflowGraph:
                 edges form a cycle.
         """
         group_of = {t.name: g.name for g in spec.groups for t in g.tasks}
-        upstream: dict[str, set[str]] = {g.name: set() for g in spec.groups}
+        upstream: dict[str, set[str]] = {}
         for group in spec.groups:
             for task in group.tasks:
                 for name in task.upstream_tasks():
@@ -70,7 +76,7 @@ class WorkflowGraph:
                     if group_of[name] == group.name:
                         raise ValueError(f"task '{task.name}' takes input from '{name}' of its "
                                          f"own group '{group.name}' (a cycle)")
-                    upstream[group.name].add(group_of[name])
+                    upstream.setdefault(group.name, set()).add(group_of[name])
         return cls([g.name for g in spec.groups], group_of, upstream)
 
     @property
@@ -91,20 +97,24 @@ class WorkflowGraph:
         return self._up[group]
 
     def children(self, group: str) -> frozenset[str]:
-        """The groups that wait directly for ``group``."""
-        return self._children[group]
+        """The groups that wait directly for ``group`` (KeyError if unknown)."""
+        found = self._children.get(group)
+        if found is None:
+            self._index[group]  # noqa: B018 - raises KeyError for an unknown group
+            return _NONE
+        return found
 
     def downstream(self, group: str) -> frozenset[str]:
         """Every group that waits for ``group``, directly or transitively (for cascades)."""
         found = self._downstream.get(group)
         if found is None:
             seen: set[str] = set()
-            stack = list(self._children[group])
+            stack = list(self.children(group))
             while stack:
                 name = stack.pop()
                 if name not in seen:
                     seen.add(name)
-                    stack.extend(self._children[name])
+                    stack.extend(self._children.get(name, _NONE))
             found = self._downstream[group] = frozenset(seen)
         return found
 
@@ -120,7 +130,7 @@ class WorkflowGraph:
         while ready:
             name = self._groups[heapq.heappop(ready)]
             order.append(name)
-            for child in self._children[name]:
+            for child in self._children.get(name, _NONE):
                 waiting[child] -= 1
                 if waiting[child] == 0:
                     heapq.heappush(ready, self._index[child])

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from osmo.scheduler.resources import Request, first_fit, request_for, total
+from osmo.scheduler.resources import Request, first_fit, requests_of, total
 from osmo.scheduler.types import Capacity, Node
 from osmo.spec.model import GroupSpec, WorkflowSpec
 
@@ -52,15 +52,13 @@ def check_fit(spec: WorkflowSpec, pool: str | None, nodes: Sequence[Node]) -> li
     if not members:
         return [f"no node is available in {where}"]
     reasons: list[str] = []
-    problems: dict[Request, str | None] = {}  # the tasks of a big workflow share few requests
+    of_task = requests_of(spec)
+    # the tasks of a big workflow share few requests: each is judged once
+    problems = {req: _request_problem(req, members, where) for req in set(of_task.values())}
     for group in spec.groups:
-        requests = [(t.name, request_for(spec, t)) for t in group.tasks]
-        task_reasons = []
-        for name, req in requests:
-            if req not in problems:
-                problems[req] = _request_problem(req, members, where)
-            if problems[req] is not None:
-                task_reasons.append(f"task '{name}' {problems[req]}")
+        requests = [(t.name, of_task[t.name]) for t in group.tasks]
+        task_reasons = [f"task '{name}' {problems[req]}" for name, req in requests
+                        if problems[req] is not None]
         reasons.extend(task_reasons)
         if not task_reasons and len(requests) > 1 and first_fit(requests, members, {}) is None:
             reasons.append(_group_reason(group, requests, members, where))

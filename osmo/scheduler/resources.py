@@ -25,7 +25,7 @@ from dataclasses import dataclass
 from osmo.scheduler.types import Capacity, Node
 from osmo.spec.model import ResourceSpec, TaskSpec, WorkflowSpec
 
-__all__ = ["ZERO", "Ledger", "Request", "first_fit", "request_for", "total"]
+__all__ = ["ZERO", "Ledger", "Request", "first_fit", "request_for", "requests_of", "total"]
 
 ZERO = Capacity()
 
@@ -48,6 +48,23 @@ class Request:
 def request_for(spec: WorkflowSpec, task: TaskSpec) -> Request:
     """The request of ``task``: its resource spec with the documented defaults."""
     return _request(spec.resource_for(task))
+
+
+def requests_of(spec: WorkflowSpec) -> dict[str, Request]:
+    """Task name → :func:`request_for` it, for every task of ``spec``.
+
+    A request depends only on the task's ``resource`` and its resolved type, which the tasks
+    of a big fan-out share: each such pair is looked up once.
+    """
+    seen: dict[tuple[str, int], Request] = {}
+    out: dict[str, Request] = {}
+    for task in spec.all_tasks():
+        key = (task.resource, id(task.resolved))  # the tasks outlive this call: ids hold
+        found = seen.get(key)
+        if found is None:
+            found = seen[key] = request_for(spec, task)
+        out[task.name] = found
+    return out
 
 
 @functools.lru_cache(maxsize=4096)

@@ -12,7 +12,7 @@ from collections.abc import Hashable, Iterable, Mapping
 from dataclasses import dataclass, field
 
 from osmo.graph import WorkflowGraph
-from osmo.scheduler.resources import Request, request_for
+from osmo.scheduler.resources import Request, requests_of
 from osmo.scheduler.state import TaskState, WorkflowState
 from osmo.spec.model import GroupSpec, TaskSpec, WorkflowSpec
 from osmo.status import TaskStatus, WorkflowStatus
@@ -108,7 +108,7 @@ class Run:
         return cls(spec=spec, graph=graph, state=state, seq=seq, max_retries=max_retries,
                    groups=groups,
                    task_specs={t.name: t for t in spec.all_tasks()},
-                   requests={t.name: request_for(spec, t) for t in spec.all_tasks()},
+                   requests=requests_of(spec),
                    open_groups=len(groups))
 
     def group_of(self, task: TaskState) -> Group:

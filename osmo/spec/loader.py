@@ -19,6 +19,7 @@ from osmo.spec.files import read_spec_file
 from osmo.spec.model import WorkflowSpec
 from osmo.spec.parse import parse_document
 from osmo.spec.reader import Ctx
+from osmo.spec.shapes import Reduced, expand, reduce_tasks
 from osmo.spec.typed import TypeResolver, apply_resolved, check_types
 from osmo.spec.validate import validate
 from osmo.spec.values import split_items
@@ -76,9 +77,16 @@ def _build(text: str, file: str, base_dir: Path, env: dict[str, str],
 
 
 def _check(ctx: Ctx, root: yamlnodes.Node | None, base_dir: Path,
-           types: TypeResolver | None) -> WorkflowSpec | None:
-    """Parse and validate a node tree; None when ``ctx`` holds a problem afterwards."""
+           types: TypeResolver | None, reduced: Reduced | None = None) -> WorkflowSpec | None:
+    """Parse and validate a node tree; None when ``ctx`` holds a problem afterwards.
+
+    ``reduced``: the tree is of ``reduced.data``; its tasks are put back before validation.
+    """
     parsed = parse_document(ctx, root, base_dir)
+    if parsed is not None and reduced is not None:
+        if ctx.diags:
+            return None
+        expand(ctx, parsed, reduced)
     if parsed is not None:
         if types is not None:
             parsed.spec = apply_resolved(parsed.spec, check_types(ctx, parsed, types))
@@ -142,9 +150,11 @@ def spec_from_dict(d: dict[str, Any], *, filename: str = "<stored>",
         raise SpecError([Diagnostic(filename, 0, 0, "a stored spec must be a mapping")])
     # Valid data is checked without YAML text (fast: no dump, no parse); data with a problem
     # is checked again the YAML way, so its messages carry positions in that text.
-    root = yamlnodes.from_plain(d, filename)
+    # Tasks written alike are parsed once (osmo.spec.shapes).
+    reduced = reduce_tasks(d)
+    root = yamlnodes.from_plain(d if reduced is None else reduced.data, filename)
     if root is not None:
-        spec = _check(Ctx(filename, []), root, Path(), types)
+        spec = _check(Ctx(filename, []), root, Path(), types, reduced)
         if spec is not None:
             return spec
     try:

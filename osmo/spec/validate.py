@@ -52,33 +52,42 @@ def _field_pos(node: Node, key: str) -> Pos:
 
 def _names(ctx: Ctx, parsed: Parsed) -> dict[str, Where]:
     """Check the shared namespace; return each task's exact name → where it is."""
-    seen: dict[str, tuple[str, str, Pos]] = {}
+    seen: dict[str, tuple[str, str, Pos | Node]] = {}
     index: dict[str, Where] = {}
 
-    def claim(kind: str, name: str, pos: Pos) -> None:
+    def claim(kind: str, name: str, where: Pos | Node) -> None:
         if not name:
             return
         key = _key(name)
         first = seen.get(key)
         if first is None:
-            seen[key] = (kind, name, pos)
+            seen[key] = (kind, name, where)
             return
-        ctx.error(pos, f"duplicate name: {kind} '{name}' clashes with {first[0]} '{first[1]}' "
-                       f"at line {first[2].line} (names are compared ignoring case, with '-' "
-                       "and '_' equal); rename one")
+        line = _pos_of(first[2]).line
+        ctx.error(_pos_of(where), f"duplicate name: {kind} '{name}' clashes with {first[0]} "
+                  f"'{first[1]}' at line {line} (names are compared ignoring case, with '-' "
+                  "and '_' equal); rename one")
 
     for gi, group in enumerate(parsed.spec.groups):
         if not parsed.spec.bare_tasks and group.pos is not None:
             claim("group", group.name, group.pos)
         for ti, task in enumerate(group.tasks):
-            claim("task", task.name, _field_pos(parsed.task_nodes[(gi, ti)], "name"))
+            claim("task", task.name, parsed.task_nodes[(gi, ti)])
             index.setdefault(task.name, (gi, ti))
     return index
+
+
+def _pos_of(where: Pos | Node) -> Pos:
+    """A position, or that of a task node's name (looked up only when needed: it costs)."""
+    return _field_pos(where, "name") if isinstance(where, Node) else where
 
 
 def _resources(ctx: Ctx, parsed: Parsed) -> None:
     defined = parsed.spec.resources
     for _, _, task, node in _tasks(parsed):
+        if task.resource in defined or (not parsed.has_resources
+                                        and task.resource == DEFAULT_RESOURCE):
+            continue  # fine, whether written or not (most tasks: checked first, cheaply)
         explicit = isinstance(node, Map) and node.get("resource") is not None
         where = f"task '{task.name}'"
         if not parsed.has_resources:
@@ -257,10 +266,15 @@ def _token_problem(token: str, task: TaskSpec, group: GroupSpec) -> str | None:
 
 
 def _tokens(ctx: Ctx, parsed: Parsed) -> None:
+    # tasks written alike share their node and files (osmo.spec.shapes): their strings are
+    # read once; most hold no token at all
+    marked: dict[tuple[int, int], list[tuple[str, Pos]]] = {}
     for _, group, task, node in _tasks(parsed):
-        for text, pos in _strings(task, node):
-            if "{{" not in text:  # most strings hold no token: skip the search
-                continue
+        key = (id(node), id(task.files))
+        found = marked.get(key)
+        if found is None:
+            found = marked[key] = [(t, p) for t, p in _strings(task, node) if "{{" in t]
+        for text, pos in found:
             for token in dict.fromkeys(find_tokens(text)):
                 problem = _token_problem(token, task, group)
                 if problem:

@@ -35,6 +35,7 @@ from osmo.store.rows import (
     TagRow,
     WorkflowRow,
 )
+from osmo.store.taskjson import task_rows
 from osmo.store.taskrows import TaskQueries
 from osmo.store.tokens import TokenRows
 from osmo.store.writes import text_value, write_dataset, write_lineage, write_manifest
@@ -270,13 +271,8 @@ class Store(LineageQueries, TaskQueries, TokenRows):
                     "UPDATE workflows SET status = ?, state = ? WHERE id = ?",
                     (state["status"], json.dumps(state), state["id"]),
                 )
-            db.executemany(
-                "INSERT OR REPLACE INTO tasks VALUES (?,?,?,?)",
-                [
-                    (s["workflow_id"], s["name"], s["status"], json.dumps(s))
-                    for s in (t.to_dict() for t in changes.tasks)
-                ],
-            )
+            db.executemany("INSERT OR REPLACE INTO tasks VALUES (?,?,?,?)",
+                           task_rows(changes.tasks))
             db.executemany(
                 "INSERT INTO events (at, workflow_id, task, retry, status, message) "
                 "VALUES (?,?,?,?,?,?)",

@@ -44,6 +44,7 @@ EXPECTED = [
     "port-forward (remote worker), 8 MiB, 20 streams",
     "port-forward (remote worker), 1-byte round trip p50",
     "submit: 2,000-task fan-out",
+    "server CPU for the submit: 2,000-task fan-out",
     "query: running 2,000-task workflow",
     "list (20 rows): 50 finished workflows",
 ]

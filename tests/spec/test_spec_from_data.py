@@ -115,3 +115,63 @@ def test_what_the_fast_way_cannot_read_goes_the_yaml_way() -> None:
     assert yamlnodes.from_plain(deep, "f") is None
     with pytest.raises(SpecError, match="nested more than 100 levels"):
         spec_from_dict(deep)
+
+
+# ---------------------------------------------------------------- tasks written alike (shapes)
+
+def _with_copies(data: dict[str, Any], copies: int, rename: Any) -> dict[str, Any]:
+    """``data`` with each bare task followed by ``copies`` copies under other names."""
+    workflow = data.get("workflow")
+    tasks = workflow.get("tasks") if isinstance(workflow, dict) else None
+    if not isinstance(tasks, list):
+        return data
+    out: list[Any] = []
+    for task in tasks:
+        out.append(task)
+        if isinstance(task, dict):
+            out += [{**task, "name": rename(task.get("name"), i)} for i in range(copies)]
+    return {**data, "workflow": {**workflow, "tasks": out}}
+
+
+@pytest.mark.parametrize(("name", "data"), _plain_documents(), ids=lambda v: v
+                         if isinstance(v, str) else "")
+def test_tasks_written_alike_read_as_the_yaml_way_reads_them(name: str,
+                                                             data: dict[str, Any]) -> None:
+    copied = _with_copies(data, 2, lambda n, i: f"{n}-copy{i}" if isinstance(n, str) else n)
+    assert _fast_way(copied) == _yaml_way(copied)
+
+
+NAMES = st.one_of(st.from_regex(r"[a-z][a-z0-9_-]{0,6}", fullmatch=True),
+                  st.sampled_from(["", "A B", "x" * 80, "src", "SRC", "s_rc", "-x", "é"]),
+                  st.integers(), st.none())
+
+
+@settings(max_examples=200, deadline=None)
+@given(names=st.lists(NAMES, min_size=2, max_size=8),
+       inputs=st.sampled_from([[], [{"task": "src"}], [{"task": "nowhere"}], "bad"]),
+       command=st.sampled_from([["true"], [], "true", ["{{input:0}}"], ["{{host:src}}"]]))
+def test_a_fan_out_reads_as_the_yaml_way_reads_it(names: list[Any], inputs: Any,
+                                                  command: Any) -> None:
+    data = {"workflow": {"name": "w", "tasks": [{"name": "src", "command": ["true"]}] + [
+        {"name": n, "command": command, "inputs": inputs} for n in names]}}
+    assert _fast_way(data) == _yaml_way(data)
+
+
+def test_a_fan_out_is_parsed_once_per_shape() -> None:
+    from osmo.spec.shapes import reduce_tasks
+
+    data = {"workflow": {"name": "w", "tasks": [{"name": "src", "command": ["true"]}] + [
+        {"name": f"m{i}", "command": ["true"], "inputs": [{"task": "src"}]}
+        for i in range(1000)] + [{"name": "m1000", "command": ["true"], "args": ["x"]}]}}
+    reduced = reduce_tasks(data)
+    assert reduced is not None and len(reduced.data["workflow"]["tasks"]) == 3
+    spec = spec_from_dict(data)
+    assert [t.name for t in spec.all_tasks()] == ["src", *(f"m{i}" for i in range(1001))]
+    assert spec == _yaml_way(data)
+    assert spec.task("m999").inputs == spec.task("m0").inputs
+    # a copy with a bad name or a clashing one is reported as the YAML way reports it
+    for bad in ("M5", "no spaces", ""):
+        data["workflow"]["tasks"][3]["name"] = bad
+        wrong = _fast_way(data)
+        assert isinstance(wrong, list) and wrong == _yaml_way(data)
+        assert all(":" in line and not line.startswith("<stored>:0:") for line in wrong)
