@@ -200,6 +200,11 @@ class Home:
         return self.root / "profile.json"
 
     @property
+    def procs(self) -> Path:
+        """The record of the commands a pool runs (``osmo.worker.procs``)."""
+        return self.root / "procs"
+
+    @property
     def worker_health(self) -> Path:
         """A remote worker's health file."""
         return self.root / "worker.json"

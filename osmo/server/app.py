@@ -60,6 +60,7 @@ from osmo.transport.wire import SERVER_ONLY
 from osmo.transport.zenoh_link import Link
 from osmo.worker import containers
 from osmo.worker.pool import LocalPool
+from osmo.worker.procs import kill_recorded
 from osmo.worker.sessions import NodeSessions
 
 __all__ = ["serve"]
@@ -108,6 +109,7 @@ def serve(home: str | os.PathLike[str] | None = None, options: ServerOptions | N
     active, failed = quarantine(restored.active, inflight.strike(inflight.left))
     lost, remote_nodes = split_lost(active)
     kill_leftovers(store, lost)
+    kill_recorded(layout.procs)  # what the old server spawned but had not committed a pid of
 
     link = Link.router(endpoints, options.cluster, connect=connect,
                        config_file=options.zenoh_config, peer=bool(connect) and not listen,
@@ -125,7 +127,7 @@ def serve(home: str | os.PathLike[str] | None = None, options: ServerOptions | N
                      input_manifests=output_manifests(store),
                      task_secrets=store.credential,
                      sandbox=options.sandbox, sandbox_share=options.sandbox_share,
-                     containers=boxes) if options.local_pool else None
+                     procs_dir=layout.procs, containers=boxes) if options.local_pool else None
     hub = WorkerHub(link=link, emit=inbox.post, store=store,
                     artifacts=artifacts, home=home_path, url_credential=url_credential(store),
                     attempts_on=lambda node: list(inbox.ask(AttemptsOn(node))),

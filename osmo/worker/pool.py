@@ -37,9 +37,9 @@ Sandbox (``sandbox``: ``auto``, ``on``, ``off``; ``osmo.runtime.sandbox``): chos
 the pool is made; commands then run in bubblewrap with a view of their own attempt's folders
 only (``workdir.attempt_view``), and the node's ``sandbox`` label says ``bwrap``. Without one,
 the label says ``none`` and every attempt's log starts with an osmo line saying so.
-A remote worker's pool also records each running command's pid and start time in
-``procs_dir`` (one file per process, removed when it is reaped), so that a worker restarted
-after a crash can kill what its previous life left (``osmo.worker.procs``).
+A pool records each command's pid and start time in ``procs_dir`` right after the spawn
+(one appended line; ``osmo.worker.procs``), so that a server or worker restarted after a
+crash can kill what its previous life left, even a command whose start it never reported.
 Creating a pool lifts the process's soft open-files limit (each running attempt holds four
 descriptors).
 """
@@ -314,3 +314,5 @@ class LocalPool(AttemptStarts):
             remove_secret_files(attempt.launch)
             self._ended(attempt.launch)
         self._attempts.clear()
+        if self._procs is not None:
+            self._procs.close()

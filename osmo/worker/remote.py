@@ -415,7 +415,7 @@ def _address() -> str:
 
 def procs_dir(home: Path) -> Path:
     """Where a worker's pool records its running commands (``osmo.worker.procs``)."""
-    return home / "procs"
+    return Home(home).procs
 
 
 def kill_leftovers(home: Path) -> int:

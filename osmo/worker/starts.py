@@ -74,8 +74,8 @@ class AttemptStarts(AttemptEndings):
     def _spawn(self, launch: Launch, *, wait: bool = False) -> ProcessHandle:
         """Start a launch (any thread): in its container, or as a (sandboxed) process.
 
-        ``wait``: on an I/O thread (a container peer may wait for its lead). A remote
-        worker's pool records the pid.
+        ``wait``: on an I/O thread (a container peer may wait for its lead). The pid is
+        recorded (``osmo.worker.procs``) before the start is reported.
         """
         if launch.container is None or self._containers is None:
             handle = self._runtime.start(launch.argv, cwd=launch.cwd, env=launch.env,
@@ -83,7 +83,7 @@ class AttemptStarts(AttemptEndings):
         else:
             handle = self._containers.start(launch, wait_for_lead=wait)
         if self._procs is not None:
-            self._procs.add(handle.pid)
+            self._procs.add(handle.pid, handle.started_at)
         return handle
 
     def _prepare(self, cmd: PrepareAttempt, task: TaskSpec, secrets: Secrets | None,

@@ -12,6 +12,9 @@ Run as ``python -m tests.hostile.faulty_server --home HOME`` with ``OSMO_FAULT``
   is created first, so that only one server of a test is killed. To make reports arrive
   together, the engine waits 1 s after the first final report it takes before it takes the
   rest.
+- ``spawn:WORD:MARKER``  the process kills itself (SIGKILL) right after its pool spawned a
+  command whose argv holds WORD, before the start is reported (MARKER as above: once per
+  test).
 
 Everything else is the real server (``osmo.server.app.main``).
 """
@@ -28,6 +31,7 @@ from osmo.errors import InfrastructureError
 from osmo.scheduler.types import AttemptExited
 from osmo.server import app, inbox, provenance
 from osmo.store import sqlite
+from osmo.worker import starts
 
 
 def _inject(kind: str, arg: str) -> None:
@@ -54,6 +58,17 @@ def _inject(kind: str, arg: str) -> None:
         provenance.Provenance.exited = faulty_exited  # type: ignore[method-assign]
     elif kind == "batch":
         _batch_kill(*arg.split(":", 2))
+    elif kind == "spawn":
+        word, marker = arg.split(":", 1)
+        spawn = starts.AttemptStarts._spawn
+
+        def dying_spawn(self: starts.AttemptStarts, launch: Any, **kw: Any) -> Any:
+            handle = spawn(self, launch, **kw)
+            if any(word in str(item) for item in launch.argv):
+                _die_once(marker)
+            return handle
+
+        starts.AttemptStarts._spawn = dying_spawn  # type: ignore[method-assign]
     elif kind == "store":
         tx, read = sqlite.Store._tx, sqlite.Store._read
 

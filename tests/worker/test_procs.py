@@ -63,3 +63,15 @@ def test_garbage_in_the_folder_is_cleared(tmp_path: Path) -> None:
     assert kill_recorded(folder) == 0
     assert not (folder / "123").exists()
     assert kill_recorded(tmp_path / "missing") == 0
+
+
+def test_the_record_empties_when_nothing_it_holds_runs(tmp_path: Path,
+                                                       group: subprocess.Popen[bytes]) -> None:
+    records = ProcessRecords(tmp_path / "procs")
+    records.add(group.pid)
+    records.add(os.getpid())  # a second one, still running
+    records.remove(group.pid)
+    assert (tmp_path / "procs" / "running").read_text().count("\n") == 2  # one still runs
+    records.remove(os.getpid())
+    assert (tmp_path / "procs" / "running").read_text() == ""
+    records.close()
