@@ -7,7 +7,9 @@ What it owns:
   ``/dev/null``, stdout and stderr as non-blocking pipes.
 - the sandbox: given a :class:`~osmo.runtime.sandbox.Sandbox` and a start's ``view``, the
   command runs inside bubblewrap (``osmo.runtime.sandbox``); bwrap's two processes then lead
-  the group. ``--die-with-parent`` ends the sandbox when the spawning thread's process dies.
+  the group. ``--die-with-parent`` ends the sandbox when the spawning thread's process dies
+  (not while bwrap is still setting it up: the pool records every pid at once for that,
+  ``osmo.worker.procs``).
   Unsandboxed, a ``preexec_fn`` sets ``PR_SET_PDEATHSIG`` (SIGKILL) on the command, so it
   too dies with its worker (that costs CPython its ``vfork``: about 1 ms more per spawn;
   the command's own children are then left to ``kill_stale`` after a restart).

@@ -19,8 +19,9 @@ A sandboxed command sees (``Sandbox.argv``, from an attempt's :class:`View`):
   host writable); bwrap sets ``no_new_privs``, so no exec (a setuid file) gives them back.
 
 ``--die-with-parent``: the sandbox is SIGKILLed when the process that started it (the pool
-thread that spawned it) ends, so no task outlives its worker or server. Everything in the
-sandbox shares bwrap's process group; the pid namespace ends, and the kernel kills every
+thread that spawned it) ends, so no task outlives its worker or server (a sandbox still being
+set up then runs on: the pool's record of pids covers that, ``osmo.worker.procs``). Everything
+in the sandbox shares bwrap's process group; the pid namespace ends, and the kernel kills every
 process left in it, when the command ends (a daemon that called ``setsid`` included).
 
 Why a private ``/tmp``: the host's holds other tasks' scratch files and the sockets of the
