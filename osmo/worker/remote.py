@@ -22,7 +22,7 @@ requests carrying the key the server's registration reply gave it.
 
 Leftovers: the pool records each running command's pid and start time under ``<home>/procs``;
 a worker started on a home kills whatever a previous life left there before it announces
-itself (:func:`kill_leftovers`), so a SIGKILLed worker's task never runs beside its
+itself (``osmo.worker.procs``), so a SIGKILLed worker's task never runs beside its
 rescheduled copy (tasks also die with their worker: ``osmo.runtime.process``).
 
 Drain (SIGTERM): the worker stops taking work (it re-registers with no capacity), lets
@@ -71,7 +71,7 @@ from osmo.worker.procs import kill_recorded
 from osmo.worker.sessions import NodeSessions
 from osmo.worker.store_keeper import StoreKeeper, clear_runs, default_limit
 
-__all__ = ["RemoteWorker", "kill_leftovers", "procs_dir"]
+__all__ = ["RemoteWorker"]
 
 log = logging.getLogger("osmo.worker")
 
@@ -125,7 +125,7 @@ class RemoteWorker:
         self._stop = threading.Event()
         self._io = ThreadPoolExecutor(4, thread_name_prefix="osmo-inputs")
         self._token: Subscription | None = None
-        kill_leftovers(self.home)
+        kill_recorded(self._layout.procs)  # before it announces itself
         clear_runs(self._layout, self._io)  # a previous life's attempts were all rescheduled
         limit = default_limit(self.home) if options.store_limit is None else options.store_limit
         self._keeper = StoreKeeper(self.home, self.store, self._inputs, limit,
@@ -137,7 +137,7 @@ class RemoteWorker:
             credential_for=self._url_creds.get, log_sink=self._send_log,
             input_manifests=self._inputs.manifest_of, sandbox=options.sandbox,
             sandbox_share=options.sandbox_share,
-            procs_dir=procs_dir(self.home),
+            procs_dir=self._layout.procs,
             containers=containers.for_node(options.runtime, options.container_engine, self.home))
         self.sessions = NodeSessions(self.link, self.pool, lambda ticket: self._api.call(
             "worker_session", {"id": self.id, "ticket": ticket}))
@@ -411,14 +411,4 @@ def _address() -> str:
             return str(s.getsockname()[0])
     except OSError:
         return "127.0.0.1"
-
-
-def procs_dir(home: Path) -> Path:
-    """Where a worker's pool records its running commands (``osmo.worker.procs``)."""
-    return Home(home).procs
-
-
-def kill_leftovers(home: Path) -> int:
-    """Kill what a previous life of the worker on ``home`` left running (before announcing)."""
-    return kill_recorded(procs_dir(home))
 
