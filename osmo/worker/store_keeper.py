@@ -80,14 +80,16 @@ class StoreKeeper:
 
     def added(self, manifest: Manifest) -> None:
         """``manifest``'s blobs were stored (an output ingested, an input fetched)."""
-        if not self._limit:
-            return
+        if self._limit and self._claim(lambda size: size + manifest.size):
+            self._start(self._collect_then_again)
+
+    def _claim(self, size: Callable[[int], int]) -> bool:
+        """Update the size (``size(old)``); True if a collection is due and now ours to run."""
         with self._lock:
-            self._size += manifest.size
+            self._size = size(self._size)
             due = self._size > self._limit and not self._collecting
             self._collecting = self._collecting or due
-        if due:
-            self._start(self._collect_then_again)
+        return due
 
     def acknowledged(self, attempt_id: str) -> None:
         """The server has all it takes of ``attempt_id``: remove its folders."""
@@ -138,11 +140,8 @@ class StoreKeeper:
                 self._collecting = False
 
     def _count_then_collect(self) -> None:
-        with self._lock:
-            self._size = self._store.size()
-            due = self._size > self._limit and not self._collecting
-            self._collecting = self._collecting or due
-        if due:
+        counted = self._store.size()
+        if self._claim(lambda _old: counted):
             self._collect_then_again()
 
     def _collect_then_again(self) -> None:

@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 
 from osmo.status import ExitCode
-from tests.conftest import REPO, Osmo, write
+from tests.conftest import REPO, Osmo, wait_gone, write
 from tests.hostile.datarun import finished, tasks
 
 # Several tasks finish together, so the culprit's exit shares a batch with innocent ones.
@@ -62,6 +62,12 @@ class Faulty:
             assert self.proc.poll() is None, self.log.read_text()
             assert time.monotonic() < deadline, "the faulty server never came up"
             time.sleep(0.05)
+
+    def killed_itself(self, marker: Path) -> None:
+        """Wait until the fault SIGKILLed this server (``marker`` made first) and it is gone."""
+        assert self.proc.wait(timeout=60) == -9, self.log.read_text()
+        assert marker.exists()
+        wait_gone(self.proc.pid)
 
     def stop(self) -> None:
         if self.proc.poll() is None:
