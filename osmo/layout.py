@@ -10,6 +10,7 @@
         server-options.json   the options of the last explicit ``osmo server start`` (0600)
         server.sock           the local server's Unix socket (owner-only: see ``server_socket``)
         auth/admin.token      the home owner's admin token (0600; used by the local CLI/SDK)
+        auth/notice.key       the server's Ed25519 key that signs its notices (0600)
         applying.json         ids of the attempt reports being applied (the quarantine file)
         crashes.json          tasks a server died applying a report of, and how often
         profile.json          the client profile (``osmo profile set``)
@@ -183,6 +184,11 @@ class Home:
     def admin_token(self) -> Path:
         """The home owner's admin token, created by the server at first start (0600)."""
         return self.auth / "admin.token"
+
+    @property
+    def notice_key(self) -> Path:
+        """The server's key for signing its broadcast notices (``osmo.transport.seal``)."""
+        return self.auth / "notice.key"
 
     @property
     def applying(self) -> Path:

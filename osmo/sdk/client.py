@@ -211,7 +211,7 @@ class Client:
              min_interval: float = 0.05) -> WorkflowInfo:
         """Block until the workflow is terminal; returns its final info.
 
-        Wakes on the server's change notices (zenoh subscription) and re-reads the status
+        Wakes on the server's signed change notices (zenoh subscription) and re-reads the status
         (at most every ``min_interval`` seconds, so a busy workflow costs the server little);
         also re-reads at least every second in case a notice was missed. ``on_update`` gets
         the full workflow (with tasks) at each wake.
@@ -220,8 +220,15 @@ class Client:
             TimeoutError: ``timeout`` seconds passed first.
         """
         changed = threading.Event()
-        sub = self._conn.link.subscribe(self._conn.link.key("events", workflow_id),
-                                        lambda _m: changed.set())
+        api = self._conn.api
+        api.channel()  # learn the server's notice key first
+
+        def on_notice(key: str, payload: bytes, signature: bytes | None) -> None:
+            if api.verifier is not None and api.verifier.notice(key, payload, signature):
+                changed.set()  # a notice a peer made up wakes nobody
+
+        sub = self._conn.link.subscribe_raw(self._conn.link.key("events", workflow_id),
+                                            on_notice)
         deadline = None if timeout is None else time.monotonic() + timeout
         try:
             while True:
@@ -265,9 +272,8 @@ class Client:
         reply = self._call("artifact_get", target=target)
         from osmo.artifacts import Manifest
 
-        written = transfer.download(self._conn.link, self.ping(), Manifest.from_json(
-            reply["body"]), Path(dest).absolute(), only=reply.get("only"),
-            token=self._conn.api.token)
+        written = transfer.download(self._conn.api, self.ping(), Manifest.from_json(
+            reply["body"]), Path(dest).absolute(), only=reply.get("only"))
         return [str(p) for p in written]
 
     def gc_artifacts(self) -> tuple[int, int]:
@@ -304,9 +310,8 @@ class Client:
 
         parse_ref(ref)
         reply = self._call("dataset_download", ref=ref, regex=regex)
-        written = transfer.download(self._conn.link, self.ping(),
-                                    Manifest.from_json(reply["manifest"]), Path(dest).absolute(),
-                                    token=self._conn.api.token)
+        written = transfer.download(self._conn.api, self.ping(),
+                                    Manifest.from_json(reply["manifest"]), Path(dest).absolute())
         return [str(p) for p in written]
 
     def upload_dataset(self, name: str, path: str | os.PathLike[str], *,
@@ -321,7 +326,7 @@ class Client:
         folder = Path(path).absolute()
         if not folder.is_dir():
             raise UsageError(f"cannot upload '{folder}': not a folder")
-        offer = transfer.upload(self._conn.link, folder)
+        offer = transfer.upload(self._conn.api, folder)
         try:
             reply = self._call("dataset_upload", name=name, manifest=offer.manifest.to_json(),
                                source=offer.source, metadata=metadata or {}, timeout=3600)

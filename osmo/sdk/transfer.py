@@ -8,7 +8,6 @@ the cache and serve it while the server pulls what it lacks. The cache is
 
 from __future__ import annotations
 
-import secrets
 import shutil
 import tempfile
 import uuid
@@ -19,7 +18,7 @@ from osmo.artifacts import ArtifactStore, Manifest
 from osmo.config import home_dir
 from osmo.layout import Home
 from osmo.transport.blobs import SERVER, BlobServer, SameHost, fetch_manifest, host_id
-from osmo.transport.zenoh_link import Link
+from osmo.transport.rpc import ApiClient
 
 __all__ = ["download", "upload"]
 
@@ -34,27 +33,26 @@ def _same_host(server: dict[str, Any]) -> SameHost | None:
     return None
 
 
-def download(link: Link, server: dict[str, Any], manifest: Manifest, dest: Path,
-             only: str | None = None, token: bytes | None = None) -> list[Path]:
+def download(api: ApiClient, server: dict[str, Any], manifest: Manifest, dest: Path,
+             only: str | None = None) -> list[Path]:
     """Write ``manifest``'s files (or just ``only``) under ``dest``, verified.
 
-    ``token`` goes with every blob request (the server's blob server checks it).
+    Every blob request is sealed on ``api``'s channel (the server's blob server checks it).
     """
     cache = _cache()
     wanted = Manifest(tuple(e for e in manifest.entries if only is None or e.path == only))
-    fetch_manifest(link, SERVER, wanted, cache, same_host=_same_host(server),
-                   attachment=token)
+    fetch_manifest(api, SERVER, wanted, cache, same_host=_same_host(server))
     return cache.materialize(manifest, dest, only=only)
 
 
 class Upload:
     """A folder offered to the server: ``source`` tells the server where to pull from.
 
-    Its blob server answers only requests carrying ``source["key"]``, a random key that
-    reaches the server inside the (authenticated) upload request.
+    Its blob server answers only the server's requests sealed on ``api``'s channel (the one
+    the upload request itself comes on).
     """
 
-    def __init__(self, link: Link, folder: Path) -> None:
+    def __init__(self, api: ApiClient, folder: Path) -> None:
         cache = _cache()
         staging = Path(tempfile.mkdtemp(prefix="upload-", dir=cache.tmp))
         try:  # a copy: ingest makes files read-only hard links, the user's stay as they are
@@ -63,16 +61,15 @@ class Upload:
         finally:
             shutil.rmtree(staging, ignore_errors=True)
         owner = f"client-{uuid.uuid4().hex[:12]}"
-        key = secrets.token_bytes(16)
-        self.source = {"owner": owner, "host_id": host_id(), "artifacts": str(cache.root),
-                       "key": key.hex()}
-        self._server = BlobServer(link, owner, cache, lambda att, _digest: att == key)
+        self.source = {"owner": owner, "host_id": host_id(), "artifacts": str(cache.root)}
+        api.channel()  # the server pulls on it: open before the upload request names it
+        self._server = BlobServer(api.link, owner, cache, api.open_asked)
 
     def close(self) -> None:
         """Stop serving."""
         self._server.close()
 
 
-def upload(link: Link, folder: Path) -> Upload:
+def upload(api: ApiClient, folder: Path) -> Upload:
     """Start offering ``folder``; close the returned :class:`Upload` when the server is done."""
-    return Upload(link, folder)
+    return Upload(api, folder)

@@ -56,7 +56,8 @@ from osmo.server.workers import WorkerHub
 from osmo.store.sqlite import Store
 from osmo.transport.blobs import host_id
 from osmo.transport.rpc import ApiServer
-from osmo.transport.wire import SERVER_ONLY
+from osmo.transport.seal import Signer
+from osmo.transport.wire import PEER_ALLOW, PEER_DENY
 from osmo.transport.zenoh_link import Link
 from osmo.worker import containers
 from osmo.worker.pool import LocalPool
@@ -103,7 +104,7 @@ def serve(home: str | os.PathLike[str] | None = None, options: ServerOptions | N
     store = Store(layout.state_db)
     owner_token(home_path, store)
     accept_tokens(store, options.accept_tokens)
-    authenticate = Authenticator(store)
+    authenticate = Authenticator(store, Signer(layout.notice_key))
     inflight = InFlight(layout.applying, layout.crashes)
     restored = restore(store)
     active, failed = quarantine(restored.active, inflight.strike(inflight.left))
@@ -113,10 +114,10 @@ def serve(home: str | os.PathLike[str] | None = None, options: ServerOptions | N
 
     link = Link.router(endpoints, options.cluster, connect=connect,
                        config_file=options.zenoh_config, peer=bool(connect) and not listen,
-                       reserved=SERVER_ONLY)
+                       allow=PEER_ALLOW, deny=PEER_DENY)
     stopping = threading.Event()
 
-    notifier = Notifier(link)
+    notifier = Notifier(link, authenticate.channels.signer)
     on_changed = notifier.changed
 
     inbox = Inbox()
@@ -131,7 +132,7 @@ def serve(home: str | os.PathLike[str] | None = None, options: ServerOptions | N
     hub = WorkerHub(link=link, emit=inbox.post, store=store,
                     artifacts=artifacts, home=home_path, url_credential=url_credential(store),
                     attempts_on=lambda node: list(inbox.ask(AttemptsOn(node))),
-                    authenticate=authenticate)
+                    gate=authenticate)
     records = RunRecords(store, home_path)
     fatal: list[BaseException] = []
 
@@ -171,7 +172,7 @@ def serve(home: str | os.PathLike[str] | None = None, options: ServerOptions | N
             "runtime": pool.runtime_name() if pool is not None else None}
     local_sessions = NodeSessions(link, pool) if pool is not None else None
     handlers = Handlers(engine, home_path, info, on_shutdown=stopping.set, workers=hub,
-                        link=link, tokens=TokenHandlers(store, authenticate),
+                        link=link, gate=authenticate, tokens=TokenHandlers(store, authenticate),
                         sessions=Sessions(store, hub, local_sessions))
     api_server = ApiServer(link, handlers.handle, authenticate, inline=WorkerHub.INLINE,
                            on_crash=lambda exc: log.error("API handler crashed", exc_info=exc))

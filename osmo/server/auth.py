@@ -1,8 +1,10 @@
 """Who may ask the server what: token authentication, roles, the owner's admin token.
 
-:class:`Authenticator` turns the token a request carries (``osmo.transport.auth``) into an
+:class:`Authenticator` opens the channels requests are sealed on (``osmo.transport.seal``:
+a client proves it holds a token without sending it) and turns a channel's token into an
 :class:`~osmo.transport.auth.Identity`, once per request, through a cache of token digest →
-identity (a revoked token leaves the cache at once). :func:`authorize` is the role policy:
+identity (a revoked token leaves the cache, and loses its channels, at once).
+:func:`authorize` is the role policy:
 
 - ``admin`` — everything.
 - ``user`` — submit, read everything but secret values, cancel and restart its own
@@ -28,6 +30,7 @@ import os
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -37,6 +40,7 @@ from osmo.names import check_name, shown
 from osmo.store.sqlite import Store
 from osmo.transport.auth import Identity, Role, new_token, token_digest
 from osmo.transport.rpc import field
+from osmo.transport.seal import ChannelTable, Signer, TokenKeys
 
 __all__ = ["OWNER", "WORKER_VERBS", "Authenticator", "TokenHandlers", "accept_tokens",
            "authorize", "check_owner", "owner_token", "refuse"]
@@ -47,13 +51,14 @@ OWNER = "admin"
 """The name of the home owner's admin token."""
 
 WORKER_VERBS = frozenset({"worker_register", "worker_drain", "worker_report", "worker_log",
-                          "worker_secrets", "worker_session"})
+                          "worker_secrets", "worker_session", "worker_beat"})
 """The verbs a worker speaks (and only a worker or an admin)."""
 
 _ADMIN_ONLY = frozenset({"shutdown", "token_create", "token_list", "token_revoke",
                          "credential_set", "credential_delete", "artifact_gc"})
 _ANYONE = frozenset({"ping"})
 _MAX_CACHE = 4096
+_RELOAD_EVERY = 0.5  # seconds between two reads of the token ids for an unknown one
 
 
 def refuse(verb: str, who: Identity | None, why: str, *, known: bool = True) -> Exception:
@@ -97,43 +102,74 @@ def check_owner(workflow_id: str, owner: str | None, who: Identity, verb: str) -
 
 
 class Authenticator:
-    """``token -> Identity`` against the store's tokens, with a cache (see the module doc)."""
+    """The server's side of authentication: channels, and token digest -> identity.
 
-    def __init__(self, store: Store) -> None:
+    Implements ``osmo.transport.rpc.Gate``. A hello names a token by its id
+    (``osmo.transport.seal.TokenKeys``): the ids of the live tokens are kept in memory,
+    read again from the store when an unknown id comes (at most every
+    :data:`_RELOAD_EVERY` seconds, so a stream of made-up ids costs nothing). Identities
+    are cached by digest; a revoked token leaves the cache and loses its channels at once.
+
+    Args:
+        store: the state store (its tokens).
+        signer: the server's notice signer (its public key goes into every hello).
+    """
+
+    def __init__(self, store: Store, signer: Signer) -> None:
         self._store = store
         self._lock = threading.Lock()
         self._cache: dict[str, Identity] = {}
+        self._ids: dict[bytes, str] = {}
+        self._loaded = float("-inf")
+        self.channels = ChannelTable(self._digest_of, signer)
 
-    def __call__(self, token: bytes | None) -> Identity:
-        """The identity of ``token``.
+    def _digest_of(self, token_id: bytes) -> str | None:
+        with self._lock:
+            digest = self._ids.get(token_id)
+            stale = digest is None and time.monotonic() - self._loaded > _RELOAD_EVERY
+        if stale:
+            self.reload()
+            with self._lock:
+                digest = self._ids.get(token_id)
+        if digest is None or self._store.token_by_digest(digest) is None:
+            return None
+        return digest
+
+    def reload(self) -> None:
+        """Read the live tokens' ids from the store again (after a token was added)."""
+        ids = {TokenKeys.from_digest(digest).id: digest
+               for _name, digest in self._store.token_rows()}
+        with self._lock:
+            self._ids, self._loaded = ids, time.monotonic()
+
+    def identity(self, digest: str, channel: bytes = b"") -> Identity:
+        """The identity of the live token with sha256 ``digest``, asking on ``channel``.
 
         Raises:
-            NotAuthenticated: no token, or one this server does not know (or revoked).
+            NotAuthenticated: no live token has it (unknown, or revoked).
         """
-        if not token:
-            raise NotAuthenticated(
-                "this osmo server needs a token: give one with --token, OSMO_TOKEN or "
-                "`osmo profile set token TOKEN` (an admin creates it with `osmo token "
-                "create NAME --role user`)")
-        digest = token_digest(token)
         who = self._cache.get(digest)
-        if who is not None:
-            return who
-        row = self._store.token_by_digest(digest)
-        if row is None:
-            raise NotAuthenticated("this osmo server does not know this token (unknown or "
-                                   "revoked); ask its admin for a new one")
-        who = Identity(row[0], Role(row[1]))
-        with self._lock:
-            if len(self._cache) >= _MAX_CACHE:
-                self._cache.clear()
-            self._cache[digest] = who
-        return who
+        if who is None:
+            row = self._store.token_by_digest(digest)
+            if row is None:
+                raise NotAuthenticated("this osmo server does not know this token (unknown or "
+                                       "revoked); ask its admin for a new one")
+            who = Identity(row[0], Role(row[1]))
+            with self._lock:
+                if len(self._cache) >= _MAX_CACHE:
+                    self._cache.clear()
+                self._cache[digest] = who
+        return replace(who, channel=channel) if channel else who
 
     def forget(self, name: str) -> None:
-        """Drop a revoked token's cached identity."""
+        """Drop a revoked token's cached identity and close its channels."""
         with self._lock:
             self._cache = {d: who for d, who in self._cache.items() if who.name != name}
+            digests = set(self._ids.values())
+        for digest in digests:
+            if self._store.token_by_digest(digest) is None:
+                self.channels.revoke(digest)
+        self.reload()
 
 
 def owner_token(home: Path, store: Store) -> None:
@@ -217,6 +253,7 @@ class TokenHandlers:
         if not self._store.add_token(name, role.value, token_digest(token), time.time()):
             raise UsageError(f"a token named '{name}' exists already (revoked names are not "
                              "reused); pick another name")
+        self._auth.reload()
         log.info("token '%s' created with role %s", name, role.value)
         return {"name": name, "role": role.value, "token": token}
 

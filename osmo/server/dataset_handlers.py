@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import re
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -20,9 +21,9 @@ from osmo.names import check_name, check_tag, check_worker_name, parse_ref, show
 from osmo.server.datasets import select
 from osmo.server.engine import Engine
 from osmo.server.requests import AddDatasetVersion, TagDataset
-from osmo.transport.blobs import SERVER, SameHost, fetch_manifest, host_id
+from osmo.transport.auth import Identity
+from osmo.transport.blobs import SERVER, Asker, SameHost, fetch_manifest, host_id
 from osmo.transport.rpc import field, str_map
-from osmo.transport.zenoh_link import Link
 
 __all__ = ["DatasetHandlers"]
 
@@ -33,13 +34,13 @@ class DatasetHandlers:
     """Handlers for ``dataset_*`` verbs.
 
     Args:
-        link: the server's session, to pull an upload's blobs from its client (None: this
-            server takes no uploads).
+        asker_of: asks a caller's own blob server on the caller's channel, to pull an
+            upload's blobs from it (None: this server takes no uploads).
     """
 
     def __init__(self, engine: Engine, artifacts: ArtifactStore, home: Path,
-                 link: Link | None = None) -> None:
-        self._link = link
+                 asker_of: Callable[[Identity], Asker | None] | None = None) -> None:
+        self._asker_of = asker_of
         self._engine = engine
         self._store = engine.store
         self._artifacts = artifacts
@@ -48,8 +49,11 @@ class DatasetHandlers:
     def verbs(self) -> dict[str, Any]:
         """Verb name → handler."""
         return {"dataset_list": self.list, "dataset_info": self.info,
-                "dataset_tag": self.tag, "dataset_download": self.download,
-                "dataset_upload": self.upload}
+                "dataset_tag": self.tag, "dataset_download": self.download}
+
+    def callers(self) -> dict[str, Callable[[dict[str, Any], Identity], Any]]:
+        """Verb name → handler that gets the caller's identity."""
+        return {"dataset_upload": self.upload}
 
     def list(self, request: dict[str, Any]) -> list[dict[str, Any]]:
         """Every version (of one dataset), newest first, with size and tags."""
@@ -86,12 +90,14 @@ class DatasetHandlers:
         manifest = select(Manifest.from_json(body), path=None, regex=regex)
         return {"manifest": manifest.to_json(), "version": row["version"]}
 
-    def upload(self, request: dict[str, Any]) -> dict[str, Any]:
+    def upload(self, request: dict[str, Any], who: Identity) -> dict[str, Any]:
         """Make a new version of ``name`` from the manifest of a client's folder.
 
-        The blobs this server lacks are pulled from the client (``request["source"]``) first.
+        The blobs this server lacks are pulled from the client (``request["source"]``) first,
+        on the channel this request came on.
         """
-        if self._link is None:
+        asker = self._asker_of(who) if self._asker_of is not None else None
+        if asker is None:
             raise UsageError("this server cannot receive uploads")
         name = check_name(request.get("name"), "dataset name")
         try:
@@ -100,11 +106,11 @@ class DatasetHandlers:
             raise UsageError(f"'manifest' is not one: {str(exc)[:300]}") from None
         source = field(request, "source", dict)
         metadata = str_map(request, "metadata")
-        self._pull(self._link, source, manifest)
+        self._pull(asker, source, manifest)
         version = self._engine.ask(AddDatasetVersion(name, manifest, metadata))
         return {"name": name, "version": version, "manifest": manifest.digest}
 
-    def _pull(self, link: Link, source: dict[str, Any], manifest: Manifest) -> None:
+    def _pull(self, asker: Asker, source: dict[str, Any], manifest: Manifest) -> None:
         """Fetch ``manifest``'s blobs from the client that serves them.
 
         It serves them as ``source["owner"]``; they are linked from ``source["artifacts"]`` instead
@@ -119,14 +125,8 @@ class DatasetHandlers:
                      what="'source.host_id'")
         artifacts = field(source, "artifacts", str, default=None, max_len=_MAX_TEXT,
                           what="'source.artifacts'")
-        key = field(source, "key", str, default="", max_len=64, what="'source.key'")
-        try:
-            attachment = bytes.fromhex(key)
-        except ValueError:
-            raise UsageError("'source.key' must be hexadecimal") from None
         same = SameHost(Path(artifacts)) if host == host_id() and artifacts else None
-        fetch_manifest(link, owner, manifest, self._artifacts, same_host=same,
-                       attachment=attachment)
+        fetch_manifest(asker, owner, manifest, self._artifacts, same_host=same)
 
     def _row(self, ref: object) -> dict[str, Any]:
         name, tag = parse_ref(ref)

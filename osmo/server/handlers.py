@@ -49,7 +49,8 @@ from osmo.spec.typed import apply_resolved
 from osmo.status import TaskStatus, WorkflowStatus
 from osmo.store.sqlite import WorkflowRow
 from osmo.transport.auth import Identity, Role
-from osmo.transport.rpc import MAX_INT, field, str_list
+from osmo.transport.blobs import Asker
+from osmo.transport.rpc import MAX_INT, Gate, ask_back, field, str_list
 from osmo.transport.zenoh_link import Link
 
 __all__ = ["Handlers"]
@@ -67,12 +68,17 @@ CallerVerb = Callable[[dict[str, Any], Identity], Any]
 _PRIVATE_INFO = ("home", "artifacts", "zenoh_config", "endpoint", "endpoints")
 
 
+def _asker_of(link: Link, gate: Gate) -> Callable[[Identity], Asker | None]:
+    return lambda who: ask_back(link, gate, who.channel)
+
+
 class Handlers:
     """Dispatches ``verb`` → handler. ``info`` is returned by ``ping``."""
 
     def __init__(self, engine: Engine, home: Path, info: dict[str, Any],
                  on_shutdown: Callable[[], None], workers: WorkerHub | None = None,
-                 link: Link | None = None, tokens: TokenHandlers | None = None,
+                 link: Link | None = None, gate: Gate | None = None,
+                 tokens: TokenHandlers | None = None,
                  sessions: Sessions | None = None) -> None:
         self._workers = workers  # the WorkerHub: its verbs, and worker status for pools
         self._engine = engine
@@ -102,7 +108,10 @@ class Handlers:
         if tokens is not None:
             self._verbs.update(tokens.verbs())
         self._verbs.update(ArtifactHandlers(self._store, self._artifacts, self._row).verbs())
-        self._verbs.update(DatasetHandlers(engine, self._artifacts, home, link).verbs())
+        datasets = DatasetHandlers(engine, self._artifacts, home,
+                                   _asker_of(link, gate) if link and gate else None)
+        self._verbs.update(datasets.verbs())
+        self._callers.update(datasets.callers())
         self._verbs.update(CredentialHandlers(self._store).verbs())
 
     def handle(self, verb: str, request: dict[str, Any], who: Identity) -> Any:

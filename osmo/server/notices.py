@@ -1,7 +1,9 @@
 """Change notices to clients, sent off the engine thread and coalesced.
 
 The engine reports which workflows changed after each commit; clients waiting on a workflow
-subscribe to ``events/<workflow_id>`` and re-read its state when a notice arrives. Sending a
+subscribe to ``events/<workflow_id>`` and re-read its state when a notice arrives. Each
+notice is signed with the server's key (``osmo.transport.seal.Signer``: its attachment is
+the signature of the key and payload), so a client acts on no notice a peer made up. Sending a
 zenoh message costs the engine thread most of a millisecond, so :class:`Notifier` hands the
 ids to its own thread, which sends one notice per workflow for everything that piled up
 meanwhile (a burst of changes becomes one notice).
@@ -15,8 +17,10 @@ none is dropped: what is pending when the notifier closes is sent then.
 
 from __future__ import annotations
 
+import json
 import threading
 
+from osmo.transport.seal import Signer
 from osmo.transport.zenoh_link import Link
 
 __all__ = ["NOTICE_INTERVAL", "Notifier"]
@@ -30,11 +34,12 @@ class Notifier:
 
     Args:
         link: the server's zenoh link.
+        signer: signs each notice.
         interval: seconds to wait after a send before the next (see the module docstring).
     """
 
-    def __init__(self, link: Link, interval: float = NOTICE_INTERVAL) -> None:
-        self._link = link
+    def __init__(self, link: Link, signer: Signer, interval: float = NOTICE_INTERVAL) -> None:
+        self._link, self._signer = link, signer
         self._interval = interval
         self._pending: set[str] = set()
         self._cond = threading.Condition()
@@ -65,7 +70,9 @@ class Notifier:
 
     def _send(self, ids: set[str]) -> None:
         for wf_id in ids:
-            self._link.publish(self._link.key("events", wf_id), {"workflow_id": wf_id})
+            key = self._link.key("events", wf_id)
+            payload = json.dumps({"workflow_id": wf_id}).encode()
+            self._link.put(key, payload, self._signer.sign_notice(key, payload))
 
     def close(self) -> None:
         """Send what is pending, then stop."""

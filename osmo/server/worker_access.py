@@ -6,21 +6,20 @@ is alive. One token may register several ids (the replicas of a Kubernetes pool 
 Secret); they are one trust domain. Every placement the hub sends is
 remembered (:meth:`place`), so a report, log batch or secret request is accepted only from
 the worker the attempt is placed on (:meth:`placed_on`). A worker reads from the server's
-blob server only the inputs its placements listed (:meth:`may_read`); the server reads from a
-worker's blob server with the random key the registration reply handed out (:meth:`key`).
+blob server only the inputs its placements listed (:meth:`may_read`); the server reads a
+worker's blobs on the channel the worker opened (``osmo.server.workers``).
 
 Every refusal is one log line (``osmo.server.auth.refuse``).
 """
 
 from __future__ import annotations
 
-import secrets
 import threading
 from collections import OrderedDict
 from collections.abc import Callable, Iterable
 from typing import Any
 
-from osmo.errors import NotAuthenticated, OsmoError
+from osmo.errors import OsmoError
 from osmo.server.auth import refuse
 from osmo.spec.model import TaskSpec
 from osmo.transport.auth import Identity, Role
@@ -41,21 +40,18 @@ class WorkerAccess:
     """Bindings of tokens to workers, placements and blob grants (see the module docstring).
 
     Args:
-        authenticate: ``token -> Identity`` (for blob requests, which carry the token).
-        alive: whether a worker id's liveliness token is seen now.
+        alive: whether a worker id is alive now (its token seen, its beats on time).
     """
 
-    def __init__(self, authenticate: Callable[[bytes | None], Identity],
-                 alive: Callable[[str], bool]) -> None:
-        self._authenticate, self._alive = authenticate, alive
+    def __init__(self, alive: Callable[[str], bool]) -> None:
+        self._alive = alive
         self._lock = threading.Lock()
         self._owner: dict[str, str] = {}  # worker id -> the token name that registered it
-        self._keys: dict[str, bytes] = {}  # worker id -> key for reading its blob server
         self._placed: OrderedDict[str, tuple[str, TaskSpec | None]] = OrderedDict()
         self._grants: dict[str, set[str]] = {}  # worker id -> input blobs it may read
 
-    def bind(self, who: Identity, wid: str) -> bytes:
-        """Give worker ``wid`` to ``who``'s token; returns a fresh key for its blob server.
+    def bind(self, who: Identity, wid: str) -> None:
+        """Give worker ``wid`` to ``who``'s token.
 
         Raises:
             NotAllowed: ``wid`` is a live worker of another token.
@@ -65,10 +61,8 @@ class WorkerAccess:
         if owner not in (None, who.name) and self._alive(wid):
             raise refuse("worker_register", who, f"worker {wid} is registered with another "
                                                  "token and is alive")
-        key = secrets.token_bytes(16)
         with self._lock:
-            self._owner[wid], self._keys[wid] = who.name, key
-        return key
+            self._owner[wid] = who.name
 
     def speaker(self, verb: str, request: dict[str, Any], who: Identity) -> str:
         """The worker id ``request`` speaks for (its ``id``), if ``who`` registered it.
@@ -119,22 +113,15 @@ class WorkerAccess:
             raise refuse(verb, who, f"attempt {aid!r} is not placed on worker {wid}")
         return placed[1]
 
-    def may_read(self, attachment: bytes | None, digest: str) -> bool:
+    def may_read(self, who: Identity | None, digest: str) -> bool:
         """The server's blob server: users and admins read any blob, a worker its inputs."""
-        try:
-            who = self._authenticate(attachment)
-        except NotAuthenticated:
+        if who is None:
             return False
         if who.role is not Role.WORKER:
             return True
         with self._lock:
             return any(digest in self._grants.get(wid, ()) for wid, name in self._owner.items()
                        if name == who.name)
-
-    def key(self, wid: str) -> bytes | None:
-        """The key to read ``wid``'s blob server with (None before it registered)."""
-        with self._lock:
-            return self._keys.get(wid)
 
 
 def task_urls(task: TaskSpec) -> list[str]:

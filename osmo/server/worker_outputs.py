@@ -22,8 +22,7 @@ from osmo.artifacts import ArtifactStore, Manifest
 from osmo.errors import OsmoError
 from osmo.layout import AttemptDirs, Home
 from osmo.scheduler.types import AttemptExited, AttemptLost, Event
-from osmo.transport.blobs import SameHost, fetch_manifest
-from osmo.transport.zenoh_link import Link
+from osmo.transport.blobs import Asker, SameHost, fetch_manifest
 
 __all__ = ["OutputIntake"]
 
@@ -35,22 +34,21 @@ class OutputIntake:
     """Takes remote exits in (see the module docstring).
 
     Args:
-        link: the server's session (blob requests to workers).
         artifacts: the server's artifact store.
         home: the server's home (outputs are linked under ``runs/``).
         emit: the engine's event queue.
         send: ``(worker id, order)`` — the ``ack`` after the exit was emitted.
-        blob_key: a worker's blob-server key (what the server's requests carry).
+        asker: asks a worker's blob server on its channel (None: it has none open).
         same_host: a worker's same-host details, if it shares this host's store.
     """
 
-    def __init__(self, *, link: Link, artifacts: ArtifactStore, home: Path,
+    def __init__(self, *, artifacts: ArtifactStore, home: Path,
                  emit: Callable[[Event], None], send: Callable[[str, dict[str, Any]], None],
-                 blob_key: Callable[[str], bytes | None],
+                 asker: Callable[[str], Asker | None],
                  same_host: Callable[[str], SameHost | None]) -> None:
-        self._link, self._artifacts, self._home = link, artifacts, home
+        self._artifacts, self._home = artifacts, home
         self._emit, self._send = emit, send
-        self._blob_key, self._same_host = blob_key, same_host
+        self._asker, self._same_host = asker, same_host
         self._transfers = ThreadPoolExecutor(4, thread_name_prefix="osmo-pull")
 
     def exited(self, wid: str, event: AttemptExited) -> None:
@@ -76,9 +74,11 @@ class OutputIntake:
         try:
             if manifest is not None:
                 t0 = time.perf_counter()
-                sent = fetch_manifest(self._link, wid, manifest, self._artifacts,
-                                      same_host=self._same_host(wid),
-                                      attachment=self._blob_key(wid))
+                asker = self._asker(wid)
+                if asker is None:
+                    raise OsmoError(f"worker {wid} has no open channel to pull from")
+                sent = fetch_manifest(asker, wid, manifest, self._artifacts,
+                                      same_host=self._same_host(wid))
                 if sent:
                     took = time.perf_counter() - t0
                     log.info("outputs of %s: %d bytes fetched from worker %s in %.3fs "

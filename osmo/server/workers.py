@@ -5,11 +5,16 @@ turns the engine's commands into orders to workers and worker traffic into event
 ``osmo.transport.wire`` for the keys and messages):
 
 - A worker is a scheduler node once it has registered *and* its liveliness token is seen;
-  the token going away is ``NodeDown`` (its attempts are rescheduled). A draining worker is
-  re-announced with no capacity, so nothing new is placed on it.
+  the token going away is ``NodeDown`` (its attempts are rescheduled), and so is a worker
+  whose beats stop for ``wire.LEASE`` seconds (a peer can hold a copy of a dead worker's
+  token; it cannot beat for it). A draining worker is re-announced with no capacity, so
+  nothing new is placed on it.
+- Every order is sealed on the channel the worker last spoke on (``osmo.transport.seal``),
+  and the server pulls a worker's outputs on it too: no other peer can read, forge or
+  replay one.
 - ``prepare`` sends the attempt with the input manifests it needs (the task's workflow spec
-  only the first time a worker hears of that workflow). Secrets never travel in an order
-  (any subscriber of ``to-worker/**`` receives it): the worker asks ``worker_secrets``.
+  only the first time a worker hears of that workflow). Secrets never travel in an order:
+  the worker asks ``worker_secrets``.
 - An exit report's outputs are fetched, verified and linked into the server's ``runs/``
   tree before the engine sees the exit, then the worker gets its ``ack``
   (``osmo.server.worker_outputs``); a transfer that fails makes the attempt lost.
@@ -23,9 +28,9 @@ turns the engine's commands into orders to workers and worker traffic into event
 
 from __future__ import annotations
 
-import json
 import logging
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
@@ -55,8 +60,9 @@ from osmo.spec.model import ResourceSpec, TaskSpec
 from osmo.store.sqlite import Store
 from osmo.transport.auth import Identity
 from osmo.transport.blobs import SERVER, BlobServer, SameHost, host_id
-from osmo.transport.rpc import field
-from osmo.transport.wire import Hello, event_from_dict, prepare_to_dict, spec_to_wire
+from osmo.transport.rpc import Gate, ServerAsker, ask_back, field, gate_opener
+from osmo.transport.seal import Purpose, seal_json
+from osmo.transport.wire import LEASE, Hello, event_from_dict, prepare_to_dict, spec_to_wire
 from osmo.transport.zenoh_link import Link, Subscription
 
 __all__ = ["WorkerHub"]
@@ -76,7 +82,8 @@ class WorkerHub:
         url_credential: ``url -> credential`` for data URLs.
         attempts_on: the ids of the attempts the scheduler placed on a node (asked of the
             engine when a worker registers again).
-        authenticate: ``token -> Identity`` (for the server's blob server).
+        gate: the server's channels and token identities (``osmo.transport.rpc.Gate``).
+        lease: seconds a registered worker may stay silent (no beat) before it is down.
     """
 
     INLINE = frozenset({"worker_report", "worker_log"})
@@ -85,29 +92,36 @@ class WorkerHub:
     def __init__(self, *, link: Link, emit: Callable[[Event], None], store: Store,
                  artifacts: ArtifactStore, home: Path,
                  url_credential: Callable[[str], dict[str, str] | None],
-                 attempts_on: Callable[[str], list[str]],
-                 authenticate: Callable[[bytes | None], Identity]) -> None:
+                 attempts_on: Callable[[str], list[str]], gate: Gate,
+                 lease: float = LEASE) -> None:
         self._link, self._emit, self._store = link, emit, store
         self._artifacts, self._home = artifacts, home
         self._url_credential, self._attempts_on = url_credential, attempts_on
+        self._gate, self._lease = gate, lease
         self._lock = threading.Lock()
         self._nodes: dict[str, Node] = {}  # registered workers
         self._info: dict[str, dict[str, Any]] = {}
         self._alive: set[str] = set()
+        self._heard: dict[str, tuple[bytes, float]] = {}  # worker id -> (channel, when)
         self._draining: set[str] = set()
         self._same_host: dict[str, SameHost | None] = {}
         self._sent_specs: dict[str, set[str]] = {}
         self._logs = RemoteLogs(home)
-        self._access = WorkerAccess(authenticate, lambda wid: wid in self._alive)
-        self._outputs = OutputIntake(link=link, artifacts=artifacts, home=home, emit=emit,
-                                     send=self._send, blob_key=self._access.key,
+        self._access = WorkerAccess(self._is_alive)
+        self._outputs = OutputIntake(artifacts=artifacts, home=home, emit=emit,
+                                     send=self._send, asker=self._asker,
                                      same_host=self._same_host_of)
         self._host = host_id()
         self._subs: list[Subscription] = [
             link.watch(link.key("alive", "worker", "*"), self._on_token),
         ]
-        self._blobs = BlobServer(link, SERVER, artifacts, self._access.may_read)
+        self._blobs = BlobServer(link, SERVER, artifacts, gate_opener(gate),
+                                 self._access.may_read)
         self._server_token = link.token(link.key("alive", SERVER))
+        self._closed = threading.Event()
+        self._watchdog = threading.Thread(target=self._watch_beats, name="osmo-worker-lease",
+                                          daemon=True)
+        self._watchdog.start()
 
     # ------------------------------------------------------------------ membership
 
@@ -115,7 +129,7 @@ class WorkerHub:
         """API verbs served for workers (each gets the caller's identity)."""
         return {"worker_register": self.register, "worker_drain": self.drain,
                 "worker_report": self.report, "worker_log": self.log,
-                "worker_secrets": self.secrets}
+                "worker_secrets": self.secrets, "worker_beat": self.beat}
 
     def register(self, request: dict[str, Any], who: Identity) -> dict[str, Any]:
         """A worker says hello (``osmo.transport.wire.Hello``).
@@ -129,7 +143,8 @@ class WorkerHub:
         """
         hello = Hello.from_dict(request)
         node, wid = hello.node, hello.node.id
-        key = self._access.bind(who, wid)
+        self._access.bind(who, wid)
+        self._hear(wid, who)
         with self._lock:
             self._nodes[wid] = node
             self._info[wid] = {"pid": hello.pid, "address": node.address,
@@ -144,12 +159,62 @@ class WorkerHub:
         if alive:
             self._emit(NodeUp(self._announced(wid)))
         log.info("worker %s registered (pool %s, %s)", wid, node.pool, node.capacity)
-        return {"host_id": self._host, "artifacts": str(self._artifacts.root),
-                "blob_key": key.hex()}
+        return {"host_id": self._host, "artifacts": str(self._artifacts.root)}
+
+    def beat(self, request: dict[str, Any], who: Identity) -> dict[str, Any]:
+        """A registered worker is alive (refused once this server forgot it: it registers again).
+
+        Raises:
+            NotAllowed: ``who`` did not register this worker, or the server no longer counts
+                it (restarted, or it was silent past the lease).
+        """
+        wid = self._speaker("worker_beat", request, who)
+        with self._lock:
+            known = wid in self._nodes
+        if not known:
+            raise refuse("worker_beat", who, f"worker {wid} is not registered; register again")
+        return {}
+
+    def _speaker(self, verb: str, request: dict[str, Any], who: Identity) -> str:
+        """The worker ``who`` speaks for (``WorkerAccess.speaker``), heard now on its channel."""
+        wid = self._access.speaker(verb, request, who)
+        self._hear(wid, who)
+        return wid
+
+    def _hear(self, wid: str, who: Identity) -> None:
+        with self._lock:
+            self._heard[wid] = (who.channel, time.monotonic())
+
+    def _is_alive(self, wid: str) -> bool:
+        """Its liveliness token is seen and it was heard from within the lease."""
+        with self._lock:
+            heard = self._heard.get(wid)
+            return (wid in self._alive and heard is not None
+                    and time.monotonic() - heard[1] <= self._lease)
+
+    def _watch_beats(self) -> None:
+        """Take down registered workers silent for longer than the lease (token or not)."""
+        while not self._closed.wait(min(1.0, self._lease / 4)):
+            now = time.monotonic()
+            with self._lock:
+                silent = [wid for wid in self._nodes
+                          if now - self._heard.get(wid, (b"", now))[1] > self._lease]
+                for wid in silent:
+                    self._nodes.pop(wid, None)
+                    self._draining.discard(wid)
+            for wid in silent:
+                log.warning("worker %s is silent (no beat for %.0fs): down", wid, self._lease)
+                self._emit(NodeDown(wid))
+
+    def _asker(self, wid: str) -> ServerAsker | None:
+        """Asks worker ``wid``'s blob server on the channel it last spoke on."""
+        with self._lock:
+            heard = self._heard.get(wid)
+        return ask_back(self._link, self._gate, heard[0]) if heard is not None else None
 
     def report(self, request: dict[str, Any], who: Identity) -> dict[str, Any]:
         """One report of a worker (``osmo.transport.wire.event_to_dict``) about its attempt."""
-        wid = self._access.speaker("worker_report", request, who)
+        wid = self._speaker("worker_report", request, who)
         report = field(request, "report", dict)
         self._access.placed_on("worker_report", wid, str(report.get("attempt_id")), who)
         self._handle(wid, report)
@@ -157,7 +222,7 @@ class WorkerHub:
 
     def log(self, request: dict[str, Any], who: Identity) -> dict[str, Any]:
         """A batch of an attempt's log records, appended to the server's copy of its log."""
-        wid = self._access.speaker("worker_log", request, who)
+        wid = self._speaker("worker_log", request, who)
         aid = field(request, "attempt_id", str, max_len=4096)
         self._access.placed_on("worker_log", wid, aid, who)
         self._logs.append(aid, field(request, "records", str, max_len=_MAX_RECORDS).encode())
@@ -169,7 +234,7 @@ class WorkerHub:
         Raises:
             NotAllowed: the attempt is not placed on it.
         """
-        wid = self._access.speaker("worker_secrets", request, who)
+        wid = self._speaker("worker_secrets", request, who)
         aid = field(request, "attempt_id", str, max_len=4096)
         task = self._access.placed_on("worker_secrets", wid, aid, who)
         if task is None:
@@ -180,7 +245,7 @@ class WorkerHub:
 
     def drain(self, request: dict[str, Any], who: Identity) -> dict[str, Any]:
         """A worker stops taking work: announce it with no capacity."""
-        wid = self._access.speaker("worker_drain", request, who)
+        wid = self._speaker("worker_drain", request, who)
         with self._lock:
             known = wid in self._nodes
             self._draining.add(wid)
@@ -322,12 +387,12 @@ class WorkerHub:
                                  "reason": cmd.reason})
 
     def tell(self, wid: str, order: dict[str, Any]) -> None:
-        """Send worker ``wid`` an order (a put any zenoh peer may read: nothing secret)."""
+        """Send worker ``wid`` an order (sealed on its channel)."""
         self._send(wid, order)
 
     def speaker(self, verb: str, request: dict[str, Any], who: Identity) -> str:
         """The worker id a request of ``who`` speaks for (``WorkerAccess.speaker``)."""
-        return self._access.speaker(verb, request, who)
+        return self._speaker(verb, request, who)
 
     def check_placed(self, verb: str, wid: str, aid: str, who: Identity) -> None:
         """Refuse (NotAllowed) unless attempt ``aid`` is placed on worker ``wid``."""
@@ -338,7 +403,15 @@ class WorkerHub:
             return self._same_host.get(wid)
 
     def _send(self, wid: str, order: dict[str, Any]) -> None:
-        self._link.put(self._link.key("to-worker", wid), json.dumps(order).encode())
+        with self._lock:
+            heard = self._heard.get(wid)
+        found = self._gate.channels.get(heard[0]) if heard is not None else None
+        if found is None:  # it never spoke on a channel this server knows: it registers again
+            log.warning("no channel to worker %s: order %s not sent", wid, order.get("op"))
+            return
+        rel = f"to-worker/{wid}"
+        attachment, payload = seal_json(found[0], Purpose.PUSH, rel, order)
+        self._link.put(self._link.key(rel), payload, attachment)
 
     # ------------------------------------------------------------------ reports
 
@@ -358,6 +431,7 @@ class WorkerHub:
 
     def close(self) -> None:
         """Stop listening (workers keep running; they register again with the next server)."""
+        self._closed.set()
         for sub in self._subs:
             sub.close()
         self._server_token.close()

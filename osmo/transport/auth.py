@@ -1,10 +1,9 @@
 """Who is asking: tokens, their digests, and the identity a request is served as.
 
 A token is ``osmo_`` + 43 URL-safe characters (32 random bytes). The server keeps only its
-sha256 (:func:`token_digest`); the client sends the token itself as the zenoh attachment of
-every API request (``osmo.transport.rpc``), so request bodies stay as they are. Over a Unix
-socket or TLS that attachment is private to the link; over plain TCP it travels in clear,
-which is why a network listener needs zenoh authentication or ``--insecure``.
+sha256 (:func:`token_digest`). The token never crosses the bus: client and server derive a
+channel's keys from it (``osmo.transport.seal``), and each request is sealed on that
+channel, so a request names its caller by the channel it was sealed on.
 
 Roles: ``admin`` may do everything; ``user`` submits and reads, and controls only its own
 workflows; ``worker`` may speak only the worker verbs, for the attempts placed on it.
@@ -15,7 +14,7 @@ from __future__ import annotations
 import enum
 import hashlib
 import secrets
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 __all__ = ["Identity", "Role", "new_token", "token_digest"]
 
@@ -32,10 +31,16 @@ class Role(enum.Enum):
 
 @dataclass(frozen=True)
 class Identity:
-    """An authenticated caller: its token's name and role."""
+    """An authenticated caller: its token's name and role.
+
+    ``channel``: the id of the sealed channel the request came on (``osmo.transport.seal``;
+    empty when not asked over one), so the server can answer on it later: a worker's
+    orders, a pull of its blobs.
+    """
 
     name: str
     role: Role
+    channel: bytes = field(default=b"", compare=False, repr=False)
 
     def __str__(self) -> str:
         return f"{self.name} ({self.role.value})"

@@ -16,9 +16,14 @@ fetched at all; one that lies in the sender's store on the same host and
 filesystem is hard-linked instead of sent (:class:`SameHost`) — after the linked file was
 hashed: a same-host peer's file is trusted no more than its bytes would be.
 
-Every request carries an attachment (the asker's API token, or the key a worker's
-registration handed the server); a :class:`BlobServer` answers only the requests its
-``allow(attachment, digest)`` accepts, and answers the others as if the blob were missing.
+Every request and every reply is sealed (``osmo.transport.seal``): a client or worker asks
+the server's blobs on its API channel (``REQ``/``REP``, through an :class:`Asker` such as
+``osmo.transport.rpc.ApiClient``), the server asks a worker's (or an upload's) on the
+channel that worker opened (``SQ``/``SR``, ``osmo.transport.rpc.ServerAsker``). A
+:class:`BlobServer` answers only requests its :data:`Opener` can open and its ``allow``
+accepts for the caller, and answers the others as if the blob were missing; an asker takes
+only replies sealed for its request, so a peer that answers in the owner's place is not
+believed (and cannot make a transfer fail: the real answer still counts).
 """
 
 from __future__ import annotations
@@ -31,7 +36,7 @@ from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 from osmo.artifacts import ArtifactStore, Manifest
 from osmo.artifacts.errors import ArtifactCorrupted
@@ -39,10 +44,11 @@ from osmo.artifacts.manifest import check_digest
 from osmo.config import host_id
 from osmo.errors import InfrastructureError
 from osmo.layout import BlobDirs
+from osmo.transport.auth import Identity
 from osmo.transport.zenoh_link import Link, Request, Subscription
 
-__all__ = ["SERVER", "BlobServer", "SameHost", "TransferError", "fetch_blob", "fetch_manifest",
-           "host_id"]
+__all__ = ["SERVER", "Allow", "Asker", "BlobServer", "Opener", "SameHost", "Sealer",
+           "TransferError", "fetch_blob", "fetch_manifest", "host_id"]
 
 CHUNK = 512 << 10
 WINDOW = 16  # chunks in flight per blob
@@ -67,36 +73,63 @@ class SameHost:
         return BlobDirs(self.root).blob(check_digest(digest))
 
 
-Allow = Callable[[bytes | None, str], bool]
+Sealer = Callable[[bytes], tuple[bytes, bytes]]
+"""Seals a reply to one opened request: ``data -> (attachment, payload)``."""
+Opener = Callable[[str, bytes | None, bytes], tuple[Identity | None, bytes, Sealer] | None]
+"""``(key, attachment, payload) -> (caller, request, sealer)`` of a sealed request; None: not
+one this side can open (``osmo.transport.rpc``)."""
+Allow = Callable[[Identity | None, str], bool]
+"""``(caller, "sha256:<hex>") -> may it read that blob``."""
+
+
+class Asker(Protocol):
+    """Sends sealed queries and takes only their sealed answers (``osmo.transport.rpc``)."""
+
+    def ask(self, rel: str, payload: bytes, *, timeout: float | None = None) -> Any:
+        """Send ``payload`` sealed to ``rel`` (under the cluster prefix); a pending answer."""
+
+    def answer(self, pending: Any) -> tuple[bool, bytes] | None:
+        """``(sealed, payload)`` of the answer, None if nobody answered in time."""
+
+
+_OK, _MISSING = b"\x00", b"\x01"
 
 
 class BlobServer:
     """Serves ``store``'s blobs on ``<prefix>/blob/<owner>/*`` (reads on a small pool).
 
-    ``allow(attachment, "sha256:<hex>")`` decides who may read which blob.
+    ``opener`` opens each sealed request; ``allow(caller, "sha256:<hex>")`` decides who may
+    read which blob (default: whoever ``opener`` accepts).
     """
 
-    def __init__(self, link: Link, owner: str, store: ArtifactStore, allow: Allow, *,
-                 threads: int = 4) -> None:
+    def __init__(self, link: Link, owner: str, store: ArtifactStore, opener: Opener,
+                 allow: Allow | None = None, *, threads: int = 4) -> None:
         self._store = store
-        self._allow = allow
+        self._opener, self._allow = opener, allow
+        self._cut = len(link.prefix) + 1
         self._pool = ThreadPoolExecutor(threads, thread_name_prefix="osmo-blobs")
         self._sub: Subscription = link.serve(link.key("blob", owner, "*"),
                                              lambda req: self._pool.submit(self._serve, req))
 
     def _serve(self, request: Request) -> None:
-        hex_ = request.key.rsplit("/", 1)[1]
-        try:
-            if not self._allow(request.attachment, "sha256:" + hex_):
-                raise InfrastructureError("not allowed")
-            offset, length = (int(x) for x in request.payload.split(b":"))
-            with open(self._store.path("sha256:" + hex_), "rb") as f:
-                f.seek(offset)
-                data = f.read(min(length, 16 * CHUNK))
-        except (OSError, ValueError, InfrastructureError):
-            request.reply(b"", b"missing")
+        rel = request.key[self._cut:]
+        opened = self._opener(rel, request.attachment, request.payload)
+        if opened is None:
+            request.reply(b"", b"missing")  # not sealed for this side: as if not here
             return
-        request.reply(data)
+        who, body, seal = opened
+        digest = "sha256:" + rel.rsplit("/", 1)[1]
+        try:
+            if self._allow is not None and not self._allow(who, digest):
+                raise InfrastructureError("not allowed")
+            offset, length = (int(x) for x in body.split(b":"))
+            with open(self._store.path(digest), "rb") as f:
+                f.seek(offset)
+                data = _OK + f.read(min(length, 16 * CHUNK))
+        except (OSError, ValueError, InfrastructureError):
+            data = _MISSING
+        attachment, payload = seal(data)
+        request.reply(payload, attachment)
 
     def close(self) -> None:
         """Stop serving."""
@@ -104,11 +137,10 @@ class BlobServer:
         self._pool.shutdown(wait=False, cancel_futures=True)
 
 
-def fetch_blob(link: Link, owner: str, digest: str, size: int, store: ArtifactStore, *,
+def fetch_blob(asker: Asker, owner: str, digest: str, size: int, store: ArtifactStore, *,
                same_host: SameHost | None = None,
-               on_bytes: Callable[[int], None] | None = None,
-               attachment: bytes | None = None) -> int:
-    """Make ``store`` hold blob ``digest`` (``size`` bytes) from ``owner``.
+               on_bytes: Callable[[int], None] | None = None) -> int:
+    """Make ``store`` hold blob ``digest`` (``size`` bytes) from ``owner``, through ``asker``.
 
     Returns the bytes sent over the network (0 when it was there already or linked on the same
     host).
@@ -125,9 +157,9 @@ def fetch_blob(link: Link, owner: str, digest: str, size: int, store: ArtifactSt
     partial = store.tmp / f"{hex_}.partial"
     h = hashlib.sha256()
     have = _resume(partial, h)
-    key = link.key("blob", owner, hex_)
+    key = f"blob/{owner}/{hex_}"
     with open(partial, "ab") as out:
-        for data in _chunks(link, key, have, size, attachment):
+        for data in _chunks(asker, key, have, size):
             h.update(data)
             out.write(data)
             if on_bytes is not None:
@@ -182,40 +214,36 @@ def _resume(partial: Path, h: Any) -> int:
         return 0
 
 
-def _chunks(link: Link, key: str, start: int, size: int,
-            attachment: bytes | None) -> Iterator[bytes]:
+def _chunks(asker: Asker, key: str, start: int, size: int) -> Iterator[bytes]:
     """Yield the bytes of ``[start, size)`` in order, ``WINDOW`` requests in flight."""
     pending: deque[tuple[int, int, Any]] = deque()
     offset = start
     while offset < size or pending:
         while offset < size and len(pending) < WINDOW:
             n = min(CHUNK, size - offset)
-            pending.append((offset, n, link.ask(key, f"{offset}:{n}".encode(),
-                                                attachment=attachment, timeout=_TIMEOUT)))
+            pending.append((offset, n, asker.ask(key, f"{offset}:{n}".encode(),
+                                                 timeout=_TIMEOUT)))
             offset += n
         at, n, ask = pending.popleft()
-        answer = Link.answer(ask)
-        if answer is None or answer[1] == b"missing":
+        answer = asker.answer(ask)
+        if answer is None or not answer[0] or answer[1][:1] != _OK:
             raise TransferError(f"{key}: no answer for bytes {at}..{at + n} "
                                 "(the peer is gone or lacks the blob)")
-        data = answer[0]
+        data = answer[1][1:]
         if len(data) != n:
             raise TransferError(f"{key}: chunk at {at} arrived short ({len(data)} of {n} bytes)")
         yield data
 
 
-def fetch_manifest(link: Link, owner: str, manifest: Manifest, store: ArtifactStore, *,
-                   same_host: SameHost | None = None, attachment: bytes | None = None) -> int:
-    """Fetch every blob of ``manifest`` that ``store`` lacks; return the bytes sent.
-
-    ``attachment`` goes with every request (the owner's blob server checks it).
-    """
+def fetch_manifest(asker: Asker, owner: str, manifest: Manifest, store: ArtifactStore, *,
+                   same_host: SameHost | None = None) -> int:
+    """Fetch every blob of ``manifest`` that ``store`` lacks; return the bytes sent."""
     sent = 0
     seen: set[str] = set()
     for entry in manifest.entries:
         if entry.digest not in seen:
             seen.add(entry.digest)
-            sent += fetch_blob(link, owner, entry.digest, entry.size, store,
-                               same_host=same_host, attachment=attachment)
+            sent += fetch_blob(asker, owner, entry.digest, entry.size, store,
+                               same_host=same_host)
     return sent
 

@@ -5,10 +5,13 @@
 - ``osmo/<cluster>/events/<workflow_id>`` — the server publishes a small JSON notice whenever
   a workflow's state changes (clients waiting on it re-query instead of polling fast).
 
-Every request carries its caller's token as the zenoh attachment (``osmo.transport.auth``);
-the server authenticates it once per request and hands the handler the caller's
-:class:`~osmo.transport.auth.Identity`. A request without a valid token is refused
-(``NotAuthenticated``, exit 3) and logged in one line, before its body is read.
+Every request but ``api/hello`` is sealed on a channel opened with the caller's token
+(``osmo.transport.seal``: the token itself never crosses the bus); the server opens it,
+checks once that the token is still live and hands the handler the caller's
+:class:`~osmo.transport.auth.Identity`, and seals its reply on the same channel. A client
+believes only sealed replies. A request that is not sealed on a channel the server knows is
+refused (``NotAuthenticated``, exit 3) in one line, before its body is read; the client then
+says hello again once (the server restarted) and repeats the request.
 
 Server-side errors travel as their class name, message and exit code and are rebuilt as the
 matching ``osmo.errors`` class on the client. A request that is not a JSON object, or whose
@@ -20,19 +23,37 @@ from __future__ import annotations
 
 import json
 import logging
+import threading
+from collections import OrderedDict
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from typing import Any
+from dataclasses import dataclass
+from typing import Any, Protocol
 
 from osmo.errors import NotAuthenticated, OsmoError, ServerUnreachable, UsageError
 from osmo.names import shown
 from osmo.transport.auth import Identity
+from osmo.transport.blobs import Opener, Sealer
+from osmo.transport.seal import (
+    HEADER,
+    Channel,
+    ChannelTable,
+    HelloError,
+    Purpose,
+    Verifier,
+    finish,
+    hello,
+    parse_header,
+    seal_json,
+)
 from osmo.transport.zenoh_link import Link, Request
 
-__all__ = ["ApiClient", "ApiServer", "RemoteError", "field", "str_list", "str_map"]
+__all__ = ["HELLO", "ApiClient", "ApiServer", "Gate", "Pending", "RemoteError", "ServerAsker",
+           "ask_back", "field", "gate_opener", "str_list", "str_map"]
 
 Handler = Callable[[str, dict[str, Any], Identity], Any]
-Authenticate = Callable[[bytes | None], Identity]
+HELLO = "hello"
+"""The one verb asked in clear: it opens a sealed channel (``osmo.transport.seal``)."""
 log = logging.getLogger("osmo.api")
 _REQUIRED: Any = object()
 _KINDS = {str: "a string", int: "a whole number", bool: "true or false", dict: "an object",
@@ -117,25 +138,48 @@ class RemoteError(OsmoError):
         self.exit_code = exit_code
 
 
+class Gate(Protocol):
+    """What the API needs of the server's authentication (``osmo.server.auth``)."""
+
+    channels: ChannelTable
+
+    def identity(self, digest: str, channel: bytes) -> Identity:
+        """The live token with sha256 ``digest`` as an identity on ``channel``.
+
+        Raises:
+            NotAuthenticated: the token was revoked.
+        """
+
+
+def _unsealed(message: str) -> bytes:
+    """A reply that is not sealed: the caller has no channel here (it says hello again)."""
+    err = {"type": "NotAuthenticated", "exit_code": NotAuthenticated.exit_code,
+           "message": message}
+    return json.dumps({"error": err, "hello": True}).encode()
+
+
 class ApiServer:
     """Serves ``<prefix>/api/<verb>`` queries with ``handler(verb, request, identity)``.
 
-    ``authenticate(attachment)`` names the caller of each request, once, before anything
-    else. Handlers run on a small thread pool so a slow request never blocks zenoh's own
-    threads, except the ``inline`` verbs: cheap ones whose order matters (a worker's
+    ``api/hello`` opens a channel (``osmo.transport.seal``); every other request must be
+    sealed on one, and names its caller by it: ``gate.identity`` checks, once per request and
+    before anything else, that the channel's token is still live. The reply is sealed on the
+    same channel. Handlers run on a small thread pool so a slow request never blocks zenoh's
+    own threads, except the ``inline`` verbs: cheap ones whose order matters (a worker's
     reports), answered on the zenoh thread in the order they arrived. An ``OsmoError``
     becomes an error reply with its class name and exit code; any other exception becomes
     an ``InfrastructureError`` reply (the server logs the traceback).
     """
 
-    def __init__(self, link: Link, handler: Handler, authenticate: Authenticate, *,
+    def __init__(self, link: Link, handler: Handler, gate: Gate, *,
                  threads: int = 8, on_crash: Callable[[BaseException], None] | None = None,
                  inline: frozenset[str] = frozenset()) -> None:
         self._handler = handler
-        self._authenticate = authenticate
+        self._gate = gate
         self._on_crash = on_crash
         self._inline = inline
         self._pool = ThreadPoolExecutor(threads, thread_name_prefix="osmo-api")
+        self._cut = len(link.prefix) + 1
         self._prefix = link.key("api") + "/"
         self._queryable = link.serve(link.key("api", "**"), self._dispatch)
 
@@ -146,25 +190,50 @@ class ApiServer:
             self._pool.submit(self._serve, request)
 
     def _serve(self, request: Request) -> None:
-        verb = request.key[len(self._prefix):]
+        verb, rel = request.key[len(self._prefix):], request.key[self._cut:]
+        if verb == HELLO:
+            self._hello(request)
+            return
+        opened = self._gate.channels.open(Purpose.REQ, rel, request.attachment,
+                                          request.payload)
+        if opened is None:  # unsealed, forged, replayed, or a channel this server forgot
+            log.warning("refused an unsealed %s request (no channel of this server)",
+                        shown(verb))
+            request.reply(_unsealed("the request was not sealed on a channel of this server "
+                                    "(it restarted, or the request is forged); say hello "
+                                    "again"))
+            return
+        channel, digest, seq, body = opened
+        reply = self._answer(verb, digest, channel.id, body)
+        attachment, payload = seal_json(channel, Purpose.REP, rel, reply, seq)
+        request.reply(payload, attachment)
+
+    def _hello(self, request: Request) -> None:
         try:
-            who = self._authenticate(request.attachment)
-            reply: dict[str, Any] = {
-                "ok": self._handler(verb, _request_body(request.payload), who)}
+            request.reply(self._gate.channels.accept(request.payload))
+        except HelloError as exc:
+            log.warning("refused a hello: %s", exc)
+            request.reply(_unsealed(
+                "this osmo server does not know this token (unknown or revoked); ask its "
+                "admin for a new one" if str(exc) == "unknown token" else str(exc)))
+
+    def _answer(self, verb: str, digest: str, channel: bytes, body: bytes) -> dict[str, Any]:
+        try:
+            who = self._gate.identity(digest, channel)
+            return {"ok": self._handler(verb, _request_body(body), who)}
         except NotAuthenticated as exc:
             log.warning("refused %s from an unauthenticated caller: %s", shown(verb), exc)
-            reply = {"error": _error_dict(exc)}
+            return {"error": _error_dict(exc)}
         except UsageError as exc:  # the client's mistake: one line, no traceback
             log.warning("refused a %s request: %r", shown(verb), str(exc)[:300])
-            reply = {"error": _error_dict(exc)}
+            return {"error": _error_dict(exc)}
         except OsmoError as exc:
-            reply = {"error": _error_dict(exc)}
+            return {"error": _error_dict(exc)}
         except Exception as exc:  # noqa: BLE001 - reported to the client, logged by the server
             if self._on_crash:
                 self._on_crash(exc)
-            reply = {"error": {"type": "InfrastructureError", "exit_code": 3,
-                               "message": f"server error in '{verb}': {exc!r}"}}
-        request.reply(json.dumps(reply).encode())
+            return {"error": {"type": "InfrastructureError", "exit_code": 3,
+                              "message": f"server error in '{verb}': {exc!r}"}}
 
     def close(self) -> None:
         """Stop serving and wait for in-flight handlers."""
@@ -181,18 +250,179 @@ def _error_dict(exc: OsmoError) -> dict[str, Any]:
     return out
 
 
+@dataclass(frozen=True)
+class Pending:
+    """A sealed query in flight, and the purpose its answer must be sealed for."""
+
+    query: Any
+    channel: Channel
+    seq: int
+    rel: str
+    reply: Purpose
+
+
+def _ask(link: Link, channel: Channel, purpose: Purpose, reply: Purpose, rel: str,
+         payload: bytes, timeout: float) -> Pending:
+    attachment, sealed = channel.seal(purpose, rel, payload)
+    query = link.ask(link.key(rel), sealed, attachment=attachment, timeout=timeout)
+    return Pending(query, channel, HEADER.unpack(attachment)[3], rel, reply)
+
+
+def _answer(pending: Pending) -> tuple[bool, bytes] | None:
+    """The answer to ``pending``: ``(sealed, payload)``.
+
+    The first reply sealed for it is returned at once (``sealed`` True); an unsealed one only
+    if no sealed one came (``sealed`` False); None if nobody answered in time.
+    """
+    fallback = None
+    for payload, attachment in Link.replies(pending.query):
+        opened = pending.channel.open(pending.reply, pending.rel, attachment, payload,
+                                      seq=pending.seq)
+        if opened is not None:
+            return True, opened[1]
+        fallback = fallback or (False, payload)
+    return fallback
+
+
+def gate_opener(gate: Gate) -> Opener:
+    """Opens requests sealed on the server's channels for a blob server (``REQ``/``REP``)."""
+
+    def open_request(rel: str, attachment: bytes | None, payload: bytes
+                     ) -> tuple[Identity | None, bytes, Sealer] | None:
+        opened = gate.channels.open(Purpose.REQ, rel, attachment, payload)
+        if opened is None:
+            return None
+        channel, digest, seq, body = opened
+        try:
+            who = gate.identity(digest, channel.id)
+        except NotAuthenticated:
+            return None
+        return who, body, lambda data: channel.seal(Purpose.REP, rel, data, seq)
+
+    return open_request
+
+
+def ask_back(link: Link, gate: Gate, channel: bytes) -> ServerAsker | None:
+    """A :class:`ServerAsker` on the server's channel ``channel`` (None: not open any more)."""
+    found = gate.channels.get(channel) if channel else None
+    return ServerAsker(link, found[0]) if found is not None else None
+
+
+class ServerAsker:
+    """The server asking a client's own queryable on that client's channel (``SQ``/``SR``).
+
+    So the server pulls a worker's outputs, or an upload's blobs, from the peer that opened
+    ``channel``, and believes only that peer's sealed answers (an ``Asker`` of
+    ``osmo.transport.blobs``).
+    """
+
+    def __init__(self, link: Link, channel: Channel, timeout: float = 30.0) -> None:
+        self._link, self._channel, self._timeout = link, channel, timeout
+
+    def ask(self, rel: str, payload: bytes, *, timeout: float | None = None) -> Pending:
+        """Send ``payload`` sealed to ``rel``; don't wait."""
+        return _ask(self._link, self._channel, Purpose.SQ, Purpose.SR, rel, payload,
+                    timeout if timeout is not None else self._timeout)
+
+    @staticmethod
+    def answer(pending: Pending) -> tuple[bool, bytes] | None:
+        """``(sealed, payload)`` of the answer (see :func:`_answer`)."""
+        return _answer(pending)
+
+
 class ApiClient:
-    """Calls the server's API over a client ``Link``, every request carrying ``token``."""
+    """Calls the server's API over a client ``Link`` on a sealed channel of ``token``.
+
+    The channel is opened with the first call (``api/hello``) and again whenever the server
+    says it does not know it (it restarted). Only replies sealed on the channel are believed;
+    an unsealed one (an error, or a forgery) counts only if no sealed one comes.
+    """
 
     def __init__(self, link: Link, *, timeout: float = 30.0, token: str | None = None) -> None:
         self._link = link
         self._timeout = timeout
-        self._token = token.strip().encode() if token else None
+        self._token = token.strip() if token else None
+        self._lock = threading.Lock()
+        self._channel: Channel | None = None
+        self._recent: OrderedDict[bytes, Channel] = OrderedDict()
+        self.verifier: Verifier | None = None
+        """Checks the server's signed notices (known once a channel is open)."""
 
     @property
-    def token(self) -> bytes | None:
-        """The token every request carries (also for blob requests to the server)."""
-        return self._token
+    def link(self) -> Link:
+        """The zenoh link this client talks over."""
+        return self._link
+
+    def channel(self) -> Channel:
+        """The open channel (opened now if there is none).
+
+        Raises:
+            NotAuthenticated: no token, or one the server does not know.
+            ServerUnreachable: no server answered the hello.
+        """
+        with self._lock:
+            if self._channel is None:
+                self._channel, self.verifier = self._hello()
+                self._recent[self._channel.id] = self._channel
+                while len(self._recent) > _RECENT:
+                    self._recent.popitem(last=False)
+            return self._channel
+
+    def _hello(self) -> tuple[Channel, Verifier]:
+        if not self._token:
+            raise NotAuthenticated(
+                "this osmo server needs a token: give one with --token, OSMO_TOKEN or "
+                "`osmo profile set token TOKEN` (an admin creates it with `osmo token "
+                "create NAME --role user`)")
+        shake = hello(self._token)
+        pending = self._link.ask(self._link.key("api", HELLO), shake.request(),
+                                 timeout=self._timeout)
+        error: dict[str, Any] | None = None
+        for payload, _att in Link.replies(pending):
+            done = finish(shake, payload)
+            if done is not None:
+                return done
+            error = error or _error_of(payload)
+        if error is not None:
+            raise _remote_error(error)
+        raise ServerUnreachable(f"no osmo server answered at {self._link.prefix} (is it "
+                                "running? `osmo server status`)")
+
+    def _forget(self, channel: Channel) -> None:
+        with self._lock:
+            if self._channel is channel:
+                self._channel = None
+
+    def opened(self, purpose: Purpose, rel: str, attachment: bytes | None, data: bytes
+               ) -> tuple[Channel, int, bytes] | None:
+        """Open a message the server sealed on one of this client's recent channels.
+
+        Returns ``(channel, seq, plaintext)``; None: not the server's (dropped).
+        """
+        head = parse_header(attachment)
+        with self._lock:
+            channel = self._recent.get(head[1]) if head is not None else None
+        opened = channel.open(purpose, rel, attachment, data) if channel else None
+        return (channel, opened[0], opened[1]) if channel and opened else None
+
+    def ask(self, rel: str, payload: bytes, *, timeout: float | None = None) -> Pending:
+        """Send ``payload`` sealed to key ``rel`` (under the cluster prefix); don't wait."""
+        return _ask(self._link, self.channel(), Purpose.REQ, Purpose.REP, rel, payload,
+                    timeout if timeout is not None else self._timeout)
+
+    @staticmethod
+    def answer(pending: Pending) -> tuple[bool, bytes] | None:
+        """``(sealed, payload)`` of the answer to ``pending`` (see :func:`_answer`)."""
+        return _answer(pending)
+
+    def open_asked(self, rel: str, attachment: bytes | None, payload: bytes
+                   ) -> tuple[Identity | None, bytes, Sealer] | None:
+        """An ``Opener`` of the server's queries to this client (``SQ``, answered ``SR``)."""
+        opened = self.opened(Purpose.SQ, rel, attachment, payload)
+        if opened is None:
+            return None
+        channel, seq, body = opened
+        return None, body, lambda data: channel.seal(Purpose.SR, rel, data, seq)
 
     def send(self, verb: str, request: dict[str, Any]) -> None:
         """Send ``request`` to ``verb`` without waiting for the answer.
@@ -200,8 +430,7 @@ class ApiClient:
         For a stream of small reports whose order matters and whose loss is repaired
         elsewhere (a worker's reports; its exit reports are resent until acknowledged).
         """
-        self._link.ask(self._link.key("api", verb), json.dumps(request).encode(),
-                       attachment=self._token, timeout=self._timeout)
+        self.ask(f"api/{verb}", json.dumps(request).encode())
 
     def call(self, verb: str, request: dict[str, Any] | None = None,
              *, timeout: float | None = None) -> Any:
@@ -209,20 +438,56 @@ class ApiClient:
 
         Raises:
             ServerUnreachable: no server replied within the timeout.
+            NotAuthenticated: no token, or one the server does not know (or revoked).
             RemoteError: the server raised an error (type, message and exit code kept).
         """
         payload = json.dumps(request or {}).encode()
-        answer = self._link.request(self._link.key("api", verb), payload,
-                                    attachment=self._token,
-                                    timeout=timeout if timeout is not None else self._timeout)
-        if answer is None:
-            raise ServerUnreachable(
-                f"no osmo server answered '{verb}' at {self._link.prefix} "
-                "(is it running? `osmo server status`)")
-        body = json.loads(answer[0])
-        if "error" in body:
-            raise _remote_error(body["error"])
-        return body["ok"]
+        for again in (False, True):
+            pending = self.ask(f"api/{verb}", payload, timeout=timeout)
+            answer = self.answer(pending)
+            if answer is None:
+                raise ServerUnreachable(
+                    f"no osmo server answered '{verb}' at {self._link.prefix} "
+                    "(is it running? `osmo server status`)")
+            sealed, data = answer
+            body = json.loads(data) if sealed else _unsealed_body(data)
+            if not sealed and body.get("hello") and not again:
+                self._forget(pending.channel)  # the server restarted: a new channel
+                continue
+            if "error" in body:
+                raise _remote_error(body["error"])
+            return body["ok"]
+        raise AssertionError("unreachable")
+
+
+_RECENT = 4  # channels whose server messages a client still opens (a restart, a new hello)
+
+
+def _unsealed_body(data: bytes) -> dict[str, Any]:
+    """An unsealed reply, believed only as an error (never as a result)."""
+    error = _error_of(data)
+    if error is None:
+        error = {"type": "NotAuthenticated", "exit_code": NotAuthenticated.exit_code,
+                 "message": "the answer was not sealed by the server (an impostor?)"}
+    try:
+        again = bool(json.loads(data).get("hello"))
+    except (ValueError, AttributeError):
+        again = False
+    return {"error": error, "hello": again}
+
+
+def _error_of(payload: bytes) -> dict[str, Any] | None:
+    """The error an unsealed reply carries (None: none that reads as one)."""
+    try:
+        err = json.loads(payload).get("error")
+    except (ValueError, AttributeError, RecursionError):
+        return None
+    if not (isinstance(err, dict) and isinstance(err.get("type"), str)
+            and isinstance(err.get("message"), str)):
+        return None
+    return {"type": err["type"], "message": err["message"][:2000],
+            "exit_code": int(err.get("exit_code") or 1) if isinstance(
+                err.get("exit_code"), int) else 1}
 
 
 def _remote_error(err: dict[str, Any]) -> OsmoError:

@@ -7,29 +7,35 @@ Keys, under the cluster prefix ``osmo/<cluster>``:
 
 - ``alive/server`` and ``alive/worker/<id>`` — liveliness tokens. A worker's token going
   away (process killed, network cut: noticed within the 1 s lease) is its ``NodeDown``; the
-  server's token coming back tells a worker to register again.
-- ``api/worker_register`` — a worker's :class:`Hello`, answered with the server's host id,
-  artifact folder (a worker on the same host links blobs instead of fetching) and
-  ``blob_key``, the key the server's requests to this worker's blob server carry;
+  server's token coming back tells a worker to register again (both hints, see Trust).
+- ``api/worker_register`` — a worker's :class:`Hello`, answered with the server's host id
+  and artifact folder (a worker on the same host links blobs instead of fetching); the
+  server pulls the worker's outputs from ``blob/<id>/<digest>`` with queries sealed on the
+  channel it registered with (``SQ``);
   ``api/worker_drain`` — ``{"id": <worker>}``: it takes no more work.
-- ``to-worker/<id>`` — the server's orders: ``prepare`` (the attempt, the task's workflow
+- ``api/worker_beat`` — ``{"id"}``, every :data:`BEAT_EVERY` seconds: the worker is alive
+  (refused once the server forgot it: it registers again).
+- ``to-worker/<id>`` — the server's orders, sealed: ``prepare`` (the attempt, the task's workflow
   spec the first time, input manifests, ``secrets``: whether to ask for the attempt's
   secrets, ``max_output_bytes``: the task's storage limit), ``run``, ``kill``, ``ack`` (an
   exit report was received and its outputs are safe on the server), ``drain`` notices.
-  Orders are published: they never carry a secret value, and any peer may read them;
-  only the server may put them (:data:`SERVER_ONLY`).
+  Secrets are still asked for apart (``worker_secrets``), so an order never holds one.
 - ``api/worker_report`` — ``{"id", "report"}``: the worker's reports, ``prepared``,
   ``started``, ``exited``, ``start_failed``, ``lost`` (handed back while draining);
   ``api/worker_log`` — ``{"id", "attempt_id", "records"}``: log records, appended by the
   server to its copy of the log; ``api/worker_secrets`` — ``{"id", "attempt_id"}``: the
-  attempt's secrets and data-URL credentials. Like every API request they carry the
-  worker's token and are accepted only for attempts placed on that worker
+  attempt's secrets and data-URL credentials. Like every API request they are sealed on
+  the worker token's channel and are accepted only for attempts placed on that worker
   (``osmo.server.worker_access``).
 
-:data:`SERVER_ONLY` names the keys only the server's own session may put on, serve or hold
-a token on; its router refuses them from every remote peer (zenoh access control, set up by
-``osmo.transport.zenoh_link.Link.router``): orders, workflow events, the API, the server's
-blobs and its liveliness token.
+Trust: no message is believed for its key. Orders are sealed on the channel the worker
+registered with (``PUSH``, ``osmo.transport.seal``): a worker obeys only what the server
+sealed for it, and no other peer can read an order. Reports, log batches and secret requests
+are sealed API requests. The liveliness tokens are hints only (a peer can hold a copy of a
+worker's token after the worker died): a registered worker also beats every
+:data:`BEAT_EVERY` seconds (``api/worker_beat``), and one silent for :data:`LEASE` seconds is
+down, token or no token. :data:`PEER_ALLOW` is the router's allow-list, the second wall:
+what any remote peer may do at all.
 
 Attempt ids fence everything: a report about an attempt the scheduler has superseded is
 ignored, so a worker that returns late can never commit stale work.
@@ -59,17 +65,29 @@ from osmo.spec.model import WorkflowSpec
 from osmo.transport.blobs import SERVER
 from osmo.transport.rpc import MAX_INT, field, str_list, str_map
 
-__all__ = ["SERVER_ONLY", "Hello", "capacity_from_dict", "capacity_to_dict", "event_from_dict",
-           "event_to_dict", "prepare_from_dict", "prepare_to_dict", "spec_from_wire",
-           "spec_to_wire", "worker_id"]
+__all__ = ["BEAT_EVERY", "LEASE", "PEER_ALLOW", "PEER_DENY", "Hello", "capacity_from_dict",
+           "capacity_to_dict", "event_from_dict", "event_to_dict", "prepare_from_dict",
+           "prepare_to_dict", "spec_from_wire", "spec_to_wire", "worker_id"]
 
-#: zenoh access-control message -> keys (under the cluster prefix) only the server may use.
-SERVER_ONLY: dict[str, tuple[str, ...]] = {
-    "put": ("to-worker/**", "events/**"),
-    "delete": ("to-worker/**", "events/**"),
-    "declare_queryable": ("api/**", f"blob/{SERVER}/**"),
-    "liveliness_token": (f"alive/{SERVER}",),
+#: zenoh access-control message -> keys (under the cluster prefix) a remote peer may use;
+#: the server's router denies everything else (``osmo.transport.zenoh_link.Acl``).
+PEER_ALLOW: dict[str, tuple[str, ...]] = {
+    "query": ("api/*", f"blob/{SERVER}/*"),  # the API; the server's blobs
+    "declare_queryable": ("blob/*/*",),  # a worker's (or an upload's) blobs, for the server
+    "reply": ("blob/*/*",),
+    "declare_subscriber": ("to-worker/*", "events/*", "stream/*/*"),
+    "put": ("stream/*/*",),  # exec and port-forward frames
+    "liveliness_token": ("alive/worker/*",),
+    "declare_liveliness_subscriber": ("alive/**",),
+    "liveliness_query": ("alive/**",),
 }
+#: Taken back out of :data:`PEER_ALLOW`: only the server serves its own blobs.
+PEER_DENY: dict[str, tuple[str, ...]] = {"declare_queryable": (f"blob/{SERVER}/*",)}
+
+BEAT_EVERY = 2.0
+"""Seconds between a worker's beats."""
+LEASE = 10.0
+"""Seconds without a beat after which a registered worker is down."""
 
 _TEXT = 4096  # characters of a name, an address or a folder in a worker's message
 

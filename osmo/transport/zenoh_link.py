@@ -5,10 +5,11 @@ key layout is documented by the modules that use it (``osmo.transport.rpc`` for 
 API, ``osmo.transport.blobs`` for artifact transfer, ``osmo.server.workers`` and
 ``osmo.worker.remote`` for worker traffic).
 
-Keys only the server may use: :meth:`Link.router` takes the key expressions its own session
-alone may put on, serve, or hold a liveliness token on, and turns them into zenoh access
-control on the router (deny, on ingress, for every remote peer; the server's own session is
-inside the router and not subject to it). Rules already in the configuration file are kept.
+The router's access control is an allow-list (:class:`Acl`): for every remote peer, each
+zenoh message is allowed only on the key expressions the server names, everything else is
+denied, wildcards included (the server's own session is inside the router and not subject to
+it). It is the second wall: the first is that nothing is believed for its key
+(``osmo.transport.seal``). Rules already in the configuration file are kept.
 
 Defaults keep everything on loopback with scouting off. A zenoh configuration file (JSON5,
 zenoh's own format) can be given for TLS, mutual TLS and user/password authentication; osmo
@@ -24,7 +25,8 @@ from __future__ import annotations
 import json
 import os
 import re
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
 from typing import Any
 
 import zenoh
@@ -32,18 +34,18 @@ import zenoh
 from osmo.config import DEFAULT_CLUSTER
 from osmo.errors import InfrastructureError, ServerUnreachable, UsageError
 
-__all__ = ["Link", "Request", "Subscription", "authenticates"]
+__all__ = ["MESSAGES", "Acl", "Link", "Request", "Subscription", "authenticates"]
 
 LEASE_MS = 1000
 
 
-#: Messages of zenoh's access control that :meth:`Link.router` can reserve for the server.
-RESERVABLE = ("put", "delete", "declare_queryable", "liveliness_token")
+#: zenoh access-control messages a remote peer may be allowed on ingress (the rest: denied).
+MESSAGES = ("put", "delete", "declare_subscriber", "query", "reply", "declare_queryable",
+            "liveliness_token", "declare_liveliness_subscriber", "liveliness_query")
 
 
 def _config(mode: str, *, listen: Sequence[str] = (), connect: Sequence[str] = (),
-            config_file: str | None = None,
-            reserved: Mapping[str, Sequence[str]] | None = None) -> zenoh.Config:
+            config_file: str | None = None, acl: Acl | None = None) -> zenoh.Config:
     if config_file:
         try:
             conf = zenoh.Config.from_file(config_file)
@@ -61,29 +63,59 @@ def _config(mode: str, *, listen: Sequence[str] = (), connect: Sequence[str] = (
     if connect:
         conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
         conf.insert_json5("connect/timeout_ms", "5000")
-    if reserved:
-        _reserve(conf, reserved)
+    if acl is not None:
+        _apply(conf, acl)
     return conf
 
 
-def _reserve(conf: zenoh.Config, reserved: Mapping[str, Sequence[str]]) -> None:
-    """Deny every remote peer the ``message -> key expressions`` of ``reserved``.
+@dataclass(frozen=True)
+class Acl:
+    """The router's allow-list: what remote peers may do; everything else is denied.
 
-    One subject with no criteria matches every remote peer (zenoh's rule for an empty
-    subject); a configuration's own rules, subjects and policies are kept beside these.
+    Attributes:
+        prefix: the cluster's key prefix (``osmo/<cluster>``).
+        allow: zenoh message (one of :data:`MESSAGES`) -> key expressions under ``prefix``
+            that every remote peer may use it on (on ingress).
+        deny: the same, refused even where ``allow`` covers it (deny wins).
     """
-    acl = json.loads(conf.get_json("access_control") or "{}") or {}
-    if not acl.get("enabled"):
-        acl = {"enabled": True, "default_permission": "allow"}
-    rules = [{"id": f"osmo-server-only-{message}", "messages": [message], "flows": ["ingress"],
-              "permission": "deny", "key_exprs": list(keys)}
-             for message, keys in reserved.items() if keys]
-    acl["rules"] = [*(acl.get("rules") or []), *rules]
-    acl["subjects"] = [*(acl.get("subjects") or []), {"id": "osmo-every-peer"}]
-    acl["policies"] = [*(acl.get("policies") or []),
-                       {"id": "osmo-server-only", "subjects": ["osmo-every-peer"],
+
+    prefix: str
+    allow: Mapping[str, Sequence[str]]
+    deny: Mapping[str, Sequence[str]] = field(default_factory=dict)
+
+
+def _apply(conf: zenoh.Config, acl: Acl) -> None:
+    """Turn ``acl`` into zenoh access control: default deny, allow-list per message.
+
+    A rule's key expressions are matched by inclusion, so a peer that names a wildcard
+    (``osmo/local/*/w1``, ``**``) on a message the list does not cover is refused; a
+    subscriber is delivered only samples on keys the list allows. Rules already in the
+    configuration file are kept, but its ``default_permission`` becomes ``deny`` (zenoh's
+    deny wins over allow, so "deny the rest of osmo's prefix" cannot be written beside a
+    default allow): other traffic through this router needs allow rules of its own.
+    """
+    unknown = {*acl.allow, *acl.deny} - set(MESSAGES)
+    if unknown:
+        raise ValueError(f"unknown zenoh messages {sorted(unknown)}: not in {MESSAGES}")
+    found = json.loads(conf.get_json("access_control") or "{}") or {}
+    if not found.get("enabled"):
+        found = {}
+    rules: list[dict[str, Any]] = [
+        {"id": "osmo-egress", "messages": list(MESSAGES), "flows": ["egress"],
+         "permission": "allow", "key_exprs": [f"{acl.prefix}/**"]}]
+    rules += [{"id": f"osmo-allow-{m}", "messages": [m], "flows": ["ingress"],
+               "permission": "allow", "key_exprs": [f"{acl.prefix}/{k}" for k in keys]}
+              for m, keys in acl.allow.items() if keys]
+    rules += [{"id": f"osmo-deny-{m}", "messages": [m], "flows": ["ingress"],
+               "permission": "deny", "key_exprs": [f"{acl.prefix}/{k}" for k in keys]}
+              for m, keys in acl.deny.items() if keys]
+    out = {**found, "enabled": True, "default_permission": "deny"}
+    out["rules"] = [*(found.get("rules") or []), *rules]
+    out["subjects"] = [*(found.get("subjects") or []), {"id": "osmo-every-peer"}]
+    out["policies"] = [*(found.get("policies") or []),
+                       {"id": "osmo-allow-list", "subjects": ["osmo-every-peer"],
                         "rules": [r["id"] for r in rules]}]
-    conf.insert_json5("access_control", json.dumps(acl))
+    conf.insert_json5("access_control", json.dumps(out))
 
 
 def authenticates(config_file: str | None) -> bool:
@@ -171,23 +203,23 @@ class Link:
     def router(cls, listen: Sequence[str], cluster: str = DEFAULT_CLUSTER, *,
                connect: Sequence[str] = (), config_file: str | None = None,
                peer: bool | None = None,
-               reserved: Mapping[str, Sequence[str]] | None = None) -> Link:
+               allow: Mapping[str, Sequence[str]] | None = None,
+               deny: Mapping[str, Sequence[str]] | None = None) -> Link:
         """Open the server's session.
 
         A router listening on ``listen``, or, with ``connect`` (and ``peer``, by default when
-        ``listen`` is empty), a peer of an existing ``zenohd`` router. ``reserved`` maps
-        messages of :data:`RESERVABLE` to key expressions under the cluster's prefix that no
-        remote peer may use them on (a router joined with ``connect`` needs the same rules
-        in its own configuration).
+        ``listen`` is empty), a peer of an existing ``zenohd`` router. ``allow`` maps messages
+        of :data:`MESSAGES` to the key expressions under the cluster's prefix that remote
+        peers may use them on; ``deny`` takes keys back out of it (:class:`Acl`). None: no
+        access control (a router joined with ``connect`` needs the rules in its own
+        configuration).
         """
         mode = "peer" if (peer if peer is not None else connect and not listen) else "router"
-        unknown = set(reserved or ()) - set(RESERVABLE)
-        if unknown:
-            raise ValueError(f"cannot reserve {sorted(unknown)}: not one of {RESERVABLE}")
+        acl = (Acl(f"osmo/{cluster}", allow, deny or {})
+               if allow is not None and mode == "router" else None)
         try:
             conf = _config(mode, listen=listen, connect=connect, config_file=config_file,
-                           reserved={m: [f"osmo/{cluster}/{k}" for k in keys]
-                                     for m, keys in (reserved or {}).items()})
+                           acl=acl)
             return cls(zenoh.open(conf), cluster)
         except zenoh.ZError as exc:
             where = ", ".join([*listen, *connect])
@@ -258,31 +290,30 @@ class Link:
         So several queries can be in flight at once.
         """
         try:
+            # every queryable, every reply: any peer may answer, so the asker must see them
+            # all to keep the one it can authenticate (zenoh's default asks one "best"
+            # queryable, and keeps one reply per key)
             return self._session.get(key, payload=payload, attachment=attachment,
-                                     timeout=timeout)
+                                     timeout=timeout, target=zenoh.QueryTarget.ALL,
+                                     consolidation=zenoh.ConsolidationMode.NONE)
         except zenoh.ZError as exc:
             raise ServerUnreachable(f"query {key} failed: {exc}") from exc
 
     @staticmethod
-    def answer(pending: Any) -> tuple[bytes, bytes | None] | None:
-        """Wait for the first good reply of a pending query.
+    def replies(pending: Any) -> Iterator[tuple[bytes, bytes | None]]:
+        """Each good reply of a pending query as it arrives: ``(payload, attachment)``.
 
-        Returns ``(payload, attachment)``, or None when nobody answered before the timeout.
+        Ends when every queryable answered or the query's timeout passed. Any peer may answer
+        a query: the caller believes only replies it can authenticate (``osmo.transport.seal``).
         """
         try:
             for reply in pending:
                 if reply.ok is not None:
                     ok = reply.ok
                     att = ok.attachment.to_bytes() if ok.attachment is not None else None
-                    return ok.payload.to_bytes(), att
+                    yield ok.payload.to_bytes(), att
         except zenoh.ZError:
-            return None
-        return None
-
-    def request(self, key: str, payload: bytes = b"", *, attachment: bytes | None = None,
-                timeout: float = 30.0) -> tuple[bytes, bytes | None] | None:
-        """Query ``key`` and wait for the answer (None: nobody answered in time)."""
-        return self.answer(self.ask(key, payload, attachment=attachment, timeout=timeout))
+            return
 
     # -- liveliness ------------------------------------------------------------------------
 

@@ -15,8 +15,7 @@ import collections
 import threading
 
 from osmo.artifacts import ArtifactStore, Manifest
-from osmo.transport.blobs import SERVER, SameHost, fetch_manifest
-from osmo.transport.zenoh_link import Link
+from osmo.transport.blobs import SERVER, Asker, SameHost, fetch_manifest
 
 __all__ = ["HeldInputs"]
 
@@ -27,15 +26,13 @@ class HeldInputs:
     """The manifests whose blobs ``store`` holds (see the module docstring).
 
     Args:
-        link: the worker's zenoh link, to fetch from the server's blob server.
+        asker: the worker's API client: fetches from the server's blob server, sealed.
         store: the worker's artifact store.
-        token: the worker's token, sent with every blob request.
         keep: how many manifests are remembered.
     """
 
-    def __init__(self, link: Link, store: ArtifactStore, token: bytes | None,
-                 keep: int = 4096) -> None:
-        self._link, self._store, self._token, self._keep = link, store, token, keep
+    def __init__(self, asker: Asker, store: ArtifactStore, keep: int = 4096) -> None:
+        self._asker, self._store, self._keep = asker, store, keep
         self._lock = threading.Lock()
         self._manifests: collections.OrderedDict[str, Manifest] = collections.OrderedDict()
 
@@ -47,8 +44,7 @@ class HeldInputs:
     def fetch(self, manifest: Manifest, same_host: SameHost | None) -> str:
         """Make the store hold ``manifest``'s blobs; the reference the pool knows it by."""
         if not self.holds(manifest):
-            fetch_manifest(self._link, SERVER, manifest, self._store, same_host=same_host,
-                           attachment=self._token)
+            fetch_manifest(self._asker, SERVER, manifest, self._store, same_host=same_host)
         self.hold(manifest)
         return f"{_REF}{manifest.digest}"
 

@@ -14,11 +14,14 @@ pulled by the server, which acknowledges each exit report once every byte is saf
 Unacknowledged reports are kept and sent again whenever the worker registers again (after a
 server restart), so a result that finished while the server was away is not lost.
 
-Trust: every request carries the worker's token (role worker); its reports and log batches
-are requests the server checks against the attempts placed on this worker. An attempt's
-secrets and data-URL credentials are asked for (``worker_secrets``) rather than carried by
-the ``prepare`` order, which any subscriber could read. This worker's blob server answers only
-requests carrying the key the server's registration reply gave it.
+Trust: every request is sealed on a channel of the worker's token (role worker,
+``osmo.transport.seal``); its reports and log batches are requests the server checks against
+the attempts placed on this worker. It obeys only orders the server sealed on one of its
+channels (a put on its key by any other peer is dropped), and its blob server answers only
+the server's requests sealed on them. It beats every ``wire.BEAT_EVERY`` seconds; a beat the
+server refuses (it restarted, or counted the worker gone) makes it register again. An
+attempt's secrets and data-URL credentials are asked for (``worker_secrets``) rather than
+carried by the ``prepare`` order.
 
 Leftovers: the pool records each running command's pid and start time under ``<home>/procs``;
 a worker started on a home kills whatever a previous life left there before it announces
@@ -33,6 +36,7 @@ are rescheduled without using a retry). Then it exits.
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import socket
@@ -45,7 +49,7 @@ from typing import Any
 
 from osmo.artifacts import ArtifactStore, Manifest
 from osmo.config import write_json_atomic
-from osmo.errors import OsmoError, UsageError
+from osmo.errors import NotAllowed, OsmoError, UsageError
 from osmo.layout import Home
 from osmo.names import check_worker_name
 from osmo.scheduler.types import (
@@ -61,7 +65,14 @@ from osmo.scheduler.types import (
 from osmo.spec.model import ResourceSpec, TaskSpec, WorkflowSpec
 from osmo.transport.blobs import SERVER, BlobServer, SameHost, host_id
 from osmo.transport.rpc import ApiClient
-from osmo.transport.wire import Hello, event_to_dict, prepare_from_dict, spec_from_wire
+from osmo.transport.seal import Purpose
+from osmo.transport.wire import (
+    BEAT_EVERY,
+    Hello,
+    event_to_dict,
+    prepare_from_dict,
+    spec_from_wire,
+)
 from osmo.transport.zenoh_link import Link, Subscription
 from osmo.worker import containers
 from osmo.worker.held_inputs import HeldInputs
@@ -74,8 +85,6 @@ from osmo.worker.store_keeper import StoreKeeper, clear_runs, default_limit
 __all__ = ["RemoteWorker"]
 
 log = logging.getLogger("osmo.worker")
-
-_HEALTH_EVERY = 5.0
 
 
 @dataclass
@@ -104,14 +113,12 @@ class RemoteWorker:
         self.link = Link.client(list(options.connect), options.cluster,
                                 config_file=options.zenoh_config)
         self._api = ApiClient(self.link, timeout=10.0, token=options.token)
-        self._token_bytes = options.token.encode() if options.token else None
-        self._blob_key: bytes | None = None  # the server reads this worker's blobs with it
         self._lock = threading.Lock()
         self._changed = threading.Condition(self._lock)
         self._specs: dict[str, WorkflowSpec] = {}
         self._url_creds: dict[str, dict[str, str]] = {}
         self._pending: dict[str, _Pending] = {}
-        self._inputs = HeldInputs(self.link, self.store, self._token_bytes)
+        self._inputs = HeldInputs(self._api, self.store)
         self._active: set[str] = set()
         self._inputs_of: dict[str, list[Manifest]] = {}  # of attempts not ended yet
         self._unacked: dict[str, dict[str, Any]] = {}
@@ -151,16 +158,17 @@ class RemoteWorker:
         Registering is retried until the server answers. Returns after :meth:`stop` or a finished
         :meth:`drain`.
         """
+        orders = f"to-worker/{self.id}"
         self._subs = [
-            self.link.subscribe(self.link.key("to-worker", self.id), self._on_order),
-            BlobServer(self.link, self.id, self.store,
-                       lambda key, _digest: key is not None and key == self._blob_key),
+            self.link.subscribe_raw(self.link.key(orders), lambda _key, data, att: (
+                self._on_sealed_order(orders, data, att))),
+            BlobServer(self.link, self.id, self.store, self._api.open_asked),
             self.link.watch(self.link.key("alive", SERVER), self._on_server),
         ]
         delay = 0.2
         self._register_now.set()
         while not self._stop.is_set():
-            if self._register_now.wait(timeout=_HEALTH_EVERY):
+            if self._register_now.wait(timeout=BEAT_EVERY):
                 self._register_now.clear()
                 if not self._register():
                     self._stop.wait(delay)
@@ -168,8 +176,22 @@ class RemoteWorker:
                     self._register_now.set()
                     continue
                 delay = 0.2
+            else:
+                self._beat()
             self._write_health()
         self._close()
+
+    def _beat(self) -> None:
+        """Tell the server this worker is alive; register again if it no longer counts it."""
+        try:
+            self._api.call("worker_beat", {"id": self.id}, timeout=BEAT_EVERY * 2)
+        except NotAllowed:
+            log.info("the server no longer counts worker %s: registering again", self.id)
+            self._register_now.set()
+        except OsmoError as exc:
+            with self._lock:
+                self._connected = False
+            log.info("beat not answered (%s)", exc)
 
     def stop(self) -> None:
         """Leave now: running attempts are killed (the server reschedules them)."""
@@ -244,7 +266,6 @@ class RemoteWorker:
         except OsmoError as exc:
             log.info("server not reachable yet (%s); retrying", exc)
             return False
-        self._blob_key = bytes.fromhex(str(reply.get("blob_key") or ""))
         same = reply.get("host_id") == hello["host_id"] and reply.get("artifacts")
         self._server_host = SameHost(Path(reply["artifacts"])) if same else None
         if same:  # its tasks must not see the server's home (its state store) either
@@ -264,6 +285,19 @@ class RemoteWorker:
         write_json_atomic(self._layout.worker_health, state)
 
     # ------------------------------------------------------------------ orders
+
+    def _on_sealed_order(self, rel: str, data: bytes, attachment: bytes | None) -> None:
+        """An order put on this worker's key: obeyed only if the server sealed it for us."""
+        opened = self._api.opened(Purpose.PUSH, rel, attachment, data)
+        if opened is None:
+            log.warning("dropped a message on %s that the server did not seal", rel)
+            return
+        try:
+            order = json.loads(opened[2])
+        except ValueError:
+            return
+        if isinstance(order, dict):
+            self._on_order(order)
 
     def _on_order(self, order: dict[str, Any]) -> None:
         op, aid = order.get("op"), str(order.get("attempt_id"))

@@ -19,6 +19,7 @@ import time
 from pathlib import Path
 
 from osmo.config import free_port
+from osmo.transport.zenoh_link import Link
 from tests.conftest import REPO, Osmo
 
 _LOG_TIME = re.compile(r"^(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d),(\d{3}) ")
@@ -28,13 +29,17 @@ class Cluster:
     """One server (home ``root/server``) plus workers (homes ``root/<name>``)."""
 
     def __init__(self, root: Path, *, server_args: tuple[str, ...] = (),
-                 env: dict[str, str] | None = None) -> None:
+                 env: dict[str, str] | None = None, open_router: bool = False) -> None:
         self.root = root
         self.port = free_port(0)
         self.endpoint = f"tcp/127.0.0.1:{self.port}"
         self.osmo = Osmo(root / "server")
         self.osmo.env.update(env or {})
-        self.server_args = ("--listen", self.endpoint, "--no-local-pool", *server_args)
+        # open_router: a bare zenoh router with no access control at ``endpoint`` (in this
+        # process), which the server joins: what is left when the router's wall is off
+        self.router: Link | None = Link.router([self.endpoint]) if open_router else None
+        where = ("--connect", self.endpoint) if open_router else ("--listen", self.endpoint)
+        self.server_args = (*where, "--no-local-pool", *server_args)
         self.workers: dict[str, subprocess.Popen[bytes]] = {}
         self.env = env or {}
         self.tokens: dict[str, str] = {}
@@ -117,3 +122,5 @@ class Cluster:
                     pass
             proc.wait(timeout=30)
         self.osmo.stop_server()
+        if self.router is not None:
+            self.router.close()

@@ -1,8 +1,9 @@
-"""The chart's standalone router refuses the server's keys to every peer but the server.
+"""The chart's standalone router allows every peer but the server only the keys peers use.
 
 With ``router.enabled`` the server is one more client of the router, so the router itself
-must hold the access control the server's own router holds (``osmo.transport.wire``
-``SERVER_ONLY``). It tells the server apart by its zenoh user (``auth.serverUser``). The
+must hold the allow-list the server's own router holds (``osmo.transport.wire``
+``PEER_ALLOW`` and ``PEER_DENY``, default deny). It tells the server apart by its zenoh user
+(``auth.serverUser``). The
 attack test runs the rendered ``router.json5`` in a real zenoh router on loopback, with the
 rendered Secret's password dictionary, and real sessions logging in as the server, a worker
 and a rogue peer holding the workers' credentials.
@@ -23,7 +24,7 @@ import pytest
 import zenoh
 
 from osmo.config import DEFAULT_CLUSTER, free_port
-from osmo.transport.wire import SERVER_ONLY
+from osmo.transport.wire import PEER_ALLOW, PEER_DENY
 from tests.helm.chart import FULLNAME, container, render
 
 ROUTER = {"router": {"enabled": True}, "auth": {"enabled": True, "password": "pw"}}
@@ -41,15 +42,25 @@ def _router_config(values: dict[str, Any]) -> dict[str, Any]:
     return config
 
 
-def test_the_router_reserves_exactly_the_servers_keys_for_the_servers_user() -> None:
+def test_the_router_allows_peers_exactly_the_wire_allow_list() -> None:
     acl = _router_config(ROUTER)["access_control"]
-    assert acl["enabled"] is True and acl["default_permission"] == "allow"
-    reserved = {rule["messages"][0]: tuple(k.removeprefix(PREFIX) for k in rule["key_exprs"])
-                for rule in acl["rules"]}
-    assert reserved == SERVER_ONLY
-    assert all(rule["permission"] == "deny" and rule["flows"] == ["ingress"] for rule in acl["rules"])
-    assert acl["subjects"] == [{"id": "osmo-not-the-server", "usernames": ["osmo"]}]
-    assert acl["policies"][0]["rules"] == [rule["id"] for rule in acl["rules"]]
+    assert acl["enabled"] is True and acl["default_permission"] == "deny"
+    rules = {rule["id"]: rule for rule in acl["rules"]}
+    policies = {p["id"]: p for p in acl["policies"]}
+    assert acl["subjects"] == [{"id": "osmo-peers", "usernames": ["osmo"]},
+                               {"id": "osmo-server", "usernames": ["osmo-server"]}]
+    peer = [rules[r] for r in policies["osmo-peers"]["rules"]]
+    ingress = [r for r in peer if r["flows"] == ["ingress"]]
+
+    def keys(permission: str) -> dict[str, tuple[str, ...]]:
+        return {r["messages"][0]: tuple(k.removeprefix(PREFIX) for k in r["key_exprs"])
+                for r in ingress if r["permission"] == permission}
+
+    assert keys("allow") == PEER_ALLOW
+    assert keys("deny") == PEER_DENY
+    assert all(len(r["messages"]) == 1 for r in ingress)
+    server = [rules[r] for r in policies["osmo-server"]["rules"]]
+    assert {k for r in server for k in r["key_exprs"]} == {f"{PREFIX}**"}
 
 
 def test_the_server_logs_in_to_the_router_as_its_own_user() -> None:

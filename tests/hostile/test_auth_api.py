@@ -73,14 +73,21 @@ def _status(osmo: Osmo, wf: str) -> str:
 ])
 def test_an_anonymous_peer_is_refused(server: Osmo, anonymous: ApiClient, verb: str,
                                       request_: dict) -> None:
-    before = len(_refusals(server))
-    with pytest.raises(Exception) as refused:
+    with pytest.raises(Exception) as refused:  # the client knows it has nothing to seal with
         anonymous.call(verb, request_)
     assert type(refused.value).__name__ == "NotAuthenticated"
     assert getattr(refused.value, "exit_code", None) == 3
     assert "token" in str(refused.value)
+    # a raw request in clear, as an attacker sends it, with a made-up channel header
+    before = len(_refusals(server))
+    link = anonymous.link
+    for attachment in (None, b"osmo_not-a-token", bytes([1, 1]) + b"\0" * 24):
+        replies = list(Link.replies(link.ask(link.key("api", verb), json.dumps(request_).encode(),
+                                             attachment=attachment, timeout=10)))
+        assert len(replies) == 1 and b"NotAuthenticated" in replies[0][0]
     new = _refusals(server)[before:]
-    assert len(new) == 1 and f"refused '{verb}' from an unauthenticated caller" in new[0], new
+    assert len(new) == 3 and all(f"refused an unsealed '{verb}' request" in line
+                                 for line in new), new
     # nothing happened: the server answers, the workflow runs, no workflow was made
     assert _status(server, "held-1") == "RUNNING"
     assert "evil" not in server("list", check=True).out

@@ -24,9 +24,10 @@ from osmo.config import read_server_info
 from osmo.errors import UsageError
 from osmo.layout import BlobDirs
 from osmo.transport.blobs import BlobServer, SameHost, fetch_blob
-from osmo.transport.rpc import ApiClient
+from osmo.transport.rpc import ApiClient, ApiServer, gate_opener
 from osmo.transport.zenoh_link import Link
 from tests.conftest import Osmo, write
+from tests.transport.conftest import TOKEN, Gate
 
 GENUINE = b"genuine bytes\n" * 1000
 DIGEST = "sha256:" + hashlib.sha256(GENUINE).hexdigest()
@@ -100,8 +101,11 @@ def test_a_same_host_blob_is_hashed_before_it_is_adopted(tmp_path: Path) -> None
     receiver = ArtifactStore(tmp_path / "receiver")
     sock = f"unixsock-stream/{tmp_path}/s.sock"
     router = Link.router([sock], "blobs")
-    client = Link.client([sock], "blobs")
-    served = BlobServer(router, "peer", genuine, lambda _att, _digest: True)
+    client_link = Link.client([sock], "blobs")
+    gate = Gate()
+    api_server = ApiServer(router, lambda _verb, _request, _who: {}, gate)
+    client = ApiClient(client_link, token=TOKEN, timeout=10)
+    served = BlobServer(router, "peer", genuine, gate_opener(gate))
     try:
         with pytest.raises(ArtifactCorrupted, match="now hashes to"):
             fetch_blob(client, "peer", DIGEST, len(GENUINE), receiver,
@@ -118,7 +122,8 @@ def test_a_same_host_blob_is_hashed_before_it_is_adopted(tmp_path: Path) -> None
         assert again.path(DIGEST).read_bytes() == GENUINE
     finally:
         served.close()
-        client.close()
+        api_server.close()
+        client_link.close()
         router.close()
 
 

@@ -89,7 +89,7 @@ def test_a_peer_cannot_serve_the_servers_blobs(cluster: Cluster) -> None:
         time.sleep(0.3)
         key = asker.key("blob", "server", "0" * 64)
         for _ in range(3):
-            asker.request(key, b"", attachment=b"osmo_worker-token", timeout=1.0)
+            list(Link.replies(asker.ask(key, b"", attachment=b"osmo_worker-token", timeout=1.0)))
         assert heard == [], "a worker's blob request (with its token) reached an impostor"
     finally:
         attacker.close()

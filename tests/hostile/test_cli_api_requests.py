@@ -157,10 +157,9 @@ def test_malformed_request_is_a_usage_error(server: Osmo, raw: Connection, verb:
 def test_non_json_request_is_a_usage_error(server: Osmo, raw: Connection,
                                            payload: bytes) -> None:
     before = len(_log(server))
-    answer = raw.link.request(raw.link.key("api", "get"), payload, timeout=30,
-                              attachment=raw.api.token)  # authenticated: the body is the junk
-    assert answer is not None
-    error = json.loads(answer[0])["error"]
+    answer = raw.api.answer(raw.api.ask("api/get", payload, timeout=30))  # sealed: the body
+    assert answer is not None and answer[0], answer  # is the junk, and the reply is sealed
+    error = json.loads(answer[1])["error"]
     assert error["type"] == "UsageError" and error["exit_code"] == 2, error
     _check_log(server, before)
 

@@ -9,8 +9,11 @@ from collections.abc import Callable, Iterator
 import pytest
 
 from osmo.server.notices import Notifier
+from osmo.transport.seal import Signer, Verifier
 from osmo.transport.zenoh_link import Link
-from tests.transport.conftest import links  # noqa: F401 - the fixture
+from tests.transport.conftest import endpoint, links  # noqa: F401 - the fixtures
+
+SIGNER = Signer()
 
 Heard = tuple[list[float], threading.Event]  # arrival times, and "a notice arrived"
 Told = Callable[[str, float], tuple[Notifier, Heard]]
@@ -20,12 +23,19 @@ def _subscribe(client: Link, wf_id: str) -> Heard:
     got: list[float] = []
     arrived = threading.Event()
 
-    def on_notice(message: dict[str, object]) -> None:
-        assert message == {"workflow_id": wf_id}
+    verifier = Verifier(SIGNER.public)
+
+    def on_notice(key: str, payload: bytes, signature: bytes | None) -> None:
+        if wf_id == "probe":  # the test's own unsigned probe
+            got.append(time.monotonic())
+            arrived.set()
+            return
+        assert verifier.notice(key, payload, signature), "an unsigned notice"
+        assert payload == b'{"workflow_id": "%s"}' % wf_id.encode()
         got.append(time.monotonic())
         arrived.set()
 
-    client.subscribe(client.key("events", wf_id), on_notice)
+    client.subscribe_raw(client.key("events", wf_id), on_notice)
     return got, arrived
 
 
@@ -48,7 +58,7 @@ def told(links: tuple[Link, Link]) -> Iterator[Told]:  # noqa: F811
     def make(wf_id: str, interval: float) -> tuple[Notifier, Heard]:
         heard = _subscribe(client, wf_id)
         _delivered(server, client)
-        made.append(Notifier(server, interval=interval))
+        made.append(Notifier(server, SIGNER, interval=interval))
         return made[-1], heard
 
     yield make

@@ -1,4 +1,4 @@
-"""Session streams over real zenoh sessions on loopback: ordered, signed, kept alive."""
+"""Session streams over real zenoh sessions on loopback: ordered, encrypted, kept alive."""
 
 from __future__ import annotations
 
@@ -51,43 +51,73 @@ def test_frames_arrive_in_order_and_big_payloads_are_split(links: tuple[Link, Li
     client.close()
 
 
-def test_forged_replayed_and_reflected_frames_are_dropped(links: tuple[Link, Link]) -> None:
-    """A zenoh peer that sees the keys (wildcard subscription) still cannot inject."""
+def _spied(seen: list[tuple[bytes, bytes | None]], data_len: int,
+           deadline: float) -> tuple[bytes, bytes | None]:
+    while not (found := [(d, a) for d, a in seen if len(d) == data_len + 16]):
+        assert time.monotonic() < deadline, "the spy never saw the frame"
+        time.sleep(0.05)
+    return found[0]
+
+
+def test_a_spy_reads_only_ciphertext_and_a_replay_is_dropped(links: tuple[Link, Link]) -> None:
+    """A zenoh peer that sees the keys (wildcard subscription) reads and replays nothing."""
     node_link, client_link = links
     grant, inbox = _grant(), _Inbox()
     node = Stream(node_link, grant, "node", inbox.put, inbox.lost.set)
     seen: list[tuple[bytes, bytes | None]] = []
     spy = client_link.subscribe_raw(client_link.key("stream", "**"),
                                     lambda _k, data, att: seen.append((data, att)))
-    forger = Stream(client_link, _grant(), "client", lambda _f: None, lambda: None)
     client = Stream(client_link, grant, "client", lambda _f: None, lambda: None)
     time.sleep(0.3)
-    up = client_link.key("stream", grant.session_id, "up")
-    # another key, same session id: not accepted
-    forged = SessionGrant(grant.session_id, secrets.token_bytes(32), "exec", "a-1")
-    Stream(client_link, forged, "client", lambda _f: None, lambda: None).send(Kind.DATA, 0,
-                                                                               b"rm -rf /\n")
-    client.send(Kind.DATA, 0, b"ls\n")
-    first = inbox.wait(1)
-    assert [f.data for f in first] == [b"ls\n"]
-    # replay what the spy saw of the genuine frame, and garbage
-    deadline = time.monotonic() + 10
-    while not (genuine := [(d, a) for d, a in seen if d == b"ls\n"]):
-        assert time.monotonic() < deadline, "the spy never saw the frame"
-        time.sleep(0.05)
-    client_link.put(up, *genuine[0])
-    client_link.put(up, b"junk", b"\0" * 29)
-    client_link.put(up, b"junk")
-    # the node's own frames reflected back up are refused too
-    node.send(Kind.DATA, 1, b"reflect")
-    while not (reflected := [(d, a) for d, a in seen if d == b"reflect"]):
-        assert time.monotonic() < deadline, "the spy never saw the node's frame"
-        time.sleep(0.05)
-    client_link.put(up, *reflected[0])
+    client.send(Kind.DATA, 0, b"echo $API_TOKEN\n")
+    assert [f.data for f in inbox.wait(1)] == [b"echo $API_TOKEN\n"]
+    genuine = _spied(seen, len(b"echo $API_TOKEN\n"), time.monotonic() + 10)
+    assert b"API_TOKEN" not in b"".join(d + (a or b"") for d, a in seen)
+    client_link.put(client_link.key("stream", grant.session_id, "up"), *genuine)  # replay
     client.send(Kind.DATA, 0, b"pwd\n")
     time.sleep(0.5)
-    assert [f.data for f in inbox.wait(2)] == [b"ls\n", b"pwd\n"]
-    for stream in (node, client, forger):
+    assert [f.data for f in inbox.wait(2)] == [b"echo $API_TOKEN\n", b"pwd\n"]
+    assert not inbox.lost.is_set(), "a replay is dropped, not an attack on the session"
+    for stream in (node, client):
+        stream.close()
+    spy.close()
+
+
+@pytest.mark.parametrize("attack", ["other-key", "junk", "no-header", "flipped", "reflected"])
+def test_a_forged_or_tampered_frame_ends_the_session(links: tuple[Link, Link],
+                                                     attack: str) -> None:
+    node_link, client_link = links
+    grant, inbox = _grant(), _Inbox()
+    node = Stream(node_link, grant, "node", inbox.put, inbox.lost.set)
+    seen: list[tuple[bytes, bytes | None]] = []
+    spy = client_link.subscribe_raw(client_link.key("stream", "**"),
+                                    lambda _k, data, att: seen.append((data, att)))
+    client = Stream(client_link, grant, "client", lambda _f: None, lambda: None)
+    time.sleep(0.3)
+    client.send(Kind.DATA, 0, b"ls\n")
+    assert [f.data for f in inbox.wait(1)] == [b"ls\n"]
+    up = client_link.key("stream", grant.session_id, "up")
+    deadline = time.monotonic() + 10
+    if attack == "other-key":  # the session id is on the key: anyone can aim at it
+        forged = SessionGrant(grant.session_id, secrets.token_bytes(32), "exec", "a-1")
+        Stream(client_link, forged, "client", lambda _f: None, lambda: None).send(
+            Kind.DATA, 0, b"rm -rf /\n")
+    elif attack == "junk":
+        client_link.put(up, b"junk" * 8, b"\0" * 13)
+    elif attack == "no-header":
+        client_link.put(up, b"junk")
+    elif attack == "flipped":
+        data, att = _spied(seen, 3, deadline)
+        client_link.put(up, bytes([data[0] ^ 1]) + data[1:], att)
+    else:  # the node's own frame put back up
+        node.send(Kind.DATA, 1, b"reflect")
+        client_link.put(up, *_spied(seen, len(b"reflect"), deadline))
+    assert inbox.lost.wait(10), "the session went on after a frame failed its check"
+    client.send(Kind.DATA, 0, b"after\n")
+    time.sleep(0.5)
+    assert b"rm -rf /\n" not in [f.data for f in inbox.frames]
+    assert [f.data for f in inbox.frames] == [b"ls\n"]
+    for stream in (node, client):
         stream.close()
     spy.close()
 

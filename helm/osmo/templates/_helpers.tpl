@@ -267,30 +267,45 @@ not 8.589934592e+09), other numbers as they print. */}}
 {{- end -}}
 {{- end -}}
 
-{{/* The router's access control: the keys only the server may use (osmo.transport.wire
-SERVER_ONLY, under the cluster prefix osmo/local/), refused on ingress to every user but the
-server's. zenoh matches a subject by its authenticated user name; the dictionary holds only
-auth.user and auth.serverUser, so "auth.user" is every peer but the server. */}}
+{{/* The router's access control, an allow-list with default deny: every peer but the server
+(auth.user) may use only what osmo.transport.wire PEER_ALLOW lists (minus PEER_DENY), under the
+cluster prefix osmo/local/; the server (auth.serverUser) may use the whole prefix. zenoh
+matches a subject by its authenticated user name; the dictionary holds only auth.user and
+auth.serverUser. This is the second wall: every message is also sealed end to end
+(osmo.transport.seal). */}}
 {{- define "osmo.routerAccessControl" -}}
 {{- $p := "osmo/local/" -}}
-{{- $reserved := list
-  (list "put" (list "to-worker/**" "events/**"))
-  (list "delete" (list "to-worker/**" "events/**"))
-  (list "declare_queryable" (list "api/**" "blob/server/**"))
-  (list "liveliness_token" (list "alive/server")) -}}
-{{- $rules := list -}}
-{{- $ids := list -}}
-{{- range $reserved -}}
-{{- $message := index . 0 -}}
+{{- $all := list "put" "delete" "declare_subscriber" "query" "reply" "declare_queryable" "liveliness_token" "declare_liveliness_subscriber" "liveliness_query" -}}
+{{- $allow := list
+  (list "query" (list "api/*" "blob/server/*"))
+  (list "declare_queryable" (list "blob/*/*"))
+  (list "reply" (list "blob/*/*"))
+  (list "declare_subscriber" (list "to-worker/*" "events/*" "stream/*/*"))
+  (list "put" (list "stream/*/*"))
+  (list "liveliness_token" (list "alive/worker/*"))
+  (list "declare_liveliness_subscriber" (list "alive/**"))
+  (list "liveliness_query" (list "alive/**")) -}}
+{{- $deny := list (list "declare_queryable" (list "blob/server/*")) -}}
+{{- $rules := list (dict "id" "osmo-egress" "messages" $all "flows" (list "egress") "permission" "allow" "key_exprs" (list (printf "%s**" $p))) -}}
+{{- $rules = append $rules (dict "id" "osmo-server-all" "messages" $all "flows" (list "ingress") "permission" "allow" "key_exprs" (list (printf "%s**" $p))) -}}
+{{- $peer := list "osmo-egress" -}}
+{{- range $allow -}}
 {{- $keys := list -}}
 {{- range index . 1 }}{{ $keys = append $keys (printf "%s%s" $p .) }}{{ end -}}
-{{- $id := printf "osmo-server-only-%s" $message -}}
-{{- $rules = append $rules (dict "id" $id "messages" (list $message) "flows" (list "ingress") "permission" "deny" "key_exprs" $keys) -}}
-{{- $ids = append $ids $id -}}
+{{- $id := printf "osmo-allow-%s" (index . 0) -}}
+{{- $rules = append $rules (dict "id" $id "messages" (list (index . 0)) "flows" (list "ingress") "permission" "allow" "key_exprs" $keys) -}}
+{{- $peer = append $peer $id -}}
 {{- end -}}
-{{- $subjects := list (dict "id" "osmo-not-the-server" "usernames" (list .Values.auth.user)) -}}
-{{- $policies := list (dict "id" "osmo-server-only" "subjects" (list "osmo-not-the-server") "rules" $ids) -}}
-{{- dict "enabled" true "default_permission" "allow" "rules" $rules "subjects" $subjects "policies" $policies | toJson -}}
+{{- range $deny -}}
+{{- $keys := list -}}
+{{- range index . 1 }}{{ $keys = append $keys (printf "%s%s" $p .) }}{{ end -}}
+{{- $id := printf "osmo-deny-%s" (index . 0) -}}
+{{- $rules = append $rules (dict "id" $id "messages" (list (index . 0)) "flows" (list "ingress") "permission" "deny" "key_exprs" $keys) -}}
+{{- $peer = append $peer $id -}}
+{{- end -}}
+{{- $subjects := list (dict "id" "osmo-peers" "usernames" (list .Values.auth.user)) (dict "id" "osmo-server" "usernames" (list .Values.auth.serverUser)) -}}
+{{- $policies := list (dict "id" "osmo-peers" "subjects" (list "osmo-peers") "rules" $peer) (dict "id" "osmo-server" "subjects" (list "osmo-server") "rules" (list "osmo-egress" "osmo-server-all")) -}}
+{{- dict "enabled" true "default_permission" "deny" "rules" $rules "subjects" $subjects "policies" $policies | toJson -}}
 {{- end -}}
 
 {{/*
