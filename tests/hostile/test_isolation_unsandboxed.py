@@ -12,14 +12,15 @@ way it does where user namespaces are forbidden.
 
 from __future__ import annotations
 
-import json
-import subprocess
-import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
-from tests.conftest import REPO, Osmo
+from osmo.errors import UsageError
+from osmo.scheduler.types import Capacity, Node
+from osmo.transport.wire import Hello
+from tests.conftest import Osmo
 from tests.e2e.cluster import Cluster
 
 NAMESPACES_REFUSED = ("bwrap: No permissions to create new namespace, likely because the "
@@ -95,77 +96,46 @@ def test_a_sandboxed_server_shows_no_reason(tmp_path: Path) -> None:
         osmo.stop_server()
 
 
-def test_a_worker_without_a_sandbox_warns_and_the_server_shows_why(tmp_path: Path) -> None:
-    cluster = Cluster(tmp_path)
-    try:
-        cluster.start_server()
-        cluster.start_worker("w1", env={"PATH": "/nonexistent"})
-        cluster.start_worker("w2", "--sandbox", "on")
-        nodes = cluster.nodes()
-        assert (nodes["w1"]["sandbox"], nodes["w1"]["sandbox_why"]) == ("none", "bwrap not found")
-        assert (nodes["w2"]["sandbox"], nodes["w2"]["sandbox_why"]) == ("bwrap", None)
-        table = cluster.osmo("resource", "list", check=True).out
-        assert "none (bwrap not found)" in table, table
-        pools = cluster.osmo("pool", "list", "--format", "json", check=True).json()
-        assert [p["sandbox"] for p in pools] == ["none on 1 of 2"]
-        log = cluster.worker_log("w1")
-        assert "UNSANDBOXED: " in log and "install the 'bubblewrap' package" in log, log
-        assert "UNSANDBOXED" not in cluster.worker_log("w2")
-    finally:
-        cluster.stop()
+@pytest.fixture
+def cluster(tmp_path: Path) -> Iterator[Cluster]:
+    with Cluster.started(tmp_path) as started:
+        yield started
 
 
-def test_a_worker_with_sandbox_on_refuses_to_start(tmp_path: Path) -> None:
-    cluster = Cluster(tmp_path)
-    try:
-        cluster.start_server()
-        proc = cluster.start_worker("w1", "--sandbox", "on", env={"PATH": "/nonexistent"},
-                                    wait=False)
-        assert proc.wait(timeout=60) == 3
-        log = cluster.worker_log("w1")
-        assert "--sandbox on" in log and "install the 'bubblewrap' package" in log, log
-        assert "Traceback" not in log, log
-        assert "w1" not in cluster.nodes()
-    finally:
-        cluster.stop()
+def test_a_worker_without_a_sandbox_warns_and_the_server_shows_why(cluster: Cluster) -> None:
+    cluster.start_worker("w1", env={"PATH": "/nonexistent"})
+    cluster.start_worker("w2", "--sandbox", "on")
+    nodes = cluster.nodes()
+    assert (nodes["w1"]["sandbox"], nodes["w1"]["sandbox_why"]) == ("none", "bwrap not found")
+    assert (nodes["w2"]["sandbox"], nodes["w2"]["sandbox_why"]) == ("bwrap", None)
+    table = cluster.osmo("resource", "list", check=True).out
+    assert "none (bwrap not found)" in table, table
+    pools = cluster.osmo("pool", "list", "--format", "json", check=True).json()
+    assert [p["sandbox"] for p in pools] == ["none on 1 of 2"]
+    log = cluster.worker_log("w1")
+    assert "UNSANDBOXED: " in log and "install the 'bubblewrap' package" in log, log
+    assert "UNSANDBOXED" not in cluster.worker_log("w2")
 
 
-def test_an_old_worker_without_the_field_still_registers(tmp_path: Path) -> None:
-    """A worker from before the ``sandbox_why`` field of its hello: registered, shown ``none``.
+def test_a_worker_with_sandbox_on_refuses_to_start(cluster: Cluster) -> None:
+    proc = cluster.start_worker("w1", "--sandbox", "on", env={"PATH": "/nonexistent"},
+                                wait=False)
+    assert proc.wait(timeout=60) == 3
+    log = cluster.worker_log("w1")
+    assert "--sandbox on" in log and "install the 'bubblewrap' package" in log, log
+    assert "Traceback" not in log, log
+    assert "w1" not in cluster.nodes()
 
-    It registers and holds its liveliness token as ``osmo worker`` does, then waits for a line
-    on stdin while the test looks at ``osmo resource list``.
-    """
-    cluster = Cluster(tmp_path)
-    old = None
-    try:
-        cluster.start_server()
-        code = f"""
-import json, sys
-from osmo.transport.rpc import ApiClient
-from osmo.transport.zenoh_link import Link
-link = Link.client([{cluster.endpoint!r}], "local")
-api = ApiClient(link, timeout=10.0, token={cluster.token("old")!r})
-hello = {{"id": "old", "pool": "default", "address": "127.0.0.1", "capacity": {{"cpu": 1}},
-          "labels": {{"sandbox": "none"}}, "runtime": "process"}}
-reply = api.call("worker_register", hello)
-alive = link.token(link.key("alive", "worker", "old"))
-print(json.dumps(sorted(reply)), flush=True)
-sys.stdin.readline()
-alive.close()
-link.close()
-"""
-        old = subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE,
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                               cwd=REPO)
-        assert old.stdout is not None
-        line = old.stdout.readline()
-        assert "blob_key" in json.loads(line or "[]"), old.stderr.read() if not line else line
-        cluster.wait_online("old")
-        node = cluster.nodes()["old"]
-        assert (node["sandbox"], node["sandbox_why"]) == ("none", None)
-        assert "none" in cluster.osmo("resource", "list", check=True).out.split()
-    finally:
-        if old is not None:
-            old.communicate("\n", timeout=30)
-        cluster.stop()
+
+def test_a_hello_without_the_reason_still_registers() -> None:
+    """A worker from before ``sandbox_why``: its hello is read, the reason unknown (None)."""
+    node = Node(id="old", pool="default", capacity=Capacity(cpu=1.0), address="127.0.0.1",
+                labels={"sandbox": "none"})
+    sent = Hello(node, runtime="process").to_dict()
+    assert Hello.from_dict(sent) == Hello(node, runtime="process")
+    del sent["sandbox_why"]
+    assert Hello.from_dict(sent).sandbox_why is None
+    why = Hello(node, sandbox_why="bwrap not found")
+    assert Hello.from_dict(why.to_dict()).sandbox_why == "bwrap not found"
+    with pytest.raises(UsageError, match="sandbox_why"):
+        Hello.from_dict({**sent, "sandbox_why": 7})
