@@ -6,8 +6,9 @@
 #   docker build --build-arg OSMO_EXTRAS=all -t osmo:0.1.0-all .  # every extra (learn needs 3.12)
 #
 # Two stages: the builder installs osmo (and the chosen extras) into a virtualenv at /opt/osmo;
-# the runtime stage copies only that virtualenv onto a fresh slim base and runs as an unprivileged
-# user (uid 10001), so no compiler, pip cache or source tree ships in the image.
+# the runtime stage copies only that virtualenv onto a fresh slim base with the task sandbox
+# (bubblewrap, passt) and runs as an unprivileged user (uid 10001), so no compiler, pip cache or
+# source tree ships in the image.
 
 ARG PYTHON_IMAGE=python:3.12-slim
 
@@ -30,11 +31,13 @@ ARG OSMO_UID=10001
 # Extra Debian packages for task types that need them (e.g. libegl1 for MuJoCo offscreen
 # rendering with MUJOCO_GL=egl); empty by default.
 ARG OSMO_APT_PACKAGES=
-RUN if [ -n "${OSMO_APT_PACKAGES}" ]; then \
-      apt-get update \
-      && apt-get install -y --no-install-recommends ${OSMO_APT_PACKAGES} \
-      && rm -rf /var/lib/apt/lists/*; \
-    fi \
+# Every build: bubblewrap, the sandbox each process task runs in (without it `--sandbox auto`
+# runs tasks unsandboxed beside osmo's home, and the chart's `--sandbox on` refuses to start),
+# and passt, whose pasta gives a sandboxed task's own network namespace its connectivity.
+RUN apt-get update \
+ && apt-get install -y --no-install-recommends bubblewrap passt ${OSMO_APT_PACKAGES} \
+ && rm -rf /var/lib/apt/lists/* \
+ && bwrap --version && command -v pasta >/dev/null \
  && groupadd --system --gid "${OSMO_UID}" osmo \
  && useradd --system --uid "${OSMO_UID}" --gid "${OSMO_UID}" --home-dir /home/osmo \
       --create-home --shell /usr/sbin/nologin osmo \

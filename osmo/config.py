@@ -91,12 +91,16 @@ def private_file(path: Path) -> None:
 
 @dataclass(frozen=True)
 class ServerInfo:
-    """What a running local server wrote about itself in ``server.json``."""
+    """What a running local server wrote about itself in ``server.json``.
+
+    ``warnings``: what it warned about at start (``osmo server start`` repeats them).
+    """
 
     endpoint: str
     pid: int
     cluster: str
     started_at: float
+    warnings: tuple[str, ...] = ()
 
 
 def write_json_atomic(path: Path, data: dict[str, Any]) -> None:
@@ -116,7 +120,8 @@ def read_server_info(home: Path) -> ServerInfo | None:
     try:
         data = json.loads(Home(home).server_info.read_text())
         return ServerInfo(data["endpoint"], int(data["pid"]), data["cluster"],
-                          float(data["started_at"]))
+                          float(data["started_at"]),
+                          tuple(str(w) for w in data.get("warnings") or ()))
     except (OSError, ValueError, KeyError):
         return None
 

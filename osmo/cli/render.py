@@ -354,8 +354,14 @@ def resource_table(rows: list[dict[str, Any]], *, by: str) -> Table:
         table.add_row(*head, f"{used['cpu']:g}/{total['cpu']:g}",
                       f"{used['gpu']}/{total['gpu']}",
                       f"{_gib(used['memory'])}/{_gib(total['memory'])}",
-                      safe(r.get("sandbox", "-")))
+                      safe(_sandbox(r)))
     return table
+
+
+def _sandbox(row: dict[str, Any]) -> str:
+    """A node's sandbox: ``bwrap``, ``none (why)``; a pool's as summed by ``osmo pool list``."""
+    why = row.get("sandbox_why")
+    return f"{row.get('sandbox', '-')} ({why})" if why else str(row.get("sandbox", "-"))
 
 
 def _param_line(name: str, p: dict[str, Any]) -> str:

@@ -11,7 +11,7 @@ from __future__ import annotations
 import argparse
 import shlex
 
-from osmo.cli.render import console, print_json
+from osmo.cli.render import console, err_console, print_json
 from osmo.config import home_dir
 from osmo.sdk.connect import running_options, server_status, start_server, stop_server
 from osmo.server import options as opts
@@ -54,6 +54,8 @@ def _start(options: ServerOptions) -> int:
     _say_changes(opts.remember(home_dir(), options))
     info = start_server(options=options)
     console.print(f"osmo server running: pid {info.pid}, {info.endpoint}", markup=False)
+    for warning in info.warnings:  # e.g. no sandbox: said where the user looks, not only in the log
+        err_console.print(warning, markup=False)
     return 0
 
 

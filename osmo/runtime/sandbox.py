@@ -41,7 +41,10 @@ Availability: :func:`choose` probes once per process whether ``bwrap`` exists an
 the namespaces (some machines forbid unprivileged user namespaces), and whether it reports
 the command's exit code on a status pipe (``--json-status-fd``): with it, a failure of
 bwrap's own setup (its exit 1, before the command runs) is told from the command's exit 1
-(``osmo.runtime.process``; the pool starts it again, ``osmo.worker.starts``).
+(``osmo.runtime.process``; the pool starts it again, ``osmo.worker.starts``). Why none works
+is said twice: :func:`unavailable_reason` in full (bwrap's own message and a hint, for logs and
+errors) and :func:`unavailable_summary` in a few words (``bwrap not found``, ``user namespaces
+refused``, ``cannot mount /proc``; what ``osmo resource list`` shows).
 """
 
 from __future__ import annotations
@@ -62,7 +65,8 @@ from typing import Literal
 
 from osmo.errors import InfrastructureError, UsageError
 
-__all__ = ["MODES", "Sandbox", "SandboxMode", "View", "choose", "unavailable_reason"]
+__all__ = ["MODES", "Sandbox", "SandboxMode", "View", "choose", "unavailable_reason",
+           "unavailable_summary"]
 
 SandboxMode = Literal["auto", "on", "off"]
 MODES: tuple[SandboxMode, ...] = ("auto", "on", "off")
@@ -72,6 +76,18 @@ _PACKAGE = "bubblewrap"
 _PROBE_TIMEOUT = 10.0
 _PROBE_TRIES = 8  # 5 ms doubling: 0.6 s in all, as a task's start (osmo.worker.starts)
 _GPU_DEVICES = ("/dev/nvidia*", "/dev/dri")
+# bwrap's failure (a fragment of its message) -> (summary, hint). bwrap says little more than
+# "Operation not permitted"; these are the causes seen in containers and on locked-down hosts.
+_FAILURES = (
+    ("namespace", "user namespaces refused",
+     "are unprivileged user namespaces disabled (sysctl user.max_user_namespaces, "
+     "kernel.unprivileged_userns_clone), or refused by a seccomp or AppArmor profile?"),
+    ("uid map", "user namespaces refused",
+     "are unprivileged user namespaces disabled, or refused by an AppArmor profile?"),
+    ("mount proc", "cannot mount /proc",
+     "is /proc masked, as in a container? Kubernetes: procMount Unmasked, with hostUsers false"),
+    ("mount", "mounts refused", "does an AppArmor or SELinux profile refuse mounts?"),
+)
 
 
 @dataclass(frozen=True)
@@ -212,8 +228,13 @@ def runtime_folders(paths: Sequence[str] | None = None) -> tuple[str, ...]:
 
 
 def unavailable_reason() -> str:
-    """Why no sandbox is available here (empty when one is)."""
+    """Why no sandbox is available here, in full (empty when one is)."""
     return _probe_result()[1]
+
+
+def unavailable_summary() -> str:
+    """Why no sandbox is available here, in a few words (empty when one is)."""
+    return _probe_result()[2]
 
 
 def _probe() -> Sandbox | None:
@@ -221,11 +242,12 @@ def _probe() -> Sandbox | None:
 
 
 @functools.cache  # once per process: whether bwrap works does not change while we run
-def _probe_result() -> tuple[Sandbox | None, str]:
+def _probe_result() -> tuple[Sandbox | None, str, str]:
+    """The working sandbox, or None with why: in full and in a few words."""
     bwrap = shutil.which("bwrap")
     if bwrap is None:
         return None, (f"bubblewrap is not installed (install the '{_PACKAGE}' package, "
-                      "e.g. apt-get install bubblewrap)")
+                      "e.g. apt-get install bubblewrap)"), "bwrap not found"
     probe = [bwrap, "--cap-drop", "ALL", "--ro-bind", "/", "/", "--dev", "/dev", "--proc", "/proc",
              "--unshare-pid", "--die-with-parent", "--", "true"]
     runs: list[subprocess.CompletedProcess[bytes]] = []
@@ -239,13 +261,23 @@ def _probe_result() -> tuple[Sandbox | None, str]:
         _tried(once)
         done = runs[-1]
     except (OSError, subprocess.SubprocessError) as exc:
-        return None, f"bubblewrap ({bwrap}) cannot run: {exc}"
+        return None, f"bubblewrap ({bwrap}) cannot run: {exc}", "bwrap cannot run"
     if done.returncode != 0:
         message = done.stderr.decode("utf-8", "replace").strip() or f"exit {done.returncode}"
-        return None, (f"bubblewrap ({bwrap}) cannot make namespaces here: {message} "
-                      "(are user namespaces disabled?)")
+        summary, hint = _failure(message)
+        return None, f"bubblewrap ({bwrap}) cannot make its sandbox here: {message} ({hint})", \
+            summary
     devices = tuple(sorted(d for pattern in _GPU_DEVICES for d in glob.glob(pattern)))
-    return Sandbox(bwrap, devices, status=_reports_status(probe)), ""
+    return Sandbox(bwrap, devices, status=_reports_status(probe)), "", ""
+
+
+def _failure(message: str) -> tuple[str, str]:
+    """A few words and a hint for bwrap's failure ``message`` (:data:`_FAILURES`)."""
+    low = message.lower()
+    for fragment, summary, hint in _FAILURES:
+        if fragment in low:
+            return summary, hint
+    return "bwrap fails", "see bubblewrap's message"
 
 
 def _tried(attempt: Callable[[], object]) -> object:

@@ -169,7 +169,9 @@ def serve(home: str | os.PathLike[str] | None = None, options: ServerOptions | N
                              if options.zenoh_config else None),
             "host_id": host_id(), "artifacts": str(artifacts.root),
             "started_at": time.time(), "home": str(home_path), "options": options.to_argv(),
-            "runtime": pool.runtime_name() if pool is not None else None}
+            "runtime": pool.runtime_name() if pool is not None else None,
+            "sandbox_why": pool.no_sandbox_why if pool is not None else None,
+            "warnings": [pool.sandbox_warning] if pool is not None and pool.sandbox_warning else []}
     local_sessions = NodeSessions(link, pool) if pool is not None else None
     handlers = Handlers(engine, home_path, info, on_shutdown=stopping.set, workers=hub,
                         link=link, gate=authenticate, tokens=TokenHandlers(store, authenticate),

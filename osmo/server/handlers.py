@@ -313,16 +313,22 @@ class Handlers:
         return {"spec": self._row(request.get("workflow_id"), with_spec=True).spec}
 
     def pools(self, _request: dict[str, Any]) -> builtins.list[dict[str, Any]]:
-        """Known nodes with their pool, platform and capacity used/total."""
+        """Known nodes with their pool, platform, sandbox and capacity used/total.
+
+        ``sandbox`` is ``bwrap`` or ``none``; ``sandbox_why`` says why not, in a few words
+        (None when sandboxed, or from a worker too old to say).
+        """
         remote = {w["id"]: w for w in self._workers.workers()} if self._workers else {}
         out = []
         for node, used in self._engine.ask(ListNodes()):
             worker = remote.get(node.id, {})
+            about = worker or self._info
+            sandbox = node.labels.get("sandbox", "none")
             out.append({"node": node.id, "pool": node.pool, "platform": node.platform,
                         "status": worker.get("status", "online"),
-                        "kind": "remote" if worker else "local",
-                        "sandbox": node.labels.get("sandbox", "none"),
-                        "runtime": worker.get("runtime") if worker else self._info.get("runtime"),
+                        "kind": "remote" if worker else "local", "sandbox": sandbox,
+                        "sandbox_why": about.get("sandbox_why") if sandbox == "none" else None,
+                        "runtime": about.get("runtime"),
                         "total": vars(node.capacity), "used": vars(used)})
         return out
 

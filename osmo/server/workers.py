@@ -148,7 +148,8 @@ class WorkerHub:
         with self._lock:
             self._nodes[wid] = node
             self._info[wid] = {"pid": hello.pid, "address": node.address,
-                               "host_id": hello.host_id, "runtime": hello.runtime}
+                               "host_id": hello.host_id, "runtime": hello.runtime,
+                               "sandbox_why": hello.sandbox_why}
             same = hello.host_id == self._host and hello.artifacts
             self._same_host[wid] = SameHost(Path(hello.artifacts or "")) if same else None
             self._sent_specs[wid] = set()

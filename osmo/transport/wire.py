@@ -203,6 +203,8 @@ class Hello:
         active: the attempts it still runs.
         finished: its exit reports the server has not acknowledged yet.
         runtime: how it runs image tasks: ``container (podman 4.3.1)`` or ``process``.
+        sandbox_why: why it runs process tasks unsandboxed, in a few words (``bwrap not
+            found``); None: sandboxed, or a worker from before this field.
     """
 
     node: Node
@@ -213,6 +215,7 @@ class Hello:
     active: tuple[str, ...] = ()
     finished: tuple[dict[str, Any], ...] = ()
     runtime: str | None = None
+    sandbox_why: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """The hello as JSON-safe data."""
@@ -221,7 +224,8 @@ class Hello:
                 "capacity": capacity_to_dict(node.capacity), "labels": dict(node.labels),
                 "address": node.address, "host_id": self.host_id, "artifacts": self.artifacts,
                 "pid": self.pid, "draining": self.draining, "active": list(self.active),
-                "finished": list(self.finished), "runtime": self.runtime}
+                "finished": list(self.finished), "runtime": self.runtime,
+                "sandbox_why": self.sandbox_why}
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> Hello:
@@ -243,7 +247,8 @@ class Hello:
                    artifacts=field(data, "artifacts", str, default=None, max_len=_TEXT),
                    draining=field(data, "draining", bool, default=False),
                    active=tuple(str_list(data, "active")), finished=tuple(finished),
-                   runtime=field(data, "runtime", str, default=None, max_len=_TEXT))
+                   runtime=field(data, "runtime", str, default=None, max_len=_TEXT),
+                   sandbox_why=field(data, "sandbox_why", str, default=None, max_len=_TEXT))
 
 
 def spec_to_wire(spec: dict[str, Any], filename: str, types: dict[str, Any]) -> dict[str, Any]:

@@ -36,7 +36,10 @@ in the log.
 Sandbox (``sandbox``: ``auto``, ``on``, ``off``; ``osmo.runtime.sandbox``): chosen once, when
 the pool is made; commands then run in bubblewrap with a view of their own attempt's folders
 only (``workdir.attempt_view``), and the node's ``sandbox`` label says ``bwrap``. Without one,
-the label says ``none`` and every attempt's log starts with an osmo line saying so.
+the label says ``none``, ``no_sandbox_why`` says why in a few words (``osmo resource list``),
+and every attempt's log starts with an osmo line saying so. ``auto`` that finds no working
+sandbox also logs :attr:`LocalPool.sandbox_warning` (level WARNING) when the pool is made:
+nobody chose to run tasks unsandboxed, so it is said at start, not only in each task's log.
 A pool records each command's pid and start time in ``procs_dir`` right after the spawn
 (one appended line; ``osmo.worker.procs``), so that a server or worker restarted after a
 crash can kill what its previous life left, even a command whose start it never reported.
@@ -62,7 +65,7 @@ from osmo.runtime.container import ContainerEngine
 from osmo.runtime.container_runtime import ContainerRuntime
 from osmo.runtime.process import ProcessHandle, ProcessRuntime, Runtime
 from osmo.runtime.proctable import kill_stale, process_start_time
-from osmo.runtime.sandbox import SandboxMode, choose, unavailable_reason
+from osmo.runtime.sandbox import SandboxMode, choose, unavailable_reason, unavailable_summary
 from osmo.scheduler.types import (
     LOCAL_NODE,
     AttemptExited,
@@ -93,6 +96,22 @@ _log = logging.getLogger(__name__)
 _IO_THREADS = 4
 
 
+def _unsandboxed(mode: SandboxMode, pool: str) -> tuple[str, str, str | None]:
+    """What a pool without a sandbox says: in each task's log, in ``osmo resource list``, at start.
+
+    The last is None with ``--sandbox off``: the operator chose it.
+    """
+    if mode == "off":
+        return ("no sandbox: this task sees the host as the worker's user (--sandbox off)",
+                "--sandbox off", None)
+    reason = unavailable_reason()
+    return (f"no sandbox: this task sees the host as the worker's user ({reason})",
+            unavailable_summary(),
+            f"UNSANDBOXED: pool {pool} runs its tasks without a sandbox (--sandbox {mode}): "
+            f"{reason}. They see the host as uid {os.geteuid()}, osmo's home (state, "
+            "credentials) included; --sandbox on refuses to start instead")
+
+
 class LocalPool(AttemptStarts):
     """A resource-aware pool of host processes on this machine (see the module docstring).
 
@@ -120,6 +139,13 @@ class LocalPool(AttemptStarts):
         procs_dir: record running commands' pids here (see the module docstring).
         containers: runs image tasks in containers (its runtime replaces ``runtime``); its
             orphans are removed here, before anything starts.
+
+    Attributes:
+        sandbox: the sandbox its process tasks run in (None: they run unsandboxed).
+        no_sandbox_why: why they run unsandboxed, in a few words (``--sandbox off``, ``bwrap
+            not found``, ...; None: they run in the sandbox).
+        sandbox_warning: what was logged at start because ``auto`` found no sandbox (None
+            when it found one, or with ``off``).
 
     Raises:
         InfrastructureError: ``sandbox="on"`` and no sandbox works here.
@@ -163,9 +189,11 @@ class LocalPool(AttemptStarts):
             raise UsageError(f"--sandbox-share {inside[0]}: it is inside osmo's home "
                              f"{self.home}, which tasks must never see")
         self.sandbox = choose(sandbox, sandbox_share)
-        self._no_sandbox = None if self.sandbox else (
-            "no sandbox: this task sees the host as the worker's user "
-            f"({'--sandbox off' if sandbox == 'off' else unavailable_reason()})")
+        said: tuple[str | None, str | None, str | None] = (
+            (None, None, None) if self.sandbox else _unsandboxed(sandbox, pool))
+        self._no_sandbox, self.no_sandbox_why, self.sandbox_warning = said
+        if self.sandbox_warning:
+            _log.warning("%s", self.sandbox_warning)
         self._runtime: Runtime = runtime or ProcessRuntime(self.sandbox)
         self._procs = ProcessRecords(procs_dir) if procs_dir is not None else None
         self._hidden = [self.home]  # folders a sandboxed task never sees (see hide())

@@ -260,7 +260,8 @@ class RemoteWorker:
                           artifacts=str(self.store.root), draining=self._draining,
                           active=tuple(sorted(self._active | set(self._pending))),
                           finished=tuple(self._unacked.values()),
-                          runtime=self.pool.runtime_name()).to_dict()
+                          runtime=self.pool.runtime_name(),
+                          sandbox_why=self.pool.no_sandbox_why).to_dict()
         try:
             reply = self._api.call("worker_register", hello)
         except OsmoError as exc:

@@ -8,6 +8,7 @@ home's admin CLI). All of them are stopped by PID at the end (never by name).
 
 from __future__ import annotations
 
+import contextlib
 import datetime
 import json
 import os
@@ -16,6 +17,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 from osmo.config import free_port
@@ -53,6 +55,17 @@ class Cluster:
 
     def start_server(self) -> None:
         self.osmo("server", "start", *self.server_args, check=True)
+
+    @classmethod
+    @contextlib.contextmanager
+    def started(cls, root: Path) -> Iterator[Cluster]:
+        """A cluster whose server runs for the ``with`` block; everything stopped after."""
+        cluster = cls(root)
+        try:
+            cluster.start_server()
+            yield cluster
+        finally:
+            cluster.stop()
 
     def start_worker(self, name: str, *args: str, pool: str = "default",
                      host: str | None = None, env: dict[str, str] | None = None,

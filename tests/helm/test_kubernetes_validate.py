@@ -16,7 +16,7 @@ import yaml
 
 from tests.helm.chart import EXAMPLES, load_values, render, tls_values
 
-KUBE_VERSIONS = ["1.27.0", "1.37.0"]
+KUBE_VERSIONS = ["1.30.0", "1.37.0"]
 VALIDATE = Path(sys.executable).parent / "kubernetes-validate"
 
 CASES = {
@@ -33,6 +33,10 @@ CASES = {
                 "env": [{"name": "NODE", "valueFrom": {"fieldRef": {"fieldPath": "spec.nodeName"}}}],
                 "image": {"repository": "osmo", "tag": "sim"}}]),
     "no-pools": {"pools": []},
+    "local-pool-own-profiles": {"server": {"localPool": True}, "sandbox": {
+        "mode": "auto", "podSecurityContext": {
+            "seccompProfile": {"type": "Localhost", "localhostProfile": "osmo-bwrap.json"},
+            "appArmorProfile": {"type": "Localhost", "localhostProfile": "osmo-bwrap"}}}},
 }
 CASES["router-tls-mtls-auth"]["tls"].update(mtls=True, client={"cert": "c", "key": "k"})
 
@@ -50,3 +54,10 @@ def test_rendered_manifests_validate_strictly(case: str, kube_version: str, tmp_
     proc = subprocess.run([str(VALIDATE), "--strict", "--quiet", "-k", kube_version, *files],
                           capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stdout + proc.stderr
+
+
+def test_the_oldest_version_checked_is_the_charts_minimum() -> None:
+    from tests.helm.chart import CHART
+
+    minimum = load_values(CHART / "Chart.yaml")["kubeVersion"]
+    assert minimum == f">={KUBE_VERSIONS[0]}-0", minimum

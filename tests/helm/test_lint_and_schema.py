@@ -71,6 +71,7 @@ BAD_COMBINATIONS = [
     ({"router": {"enabled": True}}, "router.enabled needs auth.enabled"),
     ({"router": {"enabled": True}, "auth": {"enabled": True, "password": "pw", "serverUser": "osmo"}},
      "auth.serverUser must differ from auth.user"),
+    ({"sandbox": {"hostUsers": True}}, "allows procMount Unmasked only with hostUsers false"),
 ]
 
 
@@ -85,7 +86,8 @@ def _keys(values: dict, prefix: str = "") -> list[str]:
     out = []
     for key, value in values.items():
         path = f"{prefix}{key}"
-        if isinstance(value, dict) and value and not path.endswith(("resources", "seccompProfile", "capabilities")) \
+        if isinstance(value, dict) and value and not path.endswith(
+                ("resources", "seccompProfile", "appArmorProfile", "capabilities")) \
                 and ".probes." not in path:
             out.extend(_keys(value, path + "."))
         else:

@@ -192,7 +192,7 @@ def test_a_sandbox_that_cannot_be_set_up_for_a_moment_is_still_found_by_the_prob
         for _ in range(15):
             sandbox_mod._probe_result.cache_clear()
             try:
-                found, why = sandbox_mod._probe_result()
+                found, why, _ = sandbox_mod._probe_result()
             finally:
                 sandbox_mod._probe_result.cache_clear()
             assert found is not None, why

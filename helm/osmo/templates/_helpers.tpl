@@ -326,3 +326,38 @@ evicts a pod whose emptyDir passes its limit, so the store must stay well below 
 {{- end -}}
 {{- end -}}
 {{- end }}
+
+{{/*
+Pods that run tasks (every pool's workers; the server with server.localPool) run them in
+bubblewrap with `--sandbox <sandbox.mode>`; unless that mode is "off", they also get what
+bubblewrap needs in a pod (README.md, "Sandboxed tasks"): their own user namespace
+(sandbox.hostUsers), and each key of sandbox.podSecurityContext and
+sandbox.containerSecurityContext in place of the same key of the base contexts. Every other pod
+keeps the base contexts. Args of each: root, tasks (true: the pod runs tasks).
+*/}}
+{{- define "osmo.sandboxed" -}}
+{{- if and .tasks (ne .root.Values.sandbox.mode "off") -}}true{{- end -}}
+{{- end -}}
+
+{{- define "osmo.podSecurityContext" -}}
+{{- $context := deepCopy .root.Values.podSecurityContext -}}
+{{- if include "osmo.sandboxed" . -}}
+{{- range $key, $value := .root.Values.sandbox.podSecurityContext }}{{ $_ := set $context $key $value }}{{ end -}}
+{{- end -}}
+{{- toYaml $context -}}
+{{- end -}}
+
+{{- define "osmo.containerSecurityContext" -}}
+{{- $context := deepCopy .root.Values.containerSecurityContext -}}
+{{- if include "osmo.sandboxed" . -}}
+{{- range $key, $value := .root.Values.sandbox.containerSecurityContext }}{{ $_ := set $context $key $value }}{{ end -}}
+{{- end -}}
+{{- toYaml $context -}}
+{{- end -}}
+
+{{/* spec.hostUsers of a pod (a line, or nothing). Args: root, tasks. */}}
+{{- define "osmo.hostUsers" -}}
+{{- if and (include "osmo.sandboxed" .) (not .root.Values.sandbox.hostUsers) -}}
+hostUsers: false
+{{- end -}}
+{{- end -}}
