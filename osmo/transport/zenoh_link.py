@@ -242,10 +242,6 @@ class Link:
 
     # -- publish / subscribe --------------------------------------------------------------
 
-    def publish(self, key: str, message: dict[str, Any]) -> None:
-        """Put a JSON message on ``key`` (best effort; errors are not fatal to the caller)."""
-        self.put(key, json.dumps(message).encode())
-
     def put(self, key: str, data: bytes, attachment: bytes | None = None) -> bool:
         """Put raw bytes, blocking (not dropping) when the link is congested; False on error."""
         try:
@@ -254,11 +250,6 @@ class Link:
         except zenoh.ZError:
             return False
         return True
-
-    def subscribe(self, key: str, callback: Callable[[dict[str, Any]], None]) -> Subscription:
-        """Call ``callback(message)`` for every JSON message on ``key``."""
-        return self.subscribe_raw(
-            key, lambda _key, data, _att: callback(json.loads(data or b"{}")))
 
     def subscribe_raw(self, key: str,
                       callback: Callable[[str, bytes, bytes | None], None]) -> Subscription:

@@ -1,15 +1,17 @@
-"""A zenoh peer cannot speak as the server: the router's access control on key expressions.
+"""A zenoh peer cannot speak as the server: the router's allow-list, the second wall.
 
 Any peer that reaches the router (a worker with its zenoh credentials, or anything on an
-``--insecure`` listener) could, without it, put orders on ``to-worker/<id>`` (a worker obeys
-its orders), declare a queryable on ``api/**`` (clients then send it their tokens and take
-its answers), serve the server's blobs, publish workflow events, or hold the server's
-liveliness token. The server's router refuses those messages from every remote peer; the
-server's own session, inside the router, is the only one allowed (``osmo.server.app``).
+``--insecure`` listener) could, without it, put orders on ``to-worker/<id>``, declare a
+queryable on ``api/**``, serve the server's blobs, publish workflow events, or hold the
+server's liveliness token. The server's router allows remote peers only what workers and
+clients use (``osmo.transport.wire.PEER_ALLOW``, default deny); the server's own session,
+inside the router, is the only one allowed the rest. The first wall is that nothing is
+believed for its key (``tests/hostile/test_auth_wire.py``, with and without this one).
 """
 
 from __future__ import annotations
 
+import json
 import threading
 import time
 from collections.abc import Iterator
@@ -101,9 +103,10 @@ def test_a_peer_cannot_publish_events_or_pose_as_the_live_server(cluster: Cluste
     watcher = Link.client([cluster.endpoint], "local")
     seen: list[dict[str, object]] = []
     try:
-        sub = watcher.subscribe(watcher.key("events", "**"), seen.append)
+        sub = watcher.subscribe_raw(watcher.key("events", "**"),
+                                    lambda _k, data, _a: seen.append(json.loads(data)))
         time.sleep(0.3)
-        attacker.publish(attacker.key("events", "wf-1"), {"workflow_id": "wf-1"})
+        attacker.put(attacker.key("events", "wf-1"), b'{"workflow_id": "wf-1"}')
         fake = attacker.token(attacker.key("alive", "server"))
         time.sleep(0.5)
         assert seen == [], "a peer's forged event reached the clients"

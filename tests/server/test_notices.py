@@ -44,7 +44,7 @@ def _delivered(server: Link, client: Link) -> None:
     got, arrived = _subscribe(client, "probe")
     deadline = time.monotonic() + 10
     while not got and time.monotonic() < deadline:
-        server.publish(server.key("events", "probe"), {"workflow_id": "probe"})
+        server.put(server.key("events", "probe"), b'{"workflow_id": "probe"}')
         arrived.wait(0.05)
     assert got, "the subscription never received anything"
 
