@@ -111,12 +111,6 @@ class WorkerHub:
 
     # ------------------------------------------------------------------ membership
 
-    def verbs(self) -> dict[str, Callable[[dict[str, Any], Identity], Any]]:
-        """API verbs served for workers (each gets the caller's identity)."""
-        return {"worker_register": self.register, "worker_drain": self.drain,
-                "worker_report": self.report, "worker_log": self.log,
-                "worker_secrets": self.secrets}
-
     def register(self, request: dict[str, Any], who: Identity) -> dict[str, Any]:
         """A worker says hello (``osmo.transport.wire.Hello``).
 
