@@ -66,7 +66,7 @@ def _worker_hub(tmp_path: Path) -> Iterator[Harness]:
     store = Store(home.state_db)
     authenticate = Authenticator(store)
     token = new_token()
-    store.add_token("w1", "worker", token_digest(token), time.time())
+    store.add_token("w1", "worker", token_digest(token), time.time(), ["default"])
     hub = WorkerHub(link=link, emit=events.put, store=store,
                     artifacts=ArtifactStore(home.artifacts), home=home.root,
                     url_credential=lambda _url: None, attempts_on=lambda _node: [],

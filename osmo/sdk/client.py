@@ -151,12 +151,17 @@ class Client:
         """The rendered spec the workflow was submitted with."""
         return dict(self._call("spec", workflow_id=workflow_id)["spec"])
 
-    def create_token(self, name: str, role: str = "user") -> str:
-        """A new API token ``name`` with ``role`` (admin only); returned once, never again."""
-        return str(self._call("token_create", name=name, role=role)["token"])
+    def create_token(self, name: str, role: str = "user", *,
+                     pools: Sequence[str] = ()) -> str:
+        """A new API token ``name`` with ``role`` (admin only); returned once, never again.
+
+        A worker token names the ``pools`` its workers may serve (``"*"``: every pool).
+        """
+        return str(self._call("token_create", name=name, role=role,
+                              pools=list(pools))["token"])
 
     def tokens(self) -> builtins.list[dict[str, Any]]:
-        """Every token's name, role, created and revoked times (admin only)."""
+        """Every token's name, role, pools, created and revoked times (admin only)."""
         return builtins.list(self._call("token_list"))
 
     def revoke_token(self, name: str) -> None:

@@ -47,10 +47,11 @@ from osmo.layout import Home
 from osmo.names import check_name, shown
 from osmo.store.sqlite import Store
 from osmo.transport.auth import Identity, Role, new_token, token_digest
-from osmo.transport.rpc import field
+from osmo.transport.rpc import field, str_list
 
-__all__ = ["API", "OWNER", "VERBS", "Authenticator", "Router", "Rule", "TokenHandlers",
-           "accept_tokens", "authorize", "check_owner", "owner_token", "refuse"]
+__all__ = ["API", "EVERY_POOL", "OWNER", "VERBS", "Authenticator", "Router", "Rule",
+           "TokenHandlers", "accept_tokens", "authorize", "check_owner", "check_pool",
+           "owner_token", "refuse", "token_pools"]
 
 log = logging.getLogger("osmo.server.auth")
 
@@ -205,6 +206,49 @@ def check_owner(workflow_id: str, owner: str | None, who: Identity, verb: str) -
                             "an admin may change it")
 
 
+EVERY_POOL = "*"
+"""The pool a worker token names to serve every pool (``--pool '*'``)."""
+_MAX_POOLS = 256
+
+
+def token_pools(role: Role, pools: list[str] | tuple[str, ...]) -> list[str] | None:
+    """The pools a new token of ``role`` stores: a worker's (at least one), None for others.
+
+    Raises:
+        UsageError: a worker token without pools, pools for another role, or a bad pool.
+    """
+    if role is not Role.WORKER:
+        if pools:
+            raise UsageError("only worker tokens name pools (--pool); a user's or admin's "
+                             "token reaches every pool's workflows as its role allows")
+        return None
+    if not pools:
+        raise UsageError("a worker token names the pools it may serve: --pool POOL "
+                         f"(repeatable), or --pool '{EVERY_POOL}' for every pool")
+    if len(pools) > _MAX_POOLS or not all(
+            isinstance(p, str) and 0 < len(p) <= 256 and p.isprintable() for p in pools):
+        raise UsageError(f"pools must be 1 to {_MAX_POOLS} names of printable characters")
+    return list(dict.fromkeys(pools))
+
+
+def check_pool(store: Store, who: Identity, pool: str) -> None:
+    """Let ``who`` serve ``pool`` only if it is an admin or its worker token names ``pool``.
+
+    Raises:
+        NotAllowed: a worker token bound to other pools (logged once).
+    """
+    if who.role is Role.ADMIN:
+        return
+    pools = store.token_pools(who.name) or []
+    if pool in pools or EVERY_POOL in pools:
+        return
+    names = ", ".join(shown(p) for p in pools) or "none"
+    raise refuse("worker_register", who, f"token '{who.name}' may serve only pool "
+                                         f"{names}, not {shown(pool)} (an admin binds a "
+                                         "worker token to pools with `osmo token create "
+                                         "NAME --role worker --pool POOL`)")
+
+
 class Authenticator:
     """``token -> Identity`` against the store's tokens, with a cache (see the module doc)."""
 
@@ -274,18 +318,20 @@ def owner_token(home: Path, store: Store) -> None:
 
 
 def accept_tokens(store: Store, specs: tuple[str, ...]) -> None:
-    """Accept the tokens of ``--accept-token NAME:ROLE:FILE`` (e.g. Kubernetes Secrets).
+    """Accept the tokens of ``--accept-token NAME:ROLE[@POOL,...]:FILE`` (Kubernetes Secrets).
 
     Each file's token becomes the live token ``NAME`` with ``ROLE`` (replacing an earlier
-    one of that name: a rotated Secret takes effect at the next start).
+    one of that name: a rotated Secret takes effect at the next start). A worker token names
+    the pools it may serve after its role: ``NAME:worker@gpu,cpu:FILE`` (``@*``: every pool).
 
     Raises:
-        UsageError: a spec that is not ``NAME:ROLE:FILE``, an unknown role, an unreadable or
-            empty file.
+        UsageError: a spec that is not in that form, an unknown role, a worker token without
+            pools (or pools for another role), an unreadable or empty file.
     """
     for spec in specs:
         name, _, rest = spec.partition(":")
-        role_name, _, path = rest.partition(":")
+        role_part, _, path = rest.partition(":")
+        role_name, at, pool_list = role_part.partition("@")
         try:
             role = Role(role_name)
             token = Path(path).read_text().strip() if path else ""
@@ -296,9 +342,15 @@ def accept_tokens(store: Store, specs: tuple[str, ...]) -> None:
             raise UsageError(f"--accept-token {spec}: cannot read {path}: {exc.strerror}") from None
         if not token:
             raise UsageError(f"--accept-token {spec}: write NAME:ROLE:FILE, FILE holding a token")
+        try:
+            pools = token_pools(role, pool_list.split(",") if at else [])
+        except UsageError as exc:
+            raise UsageError(f"--accept-token {spec}: {exc} (write NAME:worker@POOL[,POOL]:FILE, "
+                             f"or NAME:worker@{EVERY_POOL}:FILE for every pool)") from None
         store.set_token(check_name(name, "token name"), role.value, token_digest(token),
-                        time.time())
-        log.info("accepted token '%s' (role %s) from %s", name, role.value, path)
+                        time.time(), pools)
+        log.info("accepted token '%s' (role %s%s) from %s", name, role.value,
+                 f", pools {', '.join(pools)}" if pools else "", path)
 
 
 class TokenHandlers:
@@ -309,7 +361,10 @@ class TokenHandlers:
         self._auth = authenticator
 
     def create(self, request: dict[str, Any]) -> dict[str, Any]:
-        """A new token ``name`` with ``role``; the token is in this reply only."""
+        """A new token ``name`` with ``role``; the token is in this reply only.
+
+        A worker token names the ``pools`` it may serve (:func:`token_pools`).
+        """
         name = check_name(field(request, "name", str, max_len=128), "token name")
         role_name = field(request, "role", str, default=Role.USER.value, max_len=16)
         try:
@@ -317,12 +372,14 @@ class TokenHandlers:
         except ValueError:
             raise UsageError(f"unknown role {shown(role_name)}; the roles are "
                              f"{', '.join(r.value for r in Role)}") from None
+        pools = token_pools(role, str_list(request, "pools"))
         token = new_token()
-        if not self._store.add_token(name, role.value, token_digest(token), time.time()):
+        if not self._store.add_token(name, role.value, token_digest(token), time.time(), pools):
             raise UsageError(f"a token named '{name}' exists already (revoked names are not "
                              "reused); pick another name")
-        log.info("token '%s' created with role %s", name, role.value)
-        return {"name": name, "role": role.value, "token": token}
+        log.info("token '%s' created with role %s%s", name, role.value,
+                 f", pools {', '.join(pools)}" if pools else "")
+        return {"name": name, "role": role.value, "pools": pools, "token": token}
 
     def list(self, _request: dict[str, Any]) -> list[dict[str, Any]]:
         """Every token's name, role and times (never the token)."""

@@ -15,7 +15,8 @@ turns the engine's commands into orders to workers and worker traffic into event
   (``osmo.server.worker_outputs``); a transfer that fails makes the attempt lost.
 - Reports, log batches and secret requests are authenticated API requests, accepted only
   for attempts placed on the worker the caller's token registered
-  (``osmo.server.worker_access``).
+  (``osmo.server.worker_access``). A worker registers only in a pool its token names, so
+  it is placed (and given secrets) only for workflows of that pool.
 - After a server restart, attempts restored on remote nodes are given ``grace`` seconds for
   their worker to register again (reporting what is still running and what finished
   meanwhile); a node that does not come back is taken down.
@@ -47,7 +48,7 @@ from osmo.scheduler.types import (
     PrepareAttempt,
     RunAttempt,
 )
-from osmo.server.auth import refuse
+from osmo.server.auth import check_pool, refuse
 from osmo.server.remote_logs import RemoteLogs
 from osmo.server.worker_access import WorkerAccess, has_secrets, task_secrets
 from osmo.server.worker_outputs import OutputIntake
@@ -119,10 +120,12 @@ class WorkerHub:
 
         Raises:
             UsageError: a field of the wrong type or out of range (nothing is changed).
-            NotAllowed: the token serves another live worker, or the id is another token's.
+            NotAllowed: the token may not serve the pool (``osmo.server.auth.check_pool``),
+                or the id is another token's live worker.
         """
         hello = Hello.from_dict(request)
         node, wid = hello.node, hello.node.id
+        check_pool(self._store, who, node.pool)
         key = self._access.bind(who, wid)
         with self._lock:
             self._nodes[wid] = node

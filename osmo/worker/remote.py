@@ -45,7 +45,7 @@ from typing import Any
 
 from osmo.artifacts import ArtifactStore, Manifest
 from osmo.config import write_json_atomic
-from osmo.errors import OsmoError, UsageError
+from osmo.errors import NotAllowed, OsmoError, UsageError
 from osmo.layout import Home
 from osmo.names import check_worker_name
 from osmo.scheduler.types import (
@@ -98,7 +98,7 @@ class RemoteWorker:
         if not options.token:
             raise UsageError("a worker needs a token with role worker: --token, --token-file "
                              "or OSMO_TOKEN (an admin makes one with `osmo token create NAME "
-                             "--role worker`)")
+                             "--role worker --pool POOL`)")
         self._layout = Home(self.home)
         self.store = ArtifactStore(self._layout.artifacts)
         self.link = Link.client(list(options.connect), options.cluster,
@@ -123,6 +123,7 @@ class RemoteWorker:
         self._server_lost = False
         self._register_now = threading.Event()
         self._stop = threading.Event()
+        self._refused: NotAllowed | None = None  # the server refused to register it
         self._io = ThreadPoolExecutor(4, thread_name_prefix="osmo-inputs")
         self._token: Subscription | None = None
         kill_recorded(self._layout.procs)  # before it announces itself
@@ -150,6 +151,10 @@ class RemoteWorker:
 
         Registering is retried until the server answers. Returns after :meth:`stop` or a finished
         :meth:`drain`.
+
+        Raises:
+            NotAllowed: the server refused to register it (its token may not serve its pool,
+                or its id is another token's live worker).
         """
         self._subs = [
             self.link.subscribe(self.link.key("to-worker", self.id), self._on_order),
@@ -170,6 +175,8 @@ class RemoteWorker:
                 delay = 0.2
             self._write_health()
         self._close()
+        if self._refused is not None:
+            raise self._refused
 
     def stop(self) -> None:
         """Leave now: running attempts are killed (the server reschedules them)."""
@@ -241,6 +248,10 @@ class RemoteWorker:
                           runtime=self.pool.runtime_name()).to_dict()
         try:
             reply = self._api.call("worker_register", hello)
+        except NotAllowed as exc:  # e.g. a pool its token may not serve: retrying cannot help
+            self._refused = exc
+            self._stop.set()
+            return False
         except OsmoError as exc:
             log.info("server not reachable yet (%s); retrying", exc)
             return False

@@ -81,7 +81,7 @@ def callers(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Osmo, di
     tokens: dict[str, str | None] = {"anonymous": None}
     for name in ("bob", "alice"):
         tokens[name] = osmo("token", "create", name, "--role", "user", check=True).out.strip()
-    tokens["worker"] = osmo("token", "create", "w", "--role", "worker",
+    tokens["worker"] = osmo("token", "create", "w", "--role", "worker", "--pool", "default",
                             check=True).out.strip()
     tokens["admin"] = (osmo.home / "auth" / "admin.token").read_text().strip()
     osmo("--token", str(tokens["alice"]), "submit",

@@ -85,7 +85,8 @@ def test_forged_reports_for_a_local_attempt_are_refused(local_server: Osmo,
         # the old attack: one put on the report key. Nothing listens there any more.
         link.put(link.key("from-worker", "fake"), json.dumps(
             {"op": "exited", "attempt_id": aid, "exit_code": 0}).encode())
-        token = osmo("token", "create", "fake", "--role", "worker", check=True).out.strip()
+        token = osmo("token", "create", "fake", "--role", "worker", "--pool", "default",
+                     check=True).out.strip()
         fake = ApiClient(link, timeout=10, token=token)
         fake.call("worker_register", FAKE)  # a valid worker token, registered
         before = len(_refused(osmo))
