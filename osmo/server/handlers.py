@@ -62,8 +62,9 @@ _WAITS = ("WAITING", "SCHEDULING")  # task statuses that have a reason to wait
 _MAX_TEXT = 4096  # characters of a path, a pool or an artifact target in a request
 
 
-# what ``ping`` shows admins only: paths and addresses of the server's host
-_PRIVATE_INFO = ("home", "artifacts", "zenoh_config", "endpoint", "endpoints")
+# what ``ping`` shows admins only: paths and addresses of the server's host, and its host id
+# (knowing it is how a worker proves it runs on this host: ``WorkerHub.register``)
+_PRIVATE_INFO = ("home", "artifacts", "zenoh_config", "endpoint", "endpoints", "host_id")
 
 
 class Handlers:

@@ -116,7 +116,10 @@ class WorkerHub:
         """A worker says hello (``osmo.transport.wire.Hello``).
 
         On its first start, or again after a server restart. The caller's token is bound to
-        this worker id (see the module docstring).
+        this worker id (see the module docstring). The reply names the server's artifact
+        folder only to a worker on the same host (its hello carries this host's id, which only
+        a process on this host, or an admin's ``ping``, can know), which links blobs from it
+        and hides it from its tasks.
 
         Raises:
             UsageError: a field of the wrong type or out of range (nothing is changed).
@@ -141,8 +144,10 @@ class WorkerHub:
         if alive:
             self._emit(NodeUp(self._announced(wid)))
         log.info("worker %s registered (pool %s, %s)", wid, node.pool, node.capacity)
-        return {"host_id": self._host, "artifacts": str(self._artifacts.root),
-                "blob_key": key.hex()}
+        reply = {"blob_key": key.hex()}
+        if hello.host_id == self._host:  # only a same-host worker learns where the store is
+            reply.update(host_id=self._host, artifacts=str(self._artifacts.root))
+        return reply
 
     def report(self, request: dict[str, Any], who: Identity) -> dict[str, Any]:
         """One report of a worker (``osmo.transport.wire.event_to_dict``) about its attempt."""
