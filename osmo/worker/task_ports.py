@@ -6,8 +6,9 @@ sandbox gives it one of its own), so the node's loopback also holds other proces
 the server's listener, a database, another user's task. :func:`task_listener` therefore
 answers where to connect for a port only when a process of the task holds a socket bound to
 it (TCP: listening; UDP: bound), found by matching the socket inodes in the task's
-``/proc/<pid>/fd`` with its network namespace's ``/proc/<pid>/net/{tcp,tcp6,udp,udp6}``.
-It connects to the address that socket is bound to (loopback for a wildcard bind), so a task
+``/proc/<pid>/fd`` with the tables of their network namespace (``/proc/<pid>/net/tcp`` and
+``tcp6``, ``udp``, ``udp6``; the node's, or the task's own if its sandbox gives it one: then
+the caller must connect from inside that namespace). It connects to the address that socket is bound to (loopback for a wildcard bind), so a task
 listening on ``127.0.0.2:5432`` does not open a way to another process on ``127.0.0.1:5432``.
 
 The task's processes are its main process and its descendants (a sandbox's pid namespace
@@ -50,12 +51,25 @@ def task_listener(pid: int, port: int, *, udp: bool = False) -> str | None:
 
     None when no process of the task holds a socket bound to ``port`` (listening, for TCP).
     """
-    inodes = {inode for p in task_pids(pid) for inode in _socket_inodes(p)}
-    for table in (("udp", "udp6") if udp else ("tcp", "tcp6")):
-        for address, bound, state, inode in _sockets(f"/proc/{pid}/net/{table}"):
-            if bound == port and inode in inodes and (udp or state == _LISTEN):
-                return _reachable(address)
+    owners = {p: set(_socket_inodes(p)) for p in task_pids(pid)}
+    inodes = set().union(*owners.values())
+    for owner in _one_per_namespace([p for p, found in owners.items() if found]):
+        for table in (("udp", "udp6") if udp else ("tcp", "tcp6")):
+            for address, bound, state, inode in _sockets(f"/proc/{owner}/net/{table}"):
+                if bound == port and inode in inodes and (udp or state == _LISTEN):
+                    return _reachable(address)
     return None
+
+
+def _one_per_namespace(pids: list[int]) -> list[int]:
+    """One of ``pids`` per network namespace (a sandbox may give the task its own)."""
+    seen: dict[int, int] = {}
+    for pid in pids:
+        try:
+            seen.setdefault(os.stat(f"/proc/{pid}/ns/net").st_ino, pid)
+        except OSError:
+            continue
+    return list(seen.values())
 
 
 def _reachable(address: str) -> str:
