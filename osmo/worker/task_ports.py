@@ -8,8 +8,9 @@ answers where to connect for a port only when a process of the task holds a sock
 it (TCP: listening; UDP: bound), found by matching the socket inodes in the task's
 ``/proc/<pid>/fd`` with the tables of their network namespace (``/proc/<pid>/net/tcp`` and
 ``tcp6``, ``udp``, ``udp6``; the node's, or the task's own if its sandbox gives it one: then
-the caller must connect from inside that namespace). It connects to the address that socket is bound to (loopback for a wildcard bind), so a task
-listening on ``127.0.0.2:5432`` does not open a way to another process on ``127.0.0.1:5432``.
+the caller must connect from inside that namespace). The answer is the address that socket
+is bound to (loopback for a wildcard bind), so a task listening on ``127.0.0.2:5432`` does
+not open a way to another process on ``127.0.0.1:5432``.
 
 The task's processes are its main process and its descendants (a sandbox's pid namespace
 keeps them all below it); a daemon that left the tree unsandboxed is not the task's any more.
