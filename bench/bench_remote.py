@@ -66,7 +66,8 @@ class Cluster:
                               capture_output=True, text=True).stdout
 
     def worker(self, name: str, cpus: int) -> None:
-        token = self.osmo("token", "create", name, "--role", "worker").strip()
+        token = self.osmo("token", "create", name, "--role", "worker", "--pool",
+                           "default").strip()
         env = dict(self.env, OSMO_HOME=str(self.root / name), OSMO_HOST_ID=f"host-{name}",
                    OSMO_TOKEN=token)
         log = open(self.root / f"{name}.log", "wb")

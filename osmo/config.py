@@ -28,6 +28,7 @@ __all__ = [
     "ServerInfo",
     "free_port",
     "home_dir",
+    "home_path",
     "lock_is_held",
     "private_file",
     "read_server_info",
@@ -42,8 +43,21 @@ DEFAULT_CLUSTER = "local"
 told another."""
 
 
+def home_path(home: str | os.PathLike[str] | None = None) -> Path:
+    """The osmo home folder's absolute path, symlinks resolved; nothing is created or checked.
+
+    ``home`` if given, else ``OSMO_HOME``, else ``osmo`` in the XDG data folder.
+    """
+    if home is None:
+        home = os.environ.get("OSMO_HOME")
+    if home is None:
+        xdg = os.environ.get("XDG_DATA_HOME") or str(Path.home() / ".local" / "share")
+        home = Path(xdg) / "osmo"
+    return Path(home).expanduser().resolve()
+
+
 def home_dir(home: str | os.PathLike[str] | None = None) -> Path:
-    """The osmo home folder: created 0700 if missing, checked to be this user's own.
+    """The osmo home folder (:func:`home_path`): made 0700 if missing, checked to be yours.
 
     A home that other users may read or enter (wider than 0700) is made 0700, with a one-line
     notice on stderr: it holds the state store, credentials and the admin token.
@@ -51,12 +65,7 @@ def home_dir(home: str | os.PathLike[str] | None = None) -> Path:
     Raises:
         NotAuthenticated: the folder belongs to another OS user (exit 3).
     """
-    if home is None:
-        home = os.environ.get("OSMO_HOME")
-    if home is None:
-        xdg = os.environ.get("XDG_DATA_HOME") or str(Path.home() / ".local" / "share")
-        home = Path(xdg) / "osmo"
-    path = Path(home).expanduser().resolve()
+    path = home_path(home)
     path.mkdir(mode=0o700, parents=True, exist_ok=True)
     _check_owner(path)
     return path

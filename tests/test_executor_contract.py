@@ -24,7 +24,7 @@ from osmo.config import free_port
 from osmo.executor import Executor
 from osmo.layout import Home
 from osmo.scheduler.types import LOCAL_NODE, Changes, NodeUp
-from osmo.server.auth import Authenticator
+from osmo.server.auth import Authenticator, Router
 from osmo.server.workers import WorkerHub
 from osmo.spec import spec_to_dict
 from osmo.spec.model import WorkflowSpec
@@ -66,13 +66,12 @@ def _worker_hub(tmp_path: Path) -> Iterator[Harness]:
     store = Store(home.state_db)
     authenticate = Authenticator(store)
     token = new_token()
-    store.add_token("w1", "worker", token_digest(token), time.time())
+    store.add_token("w1", "worker", token_digest(token), time.time(), ["default"])
     hub = WorkerHub(link=link, emit=events.put, store=store,
                     artifacts=ArtifactStore(home.artifacts), home=home.root,
                     url_credential=lambda _url: None, attempts_on=lambda _node: [],
                     authenticate=authenticate)
-    api = ApiServer(link, lambda verb, request, who: hub.verbs()[verb](request, who),
-                    authenticate, inline=WorkerHub.INLINE)
+    api = ApiServer(link, Router({"workers": hub}), authenticate, inline=WorkerHub.INLINE)
     env = dict(os.environ, OSMO_HOME=str(tmp_path / "w1"), OSMO_HOST_ID="another-host",
                OSMO_TOKEN=token)
     with open(tmp_path / "w1.log", "ab") as log:

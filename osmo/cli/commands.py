@@ -57,13 +57,14 @@ def _submit(args: argparse.Namespace) -> int:
         sys.stdout.write(render_spec(args.file, set_values=args.set_values,
                                      set_strings=args.set_strings))
         load_spec(args.file, set_values=args.set_values, set_strings=args.set_strings,
-                  set_env=args.set_env, types=_types(args.file))
+                  set_env=args.set_env, types=_types(args.file),
+                  allow_localpath=args.allow_localpath)
         return 0
     with _client(args) as client:
         wf_id = client.submit(args.file, set_values=args.set_values,
                               set_strings=args.set_strings, set_env=args.set_env, pool=args.pool,
                               no_cache=args.no_cache, labels=_label_args(args.labels),
-                              priority=args.priority)
+                              priority=args.priority, allow_localpath=args.allow_localpath)
         if args.format == "json" and not args.wait:
             print_json({"workflow_id": wf_id})
             return 0
@@ -100,7 +101,8 @@ def _validate(args: argparse.Namespace) -> int:
     from osmo.spec import load_spec
 
     spec = load_spec(args.file, set_values=args.set_values, set_strings=args.set_strings,
-                     set_env=args.set_env, types=_types(args.file))
+                     set_env=args.set_env, types=_types(args.file),
+                     allow_localpath=args.allow_localpath)
     console.print(f"{args.file}: valid workflow '{spec.name}' with "
                   f"{len(spec.all_tasks())} task(s) in {len(spec.groups)} group(s)", markup=False)
     return 0

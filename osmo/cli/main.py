@@ -54,6 +54,9 @@ def _add_template_args(p: argparse.ArgumentParser) -> None:
     for (flag, dest), text in zip(_TEMPLATE_FLAGS, helps, strict=True):
         p.add_argument(flag, dest=dest, nargs="+", action="extend", default=[], metavar="K=V",
                        help=f"{text}; one or more, repeatable, later values win")
+    p.add_argument("--allow-localpath", action="append", default=[], metavar="DIR",
+                   help="let 'files: localpath:' also read DIR's tree (repeatable; default: "
+                        "only the spec's folder tree; never osmo's home)")
 
 
 def _check_spec_file(args: argparse.Namespace) -> None:

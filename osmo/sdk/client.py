@@ -14,8 +14,9 @@ import threading
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, TypeAlias
+from typing import TYPE_CHECKING, Any, NamedTuple, TypeAlias
 
+from osmo.config import home_path
 from osmo.errors import UsageError
 from osmo.names import check_name, check_tag, check_workflow_id, parse_ref
 from osmo.sdk.connect import Connection, connect
@@ -59,6 +60,7 @@ class Client:
     def __init__(self, server: str | None = None, *, home: str | os.PathLike[str] | None = None,
                  autostart: bool = True, token: str | None = None) -> None:
         self._conn: Connection = connect(server, home, autostart=autostart, token=token)
+        self._home = home_path(home)  # never read by a spec's localpath
 
     def close(self) -> None:
         """Close the connection."""
@@ -80,13 +82,16 @@ class Client:
     def submit(self, spec: SpecLike, *, set_values: Sequence[str] = (),
                set_strings: Sequence[str] = (), set_env: Sequence[str] = (),
                pool: str | None = None, no_cache: bool = False,
-               labels: Mapping[str, str] | None = None, priority: str = "NORMAL") -> str:
+               labels: Mapping[str, str] | None = None, priority: str = "NORMAL",
+               allow_localpath: Sequence[str | os.PathLike[str]] = ()) -> str:
         """Validate ``spec`` (a path, a dict, a model or a builder) and submit it.
 
         Tasks whose definition and input contents match an earlier success reuse its
         outputs (marked cached) unless ``no_cache`` or the task says ``cache: false``.
         ``labels`` are merged over the spec's ``workflow.labels`` (``--label k=v``);
         ``priority`` is HIGH, NORMAL or LOW (placement order when resources are short).
+        ``files: localpath:`` reads only inside the spec's folder tree and the
+        ``allow_localpath`` folders, never in an osmo home (``osmo.spec.localfiles``).
 
         Returns:
             the new workflow's id (``<name>-<N>``).
@@ -97,7 +102,8 @@ class Client:
         """
         from osmo.spec import spec_to_dict
 
-        model, filename = _to_model(spec, set_values, set_strings, set_env)
+        model, filename = _to_model(spec, set_values, set_strings, set_env,
+                                    _Localpath(tuple(allow_localpath), (self._home,)))
         types = {t.name: t.resolved.to_dict() for t in model.all_tasks() if t.resolved}
         result = self._call("submit", spec=spec_to_dict(model), pool=pool, filename=filename,
                             no_cache=no_cache, types=types, labels=dict(labels or {}),
@@ -151,12 +157,17 @@ class Client:
         """The rendered spec the workflow was submitted with."""
         return dict(self._call("spec", workflow_id=workflow_id)["spec"])
 
-    def create_token(self, name: str, role: str = "user") -> str:
-        """A new API token ``name`` with ``role`` (admin only); returned once, never again."""
-        return str(self._call("token_create", name=name, role=role)["token"])
+    def create_token(self, name: str, role: str = "user", *,
+                     pools: Sequence[str] = ()) -> str:
+        """A new API token ``name`` with ``role`` (admin only); returned once, never again.
+
+        A worker token names the ``pools`` its workers may serve (``"*"``: every pool).
+        """
+        return str(self._call("token_create", name=name, role=role,
+                              pools=list(pools))["token"])
 
     def tokens(self) -> builtins.list[dict[str, Any]]:
-        """Every token's name, role, created and revoked times (admin only)."""
+        """Every token's name, role, pools, created and revoked times (admin only)."""
         return builtins.list(self._call("token_list"))
 
     def revoke_token(self, name: str) -> None:
@@ -370,8 +381,15 @@ class Client:
         self._call("shutdown")
 
 
+class _Localpath(NamedTuple):
+    """Where a spec's ``localpath`` may read besides its folder, and where never."""
+
+    allow: tuple[str | os.PathLike[str], ...]
+    deny: tuple[str | os.PathLike[str], ...]
+
+
 def _to_model(spec: SpecLike, set_values: Sequence[str], set_strings: Sequence[str],
-              set_env: Sequence[str]) -> tuple[WorkflowSpec, str]:
+              set_env: Sequence[str], local: _Localpath) -> tuple[WorkflowSpec, str]:
     """The validated model and its file name.
 
     Task types are resolved here too (params checked with positions); custom ``module:attr`` types
@@ -390,9 +408,11 @@ def _to_model(spec: SpecLike, set_values: Sequence[str], set_strings: Sequence[s
         text = json.dumps(spec)  # JSON is YAML: the one loader validates dicts too
         return load_spec(text=text, filename="<dict>", set_values=set_values,
                          set_strings=set_strings, set_env=set_env,
-                         types=Resolver([os.getcwd()])), "<dict>"
+                         types=Resolver([os.getcwd()]), allow_localpath=local.allow,
+                         deny_localpath=local.deny), "<dict>"
     if isinstance(spec, (str, os.PathLike)):
         path = Path(spec)
         return load_spec(path, set_values=set_values, set_strings=set_strings,
-                         set_env=set_env, types=Resolver([str(path.parent)])), str(path)
+                         set_env=set_env, types=Resolver([str(path.parent)]),
+                         allow_localpath=local.allow, deny_localpath=local.deny), str(path)
     raise UsageError(f"cannot submit a {type(spec).__name__}; pass a path, dict or Workflow")

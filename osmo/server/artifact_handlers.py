@@ -35,11 +35,6 @@ class ArtifactHandlers:
                  row_of: Callable[[object], WorkflowRow]) -> None:
         self._store, self._artifacts, self._row = store, artifacts, row_of
 
-    def verbs(self) -> dict[str, Callable[[dict[str, Any]], Any]]:
-        """Verb name → handler."""
-        return {"lineage": self.lineage, "artifact_list": self.artifact_list,
-                "artifact_get": self.artifact_get, "artifact_gc": self.artifact_gc}
-
     def lineage(self, request: dict[str, Any]) -> dict[str, Any]:
         """The lineage graph of a target (see ``osmo.server.lineage_query``)."""
         return lineage_graph(self._store, _target(request),

@@ -1,23 +1,31 @@
-"""Who may ask the server what: token authentication, roles, the owner's admin token.
+"""Who may ask the server what: the verb table, token authentication, the owner's token.
+
+:data:`API` is the one table of the server's API: every verb, the roles that may call it,
+the handler that serves it, and whether a ``user`` may act only on its own workflows.
+:func:`authorize` applies it, default deny: a verb the table does not name is refused for
+everyone, a role it does not list is refused. :data:`VERBS` is the same table as
+``verb -> roles`` (e.g. for an access-control allow-list of ``api/<verb>`` keys), and
+:class:`Router` dispatches a request to the table's handler. The roles, in short:
+
+- ``admin`` — every verb.
+- ``user`` — submit, read everything but secret values, cancel, restart, tag, exec into and
+  port-forward to its own workflows (``owner`` verbs: checked by their handlers with
+  :func:`check_owner`, since only they know a workflow's submitter), list credential
+  names, datasets. Not: ``shutdown``, tokens, setting or deleting credentials,
+  garbage-collecting artifacts, the worker verbs.
+- ``worker`` — only the worker verbs (and ``ping``); which attempts it may speak for is
+  checked by ``osmo.server.worker_access``, which pools it may serve by
+  :func:`check_pool` (a worker token names its pools).
 
 :class:`Authenticator` opens the channels requests are sealed on (``osmo.transport.seal``:
 a client proves it holds a token without sending it) and turns a channel's token into an
 :class:`~osmo.transport.auth.Identity`, once per request, through a cache of token digest →
 identity (a revoked token leaves the cache, and loses its channels, at once).
-:func:`authorize` is the role policy:
-
-- ``admin`` — everything.
-- ``user`` — submit, read everything but secret values, cancel and restart its own
-  workflows, list credential names, datasets. Refused: ``shutdown``, the worker verbs,
-  tokens, setting or deleting credentials, garbage-collecting artifacts, other users'
-  workflows (checked by the handlers, which know a workflow's submitter).
-- ``worker`` — only the worker verbs (and ``ping``); which attempts it may speak for is
-  checked by ``osmo.server.workers``.
 
 Every refusal is one log line on the server (``refused <verb> from <name> (<role>): <why>``)
 and a clear error on the client: :class:`~osmo.errors.NotAuthenticated` (exit 3) for an
 unknown or revoked token, :class:`~osmo.errors.NotAllowed` (exit 2) for a role that lacks
-the right.
+the right, :class:`~osmo.errors.UsageError` (exit 2) for a verb the table does not name.
 
 The home's owner gets an admin token in ``OSMO_HOME/auth/admin.token`` (0600, in a 0700
 folder) at the server's first start (:func:`owner_token`); the local CLI and SDK read it.
@@ -29,9 +37,10 @@ import logging
 import os
 import threading
 import time
-from collections.abc import Callable
-from dataclasses import replace
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, replace
 from pathlib import Path
+from types import MappingProxyType
 from typing import Any
 
 from osmo.errors import NotAllowed, NotAuthenticated, UsageError
@@ -39,26 +48,95 @@ from osmo.layout import Home
 from osmo.names import check_name, shown
 from osmo.store.sqlite import Store
 from osmo.transport.auth import Identity, Role, new_token, token_digest
-from osmo.transport.rpc import field
+from osmo.transport.rpc import field, str_list
 from osmo.transport.seal import ChannelTable, Signer, TokenKeys
 
-__all__ = ["OWNER", "WORKER_VERBS", "Authenticator", "TokenHandlers", "accept_tokens",
-           "authorize", "check_owner", "owner_token", "refuse"]
+__all__ = ["API", "EVERY_POOL", "OWNER", "VERBS", "Authenticator", "Router", "Rule",
+           "TokenHandlers", "accept_tokens", "authorize", "check_owner", "check_pool",
+           "owner_token", "refuse", "token_pools"]
 
 log = logging.getLogger("osmo.server.auth")
 
 OWNER = "admin"
 """The name of the home owner's admin token."""
 
-WORKER_VERBS = frozenset({"worker_register", "worker_drain", "worker_report", "worker_log",
-                          "worker_secrets", "worker_session", "worker_beat"})
-"""The verbs a worker speaks (and only a worker or an admin)."""
-
-_ADMIN_ONLY = frozenset({"shutdown", "token_create", "token_list", "token_revoke",
-                         "credential_set", "credential_delete", "artifact_gc"})
-_ANYONE = frozenset({"ping"})
 _MAX_CACHE = 4096
 _RELOAD_EVERY = 0.5  # seconds between two reads of the token ids for an unknown one
+
+_ADMIN = frozenset({Role.ADMIN})
+_USERS = frozenset({Role.ADMIN, Role.USER})
+_WORKERS = frozenset({Role.ADMIN, Role.WORKER})
+_ANY = frozenset(Role)
+
+
+@dataclass(frozen=True)
+class Rule:
+    """One API verb: who may call it and what serves it.
+
+    Attributes:
+        roles: the roles that may call it (every other role is refused).
+        handler: ``"<group>.<method>"``: the method of one of the :class:`Router`'s handler
+            groups that serves it.
+        caller: the handler also takes the caller's :class:`~osmo.transport.auth.Identity`.
+        owner: it acts on a workflow, which a ``user`` may do only to its own (the handler
+            calls :func:`check_owner`).
+    """
+
+    roles: frozenset[Role]
+    handler: str
+    caller: bool = False
+    owner: bool = False
+
+
+API: Mapping[str, Rule] = MappingProxyType({
+    "ping": Rule(_ANY, "api.ping", caller=True),
+    # admin only
+    "shutdown": Rule(_ADMIN, "api.shutdown"),
+    "token_create": Rule(_ADMIN, "tokens.create"),
+    "token_list": Rule(_ADMIN, "tokens.list"),
+    "token_revoke": Rule(_ADMIN, "tokens.revoke"),
+    "credential_set": Rule(_ADMIN, "credentials.set"),
+    "credential_delete": Rule(_ADMIN, "credentials.delete"),
+    "artifact_gc": Rule(_ADMIN, "artifacts.artifact_gc"),
+    # workers (each only for the attempts placed on it, in the pools its token names)
+    "worker_register": Rule(_WORKERS, "workers.register", caller=True),
+    "worker_drain": Rule(_WORKERS, "workers.drain", caller=True),
+    "worker_report": Rule(_WORKERS, "workers.report", caller=True),
+    "worker_log": Rule(_WORKERS, "workers.log", caller=True),
+    "worker_secrets": Rule(_WORKERS, "workers.secrets", caller=True),
+    "worker_session": Rule(_WORKERS, "sessions.worker_session", caller=True),
+    "worker_beat": Rule(_WORKERS, "workers.beat", caller=True),
+    # users: their own workflows
+    "cancel": Rule(_USERS, "api.cancel", caller=True, owner=True),
+    "restart": Rule(_USERS, "api.restart", caller=True, owner=True),
+    "workflow_tag": Rule(_USERS, "api.workflow_tag", caller=True, owner=True),
+    "exec_open": Rule(_USERS, "sessions.exec_open", caller=True, owner=True),
+    "forward_open": Rule(_USERS, "sessions.forward_open", caller=True, owner=True),
+    # users: submit and read
+    "submit": Rule(_USERS, "api.submit", caller=True),
+    "get": Rule(_USERS, "api.get"),
+    "status": Rule(_USERS, "api.status"),
+    "list": Rule(_USERS, "api.list"),
+    "logs": Rule(_USERS, "api.logs"),
+    "events": Rule(_USERS, "api.events"),
+    "spec": Rule(_USERS, "api.spec"),
+    "pools": Rule(_USERS, "api.pools"),
+    "lineage": Rule(_USERS, "artifacts.lineage"),
+    "artifact_list": Rule(_USERS, "artifacts.artifact_list"),
+    "artifact_get": Rule(_USERS, "artifacts.artifact_get"),
+    "credential_list": Rule(_USERS, "credentials.list"),
+    "dataset_list": Rule(_USERS, "datasets.list"),
+    "dataset_info": Rule(_USERS, "datasets.info"),
+    "dataset_tag": Rule(_USERS, "datasets.tag"),
+    "dataset_download": Rule(_USERS, "datasets.download"),
+    "dataset_upload": Rule(_USERS, "datasets.upload", caller=True),
+})
+"""Every API verb with its :class:`Rule` (see the module docstring). Default deny: a verb
+not here is refused for everyone; a role not in its rule is refused."""
+
+VERBS: Mapping[str, frozenset[Role]] = MappingProxyType(
+    {verb: rule.roles for verb, rule in API.items()})
+"""``verb -> the roles that may call it``: :data:`API` without its handlers."""
 
 
 def refuse(verb: str, who: Identity | None, why: str, *, known: bool = True) -> Exception:
@@ -68,24 +146,55 @@ def refuse(verb: str, who: Identity | None, why: str, *, known: bool = True) -> 
     return NotAllowed(f"not allowed: {why}") if known else NotAuthenticated(why)
 
 
-def authorize(verb: str, who: Identity) -> None:
-    """Check the role policy of the module docstring for ``verb``.
+def authorize(verb: str, who: Identity) -> Rule:
+    """The rule of ``verb`` in :data:`API`, if ``who``'s role may call it.
 
     Raises:
+        UsageError: the table names no such verb (for every caller).
         NotAllowed: ``who``'s role may not call ``verb`` (logged once).
     """
-    if who.role is Role.ADMIN or verb in _ANYONE:
-        return
-    if who.role is Role.WORKER:
-        if verb not in WORKER_VERBS:
-            raise refuse(verb, who, f"'{verb}' needs role user or admin; "
-                                    f"token '{who.name}' is a worker's")
-        return
-    if verb in WORKER_VERBS:
-        raise refuse(verb, who, f"'{verb}' is for workers (a token made with "
-                                "`osmo token create NAME --role worker`)")
-    if verb in _ADMIN_ONLY:
-        raise refuse(verb, who, f"'{verb}' needs role admin; token '{who.name}' has role user")
+    rule = API.get(verb)
+    if rule is None:
+        raise UsageError(f"unknown API verb {shown(verb)}")
+    if who.role not in rule.roles:
+        needs = " or ".join(r.value for r in Role if r in rule.roles)
+        hint = (" (a token made with `osmo token create NAME --role worker --pool POOL`)"
+                if rule.roles == _WORKERS else "")
+        raise refuse(verb, who, f"'{verb}' needs role {needs}{hint}; token '{who.name}' "
+                                f"has role {who.role.value}")
+    return rule
+
+
+class Router:
+    """Serves each verb of :data:`API` with its handler, after :func:`authorize`.
+
+    Args:
+        groups: handler group name → the object whose methods serve its verbs. A verb of a
+            group that is not given is unknown to this server (e.g. no ``workers``).
+
+    Raises:
+        AttributeError: a rule names a method its group lacks (a bug: caught at start).
+    """
+
+    def __init__(self, groups: Mapping[str, object]) -> None:
+        self._handlers: dict[str, Callable[..., Any]] = {}
+        for verb, rule in API.items():
+            group, _, method = rule.handler.partition(".")
+            if groups.get(group) is not None:
+                self._handlers[verb] = getattr(groups[group], method)
+
+    def __call__(self, verb: str, request: dict[str, Any], who: Identity) -> Any:
+        """Run ``verb``'s handler for ``who``.
+
+        Raises:
+            UsageError: a verb this server does not serve.
+            NotAllowed: ``who``'s role may not call it (:func:`authorize`).
+        """
+        rule = authorize(verb, who)
+        handler = self._handlers.get(verb)
+        if handler is None:
+            raise UsageError(f"this server does not serve {shown(verb)}")
+        return handler(request, who) if rule.caller else handler(request)
 
 
 def check_owner(workflow_id: str, owner: str | None, who: Identity, verb: str) -> None:
@@ -99,6 +208,49 @@ def check_owner(workflow_id: str, owner: str | None, who: Identity, verb: str) -
     raise refuse(verb, who, f"workflow {workflow_id} was submitted by "
                             f"{shown(owner) if owner else 'another user'}; only they or "
                             "an admin may change it")
+
+
+EVERY_POOL = "*"
+"""The pool a worker token names to serve every pool (``--pool '*'``)."""
+_MAX_POOLS = 256
+
+
+def token_pools(role: Role, pools: list[str] | tuple[str, ...]) -> list[str] | None:
+    """The pools a new token of ``role`` stores: a worker's (at least one), None for others.
+
+    Raises:
+        UsageError: a worker token without pools, pools for another role, or a bad pool.
+    """
+    if role is not Role.WORKER:
+        if pools:
+            raise UsageError("only worker tokens name pools (--pool); a user's or admin's "
+                             "token reaches every pool's workflows as its role allows")
+        return None
+    if not pools:
+        raise UsageError("a worker token names the pools it may serve: --pool POOL "
+                         f"(repeatable), or --pool '{EVERY_POOL}' for every pool")
+    if len(pools) > _MAX_POOLS or not all(
+            isinstance(p, str) and 0 < len(p) <= 256 and p.isprintable() for p in pools):
+        raise UsageError(f"pools must be 1 to {_MAX_POOLS} names of printable characters")
+    return list(dict.fromkeys(pools))
+
+
+def check_pool(store: Store, who: Identity, pool: str) -> None:
+    """Let ``who`` serve ``pool`` only if it is an admin or its worker token names ``pool``.
+
+    Raises:
+        NotAllowed: a worker token bound to other pools (logged once).
+    """
+    if who.role is Role.ADMIN:
+        return
+    pools = store.token_pools(who.name) or []
+    if pool in pools or EVERY_POOL in pools:
+        return
+    names = ", ".join(shown(p) for p in pools) or "none"
+    raise refuse("worker_register", who, f"token '{who.name}' may serve only pool "
+                                         f"{names}, not {shown(pool)} (an admin binds a "
+                                         "worker token to pools with `osmo token create "
+                                         "NAME --role worker --pool POOL`)")
 
 
 class Authenticator:
@@ -201,18 +353,20 @@ def owner_token(home: Path, store: Store) -> None:
 
 
 def accept_tokens(store: Store, specs: tuple[str, ...]) -> None:
-    """Accept the tokens of ``--accept-token NAME:ROLE:FILE`` (e.g. Kubernetes Secrets).
+    """Accept the tokens of ``--accept-token NAME:ROLE[@POOL,...]:FILE`` (Kubernetes Secrets).
 
     Each file's token becomes the live token ``NAME`` with ``ROLE`` (replacing an earlier
-    one of that name: a rotated Secret takes effect at the next start).
+    one of that name: a rotated Secret takes effect at the next start). A worker token names
+    the pools it may serve after its role: ``NAME:worker@gpu,cpu:FILE`` (``@*``: every pool).
 
     Raises:
-        UsageError: a spec that is not ``NAME:ROLE:FILE``, an unknown role, an unreadable or
-            empty file.
+        UsageError: a spec that is not in that form, an unknown role, a worker token without
+            pools (or pools for another role), an unreadable or empty file.
     """
     for spec in specs:
         name, _, rest = spec.partition(":")
-        role_name, _, path = rest.partition(":")
+        role_part, _, path = rest.partition(":")
+        role_name, at, pool_list = role_part.partition("@")
         try:
             role = Role(role_name)
             token = Path(path).read_text().strip() if path else ""
@@ -223,9 +377,15 @@ def accept_tokens(store: Store, specs: tuple[str, ...]) -> None:
             raise UsageError(f"--accept-token {spec}: cannot read {path}: {exc.strerror}") from None
         if not token:
             raise UsageError(f"--accept-token {spec}: write NAME:ROLE:FILE, FILE holding a token")
+        try:
+            pools = token_pools(role, pool_list.split(",") if at else [])
+        except UsageError as exc:
+            raise UsageError(f"--accept-token {spec}: {exc} (write NAME:worker@POOL[,POOL]:FILE, "
+                             f"or NAME:worker@{EVERY_POOL}:FILE for every pool)") from None
         store.set_token(check_name(name, "token name"), role.value, token_digest(token),
-                        time.time())
-        log.info("accepted token '%s' (role %s) from %s", name, role.value, path)
+                        time.time(), pools)
+        log.info("accepted token '%s' (role %s%s) from %s", name, role.value,
+                 f", pools {', '.join(pools)}" if pools else "", path)
 
 
 class TokenHandlers:
@@ -235,13 +395,11 @@ class TokenHandlers:
         self._store = store
         self._auth = authenticator
 
-    def verbs(self) -> dict[str, Callable[[dict[str, Any]], Any]]:
-        """Verb name → handler."""
-        return {"token_create": self.create, "token_list": self.list,
-                "token_revoke": self.revoke}
-
     def create(self, request: dict[str, Any]) -> dict[str, Any]:
-        """A new token ``name`` with ``role``; the token is in this reply only."""
+        """A new token ``name`` with ``role``; the token is in this reply only.
+
+        A worker token names the ``pools`` it may serve (:func:`token_pools`).
+        """
         name = check_name(field(request, "name", str, max_len=128), "token name")
         role_name = field(request, "role", str, default=Role.USER.value, max_len=16)
         try:
@@ -249,13 +407,15 @@ class TokenHandlers:
         except ValueError:
             raise UsageError(f"unknown role {shown(role_name)}; the roles are "
                              f"{', '.join(r.value for r in Role)}") from None
+        pools = token_pools(role, str_list(request, "pools"))
         token = new_token()
-        if not self._store.add_token(name, role.value, token_digest(token), time.time()):
+        if not self._store.add_token(name, role.value, token_digest(token), time.time(), pools):
             raise UsageError(f"a token named '{name}' exists already (revoked names are not "
                              "reused); pick another name")
         self._auth.reload()
-        log.info("token '%s' created with role %s", name, role.value)
-        return {"name": name, "role": role.value, "token": token}
+        log.info("token '%s' created with role %s%s", name, role.value,
+                 f", pools {', '.join(pools)}" if pools else "")
+        return {"name": name, "role": role.value, "pools": pools, "token": token}
 
     def list(self, _request: dict[str, Any]) -> list[dict[str, Any]]:
         """Every token's name, role and times (never the token)."""

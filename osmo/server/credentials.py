@@ -99,11 +99,6 @@ class CredentialHandlers:
     def __init__(self, store: Store) -> None:
         self._store = store
 
-    def verbs(self) -> dict[str, Any]:
-        """Verb name → handler."""
-        return {"credential_set": self.set, "credential_list": self.list,
-                "credential_delete": self.delete}
-
     def set(self, request: dict[str, Any]) -> dict[str, Any]:
         """Store credential ``name`` with ``payload`` (a non-empty map of strings)."""
         name = _name(request)

@@ -46,15 +46,6 @@ class DatasetHandlers:
         self._artifacts = artifacts
         self._home = home
 
-    def verbs(self) -> dict[str, Any]:
-        """Verb name → handler."""
-        return {"dataset_list": self.list, "dataset_info": self.info,
-                "dataset_tag": self.tag, "dataset_download": self.download}
-
-    def callers(self) -> dict[str, Callable[[dict[str, Any], Identity], Any]]:
-        """Verb name → handler that gets the caller's identity."""
-        return {"dataset_upload": self.upload}
-
     def list(self, request: dict[str, Any]) -> list[dict[str, Any]]:
         """Every version (of one dataset), newest first, with size and tags."""
         name = request.get("name")

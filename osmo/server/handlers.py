@@ -1,7 +1,8 @@
 """The server's request handlers: one function per API verb, JSON in and JSON out.
 
-Every request arrives with its caller's identity (``osmo.server.auth``): ``handle`` checks
-the role policy first; cancel and restart also check that a ``user`` submitted the
+Every request arrives with its caller's identity; ``handle`` routes it through the verb table
+(``osmo.server.auth.API``: who may call which verb, and which handler serves it), which
+checks the role first; cancel, restart and tag also check that a ``user`` submitted the
 workflow (workflows record their submitter in ``options.submitted_by``).
 
 Mutating verbs (submit, cancel, restart) ask the engine with a typed request
@@ -33,7 +34,7 @@ from osmo.names import (
 )
 from osmo.scheduler.types import PRIORITIES, CancelWorkflow
 from osmo.server.artifact_handlers import ArtifactHandlers
-from osmo.server.auth import TokenHandlers, authorize, check_owner
+from osmo.server.auth import Router, TokenHandlers, check_owner
 from osmo.server.credentials import CredentialHandlers, check_task_credentials
 from osmo.server.dataset_handlers import DatasetHandlers
 from osmo.server.engine import Engine
@@ -62,10 +63,9 @@ _WAITS = ("WAITING", "SCHEDULING")  # task statuses that have a reason to wait
 _MAX_TEXT = 4096  # characters of a path, a pool or an artifact target in a request
 
 
-Verb = Callable[[dict[str, Any]], Any]
-CallerVerb = Callable[[dict[str, Any], Identity], Any]
-# what ``ping`` shows admins only: paths and addresses of the server's host
-_PRIVATE_INFO = ("home", "artifacts", "zenoh_config", "endpoint", "endpoints")
+# what ``ping`` shows admins only: paths and addresses of the server's host, and its host id
+# (knowing it is how a worker proves it runs on this host: ``WorkerHub.register``)
+_PRIVATE_INFO = ("home", "artifacts", "zenoh_config", "endpoint", "endpoints", "host_id")
 
 
 def _asker_of(link: Link, gate: Gate) -> Callable[[Identity], Asker | None]:
@@ -88,45 +88,21 @@ class Handlers:
         self._info = info
         self._on_shutdown = on_shutdown
         self._artifacts = ArtifactStore(Home(home).artifacts)
-        self._callers: dict[str, CallerVerb] = {
-            "ping": self.ping, "submit": self.submit, "cancel": self.cancel,
-            "restart": self.restart, "workflow_tag": self.workflow_tag}
-        self._verbs: dict[str, Verb] = {
-            "get": self.get,
-            "status": self.status,
-            "list": self.list,
-            "logs": self.logs,
-            "events": self.events,
-            "spec": self.spec,
-            "pools": self.pools,
-            "shutdown": self.shutdown,
-        }
-        if workers is not None:
-            self._callers.update(workers.verbs())
-        if sessions is not None:
-            self._callers.update(sessions.verbs())
-        if tokens is not None:
-            self._verbs.update(tokens.verbs())
-        self._verbs.update(ArtifactHandlers(self._store, self._artifacts, self._row).verbs())
-        datasets = DatasetHandlers(engine, self._artifacts, home,
-                                   _asker_of(link, gate) if link and gate else None)
-        self._verbs.update(datasets.verbs())
-        self._callers.update(datasets.callers())
-        self._verbs.update(CredentialHandlers(self._store).verbs())
+        self._route = Router({
+            "api": self, "workers": workers, "sessions": sessions, "tokens": tokens,
+            "artifacts": ArtifactHandlers(self._store, self._artifacts, self._row),
+            "datasets": DatasetHandlers(engine, self._artifacts, home,
+                                        _asker_of(link, gate) if link and gate else None),
+            "credentials": CredentialHandlers(self._store)})
 
     def handle(self, verb: str, request: dict[str, Any], who: Identity) -> Any:
-        """Run the handler for ``verb`` as ``who``.
+        """Run the handler for ``verb`` as ``who`` (``osmo.server.auth.API`` names both).
 
         Raises:
             UsageError: an unknown verb.
             NotAllowed: ``who``'s role may not (``osmo.server.auth.authorize``).
         """
-        caller = self._callers.get(verb)
-        handler = self._verbs.get(verb)
-        if caller is None and handler is None:
-            raise UsageError(f"unknown API verb {shown(verb)}")
-        authorize(verb, who)
-        return caller(request, who) if caller is not None else handler(request)  # type: ignore[misc]
+        return self._route(verb, request, who)
 
     def ping(self, _request: dict[str, Any], who: Identity) -> dict[str, Any]:
         """The server's info, and who the caller is; paths only for an admin."""

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import ipaddress
 import json
 import os
 import time
@@ -39,8 +40,8 @@ class ServerOptions:
     """How one server runs (every default is here).
 
     Attributes:
-        listen: zenoh endpoints to listen on (none: ``tcp/127.0.0.1:7447``, or another free
-            port if that one is taken, unless ``connect`` is given).
+        listen: zenoh endpoints to listen on besides the home's Unix socket (none: that
+            socket only, ``OSMO_HOME/server.sock``; nothing on TCP).
         connect: join an existing zenoh router instead of hosting one.
         zenoh_config: a zenoh JSON5 file (TLS, mutual TLS, user/password).
         cluster: the key prefix shared with workers and clients.
@@ -81,9 +82,9 @@ class ServerOptions:
         """
         d = ServerOptions()
         p.add_argument("--listen", action="append", metavar="ENDPOINT",
-                       help="zenoh endpoint to listen on, repeatable (default: "
-                            "tcp/127.0.0.1:7447, or a free port); e.g. tcp/0.0.0.0:7447 to "
-                            "accept remote workers")
+                       help="zenoh endpoint to listen on, repeatable (default: none, only the "
+                            "home's Unix socket (OSMO_HOME/server.sock)); e.g. "
+                            "tcp/0.0.0.0:7447 to accept remote workers (with authentication)")
         p.add_argument("--connect", action="append", metavar="ENDPOINT",
                        help="join an existing zenoh router (zenohd) instead of hosting one")
         p.add_argument("--zenoh-config", metavar="FILE",
@@ -242,18 +243,32 @@ def _shown(value: object) -> str:
     return str(value)
 
 
-_LOOPBACK = ("127.", "localhost", "[::1]")
+_LOCAL_PROTOCOLS = ("unixsock-stream", "unixpipe")
 
 
 def network_listeners(listen: tuple[str, ...] | list[str]) -> list[str]:
-    """The endpoints of ``listen`` that other machines could reach (not loopback or a socket)."""
-    out = []
-    for endpoint in listen:
-        proto, _, rest = endpoint.partition("/")
-        host = rest.rpartition(":")[0] if proto not in ("unixsock-stream", "unixpipe") else ""
-        if host and not host.startswith(_LOOPBACK):
-            out.append(endpoint)
-    return out
+    """The endpoints of ``listen`` that other machines could reach (not loopback or a socket).
+
+    Loopback is a loopback IP address (``127.0.0.0/8``, ``::1``) or the exact name
+    ``localhost``; any other name (``127.example.com`` too) may resolve anywhere.
+    """
+    return [endpoint for endpoint in listen if not _is_local(endpoint)]
+
+
+def _is_local(endpoint: str) -> bool:
+    proto, _, rest = endpoint.partition("/")
+    if proto in _LOCAL_PROTOCOLS:
+        return True
+    address = rest.split("?", 1)[0].split("#", 1)[0]  # zenoh's endpoint config and metadata
+    host = address.rpartition(":")[0]
+    if host.startswith("[") and host.endswith("]"):
+        host = host[1:-1]
+    if host.lower() == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
 
 
 def check_listeners(listen: tuple[str, ...] | list[str], zenoh_config: str | None, *,

@@ -21,7 +21,6 @@ import logging
 import secrets
 import threading
 import time
-from collections.abc import Callable
 from typing import Any
 
 from osmo.errors import NotFoundError, UsageError
@@ -58,11 +57,6 @@ class Sessions:
         self._store, self._hub, self._local = store, hub, local
         self._lock = threading.Lock()
         self._tickets: dict[str, tuple[str, SessionGrant, float]] = {}
-
-    def verbs(self) -> dict[str, Callable[[dict[str, Any], Identity], Any]]:
-        """Verb name → handler (each gets the caller's identity)."""
-        return {"exec_open": self.exec_open, "forward_open": self.forward_open,
-                "worker_session": self.worker_session}
 
     def exec_open(self, request: dict[str, Any], who: Identity) -> dict[str, Any]:
         """Open an exec session: ``command`` (words; empty: a shell), ``tty``, ``size``."""

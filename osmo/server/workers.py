@@ -20,7 +20,8 @@ turns the engine's commands into orders to workers and worker traffic into event
   (``osmo.server.worker_outputs``); a transfer that fails makes the attempt lost.
 - Reports, log batches and secret requests are authenticated API requests, accepted only
   for attempts placed on the worker the caller's token registered
-  (``osmo.server.worker_access``).
+  (``osmo.server.worker_access``). A worker registers only in a pool its token names, so
+  it is placed (and given secrets) only for workflows of that pool.
 - After a server restart, attempts restored on remote nodes are given ``grace`` seconds for
   their worker to register again (reporting what is still running and what finished
   meanwhile); a node that does not come back is taken down.
@@ -52,7 +53,7 @@ from osmo.scheduler.types import (
     PrepareAttempt,
     RunAttempt,
 )
-from osmo.server.auth import refuse
+from osmo.server.auth import check_pool, refuse
 from osmo.server.remote_logs import RemoteLogs
 from osmo.server.worker_access import WorkerAccess, has_secrets, task_secrets
 from osmo.server.worker_outputs import OutputIntake
@@ -125,24 +126,23 @@ class WorkerHub:
 
     # ------------------------------------------------------------------ membership
 
-    def verbs(self) -> dict[str, Callable[[dict[str, Any], Identity], Any]]:
-        """API verbs served for workers (each gets the caller's identity)."""
-        return {"worker_register": self.register, "worker_drain": self.drain,
-                "worker_report": self.report, "worker_log": self.log,
-                "worker_secrets": self.secrets, "worker_beat": self.beat}
-
     def register(self, request: dict[str, Any], who: Identity) -> dict[str, Any]:
         """A worker says hello (``osmo.transport.wire.Hello``).
 
         On its first start, or again after a server restart. The caller's token is bound to
-        this worker id (see the module docstring).
+        this worker id (see the module docstring). The reply names the server's artifact
+        folder only to a worker on the same host (its hello carries this host's id, which only
+        a process on this host, or an admin's ``ping``, can know), which links blobs from it
+        and hides it from its tasks.
 
         Raises:
             UsageError: a field of the wrong type or out of range (nothing is changed).
-            NotAllowed: the token serves another live worker, or the id is another token's.
+            NotAllowed: the token may not serve the pool (``osmo.server.auth.check_pool``),
+                or the id is another token's live worker.
         """
         hello = Hello.from_dict(request)
         node, wid = hello.node, hello.node.id
+        check_pool(self._store, who, node.pool)
         self._access.bind(who, wid)
         self._hear(wid, who)
         with self._lock:
@@ -160,7 +160,10 @@ class WorkerHub:
         if alive:
             self._emit(NodeUp(self._announced(wid)))
         log.info("worker %s registered (pool %s, %s)", wid, node.pool, node.capacity)
-        return {"host_id": self._host, "artifacts": str(self._artifacts.root)}
+        reply: dict[str, Any] = {}
+        if hello.host_id == self._host:  # only a same-host worker learns where the store is
+            reply.update(host_id=self._host, artifacts=str(self._artifacts.root))
+        return reply
 
     def beat(self, request: dict[str, Any], who: Identity) -> dict[str, Any]:
         """A registered worker is alive (refused once this server forgot it: it registers again).

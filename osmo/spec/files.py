@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import os
 import stat
+from collections.abc import Callable
 
 from osmo.errors import Diagnostic, SpecError
 
@@ -36,11 +37,16 @@ def _kind(mode: int) -> str | None:
     return next((what for test, what in _KINDS if test(mode)), "not a regular file")
 
 
-def read_regular_file(path: str | os.PathLike[str], *, limit: int) -> bytes:
+def read_regular_file(path: str | os.PathLike[str], *, limit: int,
+                      check: Callable[[str], None] | None = None) -> bytes:
     """The bytes of the regular file at ``path`` (symlinks followed), at most ``limit``.
 
+    ``check`` is called with the real path of the file actually opened, before a byte is
+    read; it raises (a ``FileRefused``) to refuse it.
+
     Raises:
-        FileRefused: it is a folder, FIFO, device or socket, or larger than ``limit``.
+        FileRefused: it is a folder, FIFO, device or socket, or larger than ``limit``, or
+            ``check`` refused it.
         OSError: it cannot be read (missing, no permission...).
     """
     kind = _kind(os.stat(path).st_mode)
@@ -51,6 +57,8 @@ def read_regular_file(path: str | os.PathLike[str], *, limit: int) -> bytes:
         kind = _kind(os.fstat(fd).st_mode)  # it may have been swapped since the stat
         if kind is not None:
             raise FileRefused(f"is {kind}, not a regular file")
+        if check is not None:
+            check(os.readlink(f"/proc/self/fd/{fd}"))
         data = f.read(limit + 1)
     if len(data) > limit:
         raise FileRefused(f"is larger than {limit // 2**20} MiB, the limit")

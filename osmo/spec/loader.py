@@ -16,6 +16,7 @@ from typing import Any
 from osmo.errors import Diagnostic, SpecError
 from osmo.spec import isolation, yamlnodes
 from osmo.spec.files import read_spec_file
+from osmo.spec.localfiles import LocalFiles
 from osmo.spec.model import WorkflowSpec
 from osmo.spec.parse import parse_document
 from osmo.spec.reader import Ctx
@@ -63,26 +64,26 @@ def _with_env(spec: WorkflowSpec, env: dict[str, str]) -> WorkflowSpec:
     return dataclasses.replace(spec, groups=groups)
 
 
-def _build(text: str, file: str, base_dir: Path, env: dict[str, str],
+def _build(text: str, file: str, local: LocalFiles, env: dict[str, str],
            types: TypeResolver | None) -> WorkflowSpec:
     """Rendered YAML text → validated model (raises SpecError with every problem)."""
     root, diags = yamlnodes.load_nodes(text, file)
     if root is None and diags:
         raise SpecError(diags)
     ctx = Ctx(file, diags)
-    spec = _check(ctx, root, base_dir, types)
+    spec = _check(ctx, root, local, types)
     if spec is None:
         raise SpecError(ctx.diags)
     return _with_env(spec, env)
 
 
-def _check(ctx: Ctx, root: yamlnodes.Node | None, base_dir: Path,
+def _check(ctx: Ctx, root: yamlnodes.Node | None, local: LocalFiles,
            types: TypeResolver | None, reduced: Reduced | None = None) -> WorkflowSpec | None:
     """Parse and validate a node tree; None when ``ctx`` holds a problem afterwards.
 
     ``reduced``: the tree is of ``reduced.data``; its tasks are put back before validation.
     """
-    parsed = parse_document(ctx, root, base_dir)
+    parsed = parse_document(ctx, root, local)
     if parsed is not None and reduced is not None:
         if ctx.diags:
             return None
@@ -97,11 +98,14 @@ def _check(ctx: Ctx, root: yamlnodes.Node | None, base_dir: Path,
 def load_spec(path: str | os.PathLike[str] | None = None, *, text: str | None = None,
               filename: str | None = None, set_values: Sequence[str] = (),
               set_strings: Sequence[str] = (), set_env: Sequence[str] = (),
-              types: TypeResolver | None = None) -> WorkflowSpec:
+              types: TypeResolver | None = None,
+              allow_localpath: Sequence[str | os.PathLike[str]] = (),
+              deny_localpath: Sequence[str | os.PathLike[str]] = ()) -> WorkflowSpec:
     """Read, render, parse and validate a workflow spec.
 
     Args:
-        path: the spec file; ``localpath`` entries are relative to its folder.
+        path: the spec file; ``localpath`` entries are relative to its folder, and must stay
+            inside its tree (``osmo.spec.localfiles``).
         text: the spec's text instead of a file (``localpath`` then relative to the folder of
             ``filename`` if it is a path, else the current folder).
         filename: the name used in diagnostics (defaults to ``path`` or ``<string>``).
@@ -111,6 +115,9 @@ def load_spec(path: str | os.PathLike[str] | None = None, *, text: str | None = 
         types: [ext] resolves ``type:`` names; when given, typed tasks are checked against
             their types (params, resources) and get ``TaskSpec.resolved``. Without it,
             ``type``/``params`` are not checked (see ``osmo.spec.typed``).
+        allow_localpath: more folders whose files ``localpath`` may name (``--allow-localpath``).
+        deny_localpath: folders no ``localpath`` may name, even inside an allowed one (the
+            ``OSMO_HOME`` in effect is always one of them).
 
     Returns:
         the validated model.
@@ -122,7 +129,8 @@ def load_spec(path: str | os.PathLike[str] | None = None, *, text: str | None = 
     source, file, base_dir = _source(path, text, filename)
     env, env_diags = split_items(file, "--set-env", set_env)
     rendered = _render(source, file, set_values, set_strings, env_diags)
-    return _build(rendered, file, base_dir, env, types)
+    local = LocalFiles.under(base_dir, allow=allow_localpath, deny=deny_localpath)
+    return _build(rendered, file, local, env, types)
 
 
 def render_spec(path: str | os.PathLike[str] | None = None, *, text: str | None = None,
@@ -141,7 +149,8 @@ def spec_from_dict(d: dict[str, Any], *, filename: str = "<stored>",
                    types: TypeResolver | None = None) -> WorkflowSpec:
     """The model from plain data such as ``spec_to_dict`` returns (no templating).
 
-    ``types`` is as for :func:`load_spec`.
+    ``types`` is as for :func:`load_spec`. Data names no ``localpath`` (it reads no local
+    file: a ``localpath`` is a spec error).
 
     Raises:
         SpecError: if the data is not a valid spec.
@@ -154,11 +163,11 @@ def spec_from_dict(d: dict[str, Any], *, filename: str = "<stored>",
     reduced = reduce_tasks(d)
     root = yamlnodes.from_plain(d if reduced is None else reduced.data, filename)
     if root is not None:
-        spec = _check(Ctx(filename, []), root, Path(), types, reduced)
+        spec = _check(Ctx(filename, []), root, LocalFiles.none(), types, reduced)
         if spec is not None:
             return spec
     try:
         text = yamlnodes.dump(d)
     except TypeError as exc:
         raise SpecError([Diagnostic(filename, 0, 0, str(exc))]) from None
-    return _build(text, filename, Path(), {}, types)
+    return _build(text, filename, LocalFiles.none(), {}, types)

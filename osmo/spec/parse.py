@@ -8,8 +8,8 @@ cross-references in ``validate``.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from pathlib import Path
 
+from osmo.spec.localfiles import LocalFiles
 from osmo.spec.model import (
     GroupSpec,
     Pos,
@@ -143,7 +143,7 @@ def _check_leads(ctx: Ctx, node: Node, name: str, tasks: list[tuple[TaskSpec, No
                                   "on one task")
 
 
-def _group(ctx: Ctx, node: Node, base_dir: Path) -> tuple[GroupSpec, list[Node]] | None:
+def _group(ctx: Ctx, node: Node, local: LocalFiles) -> tuple[GroupSpec, list[Node]] | None:
     label = task_name(node)
     where = f"group '{label}'" if label else "a group"
     fields = read_fields(ctx, node, GROUP_KEYS, where, required=("name", "tasks"))
@@ -153,7 +153,7 @@ def _group(ctx: Ctx, node: Node, base_dir: Path) -> tuple[GroupSpec, list[Node]]
     items = read_list(ctx, fields["tasks"], f"'tasks' of {where}") if "tasks" in fields else []
     if "tasks" in fields and is_empty(fields["tasks"]):
         ctx.error(fields["tasks"], f"{where} has no tasks; add at least one")
-    parsed = [(t, item) for item in items if (t := parse_task(ctx, item, base_dir)) is not None]
+    parsed = [(t, item) for item in items if (t := parse_task(ctx, item, local)) is not None]
     _check_leads(ctx, node, name or label, parsed)
     barrier = read_bool(ctx, fields["barrier"], "'barrier'") if "barrier" in fields else None
     ignore = fields.get("ignoreNonleadStatus")
@@ -170,7 +170,7 @@ def _task_list(ctx: Ctx, fields: dict[str, Node], key: str) -> list[Node]:
     return items
 
 
-def _body(ctx: Ctx, node: Node, fields: dict[str, Node], base_dir: Path,
+def _body(ctx: Ctx, node: Node, fields: dict[str, Node], local: LocalFiles,
           ) -> tuple[list[GroupSpec], dict[tuple[int, int], Node], bool]:
     """Groups (or bare tasks as one-task groups), their task nodes, and ``bare_tasks``."""
     if "tasks" in fields and "groups" in fields:
@@ -184,24 +184,24 @@ def _body(ctx: Ctx, node: Node, fields: dict[str, Node], base_dir: Path,
     nodes: dict[tuple[int, int], Node] = {}
     if "tasks" in fields:
         for item in _task_list(ctx, fields, "tasks"):
-            task = parse_task(ctx, item, base_dir)
+            task = parse_task(ctx, item, local)
             if task is not None:
                 nodes[(len(groups), 0)] = item
                 groups.append(GroupSpec(task.name, (task,), pos=task.pos))
         return groups, nodes, True
     for item in _task_list(ctx, fields, "groups"):
-        parsed = _group(ctx, item, base_dir)
+        parsed = _group(ctx, item, local)
         if parsed is not None:
             nodes.update({(len(groups), i): n for i, n in enumerate(parsed[1])})
             groups.append(parsed[0])
     return groups, nodes, False
 
 
-def _workflow(ctx: Ctx, node: Node, base_dir: Path) -> Parsed | None:
+def _workflow(ctx: Ctx, node: Node, local: LocalFiles) -> Parsed | None:
     f = read_fields(ctx, node, WORKFLOW_KEYS, "'workflow'", required=("name",))
     if f is None:
         return None
-    groups, nodes, bare = _body(ctx, node, f, base_dir)
+    groups, nodes, bare = _body(ctx, node, f, local)
     spec = WorkflowSpec(
         name=(read_name(ctx, f["name"], "workflow name") if "name" in f else None) or "",
         groups=tuple(groups),
@@ -216,7 +216,7 @@ def _workflow(ctx: Ctx, node: Node, base_dir: Path) -> Parsed | None:
     return Parsed(spec, nodes, "resources" in f)
 
 
-def parse_document(ctx: Ctx, root: Node | None, base_dir: Path) -> Parsed | None:
+def parse_document(ctx: Ctx, root: Node | None, local: LocalFiles) -> Parsed | None:
     """The whole document (``version``, ``workflow``, ``default-values``) → ``Parsed``.
 
     Returns None when there is no workflow to validate further (already reported).
@@ -233,4 +233,4 @@ def parse_document(ctx: Ctx, root: Node | None, base_dir: Path) -> Parsed | None
         ctx.error(version, "'version' must be 2 (the only spec version osmo reads)")
     if "default-values" in fields:
         read_map(ctx, fields["default-values"], "'default-values'")
-    return _workflow(ctx, fields["workflow"], base_dir) if "workflow" in fields else None
+    return _workflow(ctx, fields["workflow"], local) if "workflow" in fields else None

@@ -1,7 +1,8 @@
 """Parsing of a task's data fields: ``files``, ``inputs``, ``outputs`` and ``checkpoint``.
 
-Reads ``files[].localpath`` (relative to the spec's folder) into ``FileSpec.contents``;
-otherwise pure. Cross-task checks (does an input task exist?) belong to ``validate``.
+Reads ``files[].localpath`` (relative to the spec's folder, and only where
+``osmo.spec.localfiles`` allows) into ``FileSpec.contents``; otherwise pure. Cross-task
+checks (does an input task exist?) belong to ``validate``.
 """
 
 from __future__ import annotations
@@ -10,11 +11,12 @@ import base64
 import binascii
 import posixpath
 import re
-from pathlib import Path, PurePosixPath
+from pathlib import PurePosixPath
 from typing import Any
 
 from osmo.names import name_problem, ref_problem, shown, workflow_id_problem
-from osmo.spec.files import FileRefused, read_regular_file
+from osmo.spec.files import FileRefused
+from osmo.spec.localfiles import LocalFiles, LocalPathRefused
 from osmo.spec.model import FileSpec, InputSpec, OutputSpec
 from osmo.spec.reader import (
     Ctx,
@@ -53,16 +55,20 @@ def _read_regex(ctx: Ctx, fields: dict[str, Node], what: str) -> str | None:
     return pattern
 
 
-def _read_local(ctx: Ctx, node: Node, base_dir: Path, where: str) -> tuple[str, bool] | None:
+def _read_local(ctx: Ctx, node: Node, local: LocalFiles,
+                where: str) -> tuple[str, bool] | None:
     """The contents of a ``localpath`` file: text, or base64 for binary/non-UTF-8 data."""
     name = read_str(ctx, node, f"'localpath' in {where}")
     if name is None:
         return None
-    path = base_dir / name
     try:
-        data = read_regular_file(path, limit=MAX_LOCAL_FILE)
+        data = local.read(name, limit=MAX_LOCAL_FILE)
     except FileNotFoundError:
-        ctx.error(node, f"localpath '{name}' in {where} does not exist (looked for {path})")
+        ctx.error(node, f"localpath '{name}' in {where} does not exist (looked for "
+                        f"{local.base / name if local.base else name})")
+        return None
+    except LocalPathRefused as exc:
+        ctx.error(node, f"localpath '{name}' in {where} {exc}")
         return None
     except FileRefused as exc:
         ctx.error(node, f"localpath '{name}' in {where} {exc}; it must name a file")
@@ -76,7 +82,7 @@ def _read_local(ctx: Ctx, node: Node, base_dir: Path, where: str) -> tuple[str, 
         return base64.b64encode(data).decode("ascii"), True
 
 
-def _file(ctx: Ctx, node: Node, base_dir: Path, where: str) -> FileSpec | None:
+def _file(ctx: Ctx, node: Node, local: LocalFiles, where: str) -> FileSpec | None:
     fields = read_fields(ctx, node, _FILE_KEYS, f"a file of {where}", required=("path",))
     if fields is None or "path" not in fields:
         return None
@@ -93,10 +99,10 @@ def _file(ctx: Ctx, node: Node, base_dir: Path, where: str) -> FileSpec | None:
     if has_local:
         if "base64" in fields:
             ctx.error(fields["base64"], "'base64' applies to 'contents', not to 'localpath'")
-        local = _read_local(ctx, fields["localpath"], base_dir, where)
-        if local is None or path is None:
+        read = _read_local(ctx, fields["localpath"], local, where)
+        if read is None or path is None:
             return None
-        return FileSpec(path, local[0], local[1], pos=node.pos)
+        return FileSpec(path, read[0], read[1], pos=node.pos)
     contents = read_str(ctx, fields["contents"], f"'contents' of file '{path}'", allow_empty=True)
     encoded = read_bool(ctx, fields["base64"], "'base64'") if "base64" in fields else False
     if encoded and contents is not None:
@@ -142,11 +148,14 @@ def _clash(spec: FileSpec, out: list[FileSpec], where: str) -> str | None:
     return None
 
 
-def parse_files(ctx: Ctx, node: Node, base_dir: Path, where: str) -> tuple[FileSpec, ...]:
-    """``files:`` entries; paths that are the same file, or one inside another, are reported."""
+def parse_files(ctx: Ctx, node: Node, local: LocalFiles, where: str) -> tuple[FileSpec, ...]:
+    """``files:`` entries; paths that are the same file, or one inside another, are reported.
+
+    ``localpath`` files are read through ``local`` (``osmo.spec.localfiles``).
+    """
     out: list[FileSpec] = []
     for item in read_list(ctx, node, f"'files' of {where}"):
-        spec = _file(ctx, item, base_dir, where)
+        spec = _file(ctx, item, local, where)
         if spec is None:
             continue
         clash = _clash(spec, out, where)

@@ -9,10 +9,10 @@ from __future__ import annotations
 
 import posixpath
 import re
-from pathlib import Path
 from typing import Any
 
 from osmo.names import did_you_mean, image_problem
+from osmo.spec.localfiles import LocalFiles
 from osmo.spec.model import DEFAULT_RESOURCE, ExitAction, ExitRule, TaskSpec
 from osmo.spec.parse_io import parse_checkpoint, parse_files, parse_inputs, parse_outputs
 from osmo.spec.reader import (
@@ -163,7 +163,7 @@ def task_name(node: Node) -> str:
     return name.value if isinstance(name, Scalar) and isinstance(name.value, str) else ""
 
 
-def parse_task(ctx: Ctx, node: Node, base_dir: Path) -> TaskSpec | None:
+def parse_task(ctx: Ctx, node: Node, local: LocalFiles) -> TaskSpec | None:
     """One task mapping → ``TaskSpec`` (None if it is not a mapping).
 
     A missing name is reported and kept as ``""`` so positions stay aligned; validation skips empty
@@ -186,7 +186,7 @@ def parse_task(ctx: Ctx, node: Node, base_dir: Path) -> TaskSpec | None:
         command=_command(ctx, f, node, where),
         args=_optional(ctx, f, "args", read_str_list, f"'args' of {where}") or (),
         environment=_optional(ctx, f, "environment", _str_map, "environment variable") or {},
-        files=_optional(ctx, f, "files", parse_files, base_dir, where) or (),
+        files=_optional(ctx, f, "files", parse_files, local, where) or (),
         inputs=_optional(ctx, f, "inputs", parse_inputs, where) or (),
         outputs=_optional(ctx, f, "outputs", parse_outputs, where) or (),
         credentials=_optional(ctx, f, "credentials", _credentials, where) or {},

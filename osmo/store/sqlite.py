@@ -131,6 +131,15 @@ def _v6(db: sqlite3.Connection) -> None:
                "digest TEXT NOT NULL UNIQUE, created_at REAL NOT NULL, revoked_at REAL)")
 
 
+def _v7(db: sqlite3.Connection) -> None:
+    """The pools a worker token may serve (a JSON list; ``["*"]``: every pool).
+
+    Worker tokens made before pools were bound serve every pool, as they did.
+    """
+    db.execute("ALTER TABLE tokens ADD COLUMN pools TEXT")
+    db.execute("""UPDATE tokens SET pools = '["*"]' WHERE role = 'worker'""")
+
+
 def _run_script(db: sqlite3.Connection, script: str) -> None:
     """Run ``;``-separated DDL inside the caller's transaction (``executescript`` would commit)."""
     for statement in script.split(";"):
@@ -141,7 +150,7 @@ def _run_script(db: sqlite3.Connection, script: str) -> None:
 _NO_SPEC = "id, name, status, submitted_at, '{}' AS spec, options, state"
 
 _MIGRATIONS: dict[int, Callable[[sqlite3.Connection], None]] = {
-    1: _v1, 2: _v2, 3: _v3, 4: _v4, 5: _v5, 6: _v6}
+    1: _v1, 2: _v2, 3: _v3, 4: _v4, 5: _v5, 6: _v6, 7: _v7}
 SCHEMA_VERSION = max(_MIGRATIONS)
 
 

@@ -262,6 +262,16 @@ class LocalPool(AttemptStarts):
         running = attempt is not None and attempt.state is AttemptState.RUNNING
         return attempt.launch if running and attempt is not None else None
 
+    def running_pid(self, attempt_id: str) -> int | None:
+        """The main process id of ``attempt_id`` while it runs here (None otherwise).
+
+        A sandboxed attempt's is its sandbox's; its processes all run below it.
+        """
+        attempt = self._attempts.get(attempt_id)
+        handle = attempt.handle if attempt is not None else None
+        running = attempt is not None and attempt.state is AttemptState.RUNNING
+        return handle.pid if running and handle is not None else None
+
     @property
     def container_engine(self) -> ContainerEngine | None:
         """The engine that runs this pool's image tasks (None: they run as processes)."""

@@ -107,7 +107,7 @@ class RemoteWorker:
         if not options.token:
             raise UsageError("a worker needs a token with role worker: --token, --token-file "
                              "or OSMO_TOKEN (an admin makes one with `osmo token create NAME "
-                             "--role worker`)")
+                             "--role worker --pool POOL`)")
         self._layout = Home(self.home)
         self.store = ArtifactStore(self._layout.artifacts)
         self.link = Link.client(list(options.connect), options.cluster,
@@ -130,6 +130,7 @@ class RemoteWorker:
         self._server_lost = False
         self._register_now = threading.Event()
         self._stop = threading.Event()
+        self._refused: NotAllowed | None = None  # the server refused to register it
         self._io = ThreadPoolExecutor(4, thread_name_prefix="osmo-inputs")
         self._token: Subscription | None = None
         kill_recorded(self._layout.procs)  # before it announces itself
@@ -157,6 +158,10 @@ class RemoteWorker:
 
         Registering is retried until the server answers. Returns after :meth:`stop` or a finished
         :meth:`drain`.
+
+        Raises:
+            NotAllowed: the server refused to register it (its token may not serve its pool,
+                or its id is another token's live worker).
         """
         orders = f"to-worker/{self.id}"
         self._subs = [
@@ -180,6 +185,8 @@ class RemoteWorker:
                 self._beat()
             self._write_health()
         self._close()
+        if self._refused is not None:
+            raise self._refused
 
     def _beat(self) -> None:
         """Tell the server this worker is alive; register again if it no longer counts it."""
@@ -264,6 +271,10 @@ class RemoteWorker:
                           sandbox_why=self.pool.no_sandbox_why).to_dict()
         try:
             reply = self._api.call("worker_register", hello)
+        except NotAllowed as exc:  # e.g. a pool its token may not serve: retrying cannot help
+            self._refused = exc
+            self._stop.set()
+            return False
         except OsmoError as exc:
             log.info("server not reachable yet (%s); retrying", exc)
             return False

@@ -11,8 +11,11 @@ pool's running attempt:
 - exec (``osmo.worker.exec_process``) runs the command in the attempt's container
   (``podman exec``) or in its working folder with its environment (in a new bubblewrap
   sandbox over the attempt's own view when the attempt is sandboxed);
-- port-forward connects each channel to the task's port on 127.0.0.1 (process task) or on
-  the container's address (container task), only to the ports the grant names.
+- port-forward connects each channel to the task's port on the container's address (a
+  container task: its own network namespace, as OSMO's pod) or, for a process task, only to a
+  port a process of the task listens on, at the address it listens on
+  (``osmo.worker.task_ports``): never to another process's port on the node; and only to
+  the ports the grant names.
 
 Every session ends, and its process or sockets with it, when its command exits, when the
 client goes silent (``osmo.transport.streams``), when the attempt stops running here, or
@@ -35,6 +38,7 @@ from osmo.transport.forwarding import Channels, Deferred, TcpEnd, UdpConnected
 from osmo.transport.streams import TIMEOUT, Frame, Kind, SessionGrant, Stream
 from osmo.transport.zenoh_link import Link
 from osmo.worker.exec_process import ExecProcess, exec_argv
+from osmo.worker.task_ports import task_listener
 from osmo.worker.workdir import Launch
 
 __all__ = ["NodeSessions", "SessionPool", "container_address"]
@@ -53,6 +57,9 @@ class SessionPool(Protocol):
 
     def running_launch(self, attempt_id: str) -> Launch | None:
         """The attempt's launch while it runs here."""
+
+    def running_pid(self, attempt_id: str) -> int | None:
+        """The attempt's main process id while it runs here."""
 
     @property
     def container_engine(self) -> ContainerEngine | None:
@@ -169,13 +176,16 @@ class _Forward(_Session):
 
     def __init__(self, *args: Any) -> None:
         self._channels = Channels(lambda kind, ch, data: self.stream.send(kind, ch, data))
-        self._host = "127.0.0.1"
+        self._host: str | None = None  # a container's own address; None: a process task's
         super().__init__(*args)
 
     def serve(self, launch: Launch) -> None:
         engine = self._pool.container_engine
         if launch.container is not None and engine is not None:
             self._host = container_address(engine, launch.container.name)
+            if self._host is None:
+                self.end(None, "the task's container has no network address of its own")
+                return
         self.stream.send(Kind.READY)
         self._ended.wait()
 
@@ -201,14 +211,21 @@ class _Forward(_Session):
                          name="osmo-forward-connect", daemon=True).start()
 
     def _connect(self, channel: int, port: int, udp: bool, pending: Deferred) -> None:
+        host = self._host or self._task_listener(port, udp)
+        if host is None:
+            if self._channels.drop(channel):
+                self.stream.send(Kind.CLOSE, channel, f"no process of the task listens on "
+                                                      f"{'UDP' if udp else 'TCP'} port {port}"
+                                                      .encode())
+            return
         try:
-            sock = socket.create_connection((self._host, port), timeout=_CONNECT_TIMEOUT) \
-                if not udp else _udp_socket(self._host, port)
+            sock = socket.create_connection((host, port), timeout=_CONNECT_TIMEOUT) \
+                if not udp else _udp_socket(host, port)
             sock.settimeout(None)
         except OSError as exc:
             if self._channels.drop(channel):
                 self.stream.send(Kind.CLOSE, channel,
-                                 f"cannot connect to {self._host}:{port}: "
+                                 f"cannot connect to {host}:{port}: "
                                  f"{exc.strerror or exc}".encode())
             return
         try:
@@ -221,18 +238,23 @@ class _Forward(_Session):
         if attached:
             self._channels.pump(channel, sock, datagrams=udp)
 
+    def _task_listener(self, port: int, udp: bool) -> str | None:
+        """Where a process of this (process) task listens on ``port``, or None."""
+        pid = self._pool.running_pid(self.grant.attempt_id)
+        return task_listener(pid, port, udp=udp) if pid is not None else None
+
     def stop(self) -> None:
         self._channels.close()
 
 
 def _udp_socket(host: str, port: int) -> socket.socket:
-    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock = socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_DGRAM)
     sock.connect((host, port))
     return sock
 
 
-def container_address(engine: ContainerEngine, name: str) -> str:
-    """The container's IP address on its network (``inspect``); 127.0.0.1 if it has none.
+def container_address(engine: ContainerEngine, name: str) -> str | None:
+    """The container's IP address on its network (``inspect``); None if it has none.
 
     Raises:
         ContainerError: the engine cannot inspect it.
@@ -241,7 +263,7 @@ def container_address(engine: ContainerEngine, name: str) -> str:
                       "{{range .NetworkSettings.Networks}}{{.IPAddress}} {{end}}"
                       "{{.NetworkSettings.IPAddress}}", name, timeout=15)
     found = [word for word in out.split() if word]
-    return found[0] if found else "127.0.0.1"
+    return found[0] if found else None
 
 
 class NodeSessions:

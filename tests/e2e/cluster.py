@@ -2,8 +2,8 @@
 
 The server is started through the real CLI with ``--listen`` on a free loopback port and no
 local pool; each worker is ``osmo worker --connect ...`` in its own process and folder, with
-its own worker token (``osmo token create NAME --role worker``, made through the server
-home's admin CLI). All of them are stopped by PID at the end (never by name).
+its own worker token bound to its pool (``osmo token create NAME --role worker --pool POOL``,
+made through the server home's admin CLI). All of them are stopped by PID at the end (never by name).
 """
 
 from __future__ import annotations
@@ -46,10 +46,12 @@ class Cluster:
         self.env = env or {}
         self.tokens: dict[str, str] = {}
 
-    def token(self, name: str, role: str = "worker") -> str:
-        """A token ``name`` with ``role`` (made once, through the admin CLI)."""
+    def token(self, name: str, role: str = "worker", pool: str = "default") -> str:
+        """A token ``name`` with ``role`` (made once, through the admin CLI); a worker's
+        serves ``pool``."""
         if name not in self.tokens:
-            self.tokens[name] = self.osmo("token", "create", name, "--role", role,
+            pools = ("--pool", pool) if role == "worker" else ()
+            self.tokens[name] = self.osmo("token", "create", name, "--role", role, *pools,
                                           check=True).out.strip()
         return self.tokens[name]
 
@@ -79,7 +81,7 @@ class Cluster:
                           **self.env, **(env or {}))
         worker_env.pop("OSMO_SERVER", None)
         worker_env.setdefault("OSMO_SANDBOX_SHARE", str(self.root))  # as tests.conftest.Osmo
-        worker_env["OSMO_TOKEN"] = token if token is not None else self.token(name)
+        worker_env["OSMO_TOKEN"] = token if token is not None else self.token(name, pool=pool)
         if host is not None:
             worker_env["OSMO_HOST_ID"] = host
         log = open(self.root / f"{name}.log", "ab")

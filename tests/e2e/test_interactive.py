@@ -173,7 +173,7 @@ def test_a_session_order_is_useless_to_another_worker(cluster: Cluster, tmp_path
     only. The worker the order is for is paused (well within its 1 s lease) so that the
     rogue tries first; the ticket still works for its own worker afterwards.
     """
-    rogue_token = cluster.token("rogue")
+    rogue_token = cluster.token("rogue", pool="other")
     cluster.start_worker("rogue", "--cpus", "1", pool="other", token=rogue_token)
     wf = _running(cluster.osmo, _sleeper(tmp_path, "rogue"), REMOTE)
     link = Link.client([cluster.endpoint])

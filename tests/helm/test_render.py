@@ -214,27 +214,30 @@ def test_existing_secrets_are_used_and_none_created() -> None:
     assert mounts(container(dep, "worker"))["tls-client"] == "/etc/osmo/tls/client"
     assert volumes(sts)["tokens"]["secret"]["secretName"] == "my-tokens"
     ref = next(e for e in container(dep, "worker")["env"] if e["name"] == "OSMO_TOKEN")
-    assert ref["valueFrom"]["secretKeyRef"] == {"name": "my-tokens", "key": "worker"}
+    assert ref["valueFrom"]["secretKeyRef"] == {"name": "my-tokens", "key": "worker-default"}
 
 
 def test_api_tokens_are_on_by_default() -> None:
     out = render(TWO_POOLS)
     secret = out.get("Secret", f"{FULLNAME}-tokens")
     tokens = {k: base64.b64decode(v).decode() for k, v in secret["data"].items()}
-    assert sorted(tokens) == ["admin", "worker"]
+    assert sorted(tokens) == ["admin", "worker-cpu", "worker-gpu"]  # one per pool
     assert all(t.startswith("osmo_") and len(t) > 40 for t in tokens.values())
-    assert tokens["admin"] != tokens["worker"]
+    assert len(set(tokens.values())) == 3
     assert secret["metadata"]["annotations"]["helm.sh/resource-policy"] == "keep"
     sts = out.get("StatefulSet", f"{FULLNAME}-server")
     server = container(sts, "server")
-    assert flag(server["args"], "--accept-token") == [
-        "helm-admin:admin:/etc/osmo/tokens/admin", "helm-workers:worker:/etc/osmo/tokens/worker"]
+    assert flag(server["args"], "--accept-token") == [  # each pool's token serves that pool
+        "helm-admin:admin:/etc/osmo/tokens/admin",
+        "helm-worker-cpu:worker@cpu:/etc/osmo/tokens/worker-cpu",
+        "helm-worker-gpu:worker@gpu:/etc/osmo/tokens/worker-gpu"]
     assert mounts(server)["tokens"] == "/etc/osmo/tokens"
     assert volumes(sts)["tokens"]["secret"] == {"secretName": f"{FULLNAME}-tokens",
                                                 "defaultMode": 0o400}
-    for dep in workers(TWO_POOLS).values():
+    for pool, dep in workers(TWO_POOLS).items():
         ref = next(e for e in container(dep, "worker")["env"] if e["name"] == "OSMO_TOKEN")
-        assert ref["valueFrom"]["secretKeyRef"] == {"name": f"{FULLNAME}-tokens", "key": "worker"}
+        assert ref["valueFrom"]["secretKeyRef"] == {"name": f"{FULLNAME}-tokens",
+                                                    "key": f"worker-{pool}"}
         assert not any("osmo_" in a for a in container(dep, "worker")["args"])  # env only
     # no zenoh authentication by default: the network listener needs --insecure, and says so
     assert "--insecure" in server["args"]

@@ -143,8 +143,9 @@ def test_a_revoked_token_is_refused_at_once(server: Osmo) -> None:
 
 
 def test_a_worker_token_may_only_speak_for_workers(server: Osmo) -> None:
-    token = server("token", "create", "w-only", "--role", "worker", check=True).out.strip()
+    token = server("token", "create", "w-only", "--role", "worker", "--pool", "a",
+                   check=True).out.strip()
     r = server("--token", token, "submit", str(server.home.parent / "held.yaml"))
-    assert r.code == 2 and "worker's" in r.err
+    assert r.code == 2 and "has role worker" in r.err
     r = server("--token", token, "credential", "list")
     assert r.code == 2 and "not allowed" in r.err

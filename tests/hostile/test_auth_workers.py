@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from osmo.config import read_server_info
+from osmo.config import host_id, read_server_info
 from osmo.errors import NotAllowed
 from osmo.transport.rpc import ApiClient
 from osmo.transport.zenoh_link import Link
@@ -85,7 +85,8 @@ def test_forged_reports_for_a_local_attempt_are_refused(local_server: Osmo,
         # the old attack: one put on the report key. Nothing listens there any more.
         link.put(link.key("from-worker", "fake"), json.dumps(
             {"op": "exited", "attempt_id": aid, "exit_code": 0}).encode())
-        token = osmo("token", "create", "fake", "--role", "worker", check=True).out.strip()
+        token = osmo("token", "create", "fake", "--role", "worker", "--pool", "default",
+                     check=True).out.strip()
         fake = ApiClient(link, timeout=10, token=token)
         fake.call("worker_register", FAKE)  # a valid worker token, registered
         before = len(_refused(osmo))
@@ -146,6 +147,26 @@ def test_a_fake_worker_gets_no_secret_and_cannot_speak_for_another(tmp_path: Pat
         sniffer.close()
         link.close()
         c.stop()
+
+
+def test_only_a_same_host_worker_learns_where_the_servers_artifacts_are(
+        local_server: Osmo) -> None:
+    """Issue 26: the registration reply gave any worker token the server's artifacts path."""
+    osmo = local_server
+    info = read_server_info(osmo.home)
+    assert info is not None
+    link = Link.client([info.endpoint], info.cluster)
+    try:
+        token = osmo("token", "create", "far", "--role", "worker", "--pool", "default",
+                     check=True).out.strip()
+        far = ApiClient(link, timeout=10, token=token)
+        reply = far.call("worker_register", dict(FAKE, host_id="another-host"))
+        assert str(osmo.home) not in json.dumps(reply) and "host_id" not in reply, reply
+        assert "host_id" not in far.call("ping"), "the host id proves 'same host': admins only"
+        reply = far.call("worker_register", dict(FAKE, host_id=host_id()))
+        assert reply["artifacts"] == str(osmo.home / "artifacts")
+    finally:
+        link.close()
 
 
 def test_a_worker_without_a_token_is_told_how_to_get_one(tmp_path: Path) -> None:

@@ -18,6 +18,7 @@ from hypothesis import strategies as st
 from osmo.errors import Diagnostic, SpecError
 from osmo.spec import load_spec, spec_from_dict, spec_to_dict, yamlnodes
 from osmo.spec.loader import _build
+from osmo.spec.localfiles import LocalFiles
 from tests.conftest import REPO
 
 CORPUS = Path(__file__).parent
@@ -30,7 +31,7 @@ def _yaml_way(d: dict[str, Any]) -> Any:
     except TypeError as exc:
         return [str(Diagnostic("<stored>", 0, 0, str(exc)))]
     try:
-        return _build(text, "<stored>", Path(), {}, None)
+        return _build(text, "<stored>", LocalFiles.none(), {}, None)
     except SpecError as exc:
         return [str(x) for x in exc.diagnostics]
 

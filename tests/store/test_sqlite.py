@@ -50,6 +50,26 @@ def test_newer_schema_is_refused(tmp_path: Path) -> None:
         Store(tmp_path / "s.db")
 
 
+def test_worker_tokens_of_an_older_store_serve_every_pool(tmp_path: Path) -> None:
+    """Schema 7 binds worker tokens to pools; the ones made before keep serving every pool."""
+    import osmo.store.sqlite as sqlite_store
+
+    older = {v: m for v, m in sqlite_store._MIGRATIONS.items() if v < 7}  # noqa: SLF001
+    db = sqlite3.connect(tmp_path / "s.db", isolation_level=None)
+    db.execute("CREATE TABLE schema_version (version INTEGER NOT NULL)")
+    db.execute("INSERT INTO schema_version VALUES (6)")
+    for version in sorted(older):
+        older[version](db)
+    db.execute("INSERT INTO tokens VALUES ('w', 'worker', 'd1', 1.0, NULL)")
+    db.execute("INSERT INTO tokens VALUES ('u', 'user', 'd2', 1.0, NULL)")
+    db.close()
+    store = Store(tmp_path / "s.db")
+    assert store.token_pools("w") == ["*"] and store.token_pools("u") is None
+    assert store.add_token("w2", "worker", "d3", 2.0, ["gpu"])
+    assert store.token_pools("w2") == ["gpu"]
+    store.close()
+
+
 def test_commit_round_trips_and_numbers_grow(tmp_path: Path) -> None:
     store = Store(tmp_path / "s.db")
     assert store.next_number("w") == 1
