@@ -428,9 +428,17 @@ class ApiClient:
         """Send ``request`` to ``verb`` without waiting for the answer.
 
         For a stream of small reports whose order matters and whose loss is repaired
-        elsewhere (a worker's reports; its exit reports are resent until acknowledged).
+        elsewhere (a worker's reports; its exit reports are resent until acknowledged). It
+        never waits for a hello either: with no channel open (the server restarted and the
+        next :meth:`call` has not opened a new one yet), the request is dropped.
         """
-        self.ask(f"api/{verb}", json.dumps(request).encode())
+        with self._lock:
+            channel = self._channel
+        if channel is None:
+            log.info("dropped a %s request: no channel open yet", shown(verb))
+            return
+        _ask(self._link, channel, Purpose.REQ, Purpose.REP, f"api/{verb}",
+             json.dumps(request).encode(), self._timeout)
 
     def call(self, verb: str, request: dict[str, Any] | None = None,
              *, timeout: float | None = None) -> Any:
