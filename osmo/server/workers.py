@@ -58,6 +58,7 @@ from osmo.transport.blobs import SERVER, BlobServer, SameHost, host_id
 from osmo.transport.rpc import field
 from osmo.transport.wire import Hello, event_from_dict, prepare_to_dict, spec_to_wire
 from osmo.transport.zenoh_link import Link, Subscription
+from osmo.worker.logs import DEFAULT_LOG_LIMIT
 
 __all__ = ["WorkerHub"]
 
@@ -77,6 +78,7 @@ class WorkerHub:
         attempts_on: the ids of the attempts the scheduler placed on a node (asked of the
             engine when a worker registers again).
         authenticate: ``token -> Identity`` (for the server's blob server).
+        log_limit: bytes each remote attempt's log keeps at most as stored here.
     """
 
     INLINE = frozenset({"worker_report", "worker_log"})
@@ -86,7 +88,8 @@ class WorkerHub:
                  artifacts: ArtifactStore, home: Path,
                  url_credential: Callable[[str], dict[str, str] | None],
                  attempts_on: Callable[[str], list[str]],
-                 authenticate: Callable[[bytes | None], Identity]) -> None:
+                 authenticate: Callable[[bytes | None], Identity],
+                 log_limit: int = DEFAULT_LOG_LIMIT) -> None:
         self._link, self._emit, self._store = link, emit, store
         self._artifacts, self._home = artifacts, home
         self._url_credential, self._attempts_on = url_credential, attempts_on
@@ -97,7 +100,7 @@ class WorkerHub:
         self._draining: set[str] = set()
         self._same_host: dict[str, SameHost | None] = {}
         self._sent_specs: dict[str, set[str]] = {}
-        self._logs = RemoteLogs(home)
+        self._logs = RemoteLogs(home, log_limit)
         self._access = WorkerAccess(authenticate, lambda wid: wid in self._alive)
         self._outputs = OutputIntake(link=link, artifacts=artifacts, home=home, emit=emit,
                                      send=self._send, blob_key=self._access.key,
