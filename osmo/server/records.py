@@ -29,11 +29,11 @@ def write_record(store: Store, home: Path, workflow_id: str) -> Path | None:
     if row is None:
         return None
     workflow = dict(row.state) or {"id": row.id, "name": row.name, "status": row.status}
-    logs = [r for r in iter_logs(store, row) if r["stream"] != "osmo"]
+    logs = (r for r in iter_logs(store, row) if r["stream"] != "osmo")  # in time order
     lineage = [Lineage.from_dict(d) for d in store.lineage_of_workflow(workflow_id)]
     path = Home(home).run_record(workflow_id)
     write_run_record(path, workflow=workflow, transitions=store.transitions(workflow_id),
-                     lineage=lineage, logs=logs)
+                     lineage=lineage, logs=logs, ordered=True)
     return path
 
 
