@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -142,18 +144,46 @@ def _list(args: argparse.Namespace) -> int:
 
 
 def _logs(args: argparse.Namespace) -> int:
-    stream = "stderr" if args.error else None
+    if args.lines is not None and args.lines < 0:
+        raise UsageError(f"--tail {args.lines}: give a number of lines from 0")
+    since = None if args.since is None else since_time(args.since, time.time())
     with _client(args) as client:
-        if args.follow:
-            records = client.follow_logs(args.workflow_id, task=args.task, retry=args.retry,
-                                         stream=stream)
-        else:
-            records = iter(client.logs(args.workflow_id, task=args.task, retry=args.retry,
-                                       tail=args.lines, stream=stream))
-        for record in records:
-            sys.stdout.write(format_log(record) + "\n")
+        records = client.iter_logs(args.workflow_id, task=args.task, retry=args.retry,
+                                   tail=args.lines, since=since, follow=args.follow,
+                                   stream="stderr" if args.error else None)
+        try:
+            for record in records:  # printed as each chunk arrives: nothing is held
+                sys.stdout.write(format_log(record) + "\n")
+                if args.follow:
+                    sys.stdout.flush()
             sys.stdout.flush()
+        except BrokenPipeError:  # the reader stopped (`osmo logs ID | head`): so do we
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
     return 0
+
+
+def since_time(text: str, now: float) -> float:
+    """``--since`` in seconds since the epoch.
+
+    ``text`` is a duration ago (``30s``, ``10m``, ``2h``, ``1d``) or an ISO time (local unless
+    it names a zone).
+
+    Raises:
+        UsageError: neither.
+    """
+    from datetime import datetime
+
+    from osmo.spec.units import parse_duration
+
+    try:
+        return now - parse_duration(text)
+    except ValueError:
+        pass
+    try:
+        return datetime.fromisoformat(text.strip()).timestamp()
+    except ValueError:
+        raise UsageError(f"--since {safe(text)}: give a duration ago (30s, 10m, 2h, 1d) or an "
+                         "ISO time (2024-05-01T10:00)") from None
 
 
 def _label_args(items: list[str]) -> dict[str, str]:

@@ -119,8 +119,13 @@ def _add_workflow_verbs(sub: argparse._SubParsersAction) -> None:  # type: ignor
     p.add_argument("workflow_id")
     p.add_argument("-t", "--task")
     p.add_argument("-r", "--retry", type=int)
-    p.add_argument("-n", "--lines", type=int, help="last N lines")
-    p.add_argument("-f", "--follow", action="store_true", help="follow until the workflow ends")
+    p.add_argument("-n", "--tail", "--lines", dest="lines", type=int, metavar="N",
+                   help="only the last N lines")
+    p.add_argument("--since", metavar="WHEN",
+                   help="only lines written since WHEN: a duration ago (30s, 10m, 2h, 1d) or "
+                        "an ISO time (2024-05-01T10:00, local time unless it names a zone)")
+    p.add_argument("-f", "--follow", action="store_true",
+                   help="follow until the workflow ends (with --tail/--since: from there)")
     p.add_argument("--error", action="store_true", help="stderr lines only")
 
     p = sub.add_parser("events", help="a workflow's scheduling timeline (queued, placed, "

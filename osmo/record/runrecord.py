@@ -25,9 +25,10 @@ already has and leaves the MCAP encoding to :mod:`osmo.record.mcapio` and the pr
 from __future__ import annotations
 
 import enum
+import heapq
 import json
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -111,7 +112,7 @@ LINEAGE_SCHEMA: dict[str, Any] = {
 
 def write_run_record(path: Path, *, workflow: Mapping[str, Any],
                      transitions: Sequence[Mapping[str, Any]], lineage: Sequence[Lineage],
-                     logs: Sequence[Mapping[str, Any]]) -> None:
+                     logs: Iterable[Mapping[str, Any]], ordered: bool = False) -> None:
     """Write a workflow's run record to ``path`` atomically (temp file + rename).
 
     Args:
@@ -122,6 +123,9 @@ def write_run_record(path: Path, *, workflow: Mapping[str, Any],
             ``workflow_id`` (default: the workflow's), ``task``, ``retry``, ``message``, ``seq``.
         lineage: one :class:`Lineage` per attempt.
         logs: log lines: ``ts``, ``task``, ``retry``, ``stream``, ``text``.
+        ordered: ``logs`` come in time order (as ``osmo logs`` streams them): they are then
+            written as they come, never all held (a big log costs no memory here); otherwise
+            they are sorted first.
 
     Raises:
         UsageError: an event lacks a field or holds a value JSON cannot encode; nothing is
@@ -130,15 +134,16 @@ def write_run_record(path: Path, *, workflow: Mapping[str, Any],
     """
     workflow_id = _text(workflow, "id", "workflow")
     events = sorted((_transition(e, workflow_id) for e in transitions), key=lambda m: m["at"])
-    lines = [_log_line(line) for line in logs]
+    lines = _line_entries(_log_line(line) for line in logs)
     fallback = _opt_time(workflow.get("submitted_at"), "workflow submitted_at") or 0.0
     attempts = sorted((_lineage_time(r, fallback), n, r) for n, r in enumerate(lineage))
     with JsonMcapWriter(path) as out:
         log = out.add_protobuf_channel(LOG_TOPIC, LOG_SCHEMA, log_schema())
         status = out.add_json_channel(STATUS_TOPIC, "osmo.StatusTransition", STATUS_SCHEMA)
         lineage_channel = out.add_json_channel(LINEAGE_TOPIC, "osmo.Lineage", LINEAGE_SCHEMA)
-        for entry in sorted([*map(_status_entry, events, [workflow_id] * len(events)),
-                             *_line_entries(lines)], key=lambda e: e.time_ns):
+        statuses = [_status_entry(e, workflow_id) for e in events]
+        in_order = lines if ordered else sorted(lines, key=lambda e: e.time_ns)
+        for entry in heapq.merge(statuses, in_order, key=lambda e: e.time_ns):
             out.write_encoded(log, encode_log(entry), entry.time_ns)
         for message in events:
             out.write(status, message, _ns(message["at"], "transition 'at'"))
@@ -287,10 +292,9 @@ def _status_entry(event: Mapping[str, Any], workflow_id: str) -> LogEntry:
                     str(task) if task is not None else workflow_id)
 
 
-def _line_entries(lines: Sequence[Mapping[str, Any]]) -> list[LogEntry]:
+def _line_entries(lines: Iterable[Mapping[str, Any]]) -> Iterator[LogEntry]:
     """Task output lines as ``foxglove.Log`` lines, numbered per task, retry and stream."""
     numbers: dict[str, int] = {}
-    out = []
     for line in lines:
         if not isinstance(line["text"], str) or not isinstance(line["task"], str) \
                 or not line["task"] or isinstance(line["retry"], bool) \
@@ -300,10 +304,9 @@ def _line_entries(lines: Sequence[Mapping[str, Any]]) -> list[LogEntry]:
                              "strings and retry an integer >= 0")
         source = f"{line['task']}/{line['retry']}/{line['stream']}"
         numbers[source] = numbers.get(source, 0) + 1
-        out.append(LogEntry(_ns(line["ts"], "log 'ts'"),
-                            "WARNING" if line["stream"] == "stderr" else "INFO",
-                            line["text"], line["task"], source, numbers[source]))
-    return out
+        yield LogEntry(_ns(line["ts"], "log 'ts'"),
+                       "WARNING" if line["stream"] == "stderr" else "INFO",
+                       line["text"], line["task"], source, numbers[source])
 
 
 def _log_line(line: Mapping[str, Any]) -> dict[str, Any]:

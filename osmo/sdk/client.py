@@ -179,43 +179,61 @@ class Client:
         return builtins.list(self._call("pools"))
 
     def logs(self, workflow_id: str, *, task: str | None = None, retry: int | None = None,
-             tail: int | None = None, stream: str | None = None) -> builtins.list[LogRecord]:
-        """All log records of a workflow so far.
+             tail: int | None = None, stream: str | None = None,
+             since: float | None = None) -> builtins.list[LogRecord]:
+        """All log records of a workflow so far, as a list.
 
-        Args:
-            workflow_id: the workflow.
-            task: only this task's records.
-            retry: only this retry's records.
-            tail: only the last N records (after the other filters).
-            stream: only this stream (``stdout``, ``stderr`` or ``osmo``).
+        The arguments are :meth:`iter_logs`'s; it holds none of them: use it for big logs.
         """
-        records = [log_record(r) for r in self._call("logs", workflow_id=workflow_id, task=task,
-                                                  retry=retry)["records"]]
-        records = [r for r in records if stream is None or r.stream == stream]
-        return records[-tail:] if tail else records
+        return builtins.list(self.iter_logs(workflow_id, task=task, retry=retry, tail=tail,
+                                            stream=stream, since=since))
 
     def events(self, workflow_id: str, *, task: str | None = None) -> builtins.list[EventInfo]:
         """The workflow's scheduling timeline, oldest first (optionally of one task)."""
         return [EventInfo(e["at"], e["task"], e["retry"], e["status"], e["message"], e["node"])
                 for e in self._call("events", workflow_id=workflow_id, task=task)]
 
+    def iter_logs(self, workflow_id: str, *, task: str | None = None,
+                  retry: int | None = None, tail: int | None = None,
+                  stream: str | None = None, since: float | None = None,
+                  follow: bool = False, interval: float = 0.25) -> Iterator[LogRecord]:
+        """Yield a workflow's log records in time order, as the server sends them.
+
+        One request per chunk (256 KiB of log): nothing is held here or on the server.
+
+        Args:
+            workflow_id: the workflow.
+            task: only this task's records.
+            retry: only this retry's records.
+            tail: only the last N records (after the other filters; None or 0: all).
+            stream: only this stream (``stdout``, ``stderr`` or ``osmo``).
+            since: only records written at or after this time (seconds since the epoch).
+            follow: go on yielding records as they are written, until the workflow ends.
+            interval: with ``follow``, the longest wait between looks when nothing changes.
+        """
+        cursor: dict[str, Any] | None = None
+        while True:
+            reply = self._call("logs", workflow_id=workflow_id, task=task, retry=retry,
+                               cursor=cursor, tail=tail if cursor is None else None,
+                               since=since, stream=stream)
+            cursor = reply["cursor"]
+            yield from (r for r in map(log_record, reply["records"])
+                        if stream is None or r.stream == stream)
+            if reply.get("more"):
+                continue
+            if not follow or reply["done"]:
+                return
+            self._wait_change(workflow_id, interval)
+
     def follow_logs(self, workflow_id: str, *, task: str | None = None,
                     retry: int | None = None, interval: float = 0.25,
                     stream: str | None = None) -> Iterator[LogRecord]:
         """Yield log records as they are written, until the workflow has ended.
 
-        ``stream`` keeps only that stream's records (``stdout``, ``stderr`` or ``osmo``).
+        :meth:`iter_logs` with ``follow=True``.
         """
-        cursor: dict[str, Any] | None = None
-        while True:
-            reply = self._call("logs", workflow_id=workflow_id, task=task, retry=retry,
-                               cursor=cursor)
-            cursor = reply["cursor"]
-            yield from (r for r in map(log_record, reply["records"])
-                        if stream is None or r.stream == stream)
-            if reply["done"]:
-                return
-            self._wait_change(workflow_id, interval)
+        return self.iter_logs(workflow_id, task=task, retry=retry, stream=stream,
+                              follow=True, interval=interval)
 
     def wait(self, workflow_id: str, *, timeout: float | None = None,
              on_update: Callable[[WorkflowInfo], None] | None = None,

@@ -128,11 +128,12 @@ def serve(home: str | os.PathLike[str] | None = None, options: ServerOptions | N
                      input_manifests=output_manifests(store),
                      task_secrets=store.credential,
                      sandbox=options.sandbox, sandbox_share=options.sandbox_share,
-                     procs_dir=layout.procs, containers=boxes) if options.local_pool else None
+                     procs_dir=layout.procs, containers=boxes,
+                     log_limit=options.log_limit) if options.local_pool else None
     hub = WorkerHub(link=link, emit=inbox.post, store=store,
                     artifacts=artifacts, home=home_path, url_credential=url_credential(store),
                     attempts_on=lambda node: list(inbox.ask(AttemptsOn(node))),
-                    gate=authenticate)
+                    gate=authenticate, log_limit=options.log_limit)
     records = RunRecords(store, home_path)
     fatal: list[BaseException] = []
 

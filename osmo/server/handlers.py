@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import builtins
 import logging
+import math
 import os
 from collections.abc import Callable
 from enum import Enum
@@ -53,6 +54,7 @@ from osmo.transport.auth import Identity, Role
 from osmo.transport.blobs import Asker
 from osmo.transport.rpc import MAX_INT, Gate, ask_back, field, str_list
 from osmo.transport.zenoh_link import Link
+from osmo.worker.logs import STREAMS
 
 __all__ = ["Handlers"]
 
@@ -264,10 +266,20 @@ class Handlers:
         return [_workflow_dict(r) for r in rows]
 
     def logs(self, request: dict[str, Any]) -> dict[str, Any]:
-        """Log records of a workflow since a cursor; see ``osmo.server.logview``."""
+        """The next chunk of a workflow's log records after a cursor (``more``: call again).
+
+        ``tail``, ``since`` and ``stream`` as ``osmo logs``; see ``osmo.server.logview``.
+        """
         row = self._row(request.get("workflow_id"))
         task, retry = self._attempt(row, request)
-        return read_logs(self._store, row, task=task, retry=retry, cursor=_cursor(request))
+        tail = field(request, "tail", int, default=None)
+        if tail is not None and tail < 0:
+            raise UsageError(f"'tail' is a number of records from 0, not {tail}")
+        stream = field(request, "stream", str, default=None)
+        if stream is not None and stream not in STREAMS:
+            raise UsageError(f"'stream' is one of {', '.join(STREAMS)}, not {shown(stream)}")
+        return read_logs(self._store, row, task=task, retry=retry, cursor=_cursor(request),
+                         tail=tail, since=_since(request), stream=stream)
 
     def events(self, request: dict[str, Any]) -> builtins.list[dict[str, Any]]:
         """The workflow's scheduling timeline, oldest first (optionally of one task).
@@ -354,6 +366,18 @@ def _limit(request: dict[str, Any]) -> int | None:
     if limit is not None and not 1 <= limit <= MAX_LIST:
         raise UsageError(f"{what} must be from 1 to {MAX_LIST}, not {limit}")
     return limit
+
+
+def _since(request: dict[str, Any]) -> float | None:
+    """A request's ``since``: seconds since the epoch (a number), or None."""
+    since = request.get("since")
+    if since is None:
+        return None
+    if not isinstance(since, int | float) or isinstance(since, bool) \
+            or not math.isfinite(since):
+        raise UsageError(f"'since' must be a time in seconds since the epoch, not "
+                         f"{shown(since)}")
+    return float(since)
 
 
 def _cursor(request: dict[str, Any]) -> dict[str, Any] | None:

@@ -29,7 +29,8 @@ from osmo.config import DEFAULT_CLUSTER
 from osmo.errors import UsageError
 from osmo.layout import Home
 from osmo.runtime.sandbox import SandboxMode
-from osmo.worker.options import add_runtime_arguments, shares
+from osmo.worker.logs import DEFAULT_LOG_LIMIT
+from osmo.worker.options import add_log_limit_argument, add_runtime_arguments, shares
 
 __all__ = ["ServerOptions", "absolute", "check_listeners", "network_listeners",
            "option_changes", "options_from_argv", "remember", "saved_options"]
@@ -56,6 +57,8 @@ class ServerOptions:
         runtime: how the local pool runs image tasks: ``auto``, ``container`` or ``process``
             (``osmo.worker.containers.choose``).
         container_engine: ``podman`` or ``docker`` (default: the first that answers).
+        log_limit: bytes each attempt's log keeps at most, on the local pool and as stored
+            from remote workers' batches (``osmo.worker.logs``).
     """
 
     listen: tuple[str, ...] = ()
@@ -72,13 +75,14 @@ class ServerOptions:
     sandbox_share: tuple[str, ...] = ()
     runtime: str = "auto"
     container_engine: str | None = None
+    log_limit: int = DEFAULT_LOG_LIMIT
 
     @staticmethod
     def add_arguments(p: argparse.ArgumentParser) -> None:
         """Add the server's flags to ``p``.
 
         ``--listen``, ``--connect``, ``--zenoh-config``, ``--cluster``, ``--cpus``, ``--gpus``,
-        ``--no-local-pool``, ``--reconnect-grace``, ``--sandbox``.
+        ``--no-local-pool``, ``--reconnect-grace``, ``--sandbox``, ``--log-limit``.
         """
         d = ServerOptions()
         p.add_argument("--listen", action="append", metavar="ENDPOINT",
@@ -106,6 +110,7 @@ class ServerOptions:
                        help="allow --listen on a network address without zenoh "
                             "authentication (usrpwd or mTLS in --zenoh-config); tokens then "
                             "travel in clear")
+        add_log_limit_argument(p)
         add_runtime_arguments(p)
 
     @classmethod
@@ -118,7 +123,8 @@ class ServerOptions:
                    insecure=getattr(args, "insecure", False),
                    accept_tokens=tuple(getattr(args, "accept_token", None) or ()),
                    sandbox=args.sandbox, sandbox_share=shares(args.sandbox_share),
-                   runtime=args.runtime, container_engine=args.container_engine)
+                   runtime=args.runtime, container_engine=args.container_engine,
+                   log_limit=args.log_limit)
 
     def to_argv(self) -> list[str]:
         """The same options as flags, to start the server in another process.
@@ -133,7 +139,8 @@ class ServerOptions:
                             ("--reconnect-grace", self.reconnect_grace),
                             ("--sandbox", self.sandbox),
                             ("--runtime", self.runtime),
-                            ("--container-engine", self.container_engine)):
+                            ("--container-engine", self.container_engine),
+                            ("--log-limit", self.log_limit)):
             if value != getattr(d, flag[2:].replace("-", "_")):
                 out += [flag, str(value)]
         out += [arg for d in self.sandbox_share for arg in ("--sandbox-share", d)]

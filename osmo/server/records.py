@@ -15,7 +15,7 @@ from pathlib import Path
 from osmo.errors import OsmoError
 from osmo.layout import Home
 from osmo.record import Lineage, write_run_record
-from osmo.server.logview import read_logs
+from osmo.server.logview import iter_logs
 from osmo.store.sqlite import Store
 
 __all__ = ["RunRecords", "write_record"]
@@ -29,12 +29,11 @@ def write_record(store: Store, home: Path, workflow_id: str) -> Path | None:
     if row is None:
         return None
     workflow = dict(row.state) or {"id": row.id, "name": row.name, "status": row.status}
-    stream = read_logs(store, row)["records"]
-    logs = [r for r in stream if r["stream"] != "osmo"]
+    logs = (r for r in iter_logs(store, row) if r["stream"] != "osmo")  # in time order
     lineage = [Lineage.from_dict(d) for d in store.lineage_of_workflow(workflow_id)]
     path = Home(home).run_record(workflow_id)
     write_run_record(path, workflow=workflow, transitions=store.transitions(workflow_id),
-                     lineage=lineage, logs=logs)
+                     lineage=lineage, logs=logs, ordered=True)
     return path
 
 

@@ -2,57 +2,69 @@
 
 A worker sends its attempts' log lines in batches (``worker_log``, checked by the hub);
 each is appended to the attempt's ``log.txt`` under the server's home, where ``osmo logs``
-reads local attempts' logs too. Files stay open while their attempt runs (at most 4,096 at
-once: the oldest is closed first and reopened on its next batch).
+reads local attempts' logs too. The server caps each file itself (``--log-limit``; the
+oldest records are dropped behind a marker, ``osmo.worker.logs.CappedFile``), whatever the
+worker's own cap: a worker cannot make the server keep more. Files stay open while their
+attempt runs (at most 4,096 at once: the oldest is closed first and reopened on its next
+batch). A batch that cannot be written (a full disk) is logged and lost.
 """
 
 from __future__ import annotations
 
-import os
+import logging
 import threading
 from pathlib import Path
 
 from osmo.layout import Home
+from osmo.worker.logs import DEFAULT_LOG_LIMIT, CappedFile
 
 __all__ = ["RemoteLogs"]
 
 _MAX_OPEN = 4096
+log = logging.getLogger("osmo.server.workers")
 
 
 class RemoteLogs:
-    """Appends remote attempts' log batches to their ``log.txt`` (thread-safe)."""
+    """Appends remote attempts' log batches to their ``log.txt`` (thread-safe).
 
-    def __init__(self, home: Path) -> None:
+    Args:
+        home: the server's home.
+        limit: bytes each attempt's log keeps at most.
+    """
+
+    def __init__(self, home: Path, limit: int = DEFAULT_LOG_LIMIT) -> None:
         self._home = Home(home)
+        self._limit = limit
         self._lock = threading.Lock()
-        self._open: dict[str, int] = {}
+        self._open: dict[str, CappedFile] = {}
 
     def append(self, attempt_id: str, records: bytes) -> None:
         """Append a batch of ``attempt_id``'s records (a malformed id is ignored)."""
         with self._lock:
-            fd = self._open.get(attempt_id)
-            if fd is None:
+            file = self._open.get(attempt_id)
+            if file is None:
                 dirs = self._home.attempt_of(attempt_id)
                 if dirs is None:
                     return  # not an attempt id
                 dirs.log.parent.mkdir(parents=True, exist_ok=True)
-                fd = os.open(dirs.log, os.O_WRONLY | os.O_CREAT | os.O_APPEND | os.O_CLOEXEC,
-                             0o644)
-                self._open[attempt_id] = fd
+                file = self._open[attempt_id] = CappedFile(dirs.log, self._limit)
                 while len(self._open) > _MAX_OPEN:  # never more open than this
-                    os.close(self._open.pop(next(iter(self._open))))
-            os.write(fd, records)
+                    self._open.pop(next(iter(self._open))).close()
+            try:
+                file.append(records)
+            except OSError as exc:
+                log.warning("log of %s: batch lost: %s", attempt_id, exc)
 
     def end(self, attempt_id: str) -> None:
         """The attempt ended: close its file."""
         with self._lock:
-            fd = self._open.pop(attempt_id, None)
-        if fd is not None:
-            os.close(fd)
+            file = self._open.pop(attempt_id, None)
+        if file is not None:
+            file.close()
 
     def close(self) -> None:
         """Close every file."""
         with self._lock:
-            for fd in self._open.values():
-                os.close(fd)
+            for file in self._open.values():
+                file.close()
             self._open.clear()

@@ -65,6 +65,7 @@ from osmo.transport.rpc import Gate, ServerAsker, ask_back, field, gate_opener
 from osmo.transport.seal import Purpose, seal_json
 from osmo.transport.wire import LEASE, Hello, event_from_dict, prepare_to_dict, spec_to_wire
 from osmo.transport.zenoh_link import Link, Subscription
+from osmo.worker.logs import DEFAULT_LOG_LIMIT
 
 __all__ = ["WorkerHub"]
 
@@ -85,6 +86,7 @@ class WorkerHub:
             engine when a worker registers again).
         gate: the server's channels and token identities (``osmo.transport.rpc.Gate``).
         lease: seconds a registered worker may stay silent (no beat) before it is down.
+        log_limit: bytes each remote attempt's log keeps at most as stored here.
     """
 
     INLINE = frozenset({"worker_report", "worker_log"})
@@ -94,7 +96,7 @@ class WorkerHub:
                  artifacts: ArtifactStore, home: Path,
                  url_credential: Callable[[str], dict[str, str] | None],
                  attempts_on: Callable[[str], list[str]], gate: Gate,
-                 lease: float = LEASE) -> None:
+                 lease: float = LEASE, log_limit: int = DEFAULT_LOG_LIMIT) -> None:
         self._link, self._emit, self._store = link, emit, store
         self._artifacts, self._home = artifacts, home
         self._url_credential, self._attempts_on = url_credential, attempts_on
@@ -107,7 +109,7 @@ class WorkerHub:
         self._draining: set[str] = set()
         self._same_host: dict[str, SameHost | None] = {}
         self._sent_specs: dict[str, set[str]] = {}
-        self._logs = RemoteLogs(home)
+        self._logs = RemoteLogs(home, log_limit)
         self._access = WorkerAccess(self._is_alive)
         self._outputs = OutputIntake(artifacts=artifacts, home=home, emit=emit,
                                      send=self._send, asker=self._asker,

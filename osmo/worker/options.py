@@ -15,8 +15,10 @@ from pathlib import Path
 from osmo.config import DEFAULT_CLUSTER
 from osmo.errors import UsageError
 from osmo.runtime.sandbox import MODES, SandboxMode
+from osmo.worker.logs import DEFAULT_LOG_LIMIT, parse_log_limit
 
-__all__ = ["DEFAULT_KILL_GRACE", "DEFAULT_POOL", "WorkerOptions", "add_runtime_arguments"]
+__all__ = ["DEFAULT_KILL_GRACE", "DEFAULT_POOL", "WorkerOptions", "add_log_limit_argument",
+           "add_runtime_arguments"]
 
 DEFAULT_POOL = "default"
 """The pool a worker serves unless told another."""
@@ -47,6 +49,21 @@ def add_runtime_arguments(p: argparse.ArgumentParser) -> None:
                         "OSMO_CONTAINER_ENGINE)")
 
 
+def add_log_limit_argument(p: argparse.ArgumentParser) -> None:
+    """``--log-limit SIZE``: the cap on each attempt's log (server and worker)."""
+    p.add_argument("--log-limit", type=_log_limit, default=DEFAULT_LOG_LIMIT, metavar="SIZE",
+                   help="the most each task attempt's log keeps, e.g. 256Mi (default 64Mi, "
+                        "least 1Mi): past it the oldest lines are dropped behind one line "
+                        "saying how many bytes were")
+
+
+def _log_limit(text: str) -> int:
+    try:
+        return parse_log_limit(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"{exc} (e.g. 64Mi, 1Gi)") from None
+
+
 @dataclass(frozen=True)
 class WorkerOptions:
     """How a worker presents itself (see ``osmo worker --help``; every default is here).
@@ -71,6 +88,7 @@ class WorkerOptions:
         container_engine: ``podman`` or ``docker`` (default: the first that answers).
         store_limit: bytes its artifact store may hold before cached blobs are removed
             (``osmo.worker.store_keeper``; None: a quarter of its filesystem; 0: no limit).
+        log_limit: bytes each attempt's log keeps at most (``osmo.worker.logs``).
     """
 
     connect: tuple[str, ...]
@@ -92,6 +110,7 @@ class WorkerOptions:
     runtime: str = "auto"
     container_engine: str | None = None
     store_limit: int | None = None
+    log_limit: int = DEFAULT_LOG_LIMIT
 
     @staticmethod
     def add_arguments(w: argparse.ArgumentParser) -> None:
@@ -122,6 +141,7 @@ class WorkerOptions:
                             "inputs are removed, oldest first, e.g. 50Gi; 0: no limit "
                             "(default: a quarter of its disk). Outputs the server has not "
                             "taken yet are never removed")
+        add_log_limit_argument(w)
         add_runtime_arguments(w)
 
     @classmethod
@@ -149,7 +169,8 @@ class WorkerOptions:
                    zenoh_config=args.zenoh_config, drain_timeout=args.drain_timeout,
                    token=_token(args.token, args.token_file), sandbox=args.sandbox,
                    sandbox_share=shares(args.sandbox_share), runtime=args.runtime,
-                   container_engine=args.container_engine, store_limit=store_limit)
+                   container_engine=args.container_engine, store_limit=store_limit,
+                   log_limit=args.log_limit)
 
 
 def shares(folders: list[str] | None) -> tuple[str, ...]:

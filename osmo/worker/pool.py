@@ -79,6 +79,7 @@ from osmo.spec.model import ResourceSpec, TaskSpec
 from osmo.worker.containers import ContainerTasks
 from osmo.worker.endings import KILLED_BEFORE_START
 from osmo.worker.live import AttemptState, LiveAttempt
+from osmo.worker.logs import DEFAULT_LOG_LIMIT
 from osmo.worker.machine import detect_capacity, raise_fd_limit
 from osmo.worker.options import DEFAULT_KILL_GRACE
 from osmo.worker.procs import ProcessRecords
@@ -134,6 +135,7 @@ class LocalPool(AttemptStarts):
         task_secrets: credential name → payload, for tasks' ``credentials:`` when
             ``prepare`` is not given them.
         log_sink: also gets ``(attempt id, records)`` for every log record written.
+        log_limit: bytes each attempt's log keeps at most (``osmo.worker.logs``).
         sandbox: ``auto`` (when bubblewrap works here), ``on`` (required) or ``off``.
         sandbox_share: host folders every sandboxed task may write (never inside ``home``).
         procs_dir: record running commands' pids here (see the module docstring).
@@ -171,6 +173,7 @@ class LocalPool(AttemptStarts):
         max_output_files: int | None = DEFAULT_MAX_FILES,
         task_secrets: SecretLookup | None = None,
         log_sink: Callable[[str, bytes], None] | None = None,
+        log_limit: int = DEFAULT_LOG_LIMIT,
         sandbox: SandboxMode = "auto",
         sandbox_share: Sequence[str] = (),
         procs_dir: Path | None = None,
@@ -211,6 +214,7 @@ class LocalPool(AttemptStarts):
         self._max_output_files = max_output_files
         self._task_secrets = task_secrets
         self._log_sink = log_sink
+        self._log_limit = log_limit
         self._attempts: dict[str, LiveAttempt] = {}
         self._finished: collections.OrderedDict[str, None] = collections.OrderedDict()
         self._reactor = Reactor(f"osmo-pool-{pool}")

@@ -143,6 +143,7 @@ class RemoteWorker:
             cpus=options.cpus, gpus=options.gpus, memory=options.memory,
             kill_grace=options.kill_grace, artifacts=self.store,
             credential_for=self._url_creds.get, log_sink=self._send_log,
+            log_limit=options.log_limit,
             input_manifests=self._inputs.manifest_of, sandbox=options.sandbox,
             sandbox_share=options.sandbox_share,
             procs_dir=self._layout.procs,

@@ -61,6 +61,7 @@ class AttemptStarts(AttemptEndings):
     _task_secrets: SecretLookup | None
     _input_manifests: ManifestLookup | None
     _log_sink: Callable[[str, bytes], None] | None
+    _log_limit: int
     _containers: ContainerTasks | None
     _procs: ProcessRecords | None
     _hidden: list[Path]
@@ -146,7 +147,7 @@ class AttemptStarts(AttemptEndings):
     def _open_log(self, cmd: PrepareAttempt, dirs: AttemptDirs, launch: Launch) -> LogWriter:
         """The attempt's log writer (opened on its first record; raises OSError if it can't)."""
         sink = functools.partial(self._log_sink, cmd.attempt_id) if self._log_sink else None
-        return LogWriter(dirs.log, launch.secrets, sink)
+        return LogWriter(dirs.log, launch.secrets, sink, limit=self._log_limit)
 
     def _prepared(self, cmd: PrepareAttempt, task: TaskSpec, dirs: AttemptDirs | None,
                   launch: Launch | None, error: str | None,

@@ -47,6 +47,11 @@ EXPECTED = [
     "server CPU for the submit: 2,000-task fan-out",
     "query: running 2,000-task workflow",
     "list (20 rows): 50 finished workflows",
+    "log writer, capped at 64 MiB: per line",
+    "log writer, uncapped: per line",
+    "osmo logs of a huge log",
+    "osmo logs: server peak RSS over idle",
+    "osmo logs: client peak RSS",
 ]
 DATAGEN = [
     "datagen: 2 workers / 1 worker",

@@ -322,6 +322,15 @@ def test_numeric_quantities_become_plain_numbers() -> None:
     assert (flag(args, "--cpus"), flag(args, "--memory"), flag(args, "--gpus")) == (["0.5"], ["8589934592"], ["8"])
 
 
+def test_log_limits_reach_the_server_and_the_workers() -> None:
+    assert flag(container(workers(TWO_POOLS)["cpu"], "worker")["args"], "--log-limit") == []
+    values = {**TWO_POOLS, "server": {"logLimit": "256Mi"}, "worker": {"logLimit": "32Mi"}}
+    rendered = render(values)
+    server = container(rendered.get("StatefulSet", f"{FULLNAME}-server"), "server")["args"]
+    assert flag(server, "--log-limit") == ["256Mi"]
+    assert flag(container(workers(values)["cpu"], "worker")["args"], "--log-limit") == ["32Mi"]
+
+
 @pytest.mark.parametrize(("worker", "expected"), [
     ({}, []),                                            # the worker's own default
     ({"workdirSizeLimit": "100Gi"}, [str(50 << 30)]),    # half the emptyDir's limit

@@ -58,6 +58,12 @@ CASES: list[Any] = [
     ("logs", {"workflow_id": "ok-1", "cursor": {"files": "x", "seq": "y"}}),
     ("logs", {"workflow_id": "ok-1", "cursor": {"files": {"a": "b"}, "seq": 0}}),
     ("logs", {"workflow_id": "ok-1", "cursor": {"files": {}, "seq": 99999999999999999999}}),
+    ("logs", {"workflow_id": "ok-1", "tail": -1}),
+    ("logs", {"workflow_id": "ok-1", "tail": "10"}),
+    ("logs", {"workflow_id": "ok-1", "since": "10m"}),
+    ("logs", {"workflow_id": "ok-1", "since": True}),
+    ("logs", {"workflow_id": "ok-1", "stream": "secret"}),
+    ("logs", {"workflow_id": "ok-1", "stream": JUNK}),
     ("spec", {"workflow_id": DEEP}),
     ("lineage", {}),
     ("lineage", {"target": 5}),
@@ -172,6 +178,9 @@ def test_the_server_still_works(server: Osmo, raw: Connection) -> None:
     (["logs", "ok-1", "-t", "nosuchtask"], "no task 'nosuchtask' in ok-1"),
     (["logs", "ok-1", "-t", "a1"], "(did you mean 'a'?)"),
     (["logs", "ok-1", "-t", "a", "-r", "3"], "has no retry 3"),
+    (["logs", "ok-1", "--tail", "-2"], "--tail -2"),
+    (["logs", "ok-1", "--since", "yesterday"], "--since yesterday: give a duration"),
+    (["logs", "ok-1", "--since", "0s"], "--since 0s"),
     (["list", "-s", "NOPE"], "COMPLETED"),
     (["list", "-c", "99999999999999999999"], "count"),
     (["list", "-c", "0"], "count"),
@@ -188,5 +197,7 @@ def test_cli_exit_codes(server: Osmo, args: list[str], expected: str) -> None:
 def test_cli_logs_of_a_real_task_still_work(server: Osmo) -> None:
     r = server("logs", "ok-1", "-t", "a")
     assert r.code == 0 and "hi" in r.out, r
+    assert "hi" in server("logs", "ok-1", "--since", "2000-01-01T00:00", check=True).out
+    assert "hi" not in server("logs", "ok-1", "--since", "2999-01-01", check=True).out
 
 

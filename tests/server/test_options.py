@@ -28,6 +28,7 @@ def _server(argv: list[str]) -> ServerOptions:
     ServerOptions(connect=("tcp/10.0.0.5:7447",), zenoh_config="/etc/osmo/zenoh.json5"),
     ServerOptions(runtime="container", container_engine="docker"),
     ServerOptions(runtime="process"),
+    ServerOptions(log_limit=256 << 20),
 ])
 def test_server_options_survive_the_command_line(options: ServerOptions) -> None:
     assert _server(options.to_argv()) == options
@@ -50,6 +51,17 @@ def test_worker_flags_and_defaults() -> None:
     assert _worker([]).pool == DEFAULT_POOL and _worker([]).cluster == DEFAULT_CLUSTER
     got = _worker(["--memory", "1Gi", "--label", "a=b", "--pool", "gpu"])
     assert (got.memory, got.labels, got.pool) == (1 << 30, {"a": "b"}, "gpu")
+    assert _worker([]).log_limit == 64 << 20 == ServerOptions().log_limit
+    assert _worker(["--log-limit", "2Gi"]).log_limit == 2 << 30
+
+
+@pytest.mark.parametrize("value", ["lots", "512Ki", "-1"])
+def test_a_log_limit_must_be_a_size_of_1mi_or_more(value: str,
+                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exited:
+        _server([f"--log-limit={value}"])
+    assert exited.value.code == 2
+    assert "--log-limit" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize(("argv", "message"), [

@@ -1,13 +1,16 @@
-"""The log record format: one record per line, escapes, partial and long lines, follow."""
+"""The log record format: one record per line, escapes, partial and long lines, follow, and
+the cap: the oldest records dropped behind one marker, positions that survive it."""
 
 from __future__ import annotations
 
+import re
 import time
 from pathlib import Path
 
 import pytest
 
-from osmo.worker.logs import MAX_LINE, LogRecord, LogWriter, read_log
+from osmo.worker.logread import read_log
+from osmo.worker.logs import MAX_LINE, CappedFile, LogRecord, LogWriter, encode_records
 
 
 def texts(path: Path) -> list[tuple[str, str]]:
@@ -136,3 +139,101 @@ def test_unwritable_log_drops_records_without_raising(tmp_path: Path) -> None:
     writer.line("osmo", "lost too")
     writer.close()
     assert writer.dropped == 2
+
+
+# ------------------------------------------------------------------------------ the cap
+
+DROPPED = re.compile(r"^([\d,]+) bytes of earlier output dropped \(log limit (.+)\)$")
+
+
+def _capped(tmp_path: Path, limit: int, lines: int) -> tuple[Path, int]:
+    """A writer capped at ``limit`` given ``lines`` numbered lines, a few per chunk; returns
+    the log and the bytes of records it was given in all (counted at its sink)."""
+    log = tmp_path / "log.txt"
+    given: list[bytes] = []
+    writer = LogWriter(log, sink=given.append, limit=limit)
+    for start in range(0, lines, 7):
+        writer.write("stdout", b"".join(b"line %06d\n" % n
+                                        for n in range(start, min(lines, start + 7))))
+    writer.close()
+    return log, sum(map(len, given))
+
+
+def test_past_the_cap_the_oldest_records_go_behind_one_marker(tmp_path: Path) -> None:
+    log, given = _capped(tmp_path, 10_000, 5000)
+    records = read_log(log)[0]
+    marker = DROPPED.match(records[0].text)
+    assert records[0].stream == "osmo" and marker is not None
+    assert marker.group(2) == "10,000 bytes"
+    first_line = log.read_bytes().split(b"\n", 1)[0] + b"\n"
+    assert log.stat().st_size - len(first_line) <= 10_000
+    assert int(marker.group(1).replace(",", "")) + log.stat().st_size - len(first_line) == given
+    texts = [r.text for r in records[1:]]
+    assert texts == [f"line {n:06d}" for n in range(5000 - len(texts), 5000)]
+    assert len(texts) * 32 >= 10_000 // 2  # at least the newest half of the cap is kept
+    assert records[0].ts == records[1].ts  # the marker sorts just before what it precedes
+    assert not list(tmp_path.glob(".*"))  # no temporary file left
+
+
+def test_the_marker_names_the_limit_in_mib(tmp_path: Path) -> None:
+    log, _ = _capped(tmp_path, 1 << 20, 50_000)
+    assert DROPPED.match(read_log(log)[0][0].text).group(2) == "1 MiB"  # type: ignore[union-attr]
+
+
+def test_a_log_under_its_cap_has_no_marker(tmp_path: Path) -> None:
+    log, given = _capped(tmp_path, 10_000, 100)
+    assert log.stat().st_size == given
+    assert read_log(log)[0][0].text == "line 000000"
+
+
+def test_a_reopened_log_keeps_counting(tmp_path: Path) -> None:
+    log = tmp_path / "log.txt"
+    total = 0
+    for round_ in range(3):  # as the server reopens a remote attempt's log after evicting it
+        capped = CappedFile(log, 4000)
+        for n in range(200):
+            payload = encode_records(float(n), "stdout", [f"round {round_} line {n:04d}"])
+            capped.append(payload)
+            total += len(payload)
+        capped.close()
+    first, _, rest = log.read_bytes().partition(b"\n")
+    dropped = DROPPED.match(read_log(log)[0][0].text).group(1)  # type: ignore[union-attr]
+    assert int(dropped.replace(",", "")) + len(rest) == total
+    assert rest.endswith(b"round 2 line 0199\n")
+
+
+def test_a_batch_larger_than_the_cap_keeps_its_newest_records(tmp_path: Path) -> None:
+    log = tmp_path / "log.txt"
+    capped = CappedFile(log, 2000)
+    capped.append(encode_records(1.0, "stdout", ["old"]))
+    capped.append(encode_records(2.0, "stdout", [f"batch {n:04d}" for n in range(500)]))
+    capped.close()
+    records = read_log(log)[0]
+    assert DROPPED.match(records[0].text)
+    assert records[-1].text == "batch 0499" and "old" not in [r.text for r in records]
+    assert log.stat().st_size <= 2000 + 100
+
+
+def test_a_follower_keeps_its_place_across_the_rewrite(tmp_path: Path) -> None:
+    log = tmp_path / "log.txt"
+    writer = LogWriter(log, limit=3000)
+    seen: list[str] = []
+    offset = 0
+    for n in range(1000):
+        writer.write("stdout", b"line %04d\n" % n)
+        if n % 10 == 9:  # it keeps up: it misses nothing, sees nothing twice
+            records, offset = read_log(log, offset)
+            seen += [r.text for r in records]
+    writer.close()
+    assert seen == [f"line {n:04d}" for n in range(1000)]
+
+
+def test_a_follower_that_fell_behind_sees_the_marker(tmp_path: Path) -> None:
+    log = tmp_path / "log.txt"
+    writer = LogWriter(log, limit=3000)
+    writer.write("stdout", b"first\n")
+    offset = read_log(log)[1]
+    writer.write("stdout", b"".join(b"line %04d\n" % n for n in range(1000)))
+    writer.close()
+    records, _ = read_log(log, offset)
+    assert DROPPED.match(records[0].text) and records[-1].text == "line 0999"

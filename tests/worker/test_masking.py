@@ -6,7 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from osmo.worker.logs import MAX_LINE, LogWriter, read_log
+from osmo.worker.logread import read_log
+from osmo.worker.logs import MAX_LINE, LogWriter
 from osmo.worker.masking import Masker
 
 SECRET = "hunter2-s3cr3t"

@@ -24,7 +24,7 @@ from osmo.scheduler.types import (
     RunAttempt,
 )
 from osmo.spec.model import ExitAction, ExitRule, FileSpec, TaskSpec
-from osmo.worker.logs import read_log
+from osmo.worker.logread import read_log
 from osmo.worker.pool import LocalPool
 
 TIMEOUT = 30.0

@@ -30,7 +30,7 @@ def no_grace(monkeypatch: pytest.MonkeyPatch) -> None:
 def test_a_collection_keeps_protected_outputs_and_the_newest_cache(
         tmp_path: Path, no_grace: None) -> None:
     store = ArtifactStore(tmp_path / "artifacts")
-    held = HeldInputs(None, store, None)  # type: ignore[arg-type] - never fetches here
+    held = HeldInputs(None, store)  # type: ignore[arg-type] - never fetches here
     unacked = _output(store, tmp_path / "out", "a", 100 * KIB)  # not taken by the server yet
     old, new = (_output(store, tmp_path / "out", n, 100 * KIB) for n in ("b", "c"))
     held.hold(unacked)
@@ -48,7 +48,7 @@ def test_a_collection_keeps_protected_outputs_and_the_newest_cache(
 def test_a_collection_never_removes_what_is_protected_even_over_the_limit(
         tmp_path: Path, no_grace: None) -> None:
     store = ArtifactStore(tmp_path / "artifacts")
-    held = HeldInputs(None, store, None)  # type: ignore[arg-type]
+    held = HeldInputs(None, store)  # type: ignore[arg-type]
     inputs = [_output(store, tmp_path / "out", n, 100 * KIB) for n in ("d", "e", "f")]
     with ThreadPoolExecutor(1) as io:
         keeper = StoreKeeper(tmp_path, store, held, 50 * KIB, lambda: inputs, io)
@@ -58,7 +58,7 @@ def test_a_collection_never_removes_what_is_protected_even_over_the_limit(
 
 def test_nothing_younger_than_the_grace_is_removed(tmp_path: Path) -> None:
     store = ArtifactStore(tmp_path / "artifacts")
-    held = HeldInputs(None, store, None)  # type: ignore[arg-type]
+    held = HeldInputs(None, store)  # type: ignore[arg-type]
     _output(store, tmp_path / "out", "g", 100 * KIB)  # stored just now, named by nothing yet
     with ThreadPoolExecutor(1) as io:
         keeper = StoreKeeper(tmp_path, store, held, 10 * KIB, list, io)
