@@ -32,6 +32,7 @@ from osmo.store.sqlite import NewWorkflowRow, Store
 from osmo.testing import check_executor
 from osmo.transport.auth import new_token, token_digest
 from osmo.transport.rpc import ApiServer
+from osmo.transport.seal import Signer
 from osmo.transport.zenoh_link import Link
 from osmo.worker.pool import LocalPool
 from tests.conftest import REPO
@@ -64,13 +65,13 @@ def _worker_hub(tmp_path: Path) -> Iterator[Harness]:
     endpoint = f"tcp/127.0.0.1:{free_port(0)}"
     link = Link.router([endpoint], "contract")
     store = Store(home.state_db)
-    authenticate = Authenticator(store)
+    authenticate = Authenticator(store, Signer())
     token = new_token()
     store.add_token("w1", "worker", token_digest(token), time.time(), ["default"])
     hub = WorkerHub(link=link, emit=events.put, store=store,
                     artifacts=ArtifactStore(home.artifacts), home=home.root,
                     url_credential=lambda _url: None, attempts_on=lambda _node: [],
-                    authenticate=authenticate)
+                    gate=authenticate)
     api = ApiServer(link, Router({"workers": hub}), authenticate, inline=WorkerHub.INLINE)
     env = dict(os.environ, OSMO_HOME=str(tmp_path / "w1"), OSMO_HOST_ID="another-host",
                OSMO_TOKEN=token)
