@@ -6,6 +6,8 @@ import os
 import secrets
 import threading
 import time
+from collections.abc import Iterator
+from dataclasses import dataclass
 
 import pytest
 
@@ -59,8 +61,19 @@ def _spied(seen: list[tuple[bytes, bytes | None]], data_len: int,
     return found[0]
 
 
-def test_a_spy_reads_only_ciphertext_and_a_replay_is_dropped(links: tuple[Link, Link]) -> None:
-    """A zenoh peer that sees the keys (wildcard subscription) reads and replays nothing."""
+@dataclass
+class Spied:
+    """A session (node and client ends) and what a spy on ``stream/**`` saw of it."""
+
+    grant: SessionGrant
+    node: Stream
+    client: Stream
+    inbox: _Inbox
+    seen: list[tuple[bytes, bytes | None]]
+
+
+@pytest.fixture
+def spied(links: tuple[Link, Link]) -> Iterator[Spied]:
     node_link, client_link = links
     grant, inbox = _grant(), _Inbox()
     node = Stream(node_link, grant, "node", inbox.put, inbox.lost.set)
@@ -69,31 +82,32 @@ def test_a_spy_reads_only_ciphertext_and_a_replay_is_dropped(links: tuple[Link, 
                                     lambda _k, data, att: seen.append((data, att)))
     client = Stream(client_link, grant, "client", lambda _f: None, lambda: None)
     time.sleep(0.3)
-    client.send(Kind.DATA, 0, b"echo $API_TOKEN\n")
-    assert [f.data for f in inbox.wait(1)] == [b"echo $API_TOKEN\n"]
-    genuine = _spied(seen, len(b"echo $API_TOKEN\n"), time.monotonic() + 10)
-    assert b"API_TOKEN" not in b"".join(d + (a or b"") for d, a in seen)
-    client_link.put(client_link.key("stream", grant.session_id, "up"), *genuine)  # replay
-    client.send(Kind.DATA, 0, b"pwd\n")
-    time.sleep(0.5)
-    assert [f.data for f in inbox.wait(2)] == [b"echo $API_TOKEN\n", b"pwd\n"]
-    assert not inbox.lost.is_set(), "a replay is dropped, not an attack on the session"
+    yield Spied(grant, node, client, inbox, seen)
     for stream in (node, client):
         stream.close()
     spy.close()
 
 
+def test_a_spy_reads_only_ciphertext_and_a_replay_is_dropped(links: tuple[Link, Link],
+                                                            spied: Spied) -> None:
+    """A zenoh peer that sees the keys (wildcard subscription) reads and replays nothing."""
+    client_link, inbox, seen = links[1], spied.inbox, spied.seen
+    spied.client.send(Kind.DATA, 0, b"echo $API_TOKEN\n")
+    assert [f.data for f in inbox.wait(1)] == [b"echo $API_TOKEN\n"]
+    genuine = _spied(seen, len(b"echo $API_TOKEN\n"), time.monotonic() + 10)
+    assert b"API_TOKEN" not in b"".join(d + (a or b"") for d, a in seen)
+    client_link.put(client_link.key("stream", spied.grant.session_id, "up"), *genuine)  # replay
+    spied.client.send(Kind.DATA, 0, b"pwd\n")
+    time.sleep(0.5)
+    assert [f.data for f in inbox.wait(2)] == [b"echo $API_TOKEN\n", b"pwd\n"]
+    assert not inbox.lost.is_set(), "a replay is dropped, not an attack on the session"
+
+
 @pytest.mark.parametrize("attack", ["other-key", "junk", "no-header", "flipped", "reflected"])
-def test_a_forged_or_tampered_frame_ends_the_session(links: tuple[Link, Link],
+def test_a_forged_or_tampered_frame_ends_the_session(links: tuple[Link, Link], spied: Spied,
                                                      attack: str) -> None:
-    node_link, client_link = links
-    grant, inbox = _grant(), _Inbox()
-    node = Stream(node_link, grant, "node", inbox.put, inbox.lost.set)
-    seen: list[tuple[bytes, bytes | None]] = []
-    spy = client_link.subscribe_raw(client_link.key("stream", "**"),
-                                    lambda _k, data, att: seen.append((data, att)))
-    client = Stream(client_link, grant, "client", lambda _f: None, lambda: None)
-    time.sleep(0.3)
+    client_link, grant, inbox, seen = links[1], spied.grant, spied.inbox, spied.seen
+    node, client = spied.node, spied.client
     client.send(Kind.DATA, 0, b"ls\n")
     assert [f.data for f in inbox.wait(1)] == [b"ls\n"]
     up = client_link.key("stream", grant.session_id, "up")
@@ -117,9 +131,6 @@ def test_a_forged_or_tampered_frame_ends_the_session(links: tuple[Link, Link],
     time.sleep(0.5)
     assert b"rm -rf /\n" not in [f.data for f in inbox.frames]
     assert [f.data for f in inbox.frames] == [b"ls\n"]
-    for stream in (node, client):
-        stream.close()
-    spy.close()
 
 
 def test_a_silent_peer_is_lost(links: tuple[Link, Link]) -> None:
