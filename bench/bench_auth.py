@@ -24,6 +24,7 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -47,6 +48,22 @@ ORDER = {"op": "prepare", "attempt_id": "fan-1:t-123:0", "manifests": {}, "secre
 def _p50(samples: list[float]) -> float:
     samples.sort()
     return samples[len(samples) // 2] * 1000
+
+
+def _alternated(sealed: Callable[[], float], clear: Callable[[], float], runs: int,
+                count: int) -> tuple[list[float], list[float]]:
+    """p50 (ms) per run of each, called alternately (a busy moment costs both the same)."""
+    for _ in range(200):  # warm up
+        sealed(), clear()
+    out: tuple[list[float], list[float]] = ([], [])
+    for _ in range(runs):
+        a, b = [], []
+        for _ in range(count):
+            a.append(sealed())
+            b.append(clear())
+        out[0].append(_p50(a))
+        out[1].append(_p50(b))
+    return out
 
 
 def reports(root: Path, runs: int, requests: int) -> tuple[list[float], list[float]]:
@@ -76,16 +93,7 @@ def reports(root: Path, runs: int, requests: int) -> tuple[list[float], list[flo
             break
         return time.perf_counter() - t0
 
-    out: tuple[list[float], list[float]] = ([], [])
-    for _ in range(200):
-        sealed(), clear()  # warm up
-    for _ in range(runs):  # alternated, so a busy moment costs both the same
-        a, b = [], []
-        for _ in range(requests):
-            a.append(sealed())
-            b.append(clear())
-        out[0].append(_p50(a))
-        out[1].append(_p50(b))
+    out = _alternated(sealed, clear, runs, requests)
     link.close()
     bare.close()
     server.close()
@@ -141,16 +149,7 @@ def orders(root: Path, runs: int, count: int) -> tuple[list[float], list[float],
         got.acquire()
         return time.perf_counter() - t0
 
-    out: tuple[list[float], list[float]] = ([], [])
-    for _ in range(200):
-        sealed(), clear()
-    for _ in range(runs):
-        a, b = [], []
-        for _ in range(count):
-            a.append(sealed())
-            b.append(clear())
-        out[0].append(_p50(a))
-        out[1].append(_p50(b))
+    out = _alternated(sealed, clear, runs, count)
     link.close()
     router.close()
     n = 20000
