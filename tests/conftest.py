@@ -49,6 +49,9 @@ ALLOWED_SKIPS: tuple[AllowedSkip, ...] = (
         "tests/runtime/test_sandbox.py::test_a_sandbox_that_cannot_be_set_up",  # both tests
         "tests/worker/test_pool_sandbox.py::test_a_setup_that_fails_for_a_moment",
         "tests/e2e/test_sandbox_setup.py")),
+    # The Slurm test cluster runs its daemons as root and each node in a pid namespace of its
+    # own (tests/slurm/cluster.py); Slurm's packages themselves must be there (./dev test).
+    AllowedSkip("tests/slurm/", r"needs root", when=os.geteuid() != 0),
 )
 
 

@@ -10,11 +10,14 @@ from __future__ import annotations
 import importlib.util
 import json
 import math
+import os
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+
+from tests.slurm.cluster import missing_programs
 
 REPO = Path(__file__).resolve().parents[2]
 RUN = REPO / "bench" / "run"
@@ -58,6 +61,12 @@ DATAGEN = [
     "datagen: recording overhead (recorded vs bare time per step)",
     "datagen: recording overhead with 64x64 frames",
 ]
+SLURM = [
+    "limit: slurm `sbatch --wait` of `true`, 1 job",
+    "slurm: `sbatch --wait` of `true`, N in parallel, per job",
+    "slurm: submit → RUNNING, 1 job (the scheduler's cycle)",
+    "slurm: N jobs submitted back to back → all COMPLETED, per job",
+]
 PIPELINE = [
     "pipeline: reach-vision wall time, submit → COMPLETED",
     "pipeline: reach-vision trained success / expert success",
@@ -84,12 +93,15 @@ def test_quick_run_writes_every_expected_row(tmp_path: Path) -> None:
     assert {"cpu", "cores", "python", "kernel", "date"} <= set(report["machine"])
     sim = importlib.util.find_spec("gymnasium") is not None  # the datagen bench needs osmo[sim]
     learn = sim and importlib.util.find_spec("lerobot") is not None  # the pipeline: osmo[all]
+    slurm = not missing_programs() and os.geteuid() == 0  # the Slurm bench: root, slurm-wlm
     for script in report["scripts"]:
         wanted = "skipped" if (script["script"] == "bench_datagen" and not sim) or (
-            script["script"] == "bench_pipeline" and not learn) else "ok"
+            script["script"] == "bench_pipeline" and not learn) or (
+            script["script"] == "bench_slurm" and not slurm) else "ok"
         assert script["status"] == wanted, script
     rows = {r["name"]: r for r in report["rows"]}
-    expected = EXPECTED + (DATAGEN if sim else []) + (PIPELINE if learn else [])
+    expected = (EXPECTED + (DATAGEN if sim else []) + (PIPELINE if learn else [])
+                + (SLURM if slurm else []))
     for name in expected:
         assert name in rows, f"missing row {name!r}; have {sorted(rows)}"
         r = rows[name]
