@@ -156,6 +156,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "the profile's token, or this home's admin token for its own server)")
     parser.add_argument("--format", "-t", "--format-type", dest="global_format",
                         metavar="FORMAT", help="output format of the verb (text, json, ...)")
+    parser.add_argument("--version", action=_Version, nargs=0,
+                        help="print the installed osmo's version and exit")
     sub = parser.add_subparsers(dest="verb", metavar="COMMAND")
     _add_workflow_verbs(sub)
     wf = sub.add_parser("workflow", help="the same verbs, OSMO style: osmo workflow submit ...")
@@ -177,6 +179,27 @@ def build_parser() -> argparse.ArgumentParser:
     for verb in _verb_parsers(parser):
         _accept_global_options(verb)
     return parser
+
+
+class _Version(argparse.Action):
+    """``--version``: the installed package's version, from its metadata.
+
+    Read only when asked (the metadata lookup costs ~50 ms, too much for every command). From
+    a source tree that is not installed, the source's version, said so.
+    """
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace,
+                 values: object, option_string: str | None = None) -> None:
+        from importlib.metadata import PackageNotFoundError, version
+
+        try:
+            text = version("osmo")
+        except PackageNotFoundError:
+            from osmo.version import __version__
+
+            text = f"{__version__} (source tree, not installed)"
+        sys.stdout.write(f"osmo {text}\n")
+        parser.exit(0)
 
 
 def _verb_parsers(parser: argparse.ArgumentParser) -> Iterator[argparse.ArgumentParser]:
