@@ -86,8 +86,13 @@ def _add_workflow_verbs(sub: argparse._SubParsersAction) -> None:  # type: ignor
                    "ageing: nothing waits forever (default NORMAL)")
     p.add_argument("--wait", action="store_true", help="show progress; exit 0 only if COMPLETED")
     p.add_argument("--dry-run", action="store_true", help="print the rendered spec; submit nothing")
-    p.add_argument("--no-cache", action="store_true",
-                   help="run every task even if an identical earlier run could be reused")
+    reuse = p.add_mutually_exclusive_group()
+    reuse.add_argument("--no-cache", action="store_true",
+                       help="run every task even if an identical earlier run could be reused")
+    reuse.add_argument("--reuse", action="store_true",
+                       help="let every task whose spec does not say (cache:) reuse an identical "
+                            "earlier success; by default only typed tasks and tasks whose "
+                            "output another task takes do")
     _add_format(p)
 
     p = sub.add_parser("validate", help="check a spec without submitting it")

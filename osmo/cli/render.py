@@ -21,7 +21,8 @@ if TYPE_CHECKING:
 
 __all__ = ["QUERY_LIMIT", "console", "err_console", "events_text", "format_log", "info_dict",
            "live_progress", "not_shown_line", "plugin_table", "print_error", "print_json",
-           "resource_table", "safe", "task_table", "workflow_header", "workflows_table"]
+           "resource_table", "reuse_notice", "safe", "task_table", "workflow_header",
+           "workflows_table"]
 
 QUERY_LIMIT = 1000
 """The most tasks ``osmo query`` shows in its table unless told (``--limit``)."""
@@ -154,6 +155,31 @@ def workflow_header(info: WorkflowInfo) -> str:
     if info.tags:
         lines.append(f"Tags        : {', '.join(map(safe, info.tags))}")
     return "\n".join(lines)
+
+
+def reuse_notice(info: WorkflowInfo, *, most: int = 5) -> str | None:
+    """The lines under ``osmo submit --wait`` that say which tasks did not run, or None.
+
+    ``reused 1 task instead of running it: hello (from hello-1 task hello retry 0)``, then how
+    to see their logs and how to run them. At most ``most`` tasks are named.
+    """
+    from osmo.status import reused_attempt
+
+    reused = [t for t in info.tasks if t.reused]
+    if not reused:
+        return None
+    named = []
+    for t in reused[:most]:
+        source = reused_attempt(t.message)
+        where = (f"{source[0]} task {source[1]} retry {source[2]}" if source
+                 else info.reused_from or "an earlier run")
+        named.append(f"{safe(t.name)} (from {safe(where)})")
+    more = f" and {len(reused) - most:,} more" if len(reused) > most else ""
+    count = f"{len(reused):,} task{'s' if len(reused) > 1 else ''}"
+    it = "them" if len(reused) > 1 else "it"
+    return (f"reused {count} instead of running {it}: {', '.join(named)}{more}\n"
+            f"  their logs: osmo logs {safe(info.id)}; to run every task: osmo submit "
+            "--no-cache")
 
 
 def not_shown_line(info: WorkflowInfo) -> str:

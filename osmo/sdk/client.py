@@ -80,11 +80,15 @@ class Client:
     def submit(self, spec: SpecLike, *, set_values: Sequence[str] = (),
                set_strings: Sequence[str] = (), set_env: Sequence[str] = (),
                pool: str | None = None, no_cache: bool = False,
-               labels: Mapping[str, str] | None = None, priority: str = "NORMAL") -> str:
+               labels: Mapping[str, str] | None = None, priority: str = "NORMAL",
+               reuse: bool = False) -> str:
         """Validate ``spec`` (a path, a dict, a model or a builder) and submit it.
 
-        Tasks whose definition and input contents match an earlier success reuse its
-        outputs (marked cached) unless ``no_cache`` or the task says ``cache: false``.
+        A task whose definition and input contents match an earlier success may reuse its
+        outputs instead of running (marked cached): typed tasks and tasks whose output another
+        task takes do by default, a bare command task that feeds none does not. ``cache:``
+        in the spec (task, then workflow) overrides that default, and so does ``reuse``
+        (every task whose spec says nothing); ``no_cache`` runs every task.
         ``labels`` are merged over the spec's ``workflow.labels`` (``--label k=v``);
         ``priority`` is HIGH, NORMAL or LOW (placement order when resources are short).
 
@@ -101,7 +105,7 @@ class Client:
         types = {t.name: t.resolved.to_dict() for t in model.all_tasks() if t.resolved}
         result = self._call("submit", spec=spec_to_dict(model), pool=pool, filename=filename,
                             no_cache=no_cache, types=types, labels=dict(labels or {}),
-                            priority=priority)
+                            priority=priority, reuse=reuse)
         return str(result["workflow_id"])
 
     def cancel(self, workflow_id: str) -> WorkflowStatus:

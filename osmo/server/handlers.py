@@ -142,7 +142,7 @@ class Handlers:
         """Create a workflow from a spec dict.
 
         Request: spec (rendered by the client, ``localpath`` files already read), pool?,
-        filename?, no_cache?, types? (``task -> ResolvedType`` of its custom ``module:attr``
+        filename?, no_cache?, reuse?, types? (``task -> ResolvedType`` of its custom ``module:attr``
         types, which the client imported from the spec's folder). The server reads no file
         and imports no code a client names (``osmo.server.submitted``); installed task types
         are resolved here, with this server's plugins. What was resolved (version,
@@ -176,9 +176,11 @@ class Handlers:
         if priority not in PRIORITIES:
             raise UsageError(f"priority must be one of {', '.join(PRIORITIES)}, not "
                              f"{shown(priority)}")
+        no_cache, reuse = (field(request, k, bool, default=False) for k in ("no_cache", "reuse"))
+        if no_cache and reuse:
+            raise UsageError("--reuse and --no-cache contradict each other; give one")
         options = {"pool": pool or spec.pool, "filename": filename, "reused_from": reused_from,
-                   "labels": labels, "priority": priority,
-                   "no_cache": field(request, "no_cache", bool, default=False),
+                   "labels": labels, "priority": priority, "no_cache": no_cache, "reuse": reuse,
                    "type_paths": type_paths, "submitted_by": who.name,
                    "types": {t.name: t.resolved.to_dict() for t in spec.all_tasks()
                              if t.resolved is not None}}
@@ -211,6 +213,8 @@ class Handlers:
                              "filename": row.options.get("filename"),
                              "labels": row.options.get("labels") or {},
                              "priority": row.options.get("priority"),
+                             "no_cache": bool(row.options.get("no_cache")),
+                             "reuse": bool(row.options.get("reuse")),
                              "types": row.options.get("types") or {}}, reused, row.id,
                             who)
 

@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from osmo.layout import AttemptDirs
+from osmo.server.reused_logs import with_reused
 from osmo.status import WorkflowStatus
 from osmo.store.sqlite import Store, WorkflowRow
 from osmo.worker.logs import read_log
@@ -65,4 +66,5 @@ def read_logs(store: Store, row: WorkflowRow, *, task: str | None = None,
         records.append({"ts": event["at"], "task": event["task"], "retry": event["retry"],
                         "stream": "osmo", "text": text})
     records.sort(key=lambda r: r["ts"])
+    records = with_reused(store, row, records, task=task, retry=retry, cursor=cursor)
     return {"records": records, "cursor": cursor, "done": terminal}
