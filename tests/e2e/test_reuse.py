@@ -144,3 +144,27 @@ def test_typed_tasks_are_still_reused(shared_osmo: Osmo, tmp_path: Path) -> None
     logs = shared_osmo("logs", second, "-t", "cubes", check=True).out
     assert f"reused: the log of {first} task cubes retry 0" in logs
     assert "[cubes] sum = 3025" in logs
+
+
+def test_a_task_restart_reused_shows_the_log_it_reused(shared_osmo: Osmo, tmp_path: Path) -> None:
+    gate = tmp_path / "failed-once"
+    spec = write(tmp_path / "r.yaml", f"""
+workflow:
+  name: restarted
+  tasks:
+  - name: a
+    command: ["sh", "-c", "echo made by a; echo 1 > {{{{output}}}}/x"]
+  - name: b
+    command: ["sh", "-c", "[ -e {gate} ] || {{ touch {gate}; exit 1; }}; echo b ok"]
+    inputs: [{{task: a}}]
+""")
+    r = shared_osmo("submit", str(spec), "--wait")
+    assert r.code == 1, r.out + r.err
+    first = r.out.splitlines()[0].split(" - ")[1]
+    r = shared_osmo("restart", first, "--wait")
+    assert r.code == 0, r.out + r.err
+    second = r.out.splitlines()[0].split(" - ")[1]
+    assert f"a (from {first})" in r.out  # restart's reuse says so too
+    logs = shared_osmo("logs", second, "-t", "a", check=True).out
+    assert f"reused: the log of {first} task a retry 0 follows" in logs
+    assert "[a] made by a" in logs
