@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from osmo.cli.artifacts import run_artifacts, run_lineage
+from osmo.cli.completion import run_completion
 from osmo.cli.datasets import run_credential, run_dataset
 from osmo.cli.interactive import run_exec, run_forward
 from osmo.cli.plugins import run_plugins
@@ -253,6 +254,7 @@ _VERBS: dict[str, Callable[[argparse.Namespace], int]] = {
     "eval": run_eval,
     "view": run_view,
     "token": run_token,
+    "completion": run_completion,
 }
 
 

@@ -15,10 +15,12 @@ from __future__ import annotations
 
 import argparse
 import gc
+import os
 import sys
 from collections.abc import Iterator, Sequence
 
 from osmo.cli.artifacts import add_parsers as add_artifact_parsers
+from osmo.cli.completion import add_parsers as add_completion_parsers
 from osmo.cli.datasets import add_credential_parsers
 from osmo.cli.datasets import add_parsers as add_dataset_parsers
 from osmo.cli.interactive import add_parsers as add_interactive_parsers
@@ -181,6 +183,7 @@ def build_parser() -> argparse.ArgumentParser:
     ServerOptions.add_arguments(p)
     _add_format(p)
     add_remote_parsers(sub)
+    add_completion_parsers(sub)
     for verb in _verb_parsers(parser):
         _accept_global_options(verb)
     return parser
@@ -267,14 +270,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     from osmo.cli.render import print_error
 
     parser = build_parser()
+    if "_ARGCOMPLETE" in os.environ:  # a shell asks for completions (osmo.cli.completion)
+        from osmo.cli.completion import complete
+
+        complete(parser)
     try:
         args = _parse(parser, list(sys.argv[1:] if argv is None else argv))
     except SystemExit as exc:  # argparse exits 2 on usage errors, 0 on --help
         return int(exc.code or 0)
     verb = getattr(args, "wf_verb", None) or args.verb
     if getattr(args, "token", None) and verb != "worker":
-        import os
-
         os.environ["OSMO_TOKEN"] = args.token  # every Client this command opens sends it
     if verb is None:
         parser.print_help()

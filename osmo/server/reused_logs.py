@@ -36,7 +36,7 @@ def with_reused(store: Store, row: WorkflowRow, records: list[dict[str, Any]], *
     """
     blocks: dict[str, tuple[float, list[dict[str, Any]]]] = {}
     for state in store.tasks(row.id):
-        name = state.get("name")
+        name = str(state.get("name"))
         if (not state.get("reused") or not state.get("output") or
                 task is not None and name != task or
                 retry is not None and state.get("retry") != retry or

@@ -25,8 +25,10 @@ class LineageQueries:
         return (str(rows[0][0]), str(rows[0][1])) if rows else None
 
     def output_makers(self, path: str) -> list[dict[str, Any]]:
-        """Attempts recorded with the output folder ``path``: the one that made it, and those
-        that reused it (workflow_id, task, attempt_id, retry, dir)."""
+        """Attempts recorded with the output folder ``path``: its maker and those that reused it.
+
+        Each as workflow_id, task, attempt_id, retry and dir (the attempt's folder).
+        """
         rows = self._read("SELECT o.workflow_id, o.task, o.attempt_id, a.retry, a.dir "
                           "FROM outputs o JOIN attempts a ON a.id = o.attempt_id "
                           "WHERE o.path = ?", (path,))
