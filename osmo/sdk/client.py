@@ -30,6 +30,7 @@ from osmo.sdk.records import (
 )
 
 if TYPE_CHECKING:  # the spec package (YAML, Jinja) loads only when a spec is handled here
+    from osmo.sdk.transfer import Progress
     from osmo.spec import Workflow
     from osmo.spec.model import WorkflowSpec
 from osmo.status import WorkflowStatus
@@ -266,10 +267,12 @@ class Client:
         """Promoted outputs of a workflow with their files (path, digest, size)."""
         return builtins.list(self._call("artifact_list", workflow_id=workflow_id, task=task))
 
-    def get_artifact(self, target: str, dest: str | os.PathLike[str]) -> builtins.list[str]:
+    def get_artifact(self, target: str, dest: str | os.PathLike[str], *,
+                     on_progress: Progress | None = None) -> builtins.list[str]:
         """Write a target's files, verified, into ``dest`` on this machine.
 
         They are fetched from the server, wherever it runs. Returns the written paths.
+        ``on_progress(done, total)`` hears of the bytes fetched (``osmo.sdk.transfer``).
         """
         from osmo.sdk import transfer
 
@@ -277,7 +280,8 @@ class Client:
         from osmo.artifacts import Manifest
 
         written = transfer.download(self._conn.api, self.ping(), Manifest.from_json(
-            reply["body"]), Path(dest).absolute(), only=reply.get("only"))
+            reply["body"]), Path(dest).absolute(), only=reply.get("only"),
+                                    on_progress=on_progress)
         return [str(p) for p in written]
 
     def gc_artifacts(self) -> tuple[int, int]:
@@ -304,10 +308,11 @@ class Client:
         return dict(self._call("dataset_tag", ref=ref, tag=check_tag(tag)))
 
     def download_dataset(self, ref: str, dest: str | os.PathLike[str], *,
-                         regex: str | None = None) -> builtins.list[str]:
+                         regex: str | None = None,
+                         on_progress: Progress | None = None) -> builtins.list[str]:
         """Write a version's files, verified, into ``dest`` on this machine.
 
-        Returns the written paths.
+        Returns the written paths. ``on_progress(done, total)`` hears of the bytes fetched.
         """
         from osmo.artifacts import Manifest
         from osmo.sdk import transfer
@@ -315,14 +320,17 @@ class Client:
         parse_ref(ref)
         reply = self._call("dataset_download", ref=ref, regex=regex)
         written = transfer.download(self._conn.api, self.ping(),
-                                    Manifest.from_json(reply["manifest"]), Path(dest).absolute())
+                                    Manifest.from_json(reply["manifest"]), Path(dest).absolute(),
+                                    on_progress=on_progress)
         return [str(p) for p in written]
 
     def upload_dataset(self, name: str, path: str | os.PathLike[str], *,
-                       metadata: dict[str, str] | None = None) -> int:
+                       metadata: dict[str, str] | None = None,
+                       on_progress: Progress | None = None) -> int:
         """Make a new version of ``name`` from a folder on this machine; returns the version.
 
-        A copy is sent; your files stay as they are.
+        A copy is sent; your files stay as they are. ``on_progress(done, total)`` hears of
+        the bytes the server pulls, and of the whole when it has the version.
         """
         from osmo.sdk import transfer
 
@@ -330,12 +338,14 @@ class Client:
         folder = Path(path).absolute()
         if not folder.is_dir():
             raise UsageError(f"cannot upload '{folder}': not a folder")
-        offer = transfer.upload(self._conn.api, folder)
+        offer = transfer.upload(self._conn.api, folder, on_progress)
         try:
             reply = self._call("dataset_upload", name=name, manifest=offer.manifest.to_json(),
                                source=offer.source, metadata=metadata or {}, timeout=3600)
         finally:
             offer.close()
+        if on_progress is not None:
+            on_progress(offer.size, offer.size)
         return int(reply["version"])
 
     # ------------------------------------------------------------------ credentials
