@@ -15,6 +15,7 @@ from __future__ import annotations
 import builtins
 import logging
 import os
+import time
 from collections.abc import Callable
 from enum import Enum
 from pathlib import Path
@@ -37,7 +38,7 @@ from osmo.server.auth import TokenHandlers, authorize, check_owner
 from osmo.server.credentials import CredentialHandlers, check_task_credentials
 from osmo.server.dataset_handlers import DatasetHandlers
 from osmo.server.engine import Engine
-from osmo.server.logview import last_progress, read_logs
+from osmo.server.logview import last_progress, last_pull, read_logs
 from osmo.server.requests import ListNodes, SubmitWorkflow, TagWorkflow, WaitReasons
 from osmo.server.sessions import Sessions
 from osmo.server.submitted import ClientTypes, check_no_localpath
@@ -257,10 +258,11 @@ class Handlers:
             page = self._taskview.page(row.id, limit=limit, statuses=statuses or (),
                                        spec=lambda: self._row(row.id, with_spec=True).spec)
             tasks, extra = page.tasks, {"counts": page.counts, "matched": page.matched}
-        for task in tasks:  # typed tasks report progress as log lines; show the latest
-            if task.get("status") == "RUNNING":
+        for task in tasks:  # typed tasks report progress as log lines, pulls too: the latest
+            if task.get("status") in ("RUNNING", "INITIALIZING"):
                 dirs = Home(self._home).attempt(row.id, task["name"], int(task.get("retry", 0)))
-                task["progress"] = last_progress(dirs.log)
+                task["progress"] = (last_progress(dirs.log) if task["status"] == "RUNNING"
+                                    else last_pull(dirs.log, time.time()))
         if reasons and any(t.get("status") in _WAITS for t in tasks):  # only then: it costs
             # a page of a big workflow does not wait long for a busy engine's reasons
             self._add_reasons(row.id, tasks, timeout=0.5 if extra else 5)

@@ -15,20 +15,44 @@ from osmo.status import WorkflowStatus
 from osmo.store.sqlite import Store, WorkflowRow
 from osmo.worker.logs import read_log
 
-__all__ = ["last_progress", "read_logs"]
+__all__ = ["last_progress", "last_pull", "read_logs"]
 
 _TAIL = 16384
+_PULL = "\tosmo\tpull: "  # how a worker logs each line of an image pull (worker.starts)
+
+
+def _tail(log: Path) -> str | None:
+    """The last 16 KiB of an attempt's log, or None if it cannot be read."""
+    try:
+        with open(log, "rb") as f:
+            f.seek(max(0, f.seek(0, 2) - _TAIL))
+            return f.read().decode("utf-8", "replace")
+    except OSError:
+        return None
+
+
+def last_pull(log: Path, now: float) -> str | None:
+    """``pulling (12s): <the engine's latest line>`` of an image pull in an attempt's log.
+
+    None when its last 16 KiB hold no pull line. The time counts from the first pull line
+    there (a pull's first lines are few and short).
+    """
+    lines = [line for line in (_tail(log) or "").splitlines() if _PULL in line]
+    if not lines:
+        return None
+    try:
+        since = float(lines[0].split("\t", 1)[0])
+    except ValueError:
+        since = now
+    return f"pulling ({max(0.0, now - since):.0f}s): {lines[-1].split(_PULL, 1)[1]}"
 
 
 def last_progress(log: Path) -> str | None:
     """The latest ``[osmo:progress] ...`` text in the last 16 KiB of an attempt's log."""
     from osmo.tasktypes.api import PROGRESS_PREFIX
 
-    try:
-        with open(log, "rb") as f:
-            f.seek(max(0, f.seek(0, 2) - _TAIL))
-            tail = f.read().decode("utf-8", "replace")
-    except OSError:
+    tail = _tail(log)
+    if tail is None:
         return None
     for line in reversed(tail.splitlines()):
         at = line.find(PROGRESS_PREFIX)

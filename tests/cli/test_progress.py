@@ -7,42 +7,20 @@ The client plays another machine (``OSMO_HOST_ID``), so the bytes come over the 
 from __future__ import annotations
 
 import os
-import pty
 import re
 import shutil
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
 
+from tests.cli.terminal import in_pty
 from tests.conftest import REPO, Osmo, write
 
 BIG = 6 * 2**20  # over the 4 MiB threshold
 RATE = re.compile(r"\d+(\.\d+)? ?[kMG]?B/s")
 BAR = "━"  # rich's bar
-
-
-def _in_pty(osmo: Osmo, *args: str, env: dict[str, str]) -> tuple[int, str]:
-    """Run the CLI with a pseudo-terminal as its stdin, stdout and stderr; (code, output)."""
-    master, slave = pty.openpty()
-    proc = subprocess.Popen([sys.executable, "-m", "osmo", *args], stdin=slave, stdout=slave,
-                            stderr=slave, env=dict(env, COLUMNS="120", TERM="xterm"), cwd=REPO,
-                            close_fds=True)
-    os.close(slave)
-    chunks = []
-    deadline = time.monotonic() + 120
-    while time.monotonic() < deadline:
-        try:
-            data = os.read(master, 65536)
-        except OSError:  # EIO: the other side closed (the process ended)
-            break
-        if not data:
-            break
-        chunks.append(data)
-    os.close(master)
-    return proc.wait(timeout=60), b"".join(chunks).decode(errors="replace")
 
 
 @pytest.fixture
@@ -67,7 +45,7 @@ workflow:
     command: ["sh", "-c", "head -c {BIG} /dev/urandom > {{{{output}}}}/big.bin"]
 """)
     wf = osmo.submit(spec, "--wait")
-    code, out = _in_pty(osmo, "artifacts", "get", f"{wf}:make", "-o", str(tmp_path / "a"),
+    code, out = in_pty("artifacts", "get", f"{wf}:make", "-o", str(tmp_path / "a"),
                         env=remote)
     assert code == 0, out
     assert (tmp_path / "a" / "big.bin").stat().st_size == BIG
@@ -87,11 +65,11 @@ def test_dataset_upload_and_download_show_bars_on_a_terminal(osmo: Osmo, remote:
     folder = tmp_path / "data"
     folder.mkdir()
     (folder / "big.bin").write_bytes(os.urandom(BIG))
-    code, out = _in_pty(osmo, "dataset", "upload", "bigset", str(folder), env=remote)
+    code, out = in_pty("dataset", "upload", "bigset", str(folder), env=remote)
     assert code == 0 and "bigset:1" in out, out
     assert BAR in out and RATE.search(out), out
     _forget_fetched(osmo)
-    code, out = _in_pty(osmo, "dataset", "download", "bigset", "-o", str(tmp_path / "d"),
+    code, out = in_pty("dataset", "download", "bigset", "-o", str(tmp_path / "d"),
                         env=remote)
     assert code == 0, out
     assert (tmp_path / "d" / "big.bin").read_bytes() == (folder / "big.bin").read_bytes()
@@ -103,5 +81,5 @@ def test_a_small_transfer_shows_no_bar(osmo: Osmo, remote: dict[str, str],
     folder = tmp_path / "small"
     folder.mkdir()
     (folder / "s.txt").write_text("small\n")
-    code, out = _in_pty(osmo, "dataset", "upload", "smallset", str(folder), env=remote)
+    code, out = in_pty("dataset", "upload", "smallset", str(folder), env=remote)
     assert code == 0 and "smallset:1" in out and BAR not in out, out
