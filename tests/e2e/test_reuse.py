@@ -11,9 +11,10 @@ log of the attempt it reused under a header that names it.
 from __future__ import annotations
 
 import re
+import shutil
 from pathlib import Path
 
-from tests.conftest import Osmo, write
+from tests.conftest import REPO, Osmo, write
 
 # OSMO's first tutorial (hello_world), as its users type it; the marker counts real runs.
 HELLO = """
@@ -129,10 +130,6 @@ def test_a_task_that_feeds_another_is_reused_its_consumer_runs(shared_osmo: Osmo
 
 
 def test_typed_tasks_are_still_reused(shared_osmo: Osmo, tmp_path: Path) -> None:
-    import shutil
-
-    from tests.conftest import REPO
-
     project = tmp_path / "project"
     shutil.copytree(REPO / "examples" / "custom_task", project,
                     ignore=shutil.ignore_patterns("__pycache__"))
