@@ -7,7 +7,20 @@ from __future__ import annotations
 
 import enum
 
-__all__ = ["ExitCode", "TaskStatus", "WorkflowStatus"]
+__all__ = ["CACHED_MESSAGE", "ExitCode", "TaskStatus", "WorkflowStatus", "reused_attempt"]
+
+CACHED_MESSAGE = "cached: outputs of "
+"""The message of a task completed from the cache, before the id of the attempt it reused."""
+
+
+def reused_attempt(message: str) -> tuple[str, str, int] | None:
+    """``(workflow id, task, retry)`` of the attempt a cached task's message names, else None."""
+    if not message.startswith(CACHED_MESSAGE):
+        return None
+    parts = message[len(CACHED_MESSAGE):].rsplit(":", 2)
+    if len(parts) != 3 or not parts[2].isdigit():
+        return None
+    return parts[0], parts[1], int(parts[2])
 
 
 class TaskStatus(enum.Enum):

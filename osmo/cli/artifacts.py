@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from osmo.cli.render import console, print_error, print_json, safe
+from osmo.cli.render import console, print_error, print_json, safe, transfer_progress
 from osmo.errors import OsmoError, UsageError
 from osmo.sdk.client import Client
 
@@ -59,7 +59,9 @@ def run_artifacts(args: argparse.Namespace) -> int:
         elif args.artifacts_verb == "get":
             _make_room(Path(args.output), force=args.force)
             try:
-                written = client.get_artifact(args.target, args.output)
+                with transfer_progress(f"get {args.target}") as progress:
+                    written = client.get_artifact(args.target, args.output,
+                                                  on_progress=progress)
             except OSError as exc:  # the destination the user chose cannot be written
                 raise UsageError(f"cannot write into {safe(args.output)}: "
                                  f"{exc.strerror or exc}") from None

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from osmo.cli.artifacts import run_artifacts, run_lineage
+from osmo.cli.completion import run_completion
 from osmo.cli.datasets import run_credential, run_dataset
 from osmo.cli.interactive import run_exec, run_forward
 from osmo.cli.plugins import run_plugins
@@ -26,6 +27,7 @@ from osmo.cli.render import (
     not_shown_line,
     print_error,
     print_json,
+    reuse_notice,
     safe,
     task_table,
     workflow_header,
@@ -65,7 +67,8 @@ def _submit(args: argparse.Namespace) -> int:
     with _client(args) as client:
         wf_id = client.submit(args.file, set_values=args.set_values,
                               set_strings=args.set_strings, set_env=args.set_env, pool=args.pool,
-                              no_cache=args.no_cache, labels=_label_args(args.labels),
+                              no_cache=args.no_cache, reuse=args.reuse,
+                              labels=_label_args(args.labels),
                               priority=args.priority, allow_localpath=args.allow_localpath)
         if args.format == "json" and not args.wait:
             print_json({"workflow_id": wf_id})
@@ -86,7 +89,8 @@ def _wait(client: Client, wf_id: str, fmt: str = "text") -> int:
             for t in i.tasks:
                 if seen.get(t.name) != t.status.name and fmt == "text":
                     seen[t.name] = t.status.name
-                    console.print(f"{safe(t.name)}: {t.status.name}", markup=False)
+                    cached = " (cached)" if t.reused else ""
+                    console.print(f"{safe(t.name)}: {t.status.name}{cached}", markup=False)
 
         info = client.wait(wf_id, on_update=show, min_interval=0.2)
         if fmt == "text":
@@ -94,6 +98,8 @@ def _wait(client: Client, wf_id: str, fmt: str = "text") -> int:
             console.print(task_table(info.tasks))
     if fmt == "json":
         print_json(info_dict(info))
+    elif (notice := reuse_notice(info)) is not None:
+        console.print(notice, markup=False, soft_wrap=True)
     if not info.ok:
         raise WorkflowFailed(info.id, info.status.name)
     return 0
@@ -280,6 +286,7 @@ _VERBS: dict[str, Callable[[argparse.Namespace], int]] = {
     "eval": run_eval,
     "view": run_view,
     "token": run_token,
+    "completion": run_completion,
 }
 
 

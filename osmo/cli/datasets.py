@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import argparse
 
-from osmo.cli.render import console, print_json, safe
+from osmo.cli.render import console, print_json, safe, transfer_progress
 from osmo.errors import UsageError
 from osmo.sdk.client import Client
 
@@ -65,11 +65,16 @@ def run_dataset(args: argparse.Namespace) -> int:
             r = client.tag_dataset(args.ref, args.tag)
             console.print(f"{r['name']}:{r['tag']} -> version {r['version']}", markup=False)
         elif verb == "download":
-            for path in client.download_dataset(args.ref, args.output, regex=args.regex):
+            with transfer_progress(f"download {args.ref}") as progress:
+                written = client.download_dataset(args.ref, args.output, regex=args.regex,
+                                                  on_progress=progress)
+            for path in written:
                 console.print(safe(path), markup=False)
         else:
             metadata = dict(_pair(m) for m in args.metadata)
-            version = client.upload_dataset(args.name, args.path, metadata=metadata)
+            with transfer_progress(f"upload {args.name}") as progress:
+                version = client.upload_dataset(args.name, args.path, metadata=metadata,
+                                                on_progress=progress)
             console.print(f"{args.name}:{version}", markup=False)
     return 0
 

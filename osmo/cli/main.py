@@ -15,10 +15,12 @@ from __future__ import annotations
 
 import argparse
 import gc
+import os
 import sys
 from collections.abc import Iterator, Sequence
 
 from osmo.cli.artifacts import add_parsers as add_artifact_parsers
+from osmo.cli.completion import add_parsers as add_completion_parsers
 from osmo.cli.datasets import add_credential_parsers
 from osmo.cli.datasets import add_parsers as add_dataset_parsers
 from osmo.cli.interactive import add_parsers as add_interactive_parsers
@@ -89,8 +91,13 @@ def _add_workflow_verbs(sub: argparse._SubParsersAction) -> None:  # type: ignor
                    "ageing: nothing waits forever (default NORMAL)")
     p.add_argument("--wait", action="store_true", help="show progress; exit 0 only if COMPLETED")
     p.add_argument("--dry-run", action="store_true", help="print the rendered spec; submit nothing")
-    p.add_argument("--no-cache", action="store_true",
-                   help="run every task even if an identical earlier run could be reused")
+    reuse = p.add_mutually_exclusive_group()
+    reuse.add_argument("--no-cache", action="store_true",
+                       help="run every task even if an identical earlier run could be reused")
+    reuse.add_argument("--reuse", action="store_true",
+                       help="let every task whose spec does not say (cache:) reuse an identical "
+                            "earlier success; by default only typed tasks and tasks whose "
+                            "output another task takes do")
     _add_format(p)
 
     p = sub.add_parser("validate", help="check a spec without submitting it")
@@ -164,6 +171,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "the profile's token, or this home's admin token for its own server)")
     parser.add_argument("--format", "-t", "--format-type", dest="global_format",
                         metavar="FORMAT", help="output format of the verb (text, json, ...)")
+    parser.add_argument("--version", action=_Version, nargs=0,
+                        help="print the installed osmo's version and exit")
     sub = parser.add_subparsers(dest="verb", metavar="COMMAND")
     _add_workflow_verbs(sub)
     wf = sub.add_parser("workflow", help="the same verbs, OSMO style: osmo workflow submit ...")
@@ -182,9 +191,31 @@ def build_parser() -> argparse.ArgumentParser:
     ServerOptions.add_arguments(p)
     _add_format(p)
     add_remote_parsers(sub)
+    add_completion_parsers(sub)
     for verb in _verb_parsers(parser):
         _accept_global_options(verb)
     return parser
+
+
+class _Version(argparse.Action):
+    """``--version``: the installed package's version, from its metadata.
+
+    Read only when asked (the metadata lookup costs ~50 ms, too much for every command). From
+    a source tree that is not installed, the source's version, said so.
+    """
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace,
+                 values: object, option_string: str | None = None) -> None:
+        from importlib.metadata import PackageNotFoundError, version
+
+        try:
+            text = version("osmo")
+        except PackageNotFoundError:
+            from osmo.version import __version__
+
+            text = f"{__version__} (source tree, not installed)"
+        sys.stdout.write(f"osmo {text}\n")
+        parser.exit(0)
 
 
 def _verb_parsers(parser: argparse.ArgumentParser) -> Iterator[argparse.ArgumentParser]:
@@ -247,14 +278,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     from osmo.cli.render import print_error
 
     parser = build_parser()
+    if "_ARGCOMPLETE" in os.environ:  # a shell asks for completions (osmo.cli.completion)
+        from osmo.cli.completion import complete
+
+        complete(parser)
     try:
         args = _parse(parser, list(sys.argv[1:] if argv is None else argv))
     except SystemExit as exc:  # argparse exits 2 on usage errors, 0 on --help
         return int(exc.code or 0)
     verb = getattr(args, "wf_verb", None) or args.verb
     if getattr(args, "token", None) and verb != "worker":
-        import os
-
         os.environ["OSMO_TOKEN"] = args.token  # every Client this command opens sends it
     if verb is None:
         parser.print_help()

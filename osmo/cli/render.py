@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -19,12 +20,16 @@ if TYPE_CHECKING:
 
     from osmo.sdk.client import EventInfo, LogRecord, TaskInfo, TaskWaiting, WorkflowInfo
 
-__all__ = ["QUERY_LIMIT", "console", "err_console", "events_text", "format_log", "info_dict",
-           "live_progress", "not_shown_line", "plugin_table", "print_error", "print_json",
-           "resource_table", "safe", "task_table", "workflow_header", "workflows_table"]
+__all__ = ["QUERY_LIMIT", "TRANSFER_BAR_MIN", "console", "err_console", "events_text",
+           "format_log", "info_dict", "live_progress", "not_shown_line", "plugin_table",
+           "print_error", "print_json", "resource_table", "reuse_notice", "safe", "task_table",
+           "transfer_progress", "workflow_header", "workflows_table"]
 
 QUERY_LIMIT = 1000
 """The most tasks ``osmo query`` shows in its table unless told (``--limit``)."""
+
+TRANSFER_BAR_MIN = 4 * 2**20
+"""A transfer of fewer bytes than this shows no progress bar."""
 
 _PLAIN_WIDTH = 160
 
@@ -154,6 +159,31 @@ def workflow_header(info: WorkflowInfo) -> str:
     if info.tags:
         lines.append(f"Tags        : {', '.join(map(safe, info.tags))}")
     return "\n".join(lines)
+
+
+def reuse_notice(info: WorkflowInfo, *, most: int = 5) -> str | None:
+    """The lines under ``osmo submit --wait`` that say which tasks did not run, or None.
+
+    ``reused 1 task instead of running it: hello (from hello-1 task hello retry 0)``, then how
+    to see their logs and how to run them. At most ``most`` tasks are named.
+    """
+    from osmo.status import reused_attempt
+
+    reused = [t for t in info.tasks if t.reused]
+    if not reused:
+        return None
+    named = []
+    for t in reused[:most]:
+        source = reused_attempt(t.message)
+        where = (f"{source[0]} task {source[1]} retry {source[2]}" if source
+                 else info.reused_from or "an earlier run")
+        named.append(f"{safe(t.name)} (from {safe(where)})")
+    more = f" and {len(reused) - most:,} more" if len(reused) > most else ""
+    count = f"{len(reused):,} task{'s' if len(reused) > 1 else ''}"
+    it = "them" if len(reused) > 1 else "it"
+    return (f"reused {count} instead of running {it}: {', '.join(named)}{more}\n"
+            f"  their logs: osmo logs {safe(info.id)}; to run every task: osmo submit "
+            "--no-cache")
 
 
 def not_shown_line(info: WorkflowInfo) -> str:
@@ -330,6 +360,49 @@ def live_progress() -> Iterator[Callable[[WorkflowInfo], None]]:
             live.update(Group(head, task_table(info.tasks)))
 
         yield update
+
+
+@contextmanager
+def transfer_progress(what: str) -> Iterator[Callable[[int, int], None] | None]:
+    """A bar with bytes, rate and time left for a transfer, on a terminal only.
+
+    Yields the ``(done, total)`` callback to hand the SDK (``osmo.sdk.transfer.Progress``;
+    it may be called from several threads), or None when stdout is no terminal: piped and
+    JSON output stay clean. A transfer under :data:`TRANSFER_BAR_MIN` bytes shows nothing.
+    """
+    if not console.is_terminal:
+        yield None
+        return
+    lock = threading.Lock()
+    shown: list[Any] = []  # [the rich Progress, its task id] once the bar is up
+
+    def update(done: int, total: int) -> None:
+        with lock:
+            if not shown:
+                if total < TRANSFER_BAR_MIN:
+                    return
+                from rich.progress import (
+                    BarColumn,
+                    DownloadColumn,
+                    Progress,
+                    TextColumn,
+                    TimeRemainingColumn,
+                    TransferSpeedColumn,
+                )
+
+                bar = Progress(TextColumn("{task.description}", markup=False), BarColumn(),
+                               DownloadColumn(), TransferSpeedColumn(), TimeRemainingColumn(),
+                               console=console._get())
+                bar.start()
+                shown.extend([bar, bar.add_task(safe(what), total=total)])
+            shown[0].update(shown[1], completed=done, total=total)
+
+    try:
+        yield update
+    finally:
+        with lock:
+            if shown:
+                shown[0].stop()
 
 
 def _gib(n: float) -> str:

@@ -31,6 +31,7 @@ from osmo.sdk.records import (
 )
 
 if TYPE_CHECKING:  # the spec package (YAML, Jinja) loads only when a spec is handled here
+    from osmo.sdk.transfer import Progress
     from osmo.spec import Workflow
     from osmo.spec.model import WorkflowSpec
 from osmo.status import WorkflowStatus
@@ -83,11 +84,15 @@ class Client:
                set_strings: Sequence[str] = (), set_env: Sequence[str] = (),
                pool: str | None = None, no_cache: bool = False,
                labels: Mapping[str, str] | None = None, priority: str = "NORMAL",
-               allow_localpath: Sequence[str | os.PathLike[str]] = ()) -> str:
+               allow_localpath: Sequence[str | os.PathLike[str]] = (),
+               reuse: bool = False) -> str:
         """Validate ``spec`` (a path, a dict, a model or a builder) and submit it.
 
-        Tasks whose definition and input contents match an earlier success reuse its
-        outputs (marked cached) unless ``no_cache`` or the task says ``cache: false``.
+        A task whose definition and input contents match an earlier success may reuse its
+        outputs instead of running (marked cached): typed tasks and tasks whose output another
+        task takes do by default, a bare command task that feeds none does not. ``cache:``
+        in the spec (task, then workflow) overrides that default, and so does ``reuse``
+        (every task whose spec says nothing); ``no_cache`` runs every task.
         ``labels`` are merged over the spec's ``workflow.labels`` (``--label k=v``);
         ``priority`` is HIGH, NORMAL or LOW (placement order when resources are short).
         ``files: localpath:`` reads only inside the spec's folder tree and the
@@ -107,7 +112,7 @@ class Client:
         types = {t.name: t.resolved.to_dict() for t in model.all_tasks() if t.resolved}
         result = self._call("submit", spec=spec_to_dict(model), pool=pool, filename=filename,
                             no_cache=no_cache, types=types, labels=dict(labels or {}),
-                            priority=priority)
+                            priority=priority, reuse=reuse)
         return str(result["workflow_id"])
 
     def cancel(self, workflow_id: str) -> WorkflowStatus:
@@ -291,10 +296,12 @@ class Client:
         """Promoted outputs of a workflow with their files (path, digest, size)."""
         return builtins.list(self._call("artifact_list", workflow_id=workflow_id, task=task))
 
-    def get_artifact(self, target: str, dest: str | os.PathLike[str]) -> builtins.list[str]:
+    def get_artifact(self, target: str, dest: str | os.PathLike[str], *,
+                     on_progress: Progress | None = None) -> builtins.list[str]:
         """Write a target's files, verified, into ``dest`` on this machine.
 
         They are fetched from the server, wherever it runs. Returns the written paths.
+        ``on_progress(done, total)`` hears of the bytes fetched (``osmo.sdk.transfer``).
         """
         from osmo.sdk import transfer
 
@@ -302,7 +309,8 @@ class Client:
         from osmo.artifacts import Manifest
 
         written = transfer.download(self._conn.api, self.ping(), Manifest.from_json(
-            reply["body"]), Path(dest).absolute(), only=reply.get("only"))
+            reply["body"]), Path(dest).absolute(), only=reply.get("only"),
+                                    on_progress=on_progress)
         return [str(p) for p in written]
 
     def gc_artifacts(self) -> tuple[int, int]:
@@ -329,10 +337,11 @@ class Client:
         return dict(self._call("dataset_tag", ref=ref, tag=check_tag(tag)))
 
     def download_dataset(self, ref: str, dest: str | os.PathLike[str], *,
-                         regex: str | None = None) -> builtins.list[str]:
+                         regex: str | None = None,
+                         on_progress: Progress | None = None) -> builtins.list[str]:
         """Write a version's files, verified, into ``dest`` on this machine.
 
-        Returns the written paths.
+        Returns the written paths. ``on_progress(done, total)`` hears of the bytes fetched.
         """
         from osmo.artifacts import Manifest
         from osmo.sdk import transfer
@@ -340,14 +349,17 @@ class Client:
         parse_ref(ref)
         reply = self._call("dataset_download", ref=ref, regex=regex)
         written = transfer.download(self._conn.api, self.ping(),
-                                    Manifest.from_json(reply["manifest"]), Path(dest).absolute())
+                                    Manifest.from_json(reply["manifest"]), Path(dest).absolute(),
+                                    on_progress=on_progress)
         return [str(p) for p in written]
 
     def upload_dataset(self, name: str, path: str | os.PathLike[str], *,
-                       metadata: dict[str, str] | None = None) -> int:
+                       metadata: dict[str, str] | None = None,
+                       on_progress: Progress | None = None) -> int:
         """Make a new version of ``name`` from a folder on this machine; returns the version.
 
-        A copy is sent; your files stay as they are.
+        A copy is sent; your files stay as they are. ``on_progress(done, total)`` hears of
+        the bytes the server pulls, and of the whole when it has the version.
         """
         from osmo.sdk import transfer
 
@@ -355,12 +367,14 @@ class Client:
         folder = Path(path).absolute()
         if not folder.is_dir():
             raise UsageError(f"cannot upload '{folder}': not a folder")
-        offer = transfer.upload(self._conn.api, folder)
+        offer = transfer.upload(self._conn.api, folder, on_progress)
         try:
             reply = self._call("dataset_upload", name=name, manifest=offer.manifest.to_json(),
                                source=offer.source, metadata=metadata or {}, timeout=3600)
         finally:
             offer.close()
+        if on_progress is not None:
+            on_progress(offer.size, offer.size)
         return int(reply["version"])
 
     # ------------------------------------------------------------------ credentials

@@ -145,7 +145,7 @@ def serve(home: str | os.PathLike[str] | None = None, options: ServerOptions | N
     engine = Engine(store=store, scheduler=restored.scheduler, executors=executors, inbox=inbox,
                     specs=restored.specs, on_changed=on_changed, home=home_path,
                     on_finished=records.finished, datasets=Datasets(store, artifacts, home_path),
-                    no_cache=restored.no_cache, restore=lambda: restore(store),
+                    reuse=restored.reuse, restore=lambda: restore(store),
                     inflight=inflight, on_fatal=on_fatal,
                     image_ids=containers.image_ids(options.runtime, options.container_engine,
                                                    boxes))

@@ -11,13 +11,18 @@ an image the server does not hold yet is not cached (its content is unknown). To
 hashed as written: they resolve the same
 way for the same inputs; ``{{workflow_id}}``/``{{uuid}}`` are not treated as changes.
 
-Only attempts that no group barrier holds are cached (single-task groups and
+Only attempts that no group barrier holds have a fingerprint (single-task groups and
 ``barrier: false`` groups); co-started group members interact and always run. Tasks with
-``url`` inputs or outputs always run too: the remote content is not known when the task is
-placed, and a hit would skip the upload. A task opts
-out with ``cache: false``, a submission with ``--no-cache``. A hit is taken only while the
-earlier output folder still exists; its readers get their own copies of it, checked
-against its manifest (a changed blob fails them instead).
+``url`` inputs or outputs have none either: the remote content is not known when the task is
+placed, and a hit would skip the upload. Every success with a fingerprint is recorded, whether
+or not its task was allowed to reuse one, so a later run that may reuse finds it.
+
+Whether a task *takes* an earlier success is :func:`reuses`: first ``osmo submit
+--no-cache`` (never), then the task's ``cache:``, then the workflow's ``cache:``, then ``osmo
+submit --reuse`` (yes), else the default (``WorkflowSpec.reuses_by_default``: typed tasks and
+tasks whose output another task takes; a bare command task that feeds none runs every time,
+as in OSMO). A hit is taken only while the earlier output folder still exists; its readers
+get their own copies of it, checked against its manifest (a changed blob fails them instead).
 """
 
 from __future__ import annotations
@@ -26,13 +31,14 @@ import hashlib
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from osmo.record import LineageInput
 from osmo.scheduler.types import PrepareAttempt
-from osmo.spec.model import TaskSpec
+from osmo.spec.model import TaskSpec, WorkflowSpec
 from osmo.store.sqlite import Store
 
-__all__ = ["CacheHit", "fingerprint", "input_sources", "key", "lookup"]
+__all__ = ["CacheHit", "fingerprint", "input_sources", "key", "lookup", "reuse_option", "reuses"]
 
 _VERSION = 1  # bump when the fingerprint's content changes
 
@@ -60,21 +66,21 @@ def fingerprint(task: TaskSpec, inputs: list[tuple[str, str]],
 
 
 def key(cmd: PrepareAttempt, task: TaskSpec, sources: list[LineageInput | None], *,
-        no_cache: bool, contained: bool = False, image_id: str | None = None) -> str | None:
-    """The cache key of a placed attempt, or None when it must run.
+        contained: bool = False, image_id: str | None = None) -> str | None:
+    """The cache key of a placed attempt, or None when it can neither reuse nor be reused.
 
-    The key is the attempt's fingerprint; the rules are the module docstring's.
+    The key is the attempt's fingerprint; the rules are the module docstring's. Whether the
+    attempt may take a hit is :func:`reuses`.
 
     Args:
         cmd: the placement (``run``: no group barrier holds it).
         task: its task's definition.
         sources: what each of its inputs is (:func:`input_sources`).
-        no_cache: its workflow was submitted with ``--no-cache``.
         contained: it runs in its image.
         image_id: that image's id (None: unknown, so not cached).
     """
-    if not cmd.run or not task.cache or no_cache:
-        return None  # held by a group barrier, or caching is off for it
+    if not cmd.run:
+        return None  # held by a group barrier
     if any(i.url for i in task.inputs) or any(o.url for o in task.outputs):
         return None  # URL contents are unknown at placement; a hit would skip the upload
     if any(s is None for s in sources):
@@ -83,6 +89,30 @@ def key(cmd: PrepareAttempt, task: TaskSpec, sources: list[LineageInput | None],
         return None  # an image the server cannot name: its content is unknown
     return fingerprint(task, [(s.task, s.manifest_digest) for s in sources if s],
                        image_id if contained else None)
+
+
+def reuses(spec: WorkflowSpec, task: TaskSpec, *, submitted: bool | None) -> bool:
+    """Whether ``task`` of ``spec`` may take an identical earlier success instead of running.
+
+    Args:
+        spec: its workflow.
+        task: the task.
+        submitted: what the submission said: True for ``--reuse``, False for ``--no-cache``,
+            None for neither.
+    """
+    if submitted is False:
+        return False
+    for said in (task.cache, spec.cache, submitted or None):
+        if said is not None:
+            return said
+    return spec.reuses_by_default(task)
+
+
+def reuse_option(options: dict[str, Any]) -> bool | None:
+    """What a workflow's submission said (its stored options): ``submitted`` of :func:`reuses`."""
+    if options.get("no_cache"):
+        return False
+    return True if options.get("reuse") else None
 
 
 @dataclass(frozen=True)

@@ -55,6 +55,7 @@ from osmo.scheduler.types import (
     WorkflowSubmitted,
 )
 from osmo.server.batch import Batch
+from osmo.server.cache import reuse_option
 from osmo.server.datasets import Datasets
 from osmo.server.inbox import STOP, Asked, Inbox
 from osmo.server.isolation import REBUILT, Isolation, guard, reason, restarting
@@ -93,7 +94,8 @@ class Engine:
         on_changed: called with the ids of workflows whose state changed (after commit).
         on_finished: called with the id of each workflow that ended (after commit).
         datasets: resolves dataset inputs and records dataset outputs.
-        no_cache: ids of workflows submitted with ``--no-cache`` (kept current here).
+        reuse: workflow id → True if submitted with ``--reuse``, False with ``--no-cache``
+            (kept current here).
         restore: rebuilds a scheduler from the store (``osmo.server.recovery.restore``);
             without it a batch that raises stops the engine.
         inflight: the quarantine file (``osmo.server.recovery.InFlight``), if any.
@@ -107,7 +109,7 @@ class Engine:
                  inbox: Inbox,
                  specs: dict[str, WorkflowSpec], on_changed: Callable[[set[str]], None],
                  home: Any, on_finished: Callable[[str], None] = lambda _wf: None,
-                 datasets: Datasets | None = None, no_cache: set[str] | None = None,
+                 datasets: Datasets | None = None, reuse: dict[str, bool] | None = None,
                  restore: Callable[[], Restored] | None = None,
                  inflight: InFlight | None = None,
                  on_fatal: Callable[[BaseException], None] = lambda _exc: None,
@@ -121,11 +123,11 @@ class Engine:
         self._on_changed = on_changed
         self._on_finished = on_finished
         self.provenance = Provenance()
-        self.no_cache = no_cache if no_cache is not None else set()  # --no-cache workflows
+        self.reuse = reuse if reuse is not None else {}  # --reuse / --no-cache workflows
         self.datasets = datasets
         self._clock = clock
         self._home = home
-        self.placements = Placements(store=store, specs=specs, no_cache=self.no_cache,
+        self.placements = Placements(store=store, specs=specs, reuse=self.reuse,
                                      post=inbox.post, provenance=self.provenance,
                                      datasets=datasets, image_ids=image_ids)
         self._numbers: dict[str, int] = {}
@@ -320,8 +322,9 @@ class Engine:
             WorkflowSubmitted(wf_id, spec, retries, pool, dict(request.reused),
                               request.options.get("priority", "NORMAL")), now)
         self.specs[wf_id] = spec
-        if request.options.get("no_cache"):
-            self.no_cache.add(wf_id)
+        submitted = reuse_option(request.options)
+        if submitted is not None:
+            self.reuse[wf_id] = submitted
         batch.workflows.append(NewWorkflowRow(wf_id, spec.name, n, now, request.stored,
                                               request.options))
         return wf_id
@@ -391,7 +394,7 @@ class Engine:
         self.scheduler = restored.scheduler
         self.specs.clear()
         self.specs.update(restored.specs)
-        self.no_cache |= restored.no_cache
+        self.reuse.update(restored.reuse)
         again = restarting(restored.active)
         self._apply([*(NodeUp(n) for n in nodes),
                      *(AttemptLost(kill.attempt_id, REBUILT) for kill in again)], tick=False)

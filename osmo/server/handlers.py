@@ -17,6 +17,7 @@ import builtins
 import logging
 import math
 import os
+import time
 from collections.abc import Callable
 from enum import Enum
 from pathlib import Path
@@ -39,7 +40,7 @@ from osmo.server.auth import Router, TokenHandlers, check_owner
 from osmo.server.credentials import CredentialHandlers, check_task_credentials
 from osmo.server.dataset_handlers import DatasetHandlers
 from osmo.server.engine import Engine
-from osmo.server.logview import last_progress, read_logs
+from osmo.server.logview import last_progress, last_pull, read_logs
 from osmo.server.requests import ListNodes, SubmitWorkflow, TagWorkflow, WaitReasons
 from osmo.server.sessions import Sessions
 from osmo.server.submitted import ClientTypes, check_no_localpath
@@ -120,7 +121,7 @@ class Handlers:
         """Create a workflow from a spec dict.
 
         Request: spec (rendered by the client, ``localpath`` files already read), pool?,
-        filename?, no_cache?, types? (``task -> ResolvedType`` of its custom ``module:attr``
+        filename?, no_cache?, reuse?, types? (``task -> ResolvedType`` of its custom ``module:attr``
         types, which the client imported from the spec's folder). The server reads no file
         and imports no code a client names (``osmo.server.submitted``); installed task types
         are resolved here, with this server's plugins. What was resolved (version,
@@ -154,9 +155,11 @@ class Handlers:
         if priority not in PRIORITIES:
             raise UsageError(f"priority must be one of {', '.join(PRIORITIES)}, not "
                              f"{shown(priority)}")
+        no_cache, reuse = (field(request, k, bool, default=False) for k in ("no_cache", "reuse"))
+        if no_cache and reuse:
+            raise UsageError("--reuse and --no-cache contradict each other; give one")
         options = {"pool": pool or spec.pool, "filename": filename, "reused_from": reused_from,
-                   "labels": labels, "priority": priority,
-                   "no_cache": field(request, "no_cache", bool, default=False),
+                   "labels": labels, "priority": priority, "no_cache": no_cache, "reuse": reuse,
                    "type_paths": type_paths, "submitted_by": who.name,
                    "types": {t.name: t.resolved.to_dict() for t in spec.all_tasks()
                              if t.resolved is not None}}
@@ -189,6 +192,8 @@ class Handlers:
                              "filename": row.options.get("filename"),
                              "labels": row.options.get("labels") or {},
                              "priority": row.options.get("priority"),
+                             "no_cache": bool(row.options.get("no_cache")),
+                             "reuse": bool(row.options.get("reuse")),
                              "types": row.options.get("types") or {}}, reused, row.id,
                             who)
 
@@ -231,10 +236,11 @@ class Handlers:
             page = self._taskview.page(row.id, limit=limit, statuses=statuses or (),
                                        spec=lambda: self._row(row.id, with_spec=True).spec)
             tasks, extra = page.tasks, {"counts": page.counts, "matched": page.matched}
-        for task in tasks:  # typed tasks report progress as log lines; show the latest
-            if task.get("status") == "RUNNING":
+        for task in tasks:  # typed tasks report progress as log lines, pulls too: the latest
+            if task.get("status") in ("RUNNING", "INITIALIZING"):
                 dirs = Home(self._home).attempt(row.id, task["name"], int(task.get("retry", 0)))
-                task["progress"] = last_progress(dirs.log)
+                task["progress"] = (last_progress(dirs.log) if task["status"] == "RUNNING"
+                                    else last_pull(dirs.log, time.time()))
         if reasons and any(t.get("status") in _WAITS for t in tasks):  # only then: it costs
             # a page of a big workflow does not wait long for a busy engine's reasons
             self._add_reasons(row.id, tasks, timeout=0.5 if extra else 5)

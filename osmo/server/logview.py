@@ -23,11 +23,12 @@ from pathlib import Path
 from typing import Any
 
 from osmo.layout import AttemptDirs
+from osmo.server.reused_logs import reused_blocks
 from osmo.status import WorkflowStatus
 from osmo.store.sqlite import AttemptRow, Store, WorkflowRow
 from osmo.worker.logread import end_position, newest_first, position_at, read_window
 
-__all__ = ["CHUNK", "LogFilter", "iter_logs", "last_progress", "read_logs"]
+__all__ = ["CHUNK", "LogFilter", "iter_logs", "last_progress", "last_pull", "read_logs"]
 
 CHUNK = 256 << 10
 """Bytes of log one ``logs`` call reads at most (over all attempts; each reads 16 KiB or
@@ -35,17 +36,41 @@ more, and a record is never cut)."""
 _MIN_WINDOW = 16 << 10
 
 _TAIL = 16384
+_PULL = "\tosmo\tpull: "  # how a worker logs each line of an image pull (worker.starts)
+
+
+def _tail(log: Path) -> str | None:
+    """The last 16 KiB of an attempt's log, or None if it cannot be read."""
+    try:
+        with open(log, "rb") as f:
+            f.seek(max(0, f.seek(0, 2) - _TAIL))
+            return f.read().decode("utf-8", "replace")
+    except OSError:
+        return None
+
+
+def last_pull(log: Path, now: float) -> str | None:
+    """``pulling (12s): <the engine's latest line>`` of an image pull in an attempt's log.
+
+    None when its last 16 KiB hold no pull line. The time counts from the first pull line
+    there (a pull's first lines are few and short).
+    """
+    lines = [line for line in (_tail(log) or "").splitlines() if _PULL in line]
+    if not lines:
+        return None
+    try:
+        since = float(lines[0].split("\t", 1)[0])
+    except ValueError:
+        since = now
+    return f"pulling ({max(0.0, now - since):.0f}s): {lines[-1].split(_PULL, 1)[1]}"
 
 
 def last_progress(log: Path) -> str | None:
     """The latest ``[osmo:progress] ...`` text in the last 16 KiB of an attempt's log."""
     from osmo.tasktypes.api import PROGRESS_PREFIX
 
-    try:
-        with open(log, "rb") as f:
-            f.seek(max(0, f.seek(0, 2) - _TAIL))
-            tail = f.read().decode("utf-8", "replace")
-    except OSError:
+    tail = _tail(log)
+    if tail is None:
         return None
     for line in reversed(tail.splitlines()):
         at = line.find(PROGRESS_PREFIX)
@@ -101,17 +126,38 @@ def read_logs(store: Store, row: WorkflowRow, *, task: str | None = None,
     terminal = WorkflowStatus[row.status].terminal
     attempts = [a for a in store.attempts(row.id, task)
                 if (retry is None or a.retry == retry) and a.dir]
+    blocks = reused_blocks(store, row, task=task, retry=retry)
     if cursor is None:
         cursor = _start(store, row.id, attempts, wanted, tail)
+        if tail:  # the last N records of what ran; a reused block is not among them
+            cursor["files"].update({b.key: end_position(b.log) for b in blocks if b.log})
     files = dict(cursor.get("files", {}))
     seq = int(cursor.get("seq", 0))
-    size = max(chunk // max(len(attempts), 1), _MIN_WINDOW)
+    size = max(chunk // max(len(attempts) + len(blocks), 1), _MIN_WINDOW)
     windows = [(a, read_window(_log(a), int(files.get(a.id, 0)), size)) for a in attempts]
+    reused = [(b, read_window(b.log, int(files.get(b.key, 0)), size) if b.log else None)
+              for b in blocks]
     events = store.transitions(row.id, seq)
-    cut = min((w.records[-1].ts if w.records else -math.inf
-               for _, w in windows if not w.complete), default=math.inf)
+    cut = min([w.records[-1].ts if w.records else -math.inf
+               for _, w in windows if not w.complete]
+              + [b.anchor for b, w in reused if w is not None and not w.complete],
+              default=math.inf)
     sources: list[list[dict[str, Any]]] = []
     more = False
+    for block, window in reused:  # a block sorts at its task's reuse, its lines keep their times
+        if block.anchor > cut:
+            more = True
+            continue
+        records = [] if block.key in files or not wanted.keeps(block.anchor, "osmo") \
+            else [block.header]
+        if window is not None:
+            more = more or not window.complete
+            files[block.key] = window.end
+            records += [block.record(r.ts, r.stream, r.text) for r in window.records
+                        if wanted.keeps(r.ts, r.stream)]
+        else:
+            files[block.key] = 0
+        sources.append(records)
     for attempt, window in windows:
         n = _upto(window.records, cut)
         more = more or not window.complete or n < len(window.records)
@@ -127,7 +173,9 @@ def read_logs(store: Store, row: WorkflowRow, *, task: str | None = None,
     if n:
         seq = events[n - 1]["seq"]
     sources.append([_event_record(e) for e in events[:n] if wanted.keeps_event(e)])
-    records = list(heapq.merge(*sources, key=lambda r: r["ts"]))
+    records = list(heapq.merge(*sources, key=lambda r: r.get("at", r["ts"])))
+    for record in records:
+        record.pop("at", None)
     return {"records": records, "cursor": {"files": files, "seq": seq}, "more": more,
             "done": terminal and not more}
 

@@ -30,6 +30,7 @@ from osmo.server.cache import CacheHit
 from osmo.server.datasets import Datasets
 from osmo.server.provenance import Provenance
 from osmo.spec.model import WorkflowSpec
+from osmo.status import CACHED_MESSAGE
 from osmo.store.sqlite import Store
 
 __all__ = ["Placements", "output_manifests"]
@@ -43,7 +44,8 @@ class Placements:
     Args:
         store: read for input manifests and cache entries.
         specs: workflow id → spec, shared with the engine (kept current by it).
-        no_cache: ids of workflows submitted with ``--no-cache``, shared with the engine.
+        reuse: workflow id → True if submitted with ``--reuse``, False with ``--no-cache``
+            (absent: neither), shared with the engine.
         post: queues an event for the engine.
         provenance: remembers each placement for its lineage.
         datasets: resolves dataset and other-workflow inputs (None: none to resolve).
@@ -51,11 +53,11 @@ class Placements:
             tasks run in containers (``cache`` uses the id).
     """
 
-    def __init__(self, *, store: Store, specs: dict[str, WorkflowSpec], no_cache: set[str],
+    def __init__(self, *, store: Store, specs: dict[str, WorkflowSpec], reuse: dict[str, bool],
                  post: Callable[[Event], None], provenance: Provenance,
                  datasets: Datasets | None,
                  image_ids: Callable[[str, str], str | None] | None = None) -> None:
-        self._store, self._specs, self._no_cache = store, specs, no_cache
+        self._store, self._specs, self._reuse = store, specs, reuse
         self._post = post
         self._provenance, self._datasets = provenance, datasets
         self._ready: dict[str, PrepareAttempt | str] = {}  # the final command, or why not
@@ -99,13 +101,14 @@ class Placements:
                 cmd = self._datasets.resolve_inputs(cmd, self._specs[cmd.workflow_id].task(
                     cmd.task))
             sources = cache.input_sources(self._store, cmd)
-            task = self._specs[cmd.workflow_id].task(cmd.task)
+            spec = self._specs[cmd.workflow_id]
+            task = spec.task(cmd.task)
             contained = self._image_ids is not None and task.image is not None and not task.type
             image_id = (self._image_ids(cmd.workflow_id, task.image)
                         if self._image_ids is not None and task.image is not None else None)
-            key = cache.key(cmd, task, sources, no_cache=cmd.workflow_id in self._no_cache,
-                            contained=contained, image_id=image_id)
-            hit = cache.lookup(self._store, key) if key else None
+            key = cache.key(cmd, task, sources, contained=contained, image_id=image_id)
+            reuses = cache.reuses(spec, task, submitted=self._reuse.get(cmd.workflow_id))
+            hit = cache.lookup(self._store, key) if key and reuses else None
         except OsmoError as exc:
             return str(exc)
         except Exception as exc:  # noqa: BLE001 - fails this attempt's start, nothing else
@@ -138,7 +141,7 @@ class Placements:
 
     def _replay(self, cmd: PrepareAttempt, hit: CacheHit) -> None:
         """Complete a cache hit at once: the scheduler sees an ordinary successful attempt."""
-        message = f"cached: outputs of {hit.attempt_id}"
+        message = CACHED_MESSAGE + hit.attempt_id
         for event in (AttemptPrepared(cmd.attempt_id), AttemptStarted(cmd.attempt_id),
                       AttemptExited(cmd.attempt_id, 0, hit.output_path, message,
                                     manifest=hit.manifest_body, cached=True)):

@@ -36,6 +36,7 @@ from osmo.layout import Home
 from osmo.runtime.proctable import kill_stale
 from osmo.scheduler import Scheduler, TaskState, WorkflowState
 from osmo.scheduler.types import AttemptExited, AttemptStartFailed, Event
+from osmo.server.cache import reuse_option
 from osmo.spec import spec_from_dict
 from osmo.spec.model import ResolvedType, WorkflowSpec
 from osmo.spec.typed import apply_resolved
@@ -60,13 +61,13 @@ class Restored:
     Attributes:
         scheduler: holds every unfinished workflow; active attempts keep their reservations.
         specs: workflow id → spec of each unfinished workflow.
-        no_cache: ids of those submitted with ``--no-cache``.
+        reuse: id → True for those submitted with ``--reuse``, False with ``--no-cache``.
         active: tasks whose attempt was placed or running when the state was committed.
     """
 
     scheduler: Scheduler
     specs: dict[str, WorkflowSpec] = field(default_factory=dict)
-    no_cache: set[str] = field(default_factory=set)
+    reuse: dict[str, bool] = field(default_factory=dict)
     active: list[TaskState] = field(default_factory=list)
 
 
@@ -82,8 +83,9 @@ def restore(store: Store) -> Restored:
         row = store.workflow(listed.id)
         if row is None:
             continue
-        if row.options.get("no_cache"):
-            out.no_cache.add(row.id)
+        submitted = reuse_option(row.options)
+        if submitted is not None:
+            out.reuse[row.id] = submitted
         spec = spec_from_dict(row.spec, filename=row.options.get("filename") or row.id)
         out.specs[row.id] = apply_resolved(spec, {
             name: ResolvedType.from_dict(data)

@@ -89,7 +89,7 @@ class Task:
     inputs: Sequence[str | InputSpec] = ()
     resource: str | None = None
     exit_actions: Mapping[str, Codes] | None = None
-    cache: bool = True
+    cache: bool | None = None
     lead: bool = False
     type: Any = None
     params: Mapping[str, Any] | None = None
@@ -119,7 +119,7 @@ class Task:
             "exitActions": {k: v if isinstance(v, str | int) else list(v)
                             for k, v in self.exit_actions.items()} if self.exit_actions
             else None,
-            "cache": None if self.cache else False,
+            "cache": self.cache,
         }
         out.update({k: v for k, v in optional.items() if v is not None})
         return out
@@ -154,11 +154,13 @@ class Workflow:
 
     def __init__(self, name: str, *, pool: str | None = None,
                  labels: Mapping[str, str] | None = None, exec_timeout: str | int | None = None,
-                 queue_timeout: str | int | None = None, max_retries: int | None = None) -> None:
+                 queue_timeout: str | int | None = None, max_retries: int | None = None,
+                 cache: bool | None = None) -> None:
         """Start a workflow called ``name`` (arguments are the ``workflow:`` fields)."""
         self.name, self.pool, self.labels = name, pool, labels
         self.exec_timeout, self.queue_timeout, self.max_retries = (
             exec_timeout, queue_timeout, max_retries)
+        self.cache = cache
         self._resources: dict[str, dict[str, Any]] = {}
         self._tasks: list[Task] = []
         self._groups: list[dict[str, Any]] = []
@@ -177,7 +179,7 @@ class Workflow:
              environment: Mapping[str, Any] | None = None,
              files: Mapping[str, str | bytes] | None = None,
              inputs: Sequence[str | InputSpec] = (), resource: str | None = None,
-             exit_actions: Mapping[str, Codes] | None = None, cache: bool = True,
+             exit_actions: Mapping[str, Codes] | None = None, cache: bool | None = None,
              type: Any = None, params: Mapping[str, Any] | None = None) -> Workflow:
         """Add a bare task (its own one-task group). Arguments as for :class:`Task`."""
         self._tasks.append(Task(name, command, args, image, environment, files, inputs,
@@ -202,7 +204,7 @@ class Workflow:
         workflow: dict[str, Any] = {"name": self.name}
         optional: dict[str, Any] = {
             "pool": self.pool, "labels": dict(self.labels or {}) or None,
-            "timeout": timeout or None, "maxRetries": self.max_retries,
+            "timeout": timeout or None, "maxRetries": self.max_retries, "cache": self.cache,
             "resources": dict(self._resources) or None,
             "tasks": [t.to_dict() for t in self._tasks] or None,
             "groups": list(self._groups) or None,

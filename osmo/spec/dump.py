@@ -85,7 +85,7 @@ def _task(t: TaskSpec) -> dict[str, Any]:
         "exitActions": {r.action.value: format_exit_codes(r.ranges) for r in t.exit_actions}
         or None,
         "checkpoint": [dict(c) for c in t.checkpoint] or None,
-        "cache": None if t.cache else False,
+        "cache": t.cache,
     })
 
 
@@ -118,6 +118,7 @@ def spec_to_dict(spec: WorkflowSpec) -> dict[str, Any]:
         "labels": dict(spec.labels) or None,
         "timeout": timeout or None,
         "maxRetries": spec.max_retries,
+        "cache": spec.cache,
         "resources": {n: _resource(r) for n, r in spec.resources.items()} or None,
     })
     if _is_bare(spec):

@@ -194,7 +194,7 @@ class TaskSpec:
     checkpoint: tuple[dict[str, Any], ...] = ()
     type: str | None = None  # [ext]
     params: dict[str, Any] = field(default_factory=dict)  # [ext]
-    cache: bool = True  # [ext]
+    cache: bool | None = None  # [ext] None: the default (``WorkflowSpec.reuses_by_default``)
     pos: Pos | None = _pos()
     resolved: ResolvedType | None = field(default=None, compare=False, repr=False)  # [ext]
 
@@ -238,6 +238,8 @@ class WorkflowSpec:
             same name); kept so dumping reproduces the author's form.
         max_retries: [ext] ``workflow.maxRetries``: cap on RESCHEDULE retries per task
             (``None`` = the server's default, documented as 3).
+        cache: [ext] ``workflow.cache``: whether its tasks may reuse an identical earlier
+            success, for each task that does not say (``None``: the default).
     """
 
     name: str
@@ -248,6 +250,7 @@ class WorkflowSpec:
     timeout: Timeouts = Timeouts()
     resources: dict[str, ResourceSpec] = field(default_factory=dict)
     max_retries: int | None = None
+    cache: bool | None = None
     pos: Pos | None = _pos()
 
     def all_tasks(self) -> tuple[TaskSpec, ...]:
@@ -263,6 +266,20 @@ class WorkflowSpec:
         # cached_property writes the instance __dict__ directly, so it works on a frozen
         # dataclass and does not take part in equality.
         return {t.name: t for t in self.all_tasks()}
+
+    def reuses_by_default(self, task: TaskSpec) -> bool:
+        """[ext] Whether ``task`` reuses an identical earlier success when nobody says.
+
+        Nobody: neither the task's nor the workflow's ``cache:``, nor the submission. True for
+        a typed task and for a task whose output another task of this workflow takes as an
+        input (a pipeline's data); False for a bare command task that feeds no other, which
+        runs every time it is submitted, as in OSMO (its effect may be the point).
+        """
+        return task.type is not None or task.name in self._fed
+
+    @cached_property
+    def _fed(self) -> frozenset[str]:
+        return frozenset(name for t in self.all_tasks() for name in t.upstream_tasks())
 
     def resource_for(self, task: TaskSpec) -> ResourceSpec:
         """The resource spec a task requests (an empty spec if the workflow defines none).

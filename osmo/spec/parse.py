@@ -39,7 +39,8 @@ from osmo.spec.yamlnodes import Map, Node, Scalar
 __all__ = ["Parsed", "parse_document"]
 
 DOC_KEYS = ("version", "workflow", "default-values")
-WORKFLOW_KEYS = ("name", "pool", "labels", "timeout", "resources", "tasks", "groups", "maxRetries")
+WORKFLOW_KEYS = ("name", "pool", "labels", "timeout", "resources", "tasks", "groups", "maxRetries",
+                 "cache")
 GROUP_KEYS = ("name", "tasks", "barrier", "ignoreNonleadStatus")
 RESOURCE_KEYS = ("cpu", "gpu", "memory", "storage", "platform", "nodesExcluded", "topology")
 TOPOLOGY_KEYS = ("key", "group", "requirementType")
@@ -211,6 +212,7 @@ def _workflow(ctx: Ctx, node: Node, local: LocalFiles) -> Parsed | None:
         timeout=_timeouts(ctx, f["timeout"]) if "timeout" in f else Timeouts(),
         resources=_resources(ctx, f["resources"]) if "resources" in f else {},
         max_retries=read_int(ctx, f["maxRetries"], "'maxRetries'") if "maxRetries" in f else None,
+        cache=read_bool(ctx, f["cache"], "'cache' of the workflow") if "cache" in f else None,
         pos=node.pos,
     )
     return Parsed(spec, nodes, "resources" in f)

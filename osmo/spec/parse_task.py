@@ -197,7 +197,7 @@ def parse_task(ctx: Ctx, node: Node, local: LocalFiles) -> TaskSpec | None:
         checkpoint=_optional(ctx, f, "checkpoint", parse_checkpoint, where) or (),
         type=_optional(ctx, f, "type", read_str, f"'type' of {where}"),
         params=_params(ctx, f.get("params"), where),
-        cache=_optional(ctx, f, "cache", read_bool, f"'cache' of {where}") is not False,
+        cache=_optional(ctx, f, "cache", read_bool, f"'cache' of {where}"),
         pos=node.pos,
     )
 

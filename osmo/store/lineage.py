@@ -24,6 +24,16 @@ class LineageQueries:
                           (path,))
         return (str(rows[0][0]), str(rows[0][1])) if rows else None
 
+    def output_makers(self, path: str) -> list[dict[str, Any]]:
+        """Attempts recorded with the output folder ``path``: its maker and those that reused it.
+
+        Each as workflow_id, task, attempt_id, retry and dir (the attempt's folder).
+        """
+        rows = self._read("SELECT o.workflow_id, o.task, o.attempt_id, a.retry, a.dir "
+                          "FROM outputs o JOIN attempts a ON a.id = o.attempt_id "
+                          "WHERE o.path = ?", (path,))
+        return [dict(r) for r in rows]
+
     def lineage_of_workflow(self, workflow_id: str) -> list[dict[str, Any]]:
         """Lineage records (JSON payloads) of a workflow's attempts, in commit order."""
         rows = self._read("SELECT record FROM lineage WHERE workflow_id = ? ORDER BY rowid",

@@ -182,6 +182,7 @@ workflow:
   tasks:
   - name: once
     image: {tag}
+    cache: true
     command: [sh, -c, "echo ran; echo {{{{uuid}}}} > {{{{output}}}}/out.txt"]
 """)
     engine.call("tag", first, tag)

@@ -10,10 +10,13 @@ from tests.conftest import Osmo, write
 
 def _spec(tmp_path: Path) -> Path:
     # Every task appends its name to runs.log, so the test can count what really ran.
+    # cache: true for the workflow: its bare leaf tasks (total, side) would run every time
+    # otherwise (the default: tests/e2e/test_reuse.py).
     text = """
 default-values: {scale: 2, note: hi}
 workflow:
   name: cached
+  cache: true
   tasks:
   - name: source
     command: [sh, -c, "echo source >> LOG; seq 1 5 > {{output}}/n.txt"]

@@ -59,6 +59,7 @@ def test_url_tasks_are_never_cached(osmo: Osmo, tmp_path: Path) -> None:
     spec = write(tmp_path / "wf.yaml", """
 workflow:
   name: urls-uncached
+  cache: true
   tasks:
   - name: plain
     command: [sh, -c, "echo x >> TMP/plain-runs; echo p > {{output}}/p"]

@@ -205,3 +205,17 @@ def test_alias_bomb_is_bounded() -> None:
     lines += [f"a{i}: &a{i} [" + ", ".join([f"*a{i - 1}"] * 10) + "]" for i in range(1, 8)]
     with pytest.raises(SpecError, match="alias bomb"):
         load_spec(text="\n".join(lines) + "\nworkflow: *a7\n")
+
+
+def test_cache_is_unset_true_or_false_for_a_task_and_the_workflow() -> None:
+    data = {"workflow": {"name": "w", "cache": True, "tasks": [
+        {"name": "a", "command": ["true"]}, {"name": "b", "command": ["true"], "cache": False},
+        {"name": "c", "command": ["true"], "cache": True, "inputs": [{"task": "a"}]}]}}
+    spec = spec_from_dict(data)
+    assert spec.cache is True
+    assert [spec.task(n).cache for n in "abc"] == [None, False, True]
+    assert spec_from_dict(spec_to_dict(spec)) == spec
+    assert spec_to_dict(spec)["workflow"]["cache"] is True
+    assert "cache" not in spec_to_dict(spec)["workflow"]["tasks"][0]
+    # the default: a task another takes as an input reuses, a leaf command task does not
+    assert [spec.reuses_by_default(spec.task(n)) for n in "abc"] == [True, False, False]
