@@ -11,7 +11,7 @@ It follows the store's events (never HTTP) and acts as the control plane and the
   then it is played with ``podman kube play`` (``podman_pods.py``). One poller follows every
   container with ``podman ps`` and publishes the pod's status: phase, initContainerStatuses,
   containerStatuses (waiting/running/terminated with exitCode and reason Completed, Error or
-  OOMKilled), conditions, podIP, hostIP. An image that cannot be pulled shows ErrImagePull
+  OOMKilled), conditions, podIP and hostIP (both 127.0.0.1: pods share the host's network). An image that cannot be pulled shows ErrImagePull
   with podman's message, then ImagePullBackOff (the pull is not retried). Native sidecars are
   stopped once the regular containers have exited.
 - **Deletion**: a graceful delete stops the pod (SIGTERM, SIGKILL after the grace),
@@ -22,7 +22,7 @@ It follows the store's events (never HTTP) and acts as the control plane and the
 - **Status scripts** (``scripts.py``): a pod whose name has a script registered plays it
   instead of podman.
 
-:meth:`Kubelet.close` deletes what is left, removes the network and reports leftovers.
+:meth:`Kubelet.close` deletes what is left and reports what podman still has.
 """
 
 from __future__ import annotations
@@ -50,6 +50,7 @@ __all__ = ["Kubelet"]
 
 POLL = 0.3  # seconds between two looks at the containers of running pods
 BACKOFF = 1.0  # seconds from ErrImagePull to ImagePullBackOff
+HOST_IP = "127.0.0.1"  # every pod shares the host's network (podman_pods.py says why)
 
 
 @dataclass
@@ -69,8 +70,6 @@ class _Pod:
     seen: dict[str, ContainerState] = field(default_factory=dict)
     details: dict[str, Obj] = field(default_factory=dict)  # inspect of ended containers
     waiting: tuple[str, str] | None = None  # (reason, message) for every container
-    ip: str = ""
-    sandbox: str = ""  # the pod's network namespace file
     started: str = ""
     stopping_sidecars: bool = False
     killed: bool = False  # the node stopped it (an exit 137 is then no OOM)
@@ -101,7 +100,6 @@ class Kubelet:
         self._work: queue.Queue[Event | str | None] = queue.Queue()
         self._closed = threading.Event()
         self._threads: list[threading.Thread] = []
-        self._network = False  # created with the first pod podman plays
         api.log_source = self
         self.store.listen(self._work.put)
         self._spawn(self._control, "k8s-kubelet")
@@ -120,22 +118,24 @@ class Kubelet:
             self._scripts[(namespace, name)] = script
 
     def close(self) -> tuple[list[str], list[str]]:
-        """Stop: remove every pod still in podman and the network; return what podman still
-        had afterwards (pods, containers): both empty when all went well."""
+        """Stop: remove every pod still in podman; return what podman still had afterwards
+        (pods, containers): both empty when all went well."""
         self._closed.set()
         self._work.put(None)
+        control, poller = self._threads[:2]
+        control.join(timeout=60)  # no new work after this
+        poller.join(timeout=60)
         with self._lock:
             left = [p for p in self._pods.values() if p.script is None]
             for pod in left:
                 if pod.play is not None and pod.play.poll() is None:
                     pod.play.kill()
-        for pod in left:
-            self.podman.remove(pod.podman, pod.sandbox)
-        for thread in self._threads:
+            threads = list(self._threads)
+        for thread in threads:
             thread.join(timeout=60)
-        leftovers = self.podman.leftovers() if self._network else ([], [])
-        if self._network:
-            self.podman.remove_network()
+        for pod in left:
+            self.podman.remove(pod.podman)
+        leftovers = self.podman.leftovers()
         if self._tmp is not None:
             self._tmp.cleanup()
         return leftovers
@@ -151,8 +151,9 @@ class Kubelet:
     def _spawn(self, target: Any, name: str, *args: Any) -> None:
         thread = threading.Thread(target=target, args=args, name=name, daemon=True)
         thread.start()
-        with self._lock:
-            self._threads = [t for t in self._threads if t.is_alive()] + [thread]
+        with self._lock:  # the first two (control, poller) stay: close() joins them first
+            self._threads = self._threads[:2] + [
+                t for t in self._threads[2:] if t.is_alive()] + [thread]
 
     def _control(self) -> None:
         """Handle the store's events one at a time (the listener only queues them)."""
@@ -278,9 +279,6 @@ class Kubelet:
             return
         path = self.podman.write(pod.podman, manifest)
         with self._lock:
-            if not self._network:
-                self.podman.create_network()
-                self._network = True
             pod.stage, pod.waiting, pod.sidecars = "playing", None, sidecars
             pod.limited = {c["name"] for c in obj["spec"]["containers"]
                            + obj["spec"].get("initContainers", [])
@@ -306,7 +304,7 @@ class Kubelet:
                                message or err.strip())
                 pod.stage = "waiting-pull" if pull else "failed-create"
         if pod.waiting is not None:
-            self.podman.remove(pod.podman, pod.sandbox)
+            self.podman.remove(pod.podman)
             self._publish(pod)
             if pod.stage == "waiting-pull":
                 threading.Timer(BACKOFF, self._work.put, (f"backoff:{pod.uid}",)).start()
@@ -339,24 +337,14 @@ class Kubelet:
             seen = states.get(pod.podman, {})
             ended = [f"{pod.podman}-{n}" for n, s in seen.items()
                      if s.ended and n not in pod.details]
-            first = next((f"{pod.podman}-{n}" for n, s in seen.items()
-                          if s.state == "running"), None)
-            wanted = ended + ([first] if first and not pod.ip else [])
-            found = self.podman.inspect(wanted)
+            found = self.podman.inspect(ended)  # OOMKilled, once per container
             with self._lock:
                 if pod.stage not in ("playing", "running"):
                     continue
                 changed = seen != pod.seen
                 pod.seen = seen
                 for full, info in found.items():
-                    name = full[len(pod.podman) + 1:]
-                    if full in ended:
-                        pod.details[name] = info
-                    settings = info.get("NetworkSettings") or {}
-                    pod.sandbox = pod.sandbox or settings.get("SandboxKey") or ""
-                    for net in (settings.get("Networks") or {}).values():
-                        if net.get("IPAddress") and not pod.ip:
-                            pod.ip, changed = net["IPAddress"], True
+                    pod.details[full[len(pod.podman) + 1:]] = info
                 regular = [n for n in seen if n not in pod.sidecars]
                 finished = bool(regular) and all(seen[n].ended for n in regular)
                 stop = [f"{pod.podman}-{n}" for n in pod.sidecars
@@ -411,12 +399,12 @@ class Kubelet:
                                        else "PodInitializing") for c in spec["containers"]]
         phase = self._phase(pod, inits, spec["containers"], spec.get("restartPolicy"))
         ready = all("running" in s["state"] for s in main_states)
-        status.update(phase=phase, hostIP="127.0.0.1", hostIPs=[{"ip": "127.0.0.1"}],
+        status.update(phase=phase, hostIP=HOST_IP, hostIPs=[{"ip": HOST_IP}],
                       startTime=pod.started, containerStatuses=main_states)
         if init_states:
             status["initContainerStatuses"] = init_states
-        if pod.ip:
-            status.update(podIP=pod.ip, podIPs=[{"ip": pod.ip}])
+        if any(s.state == "running" or s.ended for s in pod.seen.values()):
+            status.update(podIP=HOST_IP, podIPs=[{"ip": HOST_IP}])  # the host's network
         done = "PodCompleted" if phase in ("Succeeded", "Failed") else "ContainersNotReady"
         status["conditions"] = [
             self._condition(pod, "PodScheduled", True),
@@ -497,7 +485,7 @@ class Kubelet:
             with self._lock:
                 pod.seen = {**pod.seen, **seen}
             self._publish(pod)
-            self.podman.remove(pod.podman, pod.sandbox)
+            self.podman.remove(pod.podman)
         else:
             def change(obj: Obj) -> None:
                 for status in obj.get("status", {}).get("containerStatuses") or []:
@@ -516,7 +504,7 @@ class Kubelet:
         if play is not None and play.poll() is None:
             play.kill()
         if pod.script is None and was not in ("deleting", "pending"):
-            self._spawn(self.podman.remove, f"k8s-remove-{pod.name}", pod.podman, pod.sandbox)
+            self._spawn(self.podman.remove, f"k8s-remove-{pod.name}", pod.podman)
 
     # ------------------------------------------------------------------ scripts
 

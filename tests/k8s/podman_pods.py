@@ -7,14 +7,17 @@ The only module of the stand-in that runs podman. What podman 4.3 needs, found b
   Containers are ``<podman pod>-<container>``; the pod's hostname stays its Kubernetes name.
   A label (``LABEL=<prefix>``) on every pod and container lets :meth:`PodmanPods.leftovers`
   find what is left.
-- **A network of its own** (``podman network create``), handed to ``kube play --network``:
-  pods get addresses and DNS names there, and removing the network at the end takes any
-  address podman failed to release with it (podman 4.3 leaks a pod's network namespace when
-  it is removed while stopping on its own).
+- **The host's network** (``kube play --network host``): every pod shares it, as a pod with
+  ``hostNetwork: true`` does, so its podIP is the host's (127.0.0.1) and it reaches services
+  on the host's loopback. A network namespace per pod is what podman 4.3 handles badly here:
+  with several pods starting and stopping at once it unmounts namespaces it still uses
+  (after which ``podman ps`` fails for every user of the machine until the pod is removed)
+  and leaves their files in ``/run/netns``. Ports are therefore shared between pods, and no
+  cluster DNS resolves Service or pod names.
 - **Init containers** run inside ``kube play`` (it returns after they finished, or fails with
   ``init container ... exited with code N``). The annotation
   ``io.podman.annotations.init.container.type: always`` keeps them, so their exit codes can
-  be read, and avoids the network namespace leak seen with the default (``once``).
+  be read.
   **Native sidecars** (an init container with ``restartPolicy: Always``) would block ``kube
   play`` for ever: they become ordinary containers, and the kubelet stops them when the
   regular containers have exited.
@@ -27,8 +30,8 @@ The only module of the stand-in that runs podman. What podman 4.3 needs, found b
   ``tolerations``, ``affinity``, ``schedulerName``, ``priorityClassName``,
   ``imagePullSecrets``, service account fields); ``resources`` stay (memory and cpu limits are
   enforced). An ``emptyDir`` with ``medium: Memory`` is a plain folder (no size limit).
-- **Exits.** ``podman ps`` gives states and exit codes; ``inspect`` gives the address and
-  ``OOMKilled``, which podman does not set on hybrid cgroups (these machines), so an exit of
+- **Exits.** ``podman ps`` gives states and exit codes; ``inspect`` gives ``OOMKilled``,
+  which podman does not set on hybrid cgroups (these machines), so an exit of
   137 of a container with a memory limit that the node did not stop counts as OOMKilled.
 """
 
@@ -37,7 +40,6 @@ from __future__ import annotations
 import copy
 import json
 import os
-import re
 import shutil
 import subprocess
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -107,7 +109,8 @@ def translate(pod: Obj, podman_name: str, prefix: str, folder: Path, secrets: Se
         del spec["initContainers"]
     fields = {"metadata.name": meta["name"], "metadata.namespace": meta.get("namespace", ""),
               "metadata.uid": meta.get("uid", ""), "spec.nodeName": node_name,
-              "status.hostIP": "127.0.0.1", "spec.serviceAccountName":
+              "status.hostIP": "127.0.0.1", "status.podIP": "127.0.0.1",
+              "spec.serviceAccountName":
               pod["spec"].get("serviceAccountName", "default")}
     for container in spec["containers"] + spec.get("initContainers", []):
         container.pop("restartPolicy", None)
@@ -204,24 +207,6 @@ def _read_only(spec: Obj, volume: str) -> None:
                 mount["readOnly"] = True
 
 
-_NETNS = re.compile(r"/run/netns/netns-[0-9a-f-]+")
-_JOINING = re.compile(r"network namespace (?:for|of) container ([0-9a-f]{12,64}): retrieving "
-                      r"network namespace at (/run/netns/netns-[0-9a-f-]+)")
-
-
-def _repair(paths: set[str]) -> bool:
-    """Mount a fresh network namespace at each of ``paths`` that lost its own."""
-    if shutil.which("ip") is None:
-        return False
-    for path in paths:
-        if os.path.ismount(path):
-            continue
-        if os.path.isfile(path):
-            os.unlink(path)
-        subprocess.run(["ip", "netns", "add", os.path.basename(path)], capture_output=True)
-    return True
-
-
 class PodmanPods:
     """podman for one stand-in node: its network, its pods, their containers and logs.
 
@@ -235,7 +220,6 @@ class PodmanPods:
         self.env = dict(env)
         self.prefix = prefix
         self.folder = folder
-        self.network = f"{prefix}-net"
 
     def podman_name(self, namespace: str, name: str) -> str:
         """The podman pod name for a Kubernetes pod."""
@@ -246,16 +230,6 @@ class PodmanPods:
         return subprocess.run(["podman", *args], capture_output=True, text=True,
                               env=self.env, timeout=timeout)
 
-    def create_network(self) -> None:
-        """Create this node's network."""
-        done = self.run("network", "create", "--label", f"{LABEL}={self.prefix}", self.network)
-        if done.returncode != 0:
-            raise RuntimeError(f"podman network create failed: {done.stderr.strip()}")
-
-    def remove_network(self) -> None:
-        """Remove this node's network (pods on it must be gone)."""
-        self.run("network", "rm", "-f", self.network)
-
     def write(self, podman_name: str, manifest: Obj) -> Path:
         """Write a manifest (JSON is YAML) into the node's folder; return its path."""
         path = self.folder / f"{podman_name}.json"
@@ -264,17 +238,14 @@ class PodmanPods:
 
     def play(self, manifest: Path) -> subprocess.Popen[str]:
         """Start ``podman kube play`` of ``manifest`` (it returns once init containers ran)."""
-        return subprocess.Popen(["podman", "kube", "play", "--network", self.network,
-                                 str(manifest)], stdout=subprocess.PIPE,
+        return subprocess.Popen(["podman", "kube", "play", "--network", "host", str(manifest)],
+                                stdout=subprocess.PIPE,
                                 stderr=subprocess.PIPE, text=True, env=self.env)
 
     def states(self) -> dict[str, dict[str, ContainerState]]:
         """Every container of this node's pods: {podman pod: {container name: state}}."""
-        args = ("ps", "-a", "--pod", "--filter", f"label={LABEL}={self.prefix}",
-                "--format", "json")
-        done = self.run(*args)
-        if done.returncode != 0 and self._repair_own(done.stderr):
-            done = self.run(*args)
+        done = self.run("ps", "-a", "--pod", "--filter", f"label={LABEL}={self.prefix}",
+                        "--format", "json")
         out: dict[str, dict[str, ContainerState]] = {}
         for entry in json.loads(done.stdout or "[]") if done.returncode == 0 else []:
             pod = entry.get("PodName") or ""
@@ -299,17 +270,6 @@ class PodmanPods:
             return {}
         return {entry.get("Name", ""): entry for entry in found or []}
 
-    def _repair_own(self, stderr: str) -> bool:
-        """Repair the lost network namespaces that ``stderr`` names, of this node's
-        containers only (another session's are not ours to touch)."""
-        ours = set()
-        for container, path in _JOINING.findall(stderr):
-            label = self.run("container", "inspect", "--format",
-                             f'{{{{index .Config.Labels "{LABEL}"}}}}', container).stdout
-            if label.strip() == self.prefix:
-                ours.add(path)
-        return bool(ours) and _repair(ours)
-
     def stop(self, podman_name: str, grace: int) -> None:
         """Stop a pod: SIGTERM, and SIGKILL after ``grace`` seconds."""
         self.run("pod", "stop", "-t", str(max(grace, 0)), podman_name, timeout=grace + 60)
@@ -319,23 +279,9 @@ class PodmanPods:
         if names:
             self.run("stop", "-t", str(max(grace, 0)), *names, timeout=grace + 60)
 
-    def remove(self, podman_name: str, sandbox: str = "") -> None:
-        """Remove a pod and its containers (stopping them at once), and its files.
-
-        ``sandbox`` is the pod's network namespace file, when known. podman 4.3 sometimes
-        unmounts a pod's namespace and leaves the file (two pods started at the same moment;
-        a pod removed while it stops on its own): a pod in that state cannot be removed, and
-        ``podman ps`` fails for everyone until it is. Such a namespace of this pod is mounted
-        afresh (``ip netns add``) so the removal can go through; a file left after the pod
-        went is deleted.
-        """
-        done = self.run("pod", "rm", "-f", "-t", "0", podman_name)
-        broken = set(_NETNS.findall(done.stderr)) if done.returncode != 0 else set()
-        if broken and _repair(broken):
-            self.run("pod", "rm", "-f", "-t", "0", podman_name)
-        for path in broken | ({sandbox} if sandbox else set()):
-            if os.path.isfile(path) and not os.path.ismount(path):
-                os.unlink(path)
+    def remove(self, podman_name: str) -> None:
+        """Remove a pod and its containers (stopping them at once), and its files."""
+        self.run("pod", "rm", "-f", "-t", "0", podman_name)
         shutil.rmtree(self.folder / podman_name, ignore_errors=True)
         (self.folder / f"{podman_name}.json").unlink(missing_ok=True)
 
