@@ -32,6 +32,7 @@ import select
 import socket
 import threading
 import time
+import traceback
 from collections.abc import Iterator
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Any, Protocol
@@ -39,7 +40,7 @@ from urllib.parse import parse_qs, urlsplit
 
 from tests.k8s import store as st
 from tests.k8s.patches import apply_patch
-from tests.k8s.selectors import SelectorError, field_selector, label_selector
+from tests.k8s.selectors import Predicate, SelectorError, field_selector, label_selector
 from tests.k8s.store import ApiError, Obj, Resource, Store
 from tests.k8s.validation import Cause, SchemaCheck, check, decode_secret_data
 
@@ -192,6 +193,7 @@ class _Handler(BaseHTTPRequestHandler):
         return self.server.api
 
     def _serve(self, method: str) -> None:
+        self._streaming = False
         url = urlsplit(self.path)
         self.query = {k: v[-1] for k, v in parse_qs(url.query, keep_blank_values=True).items()}
         try:
@@ -214,6 +216,11 @@ class _Handler(BaseHTTPRequestHandler):
             self._json(400, ApiError(400, "BadRequest", str(exc)).status())
         except (BrokenPipeError, ConnectionResetError):
             self.close_connection = True
+        except Exception as exc:  # noqa: BLE001 - a bug here is a 500, as on a real server
+            traceback.print_exc()
+            self.close_connection = True
+            if not self._streaming:
+                self._json(500, ApiError(500, "InternalError", repr(exc)).status())
 
     def _body(self) -> Any:
         length = int(self.headers.get("Content-Length") or 0)
@@ -234,6 +241,7 @@ class _Handler(BaseHTTPRequestHandler):
         self.wfile.write(data)
 
     def _start_chunks(self, content_type: str) -> None:
+        self._streaming = True
         self.send_response(200)
         self.send_header("Content-Type", content_type)
         self.send_header("Transfer-Encoding", "chunked")
@@ -272,14 +280,15 @@ class _Handler(BaseHTTPRequestHandler):
         raise ApiError(405, "MethodNotAllowed", f"the server does not allow this method on "
                        f"the requested resource ({method} {self.path})")
 
-    def _selects(self, route: _Route) -> st.Predicate:
+    def _selects(self, route: _Route) -> Predicate:
         labels = label_selector(self.query.get("labelSelector"))
         fields = field_selector(self.query.get("fieldSelector"), route.res.kind)
         return lambda obj: labels(obj) and fields(obj)
 
     def _list(self, route: _Route) -> None:
         items, rv = self.api.store.list(route.res, route.ns, self._selects(route))
-        start, meta = 0, {"resourceVersion": str(rv)}
+        start = 0
+        meta: dict[str, Any] = {"resourceVersion": str(rv)}
         if self.query.get("continue"):
             start, rv = _continued(self.query["continue"])
             meta["resourceVersion"] = str(rv)
@@ -332,7 +341,7 @@ class _Handler(BaseHTTPRequestHandler):
         if not readable:
             return False
         try:
-            return self.connection.recv(1, socket.MSG_PEEK) == b""
+            return bool(self.connection.recv(1, socket.MSG_PEEK) == b"")
         except OSError:
             return True
 
@@ -368,7 +377,7 @@ class _Handler(BaseHTTPRequestHandler):
         name = self.query.get("container")
         if not name:
             if len(names) == 1:
-                return names[0]
+                return str(names[0])
             raise ApiError(400, "BadRequest", "a container name must be specified for pod "
                            f"{pod['metadata']['name']}, choose one of: [{' '.join(names)}] or "
                            f"one of the init containers: [{' '.join(inits)}]")
