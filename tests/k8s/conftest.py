@@ -2,9 +2,10 @@
 
 - ``api``: an :class:`ApiServer` on loopback with a :class:`Kubelet` attached (so pods are
   scheduled and status scripts play) and one node; ``api.core`` / ``api.custom`` are the
-  official client's ``CoreV1Api`` / ``CustomObjectsApi`` pointed at it. Pods that reach
-  podman need the ``podman`` fixture as well.
-- ``podman``: podman's environment and the offline test images (``tests/containers``);
+  official client's ``CoreV1Api`` / ``CustomObjectsApi`` pointed at it. ``strict_api`` also
+  checks objects against the 1.33 schema. Pods that reach podman need ``images`` as well.
+- ``podman_env`` and ``images`` are the container tests' fixtures (``tests/containers``):
+  podman's environment with the settings these machines need, and the offline test images;
   without podman the test is skipped, or fails when ``OSMO_EXPECT_CONTAINERS=1``.
 
 After each test the kubelet removes what is left and the test fails if podman still has a
@@ -13,8 +14,6 @@ pod or container of it.
 
 from __future__ import annotations
 
-import os
-import shutil
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,7 +21,7 @@ from pathlib import Path
 import pytest
 from kubernetes import client
 
-from tests.containers.images import ensure_images, write_containers_conf
+from tests.containers.conftest import images, podman_env  # noqa: F401 - the same fixtures
 from tests.k8s.apiserver import ApiServer
 from tests.k8s.kubelet import Kubelet
 
@@ -44,25 +43,6 @@ def _client(url: str) -> client.ApiClient:
     return client.ApiClient(config)
 
 
-@pytest.fixture(scope="session")
-def podman_conf(tmp_path_factory: pytest.TempPathFactory) -> dict[str, str]:
-    """podman's environment with the containers.conf these machines need (no images)."""
-    if shutil.which("podman") is None:
-        message = "podman is not installed (./dev test installs it: apt-get install podman runc)"
-        if os.environ.get("OSMO_EXPECT_CONTAINERS") == "1":
-            pytest.fail(message)
-        pytest.skip(message)
-    conf = write_containers_conf(tmp_path_factory.mktemp("k8s-podman"))
-    return dict(os.environ, CONTAINERS_CONF=str(conf))
-
-
-@pytest.fixture(scope="session")
-def podman(podman_conf: dict[str, str]) -> dict[str, str]:
-    """podman's environment, with the offline test images built (alpine:3.18 ...)."""
-    ensure_images(podman_conf)
-    return podman_conf
-
-
 def _cluster(tmp_path: Path, env: dict[str, str], validate: str | None) -> Iterator[Cluster]:
     server = ApiServer(validate=validate).start()
     kubelet = Kubelet(server, env, tmp_path / "node")
@@ -79,12 +59,12 @@ def _cluster(tmp_path: Path, env: dict[str, str], validate: str | None) -> Itera
 
 
 @pytest.fixture
-def api(tmp_path: Path, podman_conf: dict[str, str]) -> Iterator[Cluster]:
+def api(tmp_path: Path, podman_env: dict[str, str]) -> Iterator[Cluster]:  # noqa: F811
     """The stand-in with one node (4 cpu, 8Gi, 1 GPU)."""
-    yield from _cluster(tmp_path, podman_conf, validate=None)
+    yield from _cluster(tmp_path, podman_env, validate=None)
 
 
 @pytest.fixture
-def strict_api(tmp_path: Path, podman_conf: dict[str, str]) -> Iterator[Cluster]:
+def strict_api(tmp_path: Path, podman_env: dict[str, str]) -> Iterator[Cluster]:  # noqa: F811
     """The stand-in refusing what fails the Kubernetes 1.33 schema (strict)."""
-    yield from _cluster(tmp_path, podman_conf, validate="1.33")
+    yield from _cluster(tmp_path, podman_env, validate="1.33")

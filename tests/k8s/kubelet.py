@@ -30,7 +30,6 @@ from __future__ import annotations
 import queue
 import tempfile
 import threading
-import time
 import uuid
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
@@ -68,7 +67,6 @@ class _Pod:
     sidecars: list[str] = field(default_factory=list)
     limited: set[str] = field(default_factory=set)  # containers with a memory limit
     seen: dict[str, ContainerState] = field(default_factory=dict)
-    details: dict[str, Obj] = field(default_factory=dict)  # inspect of ended containers
     waiting: tuple[str, str] | None = None  # (reason, message) for every container
     started: str = ""
     stopping_sidecars: bool = False
@@ -332,19 +330,15 @@ class Kubelet:
                 print(f"k8s stand-in poller: {exc!r}")
 
     def _observe(self, pods: list[_Pod]) -> None:
-        states = self.podman.states()
+        states = self.podman.states({p.podman: self.podman.played.get(p.podman, [])
+                                     for p in pods})
         for pod in pods:
             seen = states.get(pod.podman, {})
-            ended = [f"{pod.podman}-{n}" for n, s in seen.items()
-                     if s.ended and n not in pod.details]
-            found = self.podman.inspect(ended)  # OOMKilled, once per container
             with self._lock:
                 if pod.stage not in ("playing", "running"):
                     continue
                 changed = seen != pod.seen
                 pod.seen = seen
-                for full, info in found.items():
-                    pod.details[full[len(pod.podman) + 1:]] = info
                 regular = [n for n in seen if n not in pod.sidecars]
                 finished = bool(regular) and all(seen[n].ended for n in regular)
                 stop = [f"{pod.podman}-{n}" for n in pod.sidecars
@@ -354,7 +348,7 @@ class Kubelet:
                     pod.stopping_sidecars = True
             if stop:
                 self._spawn(self.podman.stop_containers, f"k8s-sidecars-{pod.name}", stop, 10)
-            if changed or ended:
+            if changed:
                 phase = self._publish(pod)
                 if phase in ("Succeeded", "Failed") and all(s.ended for s in seen.values()):
                     with self._lock:
@@ -458,17 +452,15 @@ class Kubelet:
             return {**base, "state": {"waiting": {"reason": before}}}
         base.update(containerID=f"podman://{seen.container_id}",
                     imageID=f"sha256:{seen.image_id}")
-        started = _time(seen.started)
         if seen.state == "running":
             return {**base, "ready": True, "started": True,
-                    "state": {"running": {"startedAt": started}}}
-        info = pod.details.get(name) or {}
-        oom = bool((info.get("State") or {}).get("OOMKilled")) or (
-            seen.exit_code == 137 and name in pod.limited and not pod.killed)
+                    "state": {"running": {"startedAt": seen.started}}}
+        oom = seen.oom_killed or (seen.exit_code == 137 and name in pod.limited
+                                  and not pod.killed)
         reason = "OOMKilled" if oom else ("Completed" if seen.exit_code == 0 else "Error")
         return {**base, "state": {"terminated": {
-            "exitCode": seen.exit_code, "reason": reason, "startedAt": started,
-            "finishedAt": _time(seen.finished or time.time()),
+            "exitCode": seen.exit_code, "reason": reason, "startedAt": seen.started,
+            "finishedAt": seen.finished or st.now(),
             "containerID": f"podman://{seen.container_id}"}}}
 
     # ------------------------------------------------------------------ deletion
@@ -481,7 +473,8 @@ class Kubelet:
             if play is not None and play.poll() is None:
                 play.kill()
             self.podman.stop(pod.podman, grace)
-            seen = self.podman.states().get(pod.podman, {})
+            seen = self.podman.states({pod.podman: self.podman.played.get(pod.podman, [])}
+                                      ).get(pod.podman, {})
             with self._lock:
                 pod.seen = {**pod.seen, **seen}
             self._publish(pod)
@@ -559,6 +552,3 @@ class _ScriptView:
         while not event.wait(0.1) and not self._kubelet._closed.is_set():
             pass
 
-
-def _time(seconds: float) -> str:
-    return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(seconds)) if seconds else ""

@@ -30,7 +30,7 @@ The only module of the stand-in that runs podman. What podman 4.3 needs, found b
   ``tolerations``, ``affinity``, ``schedulerName``, ``priorityClassName``,
   ``imagePullSecrets``, service account fields); ``resources`` stay (memory and cpu limits are
   enforced). An ``emptyDir`` with ``medium: Memory`` is a plain folder (no size limit).
-- **Exits.** ``podman ps`` gives states and exit codes; ``inspect`` gives ``OOMKilled``,
+- **Exits.** ``podman inspect`` by name gives states, exit codes and ``OOMKilled``,
   which podman does not set on hybrid cgroups (these machines), so an exit of
   137 of a container with a memory limit that the node did not stop counts as OOMKilled.
 """
@@ -66,20 +66,21 @@ SecretLookup = Callable[[str], "Mapping[str, bytes] | None"]
 
 @dataclass(frozen=True)
 class ContainerState:
-    """One container as podman last showed it."""
+    """One container as ``podman inspect`` last showed it."""
 
     name: str  # the Kubernetes container name
     state: str  # podman's: created, running, exited, stopped, ...
     exit_code: int
-    started: float  # unix seconds (0: never)
-    finished: float
+    started: str  # RFC 3339, seconds ("" : never)
+    finished: str
+    oom_killed: bool
     container_id: str
     image_id: str
 
     @property
     def ended(self) -> bool:
         """Whether it ran and stopped."""
-        return self.state in ("exited", "stopped") and self.started > 0
+        return self.state in ("exited", "stopped") and bool(self.started)
 
 
 class MissingSecret(Exception):
@@ -220,6 +221,7 @@ class PodmanPods:
         self.env = dict(env)
         self.prefix = prefix
         self.folder = folder
+        self.played: dict[str, list[str]] = {}  # podman pod → its containers, ever played
 
     def podman_name(self, namespace: str, name: str) -> str:
         """The podman pod name for a Kubernetes pod."""
@@ -234,6 +236,9 @@ class PodmanPods:
         """Write a manifest (JSON is YAML) into the node's folder; return its path."""
         path = self.folder / f"{podman_name}.json"
         path.write_text(json.dumps(manifest))
+        spec = manifest["spec"]
+        self.played[podman_name] = [c["name"] for c in spec.get("initContainers", [])
+                                    + spec["containers"]]
         return path
 
     def play(self, manifest: Path) -> subprocess.Popen[str]:
@@ -242,33 +247,31 @@ class PodmanPods:
                                 stdout=subprocess.PIPE,
                                 stderr=subprocess.PIPE, text=True, env=self.env)
 
-    def states(self) -> dict[str, dict[str, ContainerState]]:
-        """Every container of this node's pods: {podman pod: {container name: state}}."""
-        done = self.run("ps", "-a", "--pod", "--filter", f"label={LABEL}={self.prefix}",
-                        "--format", "json")
-        out: dict[str, dict[str, ContainerState]] = {}
-        for entry in json.loads(done.stdout or "[]") if done.returncode == 0 else []:
-            pod = entry.get("PodName") or ""
-            full = (entry.get("Names") or [""])[0]
-            if not pod or not full.startswith(pod + "-"):
-                continue
-            name = full[len(pod) + 1:]
-            out.setdefault(pod, {})[name] = ContainerState(
-                name, entry.get("State", ""), int(entry.get("ExitCode") or 0),
-                float(entry.get("StartedAt") or 0), float(entry.get("ExitedAt") or 0),
-                entry.get("Id", ""), entry.get("ImageID", ""))
-        return out
+    def states(self, pods: Mapping[str, Sequence[str]]) -> dict[str, dict[str, ContainerState]]:
+        """The containers of ``pods`` ({podman pod: container names}) that exist now.
 
-    def inspect(self, containers: Sequence[str]) -> dict[str, Obj]:
-        """``podman inspect`` of containers (by full name); missing ones are left out."""
-        if not containers:
+        One ``podman inspect`` by name: unlike ``podman ps``, it never looks at other users'
+        containers (one of them in a bad state makes ``podman ps`` fail for everyone).
+        """
+        names = {f"{pod}-{name}": (pod, name) for pod, names in pods.items() for name in names}
+        if not names:
             return {}
-        done = self.run("inspect", "--type", "container", "--format", "json", *containers)
+        done = self.run("inspect", "--type", "container", "--format", "json", *names)
         try:
-            found = json.loads(done.stdout or "[]")
+            found = json.loads(done.stdout or "[]") or []
         except ValueError:
-            return {}
-        return {entry.get("Name", ""): entry for entry in found or []}
+            found = []  # podman printed nothing usable: nothing is known this time
+        out: dict[str, dict[str, ContainerState]] = {}
+        for entry in found:
+            if entry.get("Name") not in names:
+                continue
+            pod, name = names[entry["Name"]]
+            state = entry.get("State") or {}
+            out.setdefault(pod, {})[name] = ContainerState(
+                name, state.get("Status", ""), int(state.get("ExitCode") or 0),
+                _seconds(state.get("StartedAt")), _seconds(state.get("FinishedAt")),
+                bool(state.get("OOMKilled")), entry.get("Id", ""), entry.get("Image", ""))
+        return out
 
     def stop(self, podman_name: str, grace: int) -> None:
         """Stop a pod: SIGTERM, and SIGKILL after ``grace`` seconds."""
@@ -308,9 +311,19 @@ class PodmanPods:
             proc.stdout.close()
 
     def leftovers(self) -> tuple[list[str], list[str]]:
-        """(pods, containers) of this node that still exist."""
-        pods = self.run("pod", "ps", "--filter", f"label={LABEL}={self.prefix}",
-                        "--format", "{{.Name}}").stdout.split()
-        containers = self.run("ps", "-a", "--filter", f"label={LABEL}={self.prefix}",
-                              "--format", "{{.Names}}").stdout.split()
-        return pods, containers
+        """(pods, containers) this node played that still exist, and any other pod carrying
+        its label."""
+        found = self.run("pod", "ps", "--filter", f"label={LABEL}={self.prefix}",
+                         "--format", "{{.Name}}").stdout.split()
+        left = self.run("pod", "inspect", "--format", "{{.Name}}", *self.played).stdout.split() \
+            if self.played else []
+        states = self.states(self.played)
+        containers = [f"{pod}-{name}" for pod, names in states.items() for name in names]
+        return sorted(set(found) | set(left)), sorted(containers)
+
+
+def _seconds(stamp: str | None) -> str:
+    """podman's RFC 3339 time with nanoseconds as the API writes it ("" for never)."""
+    if not stamp or stamp.startswith("0001-"):
+        return ""
+    return stamp[:19] + "Z"

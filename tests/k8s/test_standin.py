@@ -340,28 +340,21 @@ def test_log_requests_the_server_refuses(api: Cluster) -> None:
 
 # ---------------------------------------------------------------------- status scripts
 
+STARTED = [("ADDED", "Pending", None), ("MODIFIED", "Pending", "ContainerCreating"),
+           ("MODIFIED", "Running", "running")]
 EXPECTED = {
     "unschedulable-running-succeeded": [
-        ("ADDED", "Pending", None), ("MODIFIED", "Pending", "Unschedulable"),
-        ("MODIFIED", "Pending", "ContainerCreating"), ("MODIFIED", "Running", "running"),
+        ("ADDED", "Pending", None), ("MODIFIED", "Pending", "Unschedulable"), *STARTED[1:],
         ("MODIFIED", "Succeeded", "Completed:0")],
     "image-pull-error": [
-        ("ADDED", "Pending", None), ("MODIFIED", "Pending", "ContainerCreating"),
-        ("MODIFIED", "Pending", "ErrImagePull"), ("MODIFIED", "Pending", "ImagePullBackOff")],
-    "oom-killed": [
-        ("ADDED", "Pending", None), ("MODIFIED", "Pending", "ContainerCreating"),
-        ("MODIFIED", "Running", "running"), ("MODIFIED", "Failed", "OOMKilled:137")],
-    "evicted": [
-        ("ADDED", "Pending", None), ("MODIFIED", "Pending", "ContainerCreating"),
-        ("MODIFIED", "Running", "running"), ("MODIFIED", "Failed", "Evicted")],
-    "preempted": [
-        ("ADDED", "Pending", None), ("MODIFIED", "Pending", "ContainerCreating"),
-        ("MODIFIED", "Running", "running"), ("MODIFIED", "Running", "PreemptionByScheduler"),
-        ("DELETED", "Running", "PreemptionByScheduler")],
-    "node-lost": [
-        ("ADDED", "Pending", None), ("MODIFIED", "Pending", "ContainerCreating"),
-        ("MODIFIED", "Running", "running"), ("MODIFIED", "Unknown", "NodeLost"),
-        ("MODIFIED", "Unknown", "NodeLost"), ("DELETED", "Unknown", "NodeLost")],
+        *STARTED[:2], ("MODIFIED", "Pending", "ErrImagePull"),
+        ("MODIFIED", "Pending", "ImagePullBackOff")],
+    "oom-killed": [*STARTED, ("MODIFIED", "Failed", "OOMKilled:137")],
+    "evicted": [*STARTED, ("MODIFIED", "Failed", "Evicted")],
+    "preempted": [*STARTED, ("MODIFIED", "Running", "PreemptionByScheduler"),
+                  ("DELETED", "Running", "PreemptionByScheduler")],
+    "node-lost": [*STARTED, ("MODIFIED", "Unknown", "NodeLost"),
+                  ("MODIFIED", "Unknown", "NodeLost"), ("DELETED", "Unknown", "NodeLost")],
 }
 
 
@@ -414,7 +407,7 @@ def test_a_stalled_watch_stays_open_and_silent_while_the_pod_moves_on(api: Clust
 
 
 def test_a_pod_runs_under_podman_from_pending_to_succeeded(
-        api: Cluster, podman: dict[str, str], tmp_path: Path) -> None:
+        api: Cluster, images: dict[str, str], tmp_path: Path) -> None:
     gate = tmp_path / "gate"
     gate.mkdir()
     body = pod("hello", "cat /data/x.txt; echo waiting; "
@@ -457,7 +450,7 @@ def test_a_pod_runs_under_podman_from_pending_to_succeeded(
 
 
 def test_secrets_reach_the_pod_and_go_with_it_in_three_writes(
-        api: Cluster, podman: dict[str, str]) -> None:
+        api: Cluster, images: dict[str, str]) -> None:
     body = pod("secretive", 'echo "env=$TOKEN"; cat /creds/token; echo; ls /creds')
     body["spec"]["volumes"] = [{"name": "creds", "secret": {"secretName": "attempt-1"}}]
     main = body["spec"]["containers"][0]
@@ -485,7 +478,7 @@ def test_secrets_reach_the_pod_and_go_with_it_in_three_writes(
 
 
 def test_a_graceful_delete_stops_the_pod_and_collects_its_secret(
-        api: Cluster, podman: dict[str, str]) -> None:
+        api: Cluster, images: dict[str, str]) -> None:
     body = pod("long", "trap 'echo terminated; exit 0' TERM; echo up; sleep 300 & wait")
     since = version(api)
     created = api.core.create_namespaced_pod(NS, body)
@@ -505,7 +498,7 @@ def test_a_graceful_delete_stops_the_pod_and_collects_its_secret(
 @pytest.mark.parametrize("how", ["pod-group-name", "scheduling.k8s.io/group-name",
                                  "scheduling.x-k8s.io/pod-group", "kueue"])
 def test_a_gang_starts_only_when_all_its_members_exist(
-        api: Cluster, podman: dict[str, str], how: str) -> None:
+        api: Cluster, images: dict[str, str], how: str) -> None:
     groups = {"pod-group-name": ("scheduling.run.ai", "v2alpha2"),
               "scheduling.k8s.io/group-name": ("scheduling.volcano.sh", "v1beta1"),
               "scheduling.x-k8s.io/pod-group": ("scheduling.x-k8s.io", "v1alpha1")}
@@ -541,7 +534,7 @@ def test_a_gang_starts_only_when_all_its_members_exist(
 
 
 def test_a_pod_that_does_not_fit_waits_until_a_node_can_take_it(
-        api: Cluster, podman: dict[str, str]) -> None:
+        api: Cluster, images: dict[str, str]) -> None:
     body = pod("big", "echo ran")
     body["spec"]["containers"][0]["resources"] = {"requests": {"cpu": "8", "memory": "1Gi"},
                                                   "limits": {"nvidia.com/gpu": "1"}}
@@ -558,7 +551,7 @@ def test_a_pod_that_does_not_fit_waits_until_a_node_can_take_it(
     api.core.delete_namespaced_pod("big", NS)
 
 
-def test_an_image_that_cannot_be_pulled(api: Cluster, podman: dict[str, str]) -> None:
+def test_an_image_that_cannot_be_pulled(api: Cluster, images: dict[str, str]) -> None:
     since = version(api)
     api.core.create_namespaced_pod(NS, pod("nopull", image="nvcr.io/nvidia/nosuch:1.0"))
     events = watch_pod(api, "nopull", since, lambda e: summary(e)[2] == "ImagePullBackOff")
@@ -573,7 +566,7 @@ def test_an_image_that_cannot_be_pulled(api: Cluster, podman: dict[str, str]) ->
 
 
 def test_a_container_over_its_memory_limit_is_oomkilled(
-        api: Cluster, podman: dict[str, str]) -> None:
+        api: Cluster, images: dict[str, str]) -> None:
     body = pod("hog", "x=0123456789abcdef; while true; do x=$x$x; done")
     body["spec"]["containers"][0]["resources"] = {"limits": {"memory": "20Mi"}}
     since = version(api)
@@ -584,7 +577,7 @@ def test_a_container_over_its_memory_limit_is_oomkilled(
     api.core.delete_namespaced_pod("hog", NS)
 
 
-def test_init_failures_and_native_sidecars(api: Cluster, podman: dict[str, str]) -> None:
+def test_init_failures_and_native_sidecars(api: Cluster, images: dict[str, str]) -> None:
     broken = pod("broken", "echo never", initContainers=[
         {"name": "fetch", "image": BUSYBOX, "command": ["sh", "-c", "exit 3"]}])
     with_sidecar = pod("sidecar", "echo main-done", initContainers=[
