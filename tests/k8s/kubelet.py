@@ -9,11 +9,12 @@ It follows the store's events (never HTTP) and acts as the control plane and the
 - **Running**: a bound pod's Secrets are resolved (a missing one keeps it waiting, reason
   CreateContainerConfigError for env or ContainerCreating for a volume, until it appears),
   then it is played with ``podman kube play`` (``podman_pods.py``). One poller follows every
-  container with ``podman ps`` and publishes the pod's status: phase, initContainerStatuses,
+  container (``podman inspect``) and publishes the pod's status: phase, initContainerStatuses,
   containerStatuses (waiting/running/terminated with exitCode and reason Completed, Error or
-  OOMKilled), conditions, podIP and hostIP (both 127.0.0.1: pods share the host's network). An image that cannot be pulled shows ErrImagePull
-  with podman's message, then ImagePullBackOff (the pull is not retried). Native sidecars are
-  stopped once the regular containers have exited.
+  OOMKilled), conditions, podIP and hostIP (both 127.0.0.1: pods share the host's
+  network). An image that cannot be pulled shows ErrImagePull with podman's message, then
+  ImagePullBackOff (the pull is not retried). Native sidecars are stopped once the regular
+  containers have exited.
 - **Deletion**: a graceful delete stops the pod (SIGTERM, SIGKILL after the grace),
   publishes the containers' last states, removes it from podman, then from the API; a forced
   or immediate delete removes it from podman afterwards.
