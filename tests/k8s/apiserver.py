@@ -35,6 +35,7 @@ import time
 import traceback
 from collections.abc import Iterator
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from pathlib import Path
 from typing import Any, Protocol
 from urllib.parse import parse_qs, urlsplit
 
@@ -90,6 +91,16 @@ class ApiServer:
     def writes(self) -> collections.Counter[tuple[str, str]]:
         """The writes so far, by (verb, resource)."""
         return collections.Counter({k: n for k, n in self.calls.items() if k[0] in WRITES})
+
+    def kubeconfig(self, path: Path, namespace: str = "default") -> Path:
+        """Write a kubeconfig for this server (for processes that load one); return its path."""
+        config = {"apiVersion": "v1", "kind": "Config", "current-context": "standin",
+                  "clusters": [{"name": "standin", "cluster": {"server": self.url}}],
+                  "users": [{"name": "standin", "user": {}}],
+                  "contexts": [{"name": "standin", "context": {
+                      "cluster": "standin", "user": "standin", "namespace": namespace}}]}
+        path.write_text(json.dumps(config))  # JSON is YAML
+        return path
 
     def start(self) -> ApiServer:
         """Serve in a background thread; return self."""

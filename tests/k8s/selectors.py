@@ -1,4 +1,4 @@
-"""Label and field selectors as the API server parses them (``?labelSelector=``, ``?fieldSelector=``).
+"""Label and field selectors as the API server parses them (``labelSelector``, ``fieldSelector``).
 
 Labels: ``k``, ``!k``, ``k=v``, ``k==v``, ``k!=v``, ``k in (a,b)``, ``k notin (a,b)``, joined by
 commas. Fields: ``path=v``, ``path==v``, ``path!=v`` over the few fields each kind allows

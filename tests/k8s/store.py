@@ -163,6 +163,7 @@ class Store:
     def __init__(self, history: int = 10_000) -> None:
         self.lock = threading.RLock()
         self._objects: dict[Key, Obj] = {}
+        self._propagation: dict[Key, str] = {}  # of pods deleted gracefully, until they go
         self._rv = 0
         self._history: collections.deque[Event] = collections.deque(maxlen=history)
         self._forgotten = 0  # the newest version no longer in the history
@@ -258,11 +259,9 @@ class Store:
                     seconds = grace if grace is not None else int(
                         obj["spec"].get("terminationGracePeriodSeconds", 30))
                     meta.update(deletionTimestamp=now(), deletionGracePeriodSeconds=seconds)
-                    meta["propagationPolicy"] = propagation  # read back by remove()
+                    self._propagation[key] = propagation  # for remove()
                     self._emit(res, namespace, "MODIFIED", obj)
-                shown = copy.deepcopy(obj)
-                shown["metadata"].pop("propagationPolicy", None)
-                return shown, False
+                return copy.deepcopy(obj), False
             return self._remove(key, propagation), True
 
     @staticmethod
@@ -277,13 +276,13 @@ class Store:
             obj = self._objects.get((res, namespace, name))
             if obj is None:
                 return None
-            policy = obj["metadata"].pop("propagationPolicy", "Background")
-            return self._remove((res, namespace, name), policy)
+            key = (res, namespace, name)
+            return self._remove(key, self._propagation.pop(key, "Background"))
 
     def _remove(self, key: Key, propagation: str) -> Obj:
         res, namespace, _ = key
         obj = self._objects.pop(key)
-        obj["metadata"].pop("propagationPolicy", None)
+        self._propagation.pop(key, None)
         self._emit(res, namespace, "DELETED", obj)
         self._collect(obj["metadata"]["uid"], orphan=propagation == "Orphan")
         return copy.deepcopy(obj)
@@ -313,9 +312,7 @@ class Store:
         obj["metadata"]["resourceVersion"] = str(self._rv)
         if len(self._history) == self._history.maxlen:
             self._forgotten = self._history[0].rv
-        snapshot = copy.deepcopy(obj)
-        snapshot["metadata"].pop("propagationPolicy", None)
-        event = Event(self._rv, res, namespace, kind, snapshot)
+        event = Event(self._rv, res, namespace, kind, copy.deepcopy(obj))
         self._history.append(event)
         for watch in self._watches:
             if not watch.stalled.is_set() and watch.matches(event):

@@ -20,7 +20,7 @@ from typing import Any
 import pydantic
 import pytest
 import urllib3
-from kubernetes import client, watch
+from kubernetes import client, config, watch
 from kubernetes.client.rest import ApiException
 
 from tests.k8s import scripts
@@ -134,6 +134,20 @@ def test_create_get_list_and_delete_with_the_real_servers_answers(api: Cluster) 
     with pytest.raises(ApiException) as bad:
         api.core.list_namespaced_pod(NS, label_selector="a in b")
     assert bad.value.status == 400
+
+
+def test_a_kubeconfig_points_the_client_at_the_stand_in(api: Cluster, tmp_path: Path) -> None:
+    path = api.server.kubeconfig(tmp_path / "kubeconfig")
+    loaded = config.new_client_from_config(config_file=str(path))
+    try:
+        core = client.CoreV1Api(loaded)
+        core.create_namespaced_pod(NS, unplaceable("via-kubeconfig"))
+        assert [p.metadata.name for p in core.list_namespaced_pod(NS).items] == [
+            "via-kubeconfig"]
+        terminating = core.read_namespaced_pod("via-kubeconfig", NS)
+        assert terminating.status.phase == "Pending"
+    finally:
+        loaded.close()
 
 
 def test_pages_patches_replacement_and_collections(api: Cluster) -> None:
@@ -478,8 +492,12 @@ def test_secrets_reach_the_pod_and_go_with_it_in_three_writes(
 
 
 def test_a_graceful_delete_stops_the_pod_and_collects_its_secret(
-        api: Cluster, images: dict[str, str]) -> None:
-    body = pod("long", "trap 'echo terminated; exit 0' TERM; echo up; sleep 300 & wait")
+        api: Cluster, images: dict[str, str], tmp_path: Path) -> None:
+    gate = tmp_path / "gate"
+    gate.mkdir()
+    body = pod("long", "trap 'while [ ! -e /gate/go ]; do sleep 0.1; done; exit 0' TERM; "
+               "sleep 300 & wait", volumes=[{"name": "gate", "hostPath": {"path": str(gate)}}])
+    body["spec"]["containers"][0]["volumeMounts"] = [{"name": "gate", "mountPath": "/gate"}]
     since = version(api)
     created = api.core.create_namespaced_pod(NS, body)
     api.core.create_namespaced_secret(NS, client.V1Secret(
@@ -487,11 +505,16 @@ def test_a_graceful_delete_stops_the_pod_and_collects_its_secret(
             client.V1OwnerReference(api_version="v1", kind="Pod", name="long",
                                     uid=created.metadata.uid)])))
     running = watch_pod(api, "long", since, phase_is("Running"))[-1]["object"]
-    marked = api.core.delete_namespaced_pod("long", NS, grace_period_seconds=20)
-    assert marked.metadata.deletion_timestamp and marked.metadata.deletion_grace_period_seconds == 20
+    marked = api.core.delete_namespaced_pod("long", NS, grace_period_seconds=60)
+    assert marked.metadata.deletion_timestamp
+    assert marked.metadata.deletion_grace_period_seconds == 60
+    # It got SIGTERM and is still terminating (its handler waits for the gate).
+    assert api.core.read_namespaced_pod("long", NS).metadata.deletion_timestamp
+    assert [s.metadata.name for s in api.core.list_namespaced_secret(NS).items] == ["long-creds"]
+    (gate / "go").touch()
     events = watch_pod(api, "long", running.metadata.resource_version, deleted)
     last = events[-1]["object"].status.container_statuses[0].state.terminated
-    assert last is not None and last.exit_code == 0  # it got SIGTERM and left in time
+    assert last is not None and last.exit_code == 0  # left on its own, within the grace
     assert api.core.list_namespaced_secret(NS).items == []
 
 
