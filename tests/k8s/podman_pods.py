@@ -1,0 +1,329 @@
+"""The node's hands: Pod manifests run under ``podman kube play``, watched, logged, removed.
+
+The only module of the stand-in that runs podman. What podman 4.3 needs, found by trying:
+
+- **Names.** Every stand-in's pods get a prefix of their own (``podman_name``): podman's pod
+  and container names are global on the machine and other test sessions share them.
+  Containers are ``<podman pod>-<container>``; the pod's hostname stays its Kubernetes name.
+  A label (``LABEL=<prefix>``) on every pod and container lets :meth:`PodmanPods.leftovers`
+  find what is left.
+- **The host's network** (``kube play --network host``): every pod shares it, as a pod with
+  ``hostNetwork: true`` does, so its podIP is the host's (127.0.0.1) and it reaches services
+  on the host's loopback. A network namespace per pod is what podman 4.3 handles badly here:
+  with several pods starting and stopping at once it unmounts namespaces it still uses
+  (after which ``podman ps`` fails for every user of the machine until the pod is removed)
+  and leaves their files in ``/run/netns``. Ports are therefore shared between pods, and no
+  cluster DNS resolves Service or pod names.
+- **Init containers** run inside ``kube play`` (it returns after they finished, or fails with
+  ``init container ... exited with code N``). The annotation
+  ``io.podman.annotations.init.container.type: always`` keeps them, so their exit codes can
+  be read.
+  **Native sidecars** (an init container with ``restartPolicy: Always``) would block ``kube
+  play`` for ever: they become ordinary containers, and the kubelet stops them when the
+  regular containers have exited.
+- **Secrets.** podman reads ``secretKeyRef`` env from a podman secret holding a JSON map of
+  base64 values, but a Secret *volume* gets the base64 text undecoded and ``items`` ignored.
+  So :func:`translate` resolves both itself: env becomes literal values, a Secret volume a
+  read-only ``hostPath`` folder of decoded files (0700, under the node's private folder).
+  ``fieldRef`` env for the pod's name, namespace, uid, node and host IP is resolved too.
+- **Fields podman ignores or cannot honour** are removed (``nodeName``, ``nodeSelector``,
+  ``tolerations``, ``affinity``, ``schedulerName``, ``priorityClassName``,
+  ``imagePullSecrets``, service account fields); ``resources`` stay (memory and cpu limits are
+  enforced). An ``emptyDir`` with ``medium: Memory`` is a plain folder (no size limit).
+- **Exits.** ``podman inspect`` by name gives states, exit codes and ``OOMKilled``,
+  which podman does not set on hybrid cgroups (these machines), so an exit of
+  137 of a container with a memory limit that the node did not stop counts as OOMKilled.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import os
+import shutil
+import subprocess
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+__all__ = ["LABEL", "ContainerState", "MissingSecret", "PodmanPods", "translate"]
+
+LABEL = "osmo.k8s-standin"
+INIT_TYPE = "io.podman.annotations.init.container.type"
+DROPPED_SPEC = ("nodeName", "nodeSelector", "tolerations", "affinity", "schedulerName",
+                "priorityClassName", "priority", "preemptionPolicy", "imagePullSecrets",
+                "serviceAccountName", "serviceAccount", "automountServiceAccountToken",
+                "topologySpreadConstraints", "schedulingGates", "enableServiceLinks",
+                "runtimeClassName", "overhead", "readinessGates")
+PULL_FAILURES = ("Trying to pull", "initializing source", "pinging container registry",
+                 "manifest unknown", "unable to pull", "image not known", "name unknown",
+                 "requested access to the resource is denied")
+
+Obj = dict[str, Any]
+SecretLookup = Callable[[str], "Mapping[str, bytes] | None"]
+
+
+@dataclass(frozen=True)
+class ContainerState:
+    """One container as ``podman inspect`` last showed it."""
+
+    name: str  # the Kubernetes container name
+    state: str  # podman's: created, running, exited, stopped, ...
+    exit_code: int
+    started: str  # RFC 3339, seconds ("" : never)
+    finished: str
+    oom_killed: bool
+    container_id: str
+    image_id: str
+
+    @property
+    def ended(self) -> bool:
+        """Whether it ran and stopped."""
+        return self.state in ("exited", "stopped") and bool(self.started)
+
+
+class MissingSecret(Exception):
+    """A Secret the pod needs does not exist (yet)."""
+
+    def __init__(self, name: str, key: str | None, for_env: bool) -> None:
+        where = f'key "{key}" in ' if key else ""
+        super().__init__(f'{where}secret "{name}" not found')
+        self.name, self.for_env = name, for_env
+
+
+def translate(pod: Obj, podman_name: str, prefix: str, folder: Path, secrets: SecretLookup,
+              node_name: str) -> tuple[Obj, list[str]]:
+    """The manifest podman plays for ``pod``, and the names of its native sidecars.
+
+    Secret volumes are written under ``folder``; a Secret that is missing raises
+    :class:`MissingSecret` before anything is written.
+    """
+    meta, spec = pod["metadata"], copy.deepcopy(pod["spec"])
+    for key in DROPPED_SPEC:
+        spec.pop(key, None)
+    spec.setdefault("hostname", meta["name"][:63].rstrip("-."))
+    sidecars = [c for c in spec.get("initContainers") or [] if c.get("restartPolicy") == "Always"]
+    spec["initContainers"] = [c for c in spec.get("initContainers") or [] if c not in sidecars]
+    spec["containers"] = list(spec["containers"]) + sidecars
+    if not spec["initContainers"]:
+        del spec["initContainers"]
+    fields = {"metadata.name": meta["name"], "metadata.namespace": meta.get("namespace", ""),
+              "metadata.uid": meta.get("uid", ""), "spec.nodeName": node_name,
+              "status.hostIP": "127.0.0.1", "status.podIP": "127.0.0.1",
+              "spec.serviceAccountName":
+              pod["spec"].get("serviceAccountName", "default")}
+    for container in spec["containers"] + spec.get("initContainers", []):
+        container.pop("restartPolicy", None)
+        container["env"] = _env(container, secrets, fields, meta)
+        container.pop("envFrom", None)
+    volumes = []
+    for volume in spec.get("volumes") or []:
+        if "secret" in volume:
+            path = _secret_volume(volume, folder / volume["name"], secrets)
+            if path is None:
+                continue  # optional and missing: the mount is dropped with it
+            volume = {"name": volume["name"], "hostPath": {"path": str(path),
+                                                           "type": "Directory"}}
+            _read_only(spec, volume["name"])
+        volumes.append(volume)
+    spec["volumes"] = volumes
+    names = {v["name"] for v in volumes}
+    for container in spec["containers"] + spec.get("initContainers", []):
+        container["volumeMounts"] = [m for m in container.get("volumeMounts") or []
+                                     if m.get("name") in names]
+    annotations = {k: str(v) for k, v in (meta.get("annotations") or {}).items()}
+    annotations[INIT_TYPE] = "always"
+    manifest = {"apiVersion": "v1", "kind": "Pod", "spec": spec,
+                "metadata": {"name": podman_name, "annotations": annotations,
+                             "labels": {**(meta.get("labels") or {}), LABEL: prefix}}}
+    return manifest, [c["name"] for c in sidecars]
+
+
+def _env(container: Obj, secrets: SecretLookup, fields: Mapping[str, str],
+         meta: Obj) -> list[Obj]:
+    out: list[Obj] = []
+    for source in container.get("envFrom") or []:
+        ref = source.get("secretRef")
+        if ref is None:
+            continue  # configMapRef: not served by the stand-in
+        data = secrets(ref["name"])
+        if data is None:
+            if ref.get("optional"):
+                continue
+            raise MissingSecret(ref["name"], None, for_env=True)
+        out += [{"name": source.get("prefix", "") + k, "value": v.decode(errors="replace")}
+                for k, v in data.items()]
+    for var in container.get("env") or []:
+        found = var.get("valueFrom") or {}
+        if "secretKeyRef" in found:
+            ref = found["secretKeyRef"]
+            data = secrets(ref["name"])
+            if data is None or ref["key"] not in data:
+                if ref.get("optional"):
+                    continue
+                raise MissingSecret(ref["name"], ref["key"] if data else None, for_env=True)
+            var = {"name": var["name"], "value": data[ref["key"]].decode(errors="replace")}
+        elif "fieldRef" in found:
+            path = found["fieldRef"].get("fieldPath", "")
+            value = fields.get(path)
+            if path.startswith(("metadata.labels['", "metadata.annotations['")):
+                group, key = path.split("['", 1)
+                value = (meta.get(group.split(".")[1]) or {}).get(key.rstrip("']"), "")
+            if value is not None:
+                var = {"name": var["name"], "value": value}
+        out.append(var)
+    return out
+
+
+def _secret_volume(volume: Obj, folder: Path, secrets: SecretLookup) -> Path | None:
+    source = volume["secret"]
+    data = secrets(source.get("secretName", ""))
+    if data is None:
+        if source.get("optional"):
+            return None
+        raise MissingSecret(source.get("secretName", ""), None, for_env=False)
+    items = source.get("items") or [{"key": k, "path": k} for k in data]
+    mode = int(source.get("defaultMode", 0o644))
+    folder.mkdir(parents=True, exist_ok=True)
+    folder.chmod(0o755)  # the pod's user may be anyone; the node's folder above is private
+    for item in items:
+        if item["key"] not in data:
+            if source.get("optional"):
+                continue
+            raise MissingSecret(source.get("secretName", ""), item["key"], for_env=False)
+        target = (folder / item["path"]).resolve()
+        if not target.is_relative_to(folder.resolve()):
+            continue  # the API refuses such paths; never write outside the folder
+        target.parent.mkdir(parents=True, exist_ok=True)
+        target.write_bytes(data[item["key"]])
+        target.chmod(int(item.get("mode", mode)))
+    return folder
+
+
+def _read_only(spec: Obj, volume: str) -> None:
+    for container in spec["containers"] + spec.get("initContainers", []):
+        for mount in container.get("volumeMounts") or []:
+            if mount.get("name") == volume:
+                mount["readOnly"] = True
+
+
+class PodmanPods:
+    """podman for one stand-in node: its network, its pods, their containers and logs.
+
+    Args:
+        env: the environment podman runs with (``CONTAINERS_CONF`` on these machines).
+        prefix: what every podman pod name of this node starts with (unique per node).
+        folder: a private folder for manifests and Secret files.
+    """
+
+    def __init__(self, env: Mapping[str, str], prefix: str, folder: Path) -> None:
+        self.env = dict(env)
+        self.prefix = prefix
+        self.folder = folder
+        self.played: dict[str, list[str]] = {}  # podman pod → its containers, ever played
+
+    def podman_name(self, namespace: str, name: str) -> str:
+        """The podman pod name for a Kubernetes pod."""
+        return f"{self.prefix}-{namespace}-{name}"
+
+    def run(self, *args: str, timeout: float = 120) -> subprocess.CompletedProcess[str]:
+        """``podman ARGS`` (output captured; the caller reads the return code)."""
+        return subprocess.run(["podman", *args], capture_output=True, text=True,
+                              env=self.env, timeout=timeout)
+
+    def write(self, podman_name: str, manifest: Obj) -> Path:
+        """Write a manifest (JSON is YAML) into the node's folder; return its path."""
+        path = self.folder / f"{podman_name}.json"
+        path.write_text(json.dumps(manifest))
+        spec = manifest["spec"]
+        self.played[podman_name] = [c["name"] for c in spec.get("initContainers", [])
+                                    + spec["containers"]]
+        return path
+
+    def play(self, manifest: Path) -> subprocess.Popen[str]:
+        """Start ``podman kube play`` of ``manifest`` (it returns once init containers ran)."""
+        return subprocess.Popen(["podman", "kube", "play", "--network", "host", str(manifest)],
+                                stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, text=True, env=self.env)
+
+    def states(self, pods: Mapping[str, Sequence[str]]) -> dict[str, dict[str, ContainerState]]:
+        """The containers of ``pods`` ({podman pod: container names}) that exist now.
+
+        One ``podman inspect`` by name: unlike ``podman ps``, it never looks at other users'
+        containers (one of them in a bad state makes ``podman ps`` fail for everyone).
+        """
+        names = {f"{pod}-{name}": (pod, name) for pod, names in pods.items() for name in names}
+        if not names:
+            return {}
+        done = self.run("inspect", "--type", "container", "--format", "json", *names)
+        try:
+            found = json.loads(done.stdout or "[]") or []
+        except ValueError:
+            found = []  # podman printed nothing usable: nothing is known this time
+        out: dict[str, dict[str, ContainerState]] = {}
+        for entry in found:
+            if entry.get("Name") not in names:
+                continue
+            pod, name = names[entry["Name"]]
+            state = entry.get("State") or {}
+            out.setdefault(pod, {})[name] = ContainerState(
+                name, state.get("Status", ""), int(state.get("ExitCode") or 0),
+                _seconds(state.get("StartedAt")), _seconds(state.get("FinishedAt")),
+                bool(state.get("OOMKilled")), entry.get("Id", ""), entry.get("Image", ""))
+        return out
+
+    def stop(self, podman_name: str, grace: int) -> None:
+        """Stop a pod: SIGTERM, and SIGKILL after ``grace`` seconds."""
+        self.run("pod", "stop", "-t", str(max(grace, 0)), podman_name, timeout=grace + 60)
+
+    def stop_containers(self, names: Sequence[str], grace: int) -> None:
+        """Stop some containers of a pod (its sidecars)."""
+        if names:
+            self.run("stop", "-t", str(max(grace, 0)), *names, timeout=grace + 60)
+
+    def remove(self, podman_name: str) -> None:
+        """Remove a pod and its containers (stopping them at once), and its files."""
+        self.run("pod", "rm", "-f", "-t", "0", podman_name)
+        shutil.rmtree(self.folder / podman_name, ignore_errors=True)
+        (self.folder / f"{podman_name}.json").unlink(missing_ok=True)
+
+    def logs(self, container: str, *, follow: bool, tail: int | None,
+             timestamps: bool) -> Iterator[bytes]:
+        """The output of a container (stdout and stderr together), streamed."""
+        args = ["podman", "logs"]
+        if follow:
+            args.append("--follow")
+        if tail is not None:
+            args += ["--tail", str(tail)]
+        if timestamps:
+            args.append("--timestamps")
+        proc = subprocess.Popen([*args, container], stdout=subprocess.PIPE,
+                                stderr=subprocess.STDOUT, env=self.env)
+        assert proc.stdout is not None
+        try:
+            while chunk := os.read(proc.stdout.fileno(), 65536):
+                yield chunk
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+            proc.wait()
+            proc.stdout.close()
+
+    def leftovers(self) -> tuple[list[str], list[str]]:
+        """(pods, containers) this node played that still exist, and any other pod carrying
+        its label."""
+        found = self.run("pod", "ps", "--filter", f"label={LABEL}={self.prefix}",
+                         "--format", "{{.Name}}").stdout.split()
+        left = self.run("pod", "inspect", "--format", "{{.Name}}", *self.played).stdout.split() \
+            if self.played else []
+        states = self.states(self.played)
+        containers = [f"{pod}-{name}" for pod, names in states.items() for name in names]
+        return sorted(set(found) | set(left)), sorted(containers)
+
+
+def _seconds(stamp: str | None) -> str:
+    """podman's RFC 3339 time with nanoseconds as the API writes it ("" for never)."""
+    if not stamp or stamp.startswith("0001-"):
+        return ""
+    return stamp[:19] + "Z"
