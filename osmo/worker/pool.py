@@ -49,6 +49,7 @@ from __future__ import annotations
 import collections
 import logging
 import os
+import socket
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
@@ -56,13 +57,21 @@ from pathlib import Path
 
 from osmo.artifacts import ArtifactStore
 from osmo.artifacts.store import DEFAULT_MAX_FILES
-from osmo.errors import UsageError
+from osmo.errors import InfrastructureError, UsageError
 from osmo.layout import Home
 from osmo.runtime.container import ContainerEngine
 from osmo.runtime.container_runtime import ContainerRuntime
+from osmo.runtime.netns import NodeNetwork
 from osmo.runtime.process import ProcessHandle, ProcessRuntime, Runtime
 from osmo.runtime.proctable import kill_stale, process_start_time
-from osmo.runtime.sandbox import SandboxMode, choose, unavailable_reason
+from osmo.runtime.sandbox import (
+    Sandbox,
+    SandboxMode,
+    choose,
+    node_network,
+    parse_share,
+    unavailable_reason,
+)
 from osmo.scheduler.types import (
     LOCAL_NODE,
     AttemptExited,
@@ -158,17 +167,16 @@ class LocalPool(AttemptStarts):
         self._node_id, self._pool = node_id, pool
         self._cpus, self._gpus, self._memory = cpus, gpus, memory
         self._grace = kill_grace
-        inside = [d for d in sandbox_share if Path(d).absolute().is_relative_to(self.home)]
+        inside = [d for d in sandbox_share
+                  if Path(parse_share(d)[0]).absolute().is_relative_to(self.home)]
         if inside:
             raise UsageError(f"--sandbox-share {inside[0]}: it is inside osmo's home "
                              f"{self.home}, which tasks must never see")
-        self.sandbox = choose(sandbox, sandbox_share)
-        self._no_sandbox = None if self.sandbox else (
-            "no sandbox: this task sees the host as the worker's user "
-            f"({'--sandbox off' if sandbox == 'off' else unavailable_reason()})")
+        self.sandbox, self._network, self._sandbox_note = _sandbox(sandbox, sandbox_share)
         self._runtime: Runtime = runtime or ProcessRuntime(self.sandbox)
         self._procs = ProcessRecords(procs_dir) if procs_dir is not None else None
         self._hidden = [self.home]  # folders a sandboxed task never sees (see hide())
+        self._masked: list[Path] = []  # files it never sees
         self._env = base_env(os.environ) if env is None else dict(env)
         self._containers = containers
         if containers is not None:
@@ -215,10 +223,31 @@ class LocalPool(AttemptStarts):
         """How this pool runs image tasks: ``container (podman 4.3.1)`` or ``process``."""
         return f"container ({self._containers.describe()})" if self._containers else "process"
 
-    def hide(self, folder: Path) -> None:
-        """Also hide ``folder`` from sandboxed tasks (another osmo home on this host)."""
-        if folder not in self._hidden:
-            self._hidden.append(folder)
+    def hide(self, path: Path) -> None:
+        """Also hide ``path`` from sandboxed tasks.
+
+        A folder (another osmo home on this host) or a file (a token file the server or
+        worker was given).
+        """
+        path = Path(path).absolute()
+        found = self._hidden
+        if path.is_file():
+            if self.sandbox is None or not self.sandbox.shows(str(path)):
+                return  # a file no shown folder holds is not there anyway
+            found = self._masked
+        if path not in found:
+            found.append(path)
+
+    def task_socket(self, udp: bool) -> socket.socket | None:
+        """A new socket in the network of this pool's sandboxed tasks (None: the host's).
+
+        Raises:
+            OSError: it cannot be made.
+        """
+        if self._network is None:
+            return None
+        return self._network.socket(socket.AF_INET, socket.SOCK_DGRAM if udp
+                                    else socket.SOCK_STREAM)
 
     def owns(self, node_id: str) -> bool:
         """Whether ``node_id`` is this pool's node."""
@@ -260,6 +289,8 @@ class LocalPool(AttemptStarts):
         self._reactor.stop(self._shutdown)
         if self._containers is not None:
             self._containers.close()
+        if self._network is not None:
+            self._network.close()
 
     # -------------------------------------------------------------- containers
 
@@ -316,3 +347,29 @@ class LocalPool(AttemptStarts):
         self._attempts.clear()
         if self._procs is not None:
             self._procs.close()
+
+
+def _sandbox(mode: SandboxMode, shares: Sequence[str]
+             ) -> tuple[Sandbox | None, NodeNetwork | None, str | None]:
+    """The pool's sandbox in its node's namespaces, and those namespaces.
+
+    Also what to say in each process task's log, if anything: no sandbox at all, or no
+    outbound network.
+
+    Raises:
+        InfrastructureError: ``mode`` is ``on`` and no sandbox works here.
+    """
+    sandbox = choose(mode, shares)
+    why = "--sandbox off" if mode == "off" else unavailable_reason()
+    if sandbox is not None:
+        try:
+            network = node_network()
+        except InfrastructureError as exc:
+            if mode == "on":
+                raise
+            why = str(exc)
+        else:
+            if network.caveat:
+                _log.warning("sandboxed tasks: %s", network.caveat)
+            return sandbox.joined(network), network, network.caveat or None
+    return None, None, f"no sandbox: this task sees the host as the worker's user ({why})"

@@ -139,6 +139,8 @@ class RemoteWorker:
             sandbox_share=options.sandbox_share,
             procs_dir=self._layout.procs,
             containers=containers.for_node(options.runtime, options.container_engine, self.home))
+        for secret in options.secret_files:
+            self.pool.hide(Path(secret))
         self.sessions = NodeSessions(self.link, self.pool, lambda ticket: self._api.call(
             "worker_session", {"id": self.id, "ticket": ticket}))
         self._subs: list[Any] = []

@@ -11,8 +11,10 @@ pool's running attempt:
 - exec (``osmo.worker.exec_process``) runs the command in the attempt's container
   (``podman exec``) or in its working folder with its environment (in a new bubblewrap
   sandbox over the attempt's own view when the attempt is sandboxed);
-- port-forward connects each channel to the task's port on 127.0.0.1 (process task) or on
-  the container's address (container task), only to the ports the grant names.
+- port-forward connects each channel to the task's port on 127.0.0.1 (process task: of
+  the node's network namespace when it is sandboxed, ``osmo.runtime.netns``; so never to a
+  listener on the host's own loopback) or on the container's address (container task),
+  only to the ports the grant names.
 
 Every session ends, and its process or sockets with it, when its command exits, when the
 client goes silent (``osmo.transport.streams``), when the attempt stops running here, or
@@ -53,6 +55,9 @@ class SessionPool(Protocol):
 
     def running_launch(self, attempt_id: str) -> Launch | None:
         """The attempt's launch while it runs here."""
+
+    def task_socket(self, udp: bool) -> socket.socket | None:
+        """A new socket in the sandboxed tasks' network (None: there is none)."""
 
     @property
     def container_engine(self) -> ContainerEngine | None:
@@ -170,12 +175,15 @@ class _Forward(_Session):
     def __init__(self, *args: Any) -> None:
         self._channels = Channels(lambda kind, ch, data: self.stream.send(kind, ch, data))
         self._host = "127.0.0.1"
+        self._inside = False  # connect from inside the sandboxed tasks' network
         super().__init__(*args)
 
     def serve(self, launch: Launch) -> None:
         engine = self._pool.container_engine
         if launch.container is not None and engine is not None:
             self._host = container_address(engine, launch.container.name)
+        else:
+            self._inside = launch.view is not None
         self.stream.send(Kind.READY)
         self._ended.wait()
 
@@ -202,9 +210,7 @@ class _Forward(_Session):
 
     def _connect(self, channel: int, port: int, udp: bool, pending: Deferred) -> None:
         try:
-            sock = socket.create_connection((self._host, port), timeout=_CONNECT_TIMEOUT) \
-                if not udp else _udp_socket(self._host, port)
-            sock.settimeout(None)
+            sock = self._socket(port, udp)
         except OSError as exc:
             if self._channels.drop(channel):
                 self.stream.send(Kind.CLOSE, channel,
@@ -221,14 +227,22 @@ class _Forward(_Session):
         if attached:
             self._channels.pump(channel, sock, datagrams=udp)
 
+    def _socket(self, port: int, udp: bool) -> socket.socket:
+        """A socket connected to the task's ``port`` (raises OSError)."""
+        made = self._pool.task_socket(udp) if self._inside else None
+        if made is None:
+            made = socket.socket(socket.AF_INET, socket.SOCK_DGRAM if udp else socket.SOCK_STREAM)
+        try:
+            made.settimeout(_CONNECT_TIMEOUT)
+            made.connect((self._host, port))
+            made.settimeout(None)
+        except OSError:
+            made.close()
+            raise
+        return made
+
     def stop(self) -> None:
         self._channels.close()
-
-
-def _udp_socket(host: str, port: int) -> socket.socket:
-    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    sock.connect((host, port))
-    return sock
 
 
 def container_address(engine: ContainerEngine, name: str) -> str:

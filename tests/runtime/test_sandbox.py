@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import signal
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -11,29 +13,44 @@ import pytest
 from osmo.errors import InfrastructureError, UsageError
 from osmo.runtime import ProcessRuntime, StartError
 from osmo.runtime import sandbox as sandbox_mod
-from osmo.runtime.sandbox import Sandbox, View, choose
+from osmo.runtime.netns import Entry, NodeNetwork
+from osmo.runtime.sandbox import Sandbox, View, choose, node_network
 from tests.runtime.churn import churning_mounts
 from tests.runtime.test_process_runtime import read_all, wait_exit, wait_until
 
 ENV = {"PATH": os.environ["PATH"]}
 
 
+@pytest.fixture(scope="module")
+def network() -> Iterator[NodeNetwork]:
+    """A node's namespaces, as a pool makes them."""
+    made = node_network()
+    yield made
+    made.close()
+
+
 @pytest.fixture
-def box() -> Sandbox:
+def box(network: NodeNetwork) -> Sandbox:
     found = choose("on")  # ./dev test installs bubblewrap; CI runs with it
     assert found is not None
-    return found
+    return found.joined(network)
 
 
 @pytest.fixture
-def home(tmp_path: Path) -> Path:
-    """An osmo-like home: a secret beside one attempt's folders, and another attempt."""
+def home(tmp_path: Path, box: Sandbox) -> Path:
+    """An osmo-like home: a secret beside one attempt's folders, and another attempt.
+
+    Its writable folders are the task's, as a pool makes them (``workdir.hand_over``).
+    """
     root = tmp_path / "home"
     for folder in ("a/work", "a/output.partial", "a/files", "other/work", "input"):
         (root / folder).mkdir(parents=True)
     (root / "state.db").write_text("secret")
     (root / "other" / "work" / "note").write_text("other's")
     (root / "input" / "data.txt").write_text("input")
+    if box.owner is not None:
+        for folder in ("a/work", "a/output.partial", "a/files"):
+            os.chown(root / folder, *box.owner)
     return root
 
 
@@ -88,10 +105,10 @@ def test_tmp_is_the_tasks_own(box: Sandbox, home: Path) -> None:
 
 
 def test_a_shared_folder_is_writable_and_the_home_inside_it_stays_hidden(
-        box: Sandbox, home: Path) -> None:
+        box: Sandbox, home: Path, network: NodeNetwork) -> None:
     shared = choose("on", [home.parent])
     assert shared is not None and shared.shared == (os.path.realpath(home.parent),)
-    code, out = run(shared, home, f"""
+    code, out = run(shared.joined(network), home, f"""
         echo x > {home.parent}/note && echo wrote-shared
         cat {home}/state.db || echo no-db""")
     assert code == 0 and out.split() == ["wrote-shared", "no-db"], out
@@ -156,7 +173,7 @@ def test_choose_modes(monkeypatch: pytest.MonkeyPatch) -> None:
 
 
 def test_argv_orders_mounts_parents_first(home: Path) -> None:
-    argv = Sandbox("bwrap").argv(["true"], view(home))
+    argv = Sandbox("bwrap", entry=Entry()).argv(["true"], view(home))
     real = os.path.realpath
     assert argv.index(real(home)) < argv.index(real(home / "a")) < argv.index(
         real(home / "a" / "work"))
@@ -177,7 +194,7 @@ def test_osmos_own_folders_under_tmp_stay_visible_read_only(box: Sandbox, home: 
     nested.mkdir()
     found = sandbox_mod.runtime_folders([str(venv), str(nested), str(outside), "relative", ""])
     assert found == (os.path.realpath(venv),)
-    runtime = Sandbox(box.bwrap, box.devices, runtime=found)
+    runtime = dataclasses.replace(box, runtime=found)
     code, out = run(runtime, home, f"{venv}/bin/tool; touch {venv}/x || echo read-only")
     assert code == 0 and out.split() == ["from-the-venv", "read-only"], out
     code, out = run(box, home, f"{venv}/bin/tool || echo hidden")
