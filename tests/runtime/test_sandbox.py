@@ -3,8 +3,13 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
+import shutil
 import signal
+import socket
+import subprocess
+import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -287,3 +292,67 @@ def test_a_task_cannot_undo_its_mounts(box: Sandbox, home: Path) -> None:
     assert out.split()[:3] == ["no-db", "ro-host", "no-mount"], out
     assert out.split()[-1] == "0000000000000000", out
     assert not os.path.exists(f"/usr/osmo-evil-{os.getpid()}")
+
+
+UNPRIVILEGED = r"""
+import json, os, select, socket, sys
+from pathlib import Path
+from osmo.runtime import ProcessRuntime
+from osmo.runtime.sandbox import View, choose, node_network
+home, port = Path(sys.argv[1]), int(sys.argv[2])
+work = home / "a" / "work"
+work.mkdir(parents=True)
+(home / "state.db").write_text("secret")
+net = node_network()
+try:
+    runtime = ProcessRuntime(choose("on").joined(net))
+    view = View(hidden=(home,), readonly=(home / "a",), writable=(work,), cwd=work)
+    handle = runtime.start(["sh", "-c", f'''
+        id -u; grep CapBnd /proc/self/status | cut -f2; readlink /proc/self/ns/net
+        cat {home}/state.db 2>/dev/null || echo no-db
+        echo made > made && echo wrote
+        python3 -c "import socket; socket.create_connection(('127.0.0.1', {port}), 2)" \
+            2>/dev/null && echo reached || echo unreachable'''],
+        cwd=work, env={"PATH": "/usr/bin:/bin"}, view=view)
+    select.select([handle.exit_fd], [], [])
+    code = runtime.reap(handle)
+    out = os.read(handle.stdout_fd, 65536).decode().split()
+    runtime.release(handle)
+finally:
+    net.close()
+print(json.dumps({"code": code, "out": out, "caveat": net.caveat,
+                  "made": (work / "made").stat().st_uid}))
+"""
+
+
+def test_the_sandbox_of_a_user_that_is_not_root(tmp_path: Path) -> None:
+    """osmo run by an ordinary user (here nobody, from a root test run): the node's
+    namespaces are entered through nsenter; the task is root only inside, writes its files
+    as that user, sees a network of its own, and no capability is left."""
+    where = Path(tempfile.mkdtemp(prefix="osmo-user-"))  # a folder nobody can reach
+    try:
+        where.chmod(0o755)
+        shutil.copytree(Path(__file__).resolve().parents[2] / "osmo", where / "osmo")
+        (where / "home").mkdir(mode=0o777)
+        (where / "home").chmod(0o777)
+        with socket.socket() as listener:
+            listener.bind(("127.0.0.1", 0))
+            listener.listen()
+            port = listener.getsockname()[1]
+            command = ["/usr/bin/python3", "-c", UNPRIVILEGED, str(where / "home"), str(port)]
+            if os.geteuid() == 0:
+                command = ["setpriv", "--reuid=nobody", "--regid=nogroup", "--clear-groups",
+                           *command]
+            done = subprocess.run(command, capture_output=True, text=True, timeout=60,
+                                  env={"PATH": "/usr/bin:/bin", "PYTHONPATH": str(where)},
+                                  cwd=where, check=False)
+        assert done.returncode == 0, done.stderr
+        result = json.loads(done.stdout)
+        uid, bounding, netns, *rest = result["out"]
+        assert result["code"] == 0, result
+        assert (uid, bounding) == ("0", "0000000000000000"), result
+        assert netns != os.readlink("/proc/self/ns/net"), result
+        assert rest == ["no-db", "wrote", "unreachable"], result
+        assert result["made"] == (65534 if os.geteuid() == 0 else os.geteuid())
+    finally:
+        shutil.rmtree(where, ignore_errors=True)
