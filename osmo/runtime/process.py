@@ -6,8 +6,9 @@ What it owns:
   group id is its pid), with the given working folder and environment, stdin from
   ``/dev/null``, stdout and stderr as non-blocking pipes.
 - the sandbox: given a :class:`~osmo.runtime.sandbox.Sandbox` and a start's ``view``, the
-  command runs inside bubblewrap (``osmo.runtime.sandbox``); bwrap's two processes then lead
-  the group. ``--die-with-parent`` ends the sandbox when the spawning thread's process dies
+  command runs inside bubblewrap (``osmo.runtime.sandbox``), spawned in the node's
+  namespaces (``Sandbox.entered``, ``Sandbox.fds``); bwrap's two processes then lead the
+  group. ``--die-with-parent`` ends the sandbox when the spawning thread's process dies
   (not while bwrap is still setting it up: the pool records every pid at once for that,
   ``osmo.worker.procs``).
   Unsandboxed, a ``preexec_fn`` sets ``PR_SET_PDEATHSIG`` (SIGKILL) on the command, so it

@@ -449,11 +449,14 @@ def _probe_result() -> tuple[Sandbox | None, str]:
     if bwrap is None:
         return None, (f"bubblewrap is not installed (install the '{_PACKAGE}' package, "
                       "e.g. apt-get install bubblewrap)")
-    helper = shutil.which("setpriv" if os.geteuid() == 0 else "nsenter")
+    root = os.geteuid() == 0
+    needed = "setpriv" if root else "nsenter"  # who enters the node's namespaces
+    helper = shutil.which(needed)
     if helper is None:
-        return None, "util-linux's setpriv and nsenter are missing (apt-get install util-linux)"
+        return None, f"util-linux's {needed} is missing (apt-get install util-linux)"
     sandbox = Sandbox(bwrap, system=_system_view(), hostname=socket.gethostname(),
-                      setpriv=helper, owner=_task_ids() if os.geteuid() == 0 else None)
+                      setpriv=helper if root else "setpriv",
+                      owner=_task_ids() if root else None)
     try:
         network = node_network(outbound=False)
     except InfrastructureError as exc:

@@ -34,9 +34,11 @@ else, and every task without ``containers``, runs as a host process, its ``image
 in the log.
 
 Sandbox (``sandbox``: ``auto``, ``on``, ``off``; ``osmo.runtime.sandbox``): chosen once, when
-the pool is made; commands then run in bubblewrap with a view of their own attempt's folders
-only (``workdir.attempt_view``), and the node's ``sandbox`` label says ``bwrap``. Without one,
-the label says ``none`` and every attempt's log starts with an osmo line saying so.
+the pool is made, with the node's network namespace its tasks share (``osmo.runtime.netns``,
+closed with the pool); commands then run in bubblewrap with a view of their own attempt's
+folders only (``workdir.attempt_view``), and the node's ``sandbox`` label says ``bwrap``.
+Without one, the label says ``none`` and every attempt's log starts with an osmo line saying
+so; without outbound network for its tasks, likewise.
 A pool records each command's pid and start time in ``procs_dir`` right after the spawn
 (one appended line; ``osmo.worker.procs``), so that a server or worker restarted after a
 crash can kill what its previous life left, even a command whose start it never reported.
