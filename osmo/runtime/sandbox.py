@@ -102,7 +102,8 @@ SYSTEM = ("/usr", "/bin", "/sbin", "/lib", "/lib32", "/lib64", "/libx32", "/opt"
 """The host folders every task sees, read-only (those that exist; symlinks stay symlinks)."""
 COVERED = ("/etc/shadow", "/etc/shadow-", "/etc/gshadow", "/etc/gshadow-",
            "/etc/ssh/ssh_host_*", "/etc/osmo")
-"""What of :data:`SYSTEM` no task sees (globs): covered by an empty file or folder."""
+"""What of :data:`SYSTEM` no task may read (globs): a folder is covered by an empty one, a
+file the tasks' uid could read by an unreadable device node (``/dev/null``, nodev)."""
 TASK_USER = "nobody"
 """Who tasks of a root server or worker are on the host (its uid and primary gid)."""
 
@@ -226,6 +227,7 @@ class Sandbox:
                         key=_depth)
         for folder in hidden:
             out += ["--tmpfs", folder]
+            made.add(folder)
         roots = [(str(p), _real_root(str(p))) for p in view.hidden]
         for file in view.masked:
             out += ["--ro-bind", "/dev/null", _real_under(file, roots)]
@@ -408,8 +410,13 @@ def _shown_system() -> tuple[str, ...]:
     return tuple(dict.fromkeys(_real(Path(top)) for top in SYSTEM if os.path.exists(top)))
 
 
-def _system_view() -> tuple[str, ...]:
-    """Bwrap arguments that show :data:`SYSTEM` read-only and cover :data:`COVERED`."""
+def _system_view(owner: tuple[int, int] | None) -> tuple[str, ...]:
+    """The bwrap arguments that show :data:`SYSTEM` read-only and cover :data:`COVERED`.
+
+    A covered file is covered only if the tasks' uid (``owner``; None: this process's)
+    could read it: each cover is one more mount per start, and ``/etc/shadow`` (0640,
+    root's) is unreadable to a task that is not root on the host anyway.
+    """
     out: list[str] = []
     for top in SYSTEM:
         if os.path.islink(top):
@@ -420,9 +427,21 @@ def _system_view() -> tuple[str, ...]:
         for path in sorted(glob.glob(pattern)):
             if os.path.isdir(path) and not os.path.islink(path):
                 out += ["--tmpfs", path]
-            elif os.path.exists(path):
+            elif os.path.exists(path) and _readable(path, owner):
                 out += ["--ro-bind", "/dev/null", path]
     return tuple(out)
+
+
+def _readable(path: str, owner: tuple[int, int] | None) -> bool:
+    """Whether ``owner`` (uid, gid; None: this process) may read the file ``path``."""
+    if owner is None:
+        return os.access(path, os.R_OK)
+    st = os.stat(path)
+    if st.st_uid == owner[0]:
+        return bool(st.st_mode & 0o400)
+    if st.st_gid == owner[1]:
+        return bool(st.st_mode & 0o040)
+    return bool(st.st_mode & 0o004)
 
 
 def _task_ids() -> tuple[int, int]:
@@ -454,9 +473,9 @@ def _probe_result() -> tuple[Sandbox | None, str]:
     helper = shutil.which(needed)
     if helper is None:
         return None, f"util-linux's {needed} is missing (apt-get install util-linux)"
-    sandbox = Sandbox(bwrap, system=_system_view(), hostname=socket.gethostname(),
-                      setpriv=helper if root else "setpriv",
-                      owner=_task_ids() if root else None)
+    owner = _task_ids() if root else None
+    sandbox = Sandbox(bwrap, system=_system_view(owner), hostname=socket.gethostname(),
+                      setpriv=helper if root else "setpriv", owner=owner)
     try:
         network = node_network(outbound=False)
     except InfrastructureError as exc:

@@ -75,14 +75,16 @@ def planted() -> Iterator[list[Path]]:
 
 @pytest.fixture
 def tokens() -> Iterator[list[Path]]:
-    """Token files as the Helm chart mounts them (/etc/osmo/tokens/NAME), and one elsewhere."""
+    """Token files as the Helm chart mounts them (/etc/osmo/tokens/NAME), one elsewhere, and
+    an ssh host key (all readable by anyone who can see them)."""
     tag = f"osmo-test-{uuid.uuid4().hex[:12]}"
     chart = Path("/etc/osmo/tokens")
     created = [p for p in (Path("/etc/osmo"), chart) if not p.exists()]
     chart.mkdir(parents=True, exist_ok=True)
     other = Path(f"/opt/{tag}")
     other.mkdir()
-    files = [chart / tag, other / "token"]
+    Path("/etc/ssh").mkdir(exist_ok=True)
+    files = [chart / tag, other / "token", Path(f"/etc/ssh/ssh_host_{tag}_key")]
     for i, path in enumerate(files):
         path.write_text(f"token-{i}-{tag}\n")
         path.chmod(0o644)  # readable by anyone who can see it: the sandbox must hide it
@@ -101,7 +103,8 @@ def tokens() -> Iterator[list[Path]]:
 
 def test_a_task_sees_no_token_file_nor_the_hosts_private_folders(
         osmo: Osmo, tmp_path: Path, planted: list[Path], tokens: list[Path]) -> None:
-    args = [a for i, t in enumerate(tokens) for a in ("--accept-token", f"probe{i}:admin:{t}")]
+    args = [a for i, t in enumerate(tokens[:2])
+            for a in ("--accept-token", f"probe{i}:admin:{t}")]
     osmo("server", "start", *args, check=True)
     files = [str(p) for p in (*planted, *tokens)] + ["/etc/shadow", "/etc/gshadow"]
     out = _done(osmo, seen_spec(tmp_path, files))["look"]
