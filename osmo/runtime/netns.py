@@ -20,11 +20,12 @@ namespace of the node's own, made once when the pool starts:
   Without slirp4netns (or where it cannot run: it needs ``/dev/net/tun``), the namespace has
   its loopback only, and :attr:`NodeNetwork.caveat` says so (each attempt's log shows it).
 
-Why one namespace per node and not one per task: a task's start only joins it (``nsenter``,
-``osmo.runtime.sandbox``), which costs about 0.8 ms of CPU; starting a user-mode network per
-task would cost a process and its setup each time (``bench/bench_sandbox.py`` measures both),
-and tasks of a group could no longer reach each other on their shared loopback. The price:
-tasks of one node see each other's listeners, as they did on the host's network.
+Why one namespace per node and not one per task: making one and connecting it takes tens
+of milliseconds (``bench/bench_sandbox.py``: the keeper and slirp4netns ready), against a
+whole sandboxed start of 2–4 ms; joining the node's costs a start about 0.1 ms as root (the
+spawning thread's ``setns``) and one ``nsenter`` exec otherwise. Tasks of a group on one
+node keep reaching each other on their shared loopback, as ``{{host:NAME}}`` says. The
+price: tasks of one node see each other's listeners, as they did on the host's network.
 
 How: a small keeper process (``osmo.runtime.netns_keeper``, run as a script) makes the
 namespaces and lives in them: the network namespace, and a user namespace for the tasks
