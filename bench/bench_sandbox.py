@@ -10,9 +10,8 @@ Rows:
   without entering the node's namespaces, in ms per run (one at a time, interleaved);
 - the node's namespaces (``osmo.runtime.netns``): what making them costs a server or worker
   once (the keeper and slirp4netns; also what a network per task would cost each task), and
-  what a start costs in wall and CPU time (this process's and its children's) with and
-  without entering them, against the sandbox before them (``--ro-bind / /`` on the host's
-  network, as root);
+  what a start costs, two at a time on 2 cores (so CPU shows), with and without entering
+  them, against the sandbox before them (``--ro-bind / /`` on the host's network, as root);
 - CPU per start (``perf stat`` task-clock of the starter and every process it starts; as
   root, with ``perf`` installed): osmo's argv (the node's namespaces not entered: a shell
   loop cannot), the same without ``--cap-drop ALL``, and the issue 16 prototypes of one
@@ -35,7 +34,6 @@ import argparse
 import contextlib
 import dataclasses
 import os
-import resource
 import select
 import shlex
 import shutil
@@ -43,6 +41,7 @@ import statistics
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -118,41 +117,42 @@ _BEFORE = ["--cap-drop", "ALL", "--ro-bind", "/", "/", "--dev", "/dev", "--proc"
            "--tmpfs", "/tmp", "--unshare-pid", "--die-with-parent"]  # the sandbox before them
 
 
-def _cpu() -> float:
-    own, children = (resource.getrusage(w) for w in (resource.RUSAGE_SELF,
-                                                     resource.RUSAGE_CHILDREN))
-    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
-
-
 def namespace_costs(sandbox: Sandbox, folder: Path, n: int, rounds: int
-                    ) -> dict[str, tuple[list[float], list[float]]]:
-    """(wall ms, CPU ms) per start of `true` (spawn, wait) for each way, rounds interleaved.
+                    ) -> dict[str, list[float]]:
+    """ms per start of `true` (spawn, wait), two at a time, for each way (rounds interleaved).
 
-    CPU: this process's and its children's (the fork, exec, bwrap and what enters the
-    namespaces), per start, from ``getrusage``.
+    Two threads start ``n`` each: on 2 cores the time per start is then what a start costs
+    a fan-out, CPU included.
     """
     work = _work(folder, sandbox)
     view = View(hidden=(folder,), readonly=(folder,), writable=(work,), cwd=work)
     bare = dataclasses.replace(sandbox, entry=Entry())
+    old = [*_BEFORE, "--tmpfs", str(folder), "--ro-bind", str(folder), str(folder), "--bind",
+           str(work), str(work), "--chdir", str(work), "--", "true"]
     ways: dict[str, tuple[list[str], Sandbox | None]] = {
-        "before: --ro-bind / /, host network, as root": (
-            [sandbox.bwrap, *_BEFORE, "--chdir", str(work), "--", "true"], None),
+        "before: --ro-bind / /, host network, as root": ([sandbox.bwrap, *old], None),
         "the system view, host network (no node namespaces)": (bare.argv(["true"], view), None),
         "the system view in the node's namespaces (tasks now)": (
             sandbox.argv(["true"], view), sandbox),
     }
-    out: dict[str, tuple[list[float], list[float]]] = {name: ([], []) for name in ways}
+
+    def start(argv: list[str], joined: Sandbox | None) -> None:
+        for _ in range(n):
+            with joined.entered() if joined else contextlib.nullcontext():
+                proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, start_new_session=True,
+                                        pass_fds=joined.fds if joined else ())
+            proc.wait()
+
+    out: dict[str, list[float]] = {name: [] for name in ways}
     for _ in range(rounds):
         for name, (argv, joined) in ways.items():
-            fds = joined.fds if joined else ()
-            cpu0, t0 = _cpu(), time.perf_counter()
-            for _ in range(n):
-                with joined.entered() if joined else contextlib.nullcontext():
-                    proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, pass_fds=fds,
-                                            start_new_session=True)
-                proc.wait()
-            out[name][0].append((time.perf_counter() - t0) * 1e3 / n)
-            out[name][1].append((_cpu() - cpu0) * 1e3 / n)
+            t0 = time.perf_counter()
+            pair = [threading.Thread(target=start, args=(argv, joined)) for _ in range(2)]
+            for thread in pair:
+                thread.start()
+            for thread in pair:
+                thread.join()
+            out[name].append((time.perf_counter() - t0) * 1e3 / (2 * n))
     return out
 
 
@@ -264,11 +264,10 @@ def main() -> None:
                     higher_is_better=False,
                     notes="keeper + slirp4netns ready; a network per task would cost each "
                           "task this"))
-    for name, (wall, used) in namespaces.items():
-        rows.append(row(f"start of `true`: {name}", "ms", wall, higher_is_better=False,
-                        notes=f"spawn + wait, {args.spawns} per round"))
-        rows.append(row(f"CPU per start of `true`: {name}", "ms", used, higher_is_better=False,
-                        notes="getrusage of this process and its children"))
+    for name, values in namespaces.items():
+        rows.append(row(f"start of `true`, 2 at a time: {name}", "ms", values,
+                        higher_is_better=False,
+                        notes=f"spawn + wait, 2 x {args.spawns} per round"))
     for name, values in cpu.items():
         rows.append(row(f"CPU per start: {name}", "ms", values, higher_is_better=False,
                         notes=f"perf stat task-clock, {args.cpu} starts per round"))
