@@ -216,7 +216,14 @@ class NodeNetwork:
         ready_r, ready_w = os.pipe()
         exit_r, self._exit_w = os.pipe()
         os.set_inheritable(self._exit_w, False)
-        argv = [slirp, "--configure", f"--mtu={_MTU}", "--disable-host-loopback",
+        # Its --enable-sandbox makes only / private before it unmounts the old root: on a
+        # host whose /run/netns is a shared mount (podman's), that unmount would reach the
+        # host and take podman's container namespaces with it. As root it therefore starts
+        # in a mount namespace of its own whose every mount is private; otherwise its
+        # namespace is one of the keeper's user namespace, where shared mounts are slaves.
+        private = [shutil.which("unshare") or "unshare", "--mount", "--propagation",
+                   "private", "--"] if self._fds else []
+        argv = [*private, slirp, "--configure", f"--mtu={_MTU}", "--disable-host-loopback",
                 "--enable-sandbox", "--enable-seccomp", f"--ready-fd={ready_w}",
                 f"--exit-fd={exit_r}"]
         argv += [] if self._fds else [f"--userns-path={self.userns}"]  # it owns the network
