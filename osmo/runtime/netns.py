@@ -146,12 +146,16 @@ class NodeNetwork:
         self._lock = threading.Lock()
 
     @classmethod
-    def start(cls, ids: tuple[int, int], *, outbound: bool = True) -> NodeNetwork:
+    def start(cls, ids: tuple[int, int], *, outbound: bool = True,
+              address: str | None = None) -> NodeNetwork:
         """Make the namespaces and connect them (blocks until they are ready).
 
         ``ids``: when osmo runs as root, the host ``(uid, gid)`` that root of the tasks'
         user namespace is (otherwise it is osmo's own). ``outbound``: connect it through
-        slirp4netns (a probe needs only the namespaces).
+        slirp4netns (a probe needs only the namespaces). ``address``: the node's address
+        as its peers know it (``{{host:NAME}}``), also given to the namespace's loopback
+        so that tasks listen on it and reach each other there (an IPv4 address that is
+        not a loopback one; anything else is left out).
 
         Raises:
             InfrastructureError: the namespace cannot be made here (the message says why).
@@ -160,8 +164,8 @@ class NodeNetwork:
         mine, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
         try:
             keeper = _Helper.start([sys.executable, "-I", "-S", str(_KEEPER),
-                                    str(theirs.fileno()), "root" if root else "user"],
-                                   theirs.fileno())
+                                    str(theirs.fileno()), "root" if root else "user",
+                                    *_own_address(address)], theirs.fileno())
         except OSError as exc:
             mine.close()
             raise InfrastructureError(f"cannot start the network namespace keeper: {exc}") from exc
@@ -304,6 +308,15 @@ def _resolv_conf(host: str = "/etc/resolv.conf") -> str | None:
     Path(path).write_text("\n".join([f"nameserver {DNS}", *kept]) + "\n")
     os.chmod(path, 0o644)
     return path
+
+
+def _own_address(address: str | None) -> list[str]:
+    """``[address]`` if it is an IPv4 address the loopback does not have already."""
+    try:
+        ip = ipaddress.ip_address(address or "")
+    except ValueError:
+        return []
+    return [str(ip)] if ip.version == 4 and not ip.is_loopback and not ip.is_unspecified else []
 
 
 def _loopback(address: str) -> bool:

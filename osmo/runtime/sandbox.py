@@ -372,13 +372,15 @@ def choose(mode: SandboxMode, shared: Sequence[str | Path] = ()) -> Sandbox | No
         shared_readonly=tuple(_real(Path(f)) for f, writable in parsed if not writable))
 
 
-def node_network(outbound: bool = True) -> NodeNetwork:
+def node_network(outbound: bool = True, address: str | None = None) -> NodeNetwork:
     """A new network namespace for this node's sandboxed tasks (close it when done).
+
+    ``address``: the node's address as its peers know it (``NodeNetwork.start``).
 
     Raises:
         InfrastructureError: it cannot be made here.
     """
-    return NodeNetwork.start(_task_ids(), outbound=outbound)
+    return NodeNetwork.start(_task_ids(), outbound=outbound, address=address)
 
 
 def runtime_folders(paths: Sequence[str] | None = None) -> tuple[str, ...]:

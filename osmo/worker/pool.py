@@ -128,6 +128,8 @@ class LocalPool(AttemptStarts):
         log_sink: also gets ``(attempt id, records)`` for every log record written.
         sandbox: ``auto`` (when bubblewrap works here), ``on`` (required) or ``off``.
         sandbox_share: host folders every sandboxed task may write (never inside ``home``).
+        address: how peers reach this node's tasks (``{{host:NAME}}``): given to the
+            sandboxed tasks' network too (``osmo.runtime.netns``).
         procs_dir: record running commands' pids here (see the module docstring).
         containers: runs image tasks in containers (its runtime replaces ``runtime``); its
             orphans are removed here, before anything starts.
@@ -158,6 +160,7 @@ class LocalPool(AttemptStarts):
         log_sink: Callable[[str, bytes], None] | None = None,
         sandbox: SandboxMode = "auto",
         sandbox_share: Sequence[str] = (),
+        address: str | None = None,
         procs_dir: Path | None = None,
         containers: ContainerTasks | None = None,
     ) -> None:
@@ -174,7 +177,8 @@ class LocalPool(AttemptStarts):
         if inside:
             raise UsageError(f"--sandbox-share {inside[0]}: it is inside osmo's home "
                              f"{self.home}, which tasks must never see")
-        self.sandbox, self._network, self._sandbox_note = _sandbox(sandbox, sandbox_share)
+        self.sandbox, self._network, self._sandbox_note = _sandbox(sandbox, sandbox_share,
+                                                                   address)
         self._runtime: Runtime = runtime or ProcessRuntime(self.sandbox)
         self._procs = ProcessRecords(procs_dir) if procs_dir is not None else None
         self._hidden = [self.home]  # folders a sandboxed task never sees (see hide())
@@ -351,7 +355,7 @@ class LocalPool(AttemptStarts):
             self._procs.close()
 
 
-def _sandbox(mode: SandboxMode, shares: Sequence[str]
+def _sandbox(mode: SandboxMode, shares: Sequence[str], address: str | None
              ) -> tuple[Sandbox | None, NodeNetwork | None, str | None]:
     """The pool's sandbox in its node's namespaces, and those namespaces.
 
@@ -365,7 +369,7 @@ def _sandbox(mode: SandboxMode, shares: Sequence[str]
     why = "--sandbox off" if mode == "off" else unavailable_reason()
     if sandbox is not None:
         try:
-            network = node_network()
+            network = node_network(address=address)
         except InfrastructureError as exc:
             if mode == "on":
                 raise
