@@ -4,14 +4,19 @@ Rows:
 
 - spawn + reap of `true` through ``ProcessRuntime``, unsandboxed (with its parent-death
   ``preexec_fn``) and in the sandbox, in ms per spawn (one at a time);
-- what each part of the sandbox's argv costs: `bwrap ... true` with ``--ro-bind / /`` alone,
-  then one part added (``--dev /dev``; the alternative of a tmpfs ``/dev`` with only the
-  device nodes bound; ``--proc`` with ``--unshare-pid``; the private ``/tmp``; an attempt's
-  view), and osmo's whole argv, in ms per run (one at a time, the variants interleaved);
+- what each part of the sandbox's argv costs: `bwrap ... true` showing the system folders
+  alone, then one part added (``--dev /dev``; ``--proc`` with ``--unshare-pid``; the
+  private ``/tmp``; the IPC and UTS namespaces; an attempt's view), and osmo's whole argv
+  without entering the node's namespaces, in ms per run (one at a time, interleaved);
+- the node's namespaces (``osmo.runtime.netns``): what making them costs a server or worker
+  once (the keeper and slirp4netns; also what a network per task would cost each task), and
+  what a start costs, two at a time on 2 cores (so CPU shows), with and without entering
+  them, against the sandbox before them (``--ro-bind / /`` on the host's network, as root);
 - CPU per start (``perf stat`` task-clock of the starter and every process it starts; as
-  root, with ``perf`` installed): osmo's argv, the same without ``--cap-drop ALL``, and the
-  issue 16 prototypes of one long-lived sandbox that makes a fresh mount and pid namespace
-  per task (``sandbox_supervisor.py``, and its C twin when ``cc`` is installed);
+  root, with ``perf`` installed): osmo's argv (the node's namespaces not entered: a shell
+  loop cannot), the same without ``--cap-drop ALL``, and the issue 16 prototypes of one
+  long-lived sandbox that makes a fresh mount and pid namespace per task
+  (``sandbox_supervisor.py``, and its C twin when ``cc`` is installed);
 - a chain of ``--tasks`` `true` tasks (one task at a time: per-task latency) with
   ``--sandbox off`` and ``on``;
 - bench_inputs.py's fan-out whose tasks read their inputs, ``off`` (each attempt gets its own
@@ -26,6 +31,8 @@ Usage: python bench/bench_sandbox.py [--runs 3] [--tasks 300] [--fanout 1000] [-
 from __future__ import annotations
 
 import argparse
+import contextlib
+import dataclasses
 import os
 import select
 import shlex
@@ -34,6 +41,7 @@ import statistics
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -46,8 +54,18 @@ from bench_inputs import fan_out_reading  # noqa: E402
 from benchlib import quick, row, write_rows  # noqa: E402
 
 from osmo.runtime import ProcessRuntime  # noqa: E402
-from osmo.runtime.sandbox import Sandbox, View, choose  # noqa: E402
+from osmo.runtime.netns import Entry  # noqa: E402
+from osmo.runtime.sandbox import Sandbox, View, choose, node_network  # noqa: E402
 from osmo.server.options import ServerOptions  # noqa: E402
+
+
+def _work(folder: Path, sandbox: Sandbox) -> Path:
+    """``folder/work``, the sandboxed task's own (a pool gives it to the task's uid)."""
+    work = folder / "work"
+    work.mkdir(exist_ok=True)
+    if sandbox.owner is not None:
+        os.chown(work, *sandbox.owner)
+    return work
 
 
 def spawn_ms(runtime: ProcessRuntime, folder: Path, n: int, sandboxed: bool) -> float:
@@ -66,28 +84,25 @@ def spawn_ms(runtime: ProcessRuntime, folder: Path, n: int, sandboxed: bool) -> 
     return statistics.median(times)
 
 
-_NODES = ("null", "zero", "full", "random", "urandom", "tty")  # what bwrap's --dev binds
-
-
 def flag_costs(sandbox: Sandbox, folder: Path, n: int) -> dict[str, list[float]]:
-    """ms per `bwrap ... true` for each part of the sandbox's argv (interleaved, one at a time)."""
-    work = folder / "work"
-    work.mkdir(exist_ok=True)
+    """ms per `bwrap ... true` for each part of the sandbox's argv (interleaved, one at a time).
+
+    Without the node's namespaces (``Entry()``): bwrap's own work, as root.
+    """
+    work = _work(folder, sandbox)
     view = View(hidden=(folder,), readonly=(folder,), writable=(work,), cwd=work)
-    root = [sandbox.bwrap, "--ro-bind", "/", "/"]
-    tmpfs_dev = ["--tmpfs", "/dev", "--tmpfs", "/dev/shm"]
-    for node in _NODES:
-        tmpfs_dev += ["--dev-bind", f"/dev/{node}", f"/dev/{node}"]
-    whole = sandbox.argv(["true"], view)[:-2]
+    bare = dataclasses.replace(sandbox, entry=Entry())
+    root = [sandbox.bwrap, *sandbox.system]
+    whole = bare.argv(["true"], view)[:-2]
     variants = {
-        "--ro-bind / / alone": root,
+        "system folders alone": root,
         "+ --dev /dev": [*root, "--dev", "/dev"],
-        "+ a tmpfs /dev with its 6 nodes bound (instead of --dev)": [*root, *tmpfs_dev],
         "+ --proc /proc --unshare-pid": [*root, "--proc", "/proc", "--unshare-pid"],
         "+ --tmpfs /tmp": [*root, "--tmpfs", "/tmp"],
+        "+ --unshare-ipc --unshare-uts": [*root, "--unshare-ipc", "--unshare-uts"],
         "+ an attempt's view (home hidden, its folders bound)": [*root, *whole[whole.index(
-            "--die-with-parent") + 1:]],
-        "osmo's whole argv": whole,
+            str(folder)) - 1:]],
+        "osmo's whole argv, the node's namespaces not entered": whole,
     }
     times: dict[str, list[float]] = {name: [] for name in variants}
     for _ in range(n):
@@ -95,6 +110,60 @@ def flag_costs(sandbox: Sandbox, folder: Path, n: int) -> dict[str, list[float]]
             t0 = time.perf_counter()
             subprocess.run([*argv, "--", "true"], check=True, stdin=subprocess.DEVNULL)
             times[name].append((time.perf_counter() - t0) * 1e3)
+    return times
+
+
+_BEFORE = ["--cap-drop", "ALL", "--ro-bind", "/", "/", "--dev", "/dev", "--proc", "/proc",
+           "--tmpfs", "/tmp", "--unshare-pid", "--die-with-parent"]  # the sandbox before them
+
+
+def namespace_costs(sandbox: Sandbox, folder: Path, n: int, rounds: int
+                    ) -> dict[str, list[float]]:
+    """ms per start of `true` (spawn, wait), two at a time, for each way (rounds interleaved).
+
+    Two threads start ``n`` each: on 2 cores the time per start is then what a start costs
+    a fan-out, CPU included.
+    """
+    work = _work(folder, sandbox)
+    view = View(hidden=(folder,), readonly=(folder,), writable=(work,), cwd=work)
+    bare = dataclasses.replace(sandbox, entry=Entry())
+    old = [*_BEFORE, "--tmpfs", str(folder), "--ro-bind", str(folder), str(folder), "--bind",
+           str(work), str(work), "--chdir", str(work), "--", "true"]
+    ways: dict[str, tuple[list[str], Sandbox | None]] = {
+        "before: --ro-bind / /, host network, as root": ([sandbox.bwrap, *old], None),
+        "the system view, host network (no node namespaces)": (bare.argv(["true"], view), None),
+        "the system view in the node's namespaces (tasks now)": (
+            sandbox.argv(["true"], view), sandbox),
+    }
+
+    def start(argv: list[str], joined: Sandbox | None) -> None:
+        for _ in range(n):
+            with joined.entered() if joined else contextlib.nullcontext():
+                proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, start_new_session=True,
+                                        pass_fds=joined.fds if joined else ())
+            proc.wait()
+
+    out: dict[str, list[float]] = {name: [] for name in ways}
+    for _ in range(rounds):
+        for name, (argv, joined) in ways.items():
+            t0 = time.perf_counter()
+            pair = [threading.Thread(target=start, args=(argv, joined)) for _ in range(2)]
+            for thread in pair:
+                thread.start()
+            for thread in pair:
+                thread.join()
+            out[name].append((time.perf_counter() - t0) * 1e3 / (2 * n))
+    return out
+
+
+def network_start_ms(n: int) -> list[float]:
+    """ms to make a node's namespaces with outbound connectivity (keeper + slirp4netns)."""
+    times = []
+    for _ in range(n):
+        t0 = time.perf_counter()
+        network = node_network()
+        times.append((time.perf_counter() - t0) * 1e3)
+        network.close()
     return times
 
 
@@ -123,10 +192,11 @@ def start_cpu(sandbox: Sandbox, folder: Path, n: int, rounds: int) -> dict[str, 
         (attempt / name).mkdir(parents=True, exist_ok=True)
     view = View(hidden=(home,), readonly=(attempt,), cwd=attempt / "work",
                 writable=tuple(attempt / name for name in ("work", "output.partial", "files")))
-    argv = sandbox.argv(["/bin/true"], view)
+    argv = dataclasses.replace(sandbox, entry=Entry()).argv(["/bin/true"], view)
     drop = argv.index("--cap-drop")
-    loops = {"`/bin/true` alone, from a shell loop": ["/bin/true"], "osmo's argv": argv,
-             "osmo's argv without --cap-drop ALL (before s2)": argv[:drop] + argv[drop + 2:]}
+    loops = {"`/bin/true` alone, from a shell loop": ["/bin/true"],
+             "osmo's argv, the node's namespaces not entered": argv,
+             "the same without --cap-drop ALL": argv[:drop] + argv[drop + 2:]}
     supervisors = {"prototype: long-lived sandbox, Python supervisor": [
         sys.executable, str(_HERE / "sandbox_supervisor.py"), "--home", str(home),
         "--attempt", str(attempt)]}
@@ -164,24 +234,40 @@ def main() -> None:
     parser.add_argument("--json")
     parser.add_argument("--base", help="folder for the OSMO_HOMEs (default: system temp)")
     args = parser.parse_args()
-    sandbox = choose("on")
+    found = choose("on")
+    assert found is not None
+    network = node_network()
+    sandbox = found.joined(network)
     rows = []
     spawns: dict[str, list[float]] = {"off": [], "on": []}
     with tempfile.TemporaryDirectory(dir=args.base) as folder:
+        os.chmod(folder, 0o755)
         for _ in range(args.runs):
             spawns["off"].append(spawn_ms(ProcessRuntime(), Path(folder), args.spawns, False))
+            _work(Path(folder), sandbox)
             spawns["on"].append(spawn_ms(ProcessRuntime(sandbox), Path(folder), args.spawns,
                                          True))
         flags = flag_costs(sandbox, Path(folder), args.flags)
+        namespaces = namespace_costs(sandbox, Path(folder), args.spawns, max(args.runs, 3))
         cpu: dict[str, list[float]] = {}
         if args.cpu and shutil.which("perf") and os.geteuid() == 0:  # the prototypes mount
             cpu = start_cpu(sandbox, Path(folder), args.cpu, max(args.runs, 3))
+    network.close()
+    starts = network_start_ms(5 if small else 20)
     for mode, values in spawns.items():
         rows.append(row(f"spawn+reap `true`, sandbox {mode}", "ms", values,
                         higher_is_better=False, notes=f"median of {args.spawns} spawns per run"))
     for name, values in flags.items():
         rows.append(row(f"bwrap {name}", "ms", [statistics.median(values)],
                         higher_is_better=False, notes=f"median of {args.flags} runs of `true`"))
+    rows.append(row("the node's namespaces: made once per server or worker", "ms", starts,
+                    higher_is_better=False,
+                    notes="keeper + slirp4netns ready; a network per task would cost each "
+                          "task this"))
+    for name, values in namespaces.items():
+        rows.append(row(f"start of `true`, 2 at a time: {name}", "ms", values,
+                        higher_is_better=False,
+                        notes=f"spawn + wait, 2 x {args.spawns} per round"))
     for name, values in cpu.items():
         rows.append(row(f"CPU per start: {name}", "ms", values, higher_is_better=False,
                         notes=f"perf stat task-clock, {args.cpu} starts per round"))

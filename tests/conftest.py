@@ -17,6 +17,7 @@ import re
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from collections.abc import Generator, Iterator
 from dataclasses import dataclass
@@ -44,11 +45,13 @@ ALLOWED_SKIPS: tuple[AllowedSkip, ...] = (
     AllowedSkip("tests/plugins/test_learn.py", r"lerobot", when=sys.version_info < (3, 12)),
     AllowedSkip("tests/e2e/test_pipeline.py", r"lerobot", when=sys.version_info < (3, 12)),
     # Reproducing bubblewrap's setup race makes and removes mounts (tests/runtime/churn.py),
-    # which only root can; the rest of the sandbox's tests run as any user.
+    # which only root can, as does a shared mount slirp4netns must leave alone; the rest of
+    # the sandbox's tests run as any user.
     *(AllowedSkip(test, r"needs root", when=os.geteuid() != 0) for test in (
         "tests/runtime/test_sandbox.py::test_a_sandbox_that_cannot_be_set_up",  # both tests
         "tests/worker/test_pool_sandbox.py::test_a_setup_that_fails_for_a_moment",
-        "tests/e2e/test_sandbox_setup.py")),
+        "tests/e2e/test_sandbox_setup.py",
+        "tests/runtime/test_netns.py::test_starting_a_node_network_unmounts_nothing")),
     # The Slurm test cluster runs its daemons as root and each node in a pid namespace of its
     # own (tests/slurm/cluster.py); Slurm's packages themselves must be there (./dev test).
     AllowedSkip("tests/slurm/", r"needs root", when=os.geteuid() != 0),
@@ -132,8 +135,11 @@ class Osmo:
         self.env.pop("OSMO_SERVER", None)
         self.env.setdefault("OSMO_RUNTIME", "process")  # image tasks: tests/containers
         # Tests hand gate and marker files to tasks through their tmp folder: shared with the
-        # sandbox explicitly (a sandboxed task has its own empty /tmp otherwise).
+        # sandbox explicitly (a sandboxed task has its own empty /tmp otherwise), and open to
+        # the tasks' uid (a root server's are nobody: osmo.runtime.sandbox).
         self.env.setdefault("OSMO_SANDBOX_SHARE", str(home.parent))
+        if home.parent.is_dir() and home.parent != Path(tempfile.gettempdir()):
+            home.parent.chmod(0o1777)
 
     def __call__(self, *args: str, timeout: float = 180, check: bool = False,
                  cwd: Path = REPO) -> Result:
@@ -293,6 +299,17 @@ def read_pid(path: Path, timeout: float = 60) -> int:
 
 
 @pytest.fixture
+def tmp_path(tmp_path: Path) -> Path:
+    """pytest's ``tmp_path``, which any user may enter and add to (mode 1777).
+
+    Tests share it with their tasks (``Osmo``), and a root server's sandboxed tasks are
+    ``nobody`` on the host (``osmo.runtime.sandbox``): pytest's 0700 would shut them out.
+    """
+    tmp_path.chmod(0o1777)
+    return tmp_path
+
+
+@pytest.fixture
 def osmo(tmp_path: Path) -> Iterator[Osmo]:
     """A CLI bound to a fresh OSMO_HOME; its server (auto-started on use) is stopped after."""
     runner = Osmo(tmp_path / "home")
@@ -306,6 +323,7 @@ def shared_osmo(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Osmo]:
     runner = Osmo(tmp_path_factory.mktemp("osmo") / "home")
     # its tasks use each test's tmp_path: share the session's base folder with them
     runner.env["OSMO_SANDBOX_SHARE"] = str(tmp_path_factory.getbasetemp())
+    tmp_path_factory.getbasetemp().chmod(0o755)  # (each tmp_path is then 1777: tmp_path)
     runner("server", "start", check=True)
     yield runner
     runner.stop_server()

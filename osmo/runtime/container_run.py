@@ -19,6 +19,12 @@ Decisions, each checked with podman 4.3 and the docker 28 CLI (``tests/container
 - Outputs stay the caller's: ``--user UID:GID``; rootless podman also gets
   ``--userns=keep-id``, so that uid is the same inside and out (rootful podman and docker
   need nothing more; rootless docker cannot keep ids and is not supported for outputs).
+- Privileges: what OSMO's task pods keep. Their spec sets ``privileged: false`` and no
+  ``capabilities``, so a pod keeps Kubernetes' default container set
+  (:data:`POD_CAPABILITIES`); every other capability is dropped (``--cap-drop=all``, then
+  the set named, so the engine's own default does not matter: podman 4.3's adds
+  ``NET_RAW``), and ``--security-opt=no-new-privileges`` stops a setuid file or a file
+  capability from giving any back.
 - ``NVIDIA_VISIBLE_DEVICES`` is always set to exactly the assigned GPUs (empty: none), after
   the task's own variables, so neither the task nor a CUDA image's ``all`` widens it. GPUs
   themselves: docker ``--gpus="device=0,1"``, podman CDI ``--device=nvidia.com/gpu=0``.
@@ -45,14 +51,18 @@ from pathlib import Path
 from osmo.errors import OsmoError
 from osmo.names import image_problem
 
-__all__ = ["DATA_OUTPUT", "SECRET_ENV_PATH", "ContainerError", "ContainerRun", "EngineInfo",
-           "Mount", "RegistryAuth", "data_input", "pull_argv", "pull_reference",
-           "registry_config", "run_argv", "safe_name", "secret_env_text"]
+__all__ = ["DATA_OUTPUT", "POD_CAPABILITIES", "SECRET_ENV_PATH", "ContainerError",
+           "ContainerRun", "EngineInfo", "Mount", "RegistryAuth", "data_input", "pull_argv",
+           "pull_reference", "registry_config", "run_argv", "safe_name", "secret_env_text"]
 
 DATA_OUTPUT = "/osmo/data/output"
 """Where a task's output folder is bound inside its container."""
 SECRET_ENV_PATH = "/osmo/run/secret.env"
 """Where a run's secret-variables file is bound (read-only) inside its container."""
+POD_CAPABILITIES = ("CHOWN", "DAC_OVERRIDE", "FOWNER", "FSETID", "KILL", "SETGID", "SETUID",
+                    "SETPCAP", "NET_BIND_SERVICE", "SYS_CHROOT", "MKNOD", "AUDIT_WRITE",
+                    "SETFCAP")
+"""The capabilities a container task keeps: those of a Kubernetes pod's container by default."""
 
 _WRAPPER = f'. {SECRET_ENV_PATH} && exec "$@"'
 _NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,127}")
@@ -169,6 +179,8 @@ def run_argv(engine: EngineInfo, run: ContainerRun) -> list[str]:
     _check(run)
     argv = [engine.path, "run", "--rm", f"--name={run.name}", "--pull=never"]
     argv += ["--init"] if run.init else []
+    argv += ["--cap-drop=all", *(f"--cap-add={cap}" for cap in POD_CAPABILITIES),
+             "--security-opt=no-new-privileges"]
     if run.user:
         argv.append(f"--user={run.user}")
         if engine.name == "podman" and engine.rootless:

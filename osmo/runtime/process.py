@@ -6,8 +6,9 @@ What it owns:
   group id is its pid), with the given working folder and environment, stdin from
   ``/dev/null``, stdout and stderr as non-blocking pipes.
 - the sandbox: given a :class:`~osmo.runtime.sandbox.Sandbox` and a start's ``view``, the
-  command runs inside bubblewrap (``osmo.runtime.sandbox``); bwrap's two processes then lead
-  the group. ``--die-with-parent`` ends the sandbox when the spawning thread's process dies
+  command runs inside bubblewrap (``osmo.runtime.sandbox``), spawned in the node's
+  namespaces (``Sandbox.entered``, ``Sandbox.fds``); bwrap's two processes then lead the
+  group. ``--die-with-parent`` ends the sandbox when the spawning thread's process dies
   (not while bwrap is still setting it up: the pool records every pid at once for that,
   ``osmo.worker.procs``).
   Unsandboxed, a ``preexec_fn`` sets ``PR_SET_PDEATHSIG`` (SIGKILL) on the command, so it
@@ -37,6 +38,7 @@ It must not know about attempts, logs or the scheduler; the worker pool drives i
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import functools
 import os
@@ -145,24 +147,28 @@ class ProcessRuntime:
         command = list(argv)
         preexec: Callable[[], object] | None = die_with_parent()
         status_r = status_w = -1
+        fds: tuple[int, ...] = ()
+        entered: contextlib.AbstractContextManager[None] = contextlib.nullcontext()
         if self.sandbox is not None and view is not None:
-            _check_command(argv[0], cwd, env)
+            _check_command(argv[0], cwd, env, self.sandbox)
             if self.sandbox.status:
                 status_r, status_w = _status_pipe(argv[0])
             command, preexec = self.sandbox.argv(argv, view, status_w), None  # dies with us
+            fds, entered = self.sandbox.fds, self.sandbox.entered()
         started_at = start_clock()
         try:
-            popen = subprocess.Popen(
-                command,
-                cwd=cwd,
-                env=dict(env),
-                stdin=subprocess.DEVNULL,
-                stdout=subprocess.PIPE,
-                stderr=subprocess.PIPE,
-                start_new_session=True,
-                preexec_fn=preexec,
-                pass_fds=(status_w,) if status_w >= 0 else (),
-            )
+            with entered:  # in the node's network namespace (``osmo.runtime.netns``)
+                popen = subprocess.Popen(
+                    command,
+                    cwd=cwd,
+                    env=dict(env),
+                    stdin=subprocess.DEVNULL,
+                    stdout=subprocess.PIPE,
+                    stderr=subprocess.PIPE,
+                    start_new_session=True,
+                    preexec_fn=preexec,
+                    pass_fds=(*fds, status_w) if status_w >= 0 else fds,
+                )
         except OSError as exc:
             _close_fds(status_r)
             raise StartError(_start_message(argv[0], cwd, exc)) from exc
@@ -270,12 +276,15 @@ def die_with_parent() -> Callable[[], object]:
     return functools.partial(prctl, _PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
 
 
-def _check_command(program: str, cwd: Path, env: Mapping[str, str]) -> None:
-    """Fail a sandboxed start the way an unsandboxed one fails (bwrap would only exit 1)."""
+def _check_command(program: str, cwd: Path, env: Mapping[str, str], sandbox: Sandbox) -> None:
+    """Fail a sandboxed start the way an unsandboxed one fails (bwrap would only exit 1).
+
+    A program is looked up only in the ``PATH`` folders the sandbox shows.
+    """
     if not cwd.is_dir():
         raise StartError(f"working folder not found: '{cwd}'")
     if "/" not in program:
-        if _which(program, env.get("PATH", os.defpath)) is None:
+        if _which(program, _shown_path(env.get("PATH", os.defpath), sandbox)) is None:
             raise StartError(f"command not found: '{program}'")
         return
     path = str(cwd / program)
@@ -283,6 +292,12 @@ def _check_command(program: str, cwd: Path, env: Mapping[str, str]) -> None:
         raise StartError(f"command not found: '{program}'")
     if not os.access(path, os.X_OK) or os.path.isdir(path):
         raise StartError(f"command not executable: '{program}' (permission denied)")
+
+
+@functools.lru_cache(maxsize=64)  # a pool's tasks share a few PATHs
+def _shown_path(search: str, sandbox: Sandbox) -> str:
+    """``search`` (a ``PATH``) without the folders ``sandbox`` does not show."""
+    return os.pathsep.join(p for p in search.split(os.pathsep) if p and sandbox.shows(p))
 
 
 _FOUND: dict[tuple[str, str], str] = {}  # (program, PATH) → where it was found

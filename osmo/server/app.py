@@ -130,6 +130,9 @@ def serve(home: str | os.PathLike[str] | None = None, options: ServerOptions | N
                      sandbox=options.sandbox, sandbox_share=options.sandbox_share,
                      procs_dir=layout.procs, containers=boxes,
                      log_limit=options.log_limit) if options.local_pool else None
+    for secret in options.secret_files:
+        if pool is not None:
+            pool.hide(Path(secret))
     hub = WorkerHub(link=link, emit=inbox.post, store=store,
                     artifacts=artifacts, home=home_path, url_credential=url_credential(store),
                     attempts_on=lambda node: list(inbox.ask(AttemptsOn(node))),

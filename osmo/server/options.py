@@ -53,7 +53,8 @@ class ServerOptions:
             start; see :func:`check_listeners`).
         accept_tokens: ``NAME:ROLE:FILE`` tokens to accept (Kubernetes Secrets).
         sandbox: run the local pool's tasks in bubblewrap: ``auto``, ``on``, ``off``.
-        sandbox_share: host folders every sandboxed task may write (``--sandbox-share``).
+        sandbox_share: host folders every sandboxed task sees (``--sandbox-share DIR``:
+            writable, ``DIR:ro``: read-only).
         runtime: how the local pool runs image tasks: ``auto``, ``container`` or ``process``
             (``osmo.worker.containers.choose``).
         container_engine: ``podman`` or ``docker`` (default: the first that answers).
@@ -76,6 +77,15 @@ class ServerOptions:
     runtime: str = "auto"
     container_engine: str | None = None
     log_limit: int = DEFAULT_LOG_LIMIT
+
+    @property
+    def secret_files(self) -> tuple[str, ...]:
+        """Files with this server's secrets: no sandboxed task sees them, wherever they are.
+
+        Its ``--accept-token`` files and its zenoh config.
+        """
+        tokens = [spec.split(":", 2)[2] for spec in self.accept_tokens if spec.count(":") >= 2]
+        return (*tokens, *([self.zenoh_config] if self.zenoh_config else []))
 
     @staticmethod
     def add_arguments(p: argparse.ArgumentParser) -> None:

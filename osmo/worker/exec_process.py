@@ -4,8 +4,8 @@
 attempt's container (its working folder and environment are the container's); in a
 process task, the command in the attempt's working folder with the attempt's complete
 environment, wrapped in a new bubblewrap sandbox over the attempt's own view when the
-attempt runs sandboxed (so it sees what the task sees: a pid namespace of its own, not the
-task's processes).
+attempt runs sandboxed (so it sees what the task sees, the node's network and uid included:
+a pid namespace of its own, not the task's processes).
 
 :class:`ExecProcess` runs it in a session of its own: with a TTY, on a fresh pseudo-terminal
 that becomes its controlling terminal (so a Ctrl-C byte from the client is a SIGINT to the
@@ -17,6 +17,7 @@ session (a process the command started inside a container lives until the contai
 
 from __future__ import annotations
 
+import contextlib
 import fcntl
 import os
 import select
@@ -43,12 +44,17 @@ _POLL = 0.2
 
 @dataclass(frozen=True)
 class ExecCommand:
-    """What an exec session runs; ``ctty``: its terminal becomes the spawned process's."""
+    """What an exec session runs; ``ctty``: its terminal becomes the spawned process's.
+
+    ``sandbox``: the sandbox ``argv`` runs in (it is spawned as that sandbox says: in the
+    node's network, with its descriptors).
+    """
 
     argv: list[str]
     cwd: Path
     env: dict[str, str] = field(repr=False)
     ctty: bool = True
+    sandbox: Sandbox | None = None
 
 
 def exec_argv(launch: Launch, grant: SessionGrant, sandbox: Sandbox | None,
@@ -68,7 +74,8 @@ def exec_argv(launch: Launch, grant: SessionGrant, sandbox: Sandbox | None,
     env = {**launch.env, **term}
     if launch.view is not None and sandbox is not None:
         inner = ["setsid", "-w", "-c", *command] if grant.tty else command
-        return ExecCommand(sandbox.argv(inner, launch.view), launch.cwd, env, ctty=False)
+        return ExecCommand(sandbox.argv(inner, launch.view), launch.cwd, env, ctty=False,
+                           sandbox=sandbox)
     return ExecCommand(command, launch.cwd, env)
 
 
@@ -94,6 +101,9 @@ class ExecProcess:
         self._reaped = False
         self._master: int | None = None
         pdeath = die_with_parent()
+        box = command.sandbox
+        fds = box.fds if box is not None else ()
+        entered = box.entered() if box is not None else contextlib.nullcontext()
         if tty:
             master, slave = os.openpty()
             fcntl.ioctl(slave, termios.TIOCSWINSZ, _winsize(*size))
@@ -104,9 +114,11 @@ class ExecProcess:
                 pdeath()
 
             try:
-                self.proc = subprocess.Popen(argv, cwd=cwd, env=env, stdin=slave, stdout=slave,
-                                             stderr=slave, start_new_session=True,
-                                             preexec_fn=child)
+                with entered:
+                    self.proc = subprocess.Popen(argv, cwd=cwd, env=env, stdin=slave,
+                                                 stdout=slave, stderr=slave,
+                                                 start_new_session=True, preexec_fn=child,
+                                                 pass_fds=fds)
             except BaseException:
                 os.close(master)
                 raise
@@ -115,9 +127,11 @@ class ExecProcess:
             self._master = master
             self._readers = {master: 1}
         else:
-            self.proc = subprocess.Popen(argv, cwd=cwd, env=env, stdin=subprocess.PIPE,
-                                         stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                         bufsize=0, start_new_session=True, preexec_fn=pdeath)
+            with entered:
+                self.proc = subprocess.Popen(argv, cwd=cwd, env=env, stdin=subprocess.PIPE,
+                                             stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                             bufsize=0, start_new_session=True,
+                                             preexec_fn=pdeath, pass_fds=fds)
             assert self.proc.stdout is not None and self.proc.stderr is not None
             self._readers = {self.proc.stdout.fileno(): 1, self.proc.stderr.fileno(): 2}
 

@@ -14,7 +14,7 @@ from pathlib import Path
 
 from osmo.config import DEFAULT_CLUSTER
 from osmo.errors import UsageError
-from osmo.runtime.sandbox import MODES, SandboxMode
+from osmo.runtime.sandbox import MODES, SandboxMode, parse_share
 from osmo.worker.logs import DEFAULT_LOG_LIMIT, parse_log_limit
 
 __all__ = ["DEFAULT_KILL_GRACE", "DEFAULT_POOL", "WorkerOptions", "add_log_limit_argument",
@@ -33,11 +33,13 @@ def add_runtime_arguments(p: argparse.ArgumentParser) -> None:
                    help="run process tasks in a bubblewrap sandbox: auto (when bwrap works "
                         "here; the default), on (required), off")
     shared = os.environ.get("OSMO_SANDBOX_SHARE") or ""
-    p.add_argument("--sandbox-share", action="append", metavar="DIR",
-                   default=[d for d in shared.split(os.pathsep) if d],
+    p.add_argument("--sandbox-share", action="append", metavar="DIR[:ro]",
+                   default=_env_shares(shared),
                    help="a host folder every sandboxed task may read and write, at the same "
-                        "path (repeatable; OSMO_SANDBOX_SHARE, ':'-separated). Tasks get "
-                        "their own empty /tmp otherwise")
+                        "path; DIR:ro for read only (repeatable; OSMO_SANDBOX_SHARE, "
+                        "':'-separated, e.g. /scratch:/data:ro). Tasks get their own empty "
+                        "/tmp otherwise. As root, tasks run as nobody: a writable share must "
+                        "be writable by nobody")
     p.add_argument("--runtime", choices=("auto", "container", "process"),
                    default=os.environ.get("OSMO_RUNTIME") or "auto",
                    help="run tasks that name an image in containers (container), as host "
@@ -82,8 +84,10 @@ class WorkerOptions:
         kill_grace: seconds between SIGTERM and SIGKILL when an attempt is killed.
         address: how peers reach its tasks (default: the outbound interface's address).
         token: its API token, role worker (``osmo token create NAME --role worker``).
+        token_file: the file it was read from (``--token-file``).
         sandbox: run commands in bubblewrap: ``auto`` (when it works here), ``on``, ``off``.
-        sandbox_share: host folders every sandboxed task may write (``--sandbox-share``).
+        sandbox_share: host folders every sandboxed task sees (``--sandbox-share DIR``:
+            writable, ``DIR:ro``: read-only).
         runtime: how it runs image tasks: ``auto``, ``container`` or ``process``.
         container_engine: ``podman`` or ``docker`` (default: the first that answers).
         store_limit: bytes its artifact store may hold before cached blobs are removed
@@ -105,12 +109,21 @@ class WorkerOptions:
     kill_grace: float = DEFAULT_KILL_GRACE
     address: str | None = None
     token: str | None = None
+    token_file: str | None = None
     sandbox: SandboxMode = "auto"
     sandbox_share: tuple[str, ...] = ()
     runtime: str = "auto"
     container_engine: str | None = None
     store_limit: int | None = None
     log_limit: int = DEFAULT_LOG_LIMIT
+
+    @property
+    def secret_files(self) -> tuple[str, ...]:
+        """Files with this worker's secrets: no sandboxed task sees them, wherever they are.
+
+        Its token file and its zenoh config.
+        """
+        return tuple(f for f in (self.token_file, self.zenoh_config) if f)
 
     @staticmethod
     def add_arguments(w: argparse.ArgumentParser) -> None:
@@ -167,15 +180,34 @@ class WorkerOptions:
                    platform=args.platform, cpus=args.cpus, gpus=args.gpus, memory=memory,
                    labels=_labels(args.label), cluster=args.cluster,
                    zenoh_config=args.zenoh_config, drain_timeout=args.drain_timeout,
-                   token=_token(args.token, args.token_file), sandbox=args.sandbox,
+                   token=_token(args.token, args.token_file), token_file=args.token_file,
+                   sandbox=args.sandbox,
                    sandbox_share=shares(args.sandbox_share), runtime=args.runtime,
                    container_engine=args.container_engine, store_limit=store_limit,
                    log_limit=args.log_limit)
 
 
 def shares(folders: list[str] | None) -> tuple[str, ...]:
-    """``--sandbox-share`` folders, absolute (relative to the working folder)."""
-    return tuple(dict.fromkeys(os.path.abspath(d) for d in folders or ()))
+    """``--sandbox-share`` folders, absolute (relative to the working folder); ``:ro`` kept."""
+    out = []
+    for spec in folders or ():
+        folder, writable = parse_share(spec)
+        out.append(os.path.abspath(folder) + ("" if writable else ":ro"))
+    return tuple(dict.fromkeys(out))
+
+
+def _env_shares(value: str) -> list[str]:
+    """OSMO_SANDBOX_SHARE's folders (``/scratch:/data:ro``).
+
+    ``:``-separated; a ``ro`` or ``rw`` after a folder says how it is shared.
+    """
+    out: list[str] = []
+    for part in value.split(os.pathsep):
+        if part in ("ro", "rw") and out:
+            out[-1] = f"{parse_share(out[-1])[0]}:{part}"
+        elif part:
+            out.append(part)
+    return out
 
 
 def _token(token: str | None, token_file: str | None) -> str | None:

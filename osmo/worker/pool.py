@@ -34,12 +34,14 @@ else, and every task without ``containers``, runs as a host process, its ``image
 in the log.
 
 Sandbox (``sandbox``: ``auto``, ``on``, ``off``; ``osmo.runtime.sandbox``): chosen once, when
-the pool is made; commands then run in bubblewrap with a view of their own attempt's folders
-only (``workdir.attempt_view``), and the node's ``sandbox`` label says ``bwrap``. Without one,
-the label says ``none``, ``no_sandbox_why`` says why in a few words (``osmo resource list``),
-and every attempt's log starts with an osmo line saying so. ``auto`` that finds no working
-sandbox also logs :attr:`LocalPool.sandbox_warning` (level WARNING) when the pool is made:
-nobody chose to run tasks unsandboxed, so it is said at start, not only in each task's log.
+the pool is made, with the node's network namespace its tasks share (``osmo.runtime.netns``,
+closed with the pool); commands then run in bubblewrap with a view of their own attempt's
+folders only (``workdir.attempt_view``), and the node's ``sandbox`` label says ``bwrap``.
+Without one, the label says ``none``, ``no_sandbox_why`` says why in a few words (``osmo
+resource list``), and every attempt's log starts with an osmo line saying so; without
+outbound network for its tasks, likewise. ``auto`` that finds no working sandbox also logs
+:attr:`LocalPool.sandbox_warning` (level WARNING) when the pool is made: nobody chose to run
+tasks unsandboxed, so it is said at start, not only in each task's log.
 A pool records each command's pid and start time in ``procs_dir`` right after the spawn
 (one appended line; ``osmo.worker.procs``), so that a server or worker restarted after a
 crash can kill what its previous life left, even a command whose start it never reported.
@@ -52,6 +54,7 @@ from __future__ import annotations
 import collections
 import logging
 import os
+import socket
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
@@ -59,13 +62,22 @@ from pathlib import Path
 
 from osmo.artifacts import ArtifactStore
 from osmo.artifacts.store import DEFAULT_MAX_FILES
-from osmo.errors import UsageError
+from osmo.errors import InfrastructureError, UsageError
 from osmo.layout import Home
 from osmo.runtime.container import ContainerEngine
 from osmo.runtime.container_runtime import ContainerRuntime
+from osmo.runtime.netns import NodeNetwork
 from osmo.runtime.process import ProcessHandle, ProcessRuntime, Runtime
 from osmo.runtime.proctable import kill_stale, process_start_time
-from osmo.runtime.sandbox import SandboxMode, choose, unavailable_reason, unavailable_summary
+from osmo.runtime.sandbox import (
+    Sandbox,
+    SandboxMode,
+    choose,
+    node_network,
+    parse_share,
+    unavailable_reason,
+    unavailable_summary,
+)
 from osmo.scheduler.types import (
     LOCAL_NODE,
     AttemptExited,
@@ -97,22 +109,6 @@ _log = logging.getLogger(__name__)
 _IO_THREADS = 4
 
 
-def _unsandboxed(mode: SandboxMode, pool: str) -> tuple[str, str, str | None]:
-    """What a pool without a sandbox says: in each task's log, in ``osmo resource list``, at start.
-
-    The last is None with ``--sandbox off``: the operator chose it.
-    """
-    if mode == "off":
-        return ("no sandbox: this task sees the host as the worker's user (--sandbox off)",
-                "--sandbox off", None)
-    reason = unavailable_reason()
-    return (f"no sandbox: this task sees the host as the worker's user ({reason})",
-            unavailable_summary(),
-            f"UNSANDBOXED: pool {pool} runs its tasks without a sandbox (--sandbox {mode}): "
-            f"{reason}. They see the host as uid {os.geteuid()}, osmo's home (state, "
-            "credentials) included; --sandbox on refuses to start instead")
-
-
 class LocalPool(AttemptStarts):
     """A resource-aware pool of host processes on this machine (see the module docstring).
 
@@ -138,6 +134,8 @@ class LocalPool(AttemptStarts):
         log_limit: bytes each attempt's log keeps at most (``osmo.worker.logs``).
         sandbox: ``auto`` (when bubblewrap works here), ``on`` (required) or ``off``.
         sandbox_share: host folders every sandboxed task may write (never inside ``home``).
+        address: how peers reach this node's tasks (``{{host:NAME}}``): given to the
+            sandboxed tasks' network too (``osmo.runtime.netns``).
         procs_dir: record running commands' pids here (see the module docstring).
         containers: runs image tasks in containers (its runtime replaces ``runtime``); its
             orphans are removed here, before anything starts.
@@ -176,6 +174,7 @@ class LocalPool(AttemptStarts):
         log_limit: int = DEFAULT_LOG_LIMIT,
         sandbox: SandboxMode = "auto",
         sandbox_share: Sequence[str] = (),
+        address: str | None = None,
         procs_dir: Path | None = None,
         containers: ContainerTasks | None = None,
     ) -> None:
@@ -187,19 +186,19 @@ class LocalPool(AttemptStarts):
         self._node_id, self._pool = node_id, pool
         self._cpus, self._gpus, self._memory = cpus, gpus, memory
         self._grace = kill_grace
-        inside = [d for d in sandbox_share if Path(d).absolute().is_relative_to(self.home)]
+        inside = [d for d in sandbox_share
+                  if Path(parse_share(d)[0]).absolute().is_relative_to(self.home)]
         if inside:
             raise UsageError(f"--sandbox-share {inside[0]}: it is inside osmo's home "
                              f"{self.home}, which tasks must never see")
-        self.sandbox = choose(sandbox, sandbox_share)
-        said: tuple[str | None, str | None, str | None] = (
-            (None, None, None) if self.sandbox else _unsandboxed(sandbox, pool))
-        self._no_sandbox, self.no_sandbox_why, self.sandbox_warning = said
+        (self.sandbox, self._network, self._sandbox_note, self.no_sandbox_why,
+         self.sandbox_warning) = _sandbox(sandbox, sandbox_share, address, pool)
         if self.sandbox_warning:
             _log.warning("%s", self.sandbox_warning)
         self._runtime: Runtime = runtime or ProcessRuntime(self.sandbox)
         self._procs = ProcessRecords(procs_dir) if procs_dir is not None else None
         self._hidden = [self.home]  # folders a sandboxed task never sees (see hide())
+        self._masked: list[Path] = []  # files it never sees
         self._env = base_env(os.environ) if env is None else dict(env)
         self._containers = containers
         if containers is not None:
@@ -247,10 +246,31 @@ class LocalPool(AttemptStarts):
         """How this pool runs image tasks: ``container (podman 4.3.1)`` or ``process``."""
         return f"container ({self._containers.describe()})" if self._containers else "process"
 
-    def hide(self, folder: Path) -> None:
-        """Also hide ``folder`` from sandboxed tasks (another osmo home on this host)."""
-        if folder not in self._hidden:
-            self._hidden.append(folder)
+    def hide(self, path: Path) -> None:
+        """Also hide ``path`` from sandboxed tasks.
+
+        A folder (another osmo home on this host) or a file (a token file the server or
+        worker was given).
+        """
+        path = Path(path).absolute()
+        found = self._hidden
+        if path.is_file():
+            if self.sandbox is None or not self.sandbox.shows(str(path)):
+                return  # a file no shown folder holds is not there anyway
+            found = self._masked
+        if path not in found:
+            found.append(path)
+
+    def task_socket(self, udp: bool) -> socket.socket | None:
+        """A new socket in the network of this pool's sandboxed tasks (None: the host's).
+
+        Raises:
+            OSError: it cannot be made.
+        """
+        if self._network is None:
+            return None
+        return self._network.socket(socket.AF_INET, socket.SOCK_DGRAM if udp
+                                    else socket.SOCK_STREAM)
 
     def owns(self, node_id: str) -> bool:
         """Whether ``node_id`` is this pool's node."""
@@ -302,6 +322,8 @@ class LocalPool(AttemptStarts):
         self._reactor.stop(self._shutdown)
         if self._containers is not None:
             self._containers.close()
+        if self._network is not None:
+            self._network.close()
 
     # -------------------------------------------------------------- containers
 
@@ -358,3 +380,37 @@ class LocalPool(AttemptStarts):
         self._attempts.clear()
         if self._procs is not None:
             self._procs.close()
+
+
+def _sandbox(mode: SandboxMode, shares: Sequence[str], address: str | None, pool: str
+             ) -> tuple[Sandbox | None, NodeNetwork | None, str | None, str | None, str | None]:
+    """The pool's sandbox in its node's namespaces, those namespaces, and what to say.
+
+    What to say: in each process task's log (no sandbox at all, or no outbound network), in
+    ``osmo resource list`` (why there is no sandbox, in a few words), and once at start (a
+    warning when ``auto`` found none: nobody chose it).
+
+    Raises:
+        InfrastructureError: ``mode`` is ``on`` and no sandbox works here.
+    """
+    sandbox = choose(mode, shares)
+    if mode == "off":
+        return (None, None, "no sandbox: this task sees the host as the worker's user "
+                "(--sandbox off)", "--sandbox off", None)
+    if sandbox is None:
+        reason, summary = unavailable_reason(), unavailable_summary()
+    else:
+        try:
+            network = node_network(address=address)
+        except InfrastructureError as exc:
+            if mode == "on":
+                raise
+            reason, summary = str(exc), "no network namespace"
+        else:
+            if network.caveat:
+                _log.warning("sandboxed tasks: %s", network.caveat)
+            return sandbox.joined(network), network, network.caveat or None, None, None
+    return (None, None, f"no sandbox: this task sees the host as the worker's user ({reason})",
+            summary, f"UNSANDBOXED: pool {pool} runs its tasks without a sandbox (--sandbox "
+            f"{mode}): {reason}. They see the host as uid {os.geteuid()}, osmo's home (state, "
+            "credentials) included; --sandbox on refuses to start instead")

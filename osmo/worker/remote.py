@@ -102,6 +102,7 @@ class RemoteWorker:
         self.home = Path(home).absolute()
         self.home.mkdir(parents=True, exist_ok=True)
         self.opts = options
+        self._address = options.address or _address()  # how peers reach its tasks
         self.id = check_worker_name(options.name or f"{socket.gethostname()}-{os.getpid()}",
                                     reserved=(LOCAL_NODE, SERVER))
         if not options.token:
@@ -145,9 +146,11 @@ class RemoteWorker:
             credential_for=self._url_creds.get, log_sink=self._send_log,
             log_limit=options.log_limit,
             input_manifests=self._inputs.manifest_of, sandbox=options.sandbox,
-            sandbox_share=options.sandbox_share,
+            sandbox_share=options.sandbox_share, address=self._address,
             procs_dir=self._layout.procs,
             containers=containers.for_node(options.runtime, options.container_engine, self.home))
+        for secret in options.secret_files:
+            self.pool.hide(Path(secret))
         self.sessions = NodeSessions(self.link, self.pool, lambda ticket: self._api.call(
             "worker_session", {"id": self.id, "ticket": ticket}))
         self._subs: list[Any] = []
@@ -261,7 +264,7 @@ class RemoteWorker:
 
     def _register(self) -> bool:
         own = self.pool.node()  # its labels (the sandbox) win over the user's
-        node = replace(own, platform=self.opts.platform, address=self.opts.address or _address(),
+        node = replace(own, platform=self.opts.platform, address=self._address,
                        labels={**self.opts.labels, **own.labels})
         with self._lock:
             hello = Hello(node, pid=os.getpid(), host_id=host_id(),

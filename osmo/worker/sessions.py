@@ -14,8 +14,9 @@ pool's running attempt:
 - port-forward connects each channel to the task's port on the container's address (a
   container task: its own network namespace, as OSMO's pod) or, for a process task, only to a
   port a process of the task listens on, at the address it listens on
-  (``osmo.worker.task_ports``): never to another process's port on the node; and only to
-  the ports the grant names.
+  (``osmo.worker.task_ports``), from inside the node's network namespace when the task is
+  sandboxed (``osmo.runtime.netns``): never to another process's port on the node nor to a
+  listener on the host's own loopback; and only to the ports the grant names.
 
 Every session ends, and its process or sockets with it, when its command exits, when the
 client goes silent (``osmo.transport.streams``), when the attempt stops running here, or
@@ -60,6 +61,9 @@ class SessionPool(Protocol):
 
     def running_pid(self, attempt_id: str) -> int | None:
         """The attempt's main process id while it runs here."""
+
+    def task_socket(self, udp: bool) -> socket.socket | None:
+        """A new socket in the sandboxed tasks' network (None: there is none)."""
 
     @property
     def container_engine(self) -> ContainerEngine | None:
@@ -177,6 +181,7 @@ class _Forward(_Session):
     def __init__(self, *args: Any) -> None:
         self._channels = Channels(lambda kind, ch, data: self.stream.send(kind, ch, data))
         self._host: str | None = None  # a container's own address; None: a process task's
+        self._inside = False  # connect from inside the sandboxed tasks' network
         super().__init__(*args)
 
     def serve(self, launch: Launch) -> None:
@@ -186,6 +191,8 @@ class _Forward(_Session):
             if self._host is None:
                 self.end(None, "the task's container has no network address of its own")
                 return
+        else:
+            self._inside = launch.view is not None
         self.stream.send(Kind.READY)
         self._ended.wait()
 
@@ -219,9 +226,7 @@ class _Forward(_Session):
                                                       .encode())
             return
         try:
-            sock = socket.create_connection((host, port), timeout=_CONNECT_TIMEOUT) \
-                if not udp else _udp_socket(host, port)
-            sock.settimeout(None)
+            sock = self._socket(host, port, udp)
         except OSError as exc:
             if self._channels.drop(channel):
                 self.stream.send(Kind.CLOSE, channel,
@@ -243,14 +248,26 @@ class _Forward(_Session):
         pid = self._pool.running_pid(self.grant.attempt_id)
         return task_listener(pid, port, udp=udp) if pid is not None else None
 
+    def _socket(self, host: str, port: int, udp: bool) -> socket.socket:
+        """A socket connected to ``host:port`` (raises OSError).
+
+        Made inside the sandboxed tasks' network when the task is sandboxed.
+        """
+        made = self._pool.task_socket(udp) if self._inside else None
+        if made is None:
+            made = socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET,
+                                 socket.SOCK_DGRAM if udp else socket.SOCK_STREAM)
+        try:
+            made.settimeout(_CONNECT_TIMEOUT)
+            made.connect((host, port))
+            made.settimeout(None)
+        except OSError:
+            made.close()
+            raise
+        return made
+
     def stop(self) -> None:
         self._channels.close()
-
-
-def _udp_socket(host: str, port: int) -> socket.socket:
-    sock = socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_DGRAM)
-    sock.connect((host, port))
-    return sock
 
 
 def container_address(engine: ContainerEngine, name: str) -> str | None:

@@ -65,8 +65,9 @@ class AttemptStarts(AttemptEndings):
     _containers: ContainerTasks | None
     _procs: ProcessRecords | None
     _hidden: list[Path]
+    _masked: list[Path]
     sandbox: Sandbox | None
-    _no_sandbox: str | None
+    _sandbox_note: str | None  # for each process task's log: no sandbox, no outbound network
     _preparing: dict[str, str | None]
     _run_pending: set[str]
     _kill: Callable[[str, str], None]
@@ -114,7 +115,8 @@ class AttemptStarts(AttemptEndings):
                                 credential_for=self._credential_for, artifacts=self._artifacts,
                                 input_manifests=self._input_manifests,
                                 hide=tuple(self._hidden) if self.sandbox and not boxed else None,
-                                boxed=boxed)
+                                masked=tuple(self._masked),
+                                owner=self.sandbox.owner if self.sandbox else None, boxed=boxed)
             launch = replace(launch, max_output_bytes=resources.storage)
             if self._containers is not None and boxed:
                 log = self._open_log(cmd, dirs, launch)
@@ -175,8 +177,8 @@ class AttemptStarts(AttemptEndings):
         attempt = LiveAttempt(cmd.attempt_id, task, dirs, launch, log)
         for note in launch.notes:
             attempt.log.line("osmo", note)
-        if self._no_sandbox is not None and launch.container is None:
-            attempt.log.line("osmo", self._no_sandbox)
+        if self._sandbox_note is not None and launch.container is None:
+            attempt.log.line("osmo", self._sandbox_note)
         if task.image and launch.container is None:
             attempt.log.line("osmo", image_note(task.image))
         self._attempts[attempt.id] = attempt

@@ -43,7 +43,14 @@ from osmo.spec.model import TaskSpec
 from osmo.urls import for_url
 from osmo.worker.secrets import Secrets
 from osmo.worker.taskenv import sandbox_env
-from osmo.worker.workdir import Launch, attempt_view, prepare, promote, remove_secret_files
+from osmo.worker.workdir import (
+    Launch,
+    attempt_view,
+    hand_over,
+    prepare,
+    promote,
+    remove_secret_files,
+)
 
 __all__ = ["CredentialLookup", "DeliveryError", "InputCopies", "ManifestLookup", "copy_inputs",
            "deliver", "fetch_inputs", "make_ready", "plan_input_copies", "push_outputs"]
@@ -82,13 +89,15 @@ def make_ready(dirs: AttemptDirs, cmd: PrepareAttempt, task: TaskSpec, *,
                env: Mapping[str, str], secrets: Secrets,
                credential_for: CredentialLookup | None, artifacts: ArtifactStore | None,
                input_manifests: ManifestLookup | None,
-               hide: tuple[Path, ...] | None = None, boxed: bool = False) -> Launch:
+               hide: tuple[Path, ...] | None = None, masked: tuple[Path, ...] = (),
+               owner: tuple[int, int] | None = None, boxed: bool = False) -> Launch:
     """Everything an attempt needs before it can start, in order.
 
     Its ``url`` inputs, its folder and files (``workdir.prepare``), its own copies of its artifact
     inputs. ``hide``: the attempt runs in a sandbox that hides these folders (osmo's
-    homes); its launch then carries its view, and its inputs that are folders here are bound,
-    not copied. ``boxed``: it runs in its image (``workdir.prepare``).
+    homes) and the ``masked`` files; its launch then carries its view, and its inputs that
+    are folders here are bound, not copied; ``owner``: the host uid and gid it runs as there
+    (``workdir.hand_over``). ``boxed``: it runs in its image (``workdir.prepare``).
 
     Raises:
         OsmoError: a download, a token, a file, a credential or a blob failed (a blob that
@@ -100,15 +109,18 @@ def make_ready(dirs: AttemptDirs, cmd: PrepareAttempt, task: TaskSpec, *,
     cmd, copies = plan_input_copies(cmd, dirs, input_manifests if artifacts else None)
     launch = prepare(dirs, cmd, task, env, secrets, boxed=boxed)
     if hide is not None:
-        launch = replace(launch, view=attempt_view(dirs, cmd, hide),
+        paths = tuple(Path(p) for p in task.resolved.paths) if task.resolved else ()
+        launch = replace(launch, view=attempt_view(dirs, cmd, hide, masked, paths),
                          env={**launch.env, **sandbox_env(launch.env, dirs.work)})
-    if copies and artifacts is not None:
-        try:
+    try:
+        if copies and artifacts is not None:
             launch = replace(launch, scratch=copy_inputs(copies, artifacts,
                                                          links=hide is not None))
-        except BaseException:
-            remove_secret_files(launch)
-            raise
+        if hide is not None and owner is not None:
+            hand_over(dirs, owner)
+    except BaseException:
+        remove_secret_files(launch)
+        raise
     return launch
 
 

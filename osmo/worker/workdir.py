@@ -43,7 +43,8 @@ key}``, verbatim), then osmo's own variables, which a task cannot override:
 
 Sandbox view (:func:`attempt_view`): what of osmo's home a sandboxed attempt sees: its own
 folder read-only, its ``work/``, ``output.partial/`` and ``files/`` writable, its inputs
-read-only; the rest of the home is hidden (``osmo.runtime.sandbox``).
+read-only; the rest of the home is hidden (``osmo.runtime.sandbox``). A root pool's
+sandboxed task is ``nobody`` on the host: :func:`hand_over` gives it its writable folders.
 
 Promotion: after a COMPLETE exit of an attempt that was not killed, ``output.partial`` is
 renamed to ``output`` (atomic) and the attempt folder is fsynced; the output reference is the
@@ -63,6 +64,7 @@ import binascii
 import os
 import posixpath
 import re
+import stat
 import uuid
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -80,7 +82,8 @@ from osmo.worker import container_layout as containers
 from osmo.worker import launch
 from osmo.worker.secrets import Secrets, mounts, secret_env, secret_values
 
-__all__ = ["Launch", "PrepareError", "attempt_view", "prepare", "promote", "remove_secret_files"]
+__all__ = ["Launch", "PrepareError", "attempt_view", "hand_over", "prepare", "promote",
+           "remove_secret_files"]
 
 
 class PrepareError(OsmoError):
@@ -169,11 +172,14 @@ def prepare(
 _MAX_INPUT_BINDS = 2000  # each is 3 bubblewrap arguments; bubblewrap takes at most 9,000
 
 
-def attempt_view(dirs: AttemptDirs, cmd: PrepareAttempt, hidden: tuple[Path, ...]) -> View:
+def attempt_view(dirs: AttemptDirs, cmd: PrepareAttempt, hidden: tuple[Path, ...],
+                 masked: tuple[Path, ...] = (), code: tuple[Path, ...] = ()) -> View:
     """What a sandboxed attempt sees of the ``hidden`` folders (osmo's homes; the docstring).
 
     ``cmd.inputs`` are its resolved input references; those that are folders are bound
     read-only (a ``url`` input's download and a copy sit in paths bound read-only already).
+    ``masked``: files it must not see; ``code``: folders a typed task imports its type from
+    (``TaskSpec.resolved.paths``), shown read-only.
     """
     bound: list[Path] = []
     for path in sorted({Path(ref) for ref in cmd.inputs.values() if ref.startswith("/")}):
@@ -186,7 +192,34 @@ def attempt_view(dirs: AttemptDirs, cmd: PrepareAttempt, hidden: tuple[Path, ...
                            f"sandbox can bind ({_MAX_INPUT_BINDS:,}); run it with --sandbox off "
                            "or give it fewer, larger inputs")
     return View(hidden=hidden, readonly=(dirs.root, dirs.url_inputs, *bound),
-                writable=(dirs.work, dirs.output_partial, dirs.files), cwd=dirs.work)
+                writable=(dirs.work, dirs.output_partial, dirs.files), cwd=dirs.work,
+                masked=masked, code=code)
+
+
+def hand_over(dirs: AttemptDirs, owner: tuple[int, int]) -> None:
+    """Give a sandboxed attempt of a root pool what it writes (``owner``: its host ids).
+
+    Its ``work/``, ``output.partial/`` and ``files/``, and what preparing wrote in them (its
+    files, its credentials' files), become ``owner``'s; its folder and its inputs' folders
+    get the search bit for others if they lack it (the umask's), so that it can reach its
+    inputs, never the right to list or write them. Inputs themselves (links of blobs) are
+    left alone. The pool (root) still reads, ingests and removes all of it.
+    """
+    uid, gid = owner
+    for top in (dirs.work, dirs.output_partial, dirs.files):
+        if not top.exists():
+            continue
+        os.chown(top, uid, gid)
+        for folder, subfolders, names in os.walk(top):
+            for name in (*subfolders, *names):
+                os.lchown(os.path.join(folder, name), uid, gid)
+    for reached in (dirs.root, dirs.inputs, dirs.url_inputs):
+        try:
+            mode = os.stat(reached).st_mode
+        except FileNotFoundError:
+            continue
+        if not mode & 0o001:
+            os.chmod(reached, stat.S_IMODE(mode) | 0o001)
 
 
 def remove_secret_files(launch: Launch) -> None:

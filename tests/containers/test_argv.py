@@ -44,8 +44,13 @@ FULL = ContainerRun(
 FULL_TAIL = ["--mount=type=bind,source=/h/in,target=/osmo/data/input/0,readonly",
              "--mount=type=bind,source=/h/out,target=/osmo/data/output",
              "--workdir=/work", "--env=A=1", "--env=NVIDIA_VISIBLE_DEVICES=0,1"]
+PRIVILEGES = ["--cap-drop=all", "--cap-add=CHOWN", "--cap-add=DAC_OVERRIDE", "--cap-add=FOWNER",
+              "--cap-add=FSETID", "--cap-add=KILL", "--cap-add=SETGID", "--cap-add=SETUID",
+              "--cap-add=SETPCAP", "--cap-add=NET_BIND_SERVICE", "--cap-add=SYS_CHROOT",
+              "--cap-add=MKNOD", "--cap-add=AUDIT_WRITE", "--cap-add=SETFCAP",
+              "--security-opt=no-new-privileges"]
 FULL_HEAD = ["run", "--rm", "--name=osmo-wf-1-train-0-123456789abc", "--pull=never", "--init",
-             "--user=1000:1000"]
+             *PRIVILEGES, "--user=1000:1000"]
 FULL_MIDDLE = ["--label=osmo.attempt=wf-1:train:0", "--label=osmo.task=train",
                "--network=osmo-wf-1-g", "--network-alias=train", "--hostname=train",
                "--cpus=1.5", "--memory=2147483648", "--shm-size=1073741824"]
@@ -88,7 +93,7 @@ def test_single_gpu() -> None:
 
 def test_minimal_run_uses_the_image_entrypoint() -> None:
     assert run_argv(PODMAN, ContainerRun("alpine:3.18", "c", init=False)) == [
-        "/usr/bin/podman", "run", "--rm", "--name=c", "--pull=never",
+        "/usr/bin/podman", "run", "--rm", "--name=c", "--pull=never", *PRIVILEGES,
         "--env=NVIDIA_VISIBLE_DEVICES=", "alpine:3.18"]
 
 

@@ -12,7 +12,7 @@ import signal
 import time
 from pathlib import Path
 
-from tests.conftest import Osmo, ended, write
+from tests.conftest import Osmo, ended, unique_sleep, wait_no_process, write
 from tests.e2e.cluster import Cluster
 
 
@@ -137,3 +137,42 @@ def test_sandbox_is_said_in_pool_list(osmo: Osmo) -> None:
     pools = osmo("pool", "list", "--format", "json", check=True).json()
     assert [p["sandbox"] for p in pools] == ["bwrap"]
     assert "bwrap" in osmo("pool", "list", check=True).out.split()
+
+
+def test_unsandboxed_main_process_dies_with_its_server(osmo: Osmo, tmp_path: Path) -> None:
+    """Without a sandbox only the parent-death signal (``PR_SET_PDEATHSIG``) ends a task's
+    main process when its server is SIGKILLed (bwrap's --die-with-parent does it in one)."""
+    marker = unique_sleep()
+    osmo("server", "start", "--sandbox", "off", check=True)
+    osmo.submit(write(tmp_path / "main.yaml", f"""
+workflow:
+  name: main
+  tasks:
+  - name: t
+    command: [sleep, "{marker}"]
+"""))
+    wait_for(lambda: len(pids_with(marker)) == 1)
+    pid = osmo.server_pid()
+    assert pid is not None
+    os.kill(pid, signal.SIGKILL)
+    wait_no_process(marker, timeout=10)
+
+
+def test_unsandboxed_main_process_dies_with_its_worker(tmp_path: Path) -> None:
+    marker = unique_sleep()
+    cluster = Cluster(tmp_path)
+    try:
+        cluster.start_server()
+        cluster.start_worker("w1", "--sandbox", "off")
+        cluster.osmo.submit(write(tmp_path / "main.yaml", f"""
+workflow:
+  name: main
+  tasks:
+  - name: t
+    command: [sleep, "{marker}"]
+"""))
+        wait_for(lambda: len(pids_with(marker)) == 1)
+        cluster.signal("w1", signal.SIGKILL)
+        wait_no_process(marker, timeout=10)
+    finally:
+        cluster.stop()

@@ -1,9 +1,10 @@
 """Mounts that appear and vanish while sandboxes start: the race bubblewrap's setup loses.
 
-``--ro-bind / /`` copies every mount of the host and then remounts each read-only; a mount
-in a shared peer group (podman's ``/run/netns``, its overlays) that is unmounted in between
-makes bwrap fail with ``Can't bind mount /oldroot/ on /newroot/: ... Invalid argument``.
-:func:`churning_mounts` reproduces that: a scratch folder under ``/``, made a shared mount,
+A read-only bind of a system folder (``--ro-bind /opt /opt``) copies every mount below it
+and then remounts each read-only; a mount in a shared peer group (podman's overlays) that
+is unmounted in between makes bwrap fail with ``Can't bind mount /oldroot/...: ... Invalid
+argument``. :func:`churning_mounts` reproduces that: a scratch folder under ``/opt`` (a
+folder every sandbox shows), made a shared mount,
 with tmpfs mounts made and removed under it in a loop. Root only (skips otherwise).
 """
 
@@ -41,7 +42,7 @@ def churning_mounts(count: int = 20, pause: float = 0.0) -> Iterator[None]:
     """
     if os.geteuid() != 0:
         pytest.skip("making and removing mounts needs root")
-    root = tempfile.mkdtemp(prefix="osmo-churn-", dir="/")
+    root = tempfile.mkdtemp(prefix="osmo-churn-", dir="/opt")
     folders = [os.path.join(root, str(i)) for i in range(count)]
     for folder in folders:
         os.mkdir(folder)

@@ -2,8 +2,15 @@
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import os
+import shutil
 import signal
+import socket
+import subprocess
+import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -11,29 +18,44 @@ import pytest
 from osmo.errors import InfrastructureError, UsageError
 from osmo.runtime import ProcessRuntime, StartError
 from osmo.runtime import sandbox as sandbox_mod
-from osmo.runtime.sandbox import Sandbox, View, choose
+from osmo.runtime.netns import Entry, NodeNetwork
+from osmo.runtime.sandbox import Sandbox, View, choose, node_network
 from tests.runtime.churn import churning_mounts
 from tests.runtime.test_process_runtime import read_all, wait_exit, wait_until
 
 ENV = {"PATH": os.environ["PATH"]}
 
 
+@pytest.fixture(scope="module")
+def network() -> Iterator[NodeNetwork]:
+    """A node's namespaces, as a pool makes them."""
+    made = node_network()
+    yield made
+    made.close()
+
+
 @pytest.fixture
-def box() -> Sandbox:
+def box(network: NodeNetwork) -> Sandbox:
     found = choose("on")  # ./dev test installs bubblewrap; CI runs with it
     assert found is not None
-    return found
+    return found.joined(network)
 
 
 @pytest.fixture
-def home(tmp_path: Path) -> Path:
-    """An osmo-like home: a secret beside one attempt's folders, and another attempt."""
+def home(tmp_path: Path, box: Sandbox) -> Path:
+    """An osmo-like home: a secret beside one attempt's folders, and another attempt.
+
+    Its writable folders are the task's, as a pool makes them (``workdir.hand_over``).
+    """
     root = tmp_path / "home"
     for folder in ("a/work", "a/output.partial", "a/files", "other/work", "input"):
         (root / folder).mkdir(parents=True)
     (root / "state.db").write_text("secret")
     (root / "other" / "work" / "note").write_text("other's")
     (root / "input" / "data.txt").write_text("input")
+    if box.owner is not None:
+        for folder in ("a/work", "a/output.partial", "a/files"):
+            os.chown(root / folder, *box.owner)
     return root
 
 
@@ -88,10 +110,10 @@ def test_tmp_is_the_tasks_own(box: Sandbox, home: Path) -> None:
 
 
 def test_a_shared_folder_is_writable_and_the_home_inside_it_stays_hidden(
-        box: Sandbox, home: Path) -> None:
+        box: Sandbox, home: Path, network: NodeNetwork) -> None:
     shared = choose("on", [home.parent])
     assert shared is not None and shared.shared == (os.path.realpath(home.parent),)
-    code, out = run(shared, home, f"""
+    code, out = run(shared.joined(network), home, f"""
         echo x > {home.parent}/note && echo wrote-shared
         cat {home}/state.db || echo no-db""")
     assert code == 0 and out.split() == ["wrote-shared", "no-db"], out
@@ -156,7 +178,7 @@ def test_choose_modes(monkeypatch: pytest.MonkeyPatch) -> None:
 
 
 def test_argv_orders_mounts_parents_first(home: Path) -> None:
-    argv = Sandbox("bwrap").argv(["true"], view(home))
+    argv = Sandbox("bwrap", entry=Entry()).argv(["true"], view(home))
     real = os.path.realpath
     assert argv.index(real(home)) < argv.index(real(home / "a")) < argv.index(
         real(home / "a" / "work"))
@@ -177,7 +199,7 @@ def test_osmos_own_folders_under_tmp_stay_visible_read_only(box: Sandbox, home: 
     nested.mkdir()
     found = sandbox_mod.runtime_folders([str(venv), str(nested), str(outside), "relative", ""])
     assert found == (os.path.realpath(venv),)
-    runtime = Sandbox(box.bwrap, box.devices, runtime=found)
+    runtime = dataclasses.replace(box, runtime=found)
     code, out = run(runtime, home, f"{venv}/bin/tool; touch {venv}/x || echo read-only")
     assert code == 0 and out.split() == ["from-the-venv", "read-only"], out
     code, out = run(box, home, f"{venv}/bin/tool || echo hidden")
@@ -270,3 +292,67 @@ def test_a_task_cannot_undo_its_mounts(box: Sandbox, home: Path) -> None:
     assert out.split()[:3] == ["no-db", "ro-host", "no-mount"], out
     assert out.split()[-1] == "0000000000000000", out
     assert not os.path.exists(f"/usr/osmo-evil-{os.getpid()}")
+
+
+UNPRIVILEGED = r"""
+import json, os, select, socket, sys
+from pathlib import Path
+from osmo.runtime import ProcessRuntime
+from osmo.runtime.sandbox import View, choose, node_network
+home, port = Path(sys.argv[1]), int(sys.argv[2])
+work = home / "a" / "work"
+work.mkdir(parents=True)
+(home / "state.db").write_text("secret")
+net = node_network()
+try:
+    runtime = ProcessRuntime(choose("on").joined(net))
+    view = View(hidden=(home,), readonly=(home / "a",), writable=(work,), cwd=work)
+    handle = runtime.start(["sh", "-c", f'''
+        id -u; grep CapBnd /proc/self/status | cut -f2; readlink /proc/self/ns/net
+        cat {home}/state.db 2>/dev/null || echo no-db
+        echo made > made && echo wrote
+        python3 -c "import socket; socket.create_connection(('127.0.0.1', {port}), 2)" \
+            2>/dev/null && echo reached || echo unreachable'''],
+        cwd=work, env={"PATH": "/usr/bin:/bin"}, view=view)
+    select.select([handle.exit_fd], [], [])
+    code = runtime.reap(handle)
+    out = os.read(handle.stdout_fd, 65536).decode().split()
+    runtime.release(handle)
+finally:
+    net.close()
+print(json.dumps({"code": code, "out": out, "caveat": net.caveat,
+                  "made": (work / "made").stat().st_uid}))
+"""
+
+
+def test_the_sandbox_of_a_user_that_is_not_root(tmp_path: Path) -> None:
+    """osmo run by an ordinary user (here nobody, from a root test run): the node's
+    namespaces are entered through nsenter; the task is root only inside, writes its files
+    as that user, sees a network of its own, and no capability is left."""
+    where = Path(tempfile.mkdtemp(prefix="osmo-user-"))  # a folder nobody can reach
+    try:
+        where.chmod(0o755)
+        shutil.copytree(Path(__file__).resolve().parents[2] / "osmo", where / "osmo")
+        (where / "home").mkdir(mode=0o777)
+        (where / "home").chmod(0o777)
+        with socket.socket() as listener:
+            listener.bind(("127.0.0.1", 0))
+            listener.listen()
+            port = listener.getsockname()[1]
+            command = ["/usr/bin/python3", "-c", UNPRIVILEGED, str(where / "home"), str(port)]
+            if os.geteuid() == 0:
+                command = ["setpriv", "--reuid=nobody", "--regid=nogroup", "--clear-groups",
+                           *command]
+            done = subprocess.run(command, capture_output=True, text=True, timeout=60,
+                                  env={"PATH": "/usr/bin:/bin", "PYTHONPATH": str(where)},
+                                  cwd=where, check=False)
+        assert done.returncode == 0, done.stderr
+        result = json.loads(done.stdout)
+        uid, bounding, netns, *rest = result["out"]
+        assert result["code"] == 0, result
+        assert (uid, bounding) == ("0", "0000000000000000"), result
+        assert netns != os.readlink("/proc/self/ns/net"), result
+        assert rest == ["no-db", "wrote", "unreachable"], result
+        assert result["made"] == (65534 if os.geteuid() == 0 else os.geteuid())
+    finally:
+        shutil.rmtree(where, ignore_errors=True)

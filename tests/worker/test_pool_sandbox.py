@@ -39,8 +39,9 @@ def boxed(tmp_path: Path, events: Events) -> Iterator[LocalPool]:
 
 
 def test_a_sandbox_that_never_sets_up_fails_the_start(boxed: LocalPool, events: Events) -> None:
-    """bwrap cannot make a tmpfs on a folder missing from the read-only root: every try fails."""
-    boxed.hide(Path(f"/osmo-missing-{os.getpid()}"))
+    """bwrap cannot make a tmpfs on a folder missing from a read-only system folder: every
+    try fails."""
+    boxed.hide(Path(f"/usr/osmo-missing-{os.getpid()}"))
     aid = submit(boxed, sh("ok", "echo ran > {{output}}/ran"))
     final = events.final(aid)
     assert isinstance(final, AttemptStartFailed), final
@@ -69,7 +70,7 @@ def test_a_setup_that_fails_for_a_moment_is_retried(boxed: LocalPool, events: Ev
 
 
 def test_a_kill_between_tries_ends_the_attempt_once(boxed: LocalPool, events: Events) -> None:
-    boxed.hide(Path(f"/osmo-missing-{os.getpid()}"))
+    boxed.hide(Path(f"/usr/osmo-missing-{os.getpid()}"))
     aid = submit(boxed, sh("ok", "exit 0"))
     events.wait_for(lambda e: isinstance(e, AttemptStarted) and e.attempt_id == aid)
     wait_until(lambda: any("trying again" in text for _, text in log_of(boxed, aid)))

@@ -75,3 +75,18 @@ def test_server_start_with_sandbox_on_and_no_bubblewrap_says_which_package(
     r = osmo("server", "start", "--sandbox", "on", timeout=60)
     assert r.code == 3, r
     assert "install the 'bubblewrap' package" in r.err and "Traceback" not in r.err, r.err
+
+
+def test_read_only_shares_survive_the_command_line_and_the_environment(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """``DIR:ro`` on the flag; in OSMO_SANDBOX_SHARE a ``ro`` after a folder (the list is
+    ``:``-separated); a server restarted with its options keeps both kinds."""
+    monkeypatch.setenv("OSMO_SANDBOX_SHARE", "/scratch:/data:ro:/envs:ro")
+    parser = argparse.ArgumentParser()
+    ServerOptions.add_arguments(parser)
+    got = ServerOptions.from_args(parser.parse_args(["--sandbox-share", "/models:ro"]))
+    assert got.sandbox_share == ("/scratch", "/data:ro", "/envs:ro", "/models:ro")
+    assert ServerOptions.from_args(parser.parse_args(got.to_argv())).sandbox_share == \
+        got.sandbox_share
+    assert [sandbox.parse_share(s) for s in got.sandbox_share] == [
+        ("/scratch", True), ("/data", False), ("/envs", False), ("/models", False)]
