@@ -12,6 +12,7 @@ way it does where user namespaces are forbidden.
 
 from __future__ import annotations
 
+import shutil
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -28,11 +29,19 @@ NAMESPACES_REFUSED = ("bwrap: No permissions to create new namespace, likely bec
 
 
 def failing_bwrap(folder: Path) -> str:
-    """A folder holding a ``bwrap`` that fails as where user namespaces are forbidden."""
+    """A folder holding a ``bwrap`` that fails as where user namespaces are forbidden.
+
+    The sandbox's other helpers (util-linux's ``setpriv`` and ``nsenter``, which enter the
+    node's namespaces) are the real ones: only bubblewrap fails.
+    """
     folder.mkdir(parents=True, exist_ok=True)
     fake = folder / "bwrap"
     fake.write_text(f"#!/bin/sh\necho '{NAMESPACES_REFUSED}' >&2\nexit 1\n")
     fake.chmod(0o755)
+    for helper in ("setpriv", "nsenter", "slirp4netns"):
+        found = shutil.which(helper)
+        if found is not None:
+            (folder / helper).symlink_to(found)
     return str(folder)
 
 
