@@ -163,17 +163,17 @@ def test_readme_mutual_tls_walkthrough(tmp_path: Path) -> None:
 
     server = Osmo(tmp_path / "server")
     server(*ports(commands[0])[1:], check=True, cwd=folder)
-    (folder / "gpu-1.token").write_text(server(*commands[1][1:-2], check=True).out)
-    hosts = write(tmp_path / "hosts", "127.0.0.1 localhost osmo.example.org\n")
-    env = dict(server.env, OSMO_HOME=str(tmp_path / "worker"))
-    log = open(tmp_path / "worker.log", "wb")
-    worker = subprocess.Popen(
-        ["bwrap", "--dev-bind", "/", "/", "--ro-bind", str(hosts), "/etc/hosts",
-         "--chdir", str(folder), "--die-with-parent", "--",
-         sys.executable, "-m", "osmo", *ports(commands[2])[1:]],
-        env=env, stdout=log, stderr=log)
-    log.close()
-    try:
+    worker: subprocess.Popen[bytes] | None = None
+    try:  # the server is stopped whatever fails from here on (by PID)
+        (folder / "gpu-1.token").write_text(server(*commands[1][1:-2], check=True).out)
+        hosts = write(tmp_path / "hosts", "127.0.0.1 localhost osmo.example.org\n")
+        env = dict(server.env, OSMO_HOME=str(tmp_path / "worker"))
+        with open(tmp_path / "worker.log", "wb") as log:
+            worker = subprocess.Popen(
+                ["bwrap", "--dev-bind", "/", "/", "--ro-bind", str(hosts), "/etc/hosts",
+                 "--chdir", str(folder), "--die-with-parent", "--",
+                 sys.executable, "-m", "osmo", *ports(commands[2])[1:]],
+                env=env, stdout=log, stderr=log)
         deadline = time.monotonic() + 60
         while not any(n["pool"] == "gpu" and n["status"] == "online" for n in json.loads(
                 server("workers", "--format", "json", check=True).out)):
@@ -184,6 +184,7 @@ def test_readme_mutual_tls_walkthrough(tmp_path: Path) -> None:
         r = server("submit", str(write(tmp_path / "wf.yaml", SPEC)), "--pool", "gpu", "--wait")
         assert r.code == 0, r.out + r.err
     finally:
-        worker.kill()
-        worker.wait()
+        if worker is not None:
+            worker.kill()
+            worker.wait()
         server.stop_server()
