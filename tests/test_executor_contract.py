@@ -28,7 +28,9 @@ from osmo.server.auth import Authenticator, Router
 from osmo.server.workers import WorkerHub
 from osmo.spec import spec_to_dict
 from osmo.spec.model import WorkflowSpec
+from osmo.spec.stored import StoredSpec
 from osmo.store.sqlite import NewWorkflowRow, Store
+from osmo.store.submission import Submission
 from osmo.testing import check_executor
 from osmo.transport.auth import new_token, token_digest
 from osmo.transport.rpc import ApiServer
@@ -83,7 +85,8 @@ def _worker_hub(tmp_path: Path) -> Iterator[Harness]:
 
     def admit(workflow_id: str, spec: WorkflowSpec) -> None:
         store.commit(Changes(), new_workflows=[NewWorkflowRow(
-            workflow_id, spec.name, 1, time.time(), spec_to_dict(spec), {})])
+            workflow_id, spec.name, 1, time.time(), StoredSpec(spec_to_dict(spec)),
+            Submission())])
 
     try:
         _wait_for_node(events, "w1", tmp_path / "w1.log")
