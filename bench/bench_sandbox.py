@@ -45,9 +45,9 @@ from bench_engine import chain, run_once  # noqa: E402
 from bench_inputs import fan_out_reading  # noqa: E402
 from benchlib import quick, row, write_rows  # noqa: E402
 
+from osmo.options import ServerOptions  # noqa: E402
 from osmo.runtime import ProcessRuntime  # noqa: E402
 from osmo.runtime.sandbox import Sandbox, View, choose  # noqa: E402
-from osmo.server.options import ServerOptions  # noqa: E402
 
 
 def spawn_ms(runtime: ProcessRuntime, folder: Path, n: int, sandboxed: bool) -> float:

@@ -1,7 +1,7 @@
 """``osmo server [start|stop|status]``: the local server's life, and the options it keeps.
 
 An explicit start (``osmo server start`` or the foreground ``osmo server``) saves its options
-in the home (``osmo.server.options.remember``), and says what changed from the saved ones:
+in the home (``osmo.options.remember``), and says what changed from the saved ones:
 the new ones win, and the next automatic start uses them. A start while a server runs changes
 nothing, and says so when its options differ from the running server's.
 """
@@ -11,11 +11,11 @@ from __future__ import annotations
 import argparse
 import shlex
 
+from osmo import options as opts
 from osmo.cli.render import console, err_console, print_json
 from osmo.config import home_dir
+from osmo.options import ServerOptions
 from osmo.sdk.connect import running_options, server_status, start_server, stop_server
-from osmo.server import options as opts
-from osmo.server.options import ServerOptions
 
 __all__ = ["run_server"]
 

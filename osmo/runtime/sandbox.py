@@ -61,16 +61,12 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
 
 from osmo.errors import InfrastructureError, UsageError
+from osmo.options import SANDBOX_MODES, SandboxMode
 
-__all__ = ["MODES", "Sandbox", "SandboxMode", "View", "choose", "unavailable_reason",
+__all__ = ["Sandbox", "SandboxMode", "View", "choose", "unavailable_reason",
            "unavailable_summary"]
-
-SandboxMode = Literal["auto", "on", "off"]
-MODES: tuple[SandboxMode, ...] = ("auto", "on", "off")
-"""``auto``: sandbox when bubblewrap works here; ``on``: required; ``off``: never."""
 
 _PACKAGE = "bubblewrap"
 _PROBE_TIMEOUT = 10.0
@@ -188,12 +184,12 @@ def choose(mode: SandboxMode, shared: Sequence[str | Path] = ()) -> Sandbox | No
     ``shared``: host folders every sandboxed command may read and write (absolute).
 
     Raises:
-        UsageError: ``mode`` is not one of :data:`MODES`.
+        UsageError: ``mode`` is not one of ``osmo.options.SANDBOX_MODES``.
         InfrastructureError: ``mode`` is ``on`` and bubblewrap is missing or does not work
             here (the message names the package and the reason).
     """
-    if mode not in MODES:
-        raise UsageError(f"sandbox mode {mode!r}: choose one of {', '.join(MODES)}")
+    if mode not in SANDBOX_MODES:
+        raise UsageError(f"sandbox mode {mode!r}: choose one of {', '.join(SANDBOX_MODES)}")
     if mode == "off":
         return None
     sandbox = _probe()

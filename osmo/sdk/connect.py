@@ -5,7 +5,7 @@ The endpoint used: an explicit ``server`` argument > ``OSMO_SERVER`` > the saved
 ``server.json`` (the local server's Unix socket, ``OSMO_HOME/server.sock``). With none of
 them and ``autostart`` on, a server is started in the background for the home (``python -m
 osmo.server.app``, its own session, output in ``server.log``), with the options the last
-explicit start saved in the home (``osmo.server.options.saved_options``), and the call waits
+explicit start saved in the home (``osmo.options.saved_options``), and the call waits
 until it answers.
 
 The token sent with every request: an explicit ``token`` > ``OSMO_TOKEN`` > the profile's
@@ -32,7 +32,8 @@ from osmo.config import (
 )
 from osmo.errors import InfrastructureError, ServerUnreachable
 from osmo.layout import Home
-from osmo.server.options import ServerOptions, check_listeners, saved_options
+from osmo.options import ServerOptions, saved_options
+from osmo.transport.listeners import check_listeners
 from osmo.transport.rpc import ApiClient
 from osmo.transport.zenoh_link import Link
 

@@ -37,6 +37,7 @@ from osmo.config import home_dir, write_json_atomic
 from osmo.errors import InfrastructureError, OsmoError
 from osmo.executor import Executor
 from osmo.layout import Home
+from osmo.options import ServerOptions
 from osmo.scheduler.types import AttemptLost, NodeUp
 from osmo.server.auth import Authenticator, TokenHandlers, accept_tokens, owner_token
 from osmo.server.credentials import url_credential
@@ -46,7 +47,6 @@ from osmo.server.handlers import Handlers
 from osmo.server.inbox import Inbox
 from osmo.server.isolation import reason
 from osmo.server.notices import Notifier
-from osmo.server.options import ServerOptions, check_listeners
 from osmo.server.placing import output_manifests
 from osmo.server.records import RunRecords
 from osmo.server.recovery import InFlight, kill_leftovers, quarantine, restore, split_lost
@@ -55,6 +55,7 @@ from osmo.server.sessions import Sessions
 from osmo.server.workers import WorkerHub
 from osmo.store.sqlite import Store
 from osmo.transport.blobs import host_id
+from osmo.transport.listeners import check_listeners
 from osmo.transport.rpc import ApiServer
 from osmo.transport.seal import Signer
 from osmo.transport.wire import PEER_ALLOW, PEER_DENY

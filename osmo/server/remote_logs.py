@@ -16,7 +16,8 @@ import threading
 from pathlib import Path
 
 from osmo.layout import Home
-from osmo.worker.logs import DEFAULT_LOG_LIMIT, CappedFile
+from osmo.options import DEFAULT_LOG_LIMIT
+from osmo.worker.logs import CappedFile
 
 __all__ = ["RemoteLogs"]
 

@@ -39,6 +39,7 @@ from typing import Any
 
 from osmo.artifacts import ArtifactStore, Manifest
 from osmo.errors import OsmoError
+from osmo.options import DEFAULT_LOG_LIMIT
 from osmo.scheduler.types import (
     LOCAL_NODE,
     AttemptExited,
@@ -75,7 +76,6 @@ from osmo.transport.wire import (
     order_to_dict,
 )
 from osmo.transport.zenoh_link import Link, Subscription
-from osmo.worker.logs import DEFAULT_LOG_LIMIT
 
 __all__ = ["WorkerHub"]
 

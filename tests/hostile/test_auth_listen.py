@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 
 from osmo.config import free_port, lock_is_held
-from osmo.server.options import network_listeners
+from osmo.transport.listeners import network_listeners
 from tests.conftest import Osmo
 
 
