@@ -238,13 +238,13 @@ def options_from_argv(argv: list[str]) -> ServerOptions:
         raise ValueError(str(exc)) from None
 
 
-def saved_options(home: Path) -> ServerOptions | None:
+def saved_options(home: Home) -> ServerOptions | None:
     """The options the last explicit start saved in ``home``; None when none were saved.
 
     Raises:
         UsageError: the file is unreadable or holds options the server does not take.
     """
-    path = Home(home).server_options
+    path = home.server_options
     try:
         data = json.loads(path.read_bytes())
     except FileNotFoundError:
@@ -266,7 +266,7 @@ def _damaged(path: Path, why: str) -> UsageError:
                       f"start ...` saves them)")
 
 
-def remember(home: Path, options: ServerOptions) -> list[str]:
+def remember(home: Home, options: ServerOptions) -> list[str]:
     """Save ``options`` as ``home``'s server options; return what changed (see below).
 
     A relative ``zenoh_config`` is saved as an absolute path, so an automatic start from
@@ -281,7 +281,7 @@ def remember(home: Path, options: ServerOptions) -> list[str]:
     except UsageError:
         before = ServerOptions()
     options = absolute(options)
-    path = Home(home).server_options
+    path = home.server_options
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     tmp.unlink(missing_ok=True)  # a crashed start's; O_EXCL then never follows a planted link
     fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)

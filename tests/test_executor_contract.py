@@ -71,7 +71,7 @@ def _worker_hub(tmp_path: Path) -> Iterator[Harness]:
     token = new_token()
     store.add_token("w1", "worker", token_digest(token), time.time(), ["default"])
     hub = WorkerHub(link=link, emit=events.put, store=store,
-                    artifacts=ArtifactStore(home.artifacts), home=home.root,
+                    artifacts=ArtifactStore(home.artifacts), home=home,
                     url_credential=lambda _url: None, attempts_on=lambda _node: [],
                     gate=authenticate)
     api = ApiServer(link, Router({"workers": hub}), authenticate, inline=WorkerHub.INLINE)

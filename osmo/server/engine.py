@@ -36,6 +36,7 @@ from typing import Any
 from osmo.artifacts import Manifest
 from osmo.errors import InfrastructureError, NotFoundError, SubmitError, UsageError
 from osmo.executor import Executor
+from osmo.layout import Home
 from osmo.scheduler import Scheduler
 from osmo.scheduler.types import (
     DEFAULT_MAX_RETRIES,
@@ -107,7 +108,7 @@ class Engine:
     def __init__(self, *, store: Store, scheduler: Scheduler, executors: Sequence[Executor],
                  inbox: Inbox,
                  specs: dict[str, WorkflowSpec], on_changed: Callable[[set[str]], None],
-                 home: Any, on_finished: Callable[[str], None] = lambda _wf: None,
+                 home: Home, on_finished: Callable[[str], None] = lambda _wf: None,
                  datasets: Datasets | None = None, reuse: dict[str, bool] | None = None,
                  restore: Callable[[], Restored] | None = None,
                  inflight: InFlight | None = None,

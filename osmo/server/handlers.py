@@ -21,7 +21,6 @@ import time
 from collections.abc import Callable
 from dataclasses import replace
 from enum import Enum
-from pathlib import Path
 from typing import Any
 
 from osmo.artifacts import ArtifactStore
@@ -81,7 +80,7 @@ def _asker_of(link: Link, gate: Gate) -> Callable[[Identity], Asker | None]:
 class Handlers:
     """Dispatches ``verb`` → handler. ``info`` is returned by ``ping``."""
 
-    def __init__(self, engine: Engine, home: Path, info: dict[str, Any],
+    def __init__(self, engine: Engine, home: Home, info: dict[str, Any],
                  on_shutdown: Callable[[], None], workers: WorkerHub | None = None,
                  link: Link | None = None, gate: Gate | None = None,
                  tokens: TokenHandlers | None = None,
@@ -93,11 +92,11 @@ class Handlers:
         self._home = home
         self._info = info
         self._on_shutdown = on_shutdown
-        self._artifacts = ArtifactStore(Home(home).artifacts)
+        self._artifacts = ArtifactStore(home.artifacts)
         self._route = Router({
             "api": self, "workers": workers, "sessions": sessions, "tokens": tokens,
             "artifacts": ArtifactHandlers(self._store, self._artifacts, self._row),
-            "datasets": DatasetHandlers(engine, self._artifacts, home,
+            "datasets": DatasetHandlers(engine, self._artifacts,
                                         _asker_of(link, gate) if link and gate else None),
             "credentials": CredentialHandlers(self._store)})
 
@@ -237,7 +236,7 @@ class Handlers:
             tasks, extra = page.tasks, {"counts": page.counts, "matched": page.matched}
         for task in tasks:  # typed tasks report progress as log lines, pulls too: the latest
             if task.get("status") in ("RUNNING", "INITIALIZING"):
-                dirs = Home(self._home).attempt(row.id, task["name"], int(task.get("retry", 0)))
+                dirs = self._home.attempt(row.id, task["name"], int(task.get("retry", 0)))
                 task["progress"] = (last_progress(dirs.log) if task["status"] == "RUNNING"
                                     else last_pull(dirs.log, time.time()))
         if reasons and any(t.get("status") in _WAITS for t in tasks):  # only then: it costs

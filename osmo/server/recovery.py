@@ -109,12 +109,12 @@ def kill_leftovers(store: Store, lost: list[TaskState]) -> None:
                 kill_stale(row.pid, row.pid_start)
 
 
-def attempt_row(home: Path, attempt_id: str, node_id: str | None) -> AttemptRow:
+def attempt_row(home: Home, attempt_id: str, node_id: str | None) -> AttemptRow:
     """The store's row of a placed attempt: where it runs and, locally, its folder.
 
     Its process id is written when the attempt starts (``Batch.pids``).
     """
-    dirs = Home(home).attempt_of(attempt_id)
+    dirs = home.attempt_of(attempt_id)
     wf, task, retry = attempt_id.rsplit(":", 2)
     return AttemptRow(attempt_id, wf, task, int(retry), node_id,
                       str(dirs.root) if dirs else None, None, None)

@@ -15,7 +15,6 @@ import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
-from pathlib import Path
 
 from osmo.artifacts import ArtifactStore, Manifest
 from osmo.errors import OsmoError
@@ -42,7 +41,7 @@ class OutputIntake:
         same_host: a worker's same-host details, if it shares this host's store.
     """
 
-    def __init__(self, *, artifacts: ArtifactStore, home: Path,
+    def __init__(self, *, artifacts: ArtifactStore, home: Home,
                  emit: Callable[[Event], None], send: Callable[[str, Ack], None],
                  asker: Callable[[str], Asker | None],
                  same_host: Callable[[str], SameHost | None]) -> None:
@@ -102,8 +101,8 @@ class OutputIntake:
         self._send(wid, Ack(event.attempt_id))
 
 
-def _dirs(home: Path, attempt_id: str) -> AttemptDirs:
-    dirs = Home(home).attempt_of(attempt_id)
+def _dirs(home: Home, attempt_id: str) -> AttemptDirs:
+    dirs = home.attempt_of(attempt_id)
     if dirs is None:
         raise OsmoError(f"malformed attempt id {attempt_id!r}")
     return dirs

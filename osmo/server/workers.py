@@ -39,6 +39,7 @@ from typing import Any
 
 from osmo.artifacts import ArtifactStore, Manifest
 from osmo.errors import OsmoError
+from osmo.layout import Home
 from osmo.options import DEFAULT_LOG_LIMIT
 from osmo.scheduler.types import (
     LOCAL_NODE,
@@ -103,7 +104,7 @@ class WorkerHub:
     """Verbs answered in arrival order on the zenoh thread (``ApiServer(inline=...)``)."""
 
     def __init__(self, *, link: Link, emit: Callable[[Event], None], store: Store,
-                 artifacts: ArtifactStore, home: Path,
+                 artifacts: ArtifactStore, home: Home,
                  url_credential: Callable[[str], dict[str, str] | None],
                  attempts_on: Callable[[str], list[str]], gate: Gate,
                  lease: float = LEASE, log_limit: int = DEFAULT_LOG_LIMIT) -> None:
