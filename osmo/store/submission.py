@@ -85,13 +85,13 @@ def options_column(spec: StoredSpec, submission: Submission) -> dict[str, Any]:
     return {**submission.to_dict(), "filename": spec.filename, "types": dict(spec.types)}
 
 
-def from_columns(spec: dict[str, Any], options: Mapping[str, Any]) -> tuple[StoredSpec,
-                                                                             Submission]:
+def from_columns(spec: dict[str, Any], column: Mapping[str, Any]) -> tuple[StoredSpec,
+                                                                            Submission]:
     """A workflow row's ``spec`` and ``options`` columns (decoded) as the two records."""
-    types = options.get("types")
-    return (StoredSpec(spec, _text(options.get("filename")),
+    types = column.get("types")
+    return (StoredSpec(spec, _text(column.get("filename")),
                        types if isinstance(types, dict) else {}),
-            Submission.from_dict(options))
+            Submission.from_dict(column))
 
 
 def _text(value: object) -> str | None:
