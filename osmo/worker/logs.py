@@ -18,11 +18,11 @@ Rules the writer keeps so that one record is always exactly one line:
 
 The timestamp is taken when the bytes are read from the pipe, not when the program wrote them.
 
-The cap. A log holds at most ``limit`` bytes of records (``osmo.options.DEFAULT_LOG_LIMIT``, 64 MiB;
-``--log-limit`` of ``osmo server`` and ``osmo worker``). When an append would pass it, the
-oldest records are dropped, as the kubelet's log rotation does (the newest output is what a
-user needs): :class:`CappedFile` rewrites the file (temp + rename) with the newest half of the
-limit behind one marker record, always the file's first line::
+The cap. A log holds at most ``limit`` bytes of records (64 MiB unless ``--log-limit`` of
+``osmo server`` or ``osmo worker`` says otherwise: ``osmo.options``). When an append would
+pass it, the oldest records are dropped, as the kubelet's log rotation does (the newest output
+is what a user needs): :class:`CappedFile` rewrites the file (temp + rename) with the newest
+half of the limit behind one marker record, always the file's first line::
 
     <time>\tosmo\t123,456,789 bytes of earlier output dropped (log limit 64 MiB)
 
@@ -49,9 +49,8 @@ from typing import BinaryIO
 from osmo.options import DEFAULT_LOG_LIMIT
 from osmo.worker.masking import Masker
 
-__all__ = ["LONGEST_RECORD", "MAX_LINE", "STREAMS",
-           "CappedFile", "LogRecord", "LogWriter", "Marker", "encode_records", "marker_of",
-           "parse_record"]
+__all__ = ["LONGEST_RECORD", "MAX_LINE", "STREAMS", "CappedFile", "LogRecord", "LogWriter",
+           "Marker", "encode_records", "marker_of", "parse_record"]
 
 MAX_LINE = 64 * 1024
 STREAMS = ("stdout", "stderr", "osmo")
