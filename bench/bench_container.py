@@ -47,6 +47,7 @@ sys.path.insert(0, str(ROOT / "bench"))
 from benchlib import quick, row, timed, write_rows  # noqa: E402
 
 import osmo  # noqa: E402
+from osmo.options import ServerOptions  # noqa: E402
 from osmo.runtime.container import (  # noqa: E402
     DATA_OUTPUT,
     ContainerRun,
@@ -58,7 +59,6 @@ from osmo.runtime.container import (  # noqa: E402
     safe_name,
 )
 from osmo.sdk.connect import start_server, stop_server  # noqa: E402
-from osmo.server.options import ServerOptions  # noqa: E402
 
 IMAGE = "alpine:3.18"
 LIMIT = "limit: bare `podman run --rm` of `true`"

@@ -35,8 +35,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchlib import quick, row, write_rows  # noqa: E402
 
 import osmo  # noqa: E402
+from osmo.options import ServerOptions  # noqa: E402
 from osmo.sdk.connect import start_server, stop_server  # noqa: E402
-from osmo.server.options import ServerOptions  # noqa: E402
 
 SPAWN_LIMIT = "limit: spawn `true`, 2 parallel, no orchestrator"
 

@@ -33,7 +33,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchlib import quick, row, write_rows  # noqa: E402
 
-from osmo.worker.logs import DEFAULT_LOG_LIMIT, LogWriter  # noqa: E402
+from osmo.options import DEFAULT_LOG_LIMIT  # noqa: E402
+from osmo.worker.logs import LogWriter  # noqa: E402
 
 MiB = 1 << 20
 LINE = b"x" * 99 + b"\n"

@@ -53,10 +53,10 @@ from bench_engine import chain, run_once  # noqa: E402
 from bench_inputs import fan_out_reading  # noqa: E402
 from benchlib import quick, row, write_rows  # noqa: E402
 
+from osmo.options import ServerOptions  # noqa: E402
 from osmo.runtime import ProcessRuntime  # noqa: E402
 from osmo.runtime.netns import Entry  # noqa: E402
 from osmo.runtime.sandbox import Sandbox, View, choose, node_network  # noqa: E402
-from osmo.server.options import ServerOptions  # noqa: E402
 
 
 def _work(folder: Path, sandbox: Sandbox) -> Path:

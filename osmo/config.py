@@ -27,12 +27,14 @@ __all__ = [
     "DEFAULT_PORT",
     "ServerInfo",
     "free_port",
-    "home_dir",
     "home_path",
     "lock_is_held",
+    "open_home",
     "private_file",
+    "read_profile",
     "read_server_info",
     "write_json_atomic",
+    "write_profile",
 ]
 
 DEFAULT_PORT = 7447
@@ -56,19 +58,27 @@ def home_path(home: str | os.PathLike[str] | None = None) -> Path:
     return Path(home).expanduser().resolve()
 
 
-def home_dir(home: str | os.PathLike[str] | None = None) -> Path:
-    """The osmo home folder (:func:`home_path`): made 0700 if missing, checked to be yours.
+def open_home(home: str | os.PathLike[str] | None = None, *, worker: bool = False) -> Home:
+    """Where a home path becomes a :class:`~osmo.layout.Home` (the one place).
 
-    A home that other users may read or enter (wider than 0700) is made 0700, with a one-line
-    notice on stderr: it holds the state store, credentials and the admin token.
+    The server, the SDK and the CLI open the osmo home (:func:`home_path`): made 0700 if
+    missing, and checked to be yours. A home that other users may read or enter (wider than
+    0700) is made 0700, with a one-line notice on stderr: it holds the state store,
+    credentials and the admin token. Everything below them is handed this object.
+
+    With ``worker``, a remote worker's home: ``home`` as given (absolute), else ``worker`` in
+    the osmo home (the worker makes it when it starts).
 
     Raises:
-        NotAuthenticated: the folder belongs to another OS user (exit 3).
+        NotAuthenticated: the osmo home belongs to another OS user (exit 3).
     """
-    path = home_path(home)
-    path.mkdir(mode=0o700, parents=True, exist_ok=True)
-    _check_owner(path)
-    return path
+    if worker:
+        path = Path(home).absolute() if home is not None else open_home().root / "worker"
+    else:
+        path = home_path(home)
+        path.mkdir(mode=0o700, parents=True, exist_ok=True)
+        _check_owner(path)
+    return Home(path)
 
 
 def _check_owner(path: Path) -> None:
@@ -124,10 +134,10 @@ def write_json_atomic(path: Path, data: dict[str, Any]) -> None:
     os.replace(tmp, path)
 
 
-def read_server_info(home: Path) -> ServerInfo | None:
+def read_server_info(home: Home) -> ServerInfo | None:
     """The server.json of ``home``, or None if absent or unreadable."""
     try:
-        data = json.loads(Home(home).server_info.read_text())
+        data = json.loads(home.server_info.read_text())
         return ServerInfo(data["endpoint"], int(data["pid"]), data["cluster"],
                           float(data["started_at"]),
                           tuple(str(w) for w in data.get("warnings") or ()))
@@ -135,10 +145,10 @@ def read_server_info(home: Path) -> ServerInfo | None:
         return None
 
 
-def lock_is_held(home: Path) -> bool:
+def lock_is_held(home: Home) -> bool:
     """True if a server process holds ``server.lock`` of ``home`` (it is alive)."""
     try:
-        fd = os.open(Home(home).server_lock, os.O_RDWR | os.O_CREAT, 0o600)
+        fd = os.open(home.server_lock, os.O_RDWR | os.O_CREAT, 0o600)
     except OSError:
         return False
     try:
@@ -168,20 +178,20 @@ PROFILE_KEYS = ("server", "cluster", "zenoh-config", "token")
 """What ``osmo profile set`` accepts."""
 
 
-def read_profile(home: Path) -> dict[str, str]:
+def read_profile(home: Home) -> dict[str, str]:
     """The saved client profile (``OSMO_HOME/profile.json``); empty when none."""
     try:
-        data = json.loads(Home(home).profile.read_text())
+        data = json.loads(home.profile.read_text())
     except (OSError, ValueError):
         return {}
     return {str(k): str(v) for k, v in data.items() if k in PROFILE_KEYS} if isinstance(
         data, dict) else {}
 
 
-def write_profile(home: Path, profile: dict[str, str]) -> None:
+def write_profile(home: Home, profile: dict[str, str]) -> None:
     """Save the client profile atomically."""
-    home.mkdir(parents=True, exist_ok=True)
-    write_json_atomic(Home(home).profile, profile)
+    home.root.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(home.profile, profile)
 
 
 def host_id() -> str:

@@ -28,7 +28,9 @@ from osmo.server.auth import Authenticator, Router
 from osmo.server.workers import WorkerHub
 from osmo.spec import spec_to_dict
 from osmo.spec.model import WorkflowSpec
+from osmo.spec.stored import StoredSpec
 from osmo.store.sqlite import NewWorkflowRow, Store
+from osmo.store.submission import Submission
 from osmo.testing import check_executor
 from osmo.transport.auth import new_token, token_digest
 from osmo.transport.rpc import ApiServer
@@ -69,7 +71,7 @@ def _worker_hub(tmp_path: Path) -> Iterator[Harness]:
     token = new_token()
     store.add_token("w1", "worker", token_digest(token), time.time(), ["default"])
     hub = WorkerHub(link=link, emit=events.put, store=store,
-                    artifacts=ArtifactStore(home.artifacts), home=home.root,
+                    artifacts=ArtifactStore(home.artifacts), home=home,
                     url_credential=lambda _url: None, attempts_on=lambda _node: [],
                     gate=authenticate)
     api = ApiServer(link, Router({"workers": hub}), authenticate, inline=WorkerHub.INLINE)
@@ -83,7 +85,8 @@ def _worker_hub(tmp_path: Path) -> Iterator[Harness]:
 
     def admit(workflow_id: str, spec: WorkflowSpec) -> None:
         store.commit(Changes(), new_workflows=[NewWorkflowRow(
-            workflow_id, spec.name, 1, time.time(), spec_to_dict(spec), {})])
+            workflow_id, spec.name, 1, time.time(), StoredSpec(spec_to_dict(spec)),
+            Submission())])
 
     try:
         _wait_for_node(events, "w1", tmp_path / "w1.log")

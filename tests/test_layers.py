@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import ast
 import functools
+import subprocess
+import sys
 from collections import defaultdict
 from collections.abc import Iterator
 from pathlib import Path
@@ -27,8 +29,8 @@ LAYERS: tuple[tuple[str, frozenset[str]], ...] = (
     ("spec", frozenset({"spec"})),
     ("graph", frozenset({"graph"})),
     ("scheduler", frozenset({"scheduler"})),
-    ("adapters", frozenset({"executor", "store", "transport", "artifacts", "runtime", "record",
-                            "urls", "tasktypes"})),
+    ("adapters", frozenset({"executor", "options", "store", "transport", "artifacts", "runtime",
+                            "record", "urls", "tasktypes"})),
     ("workers", frozenset({"worker"})),
     ("server", frozenset({"server"})),
     ("sdk", frozenset({"sdk", "testing", "__init__"})),
@@ -38,6 +40,13 @@ LAYERS: tuple[tuple[str, frozenset[str]], ...] = (
 is the package's lazy public facade)."""
 
 RANK = {part: rank for rank, (_, parts) in enumerate(LAYERS) for part in parts}
+
+APART: dict[str, frozenset[str]] = {
+    "sdk": frozenset({"server", "worker", "runtime"}),
+}
+"""Lower parts a part must not import although its layer is above theirs: the SDK is a
+client of a server, wherever that server runs, so it holds nothing of one (what it shares
+with the server, such as ``ServerOptions``, lives in a lower part)."""
 
 # Known exceptions, each with its reason; the test fails when one is no longer needed.
 ALLOWED: dict[tuple[str, str], str] = {}
@@ -108,6 +117,24 @@ def test_no_layer_imports_a_higher_one() -> None:
             upward.append(f"{source} ({LAYERS[RANK[source]][0]}) imports {target} "
                           f"({LAYERS[RANK[target]][0]}) at {', '.join(where)}")
     assert upward == []
+
+
+def test_parts_kept_apart_do_not_import_each_other() -> None:
+    crossing = [f"{source} imports {target} at {', '.join(where)}"
+                for (source, target), where in sorted(_edges().items())
+                if target in APART.get(source, ()) and (source, target) not in ALLOWED]
+    assert crossing == []
+
+
+def test_importing_the_sdk_loads_no_server_worker_or_runtime_module() -> None:
+    """What the rule above means at run time: ``import osmo.sdk.*`` stays a client's import."""
+    sdk = sorted(_module_of(p) for p in (PACKAGE / "sdk").glob("*.py"))
+    code = ("import sys\n" + "".join(f"import {m}\n" for m in sdk)
+            + "print('\\n'.join(m for m in sys.modules if m.split('.')[:2] in "
+              f"{[['osmo', part] for part in sorted(APART['sdk'])]!r}))")
+    loaded = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True,
+                            text=True, check=True).stdout.split()
+    assert loaded == []
 
 
 def test_the_core_reaches_plugins_only_through_entry_points() -> None:

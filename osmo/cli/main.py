@@ -31,7 +31,7 @@ from osmo.cli.render import QUERY_LIMIT
 from osmo.cli.robotics import add_parsers as add_robotics_parsers
 from osmo.cli.tokens import add_parsers as add_token_parsers
 from osmo.errors import OsmoError, UsageError
-from osmo.server.options import ServerOptions
+from osmo.options import ServerOptions
 
 __all__ = ["build_parser", "main"]
 

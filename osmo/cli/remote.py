@@ -9,10 +9,9 @@ import signal
 import sys
 import threading
 import time
-from pathlib import Path
 from typing import Any
 
-from osmo.config import PROFILE_KEYS, home_dir, read_profile, write_profile
+from osmo.config import PROFILE_KEYS, open_home, read_profile, write_profile
 from osmo.errors import NotAuthenticated, OsmoError, ServerUnreachable
 from osmo.layout import Home
 from osmo.worker.options import WorkerOptions
@@ -44,15 +43,15 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
     verbs.add_parser("show", help="print the profile")
 
 
-def _worker_home(args: argparse.Namespace) -> Path:
-    return Path(args.home).absolute() if args.home else home_dir() / "worker"
+def _worker_home(args: argparse.Namespace) -> Home:
+    return open_home(args.home, worker=True)
 
 
 def run_worker(args: argparse.Namespace) -> int:
     """``osmo worker``: run until SIGINT (leave now) or SIGTERM (drain, then leave)."""
     from osmo.worker.remote import RemoteWorker
 
-    worker = RemoteWorker(_worker_home(args), WorkerOptions.from_args(args))
+    worker = RemoteWorker(_worker_home(args).root, WorkerOptions.from_args(args))
     signal.signal(signal.SIGINT, lambda *_: worker.stop())
     signal.signal(signal.SIGTERM, lambda *_: threading.Thread(
         target=worker.drain, name="osmo-drain", daemon=True).start())
@@ -81,12 +80,12 @@ def run_health(args: argparse.Namespace) -> int:
     return 0
 
 
-def _worker_health(home: Path) -> int:
+def _worker_health(home: Home) -> int:
     try:
-        state: dict[str, Any] = json.loads(Home(home).worker_health.read_text())
+        state: dict[str, Any] = json.loads(home.worker_health.read_text())
         os.kill(int(state["pid"]), 0)
     except (OSError, ValueError, KeyError):
-        print(f"unhealthy: no worker running for {home}", file=sys.stderr)
+        print(f"unhealthy: no worker running for {home.root}", file=sys.stderr)
         return 3
     age = time.time() - float(state.get("updated_at", 0))
     if age > _HEALTH_STALE:
@@ -101,7 +100,7 @@ def _worker_health(home: Path) -> int:
 
 def run_profile(args: argparse.Namespace) -> int:
     """``osmo profile set|unset|show``."""
-    home = home_dir()
+    home = open_home()
     profile = read_profile(home)
     if args.profile_verb == "set":
         profile[args.key] = args.value

@@ -1,11 +1,12 @@
 """CLI verbs for the robotics pipeline: ``osmo eval report`` and ``osmo view``.
 
-``osmo eval report [WORKFLOW_IDS...]`` finds the ``metrics.json`` outputs of ``sim.eval``
-tasks (in the artifact store, through the SDK; or local files given as paths) and shows one
-leaderboard across runs, best mean return first per env, with each success rate's 95%
-Wilson interval and its criterion as a footnote (``n/a`` where the suite had none) and the
-normalised score. ``osmo view TARGET`` turns an MCAP artifact or file into a rerun ``.rrd``
-and opens the viewer only with ``--open``.
+``osmo eval report [WORKFLOW_IDS...]`` shows the reports task types declare
+(``osmo.tasktypes.reports``): it finds the files each report reads among the workflows'
+outputs (in the artifact store, through the SDK; or local files given as paths), and prints
+the table the report makes of them (``sim.eval``'s: a leaderboard of policies across runs).
+The format of those files is the task type's business, never this module's.
+``osmo view TARGET`` turns an MCAP artifact or file into a rerun ``.rrd`` and opens the
+viewer only with ``--open``.
 
 The conversion is a viewer plugin's (``osmo.tasktypes.viewers``: the ``viz`` extra's
 ``rerun``); it is loaded only when ``view`` runs, so ``import osmo`` stays light.
@@ -15,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import shutil
 import tempfile
 from pathlib import Path
@@ -25,21 +25,22 @@ from osmo.cli.render import console, print_json, safe
 from osmo.errors import NotFoundError, UsageError
 from osmo.sdk.client import Client
 
-if TYPE_CHECKING:  # the registry reads entry points: imported when a viewer is asked for
+if TYPE_CHECKING:  # the registry reads entry points: imported when a verb needs it
+    from osmo.tasktypes.reports import Report, Source, Table
     from osmo.tasktypes.viewers import Viewer
 
-__all__ = ["add_parsers", "leaderboard_rows", "leaderboard_text", "run_eval", "run_view"]
-
-METRICS_FILE = "metrics.json"
+__all__ = ["add_parsers", "report_text", "run_eval", "run_view"]
 
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     """Register ``eval`` and ``view`` on the top-level parser."""
     p = sub.add_parser("eval", help="evaluation results: osmo eval report [WORKFLOW_IDS...]")
     verbs = p.add_subparsers(dest="eval_verb", metavar="VERB", required=True)
-    q = verbs.add_parser("report", help="leaderboard of policies from sim.eval metrics.json")
+    q = verbs.add_parser("report", help="the reports of evaluation task types (sim.eval: a "
+                                        "leaderboard of policies)")
     q.add_argument("targets", nargs="*", metavar="WORKFLOW_ID_OR_FILE",
-                   help="workflows (default: the 20 most recent) or local metrics.json files")
+                   help="workflows (default: the 20 most recent) or local report files "
+                        "(sim.eval: metrics.json)")
     q.add_argument("--format", "-t", dest="format", choices=("text", "json"), default="text")
 
     p = sub.add_parser("view", help="MCAP artifact or file → rerun .rrd (viewer with --open)")
@@ -50,143 +51,77 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-a
                    help="a viewer plugin (osmo.viewers entry points; default: rerun)")
 
 
-def leaderboard_rows(sources: list[tuple[str, str, dict[str, Any]]]) -> list[dict[str, Any]]:
-    """Flatten ``(workflow, task, metrics)`` into rows ranked per env by mean return.
-
-    ``success_rate`` is None where the suite had no success criterion for the env;
-    ``criterion`` says how success was decided (older metrics files: the suite's sentence).
-    """
-    rows = []
-    for wf, task, metrics in sources:
-        suite = metrics.get("suite", {})
-        for r in metrics.get("results", []):
-            rows.append({"workflow": wf, "task": task, **{k: r[k] for k in (
-                "policy", "kind", "env", "episodes", "success_rate", "mean_return",
-                "return_ci95", "mean_length")},
-                "criterion": r.get("success_criterion") or _old_criterion(suite),
-                "success_ci95": _success_ci(r),
-                "normalized_score": r.get("normalized_score"),
-                "normalized_ci95": r.get("normalized_ci95")})
-    rows.sort(key=lambda r: (r["env"], -r["mean_return"], r["workflow"], r["policy"]))
-    rank, env = 0, None
-    for row in rows:
-        rank = rank + 1 if row["env"] == env else 1
-        env = row["env"]
-        row["rank"] = rank
-    return rows
+def report_text(table: Table) -> str:
+    """A report's table as aligned text, every cell escaped (``render.safe``), then its notes."""
+    lines = [tuple(map(safe, row)) for row in (table.columns, *table.cells)]
+    widths = [max(len(line[i]) for line in lines) for i in range(len(table.columns))]
+    text = ["  ".join(cell.ljust(w) for cell, w in zip(line, widths, strict=True)).rstrip()
+            for line in lines]
+    return "\n".join(text + (["", *map(safe, table.notes)] if table.notes else []))
 
 
-def wilson95(successes: int, n: int) -> tuple[float, float] | None:
-    """The 95% Wilson score interval of a success rate (None for no episodes).
-
-    Unlike the normal approximation it stays inside [0, 1] and is not a point at 0 or n
-    successes: 20 of 20 is [0.84, 1].
-    """
-    if n <= 0:
-        return None
-    z = 1.959964
-    p = successes / n
-    scale = 1 + z * z / n
-    centre = (p + z * z / (2 * n)) / scale
-    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / scale
-    return max(0.0, centre - half), min(1.0, centre + half)
+def _read(reports: dict[str, Report], data: Any) -> tuple[str | None, str]:
+    """The report (type name) ``data`` is a file of, else None and why the first refused it."""
+    why = ""
+    for name, report in reports.items():
+        problem = report.problem(data)
+        if problem is None:
+            return name, ""
+        why = why or problem
+    return None, why
 
 
-def _success_ci(row: dict[str, Any]) -> list[float] | None:
-    rate, n = row.get("success_rate"), row.get("episodes")
-    if rate is None or not isinstance(n, int):
-        return None
-    ci = wilson95(round(rate * n), n)
-    return None if ci is None else list(ci)
+def _from_store(client: Client, workflow_id: str, scratch: Path, reports: dict[str, Report],
+                found: dict[str, list[Source]]) -> None:
+    """Add the report files among ``workflow_id``'s outputs to ``found`` (by type name)."""
+    from osmo.tasktypes.reports import Source
 
-
-def _old_criterion(suite: dict[str, Any]) -> str | None:
-    """The criterion of a metrics file written before success was defined per env."""
-    text = suite.get("success")
-    return f"{text} (older sim.eval)" if isinstance(text, str) else None
-
-
-def leaderboard_text(rows: list[dict[str, Any]]) -> str:
-    """The leaderboard as aligned text.
-
-    Each success rate is marked with its criterion's footnote (``n/a`` where there was none).
-    """
-    notes: dict[str, int] = {}
-    table = [["Env", "#", "Policy", "Workflow", "Task", "Success (95% CI)", "Return (95% CI)",
-              "Normalised", "Length", "Episodes"]]
-    for r in rows:
-        mark = notes.setdefault(r["criterion"] or "not recorded", len(notes) + 1)
-        rate = r["success_rate"]
-        lo, hi = r["return_ci95"]
-        norm = r["normalized_score"]
-        table.append([
-            safe(r["env"]), str(r["rank"]), safe(r["policy"]), safe(r["workflow"]),
-            safe(r["task"]),
-            f"{_rate_text(rate, r['success_ci95'])} [{mark}]",
-            f"{r['mean_return']:.1f} [{lo:.1f}, {hi:.1f}]",
-            "-" if norm is None else f"{norm:.2f}", f"{r['mean_length']:.0f}",
-            str(r["episodes"])])
-    widths = [max(len(line[i]) for line in table) for i in range(len(table[0]))]
-    lines = ["  ".join(cell.ljust(w) for cell, w in zip(line, widths, strict=True)).rstrip()
-             for line in table]
-    lines.append("")
-    lines.append("Success criteria:")
-    lines.extend(f"  [{n}] {safe(text)}" for text, n in notes.items())
-    if any(r["normalized_score"] is not None for r in rows):
-        lines.append("Normalised: (return - random) / (expert - random) in the same suite.")
-    return "\n".join(lines)
-
-
-def _rate_text(rate: float | None, ci: list[float] | None) -> str:
-    if rate is None:
-        return "n/a"
-    return f"{100 * rate:.0f}%" + ("" if ci is None else
-                                   f" [{100 * ci[0]:.0f}, {100 * ci[1]:.0f}]")
-
-
-def _is_metrics(data: Any) -> bool:
-    return isinstance(data, dict) and isinstance(data.get("results"), list) and "suite" in data
-
-
-def _from_store(client: Client, workflow_id: str, scratch: Path) -> list[tuple[str, str, Any]]:
-    found: list[tuple[str, str, Any]] = []
+    files = {report.file for report in reports.values()}
     for out in client.artifacts(workflow_id):
         for f in out["files"]:
-            if Path(f["path"]).name != METRICS_FILE:
+            name = Path(f["path"]).name
+            if name not in files:
                 continue
-            dest = scratch / f"{workflow_id}-{out['task']}-{len(found)}"
+            dest = scratch / f"{workflow_id}-{out['task']}-{sum(map(len, found.values()))}"
             client.get_artifact(f"{workflow_id}:{out['task']}:{f['path']}", dest)
-            data = json.loads(next(dest.rglob(METRICS_FILE)).read_text())
-            if _is_metrics(data):
-                found.append((workflow_id, out["task"], data))
-    return found
+            data = json.loads(next(dest.rglob(name)).read_text())
+            kind, _ = _read({k: r for k, r in reports.items() if r.file == name}, data)
+            if kind is not None:
+                found[kind].append(Source(workflow_id, out["task"], data))
 
 
 def run_eval(args: argparse.Namespace) -> int:
-    """``osmo eval report``."""
-    sources: list[tuple[str, str, Any]] = []
+    """``osmo eval report``: the reports task types declare (``osmo.tasktypes.reports``)."""
+    from osmo.tasktypes.reports import Source, installed_reports
+
+    reports = installed_reports()
+    found: dict[str, list[Source]] = {name: [] for name in reports}
     files = [t for t in args.targets if Path(t).is_file()]
     for path in files:
         data = json.loads(Path(path).read_text())
-        if not _is_metrics(data):
-            raise UsageError(f"{path}: not a sim.eval metrics.json (no suite/results)")
-        sources.append(("-", path, data))
+        kind, why = _read(reports, data)
+        if kind is None:
+            what = " or ".join(f"{name} {r.file}" for name, r in reports.items())
+            raise UsageError(f"{path}: not a {what or 'report file'} ({why or 'no report'})")
+        found[kind].append(Source("-", path, data))
     ids = [t for t in args.targets if t not in files]
     if ids or not files:
         with Client(args.server) as client, tempfile.TemporaryDirectory() as tmp:
             if not ids:
                 ids = [w.id for w in client.list(limit=20)]
             for wf in ids:
-                sources.extend(_from_store(client, wf, Path(tmp)))
-    rows = leaderboard_rows(sources)
+                _from_store(client, wf, Path(tmp), reports, found)
+    tables = [reports[name].table(sources) for name, sources in found.items() if sources]
     if args.format == "json":
-        print_json(rows)
-    elif not rows:
-        console.print("no sim.eval metrics found (run a workflow with a sim.eval task)",
+        print_json([row for table in tables for row in table.rows])
+    elif not tables:
+        names = " or ".join(reports) or "evaluation"
+        console.print(f"no {names} metrics found (run a workflow with a {names} task)",
                       markup=False)
     else:
-        console.print(leaderboard_text(rows), markup=False, highlight=False, soft_wrap=True)
-    return 0 if rows or args.format == "json" else 1
+        console.print("\n\n".join(map(report_text, tables)), markup=False, highlight=False,
+                      soft_wrap=True)
+    return 0 if tables or args.format == "json" else 1
 
 
 def _convert(viewer: Viewer, path: Path, out: Path) -> Path:

@@ -1,7 +1,7 @@
 """``osmo server [start|stop|status]``: the local server's life, and the options it keeps.
 
 An explicit start (``osmo server start`` or the foreground ``osmo server``) saves its options
-in the home (``osmo.server.options.remember``), and says what changed from the saved ones:
+in the home (``osmo.options.remember``), and says what changed from the saved ones:
 the new ones win, and the next automatic start uses them. A start while a server runs changes
 nothing, and says so when its options differ from the running server's.
 """
@@ -11,11 +11,11 @@ from __future__ import annotations
 import argparse
 import shlex
 
+from osmo import options as opts
 from osmo.cli.render import console, err_console, print_json
-from osmo.config import home_dir
+from osmo.config import open_home
+from osmo.options import ServerOptions
 from osmo.sdk.connect import running_options, server_status, start_server, stop_server
-from osmo.server import options as opts
-from osmo.server.options import ServerOptions
 
 __all__ = ["run_server"]
 
@@ -26,9 +26,10 @@ def run_server(args: argparse.Namespace) -> int:
     if args.action == "run":
         from osmo.server.app import serve
 
-        _say_changes(opts.remember(home_dir(), options))
+        home = open_home()
+        _say_changes(opts.remember(home, options))
         console.print("osmo server running in the foreground (Ctrl-C to stop)", markup=False)
-        serve(options=options)
+        serve(home, options)
         return 0
     if args.action == "start":
         return _start(options)
@@ -51,7 +52,7 @@ def _start(options: ServerOptions) -> int:
             console.print("it runs with other options; to use the new ones, `osmo server "
                           "stop` and start again:\n  " + "\n  ".join(changes), markup=False)
         return 0
-    _say_changes(opts.remember(home_dir(), options))
+    _say_changes(opts.remember(open_home(), options))
     info = start_server(options=options)
     console.print(f"osmo server running: pid {info.pid}, {info.endpoint}", markup=False)
     for warning in info.warnings:  # e.g. no sandbox: said where the user looks, not only in the log
@@ -68,7 +69,7 @@ def _say_changes(changes: list[str]) -> None:
 
 def _status(fmt: str) -> int:
     status = server_status()
-    home = home_dir()
+    home = open_home()
     options = running_options() if status else None
     if fmt == "json":
         print_json({**status.__dict__, "options": options} if status else None)
@@ -82,7 +83,7 @@ def _status(fmt: str) -> int:
         saved = opts.saved_options(home)
         if saved is not None:
             console.print(f"an automatic start uses: {shlex.join(saved.to_argv()) or '(defaults)'}"
-                          f" (saved in {home / 'server-options.json'})", markup=False)
+                          f" (saved in {home.server_options})", markup=False)
     return 0 if status else 3
 
 

@@ -93,18 +93,14 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
 
 from osmo.errors import InfrastructureError, UsageError
+from osmo.options import SANDBOX_MODES, SandboxMode, parse_share
 from osmo.runtime.netns import Entry, NodeNetwork, entered
 
-__all__ = ["COVERED", "MODES", "SYSTEM", "TASK_USER", "Sandbox", "SandboxMode", "View",
-           "choose", "node_network", "parse_share", "runtime_folders", "unavailable_reason",
+__all__ = ["COVERED", "SYSTEM", "TASK_USER", "Sandbox", "SandboxMode", "View", "choose",
+           "node_network", "parse_share", "runtime_folders", "unavailable_reason",
            "unavailable_summary"]
-
-SandboxMode = Literal["auto", "on", "off"]
-MODES: tuple[SandboxMode, ...] = ("auto", "on", "off")
-"""``auto``: sandbox when bubblewrap works here; ``on``: required; ``off``: never."""
 
 SYSTEM = ("/usr", "/bin", "/sbin", "/lib", "/lib32", "/lib64", "/libx32", "/opt", "/sys", "/etc")
 """The host folders every task sees, read-only (those that exist; symlinks stay symlinks)."""
@@ -114,6 +110,7 @@ COVERED = ("/etc/shadow", "/etc/shadow-", "/etc/gshadow", "/etc/gshadow-",
 file the tasks' uid could read by an unreadable device node (``/dev/null``, nodev)."""
 TASK_USER = "nobody"
 """Who tasks of a root server or worker are on the host (its uid and primary gid)."""
+
 
 _PACKAGE = "bubblewrap"
 _PROBE_TIMEOUT = 10.0
@@ -144,14 +141,6 @@ class View:
     cwd: Path
     masked: tuple[Path, ...] = ()
     code: tuple[Path, ...] = ()
-
-
-def parse_share(spec: str) -> tuple[str, bool]:
-    """``DIR`` → (DIR, writable); ``DIR:ro`` → read-only; ``DIR:rw`` → writable."""
-    folder, sep, mode = spec.rpartition(":")
-    if sep and mode in ("ro", "rw") and folder:
-        return folder, mode == "rw"
-    return spec, True
 
 
 @dataclass(frozen=True)
@@ -353,12 +342,13 @@ def choose(mode: SandboxMode, shared: Sequence[str | Path] = ()) -> Sandbox | No
     (:func:`node_network`, :meth:`Sandbox.joined`) before it runs anything.
 
     Raises:
-        UsageError: ``mode`` is not one of :data:`MODES`, or a shared folder is relative.
+        UsageError: ``mode`` is not one of ``osmo.options.SANDBOX_MODES``, or a shared
+            folder is relative.
         InfrastructureError: ``mode`` is ``on`` and bubblewrap is missing or does not work
             here (the message names the package and the reason).
     """
-    if mode not in MODES:
-        raise UsageError(f"sandbox mode {mode!r}: choose one of {', '.join(MODES)}")
+    if mode not in SANDBOX_MODES:
+        raise UsageError(f"sandbox mode {mode!r}: choose one of {', '.join(SANDBOX_MODES)}")
     if mode == "off":
         return None
     sandbox = _probe()

@@ -16,7 +16,6 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple, TypeAlias
 
-from osmo.config import home_path
 from osmo.errors import UsageError
 from osmo.names import check_name, check_tag, check_workflow_id, parse_ref
 from osmo.sdk.connect import Connection, connect
@@ -61,7 +60,7 @@ class Client:
     def __init__(self, server: str | None = None, *, home: str | os.PathLike[str] | None = None,
                  autostart: bool = True, token: str | None = None) -> None:
         self._conn: Connection = connect(server, home, autostart=autostart, token=token)
-        self._home = home_path(home)  # never read by a spec's localpath
+        self._home = self._conn.home.root  # never read by a spec's localpath
 
     def close(self) -> None:
         """Close the connection."""
@@ -310,7 +309,7 @@ class Client:
 
         written = transfer.download(self._conn.api, self.ping(), Manifest.from_json(
             reply["body"]), Path(dest).absolute(), only=reply.get("only"),
-                                    on_progress=on_progress)
+                                    on_progress=on_progress, home=self._conn.home)
         return [str(p) for p in written]
 
     def gc_artifacts(self) -> tuple[int, int]:
@@ -350,7 +349,7 @@ class Client:
         reply = self._call("dataset_download", ref=ref, regex=regex)
         written = transfer.download(self._conn.api, self.ping(),
                                     Manifest.from_json(reply["manifest"]), Path(dest).absolute(),
-                                    on_progress=on_progress)
+                                    on_progress=on_progress, home=self._conn.home)
         return [str(p) for p in written]
 
     def upload_dataset(self, name: str, path: str | os.PathLike[str], *,
@@ -367,7 +366,7 @@ class Client:
         folder = Path(path).absolute()
         if not folder.is_dir():
             raise UsageError(f"cannot upload '{folder}': not a folder")
-        offer = transfer.upload(self._conn.api, folder, on_progress)
+        offer = transfer.upload(self._conn.api, folder, on_progress, home=self._conn.home)
         try:
             reply = self._call("dataset_upload", name=name, manifest=offer.manifest.to_json(),
                                source=offer.source, metadata=metadata or {}, timeout=3600)

@@ -5,7 +5,7 @@ The endpoint used: an explicit ``server`` argument > ``OSMO_SERVER`` > the saved
 ``server.json`` (the local server's Unix socket, ``OSMO_HOME/server.sock``). With none of
 them and ``autostart`` on, a server is started in the background for the home (``python -m
 osmo.server.app``, its own session, output in ``server.log``), with the options the last
-explicit start saved in the home (``osmo.server.options.saved_options``), and the call waits
+explicit start saved in the home (``osmo.options.saved_options``), and the call waits
 until it answers.
 
 The token sent with every request: an explicit ``token`` > ``OSMO_TOKEN`` > the profile's
@@ -25,14 +25,15 @@ from typing import Any
 from osmo.config import (
     DEFAULT_CLUSTER,
     ServerInfo,
-    home_dir,
     lock_is_held,
+    open_home,
     read_profile,
     read_server_info,
 )
 from osmo.errors import InfrastructureError, ServerUnreachable
 from osmo.layout import Home
-from osmo.server.options import ServerOptions, check_listeners, saved_options
+from osmo.options import ServerOptions, saved_options
+from osmo.transport.listeners import check_listeners
 from osmo.transport.rpc import ApiClient
 from osmo.transport.zenoh_link import Link
 
@@ -42,11 +43,16 @@ START_TIMEOUT = 20.0
 
 
 class Connection:
-    """An open API connection (a zenoh client session plus the request helper)."""
+    """An open API connection (a zenoh client session plus the request helper).
+
+    ``home``: the osmo home it was opened from (the client's own artifact store lives there).
+    """
 
     def __init__(self, endpoint: str, cluster: str = DEFAULT_CLUSTER,
-                 zenoh_config: str | None = None, token: str | None = None) -> None:
+                 zenoh_config: str | None = None, token: str | None = None, *,
+                 home: Home) -> None:
         self.endpoint = endpoint
+        self.home = home
         self.link = Link.client([endpoint], cluster, config_file=zenoh_config)
         self.api = ApiClient(self.link, token=token)
 
@@ -55,18 +61,18 @@ class Connection:
         self.link.close()
 
 
-def _wait_ready(home: Path, proc: subprocess.Popen[bytes] | None, timeout: float) -> ServerInfo:
+def _wait_ready(home: Home, proc: subprocess.Popen[bytes] | None, timeout: float) -> ServerInfo:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         info = read_server_info(home)
         if info is not None and (proc is None or info.pid == proc.pid) and lock_is_held(home):
             return info
         if proc is not None and proc.poll() is not None:
-            log = Home(home).server_log.read_text(errors="replace")[-2000:]
+            log = home.server_log.read_text(errors="replace")[-2000:]
             raise InfrastructureError(f"the osmo server exited at start:\n{log}")
         time.sleep(0.02)  # start-up only: waiting for another process to write its file
     raise InfrastructureError(f"the osmo server did not become ready within {timeout:.0f}s; "
-                              f"see {Home(home).server_log}")
+                              f"see {home.server_log}")
 
 
 def start_server(home: str | os.PathLike[str] | None = None,
@@ -84,29 +90,33 @@ def start_server(home: str | os.PathLike[str] | None = None,
     Raises:
         UsageError: ``options`` is None and the saved options are damaged.
     """
-    home_path = home_dir(home)
+    return _start(open_home(home), options)
+
+
+def _start(home: Home, options: ServerOptions | None) -> ServerInfo:
     if options is not None:
         check_listeners(options.listen, options.zenoh_config, insecure=options.insecure)
-    if lock_is_held(home_path):
-        return _wait_ready(home_path, None, START_TIMEOUT)
+    if lock_is_held(home):
+        return _wait_ready(home, None, START_TIMEOUT)
     if options is None:
-        options = saved_options(home_path) or ServerOptions()
+        options = saved_options(home) or ServerOptions()
         check_listeners(options.listen, options.zenoh_config, insecure=options.insecure)
-    args = [sys.executable, "-m", "osmo.server.app", "--home", str(home_path),
+    args = [sys.executable, "-m", "osmo.server.app", "--home", str(home.root),
             *options.to_argv()]
-    log_fd = os.open(Home(home_path).server_log, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o600)
+    log_fd = os.open(home.server_log, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o600)
     with open(log_fd, "ab") as out:
         proc = subprocess.Popen(args, stdin=subprocess.DEVNULL, stdout=out, stderr=out,
                                 start_new_session=True, close_fds=True)
-    return _wait_ready(home_path, proc, START_TIMEOUT)
+    return _wait_ready(home, proc, START_TIMEOUT)
 
 
 def server_status(home: str | os.PathLike[str] | None = None) -> ServerInfo | None:
     """The running local server's info, or None if none runs for ``home``."""
-    home_path = home_dir(home)
-    if not lock_is_held(home_path):
-        return None
-    return read_server_info(home_path)
+    return _status(open_home(home))
+
+
+def _status(home: Home) -> ServerInfo | None:
+    return read_server_info(home) if lock_is_held(home) else None
 
 
 def stop_server(home: str | os.PathLike[str] | None = None, timeout: float = 30.0) -> int | None:
@@ -118,13 +128,13 @@ def stop_server(home: str | os.PathLike[str] | None = None, timeout: float = 30.
     """
     import signal
 
-    info = server_status(home)
+    layout = open_home(home)
+    info = _status(layout)
     if info is None:
         return None
     os.kill(info.pid, signal.SIGTERM)
-    home_path = home_dir(home)
     deadline = time.monotonic() + timeout
-    while lock_is_held(home_path) and time.monotonic() < deadline:
+    while lock_is_held(layout) and time.monotonic() < deadline:
         time.sleep(0.05)
     while _running(info.pid) and time.monotonic() < deadline:  # the lock goes just before exit
         time.sleep(0.01)
@@ -155,49 +165,44 @@ def _running(pid: int) -> bool:
 def connect(server: str | None = None, home: str | os.PathLike[str] | None = None,
             *, autostart: bool = True, token: str | None = None) -> Connection:
     """Open a connection to the server chosen as described in the module docstring."""
-    home_path = home_dir(home)
-    profile = read_profile(home_path)
+    layout = open_home(home)
+    profile = read_profile(layout)
     token = token or os.environ.get("OSMO_TOKEN") or profile.get("token")
     endpoint = server or os.environ.get("OSMO_SERVER") or profile.get("server")
     if endpoint:
-        if token is None and endpoint in _local_endpoints(home_path):
-            token = _owner_token(home_path)
+        if token is None and endpoint in _local_endpoints(layout):
+            token = _owner_token(layout)
         return Connection(endpoint, os.environ.get("OSMO_CLUSTER") or
                           profile.get("cluster") or DEFAULT_CLUSTER, profile.get("zenoh-config"),
-                          token)
-    info = server_status(home_path)
+                          token, home=layout)
+    info = _status(layout)
     if info is None:
         if not autostart:
-            raise ServerUnreachable(f"no osmo server running for {home_path} "
+            raise ServerUnreachable(f"no osmo server running for {layout.root} "
                                     "(start one with `osmo server start`)")
-        info = start_server(home_path)
-    return Connection(info.endpoint, info.cluster, _local_config(home_path),
-                      token or _owner_token(home_path))
+        info = _start(layout, None)
+    return Connection(info.endpoint, info.cluster, _local_config(layout),
+                      token or _owner_token(layout), home=layout)
 
 
-def _owner_token(home: Path) -> str | None:
+def _owner_token(home: Home) -> str | None:
     """The home owner's admin token, if the home's server made one."""
     try:
-        return Home(home).admin_token.read_text().strip() or None
+        return home.admin_token.read_text().strip() or None
     except OSError:
         return None
 
 
-def _local_endpoints(home: Path) -> list[str]:
+def _local_endpoints(home: Home) -> list[str]:
     """Every endpoint the home's running server listens on (its socket first)."""
-    import json
-
-    try:
-        data = json.loads(Home(home).server_info.read_text())
-    except (OSError, ValueError):
-        return []
+    data = _server_json(home)
     out = [str(e) for e in [data.get("endpoint"), *data.get("endpoints", [])] if e]
     wildcard = {"tcp/0.0.0.0:": "tcp/127.0.0.1:", "tcp/[::]:": "tcp/[::1]:"}
     return out + [e.replace(w, local, 1) for e in out for w, local in wildcard.items()
                   if e.startswith(w)]
 
 
-def _local_config(home: Path) -> str | None:
+def _local_config(home: Home) -> str | None:
     """The zenoh config the home's server was started with.
 
     The same credentials serve the local CLI, unless ``OSMO_ZENOH_CONFIG`` says otherwise.
@@ -210,18 +215,18 @@ def _local_config(home: Path) -> str | None:
 
 def running_options(home: str | os.PathLike[str] | None = None) -> list[str] | None:
     """The options (as flags) the home's running server was started with; None: not known."""
-    home_path = home_dir(home)
-    if not lock_is_held(home_path):
+    layout = open_home(home)
+    if not lock_is_held(layout):
         return None
-    value = _server_json(home_path).get("options")
+    value = _server_json(layout).get("options")
     return [str(v) for v in value] if isinstance(value, list) else None
 
 
-def _server_json(home: Path) -> dict[str, Any]:
+def _server_json(home: Home) -> dict[str, Any]:
     import json
 
     try:
-        data = json.loads(Home(home).server_info.read_text())
+        data = json.loads(home.server_info.read_text())
     except (OSError, ValueError):
         return {}
     return data if isinstance(data, dict) else {}

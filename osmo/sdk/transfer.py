@@ -3,7 +3,8 @@
 Downloads fetch the blobs this machine's cache lacks from the server (hard links when the
 server shares this host) and write verified copies; uploads ingest a copy of the folder into
 the cache and serve it while the server pulls what it lacks. The cache is
-``OSMO_HOME/client/artifacts`` (``osmo artifacts gc`` does not touch it; delete it freely).
+``client/artifacts`` in the client's home, ``OSMO_HOME`` unless it names another (``osmo
+artifacts gc`` does not touch it; delete it freely).
 
 Either way can report its progress to a :data:`Progress` callback: bytes fetched (a blob
 linked on the same host, or resumed, counts when it is done), or bytes the server pulled.
@@ -21,7 +22,6 @@ from pathlib import Path
 from typing import Any
 
 from osmo.artifacts import ArtifactStore, Manifest
-from osmo.config import home_dir
 from osmo.layout import Home
 from osmo.transport.blobs import (
     SERVER,
@@ -40,8 +40,8 @@ Progress = Callable[[int, int], None]
 """``(bytes done, bytes in all)`` of a transfer, called as it goes (first with 0 done)."""
 
 
-def _cache() -> ArtifactStore:
-    return ArtifactStore(Home(home_dir()).client_artifacts)
+def _cache(home: Home) -> ArtifactStore:
+    return ArtifactStore(home.client_artifacts)
 
 
 def _same_host(server: dict[str, Any]) -> SameHost | None:
@@ -51,13 +51,14 @@ def _same_host(server: dict[str, Any]) -> SameHost | None:
 
 
 def download(api: ApiClient, server: dict[str, Any], manifest: Manifest, dest: Path,
-             only: str | None = None, on_progress: Progress | None = None) -> list[Path]:
+             only: str | None = None, on_progress: Progress | None = None, *,
+             home: Home) -> list[Path]:
     """Write ``manifest``'s files (or just ``only``) under ``dest``, verified.
 
     Every blob request is sealed on ``api``'s channel (the server's blob server checks it).
-    ``on_progress`` hears of the bytes this machine's cache lacked.
+    ``on_progress`` hears of the bytes this machine's cache (``home``'s) lacked.
     """
-    cache = _cache()
+    cache = _cache(home)
     wanted = Manifest(tuple(e for e in manifest.entries if only is None or e.path == only))
     if on_progress is None:
         fetch_manifest(api, SERVER, wanted, cache, same_host=_same_host(server))
@@ -90,12 +91,12 @@ class Upload:
 
     Its blob server answers only the server's requests sealed on ``api``'s channel (the one
     the upload request itself comes on). ``size``: the bytes of its distinct files, what the
-    server pulls if it holds none of them.
+    server pulls if it holds none of them. The copy is staged in ``home``'s cache.
     """
 
-    def __init__(self, api: ApiClient, folder: Path, on_progress: Progress | None = None
-                 ) -> None:
-        cache = _cache()
+    def __init__(self, api: ApiClient, folder: Path, on_progress: Progress | None = None, *,
+                 home: Home) -> None:
+        cache = _cache(home)
         staging = Path(tempfile.mkdtemp(prefix="upload-", dir=cache.tmp))
         try:  # a copy: ingest makes files read-only hard links, the user's stay as they are
             shutil.copytree(folder, staging / "data", symlinks=True)
@@ -116,12 +117,13 @@ class Upload:
         self._server.close()
 
 
-def upload(api: ApiClient, folder: Path, on_progress: Progress | None = None) -> Upload:
+def upload(api: ApiClient, folder: Path, on_progress: Progress | None = None, *,
+           home: Home) -> Upload:
     """Start offering ``folder``; close the returned :class:`Upload` when the server is done.
 
     ``on_progress`` hears of the bytes the server pulls (blobs it holds already are not).
     """
-    return Upload(api, folder, on_progress)
+    return Upload(api, folder, on_progress, home=home)
 
 
 def _counting(opener: Opener, sizes: dict[str, int], on_progress: Progress) -> Opener:

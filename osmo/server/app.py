@@ -30,14 +30,18 @@ import signal
 import sys
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from osmo.artifacts import ArtifactStore
-from osmo.config import home_dir, write_json_atomic
+from osmo.config import open_home, write_json_atomic
 from osmo.errors import InfrastructureError, OsmoError
 from osmo.executor import Executor
 from osmo.layout import Home
-from osmo.scheduler.types import AttemptLost, NodeUp
+from osmo.options import ServerOptions
+from osmo.scheduler import TaskState
+from osmo.scheduler.types import AttemptLost, Event, NodeUp
 from osmo.server.auth import Authenticator, TokenHandlers, accept_tokens, owner_token
 from osmo.server.credentials import url_credential
 from osmo.server.datasets import Datasets
@@ -46,15 +50,22 @@ from osmo.server.handlers import Handlers
 from osmo.server.inbox import Inbox
 from osmo.server.isolation import reason
 from osmo.server.notices import Notifier
-from osmo.server.options import ServerOptions, check_listeners
 from osmo.server.placing import output_manifests
 from osmo.server.records import RunRecords
-from osmo.server.recovery import InFlight, kill_leftovers, quarantine, restore, split_lost
+from osmo.server.recovery import (
+    InFlight,
+    Restored,
+    kill_leftovers,
+    quarantine,
+    restore,
+    split_lost,
+)
 from osmo.server.requests import AttemptsOn
 from osmo.server.sessions import Sessions
 from osmo.server.workers import WorkerHub
 from osmo.store.sqlite import Store
 from osmo.transport.blobs import host_id
+from osmo.transport.listeners import check_listeners
 from osmo.transport.rpc import ApiServer
 from osmo.transport.seal import Signer
 from osmo.transport.wire import PEER_ALLOW, PEER_DENY
@@ -69,6 +80,37 @@ __all__ = ["serve"]
 log = logging.getLogger("osmo.server")
 
 
+def serve(home: Home, options: ServerOptions | None = None, *,
+          ready: threading.Event | None = None) -> None:
+    """Run the server of ``home`` in the foreground until stopped.
+
+    Args:
+        home: the osmo home (``osmo.config.open_home``).
+        options: how it listens and runs (default: ``ServerOptions()``).
+        ready: set once the server answers requests.
+
+    Raises:
+        InfrastructureError: another server runs for ``home``, or the engine could not go on.
+    """
+    _tune_interpreter()
+    lock_fd = _take_lock(home)
+    home.server_info.unlink(missing_ok=True)  # a crashed server's stale address
+    server = _Server(home, options or ServerOptions())
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda *_: server.stopping.set())
+    if ready is not None:
+        ready.set()
+    try:
+        while not server.stopping.wait(timeout=3600):
+            pass
+    finally:
+        server.close()
+        os.close(lock_fd)
+    if server.fatal:
+        raise InfrastructureError(f"the server stopped because its engine cannot go on "
+                                  f"({reason(server.fatal[0])}); see the log above")
+
+
 def _take_lock(home: Home) -> int:
     fd = os.open(home.server_lock, os.O_RDWR | os.O_CREAT, 0o600)
     try:
@@ -80,135 +122,166 @@ def _take_lock(home: Home) -> int:
     return fd
 
 
-def serve(home: str | os.PathLike[str] | None = None, options: ServerOptions | None = None,
-          *, ready: threading.Event | None = None) -> None:
-    """Run the server in the foreground until stopped.
+class _Server:
+    """One running server: its parts, composed and started in order (see the module docstring).
 
-    Args:
-        home: the osmo home (default: ``OSMO_HOME`` / XDG data folder).
-        options: how it listens and runs (default: ``ServerOptions()``).
-        ready: set once the server answers requests.
+    ``stopping`` is set to stop it (a signal, a ``shutdown`` request, or the engine that
+    cannot go on: then ``fatal`` holds why); :meth:`close` stops the parts.
     """
-    _tune_interpreter()
-    home_path = home_dir(home)
-    layout = Home(home_path)
-    lock_fd = _take_lock(layout)
-    layout.server_info.unlink(missing_ok=True)  # a crashed server's stale address
-    options = options or ServerOptions()
-    boxes = containers.for_node(options.runtime, options.container_engine,
-                                home_path) if options.local_pool else None
-    listen, connect = list(options.listen), list(options.connect)
-    check_listeners(listen, options.zenoh_config, insecure=options.insecure)
-    local = f"unixsock-stream/{_socket(layout)}"
-    endpoints = [local, *listen]
-    store = Store(layout.state_db)
-    owner_token(home_path, store)
-    accept_tokens(store, options.accept_tokens)
-    authenticate = Authenticator(store, Signer(layout.notice_key))
-    inflight = InFlight(layout.applying, layout.crashes)
-    restored = restore(store)
-    active, failed = quarantine(restored.active, inflight.strike(inflight.left))
-    lost, remote_nodes = split_lost(active)
-    kill_leftovers(store, lost)
-    kill_recorded(layout.procs)  # what the old server spawned but had not committed a pid of
 
-    link = Link.router(endpoints, options.cluster, connect=connect,
-                       config_file=options.zenoh_config, peer=bool(connect) and not listen,
-                       allow=PEER_ALLOW, deny=PEER_DENY)
-    stopping = threading.Event()
+    def __init__(self, home: Home, options: ServerOptions) -> None:
+        self.stopping = threading.Event()
+        self.fatal: list[BaseException] = []
+        self.home = home
+        boxes = containers.for_node(options.runtime, options.container_engine,
+                                    home.root) if options.local_pool else None
+        check_listeners(options.listen, options.zenoh_config, insecure=options.insecure)
+        self.endpoints = [f"unixsock-stream/{_socket(home)}", *options.listen]
+        self.store = Store(home.state_db)
+        owner_token(home, self.store)
+        accept_tokens(self.store, options.accept_tokens)
+        self.gate = Authenticator(self.store, Signer(home.notice_key))
+        self.inflight = InFlight(home.applying, home.crashes)
+        recovered = _Recovered.from_store(self.store, self.inflight, home)
+        self.link = Link.router(self.endpoints, options.cluster, connect=list(options.connect),
+                                config_file=options.zenoh_config,
+                                peer=bool(options.connect) and not options.listen,
+                                allow=PEER_ALLOW, deny=PEER_DENY)
+        self.notifier = Notifier(self.link, self.gate.channels.signer)
+        self.records = RunRecords(self.store, home)
+        self.artifacts = ArtifactStore(home.artifacts)
+        self.pool, self.hub, self.engine = self._executors(options, boxes, recovered)
+        recovered.replay(self.engine, self.pool)
+        self.engine.start()
+        self.hub.expect(recovered.remote_nodes, options.reconnect_grace)
+        self.info = self._info(options)
+        self.local_sessions = (NodeSessions(self.link, self.pool) if self.pool is not None
+                               else None)
+        self.api = self._api()
+        write_json_atomic(home.server_info, self.info)
+        log.info("osmo server %s listening on %s (home %s)", os.getpid(),
+                 ", ".join(self.endpoints or options.connect or []), home.root)
 
-    notifier = Notifier(link, authenticate.channels.signer)
-    on_changed = notifier.changed
+    def _executors(self, options: ServerOptions, boxes: containers.ContainerTasks | None,
+                   recovered: _Recovered) -> tuple[LocalPool | None, WorkerHub, Engine]:
+        """The local pool (unless ``--no-local-pool``), the remote workers' hub, the engine.
 
-    inbox = Inbox()
-    artifacts = ArtifactStore(layout.artifacts)
-    pool = LocalPool(home=home_path, emit=inbox.post,
-                     cpus=options.cpus, gpus=options.gpus, artifacts=artifacts,
-                     credential_for=url_credential(store),
-                     input_manifests=output_manifests(store),
-                     task_secrets=store.credential,
-                     sandbox=options.sandbox, sandbox_share=options.sandbox_share,
-                     procs_dir=layout.procs, containers=boxes,
-                     log_limit=options.log_limit) if options.local_pool else None
-    for secret in options.secret_files:
-        if pool is not None:
-            pool.hide(Path(secret))
-    hub = WorkerHub(link=link, emit=inbox.post, store=store,
-                    artifacts=artifacts, home=home_path, url_credential=url_credential(store),
-                    attempts_on=lambda node: list(inbox.ask(AttemptsOn(node))),
-                    gate=authenticate, log_limit=options.log_limit)
-    records = RunRecords(store, home_path)
-    fatal: list[BaseException] = []
+        The executors report into the engine's inbox, which exists before them; the engine
+        owns and closes them.
+        """
+        store, artifacts, inbox = self.store, self.artifacts, Inbox()
+        pool = LocalPool(home=self.home.root, emit=inbox.post,
+                         cpus=options.cpus, gpus=options.gpus, artifacts=artifacts,
+                         credential_for=url_credential(store),
+                         input_manifests=output_manifests(store),
+                         task_secrets=store.credential,
+                         sandbox=options.sandbox, sandbox_share=options.sandbox_share,
+                         procs_dir=self.home.procs, containers=boxes,
+                         log_limit=options.log_limit) if options.local_pool else None
+        for secret in options.secret_files:  # a token file a task must not read
+            if pool is not None:
+                pool.hide(Path(secret))
+        hub = WorkerHub(link=self.link, emit=inbox.post, store=store, artifacts=artifacts,
+                        home=self.home, url_credential=url_credential(store),
+                        attempts_on=lambda node: list(inbox.ask(AttemptsOn(node))),
+                        gate=self.gate, log_limit=options.log_limit)
+        executors: list[Executor] = [hub] if pool is None else [pool, hub]
+        engine = Engine(store=store, scheduler=recovered.restored.scheduler,
+                        executors=executors, inbox=inbox, specs=recovered.restored.specs,
+                        on_changed=self.notifier.changed, home=self.home,
+                        on_finished=self.records.finished,
+                        datasets=Datasets(store, artifacts, self.home),
+                        reuse=recovered.restored.reuse, restore=lambda: restore(store),
+                        inflight=self.inflight, on_fatal=self._on_fatal,
+                        image_ids=containers.image_ids(options.runtime,
+                                                       options.container_engine, boxes))
+        return pool, hub, engine
 
-    def on_fatal(exc: BaseException) -> None:
-        fatal.append(exc)
-        stopping.set()
+    def _info(self, options: ServerOptions) -> dict[str, Any]:
+        """What the server writes to ``server.json`` and answers ``ping`` with."""
+        pool = self.pool
+        return {"endpoint": self.endpoints[0], "endpoints": self.endpoints, "pid": os.getpid(),
+                "cluster": options.cluster,
+                "zenoh_config": (str(Path(options.zenoh_config).absolute())
+                                 if options.zenoh_config else None),
+                "host_id": host_id(), "artifacts": str(self.artifacts.root),
+                "started_at": time.time(), "home": str(self.home.root),
+                "options": options.to_argv(),
+                "runtime": pool.runtime_name() if pool is not None else None,
+                "sandbox_why": pool.no_sandbox_why if pool is not None else None,
+                "warnings": [pool.sandbox_warning] if pool is not None and pool.sandbox_warning
+                else []}
 
-    executors: list[Executor] = [hub] if pool is None else [pool, hub]
-    engine = Engine(store=store, scheduler=restored.scheduler, executors=executors, inbox=inbox,
-                    specs=restored.specs, on_changed=on_changed, home=home_path,
-                    on_finished=records.finished, datasets=Datasets(store, artifacts, home_path),
-                    reuse=restored.reuse, restore=lambda: restore(store),
-                    inflight=inflight, on_fatal=on_fatal,
-                    image_ids=containers.image_ids(options.runtime, options.container_engine,
-                                                   boxes))
-    lost_ids = {t.attempt_id for t in lost}
-    for task in active:  # still running on remote workers: placed by the old server
-        cmd = restored.scheduler.placement(str(task.attempt_id))
-        if task.attempt_id not in lost_ids and cmd is not None:
-            engine.placements.recall(cmd)  # so that their outputs get lineage here too
-    if pool is not None:
-        engine.post(NodeUp(pool.node()))
-    for event in failed:
-        engine.post(event)
-    for task in lost:
-        engine.post(AttemptLost(str(task.attempt_id), "server restarted; attempt lost",
-                                server_restart=True))
-    engine.start()
-    hub.expect(remote_nodes, options.reconnect_grace)
+    def _on_fatal(self, exc: BaseException) -> None:
+        self.fatal.append(exc)
+        self.stopping.set()
 
-    info = {"endpoint": local,
-            "endpoints": endpoints, "pid": os.getpid(), "cluster": options.cluster,
-            "zenoh_config": (str(Path(options.zenoh_config).absolute())
-                             if options.zenoh_config else None),
-            "host_id": host_id(), "artifacts": str(artifacts.root),
-            "started_at": time.time(), "home": str(home_path), "options": options.to_argv(),
-            "runtime": pool.runtime_name() if pool is not None else None,
-            "sandbox_why": pool.no_sandbox_why if pool is not None else None,
-            "warnings": [pool.sandbox_warning] if pool is not None and pool.sandbox_warning else []}
-    local_sessions = NodeSessions(link, pool) if pool is not None else None
-    handlers = Handlers(engine, home_path, info, on_shutdown=stopping.set, workers=hub,
-                        link=link, gate=authenticate, tokens=TokenHandlers(store, authenticate),
-                        sessions=Sessions(store, hub, local_sessions))
-    api_server = ApiServer(link, handlers.handle, authenticate, inline=WorkerHub.INLINE,
-                           on_crash=lambda exc: log.error("API handler crashed", exc_info=exc))
-    write_json_atomic(layout.server_info, info)
-    log.info("osmo server %s listening on %s (home %s)", os.getpid(),
-             ", ".join(endpoints or connect or []), home_path)
+    def _api(self) -> ApiServer:
+        """The API on the link: every verb through the handlers, as its caller's identity."""
+        handlers = Handlers(self.engine, self.home, self.info, on_shutdown=self.stopping.set,
+                            workers=self.hub, link=self.link, gate=self.gate,
+                            tokens=TokenHandlers(self.store, self.gate),
+                            sessions=Sessions(self.store, self.hub, self.local_sessions))
+        return ApiServer(self.link, handlers.handle, self.gate, inline=WorkerHub.INLINE,
+                         on_crash=lambda exc: log.error("API handler crashed", exc_info=exc))
 
-    for sig in (signal.SIGTERM, signal.SIGINT):
-        signal.signal(sig, lambda *_: stopping.set())
-    if ready is not None:
-        ready.set()
-    try:
-        while not stopping.wait(timeout=3600):
-            pass
-    finally:
+    def close(self) -> None:
+        """Stop answering, then stop the engine (and its executors) and close what is open."""
         time.sleep(0.05)  # let the reply to a `shutdown` request leave
-        layout.server_info.unlink(missing_ok=True)
-        api_server.close()
-        if local_sessions is not None:
-            local_sessions.close("the server is stopping")
-        engine.stop()  # and its executors: the local pool's processes die with the server
-        notifier.close()
-        records.close()
-        link.close()
-        store.close()
-        inflight.close()
-        os.close(lock_fd)
-    if fatal:
-        raise InfrastructureError(f"the server stopped because its engine cannot go on "
-                                  f"({reason(fatal[0])}); see the log above")
+        self.home.server_info.unlink(missing_ok=True)
+        self.api.close()
+        if self.local_sessions is not None:
+            self.local_sessions.close("the server is stopping")
+        self.engine.stop()  # and its executors: the local pool's processes die with the server
+        self.notifier.close()
+        self.records.close()
+        self.link.close()
+        self.store.close()
+        self.inflight.close()
+
+
+@dataclass
+class _Recovered:
+    """What a server starting on a home's store takes over (see the module docstring).
+
+    Attributes:
+        restored: the scheduler rebuilt from the store, with specs and cache choices.
+        active: attempts placed or running that are not quarantined.
+        failed: a failure for each quarantined attempt.
+        lost: the active attempts of the local pool, which died with the old server.
+        remote_nodes: remote workers whose attempts are expected back.
+    """
+
+    restored: Restored
+    active: list[TaskState]
+    failed: list[Event]
+    lost: list[TaskState]
+    remote_nodes: set[str]
+
+    @classmethod
+    def from_store(cls, store: Store, inflight: InFlight, home: Home) -> _Recovered:
+        """Restore the store's state; kill what the old server's local attempts left running."""
+        restored = restore(store)
+        active, failed = quarantine(restored.active, inflight.strike(inflight.left))
+        lost, remote_nodes = split_lost(active)
+        kill_leftovers(store, lost)
+        kill_recorded(home.procs)  # what the old server spawned but had not committed a pid of
+        return cls(restored, active, failed, lost, remote_nodes)
+
+    def replay(self, engine: Engine, pool: LocalPool | None) -> None:
+        """Tell the engine what it takes over, before it starts."""
+        lost_ids = {t.attempt_id for t in self.lost}
+        for task in self.active:  # still running on remote workers: placed by the old server
+            cmd = self.restored.scheduler.placement(str(task.attempt_id))
+            if task.attempt_id not in lost_ids and cmd is not None:
+                engine.placements.recall(cmd)  # so that their outputs get lineage here too
+        if pool is not None:
+            engine.post(NodeUp(pool.node()))
+        for event in self.failed:
+            engine.post(event)
+        for task in self.lost:
+            engine.post(AttemptLost(str(task.attempt_id), "server restarted; attempt lost",
+                                    server_restart=True))
 
 
 def _socket(layout: Home) -> Path:
@@ -252,7 +325,7 @@ def main() -> None:
     ServerOptions.add_arguments(parser)
     args = parser.parse_args()
     try:
-        serve(args.home, ServerOptions.from_args(args))
+        serve(open_home(args.home), ServerOptions.from_args(args))
     except OsmoError as exc:
         print(f"osmo server: {exc}", file=sys.stderr)
         sys.exit(exc.exit_code)

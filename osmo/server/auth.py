@@ -324,12 +324,11 @@ class Authenticator:
         self.reload()
 
 
-def owner_token(home: Path, store: Store) -> None:
+def owner_token(layout: Home, store: Store) -> None:
     """Make sure the home's owner has a live admin token in ``auth/admin.token`` (0600).
 
     A token file whose token the store does not know (or revoked) is replaced.
     """
-    layout = Home(home)
     layout.auth.mkdir(mode=0o700, exist_ok=True)
     os.chmod(layout.auth, 0o700)
     try:

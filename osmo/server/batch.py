@@ -10,9 +10,9 @@ from __future__ import annotations
 
 from concurrent.futures import Future
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
+from osmo.layout import Home
 from osmo.scheduler import Scheduler
 from osmo.scheduler.types import Changes, Command, PrepareAttempt
 from osmo.server.recovery import attempt_row
@@ -46,7 +46,7 @@ class Batch:
     ended: list[str] = field(default_factory=list)
 
     def commit(self, store: Store, scheduler: Scheduler,
-               home: Path) -> tuple[Changes, list[PrepareAttempt]]:
+               home: Home) -> tuple[Changes, list[PrepareAttempt]]:
         """Take the scheduler's changes and write them with this batch's rows.
 
         An attempt row is added for each placement. Returns the changes and the placements.

@@ -31,14 +31,13 @@ import hashlib
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 from osmo.record import LineageInput
 from osmo.scheduler.types import PrepareAttempt
 from osmo.spec.model import TaskSpec, WorkflowSpec
 from osmo.store.sqlite import Store
 
-__all__ = ["CacheHit", "fingerprint", "input_sources", "key", "lookup", "reuse_option", "reuses"]
+__all__ = ["CacheHit", "fingerprint", "input_sources", "key", "lookup", "reuses"]
 
 _VERSION = 1  # bump when the fingerprint's content changes
 
@@ -98,7 +97,7 @@ def reuses(spec: WorkflowSpec, task: TaskSpec, *, submitted: bool | None) -> boo
         spec: its workflow.
         task: the task.
         submitted: what the submission said: True for ``--reuse``, False for ``--no-cache``,
-            None for neither.
+            None for neither (``osmo.store.submission.Submission.reuses``).
     """
     if submitted is False:
         return False
@@ -106,13 +105,6 @@ def reuses(spec: WorkflowSpec, task: TaskSpec, *, submitted: bool | None) -> boo
         if said is not None:
             return said
     return spec.reuses_by_default(task)
-
-
-def reuse_option(options: dict[str, Any]) -> bool | None:
-    """What a workflow's submission said (its stored options): ``submitted`` of :func:`reuses`."""
-    if options.get("no_cache"):
-        return False
-    return True if options.get("reuse") else None
 
 
 @dataclass(frozen=True)

@@ -38,13 +38,12 @@ class DatasetHandlers:
             upload's blobs from it (None: this server takes no uploads).
     """
 
-    def __init__(self, engine: Engine, artifacts: ArtifactStore, home: Path,
+    def __init__(self, engine: Engine, artifacts: ArtifactStore,
                  asker_of: Callable[[Identity], Asker | None] | None = None) -> None:
         self._asker_of = asker_of
         self._engine = engine
         self._store = engine.store
         self._artifacts = artifacts
-        self._home = home
 
     def list(self, request: dict[str, Any]) -> list[dict[str, Any]]:
         """Every version (of one dataset), newest first, with size and tags."""

@@ -50,10 +50,10 @@ def select(manifest: Manifest, *, path: str | None, regex: str | None) -> Manife
 class Datasets:
     """Makes dataset versions and resolves dataset inputs (engine thread only)."""
 
-    def __init__(self, store: Store, artifacts: ArtifactStore, home: Path) -> None:
+    def __init__(self, store: Store, artifacts: ArtifactStore, home: Home) -> None:
         self._store = store
         self._artifacts = artifacts
-        self._home = Home(home)
+        self._home = home
         self._versions: dict[str, int] = {}
 
     def next_version(self, name: str) -> int:

@@ -36,6 +36,7 @@ from typing import Any
 from osmo.artifacts import Manifest
 from osmo.errors import InfrastructureError, NotFoundError, SubmitError, UsageError
 from osmo.executor import Executor
+from osmo.layout import Home
 from osmo.scheduler import Scheduler
 from osmo.scheduler.types import (
     DEFAULT_MAX_RETRIES,
@@ -55,7 +56,6 @@ from osmo.scheduler.types import (
     WorkflowSubmitted,
 )
 from osmo.server.batch import Batch
-from osmo.server.cache import reuse_option
 from osmo.server.datasets import Datasets
 from osmo.server.inbox import STOP, Asked, Inbox
 from osmo.server.isolation import REBUILT, Isolation, guard, reason, restarting
@@ -108,7 +108,7 @@ class Engine:
     def __init__(self, *, store: Store, scheduler: Scheduler, executors: Sequence[Executor],
                  inbox: Inbox,
                  specs: dict[str, WorkflowSpec], on_changed: Callable[[set[str]], None],
-                 home: Any, on_finished: Callable[[str], None] = lambda _wf: None,
+                 home: Home, on_finished: Callable[[str], None] = lambda _wf: None,
                  datasets: Datasets | None = None, reuse: dict[str, bool] | None = None,
                  restore: Callable[[], Restored] | None = None,
                  inflight: InFlight | None = None,
@@ -303,14 +303,14 @@ class Engine:
             row = self.store.workflow(request.workflow_id, with_spec=False)
             if row is None:
                 raise NotFoundError(f"no workflow {request.workflow_id}")
-            tags = list(row.options.get("tags", []))
+            tags = list(row.options.tags)
         kept = [t for t in tags if t not in request.remove]
         new = sorted(set(kept) | set(request.add))
         batch.workflow_tags[request.workflow_id] = new
         return new
 
     def _submit(self, request: SubmitWorkflow, batch: Batch, now: float) -> str:
-        spec, pool = request.spec, request.options.get("pool")
+        spec, pool = request.spec, request.options.pool
         reasons = self.scheduler.check_fit(spec, pool)
         if reasons:
             raise SubmitError("cannot run this workflow:\n  " + "\n  ".join(reasons))
@@ -320,9 +320,9 @@ class Engine:
         retries = spec.max_retries if spec.max_retries is not None else DEFAULT_MAX_RETRIES
         batch.commands += self.scheduler.handle(
             WorkflowSubmitted(wf_id, spec, retries, pool, dict(request.reused),
-                              request.options.get("priority", "NORMAL")), now)
+                              request.options.priority), now)
         self.specs[wf_id] = spec
-        submitted = reuse_option(request.options)
+        submitted = request.options.reuses
         if submitted is not None:
             self.reuse[wf_id] = submitted
         batch.workflows.append(NewWorkflowRow(wf_id, spec.name, n, now, request.stored,

@@ -3,7 +3,7 @@
 Every request arrives with its caller's identity; ``handle`` routes it through the verb table
 (``osmo.server.auth.API``: who may call which verb, and which handler serves it), which
 checks the role first; cancel, restart and tag also check that a ``user`` submitted the
-workflow (workflows record their submitter in ``options.submitted_by``).
+workflow (workflows record their submitter: ``osmo.store.submission.Submission``).
 
 Mutating verbs (submit, cancel, restart) ask the engine with a typed request
 (``osmo.server.requests``) and reply only after their changes are committed. Read verbs read
@@ -19,8 +19,8 @@ import math
 import os
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from enum import Enum
-from pathlib import Path
 from typing import Any
 
 from osmo.artifacts import ArtifactStore
@@ -48,9 +48,11 @@ from osmo.server.taskview import TaskView, spec_order
 from osmo.server.workers import WorkerHub
 from osmo.spec import spec_from_dict
 from osmo.spec.parse import MAX_LABELS
+from osmo.spec.stored import StoredSpec
 from osmo.spec.typed import apply_resolved
 from osmo.status import TaskStatus, WorkflowStatus
 from osmo.store.sqlite import WorkflowRow
+from osmo.store.submission import Submission
 from osmo.transport.auth import Identity, Role
 from osmo.transport.blobs import Asker
 from osmo.transport.rpc import MAX_INT, Gate, ask_back, field, str_list
@@ -78,7 +80,7 @@ def _asker_of(link: Link, gate: Gate) -> Callable[[Identity], Asker | None]:
 class Handlers:
     """Dispatches ``verb`` → handler. ``info`` is returned by ``ping``."""
 
-    def __init__(self, engine: Engine, home: Path, info: dict[str, Any],
+    def __init__(self, engine: Engine, home: Home, info: dict[str, Any],
                  on_shutdown: Callable[[], None], workers: WorkerHub | None = None,
                  link: Link | None = None, gate: Gate | None = None,
                  tokens: TokenHandlers | None = None,
@@ -90,11 +92,11 @@ class Handlers:
         self._home = home
         self._info = info
         self._on_shutdown = on_shutdown
-        self._artifacts = ArtifactStore(Home(home).artifacts)
+        self._artifacts = ArtifactStore(home.artifacts)
         self._route = Router({
             "api": self, "workers": workers, "sessions": sessions, "tokens": tokens,
             "artifacts": ArtifactHandlers(self._store, self._artifacts, self._row),
-            "datasets": DatasetHandlers(engine, self._artifacts, home,
+            "datasets": DatasetHandlers(engine, self._artifacts,
                                         _asker_of(link, gate) if link and gate else None),
             "credentials": CredentialHandlers(self._store)})
 
@@ -125,32 +127,17 @@ class Handlers:
         types, which the client imported from the spec's folder). The server reads no file
         and imports no code a client names (``osmo.server.submitted``); installed task types
         are resolved here, with this server's plugins. What was resolved (version,
-        resources, folders) is kept in the workflow's options. Outputs to reuse are for
-        ``restart`` to give, never a request.
+        resources, folders) is kept with its stored spec (``osmo.spec.stored``). Outputs to
+        reuse are for ``restart`` to give, never a request.
         """
         if "reused" in request or "reused_from" in request:
             raise UsageError("'reused' and 'reused_from' are set by `osmo restart` only")
-        return self._submit(request, {}, None, who)
-
-    def _submit(self, request: dict[str, Any], reused: dict[str, str],
-                reused_from: str | None, who: Identity) -> dict[str, Any]:
         if "source" in request:
             raise UsageError("'source' is no longer accepted: the server reads no file a "
                              "client names; send the rendered 'spec' (the CLI and SDK do)")
-        pool = field(request, "pool", str, default=None, max_len=_MAX_TEXT)
-        filename = field(request, "filename", str, default=None, max_len=_MAX_TEXT)
-        stored = field(request, "spec", dict)
-        check_no_localpath(stored)
-        types = ClientTypes(field(request, "types", dict, default={}), stored)
-        spec = apply_resolved(spec_from_dict(stored, filename=filename or "<submitted>",
-                                             types=types), types.described)
-        type_paths = sorted({p for t in spec.all_tasks() if t.resolved
-                             for p in t.resolved.paths})
-        check_task_credentials(spec, self._store)
-        labels = {**spec.labels, **_labels(request, "labels")}
-        if len(labels) > MAX_LABELS:
-            raise UsageError(f"a workflow has at most {MAX_LABELS} labels; with --label this "
-                             f"one would have {len(labels)}")
+        stored = StoredSpec(field(request, "spec", dict),
+                            field(request, "filename", str, default=None, max_len=_MAX_TEXT),
+                            field(request, "types", dict, default={}))
         priority = field(request, "priority", str, default="NORMAL", max_len=16).upper()
         if priority not in PRIORITIES:
             raise UsageError(f"priority must be one of {', '.join(PRIORITIES)}, not "
@@ -158,12 +145,30 @@ class Handlers:
         no_cache, reuse = (field(request, k, bool, default=False) for k in ("no_cache", "reuse"))
         if no_cache and reuse:
             raise UsageError("--reuse and --no-cache contradict each other; give one")
-        options = {"pool": pool or spec.pool, "filename": filename, "reused_from": reused_from,
-                   "labels": labels, "priority": priority, "no_cache": no_cache, "reuse": reuse,
-                   "type_paths": type_paths, "submitted_by": who.name,
-                   "types": {t.name: t.resolved.to_dict() for t in spec.all_tasks()
-                             if t.resolved is not None}}
-        return {"workflow_id": self._engine.ask(SubmitWorkflow(spec, stored, options, reused))}
+        options = Submission(pool=field(request, "pool", str, default=None, max_len=_MAX_TEXT),
+                             priority=priority, labels=_labels(request, "labels"),
+                             no_cache=no_cache, reuse=reuse, submitted_by=who.name)
+        return self._admit(stored, options, {})
+
+    def _admit(self, stored: StoredSpec, options: Submission,
+               reused: dict[str, str]) -> dict[str, Any]:
+        """Check ``stored`` (parsed once, here) and have the engine create its workflow.
+
+        The spec's types are resolved with this server's plugins, custom ones as the client
+        described them (``osmo.server.submitted``); the workflow keeps what they resolved to.
+        """
+        check_no_localpath(stored.data)
+        types = ClientTypes(stored.types, stored.data)
+        spec = apply_resolved(spec_from_dict(stored.data, filename=stored.source, types=types),
+                              types.described)
+        check_task_credentials(spec, self._store)
+        labels = {**spec.labels, **options.labels}
+        if len(labels) > MAX_LABELS:
+            raise UsageError(f"a workflow has at most {MAX_LABELS} labels; with --label this "
+                             f"one would have {len(labels)}")
+        options = replace(options, pool=options.pool or spec.pool, labels=labels)
+        return {"workflow_id": self._engine.ask(SubmitWorkflow(
+            spec, stored.resolved_as(spec), options, reused))}
 
     def workflow_tag(self, request: dict[str, Any], who: Identity) -> dict[str, Any]:
         """Add and remove a workflow's tags (names); replies with its tags after the change."""
@@ -182,20 +187,13 @@ class Handlers:
     def restart(self, request: dict[str, Any], who: Identity) -> dict[str, Any]:
         """Submit the same spec again, reusing the outputs of tasks that completed."""
         row = self._own(self._row(request.get("workflow_id"), with_spec=True), who, "restart")
-        # the types as resolved at the first submit (never imported here)
         if not WorkflowStatus[row.status].terminal:
             raise UsageError(f"workflow {row.id} is still {row.status}; "
                              f"cancel it first (`osmo cancel {row.id}`)")
         reused = {t["name"]: t["output"] for t in self._store.tasks(row.id)
                   if t["status"] == "COMPLETED" and t.get("output")}
-        return self._submit({"spec": row.spec, "pool": row.options.get("pool"),
-                             "filename": row.options.get("filename"),
-                             "labels": row.options.get("labels") or {},
-                             "priority": row.options.get("priority"),
-                             "no_cache": bool(row.options.get("no_cache")),
-                             "reuse": bool(row.options.get("reuse")),
-                             "types": row.options.get("types") or {}}, reused, row.id,
-                            who)
+        return self._admit(row.spec, replace(row.options, submitted_by=who.name,
+                                             reused_from=row.id, tags=()), reused)
 
     @staticmethod
     def _own(row: WorkflowRow, who: Identity, verb: str) -> WorkflowRow:
@@ -204,7 +202,7 @@ class Handlers:
         Raises:
             NotAllowed: another user's workflow (logged once).
         """
-        check_owner(row.id, row.options.get("submitted_by"), who, verb)
+        check_owner(row.id, row.options.submitted_by, who, verb)
         return row
 
     def shutdown(self, _request: dict[str, Any]) -> dict[str, Any]:
@@ -234,11 +232,11 @@ class Handlers:
                 raise UsageError(f"the count of tasks to show must be 0 or more, not {limit}")
             row = self._row(request.get("workflow_id"))
             page = self._taskview.page(row.id, limit=limit, statuses=statuses or (),
-                                       spec=lambda: self._row(row.id, with_spec=True).spec)
+                                       spec=lambda: self._row(row.id, with_spec=True).spec.data)
             tasks, extra = page.tasks, {"counts": page.counts, "matched": page.matched}
         for task in tasks:  # typed tasks report progress as log lines, pulls too: the latest
             if task.get("status") in ("RUNNING", "INITIALIZING"):
-                dirs = Home(self._home).attempt(row.id, task["name"], int(task.get("retry", 0)))
+                dirs = self._home.attempt(row.id, task["name"], int(task.get("retry", 0)))
                 task["progress"] = (last_progress(dirs.log) if task["status"] == "RUNNING"
                                     else last_pull(dirs.log, time.time()))
         if reasons and any(t.get("status") in _WAITS for t in tasks):  # only then: it costs
@@ -304,7 +302,7 @@ class Handlers:
 
     def spec(self, request: dict[str, Any]) -> dict[str, Any]:
         """The stored (rendered) spec of a workflow, as a dict."""
-        return {"spec": self._row(request.get("workflow_id"), with_spec=True).spec}
+        return {"spec": self._row(request.get("workflow_id"), with_spec=True).spec.data}
 
     def pools(self, _request: dict[str, Any]) -> builtins.list[dict[str, Any]]:
         """Known nodes with their pool, platform, sandbox and capacity used/total.
@@ -402,11 +400,9 @@ def _cursor(request: dict[str, Any]) -> dict[str, Any] | None:
 def _workflow_dict(row: WorkflowRow) -> dict[str, Any]:
     state = dict(row.state) or {"id": row.id, "name": row.name, "status": row.status,
                                 "submitted_at": row.submitted_at}
-    state["pool"] = row.options.get("pool")
-    state["reused_from"] = row.options.get("reused_from")
-    state["submitted_by"] = row.options.get("submitted_by")
-    state["labels"] = row.options.get("labels") or {}
-    state["tags"] = row.options.get("tags") or []
+    opts = row.options
+    state.update(pool=opts.pool, reused_from=opts.reused_from, submitted_by=opts.submitted_by,
+                 labels=dict(opts.labels), tags=list(opts.tags))
     return state
 
 
@@ -420,5 +416,5 @@ def _labels(request: dict[str, Any], key: str) -> dict[str, str]:
 
 def _ordered_tasks(row: WorkflowRow, tasks: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """Tasks in spec order (groups, then tasks within a group)."""
-    order = {name: i for i, name in enumerate(spec_order(row.spec))}
+    order = {name: i for i, name in enumerate(spec_order(row.spec.data))}
     return sorted(tasks, key=lambda t: order.get(t["name"], len(order)))

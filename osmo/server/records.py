@@ -23,7 +23,7 @@ __all__ = ["RunRecords", "write_record"]
 log = logging.getLogger("osmo.server")
 
 
-def write_record(store: Store, home: Path, workflow_id: str) -> Path | None:
+def write_record(store: Store, home: Home, workflow_id: str) -> Path | None:
     """Write the run record of a workflow from the store; returns its path (None: unknown)."""
     row = store.workflow(workflow_id, with_spec=False)
     if row is None:
@@ -31,7 +31,7 @@ def write_record(store: Store, home: Path, workflow_id: str) -> Path | None:
     workflow = dict(row.state) or {"id": row.id, "name": row.name, "status": row.status}
     logs = (r for r in iter_logs(store, row) if r["stream"] != "osmo")  # in time order
     lineage = [Lineage.from_dict(d) for d in store.lineage_of_workflow(workflow_id)]
-    path = Home(home).run_record(workflow_id)
+    path = home.run_record(workflow_id)
     write_run_record(path, workflow=workflow, transitions=store.transitions(workflow_id),
                      lineage=lineage, logs=logs, ordered=True)
     return path
@@ -40,7 +40,7 @@ def write_record(store: Store, home: Path, workflow_id: str) -> Path | None:
 class RunRecords:
     """Writes run records one at a time on a background thread."""
 
-    def __init__(self, store: Store, home: Path) -> None:
+    def __init__(self, store: Store, home: Home) -> None:
         self._store = store
         self._home = home
         self._pool = ThreadPoolExecutor(1, thread_name_prefix="osmo-record")

@@ -36,10 +36,7 @@ from osmo.layout import Home
 from osmo.runtime.proctable import kill_stale
 from osmo.scheduler import Scheduler, TaskState, WorkflowState
 from osmo.scheduler.types import AttemptExited, AttemptStartFailed, Event
-from osmo.server.cache import reuse_option
-from osmo.spec import spec_from_dict
-from osmo.spec.model import ResolvedType, WorkflowSpec
-from osmo.spec.typed import apply_resolved
+from osmo.spec.model import WorkflowSpec
 from osmo.status import TaskStatus
 from osmo.store.sqlite import AttemptRow, Store
 
@@ -83,13 +80,9 @@ def restore(store: Store) -> Restored:
         row = store.workflow(listed.id)
         if row is None:
             continue
-        submitted = reuse_option(row.options)
-        if submitted is not None:
-            out.reuse[row.id] = submitted
-        spec = spec_from_dict(row.spec, filename=row.options.get("filename") or row.id)
-        out.specs[row.id] = apply_resolved(spec, {
-            name: ResolvedType.from_dict(data)
-            for name, data in (row.options.get("types") or {}).items()})
+        if row.options.reuses is not None:
+            out.reuse[row.id] = row.options.reuses
+        out.specs[row.id] = row.spec.load()
         workflows.append(WorkflowState.from_dict(row.state))
         tasks += [TaskState.from_dict(t) for t in store.tasks(row.id)]
     out.scheduler.restore(out.specs, workflows, tasks)
@@ -116,12 +109,12 @@ def kill_leftovers(store: Store, lost: list[TaskState]) -> None:
                 kill_stale(row.pid, row.pid_start)
 
 
-def attempt_row(home: Path, attempt_id: str, node_id: str | None) -> AttemptRow:
+def attempt_row(home: Home, attempt_id: str, node_id: str | None) -> AttemptRow:
     """The store's row of a placed attempt: where it runs and, locally, its folder.
 
     Its process id is written when the attempt starts (``Batch.pids``).
     """
-    dirs = Home(home).attempt_of(attempt_id)
+    dirs = home.attempt_of(attempt_id)
     wf, task, retry = attempt_id.rsplit(":", 2)
     return AttemptRow(attempt_id, wf, task, int(retry), node_id,
                       str(dirs.root) if dirs else None, None, None)

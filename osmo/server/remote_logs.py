@@ -13,10 +13,10 @@ from __future__ import annotations
 
 import logging
 import threading
-from pathlib import Path
 
 from osmo.layout import Home
-from osmo.worker.logs import DEFAULT_LOG_LIMIT, CappedFile
+from osmo.options import DEFAULT_LOG_LIMIT
+from osmo.worker.logs import CappedFile
 
 __all__ = ["RemoteLogs"]
 
@@ -32,8 +32,8 @@ class RemoteLogs:
         limit: bytes each attempt's log keeps at most.
     """
 
-    def __init__(self, home: Path, limit: int = DEFAULT_LOG_LIMIT) -> None:
-        self._home = Home(home)
+    def __init__(self, home: Home, limit: int = DEFAULT_LOG_LIMIT) -> None:
+        self._home = home
         self._limit = limit
         self._lock = threading.Lock()
         self._open: dict[str, CappedFile] = {}

@@ -20,11 +20,12 @@ one answers:
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
 
 from osmo.artifacts import Manifest
 from osmo.scheduler.types import CancelWorkflow
 from osmo.spec.model import WorkflowSpec
+from osmo.spec.stored import StoredSpec
+from osmo.store.submission import Submission
 
 __all__ = ["AddDatasetVersion", "AttemptsOn", "ListNodes", "Request", "SubmitWorkflow",
            "TagDataset", "TagWorkflow", "WaitReasons"]
@@ -35,16 +36,15 @@ class SubmitWorkflow:
     """Create workflow ``<spec.name>-N`` from a checked spec.
 
     Attributes:
-        spec: the spec, task types resolved.
-        stored: the spec as the store keeps it (its dict form).
-        options: the submission as the store keeps it: ``pool``, ``filename``,
-            ``no_cache``, ``reused_from``, ``type_paths``, ``types``.
+        spec: the spec, task types resolved (parsed once, by the submit handler).
+        stored: the same spec as the store keeps it.
+        options: how it was submitted (pool and labels as they apply to it).
         reused: task name → output of an earlier run to reuse (``osmo restart``).
     """
 
     spec: WorkflowSpec
-    stored: dict[str, Any]
-    options: dict[str, Any]
+    stored: StoredSpec
+    options: Submission
     reused: dict[str, str] = field(default_factory=dict)
 
 

@@ -32,6 +32,7 @@ from osmo.store.sqlite import Store
 from osmo.transport.auth import Identity
 from osmo.transport.rpc import field, str_list
 from osmo.transport.streams import MAX_COMMAND, MAX_PORTS, SessionGrant
+from osmo.transport.wire import OpenSession
 from osmo.worker.sessions import NodeSessions
 
 __all__ = ["TICKET_TTL", "Sessions"]
@@ -98,7 +99,7 @@ class Sessions:
                 if len(self._tickets) >= _MAX_TICKETS:
                     raise UsageError("too many sessions are being opened; try again")
                 self._tickets[ticket] = (node, grant, now + TICKET_TTL)
-            self._hub.tell(node, {"op": "session", "ticket": ticket})
+            self._hub.tell(node, OpenSession(ticket))
         log.info("%s: %s session on %s for %s", who, grant.kind, node, attempt_id)
         return {"grant": grant.to_dict(), "node": node}
 
@@ -127,10 +128,10 @@ class Sessions:
         row = self._store.workflow(wf_id)
         if row is None:
             raise NotFoundError(f"no workflow '{wf_id}'")
-        check_owner(row.id, row.options.get("submitted_by"), who, verb)
+        check_owner(row.id, row.options.submitted_by, who, verb)
         task = check_name(field(request, "task", str, max_len=256), "task name")
         group = field(request, "group", str, default=None, max_len=256)
-        if group is not None and task not in _group_tasks(row.spec, group):
+        if group is not None and task not in _group_tasks(row.spec.data, group):
             raise NotFoundError(f"no task '{task}' in group {shown(group)} of {row.id}")
         states = {t["name"]: t for t in self._store.tasks(row.id)}
         if task not in states:

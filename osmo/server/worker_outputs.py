@@ -15,14 +15,13 @@ import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
-from pathlib import Path
-from typing import Any
 
 from osmo.artifacts import ArtifactStore, Manifest
 from osmo.errors import OsmoError
 from osmo.layout import AttemptDirs, Home
 from osmo.scheduler.types import AttemptExited, AttemptLost, Event
 from osmo.transport.blobs import Asker, SameHost, fetch_manifest
+from osmo.transport.wire import Ack
 
 __all__ = ["OutputIntake"]
 
@@ -37,13 +36,13 @@ class OutputIntake:
         artifacts: the server's artifact store.
         home: the server's home (outputs are linked under ``runs/``).
         emit: the engine's event queue.
-        send: ``(worker id, order)`` — the ``ack`` after the exit was emitted.
+        send: ``(worker id, order)`` — the :class:`Ack` after the exit was emitted.
         asker: asks a worker's blob server on its channel (None: it has none open).
         same_host: a worker's same-host details, if it shares this host's store.
     """
 
-    def __init__(self, *, artifacts: ArtifactStore, home: Path,
-                 emit: Callable[[Event], None], send: Callable[[str, dict[str, Any]], None],
+    def __init__(self, *, artifacts: ArtifactStore, home: Home,
+                 emit: Callable[[Event], None], send: Callable[[str, Ack], None],
                  asker: Callable[[str], Asker | None],
                  same_host: Callable[[str], SameHost | None]) -> None:
         self._artifacts, self._home = artifacts, home
@@ -99,11 +98,11 @@ class OutputIntake:
             event = replace(event, output=None, manifest=None,
                             message=f"outputs could not be promoted: {exc!r}")
         self._emit(event)
-        self._send(wid, {"op": "ack", "attempt_id": event.attempt_id})
+        self._send(wid, Ack(event.attempt_id))
 
 
-def _dirs(home: Path, attempt_id: str) -> AttemptDirs:
-    dirs = Home(home).attempt_of(attempt_id)
+def _dirs(home: Home, attempt_id: str) -> AttemptDirs:
+    dirs = home.attempt_of(attempt_id)
     if dirs is None:
         raise OsmoError(f"malformed attempt id {attempt_id!r}")
     return dirs

@@ -39,6 +39,8 @@ from typing import Any
 
 from osmo.artifacts import ArtifactStore, Manifest
 from osmo.errors import OsmoError
+from osmo.layout import Home
+from osmo.options import DEFAULT_LOG_LIMIT
 from osmo.scheduler.types import (
     LOCAL_NODE,
     AttemptExited,
@@ -63,9 +65,18 @@ from osmo.transport.auth import Identity
 from osmo.transport.blobs import SERVER, BlobServer, SameHost, host_id
 from osmo.transport.rpc import Gate, ServerAsker, ask_back, field, gate_opener
 from osmo.transport.seal import Purpose, seal_json
-from osmo.transport.wire import LEASE, Hello, event_from_dict, prepare_to_dict, spec_to_wire
+from osmo.transport.wire import (
+    LEASE,
+    Ack,
+    Hello,
+    Kill,
+    Order,
+    Prepare,
+    Run,
+    event_from_dict,
+    order_to_dict,
+)
 from osmo.transport.zenoh_link import Link, Subscription
-from osmo.worker.logs import DEFAULT_LOG_LIMIT
 
 __all__ = ["WorkerHub"]
 
@@ -93,7 +104,7 @@ class WorkerHub:
     """Verbs answered in arrival order on the zenoh thread (``ApiServer(inline=...)``)."""
 
     def __init__(self, *, link: Link, emit: Callable[[Event], None], store: Store,
-                 artifacts: ArtifactStore, home: Path,
+                 artifacts: ArtifactStore, home: Home,
                  url_credential: Callable[[str], dict[str, str] | None],
                  attempts_on: Callable[[str], list[str]], gate: Gate,
                  lease: float = LEASE, log_limit: int = DEFAULT_LOG_LIMIT) -> None:
@@ -278,7 +289,7 @@ class WorkerHub:
             else:  # superseded (fenced) or never its own; acked so it stops resending it
                 log.warning("refused a finished report of worker %s: attempt %r is not "
                             "placed on it", wid, report.get("attempt_id"))
-                self._send(wid, {"op": "ack", "attempt_id": str(report.get("attempt_id"))})
+                self._send(wid, Ack(str(report.get("attempt_id"))))
         for aid in sorted(known - active - done):
             self._emit(AttemptLost(aid, f"worker {wid} no longer runs this attempt"))
 
@@ -339,35 +350,33 @@ class WorkerHub:
         ``resources`` is not sent: the worker reads the request from the spec it holds.
         """
         try:
-            order = self._order(cmd, task)
+            order = self._order(cmd, task, max_output_bytes)
         except (OsmoError, OSError) as exc:
             self._emit(AttemptStartFailed(cmd.attempt_id, str(exc)))
             return
-        order["max_output_bytes"] = max_output_bytes
-        digests = {e.digest for body in order["manifests"].values()
+        digests = {e.digest for body in order.manifests.values()
                    for e in Manifest.from_json(body).entries}
         self._access.place(cmd.attempt_id, cmd.node_id, task, digests)
         self._send(cmd.node_id, order)
 
-    def _order(self, cmd: PrepareAttempt, task: TaskSpec) -> dict[str, Any]:
-        order: dict[str, Any] = {"op": "prepare", "attempt_id": cmd.attempt_id,
-                                 "cmd": prepare_to_dict(cmd)}
+    def _order(self, cmd: PrepareAttempt, task: TaskSpec,
+               max_output_bytes: int | None) -> Prepare:
         with self._lock:
             sent = self._sent_specs.setdefault(cmd.node_id, set())
             first = cmd.workflow_id not in sent
             sent.add(cmd.workflow_id)
+        spec = None
         if first:
             row = self._store.workflow(cmd.workflow_id)
             if row is None:
                 raise OsmoError(f"workflow {cmd.workflow_id} is not in the store")
-            order["spec"] = spec_to_wire(row.spec, row.options.get("filename") or row.id,
-                                         row.options.get("types") or {})
-        order["manifests"] = {ref: self._manifest_of(ref) for ref in set(cmd.inputs.values())
-                              if not _is_url(ref)}
-        # the values are asked for by the worker (``worker_secrets``), never sent here
-        order["secrets"] = has_secrets(task, self._store.credential, self._url_credential,
-                                       containers=self._contained(cmd.node_id))
-        return order
+            spec = row.spec
+        return Prepare(cmd, {ref: self._manifest_of(ref) for ref in set(cmd.inputs.values())
+                             if not _is_url(ref)},
+                       # the values are asked for by the worker (``worker_secrets``)
+                       secrets=has_secrets(task, self._store.credential, self._url_credential,
+                                           containers=self._contained(cmd.node_id)),
+                       max_output_bytes=max_output_bytes, spec=spec)
 
     def _contained(self, wid: str) -> bool:
         """Whether worker ``wid`` runs image tasks in containers (pulling their images)."""
@@ -384,15 +393,14 @@ class WorkerHub:
     def run(self, cmd: RunAttempt) -> None:
         """Start a prepared attempt (its group's barrier released)."""
         self._access.restored(cmd.node_id, [cmd.attempt_id])
-        self._send(cmd.node_id, {"op": "run", "attempt_id": cmd.attempt_id})
+        self._send(cmd.node_id, Run(cmd.attempt_id))
 
     def kill(self, cmd: KillAttempt) -> None:
         """Stop an attempt on its worker."""
         self._access.restored(cmd.node_id, [cmd.attempt_id])
-        self._send(cmd.node_id, {"op": "kill", "attempt_id": cmd.attempt_id,
-                                 "reason": cmd.reason})
+        self._send(cmd.node_id, Kill(cmd.attempt_id, cmd.reason))
 
-    def tell(self, wid: str, order: dict[str, Any]) -> None:
+    def tell(self, wid: str, order: Order) -> None:
         """Send worker ``wid`` an order (sealed on its channel)."""
         self._send(wid, order)
 
@@ -408,15 +416,16 @@ class WorkerHub:
         with self._lock:
             return self._same_host.get(wid)
 
-    def _send(self, wid: str, order: dict[str, Any]) -> None:
+    def _send(self, wid: str, order: Order) -> None:
         with self._lock:
             heard = self._heard.get(wid)
         found = self._gate.channels.get(heard[0]) if heard is not None else None
         if found is None:  # it never spoke on a channel this server knows: it registers again
-            log.warning("no channel to worker %s: order %s not sent", wid, order.get("op"))
+            log.warning("no channel to worker %s: order %s not sent", wid,
+                        type(order).__name__)
             return
         rel = f"to-worker/{wid}"
-        attachment, payload = seal_json(found[0], Purpose.PUSH, rel, order)
+        attachment, payload = seal_json(found[0], Purpose.PUSH, rel, order_to_dict(order))
         self._link.put(self._link.key(rel), payload, attachment)
 
     # ------------------------------------------------------------------ reports

@@ -1,36 +1,43 @@
-"""Plain records the store reads and writes (frozen dataclasses; no database access here)."""
+"""Plain records the store reads and writes (frozen dataclasses; no database access here).
+
+A workflow's spec and submission are records of their own (``osmo.spec.stored``,
+``osmo.store.submission``).
+"""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from typing import Any
 
+from osmo.spec.stored import StoredSpec
+from osmo.store.submission import Submission
+
 __all__ = ["AttemptRow", "DatasetRow", "LineageRow", "NewWorkflowRow", "TagRow", "WorkflowRow"]
 
 
 @dataclass(frozen=True)
 class WorkflowRow:
-    """A stored workflow: its state payload, the spec as a dict, and submit options."""
+    """A stored workflow: its state payload, its spec and how it was submitted."""
 
     id: str
     name: str
     status: str
     submitted_at: float
-    spec: dict[str, Any]
-    options: dict[str, Any]
+    spec: StoredSpec
+    options: Submission
     state: dict[str, Any]
 
 
 @dataclass(frozen=True)
 class NewWorkflowRow:
-    """A workflow to create: its id ``name-n``, submit time, spec (dict form) and options."""
+    """A workflow to create: its id ``name-n``, submit time, spec and submission."""
 
     id: str
     name: str
     n: int
     submitted_at: float
-    spec: dict[str, Any]
-    options: dict[str, Any]
+    spec: StoredSpec
+    options: Submission
 
 
 @dataclass(frozen=True)

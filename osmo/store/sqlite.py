@@ -35,6 +35,7 @@ from osmo.store.rows import (
     TagRow,
     WorkflowRow,
 )
+from osmo.store.submission import from_columns, options_column
 from osmo.store.taskjson import task_rows
 from osmo.store.taskrows import TaskQueries
 from osmo.store.tokens import TokenRows
@@ -272,7 +273,8 @@ class Store(LineageQueries, TaskQueries, TokenRows):
                 db.execute(
                     "INSERT INTO workflows VALUES (?,?,?,?,?,?,?,?)",
                     (new.id, new.name, new.n, "PENDING", new.submitted_at,
-                     json.dumps(new.spec), json.dumps(new.options), "{}"),
+                     json.dumps(new.spec.data), json.dumps(options_column(new.spec, new.options)),
+                     "{}"),
                 )
             for wf in changes.workflows:
                 state = wf.to_dict()
@@ -359,7 +361,7 @@ class Store(LineageQueries, TaskQueries, TokenRows):
         """Workflows, newest first, filtered by status names, a name substring and labels.
 
         ``labels``: a workflow must have every one of them (key and value). Rows come without
-        their spec (``spec == {}``); use ``workflow()`` for it.
+        their spec's data (``spec.data == {}``); use ``workflow()`` for it.
         """
         sql = f"SELECT {_NO_SPEC} FROM workflows WHERE 1=1"
         args: list[Any] = []
@@ -405,12 +407,7 @@ class Store(LineageQueries, TaskQueries, TokenRows):
 
 
 def _workflow_row(r: sqlite3.Row) -> WorkflowRow:
-    return WorkflowRow(
-        id=r["id"],
-        name=r["name"],
-        status=r["status"],
-        submitted_at=r["submitted_at"],
-        spec=json.loads(r["spec"]),
-        options=json.loads(r["options"]),
-        state=json.loads(r["state"]),
-    )
+    spec, options = from_columns(json.loads(r["spec"]), json.loads(r["options"]))
+    return WorkflowRow(id=r["id"], name=r["name"], status=r["status"],
+                       submitted_at=r["submitted_at"], spec=spec, options=options,
+                       state=json.loads(r["state"]))

@@ -101,6 +101,9 @@ class TaskType(Protocol):
             spec's ``resource:`` wins.
         extra: the pip extra that provides its dependencies (``"sim"``), or None.
         description: one line for ``osmo plugins list``.
+
+    A type may also have a ``report`` attribute: what ``osmo eval report`` shows of its
+    outputs (``osmo.tasktypes.reports.Report``); not part of the required shape.
     """
 
     name: str

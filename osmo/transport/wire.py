@@ -15,13 +15,16 @@ Keys, under the cluster prefix ``osmo/<cluster>``:
   ``api/worker_drain`` — ``{"id": <worker>}``: it takes no more work.
 - ``api/worker_beat`` — ``{"id"}``, every :data:`BEAT_EVERY` seconds: the worker is alive
   (refused once the server forgot it: it registers again).
-- ``to-worker/<id>`` — the server's orders, sealed: ``prepare`` (the attempt, the task's workflow
-  spec the first time, input manifests, ``secrets``: whether to ask for the attempt's
-  secrets, ``max_output_bytes``: the task's storage limit), ``run``, ``kill``, ``ack`` (an
-  exit report was received and its outputs are safe on the server), ``drain`` notices.
-  Secrets are still asked for apart (``worker_secrets``), so an order never holds one.
-- ``api/worker_report`` — ``{"id", "report"}``: the worker's reports, ``prepared``,
-  ``started``, ``exited``, ``start_failed``, ``lost`` (handed back while draining);
+- ``to-worker/<id>`` — the server's orders (:data:`Order`), sealed: :class:`Prepare` (the
+  attempt, the workflow's spec the first time, input manifests, whether to ask for the
+  attempt's secrets, the task's storage limit), :class:`Run`, :class:`Kill`, :class:`Ack`
+  (an exit report was received and its outputs are safe on the server), and
+  :class:`OpenSession` (an exec or port-forward session's ticket). Both sides build and read
+  them only as these classes (:func:`order_to_dict`, :func:`order_from_dict`). Secrets are
+  asked for apart (``worker_secrets``), so an order never holds one.
+- ``api/worker_report`` — ``{"id", "report"}``: the worker's reports (:func:`event_to_dict`),
+  ``prepared``, ``started``, ``exited``, ``start_failed``, ``lost`` (handed back while
+  draining);
   ``api/worker_log`` — ``{"id", "attempt_id", "records"}``: log records, appended by the
   server to its copy of the log; ``api/worker_secrets`` — ``{"id", "attempt_id"}``: the
   attempt's secrets and data-URL credentials. Like every API request they are sealed on
@@ -44,6 +47,7 @@ ignored, so a worker that returns late can never commit stale work.
 from __future__ import annotations
 
 import re
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -61,13 +65,13 @@ from osmo.scheduler.types import (
     Node,
     PrepareAttempt,
 )
-from osmo.spec.model import WorkflowSpec
+from osmo.spec.stored import StoredSpec
 from osmo.transport.blobs import SERVER
 from osmo.transport.rpc import MAX_INT, field, str_list, str_map
 
-__all__ = ["BEAT_EVERY", "LEASE", "PEER_ALLOW", "PEER_DENY", "Hello", "capacity_from_dict",
-           "capacity_to_dict", "event_from_dict", "event_to_dict", "prepare_from_dict",
-           "prepare_to_dict", "spec_from_wire", "spec_to_wire", "worker_id"]
+__all__ = ["BEAT_EVERY", "LEASE", "PEER_ALLOW", "PEER_DENY", "Ack", "Hello", "Kill",
+           "OpenSession", "Order", "Prepare", "Run", "capacity_from_dict", "capacity_to_dict",
+           "event_from_dict", "event_to_dict", "order_from_dict", "order_to_dict", "worker_id"]
 
 #: zenoh access-control message -> keys (under the cluster prefix) a remote peer may use;
 #: the server's router denies everything else (``osmo.transport.zenoh_link.Acl``).
@@ -139,20 +143,6 @@ def _image_id(value: object) -> str | None:
     if isinstance(value, str) and re.fullmatch(r"sha256:[0-9a-f]{64}", value):
         return value
     return None
-
-
-def prepare_to_dict(cmd: PrepareAttempt) -> dict[str, Any]:
-    """A placement as JSON-safe data."""
-    return asdict(cmd)
-
-
-def prepare_from_dict(data: dict[str, Any]) -> PrepareAttempt:
-    """The inverse of :func:`prepare_to_dict`."""
-    return PrepareAttempt(
-        attempt_id=str(data["attempt_id"]), workflow_id=str(data["workflow_id"]),
-        task=str(data["task"]), retry=int(data["retry"]), node_id=str(data["node_id"]),
-        inputs={str(k): str(v) for k, v in data["inputs"].items()},
-        hosts={str(k): str(v) for k, v in data["hosts"].items()}, run=bool(data["run"]))
 
 
 def capacity_to_dict(capacity: Capacity) -> dict[str, Any]:
@@ -251,17 +241,127 @@ class Hello:
                    sandbox_why=field(data, "sandbox_why", str, default=None, max_len=_TEXT))
 
 
-def spec_to_wire(spec: dict[str, Any], filename: str, types: dict[str, Any]) -> dict[str, Any]:
-    """A stored workflow spec (its dict form), its file name and resolved task types."""
-    return {"spec": spec, "filename": filename, "types": types}
+# ---------------------------------------------------------------------- orders
 
 
-def spec_from_wire(data: dict[str, Any]) -> WorkflowSpec:
-    """The spec a worker runs tasks from (task types as the server resolved them)."""
-    from osmo.spec import spec_from_dict
-    from osmo.spec.model import ResolvedType
-    from osmo.spec.typed import apply_resolved
+@dataclass(frozen=True)
+class Prepare:
+    """Prepare an attempt placed on the worker (its inputs fetched, its folder made).
 
-    spec = spec_from_dict(data["spec"], filename=data.get("filename") or "<submitted>")
-    return apply_resolved(spec, {name: ResolvedType.from_dict(t)
-                                 for name, t in (data.get("types") or {}).items()})
+    Attributes:
+        cmd: the placement.
+        manifests: input reference → the JSON of its manifest (what to fetch by digest).
+        secrets: whether the attempt has secrets or data-URL credentials to ask for
+            (``worker_secrets``); an order never carries one.
+        max_output_bytes: the task's storage limit (None: none).
+        spec: the workflow's spec, the first time the worker hears of the workflow.
+    """
+
+    cmd: PrepareAttempt
+    manifests: Mapping[str, str]
+    secrets: bool = False
+    max_output_bytes: int | None = None
+    spec: StoredSpec | None = None
+
+    @property
+    def attempt_id(self) -> str:
+        """The attempt it prepares."""
+        return self.cmd.attempt_id
+
+
+@dataclass(frozen=True)
+class Run:
+    """Start a prepared attempt (its group's barrier released)."""
+
+    attempt_id: str
+
+
+@dataclass(frozen=True)
+class Kill:
+    """Stop an attempt, saying why."""
+
+    attempt_id: str
+    reason: str
+
+
+@dataclass(frozen=True)
+class Ack:
+    """An exit report was received and the attempt's outputs are safe on the server."""
+
+    attempt_id: str
+
+
+@dataclass(frozen=True)
+class OpenSession:
+    """Fetch the grant of an exec or port-forward session (``worker_session``) with ``ticket``.
+
+    Orders can be read by any peer on the router, so a ticket, never the grant itself.
+    """
+
+    ticket: str
+
+
+Order = Prepare | Run | Kill | Ack | OpenSession
+"""An order of the server to a worker (``to-worker/<id>``)."""
+
+_OPS: dict[type[Any], str] = {Prepare: "prepare", Run: "run", Kill: "kill", Ack: "ack",
+                              OpenSession: "session"}
+
+
+def order_to_dict(order: Order) -> dict[str, Any]:
+    """An order as JSON-safe data (``op`` names it)."""
+    if isinstance(order, Prepare):
+        out: dict[str, Any] = {"attempt_id": order.attempt_id, "cmd": asdict(order.cmd),
+                               "manifests": dict(order.manifests), "secrets": order.secrets,
+                               "max_output_bytes": order.max_output_bytes}
+        if order.spec is not None:
+            out["spec"] = order.spec.to_dict()
+    else:
+        out = asdict(order)
+    return {"op": _OPS[type(order)], **out}
+
+
+def order_from_dict(data: object) -> Order:
+    """The inverse of :func:`order_to_dict`, every field checked.
+
+    Raises:
+        ValueError: not an order this version knows, or a field missing or of the wrong type.
+    """
+    if not isinstance(data, dict):
+        raise ValueError("an order is a JSON object")
+    op = data.get("op")
+    try:
+        if op == "prepare":
+            return _prepare_from_dict(data)
+        if op == "session":
+            return OpenSession(field(data, "ticket", str, max_len=_TEXT))
+        aid = field(data, "attempt_id", str, max_len=_TEXT)
+        if op == "run":
+            return Run(aid)
+        if op == "kill":
+            return Kill(aid, field(data, "reason", str, default="", max_len=_TEXT))
+        if op == "ack":
+            return Ack(aid)
+    except UsageError as exc:
+        raise ValueError(f"order {shown(op)}: {exc}") from None
+    raise ValueError(f"unknown order {shown(op)}")
+
+
+def _prepare_from_dict(data: dict[str, Any]) -> Prepare:
+    cmd = field(data, "cmd", dict)
+    manifests = field(data, "manifests", dict)
+    if not all(isinstance(v, str) for v in manifests.values()):
+        raise UsageError("'manifests' maps inputs to manifests (JSON text)")
+    spec = field(data, "spec", dict, default=None)
+    try:
+        placed = PrepareAttempt(
+            attempt_id=str(cmd["attempt_id"]), workflow_id=str(cmd["workflow_id"]),
+            task=str(cmd["task"]), retry=int(cmd["retry"]), node_id=str(cmd["node_id"]),
+            inputs={str(k): str(v) for k, v in cmd["inputs"].items()},
+            hosts={str(k): str(v) for k, v in cmd["hosts"].items()}, run=bool(cmd["run"]))
+        stored = None if spec is None else StoredSpec.from_dict(spec)
+    except (KeyError, TypeError, AttributeError, ValueError) as exc:
+        raise UsageError(f"'cmd' or 'spec' is not a placement and its spec ({exc!r})") from None
+    return Prepare(placed, manifests, secrets=field(data, "secrets", bool, default=False),
+                   max_output_bytes=field(data, "max_output_bytes", int, default=None),
+                   spec=stored)

@@ -18,11 +18,11 @@ Rules the writer keeps so that one record is always exactly one line:
 
 The timestamp is taken when the bytes are read from the pipe, not when the program wrote them.
 
-The cap. A log holds at most ``limit`` bytes of records (:data:`DEFAULT_LOG_LIMIT`, 64 MiB;
-``--log-limit`` of ``osmo server`` and ``osmo worker``). When an append would pass it, the
-oldest records are dropped, as the kubelet's log rotation does (the newest output is what a
-user needs): :class:`CappedFile` rewrites the file (temp + rename) with the newest half of the
-limit behind one marker record, always the file's first line::
+The cap. A log holds at most ``limit`` bytes of records (64 MiB unless ``--log-limit`` of
+``osmo server`` or ``osmo worker`` says otherwise: ``osmo.options``). When an append would
+pass it, the oldest records are dropped, as the kubelet's log rotation does (the newest output
+is what a user needs): :class:`CappedFile` rewrites the file (temp + rename) with the newest
+half of the limit behind one marker record, always the file's first line::
 
     <time>\tosmo\t123,456,789 bytes of earlier output dropped (log limit 64 MiB)
 
@@ -46,18 +46,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import BinaryIO
 
+from osmo.options import DEFAULT_LOG_LIMIT
 from osmo.worker.masking import Masker
 
-__all__ = ["DEFAULT_LOG_LIMIT", "LONGEST_RECORD", "MAX_LINE", "MIN_LOG_LIMIT", "STREAMS",
-           "CappedFile", "LogRecord", "LogWriter", "Marker", "encode_records", "marker_of",
-           "parse_record", "parse_log_limit"]
+__all__ = ["LONGEST_RECORD", "MAX_LINE", "STREAMS", "CappedFile", "LogRecord", "LogWriter",
+           "Marker", "encode_records", "marker_of", "parse_record"]
 
 MAX_LINE = 64 * 1024
 STREAMS = ("stdout", "stderr", "osmo")
-DEFAULT_LOG_LIMIT = 64 << 20
-"""Bytes one attempt's log may hold before its oldest records are dropped."""
-MIN_LOG_LIMIT = 1 << 20
-"""The smallest ``--log-limit``: room for several of the longest records."""
 LONGEST_RECORD = 4 * MAX_LINE
 """No record the writer makes is longer (a 64 KiB line of invalid bytes, each replaced by
 3-byte U+FFFD, plus its time and stream); a reader treats a longer "line" as damage."""
@@ -194,20 +190,6 @@ class LogWriter:
             _log.warning("cannot write %s: %s", self.path, exc)
         if self.sink is not None:
             self.sink(payload)
-
-
-def parse_log_limit(text: str) -> int:
-    """A ``--log-limit`` (``64Mi``, ``1Gi``, a number of bytes) in bytes.
-
-    Raises:
-        ValueError: not a size, or smaller than :data:`MIN_LOG_LIMIT`.
-    """
-    from osmo.spec.units import parse_size
-
-    limit = parse_size(text)
-    if limit < MIN_LOG_LIMIT:
-        raise ValueError(f"{text!r} is too small; the least is 1Mi")
-    return limit
 
 
 @dataclass(frozen=True)

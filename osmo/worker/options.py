@@ -1,6 +1,7 @@
 """A remote worker's options, defined once.
 
 ``osmo worker``'s flags and ``osmo.worker.remote.RemoteWorker`` both use :class:`WorkerOptions`.
+The flags a worker shares with the server (runtime, sandbox, log limit) are ``osmo.options``'.
 
 Light on purpose: the CLI imports it to build its parser.
 """
@@ -14,56 +15,21 @@ from pathlib import Path
 
 from osmo.config import DEFAULT_CLUSTER
 from osmo.errors import UsageError
-from osmo.runtime.sandbox import MODES, SandboxMode, parse_share
-from osmo.worker.logs import DEFAULT_LOG_LIMIT, parse_log_limit
+from osmo.options import (
+    DEFAULT_LOG_LIMIT,
+    SandboxMode,
+    add_log_limit_argument,
+    add_runtime_arguments,
+    shares,
+)
 
-__all__ = ["DEFAULT_KILL_GRACE", "DEFAULT_POOL", "WorkerOptions", "add_log_limit_argument",
-           "add_runtime_arguments"]
+__all__ = ["DEFAULT_KILL_GRACE", "DEFAULT_POOL", "WorkerOptions"]
 
 DEFAULT_POOL = "default"
 """The pool a worker serves unless told another."""
 
 DEFAULT_KILL_GRACE = 3.0
 """Seconds between SIGTERM and SIGKILL when an attempt is killed."""
-
-
-def add_runtime_arguments(p: argparse.ArgumentParser) -> None:
-    """How tasks run: ``--sandbox``, ``--runtime``, ``--container-engine`` (server and worker)."""
-    p.add_argument("--sandbox", choices=MODES, default="auto",
-                   help="run process tasks in a bubblewrap sandbox: auto (when bwrap works "
-                        "here; the default), on (required), off")
-    shared = os.environ.get("OSMO_SANDBOX_SHARE") or ""
-    p.add_argument("--sandbox-share", action="append", metavar="DIR[:ro]",
-                   default=_env_shares(shared),
-                   help="a host folder every sandboxed task may read and write, at the same "
-                        "path; DIR:ro for read only (repeatable; OSMO_SANDBOX_SHARE, "
-                        "':'-separated, e.g. /scratch:/data:ro). Tasks get their own empty "
-                        "/tmp otherwise. As root, tasks run as nobody: a writable share must "
-                        "be writable by nobody")
-    p.add_argument("--runtime", choices=("auto", "container", "process"),
-                   default=os.environ.get("OSMO_RUNTIME") or "auto",
-                   help="run tasks that name an image in containers (container), as host "
-                        "processes (process), or in containers when an engine is installed "
-                        "(auto, the default; OSMO_RUNTIME)")
-    p.add_argument("--container-engine", choices=("podman", "docker"),
-                   default=os.environ.get("OSMO_CONTAINER_ENGINE") or None,
-                   help="the container engine (default: podman, else docker; "
-                        "OSMO_CONTAINER_ENGINE)")
-
-
-def add_log_limit_argument(p: argparse.ArgumentParser) -> None:
-    """``--log-limit SIZE``: the cap on each attempt's log (server and worker)."""
-    p.add_argument("--log-limit", type=_log_limit, default=DEFAULT_LOG_LIMIT, metavar="SIZE",
-                   help="the most each task attempt's log keeps, e.g. 256Mi (default 64Mi, "
-                        "least 1Mi): past it the oldest lines are dropped behind one line "
-                        "saying how many bytes were")
-
-
-def _log_limit(text: str) -> int:
-    try:
-        return parse_log_limit(text)
-    except ValueError as exc:
-        raise argparse.ArgumentTypeError(f"{exc} (e.g. 64Mi, 1Gi)") from None
 
 
 @dataclass(frozen=True)
@@ -185,29 +151,6 @@ class WorkerOptions:
                    sandbox_share=shares(args.sandbox_share), runtime=args.runtime,
                    container_engine=args.container_engine, store_limit=store_limit,
                    log_limit=args.log_limit)
-
-
-def shares(folders: list[str] | None) -> tuple[str, ...]:
-    """``--sandbox-share`` folders, absolute (relative to the working folder); ``:ro`` kept."""
-    out = []
-    for spec in folders or ():
-        folder, writable = parse_share(spec)
-        out.append(os.path.abspath(folder) + ("" if writable else ":ro"))
-    return tuple(dict.fromkeys(out))
-
-
-def _env_shares(value: str) -> list[str]:
-    """OSMO_SANDBOX_SHARE's folders (``/scratch:/data:ro``).
-
-    ``:``-separated; a ``ro`` or ``rw`` after a folder says how it is shared.
-    """
-    out: list[str] = []
-    for part in value.split(os.pathsep):
-        if part in ("ro", "rw") and out:
-            out[-1] = f"{parse_share(out[-1])[0]}:{part}"
-        elif part:
-            out.append(part)
-    return out
 
 
 def _token(token: str | None, token_file: str | None) -> str | None:

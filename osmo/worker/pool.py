@@ -64,6 +64,7 @@ from osmo.artifacts import ArtifactStore
 from osmo.artifacts.store import DEFAULT_MAX_FILES
 from osmo.errors import InfrastructureError, UsageError
 from osmo.layout import Home
+from osmo.options import DEFAULT_LOG_LIMIT
 from osmo.runtime.container import ContainerEngine
 from osmo.runtime.container_runtime import ContainerRuntime
 from osmo.runtime.netns import NodeNetwork
@@ -91,7 +92,6 @@ from osmo.spec.model import ResourceSpec, TaskSpec
 from osmo.worker.containers import ContainerTasks
 from osmo.worker.endings import KILLED_BEFORE_START
 from osmo.worker.live import AttemptState, LiveAttempt
-from osmo.worker.logs import DEFAULT_LOG_LIMIT
 from osmo.worker.machine import detect_capacity, raise_fd_limit
 from osmo.worker.options import DEFAULT_KILL_GRACE
 from osmo.worker.procs import ProcessRecords

@@ -68,10 +68,15 @@ from osmo.transport.rpc import ApiClient
 from osmo.transport.seal import Purpose
 from osmo.transport.wire import (
     BEAT_EVERY,
+    Ack,
     Hello,
+    Kill,
+    OpenSession,
+    Order,
+    Prepare,
+    Run,
     event_to_dict,
-    prepare_from_dict,
-    spec_from_wire,
+    order_from_dict,
 )
 from osmo.transport.zenoh_link import Link, Subscription
 from osmo.worker import containers
@@ -228,8 +233,8 @@ class RemoteWorker:
             self._handed_back.update(left)
         for aid in left:
             log.info("handing back %s (still running at the end of the drain)", aid)
-            self._send({"op": "lost", "attempt_id": aid,
-                        "message": f"worker {self.id} drained; attempt handed back"})
+            self._send(event_to_dict(AttemptLost(
+                aid, f"worker {self.id} drained; attempt handed back")))
             self.pool.kill(KillAttempt(aid, self.id, "worker draining"))
         with self._changed:
             self._changed.wait_for(lambda: not self._unacked, timeout=30.0)
@@ -309,62 +314,61 @@ class RemoteWorker:
             log.warning("dropped a message on %s that the server did not seal", rel)
             return
         try:
-            order = json.loads(opened[2])
-        except ValueError:
+            order = order_from_dict(json.loads(opened[2]))
+        except ValueError as exc:  # a newer server's order, say: never a traceback here
+            log.warning("dropped an order the server sealed: %s", exc)
             return
-        if isinstance(order, dict):
-            self._on_order(order)
+        self._on_order(order)
 
-    def _on_order(self, order: dict[str, Any]) -> None:
-        op, aid = order.get("op"), str(order.get("attempt_id"))
-        if op == "prepare":
-            self._prepare(order)
-        elif op in ("run", "kill"):
-            with self._lock:
-                pending = self._pending.get(aid)
-                if pending is not None:
-                    if op == "run":
-                        pending.run = True
-                    else:
-                        pending.kill = pending.kill or str(order.get("reason"))
-                    return
-            if op == "run":
-                self.pool.run(RunAttempt(aid, self.id))
-            else:
-                self.pool.kill(KillAttempt(aid, self.id, str(order.get("reason"))))
-        elif op == "session":  # exec / port-forward: a ticket for its grant
-            self.sessions.order(order)
-        elif op == "ack":
-            with self._changed:
-                acked = self._unacked.pop(aid, None) is not None
-                self._unacked_outputs.pop(aid, None)
-                self._changed.notify_all()
-            if acked:
-                self._keeper.acknowledged(aid)
+    def _on_order(self, order: Order) -> None:
+        match order:
+            case Prepare():
+                self._prepare(order)
+            case Run(attempt_id=aid) | Kill(attempt_id=aid):
+                with self._lock:
+                    pending = self._pending.get(aid)
+                    if pending is not None:
+                        if isinstance(order, Run):
+                            pending.run = True
+                        else:
+                            pending.kill = pending.kill or order.reason
+                        return
+                if isinstance(order, Run):
+                    self.pool.run(RunAttempt(aid, self.id))
+                else:
+                    self.pool.kill(KillAttempt(aid, self.id, order.reason))
+            case OpenSession(ticket=ticket):  # exec / port-forward: a ticket for its grant
+                self.sessions.order(ticket)
+            case Ack(attempt_id=aid):
+                with self._changed:
+                    acked = self._unacked.pop(aid, None) is not None
+                    self._unacked_outputs.pop(aid, None)
+                    self._changed.notify_all()
+                if acked:
+                    self._keeper.acknowledged(aid)
 
-    def _prepare(self, order: dict[str, Any]) -> None:
-        cmd = prepare_from_dict(order["cmd"])
+    def _prepare(self, order: Prepare) -> None:
+        cmd = order.cmd
         with self._lock:
-            if order.get("spec") is not None:
-                self._specs[cmd.workflow_id] = spec_from_wire(order["spec"])
+            if order.spec is not None:
+                self._specs[cmd.workflow_id] = order.spec.load()
             self._pending[cmd.attempt_id] = _Pending()
-        manifests = {ref: Manifest.from_json(body)
-                     for ref, body in (order.get("manifests") or {}).items()}
+        manifests = {ref: Manifest.from_json(body) for ref, body in order.manifests.items()}
         with self._keeper.gate:  # protected before it is checked: no collection between
             with self._lock:
                 self._inputs_of[cmd.attempt_id] = list(manifests.values())
             fetched = all(self._inputs.holds(m) for m in manifests.values())
-        if fetched and not order.get("secrets"):
+        if fetched and not order.secrets:
             self._fetch_and_prepare(cmd, order, manifests)  # nothing to fetch: no thread hop
         else:
             self._io.submit(self._fetch_and_prepare, cmd, order, manifests)
 
-    def _fetch_and_prepare(self, cmd: PrepareAttempt, order: dict[str, Any],
+    def _fetch_and_prepare(self, cmd: PrepareAttempt, order: Prepare,
                            manifests: dict[str, Manifest]) -> None:
         values: dict[str, Any] = {}
         try:
             task = self._task(cmd)
-            if order.get("secrets"):  # asked for: an order is no place for a secret
+            if order.secrets:  # asked for: an order is no place for a secret
                 got = self._api.call("worker_secrets", {"id": self.id,
                                                         "attempt_id": cmd.attempt_id})
                 values = got.get("secrets") or {}
@@ -387,9 +391,7 @@ class RemoteWorker:
         with self._lock:
             pending = self._pending.pop(cmd.attempt_id, _Pending())
             self._active.add(cmd.attempt_id)
-        limit = order.get("max_output_bytes")
-        self.pool.prepare(cmd, task, values,
-                          max_output_bytes=limit if isinstance(limit, int) else None,
+        self.pool.prepare(cmd, task, values, max_output_bytes=order.max_output_bytes,
                           resources=self._request(cmd, task))
         if pending.kill is not None:
             self.pool.kill(KillAttempt(cmd.attempt_id, self.id, pending.kill))

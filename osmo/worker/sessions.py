@@ -312,10 +312,10 @@ class NodeSessions:
             self._sessions[grant.session_id] = kind(self._link, grant, self._pool, self._done)
         log.info("session %s: %s into %s", grant.session_id[:8], grant.kind, grant.attempt_id)
 
-    def order(self, order: dict[str, Any]) -> None:
-        """A ``session`` order: fetch its grant (another thread: it asks the server)."""
-        ticket, ask = order.get("ticket"), self._ask
-        if ask is None or not isinstance(ticket, str):
+    def order(self, ticket: str) -> None:
+        """A session order's ``ticket``: fetch its grant (another thread: it asks the server)."""
+        ask = self._ask
+        if ask is None:
             return
         threading.Thread(target=self._fetch, args=(ask, ticket), name="osmo-session-grant",
                          daemon=True).start()

@@ -15,6 +15,7 @@ from types import TracebackType
 from typing import Any, Self
 
 from osmo.tasktypes.api import Param, TaskContext
+from osmo.tasktypes.reports import Report
 
 __all__ = ["Committing", "PluginType", "find_folder_with", "offline"]
 
@@ -47,7 +48,10 @@ class Committing:
 
 @dataclass(frozen=True)
 class PluginType:
-    """A task type whose ``run`` calls ``impl`` (``"package.module:function"``)."""
+    """A task type whose ``run`` calls ``impl`` (``"package.module:function"``).
+
+    ``report``: what ``osmo eval report`` shows of its outputs (``osmo.tasktypes.reports``).
+    """
 
     name: str
     version: str
@@ -56,6 +60,7 @@ class PluginType:
     extra: str | None
     params: Mapping[str, Param] = field(default_factory=dict)
     resources: Mapping[str, Any] = field(default_factory=dict)
+    report: Report | None = None
 
     def run(self, ctx: TaskContext) -> None:
         """Import the implementation and run it with ``ctx``."""

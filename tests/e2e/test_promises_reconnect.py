@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from osmo.server.options import ServerOptions
+from osmo.options import ServerOptions
 from tests.conftest import ended, wait_gone, write
 from tests.e2e.cluster import Cluster
 

@@ -15,6 +15,7 @@ from collections.abc import Iterator
 import pytest
 
 from osmo.config import read_server_info
+from osmo.layout import Home
 from osmo.transport.rpc import ApiClient
 from osmo.transport.zenoh_link import Link
 from tests.conftest import Osmo, write
@@ -40,7 +41,7 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Osmo]:
 
 
 def _api(osmo: Osmo, token: str | None) -> Iterator[ApiClient]:
-    info = read_server_info(osmo.home)
+    info = read_server_info(Home(osmo.home))
     assert info is not None
     link = Link.client([info.endpoint], info.cluster)
     yield ApiClient(link, timeout=10, token=token)

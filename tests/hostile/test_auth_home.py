@@ -23,6 +23,7 @@ from pathlib import Path
 import pytest
 
 from osmo.config import free_port, lock_is_held
+from osmo.layout import Home
 from tests.conftest import REPO, Osmo
 
 NOBODY = 65534
@@ -116,7 +117,7 @@ def test_a_wildcard_listener_without_auth_refuses_to_start(tmp_path: Path) -> No
     assert r.code == 2, r
     assert f"refusing to listen on {wildcard} without authentication" in r.err
     assert "in clear" in r.err and "--insecure" in r.err and "Traceback" not in r.err
-    assert not lock_is_held(osmo.home)
+    assert not lock_is_held(Home(osmo.home))
     try:
         r = osmo("server", "start", "--listen", wildcard, "--insecure")
         assert r.code == 0, r

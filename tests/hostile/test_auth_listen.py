@@ -15,7 +15,8 @@ from pathlib import Path
 import pytest
 
 from osmo.config import free_port, lock_is_held
-from osmo.server.options import network_listeners
+from osmo.layout import Home
+from osmo.transport.listeners import network_listeners
 from tests.conftest import Osmo
 
 
@@ -53,4 +54,4 @@ def test_a_look_alike_loopback_name_needs_authentication(tmp_path: Path) -> None
         assert r.code == 2, r
         assert f"refusing to listen on {endpoint} without authentication" in r.err
         assert "Traceback" not in r.err
-    assert not lock_is_held(osmo.home)
+    assert not lock_is_held(Home(osmo.home))

@@ -20,6 +20,7 @@ import pytest
 
 from osmo.config import read_server_info
 from osmo.errors import NotAllowed, NotAuthenticated, OsmoError, UsageError
+from osmo.layout import Home
 from osmo.transport.rpc import ApiClient
 from osmo.transport.zenoh_link import Link
 from tests.conftest import Osmo, write
@@ -89,7 +90,7 @@ def callers(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Osmo, di
     osmo("--token", str(tokens["alice"]), "submit",
          str(write(osmo.home.parent / "held.yaml", HELD)), check=True)
     osmo.wait_for(WF, lambda i: i["tasks"][0]["status"] == "RUNNING")
-    info = read_server_info(osmo.home)
+    info = read_server_info(Home(osmo.home))
     assert info is not None
     link = Link.client([info.endpoint], info.cluster)
     yield osmo, {who: ApiClient(link, timeout=20, token=tokens[who]) for who in CALLERS}

@@ -22,7 +22,7 @@ from osmo.artifacts import ArtifactStore
 from osmo.artifacts.errors import ArtifactCorrupted
 from osmo.config import host_id, read_server_info
 from osmo.errors import UsageError
-from osmo.layout import BlobDirs
+from osmo.layout import BlobDirs, Home
 from osmo.transport.blobs import BlobServer, SameHost, fetch_blob
 from osmo.transport.rpc import ApiClient, ApiServer, gate_opener
 from osmo.transport.zenoh_link import Link
@@ -43,7 +43,7 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Osmo]:
 
 @pytest.fixture
 def api(server: Osmo) -> Iterator[ApiClient]:
-    info = read_server_info(server.home)
+    info = read_server_info(Home(server.home))
     assert info is not None
     link = Link.client([info.endpoint], info.cluster)
     token = server("token", "create", f"u{len(list(server.home.glob('*')))}{id(link)}",

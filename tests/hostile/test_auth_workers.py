@@ -19,6 +19,7 @@ import pytest
 
 from osmo.config import host_id, read_server_info
 from osmo.errors import NotAllowed
+from osmo.layout import Home
 from osmo.transport.rpc import ApiClient
 from osmo.transport.zenoh_link import Link
 from tests.conftest import Osmo, ended, write
@@ -78,7 +79,7 @@ def test_forged_reports_for_a_local_attempt_are_refused(local_server: Osmo,
     wf = osmo.submit(_held(tmp_path))
     _attempt_running(osmo, wf)
     aid = f"{wf}:t:0"
-    info = read_server_info(osmo.home)
+    info = read_server_info(Home(osmo.home))
     assert info is not None
     link = Link.client([info.endpoint], info.cluster)
     try:
@@ -153,7 +154,7 @@ def test_only_a_same_host_worker_learns_where_the_servers_artifacts_are(
         local_server: Osmo) -> None:
     """Issue 26: the registration reply gave any worker token the server's artifacts path."""
     osmo = local_server
-    info = read_server_info(osmo.home)
+    info = read_server_info(Home(osmo.home))
     assert info is not None
     link = Link.client([info.endpoint], info.cluster)
     try:

@@ -112,7 +112,7 @@ def test_server_api_refuses_a_hostile_upload(raw: Connection, tmp_path: Path, ke
     """The whole attack, sent raw: upload under a hostile name, then a task reads it."""
     name = _hostile(tmp_path)[key]
     src = write(tmp_path / "src" / "f.txt", "x\n").parent
-    offer = transfer.upload(raw.api, src)
+    offer = transfer.upload(raw.api, src, home=raw.home)
     try:
         with pytest.raises(UsageError, match="dataset name"):
             raw.api.call("dataset_upload", {"name": name, "manifest": offer.manifest.to_json(),

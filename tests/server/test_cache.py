@@ -9,8 +9,9 @@ import pytest
 
 from osmo.record import LineageInput
 from osmo.scheduler.types import PrepareAttempt
-from osmo.server.cache import fingerprint, key, reuse_option, reuses
+from osmo.server.cache import fingerprint, key, reuses
 from osmo.spec.model import GroupSpec, InputSpec, OutputSpec, TaskSpec, WorkflowSpec
+from osmo.store.submission import Submission
 
 UP = LineageInput("up", "wf-1", "sha256:" + "a" * 64)
 TASK = TaskSpec(name="t", command=("true",), inputs=(InputSpec(task="up"),))
@@ -64,8 +65,8 @@ def test_who_reuses(task: TaskSpec, workflow: bool | None, submitted: bool | Non
 
 
 def test_the_submission_is_read_from_the_stored_options() -> None:
-    assert [reuse_option(o) for o in ({}, {"reuse": True}, {"no_cache": True},
-                                      {"reuse": False, "no_cache": False})] == [
+    assert [Submission.from_dict(o).reuses for o in (
+        {}, {"reuse": True}, {"no_cache": True}, {"reuse": False, "no_cache": False})] == [
         None, True, False, None]
 
 

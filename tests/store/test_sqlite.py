@@ -11,8 +11,10 @@ import pytest
 from osmo.errors import InfrastructureError
 from osmo.scheduler import TaskState, WorkflowState
 from osmo.scheduler.types import Changes, Transition
+from osmo.spec.stored import StoredSpec
 from osmo.status import TaskStatus, WorkflowStatus
 from osmo.store.sqlite import SCHEMA_VERSION, AttemptRow, NewWorkflowRow, Store
+from osmo.store.submission import Submission
 
 
 def _wf(status: WorkflowStatus = WorkflowStatus.PENDING) -> WorkflowState:
@@ -30,8 +32,8 @@ def _task(name: str, status: TaskStatus) -> TaskState:
 def _submit(store: Store) -> None:
     changes = Changes(workflows=[_wf()], tasks=[_task("a", TaskStatus.SCHEDULING)],
                       transitions=[Transition(1.0, "w-1", "a", 0, "SCHEDULING")])
-    store.commit(changes, new_workflows=[NewWorkflowRow("w-1", "w", 1, 1.0,
-                                                        {"workflow": {"name": "w"}}, {})])
+    store.commit(changes, new_workflows=[NewWorkflowRow(
+        "w-1", "w", 1, 1.0, StoredSpec({"workflow": {"name": "w"}}), Submission())])
 
 
 def test_schema_is_created_and_versioned(tmp_path: Path) -> None:
@@ -77,7 +79,7 @@ def test_commit_round_trips_and_numbers_grow(tmp_path: Path) -> None:
     assert store.next_number("w") == 2
     reopened = Store(tmp_path / "s.db")
     row = reopened.workflow("w-1")
-    assert row is not None and row.spec == {"workflow": {"name": "w"}}
+    assert row is not None and row.spec.data == {"workflow": {"name": "w"}}
     assert WorkflowState.from_dict(row.state) == _wf()
     assert [TaskState.from_dict(t) for t in reopened.tasks("w-1")] == [
         _task("a", TaskStatus.SCHEDULING)]
@@ -91,7 +93,8 @@ def test_a_failing_batch_leaves_nothing_behind(tmp_path: Path) -> None:
     duplicate = Changes(workflows=[_wf(WorkflowStatus.RUNNING)],
                         tasks=[_task("a", TaskStatus.RUNNING)])
     with pytest.raises(InfrastructureError):  # same id again violates the primary key
-        store.commit(duplicate, new_workflows=[NewWorkflowRow("w-1", "w", 1, 1.0, {}, {})])
+        store.commit(duplicate, new_workflows=[NewWorkflowRow("w-1", "w", 1, 1.0, StoredSpec({}),
+                                                                   Submission())])
     assert store.workflow("w-1").status == "PENDING"  # type: ignore[union-attr]
     assert store.tasks("w-1")[0]["status"] == "SCHEDULING"
 

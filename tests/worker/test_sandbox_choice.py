@@ -10,8 +10,8 @@ from pathlib import Path
 import pytest
 
 from osmo.errors import InfrastructureError
+from osmo.options import ServerOptions
 from osmo.runtime import sandbox
-from osmo.server.options import ServerOptions
 from osmo.worker.options import WorkerOptions
 from osmo.worker.pool import LocalPool
 from tests.conftest import Osmo

@@ -16,12 +16,15 @@ Success is defined per env (:mod:`osmo_plugins.sim.metrics`): the env's own
 gymnasium's ``reward_threshold`` when the suite runs the env's registered episode length),
 else no success rate at all (``null``, shown as ``n/a``). The normalised score is ``(return -
 random) / (expert - random)`` on envs where both baselines ran in this suite.
+
+Its report (``osmo eval report``) is the leaderboard of :mod:`osmo_plugins.sim.report`.
 """
 
 from __future__ import annotations
 
 from osmo.tasktypes.api import Param
 from osmo_plugins._base import PluginType
+from osmo_plugins.sim.report import LEADERBOARD
 
 __all__ = ["EVAL"]
 
@@ -32,6 +35,7 @@ EVAL = PluginType(
     impl="osmo_plugins.sim._eval:run",
     extra="sim",
     resources={"cpu": 1, "memory": "2Gi"},
+    report=LEADERBOARD,
     params={
         "envs": Param(list, ["InvertedPendulum-v5"], "gymnasium env ids"),
         "policies": Param(list, ["checkpoint", "random"],

@@ -1,9 +1,13 @@
-"""The server's options, defined once.
+"""How a server and a worker run: the flags both take, and the server's options, as frozen data.
 
 ``osmo server``'s flags, the background server process's command line (``python -m
-osmo.server.app``) and ``serve()`` all use :class:`ServerOptions`.
+osmo.server.app``) and ``serve()`` all use :class:`ServerOptions`; ``osmo worker``'s
+(``osmo.worker.options.WorkerOptions``) share the runtime and log flags defined here
+(:func:`add_runtime_arguments`, :func:`add_log_limit_argument`).
 
-Light on purpose: the CLI imports it to build its parser.
+Light on purpose, and below the server, the workers and the runtimes: the CLI imports it to
+build its parsers, and the SDK, which starts a local server with these options, imports
+nothing of ``osmo.server``, ``osmo.worker`` or ``osmo.runtime`` (``tests/test_layers.py``).
 
 Persisted options: an explicit ``osmo server start`` (or ``osmo server``) saves its options in
 ``OSMO_HOME/server-options.json`` (:func:`remember`, mode 0600), and the automatic start of a
@@ -17,23 +21,115 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import ipaddress
 import json
 import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import NoReturn
+from typing import Literal, NoReturn
 
 from osmo.config import DEFAULT_CLUSTER
 from osmo.errors import UsageError
 from osmo.layout import Home
-from osmo.runtime.sandbox import SandboxMode
-from osmo.worker.logs import DEFAULT_LOG_LIMIT
-from osmo.worker.options import add_log_limit_argument, add_runtime_arguments, shares
 
-__all__ = ["ServerOptions", "absolute", "check_listeners", "network_listeners",
-           "option_changes", "options_from_argv", "remember", "saved_options"]
+__all__ = ["DEFAULT_LOG_LIMIT", "MIN_LOG_LIMIT", "SANDBOX_MODES", "SandboxMode",
+           "ServerOptions", "absolute", "add_log_limit_argument", "add_runtime_arguments",
+           "option_changes", "options_from_argv", "parse_log_limit", "remember",
+           "parse_share", "saved_options", "shares"]
+
+SandboxMode = Literal["auto", "on", "off"]
+"""Whether process tasks run in bubblewrap: when it works here, always, never
+(``osmo.runtime.sandbox.choose``)."""
+SANDBOX_MODES: tuple[SandboxMode, ...] = ("auto", "on", "off")
+
+DEFAULT_LOG_LIMIT = 64 << 20
+"""Bytes one attempt's log may hold before its oldest records are dropped (``osmo.worker.logs``)."""
+MIN_LOG_LIMIT = 1 << 20
+"""The smallest ``--log-limit``: room for several of the longest records."""
+
+
+def add_runtime_arguments(p: argparse.ArgumentParser) -> None:
+    """How tasks run: ``--sandbox``, ``--runtime``, ``--container-engine`` (server and worker)."""
+    p.add_argument("--sandbox", choices=SANDBOX_MODES, default="auto",
+                   help="run process tasks in a bubblewrap sandbox: auto (when bwrap works "
+                        "here; the default), on (required), off")
+    shared = os.environ.get("OSMO_SANDBOX_SHARE") or ""
+    p.add_argument("--sandbox-share", action="append", metavar="DIR[:ro]",
+                   default=_env_shares(shared),
+                   help="a host folder every sandboxed task may read and write, at the same "
+                        "path; DIR:ro for read only (repeatable; OSMO_SANDBOX_SHARE, "
+                        "':'-separated, e.g. /scratch:/data:ro). Tasks get their own empty "
+                        "/tmp otherwise. As root, tasks run as nobody: a writable share must "
+                        "be writable by nobody")
+    p.add_argument("--runtime", choices=("auto", "container", "process"),
+                   default=os.environ.get("OSMO_RUNTIME") or "auto",
+                   help="run tasks that name an image in containers (container), as host "
+                        "processes (process), or in containers when an engine is installed "
+                        "(auto, the default; OSMO_RUNTIME)")
+    p.add_argument("--container-engine", choices=("podman", "docker"),
+                   default=os.environ.get("OSMO_CONTAINER_ENGINE") or None,
+                   help="the container engine (default: podman, else docker; "
+                        "OSMO_CONTAINER_ENGINE)")
+
+
+def add_log_limit_argument(p: argparse.ArgumentParser) -> None:
+    """``--log-limit SIZE``: the cap on each attempt's log (server and worker)."""
+    p.add_argument("--log-limit", type=_log_limit, default=DEFAULT_LOG_LIMIT, metavar="SIZE",
+                   help="the most each task attempt's log keeps, e.g. 256Mi (default 64Mi, "
+                        "least 1Mi): past it the oldest lines are dropped behind one line "
+                        "saying how many bytes were")
+
+
+def _log_limit(text: str) -> int:
+    try:
+        return parse_log_limit(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"{exc} (e.g. 64Mi, 1Gi)") from None
+
+
+def parse_share(spec: str) -> tuple[str, bool]:
+    """``DIR`` → (DIR, writable); ``DIR:ro`` → read-only; ``DIR:rw`` → writable."""
+    folder, sep, mode = spec.rpartition(":")
+    if sep and mode in ("ro", "rw") and folder:
+        return folder, mode == "rw"
+    return spec, True
+
+
+def shares(folders: list[str] | None) -> tuple[str, ...]:
+    """``--sandbox-share`` folders, absolute (relative to the working folder); ``:ro`` kept."""
+    out = []
+    for spec in folders or ():
+        folder, writable = parse_share(spec)
+        out.append(os.path.abspath(folder) + ("" if writable else ":ro"))
+    return tuple(dict.fromkeys(out))
+
+
+def _env_shares(value: str) -> list[str]:
+    """OSMO_SANDBOX_SHARE's folders (``/scratch:/data:ro``).
+
+    ``:``-separated; a ``ro`` or ``rw`` after a folder says how it is shared.
+    """
+    out: list[str] = []
+    for part in value.split(os.pathsep):
+        if part in ("ro", "rw") and out:
+            out[-1] = f"{parse_share(out[-1])[0]}:{part}"
+        elif part:
+            out.append(part)
+    return out
+
+
+def parse_log_limit(text: str) -> int:
+    """A ``--log-limit`` (``64Mi``, ``1Gi``, a number of bytes) in bytes.
+
+    Raises:
+        ValueError: not a size, or smaller than :data:`MIN_LOG_LIMIT`.
+    """
+    from osmo.spec.units import parse_size
+
+    limit = parse_size(text)
+    if limit < MIN_LOG_LIMIT:
+        raise ValueError(f"{text!r} is too small; the least is 1Mi")
+    return limit
 
 
 @dataclass(frozen=True)
@@ -50,7 +146,7 @@ class ServerOptions:
         local_pool: run tasks on the server's host too (off: remote workers only).
         reconnect_grace: seconds remote workers get to come back after a restart.
         insecure: allow a network listener without zenoh authentication (warned at every
-            start; see :func:`check_listeners`).
+            start; see ``osmo.transport.listeners.check_listeners``).
         accept_tokens: ``NAME:ROLE:FILE`` tokens to accept (Kubernetes Secrets).
         sandbox: run the local pool's tasks in bubblewrap: ``auto``, ``on``, ``off``.
         sandbox_share: host folders every sandboxed task sees (``--sandbox-share DIR``:
@@ -180,13 +276,13 @@ def options_from_argv(argv: list[str]) -> ServerOptions:
         raise ValueError(str(exc)) from None
 
 
-def saved_options(home: Path) -> ServerOptions | None:
+def saved_options(home: Home) -> ServerOptions | None:
     """The options the last explicit start saved in ``home``; None when none were saved.
 
     Raises:
         UsageError: the file is unreadable or holds options the server does not take.
     """
-    path = Home(home).server_options
+    path = home.server_options
     try:
         data = json.loads(path.read_bytes())
     except FileNotFoundError:
@@ -208,7 +304,7 @@ def _damaged(path: Path, why: str) -> UsageError:
                       f"start ...` saves them)")
 
 
-def remember(home: Path, options: ServerOptions) -> list[str]:
+def remember(home: Home, options: ServerOptions) -> list[str]:
     """Save ``options`` as ``home``'s server options; return what changed (see below).
 
     A relative ``zenoh_config`` is saved as an absolute path, so an automatic start from
@@ -223,7 +319,7 @@ def remember(home: Path, options: ServerOptions) -> list[str]:
     except UsageError:
         before = ServerOptions()
     options = absolute(options)
-    path = Home(home).server_options
+    path = home.server_options
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     tmp.unlink(missing_ok=True)  # a crashed start's; O_EXCL then never follows a planted link
     fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
@@ -260,61 +356,3 @@ def _shown(value: object) -> str:
     return str(value)
 
 
-_LOCAL_PROTOCOLS = ("unixsock-stream", "unixpipe")
-
-
-def network_listeners(listen: tuple[str, ...] | list[str]) -> list[str]:
-    """The endpoints of ``listen`` that other machines could reach (not loopback or a socket).
-
-    Loopback is a loopback IP address (``127.0.0.0/8``, ``::1``) or the exact name
-    ``localhost``; any other name (``127.example.com`` too) may resolve anywhere.
-    """
-    return [endpoint for endpoint in listen if not _is_local(endpoint)]
-
-
-def _is_local(endpoint: str) -> bool:
-    proto, _, rest = endpoint.partition("/")
-    if proto in _LOCAL_PROTOCOLS:
-        return True
-    address = rest.split("?", 1)[0].split("#", 1)[0]  # zenoh's endpoint config and metadata
-    host = address.rpartition(":")[0]
-    if host.startswith("[") and host.endswith("]"):
-        host = host[1:-1]
-    if host.lower() == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
-
-
-def check_listeners(listen: tuple[str, ...] | list[str], zenoh_config: str | None, *,
-                    insecure: bool) -> None:
-    """Refuse a network listener without zenoh authentication, unless ``insecure``.
-
-    Authentication means user/password (``transport.auth.usrpwd``) or mutual TLS
-    (``transport.link.tls.enable_mtls``) in the zenoh config. With ``insecure``, a warning is
-    logged at every start (stderr and ``server.log``).
-
-    Raises:
-        UsageError: a network listener, no authentication, no ``--insecure``.
-    """
-    import logging
-
-    from osmo.transport.zenoh_link import authenticates
-
-    exposed = network_listeners(listen)
-    if not exposed or authenticates(zenoh_config):
-        return
-    what = ", ".join(exposed)
-    if insecure:
-        logging.getLogger("osmo.server").warning(
-            "INSECURE: listening on %s without zenoh authentication (--insecure): anyone who "
-            "can reach it can connect, and API tokens travel in clear over plain TCP", what)
-        return
-    raise UsageError(
-        f"refusing to listen on {what} without authentication: anyone who can reach it "
-        "could connect, and API tokens would travel in clear over plain TCP. Give a "
-        "--zenoh-config with TLS and mutual TLS (enable_mtls) or user/password (usrpwd); "
-        "see README 'Run across machines'. To accept the risk (a trusted network only), add "
-        "--insecure")

@@ -10,7 +10,7 @@ import pytest
 
 from osmo.config import DEFAULT_CLUSTER
 from osmo.errors import UsageError
-from osmo.server.options import ServerOptions
+from osmo.options import ServerOptions
 from osmo.worker.options import DEFAULT_POOL, WorkerOptions
 from tests.conftest import Osmo
 

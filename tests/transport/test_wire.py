@@ -1,0 +1,80 @@
+"""The server's orders to a worker: typed on both sides, one JSON form between them."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import pytest
+
+from osmo.scheduler.types import AttemptLost, PrepareAttempt
+from osmo.spec import Workflow, spec_to_dict
+from osmo.spec.stored import StoredSpec
+from osmo.transport.wire import (
+    Ack,
+    Kill,
+    OpenSession,
+    Prepare,
+    Run,
+    event_from_dict,
+    event_to_dict,
+    order_from_dict,
+    order_to_dict,
+)
+
+CMD = PrepareAttempt(attempt_id="w-1:a:0", workflow_id="w-1", task="a", retry=0, node_id="n1",
+                     inputs={"up": "/runs/w-1/up/0/output"}, hosts={"a": "10.0.0.1"}, run=True)
+SPEC = StoredSpec(spec_to_dict(Workflow("w").task("a", ["true"]).build()), "wf.yaml", {})
+
+ORDERS = [
+    Prepare(CMD, manifests={"/runs/w-1/up/0/output": '{"entries": []}'}, secrets=True,
+            max_output_bytes=1 << 20, spec=SPEC),
+    Prepare(CMD, manifests={}),
+    Run("w-1:a:0"),
+    Kill("w-1:a:0", "cancelled"),
+    Ack("w-1:a:0"),
+    OpenSession("f" * 32),
+]
+
+
+@pytest.mark.parametrize("order", ORDERS, ids=lambda o: type(o).__name__)
+def test_every_order_round_trips(order: Any) -> None:
+    assert order_from_dict(order_to_dict(order)) == order
+
+
+def test_the_json_form_is_the_one_workers_already_read() -> None:
+    """Servers and workers of the version before typed orders speak the same messages."""
+    assert order_to_dict(Kill("w-1:a:0", "why")) == {"op": "kill", "attempt_id": "w-1:a:0",
+                                                      "reason": "why"}
+    assert order_to_dict(OpenSession("t")) == {"op": "session", "ticket": "t"}
+    sent = order_to_dict(ORDERS[0])
+    assert sent["op"] == "prepare" and sent["attempt_id"] == "w-1:a:0"
+    assert sent["spec"] == {"spec": SPEC.data, "filename": "wf.yaml", "types": {}}
+    assert sent["secrets"] is True and sent["max_output_bytes"] == 1 << 20
+    assert "spec" not in order_to_dict(ORDERS[1])  # sent only the first time
+
+
+@pytest.mark.parametrize("data", [
+    {"op": "reboot", "attempt_id": "x"},  # an order this worker does not know
+    {"attempt_id": "x"},
+    {"op": "run"},
+    {"op": "run", "attempt_id": 7},
+    {"op": "kill", "attempt_id": "x", "reason": ["no"]},
+    {"op": "session", "ticket": None},
+    {"op": "prepare", "attempt_id": "x"},
+    {"op": "prepare", "cmd": {"attempt_id": "x"}, "manifests": {}},
+    {"op": "prepare", "cmd": order_to_dict(ORDERS[1])["cmd"], "manifests": []},
+    {"op": "prepare", "cmd": order_to_dict(ORDERS[1])["cmd"], "manifests": {"a": 1}},
+    {"op": "prepare", "cmd": order_to_dict(ORDERS[1])["cmd"], "manifests": {},
+     "spec": "wf.yaml"},
+    {"op": "prepare", "cmd": order_to_dict(ORDERS[1])["cmd"], "manifests": {},
+     "max_output_bytes": "lots"},
+    [],
+])
+def test_a_malformed_order_is_a_value_error(data: Any) -> None:
+    with pytest.raises(ValueError):
+        order_from_dict(data)
+
+
+def test_a_handed_back_attempt_is_reported_through_the_wire_form() -> None:
+    lost = AttemptLost("w-1:a:0", "worker w drained; attempt handed back")
+    assert event_from_dict(event_to_dict(lost)) == lost
