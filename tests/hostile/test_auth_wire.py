@@ -221,3 +221,74 @@ def test_only_the_servers_notices_wake_a_client(cluster: Cluster, tmp_path: Path
     assert not any(fake), "a forged notice verified"
     if cluster.router is not None:
         assert fake, "no forged notice reached the client: no test"
+
+
+HARVEST_TASK = """
+workflow:
+  name: harvest
+  tasks:
+  - name: h
+    command: [{python}, /tmp/harvest.py, {endpoint}, "{{{{output}}}}/heard"]
+    files:
+    - path: /tmp/harvest.py
+      contents: |
+        import os, sys, time, zenoh
+        conf = zenoh.Config()
+        conf.insert_json5("mode", '"client"')
+        conf.insert_json5("connect/endpoints", '["' + sys.argv[1] + '"]')
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        conf.insert_json5("connect/timeout_ms", "3000")
+        heard = []
+        try:
+            session = zenoh.open(conf)
+        except Exception as exc:
+            open(sys.argv[2], "w").write("unreachable: " + str(exc)[:200])
+            sys.exit(0)
+        def hear(x):
+            heard.append(repr((str(x.key_expr), x.payload.to_bytes(), x.attachment and x.attachment.to_bytes())))
+        for key in ("**", "osmo/local/*/**", "osmo/local/to-worker/*", "osmo/local/events/*",
+                    "osmo/local/api/*", "osmo/local/stream/*/*"):
+            session.declare_subscriber(key, hear)
+            session.declare_queryable(key, lambda q: (hear(q), q.reply(q.key_expr, b"{{}}")))
+        time.sleep(6)
+        open(sys.argv[2], "w").write("reached\\n" + "\\n".join(heard))
+        os._exit(0)  # not the session's close: a peer it still answers may hold it
+"""
+
+
+@pytest.mark.parametrize("sandbox", ["on", "off"])
+def test_a_task_harvests_nothing_from_the_bus(tmp_path: Path, sandbox: str) -> None:
+    """Against the landed build a sandboxed task heard every token and minted an admin one.
+
+    Sandboxed, it cannot even reach the router (its own network namespace); unsandboxed it
+    can, and hears only sealed bytes while the owner, a user and a worker talk.
+    """
+    cluster = Cluster(tmp_path, server_args=("--sandbox", sandbox))
+    cluster.server_args = tuple(a for a in cluster.server_args if a != "--no-local-pool")
+    cluster.start_server()
+    try:
+        user = cluster.token("alice", "user")
+        admin = (cluster.osmo.home / "auth" / "admin.token").read_text().strip()
+        cluster.start_worker("w1", host="elsewhere", pool="remote")
+        wf = cluster.osmo.submit(write(tmp_path / "harvest.yaml", HARVEST_TASK.format(
+            python=sys.executable, endpoint=cluster.endpoint)))
+        cluster.osmo.wait_for(wf, lambda i: i["tasks"][0]["status"] == "RUNNING" or ended(i))
+        # traffic while it listens: orders to the worker, admin and user requests, notices
+        cluster.osmo.submit(write(tmp_path / "held.yaml", HELD.format(runs=tmp_path / "runs")),
+                            "--pool", "remote")
+        for _ in range(5):
+            cluster.osmo("list", "--format", "json", check=True)
+            cluster.osmo("--token", user, "list", "--format", "json", check=True)
+            time.sleep(0.5)
+        done = cluster.osmo.wait_for(wf, ended, timeout=120)
+        assert done["status"] == "COMPLETED", done
+        heard = Path(done["tasks"][0]["output"], "heard").read_text(errors="replace")
+        if sandbox == "on":
+            assert heard.startswith("unreachable"), heard[:500]
+        else:
+            assert heard.startswith("reached"), heard[:500]
+            assert "osmo/local/" in heard, "it heard nothing at all: no test"
+        for secret in (admin, user, cluster.tokens["w1"]):
+            assert secret not in heard
+    finally:
+        cluster.stop()
