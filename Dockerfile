@@ -7,7 +7,7 @@
 #
 # Two stages: the builder installs osmo (and the chosen extras) into a virtualenv at /opt/osmo;
 # the runtime stage copies only that virtualenv onto a fresh slim base with the task sandbox
-# (bubblewrap, passt) and runs as an unprivileged user (uid 10001), so no compiler, pip cache or
+# (bubblewrap, slirp4netns) and runs as an unprivileged user (uid 10001), so no compiler, pip cache or
 # source tree ships in the image.
 
 ARG PYTHON_IMAGE=python:3.12-slim
@@ -33,11 +33,15 @@ ARG OSMO_UID=10001
 ARG OSMO_APT_PACKAGES=
 # Every build: bubblewrap, the sandbox each process task runs in (without it `--sandbox auto`
 # runs tasks unsandboxed beside osmo's home, and the chart's `--sandbox on` refuses to start),
-# and passt, whose pasta gives a sandboxed task's own network namespace its connectivity.
+# and slirp4netns, which gives the node's network namespace (the one the sandboxed tasks
+# share, osmo/runtime/netns.py) its outbound connectivity; util-linux brings setpriv and
+# nsenter, which enter it. As uid 10001, the pod needs /dev/net/tun for slirp4netns (without
+# it, tasks get loopback only, and each task's log says so).
 RUN apt-get update \
- && apt-get install -y --no-install-recommends bubblewrap passt ${OSMO_APT_PACKAGES} \
+ && apt-get install -y --no-install-recommends bubblewrap slirp4netns util-linux \
+      ${OSMO_APT_PACKAGES} \
  && rm -rf /var/lib/apt/lists/* \
- && bwrap --version && command -v pasta >/dev/null \
+ && bwrap --version && slirp4netns --version >/dev/null && command -v nsenter >/dev/null \
  && groupadd --system --gid "${OSMO_UID}" osmo \
  && useradd --system --uid "${OSMO_UID}" --gid "${OSMO_UID}" --home-dir /home/osmo \
       --create-home --shell /usr/sbin/nologin osmo \

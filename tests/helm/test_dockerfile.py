@@ -128,15 +128,16 @@ def test_dockerignore_keeps_the_build_inputs_and_drops_local_state() -> None:
 
 
 def test_runtime_installs_the_sandbox_whatever_the_extra_packages() -> None:
-    """Tasks run in bubblewrap, their network through pasta (Debian ``passt``): the image
-    installs both in every build (issue #26: it had no bwrap, so ``--sandbox auto`` ran every
+    """Tasks run in bubblewrap, in the node's network namespace whose outbound network is
+    slirp4netns's (entered with util-linux's setpriv/nsenter): the image installs them in
+    every build (issue #26: it had no bwrap, so ``--sandbox auto`` ran every
     task unsandboxed beside the state store, and ``--sandbox on`` could never start)."""
     installs = [run for run in RUNTIME.args("RUN") if "apt-get install" in run]
     assert len(installs) == 1, installs
     words = installs[0].split()
-    assert {"bubblewrap", "passt"} <= set(words), installs[0]
+    assert {"bubblewrap", "slirp4netns", "util-linux"} <= set(words), installs[0]
     assert "--no-install-recommends" in words
     assert "if" not in words, "the sandbox must not depend on OSMO_APT_PACKAGES being set"
     assert re.search(r"\$\{?OSMO_APT_PACKAGES\}?", installs[0])  # the extras still go here
     assert "rm -rf /var/lib/apt/lists/*" in installs[0]
-    assert "bwrap --version" in installs[0] and "pasta" in installs[0]  # checked at build
+    assert "bwrap --version" in installs[0] and "slirp4netns --version" in installs[0]
