@@ -178,6 +178,24 @@ def _module_root(module: Any) -> str | None:
     return None if "site-packages" in parts or "dist-packages" in parts else root
 
 
+def _unreadable_hint(exc: BaseException, folders: Sequence[str]) -> str:
+    """Why a module may not be found: a folder on the search path this process cannot read.
+
+    A root server or worker runs its sandboxed tasks as ``nobody`` on the host
+    (``osmo.runtime.sandbox``), so a project folder only its owner may read (a home folder
+    made 0700) is there but unreadable to the task.
+    """
+    if not isinstance(exc, ModuleNotFoundError):
+        return ""
+    shut = [f for f in dict.fromkeys(folders)
+            if f and os.path.isdir(f) and not os.access(f, os.R_OK | os.X_OK)]
+    if not shut:
+        return ""
+    return (f"; this task cannot read {', '.join(shut)} (uid {os.getuid()} here: a server or "
+            "worker running as root runs its tasks as nobody on the host). Make the folder "
+            "readable by others (chmod o+rx) or run osmo as your own user")
+
+
 def _load_custom(ref: str, paths: Sequence[str]) -> tuple[TaskType, str | None]:
     module_name, _, attr = ref.partition(":")
     what = f"task type '{ref}'"
@@ -188,7 +206,8 @@ def _load_custom(ref: str, paths: Sequence[str]) -> tuple[TaskType, str | None]:
             module = importlib.import_module(module_name)
         except Exception as exc:
             where = f" (searched {', '.join(paths)} first)" if paths else ""
-            raise TaskTypeError(import_failure(what, module_name, exc, None) + where) from exc
+            raise TaskTypeError(import_failure(what, module_name, exc, None) + where
+                                + _unreadable_hint(exc, [*paths, *sys.path])) from exc
         obj: Any = module
         for part in attr.split("."):
             if not hasattr(obj, part):

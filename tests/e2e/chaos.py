@@ -144,6 +144,7 @@ class Trial:
         self.rng = random.Random(seed ^ 0x5EED)
         self.shared = root / "shared"
         self.shared.mkdir(parents=True, exist_ok=True)
+        self.shared.chmod(0o1777)  # a root server's sandboxed tasks write here as nobody
         self.spec, self.names = spec_text(seed, width, self.shared)
         self.cluster = Cluster(root, env={"OSMO_HOST_ID": f"chaos-{seed}"})
         self.osmo: Osmo = self.cluster.osmo

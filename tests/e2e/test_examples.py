@@ -81,6 +81,8 @@ def test_readme_custom_task_types(shared_osmo: Osmo, tmp_path_factory) -> None: 
     assert section is not None
     text = section.group(1)
     project = tmp_path_factory.mktemp("custom-types")
+    project.chmod(0o755)  # a project folder as people have them (README: a root osmo's tasks
+    # run as nobody, and read the type's folder as such)
     (project / "tasks.py").write_text(re.search(r"```py\n(.*?)```", text, re.S).group(1))  # type: ignore[union-attr]
     (project / "workflow.yaml").write_text(re.search(r"```yaml\n(.*?)```", text, re.S).group(1))  # type: ignore[union-attr]
     commands = re.search(r"```sh\n(.*?)```", text, re.S).group(1)  # type: ignore[union-attr]

@@ -55,6 +55,20 @@ def test_yaml_custom_type_runs_and_caches_by_version(shared_osmo: Osmo, tmp_path
     assert "tasks:power@3" in lineage.splitlines()[0]
 
 
+def test_a_type_in_a_folder_the_task_cannot_read_says_so(shared_osmo: Osmo,
+                                                       tmp_path: Path) -> None:
+    """A root server runs its tasks as nobody: a 0700 project folder is there but shut."""
+    if os.geteuid() != 0:
+        return  # tasks run as the invoking user, who can read their own project
+    project = _copy_example(tmp_path)
+    project.chmod(0o700)
+    wf = shared_osmo("submit", str(project / "workflow.yaml"), "--wait", "--no-cache")
+    assert wf.code == 1, wf
+    wf_id = wf.out.splitlines()[0].split(" - ")[1]
+    logs = shared_osmo("logs", wf_id, check=True).out
+    assert f"this task cannot read {project}" in logs and "chmod o+rx" in logs, logs
+
+
 def test_builder_example_runs_through_the_sdk(shared_osmo: Osmo) -> None:
     proc = subprocess.run([sys.executable, str(EXAMPLE / "build.py")], env=shared_osmo.env,
                           cwd=REPO, capture_output=True, text=True, timeout=180)

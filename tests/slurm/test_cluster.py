@@ -187,7 +187,8 @@ def test_stop_leaves_nothing_running_even_after_a_test_killed_daemons() -> None:
         cluster.sbatch("srun sleep 301", "--nodes=2", "--ntasks-per-node=1")
 
         def sleeps() -> list[str]:
-            return [cmd for _, cmd in cluster.leftovers(daemons=False) if "sleep 30" in cmd]
+            return [cmd for _, cmd in cluster.leftovers(daemons=False)  # the sleeps, not srun
+                    if cmd.split()[0].endswith("sleep") and "sleep 30" in cmd]
 
         wait_until(lambda: len(sleeps()) == 4)  # two batch jobs, two steps of the srun
         running = [pid for pid, _ in cluster.leftovers(daemons=False)]  # with slurmstepds
