@@ -8,7 +8,7 @@ Rows:
   alone, then one part added (``--dev /dev``; ``--proc`` with ``--unshare-pid``; the
   private ``/tmp``; the IPC and UTS namespaces; an attempt's view), and osmo's whole argv
   without entering the node's namespaces, in ms per run (one at a time, interleaved);
-- the node's namespaces (``osmo.runtime.netns``): what making them costs a server or worker
+- the node's namespaces (``osmo.runtime.process.netns``): what making them costs a server or worker
   once (the keeper and slirp4netns; also what a network per task would cost each task), and
   what a start costs, two at a time on 2 cores (so CPU shows), with and without entering
   them, against the sandbox before them (``--ro-bind / /`` on the host's network, as root);
@@ -55,8 +55,8 @@ from benchlib import quick, row, write_rows  # noqa: E402
 
 from osmo.options import ServerOptions  # noqa: E402
 from osmo.runtime import ProcessRuntime  # noqa: E402
-from osmo.runtime.netns import Entry  # noqa: E402
-from osmo.runtime.sandbox import Sandbox, View, choose, node_network  # noqa: E402
+from osmo.runtime.process.netns import Entry  # noqa: E402
+from osmo.runtime.process.sandbox import Sandbox, View, choose, node_network  # noqa: E402
 
 
 def _work(folder: Path, sandbox: Sandbox) -> Path:

@@ -39,7 +39,7 @@ __all__ = ["DEFAULT_LOG_LIMIT", "MIN_LOG_LIMIT", "SANDBOX_MODES", "SandboxMode",
 
 SandboxMode = Literal["auto", "on", "off"]
 """Whether process tasks run in bubblewrap: when it works here, always, never
-(``osmo.runtime.sandbox.choose``)."""
+(``osmo.runtime.process.sandbox.choose``)."""
 SANDBOX_MODES: tuple[SandboxMode, ...] = ("auto", "on", "off")
 
 DEFAULT_LOG_LIMIT = 64 << 20

@@ -1,13 +1,13 @@
 """Runtimes: how an attempt's command is run (host processes today; containers later)."""
 
-from osmo.runtime.process import (
+from osmo.runtime.process.groups import (
     ProcessHandle,
     ProcessRuntime,
     Runtime,
     StartError,
     exit_code_of,
 )
-from osmo.runtime.proctable import kill_stale, process_start_time
+from osmo.runtime.process.proctable import kill_stale, process_start_time
 
 __all__ = [
     "ProcessHandle",

@@ -5,7 +5,7 @@ the server's placement (cache fingerprints) and the local pool share one.
 :func:`registry_auth` finds the stored credential for pulling a task's image
 (:func:`registry_credential` names it; a remote worker is given it by the server with the
 attempt's other secrets). Engine calls
-go through ``osmo.runtime.container``.
+go through ``osmo.runtime.container.engine``.
 """
 
 from __future__ import annotations
@@ -14,8 +14,8 @@ import collections
 import threading
 from collections.abc import Callable
 
-from osmo.runtime.container import ContainerEngine
-from osmo.runtime.container_run import ContainerError, RegistryAuth, pull_reference
+from osmo.runtime.container.engine import ContainerEngine
+from osmo.runtime.container.run import ContainerError, RegistryAuth, pull_reference
 from osmo.spec.model import TaskSpec
 from osmo.worker.secrets import SecretLookup
 

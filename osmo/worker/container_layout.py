@@ -15,7 +15,7 @@ The layout (:func:`layout`):
 - the environment is the task's, then osmo's (``OSMO_OUTPUT`` etc.), never the host's;
   credential variables go through the runtime's 0600 secret file, never ``--env``.
 
-Must not call an engine; ``osmo.runtime.container_run`` turns the description into argv.
+Must not call an engine; ``osmo.runtime.container.run`` turns the description into argv.
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from osmo.runtime.container_run import DATA_OUTPUT, ContainerRun, Mount, data_input
+from osmo.runtime.container.run import DATA_OUTPUT, ContainerRun, Mount, data_input
 from osmo.scheduler.types import PrepareAttempt
 from osmo.spec.model import TaskSpec
 from osmo.worker import launch as typed

@@ -3,7 +3,7 @@
 A task with an ``image:`` and no ``type:`` runs in that image when the node's runtime is
 ``container`` (``--runtime``; ``auto`` picks it when an engine answers): :func:`choose` is
 that decision, made once when a server or worker starts. Typed plugin tasks and tasks with no
-image stay host processes (``osmo.runtime.process``).
+image stay host processes (``osmo.runtime.process.groups``).
 
 The data layout inside the container is ``osmo.worker.container_layout``'s.
 
@@ -36,15 +36,15 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from osmo.runtime.container import ContainerEngine, EngineNotFound, detect_engine
-from osmo.runtime.container_run import (
+from osmo.runtime.container.engine import ContainerEngine, EngineNotFound, detect_engine
+from osmo.runtime.container.run import (
     ContainerError,
     ContainerRun,
     RegistryAuth,
     safe_name,
 )
-from osmo.runtime.container_runtime import ContainerRuntime
-from osmo.runtime.process import ProcessHandle
+from osmo.runtime.container.runs import ContainerRuntime
+from osmo.runtime.process.groups import ProcessHandle
 from osmo.scheduler.types import PrepareAttempt
 from osmo.spec.model import ResourceSpec, TaskSpec
 from osmo.worker.container_images import ImageIds

@@ -18,7 +18,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 from osmo.artifacts import ArtifactStore
 from osmo.artifacts.fsops import remove_tree
-from osmo.runtime.process import ProcessHandle, Runtime
+from osmo.runtime.process.groups import ProcessHandle, Runtime
 from osmo.scheduler.types import AttemptExited, AttemptStartFailed, Event
 from osmo.spec.model import ExitAction
 from osmo.worker.live import AttemptState, LiveAttempt

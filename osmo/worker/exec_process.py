@@ -30,9 +30,9 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from osmo.runtime.container import ContainerEngine
-from osmo.runtime.process import die_with_parent, exit_code_of
-from osmo.runtime.sandbox import Sandbox
+from osmo.runtime.container.engine import ContainerEngine
+from osmo.runtime.process.groups import die_with_parent, exit_code_of
+from osmo.runtime.process.sandbox import Sandbox
 from osmo.transport.streams import CHUNK, SessionGrant
 from osmo.worker.workdir import Launch
 

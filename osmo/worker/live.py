@@ -11,7 +11,7 @@ import os
 from dataclasses import dataclass, field
 
 from osmo.layout import AttemptDirs
-from osmo.runtime.process import ProcessHandle
+from osmo.runtime.process.groups import ProcessHandle
 from osmo.spec.model import TaskSpec
 from osmo.worker.checkpoints import Checkpointer
 from osmo.worker.logs import LogWriter

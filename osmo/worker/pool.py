@@ -33,15 +33,15 @@ Containers: with ``containers`` (``osmo.worker.containers.ContainerTasks``), a t
 else, and every task without ``containers``, runs as a host process, its ``image`` only noted
 in the log.
 
-Sandbox (``sandbox``: ``auto``, ``on``, ``off``; ``osmo.runtime.sandbox``): chosen once, when
-the pool is made, with the node's network namespace its tasks share (``osmo.runtime.netns``,
-closed with the pool); commands then run in bubblewrap with a view of their own attempt's
-folders only (``workdir.attempt_view``), and the node's ``sandbox`` label says ``bwrap``.
-Without one, the label says ``none``, ``no_sandbox_why`` says why in a few words (``osmo
-resource list``), and every attempt's log starts with an osmo line saying so; without
-outbound network for its tasks, likewise. ``auto`` that finds no working sandbox also logs
-:attr:`LocalPool.sandbox_warning` (level WARNING) when the pool is made: nobody chose to run
-tasks unsandboxed, so it is said at start, not only in each task's log.
+Sandbox (``sandbox``: ``auto``, ``on``, ``off``; ``osmo.runtime.process.sandbox``): chosen
+once, when the pool is made, with the node's network namespace its tasks share
+(``osmo.runtime.process.netns``, closed with the pool); commands then run in bubblewrap with a
+view of their own attempt's folders only (``workdir.attempt_view``), and the node's ``sandbox``
+label says ``bwrap``. Without one, the label says ``none``, ``no_sandbox_why`` says why in a
+few words (``osmo resource list``), and every attempt's log starts with an osmo line saying so;
+without outbound network for its tasks, likewise. ``auto`` that finds no working sandbox also
+logs :attr:`LocalPool.sandbox_warning` (level WARNING) when the pool is made: nobody chose to
+run tasks unsandboxed, so it is said at start, not only in each task's log.
 A pool records each command's pid and start time in ``procs_dir`` right after the spawn
 (one appended line; ``osmo.worker.procs``), so that a server or worker restarted after a
 crash can kill what its previous life left, even a command whose start it never reported.
@@ -65,12 +65,12 @@ from osmo.artifacts.store import DEFAULT_MAX_FILES
 from osmo.errors import InfrastructureError, UsageError
 from osmo.layout import Home
 from osmo.options import DEFAULT_LOG_LIMIT
-from osmo.runtime.container import ContainerEngine
-from osmo.runtime.container_runtime import ContainerRuntime
-from osmo.runtime.netns import NodeNetwork
-from osmo.runtime.process import ProcessHandle, ProcessRuntime, Runtime
-from osmo.runtime.proctable import kill_stale, process_start_time
-from osmo.runtime.sandbox import (
+from osmo.runtime.container.engine import ContainerEngine
+from osmo.runtime.container.runs import ContainerRuntime
+from osmo.runtime.process.groups import ProcessHandle, ProcessRuntime, Runtime
+from osmo.runtime.process.netns import NodeNetwork
+from osmo.runtime.process.proctable import kill_stale, process_start_time
+from osmo.runtime.process.sandbox import (
     Sandbox,
     SandboxMode,
     choose,
@@ -135,7 +135,7 @@ class LocalPool(AttemptStarts):
         sandbox: ``auto`` (when bubblewrap works here), ``on`` (required) or ``off``.
         sandbox_share: host folders every sandboxed task may write (never inside ``home``).
         address: how peers reach this node's tasks (``{{host:NAME}}``): given to the
-            sandboxed tasks' network too (``osmo.runtime.netns``).
+            sandboxed tasks' network too (``osmo.runtime.process.netns``).
         procs_dir: record running commands' pids here (see the module docstring).
         containers: runs image tasks in containers (its runtime replaces ``runtime``); its
             orphans are removed here, before anything starts.

@@ -26,7 +26,7 @@ carried by the ``prepare`` order.
 Leftovers: the pool records each running command's pid and start time under ``<home>/procs``;
 a worker started on a home kills whatever a previous life left there before it announces
 itself (``osmo.worker.procs``), so a SIGKILLed worker's task never runs beside its
-rescheduled copy (tasks also die with their worker: ``osmo.runtime.process``).
+rescheduled copy (tasks also die with their worker: ``osmo.runtime.process.groups``).
 
 Drain (SIGTERM): the worker stops taking work (it re-registers with no capacity), lets
 running attempts finish for up to ``drain_timeout`` seconds and waits until their outputs

@@ -14,8 +14,8 @@ pool's running attempt:
 - port-forward connects each channel to the task's port on the container's address (a
   container task: its own network namespace, as OSMO's pod) or, for a process task, only to a
   port a process of the task listens on, at the address it listens on
-  (``osmo.worker.task_ports``), from inside the node's network namespace when the task is
-  sandboxed (``osmo.runtime.netns``): never to another process's port on the node nor to a
+  (``osmo.runtime.process.ports``), from inside the node's network namespace when the task is
+  sandboxed (``osmo.runtime.process.netns``): never to another process's port on the node nor to a
   listener on the host's own loopback; and only to the ports the grant names.
 
 Every session ends, and its process or sockets with it, when its command exits, when the
@@ -33,13 +33,13 @@ from collections.abc import Callable
 from typing import Any, Protocol
 
 from osmo.errors import OsmoError
-from osmo.runtime.container import ContainerEngine
-from osmo.runtime.sandbox import Sandbox
+from osmo.runtime.container.engine import ContainerEngine
+from osmo.runtime.process.ports import task_listener
+from osmo.runtime.process.sandbox import Sandbox
 from osmo.transport.forwarding import Channels, Deferred, TcpEnd, UdpConnected
 from osmo.transport.streams import TIMEOUT, Frame, Kind, SessionGrant, Stream
 from osmo.transport.zenoh_link import Link
 from osmo.worker.exec_process import ExecProcess, exec_argv
-from osmo.worker.task_ports import task_listener
 from osmo.worker.workdir import Launch
 
 __all__ = ["NodeSessions", "SessionPool", "container_address"]

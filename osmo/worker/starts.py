@@ -22,9 +22,9 @@ from pathlib import Path
 
 from osmo.errors import OsmoError
 from osmo.layout import AttemptDirs, Home
-from osmo.runtime.process import ProcessHandle, StartError
-from osmo.runtime.proctable import process_start_time
-from osmo.runtime.sandbox import Sandbox
+from osmo.runtime.process.groups import ProcessHandle, StartError
+from osmo.runtime.process.proctable import process_start_time
+from osmo.runtime.process.sandbox import Sandbox
 from osmo.scheduler.types import (
     AttemptPrepared,
     AttemptStarted,

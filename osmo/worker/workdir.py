@@ -43,7 +43,7 @@ key}``, verbatim), then osmo's own variables, which a task cannot override:
 
 Sandbox view (:func:`attempt_view`): what of osmo's home a sandboxed attempt sees: its own
 folder read-only, its ``work/``, ``output.partial/`` and ``files/`` writable, its inputs
-read-only; the rest of the home is hidden (``osmo.runtime.sandbox``). A root pool's
+read-only; the rest of the home is hidden (``osmo.runtime.process.sandbox``). A root pool's
 sandboxed task is ``nobody`` on the host: :func:`hand_over` gives it its writable folders.
 
 Promotion: after a COMPLETE exit of an attempt that was not killed, ``output.partial`` is
@@ -73,8 +73,8 @@ from pathlib import Path
 from osmo.artifacts.fsops import remove_tree
 from osmo.errors import OsmoError
 from osmo.layout import AttemptDirs
-from osmo.runtime.container_run import ContainerRun
-from osmo.runtime.sandbox import View
+from osmo.runtime.container.run import ContainerRun
+from osmo.runtime.process.sandbox import View
 from osmo.scheduler.types import PrepareAttempt
 from osmo.spec.model import InputSpec, TaskSpec
 from osmo.spec.tokens import expand_vars, substitute

@@ -23,7 +23,7 @@ from pathlib import Path
 import pytest
 
 from osmo.runtime.container import ContainerEngine, detect_engine
-from osmo.runtime.container_runtime import ContainerRuntime
+from osmo.runtime.container.runs import ContainerRuntime
 from tests.conftest import Osmo
 from tests.containers.images import KINDS_PYTHON, ensure_images, write_containers_conf
 from tests.containers.submitting import container_osmo, leftovers, owner_labels

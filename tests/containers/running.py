@@ -9,8 +9,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from osmo.runtime.container import ContainerRun
-from osmo.runtime.container_runtime import ContainerRuntime
-from osmo.runtime.process import ProcessHandle
+from osmo.runtime.container.runs import ContainerRuntime
+from osmo.runtime.process.groups import ProcessHandle
 
 TIMEOUT = 60.0
 

@@ -27,7 +27,7 @@ from osmo.runtime.container import (
     detect_engine,
     safe_name,
 )
-from osmo.runtime.container_runtime import ContainerRuntime
+from osmo.runtime.container.runs import ContainerRuntime
 from tests.containers.running import start
 
 ALPINE = "alpine:3.18"
@@ -195,7 +195,7 @@ def test_env_file_values_do_show_in_inspect(engine: ContainerEngine, images: dic
 def test_a_symlink_planted_at_the_secret_file_is_not_followed(
         runtime: ContainerRuntime, images: dict[str, str], labels: dict[str, str],
         tmp_path: Path) -> None:
-    from osmo.runtime.process import StartError
+    from osmo.runtime.process.groups import StartError
     victim = tmp_path / "victim.txt"
     victim.write_text("keep me\n")
     secret_file = tmp_path / "secret.env"
@@ -291,7 +291,7 @@ def test_reaped_while_running_the_container_goes_too(
 def test_an_unusable_run_is_a_start_error_that_leaves_nothing(
         runtime: ContainerRuntime, images: dict[str, str], labels: dict[str, str],
         tmp_path: Path) -> None:
-    from osmo.runtime.process import StartError
+    from osmo.runtime.process.groups import StartError
     secret_file = tmp_path / "secret.env"
     run = run_of(labels, ["true"], secret_env={"TOKEN": "x"}, secret_env_file=secret_file,
                  mounts=(Mount(tmp_path, "/proc"),))

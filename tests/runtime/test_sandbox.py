@@ -17,9 +17,9 @@ import pytest
 
 from osmo.errors import InfrastructureError, UsageError
 from osmo.runtime import ProcessRuntime, StartError
-from osmo.runtime import sandbox as sandbox_mod
-from osmo.runtime.netns import Entry, NodeNetwork
-from osmo.runtime.sandbox import Sandbox, View, choose, node_network
+from osmo.runtime.process import sandbox as sandbox_mod
+from osmo.runtime.process.netns import Entry, NodeNetwork
+from osmo.runtime.process.sandbox import Sandbox, View, choose, node_network
 from tests.runtime.churn import churning_mounts
 from tests.runtime.test_process_runtime import read_all, wait_exit, wait_until
 
@@ -298,7 +298,7 @@ UNPRIVILEGED = r"""
 import json, os, select, socket, sys
 from pathlib import Path
 from osmo.runtime import ProcessRuntime
-from osmo.runtime.sandbox import View, choose, node_network
+from osmo.runtime.process.sandbox import View, choose, node_network
 home, port = Path(sys.argv[1]), int(sys.argv[2])
 work = home / "a" / "work"
 work.mkdir(parents=True)

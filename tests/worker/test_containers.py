@@ -10,7 +10,7 @@ import pytest
 
 from osmo.layout import AttemptDirs
 from osmo.runtime.container import EngineNotFound
-from osmo.runtime.container_run import DATA_OUTPUT, Mount
+from osmo.runtime.container.run import DATA_OUTPUT, Mount
 from osmo.scheduler.types import AttemptExited, Capacity, Node, PrepareAttempt
 from osmo.spec.model import FileSpec, InputSpec, TaskSpec
 from osmo.transport.wire import Hello, event_from_dict, event_to_dict

@@ -11,7 +11,7 @@ import pytest
 
 from osmo.errors import InfrastructureError
 from osmo.options import ServerOptions
-from osmo.runtime import sandbox
+from osmo.runtime.process import sandbox
 from osmo.worker.options import WorkerOptions
 from osmo.worker.pool import LocalPool
 from tests.conftest import Osmo

@@ -5,8 +5,8 @@ What it owns:
 - spawning: the command starts in a new session (``start_new_session=True``, so its process
   group id is its pid), with the given working folder and environment, stdin from
   ``/dev/null``, stdout and stderr as non-blocking pipes.
-- the sandbox: given a :class:`~osmo.runtime.sandbox.Sandbox` and a start's ``view``, the
-  command runs inside bubblewrap (``osmo.runtime.sandbox``), spawned in the node's
+- the sandbox: given a :class:`~osmo.runtime.process.sandbox.Sandbox` and a start's ``view``, the
+  command runs inside bubblewrap (``osmo.runtime.process.sandbox``), spawned in the node's
   namespaces (``Sandbox.entered``, ``Sandbox.fds``); bwrap's two processes then lead the
   group. ``--die-with-parent`` ends the sandbox when the spawning thread's process dies
   (not while bwrap is still setting it up: the pool records every pid at once for that,
@@ -26,7 +26,7 @@ What it owns:
   it, a folder it cannot make) is told from the command's own exit: bwrap reports the
   command's exit code on its status pipe (``--json-status-fd``) only when the command ran,
   and ``reap`` marks the handle ``setup_failed`` otherwise (the caller may start it again).
-- crash clean-up: ``osmo.runtime.proctable.kill_stale`` kills a process group left over by a
+- crash clean-up: ``osmo.runtime.process.proctable.kill_stale`` kills a process group left over by a
   crashed server, only if the pid still belongs to the process that was started (its start
   time matches); a handle's ``started_at`` is read on that module's clock.
 
@@ -51,8 +51,8 @@ from pathlib import Path
 from typing import Protocol
 
 from osmo.errors import OsmoError
-from osmo.runtime.proctable import group_members, start_clock, stat_fields
-from osmo.runtime.sandbox import Sandbox, View
+from osmo.runtime.process.proctable import group_members, start_clock, stat_fields
+from osmo.runtime.process.sandbox import Sandbox, View
 
 __all__ = [
     "ProcessHandle",
@@ -157,7 +157,7 @@ class ProcessRuntime:
             fds, entered = self.sandbox.fds, self.sandbox.entered()
         started_at = start_clock()
         try:
-            with entered:  # in the node's network namespace (``osmo.runtime.netns``)
+            with entered:  # in the node's network namespace (``osmo.runtime.process.netns``)
                 popen = subprocess.Popen(
                     command,
                     cwd=cwd,

@@ -2,7 +2,7 @@
 
 :class:`ContainerRun` describes one container; :func:`run_argv` turns it into the ``run``
 argv of podman or docker, :func:`login_argv` and :func:`pull_argv` a registry login and a
-pull. ``osmo.runtime.container`` is the module that runs these argvs; this one only builds
+pull. ``osmo.runtime.container.engine`` is the module that runs these argvs; this one only builds
 them, so every engine difference is golden-tested without an engine.
 
 Decisions, each checked with podman 4.3 and the docker 28 CLI (``tests/containers``):

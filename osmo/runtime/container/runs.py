@@ -25,10 +25,10 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-from osmo.runtime.container import ContainerEngine
-from osmo.runtime.container_run import ContainerError, ContainerRun, run_argv, secret_env_text
-from osmo.runtime.process import ProcessHandle, ProcessRuntime, Runtime, StartError
-from osmo.runtime.sandbox import View
+from osmo.runtime.container.engine import ContainerEngine
+from osmo.runtime.container.run import ContainerError, ContainerRun, run_argv, secret_env_text
+from osmo.runtime.process.groups import ProcessHandle, ProcessRuntime, Runtime, StartError
+from osmo.runtime.process.sandbox import View
 
 __all__ = ["ContainerRuntime"]
 

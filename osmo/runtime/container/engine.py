@@ -9,9 +9,9 @@ What it owns:
   0600 auth file of a private folder that is deleted after the pull), group networks, and
   containers/networks found and removed by label (orphans after a ``kill -9``).
 
-The runs themselves are described, and turned into argv, by ``osmo.runtime.container_run``
-(pure; its names are re-exported here); ``osmo.runtime.container_runtime`` spawns them
-behind the runtime contract; ``osmo.runtime.container_pull`` runs a pull.
+The runs themselves are described, and turned into argv, by ``osmo.runtime.container.run``
+(pure; its names are re-exported here); ``osmo.runtime.container.runs`` spawns them
+behind the runtime contract; ``osmo.runtime.container.pull`` runs a pull.
 
 Decisions, checked with podman 4.3 and the docker 28 CLI (``tests/containers``):
 
@@ -34,8 +34,8 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from osmo.runtime.container_pull import ImageError, pull_image
-from osmo.runtime.container_run import (
+from osmo.runtime.container.pull import ImageError, pull_image
+from osmo.runtime.container.run import (
     DATA_OUTPUT,
     SECRET_ENV_PATH,
     ContainerError,
