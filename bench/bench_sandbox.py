@@ -2,7 +2,7 @@
 
 Rows:
 
-- spawn + reap of `true` through ``ProcessRuntime``, unsandboxed (with its parent-death
+- spawn + reap of `true` through ``ProcessGroups``, unsandboxed (with its parent-death
   ``preexec_fn``) and in the sandbox, in ms per spawn (one at a time);
 - what each part of the sandbox's argv costs: `bwrap ... true` showing the system folders
   alone, then one part added (``--dev /dev``; ``--proc`` with ``--unshare-pid``; the
@@ -54,7 +54,7 @@ from bench_inputs import fan_out_reading  # noqa: E402
 from benchlib import quick, row, write_rows  # noqa: E402
 
 from osmo.options import ServerOptions  # noqa: E402
-from osmo.runtime import ProcessRuntime  # noqa: E402
+from osmo.runtime import ProcessGroups  # noqa: E402
 from osmo.runtime.process.netns import Entry  # noqa: E402
 from osmo.runtime.process.sandbox import Sandbox, View, choose, node_network  # noqa: E402
 
@@ -68,7 +68,7 @@ def _work(folder: Path, sandbox: Sandbox) -> Path:
     return work
 
 
-def spawn_ms(runtime: ProcessRuntime, folder: Path, n: int, sandboxed: bool) -> float:
+def spawn_ms(runtime: ProcessGroups, folder: Path, n: int, sandboxed: bool) -> float:
     """Median ms to start `true` and collect its exit."""
     work = folder / "work"
     work.mkdir(exist_ok=True)
@@ -243,9 +243,9 @@ def main() -> None:
     with tempfile.TemporaryDirectory(dir=args.base) as folder:
         os.chmod(folder, 0o755)
         for _ in range(args.runs):
-            spawns["off"].append(spawn_ms(ProcessRuntime(), Path(folder), args.spawns, False))
+            spawns["off"].append(spawn_ms(ProcessGroups(), Path(folder), args.spawns, False))
             _work(Path(folder), sandbox)
-            spawns["on"].append(spawn_ms(ProcessRuntime(sandbox), Path(folder), args.spawns,
+            spawns["on"].append(spawn_ms(ProcessGroups(sandbox), Path(folder), args.spawns,
                                          True))
         flags = flag_costs(sandbox, Path(folder), args.flags)
         namespaces = namespace_costs(sandbox, Path(folder), args.spawns, max(args.runs, 3))

@@ -17,6 +17,7 @@ from collections.abc import Callable
 from osmo.artifacts import Manifest
 from osmo.errors import OsmoError
 from osmo.executor import Executor
+from osmo.runtime.choose import in_container
 from osmo.scheduler.types import (
     AttemptExited,
     AttemptPrepared,
@@ -103,7 +104,7 @@ class Placements:
             sources = cache.input_sources(self._store, cmd)
             spec = self._specs[cmd.workflow_id]
             task = spec.task(cmd.task)
-            contained = self._image_ids is not None and task.image is not None and not task.type
+            contained = self._image_ids is not None and in_container(task)
             image_id = (self._image_ids(cmd.workflow_id, task.image)
                         if self._image_ids is not None and task.image is not None else None)
             key = cache.key(cmd, task, sources, contained=contained, image_id=image_id)

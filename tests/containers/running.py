@@ -1,4 +1,4 @@
-"""Drive a ``ContainerRuntime`` handle the way the worker pool does: pipes and the exit fd."""
+"""Drive a ``ContainerRuns`` handle the way the worker pool does: pipes and the exit fd."""
 
 from __future__ import annotations
 
@@ -8,9 +8,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from osmo.runtime.container import ContainerRun
-from osmo.runtime.container.runs import ContainerRuntime
-from osmo.runtime.process.groups import ProcessHandle
+from osmo.runtime import ProcessHandle
+from osmo.runtime.container import ContainerRun, ContainerRuns
 
 TIMEOUT = 60.0
 
@@ -19,7 +18,7 @@ TIMEOUT = 60.0
 class Run:
     """A started container and what it wrote so far."""
 
-    runtime: ContainerRuntime
+    runtime: ContainerRuns
     handle: ProcessHandle
     out: bytearray = field(default_factory=bytearray)
     err: bytearray = field(default_factory=bytearray)
@@ -73,7 +72,7 @@ class Run:
         return got
 
 
-def start(runtime: ContainerRuntime, run: ContainerRun, cwd: Path,
+def start(runtime: ContainerRuns, run: ContainerRun, cwd: Path,
           env: dict[str, str] | None = None) -> Run:
     """Start ``run`` (its argv; ``env`` as the container's environment)."""
     handle = runtime.start(run.argv, cwd=cwd, env=env if env is not None else dict(run.env),
