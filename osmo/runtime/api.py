@@ -60,7 +60,8 @@ from osmo.scheduler.types import PrepareAttempt
 from osmo.spec.model import ResourceSpec, TaskSpec
 
 __all__ = ["HOST_PATHS", "Attempt", "ConnectError", "Connector", "ExecCommand",
-           "Launch", "Paths", "PrepareError", "ProcessHandle", "Runtime", "StartError", "dial"]
+           "Launch", "Paths", "PrepareError", "ProcessHandle", "Runtime", "SocketMaker",
+           "StartError", "dial"]
 
 class StartError(OsmoError):
     """A command could not be started (not found, not executable, bad working folder)."""
@@ -312,22 +313,20 @@ class Runtime(Protocol):
 _CONNECT_TIMEOUT = 5.0
 
 
-def dial(host: str, port: int, *, udp: bool,
-         make: Callable[[bool], socket.socket] | None = None) -> socket.socket:
-    """A socket connected to ``host:port``.
+SocketMaker = Callable[[socket.AddressFamily, socket.SocketKind], socket.socket]
+"""``(family, kind) → a new socket`` (one inside a network namespace)."""
 
-    ``make(udp)``: makes the socket to connect (one inside a network namespace); default: a
-    new one of ``host``'s family.
+
+def dial(host: str, port: int, *, udp: bool, make: SocketMaker = socket.socket
+         ) -> socket.socket:
+    """A socket of ``host``'s family, made by ``make``, connected to ``host:port``.
 
     Raises:
         ConnectError: ``cannot connect to HOST:PORT: <why>``.
     """
     try:
-        if make is not None:
-            made = make(udp)
-        else:
-            made = socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET,
-                                 socket.SOCK_DGRAM if udp else socket.SOCK_STREAM)
+        made = make(socket.AF_INET6 if ":" in host else socket.AF_INET,
+                    socket.SOCK_DGRAM if udp else socket.SOCK_STREAM)
         try:
             made.settimeout(_CONNECT_TIMEOUT)
             made.connect((host, port))

@@ -25,9 +25,9 @@ import ipaddress
 import os
 import socket
 import sys
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 
-from osmo.runtime.api import ConnectError, Connector, dial
+from osmo.runtime.api import ConnectError, Connector, SocketMaker, dial
 
 __all__ = ["listener_connector", "task_listener", "task_pids"]
 
@@ -66,12 +66,11 @@ def task_listener(pid: int, port: int, *, udp: bool = False) -> str | None:
     return None
 
 
-def listener_connector(pid: int,
-                       make: Callable[[bool], socket.socket] | None = None) -> Connector:
+def listener_connector(pid: int, make: SocketMaker = socket.socket) -> Connector:
     """Port-forward's way to the task whose main process is ``pid``: to its own listeners only.
 
-    ``make(udp)``: makes the socket to connect, inside the task's network namespace when it
-    has one of its own (default: the node's).
+    ``make``: makes the socket to connect, inside the task's network namespace when it has
+    one of its own (default: the node's).
     """
     def connect(port: int, udp: bool) -> socket.socket:
         host = task_listener(pid, port, udp=udp)

@@ -27,7 +27,6 @@ the node's shared namespaces ``osmo.runtime.process.netns``. What it owns:
 from __future__ import annotations
 
 import os
-import socket
 import stat
 from collections.abc import Callable, Sequence
 from dataclasses import replace
@@ -153,7 +152,7 @@ class SandboxRuntime:
 
     def connector(self, launch: Launch, handle: ProcessHandle) -> Connector:
         """To the ports a process of the task listens on, from inside the node's network."""
-        return listener_connector(handle.pid, self._socket)
+        return listener_connector(handle.pid, self.network.socket)
 
     def cleanup(self, launch: Launch) -> None:
         """Nothing of its own to remove."""
@@ -161,10 +160,6 @@ class SandboxRuntime:
     def close(self) -> None:
         """End the node's namespaces (slirp4netns and the keeper)."""
         self.network.close()
-
-    def _socket(self, udp: bool) -> socket.socket:
-        return self.network.socket(socket.AF_INET, socket.SOCK_DGRAM if udp
-                                   else socket.SOCK_STREAM)
 
 
 
