@@ -73,7 +73,7 @@ class Runtimes:
         container: how tasks run in their images here (None: this node runs no containers).
     """
 
-    def __init__(self, process: ProcessRuntime | SandboxRuntime,
+    def __init__(self, process: ProcessRuntime,
                  container: ContainerRuntime | None = None) -> None:
         self.process, self.container = process, container
 
@@ -104,7 +104,7 @@ class Runtimes:
 
 
 def processes_for_node(mode: SandboxMode, shares: Sequence[str], *, home: Path,
-                       address: str | None, pool: str) -> ProcessRuntime | SandboxRuntime:
+                       address: str | None, pool: str) -> ProcessRuntime:
     """How a node's tasks run as host processes: in bubblewrap, in the node's namespaces, or not.
 
     Args:

@@ -39,14 +39,13 @@ import subprocess
 import time
 import uuid
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from osmo.runtime.api import Launch, ProcessHandle, Runtime
 
-__all__ = ["check_runtime"]
+__all__ = ["Pipes", "check_runtime"]
 
 _SECRET = "conformance-s3cr3t-V4lue"
 _TERM, _KILL = 128 + 15, 128 + 9
@@ -81,19 +80,22 @@ def check_runtime(runtime: Runtime, folder: str | os.PathLike[str], *,
                              + "\n  - ".join(check.problems))
 
 
-@dataclass
-class _Started:
-    """A started launch and what it wrote so far."""
+class Pipes:
+    """A started launch's pipes and exit, read as the pool's reactor reads them.
 
-    runtime: Runtime
-    launch: Launch
-    handle: ProcessHandle
-    out: bytearray = field(default_factory=bytearray)
-    err: bytearray = field(default_factory=bytearray)
-    eof: set[int] = field(default_factory=set)
-    code: int | None = None
+    Attributes:
+        handle: the launch's handle.
+        out, err: what its stdout and stderr gave so far.
+        eof: the pipes that reached their end.
+    """
+
+    def __init__(self, handle: ProcessHandle) -> None:
+        self.handle = handle
+        self.out, self.err = bytearray(), bytearray()
+        self.eof: set[int] = set()
 
     def ended(self) -> bool:
+        """Whether the launch ended (its exit descriptor is readable)."""
         with selectors.DefaultSelector() as sel:
             sel.register(self.handle.exit_fd, selectors.EVENT_READ)
             return bool(sel.select(0))
@@ -127,6 +129,15 @@ class _Started:
                 return False
             self.pump(0.1)
         return True
+
+
+class _Started(Pipes):
+    """A started launch of the check, and its exit code once reaped."""
+
+    def __init__(self, runtime: Runtime, launch: Launch, handle: ProcessHandle) -> None:
+        super().__init__(handle)
+        self.runtime, self.launch = runtime, launch
+        self.code: int | None = None
 
     def finish(self, timeout: float) -> int | None:
         """Wait for its end, read the rest, reap and release; the exit code (None: no end)."""

@@ -59,17 +59,17 @@ class ProcessRuntime:
         why: why there is no sandbox, in a few words (``osmo resource list``).
         warning: what the node says once at start (``auto`` found no sandbox: nobody chose
             to run tasks unsandboxed); None when the operator chose it.
+        groups: what spawns its commands (default: unsandboxed process groups).
 
     Attributes:
-        sandbox: always None (the sandboxed runtime's is its bubblewrap).
+        sandbox: the bubblewrap its commands run in: None here (``SandboxRuntime``'s).
     """
 
-    sandbox: Sandbox | None = None
-
     def __init__(self, *, note: str | None = None, why: str | None = None,
-                 warning: str | None = None) -> None:
+                 warning: str | None = None, groups: ProcessGroups | None = None) -> None:
         self.note, self.why, self.warning = note, why, warning
-        self._groups = ProcessGroups()
+        self.sandbox: Sandbox | None = None
+        self._groups = groups or ProcessGroups()
 
     def describe(self) -> str:
         """``process``."""
@@ -93,11 +93,17 @@ class ProcessRuntime:
         return self._groups.start(launch.argv, cwd=launch.cwd, env=launch.env)
 
     def kill(self, handle: ProcessHandle, *, force: bool = False) -> None:
-        """SIGTERM (SIGKILL when ``force``) to its process group."""
+        """SIGTERM (SIGKILL when ``force``) to its process group.
+
+        In a sandbox, SIGTERM goes to every process in it but bwrap's (``ProcessGroups``).
+        """
         self._groups.kill(handle, force=force)
 
     def reap(self, handle: ProcessHandle) -> int:
-        """Its exit code; what is left of its group is killed."""
+        """Its exit code; what is left of its group is killed.
+
+        ``handle.setup_failed``: a sandbox's command never ran.
+        """
         return self._groups.reap(handle)
 
     def release(self, handle: ProcessHandle) -> None:

@@ -46,7 +46,7 @@ from osmo.runtime.api import (
 from osmo.runtime.process.groups import ProcessGroups
 from osmo.runtime.process.netns import NodeNetwork
 from osmo.runtime.process.ports import listener_connector
-from osmo.runtime.process.runtime import image_note, term_env
+from osmo.runtime.process.runtime import ProcessRuntime, image_note, term_env
 from osmo.runtime.process.sandbox import Sandbox, View
 from osmo.scheduler.types import PrepareAttempt
 
@@ -57,32 +57,26 @@ SANDBOX_PATHS = Paths(linked_inputs=True)
 _MAX_INPUT_BINDS = 2000  # each is 3 bubblewrap arguments; bubblewrap takes at most 9,000
 
 
-class SandboxRuntime:
+class SandboxRuntime(ProcessRuntime):
     """Host processes in bubblewrap, in the node's namespaces (see the module docstring).
+
+    A process runtime whose launches are sandboxed: its description, kill, reap, release
+    and clean-up are the process runtime's (over a sandboxing ``ProcessGroups``).
 
     Args:
         sandbox: a working sandbox that joined ``network``.
         network: the node's namespaces its tasks share (closed with the runtime).
         hidden: folders no task sees (osmo's home).
         note: a line for each attempt's log (what its network lacks); None: nothing to say.
-
-    Attributes:
-        why, warning: None (a sandbox runs; see ``ProcessRuntime``).
     """
-
-    why: str | None = None
-    warning: str | None = None
 
     def __init__(self, sandbox: Sandbox, network: NodeNetwork, *, hidden: Sequence[Path] = (),
                  note: str | None = None) -> None:
-        self.sandbox, self.network, self.note = sandbox, network, note
+        super().__init__(note=note, groups=ProcessGroups(sandbox))
+        self.sandbox: Sandbox = sandbox
+        self.network = network
         self._hidden = [Path(p).absolute() for p in hidden]
         self._masked: list[Path] = []
-        self._groups = ProcessGroups(sandbox)
-
-    def describe(self) -> str:
-        """``process`` (sandboxed or not, tasks run as host processes)."""
-        return "process"
 
     def hide(self, path: Path) -> None:
         """Also hide ``path`` from every task started after this call.
@@ -125,18 +119,6 @@ class SandboxRuntime:
         return self._groups.start(launch.argv, cwd=launch.cwd, env=launch.env,
                                   view=_view(launch))
 
-    def kill(self, handle: ProcessHandle, *, force: bool = False) -> None:
-        """SIGTERM to the sandbox's processes but bwrap's; SIGKILL to them all when ``force``."""
-        self._groups.kill(handle, force=force)
-
-    def reap(self, handle: ProcessHandle) -> int:
-        """Its exit code (``handle.setup_failed``: the command never ran)."""
-        return self._groups.reap(handle)
-
-    def release(self, handle: ProcessHandle) -> None:
-        """Close its descriptors."""
-        self._groups.release(handle)
-
     def exec(self, launch: Launch, command: Sequence[str], *, tty: bool,
              term: str | None) -> ExecCommand:
         """``command`` in a new sandbox over the attempt's view, in the node's namespaces.
@@ -153,9 +135,6 @@ class SandboxRuntime:
     def connector(self, launch: Launch, handle: ProcessHandle) -> Connector:
         """To the ports a process of the task listens on, from inside the node's network."""
         return listener_connector(handle.pid, self.network.socket)
-
-    def cleanup(self, launch: Launch) -> None:
-        """Nothing of its own to remove."""
 
     def close(self) -> None:
         """End the node's namespaces (slirp4netns and the keeper)."""
