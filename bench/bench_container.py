@@ -7,7 +7,7 @@ busy moment of a shared machine hits all of them alike:
 - **limit: bare `podman run --rm` of `true`** — ``podman run --rm --pull=never IMAGE true``
   from this process, until the CLI exits: image already present, default network, no init.
   The floor for any container task here; osmo's container row is compared with it.
-- **`podman run` with osmo's options** — the argv ``osmo.runtime.container_run.run_argv``
+- **`podman run` with osmo's options** — the argv ``osmo.runtime.container.run.run_argv``
   makes for a task (``--init``, ``--user``, labels, an input and an output bind, a few
   variables) running ``true``: what osmo's choice of options costs, without the pool.
 - **`osmo submit` of a 1-task container workflow** — SDK submit of one task with

@@ -2,13 +2,13 @@
 
 Rows:
 
-- spawn + reap of `true` through ``ProcessRuntime``, unsandboxed (with its parent-death
+- spawn + reap of `true` through ``ProcessGroups``, unsandboxed (with its parent-death
   ``preexec_fn``) and in the sandbox, in ms per spawn (one at a time);
 - what each part of the sandbox's argv costs: `bwrap ... true` showing the system folders
   alone, then one part added (``--dev /dev``; ``--proc`` with ``--unshare-pid``; the
   private ``/tmp``; the IPC and UTS namespaces; an attempt's view), and osmo's whole argv
   without entering the node's namespaces, in ms per run (one at a time, interleaved);
-- the node's namespaces (``osmo.runtime.netns``): what making them costs a server or worker
+- the node's namespaces (``osmo.runtime.process.netns``): what making them costs a server or worker
   once (the keeper and slirp4netns; also what a network per task would cost each task), and
   what a start costs, two at a time on 2 cores (so CPU shows), with and without entering
   them, against the sandbox before them (``--ro-bind / /`` on the host's network, as root);
@@ -54,9 +54,9 @@ from bench_inputs import fan_out_reading  # noqa: E402
 from benchlib import quick, row, write_rows  # noqa: E402
 
 from osmo.options import ServerOptions  # noqa: E402
-from osmo.runtime import ProcessRuntime  # noqa: E402
-from osmo.runtime.netns import Entry  # noqa: E402
-from osmo.runtime.sandbox import Sandbox, View, choose, node_network  # noqa: E402
+from osmo.runtime import ProcessGroups  # noqa: E402
+from osmo.runtime.process.netns import Entry  # noqa: E402
+from osmo.runtime.process.sandbox import Sandbox, View, choose, node_network  # noqa: E402
 
 
 def _work(folder: Path, sandbox: Sandbox) -> Path:
@@ -68,7 +68,7 @@ def _work(folder: Path, sandbox: Sandbox) -> Path:
     return work
 
 
-def spawn_ms(runtime: ProcessRuntime, folder: Path, n: int, sandboxed: bool) -> float:
+def spawn_ms(runtime: ProcessGroups, folder: Path, n: int, sandboxed: bool) -> float:
     """Median ms to start `true` and collect its exit."""
     work = folder / "work"
     work.mkdir(exist_ok=True)
@@ -243,9 +243,9 @@ def main() -> None:
     with tempfile.TemporaryDirectory(dir=args.base) as folder:
         os.chmod(folder, 0o755)
         for _ in range(args.runs):
-            spawns["off"].append(spawn_ms(ProcessRuntime(), Path(folder), args.spawns, False))
+            spawns["off"].append(spawn_ms(ProcessGroups(), Path(folder), args.spawns, False))
             _work(Path(folder), sandbox)
-            spawns["on"].append(spawn_ms(ProcessRuntime(sandbox), Path(folder), args.spawns,
+            spawns["on"].append(spawn_ms(ProcessGroups(sandbox), Path(folder), args.spawns,
                                          True))
         flags = flag_costs(sandbox, Path(folder), args.flags)
         namespaces = namespace_costs(sandbox, Path(folder), args.spawns, max(args.runs, 3))

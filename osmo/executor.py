@@ -1,9 +1,11 @@
 """The executor port: what runs attempts for the server's engine.
 
-The local pool (``osmo.worker.pool.LocalPool``: host processes on the server's machine) and
-the remote-worker hub (``osmo.server.workers.WorkerHub``: workers reached over zenoh)
-implement it today; a container runtime or a Kubernetes executor (one pod per attempt)
-implements the same five methods. The engine owns its executors and hands each command to
+The local pool (``osmo.worker.pool.LocalPool``: the attempts of the server's machine) and
+the remote-worker hub (``osmo.server.workers.WorkerHub``: workers reached over zenoh, each
+running its own local pool) implement it. How a pool runs one attempt — a host process,
+sandboxed or not, or a container — is a runtime's (``osmo.runtime``), as a Kubernetes pod or
+a Slurm job per attempt will be; an executor of another kind implements the same five
+methods. The engine owns its executors and hands each command to
 the one that :meth:`~Executor.owns` the command's node; every command carries its node.
 
 An executor reports what happens through the callable it was built with (``emit``): the

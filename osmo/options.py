@@ -39,7 +39,7 @@ __all__ = ["DEFAULT_LOG_LIMIT", "MIN_LOG_LIMIT", "SANDBOX_MODES", "SandboxMode",
 
 SandboxMode = Literal["auto", "on", "off"]
 """Whether process tasks run in bubblewrap: when it works here, always, never
-(``osmo.runtime.sandbox.choose``)."""
+(``osmo.runtime.process.sandbox.choose``)."""
 SANDBOX_MODES: tuple[SandboxMode, ...] = ("auto", "on", "off")
 
 DEFAULT_LOG_LIMIT = 64 << 20
@@ -152,7 +152,7 @@ class ServerOptions:
         sandbox_share: host folders every sandboxed task sees (``--sandbox-share DIR``:
             writable, ``DIR:ro``: read-only).
         runtime: how the local pool runs image tasks: ``auto``, ``container`` or ``process``
-            (``osmo.worker.containers.choose``).
+            (``osmo.runtime.choose.container_engine``).
         container_engine: ``podman`` or ``docker`` (default: the first that answers).
         log_limit: bytes each attempt's log keeps at most, on the local pool and as stored
             from remote workers' batches (``osmo.worker.logs``).

@@ -136,7 +136,7 @@ class Osmo:
         self.env.setdefault("OSMO_RUNTIME", "process")  # image tasks: tests/containers
         # Tests hand gate and marker files to tasks through their tmp folder: shared with the
         # sandbox explicitly (a sandboxed task has its own empty /tmp otherwise), and open to
-        # the tasks' uid (a root server's are nobody: osmo.runtime.sandbox).
+        # the tasks' uid (a root server's are nobody: osmo.runtime.process.sandbox).
         self.env.setdefault("OSMO_SANDBOX_SHARE", str(home.parent))
         if home.parent.is_dir() and home.parent != Path(tempfile.gettempdir()):
             home.parent.chmod(0o1777)
@@ -303,7 +303,7 @@ def tmp_path(tmp_path: Path) -> Path:
     """pytest's ``tmp_path``, which any user may enter and add to (mode 1777).
 
     Tests share it with their tasks (``Osmo``), and a root server's sandboxed tasks are
-    ``nobody`` on the host (``osmo.runtime.sandbox``): pytest's 0700 would shut them out.
+    ``nobody`` on the host (``osmo.runtime.process.sandbox``): pytest's 0700 would shut them out.
     """
     tmp_path.chmod(0o1777)
     return tmp_path

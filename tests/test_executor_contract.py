@@ -54,7 +54,7 @@ class Harness:
 def _local_pool(tmp_path: Path) -> Iterator[Harness]:
     events: queue.Queue[Any] = queue.Queue()
     home = Home(tmp_path / "home")
-    pool = LocalPool(home=home.root, emit=events.put, kill_grace=1.0,
+    pool = LocalPool(home=home, emit=events.put, kill_grace=1.0,
                      artifacts=ArtifactStore(home.artifacts))
     yield Harness(pool, events, LOCAL_NODE)
     pool.close()
@@ -161,7 +161,7 @@ def test_the_kit_catches_a_second_final_report(tmp_path: Path) -> None:
         if type(event).__name__ == "AttemptExited" and event.attempt_id.endswith(":exit3:0"):
             events.put(event)  # reported twice
 
-    pool = LocalPool(home=tmp_path, emit=emit)
+    pool = LocalPool(home=Home(tmp_path), emit=emit)
     try:
         with pytest.raises(AssertionError, match=r"exit3:0: 2 final reports"):
             check_executor(pool, events, LOCAL_NODE)
@@ -171,7 +171,7 @@ def test_the_kit_catches_a_second_final_report(tmp_path: Path) -> None:
 
 def test_the_kit_catches_ignored_kills_and_foreign_nodes(tmp_path: Path) -> None:
     events: queue.Queue[Any] = queue.Queue()
-    broken = _Broken(LocalPool(home=tmp_path, emit=events.put), ignore_kills=True)
+    broken = _Broken(LocalPool(home=Home(tmp_path), emit=events.put), ignore_kills=True)
     try:
         with pytest.raises(AssertionError) as err:
             check_executor(broken, events, "elsewhere", timeout=3)

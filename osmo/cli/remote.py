@@ -51,7 +51,7 @@ def run_worker(args: argparse.Namespace) -> int:
     """``osmo worker``: run until SIGINT (leave now) or SIGTERM (drain, then leave)."""
     from osmo.worker.remote import RemoteWorker
 
-    worker = RemoteWorker(_worker_home(args).root, WorkerOptions.from_args(args))
+    worker = RemoteWorker(_worker_home(args), WorkerOptions.from_args(args))
     signal.signal(signal.SIGINT, lambda *_: worker.stop())
     signal.signal(signal.SIGTERM, lambda *_: threading.Thread(
         target=worker.drain, name="osmo-drain", daemon=True).start())

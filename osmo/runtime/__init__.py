@@ -1,17 +1,49 @@
-"""Runtimes: how an attempt's command is run (host processes today; containers later)."""
+"""Runtimes: how an attempt runs on a node, from its launch to its clean-up.
 
-from osmo.runtime.process import (
+One folder per runtime family, one module per runtime:
+
+- ``api`` — the contract every runtime keeps (:class:`Runtime`: one method per concern,
+  in the order the pool calls them) and its types (:class:`Launch`, :class:`Paths`, ...);
+  ``osmo.testing.check_runtime`` checks a runtime against it.
+- ``choose`` — the one chooser: which runtimes a node has, and which runs each attempt.
+- ``process/`` — host processes: ``runtime`` (plain), ``sandboxed`` (in bubblewrap),
+  and what they share (``groups``: process groups; ``sandbox``; ``netns``; ``proctable``;
+  ``ports``).
+- ``container/`` — the task's image: ``runtime`` (the runtime), ``engine`` (the only module
+  that runs podman or docker), ``run`` (argv), ``runs`` (a run's life), ``pull``,
+  ``images``, ``layout`` (OSMO's data layout), ``groups`` (group networks).
+
+A Kubernetes pod or a Slurm job is one more folder here, one more runtime for the chooser.
+Runtimes know nothing of the scheduler's state or of logs; the worker pool drives them.
+"""
+
+from osmo.runtime.api import (
+    HOST_PATHS,
+    Attempt,
+    ConnectError,
+    Connector,
+    ExecCommand,
+    Launch,
+    Paths,
+    PrepareError,
     ProcessHandle,
-    ProcessRuntime,
     Runtime,
     StartError,
-    exit_code_of,
 )
-from osmo.runtime.proctable import kill_stale, process_start_time
+from osmo.runtime.process.groups import ProcessGroups, exit_code_of
+from osmo.runtime.process.proctable import kill_stale, process_start_time
 
 __all__ = [
+    "HOST_PATHS",
+    "Attempt",
+    "ConnectError",
+    "Connector",
+    "ExecCommand",
+    "Launch",
+    "Paths",
+    "PrepareError",
+    "ProcessGroups",
     "ProcessHandle",
-    "ProcessRuntime",
     "Runtime",
     "StartError",
     "exit_code_of",

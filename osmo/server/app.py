@@ -40,6 +40,8 @@ from osmo.errors import InfrastructureError, OsmoError
 from osmo.executor import Executor
 from osmo.layout import Home
 from osmo.options import ServerOptions
+from osmo.runtime.choose import containers_for_node, image_ids
+from osmo.runtime.container.runtime import ContainerRuntime
 from osmo.scheduler import TaskState
 from osmo.scheduler.types import AttemptLost, Event, NodeUp
 from osmo.server.auth import Authenticator, TokenHandlers, accept_tokens, owner_token
@@ -70,7 +72,6 @@ from osmo.transport.rpc import ApiServer
 from osmo.transport.seal import Signer
 from osmo.transport.wire import PEER_ALLOW, PEER_DENY
 from osmo.transport.zenoh_link import Link
-from osmo.worker import containers
 from osmo.worker.pool import LocalPool
 from osmo.worker.procs import kill_recorded
 from osmo.worker.sessions import NodeSessions
@@ -133,8 +134,8 @@ class _Server:
         self.stopping = threading.Event()
         self.fatal: list[BaseException] = []
         self.home = home
-        boxes = containers.for_node(options.runtime, options.container_engine,
-                                    home.root) if options.local_pool else None
+        boxes = containers_for_node(options.runtime, options.container_engine,
+                                    home) if options.local_pool else None
         check_listeners(options.listen, options.zenoh_config, insecure=options.insecure)
         self.endpoints = [f"unixsock-stream/{_socket(home)}", *options.listen]
         self.store = Store(home.state_db)
@@ -162,7 +163,7 @@ class _Server:
         log.info("osmo server %s listening on %s (home %s)", os.getpid(),
                  ", ".join(self.endpoints or options.connect or []), home.root)
 
-    def _executors(self, options: ServerOptions, boxes: containers.ContainerTasks | None,
+    def _executors(self, options: ServerOptions, boxes: ContainerRuntime | None,
                    recovered: _Recovered) -> tuple[LocalPool | None, WorkerHub, Engine]:
         """The local pool (unless ``--no-local-pool``), the remote workers' hub, the engine.
 
@@ -170,7 +171,7 @@ class _Server:
         owns and closes them.
         """
         store, artifacts, inbox = self.store, self.artifacts, Inbox()
-        pool = LocalPool(home=self.home.root, emit=inbox.post,
+        pool = LocalPool(home=self.home, emit=inbox.post,
                          cpus=options.cpus, gpus=options.gpus, artifacts=artifacts,
                          credential_for=url_credential(store),
                          input_manifests=output_manifests(store),
@@ -193,8 +194,7 @@ class _Server:
                         datasets=Datasets(store, artifacts, self.home),
                         reuse=recovered.restored.reuse, restore=lambda: restore(store),
                         inflight=self.inflight, on_fatal=self._on_fatal,
-                        image_ids=containers.image_ids(options.runtime,
-                                                       options.container_engine, boxes))
+                        image_ids=image_ids(options.runtime, options.container_engine, boxes))
         return pool, hub, engine
 
     def _info(self, options: ServerOptions) -> dict[str, Any]:

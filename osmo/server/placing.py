@@ -17,6 +17,7 @@ from collections.abc import Callable
 from osmo.artifacts import Manifest
 from osmo.errors import OsmoError
 from osmo.executor import Executor
+from osmo.runtime.choose import container_image
 from osmo.scheduler.types import (
     AttemptExited,
     AttemptPrepared,
@@ -103,9 +104,10 @@ class Placements:
             sources = cache.input_sources(self._store, cmd)
             spec = self._specs[cmd.workflow_id]
             task = spec.task(cmd.task)
-            contained = self._image_ids is not None and task.image is not None and not task.type
-            image_id = (self._image_ids(cmd.workflow_id, task.image)
-                        if self._image_ids is not None and task.image is not None else None)
+            image = container_image(task) if self._image_ids is not None else None
+            image_id = self._image_ids(cmd.workflow_id, image) if (
+                self._image_ids is not None and image is not None) else None
+            contained = image is not None
             key = cache.key(cmd, task, sources, contained=contained, image_id=image_id)
             reuses = cache.reuses(spec, task, submitted=self._reuse.get(cmd.workflow_id))
             hit = cache.lookup(self._store, key) if key and reuses else None

@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from osmo.layout import Home
-from osmo.runtime.proctable import kill_stale
+from osmo.runtime.process.proctable import kill_stale
 from osmo.scheduler import Scheduler, TaskState, WorkflowState
 from osmo.scheduler.types import AttemptExited, AttemptStartFailed, Event
 from osmo.spec.model import WorkflowSpec

@@ -20,11 +20,12 @@ from collections.abc import Callable, Iterable
 from typing import Any
 
 from osmo.errors import OsmoError
+from osmo.runtime.choose import container_image
+from osmo.runtime.container.images import registry_credential
 from osmo.server.auth import refuse
 from osmo.spec.model import TaskSpec
 from osmo.transport.auth import Identity, Role
 from osmo.transport.wire import worker_id
-from osmo.worker.container_images import registry_credential
 from osmo.worker.secrets import SecretError, gather
 
 __all__ = ["WorkerAccess", "has_secrets", "task_secrets", "task_urls"]
@@ -133,7 +134,8 @@ def task_urls(task: TaskSpec) -> list[str]:
 def _registry(task: TaskSpec, credential: Credential, containers: bool
               ) -> dict[str, dict[str, str]]:
     """The stored credential of ``task``'s image registry, for a worker that pulls it."""
-    name = registry_credential(task) if containers else None
+    image = container_image(task) if containers else None
+    name = registry_credential(image) if image is not None else None
     payload = credential(name) if name is not None else None
     return {name: payload} if name is not None and payload is not None else {}
 

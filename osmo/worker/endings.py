@@ -1,16 +1,17 @@
-"""How an attempt of the local pool ends: its exit, its outputs, its final report.
+"""How an attempt of the local pool ends: its exit, its outputs, its one final report.
 
-A mixin of :class:`osmo.worker.pool.LocalPool`; see its module docstring for the threads.
-
-Whatever happens after the process exits — a promotion or ingest that raises anything, a log
-that cannot be written — the attempt gets exactly one ``AttemptExited`` (a failure carries
-its reason; a successful exit whose outputs could not be stored fails with exit code 3005),
-its credential files are deleted and its large input copies are removed, in every path.
+:class:`Ending` is one of the parts :class:`osmo.worker.pool.LocalPool` is made of (see its
+module docstring for the threads). Whatever happens after the launch ended — a promotion or
+ingest that raises anything, a log that cannot be written — the attempt gets exactly one
+``AttemptExited`` (a failure carries its reason; a successful exit whose outputs could not be
+stored fails with exit code 3005). In every path, before that report, its credential files
+are deleted, its GPUs are free again and its runtime lets go of what it held for it
+(``Runtime.cleanup``, which returns at once: a container group's network is removed in the
+runtime's background); its large input copies are removed on an I/O thread.
 """
 
 from __future__ import annotations
 
-import collections
 import logging
 import signal
 from collections.abc import Callable
@@ -18,71 +19,78 @@ from concurrent.futures import ThreadPoolExecutor
 
 from osmo.artifacts import ArtifactStore
 from osmo.artifacts.fsops import remove_tree
-from osmo.runtime.process import ProcessHandle, Runtime
 from osmo.scheduler.types import AttemptExited, AttemptStartFailed, Event
 from osmo.spec.model import ExitAction
-from osmo.worker.live import AttemptState, LiveAttempt
-from osmo.worker.logs import exit_note
+from osmo.worker.live import Attempts, AttemptState, LiveAttempt
+from osmo.worker.machine import GpuSlots
 from osmo.worker.reactor import Reactor
 from osmo.worker.transfer import CredentialLookup, DeliveryError, deliver
-from osmo.worker.workdir import Launch, remove_secret_files
+from osmo.worker.workdir import remove_secret_files
 
-__all__ = ["KILLED_BEFORE_START", "AttemptEndings"]
+__all__ = ["KILLED_BEFORE_START", "Ending"]
 
 _log = logging.getLogger("osmo.worker.pool")
 
-_REMEMBER_FINISHED = 4096  # finished ids kept to ignore late run()/kill() for them
 KILLED_BEFORE_START = 128 + signal.SIGKILL  # the exit code of an attempt killed before it ran
 
 
-class AttemptEndings:
-    """The ends of attempts (a mixin: the pool provides what is declared here)."""
+class Ending:
+    """The ends of the pool's attempts (reactor thread, but for its own I/O-thread steps).
 
-    _emit: Callable[[Event], None]
-    _reactor: Reactor
-    _runtime: Runtime
-    _io: ThreadPoolExecutor
-    _attempts: dict[str, LiveAttempt]
-    _finished: collections.OrderedDict[str, None]
-    _artifacts: ArtifactStore | None
-    _credential_for: CredentialLookup | None
-    _max_output_files: int | None
-    _reap: Callable[[ProcessHandle], int]
-    _ended: Callable[[Launch], None]  # lets an ended container's GPUs and network go
-    _setup_failed: Callable[[LiveAttempt], None]  # its sandbox could not be set up
+    Args:
+        attempts: the pool's table.
+        reactor: the pool's reactor.
+        io: the pool's I/O threads.
+        emit: where reports go.
+        gpus: the pool's GPU assignment (an ended attempt's indices are free again).
+        artifacts: where promoted outputs are ingested (None: not ingested).
+        credential_for: ``url -> credential`` for ``url`` outputs.
+        max_output_files: the most files one attempt's output may hold.
+    """
 
-    def _exited(self, attempt: LiveAttempt) -> None:
-        handle = attempt.handle
-        assert handle is not None
-        self._reactor.remove_reader(handle.exit_fd)
-        code = self._reap(handle)
-        try:
-            attempt.drain(self._reactor, handle)
-            self._runtime.release(handle)
-            if attempt.escalation is not None:
-                attempt.escalation.cancel()
-            if attempt.checkpoints is not None:
-                attempt.checkpoints.stop()
-            attempt.log.flush_partial()
-            if handle.setup_failed:  # the command never ran
-                if attempt.kill_reason is None:
-                    self._setup_failed(attempt)  # try again, or fail its start
-                    return
-                code = KILLED_BEFORE_START
-            attempt.log.line("osmo", exit_note(code))
-        except Exception as exc:  # noqa: BLE001 - e.g. a full disk: still one final report
-            _log.exception("finishing %s failed", attempt.id)
-            self._finish(attempt, AttemptExited(attempt.id, code, None,
-                                                f"its end could not be recorded: {exc!r}"))
-            return
+    def __init__(self, *, attempts: Attempts, reactor: Reactor, io: ThreadPoolExecutor,
+                 emit: Callable[[Event], None], gpus: GpuSlots,
+                 artifacts: ArtifactStore | None, credential_for: CredentialLookup | None,
+                 max_output_files: int | None) -> None:
+        self._attempts, self._reactor, self._io, self._emit = attempts, reactor, io, emit
+        self._gpus = gpus
+        self._artifacts, self._credential_for = artifacts, credential_for
+        self._max_output_files = max_output_files
+
+    def exited(self, attempt: LiveAttempt, code: int) -> None:
+        """Its launch ended with ``code`` (reaped and logged): report it, or promote first."""
         if attempt.kill_reason is not None:
-            self._finish(attempt, AttemptExited(attempt.id, code, None,
-                                                f"killed: {attempt.kill_reason}"))
+            self.finish(attempt, AttemptExited(attempt.id, code, None,
+                                               f"killed: {attempt.kill_reason}"))
         elif attempt.task.exit_action(code) is not ExitAction.COMPLETE:
-            self._finish(attempt, AttemptExited(attempt.id, code))
+            self.finish(attempt, AttemptExited(attempt.id, code))
         else:
             attempt.state = AttemptState.FINISHING
             self._io.submit(self._promote_io, attempt, code)
+
+    def finish(self, attempt: LiveAttempt,
+               event: AttemptExited | AttemptStartFailed | None) -> None:
+        """The attempt is over: its log closes, what it holds goes, ``event`` is reported."""
+        attempt.state = AttemptState.DONE
+        try:
+            attempt.log.close()
+        finally:  # a log that cannot be written must not keep the report (or a secret) back
+            remove_secret_files(attempt.launch)
+            self._gpus.give_back(attempt.id)
+            self._let_go(attempt)
+            self._attempts.drop(attempt.id)
+            if event is not None:
+                self._emit(event)
+
+    def abandon(self, attempt: LiveAttempt) -> None:
+        """The pool closes with ``attempt`` live: its log closes, its secret files go.
+
+        Nothing is reported; the runtimes' ``close`` removes what they still hold.
+        """
+        try:
+            attempt.log.close()
+        finally:
+            remove_secret_files(attempt.launch)
 
     def _promote_io(self, attempt: LiveAttempt, code: int) -> None:
         """I/O thread: last checkpoint, promote the outputs; report the exit.
@@ -96,10 +104,9 @@ class AttemptEndings:
                                     credential_for=self._credential_for,
                                     max_bytes=attempt.launch.max_output_bytes,
                                     max_files=self._max_output_files)
-            box = attempt.launch.container
             event = AttemptExited(attempt.id, code, ref, manifest=manifest,
                                   command=tuple(attempt.launch.argv),
-                                  image_id=box.image if box is not None else None)
+                                  image_id=attempt.launch.image_id)
         except Exception as exc:  # noqa: BLE001 - DeliveryError, or a bug: still one report
             if not isinstance(exc, DeliveryError):
                 _log.exception("promoting the outputs of %s failed", attempt.id)
@@ -113,38 +120,23 @@ class AttemptEndings:
         # Reported from here, one thread hop sooner; the reactor's bookkeeping follows (a
         # kill() that comes meanwhile finds it FINISHING and is ignored).
         self._emit(event)
-        self._reactor.call_soon(self._finish, attempt, None)
+        self._reactor.call_soon(self.finish, attempt, None)
 
     def _promoted(self, attempt: LiveAttempt, event: AttemptExited) -> None:
         try:
             if event.message:
                 attempt.log.line("osmo", event.message)
         finally:
-            self._finish(attempt, event)
+            self.finish(attempt, event)
 
-    def _finish(self, attempt: LiveAttempt,
-                event: AttemptExited | AttemptStartFailed | None) -> None:
-        attempt.state = AttemptState.DONE
+    def _let_go(self, attempt: LiveAttempt) -> None:
+        """Its runtime lets go of it; its large input copies go, off the reactor thread."""
         try:
-            attempt.log.close()
-        finally:  # a log that cannot be written must not keep the report (or a secret) back
-            remove_secret_files(attempt.launch)
-            self._drop_scratch(attempt.launch)
-            self._ended(attempt.launch)
-            self._attempts.pop(attempt.id, None)
-            self._remember(attempt.id)
-            if event is not None:
-                self._emit(event)
-
-    def _drop_scratch(self, launch: Launch) -> None:
-        """Delete an ended attempt's large input copies, off the reactor thread."""
-        for folder in launch.scratch:
+            attempt.runtime.cleanup(attempt.launch)
+        except Exception:  # noqa: BLE001 - a runtime's bug must not keep the report back
+            _log.exception("the runtime could not clean up after %s", attempt.id)
+        for folder in attempt.launch.scratch:
             try:
                 self._io.submit(remove_tree, folder, ignore_errors=True)
             except RuntimeError:  # closing: they go when the attempt is prepared again
                 return
-
-    def _remember(self, attempt_id: str) -> None:
-        self._finished[attempt_id] = None
-        while len(self._finished) > _REMEMBER_FINISHED:
-            self._finished.popitem(last=False)

@@ -1,11 +1,9 @@
-"""The process of an ``osmo workflow exec`` session: what it runs, and its terminal or pipes.
+"""The process of an ``osmo workflow exec`` session: its terminal or pipes.
 
-:func:`exec_argv` decides what runs: in a container task, ``<engine> exec -i [-t]`` into the
-attempt's container (its working folder and environment are the container's); in a
-process task, the command in the attempt's working folder with the attempt's complete
-environment, wrapped in a new bubblewrap sandbox over the attempt's own view when the
-attempt runs sandboxed (so it sees what the task sees, the node's network and uid included:
-a pid namespace of its own, not the task's processes).
+What runs, and where, is the attempt's runtime's (``Runtime.exec``, an
+``osmo.runtime.api.ExecCommand``): in a container task, ``<engine> exec -i [-t]`` into its
+container; in a process task, the command in the attempt's working folder with its complete
+environment, in a new sandbox over the attempt's own view when the attempt runs sandboxed.
 
 :class:`ExecProcess` runs it in a session of its own: with a TTY, on a fresh pseudo-terminal
 that becomes its controlling terminal (so a Ctrl-C byte from the client is a SIGINT to the
@@ -17,7 +15,6 @@ session (a process the command started inside a container lives until the contai
 
 from __future__ import annotations
 
-import contextlib
 import fcntl
 import os
 import select
@@ -27,56 +24,16 @@ import subprocess
 import termios
 import threading
 from collections.abc import Callable
-from dataclasses import dataclass, field
-from pathlib import Path
 
-from osmo.runtime.container import ContainerEngine
-from osmo.runtime.process import die_with_parent, exit_code_of
-from osmo.runtime.sandbox import Sandbox
-from osmo.transport.streams import CHUNK, SessionGrant
-from osmo.worker.workdir import Launch
+from osmo.runtime.api import ExecCommand
+from osmo.runtime.process.groups import die_with_parent, exit_code_of
+from osmo.transport.streams import CHUNK
 
-__all__ = ["DEFAULT_COMMAND", "ExecCommand", "ExecProcess", "exec_argv"]
+__all__ = ["DEFAULT_COMMAND", "ExecProcess"]
 
 DEFAULT_COMMAND = ("/bin/sh",)
+"""What an exec session runs when its client names no command."""
 _POLL = 0.2
-
-
-@dataclass(frozen=True)
-class ExecCommand:
-    """What an exec session runs; ``ctty``: its terminal becomes the spawned process's.
-
-    ``sandbox``: the sandbox ``argv`` runs in (it is spawned as that sandbox says: in the
-    node's network, with its descriptors).
-    """
-
-    argv: list[str]
-    cwd: Path
-    env: dict[str, str] = field(repr=False)
-    ctty: bool = True
-    sandbox: Sandbox | None = None
-
-
-def exec_argv(launch: Launch, grant: SessionGrant, sandbox: Sandbox | None,
-              engine: ContainerEngine | None) -> ExecCommand:
-    """What runs ``grant``'s command for the attempt ``launch`` describes.
-
-    In a sandbox with a TTY, the command is started by ``setsid -w -c`` inside it: a
-    session leader in the sandbox's own pid namespace, whose shell can then move its jobs
-    to the terminal's foreground (a leader outside the namespace is invisible to it).
-    """
-    command = list(grant.command or DEFAULT_COMMAND)
-    term = {"TERM": grant.term} if grant.tty else {}
-    if launch.container is not None and engine is not None:
-        argv = [engine.engine.path, "exec", "-i", *(["-t"] if grant.tty else []),
-                *(f"--env={k}={v}" for k, v in term.items()), launch.container.name, *command]
-        return ExecCommand(argv, launch.cwd, engine.env)
-    env = {**launch.env, **term}
-    if launch.view is not None and sandbox is not None:
-        inner = ["setsid", "-w", "-c", *command] if grant.tty else command
-        return ExecCommand(sandbox.argv(inner, launch.view), launch.cwd, env, ctty=False,
-                           sandbox=sandbox)
-    return ExecCommand(command, launch.cwd, env)
 
 
 def _winsize(rows: int, cols: int) -> bytes:
@@ -101,9 +58,8 @@ class ExecProcess:
         self._reaped = False
         self._master: int | None = None
         pdeath = die_with_parent()
-        box = command.sandbox
-        fds = box.fds if box is not None else ()
-        entered = box.entered() if box is not None else contextlib.nullcontext()
+        fds = command.pass_fds
+        entered = command.enter()
         if tty:
             master, slave = os.openpty()
             fcntl.ioctl(slave, termios.TIOCSWINSZ, _winsize(*size))

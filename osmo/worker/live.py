@@ -1,24 +1,28 @@
-"""One attempt's live state in the local pool, and reading its output pipes.
+"""The local pool's attempts: each one's live state, their table, and reading output pipes.
 
-Owned by the pool's reactor thread: nothing here is thread-safe, and nothing here decides
-what happens to an attempt (that is ``osmo.worker.pool``).
+Owned by the pool's reactor thread: nothing here is thread-safe (but for the one read
+:meth:`Attempts.running` documents), and nothing here decides what happens to an attempt
+(that is ``osmo.worker.pool`` and its parts).
 """
 
 from __future__ import annotations
 
+import collections
 import enum
 import os
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 from osmo.layout import AttemptDirs
-from osmo.runtime.process import ProcessHandle
+from osmo.runtime.api import Launch, ProcessHandle, Runtime
 from osmo.spec.model import TaskSpec
 from osmo.worker.checkpoints import Checkpointer
 from osmo.worker.logs import LogWriter
 from osmo.worker.reactor import Reactor, Timer
-from osmo.worker.workdir import Launch
 
-__all__ = ["AttemptState", "LiveAttempt"]
+__all__ = ["AttemptState", "Attempts", "LiveAttempt", "Running"]
+
+_REMEMBER_FINISHED = 4096  # finished ids kept to ignore late run()/kill() for them
 
 _READ_SIZE = 65536
 _DRAIN_READS = 64  # at exit, read at most this many chunks more per pipe
@@ -29,7 +33,7 @@ class AttemptState(enum.Enum):
     """Where an attempt is in the pool."""
 
     PREPARED = "prepared"
-    STARTING = "starting"  # a container group's peer, waiting for its lead to run
+    STARTING = "starting"  # waiting to start: for its lead (a container group's peer), or a retry
     RUNNING = "running"
     FINISHING = "finishing"  # exited; outputs being promoted on an I/O thread
     DONE = "done"
@@ -44,6 +48,7 @@ class LiveAttempt:
     dirs: AttemptDirs
     launch: Launch
     log: LogWriter
+    runtime: Runtime
     state: AttemptState = AttemptState.PREPARED
     handle: ProcessHandle | None = None
     open_fds: set[int] = field(default_factory=set)
@@ -85,3 +90,69 @@ class LiveAttempt:
                 if not self.read(reactor, fd, stream):
                     break
             self.unwatch(reactor, fd)
+
+
+@dataclass(frozen=True)
+class Running:
+    """A running attempt as another thread may see it (an exec or port-forward session)."""
+
+    runtime: Runtime
+    launch: Launch
+    handle: ProcessHandle
+
+
+class Attempts:
+    """The pool's live attempts by id, and the ids of those that finished lately."""
+
+    def __init__(self) -> None:
+        self._live: dict[str, LiveAttempt] = {}
+        self._finished: collections.OrderedDict[str, None] = collections.OrderedDict()
+
+    def get(self, attempt_id: str) -> LiveAttempt | None:
+        """The live attempt ``attempt_id`` (None: not live here)."""
+        return self._live.get(attempt_id)
+
+    def __contains__(self, attempt_id: object) -> bool:
+        return attempt_id in self._live
+
+    def __iter__(self) -> Iterator[LiveAttempt]:
+        return iter(list(self._live.values()))
+
+    def add(self, attempt: LiveAttempt) -> None:
+        """``attempt`` is live (prepared)."""
+        self._live[attempt.id] = attempt
+
+    def drop(self, attempt_id: str) -> None:
+        """``attempt_id`` ended: it is not live any more, and remembered as finished."""
+        self._live.pop(attempt_id, None)
+        self.remember(attempt_id)
+
+    def remember(self, attempt_id: str) -> None:
+        """Remember ``attempt_id`` as finished (late run or kill orders are ignored)."""
+        self._finished[attempt_id] = None
+        while len(self._finished) > _REMEMBER_FINISHED:
+            self._finished.popitem(last=False)
+
+    def finished(self, attempt_id: str) -> bool:
+        """Whether ``attempt_id`` finished here lately."""
+        return attempt_id in self._finished
+
+    def again(self, attempt_id: str) -> None:
+        """``attempt_id`` is prepared again (after a server restart): not finished now."""
+        self._finished.pop(attempt_id, None)
+
+    def clear(self) -> None:
+        """Forget every live attempt (the pool closed)."""
+        self._live.clear()
+
+    def running(self, attempt_id: str) -> Running | None:
+        """``attempt_id``'s runtime, launch and handle while it runs (None otherwise).
+
+        From any thread: one read of the table (atomic under the GIL), then of one
+        attempt's fields.
+        """
+        attempt = self._live.get(attempt_id)
+        if attempt is None or attempt.state is not AttemptState.RUNNING:
+            return None
+        handle = attempt.handle
+        return Running(attempt.runtime, attempt.launch, handle) if handle is not None else None

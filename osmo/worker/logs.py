@@ -330,11 +330,6 @@ def _copy(src: int, dst: int, offset: int, count: int) -> None:
 
 
 
-def image_note(image: str) -> str:
-    """The osmo log line noting an ``image`` the process runtime does not use."""
-    return f"image '{image}' recorded; the process runtime runs commands on the host"
-
-
 def exit_note(code: int) -> str:
     """The osmo log line for an exit code (naming the signal for 128+N)."""
     if code > 128 and code - 128 in signal.Signals._value2member_map_:

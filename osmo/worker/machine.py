@@ -1,6 +1,7 @@
-"""What this machine offers a local pool: cpus, memory, gpus, disk; and process limits.
+"""What this machine offers a local pool: cpus, memory, gpus, disk; its GPUs by index.
 
-Pure reads of /proc, /dev and the filesystem; no state.
+Reads of /proc, /dev and the filesystem, and process limits; :class:`GpuSlots` is the pool's
+one piece of state here: which GPU index each running attempt holds.
 """
 
 from __future__ import annotations
@@ -9,11 +10,12 @@ import glob
 import os
 import resource
 import shutil
+import threading
 from pathlib import Path
 
 from osmo.scheduler.types import Capacity
 
-__all__ = ["detect_capacity", "raise_fd_limit"]
+__all__ = ["GpuSlots", "detect_capacity", "raise_fd_limit"]
 
 
 def detect_capacity(home: Path, *, cpus: float | None = None, gpus: int | None = None,
@@ -56,3 +58,28 @@ def _mem_total() -> int:
     except OSError:
         pass
     return 0
+
+
+class GpuSlots:
+    """Which of a node's GPU indices each running attempt holds (the pool's assignment).
+
+    The scheduler counts GPUs; this names them, so two tasks never share one (a container
+    task sees exactly its own: ``osmo.runtime.container``). Thread-safe.
+    """
+
+    def __init__(self, count: int) -> None:
+        self._free = list(range(count))
+        self._held: dict[str, tuple[int, ...]] = {}
+        self._lock = threading.Lock()
+
+    def take(self, attempt_id: str, count: int) -> tuple[int, ...]:
+        """Assign ``count`` free indices to ``attempt_id`` (as many as are free)."""
+        with self._lock:
+            taken, self._free = tuple(self._free[:count]), self._free[count:]
+            self._held[attempt_id] = taken
+            return taken
+
+    def give_back(self, attempt_id: str) -> None:
+        """Free what ``attempt_id`` held (nothing held is fine)."""
+        with self._lock:
+            self._free = sorted([*self._free, *self._held.pop(attempt_id, ())])

@@ -1,11 +1,11 @@
 """A pool's record of the commands it runs, so that its next life can kill their leftovers.
 
-A task dies with its worker (``osmo.runtime.process``: bwrap's ``--die-with-parent``, or a
+A task dies with its worker (``osmo.runtime.process.groups``: bwrap's ``--die-with-parent``, or a
 parent-death signal) — except a sandbox still being set up when the worker is SIGKILLed:
 bubblewrap then runs on under init, and starts the command. What may be left after a crash
 — such a sandbox, an unsandboxed command's children — is found through this record: one line
 per started command in ``<folder>/running``, ``<pid> <start time>`` (so a pid reused by an
-unrelated process is never killed; ``osmo.runtime.proctable.kill_stale``), appended on the
+unrelated process is never killed; ``osmo.runtime.process.proctable.kill_stale``), appended on the
 spawning thread right after the spawn, before the start is reported. Appending a line costs a
 ``write`` (no file per command, no fsync: it must outlive the process, not the machine). The
 file is emptied whenever no recorded command runs any more.
@@ -20,7 +20,7 @@ import os
 import threading
 from pathlib import Path
 
-from osmo.runtime.proctable import kill_stale, process_start_time
+from osmo.runtime.process.proctable import kill_stale, process_start_time
 
 __all__ = ["ProcessRecords", "kill_recorded"]
 

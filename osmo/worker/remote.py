@@ -26,7 +26,7 @@ carried by the ``prepare`` order.
 Leftovers: the pool records each running command's pid and start time under ``<home>/procs``;
 a worker started on a home kills whatever a previous life left there before it announces
 itself (``osmo.worker.procs``), so a SIGKILLed worker's task never runs beside its
-rescheduled copy (tasks also die with their worker: ``osmo.runtime.process``).
+rescheduled copy (tasks also die with their worker: ``osmo.runtime.process.groups``).
 
 Drain (SIGTERM): the worker stops taking work (it re-registers with no capacity), lets
 running attempts finish for up to ``drain_timeout`` seconds and waits until their outputs
@@ -52,6 +52,7 @@ from osmo.config import write_json_atomic
 from osmo.errors import NotAllowed, OsmoError, UsageError
 from osmo.layout import Home
 from osmo.names import check_worker_name
+from osmo.runtime.choose import containers_for_node
 from osmo.scheduler.types import (
     LOCAL_NODE,
     AttemptExited,
@@ -79,7 +80,6 @@ from osmo.transport.wire import (
     order_from_dict,
 )
 from osmo.transport.zenoh_link import Link, Subscription
-from osmo.worker import containers
 from osmo.worker.held_inputs import HeldInputs
 from osmo.worker.options import WorkerOptions
 from osmo.worker.pool import LocalPool
@@ -103,9 +103,9 @@ class _Pending:
 class RemoteWorker:
     """One worker process (see the module docstring). ``run()`` blocks until stopped."""
 
-    def __init__(self, home: Path, options: WorkerOptions) -> None:
-        self.home = Path(home).absolute()
-        self.home.mkdir(parents=True, exist_ok=True)
+    def __init__(self, home: Home, options: WorkerOptions) -> None:
+        self.home = home  # absolute: osmo.config.open_home(worker=True)
+        home.root.mkdir(parents=True, exist_ok=True)
         self.opts = options
         self._address = options.address or _address()  # how peers reach its tasks
         self.id = check_worker_name(options.name or f"{socket.gethostname()}-{os.getpid()}",
@@ -114,8 +114,7 @@ class RemoteWorker:
             raise UsageError("a worker needs a token with role worker: --token, --token-file "
                              "or OSMO_TOKEN (an admin makes one with `osmo token create NAME "
                              "--role worker --pool POOL`)")
-        self._layout = Home(self.home)
-        self.store = ArtifactStore(self._layout.artifacts)
+        self.store = ArtifactStore(home.artifacts)
         self.link = Link.client(list(options.connect), options.cluster,
                                 config_file=options.zenoh_config)
         self._api = ApiClient(self.link, timeout=10.0, token=options.token)
@@ -139,21 +138,21 @@ class RemoteWorker:
         self._refused: NotAllowed | None = None  # the server refused to register it
         self._io = ThreadPoolExecutor(4, thread_name_prefix="osmo-inputs")
         self._token: Subscription | None = None
-        kill_recorded(self._layout.procs)  # before it announces itself
-        clear_runs(self._layout, self._io)  # a previous life's attempts were all rescheduled
-        limit = default_limit(self.home) if options.store_limit is None else options.store_limit
-        self._keeper = StoreKeeper(self.home, self.store, self._inputs, limit,
+        kill_recorded(home.procs)  # before it announces itself
+        clear_runs(home, self._io)  # a previous life's attempts were all rescheduled
+        limit = default_limit(home.root) if options.store_limit is None else options.store_limit
+        self._keeper = StoreKeeper(home, self.store, self._inputs, limit,
                                    self._protected, self._io)
         self.pool = LocalPool(
-            home=self.home, emit=self._emit, node_id=self.id, pool=options.pool,
+            home=home, emit=self._emit, node_id=self.id, pool=options.pool,
             cpus=options.cpus, gpus=options.gpus, memory=options.memory,
             kill_grace=options.kill_grace, artifacts=self.store,
             credential_for=self._url_creds.get, log_sink=self._send_log,
             log_limit=options.log_limit,
             input_manifests=self._inputs.manifest_of, sandbox=options.sandbox,
             sandbox_share=options.sandbox_share, address=self._address,
-            procs_dir=self._layout.procs,
-            containers=containers.for_node(options.runtime, options.container_engine, self.home))
+            procs_dir=home.procs,
+            containers=containers_for_node(options.runtime, options.container_engine, home))
         for secret in options.secret_files:
             self.pool.hide(Path(secret))
         self.sessions = NodeSessions(self.link, self.pool, lambda ticket: self._api.call(
@@ -249,7 +248,7 @@ class RemoteWorker:
         self.pool.close()
         self._io.shutdown(wait=False, cancel_futures=True)
         self.link.close()
-        self._layout.worker_health.unlink(missing_ok=True)
+        self.home.worker_health.unlink(missing_ok=True)
 
     # ------------------------------------------------------------------ registration
 
@@ -303,7 +302,7 @@ class RemoteWorker:
             state = {"id": self.id, "pid": os.getpid(), "connected": self._connected,
                      "draining": self._draining, "running": len(self._active),
                      "updated_at": time.time()}
-        write_json_atomic(self._layout.worker_health, state)
+        write_json_atomic(self.home.worker_health, state)
 
     # ------------------------------------------------------------------ orders
 

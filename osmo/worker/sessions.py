@@ -8,14 +8,16 @@ any zenoh peer can read orders. :class:`NodeSessions` then runs the session agai
 pool's running attempt:
 
 - the node waits for the client's ``HELLO`` (the client may subscribe after the order);
-- exec (``osmo.worker.exec_process``) runs the command in the attempt's container
-  (``podman exec``) or in its working folder with its environment (in a new bubblewrap
-  sandbox over the attempt's own view when the attempt is sandboxed);
-- port-forward connects each channel to the task's port on the container's address (a
-  container task: its own network namespace, as OSMO's pod) or, for a process task, only to a
-  port a process of the task listens on, at the address it listens on
-  (``osmo.worker.task_ports``), from inside the node's network namespace when the task is
-  sandboxed (``osmo.runtime.netns``): never to another process's port on the node nor to a
+- exec runs what the attempt's runtime says (``Runtime.exec``; spawned by
+  ``osmo.worker.exec_process``): in the attempt's container (``podman exec``), or in its
+  working folder with its environment (in a new bubblewrap sandbox over the attempt's own
+  view when the attempt is sandboxed);
+- port-forward connects each channel the way the attempt's runtime says
+  (``Runtime.connector``): to the task's port on the container's address (a container task:
+  its own network namespace, as OSMO's pod) or, for a process task, only to a port a process
+  of the task listens on, at the address it listens on (``osmo.runtime.process.ports``), from
+  inside the node's network namespace when the task is sandboxed
+  (``osmo.runtime.process.netns``): never to another process's port on the node nor to a
   listener on the host's own loopback; and only to the ports the grant names.
 
 Every session ends, and its process or sockets with it, when its command exits, when the
@@ -27,47 +29,31 @@ from __future__ import annotations
 
 import json
 import logging
-import socket
 import threading
 from collections.abc import Callable
 from typing import Any, Protocol
 
 from osmo.errors import OsmoError
-from osmo.runtime.container import ContainerEngine
-from osmo.runtime.sandbox import Sandbox
+from osmo.runtime.api import ConnectError, Connector
 from osmo.transport.forwarding import Channels, Deferred, TcpEnd, UdpConnected
 from osmo.transport.streams import TIMEOUT, Frame, Kind, SessionGrant, Stream
 from osmo.transport.zenoh_link import Link
-from osmo.worker.exec_process import ExecProcess, exec_argv
-from osmo.worker.task_ports import task_listener
-from osmo.worker.workdir import Launch
+from osmo.worker.exec_process import DEFAULT_COMMAND, ExecProcess
+from osmo.worker.live import Running
 
-__all__ = ["NodeSessions", "SessionPool", "container_address"]
+__all__ = ["NodeSessions", "SessionPool"]
 
 log = logging.getLogger("osmo.sessions")
 
 _WATCH_EVERY = 0.5
-_CONNECT_TIMEOUT = 5.0
 _MAX_SESSIONS = 256
 
 
 class SessionPool(Protocol):
     """What a session needs of the pool that runs the attempt (``LocalPool``)."""
 
-    sandbox: Sandbox | None
-
-    def running_launch(self, attempt_id: str) -> Launch | None:
-        """The attempt's launch while it runs here."""
-
-    def running_pid(self, attempt_id: str) -> int | None:
-        """The attempt's main process id while it runs here."""
-
-    def task_socket(self, udp: bool) -> socket.socket | None:
-        """A new socket in the sandboxed tasks' network (None: there is none)."""
-
-    @property
-    def container_engine(self) -> ContainerEngine | None:
-        """The engine of container tasks."""
+    def running(self, attempt_id: str) -> Running | None:
+        """The attempt's runtime, launch and handle while it runs here."""
 
 
 class _Session:
@@ -98,26 +84,26 @@ class _Session:
         if not self._hello.wait(TIMEOUT * 2):
             self.end(None, "the client never came")
             return
-        launch = self._pool.running_launch(self.grant.attempt_id)
-        if launch is None:
+        running = self._pool.running(self.grant.attempt_id)
+        if running is None:
             self.end(None, f"attempt {self.grant.attempt_id} is not running on this node "
                            "(it ended, or has not started yet)")
             return
         threading.Thread(target=self._watch, name="osmo-session-watch", daemon=True).start()
         try:
-            self.serve(launch)
+            self.serve(running)
         except (OsmoError, OSError) as exc:
             self.end(None, f"cannot open the session: {exc}")
         except Exception as exc:  # noqa: BLE001 - a bug ends this session, not the node
             log.exception("session %s", self.grant.session_id[:8])
             self.end(None, f"session failed: {exc!r}")
 
-    def serve(self, launch: Launch) -> None:
+    def serve(self, running: Running) -> None:
         """Run the session (on its own thread) until it is over; end it."""
 
     def _watch(self) -> None:
         while not self._ended.wait(_WATCH_EVERY):
-            if self._pool.running_launch(self.grant.attempt_id) is None:
+            if self._pool.running(self.grant.attempt_id) is None:
                 self.end(None, "the task ended")
 
     def end(self, code: int | None, message: str) -> None:
@@ -142,9 +128,10 @@ class _Exec(_Session):
 
     proc: ExecProcess | None = None
 
-    def serve(self, launch: Launch) -> None:
-        command = exec_argv(launch, self.grant, self._pool.sandbox,
-                            self._pool.container_engine)
+    def serve(self, running: Running) -> None:
+        grant = self.grant
+        command = running.runtime.exec(running.launch, grant.command or DEFAULT_COMMAND,
+                                       tty=grant.tty, term=grant.term)
         try:
             self.proc = ExecProcess(command, tty=self.grant.tty, size=self.grant.size,
                                     out=lambda ch, data: self.stream.send(Kind.DATA, ch, data))
@@ -180,19 +167,15 @@ class _Forward(_Session):
 
     def __init__(self, *args: Any) -> None:
         self._channels = Channels(lambda kind, ch, data: self.stream.send(kind, ch, data))
-        self._host: str | None = None  # a container's own address; None: a process task's
-        self._inside = False  # connect from inside the sandboxed tasks' network
+        self._connect: Connector | None = None  # the attempt's runtime's way to its ports
         super().__init__(*args)
 
-    def serve(self, launch: Launch) -> None:
-        engine = self._pool.container_engine
-        if launch.container is not None and engine is not None:
-            self._host = container_address(engine, launch.container.name)
-            if self._host is None:
-                self.end(None, "the task's container has no network address of its own")
-                return
-        else:
-            self._inside = launch.view is not None
+    def serve(self, running: Running) -> None:
+        try:
+            self._connect = running.runtime.connector(running.launch, running.handle)
+        except ConnectError as exc:
+            self.end(None, str(exc))
+            return
         self.stream.send(Kind.READY)
         self._ended.wait()
 
@@ -214,24 +197,20 @@ class _Forward(_Session):
             self.stream.send(Kind.CLOSE, frame.channel, b"too many connections")
             return
         # off the stream's thread: a port that does not answer stalls only this channel
-        threading.Thread(target=self._connect, args=(frame.channel, port, udp, pending),
+        threading.Thread(target=self._open, args=(frame.channel, port, udp, pending),
                          name="osmo-forward-connect", daemon=True).start()
 
-    def _connect(self, channel: int, port: int, udp: bool, pending: Deferred) -> None:
-        host = self._host or self._task_listener(port, udp)
-        if host is None:
+    def _open(self, channel: int, port: int, udp: bool, pending: Deferred) -> None:
+        connect = self._connect
+        if connect is None:  # an OPEN before READY
             if self._channels.drop(channel):
-                self.stream.send(Kind.CLOSE, channel, f"no process of the task listens on "
-                                                      f"{'UDP' if udp else 'TCP'} port {port}"
-                                                      .encode())
+                self.stream.send(Kind.CLOSE, channel, b"the session is not ready")
             return
         try:
-            sock = self._socket(host, port, udp)
-        except OSError as exc:
+            sock = connect(port, udp)
+        except ConnectError as exc:
             if self._channels.drop(channel):
-                self.stream.send(Kind.CLOSE, channel,
-                                 f"cannot connect to {host}:{port}: "
-                                 f"{exc.strerror or exc}".encode())
+                self.stream.send(Kind.CLOSE, channel, str(exc).encode())
             return
         try:
             attached = pending.attach(UdpConnected(sock) if udp else TcpEnd(sock))
@@ -243,44 +222,8 @@ class _Forward(_Session):
         if attached:
             self._channels.pump(channel, sock, datagrams=udp)
 
-    def _task_listener(self, port: int, udp: bool) -> str | None:
-        """Where a process of this (process) task listens on ``port``, or None."""
-        pid = self._pool.running_pid(self.grant.attempt_id)
-        return task_listener(pid, port, udp=udp) if pid is not None else None
-
-    def _socket(self, host: str, port: int, udp: bool) -> socket.socket:
-        """A socket connected to ``host:port`` (raises OSError).
-
-        Made inside the sandboxed tasks' network when the task is sandboxed.
-        """
-        made = self._pool.task_socket(udp) if self._inside else None
-        if made is None:
-            made = socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET,
-                                 socket.SOCK_DGRAM if udp else socket.SOCK_STREAM)
-        try:
-            made.settimeout(_CONNECT_TIMEOUT)
-            made.connect((host, port))
-            made.settimeout(None)
-        except OSError:
-            made.close()
-            raise
-        return made
-
     def stop(self) -> None:
         self._channels.close()
-
-
-def container_address(engine: ContainerEngine, name: str) -> str | None:
-    """The container's IP address on its network (``inspect``); None if it has none.
-
-    Raises:
-        ContainerError: the engine cannot inspect it.
-    """
-    out = engine.call("inspect", "--format",
-                      "{{range .NetworkSettings.Networks}}{{.IPAddress}} {{end}}"
-                      "{{.NetworkSettings.IPAddress}}", name, timeout=15)
-    found = [word for word in out.split() if word]
-    return found[0] if found else None
 
 
 class NodeSessions:

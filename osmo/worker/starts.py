@@ -1,10 +1,11 @@
-"""How an attempt of the local pool starts: its preparation, its spawn, its watch.
+"""How an attempt of the local pool starts and stops: its spawn, its watch, its kill, its exit.
 
-A mixin of :class:`osmo.worker.pool.LocalPool` (over :class:`AttemptEndings`, how it ends);
-see the pool's module docstring for the threads. ``prepare`` makes the attempt's folder on an
-I/O thread (``osmo.worker.transfer.make_ready``) and, with no barrier, spawns it there too, so
-the slots' spawns overlap and the reactor thread never waits on fork/exec; a container peer
-starts once its group's lead runs.
+:class:`Starting` is one of the parts :class:`osmo.worker.pool.LocalPool` is made of (see its
+module docstring for the threads). It spawns a prepared launch through the attempt's runtime
+(``Runtime.start``; on an I/O thread when ``launch.waits``: a container group's peer waits
+for its lead), records the pid before the start is reported (``osmo.worker.procs``), watches
+the launch's pipes and its exit on the reactor, kills it (SIGTERM, SIGKILL after the grace)
+and, once it ended, reaps it and hands the exit code to :class:`~osmo.worker.endings.Ending`.
 
 A start whose sandbox could not be set up (bubblewrap failed before the command ran, e.g. a
 mount vanished under it while containers started or stopped) is started again, up to
@@ -16,35 +17,21 @@ from __future__ import annotations
 
 import functools
 import logging
-from collections.abc import Callable, Mapping
-from dataclasses import replace
-from pathlib import Path
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 
-from osmo.errors import OsmoError
-from osmo.layout import AttemptDirs, Home
-from osmo.runtime.process import ProcessHandle, StartError
-from osmo.runtime.proctable import process_start_time
-from osmo.runtime.sandbox import Sandbox
-from osmo.scheduler.types import (
-    AttemptPrepared,
-    AttemptStarted,
-    AttemptStartFailed,
-    Node,
-    PrepareAttempt,
-)
-from osmo.spec.model import ResourceSpec, TaskSpec
+from osmo.runtime.api import Launch, ProcessHandle, Runtime, StartError
+from osmo.runtime.process.proctable import process_start_time
+from osmo.scheduler.types import AttemptExited, AttemptStarted, AttemptStartFailed, Event
 from osmo.worker.checkpoints import start_checkpoints
-from osmo.worker.container_images import registry_auth
-from osmo.worker.containers import ContainerTasks
-from osmo.worker.endings import AttemptEndings
+from osmo.worker.endings import KILLED_BEFORE_START, Ending
 from osmo.worker.live import AttemptState, LiveAttempt
-from osmo.worker.logs import LogWriter, image_note
+from osmo.worker.logs import exit_note
 from osmo.worker.procs import ProcessRecords
-from osmo.worker.secrets import SecretLookup, Secrets, gather
-from osmo.worker.transfer import ManifestLookup, make_ready
-from osmo.worker.workdir import Launch, remove_secret_files
+from osmo.worker.reactor import Reactor
+from osmo.worker.transfer import CredentialLookup
 
-__all__ = ["SETUP_TRIES", "AttemptStarts"]
+__all__ = ["SETUP_TRIES", "Starting", "started_event"]
 
 _log = logging.getLogger("osmo.worker.pool")
 
@@ -53,174 +40,158 @@ SETUP_TRIES = 8
 _SETUP_PAUSE = 0.005  # seconds before the second try, doubled for each next one (0.6 s in all)
 
 
-class AttemptStarts(AttemptEndings):
-    """Preparing, starting and watching attempts (the pool's state is declared here)."""
+class Starting:
+    """Starting, watching and stopping the pool's attempts (reactor thread, but ``spawn``).
 
-    _layout: Home
-    _env: Mapping[str, str]
-    _task_secrets: SecretLookup | None
-    _input_manifests: ManifestLookup | None
-    _log_sink: Callable[[str, bytes], None] | None
-    _log_limit: int
-    _containers: ContainerTasks | None
-    _procs: ProcessRecords | None
-    _hidden: list[Path]
-    _masked: list[Path]
-    sandbox: Sandbox | None
-    _sandbox_note: str | None  # for each process task's log: no sandbox, no outbound network
-    _preparing: dict[str, str | None]
-    _run_pending: set[str]
-    _kill: Callable[[str, str], None]
-    node: Callable[[], Node]
+    Args:
+        reactor: the pool's reactor.
+        io: the pool's I/O threads.
+        emit: where reports go.
+        ending: how an attempt ends.
+        procs: where each spawned pid is recorded (None: nowhere).
+        grace: seconds between SIGTERM and SIGKILL when an attempt is killed.
+        credential_for: ``url -> credential`` for checkpoints to URLs.
+    """
 
-    def _spawn(self, launch: Launch, *, wait: bool = False) -> ProcessHandle:
-        """Start a launch (any thread): in its container, or as a (sandboxed) process.
+    def __init__(self, *, reactor: Reactor, io: ThreadPoolExecutor,
+                 emit: Callable[[Event], None], ending: Ending, procs: ProcessRecords | None,
+                 grace: float, credential_for: CredentialLookup | None) -> None:
+        self._reactor, self._io, self._emit, self._ending = reactor, io, emit, ending
+        self._procs, self._grace, self._credential_for = procs, grace, credential_for
 
-        ``wait``: on an I/O thread (a container peer may wait for its lead). The pid is
-        recorded (``osmo.worker.procs``) before the start is reported.
+    def spawn(self, runtime: Runtime, launch: Launch) -> ProcessHandle:
+        """Start ``launch`` (any thread; an I/O thread when ``launch.waits``).
+
+        The pid is recorded (``osmo.worker.procs``) before the start is reported.
+
+        Raises:
+            StartError: it cannot be started.
+            OSError: nor its descriptors be made.
         """
-        if launch.container is None or self._containers is None:
-            handle = self._runtime.start(launch.argv, cwd=launch.cwd, env=launch.env,
-                                         view=launch.view)
-        else:
-            handle = self._containers.start(launch, wait_for_lead=wait)
+        handle = runtime.start(launch)
         if self._procs is not None:
             self._procs.add(handle.pid, handle.started_at)
         return handle
 
-    def _prepare(self, cmd: PrepareAttempt, task: TaskSpec, secrets: Secrets | None,
-                 resources: ResourceSpec) -> None:
-        if cmd.attempt_id in self._attempts or cmd.attempt_id in self._preparing:
-            _log.warning("attempt %s is already active; prepare ignored", cmd.attempt_id)
-            return
-        self._finished.pop(cmd.attempt_id, None)
-        self._preparing[cmd.attempt_id] = None
-        self._io.submit(self._prepare_io, cmd, task, secrets, resources)
-
-    def _prepare_io(self, cmd: PrepareAttempt, task: TaskSpec, secrets: Secrets | None,
-                    resources: ResourceSpec) -> None:
-        """I/O thread: make the folders and files; hand the outcome back to the reactor.
-
-        A container task's log is opened here, before its image is resolved, so that a
-        pull's progress reaches it line by line (the writer is the reactor's afterwards).
-        """
-        log: LogWriter | None = None
-        try:
-            dirs = self._layout.attempt(cmd.workflow_id, cmd.task, cmd.retry)
-            if secrets is None:
-                secrets = gather(task, self._task_secrets)
-            boxed = self._containers is not None and self._containers.applies(task)
-            placed = self._containers.placement(cmd) if self._containers and boxed else cmd
-            launch = make_ready(dirs, placed, task, env=self._env, secrets=secrets,
-                                credential_for=self._credential_for, artifacts=self._artifacts,
-                                input_manifests=self._input_manifests,
-                                hide=tuple(self._hidden) if self.sandbox and not boxed else None,
-                                masked=tuple(self._masked),
-                                owner=self.sandbox.owner if self.sandbox else None, boxed=boxed)
-            launch = replace(launch, max_output_bytes=resources.storage)
-            if self._containers is not None and boxed:
-                log = self._open_log(cmd, dirs, launch)
-                pulled = functools.partial(_pull_line, log)
-                launch = self._containers.finish(
-                    launch, cmd, task, dirs, request=resources, gpus=self.node().capacity.gpu,
-                    auth=registry_auth(task, self._task_secrets if self._task_secrets
-                                       is not None else secrets.get), progress=pulled)
-        except Exception as exc:  # every prepare must get its one final report
-            message = str(exc) if isinstance(exc, OsmoError) else f"cannot prepare: {exc!r}"
-            if log is not None:
-                log.line("osmo", f"start failed: {message}")
-                log.close()
-            self._reactor.call_soon(self._prepared, cmd, task, None, None, message)
-            return
-        started: ProcessHandle | str | None = None
-        if cmd.run and self._preparing.get(cmd.attempt_id) is None:
-            # No barrier: spawn here, so the slots' spawns overlap and the reactor thread
-            # (pipes, exits) never waits on fork/exec. A kill that came meanwhile is applied
-            # by _prepared.
-            try:
-                started = self._spawn(launch, wait=True)
-            except (StartError, OSError) as exc:
-                started = str(exc)
-            except Exception as exc:  # noqa: BLE001 - a bug: fail the start, report it
-                _log.exception("starting %s failed", cmd.attempt_id)
-                started = f"cannot start: {exc!r}"
-        self._reactor.call_soon(self._prepared, cmd, task, dirs, launch, None, started, log)
-
-    def _open_log(self, cmd: PrepareAttempt, dirs: AttemptDirs, launch: Launch) -> LogWriter:
-        """The attempt's log writer (opened on its first record; raises OSError if it can't)."""
-        sink = functools.partial(self._log_sink, cmd.attempt_id) if self._log_sink else None
-        return LogWriter(dirs.log, launch.secrets, sink, limit=self._log_limit)
-
-    def _prepared(self, cmd: PrepareAttempt, task: TaskSpec, dirs: AttemptDirs | None,
-                  launch: Launch | None, error: str | None,
-                  started: ProcessHandle | str | None = None,
-                  log: LogWriter | None = None) -> None:
-        kill_reason = self._preparing.pop(cmd.attempt_id, None)
-        run_now = cmd.run or cmd.attempt_id in self._run_pending
-        self._run_pending.discard(cmd.attempt_id)
-        if error is not None or dirs is None or launch is None:
-            self._remember(cmd.attempt_id)
-            self._emit(AttemptStartFailed(cmd.attempt_id, error or "cannot prepare"))
-            return
-        try:
-            log = log or self._open_log(cmd, dirs, launch)
-        except OSError as exc:  # no log, no attempt: undo what preparing made, report once
-            if isinstance(started, ProcessHandle):
-                self._runtime.kill(started, force=True)
-                self._reap(started)
-                self._runtime.release(started)
-            remove_secret_files(launch)
-            self._ended(launch)
-            self._remember(cmd.attempt_id)
-            self._emit(AttemptStartFailed(cmd.attempt_id, f"cannot write its log: {exc}"))
-            return
-        attempt = LiveAttempt(cmd.attempt_id, task, dirs, launch, log)
-        for note in launch.notes:
-            attempt.log.line("osmo", note)
-        if self._sandbox_note is not None and launch.container is None:
-            attempt.log.line("osmo", self._sandbox_note)
-        if task.image and launch.container is None:
-            attempt.log.line("osmo", image_note(task.image))
-        self._attempts[attempt.id] = attempt
-        if isinstance(started, ProcessHandle):
-            self._watch(attempt, started)
-        if kill_reason is not None:  # killed while its folders were being made
-            self._kill(attempt.id, kill_reason)
-            return
-        self._emit(AttemptPrepared(attempt.id))
-        if isinstance(started, ProcessHandle):
-            self._emit(_started(attempt.id, started))
-        elif isinstance(started, str):
-            attempt.log.line("osmo", f"start failed: {started}")
-            self._finish(attempt, AttemptStartFailed(attempt.id, started))
-        elif run_now:  # no barrier holds it (or run() already came): start now
-            self._run(attempt.id)
-
-    def _run(self, attempt_id: str) -> None:
-        if attempt_id in self._preparing:
-            self._run_pending.add(attempt_id)
-            return
-        attempt = self._attempts.get(attempt_id)
-        if attempt is None:
-            if attempt_id not in self._finished:
-                self._remember(attempt_id)
-                self._emit(AttemptStartFailed(attempt_id, "attempt was not prepared here"))
-            return
-        if attempt.state is not AttemptState.PREPARED:
-            return
-        launch = attempt.launch
-        if launch.container is not None and launch.container.labels.get("osmo.lead") == "0":
-            # a peer starts once its lead runs: wait off the reactor, then start (below)
+    def start(self, attempt: LiveAttempt) -> None:
+        """Start a prepared attempt (or one waiting to start again); report the start."""
+        if attempt.state not in (AttemptState.PREPARED, AttemptState.STARTING):
+            return  # killed meanwhile
+        if attempt.launch.waits:  # it waits for another attempt: off the reactor
             attempt.state = AttemptState.STARTING
-            self._io.submit(self._after_lead, attempt)
+            self._io.submit(self._start_io, attempt)
             return
-        self._start(attempt)
+        try:
+            handle = self.spawn(attempt.runtime, attempt.launch)
+        except (StartError, OSError) as exc:
+            self.failed(attempt, str(exc))
+            return
+        self.watch(attempt, handle)
+        self._emit(started_event(attempt.id, handle))
 
-    def _after_lead(self, attempt: LiveAttempt) -> None:
-        """I/O thread: wait for the group's lead to run, then start ``attempt``."""
-        if self._containers is not None and attempt.launch.container is not None:
-            self._containers.wait_for_lead(attempt.launch.container)
-        self._reactor.call_soon(self._start, attempt)
+    def _start_io(self, attempt: LiveAttempt) -> None:
+        """I/O thread: spawn a launch that waits first; hand the outcome to the reactor."""
+        if attempt.state is not AttemptState.STARTING:
+            return  # killed meanwhile (a stale read is caught by _began)
+        try:
+            started: ProcessHandle | str = self.spawn(attempt.runtime, attempt.launch)
+        except (StartError, OSError) as exc:
+            started = str(exc)
+        except Exception as exc:  # noqa: BLE001 - a bug: fail the start, report it
+            _log.exception("starting %s failed", attempt.id)
+            started = f"cannot start: {exc!r}"
+        self._reactor.call_soon(self._began, attempt, started)
+
+    def _began(self, attempt: LiveAttempt, started: ProcessHandle | str) -> None:
+        if isinstance(started, str):
+            if attempt.state is AttemptState.STARTING:
+                self.failed(attempt, started)
+            return
+        if attempt.state is not AttemptState.STARTING:  # killed while it was spawned
+            self.discard(attempt.runtime, started)
+            return
+        self.watch(attempt, started)
+        self._emit(started_event(attempt.id, started))
+
+    def failed(self, attempt: LiveAttempt, message: str) -> None:
+        """Its launch could not be started: the attempt fails to start."""
+        attempt.log.line("osmo", f"start failed: {message}")
+        self._ending.finish(attempt, AttemptStartFailed(attempt.id, message))
+
+    def discard(self, runtime: Runtime, handle: ProcessHandle) -> None:
+        """Kill, reap and release a launch nobody watches any more."""
+        runtime.kill(handle, force=True)
+        self._reap(runtime, handle)
+        runtime.release(handle)
+
+    def watch(self, attempt: LiveAttempt, handle: ProcessHandle) -> None:
+        """Watch a started launch's pipes and exit; start the attempt's checkpoints."""
+        attempt.handle, attempt.state = handle, AttemptState.RUNNING
+        reactor = self._reactor
+        for fd, stream in ((handle.stdout_fd, "stdout"), (handle.stderr_fd, "stderr")):
+            attempt.open_fds.add(fd)
+            reactor.add_reader(fd, lambda a=attempt, f=fd, s=stream: a.read(reactor, f, s))
+        reactor.add_reader(handle.exit_fd, lambda a=attempt: self._exited(a))
+        attempt.checkpoints = start_checkpoints(
+            attempt.task, attempt.dirs, attempt.id, reactor=reactor, io=self._io,
+            credential_for=self._credential_for, log=functools.partial(attempt.log.line, "osmo"))
+
+    def kill(self, attempt: LiveAttempt, reason: str) -> None:
+        """Kill ``attempt``: SIGTERM, SIGKILL after the grace; one not started ends at once."""
+        if attempt.state is AttemptState.FINISHING or attempt.kill_reason is not None:
+            return  # it already exited (its report is on the way), or it is being killed
+        attempt.kill_reason = reason
+        attempt.log.line("osmo", f"killed: {reason}")
+        if attempt.state in (AttemptState.PREPARED, AttemptState.STARTING):
+            event = AttemptExited(attempt.id, KILLED_BEFORE_START, None, f"killed: {reason}")
+            self._ending.finish(attempt, event)
+        elif attempt.handle is not None:
+            attempt.runtime.kill(attempt.handle)
+            attempt.escalation = self._reactor.call_later(self._grace, self._escalate, attempt)
+
+    def stop(self, attempt: LiveAttempt) -> None:
+        """The pool closes: kill a running attempt at once, reap and release it."""
+        handle = attempt.handle
+        if attempt.state is AttemptState.RUNNING and handle is not None:
+            attempt.log.line("osmo", "killed: pool closed")
+            self.discard(attempt.runtime, handle)
+
+    def _escalate(self, attempt: LiveAttempt) -> None:
+        if attempt.state is AttemptState.RUNNING and attempt.handle is not None:
+            attempt.log.line("osmo", f"still running {self._grace:g}s after SIGTERM: SIGKILL")
+            attempt.runtime.kill(attempt.handle, force=True)
+
+    def _reap(self, runtime: Runtime, handle: ProcessHandle) -> int:
+        code = runtime.reap(handle)
+        if self._procs is not None:
+            self._procs.remove(handle.pid)
+        return code
+
+    def _exited(self, attempt: LiveAttempt) -> None:
+        handle = attempt.handle
+        assert handle is not None
+        self._reactor.remove_reader(handle.exit_fd)
+        code = self._reap(attempt.runtime, handle)
+        try:
+            attempt.drain(self._reactor, handle)
+            attempt.runtime.release(handle)
+            if attempt.escalation is not None:
+                attempt.escalation.cancel()
+            if attempt.checkpoints is not None:
+                attempt.checkpoints.stop()
+            attempt.log.flush_partial()
+            if handle.setup_failed:  # the command never ran
+                if attempt.kill_reason is None:
+                    self._setup_failed(attempt)  # try again, or fail its start
+                    return
+                code = KILLED_BEFORE_START
+            attempt.log.line("osmo", exit_note(code))
+        except Exception as exc:  # noqa: BLE001 - e.g. a full disk: still one final report
+            _log.exception("finishing %s failed", attempt.id)
+            self._ending.finish(attempt, AttemptExited(
+                attempt.id, code, None, f"its end could not be recorded: {exc!r}"))
+            return
+        self._ending.exited(attempt, code)
 
     def _setup_failed(self, attempt: LiveAttempt) -> None:
         """Its sandbox could not be set up and the command never ran: start it again, or fail.
@@ -232,46 +203,16 @@ class AttemptStarts(AttemptEndings):
         why = tail[-1] if tail else "bwrap exited 1 before the command ran"
         attempt.stderr_tail = b""
         if attempt.setup_failures >= SETUP_TRIES:
-            message = f"the sandbox could not be set up ({SETUP_TRIES} tries): {why}"
-            attempt.log.line("osmo", f"start failed: {message}")
-            self._finish(attempt, AttemptStartFailed(attempt.id, message))
+            self.failed(attempt, f"the sandbox could not be set up ({SETUP_TRIES} tries): {why}")
             return
         attempt.log.line("osmo", f"the sandbox could not be set up ({why}); trying again "
                                  f"({attempt.setup_failures + 1} of {SETUP_TRIES})")
         attempt.state, attempt.handle = AttemptState.STARTING, None
         self._reactor.call_later(_SETUP_PAUSE * 2 ** (attempt.setup_failures - 1),
-                                 self._start, attempt)
-
-    def _start(self, attempt: LiveAttempt) -> None:
-        if attempt.state not in (AttemptState.PREPARED, AttemptState.STARTING):
-            return  # killed meanwhile
-        attempt_id, launch = attempt.id, attempt.launch
-        try:
-            handle = self._spawn(launch)
-        except (StartError, OSError) as exc:
-            attempt.log.line("osmo", f"start failed: {exc}")
-            self._finish(attempt, AttemptStartFailed(attempt_id, str(exc)))
-            return
-        self._watch(attempt, handle)
-        self._emit(_started(attempt_id, handle))
-
-    def _watch(self, attempt: LiveAttempt, handle: ProcessHandle) -> None:
-        attempt.handle, attempt.state = handle, AttemptState.RUNNING
-        reactor = self._reactor
-        for fd, stream in ((handle.stdout_fd, "stdout"), (handle.stderr_fd, "stderr")):
-            attempt.open_fds.add(fd)
-            reactor.add_reader(fd, lambda a=attempt, f=fd, s=stream: a.read(reactor, f, s))
-        self._reactor.add_reader(handle.exit_fd, lambda a=attempt: self._exited(a))
-        attempt.checkpoints = start_checkpoints(
-            attempt.task, attempt.dirs, attempt.id, reactor=self._reactor, io=self._io,
-            credential_for=self._credential_for, log=functools.partial(attempt.log.line, "osmo"))
+                                 self.start, attempt)
 
 
-def _pull_line(log: LogWriter, line: str) -> None:
-    log.line("osmo", f"pull: {line}")
-
-
-def _started(attempt_id: str, handle: ProcessHandle) -> AttemptStarted:
+def started_event(attempt_id: str, handle: ProcessHandle) -> AttemptStarted:
     """The start report, with the process (group) id and its start time.
 
     The server records them, so that a restarted server can kill what is left of it.

@@ -67,9 +67,9 @@ class StoreKeeper:
         io: where collections and folder removals run.
     """
 
-    def __init__(self, home: Path, store: ArtifactStore, held: HeldInputs, limit: int,
+    def __init__(self, home: Home, store: ArtifactStore, held: HeldInputs, limit: int,
                  protected: Callable[[], Iterable[Manifest]], io: Executor) -> None:
-        self._home, self._store, self._held = Home(home), store, held
+        self._home, self._store, self._held = home, store, held
         self._limit, self._protected, self._io = limit, protected, io
         self._lock = threading.Lock()
         self._gate = threading.Lock()

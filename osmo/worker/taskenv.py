@@ -16,8 +16,9 @@ The base (:data:`BASE_VARIABLES`), copied from the worker's environment when set
 while the worker's ``TMPDIR`` may be shared or read-only there.
 
 In the sandbox, where the host (``HOME`` included) is read-only, ``XDG_CACHE_HOME`` is the
-attempt's ``work/.cache`` unless the spec sets it (:func:`sandbox_env`): libraries that cache
-under ``~/.cache`` (Hugging Face datasets, torch, matplotlib) then write there.
+attempt's ``work/.cache`` unless the spec sets it (``osmo.runtime.process.sandboxed``):
+libraries that cache under ``~/.cache`` (Hugging Face datasets, torch, matplotlib) then write
+there.
 
 Typed tasks get one more variable (``osmo.worker.launch.runner_env``): ``PYTHONPATH`` with the
 task type's folders and the folders osmo and its plugins were imported from, so the runner
@@ -27,9 +28,8 @@ imports the same osmo as the worker.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from pathlib import Path
 
-__all__ = ["BASE_VARIABLES", "DEFAULT_PATH", "base_env", "sandbox_env"]
+__all__ = ["BASE_VARIABLES", "DEFAULT_PATH", "base_env"]
 
 BASE_VARIABLES = ("PATH", "HOME", "USER", "LOGNAME", "SHELL",
                   "LANG", "LANGUAGE", "LC_ALL", "LC_CTYPE", "TZ")
@@ -44,8 +44,3 @@ def base_env(environ: Mapping[str, str]) -> dict[str, str]:
     env = {name: environ[name] for name in BASE_VARIABLES if name in environ}
     env.setdefault("PATH", DEFAULT_PATH)
     return env
-
-
-def sandbox_env(env: Mapping[str, str], work: Path) -> dict[str, str]:
-    """Variables to add for a sandboxed task whose complete environment is ``env``."""
-    return {} if "XDG_CACHE_HOME" in env else {"XDG_CACHE_HOME": str(work / ".cache")}

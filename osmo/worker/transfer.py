@@ -15,10 +15,10 @@ preparing an attempt again clears its folder) and reach the command through
   no other reader sees it. A blob that no longer matches its digest fails the attempt's
   start. Copies over 1 MiB are deleted when the attempt ends.
 
-  In a sandbox (``make_ready(hide=(home, ...))``) the same folder holds hard links of the checked
+  In a sandbox (``Paths.linked_inputs``) the same folder holds hard links of the checked
   blobs instead of copies (``ArtifactStore.link_checked``): the sandbox binds the attempt's
-  folder read-only (``workdir.attempt_view``), so the task cannot change them, and no data is
-  copied.
+  folder read-only (``osmo.runtime.process.sandboxed.attempt_view``), so the task cannot
+  change them, and no data is copied.
 
 Outputs are uploaded from the promoted ``output/`` folder after it was ingested; a failed
 upload fails the attempt (its output is never handed downstream), and the URL's completion
@@ -38,19 +38,12 @@ from osmo.artifacts.fsops import make_dirs, remove_tree
 from osmo.artifacts.store import DEFAULT_MAX_FILES
 from osmo.errors import OsmoError
 from osmo.layout import AttemptDirs
+from osmo.runtime.api import HOST_PATHS, Launch, Paths
 from osmo.scheduler.types import PrepareAttempt
 from osmo.spec.model import TaskSpec
 from osmo.urls import for_url
 from osmo.worker.secrets import Secrets
-from osmo.worker.taskenv import sandbox_env
-from osmo.worker.workdir import (
-    Launch,
-    attempt_view,
-    hand_over,
-    prepare,
-    promote,
-    remove_secret_files,
-)
+from osmo.worker.workdir import prepare, promote, remove_secret_files
 
 __all__ = ["CredentialLookup", "DeliveryError", "InputCopies", "ManifestLookup", "copy_inputs",
            "deliver", "fetch_inputs", "make_ready", "plan_input_copies", "push_outputs"]
@@ -88,16 +81,16 @@ def fetch_inputs(cmd: PrepareAttempt, task: TaskSpec, dirs: AttemptDirs,
 def make_ready(dirs: AttemptDirs, cmd: PrepareAttempt, task: TaskSpec, *,
                env: Mapping[str, str], secrets: Secrets,
                credential_for: CredentialLookup | None, artifacts: ArtifactStore | None,
-               input_manifests: ManifestLookup | None,
-               hide: tuple[Path, ...] | None = None, masked: tuple[Path, ...] = (),
-               owner: tuple[int, int] | None = None, boxed: bool = False) -> Launch:
-    """Everything an attempt needs before it can start, in order.
+               input_manifests: ManifestLookup | None, paths: Paths = HOST_PATHS
+               ) -> tuple[PrepareAttempt, Launch]:
+    """Everything an attempt needs before its runtime can take it, in order.
 
-    Its ``url`` inputs, its folder and files (``workdir.prepare``), its own copies of its artifact
-    inputs. ``hide``: the attempt runs in a sandbox that hides these folders (osmo's
-    homes) and the ``masked`` files; its launch then carries its view, and its inputs that
-    are folders here are bound, not copied; ``owner``: the host uid and gid it runs as there
-    (``workdir.hand_over``). ``boxed``: it runs in its image (``workdir.prepare``).
+    Its ``url`` inputs, its folder and files (``workdir.prepare``, for the ``paths`` its
+    runtime shows it), its own copies of its artifact inputs (hard links of the checked
+    blobs when ``paths.linked_inputs``: its runtime shows them read-only).
+
+    Returns:
+        ``cmd`` with its inputs resolved to their folders here, and its launch.
 
     Raises:
         OsmoError: a download, a token, a file, a credential or a blob failed (a blob that
@@ -107,21 +100,15 @@ def make_ready(dirs: AttemptDirs, cmd: PrepareAttempt, task: TaskSpec, *,
     """
     cmd = fetch_inputs(cmd, task, dirs, credential_for)
     cmd, copies = plan_input_copies(cmd, dirs, input_manifests if artifacts else None)
-    launch = prepare(dirs, cmd, task, env, secrets, boxed=boxed)
-    if hide is not None:
-        paths = tuple(Path(p) for p in task.resolved.paths) if task.resolved else ()
-        launch = replace(launch, view=attempt_view(dirs, cmd, hide, masked, paths),
-                         env={**launch.env, **sandbox_env(launch.env, dirs.work)})
-    try:
-        if copies and artifacts is not None:
+    launch = prepare(dirs, cmd, task, env, secrets, paths=paths)
+    if copies and artifacts is not None:
+        try:
             launch = replace(launch, scratch=copy_inputs(copies, artifacts,
-                                                         links=hide is not None))
-        if hide is not None and owner is not None:
-            hand_over(dirs, owner)
-    except BaseException:
-        remove_secret_files(launch)
-        raise
-    return launch
+                                                         links=paths.linked_inputs))
+        except BaseException:
+            remove_secret_files(launch)
+            raise
+    return cmd, launch
 
 
 def plan_input_copies(cmd: PrepareAttempt, dirs: AttemptDirs,

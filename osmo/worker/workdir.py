@@ -4,6 +4,13 @@ The folder's layout (``work/``, ``inputs/``, ``files/``, ``output.partial/``, ``
 ``log.txt``, ``task.json``) is :class:`osmo.layout.AttemptDirs`; this module makes and
 fills it.
 
+What the task sees of its attempt — the paths its tokens and ``OSMO_*`` variables name —
+is its runtime's (``Runtime.paths``, an ``osmo.runtime.api.Paths``). The host's own paths
+(``HOST_PATHS``, the process runtimes') are described here; a container's (OSMO's data
+layout) in ``osmo.runtime.container.layout``: there ``{{output}}`` is ``/osmo/data/output``,
+``{{input:N}}`` ``/osmo/data/input/N``, files are bound at their declared paths and nothing
+is rewritten, and the environment is the task's own, without the worker's base.
+
 File mapping — how two parallel tasks that both declare ``/tmp/run.sh`` never see each
 other's file, without containers:
 
@@ -31,8 +38,9 @@ output reference; ``{{workflow_id}}``; ``{{host:NAME}}`` → the address of grou
 ``args`` (not ``command``) then expand Kubernetes-style ``$(NAME)`` references from the
 variables the task defines (its ``environment``, its credentials' variables and osmo's own;
 not the base environment): ``$$`` is an escaped ``$``, an undefined ``$(NAME)`` stays as
-written (``osmo.spec.tokens.expand_vars``). In a container (``boxed``) credentials'
-variables are not expanded: args show in ``podman inspect``; the shell's ``$NAME`` has them.
+written (``osmo.spec.tokens.expand_vars``). Where credential variables are handed over apart
+(``Paths.hidden_secrets``: a container's, whose args show in ``podman inspect``) they are not
+expanded; the shell's ``$NAME`` has them.
 
 Environment: a small base taken from the worker's (``osmo.worker.taskenv``: ``PATH``,
 ``HOME``, locale; never the whole environment, never ``OSMO_HOME``), then the task's
@@ -40,11 +48,6 @@ Environment: a small base taken from the worker's (``osmo.worker.taskenv``: ``PA
 key}``, verbatim), then osmo's own variables, which a task cannot override:
 ``OSMO_WORKFLOW_ID``, ``OSMO_TASK``, ``OSMO_RETRY``, ``OSMO_NODE``, ``OSMO_OUTPUT``,
 ``OSMO_FILES_ROOT``.
-
-Sandbox view (:func:`attempt_view`): what of osmo's home a sandboxed attempt sees: its own
-folder read-only, its ``work/``, ``output.partial/`` and ``files/`` writable, its inputs
-read-only; the rest of the home is hidden (``osmo.runtime.sandbox``). A root pool's
-sandboxed task is ``nobody`` on the host: :func:`hand_over` gives it its writable folders.
 
 Promotion: after a COMPLETE exit of an attempt that was not killed, ``output.partial`` is
 renamed to ``output`` (atomic) and the attempt folder is fsynced; the output reference is the
@@ -64,56 +67,25 @@ import binascii
 import os
 import posixpath
 import re
-import stat
 import uuid
-from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
 from osmo.artifacts.fsops import remove_tree
-from osmo.errors import OsmoError
 from osmo.layout import AttemptDirs
-from osmo.runtime.container_run import ContainerRun
-from osmo.runtime.sandbox import View
+from osmo.runtime.api import HOST_PATHS, Launch, Paths, PrepareError
 from osmo.scheduler.types import PrepareAttempt
 from osmo.spec.model import InputSpec, TaskSpec
 from osmo.spec.tokens import expand_vars, substitute
-from osmo.worker import container_layout as containers
 from osmo.worker import launch
 from osmo.worker.secrets import Secrets, mounts, secret_env, secret_values
 
-__all__ = ["Launch", "PrepareError", "attempt_view", "hand_over", "prepare", "promote",
-           "remove_secret_files"]
-
-
-class PrepareError(OsmoError):
-    """An attempt's folder, files or tokens could not be prepared (message says which)."""
-
-
-@dataclass(frozen=True)
-class Launch:
-    """What to run for a prepared attempt: argv, working folder and complete environment.
-
-    ``secrets`` are the values of the task's credentials (for masking its logs) and
-    ``secret_files`` the files its credential mounts wrote; neither is shown by ``repr``.
-    ``view`` is what a sandbox lets it see (None: it runs unsandboxed).
-    """
-
-    argv: tuple[str, ...]
-    cwd: Path
-    env: dict[str, str] = field(repr=False)
-    secrets: tuple[str, ...] = field(default=(), repr=False)
-    secret_files: tuple[Path, ...] = ()
-    scratch: tuple[Path, ...] = ()  # deleted when the attempt ends (large input copies)
-    max_output_bytes: int | None = None  # the task's ``storage``: its output may hold no more
-    view: View | None = None
-    container: ContainerRun | None = None  # run in this container (``osmo.worker.containers``)
-    notes: tuple[str, ...] = ()  # osmo lines for its log, from before the log existed (a pull)
+__all__ = ["PrepareError", "prepare", "promote", "remove_secret_files"]
 
 
 def prepare(
     dirs: AttemptDirs, cmd: PrepareAttempt, task: TaskSpec, base_env: Mapping[str, str],
-    secrets: Secrets | None = None, *, boxed: bool = False,
+    secrets: Secrets | None = None, *, paths: Paths = HOST_PATHS,
 ) -> Launch:
     """Create the attempt's folder, write its files and resolve its command.
 
@@ -121,11 +93,9 @@ def prepare(
         dirs: the attempt's folder (made here; an earlier one of the same attempt is cleared).
         cmd: the placement: inputs, peers' addresses, the attempt's id.
         task: what to run.
-        base_env: the environment the command starts from.
+        base_env: the environment the command starts from (unless ``paths.own_env``).
         secrets: the payloads of the credentials ``task`` names (credential name → payload).
-        boxed: the task runs in its image (``osmo.worker.containers``): tokens name the
-            container's paths, nothing is rewritten, ``base_env`` is not used, and the launch
-            carries the container's layout (``containers.layout``) for the pool to finish.
+        paths: how its runtime shows it its attempt (``Runtime.paths``; the module docstring).
 
     Raises:
         PrepareError: a token cannot be resolved, a file path is unusable, or the folder
@@ -137,21 +107,23 @@ def prepare(
     secrets = secrets or {}
     mounted = mounts(task, secrets)
     mapping = _file_mapping(dirs, task, mounted)
-    rewrite = (lambda value: value) if boxed else _rewriter(mapping)
-    resolve = _resolver(dirs, cmd, task, boxed=boxed)
+    refs = _input_refs(cmd, task)
+    rewrite = (lambda value: value) if paths.bound_files else _rewriter(mapping)
+    resolve = _resolver(dirs, cmd, task, paths, refs)
 
     def text(value: str) -> str:
         return substitute(rewrite(value), resolve)
 
     defined = {key: text(str(value)) for key, value in task.environment.items()}
-    # boxed: credential variables live in the container's secret file; expanded into args
-    # they would show in `podman inspect`, so $(SECRET) stays as written there
-    defined.update({} if boxed else secret_env(task, secrets))
-    defined.update(containers.osmo_env(cmd) if boxed else _osmo_env(dirs, cmd))
+    credential_env = secret_env(task, secrets)
+    # handed over apart (a container's secret file): expanded into args they would show in
+    # `podman inspect`, so $(SECRET) stays as written there
+    defined.update({} if paths.hidden_secrets else credential_env)
+    defined.update(_osmo_env(dirs, cmd, paths))
     # args expand $(NAME) from the variables the task defines, as Kubernetes does
     argv = (*(text(word) for word in task.command),
             *(expand_vars(text(word), defined) for word in task.args))
-    env = dict(defined) if boxed else {**base_env, **defined}
+    env = dict(defined) if paths.own_env else {**base_env, **defined}
     if task.type:  # a typed task: the runner reads its context file (osmo.worker.launch)
         argv = launch.runner_argv(dirs.context)
         env.update(launch.runner_env(task, env))
@@ -163,63 +135,9 @@ def prepare(
             _write_context(dirs, cmd, task)
     except OSError as exc:
         raise PrepareError(f"cannot prepare {exc.filename or dirs.root}: {exc.strerror}") from exc
-    box = containers.layout(dirs, task, mapping, _input_refs(cmd, task),
-                            secret_env(task, secrets)) if boxed else None
-    return Launch(argv, dirs.work, env, tuple(secret_values(task, secrets)), written,
-                  container=box)
-
-
-_MAX_INPUT_BINDS = 2000  # each is 3 bubblewrap arguments; bubblewrap takes at most 9,000
-
-
-def attempt_view(dirs: AttemptDirs, cmd: PrepareAttempt, hidden: tuple[Path, ...],
-                 masked: tuple[Path, ...] = (), code: tuple[Path, ...] = ()) -> View:
-    """What a sandboxed attempt sees of the ``hidden`` folders (osmo's homes; the docstring).
-
-    ``cmd.inputs`` are its resolved input references; those that are folders are bound
-    read-only (a ``url`` input's download and a copy sit in paths bound read-only already).
-    ``masked``: files it must not see; ``code``: folders a typed task imports its type from
-    (``TaskSpec.resolved.paths``), shown read-only.
-    """
-    bound: list[Path] = []
-    for path in sorted({Path(ref) for ref in cmd.inputs.values() if ref.startswith("/")}):
-        # inputs inside the attempt's folder (its checked links) are bound with it, and a
-        # folder inside one already bound needs nothing more (bubblewrap takes ≤ 9,000 args)
-        if not path.is_relative_to(dirs.root) and not (bound and path.is_relative_to(bound[-1])):
-            bound.append(path)
-    if len(bound) > _MAX_INPUT_BINDS:
-        raise PrepareError(f"{len(bound):,} input folders outside osmo's store are more than a "
-                           f"sandbox can bind ({_MAX_INPUT_BINDS:,}); run it with --sandbox off "
-                           "or give it fewer, larger inputs")
-    return View(hidden=hidden, readonly=(dirs.root, dirs.url_inputs, *bound),
-                writable=(dirs.work, dirs.output_partial, dirs.files), cwd=dirs.work,
-                masked=masked, code=code)
-
-
-def hand_over(dirs: AttemptDirs, owner: tuple[int, int]) -> None:
-    """Give a sandboxed attempt of a root pool what it writes (``owner``: its host ids).
-
-    Its ``work/``, ``output.partial/`` and ``files/``, and what preparing wrote in them (its
-    files, its credentials' files), become ``owner``'s; its folder and its inputs' folders
-    get the search bit for others if they lack it (the umask's), so that it can reach its
-    inputs, never the right to list or write them. Inputs themselves (links of blobs) are
-    left alone. The pool (root) still reads, ingests and removes all of it.
-    """
-    uid, gid = owner
-    for top in (dirs.work, dirs.output_partial, dirs.files):
-        if not top.exists():
-            continue
-        os.chown(top, uid, gid)
-        for folder, subfolders, names in os.walk(top):
-            for name in (*subfolders, *names):
-                os.lchown(os.path.join(folder, name), uid, gid)
-    for reached in (dirs.root, dirs.inputs, dirs.url_inputs):
-        try:
-            mode = os.stat(reached).st_mode
-        except FileNotFoundError:
-            continue
-        if not mode & 0o001:
-            os.chmod(reached, stat.S_IMODE(mode) | 0o001)
+    return Launch(argv, dirs.work, env, tuple(secret_values(task, secrets)),
+                  secret_env=credential_env if paths.hidden_secrets else {},
+                  secret_files=written, files=mapping, inputs=tuple(refs))
 
 
 def remove_secret_files(launch: Launch) -> None:
@@ -265,14 +183,15 @@ def _write_context(dirs: AttemptDirs, cmd: PrepareAttempt, task: TaskSpec) -> No
                          workflow_id=cmd.workflow_id, retry=cmd.retry, attempt_id=cmd.attempt_id)
 
 
-def _osmo_env(dirs: AttemptDirs, cmd: PrepareAttempt) -> dict[str, str]:
+def _osmo_env(dirs: AttemptDirs, cmd: PrepareAttempt, paths: Paths) -> dict[str, str]:
+    """The variables osmo sets (the task cannot override them)."""
     return {
         "OSMO_WORKFLOW_ID": cmd.workflow_id,
         "OSMO_TASK": cmd.task,
         "OSMO_RETRY": str(cmd.retry),
         "OSMO_NODE": cmd.node_id,
-        "OSMO_OUTPUT": str(dirs.output_partial),
-        "OSMO_FILES_ROOT": str(dirs.files),
+        "OSMO_OUTPUT": paths.output or str(dirs.output_partial),
+        "OSMO_FILES_ROOT": paths.files_root or str(dirs.files),
     }
 
 
@@ -360,7 +279,7 @@ def _write_mounts(mapping: Mapping[str, Path],
                 finally:
                     os.close(fd)
     except OSError:  # a failed preparation leaves no secret behind
-        remove_secret_files(Launch((), Path(), {}, (), tuple(written)))
+        remove_secret_files(Launch((), Path(), {}, secret_files=tuple(written)))
         raise
     return tuple(written)
 
@@ -390,23 +309,24 @@ def _input_ref(index: int, spec: InputSpec, inputs: Mapping[str, str]) -> str | 
     return None
 
 
-def _resolver(dirs: AttemptDirs, cmd: PrepareAttempt, task: TaskSpec, *,
-              boxed: bool = False) -> Callable[[str], str]:
+def _resolver(dirs: AttemptDirs, cmd: PrepareAttempt, task: TaskSpec, paths: Paths,
+              refs: Sequence[str | None]) -> Callable[[str], str]:
     attempt_uuid = uuid.uuid4().hex
+    hosts = cmd.hosts if paths.hosts is None else paths.hosts
 
     def resolve(token: str) -> str:
         kind, _, arg = token.partition(":")
         value: str | None = None
-        if boxed and kind in ("output", "input"):  # the container's own paths
-            value = containers.data_path(token, task, _input_refs(cmd, task))
-        elif kind == "output":
-            value = str(dirs.output_partial)
+        if kind == "output":
+            value = paths.output or str(dirs.output_partial)
         elif kind == "workflow_id":
             value = cmd.workflow_id
         elif kind == "uuid":
             value = attempt_uuid
         elif kind == "host":
-            value = cmd.hosts.get(arg)
+            value = hosts.get(arg)
+        elif kind == "input" and paths.input_dir is not None:  # where the runtime binds it
+            value = _shown_input(arg, task, refs, paths.input_dir)
         elif kind == "input" and arg.isdigit():
             index = int(arg)
             if index < len(task.inputs):
@@ -418,3 +338,13 @@ def _resolver(dirs: AttemptDirs, cmd: PrepareAttempt, task: TaskSpec, *,
         return value
 
     return resolve
+
+
+def _shown_input(arg: str, task: TaskSpec, refs: Sequence[str | None],
+                 input_dir: str) -> str | None:
+    """Where an input the attempt has (by index or name) is bound for its task."""
+    for index, spec in enumerate(task.inputs):
+        names = (str(index),) if arg.isdigit() else (launch.input_name(spec), spec.task)
+        if arg in names and refs[index] is not None:
+            return input_dir.format(index)
+    return None

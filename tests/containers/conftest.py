@@ -8,7 +8,7 @@
 - ``labels``: the labels every container and network a test makes must carry; at the end
   the test must have removed them all (it fails otherwise, and the leftovers are removed).
 - ``cosmo``: a CLI whose server runs image tasks in containers; nothing of it may be left.
-- ``engine`` / ``runtime``: osmo's adapter for podman, and a ``ContainerRuntime`` that is
+- ``engine`` / ``runtime``: osmo's adapter for podman, and a ``ContainerRuns`` that is
   closed (its background kills and removals finished) before ``labels`` checks.
 """
 
@@ -22,8 +22,7 @@ from pathlib import Path
 
 import pytest
 
-from osmo.runtime.container import ContainerEngine, detect_engine
-from osmo.runtime.container_runtime import ContainerRuntime
+from osmo.runtime.container import ContainerEngine, ContainerRuns, detect_engine
 from tests.conftest import Osmo
 from tests.containers.images import KINDS_PYTHON, ensure_images, write_containers_conf
 from tests.containers.submitting import container_osmo, leftovers, owner_labels
@@ -84,9 +83,9 @@ def labels(engine: ContainerEngine, session_label: dict[str, str]) -> Iterator[d
 
 
 @pytest.fixture
-def runtime(engine: ContainerEngine, labels: dict[str, str]) -> Iterator[ContainerRuntime]:
+def runtime(engine: ContainerEngine, labels: dict[str, str]) -> Iterator[ContainerRuns]:
     """A container runtime, closed before ``labels`` looks for leftovers."""
-    rt = ContainerRuntime(engine)
+    rt = ContainerRuns(engine)
     yield rt
     rt.close()
 

@@ -7,8 +7,7 @@ import re
 import time
 from pathlib import Path
 
-from osmo.runtime.container import ContainerEngine
-from osmo.worker.containers import owner_id
+from osmo.runtime.container import ContainerEngine, owner_id
 from tests.conftest import Osmo
 
 _SYSLOG = "failed to connect to syslog"

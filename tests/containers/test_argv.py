@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from osmo.runtime.container_run import (
+from osmo.runtime.container.run import (
     SECRET_ENV_PATH,
     ContainerError,
     ContainerRun,

@@ -20,6 +20,7 @@ from osmo.runtime.container import (
     ContainerEngine,
     ContainerError,
     ContainerRun,
+    ContainerRuns,
     EngineInfo,
     EngineNotFound,
     Mount,
@@ -27,7 +28,6 @@ from osmo.runtime.container import (
     detect_engine,
     safe_name,
 )
-from osmo.runtime.container_runtime import ContainerRuntime
 from tests.containers.running import start
 
 ALPINE = "alpine:3.18"
@@ -66,7 +66,7 @@ def test_no_engine_names_the_package_to_install() -> None:
 
 
 def test_mounts_env_output_ownership_and_exit_code(
-        runtime: ContainerRuntime, images: dict[str, str], labels: dict[str, str],
+        runtime: ContainerRuns, images: dict[str, str], labels: dict[str, str],
         tmp_path: Path) -> None:
     inp, out, script = tmp_path / "in", tmp_path / "out", tmp_path / "run.sh"
     inp.mkdir()
@@ -91,7 +91,7 @@ def test_mounts_env_output_ownership_and_exit_code(
 
 
 def test_outputs_belong_to_the_user_the_task_runs_as(
-        runtime: ContainerRuntime, images: dict[str, str], labels: dict[str, str],
+        runtime: ContainerRuns, images: dict[str, str], labels: dict[str, str],
         tmp_path: Path) -> None:
     out = tmp_path / "out"
     out.mkdir(mode=0o777)
@@ -105,7 +105,7 @@ def test_outputs_belong_to_the_user_the_task_runs_as(
 
 
 def test_hostile_mount_paths_bind_exactly(
-        runtime: ContainerRuntime, images: dict[str, str], labels: dict[str, str],
+        runtime: ContainerRuns, images: dict[str, str], labels: dict[str, str],
         tmp_path: Path) -> None:
     odd = tmp_path / 'a,b"c:d=e'
     odd.mkdir()
@@ -116,7 +116,7 @@ def test_hostile_mount_paths_bind_exactly(
 
 
 def test_a_json_looking_program_is_a_program_name(
-        runtime: ContainerRuntime, images: dict[str, str], labels: dict[str, str],
+        runtime: ContainerRuns, images: dict[str, str], labels: dict[str, str],
         tmp_path: Path) -> None:
     started = start(runtime, run_of(labels, ['["sh","-c","echo injected"]']), tmp_path)
     # not found: 127 from the engine, or 1 from --init's catatonit ("failed to exec pid1")
@@ -124,7 +124,7 @@ def test_a_json_looking_program_is_a_program_name(
     assert b"injected" not in started.out and b"No such file" in started.err
 
 
-def test_limits_apply(runtime: ContainerRuntime, images: dict[str, str], labels: dict[str, str],
+def test_limits_apply(runtime: ContainerRuns, images: dict[str, str], labels: dict[str, str],
                       tmp_path: Path) -> None:
     script = ("cat /sys/fs/cgroup/memory.max 2>/dev/null || "
               "cat /sys/fs/cgroup/memory/memory.limit_in_bytes; "
@@ -137,7 +137,7 @@ def test_limits_apply(runtime: ContainerRuntime, images: dict[str, str], labels:
     assert lines[1].split()[1] == str(64 << 10)
 
 
-def test_without_a_container_it_runs_a_host_process(runtime: ContainerRuntime,
+def test_without_a_container_it_runs_a_host_process(runtime: ContainerRuns,
                                                     tmp_path: Path) -> None:
     handle = runtime.start(["sh", "-c", "echo host; exit 4"], cwd=tmp_path,
                            env={"PATH": os.environ["PATH"]})
@@ -150,7 +150,7 @@ def test_without_a_container_it_runs_a_host_process(runtime: ContainerRuntime,
 
 
 def test_secret_variables_are_not_in_inspect(
-        runtime: ContainerRuntime, engine: ContainerEngine, images: dict[str, str],
+        runtime: ContainerRuns, engine: ContainerEngine, images: dict[str, str],
         labels: dict[str, str], tmp_path: Path) -> None:
     secret = "s3cret-' \"$(rm -rf /)\"-value"
     secret_file = tmp_path / "secret.env"
@@ -193,9 +193,9 @@ def test_env_file_values_do_show_in_inspect(engine: ContainerEngine, images: dic
 
 
 def test_a_symlink_planted_at_the_secret_file_is_not_followed(
-        runtime: ContainerRuntime, images: dict[str, str], labels: dict[str, str],
+        runtime: ContainerRuns, images: dict[str, str], labels: dict[str, str],
         tmp_path: Path) -> None:
-    from osmo.runtime.process import StartError
+    from osmo.runtime import StartError
     victim = tmp_path / "victim.txt"
     victim.write_text("keep me\n")
     secret_file = tmp_path / "secret.env"
@@ -211,7 +211,7 @@ def test_a_symlink_planted_at_the_secret_file_is_not_followed(
 
 
 def test_group_network_dns_between_two_containers(
-        runtime: ContainerRuntime, engine: ContainerEngine, images: dict[str, str],
+        runtime: ContainerRuns, engine: ContainerEngine, images: dict[str, str],
         labels: dict[str, str], tmp_path: Path) -> None:
     network = safe_name("wf", "group", str(time.monotonic_ns()))
     engine.create_network(network, labels)
@@ -241,7 +241,7 @@ def test_group_network_dns_between_two_containers(
 
 
 def test_logs_stream_while_the_container_runs(
-        runtime: ContainerRuntime, images: dict[str, str], labels: dict[str, str],
+        runtime: ContainerRuns, images: dict[str, str], labels: dict[str, str],
         tmp_path: Path) -> None:
     started = start(runtime, run_of(labels, ["sh", "-c", "echo first; echo oops >&2; sleep 60"]),
                     tmp_path)
@@ -255,7 +255,7 @@ def test_logs_stream_while_the_container_runs(
 @pytest.mark.parametrize("on_term, code", [("exit 7", 7), (":", 137)],
                          ids=["exits-on-sigterm", "ignores-sigterm"])
 def test_kill_sends_sigterm_then_the_forced_kill_ends_it(
-        runtime: ContainerRuntime, images: dict[str, str], labels: dict[str, str],
+        runtime: ContainerRuns, images: dict[str, str], labels: dict[str, str],
         tmp_path: Path, on_term: str, code: int) -> None:
     script = f'trap "echo got TERM; {on_term}" TERM; echo ready; while true; do sleep 0.1; done'
     started = start(runtime, run_of(labels, ["sh", "-c", script]), tmp_path)
@@ -269,7 +269,7 @@ def test_kill_sends_sigterm_then_the_forced_kill_ends_it(
 
 
 def test_a_kill_right_after_start_stops_the_container(
-        runtime: ContainerRuntime, images: dict[str, str], labels: dict[str, str],
+        runtime: ContainerRuns, images: dict[str, str], labels: dict[str, str],
         tmp_path: Path) -> None:
     """The kill comes while the CLI is still creating the container: it still takes."""
     started = start(runtime, run_of(labels, ["sh", "-c", "echo ran; sleep 300"]), tmp_path)
@@ -278,7 +278,7 @@ def test_a_kill_right_after_start_stops_the_container(
 
 
 def test_reaped_while_running_the_container_goes_too(
-        runtime: ContainerRuntime, images: dict[str, str], labels: dict[str, str],
+        runtime: ContainerRuns, images: dict[str, str], labels: dict[str, str],
         tmp_path: Path) -> None:
     """A pool shutting down kills and reaps at once, without waiting for the exit."""
     started = start(runtime, run_of(labels, ["sh", "-c", "echo ready; sleep 300"]), tmp_path)
@@ -289,9 +289,9 @@ def test_reaped_while_running_the_container_goes_too(
 
 
 def test_an_unusable_run_is_a_start_error_that_leaves_nothing(
-        runtime: ContainerRuntime, images: dict[str, str], labels: dict[str, str],
+        runtime: ContainerRuns, images: dict[str, str], labels: dict[str, str],
         tmp_path: Path) -> None:
-    from osmo.runtime.process import StartError
+    from osmo.runtime import StartError
     secret_file = tmp_path / "secret.env"
     run = run_of(labels, ["true"], secret_env={"TOKEN": "x"}, secret_env_file=secret_file,
                  mounts=(Mount(tmp_path, "/proc"),))
@@ -314,7 +314,7 @@ def test_engine_stop_with_grace(engine: ContainerEngine, images: dict[str, str],
 
 
 def test_orphans_after_the_cli_is_killed_are_found_and_removed_by_label(
-        runtime: ContainerRuntime, engine: ContainerEngine, images: dict[str, str],
+        runtime: ContainerRuns, engine: ContainerEngine, images: dict[str, str],
         labels: dict[str, str], tmp_path: Path) -> None:
     """kill -9 of the worker takes the ``run`` CLI with it; its container runs on."""
     owner = dict(labels, **{"osmo.owner": f"node-{time.monotonic_ns()}"})
@@ -393,7 +393,7 @@ def test_digest_is_the_image_id_and_follows_a_retag(
 
 
 def test_wait_started_follows_the_event_stream(
-        engine: ContainerEngine, runtime: ContainerRuntime, images: dict[str, str],
+        engine: ContainerEngine, runtime: ContainerRuns, images: dict[str, str],
         labels: dict[str, str], tmp_path: Path) -> None:
     """A start before the wait counts (``--since``); a container of another role does not."""
     group = ("osmo.network", f"osmo-test-{uuid.uuid4().hex[:12]}")

@@ -9,7 +9,7 @@ from __future__ import annotations
 import uuid
 
 from osmo.runtime.container import ContainerEngine, ImageInfo
-from osmo.worker.container_images import ImageIds
+from osmo.runtime.container.images import ImageIds
 
 
 class CountingEngine(ContainerEngine):

@@ -18,8 +18,7 @@ from pathlib import Path
 
 import pytest
 
-from osmo.runtime.container import ContainerEngine
-from osmo.worker.containers import owner_id
+from osmo.runtime.container import ContainerEngine, owner_id
 from tests.conftest import ended, write
 from tests.containers.registry import fake_registry
 from tests.containers.submitting import leftovers, task_lines, tasks

@@ -201,6 +201,33 @@ workflow:
         engine.call("untag", tag, tag)  # only this name (no name: every name of it)
 
 
+def test_a_typed_task_that_names_an_image_runs_as_a_process_and_is_reused(
+        cosmo: Osmo, images: dict[str, str], tmp_path: Path) -> None:
+    """A typed task never runs in its image: its placement must not fingerprint the image's
+    id (the attempt reports none, so its output was never recorded for reuse)."""
+    write(tmp_path / "imgtypes.py", """
+from osmo import task_type
+
+@task_type(version="1")
+def make(ctx):
+    (ctx.output / "out.txt").write_text("made")
+""")
+    spec = write(tmp_path / "typed.yaml", """
+workflow:
+  name: typed-image
+  tasks:
+  - name: make
+    type: imgtypes:make
+    image: alpine:3.18
+""")
+    code, first = submit_wait(cosmo, spec)
+    assert code == 0, tasks(cosmo, first)
+    assert lineage_of(cosmo, f"{first}:make")["image_id"] is None  # it ran as a process
+    code, again = submit_wait(cosmo, spec)
+    assert code == 0 and tasks(cosmo, again)["make"]["message"].startswith("cached:"), \
+        tasks(cosmo, again)["make"]
+
+
 def test_orphans_are_removed_after_a_server_kill_9(cosmo: Osmo, engine: ContainerEngine,
                                                    tmp_path: Path) -> None:
     spec = write(tmp_path / "group.yaml", """

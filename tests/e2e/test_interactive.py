@@ -340,6 +340,30 @@ workflow:
         cluster.osmo("cancel", wf)
 
 
+@pytest.mark.parametrize("pool", [LOCAL, REMOTE])
+def test_port_forward_reaches_a_task_listening_on_every_address(
+        cluster: Cluster, tmp_path: Path, pool: str) -> None:
+    """A server bound to IPv6's wildcard (dual-stack, ``--bind ::``): the node connects to
+    ``::1`` inside the sandboxed tasks' network (it made an IPv4 socket for it and failed)."""
+    port, local = free_port(0), free_port(0)
+    spec = write(tmp_path / f"any-{pool}.yaml", f"""
+workflow:
+  name: any-{pool}
+  tasks:
+  - name: t
+    command: [sh, -c, "echo served > page.txt && exec {sys.executable} -m http.server {port} --bind ::"]
+""")
+    wf = _running(cluster.osmo, spec, pool)
+    proc = _forward(cluster.osmo, wf, "--port", f"{local}:{port}")
+    try:
+        page = _retry(lambda: urllib.request.urlopen(f"http://127.0.0.1:{local}/page.txt",
+                                                     timeout=30).read())
+        assert page == b"served\n"
+    finally:
+        _stop(proc)
+        cluster.osmo("cancel", wf)
+
+
 def test_port_forward_udp_echo_and_ctrl_c(cluster: Cluster, tmp_path: Path) -> None:
     port, local = free_port(0), free_port(0)
     spec = write(tmp_path / "udp.yaml", f"""

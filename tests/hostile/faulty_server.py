@@ -60,15 +60,15 @@ def _inject(kind: str, arg: str) -> None:
         _batch_kill(*arg.split(":", 2))
     elif kind == "spawn":
         word, marker = arg.split(":", 1)
-        spawn = starts.AttemptStarts._spawn
+        spawn = starts.Starting.spawn
 
-        def dying_spawn(self: starts.AttemptStarts, launch: Any, **kw: Any) -> Any:
-            handle = spawn(self, launch, **kw)
+        def dying_spawn(self: starts.Starting, runtime: Any, launch: Any) -> Any:
+            handle = spawn(self, runtime, launch)
             if any(word in str(item) for item in launch.argv):
                 _die_once(marker)
             return handle
 
-        starts.AttemptStarts._spawn = dying_spawn  # type: ignore[method-assign]
+        starts.Starting.spawn = dying_spawn  # type: ignore[method-assign]
     elif kind == "store":
         tx, read = sqlite.Store._tx, sqlite.Store._read
 

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from osmo.runtime.sandbox import node_network
+from osmo.runtime.process.sandbox import node_network
 from tests.runtime.churn import _MS_BIND, _mount, _umount
 
 _MS_SHARED = 1 << 20

@@ -13,8 +13,8 @@ from pathlib import Path
 import pytest
 
 from osmo.runtime import (
+    ProcessGroups,
     ProcessHandle,
-    ProcessRuntime,
     StartError,
     exit_code_of,
     kill_stale,
@@ -58,11 +58,11 @@ def read_all(fd: int) -> bytes:
 
 
 @pytest.fixture
-def runtime() -> Iterator[ProcessRuntime]:
-    yield ProcessRuntime()
+def runtime() -> Iterator[ProcessGroups]:
+    yield ProcessGroups()
 
 
-def start(runtime: ProcessRuntime, script: str, cwd: Path) -> ProcessHandle:
+def start(runtime: ProcessGroups, script: str, cwd: Path) -> ProcessHandle:
     return runtime.start(["sh", "-c", script], cwd=cwd, env={"PATH": os.environ["PATH"]})
 
 
@@ -71,7 +71,7 @@ def start(runtime: ProcessRuntime, script: str, cwd: Path) -> ProcessHandle:
     [("true", 0), ("exit 3", 3), ("exit 255", 255), ("kill -TERM $$", 143), ("kill -KILL $$", 137)],
 )
 def test_exit_codes_are_normalised(
-    runtime: ProcessRuntime, tmp_path: Path, script: str, code: int
+    runtime: ProcessGroups, tmp_path: Path, script: str, code: int
 ) -> None:
     handle = start(runtime, script, tmp_path)
     wait_exit(handle)
@@ -85,7 +85,7 @@ def test_exit_code_of() -> None:
     assert exit_code_of(2) == 2
 
 
-def test_cwd_env_and_pipes(runtime: ProcessRuntime, tmp_path: Path) -> None:
+def test_cwd_env_and_pipes(runtime: ProcessGroups, tmp_path: Path) -> None:
     handle = runtime.start(
         ["sh", "-c", 'pwd; echo "$ONLY"; echo err >&2'],
         cwd=tmp_path,
@@ -99,7 +99,7 @@ def test_cwd_env_and_pipes(runtime: ProcessRuntime, tmp_path: Path) -> None:
     assert err == b"err\n"
 
 
-def test_runs_in_its_own_process_group(runtime: ProcessRuntime, tmp_path: Path) -> None:
+def test_runs_in_its_own_process_group(runtime: ProcessGroups, tmp_path: Path) -> None:
     handle = start(runtime, "sleep 100", tmp_path)
     try:
         assert os.getpgid(handle.pid) == handle.pid
@@ -111,7 +111,7 @@ def test_runs_in_its_own_process_group(runtime: ProcessRuntime, tmp_path: Path) 
         runtime.release(handle)
 
 
-def test_kill_reaches_grandchildren(runtime: ProcessRuntime, tmp_path: Path) -> None:
+def test_kill_reaches_grandchildren(runtime: ProcessGroups, tmp_path: Path) -> None:
     handle = start(runtime, "sleep 100 & echo $!; sleep 100", tmp_path)
     line = b""
     while not line.endswith(b"\n"):
@@ -126,7 +126,7 @@ def test_kill_reaches_grandchildren(runtime: ProcessRuntime, tmp_path: Path) -> 
     wait_until(lambda: not alive(grandchild))
 
 
-def test_reap_kills_leftover_background_children(runtime: ProcessRuntime, tmp_path: Path) -> None:
+def test_reap_kills_leftover_background_children(runtime: ProcessGroups, tmp_path: Path) -> None:
     pid_file = tmp_path / "bg.pid"
     handle = start(runtime, f"sleep 100 & echo $! > {pid_file}", tmp_path)
     wait_exit(handle)
@@ -135,7 +135,7 @@ def test_reap_kills_leftover_background_children(runtime: ProcessRuntime, tmp_pa
     wait_until(lambda: not alive(int(pid_file.read_text())))
 
 
-def test_kill_after_reap_is_harmless(runtime: ProcessRuntime, tmp_path: Path) -> None:
+def test_kill_after_reap_is_harmless(runtime: ProcessGroups, tmp_path: Path) -> None:
     """After reap the group id may name someone else's group, and after release the fd
     numbers may be someone else's files: neither a late kill nor a second release touches
     them."""
@@ -175,14 +175,14 @@ def test_kill_after_reap_is_harmless(runtime: ProcessRuntime, tmp_path: Path) ->
     ],
 )
 def test_start_errors(
-    runtime: ProcessRuntime, tmp_path: Path, argv: list[str], message: str
+    runtime: ProcessGroups, tmp_path: Path, argv: list[str], message: str
 ) -> None:
     with pytest.raises(StartError) as info:
         runtime.start(argv, cwd=tmp_path, env={"PATH": os.environ["PATH"]})
     assert str(info.value) == message
 
 
-def test_start_error_not_executable(runtime: ProcessRuntime, tmp_path: Path) -> None:
+def test_start_error_not_executable(runtime: ProcessGroups, tmp_path: Path) -> None:
     script = tmp_path / "script.sh"
     script.write_text("#!/bin/sh\ntrue\n")
     script.chmod(0o644)
@@ -190,7 +190,7 @@ def test_start_error_not_executable(runtime: ProcessRuntime, tmp_path: Path) -> 
         runtime.start([str(script)], cwd=tmp_path, env={})
 
 
-def test_start_error_missing_cwd(runtime: ProcessRuntime, tmp_path: Path) -> None:
+def test_start_error_missing_cwd(runtime: ProcessGroups, tmp_path: Path) -> None:
     with pytest.raises(StartError, match="working folder not found"):
         runtime.start(["true"], cwd=tmp_path / "gone", env={"PATH": os.environ["PATH"]})
 

@@ -16,10 +16,10 @@ from pathlib import Path
 import pytest
 
 from osmo.errors import InfrastructureError, UsageError
-from osmo.runtime import ProcessRuntime, StartError
-from osmo.runtime import sandbox as sandbox_mod
-from osmo.runtime.netns import Entry, NodeNetwork
-from osmo.runtime.sandbox import Sandbox, View, choose, node_network
+from osmo.runtime import ProcessGroups, StartError
+from osmo.runtime.process import sandbox as sandbox_mod
+from osmo.runtime.process.netns import Entry, NodeNetwork
+from osmo.runtime.process.sandbox import Sandbox, View, choose, node_network
 from tests.runtime.churn import churning_mounts
 from tests.runtime.test_process_runtime import read_all, wait_exit, wait_until
 
@@ -45,7 +45,7 @@ def box(network: NodeNetwork) -> Sandbox:
 def home(tmp_path: Path, box: Sandbox) -> Path:
     """An osmo-like home: a secret beside one attempt's folders, and another attempt.
 
-    Its writable folders are the task's, as a pool makes them (``workdir.hand_over``).
+    Its writable folders are the task's, as a pool makes them (``sandboxed.hand_over``).
     """
     root = tmp_path / "home"
     for folder in ("a/work", "a/output.partial", "a/files", "other/work", "input"):
@@ -66,7 +66,7 @@ def view(home: Path) -> View:
 
 
 def run(box: Sandbox, home: Path, script: str) -> tuple[int, str]:
-    runtime = ProcessRuntime(box)
+    runtime = ProcessGroups(box)
     handle = runtime.start(["sh", "-c", script], cwd=home / "a" / "work", env=ENV,
                            view=view(home))
     try:
@@ -140,7 +140,7 @@ def test_exit_codes_are_the_commands_own(box: Sandbox, home: Path, script: str,
 
 def test_sigterm_reaches_the_command_and_grace_is_kept(box: Sandbox, home: Path) -> None:
     """A SIGTERM must not kill bwrap (that would SIGKILL the sandbox at once)."""
-    runtime = ProcessRuntime(box)
+    runtime = ProcessGroups(box)
     out = home / "a" / "output.partial"
     handle = runtime.start(
         ["sh", "-c", f"trap 'echo term > {out}/t; exit 7' TERM; touch {out}/ready; "
@@ -157,7 +157,7 @@ def test_sigterm_reaches_the_command_and_grace_is_kept(box: Sandbox, home: Path)
 
 
 def test_missing_command_fails_the_start(box: Sandbox, home: Path) -> None:
-    runtime = ProcessRuntime(box)
+    runtime = ProcessGroups(box)
     with pytest.raises(StartError, match="command not found: 'no-such-cmd-x'"):
         runtime.start(["no-such-cmd-x"], cwd=home / "a" / "work", env=ENV, view=view(home))
 
@@ -228,7 +228,7 @@ def test_a_sandbox_that_cannot_be_set_up_is_told_from_the_commands_exit(
     The command is ``false`` (exit 1 too): a start whose sandbox failed is marked
     ``setup_failed`` (bwrap's message on its stderr), one whose command ran never is.
     """
-    runtime = ProcessRuntime(box)
+    runtime = ProcessGroups(box)
     seen = {"ran": 0, "setup failed": 0}
     with churning_mounts():
         for _ in range(400):  # until both were seen a few times (usually about 30 starts)
@@ -262,7 +262,7 @@ def test_a_home_reached_through_a_symlink_is_hidden_at_its_real_path(
     argv = box.argv(["true"], linked)
     assert argv[argv.index("--tmpfs", argv.index("/tmp") + 1) + 1] == os.path.realpath(home)
     assert os.path.realpath(home / "a" / "work") in argv and str(a / "work") not in argv
-    runtime = ProcessRuntime(box)
+    runtime = ProcessGroups(box)
     handle = runtime.start(["sh", "-c", f"""
         pwd; cat {home}/state.db || echo no-db
         echo x > {home}/a/output.partial/o && echo wrote-output
@@ -297,15 +297,15 @@ def test_a_task_cannot_undo_its_mounts(box: Sandbox, home: Path) -> None:
 UNPRIVILEGED = r"""
 import json, os, select, socket, sys
 from pathlib import Path
-from osmo.runtime import ProcessRuntime
-from osmo.runtime.sandbox import View, choose, node_network
+from osmo.runtime import ProcessGroups
+from osmo.runtime.process.sandbox import View, choose, node_network
 home, port = Path(sys.argv[1]), int(sys.argv[2])
 work = home / "a" / "work"
 work.mkdir(parents=True)
 (home / "state.db").write_text("secret")
 net = node_network()
 try:
-    runtime = ProcessRuntime(choose("on").joined(net))
+    runtime = ProcessGroups(choose("on").joined(net))
     view = View(hidden=(home,), readonly=(home / "a",), writable=(work,), cwd=work)
     handle = runtime.start(["sh", "-c", f'''
         id -u; grep CapBnd /proc/self/status | cut -f2; readlink /proc/self/ns/net

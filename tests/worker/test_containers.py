@@ -9,26 +9,27 @@ from pathlib import Path
 import pytest
 
 from osmo.layout import AttemptDirs
-from osmo.runtime.container import EngineNotFound
-from osmo.runtime.container_run import DATA_OUTPUT, Mount
+from osmo.runtime.choose import container_engine
+from osmo.runtime.container import EngineNotFound, owner_id
+from osmo.runtime.container.images import registry_auth
+from osmo.runtime.container.layout import DATA_LAYOUT, WORKDIR, mounts
+from osmo.runtime.container.run import DATA_OUTPUT, Mount
 from osmo.scheduler.types import AttemptExited, Capacity, Node, PrepareAttempt
 from osmo.spec.model import FileSpec, InputSpec, TaskSpec
 from osmo.transport.wire import Hello, event_from_dict, event_to_dict
-from osmo.worker.container_images import registry_auth
-from osmo.worker.container_layout import WORKDIR, data_path, layout
-from osmo.worker.containers import GpuSlots, choose, owner_id
-from osmo.worker.workdir import prepare
+from osmo.worker.machine import GpuSlots
+from osmo.worker.workdir import PrepareError, prepare
 
 
 def test_process_runtime_needs_no_engine_and_container_names_the_package(
         monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
     monkeypatch.setenv("PATH", str(tmp_path))  # no podman, no docker
-    assert choose("process") is None
-    assert choose("auto") is None  # image tasks run as processes, with the notice
+    assert container_engine("process") is None
+    assert container_engine("auto") is None  # image tasks run as processes, with the notice
     with pytest.raises(EngineNotFound, match="apt-get install podman"):
-        choose("container")
+        container_engine("container")
     with pytest.raises(EngineNotFound, match="unknown runtime"):
-        choose("vm")
+        container_engine("vm")
 
 
 def test_the_owner_label_is_stable_per_home_and_differs_between_homes(tmp_path: Path) -> None:
@@ -49,28 +50,35 @@ def test_gpu_slots_never_share_an_index_and_come_back() -> None:
 def test_a_registry_credential_is_found_by_the_image_host() -> None:
     creds = {"registry://nvcr.io": {"username": "$oauthtoken", "password": "pw"},
              "registry://docker.io": {"username": "me", "password": "hub"}}
-    auth = registry_auth(TaskSpec("t", image="nvcr.io/nvidia/pytorch:24.01"), creds.get)
+    auth = registry_auth("nvcr.io/nvidia/pytorch:24.01", creds.get)
     assert auth is not None and (auth.registry, auth.username) == ("nvcr.io", "$oauthtoken")
-    short = registry_auth(TaskSpec("t", image="alpine:3.18"), creds.get)
+    short = registry_auth("alpine:3.18", creds.get)
     assert short is not None and short.password == "hub"
     assert "hub" not in repr(short)
-    assert registry_auth(TaskSpec("t", image="quay.io/x:1"), creds.get) is None
-    assert registry_auth(TaskSpec("t", image="nvcr.io/x:1"),
-                         {"registry://nvcr.io": {"username": "u"}}.get) is None
+    assert registry_auth("quay.io/x:1", creds.get) is None
+    assert registry_auth("nvcr.io/x:1", {"registry://nvcr.io": {"username": "u"}}.get) is None
 
 
 def test_tokens_name_the_container_paths(tmp_path: Path) -> None:
-    task = TaskSpec("t", image="alpine:3.18", inputs=(InputSpec(task="make"),
-                                                      InputSpec(dataset="ds:v1")))
-    refs = ["/runs/make/output", None]
-    assert data_path("output", task, refs) == DATA_OUTPUT
-    assert data_path("input:0", task, refs) == "/osmo/data/input/0"
-    assert data_path("input:make", task, refs) == "/osmo/data/input/0"
-    assert data_path("input:1", task, refs) is None  # not available: the preparation fails
-    assert data_path("input:other", task, refs) is None
+    inputs = (InputSpec(task="make"), InputSpec(dataset="ds:v1"))
+    cmd = PrepareAttempt("wf:t:0", "wf", "t", 0, "local", {"make": "/runs/make/output"}, {})
+
+    def env_of(value: str) -> str:
+        task = TaskSpec("t", image="alpine:3.18", command=("true",), inputs=inputs,
+                        environment={"V": value})
+        launch = prepare(AttemptDirs(tmp_path / value.strip("{}").replace(":", "-")), cmd,
+                         task, {}, paths=DATA_LAYOUT)
+        return launch.env["V"]
+
+    assert env_of("{{output}}") == DATA_OUTPUT
+    assert env_of("{{input:0}}") == "/osmo/data/input/0"
+    assert env_of("{{input:make}}") == "/osmo/data/input/0"
+    for unknown in ("{{input:1}}", "{{input:other}}"):  # not available: the preparation fails
+        with pytest.raises(PrepareError, match="cannot resolve"):
+            env_of(unknown)
 
 
-def test_a_boxed_preparation_binds_outputs_inputs_and_files(tmp_path: Path) -> None:
+def test_a_container_preparation_binds_outputs_inputs_and_files(tmp_path: Path) -> None:
     task = TaskSpec("use", image="alpine:3.18", command=("sh", "/opt/run.sh"),
                     environment={"OUT": "{{output}}"}, inputs=(InputSpec(task="make"),),
                     files=(FileSpec(path="/opt/run.sh", contents="cat {{input:make}}/x\n"),
@@ -79,19 +87,19 @@ def test_a_boxed_preparation_binds_outputs_inputs_and_files(tmp_path: Path) -> N
     upstream.mkdir()
     cmd = PrepareAttempt("wf:use:0", "wf", "use", 0, "local", {"make": str(upstream)}, {})
     dirs = AttemptDirs(tmp_path / "attempt")
-    launch = prepare(dirs, cmd, task, {"PATH": "/host/bin", "HOME": "/root"}, boxed=True)
-    box = launch.container
-    assert box is not None
+    launch = prepare(dirs, cmd, task, {"PATH": "/host/bin", "HOME": "/root"},
+                     paths=DATA_LAYOUT)
+    binds, workdir = mounts(dirs, launch.files, launch.inputs)
     assert "PATH" not in launch.env and launch.env["OUT"] == DATA_OUTPUT  # not the host's
     assert launch.env["OSMO_OUTPUT"] == DATA_OUTPUT
     assert (dirs.files / "opt/run.sh").read_text() == "cat /osmo/data/input/0/x\n"
-    assert set(box.mounts) == {
+    assert set(binds) == {
         Mount(dirs.output_partial, DATA_OUTPUT, read_only=False),
         Mount(upstream, "/osmo/data/input/0"),
         Mount(dirs.files / "opt/run.sh", "/opt/run.sh"),
         Mount(dirs.work, WORKDIR, read_only=False)}
-    assert box.workdir == WORKDIR and launch.argv == ("sh", "/opt/run.sh")
-    assert layout(dirs, TaskSpec("t", image="x"), {}, [], {}).workdir is None
+    assert workdir == WORKDIR and launch.argv == ("sh", "/opt/run.sh")
+    assert mounts(dirs, {}, [])[1] is None
 
 
 def test_the_hello_and_the_exit_report_carry_runtime_and_image_id() -> None:
@@ -105,13 +113,13 @@ def test_the_hello_and_the_exit_report_carry_runtime_and_image_id() -> None:
     assert event_from_dict(sent) == AttemptExited("wf:t:0", 0)
 
 
-def test_a_boxed_secret_is_never_in_argv_or_env_only_in_the_secret_file(tmp_path: Path) -> None:
+def test_a_container_secret_is_never_in_argv_or_env_only_in_the_secret_file(tmp_path: Path) -> None:
     task = TaskSpec("t", image="alpine:3.18", command=("sh", "-c"),
                     args=("echo $(API_TOKEN) $(PLAIN) $$API_TOKEN",),
                     environment={"PLAIN": "p"}, credentials={"api": {"API_TOKEN": "token"}})
     cmd = PrepareAttempt("wf:t:0", "wf", "t", 0, "local", {}, {})
     launch = prepare(AttemptDirs(tmp_path / "a"), cmd, task, {}, {"api": {"token": "s3cr3t"}},
-                     boxed=True)
+                     paths=DATA_LAYOUT)
     assert launch.argv == ("sh", "-c", "echo $(API_TOKEN) p $API_TOKEN")
     assert "API_TOKEN" not in launch.env and "s3cr3t" in launch.secrets
-    assert launch.container is not None and launch.container.secret_env == {"API_TOKEN": "s3cr3t"}
+    assert launch.secret_env == {"API_TOKEN": "s3cr3t"}

@@ -76,7 +76,7 @@ def alive(pid: int) -> bool:
 
 def attempt_dir(pool: LocalPool, attempt_id: str) -> Path | None:
     """The attempt's folder on this pool's home, if it exists."""
-    dirs = Home(pool.home).attempt_of(attempt_id)
+    dirs = pool.home.attempt_of(attempt_id)
     return dirs.root if dirs is not None and dirs.root.is_dir() else None
 
 
@@ -94,7 +94,7 @@ def events() -> Events:
 
 @pytest.fixture
 def pool(tmp_path: Path, events: Events) -> Iterator[LocalPool]:
-    pool = LocalPool(home=tmp_path / "home", emit=events, kill_grace=0.5)
+    pool = LocalPool(home=Home(tmp_path / "home"), emit=events, kill_grace=0.5)
     yield pool
     pool.close()
 
@@ -105,7 +105,7 @@ def bare_pool(tmp_path: Path, events: Events) -> Iterator[LocalPool]:
 
     (In the sandbox, pids are its own and ``/tmp`` is private: tests/runtime/test_sandbox.py.)
     """
-    pool = LocalPool(home=tmp_path / "home", emit=events, kill_grace=0.5, sandbox="off")
+    pool = LocalPool(home=Home(tmp_path / "home"), emit=events, kill_grace=0.5, sandbox="off")
     yield pool
     pool.close()
 
@@ -340,7 +340,7 @@ def test_kill_of_finished_or_unknown_attempt_is_ignored(pool: LocalPool, events:
 
 
 def test_close_kills_running_processes(tmp_path: Path, events: Events) -> None:
-    pool = LocalPool(home=tmp_path, emit=events)
+    pool = LocalPool(home=Home(tmp_path), emit=events)
     aid = submit(pool, sh("long", "sleep 100"))
     started = events.wait_for(lambda e: isinstance(e, AttemptStarted) and e.attempt_id == aid)
     assert isinstance(started, AttemptStarted) and started.pid is not None
@@ -395,7 +395,7 @@ def test_parallel_tasks_see_their_own_files(
 
 
 def test_node_capacity(tmp_path: Path, events: Events) -> None:
-    pool = LocalPool(home=tmp_path, emit=events, node_id="n1", pool="p")
+    pool = LocalPool(home=Home(tmp_path), emit=events, node_id="n1", pool="p")
     try:
         node = pool.node()
         assert (node.id, node.pool) == ("n1", "p")
@@ -407,7 +407,7 @@ def test_node_capacity(tmp_path: Path, events: Events) -> None:
         assert node.capacity.gpu == len(devices)
     finally:
         pool.close()
-    pool = LocalPool(home=tmp_path, emit=events, cpus=1.5, gpus=2, memory=1024)
+    pool = LocalPool(home=Home(tmp_path), emit=events, cpus=1.5, gpus=2, memory=1024)
     try:
         capacity = pool.node().capacity
         assert (capacity.cpu, capacity.gpu, capacity.memory) == (1.5, 2, 1024)
@@ -418,7 +418,7 @@ def test_node_capacity(tmp_path: Path, events: Events) -> None:
 def test_attempt_folders_follow_the_home_layout(pool: LocalPool, events: Events) -> None:
     aid = submit(pool, TaskSpec(name="d", command=("true",)))
     events.final(aid)
-    assert attempt_dir(pool, aid) == pool.home / "runs" / "wf-1" / "d" / "0"
+    assert attempt_dir(pool, aid) == pool.home.root / "runs" / "wf-1" / "d" / "0"
     assert attempt_dir(pool, "wf-1:nothing:0") is None
     assert attempt_dir(pool, "garbage") is None
 
@@ -443,7 +443,7 @@ def test_background_children_end_with_the_main_process(bare_pool: LocalPool, eve
 
 
 def test_environment_reaches_the_command(tmp_path: Path, events: Events) -> None:
-    pool = LocalPool(home=tmp_path, emit=events, env={"PATH": os.environ["PATH"], "FROM": "srv"})
+    pool = LocalPool(home=Home(tmp_path), emit=events, env={"PATH": os.environ["PATH"], "FROM": "srv"})
     try:
         task = sh(
             "env",

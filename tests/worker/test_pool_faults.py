@@ -11,6 +11,7 @@ import pytest
 
 from osmo.artifacts import ArtifactStore, Manifest
 from osmo.artifacts.fsops import remove_tree
+from osmo.layout import Home
 from osmo.scheduler.types import AttemptExited, PrepareAttempt
 from osmo.worker.pool import LocalPool
 from tests.worker.test_pool import Events, attempt_dir, sh
@@ -40,7 +41,7 @@ def _run(pool: LocalPool, events: Events, script: str) -> tuple[AttemptExited, P
 
 def test_an_unexpected_error_in_promotion_still_reports_once(tmp_path: Path) -> None:
     events = Events()
-    pool = LocalPool(home=tmp_path / "home", emit=events,
+    pool = LocalPool(home=Home(tmp_path / "home"), emit=events,
                      artifacts=BrokenStore(tmp_path / "store"))
     try:
         final, vault = _run(pool, events, "test -s /etc/vault/key && echo x > {{output}}/f")
@@ -54,7 +55,7 @@ def test_an_unexpected_error_in_promotion_still_reports_once(tmp_path: Path) -> 
 @pytest.mark.parametrize("depth", [600, 2100])
 def test_deep_output_trees_finish(tmp_path: Path, depth: int) -> None:
     events = Events()
-    pool = LocalPool(home=tmp_path / "home", emit=events,
+    pool = LocalPool(home=Home(tmp_path / "home"), emit=events,
                      artifacts=ArtifactStore(tmp_path / "store"))
     nest = (f"cd {{{{output}}}} && python3 -c 'import os\\nfor _ in range({depth}): "
             "os.mkdir(\"d\"); os.chdir(\"d\")\\nopen(\"leaf\", \"w\").write(\"x\")'")

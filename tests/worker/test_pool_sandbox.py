@@ -13,6 +13,7 @@ from pathlib import Path
 
 import pytest
 
+from osmo.layout import Home
 from osmo.scheduler.types import (
     LOCAL_NODE,
     AttemptExited,
@@ -33,7 +34,7 @@ def events() -> Events:
 
 @pytest.fixture
 def boxed(tmp_path: Path, events: Events) -> Iterator[LocalPool]:
-    pool = LocalPool(home=tmp_path / "home", emit=events, kill_grace=0.5, sandbox="on")
+    pool = LocalPool(home=Home(tmp_path / "home"), emit=events, kill_grace=0.5, sandbox="on")
     yield pool
     pool.close()
 

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 
+from osmo.layout import Home
 from osmo.scheduler.types import (
     LOCAL_NODE,
     AttemptExited,
@@ -51,7 +52,7 @@ def uses_secret(name: str = "api") -> TaskSpec:
 @pytest.fixture
 def pool(tmp_path: Path, events: Events) -> Iterator[LocalPool]:
     store = {"api": PAYLOAD, "files": PAYLOAD}
-    pool = LocalPool(home=tmp_path / "home", emit=events, task_secrets=store.get)
+    pool = LocalPool(home=Home(tmp_path / "home"), emit=events, task_secrets=store.get)
     yield pool
     pool.close()
 
@@ -74,7 +75,7 @@ def check_ran_with_secret(pool: LocalPool, final: AttemptExited | AttemptStartFa
 
 def test_secrets_given_to_prepare(tmp_path: Path, events: Events) -> None:
     """The remote worker's path: the payloads come with the assignment, no lookup."""
-    pool = LocalPool(home=tmp_path / "home", emit=events)
+    pool = LocalPool(home=Home(tmp_path / "home"), emit=events)
     try:
         final = run(pool, events, uses_secret(), {"api": PAYLOAD, "files": PAYLOAD})
         check_ran_with_secret(pool, final)
@@ -93,7 +94,7 @@ def test_task_without_credentials_gets_no_secret(pool: LocalPool, events: Events
 
 
 def test_deleted_credential_fails_the_start(tmp_path: Path, events: Events) -> None:
-    pool = LocalPool(home=tmp_path / "home", emit=events, task_secrets={"files": PAYLOAD}.get)
+    pool = LocalPool(home=Home(tmp_path / "home"), emit=events, task_secrets={"files": PAYLOAD}.get)
     try:
         final = run(pool, events, uses_secret())
     finally:

@@ -10,8 +10,9 @@ from pathlib import Path
 import pytest
 
 from osmo.errors import InfrastructureError
+from osmo.layout import Home
 from osmo.options import ServerOptions
-from osmo.runtime import sandbox
+from osmo.runtime.process import sandbox
 from osmo.worker.options import WorkerOptions
 from osmo.worker.pool import LocalPool
 from tests.conftest import Osmo
@@ -39,12 +40,12 @@ def test_the_flag_survives_the_command_line() -> None:
 
 
 def test_a_pool_says_whether_it_sandboxes(tmp_path: Path) -> None:
-    pool = LocalPool(home=tmp_path, emit=lambda _e: None)
+    pool = LocalPool(home=Home(tmp_path), emit=lambda _e: None)
     try:
         assert pool.sandbox is not None and pool.node().labels == {"sandbox": "bwrap"}
     finally:
         pool.close()
-    off = LocalPool(home=tmp_path, emit=lambda _e: None, sandbox="off")
+    off = LocalPool(home=Home(tmp_path), emit=lambda _e: None, sandbox="off")
     try:
         assert off.sandbox is None and off.node().labels == {"sandbox": "none"}
     finally:
@@ -53,13 +54,13 @@ def test_a_pool_says_whether_it_sandboxes(tmp_path: Path) -> None:
 
 def test_without_bubblewrap_auto_runs_unsandboxed_and_on_refuses(tmp_path: Path,
                                                                  no_bwrap: None) -> None:
-    pool = LocalPool(home=tmp_path, emit=lambda _e: None)
+    pool = LocalPool(home=Home(tmp_path), emit=lambda _e: None)
     try:
         assert pool.sandbox is None and pool.node().labels == {"sandbox": "none"}
     finally:
         pool.close()
     with pytest.raises(InfrastructureError, match="install the 'bubblewrap' package") as err:
-        LocalPool(home=tmp_path, emit=lambda _e: None, sandbox="on")
+        LocalPool(home=Home(tmp_path), emit=lambda _e: None, sandbox="on")
     assert err.value.exit_code == 3
 
 

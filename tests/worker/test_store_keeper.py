@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 
 from osmo.artifacts import ArtifactStore, Manifest
+from osmo.layout import Home
 from osmo.worker import store_keeper
 from osmo.worker.held_inputs import HeldInputs
 from osmo.worker.store_keeper import StoreKeeper
@@ -37,7 +38,7 @@ def test_a_collection_keeps_protected_outputs_and_the_newest_cache(
     held.hold(old)
     held.hold(new)
     with ThreadPoolExecutor(1) as io:
-        keeper = StoreKeeper(tmp_path, store, held, 300 * KIB, lambda: [unacked], io)
+        keeper = StoreKeeper(Home(tmp_path), store, held, 300 * KIB, lambda: [unacked], io)
         removed, freed = keeper.collect()  # down to 3/4 of the limit: 225 KiB
     assert (removed, freed) == (1, 100 * KIB)  # only the oldest cached output went
     assert store.size() == 200 * KIB
@@ -51,7 +52,7 @@ def test_a_collection_never_removes_what_is_protected_even_over_the_limit(
     held = HeldInputs(None, store)  # type: ignore[arg-type]
     inputs = [_output(store, tmp_path / "out", n, 100 * KIB) for n in ("d", "e", "f")]
     with ThreadPoolExecutor(1) as io:
-        keeper = StoreKeeper(tmp_path, store, held, 50 * KIB, lambda: inputs, io)
+        keeper = StoreKeeper(Home(tmp_path), store, held, 50 * KIB, lambda: inputs, io)
         assert keeper.collect() == (0, 0)
     assert store.size() == 300 * KIB
 
@@ -61,5 +62,5 @@ def test_nothing_younger_than_the_grace_is_removed(tmp_path: Path) -> None:
     held = HeldInputs(None, store)  # type: ignore[arg-type]
     _output(store, tmp_path / "out", "g", 100 * KIB)  # stored just now, named by nothing yet
     with ThreadPoolExecutor(1) as io:
-        keeper = StoreKeeper(tmp_path, store, held, 10 * KIB, list, io)
+        keeper = StoreKeeper(Home(tmp_path), store, held, 10 * KIB, list, io)
         assert keeper.collect() == (0, 0)

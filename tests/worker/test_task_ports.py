@@ -1,4 +1,4 @@
-"""``osmo.worker.task_ports``: which ports a task's processes listen on, from ``/proc``."""
+"""``osmo.runtime.process.ports``: which ports a task's processes listen on, from ``/proc``."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from collections.abc import Iterator
 import pytest
 
 from osmo.config import free_port
-from osmo.worker.task_ports import task_listener, task_pids
+from osmo.runtime.process.ports import task_listener, task_pids
 
 # a parent that starts a child; the child listens (TCP on 127.0.0.2, UDP on 127.0.0.1)
 CHILD = """

@@ -300,7 +300,7 @@ def test_failed_mount_leaves_no_secret(tmp_path: Path) -> None:
 
 def test_a_sandbox_view_binds_inputs_once_and_within_bubblewraps_limits(tmp_path: Path) -> None:
     """A join of 9,998 inputs failed with 'bwrap: Exceeded maximum number of arguments 9000'."""
-    from osmo.worker.workdir import attempt_view
+    from osmo.runtime.process.sandboxed import attempt_view
 
     home = tmp_path / "home"
     dirs = Home(home).attempt("wf-1", "join", 0)

@@ -1,7 +1,7 @@
-"""The runtime contract (``osmo.runtime.Runtime``) over a container engine.
+"""A container run's life: its start through the engine's attached CLI, its kill, its removal.
 
-:class:`ContainerRuntime` spawns the engine's attached ``run`` CLI (``run_argv``) through
-``ProcessRuntime``: the container's output is that process's stdout/stderr, its exit code
+:class:`ContainerRuns` spawns the engine's attached ``run`` CLI (``run_argv``) through
+``ProcessGroups``: the container's output is that process's stdout/stderr, its exit code
 the container's (125: the engine failed, its message on stderr; 126/127, or 1 from ``--init``
 with a missing program: the command cannot run).
 
@@ -25,12 +25,12 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-from osmo.runtime.container import ContainerEngine
-from osmo.runtime.container_run import ContainerError, ContainerRun, run_argv, secret_env_text
-from osmo.runtime.process import ProcessHandle, ProcessRuntime, Runtime, StartError
-from osmo.runtime.sandbox import View
+from osmo.runtime.api import ProcessHandle, StartError
+from osmo.runtime.container.engine import ContainerEngine
+from osmo.runtime.container.run import ContainerError, ContainerRun, run_argv, secret_env_text
+from osmo.runtime.process.groups import ProcessGroups
 
-__all__ = ["ContainerRuntime"]
+__all__ = ["ContainerRuns"]
 
 _KILL_DEADLINE = 60.0  # s: a CLI that neither creates its container nor ends by then is stuck
 
@@ -44,34 +44,30 @@ class _Live:
     code: int | None = None
 
 
-class ContainerRuntime:
-    """The runtime contract (``osmo.runtime.Runtime``) over a container engine.
+class ContainerRuns:
+    """Container runs through an engine's CLI (see the module docstring).
 
     ``start(argv, cwd=..., env=..., container=run)`` runs ``argv`` with exactly ``env`` in
     the container ``run`` describes (its own ``argv``/``env`` are replaced by these); with no
-    ``container`` it runs a host process, like ``ProcessRuntime``. The engine's CLI runs with
-    the engine's environment in ``cwd``. Kill, reap and release act on the container too; see
-    the module docstring. ``close()`` waits for the engine calls still under way.
+    ``container`` it runs a host process, as ``ProcessGroups`` does. The engine's CLI runs
+    with the engine's environment in ``cwd``. Kill, reap and release act on the container
+    too; see the module docstring. ``close()`` waits for the engine calls still under way.
     """
 
-    def __init__(self, engine: ContainerEngine, *, processes: ProcessRuntime | None = None,
+    def __init__(self, engine: ContainerEngine, *, processes: ProcessGroups | None = None,
                  kill_retry: float = 0.1) -> None:
         self.engine = engine
-        self._processes = processes or ProcessRuntime()
+        self._processes = processes or ProcessGroups()
         self._retry = kill_retry
         self._live: dict[ProcessHandle, _Live] = {}
         self._threads: set[threading.Thread] = set()
         self._lock = threading.Lock()
 
     def start(self, argv: Sequence[str], *, cwd: Path, env: Mapping[str, str],
-              view: View | None = None, container: ContainerRun | None = None) -> ProcessHandle:
-        """Start the command (in ``container`` if given). Raises StartError.
-
-        Without ``container``, a host process (sandboxed with ``view`` as ``ProcessRuntime``
-        is); a container is its own isolation, so ``view`` does not apply to it.
-        """
+              container: ContainerRun | None = None) -> ProcessHandle:
+        """Start the command (in ``container`` if given). Raises StartError."""
         if container is None:
-            return self._processes.start(argv, cwd=cwd, env=env, view=view)
+            return self._processes.start(argv, cwd=cwd, env=env)
         run = replace(container, argv=tuple(argv), env=dict(env))
         try:
             cli = run_argv(self.engine.engine, run)
@@ -97,10 +93,10 @@ class ContainerRuntime:
             self._processes.kill(handle, force=force)
             return
         live.killed = True
-        self._background(self._signal_until_taken, live, force)
+        self.later(self._signal_until_taken, live, force)
 
     def reap(self, handle: ProcessHandle) -> int:
-        """The container's exit code, once the CLI has ended (see ``Runtime.reap``)."""
+        """The container's exit code, once the CLI has ended (the engine's 125: it failed)."""
         live = self._live.get(handle)
         if live is not None and handle.popen.poll() is None:
             # reaped before it ended (a pool shutting down): the container must go first,
@@ -122,7 +118,7 @@ class ContainerRuntime:
         live.done.set()
         _unlink(live.secret_file)
         if live.killed or live.code is None or live.code == 125:  # --rm may not have run
-            self._background(self._quietly, self.engine.remove, live.name)
+            self.later(self._quietly, self.engine.remove, live.name)
 
     def close(self) -> None:
         """Wait for the engine calls (kills, removals) still under way."""
@@ -148,7 +144,8 @@ class ContainerRuntime:
                 return
             live.done.wait(self._retry)  # not created or not running yet
 
-    def _background(self, fn: Callable[..., object], *args: object) -> None:
+    def later(self, fn: Callable[..., object], *args: object) -> None:
+        """Call ``fn(*args)`` on a thread of its own (an engine call); ``close`` waits for it."""
         def run() -> None:
             try:
                 fn(*args)
@@ -186,8 +183,3 @@ def _unlink(path: Path | None) -> None:
             path.unlink()
         except FileNotFoundError:
             pass
-
-
-def _conforms(runtime: ContainerRuntime) -> Runtime:
-    """Never called: mypy checks here that ContainerRuntime satisfies the runtime contract."""
-    return runtime

@@ -1,4 +1,4 @@
-"""Which ports a running task listens on, read from ``/proc``: what port-forward may reach.
+"""Which ports a running process task listens on, read from ``/proc``: what port-forward reaches.
 
 OSMO's port-forward reaches any port of the task's pod, which is the task's own network
 namespace, never the node's. A process task here shares the node's network (unless its
@@ -15,17 +15,21 @@ not open a way to another process on ``127.0.0.1:5432``.
 The task's processes are its main process and its descendants (a sandbox's pid namespace
 keeps them all below it); a daemon that left the tree unsandboxed is not the task's any more.
 Linux only; reading another uid's ``/proc/<pid>/fd`` needs the worker to be that uid or root,
-as it is for the tasks it starts.
+as it is for the tasks it starts. :func:`listener_connector` is the process runtimes'
+``Runtime.connector``.
 """
 
 from __future__ import annotations
 
 import ipaddress
 import os
+import socket
 import sys
 from collections.abc import Iterator
 
-__all__ = ["task_listener", "task_pids"]
+from osmo.runtime.api import ConnectError, Connector, SocketMaker, dial
+
+__all__ = ["listener_connector", "task_listener", "task_pids"]
 
 _LISTEN = "0A"  # TCP state in /proc/net/tcp
 
@@ -60,6 +64,22 @@ def task_listener(pid: int, port: int, *, udp: bool = False) -> str | None:
                 if bound == port and inode in inodes and (udp or state == _LISTEN):
                     return _reachable(address)
     return None
+
+
+def listener_connector(pid: int, make: SocketMaker = socket.socket) -> Connector:
+    """Port-forward's way to the task whose main process is ``pid``: to its own listeners only.
+
+    ``make``: makes the socket to connect, inside the task's network namespace when it has
+    one of its own (default: the node's).
+    """
+    def connect(port: int, udp: bool) -> socket.socket:
+        host = task_listener(pid, port, udp=udp)
+        if host is None:
+            raise ConnectError(f"no process of the task listens on {'UDP' if udp else 'TCP'} "
+                               f"port {port}")
+        return dial(host, port, udp=udp, make=make)
+
+    return connect
 
 
 def _one_per_namespace(pids: list[int]) -> list[int]:

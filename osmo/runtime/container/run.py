@@ -2,7 +2,7 @@
 
 :class:`ContainerRun` describes one container; :func:`run_argv` turns it into the ``run``
 argv of podman or docker, :func:`login_argv` and :func:`pull_argv` a registry login and a
-pull. ``osmo.runtime.container`` is the module that runs these argvs; this one only builds
+pull. ``osmo.runtime.container.engine`` is the module that runs these argvs; this one only builds
 them, so every engine difference is golden-tested without an engine.
 
 Decisions, each checked with podman 4.3 and the docker 28 CLI (``tests/containers``):
@@ -51,12 +51,14 @@ from pathlib import Path
 from osmo.errors import OsmoError
 from osmo.names import image_problem
 
-__all__ = ["DATA_OUTPUT", "POD_CAPABILITIES", "SECRET_ENV_PATH", "ContainerError",
+__all__ = ["DATA_INPUT", "DATA_OUTPUT", "POD_CAPABILITIES", "SECRET_ENV_PATH", "ContainerError",
            "ContainerRun", "EngineInfo", "Mount", "RegistryAuth", "data_input", "pull_argv",
            "pull_reference", "registry_config", "run_argv", "safe_name", "secret_env_text"]
 
 DATA_OUTPUT = "/osmo/data/output"
 """Where a task's output folder is bound inside its container."""
+DATA_INPUT = "/osmo/data/input/{}"
+"""Where a task's inputs are bound (read-only) inside its container, ``{}`` the index."""
 SECRET_ENV_PATH = "/osmo/run/secret.env"
 """Where a run's secret-variables file is bound (read-only) inside its container."""
 POD_CAPABILITIES = ("CHOWN", "DAC_OVERRIDE", "FOWNER", "FSETID", "KILL", "SETGID", "SETUID",
@@ -71,7 +73,7 @@ _SHELL_VAR = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 
 def data_input(index: int) -> str:
     """Where a task's ``index``-th input is bound (read-only) inside its container."""
-    return f"/osmo/data/input/{index}"
+    return DATA_INPUT.format(index)
 
 
 class ContainerError(OsmoError):

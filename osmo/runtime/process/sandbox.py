@@ -26,7 +26,7 @@ What a sandboxed command sees (``Sandbox.argv``, from an attempt's :class:`View`
 - **its own namespaces**: pid (its own ``/proc``, where other tasks' processes and their
   ``/proc/<pid>/environ`` do not exist), IPC, UTS (its name copied from the host's, so
   that it resolves as before; it cannot change it),
-  ``/proc/sys`` read-only, and the **node's network namespace** (``osmo.runtime.netns``:
+  ``/proc/sys`` read-only, and the **node's network namespace** (``osmo.runtime.process.netns``:
   the tasks of a node share a loopback of their own and reach the outside through
   slirp4netns, never the host's loopback listeners or abstract Unix sockets).
 
@@ -71,7 +71,7 @@ Availability: :func:`choose` probes once per process whether ``bwrap`` exists an
 the whole sandbox here, node namespaces included, and whether it reports the command's exit
 code on a status pipe (``--json-status-fd``): with it, a failure of bwrap's own setup (its
 exit 1, before the command runs) is told from the command's exit 1
-(``osmo.runtime.process``; the pool starts it again, ``osmo.worker.starts``). Why none works
+(``osmo.runtime.process.groups``; the pool starts it again, ``osmo.worker.starts``). Why none works
 is said twice: :func:`unavailable_reason` in full (bwrap's own message and a hint, for logs and
 errors) and :func:`unavailable_summary` in a few words (``bwrap not found``, ``user namespaces
 refused``, ``cannot mount /proc``; what ``osmo resource list`` shows).
@@ -96,7 +96,7 @@ from pathlib import Path
 
 from osmo.errors import InfrastructureError, UsageError
 from osmo.options import SANDBOX_MODES, SandboxMode, parse_share
-from osmo.runtime.netns import Entry, NodeNetwork, entered
+from osmo.runtime.process.netns import Entry, NodeNetwork, entered
 
 __all__ = ["COVERED", "SYSTEM", "TASK_USER", "Sandbox", "SandboxMode", "View", "choose",
            "node_network", "parse_share", "runtime_folders", "unavailable_reason",
@@ -200,7 +200,7 @@ class Sandbox:
         order: the system, then what osmo runs with, the shares and the task's code, then
         the tmpfs that hides osmo's homes, the covers, and the attempt's own paths (a
         parent's read-only bind before its writable children). ``status_fd``: an inherited
-        descriptor bwrap writes its status to (``osmo.runtime.process``).
+        descriptor bwrap writes its status to (``osmo.runtime.process.groups``).
 
         Raises:
             InfrastructureError: the sandbox has not joined a node's namespaces.

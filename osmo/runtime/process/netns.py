@@ -27,9 +27,9 @@ spawning thread's ``setns``) and one ``nsenter`` exec otherwise. Tasks of a grou
 node keep reaching each other on their shared loopback, as ``{{host:NAME}}`` says. The
 price: tasks of one node see each other's listeners, as they did on the host's network.
 
-How: a small keeper process (``osmo.runtime.netns_keeper``, run as a script) makes the
+How: a small keeper process (``osmo.runtime.process.netns_keeper``, run as a script) makes the
 namespaces and lives in them: the network namespace, and a user namespace for the tasks
-(``osmo.runtime.sandbox`` says who they are in it). An :class:`Entry` says how a start
+(``osmo.runtime.process.sandbox`` says who they are in it). An :class:`Entry` says how a start
 joins them: as root, the spawning thread itself enters the network namespace for the
 spawn (:func:`entered`: two ``setns`` calls, nothing to exec) and bwrap gets the user
 namespace as a descriptor; otherwise ``nsenter`` enters both (``/proc/<keeper>/ns/*``;

@@ -1,6 +1,6 @@
 """The process that holds a node's network namespace open and makes sockets inside it.
 
-Run by :class:`osmo.runtime.netns.NodeNetwork` as a script (``python -I -S netns_keeper.py
+Run by :class:`osmo.runtime.process.netns.NodeNetwork` as a script (``python -I -S netns_keeper.py
 FD MODE [ADDRESS...]``), never imported by osmo: it must start fast and import nothing but
 the standard library. ``FD`` is its end of a ``SOCK_SEQPACKET`` socket pair. ``MODE`` is
 ``root`` (osmo runs as root: a new network namespace, which stays the host user namespace's,

@@ -9,9 +9,9 @@ What it owns:
   0600 auth file of a private folder that is deleted after the pull), group networks, and
   containers/networks found and removed by label (orphans after a ``kill -9``).
 
-The runs themselves are described, and turned into argv, by ``osmo.runtime.container_run``
-(pure; its names are re-exported here); ``osmo.runtime.container_runtime`` spawns them
-behind the runtime contract; ``osmo.runtime.container_pull`` runs a pull.
+The runs themselves are described, and turned into argv, by ``osmo.runtime.container.run``
+(pure); ``osmo.runtime.container.runs`` spawns them; ``osmo.runtime.container.pull`` runs
+a pull.
 
 Decisions, checked with podman 4.3 and the docker 28 CLI (``tests/containers``):
 
@@ -34,23 +34,10 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from osmo.runtime.container_pull import ImageError, pull_image
-from osmo.runtime.container_run import (
-    DATA_OUTPUT,
-    SECRET_ENV_PATH,
-    ContainerError,
-    ContainerRun,
-    EngineInfo,
-    Mount,
-    RegistryAuth,
-    data_input,
-    run_argv,
-    safe_name,
-)
+from osmo.runtime.container.pull import ImageError, pull_image
+from osmo.runtime.container.run import ContainerError, EngineInfo, RegistryAuth
 
-__all__ = ["DATA_OUTPUT", "ENGINES", "SECRET_ENV_PATH", "ContainerEngine", "ContainerError",
-           "ContainerRun", "EngineInfo", "EngineNotFound", "ImageError", "ImageInfo", "Mount",
-           "RegistryAuth", "data_input", "detect_engine", "run_argv", "safe_name"]
+__all__ = ["ENGINES", "ContainerEngine", "EngineNotFound", "ImageInfo", "detect_engine"]
 
 ENGINES = ("podman", "docker")
 """The engines, in the order ``detect_engine`` tries them."""
@@ -333,6 +320,18 @@ class ContainerEngine:
             if not any(m in str(exc).lower() for m in _NO_CONTAINER):
                 raise
             return False
+
+    def address(self, container: str) -> str | None:
+        """The container's IP address on its network (``inspect``); None if it has none.
+
+        Raises:
+            ContainerError: the engine cannot inspect it.
+        """
+        out = self.call("inspect", "--format",
+                        "{{range .NetworkSettings.Networks}}{{.IPAddress}} {{end}}"
+                        "{{.NetworkSettings.IPAddress}}", container, timeout=15)
+        found = [word for word in out.split() if word]
+        return found[0] if found else None
 
     def remove_labelled(self, labels: Mapping[str, str]) -> tuple[list[str], list[str]]:
         """Remove every container, then every network, carrying ``labels`` (orphan clean-up).

@@ -1,14 +1,16 @@
-"""The process runtime: runs an attempt's command as a host process in its own process group.
+"""Commands as process groups: the spawning, killing and reaping under both process runtimes.
 
-What it owns:
+:class:`ProcessGroups` runs one command per process group; ``osmo.runtime.process.runtime``
+(plain) and ``osmo.runtime.process.sandboxed`` (in bubblewrap) launch attempts through it,
+and the container runtime runs its engine's CLI through it. What it owns:
 
 - spawning: the command starts in a new session (``start_new_session=True``, so its process
   group id is its pid), with the given working folder and environment, stdin from
   ``/dev/null``, stdout and stderr as non-blocking pipes.
-- the sandbox: given a :class:`~osmo.runtime.sandbox.Sandbox` and a start's ``view``, the
-  command runs inside bubblewrap (``osmo.runtime.sandbox``), spawned in the node's
-  namespaces (``Sandbox.entered``, ``Sandbox.fds``); bwrap's two processes then lead the
-  group. ``--die-with-parent`` ends the sandbox when the spawning thread's process dies
+- the sandbox: given a :class:`~osmo.runtime.process.sandbox.Sandbox` and a start's ``view``,
+  the command runs inside bubblewrap (``osmo.runtime.process.sandbox``), spawned in the
+  node's namespaces (``Sandbox.entered``, ``Sandbox.fds``); bwrap's two processes then lead
+  the group. ``--die-with-parent`` ends the sandbox when the spawning thread's process dies
   (not while bwrap is still setting it up: the pool records every pid at once for that,
   ``osmo.worker.procs``).
   Unsandboxed, a ``preexec_fn`` sets ``PR_SET_PDEATHSIG`` (SIGKILL) on the command, so it
@@ -26,14 +28,14 @@ What it owns:
   it, a folder it cannot make) is told from the command's own exit: bwrap reports the
   command's exit code on its status pipe (``--json-status-fd``) only when the command ran,
   and ``reap`` marks the handle ``setup_failed`` otherwise (the caller may start it again).
-- crash clean-up: ``osmo.runtime.proctable.kill_stale`` kills a process group left over by a
-  crashed server, only if the pid still belongs to the process that was started (its start
-  time matches); a handle's ``started_at`` is read on that module's clock.
+- crash clean-up: ``osmo.runtime.process.proctable.kill_stale`` kills a process group left
+  over by a crashed server, only if the pid still belongs to the process that was started
+  (its start time matches); a handle's ``started_at`` is read on that module's clock.
 
 When the main process ends, whatever is left of its group is killed: like a container, an
 attempt ends when its main process does, and background children do not outlive it.
 
-It must not know about attempts, logs or the scheduler; the worker pool drives it.
+It must not know about attempts, logs or the scheduler.
 """
 
 from __future__ import annotations
@@ -46,78 +48,13 @@ import shutil
 import signal
 import subprocess
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol
 
-from osmo.errors import OsmoError
-from osmo.runtime.proctable import group_members, start_clock, stat_fields
-from osmo.runtime.sandbox import Sandbox, View
+from osmo.runtime.api import ProcessHandle, StartError
+from osmo.runtime.process.proctable import group_members, start_clock, stat_fields
+from osmo.runtime.process.sandbox import Sandbox, View
 
-__all__ = [
-    "ProcessHandle",
-    "ProcessRuntime",
-    "Runtime",
-    "StartError",
-    "die_with_parent",
-    "exit_code_of",
-]
-
-
-class StartError(OsmoError):
-    """A command could not be started (not found, not executable, bad working folder)."""
-
-
-@dataclass(eq=False)
-class ProcessHandle:
-    """A started command.
-
-    Attributes:
-        pid: the main process id (also its process group id).
-        exit_fd: a file descriptor that becomes readable when the main process has ended.
-        stdout_fd: read end of the stdout pipe (non-blocking).
-        stderr_fd: read end of the stderr pipe (non-blocking).
-        sandboxed: the command runs in a sandbox (``pid`` is bwrap's).
-        status_fd: read end of bwrap's status pipe (non-blocking; -1: none).
-        started_at: the clock of :func:`process_start_time` read just before the spawn: at
-            most a moment before the process's own start time, without reading ``/proc``.
-        setup_failed: set by ``reap``: the sandbox could not be set up, the command never ran
-            (its exit code is bwrap's 1; bwrap's message is on stderr).
-    """
-
-    pid: int
-    exit_fd: int
-    stdout_fd: int
-    stderr_fd: int
-    popen: subprocess.Popen[bytes]
-    sandboxed: bool = False
-    status_fd: int = -1
-    setup_failed: bool = False
-    started_at: float | None = None
-
-
-class Runtime(Protocol):
-    """How attempts' commands are run (process today; a container runtime can follow)."""
-
-    def start(self, argv: Sequence[str], *, cwd: Path, env: Mapping[str, str],
-              view: View | None = None) -> ProcessHandle:
-        """Start ``argv`` in ``cwd`` with exactly ``env``. Raises StartError.
-
-        ``view``: what of osmo's folders the command may see, when the runtime sandboxes.
-        """
-        ...
-
-    def kill(self, handle: ProcessHandle, *, force: bool = False) -> None:
-        """Signal the whole command (SIGTERM; SIGKILL when ``force``). Never raises."""
-        ...
-
-    def reap(self, handle: ProcessHandle) -> int:
-        """After ``exit_fd`` became readable: the exit code; kills what is left of the group."""
-        ...
-
-    def release(self, handle: ProcessHandle) -> None:
-        """Close the handle's file descriptors."""
-        ...
+__all__ = ["ProcessGroups", "die_with_parent", "exit_code_of"]
 
 
 def exit_code_of(returncode: int) -> int:
@@ -125,7 +62,7 @@ def exit_code_of(returncode: int) -> int:
     return 128 - returncode if returncode < 0 else returncode
 
 
-class ProcessRuntime:
+class ProcessGroups:
     """Runs commands as host processes, one process group each (see the module docstring).
 
     Args:
@@ -157,7 +94,7 @@ class ProcessRuntime:
             fds, entered = self.sandbox.fds, self.sandbox.entered()
         started_at = start_clock()
         try:
-            with entered:  # in the node's network namespace (``osmo.runtime.netns``)
+            with entered:  # in the node's network namespace (``osmo.runtime.process.netns``)
                 popen = subprocess.Popen(
                     command,
                     cwd=cwd,

@@ -17,7 +17,7 @@ import tempfile
 from collections.abc import Callable, Mapping
 from pathlib import Path
 
-from osmo.runtime.container_run import (
+from osmo.runtime.container.run import (
     ContainerError,
     EngineInfo,
     RegistryAuth,

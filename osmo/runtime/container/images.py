@@ -5,19 +5,17 @@ the server's placement (cache fingerprints) and the local pool share one.
 :func:`registry_auth` finds the stored credential for pulling a task's image
 (:func:`registry_credential` names it; a remote worker is given it by the server with the
 attempt's other secrets). Engine calls
-go through ``osmo.runtime.container``.
+go through ``osmo.runtime.container.engine``.
 """
 
 from __future__ import annotations
 
 import collections
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 
-from osmo.runtime.container import ContainerEngine
-from osmo.runtime.container_run import ContainerError, RegistryAuth, pull_reference
-from osmo.spec.model import TaskSpec
-from osmo.worker.secrets import SecretLookup
+from osmo.runtime.container.engine import ContainerEngine
+from osmo.runtime.container.run import ContainerError, RegistryAuth, pull_reference
 
 __all__ = ["REGISTRY_PREFIX", "ImageIds", "registry_auth", "registry_credential"]
 
@@ -28,22 +26,24 @@ REGISTRY_PREFIX = "registry://"
 """A registry's credential is named ``registry://HOST`` (keys ``username``, ``password``)."""
 
 
-def registry_credential(task: TaskSpec) -> str | None:
-    """The name of the credential that pulls ``task``'s image, if it runs in one.
+def registry_credential(image: str) -> str:
+    """The name of the credential that pulls ``image``.
 
     ``registry://HOST``, HOST the image's registry (``docker.io`` for short names), like a
     data URL's credential.
     """
-    if task.image is None or task.type is not None:
-        return None
-    return REGISTRY_PREFIX + pull_reference(task.image).split("/", 1)[0]
+    return REGISTRY_PREFIX + pull_reference(image).split("/", 1)[0]
 
 
-def registry_auth(task: TaskSpec, lookup: SecretLookup | None) -> RegistryAuth | None:
-    """The stored credential for pulling ``task``'s image, if there is one (pull only)."""
-    name = registry_credential(task)
-    payload = lookup(name) if lookup is not None and name is not None else None
-    if name is None or not payload or "username" not in payload or "password" not in payload:
+def registry_auth(image: str, lookup: Callable[[str], Mapping[str, str] | None] | None
+                  ) -> RegistryAuth | None:
+    """The stored credential for pulling ``image``, if there is one (pull only).
+
+    ``lookup``: credential name → payload (keys ``username``, ``password``).
+    """
+    name = registry_credential(image)
+    payload = lookup(name) if lookup is not None else None
+    if not payload or "username" not in payload or "password" not in payload:
         return None
     return RegistryAuth(name.removeprefix(REGISTRY_PREFIX), payload["username"],
                         payload["password"])

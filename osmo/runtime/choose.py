@@ -1,0 +1,210 @@
+"""The one chooser: how an attempt runs here (a host process, sandboxed or not, or a container).
+
+Two choices, each made once:
+
+- **the node's** (when a server's or worker's pool is made): :func:`processes_for_node` picks
+  the sandboxed process runtime when bubblewrap works here (``--sandbox auto``; ``on``
+  requires it, ``off`` refuses it), else the plain one, and says why;
+  :func:`containers_for_node` picks the container runtime when an engine answers
+  (``--runtime auto``; ``container`` requires one, ``process`` refuses it). The node's
+  :class:`Runtimes` holds what was chosen.
+- **each attempt's** (:meth:`Runtimes.choose`): a task runs in its image where the node runs
+  containers and :func:`container_image` names its image (not a typed plugin task's);
+  every other task runs as a (sandboxed) process, its image only noted in its log. The
+  server's placement asks :func:`in_container` too (a cache fingerprint names the image id
+  of a task that runs in its image), never deciding it again.
+
+A Kubernetes or Slurm runtime joins here: one more runtime for :class:`Runtimes` to choose.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+from osmo.errors import InfrastructureError, UsageError
+from osmo.layout import Home
+from osmo.options import SandboxMode, parse_share
+from osmo.runtime.api import Runtime
+from osmo.runtime.container.engine import ContainerEngine, EngineNotFound, detect_engine
+from osmo.runtime.container.images import ImageIds
+from osmo.runtime.container.runtime import ContainerRuntime, owner_id
+from osmo.runtime.process.runtime import ProcessRuntime
+from osmo.runtime.process.sandbox import (
+    Sandbox,
+    choose,
+    node_network,
+    unavailable_reason,
+    unavailable_summary,
+)
+from osmo.runtime.process.sandboxed import SandboxRuntime
+from osmo.spec.model import TaskSpec
+
+__all__ = ["RUNTIMES", "Runtimes", "container_engine", "container_image",
+           "containers_for_node", "image_ids", "in_container", "processes_for_node"]
+
+_log = logging.getLogger("osmo.worker.pool")
+
+RUNTIMES = ("auto", "container", "process")
+"""The values of ``--runtime``."""
+
+
+def container_image(task: TaskSpec) -> str | None:
+    """The image ``task`` runs in where the node runs containers (None: none).
+
+    Its ``image:``, unless it is a typed plugin task (those run as osmo's own runner, as
+    host processes); a task with no image runs as a host process everywhere.
+    """
+    return task.image if task.type is None else None
+
+
+def in_container(task: TaskSpec) -> bool:
+    """Whether ``task`` runs in its image where the node runs containers."""
+    return container_image(task) is not None
+
+
+class Runtimes:
+    """A node's runtimes, and the choice of the one that runs each attempt.
+
+    Args:
+        process: how tasks run as host processes here (sandboxed or not).
+        container: how tasks run in their images here (None: this node runs no containers).
+    """
+
+    def __init__(self, process: ProcessRuntime,
+                 container: ContainerRuntime | None = None) -> None:
+        self.process, self.container = process, container
+
+    def choose(self, task: TaskSpec) -> Runtime:
+        """The runtime that runs ``task``'s attempts here."""
+        if self.container is not None and in_container(task):
+            return self.container
+        return self.process
+
+    @property
+    def sandbox(self) -> Sandbox | None:
+        """The sandbox process tasks run in (None: they run unsandboxed)."""
+        return self.process.sandbox
+
+    def describe(self) -> str:
+        """How image tasks run here: ``container (podman 4.3.1)`` or ``process``."""
+        return (self.container or self.process).describe()
+
+    def hide(self, path: Path) -> None:
+        """Also hide ``path`` from sandboxed tasks (another home, a secret file)."""
+        self.process.hide(path)
+
+    def close(self) -> None:
+        """The node stops: the container runtime's calls, then the node's namespaces."""
+        if self.container is not None:
+            self.container.close()
+        self.process.close()
+
+
+def processes_for_node(mode: SandboxMode, shares: Sequence[str], *, home: Path,
+                       address: str | None, pool: str) -> ProcessRuntime:
+    """How a node's tasks run as host processes: in bubblewrap, in the node's namespaces, or not.
+
+    Args:
+        mode: ``auto`` (a sandbox when one works here), ``on`` (required) or ``off``.
+        shares: host folders every sandboxed task may see (``DIR`` or ``DIR:ro``).
+        home: osmo's home, which no task may see (nor a share inside it).
+        address: how peers reach this node's tasks (given to the node's network).
+        pool: the pool's name (for the warning when ``auto`` finds no sandbox).
+
+    Without a sandbox, the runtime says why in each task's log (``note``), in a few words
+    for ``osmo resource list`` (``why``), and, when ``auto`` found none, once at start
+    (``warning``: nobody chose to run tasks unsandboxed). Without outbound network for its
+    tasks, the sandboxed runtime says so in each task's log.
+
+    Raises:
+        InfrastructureError: ``mode`` is ``on`` and no sandbox works here.
+        UsageError: a share is relative or inside ``home``.
+    """
+    inside = [d for d in shares if Path(parse_share(d)[0]).absolute().is_relative_to(home)]
+    if inside:
+        raise UsageError(f"--sandbox-share {inside[0]}: it is inside osmo's home "
+                         f"{home}, which tasks must never see")
+    sandbox = choose(mode, shares)
+    if mode == "off":
+        return ProcessRuntime(note="no sandbox: this task sees the host as the worker's user "
+                                   "(--sandbox off)", why="--sandbox off")
+    if sandbox is None:
+        reason, summary = unavailable_reason(), unavailable_summary()
+    else:
+        try:
+            network = node_network(address=address)
+        except InfrastructureError as exc:
+            if mode == "on":
+                raise
+            reason, summary = str(exc), "no network namespace"
+        else:
+            if network.caveat:
+                _log.warning("sandboxed tasks: %s", network.caveat)
+            return SandboxRuntime(sandbox.joined(network), network, hidden=(home,),
+                                  note=network.caveat or None)
+    return ProcessRuntime(
+        note=f"no sandbox: this task sees the host as the worker's user ({reason})",
+        why=summary,
+        warning=f"UNSANDBOXED: pool {pool} runs its tasks without a sandbox (--sandbox {mode})"
+                f": {reason}. They see the host as uid {os.geteuid()}, osmo's home (state, "
+                "credentials) included; --sandbox on refuses to start instead")
+
+
+def container_engine(runtime: str, engine: str | None = None) -> ContainerEngine | None:
+    """The engine that runs image tasks, or None when they run as processes.
+
+    Args:
+        runtime: ``auto`` (an engine if one answers), ``container`` (one must) or ``process``.
+        engine: ``podman`` or ``docker`` (default: the first that answers).
+
+    Raises:
+        EngineNotFound: ``container`` with no usable engine (the message says what to install),
+            or an unknown ``engine``/``runtime``.
+    """
+    if runtime not in RUNTIMES:
+        raise EngineNotFound(f"unknown runtime {runtime!r}: choose {', '.join(RUNTIMES)}")
+    if runtime == "process":
+        return None
+    try:
+        return ContainerEngine(detect_engine(engine))
+    except EngineNotFound:
+        if runtime == "container" or engine is not None:
+            raise
+        return None
+
+
+def containers_for_node(runtime: str, engine: str | None, home: Home
+                        ) -> ContainerRuntime | None:
+    """The container runtime of a server's or worker's pool (None: image tasks are processes).
+
+    What a crashed predecessor on ``home`` left (containers, networks) is removed first.
+
+    Raises:
+        EngineNotFound: ``--runtime container`` with no usable engine (names the package).
+    """
+    found = container_engine(runtime, engine)
+    if found is None:
+        return None
+    made = ContainerRuntime(found, owner=owner_id(home.root))
+    made.clean_orphans()
+    return made
+
+
+def image_ids(runtime: str, engine: str | None, containers: ContainerRuntime | None
+              ) -> Callable[[str, str], str | None] | None:
+    """The server's ``(workflow id, image) → id`` lookup for cache fingerprints.
+
+    The local pool's (so server and pool resolve each image once per workflow), else one
+    for the engine ``runtime`` would choose (a server with remote workers only); None when
+    there is none (tags are used). An image not on this host gives None; never pulls.
+    """
+    if containers is not None:
+        return containers.images.known
+    try:
+        found = container_engine(runtime, engine)
+    except EngineNotFound:
+        return None
+    return ImageIds(found).known if found is not None else None

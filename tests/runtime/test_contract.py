@@ -1,0 +1,112 @@
+"""One contract, every runtime (``osmo.runtime.api.Runtime``): the conformance kit
+``osmo.testing.check_runtime`` runs over the process runtime, the sandboxed process runtime
+(bubblewrap in the node's namespaces) and the container runtime (podman, with the offline
+images of tests/containers). A Kubernetes pod runtime or a Slurm job runtime is done when it
+joins :data:`RUNTIMES` and passes.
+"""
+
+from __future__ import annotations
+
+import uuid
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+from osmo.runtime.api import Launch, ProcessHandle, Runtime
+from osmo.runtime.choose import processes_for_node
+from osmo.runtime.container import ContainerEngine, ContainerRuntime
+from osmo.runtime.process.runtime import ProcessRuntime
+from osmo.runtime.process.sandboxed import SandboxRuntime
+from osmo.testing import check_runtime
+from tests.containers.conftest import (  # noqa: F401 - fixtures the container case asks for
+    engine,
+    images,
+    podman_env,
+)
+
+HOST_LISTENER = ("busybox", "nc", "-l", "-p", "{port}")  # busybox-static: ./dev installs it
+
+
+@dataclass
+class Case:
+    """A runtime under test and how its tasks are written."""
+
+    runtime: Runtime
+    image: str | None = None  # what every task names (a runtime that runs tasks in images)
+    listen: Sequence[str] = ("nc", "-l", "-p", "{port}")
+
+
+def _process(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Case]:
+    runtime = ProcessRuntime()
+    yield Case(runtime, listen=HOST_LISTENER)
+    runtime.close()
+
+
+def _sandbox(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Case]:
+    runtime = processes_for_node("on", (), home=tmp_path / "home", address=None,
+                                 pool="contract")
+    assert isinstance(runtime, SandboxRuntime)  # ./dev test installs bubblewrap
+    yield Case(runtime, listen=HOST_LISTENER)
+    runtime.close()
+
+
+def _container(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Case]:
+    found: ContainerEngine = request.getfixturevalue("engine")
+    request.getfixturevalue("images")
+    owner = f"contract-{uuid.uuid4().hex}"
+    runtime = ContainerRuntime(found, owner=owner)
+    yield Case(runtime, image="alpine:3.18")
+    runtime.close()
+    assert found.remove_labelled({"osmo.owner": owner}) == ([], []), "containers were left"
+
+
+RUNTIMES: dict[str, Callable[[pytest.FixtureRequest, Path], Iterator[Case]]] = {
+    "process": _process,
+    "sandbox": _sandbox,
+    "container": _container,
+}
+"""Every runtime, by name: what the contract runs over (add the next one here)."""
+
+
+@pytest.fixture(params=sorted(RUNTIMES))
+def case(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Case]:
+    yield from RUNTIMES[request.param](request, tmp_path)
+
+
+def test_every_runtime_keeps_the_contract(case: Case, tmp_path: Path) -> None:
+    check_runtime(case.runtime, tmp_path / "attempts", image=case.image, listen=case.listen)
+
+
+class _Broken:
+    """A process runtime that loses exit codes and ignores SIGTERM: the kit must say so."""
+
+    def __init__(self, inner: ProcessRuntime) -> None:
+        self._inner = inner
+
+    def __getattr__(self, name: str) -> object:
+        return getattr(self._inner, name)
+
+    def kill(self, handle: ProcessHandle, *, force: bool = False) -> None:
+        if force:
+            self._inner.kill(handle, force=True)
+
+    def reap(self, handle: ProcessHandle) -> int:
+        self._inner.reap(handle)
+        return 0
+
+    def paths(self, cmd: object) -> object:
+        return self._inner.paths(cmd)  # type: ignore[arg-type]
+
+    def prepare(self, launch: Launch, attempt: object, *, progress: object) -> Launch:
+        return launch
+
+
+def test_the_kit_finds_a_broken_runtime(tmp_path: Path) -> None:
+    with pytest.raises(AssertionError) as found:
+        check_runtime(_Broken(ProcessRuntime()), tmp_path,  # type: ignore[arg-type]
+                      listen=HOST_LISTENER, timeout=5.0)
+    message = str(found.value)
+    assert "exit3: exit code 0, expected 3" in message, message
+    assert "term: exit code None after SIGTERM" in message, message
