@@ -1,4 +1,8 @@
-"""The README's examples and examples/ run for real (docs that say what works today)."""
+"""The examples of the first tutorials and examples/ run for real (docs that say what works today).
+
+The pages' blocks are found by their headings; tests/docs/test_blocks.py checks that each block
+these tests run says so (``<!-- run by: ... -->``).
+"""
 
 from __future__ import annotations
 
@@ -8,6 +12,10 @@ import sys
 from pathlib import Path
 
 from tests.conftest import REPO, Osmo
+from tests.docs.blocks import first_block, read, section
+
+FIRST = "docs/tutorials/first-workflow.md"
+CUSTOM = "docs/tutorials/custom-task-type.md"
 
 
 def _run_python(code: str, osmo: Osmo) -> subprocess.CompletedProcess[str]:
@@ -24,9 +32,8 @@ def test_examples_sdk_pipeline(shared_osmo: Osmo) -> None:
 
 
 def test_readme_python_example(shared_osmo: Osmo) -> None:
-    readme = (REPO / "README.md").read_text()
-    blocks = re.findall(r"```python\n(.*?)```", readme, re.S)
-    assert blocks, "the README has a Python example"
+    blocks = re.findall(r"```python\n(.*?)```", section(FIRST, "## From Python"), re.S)
+    assert blocks, "the first tutorial has a Python example"
     for code in blocks:
         proc = _run_python(code, shared_osmo)
         assert proc.returncode == 0, proc.stdout + proc.stderr
@@ -34,10 +41,8 @@ def test_readme_python_example(shared_osmo: Osmo) -> None:
 
 
 def test_readme_cli_examples(shared_osmo: Osmo) -> None:
-    readme = (REPO / "README.md").read_text()
-    usage = re.search(r"## Using it\n\n```sh\n(.*?)```", readme, re.S)
-    assert usage is not None
-    commands = [line.split("#")[0].split() for line in usage.group(1).splitlines()
+    usage = first_block(section(FIRST, "## Run a workflow"), "sh")
+    commands = [line.split("#")[0].split() for line in usage.splitlines()
                 if line.startswith("osmo ")]
     wf_id = ""
     for argv in commands:
@@ -53,12 +58,10 @@ def test_readme_cli_examples(shared_osmo: Osmo) -> None:
 
 
 def test_readme_lineage_walkthrough(shared_osmo: Osmo, tmp_path_factory) -> None:  # type: ignore[no-untyped-def]
-    readme = (REPO / "README.md").read_text()
-    section = re.search(r"### Where did this file come from\?\n.*?```sh\n(.*?)```", readme, re.S)
-    assert section is not None
+    walkthrough = first_block(section(FIRST, "## Where did this file come from?"), "sh")
     workdir = tmp_path_factory.mktemp("walkthrough")
     wf_id, out = "", ""
-    for line in section.group(1).splitlines():
+    for line in walkthrough.splitlines():
         argv = line.split("#")[0].split()
         argv = [a.replace("hello-pipeline-1", wf_id or "hello-pipeline-1") for a in argv]
         argv = [str(workdir / a) if a.startswith("fetched") else a for a in argv]
@@ -75,17 +78,13 @@ def test_readme_lineage_walkthrough(shared_osmo: Osmo, tmp_path_factory) -> None
 
 
 def test_readme_custom_task_types(shared_osmo: Osmo, tmp_path_factory) -> None:  # type: ignore[no-untyped-def]
-    readme = (REPO / "README.md").read_text()
-    section = re.search(r"### Custom task types\n(.*?)### Where did this file come from\?",
-                        readme, re.S)
-    assert section is not None
-    text = section.group(1)
+    text = read(CUSTOM)
     project = tmp_path_factory.mktemp("custom-types")
     project.chmod(0o755)  # a project folder as people have them (README: a root osmo's tasks
     # run as nobody, and read the type's folder as such)
-    (project / "tasks.py").write_text(re.search(r"```py\n(.*?)```", text, re.S).group(1))  # type: ignore[union-attr]
-    (project / "workflow.yaml").write_text(re.search(r"```yaml\n(.*?)```", text, re.S).group(1))  # type: ignore[union-attr]
-    commands = re.search(r"```sh\n(.*?)```", text, re.S).group(1)  # type: ignore[union-attr]
+    (project / "tasks.py").write_text(first_block(text, "py"))
+    (project / "workflow.yaml").write_text(first_block(text, "yaml"))
+    commands = first_block(text, "sh")
     wf_id, out = "", ""
     for line in commands.splitlines():
         argv = [a.replace("numbers-1", wf_id or "numbers-1") for a in line.split("#")[0].split()]

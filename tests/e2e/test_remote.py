@@ -363,24 +363,24 @@ workflow:
 
 
 def test_readme_run_across_machines(tmp_path: Path) -> None:
-    """The README's "Run across machines" block, on loopback with a free port."""
-    import re
+    """The "Run across machines" block of docs/tutorials/remote-workers.md, on loopback with a
+    free port."""
     import subprocess
     import sys
 
     from osmo.config import free_port
     from tests.conftest import REPO, Osmo
+    from tests.docs.blocks import first_block, section
 
-    readme = (REPO / "README.md").read_text()
-    block = re.search(r"## Run across machines\n.*?```sh\n(.*?)```", readme, re.S)
-    assert block is not None
+    block = first_block(section("docs/tutorials/remote-workers.md", "## Run across machines"),
+                        "sh")
     port = str(free_port(0))
     server, laptop = Osmo(tmp_path / "server"), Osmo(tmp_path / "laptop")
     worker_env = dict(server.env, OSMO_HOME=str(tmp_path / "worker"))
     envs = {"server": server.env, "worker": worker_env, "laptop": laptop.env}
     where, worker_proc = "server", None
     try:
-        for line in block.group(1).splitlines():  # each line as a shell runs it, in one folder
+        for line in block.splitlines():  # each line as a shell runs it, in one folder
             if line.startswith("# on "):
                 where = next((w for w in ("worker", "laptop") if w in line), "server")
                 continue
@@ -397,7 +397,7 @@ def test_readme_run_across_machines(tmp_path: Path) -> None:
                                                stderr=subprocess.DEVNULL)
                 deadline = time.monotonic() + 30
                 while "gpu-1" not in server("workers").out:
-                    assert time.monotonic() < deadline, "the README's worker never came online"
+                    assert time.monotonic() < deadline, "the tutorial's worker never came online"
                     time.sleep(0.1)
                 continue
             r = subprocess.run(cmd, env=envs[where], cwd=tmp_path, capture_output=True,

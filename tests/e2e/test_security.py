@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import re
 import shutil
 import subprocess
 import sys
@@ -14,7 +13,8 @@ from pathlib import Path
 import pytest
 
 from osmo.config import free_port
-from tests.conftest import REPO, Osmo, ended, write
+from tests.conftest import Osmo, ended, write
+from tests.docs.blocks import first_block, section
 from tests.e2e.certs import make_certs
 from tests.e2e.cluster import Cluster
 
@@ -130,18 +130,17 @@ workflow:
 
 
 def test_readme_mutual_tls_walkthrough(tmp_path: Path) -> None:
-    """README, Run across machines → "Mutual TLS, worked through": its openssl commands and
-    config files run exactly as written (taken from README.md, so the two cannot drift);
+    """docs/how-to/secure-listener.md → "Mutual TLS, worked through": its openssl commands and
+    config files run exactly as written (taken from the page, so the two cannot drift);
     its two osmo commands run with free ports on loopback. The worker resolves
     ``osmo.example.org`` to 127.0.0.1 through its own /etc/hosts (bubblewrap), as a worker
     on another machine would through DNS."""
     if shutil.which("bwrap") is None:  # a failure in a full run (OSMO_NO_SKIPS)
         pytest.skip("bubblewrap is needed to resolve osmo.example.org for the worker "
                     "(./dev test installs it: apt-get install bubblewrap)")
-    readme = (REPO / "README.md").read_text()
-    found = re.search(r"Mutual TLS, worked through.*?```sh\n(.*?)```", readme, re.S)
-    assert found is not None
-    lines = found.group(1).splitlines(keepends=True)
+    walkthrough = first_block(section("docs/how-to/secure-listener.md",
+                                      "## Mutual TLS, worked through"), "sh")
+    lines = walkthrough.splitlines(keepends=True)
     first_osmo = next(i for i, line in enumerate(lines) if line.startswith("osmo "))
     setup, commands = "".join(lines[:first_osmo]), [ln.split() for ln in lines[first_osmo:]]
     assert [c[:2] for c in commands] == [["osmo", "server"], ["osmo", "token"],
@@ -178,7 +177,7 @@ def test_readme_mutual_tls_walkthrough(tmp_path: Path) -> None:
         while not any(n["pool"] == "gpu" and n["status"] == "online" for n in json.loads(
                 server("workers", "--format", "json", check=True).out)):
             assert worker.poll() is None, (tmp_path / "worker.log").read_text()
-            assert time.monotonic() < deadline, "the README's worker never came online"
+            assert time.monotonic() < deadline, "the walkthrough's worker never came online"
             time.sleep(0.1)
         # commands on the server's host use the loopback listener (and server.json's config)
         r = server("submit", str(write(tmp_path / "wf.yaml", SPEC)), "--pool", "gpu", "--wait")

@@ -1,4 +1,4 @@
-"""The README's "Deploy on Kubernetes" commands agree with the chart.
+"""The commands of docs/how-to/helm.md ("Deploy with Helm") agree with the chart.
 
 Each ``helm install`` there is rendered with the same release, namespace, ``--set`` and ``-f``
 values; the ``port-forward`` and ``osmo --server`` lines must name the Service and port that
@@ -14,15 +14,14 @@ import helm_python as helm
 
 from tests.helm.chart import REPO, load_values, render
 
-README = (REPO / "README.md").read_text()
-SECTION = re.search(r"## Deploy on Kubernetes\n(.*?)\n## ", README, re.S)
+PAGE = "docs/how-to/helm.md"
+TEXT = (REPO / PAGE).read_text()
 
 
 def commands() -> list[list[str]]:
-    """Shell commands of the section's ``sh`` blocks, continuations joined."""
-    assert SECTION is not None, "README.md has no '## Deploy on Kubernetes' section"
+    """Shell commands of the page's ``sh`` blocks, continuations joined."""
     out = []
-    for block in re.findall(r"```sh\n(.*?)```", SECTION.group(1), re.S):
+    for block in re.findall(r"```sh\n(.*?)```", TEXT, re.S):
         for line in block.replace("\\\n", " ").splitlines():
             if line.strip():
                 out.append(shlex.split(line))
@@ -38,10 +37,8 @@ def merge(into: dict, new: dict) -> None:
             into[key] = value
 
 
-def test_section_sits_right_before_layout() -> None:
-    assert README.index("## Deploy on Kubernetes") < README.index("## Layout")
-    between = README[README.index("## Deploy on Kubernetes"):README.index("## Layout")]
-    assert between.count("\n## ") == 0
+def test_the_page_is_in_the_site() -> None:
+    assert "how-to/helm.md" in (REPO / "mkdocs.yml").read_text()
 
 
 def test_helm_installs_render_and_match_the_port_forward() -> None:
@@ -63,7 +60,7 @@ def test_helm_installs_render_and_match_the_port_forward() -> None:
         service = out.get("Service", release)
         mounted = {v["secret"]["secretName"] for o in out.of_kind("Deployment")
                    for v in o["spec"]["template"]["spec"].get("volumes", []) if "secret" in v}
-        assert mounted <= secrets_created, "the example mounts Secrets the README never creates"
+        assert mounted <= secrets_created, "the example mounts Secrets the page never creates"
         ports = {p["port"] for p in service["spec"]["ports"]}
         forwards = [c for c in cmds if "port-forward" in c]
         assert forwards and all(f"svc/{release}" in c for c in forwards)
