@@ -1,6 +1,6 @@
 """Shell completion for bash, zsh and fish: ``osmo completion SHELL`` prints the script.
 
-Install with one line (README "Using it")::
+Install with one line (docs/reference/cli.md, "Shell completion")::
 
     eval "$(osmo completion bash)"        # ~/.bashrc (or save it into
                                           # ~/.local/share/bash-completion/completions/osmo)

@@ -1,9 +1,9 @@
 """The ``osmo`` command line: argument parsing and exit codes.
 
-Exit codes (documented in the README): 0 ok; 1 workflow failed; 2 invalid input or usage;
-3 server unreachable or infrastructure error; 130 interrupted. A user mistake never prints a
-traceback. Verbs exist both at the top level (``osmo submit``) and under ``osmo workflow``
-for OSMO parity.
+Exit codes (documented in docs/reference/exit-codes.md): 0 ok; 1 workflow failed; 2 invalid
+input or usage; 3 server unreachable or infrastructure error; 130 interrupted. A user mistake
+never prints a traceback. Verbs exist both at the top level (``osmo submit``) and under
+``osmo workflow`` for OSMO parity.
 
 Arguments are taken as OSMO's CLI takes them: ``--set``, ``--set-string`` and ``--set-env``
 each take one or more ``K=V`` and may be repeated (later values win); the global options

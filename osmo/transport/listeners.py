@@ -68,5 +68,5 @@ def check_listeners(listen: tuple[str, ...] | list[str], zenoh_config: str | Non
         f"refusing to listen on {what} without authentication: anyone who can reach it "
         "could connect, and API tokens would travel in clear over plain TCP. Give a "
         "--zenoh-config with TLS and mutual TLS (enable_mtls) or user/password (usrpwd); "
-        "see README 'Run across machines'. To accept the risk (a trusted network only), add "
+        "see docs/how-to/secure-listener.md. To accept the risk (a trusted network only), add "
         "--insecure")

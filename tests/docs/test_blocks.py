@@ -36,6 +36,8 @@ def test_every_block_runs_or_says_why_not() -> None:
     for page in b.pages():
         problems += [f"{page}:{n}: a fence inside a list is not checked; move it out"
                      for n in b.indented_fences(page)]
+        if b.read(page).count("\n```") % 2:
+            problems.append(f"{page}: a code block is never closed")
         for block in b.blocks(page):
             problems += [f"{block.where}: {p}" for p in _check(block)]
     assert not problems, "\n".join(problems)

@@ -95,8 +95,8 @@ class TrialResult:
         """Every broken promise, as sentences (empty: the trial is clean).
 
         With ``quarantine``, a workflow failed only by the documented quarantine rule (a
-        SIGKILL landed while the server applied that attempt's report: README, Limits →
-        Engine faults) and the failures that follow from it (downstream, stopped) pass.
+        SIGKILL landed while the server applied that attempt's report: docs/concepts/durability.md,
+        "When the server itself fails") and the failures that follow from it (downstream, stopped) pass.
         """
         out = []
         excused = quarantine and bool(self.quarantined)

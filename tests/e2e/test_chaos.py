@@ -1,4 +1,4 @@
-"""README, Durable state → kill -9: the project's own chaos test (see ``tests/e2e/chaos.py``).
+"""docs/concepts/durability.md, The state store → Chaos test: the project's own chaos test (see ``tests/e2e/chaos.py``).
 
 A few seeded trials; ``bench/bench_chaos.py`` runs many. The seed is printed (``-s`` or a
 failure shows it); ``OSMO_CHAOS_SEED=N`` replays a trial.
@@ -9,7 +9,7 @@ promise is checked. Server and worker processes left behind always fail the tria
 
 A kill that lands while the server applies an attempt's final report (about 1 kill in 70
 here) makes the task run again; only a second such crash on the same task quarantines it
-(README, Limits → Engine faults). The trials do not excuse a quarantined task.
+(docs/concepts/durability.md, "When the server itself fails"). The trials do not excuse a quarantined task.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""README, Local execution → Killing: "Cancel and timeouts kill the whole process group:
+"""docs/reference/runtimes.md, Killing: "Cancel and timeouts kill the whole process group:
 SIGTERM, then SIGKILL after 3 s."
 
 The task and a child of it both ignore SIGTERM (recording when it arrived), so only the

@@ -1,4 +1,4 @@
-"""README, Local execution → Outputs: "After a successful exit, `output.partial/` is renamed
+"""docs/reference/runtimes.md, Outputs: "After a successful exit, `output.partial/` is renamed
 atomically to `output/`. Downstream tasks only ever see a promoted `output/`." And the rule
 "no lost work": kill -9 of the server mid-run ends with the workflow correct after restart.
 

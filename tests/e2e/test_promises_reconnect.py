@@ -1,4 +1,4 @@
-"""README, Run across machines → Failures: after a server restart, "a worker not back within
+"""docs/concepts/durability.md, Remote workers → Failures: after a server restart, "a worker not back within
 `--reconnect-grace` (30 s) is taken as lost" (its attempts are rescheduled).
 
 The grace is set short for the test that lets it expire; the default of 30 s is checked

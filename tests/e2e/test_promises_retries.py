@@ -1,4 +1,4 @@
-"""README, Engine → Retries: "the default cap is 3 RESCHEDULE retries per task" and "an
+"""docs/concepts/durability.md, Retries: "the default cap is 3 RESCHEDULE retries per task" and "an
 attempt lost to a crashed server or worker is rescheduled separately (up to 5 times)".
 
 Both caps are checked at a real server that was given neither value: the workflow names no

@@ -1,4 +1,4 @@
-"""README, Data URLs: a ``s3://BUCKET`` credential is used in preference to ``s3``; tasks with
+"""docs/how-to/credentials.md, S3 and other data URLs: a ``s3://BUCKET`` credential is used in preference to ``s3``; tasks with
 ``url:`` inputs or outputs are never cached; a failed periodic checkpoint upload is logged
 and tried again. Through the real CLI, against a real s3rver for S3."""
 

@@ -1,4 +1,4 @@
-"""README, Durable state → After a kill -9: "the next CLI call starts a new server with the
+"""docs/concepts/durability.md, The state store → After a kill -9: "the next CLI call starts a new server with the
 options of the last `osmo server start`".
 
 A server started with a fixed port, no local pool and its own cpu count is SIGKILLed; the

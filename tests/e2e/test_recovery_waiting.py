@@ -1,4 +1,4 @@
-"""README, Run across machines → Stuck work: "`osmo query` shows why each waiting task waits"
+"""docs/reference/spec.md, Spec decisions → Why a task waits: "`osmo query` shows why each waiting task waits"
 and "a task waits at most 30 minutes on a pool with no online worker".
 
 A real server with one remote worker of one cpu in pool 'gpu': the second task waits for a

@@ -1,6 +1,6 @@
 """No surprise from reuse (#31): what runs again by default, what is reused, and how it shows.
 
-The default (README "Caching"): a bare command task that feeds no other task runs every time it
+The default (docs/how-to/caching.md): a bare command task that feeds no other task runs every time it
 is submitted, as in OSMO; typed tasks and tasks whose outputs feed another task of the workflow
 reuse an identical earlier success. ``cache: true`` (task or workflow) and ``osmo submit
 --reuse`` turn reuse on where the default is off; ``cache: false`` and ``--no-cache`` turn it

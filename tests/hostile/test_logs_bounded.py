@@ -84,7 +84,7 @@ def test_a_remote_workers_log_is_capped_where_the_server_stores_it(
 
 # ---------------------------------------------------------------- reading a huge log
 
-HUGE = 256 << 20  # bytes of fabricated log (1 GiB was measured by hand; see the README)
+HUGE = 256 << 20  # bytes of fabricated log (1 GiB was measured by hand; see docs/reference/limits.md)
 LINE = 500  # characters of each line's text
 OLD_HALF = 3600.0  # the first half is an hour old, the second half fresh
 
