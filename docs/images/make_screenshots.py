@@ -8,8 +8,11 @@ what a terminal shows at the end: the lines before the live view and its last fr
 
     python docs/images/make_screenshots.py          # from the repository root
 
-Writes ``docs/images/submit-wait.svg`` and ``docs/images/query.svg``. Tasks run as host
-processes (``OSMO_RUNTIME=process``), as on a machine without a container engine.
+    python docs/images/make_screenshots.py --out DIR
+
+Writes ``submit-wait.svg``, ``query.svg`` and ``submit-reuse.svg`` (the same workflow submitted
+again: its tasks are reused, and the output says so) to ``docs/images`` (or DIR). Tasks run as
+host processes (``OSMO_RUNTIME=process``), as on a machine without a container engine.
 """
 
 from __future__ import annotations
@@ -48,7 +51,7 @@ def _last_frame(console) -> None:  # type: ignore[no-untyped-def]
     buffer[:] = buffer[:controls[0]] + buffer[start + 1:end] + buffer[controls[-1] + 1:]
 
 
-def _run(argv: list[str], title: str, name: str) -> str:
+def _run(argv: list[str], title: str, out: Path) -> str:
     from osmo.cli import render
     from osmo.cli.main import main
 
@@ -58,13 +61,23 @@ def _run(argv: list[str], title: str, name: str) -> str:
     if code != 0:
         raise SystemExit(f"osmo {' '.join(argv)} exited {code}")
     _last_frame(console)
-    text = console.export_text(clear=False)
-    console.save_svg(str(OUT / name), title=title)
-    return text
+    # Lines printed with soft wrap (the reuse notice) are wrapped by a terminal, not by rich:
+    # print the recording again into a console of the same width, which wraps them.
+    from rich.text import Text
+
+    shown = Text()
+    for segment in console._record_buffer:
+        shown.append(segment.text, segment.style)
+    screen = _console()
+    screen.print(shown, end="", overflow="fold")
+    screen.save_svg(str(out), title=title)
+    return shown.plain
 
 
-def main() -> None:
-    """Make both pictures from one real run."""
+def main(argv: list[str] | None = None) -> None:
+    """Make the pictures from one real run."""
+    args = sys.argv[1:] if argv is None else argv
+    out = Path(args[args.index("--out") + 1]).resolve() if "--out" in args else OUT
     with tempfile.TemporaryDirectory() as tmp:
         home = Path(tmp) / "home"
         os.environ.update(OSMO_HOME=str(home), OSMO_RUNTIME="process")
@@ -73,14 +86,15 @@ def main() -> None:
         sys.path.insert(0, str(REPO))
         from osmo.cli.main import main as osmo
 
+        submit = ["submit", "workflows/hello-pipeline.yaml", "--wait"]
         try:
-            text = _run(["submit", "workflows/hello-pipeline.yaml", "--wait"],
-                        "osmo submit workflows/hello-pipeline.yaml --wait", "submit-wait.svg")
+            text = _run(submit, "osmo " + " ".join(submit), out / "submit-wait.svg")
             wf_id = text.split("Workflow ID - ", 1)[1].split()[0]
-            _run(["query", wf_id], f"osmo query {wf_id}", "query.svg")
+            _run(["query", wf_id], f"osmo query {wf_id}", out / "query.svg")
+            _run(submit, "osmo " + " ".join(submit) + "   # again", out / "submit-reuse.svg")
         finally:
             osmo(["server", "stop"])
-    print(f"wrote {OUT / 'submit-wait.svg'} and {OUT / 'query.svg'}")
+    print(f"wrote submit-wait.svg, query.svg and submit-reuse.svg to {out}")
 
 
 if __name__ == "__main__":

@@ -43,6 +43,23 @@ def test_the_site_builds_strict(tmp_path: Path) -> None:
     assert (site / "images" / "submit-wait.svg").is_file()
 
 
+def test_the_pictures_come_from_a_real_run(tmp_path: Path) -> None:
+    script = REPO / "docs" / "images" / "make_screenshots.py"
+    proc = subprocess.run([sys.executable, str(script), "--out", str(tmp_path)], cwd=REPO,
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    wait, reuse = (tmp_path / "submit-wait.svg").read_text(), (
+        tmp_path / "submit-reuse.svg").read_text()
+    text = " ".join(re.findall(r">([^<]*)</text>", wait)).replace("&#160;", " ")
+    assert "Workflow ID - hello-pipeline-1" in text and "4/4 tasks done" in text
+    assert text.count("hello-pipeline-1  COMPLETED") == 1  # the last frame only
+    assert "reused 3 tasks" in " ".join(re.findall(r">([^<]*)</text>", reuse)).replace(
+        "&#160;", " ")
+    assert "COMPLETED" in (tmp_path / "query.svg").read_text()
+    for name in ("submit-wait.svg", "query.svg", "submit-reuse.svg"):
+        assert (REPO / "docs" / "images" / name).is_file(), f"{name} is not committed"
+
+
 def _verbs(parser: argparse.ArgumentParser, path: str) -> list[str]:
     out = []
     for action in parser._actions:
