@@ -27,7 +27,7 @@ SAYS = {
     "docs/how-to/credentials.md": ["token is ****", "registry://registry.example.com"],
     "docs/how-to/datasets.md": ["count [read-dataset-1]", "dataset frames:1 [upload]"],
     "docs/how-to/priorities-labels.md": ["HIGH", "team=vision", "best"],
-    "docs/how-to/upgrade-backup.md": ["COMPLETED"],
+    "docs/how-to/upgrade-backup.md": ["COMPLETED", "from-backup/report.txt"],
 }
 
 
@@ -84,8 +84,9 @@ def test_a_page_runs(page: str, tmp_path: Path) -> None:
     try:
         for block in b.to_run(page):
             out.append(_run(block, tmp_path, osmo))
-    finally:
-        osmo.stop_server()
+    finally:  # every server a page started, in its home or another (by PID)
+        for found in tmp_path.rglob("server.json"):
+            Osmo(found.parent).stop_server()
     text = "\n".join(out)
     missing = [s for s in SAYS.get(page, []) if s not in text]
     assert not missing, f"{page} says its commands print {missing}; they printed:\n{text}"
