@@ -108,3 +108,23 @@ def test_the_exit_code_reference_names_every_status_and_code() -> None:
     codes = [str(v) for k, v in vars(ExitCode).items() if k.isupper() and isinstance(v, int)]
     missing = [n for n in [*names, *codes] if n not in text]
     assert not missing, missing
+
+
+def _slug(heading: str) -> str:
+    text = re.sub(r"[^\w\- ]", "", heading.strip().lower())
+    return text.replace(" ", "-")
+
+
+def test_the_readme_is_a_front_door_whose_links_lead_somewhere() -> None:
+    readme = read("README.md")
+    assert len(readme.splitlines()) <= 200
+    for command in ("./dev demo", "./dev test", "./dev docs"):
+        assert command in readme
+    links = re.findall(r"\]\(([^)#\s]+)(?:#([^)\s]+))?\)", readme)
+    assert len(links) > 20
+    for target, anchor in links:
+        path = REPO / target
+        assert path.is_file(), f"README links to {target}, which does not exist"
+        if anchor:
+            slugs = {_slug(h) for h in re.findall(r"^#+ (.*)$", path.read_text(), re.M)}
+            assert anchor in slugs, f"README links to {target}#{anchor}: no such heading"
