@@ -54,6 +54,11 @@ def main() -> None:
         subprocess.run([rerun, "--headless", "--renderer", "vulkan", "--port", "0",
                         "--window-size", "1280x800", "--screenshot-to", str(OUT), str(rrd)],
                        env=env, check=True, timeout=300, capture_output=True)
+    from PIL import Image  # installed with the learn extra (torchvision)
+
+    with Image.open(OUT) as shot:  # the viewer renders at twice the window's size
+        shot.resize((shot.width // 2, shot.height // 2), Image.Resampling.LANCZOS).save(
+            OUT, optimize=True)
     print(f"wrote {OUT}")
 
 

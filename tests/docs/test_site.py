@@ -41,6 +41,7 @@ def test_the_site_builds_strict(tmp_path: Path) -> None:
     assert "doc-heading" in (site / "reference" / "sdk" / "index.html").read_text()
     assert "image.repository" in (site / "reference" / "helm-values" / "index.html").read_text()
     assert (site / "images" / "submit-wait.svg").is_file()
+    assert (site / "images" / "rerun-eval.png").is_file()  # docs/images/make_rerun_view.py
 
 
 def test_the_pictures_come_from_a_real_run(tmp_path: Path) -> None:
