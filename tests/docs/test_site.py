@@ -129,3 +129,15 @@ def test_the_readme_is_a_front_door_whose_links_lead_somewhere() -> None:
         if anchor:
             slugs = {_slug(h) for h in re.findall(r"^#+ (.*)$", path.read_text(), re.M)}
             assert anchor in slugs, f"README links to {target}#{anchor}: no such heading"
+
+
+def test_the_sdk_reference_documents_every_public_name() -> None:
+    import osmo
+
+    text = read("docs/reference/sdk.md")
+    errors = re.search(r"::: osmo\.errors\n.*?members: \[(.*?)\]", text, re.S)
+    assert errors is not None
+    listed = {f"::: osmo.{n}" for n in osmo.__all__} - {
+        f"::: osmo.{n.strip()}" for n in errors.group(1).split(",")}
+    missing = sorted(n for n in listed if f"{n}\n" not in text)
+    assert not missing, f"docs/reference/sdk.md does not document {missing}"
