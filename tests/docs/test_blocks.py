@@ -25,7 +25,8 @@ SAYS = {
         "reused 3 tasks instead of running them: generate (from hello-pipeline-1 task generate",
         "reused: the log of hello-pipeline-1 task generate retry 0 follows"],
     "docs/how-to/credentials.md": ["token is ****", "registry://registry.example.com"],
-    "docs/how-to/datasets.md": ["count [read-dataset-1]", "dataset frames:1 [upload]"],
+    "docs/how-to/datasets.md": ["count [read-dataset-1]", "dataset frames:1 [upload]",
+                                "[read] hello"],
     "docs/how-to/priorities-labels.md": ["HIGH", "team=vision", "best"],
     "docs/how-to/upgrade-backup.md": ["COMPLETED", "from-backup/report.txt"],
 }

@@ -22,7 +22,7 @@ import yaml
 from osmo.spec import parse, parse_io, parse_task
 from osmo.status import ExitCode, TaskStatus, WorkflowStatus
 from tests.conftest import REPO
-from tests.docs.blocks import read
+from tests.docs.blocks import pages, read
 
 sys.path.insert(0, str(REPO / "docs" / "hooks"))
 import osmo_docs  # noqa: E402  (the site's hook, imported from its folder)
@@ -141,3 +141,21 @@ def test_the_sdk_reference_documents_every_public_name() -> None:
         f"::: osmo.{n.strip()}" for n in errors.group(1).split(",")}
     missing = sorted(n for n in listed if f"{n}\n" not in text)
     assert not missing, f"docs/reference/sdk.md does not document {missing}"
+
+
+def test_lists_render_as_written() -> None:
+    """Python-Markdown nests a list only under four spaces, and starts one only after a blank
+    line: a list written otherwise renders flat, or as running text."""
+    problems = []
+    for page in pages():
+        fence, prev = False, ""
+        for n, line in enumerate(read(page).splitlines(), 1):
+            if line.startswith("```"):
+                fence = not fence
+            elif not fence and re.match(r"^ {1,3}[-*] ", line):
+                problems.append(f"{page}:{n}: a nested item needs four spaces")
+            elif not fence and line.startswith("- ") and prev.strip() and not re.match(
+                    r"^(\s|- )", prev):
+                problems.append(f"{page}:{n}: a list needs a blank line before it")
+            prev = line
+    assert not problems, "\n".join(problems)
