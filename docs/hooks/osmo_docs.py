@@ -7,6 +7,9 @@ A page holds a marker on a line of its own and this hook replaces it when the si
 - ``<!-- generated: helm-values -->``: every documented key of ``helm/osmo/values.yaml``
   (helm-docs style ``# --`` comments), with its default read from the YAML.
 
+A code block the docs tests do not run carries ``<!-- not run: REASON -->`` on the line before
+it (``tests/docs/blocks.py``); the hook shows that reason to the reader too.
+
 The functions are importable (``tests/docs`` checks what they produce) and need only the
 standard library, PyYAML and osmo itself.
 """
@@ -25,6 +28,8 @@ from typing import Any
 REPO = Path(__file__).resolve().parents[2]
 VALUES = REPO / "helm" / "osmo" / "values.yaml"
 _MARKER = re.compile(r"^<!-- generated: ([a-z-]+) -->$", re.M)
+_NOT_RUN = re.compile(r"^<!-- not run: (.*?) -->$", re.M)
+_TEST = re.compile(r"(tests/[\w/]+\.py(?:::\w+)?)")
 
 
 def on_page_markdown(markdown: str, **_: Any) -> str:
@@ -36,7 +41,11 @@ def on_page_markdown(markdown: str, **_: Any) -> str:
             raise ValueError(f"unknown generated section {m.group(1)!r}")
         return makers[m.group(1)]()
 
-    return _MARKER.sub(replace, markdown)
+    def not_run(m: re.Match[str]) -> str:
+        reason = _TEST.sub(r"`\1`", m.group(1))
+        return f"_Not run by the docs tests:_ {reason}.\n"
+
+    return _NOT_RUN.sub(not_run, _MARKER.sub(replace, markdown))
 
 
 # --- the CLI ---------------------------------------------------------------------------------

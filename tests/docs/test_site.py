@@ -42,6 +42,7 @@ def test_the_site_builds_strict(tmp_path: Path) -> None:
     assert "image.repository" in (site / "reference" / "helm-values" / "index.html").read_text()
     assert (site / "images" / "submit-wait.svg").is_file()
     assert (site / "images" / "rerun-eval.png").is_file()  # docs/images/make_rerun_view.py
+    assert "Not run by the docs tests" in (site / "tutorials" / "robotics" / "index.html").read_text()
 
 
 def test_the_pictures_come_from_a_real_run(tmp_path: Path) -> None:
