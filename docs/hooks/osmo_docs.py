@@ -68,6 +68,7 @@ def _subparsers(parser: argparse.ArgumentParser) -> Iterator[_Sub]:
 
 
 def _escape(text: str) -> str:
+    """Prose for a table cell (a pipe inside a code span needs no escape: Python-Markdown)."""
     return text.replace("|", "\\|").replace("<", "&lt;").replace(">", "&gt;")
 
 
@@ -85,16 +86,12 @@ def _argument_rows(parser: argparse.ArgumentParser) -> list[str]:
             name = str(a.metavar or a.dest)
         default = a.default
         shown = "" if default in (None, False, argparse.SUPPRESS) or a.nargs == 0 else (
-            f"`{_code(str(default))}`")
+            f"`{default}`")
         choices = f" One of: {', '.join(f'`{c}`' for c in a.choices)}." if a.choices else ""
         repeat = " Repeatable." if isinstance(a, (argparse._AppendAction,
                                                  argparse._ExtendAction)) else ""
-        rows.append(f"| `{_code(name)}` | {shown} | {_escape(a.help or '')}{choices}{repeat} |")
+        rows.append(f"| `{name}` | {shown} | {_escape(a.help or '')}{choices}{repeat} |")
     return rows
-
-
-def _code(text: str) -> str:
-    return text.replace("|", "\\|")
 
 
 def _verb_markdown(path: str, aliases: list[str], help_text: str,
@@ -182,5 +179,5 @@ def helm_values_markdown() -> str:
     out = ["| key | default | meaning |", "|---|---|---|"]
     for key, value, text in helm_values():
         shown = json.dumps(value, separators=(", ", ": "))
-        out.append(f"| `{key}` | `{_code(shown)}` | {_escape(text)} |")
+        out.append(f"| `{key}` | `{shown}` | {_escape(text)} |")
     return "\n".join(out) + "\n"
