@@ -31,7 +31,7 @@ def test_examples_sdk_pipeline(shared_osmo: Osmo) -> None:
     assert "made from: ['cubes', 'numbers', 'squares', 'total']" in proc.stdout
 
 
-def test_readme_python_example(shared_osmo: Osmo) -> None:
+def test_tutorial_python_example(shared_osmo: Osmo) -> None:
     blocks = re.findall(r"```python\n(.*?)```", section(FIRST, "## From Python"), re.S)
     assert blocks, "the first tutorial has a Python example"
     for code in blocks:
@@ -40,7 +40,7 @@ def test_readme_python_example(shared_osmo: Osmo) -> None:
         assert "COMPLETED" in proc.stdout
 
 
-def test_readme_cli_examples(shared_osmo: Osmo) -> None:
+def test_tutorial_cli_examples(shared_osmo: Osmo) -> None:
     usage = first_block(section(FIRST, "## Run a workflow"), "sh")
     commands = [line.split("#")[0].split() for line in usage.splitlines()
                 if line.startswith("osmo ")]
@@ -57,7 +57,7 @@ def test_readme_cli_examples(shared_osmo: Osmo) -> None:
             wf_id = r.out.splitlines()[0].split(" - ")[1]
 
 
-def test_readme_lineage_walkthrough(shared_osmo: Osmo, tmp_path_factory) -> None:  # type: ignore[no-untyped-def]
+def test_tutorial_lineage_walkthrough(shared_osmo: Osmo, tmp_path_factory) -> None:  # type: ignore[no-untyped-def]
     walkthrough = first_block(section(FIRST, "## Where did this file come from?"), "sh")
     workdir = tmp_path_factory.mktemp("walkthrough")
     wf_id, out = "", ""
@@ -77,7 +77,7 @@ def test_readme_lineage_walkthrough(shared_osmo: Osmo, tmp_path_factory) -> None
     assert any("generate [" in ln for ln in lines) and any("square [" in ln for ln in lines)
 
 
-def test_readme_custom_task_types(shared_osmo: Osmo, tmp_path_factory) -> None:  # type: ignore[no-untyped-def]
+def test_tutorial_custom_task_type(shared_osmo: Osmo, tmp_path_factory) -> None:  # type: ignore[no-untyped-def]
     text = read(CUSTOM)
     project = tmp_path_factory.mktemp("custom-types")
     project.chmod(0o755)  # a project folder as people have them (README: a root osmo's tasks

@@ -362,7 +362,7 @@ workflow:
     json.dumps(r.err)
 
 
-def test_readme_run_across_machines(tmp_path: Path) -> None:
+def test_tutorial_run_across_machines(tmp_path: Path) -> None:
     """The "Run across machines" block of docs/tutorials/remote-workers.md, on loopback with a
     free port."""
     import subprocess

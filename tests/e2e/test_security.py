@@ -129,7 +129,7 @@ workflow:
         c.stop()
 
 
-def test_readme_mutual_tls_walkthrough(tmp_path: Path) -> None:
+def test_docs_mutual_tls_walkthrough(tmp_path: Path) -> None:
     """docs/how-to/secure-listener.md → "Mutual TLS, worked through": its openssl commands and
     config files run exactly as written (taken from the page, so the two cannot drift);
     its two osmo commands run with free ports on loopback. The worker resolves
