@@ -1,0 +1,210 @@
+"""One attempt's pod, from its creation to its deletion: watch, log, verdict, clean-up.
+
+:class:`PodFollower` is what ``osmo.runtime.kubernetes.agent`` runs for each attempt:
+
+1. create the pod, then its Secret owned by it (the pod waits for the Secret, as
+   ``CreateContainerConfigError``; the API's garbage collector deletes the Secret with the
+   pod). API writes per attempt: pod, Secret (only with credentials), delete.
+2. follow the pod by list + watch from its resourceVersion: a watch that ends, goes silent
+   longer than :data:`SILENCE`, or answers 410 Gone is replaced by a fresh list and watch.
+   Each version goes through the status table (``osmo.runtime.kubernetes.status``); a new
+   waiting reason other than the ordinary ones (pending, ContainerCreating) is noted
+   (``note``: the agent's stderr, so the attempt's log, as ``osmo: pod P: waiting:
+   unschedulable: 0/3 nodes ...``).
+3. once the task's container runs (or ended), stream its log to ``out`` until it ends.
+4. a kill (``stop``): delete the pod with the 3 s grace; a pod still there :data:`FORCE_AFTER`
+   seconds later is deleted with no grace.
+5. at the end, whatever the verdict, the pod is deleted (its Secret goes with it).
+"""
+
+from __future__ import annotations
+
+import copy
+import queue
+import threading
+import time
+from collections.abc import Callable
+from typing import IO, Any
+
+from osmo.runtime.kubernetes.kube import Gone, Kube, KubeError
+from osmo.runtime.kubernetes.manifest import CONTAINER
+from osmo.runtime.kubernetes.status import Outcome, Verdict, verdict
+
+__all__ = ["FORCE_AFTER", "SILENCE", "PodFollower"]
+
+Obj = dict[str, Any]
+
+SILENCE = 20
+"""Seconds a watch may deliver nothing before it is replaced by a list and a new watch."""
+FORCE_AFTER = 5.0
+"""Seconds after a graceful delete (3 s grace) before the pod is deleted with no grace."""
+_ORDINARY = frozenset({"pending", "ContainerCreating", "PodInitializing"})  # not worth a line
+_LOG_WAIT = 10.0  # seconds the log may take to drain after the container ended
+
+
+class PodFollower:
+    """The life of one attempt's pod (see the module docstring).
+
+    Args:
+        kube: the API.
+        pod: the Pod manifest.
+        secret: its Secret manifest, owned by the pod once created (None: it has none).
+        out: where the task container's log goes (bytes, as they come).
+        note: where osmo's lines about the pod go (waiting reasons, the kill).
+        stop: set to kill the attempt.
+    """
+
+    def __init__(self, kube: Kube, pod: Obj, secret: Obj | None, *, out: IO[bytes],
+                 note: Callable[[str], None], stop: threading.Event) -> None:
+        self.kube, self.pod, self.secret = kube, pod, secret
+        self.namespace = str(pod["metadata"]["namespace"])
+        self.name = str(pod["metadata"]["name"])
+        self.out, self.note, self.stop = out, note, stop
+        self._events: queue.Queue[tuple[str, Obj | None] | BaseException] = queue.Queue()
+        self._log_thread: threading.Thread | None = None
+        self._deleting_at: float | None = None
+        self._forced = False
+        self.image_id: str | None = None
+
+    def run(self) -> Verdict:
+        """Create, follow and delete the pod; what became of the attempt.
+
+        Raises:
+            KubeError: the pod could not be created (nothing is left then).
+        """
+        created = self.kube.create("pod", self.namespace, self.pod)
+        try:
+            if self.secret is not None:
+                owned = copy.deepcopy(self.secret)
+                owned["metadata"]["ownerReferences"][0]["uid"] = created["metadata"]["uid"]
+                self.kube.create("secret", self.namespace, owned)
+            found = self._follow(created)
+        except BaseException:
+            self._delete(grace=0)
+            raise
+        self._finish_logs(found)
+        self._delete(grace=0)
+        return found
+
+    # ------------------------------------------------------------ following
+
+    def _follow(self, created: Obj) -> Verdict:
+        watcher = threading.Thread(target=self._watch, args=(created,), daemon=True,
+                                   name="osmo-pod-watch")
+        watcher.start()
+        last = verdict(created)
+        shown = ""
+        while True:
+            if self.stop.is_set():
+                self._kill()
+            try:
+                item = self._events.get(timeout=0.2)
+            except queue.Empty:
+                continue
+            if isinstance(item, BaseException):
+                raise item
+            kind, obj = item
+            last = verdict(None if kind == "DELETED" and not _ended(obj) else obj)
+            if self._deleting_at is not None and last.outcome is Outcome.LOST:
+                code = _exit_code(obj)
+                return Verdict(Outcome.EXITED, "killed", 143 if code is None else code)
+            if (last.outcome is Outcome.WAITING and last.message != shown
+                    and last.message not in _ORDINARY):
+                shown = last.message
+                self.note(f"pod {self.name}: waiting: {last.message}")
+            if last.outcome in (Outcome.RUNNING, Outcome.EXITED) and self._log_thread is None:
+                self._image(obj)
+                self._start_logs()
+            if last.final:
+                if last.outcome is Outcome.EXITED and self._deleting_at is not None:
+                    return Verdict(Outcome.EXITED, last.message, last.exit_code or 143)
+                return last
+
+    def _watch(self, created: Obj) -> None:
+        """Feed the pod's versions to the follower: watch, and list again when needed."""
+        version = str(created["metadata"].get("resourceVersion", ""))
+        fields = f"metadata.name={self.name}"
+        while True:
+            try:
+                for kind, obj in self.kube.watch_pods(self.namespace, version=version,
+                                                      fields=fields, timeout=SILENCE):
+                    version = str(obj.get("metadata", {}).get("resourceVersion") or version)
+                    self._events.put((kind, obj))
+                    if kind == "DELETED":
+                        return
+            except Gone:
+                pass  # too old: list again below
+            except KubeError as exc:
+                self._events.put(exc)
+                return
+            try:  # the watch ended, went silent or was too old: where is the pod now?
+                items, version = self.kube.list_objects("pod", self.namespace, fields=fields)
+            except KubeError as exc:
+                self._events.put(exc)
+                return
+            if not items:
+                self._events.put(("DELETED", None))
+                return
+            self._events.put(("MODIFIED", items[0]))
+
+    # ------------------------------------------------------------ kill and delete
+
+    def _kill(self) -> None:
+        now = time.monotonic()
+        if self._deleting_at is None:
+            self._deleting_at = now
+            self.note(f"pod {self.name}: deleting with a 3 s grace")
+            self._delete(grace=3)
+        elif not self._forced and now - self._deleting_at > FORCE_AFTER:
+            self._forced = True
+            self.note(f"pod {self.name}: still there after the grace: deleting at once")
+            self._delete(grace=0)
+
+    def _delete(self, grace: int) -> None:
+        try:
+            self.kube.delete("pod", self.namespace, self.name, grace=grace)
+        except KubeError as exc:
+            self.note(f"pod {self.name}: cannot delete it: {exc}")
+
+    # ------------------------------------------------------------ logs
+
+    def _image(self, obj: Obj | None) -> None:
+        for entry in ((obj or {}).get("status") or {}).get("containerStatuses") or []:
+            if entry.get("name") == CONTAINER and entry.get("imageID"):
+                self.image_id = str(entry["imageID"])
+
+    def _start_logs(self) -> None:
+        self._log_thread = threading.Thread(target=self._logs, daemon=True, name="osmo-pod-log")
+        self._log_thread.start()
+
+    def _logs(self) -> None:
+        for _ in range(20):
+            try:
+                for chunk in self.kube.logs(self.namespace, self.name, CONTAINER):
+                    self.out.write(chunk)
+                    self.out.flush()
+                return
+            except KubeError as exc:
+                if exc.status != 400:  # 400: not started yet
+                    self.note(f"pod {self.name}: its log cannot be read: {exc}")
+                    return
+            time.sleep(0.25)
+
+    def _finish_logs(self, found: Verdict) -> None:
+        if self._log_thread is None and found.outcome is Outcome.EXITED:
+            self._start_logs()
+        if self._log_thread is not None:
+            self._log_thread.join(_LOG_WAIT)
+
+
+def _ended(obj: Obj | None) -> bool:
+    return _exit_code(obj) is not None
+
+
+def _exit_code(obj: Obj | None) -> int | None:
+    for entry in ((obj or {}).get("status") or {}).get("containerStatuses") or []:
+        if entry.get("name") == CONTAINER:
+            ended = (entry.get("state") or {}).get("terminated")
+            if ended:
+                return int(ended.get("exitCode", 1))
+    return None

@@ -1,0 +1,85 @@
+"""OSMO's tutorials end to end through pods: ``osmo submit`` to a server whose only worker is
+``osmo worker --runtime kubernetes``, its pods created through the official client against
+the API stand-in and run under ``podman kube play`` with the offline test images.
+
+Each tutorial must complete with its tasks' lines in ``osmo logs``, its outputs recorded
+(lineage), and no pod, Secret or Service left in the API (nor anything in podman: the
+fixture checks at the end).
+"""
+
+from __future__ import annotations
+
+import re
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from tests.containers.conftest import images, podman_env  # noqa: F401 - fixtures
+from tests.containers.submitting import lineage_of, submitted_id, task_lines, tasks
+from tests.k8s.nodes import KubeCluster, started
+
+TUTORIALS = Path(__file__).parent.parent / "containers" / "osmo_tutorials"
+
+
+@pytest.fixture(scope="module")
+def kube(tmp_path_factory: pytest.TempPathFactory, podman_env: dict[str, str],  # noqa: F811
+         images: dict[str, str]) -> Iterator[KubeCluster]:  # noqa: F811
+    for cluster in started(tmp_path_factory.mktemp("k8s"), podman_env):
+        cluster.start_worker("kube-1")
+        yield cluster
+
+
+def run(kube: KubeCluster, name: str) -> tuple[str, dict[str, list[str]], dict[str, dict]]:
+    """Submit a tutorial and wait; its id, its tasks' lines and query rows."""
+    r = kube.osmo("submit", str(TUTORIALS / name), "--wait", timeout=300)
+    wf_id = submitted_id(r.out)
+    lines, rows = task_lines(kube.osmo, wf_id), tasks(kube.osmo, wf_id)
+    assert r.code == 0, f"{r.out}{r.err}{lines}{rows}\n{kube.osmo_cluster.worker_log('kube-1')}"
+    assert {row["status"] for row in rows.values()} == {"COMPLETED"}
+    assert nothing_left(kube) == []
+    return wf_id, lines, rows
+
+
+def nothing_left(kube: KubeCluster, timeout: float = 20) -> list[str]:
+    """What the API still holds once ``timeout`` passed (or nothing)."""
+    deadline = time.monotonic() + timeout
+    while (left := kube.left()) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    return left
+
+
+def test_hello_world_runs_as_a_pod(kube: KubeCluster) -> None:
+    wf_id, lines, _ = run(kube, "hello_world.yaml")
+    assert lines["hello"] == ["Hello from OSMO!"]
+    osmo_log = kube.osmo("logs", wf_id, check=True).out
+    assert "pod osmo-" in osmo_log and "namespace osmo-tasks" in osmo_log, osmo_log
+    assert "kubernetes (namespace osmo-tasks)" in kube.osmo("resource", "list", check=True).out
+
+
+def test_serial_workflow_hands_outputs_on_between_pods(kube: KubeCluster) -> None:
+    wf_id, lines, rows = run(kube, "serial_workflow.yaml")
+    assert len(lines["task1"]) == 1 and re.fullmatch(r"Hello from task1 \S+", lines["task1"][0])
+    assert lines["task3"] == ["Hello from task3 /osmo/data/output", "Reading from task 1",
+                              "a line: Data from task 1", "Reading from task 2",
+                              "a line: Data from task 2"]
+    for n in (1, 2, 3):
+        output = Path(rows[f"task{n}"]["output"])
+        assert (output / "test_read.txt").read_text() == f"Data from task {n}\n"
+    lineage = lineage_of(kube.osmo, f"{wf_id}:task3")
+    assert lineage["image"] == "ubuntu:24.04" or lineage.get("image_id"), lineage
+
+
+def test_parallel_tasks_run_as_pods(kube: KubeCluster) -> None:
+    _, lines, _ = run(kube, "parallel_tasks.yaml")
+    for name in ("task-a", "task-b", "task-c"):
+        assert lines[name] == [f"Hello from {name}"]
+
+
+def test_combination_workflow_simple(kube: KubeCluster) -> None:
+    _, lines, rows = run(kube, "combination_workflow_simple.yaml")
+    samples = [f"sample_{i},value_{i}" for i in range(1, 11)]
+    csv = Path(rows["generate-data"]["output"]) / "data" / "training_data.csv"
+    assert csv.read_text().splitlines() == samples
+    assert lines["train-model-a"] == ["Training Model A...", *samples, "✓ Model A complete!"]
