@@ -52,10 +52,12 @@ class PodFollower:
         out: where the task container's log goes (bytes, as they come).
         note: where osmo's lines about the pod go (waiting reasons, the kill).
         stop: set to kill the attempt.
+        silence: seconds a watch may stay silent before it is replaced.
     """
 
     def __init__(self, kube: Kube, pod: Obj, secret: Obj | None, *, out: IO[bytes],
-                 note: Callable[[str], None], stop: threading.Event) -> None:
+                 note: Callable[[str], None], stop: threading.Event,
+                 silence: int = SILENCE) -> None:
         self.kube, self.pod, self.secret = kube, pod, secret
         self.namespace = str(pod["metadata"]["namespace"])
         self.name = str(pod["metadata"]["name"])
@@ -65,6 +67,7 @@ class PodFollower:
         self._deleting_at: float | None = None
         self._forced = False
         self.image_id: str | None = None
+        self._silence = silence
 
     def run(self) -> Verdict:
         """Create, follow and delete the pod; what became of the attempt.
@@ -127,7 +130,7 @@ class PodFollower:
         while True:
             try:
                 for kind, obj in self.kube.watch_pods(self.namespace, version=version,
-                                                      fields=fields, timeout=SILENCE):
+                                                      fields=fields, timeout=self._silence):
                     version = str(obj.get("metadata", {}).get("resourceVersion") or version)
                     self._events.put((kind, obj))
                     if kind == "DELETED":

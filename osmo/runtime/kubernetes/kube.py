@@ -158,6 +158,9 @@ class Kube:
                    labels: str = "", timeout: int = 60) -> Iterator[tuple[str, Obj]]:
         """``(type, pod)`` events after ``version``, for at most ``timeout`` seconds.
 
+        A watch that stays silent longer than that (a stalled connection) or whose
+        connection breaks just ends: the caller lists again.
+
         Raises:
             Gone: ``version`` is too old (list again).
             KubeError: the watch failed.
@@ -168,7 +171,8 @@ class Kube:
             for event in stream.stream(self.core.list_namespaced_pod, namespace,
                                        resource_version=version, field_selector=fields,
                                        label_selector=labels, timeout_seconds=timeout,
-                                       allow_watch_bookmarks=False):
+                                       allow_watch_bookmarks=False,
+                                       _request_timeout=timeout + 2):
                 kind, raw = event["type"], event["raw_object"]
                 if kind == "ERROR":
                     code = int(raw.get("code") or 500)
@@ -176,8 +180,8 @@ class Kube:
                 yield kind, raw
         except api_exception as exc:
             raise (Gone if exc.status == 410 else KubeError)(_message(exc), exc.status) from None
-        except _transport_errors() as exc:
-            raise KubeError(f"the watch of pods failed: {exc}") from None
+        except _transport_errors():
+            return  # silent too long, or broken: the caller lists again
         finally:
             stream.stop()
 
