@@ -40,7 +40,6 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-import osmo
 from osmo.errors import OsmoError
 from osmo.runtime.api import (
     Attempt,
@@ -71,6 +70,7 @@ from osmo.scheduler.types import PrepareAttempt
 __all__ = ["KubeRun", "KubernetesRuntime"]
 
 _AGENT = "osmo.runtime.kubernetes.agent"
+_PACKAGE_ROOT = Path(__file__).resolve().parents[3]  # the agent imports this very osmo
 
 
 @dataclass(frozen=True)
@@ -110,7 +110,7 @@ class KubernetesRuntime:
         self._lock = threading.Lock()
         self._env = dict(os.environ)
         self._env["PYTHONPATH"] = os.pathsep.join(
-            [str(Path(osmo.__file__).parent.parent), *filter(None, [
+            [str(_PACKAGE_ROOT), *filter(None, [
                 os.environ.get("PYTHONPATH")])])
 
     @classmethod
