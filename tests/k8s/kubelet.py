@@ -473,6 +473,10 @@ class Kubelet:
                 play, pod.killed = pod.play, True
             if play is not None and play.poll() is None:
                 play.kill()
+            # the containers first, then the pod's sandbox, as the kubelet does: stopping the
+            # infra container at once would kill a shared PID namespace's processes outright
+            self.podman.stop_containers([f"{pod.podman}-{c}" for c in
+                                         self.podman.played.get(pod.podman, [])], grace)
             self.podman.stop(pod.podman, grace)
             seen = self.podman.states({pod.podman: self.podman.played.get(pod.podman, [])}
                                       ).get(pod.podman, {})

@@ -10,6 +10,7 @@ fixture checks at the end).
 from __future__ import annotations
 
 import re
+import signal
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -83,3 +84,37 @@ def test_combination_workflow_simple(kube: KubeCluster) -> None:
     csv = Path(rows["generate-data"]["output"]) / "data" / "training_data.csv"
     assert csv.read_text().splitlines() == samples
     assert lines["train-model-a"] == ["Training Model A...", *samples, "✓ Model A complete!"]
+
+
+CHAOS = """\
+workflow:
+  name: chaos
+  tasks:
+  - name: slow
+    image: alpine:3.18
+    command: ["sh", "-c", "echo started; sleep 4; echo survived > {{output}}/x; echo done"]
+"""
+
+
+def test_a_killed_node_leaves_nothing_and_the_attempt_runs_again(kube: KubeCluster,
+                                                                 tmp_path: Path) -> None:
+    """Chaos (last in this module: it restarts the worker): SIGKILL of the node mid-run."""
+    spec = tmp_path / "chaos.yaml"
+    spec.write_text(CHAOS)
+    wf_id = kube.osmo.submit(spec)
+    kube.osmo.wait_for(wf_id, lambda info: any(
+        t["status"] == "RUNNING" for t in info["tasks"]))
+    deadline = time.monotonic() + 60
+    while not any(k.startswith("Pod/") for k in kube.left()) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert any(k.startswith("Pod/") for k in kube.left())
+    kube.osmo_cluster.signal("kube-1", signal.SIGKILL)
+    kube.osmo_cluster.workers["kube-1"].wait(30)
+    assert nothing_left(kube) == []  # its agents deleted their pods as the node died
+    kube.start_worker("kube-1")
+    info = kube.osmo.wait_for(wf_id, lambda i: i["status"] in ("COMPLETED", "FAILED"),
+                              timeout=180)
+    assert info["status"] == "COMPLETED", info
+    row = info["tasks"][0]
+    assert (Path(row["output"]) / "x").read_text() == "survived\n"
+    assert nothing_left(kube) == []

@@ -12,8 +12,9 @@ runtime, and exits with:
 - :data:`START_FAILED` (125): the pod never ran its task (an image that cannot be pulled);
 - :data:`LOST` (3): the pod was lost (evicted, preempted, its node lost, deleted by someone).
 
-It dies with its worker (SIGKILL then: the pod stays, and the node's next start deletes it
-by label).
+When its worker dies (even of SIGKILL) it is sent SIGTERM (``PR_SET_PDEATHSIG``), so it
+deletes its pod, as a kill does; whatever is still left (the agent killed too) the node's
+next start deletes by label.
 """
 
 from __future__ import annotations
@@ -39,6 +40,7 @@ def main(argv: list[str]) -> int:
     plan_file = Path(argv[0])
     plan = json.loads(plan_file.read_text())
     plan_file.unlink(missing_ok=True)
+    _term_with_parent(int(plan.get("parent") or 0), stop)
     verdict_file = Path(plan["verdict"])
 
     def note(line: str) -> None:
@@ -69,6 +71,16 @@ def main(argv: list[str]) -> int:
     if found.outcome is Outcome.LOST:
         return LOST
     return found.exit_code if found.exit_code is not None else 1
+
+
+def _term_with_parent(parent: int, stop: threading.Event) -> None:
+    """SIGTERM this process when its worker dies (its pod is then deleted, as on a kill)."""
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM, 0, 0, 0)  # PR_SET_PDEATHSIG
+    if parent and os.getppid() != parent:  # it died before the line above
+        stop.set()
 
 
 def _write(path: Path, verdict: dict[str, object]) -> None:

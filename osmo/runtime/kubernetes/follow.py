@@ -112,7 +112,7 @@ class PodFollower:
                 code = _exit_code(obj)
                 return Verdict(Outcome.EXITED, "killed", 143 if code is None else code)
             if (last.outcome is Outcome.WAITING and last.message != shown
-                    and last.message not in _ORDINARY):
+                    and last.message not in _ORDINARY and not self._own_secret(last)):
                 shown = last.message
                 self.note(f"pod {self.name}: waiting: {last.message}")
             if last.outcome in (Outcome.RUNNING, Outcome.EXITED) and self._log_thread is None:
@@ -149,6 +149,10 @@ class PodFollower:
                 self._events.put(("DELETED", None))
                 return
             self._events.put(("MODIFIED", items[0]))
+
+    def _own_secret(self, found: Verdict) -> bool:
+        """The pod waits for its own Secret, created just after it: nothing to say."""
+        return self.secret is not None and f'"{self.name}"' in found.message
 
     # ------------------------------------------------------------ kill and delete
 

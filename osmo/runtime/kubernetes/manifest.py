@@ -6,8 +6,11 @@ plain dict; :func:`secret_manifest` makes the attempt's own Secret, owned by its
 server's garbage collector deletes it with the pod); :func:`service_manifest` a group's
 headless Service. What each pod gets:
 
-- ``restartPolicy: Never``; one container ``task`` running the task's ``command``/``args``
-  (the image's entrypoint replaced, as OSMO does), its environment, its working folder;
+- ``restartPolicy: Never``; ``shareProcessNamespace``, so the task is not PID 1 (the pod's
+  pause process is, as ``--init`` is a container task's): a SIGTERM the task does not
+  handle ends it (143), as on every other runtime; one container ``task`` running the
+  task's ``command``/``args`` (the image's entrypoint replaced, as OSMO does), its
+  environment, its working folder;
 - OSMO's data layout (``osmo.runtime.container.layout``): the same binds as a container
   task, each a volume of the node's attempt folder (a ``hostPath``, or a ``subPath`` of the
   pool's work claim);
@@ -171,6 +174,7 @@ def pod_manifest(plan: PodPlan, pool: KubePool, *, secret: str | None = None
     spec: dict[str, Any] = {
         "restartPolicy": "Never", "containers": [container], "volumes": volumes,
         "terminationGracePeriodSeconds": _GRACE, "enableServiceLinks": False,
+        "shareProcessNamespace": True,
         "automountServiceAccountToken": False,
         "securityContext": {"runAsNonRoot": True,
                             "seccompProfile": {"type": "RuntimeDefault"}}}

@@ -23,8 +23,11 @@ What it owns, one concern per method of the runtime contract (``osmo.runtime.api
   of this instance a previous life left (found by label): the server reschedules those
   attempts, which the restarted node reported lost by not knowing them.
 
-Not here yet: ``exec`` and ``port-forward`` (the Kubernetes exec and port-forward API over
-zenoh), inputs fetched by an init container and outputs taken by a sidecar (today the pod
+- port-forward: the node dials the pod's IP (:meth:`KubernetesRuntime.connector`); the
+  node's session relays it over zenoh as on every node.
+
+Not here yet: ``exec`` (the Kubernetes exec API relayed by the node), inputs fetched by an
+init container and outputs taken by a sidecar (today the pod
 sees the node's folders through the work volume, so the node's own checks and atomic
 promotion hold unchanged).
 """
@@ -51,6 +54,7 @@ from osmo.runtime.api import (
     ProcessHandle,
     Runtime,
     StartError,
+    dial,
 )
 from osmo.runtime.container.engine import ContainerEngine, EngineNotFound, detect_engine
 from osmo.runtime.container.images import ImageIds
@@ -185,6 +189,7 @@ class KubernetesRuntime:
         """
         run = _run(launch)
         plan = {"pod": run.pod, "secret": run.secret, "verdict": str(run.verdict_file),
+                "parent": os.getpid(),
                 "kubeconfig": self.pool.kubeconfig, "context": self.pool.context}
         try:
             run.verdict_file.unlink(missing_ok=True)
@@ -247,13 +252,21 @@ class KubernetesRuntime:
                         f"(pod {_run(launch).name}: use kubectl exec)")
 
     def connector(self, launch: Launch, handle: ProcessHandle) -> Connector:
-        """Not yet: the Kubernetes port-forward API is not relayed.
+        """To the task's ports on its pod's IP (the node dials it; the node's session relays).
+
+        An in-cluster node reaches pod IPs directly, as every pod of a cluster does (unless
+        a NetworkPolicy forbids it); it does not go through the API's port-forward.
 
         Raises:
-            ConnectError: always.
+            ConnectError: the pod has no IP (not running) or is gone.
+            KubeError: the API cannot be asked.
         """
-        raise ConnectError("port-forward does not reach Kubernetes pods yet "
-                           f"(pod {_run(launch).name}: use kubectl port-forward)")
+        name = _run(launch).name
+        pod = self.kube.read_pod(self.pool.namespace, name)
+        address = str(((pod or {}).get("status") or {}).get("podIP") or "")
+        if not address:
+            raise ConnectError(f"pod {name} has no IP (it is not running)")
+        return lambda port, udp: dial(address, port, udp=udp)
 
     def cleanup(self, launch: Launch) -> None:
         """Nothing: the agent deleted the pod (a forced kill's is deleted by ``kill``)."""
