@@ -55,13 +55,14 @@ class KubeCluster:
         self.osmo_cluster.start_server()
         self.osmo = self.osmo_cluster.osmo
 
-    def start_worker(self, name: str, *args: str, **config: Any) -> None:
-        """``osmo worker --runtime kubernetes`` named ``name`` (``config``: pool keys)."""
+    def start_worker(self, name: str, *args: str, pool: str = "default", **config: Any) -> None:
+        """``osmo worker --runtime kubernetes`` named ``name`` serving ``pool`` (``config``:
+        the Kubernetes pool's keys)."""
         folder = self.root / f"{name}-config"
         folder.mkdir(exist_ok=True)
         conf = pool_config(folder, self.kubeconfig, **config)
         self.osmo_cluster.start_worker(name, "--runtime", "kubernetes",
-                                       "--kubernetes-config", str(conf), *args)
+                                       "--kubernetes-config", str(conf), *args, pool=pool)
 
     def left(self) -> list[str]:
         """``kind/name`` of every pod, Secret, Service and PodGroup the stand-in holds now."""

@@ -20,6 +20,7 @@ import pytest
 from tests.containers.conftest import images, podman_env  # noqa: F401 - fixtures
 from tests.containers.submitting import lineage_of, submitted_id, task_lines, tasks
 from tests.k8s.nodes import KubeCluster, started
+from tests.k8s.store import PODS
 
 TUTORIALS = Path(__file__).parent.parent / "containers" / "osmo_tutorials"
 
@@ -28,7 +29,8 @@ TUTORIALS = Path(__file__).parent.parent / "containers" / "osmo_tutorials"
 def kube(tmp_path_factory: pytest.TempPathFactory, podman_env: dict[str, str],  # noqa: F811
          images: dict[str, str]) -> Iterator[KubeCluster]:  # noqa: F811
     for cluster in started(tmp_path_factory.mktemp("k8s"), podman_env):
-        cluster.start_worker("kube-1")
+        # the stand-in runs every pod on this host's network: {{host:X}} is X's node address
+        cluster.start_worker("kube-1", groupNetwork="host")
         yield cluster
 
 
@@ -86,6 +88,29 @@ def test_combination_workflow_simple(kube: KubeCluster) -> None:
     assert lines["train-model-a"] == ["Training Model A...", *samples, "✓ Model A complete!"]
 
 
+
+def test_group_tasks_communication_lead_first(kube: KubeCluster) -> None:
+    _, lines, _ = run(kube, "group_tasks_communication.yaml")
+    assert lines["client"][0] == "Client: Starting..."
+    assert lines["client"][2:] == ["Received from server: hello", "Client: Complete"]
+    assert lines["server"] == ["Server: Starting...", "Server: Complete"]
+
+
+
+def test_group_tasks_run_as_a_kai_gang(kube: KubeCluster) -> None:
+    kube.start_worker("kube-gang", pool="gang", gang="kai", groupNetwork="host")
+    before = kube.server.calls[("create", "podgroups.scheduling.run.ai")]
+    r = kube.osmo("submit", str(TUTORIALS / "group_tasks.yaml"), "--pool", "gang", "--wait",
+                  timeout=300)
+    wf_id = submitted_id(r.out)
+    assert r.code == 0, r.out + r.err + kube.osmo_cluster.worker_log("kube-gang")
+    lines = task_lines(kube.osmo, wf_id)
+    said = [line for line in lines["processor-2"] if not line.startswith("osmo: ")]
+    assert said[0] == "Processor 2: Starting..."
+    assert kube.server.calls[("create", "podgroups.scheduling.run.ai")] == before + 1
+    assert nothing_left(kube) == []  # the PodGroup went with the group's last member
+
+
 CHAOS = """\
 workflow:
   name: chaos
@@ -94,6 +119,11 @@ workflow:
     image: alpine:3.18
     command: ["sh", "-c", "echo started; sleep 4; echo survived > {{output}}/x; echo done"]
 """
+
+
+def running_pods(kube: KubeCluster) -> list[str]:
+    return [obj["metadata"]["name"] for _, obj in kube.server.store.objects([PODS])
+            if (obj.get("status") or {}).get("phase") == "Running"]
 
 
 def test_a_killed_node_leaves_nothing_and_the_attempt_runs_again(kube: KubeCluster,
@@ -105,12 +135,13 @@ def test_a_killed_node_leaves_nothing_and_the_attempt_runs_again(kube: KubeClust
     kube.osmo.wait_for(wf_id, lambda info: any(
         t["status"] == "RUNNING" for t in info["tasks"]))
     deadline = time.monotonic() + 60
-    while not any(k.startswith("Pod/") for k in kube.left()) and time.monotonic() < deadline:
+    while not running_pods(kube) and time.monotonic() < deadline:
         time.sleep(0.1)
-    assert any(k.startswith("Pod/") for k in kube.left())
+    assert running_pods(kube), kube.left()
     kube.osmo_cluster.signal("kube-1", signal.SIGKILL)
     kube.osmo_cluster.workers["kube-1"].wait(30)
-    assert nothing_left(kube) == []  # its agents deleted their pods as the node died
+    left = nothing_left(kube)
+    assert left == [], f"{left} after the node died\n{kube.osmo_cluster.worker_log('kube-1')}"
     kube.start_worker("kube-1")
     info = kube.osmo.wait_for(wf_id, lambda i: i["status"] in ("COMPLETED", "FAILED"),
                               timeout=180)

@@ -11,6 +11,8 @@ JSON object (the chart writes it from ``values.yaml``)::
      "platforms": {"jetson": {"nodeSelector": {...}, "tolerations": [...]}},
      "priorityClasses": {"HIGH": "osmo-high", "NORMAL": "", "LOW": "osmo-low"},
      "gang": "none",                        # kai | volcano | kueue | coscheduling | none
+     "groupNetwork": "service",             # {{host:X}}: a headless Service per group, or
+                                            # "host": hostNetwork pods (one host only)
      "securityContext": {...},              # the task container's (default: non-root, no
                                             # capabilities, no privilege escalation)
      "runAsUser": 1000,
@@ -44,7 +46,7 @@ GANGS = ("none", "kai", "volcano", "kueue", "coscheduling")
 
 _KEYS = {"namespace", "kubeconfig", "context", "nodeSelector", "tolerations", "platforms",
          "priorityClasses", "gang", "securityContext", "runAsUser", "imagePullSecrets",
-         "shmSize", "work", "queue"}
+         "shmSize", "work", "queue", "groupNetwork"}
 
 
 @dataclass(frozen=True)
@@ -68,6 +70,8 @@ class KubePool:
         priority_classes: osmo priority → PriorityClass name ("" or missing: none).
         gang: the gang scheduler of groups (``GANGS``).
         queue: the gang scheduler's queue (KAI, Volcano, Kueue), if it needs one.
+        group_network: how a group's pods reach each other: ``service`` (a headless Service
+            per group) or ``host`` (``hostNetwork``; ``osmo.runtime.kubernetes.groups``).
         security_context: the task container's securityContext (None: the default).
         run_as_user: the uid the default securityContext runs tasks as.
         image_pull_secrets: Secrets every pod may pull with.
@@ -84,6 +88,7 @@ class KubePool:
     priority_classes: Mapping[str, str] = field(default_factory=dict)
     gang: str = "none"
     queue: str | None = None
+    group_network: str = "service"
     security_context: Mapping[str, Any] | None = None
     run_as_user: int = 1000
     image_pull_secrets: tuple[str, ...] = ()
@@ -122,6 +127,9 @@ def _pool(raw: Any) -> KubePool:
     gang = _str(raw, "gang", "none")
     if gang not in GANGS:
         raise ValueError(f"gang {gang!r}: choose {', '.join(GANGS)}")
+    network = _str(raw, "groupNetwork", "service")
+    if network not in ("service", "host"):
+        raise ValueError(f"groupNetwork {network!r}: choose service or host")
     work = raw.get("work") or {"hostPath": True}
     if not isinstance(work, dict) or not (work.get("hostPath") is True or "claim" in work):
         raise ValueError('work: {"hostPath": true} or {"claim": NAME, "mount": PATH}')
@@ -146,7 +154,8 @@ def _pool(raw: Any) -> KubePool:
         context=raw.get("context"), placement=_placement(raw, "pool"),
         platforms={str(k): _placement(v, f"platforms.{k}") for k, v in platforms.items()},
         priority_classes=_strings(raw.get("priorityClasses") or {}, "priorityClasses"),
-        gang=gang, queue=raw.get("queue"), security_context=security, run_as_user=user,
+        gang=gang, queue=raw.get("queue"), group_network=network,
+        security_context=security, run_as_user=user,
         image_pull_secrets=tuple(pulls), shm_size=_str(raw, "shmSize", "1Gi"),
         work_claim=claim, work_mount=Path(work["mount"]) if claim is not None else None)
 

@@ -30,7 +30,7 @@ from osmo.runtime.kubernetes.kube import Gone, Kube, KubeError
 from osmo.runtime.kubernetes.manifest import CONTAINER
 from osmo.runtime.kubernetes.status import Outcome, Verdict, verdict
 
-__all__ = ["FORCE_AFTER", "SILENCE", "PodFollower"]
+__all__ = ["FORCE_AFTER", "GIVE_UP_AFTER", "SILENCE", "PodFollower"]
 
 Obj = dict[str, Any]
 
@@ -38,6 +38,8 @@ SILENCE = 20
 """Seconds a watch may deliver nothing before it is replaced by a list and a new watch."""
 FORCE_AFTER = 5.0
 """Seconds after a graceful delete (3 s grace) before the pod is deleted with no grace."""
+GIVE_UP_AFTER = 30.0
+"""Seconds after a kill before the follower stops waiting for the pod to go."""
 _ORDINARY = frozenset({"pending", "ContainerCreating", "PodInitializing"})  # not worth a line
 _LOG_WAIT = 10.0  # seconds the log may take to drain after the container ended
 
@@ -166,6 +168,9 @@ class PodFollower:
             self._forced = True
             self.note(f"pod {self.name}: still there after the grace: deleting at once")
             self._delete(grace=0)
+        elif self._forced and now - self._deleting_at > GIVE_UP_AFTER:
+            raise KubeError(f"pod {self.name} is still there {GIVE_UP_AFTER:g} s after its "
+                            "deletion; the node's next start deletes it")
 
     def _delete(self, grace: int) -> None:
         try:

@@ -46,9 +46,11 @@ from osmo.errors import OsmoError
 from osmo.runtime.container.run import Mount
 from osmo.runtime.kubernetes.config import KubePool, Placement
 
-__all__ = ["CONTAINER", "LABEL_ATTEMPT", "LABEL_INSTANCE", "LABEL_WORKFLOW", "GroupPlan",
+__all__ = ["CONTAINER", "LABEL_ATTEMPT", "LABEL_GROUP", "LABEL_INSTANCE", "LABEL_LEAD",
+           "LABEL_WORKFLOW", "GroupPlan",
            "ManifestError", "PodPlan", "label_value", "object_name", "pod_manifest",
-           "pod_group_manifest", "secret_manifest", "selector", "service_manifest"]
+           "plan_labels", "pod_group_manifest", "secret_manifest", "selector",
+           "service_manifest"]
 
 CONTAINER = "task"
 """The name of the task's container in its pod."""
@@ -59,6 +61,7 @@ LABEL_TASK = "osmo.dev/task"
 LABEL_RETRY = "osmo.dev/retry"
 LABEL_ATTEMPT = "osmo.dev/attempt"
 LABEL_GROUP = "osmo.dev/group"
+LABEL_LEAD = "osmo.dev/lead"
 
 _GRACE = 3  # seconds: what a cancel gives the task, as osmo's other runtimes
 _ENV_NAME = re.compile(r"[-._a-zA-Z][-._a-zA-Z0-9]*")
@@ -94,6 +97,7 @@ class PodPlan:
         platform: its platform (the pool's placement for it).
         group: its gang (None: it runs alone).
         hostname: its name in its group's Service.
+        lead: it is its group's lead (the others may wait for it).
     """
 
     attempt_id: str
@@ -114,6 +118,7 @@ class PodPlan:
     platform: str | None = None
     group: GroupPlan | None = None
     hostname: str | None = None
+    lead: bool = False
 
     @property
     def name(self) -> str:
@@ -149,6 +154,7 @@ def plan_labels(plan: PodPlan) -> dict[str, str]:
               LABEL_ATTEMPT: plan.attempt_id}
     if plan.group is not None:
         labels[LABEL_GROUP] = plan.group.name
+        labels[LABEL_LEAD] = "1" if plan.lead else "0"
     return {k: label_value(v) for k, v in labels.items()}
 
 
@@ -192,7 +198,9 @@ def pod_manifest(plan: PodPlan, pool: KubePool, *, secret: str | None = None
                             "annotations": {"osmo.dev/attempt-id": plan.attempt_id}}
     if plan.group is not None:
         _gang(meta, spec, plan.group, pool)
-        if plan.hostname:
+        if pool.group_network == "host":
+            spec["hostNetwork"] = True
+        elif plan.hostname:
             spec["hostname"], spec["subdomain"] = plan.hostname, plan.group.name
     return {"apiVersion": "v1", "kind": "Pod", "metadata": meta, "spec": spec}
 

@@ -60,9 +60,11 @@ from osmo.runtime.container.engine import ContainerEngine, EngineNotFound, detec
 from osmo.runtime.container.images import ImageIds
 from osmo.runtime.container.layout import DATA_LAYOUT, mounts
 from osmo.runtime.kubernetes.config import KubePool, load_pool
+from osmo.runtime.kubernetes.groups import Groups, hostname
 from osmo.runtime.kubernetes.kube import Kube, KubeError, connect
 from osmo.runtime.kubernetes.manifest import (
     LABEL_INSTANCE,
+    GroupPlan,
     PodPlan,
     label_value,
     pod_manifest,
@@ -79,12 +81,13 @@ _PACKAGE_ROOT = Path(__file__).resolve().parents[3]  # the agent imports this ve
 
 @dataclass(frozen=True)
 class KubeRun:
-    """A prepared attempt's pod: its manifests and the agent's files (never shown)."""
+    """A prepared attempt's pod: its manifests, the agent's files, its gang (never shown)."""
 
     pod: dict[str, Any] = field(repr=False)
     secret: dict[str, Any] | None = field(repr=False)
     plan_file: Path
     verdict_file: Path
+    group: GroupPlan | None = None
 
     @property
     def name(self) -> str:
@@ -108,6 +111,7 @@ class KubernetesRuntime:
         self.images = images
         self._python = python
         self._groups = ProcessGroups()
+        self.gangs = Groups(kube, pool, self.instance)
         self._runs: dict[ProcessHandle, KubeRun] = {}
         self._forced: set[ProcessHandle] = set()
         self._threads: set[threading.Thread] = set()
@@ -141,17 +145,25 @@ class KubernetesRuntime:
         return f"kubernetes (namespace {self.pool.namespace})"
 
     def clean_orphans(self) -> list[str]:
-        """Delete every pod of this instance (a previous life's); their names."""
-        items, _ = self.kube.list_objects("pod", self.pool.namespace,
-                                  labels=f"{LABEL_INSTANCE}={self.instance}")
-        names = [str(p["metadata"]["name"]) for p in items]
-        for name in names:
-            self.kube.delete("pod", self.pool.namespace, name, grace=0)
+        """Delete every pod and group Service of this instance (a previous life's).
+
+        Returns ``kind/name`` of each. (A PodGroup left by a crash stays: it holds nothing.)
+        """
+        mine = f"{LABEL_INSTANCE}={self.instance}"
+        names = []
+        for kind in ("pod", "service"):
+            items, _ = self.kube.list_objects(kind, self.pool.namespace, labels=mine)
+            for item in items:
+                name = str(item["metadata"]["name"])
+                self.kube.delete(kind, self.pool.namespace, name,
+                                 grace=0 if kind == "pod" else None)
+                names.append(f"{kind}/{name}")
         return names
 
     def paths(self, cmd: PrepareAttempt) -> Paths:
-        """OSMO's data layout (the container runtime's)."""
-        return DATA_LAYOUT
+        """OSMO's data layout (the container runtime's); ``{{host:NAME}}`` a group's pod."""
+        hosts = self.gangs.hosts(cmd)
+        return DATA_LAYOUT if hosts is None else replace(DATA_LAYOUT, hosts=hosts)
 
     def prepare(self, launch: Launch, attempt: Attempt, *,
                 progress: Callable[[str], None]) -> Launch:
@@ -164,6 +176,8 @@ class KubernetesRuntime:
         assert task.image is not None, "the chooser gives the Kubernetes runtime image tasks"
         binds, workdir = mounts(dirs, launch.files, launch.inputs)
         request = attempt.resources
+        group = self.gangs.of(cmd)
+        lead = task.lead or next(iter(cmd.hosts), cmd.task) == cmd.task
         pinned = self.images.known(cmd.workflow_id, task.image) if self.images else None
         plan = PodPlan(
             attempt_id=cmd.attempt_id, workflow_id=cmd.workflow_id, task=cmd.task,
@@ -171,15 +185,21 @@ class KubernetesRuntime:
             argv=launch.argv,
             env=dict(launch.env), secret_env=tuple(sorted(launch.secret_env)), mounts=binds,
             workdir=workdir, cpu=float(request.cpu or 0) or None, memory=request.memory,
-            gpus=request.gpu or 0, storage=request.storage, platform=request.platform)
+            gpus=request.gpu or 0, storage=request.storage, platform=request.platform,
+            group=group, hostname=hostname(cmd.task) if group else None, lead=lead)
         secret = (secret_manifest(plan, launch.secret_env, self.pool, owner_uid="")
                   if launch.secret_env else None)
         pod = pod_manifest(plan, self.pool, secret=plan.name if secret else None)
         self._hand_over(dirs.output_partial, dirs.work if workdir else None)
-        run = KubeRun(pod, secret, dirs.root / "pod.plan.json", dirs.root / "pod.verdict.json")
+        if group is not None:
+            self.gangs.join(cmd, group)
+        run = KubeRun(pod, secret, dirs.root / "pod.plan.json", dirs.root / "pod.verdict.json",
+                      group)
         note = (f"pod {plan.name} in namespace {self.pool.namespace}, image '{task.image}'"
                 + (f" is {pinned}" if pinned else ""))
-        return replace(launch, run=run, image_id=pinned, notes=(*launch.notes, note))
+        waits = group is not None and not lead and self.pool.gang == "none"
+        return replace(launch, run=run, image_id=pinned, notes=(*launch.notes, note),
+                       waits=waits)
 
     def start(self, launch: Launch) -> ProcessHandle:
         """Start the attempt's agent, which creates its pod.
@@ -188,6 +208,8 @@ class KubernetesRuntime:
             StartError: the agent cannot be started.
         """
         run = _run(launch)
+        if launch.waits and run.group is not None:
+            self.gangs.wait_for_lead(run.group)
         plan = {"pod": run.pod, "secret": run.secret, "verdict": str(run.verdict_file),
                 "parent": os.getpid(),
                 "kubeconfig": self.pool.kubeconfig, "context": self.pool.context}
@@ -269,7 +291,13 @@ class KubernetesRuntime:
         return lambda port, udp: dial(address, port, udp=udp)
 
     def cleanup(self, launch: Launch) -> None:
-        """Nothing: the agent deleted the pod (a forced kill's is deleted by ``kill``)."""
+        """Its group's objects go with the group's last member here (in the background).
+
+        The pod itself was deleted by its agent (a forced kill's by ``kill``).
+        """
+        run = launch.run
+        if isinstance(run, KubeRun) and run.group is not None:
+            self._later(self.gangs.leave, run.group)
 
     def close(self) -> None:
         """Wait for the deletions still under way; let go of the API."""

@@ -23,7 +23,6 @@ from osmo.runtime.kubernetes.manifest import (
     PodPlan,
     label_value,
     object_name,
-    plan_labels,
     pod_group_manifest,
     pod_manifest,
     secret_manifest,
@@ -68,9 +67,11 @@ def cases() -> dict[str, list[dict[str, Any]]]:
     for gang in GANGS:
         pool = KubePool(namespace="osmo-tasks", gang=gang, queue="research")
         group = GroupPlan(object_name("wf-1", "training"), 2)
-        member = plan(group=group, hostname="train")
-        objects = [service_manifest(group, plan_labels(member), pool)]
-        pod_group = pod_group_manifest(group, plan_labels(member), pool)
+        member = plan(group=group, hostname="train", lead=True)
+        labels = {"osmo.dev/instance": "a1b2c3", "osmo.dev/workflow": "wf-1",
+                  "osmo.dev/group": group.name}
+        objects = [service_manifest(group, labels, pool)]
+        pod_group = pod_group_manifest(group, labels, pool)
         objects += [pod_group[1]] if pod_group else []
         found[f"group-{gang}"] = [*objects, pod_manifest(member, pool)]
     return found
