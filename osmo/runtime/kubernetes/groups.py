@@ -44,7 +44,7 @@ from osmo.runtime.kubernetes.manifest import (
 )
 from osmo.scheduler.types import PrepareAttempt
 
-__all__ = ["LEAD_WAIT", "Groups", "hostname"]
+__all__ = ["LEAD_WAIT", "Groups", "group_hosts", "hostname"]
 
 LEAD_WAIT = 30.0
 """Seconds a peer waits for its lead's pod to run, then starts anyway."""
@@ -55,6 +55,14 @@ _HOSTNAME = re.compile(r"[a-z0-9]([-a-z0-9]{0,61}[a-z0-9])?")
 def hostname(task: str) -> str:
     """A task's pod hostname in its group: the name itself when it is a DNS label."""
     return task if _HOSTNAME.fullmatch(task) else object_name(task)
+
+
+def group_hosts(cmd: PrepareAttempt, pool: KubePool) -> Mapping[str, str] | None:
+    """``{{host:NAME}}`` of each member of ``cmd``'s group (None: the placement's addresses)."""
+    group = Groups.of(cmd)
+    if group is None or pool.group_network == "host":
+        return None
+    return {task: f"{hostname(task)}.{group.name}" for task in cmd.hosts}
 
 
 class Groups:
@@ -80,10 +88,7 @@ class Groups:
 
     def hosts(self, cmd: PrepareAttempt) -> Mapping[str, str] | None:
         """``{{host:NAME}}`` of each member (None: the placement's addresses)."""
-        group = self.of(cmd)
-        if group is None or self.pool.group_network == "host":
-            return None
-        return {task: f"{hostname(task)}.{group.name}" for task in cmd.hosts}
+        return group_hosts(cmd, self.pool)
 
     def labels(self, cmd: PrepareAttempt, group: GroupPlan) -> dict[str, str]:
         """What the group's objects carry (for selection and clean-up)."""

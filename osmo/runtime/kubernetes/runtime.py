@@ -73,7 +73,7 @@ from osmo.runtime.kubernetes.manifest import (
 from osmo.runtime.process.groups import ProcessGroups
 from osmo.scheduler.types import PrepareAttempt
 
-__all__ = ["KubeRun", "KubernetesRuntime"]
+__all__ = ["KubeRun", "KubernetesRuntime", "attempt_plan"]
 
 _AGENT = "osmo.runtime.kubernetes.agent"
 _PACKAGE_ROOT = Path(__file__).resolve().parents[3]  # the agent imports this very osmo
@@ -174,19 +174,9 @@ class KubernetesRuntime:
         """
         cmd, task, dirs = attempt.cmd, attempt.task, attempt.dirs
         assert task.image is not None, "the chooser gives the Kubernetes runtime image tasks"
-        binds, workdir = mounts(dirs, launch.files, launch.inputs)
-        request = attempt.resources
-        group = self.gangs.of(cmd)
-        lead = task.lead or next(iter(cmd.hosts), cmd.task) == cmd.task
         pinned = self.images.known(cmd.workflow_id, task.image) if self.images else None
-        plan = PodPlan(
-            attempt_id=cmd.attempt_id, workflow_id=cmd.workflow_id, task=cmd.task,
-            retry=cmd.retry, instance=self.instance, image=pinned or task.image,
-            argv=launch.argv,
-            env=dict(launch.env), secret_env=tuple(sorted(launch.secret_env)), mounts=binds,
-            workdir=workdir, cpu=float(request.cpu or 0) or None, memory=request.memory,
-            gpus=request.gpu or 0, storage=request.storage, platform=request.platform,
-            group=group, hostname=hostname(cmd.task) if group else None, lead=lead)
+        plan = attempt_plan(launch, attempt, instance=self.instance, image=pinned)
+        group, lead, workdir = plan.group, plan.lead, plan.workdir
         secret = (secret_manifest(plan, launch.secret_env, self.pool, owner_uid="")
                   if launch.secret_env else None)
         pod = pod_manifest(plan, self.pool, secret=plan.name if secret else None)
@@ -342,6 +332,26 @@ class KubernetesRuntime:
         with self._lock:
             self._threads.add(thread)
         thread.start()
+
+
+def attempt_plan(launch: Launch, attempt: Attempt, *, instance: str,
+                 image: str | None = None) -> PodPlan:
+    """What the pod of a prepared attempt is made of (pure; ``image``: its pinned form).
+
+    ``osmo.worker.pods`` uses it too, to show a spec's pods without a cluster.
+    """
+    cmd, task, request = attempt.cmd, attempt.task, attempt.resources
+    assert task.image is not None, "only image tasks run as pods"
+    binds, workdir = mounts(attempt.dirs, launch.files, launch.inputs)
+    group = Groups.of(cmd)
+    return PodPlan(
+        attempt_id=cmd.attempt_id, workflow_id=cmd.workflow_id, task=cmd.task,
+        retry=cmd.retry, instance=instance, image=image or task.image, argv=launch.argv,
+        env=dict(launch.env), secret_env=tuple(sorted(launch.secret_env)), mounts=binds,
+        workdir=workdir, cpu=float(request.cpu or 0) or None, memory=request.memory,
+        gpus=request.gpu or 0, storage=request.storage, platform=request.platform,
+        group=group, hostname=hostname(cmd.task) if group else None,
+        lead=task.lead or next(iter(cmd.hosts), cmd.task) == cmd.task)
 
 
 def _run(launch: Launch) -> KubeRun:
