@@ -4,8 +4,8 @@
 attempt is prepared the way a Kubernetes node prepares it (``osmo.worker.workdir.prepare``
 with the Kubernetes runtime's paths, then ``osmo.runtime.kubernetes.runtime.attempt_plan``)
 in a temporary folder, and its Pod, Secret and group objects are rendered. What only the
-node can know is shown as placeholders: the node's folders (under ``/osmo-node``), an
-upstream task's output, a credential's values (``<credential NAME>``), an image's digest.
+node can know is shown as placeholders: the node's folders (under ``/osmo-node``, or under
+the work claim's mount when the pool has one), an upstream task's output, a credential's values (``<credential NAME>``), an image's digest.
 """
 
 from __future__ import annotations
@@ -79,7 +79,8 @@ def _objects(cmd: PrepareAttempt, task: TaskSpec, spec: WorkflowSpec, pool: Kube
     launch = prepare(dirs, cmd, task, {}, secrets, paths=layout)
     plan = attempt_plan(launch, Attempt(cmd, task, dirs, spec.resource_for(task)),
                         instance=_INSTANCE)
-    plan = replace(plan, mounts=tuple(replace(m, source=NODE_ROOT / m.source.relative_to(
+    root = NODE_ROOT if pool.work_mount is None else pool.work_mount / NODE_ROOT.name
+    plan = replace(plan, mounts=tuple(replace(m, source=root / m.source.relative_to(
         folder)) if m.source.is_relative_to(folder) else m for m in plan.mounts))
     objects: list[dict[str, Any]] = []
     if plan.group is not None and plan.group.name not in made_groups:
