@@ -5,7 +5,8 @@ attempt is prepared the way a Kubernetes node prepares it (``osmo.worker.workdir
 with the Kubernetes runtime's paths, then ``osmo.runtime.kubernetes.runtime.attempt_plan``)
 in a temporary folder, and its Pod, Secret and group objects are rendered. What only the
 node can know is shown as placeholders: the node's folders (under ``/osmo-node``, or under
-the work claim's mount when the pool has one), an upstream task's output, a credential's values (``<credential NAME>``), an image's digest.
+the work claim's mount when the pool has one), an upstream task's output, a credential's
+values (``<credential NAME>``), an image's digest.
 """
 
 from __future__ import annotations
