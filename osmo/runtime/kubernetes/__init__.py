@@ -12,8 +12,7 @@ in (or whose kubeconfig it is given). One module per concern:
 - ``kube`` — the only module that imports the ``kubernetes`` client (an extra:
   ``pip install "osmo[kubernetes]"``); its errors become :class:`KubeError`;
 - ``follow`` — one attempt's pod from its creation to its deletion: watch, logs, verdict;
-- ``agent`` — ``python -m osmo.runtime.kubernetes.agent``: the local process that stands for
-  an attempt's pod (what the pool's reactor watches, what its kill signals);
+- ``groups`` — gangs: the group's Service and PodGroup, ``{{host:NAME}}``, the lead first;
 - ``runtime`` — :class:`KubernetesRuntime`, the runtime contract around all of these;
 - ``capacity`` — what the node offers: the allocatable resources of the nodes it may use.
 

@@ -1,6 +1,6 @@
 """One attempt's pod, from its creation to its deletion: watch, log, verdict, clean-up.
 
-:class:`PodFollower` is what ``osmo.runtime.kubernetes.agent`` runs for each attempt:
+:class:`PodFollower` is what the Kubernetes runtime runs, on a thread, for each attempt:
 
 1. create the pod, then its Secret owned by it (the pod waits for the Secret, as
    ``CreateContainerConfigError``; the API's garbage collector deletes the Secret with the
@@ -9,11 +9,12 @@
    longer than :data:`SILENCE`, or answers 410 Gone is replaced by a fresh list and watch.
    Each version goes through the status table (``osmo.runtime.kubernetes.status``); a new
    waiting reason other than the ordinary ones (pending, ContainerCreating) is noted
-   (``note``: the agent's stderr, so the attempt's log, as ``osmo: pod P: waiting:
+   (``note``: the task's stderr, so the attempt's log, as ``osmo: pod P: waiting:
    unschedulable: 0/3 nodes ...``).
 3. once the task's container runs (or ended), stream its log to ``out`` until it ends.
-4. a kill (``stop``): delete the pod with the 3 s grace; a pod still there :data:`FORCE_AFTER`
-   seconds later is deleted with no grace.
+4. a kill (``stop``): delete the pod with the 3 s grace (``force``: with none); a pod still
+   there :data:`FORCE_AFTER` seconds later is deleted with no grace, and the follower gives
+   up :data:`GIVE_UP_AFTER` seconds after the kill (the node's next start deletes it).
 5. at the end, whatever the verdict, the pod is deleted (its Secret goes with it).
 """
 
@@ -54,16 +55,18 @@ class PodFollower:
         out: where the task container's log goes (bytes, as they come).
         note: where osmo's lines about the pod go (waiting reasons, the kill).
         stop: set to kill the attempt.
+        force: set (with ``stop``) to delete the pod at once, with no grace.
         silence: seconds a watch may stay silent before it is replaced.
     """
 
     def __init__(self, kube: Kube, pod: Obj, secret: Obj | None, *, out: IO[bytes],
                  note: Callable[[str], None], stop: threading.Event,
-                 silence: int = SILENCE) -> None:
+                 force: threading.Event | None = None, silence: int = SILENCE) -> None:
         self.kube, self.pod, self.secret = kube, pod, secret
         self.namespace = str(pod["metadata"]["namespace"])
         self.name = str(pod["metadata"]["name"])
         self.out, self.note, self.stop = out, note, stop
+        self.force = force or threading.Event()
         self._events: queue.Queue[tuple[str, Obj | None] | BaseException] = queue.Queue()
         self._log_thread: threading.Thread | None = None
         self._deleting_at: float | None = None
@@ -111,8 +114,9 @@ class PodFollower:
             kind, obj = item
             last = verdict(None if kind == "DELETED" and not _ended(obj) else obj)
             if self._deleting_at is not None and last.outcome is Outcome.LOST:
-                code = _exit_code(obj)
-                return Verdict(Outcome.EXITED, "killed", 143 if code is None else code)
+                code = _exit_code(obj)  # none: gone before its container said (SIGKILL if forced)
+                killed = 137 if self._forced else 143
+                return Verdict(Outcome.EXITED, "killed", killed if code is None else code)
             if (last.outcome is Outcome.WAITING and last.message != shown
                     and last.message not in _ORDINARY and not self._own_secret(last)):
                 shown = last.message
@@ -160,11 +164,16 @@ class PodFollower:
 
     def _kill(self) -> None:
         now = time.monotonic()
-        if self._deleting_at is None:
+        if self._deleting_at is None and self.force.is_set():
+            self._deleting_at, self._forced = now, True
+            self.note(f"pod {self.name}: deleting at once")
+            self._delete(grace=0)
+        elif self._deleting_at is None:
             self._deleting_at = now
             self.note(f"pod {self.name}: deleting with a 3 s grace")
             self._delete(grace=3)
-        elif not self._forced and now - self._deleting_at > FORCE_AFTER:
+        elif not self._forced and (self.force.is_set()
+                                   or now - self._deleting_at > FORCE_AFTER):
             self._forced = True
             self.note(f"pod {self.name}: still there after the grace: deleting at once")
             self._delete(grace=0)
@@ -194,8 +203,9 @@ class PodFollower:
             try:
                 for chunk in self.kube.logs(self.namespace, self.name, CONTAINER):
                     self.out.write(chunk)
-                    self.out.flush()
                 return
+            except OSError:
+                return  # nobody reads the log any more (the attempt was let go)
             except KubeError as exc:
                 if exc.status != 400:  # 400: not started yet
                     self.note(f"pod {self.name}: its log cannot be read: {exc}")

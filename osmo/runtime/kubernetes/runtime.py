@@ -11,17 +11,19 @@ What it owns, one concern per method of the runtime contract (``osmo.runtime.api
 - the launch (:meth:`KubernetesRuntime.prepare`): the attempt's Pod and Secret manifests
   (``osmo.runtime.kubernetes.manifest``), the node's attempt folders shared with the pod
   through the pool's work volume, its output folder handed to the pod's uid;
-- start, kill, reap, release: one local agent process per attempt
-  (``osmo.runtime.kubernetes.agent``), which creates the pod and its Secret, streams the
-  task's log as its own stdout, exits with the task's exit code and deletes the pod. A kill
-  is SIGTERM to the agent (the pod is deleted with its 3 s grace, then forced); a forced
-  kill SIGKILLs it and the runtime deletes the pod itself. ``reap`` reads the agent's
-  verdict: a pod whose image could not be pulled fails to start, an evicted, preempted or
-  lost pod is a lost attempt (``ProcessHandle.start_failed`` / ``lost``);
-- clean-up: nothing is left after an attempt (the agent deletes the pod; the API's garbage
-  collector its Secret); at start, :meth:`KubernetesRuntime.clean_orphans` deletes every pod
-  of this instance a previous life left (found by label): the server reschedules those
-  attempts, which the restarted node reported lost by not knowing them.
+- start, kill, reap, release: a thread per attempt follows its pod
+  (``osmo.runtime.kubernetes.follow``: creates the pod and its Secret, watches it, streams
+  its log, deletes it) and writes the log into the handle's pipes; the handle's process is a
+  sleeping sentinel (its pid and pidfd are what the pool watches and records), killed when
+  the pod's life is over, so the handle's exit descriptor becomes readable then. No Python
+  process per attempt: a node follows hundreds of pods at the cost of threads. A kill
+  deletes the pod with its 3 s grace (forced: at once). ``reap`` reads the verdict: a pod
+  whose image could not be pulled fails to start, an evicted, preempted or lost pod is a
+  lost attempt (``ProcessHandle.start_failed`` / ``lost``);
+- clean-up: nothing is left after an attempt (the follower deletes the pod; the API's
+  garbage collector its Secret). A node that dies leaves its pods; at start,
+  :meth:`KubernetesRuntime.clean_orphans` deletes every pod and group Service of this
+  instance a previous life left (found by label): the server reschedules those attempts.
 
 - port-forward: the node dials the pod's IP (:meth:`KubernetesRuntime.connector`); the
   node's session relays it over zenoh as on every node.
@@ -34,14 +36,16 @@ promotion hold unchanged).
 
 from __future__ import annotations
 
-import json
 import os
-import sys
+import shutil
+import signal
+import subprocess
 import threading
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 from osmo.errors import OsmoError
 from osmo.runtime.api import (
@@ -60,6 +64,7 @@ from osmo.runtime.container.engine import ContainerEngine, EngineNotFound, detec
 from osmo.runtime.container.images import ImageIds
 from osmo.runtime.container.layout import DATA_LAYOUT, mounts
 from osmo.runtime.kubernetes.config import KubePool, load_pool
+from osmo.runtime.kubernetes.follow import GIVE_UP_AFTER, PodFollower
 from osmo.runtime.kubernetes.groups import Groups, hostname
 from osmo.runtime.kubernetes.kube import Kube, KubeError, connect
 from osmo.runtime.kubernetes.manifest import (
@@ -70,23 +75,27 @@ from osmo.runtime.kubernetes.manifest import (
     pod_manifest,
     secret_manifest,
 )
-from osmo.runtime.process.groups import ProcessGroups
+from osmo.runtime.kubernetes.status import Outcome, Verdict
+from osmo.runtime.process.groups import die_with_parent
 from osmo.scheduler.types import PrepareAttempt
 
 __all__ = ["KubeRun", "KubernetesRuntime", "attempt_plan"]
 
-_AGENT = "osmo.runtime.kubernetes.agent"
-_PACKAGE_ROOT = Path(__file__).resolve().parents[3]  # the agent imports this very osmo
+START_FAILED = 125
+"""The exit code reported for a pod that never ran its task (with ``start_failed``)."""
+LOST = 3
+"""The exit code reported for a lost pod (with ``lost``)."""
+KILLED = 137
+"""The exit code of an attempt reaped before its pod ended."""
+_SLEEP = [shutil.which("sleep") or "sleep", "2147483647"]  # the sentinel: waits to be killed
 
 
 @dataclass(frozen=True)
 class KubeRun:
-    """A prepared attempt's pod: its manifests, the agent's files, its gang (never shown)."""
+    """A prepared attempt's pod: its manifests and its gang (never shown)."""
 
     pod: dict[str, Any] = field(repr=False)
     secret: dict[str, Any] | None = field(repr=False)
-    plan_file: Path
-    verdict_file: Path
     group: GroupPlan | None = None
 
     @property
@@ -102,24 +111,17 @@ class KubernetesRuntime:
         pool: the pool's configuration.
         kube: the API (the node's own calls: orphans, forced deletes).
         instance: this node's ``osmo.dev/instance`` label (``owner_id`` of its home).
-        python: the interpreter that runs the agents.
+        images: the node's container engine's image ids (pins images), if it has one.
     """
 
     def __init__(self, pool: KubePool, kube: Kube, *, instance: str,
-                 images: ImageIds | None = None, python: str = sys.executable) -> None:
+                 images: ImageIds | None = None) -> None:
         self.pool, self.kube, self.instance = pool, kube, label_value(instance)
         self.images = images
-        self._python = python
-        self._groups = ProcessGroups()
         self.gangs = Groups(kube, pool, self.instance)
-        self._runs: dict[ProcessHandle, KubeRun] = {}
-        self._forced: set[ProcessHandle] = set()
+        self._runs: dict[ProcessHandle, _Live] = {}
         self._threads: set[threading.Thread] = set()
         self._lock = threading.Lock()
-        self._env = dict(os.environ)
-        self._env["PYTHONPATH"] = os.pathsep.join(
-            [str(_PACKAGE_ROOT), *filter(None, [
-                os.environ.get("PYTHONPATH")])])
 
     @classmethod
     def for_node(cls, config: str | None, *, instance: str) -> KubernetesRuntime:
@@ -183,8 +185,7 @@ class KubernetesRuntime:
         self._hand_over(dirs.output_partial, dirs.work if workdir else None)
         if group is not None:
             self.gangs.join(cmd, group)
-        run = KubeRun(pod, secret, dirs.root / "pod.plan.json", dirs.root / "pod.verdict.json",
-                      group)
+        run = KubeRun(pod, secret, group)
         note = (f"pod {plan.name} in namespace {self.pool.namespace}, image '{task.image}'"
                 + (f" is {pinned}" if pinned else ""))
         waits = group is not None and not lead and self.pool.gang == "none"
@@ -192,66 +193,66 @@ class KubernetesRuntime:
                        waits=waits)
 
     def start(self, launch: Launch) -> ProcessHandle:
-        """Start the attempt's agent, which creates its pod.
+        """Start following the attempt's pod (a thread here) and its sentinel process.
 
         Raises:
-            StartError: the agent cannot be started.
+            StartError: the sentinel or the pipes cannot be made.
         """
         run = _run(launch)
         if launch.waits and run.group is not None:
             self.gangs.wait_for_lead(run.group)
-        plan = {"pod": run.pod, "secret": run.secret, "verdict": str(run.verdict_file),
-                "parent": os.getpid(),
-                "kubeconfig": self.pool.kubeconfig, "context": self.pool.context}
-        try:
-            run.verdict_file.unlink(missing_ok=True)
-            _write_private(run.plan_file, json.dumps(plan))
-        except OSError as exc:
-            raise StartError(f"cannot write the pod's plan: {exc}") from exc
-        handle = self._groups.start([self._python, "-m", _AGENT, str(run.plan_file)],
-                                    cwd=run.plan_file.parent, env=self._env)
+        handle, live = self._sentinel(run)
+        follower = PodFollower(self.kube, run.pod, run.secret, out=live.out,
+                               note=live.note, stop=live.stop, force=live.force)
+        live.thread = threading.Thread(target=self._follow, args=(follower, live, handle),
+                                       name=f"osmo-pod-{run.name}", daemon=True)
         with self._lock:
-            self._runs[handle] = run
+            self._runs[handle] = live
+        live.thread.start()
         return handle
 
     def kill(self, handle: ProcessHandle, *, force: bool = False) -> None:
-        """SIGTERM to the agent (it deletes the pod); ``force``: SIGKILL, the pod deleted here."""
+        """Delete the pod with its 3 s grace (``force``: at once); never raises."""
         with self._lock:
-            run = self._runs.get(handle)
-            if force and run is not None:
-                self._forced.add(handle)
-        self._groups.kill(handle, force=force)
-        if force and run is not None:
-            self._later(self._delete, run.name)
+            live = self._runs.get(handle)
+        if live is None:
+            return
+        live.stop.set()
+        if force:
+            live.force.set()
 
     def reap(self, handle: ProcessHandle) -> int:
-        """The task's exit code; a pod that never ran or was lost says so on the handle."""
-        code = self._groups.reap(handle)
+        """The task's exit code; a pod that never ran or was lost says so on the handle.
+
+        Reaped before its end (the pool closing): the pod is deleted at once, in the
+        background, and the attempt counts as killed (137).
+        """
         with self._lock:
-            run = self._runs.get(handle)
-        if run is None:
-            return code
-        try:
-            verdict = json.loads(run.verdict_file.read_text())
-        except (OSError, ValueError):
-            self._later(self._delete, run.name)  # the agent did not finish: the pod may stay
-            return code
-        message = str(verdict.get("message") or "")
-        if verdict.get("outcome") == "start_failed":
-            handle.start_failed = message or "the pod could not start"
-        elif verdict.get("outcome") == "lost":
-            handle.lost = message or "the pod was lost"
-        return code
+            live = self._runs.get(handle)
+        if live is not None and live.verdict is None:
+            live.stop.set()
+            live.force.set()
+        _end_sentinel(handle)
+        handle.popen.wait()
+        found = live.verdict if live is not None else None
+        if found is None:
+            return KILLED
+        if found.outcome is Outcome.START_FAILED:
+            handle.start_failed = found.message or "the pod could not start"
+            return START_FAILED
+        if found.outcome is Outcome.LOST:
+            handle.lost = found.message or "the pod was lost"
+            return LOST
+        return found.exit_code if found.exit_code is not None else 1
 
     def release(self, handle: ProcessHandle) -> None:
-        """Close the handle; the agent's files go."""
-        self._groups.release(handle)
+        """Close the handle's descriptors (idempotent)."""
         with self._lock:
-            run = self._runs.pop(handle, None)
-            self._forced.discard(handle)
-        if run is not None:
-            run.plan_file.unlink(missing_ok=True)
-            run.verdict_file.unlink(missing_ok=True)
+            self._runs.pop(handle, None)
+        for fd in (handle.stdout_fd, handle.stderr_fd, handle.exit_fd):
+            if fd >= 0:
+                os.close(fd)
+        handle.stdout_fd = handle.stderr_fd = handle.exit_fd = -1
 
     def exec(self, launch: Launch, command: Sequence[str], *, tty: bool,
              term: str | None) -> ExecCommand:
@@ -283,14 +284,18 @@ class KubernetesRuntime:
     def cleanup(self, launch: Launch) -> None:
         """Its group's objects go with the group's last member here (in the background).
 
-        The pod itself was deleted by its agent (a forced kill's by ``kill``).
+        The pod itself was deleted by its follower.
         """
         run = launch.run
         if isinstance(run, KubeRun) and run.group is not None:
             self._later(self.gangs.leave, run.group)
 
     def close(self) -> None:
-        """Wait for the deletions still under way; let go of the API."""
+        """Wait for the pods still being deleted and the group objects; let go of the API."""
+        with self._lock:
+            followers = [live.thread for live in self._runs.values() if live.thread]
+        for thread in followers:
+            thread.join(GIVE_UP_AFTER + 5)
         while True:
             with self._lock:
                 threads = list(self._threads)
@@ -314,11 +319,42 @@ class KubernetesRuntime:
             if folder is not None:
                 os.chown(folder, self.pool.run_as_user, self.pool.run_as_user)
 
-    def _delete(self, name: str) -> None:
+    def _sentinel(self, run: KubeRun) -> tuple[ProcessHandle, _Live]:
+        """The handle: a sleeping local process (its pid, its pidfd) and the log's pipes."""
+        fds: list[int] = []
         try:
-            self.kube.delete("pod", self.pool.namespace, name, grace=0)
-        except KubeError:
-            pass  # the next start deletes what is left by label
+            out_r, out_w = os.pipe2(os.O_CLOEXEC)
+            fds += [out_r, out_w]
+            err_r, err_w = os.pipe2(os.O_CLOEXEC)
+            fds += [err_r, err_w]
+            popen = subprocess.Popen(_SLEEP, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                     stderr=subprocess.DEVNULL, start_new_session=True,
+                                     preexec_fn=die_with_parent())
+        except OSError as exc:
+            for fd in fds:
+                os.close(fd)
+            raise StartError(f"cannot follow pod {run.name}: {exc.strerror or exc}") from exc
+        started = time.time()
+        os.set_blocking(out_r, False)
+        os.set_blocking(err_r, False)
+        handle = ProcessHandle(popen.pid, os.pidfd_open(popen.pid), out_r, err_r, popen,
+                               started_at=started)
+        return handle, _Live(run, os.fdopen(out_w, "wb", buffering=0),
+                             os.fdopen(err_w, "wb", buffering=0))
+
+    def _follow(self, follower: PodFollower, live: _Live, handle: ProcessHandle) -> None:
+        """The attempt's thread: the pod's life, then its verdict and the handle's end."""
+        try:
+            live.verdict = follower.run()
+        except KubeError as exc:
+            live.note(str(exc))
+            live.verdict = Verdict(Outcome.START_FAILED, str(exc))
+        except Exception as exc:  # noqa: BLE001 - a bug: the attempt fails, the node goes on
+            live.note(f"following the pod failed: {exc!r}")
+            live.verdict = Verdict(Outcome.START_FAILED, f"following the pod failed: {exc!r}")
+        finally:
+            live.close()
+            _end_sentinel(handle)
 
     def _later(self, fn: Callable[..., object], *args: object) -> None:
         def run() -> None:
@@ -354,21 +390,48 @@ def attempt_plan(launch: Launch, attempt: Attempt, *, instance: str,
         lead=task.lead or next(iter(cmd.hosts), cmd.task) == cmd.task)
 
 
+@dataclass(eq=False)
+class _Live:
+    """A started attempt: its pod, the write ends of its log pipes, its kill and verdict."""
+
+    run: KubeRun
+    out: IO[bytes]
+    err: IO[bytes]
+    stop: threading.Event = field(default_factory=threading.Event)
+    force: threading.Event = field(default_factory=threading.Event)
+    verdict: Verdict | None = None
+    thread: threading.Thread | None = None
+
+    def note(self, line: str) -> None:
+        """An osmo line about the pod, on the task's stderr."""
+        try:
+            self.err.write(f"osmo: {line}\n".encode())
+        except OSError:
+            pass  # the pool let go of the attempt
+
+    def close(self) -> None:
+        """The log ends: close the write ends."""
+        for pipe in (self.out, self.err):
+            try:
+                pipe.close()
+            except OSError:
+                pass
+
+
+def _end_sentinel(handle: ProcessHandle) -> None:
+    """The attempt ended: its sentinel goes, so the handle's exit descriptor is readable."""
+    if handle.popen.returncode is None:
+        try:
+            os.killpg(handle.pid, signal.SIGKILL)
+        except (ProcessLookupError, PermissionError):
+            pass
+
+
 def _run(launch: Launch) -> KubeRun:
     run = launch.run
     if not isinstance(run, KubeRun):
         raise TypeError(f"{launch!r} was not prepared by the Kubernetes runtime")
     return run
-
-
-def _write_private(path: Path, text: str) -> None:
-    flags = os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NOFOLLOW | os.O_CLOEXEC
-    fd = os.open(path, flags, 0o600)
-    try:
-        os.fchmod(fd, 0o600)
-        os.write(fd, text.encode())
-    finally:
-        os.close(fd)
 
 
 def _conforms(runtime: KubernetesRuntime) -> Runtime:
