@@ -36,6 +36,7 @@ def test_the_role_grants_only_what_the_worker_uses(gang: str) -> None:
     rendered = render(values(gang=gang, namespace="osmo-tasks"))
     expected = {("", "pods", v) for v in ("create", "get", "list", "watch", "delete")}
     expected |= {("", "pods/log", "get"), ("", "secrets", "create")}
+    expected |= {("", "pods/exec", "create"), ("", "pods/exec", "get")}
     expected |= {("", "services", v) for v in ("create", "list", "delete")}
     if gang in POD_GROUPS:
         expected |= {(POD_GROUPS[gang], "podgroups", v) for v in ("create", "delete")}

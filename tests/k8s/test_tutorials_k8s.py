@@ -11,12 +11,15 @@ from __future__ import annotations
 
 import re
 import signal
+import subprocess
+import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
+from tests.conftest import REPO
 from tests.containers.conftest import images, podman_env  # noqa: F401 - fixtures
 from tests.containers.submitting import lineage_of, submitted_id, task_lines, tasks
 from tests.k8s.nodes import KubeCluster, started
@@ -109,6 +112,41 @@ def test_group_tasks_run_as_a_kai_gang(kube: KubeCluster) -> None:
     assert said[0] == "Processor 2: Starting..."
     assert kube.server.calls[("create", "podgroups.scheduling.run.ai")] == before + 1
     assert nothing_left(kube) == []  # the PodGroup went with the group's last member
+
+
+
+SLEEPER = """\
+workflow:
+  name: sleeper
+  tasks:
+  - name: t
+    image: alpine:3.18
+    command: ["sh", "-c", "echo ready; exec sleep 300"]
+    environment: {GREETING: hola}
+"""
+
+
+def test_exec_and_cancel_reach_the_pod(kube: KubeCluster, tmp_path: Path) -> None:
+    spec = tmp_path / "sleeper.yaml"
+    spec.write_text(SLEEPER)
+    wf_id = kube.osmo.submit(spec)
+    deadline = time.monotonic() + 60
+    while not running_pods(kube) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    r = kube.osmo("workflow", "exec", wf_id, "t", "--", "sh", "-c",
+                  'echo "$GREETING $OSMO_TASK"; echo oops >&2; exit 7')
+    assert (r.code, r.out, r.err) == (7, "hola t\n", "oops\n"), r
+    proc = subprocess.run([sys.executable, "-m", "osmo", "workflow", "exec", wf_id, "t", "--",
+                           "wc", "-c"], input=b"x" * 100_000, capture_output=True,
+                          env=kube.osmo.env, cwd=REPO, timeout=120)
+    assert proc.returncode == 0 and proc.stdout.strip() == b"100000", proc.stderr
+    started = time.monotonic()
+    assert kube.osmo("cancel", wf_id).code == 0
+    info = kube.osmo.wait_for(wf_id, lambda i: i["status"] not in ("RUNNING", "PENDING"))
+    assert info["status"] != "COMPLETED", info
+    assert nothing_left(kube) == [] and time.monotonic() - started < 30
+    deletes = [k for k in kube.server.calls if k[0] == "delete" and k[1] == "pods"]
+    assert deletes, kube.server.calls
 
 
 CHAOS = """\

@@ -2,7 +2,7 @@
 ``osmo.testing.check_runtime`` runs over the process runtime, the sandboxed process runtime
 (bubblewrap in the node's namespaces), the container runtime (podman, with the offline
 images of tests/containers) and the Kubernetes runtime (pods of the API stand-in of
-tests/k8s, under podman kube play; it has no exec yet, which it must refuse). A Slurm job
+tests/k8s, under podman kube play, its exec through the stand-in's WebSocket). A Slurm job
 runtime is done when it joins :data:`RUNTIMES` and passes.
 """
 
@@ -72,12 +72,12 @@ def _container(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Case]
 
 
 def _kubernetes(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Case]:
-    """Pods of the API stand-in (tests/k8s), run under podman kube play: no exec yet."""
+    """Pods of the API stand-in (tests/k8s), run under podman kube play."""
     request.getfixturevalue("images")
     cluster: Cluster = request.getfixturevalue("api")
     pool = KubePool(kubeconfig=str(kubeconfig(cluster.server.url, tmp_path)))
     runtime = KubernetesRuntime(pool, Kube(cluster.client), instance="contract")
-    yield Case(runtime, image="alpine:3.18", exec_supported=False, merged_output=True)
+    yield Case(runtime, image="alpine:3.18", merged_output=True)
     runtime.close()
     assert [obj["metadata"]["name"] for _, obj in cluster.server.store.objects(
         [PODS, SECRETS])] == [], "pods or Secrets were left"

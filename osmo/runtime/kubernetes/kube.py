@@ -1,7 +1,8 @@
 """The only module that imports the ``kubernetes`` client; its errors become :class:`KubeError`.
 
 :class:`Kube` is what osmo asks of an API server: create, read, list, watch and delete pods,
-Secrets, Services and PodGroups of one namespace, stream a container's log, list nodes.
+Secrets, Services and PodGroups of one namespace, stream a container's log, run a command in
+a container (:class:`ExecSession`: the exec API's WebSocket), list nodes.
 Objects go and come as plain dicts (JSON as the API serves it; responses are not turned into
 the client's models, which is slower and loses fields the models do not know).
 
@@ -22,7 +23,7 @@ from typing import Any
 
 from osmo.errors import OsmoError
 
-__all__ = ["Gone", "Kube", "KubeError", "connect"]
+__all__ = ["ExecSession", "Gone", "Kube", "KubeError", "connect"]
 
 Obj = dict[str, Any]
 _REQUEST_TIMEOUT = 30.0  # seconds for one ordinary call (watches and logs have none)
@@ -197,6 +198,19 @@ class Kube:
         finally:
             response.release_conn()
 
+    def exec(self, namespace: str, name: str, container: str, command: list[str], *,
+             tty: bool) -> ExecSession:
+        """Run ``command`` in the container through the API's exec (a WebSocket).
+
+        Raises:
+            KubeError: the API refused it (the container does not run, no permission).
+        """
+        stream = _module("kubernetes.stream").stream
+        socket = self._call(stream, self.core.connect_get_namespaced_pod_exec, name, namespace,
+                            container=container, command=command, stdin=True, stdout=True,
+                            stderr=True, tty=tty, _preload_content=False, binary=True)
+        return ExecSession(socket)
+
     # ------------------------------------------------------------ errors
 
     @staticmethod
@@ -208,6 +222,43 @@ class Kube:
             raise KubeError(_message(exc), exc.status) from None
         except _transport_errors() as exc:
             raise KubeError(f"the Kubernetes API cannot be reached: {exc}") from None
+
+
+class ExecSession:
+    """One exec's streams (the client's WebSocket of Kubernetes' channel protocol)."""
+
+    def __init__(self, socket: Any) -> None:
+        self._ws = socket
+
+    @property
+    def open(self) -> bool:
+        """Whether the command still runs (or its output is still coming)."""
+        return bool(self._ws.is_open())
+
+    def send(self, data: bytes) -> None:
+        """To the command's stdin."""
+        self._ws.write_stdin(data)
+
+    def close_stdin(self) -> None:
+        """The command's stdin ends (the v5 protocol; nothing under v4)."""
+        self._ws.close_channel(0)
+
+    def receive(self, timeout: float) -> tuple[bytes, bytes]:
+        """``(stdout, stderr)`` that came within ``timeout`` seconds."""
+        try:
+            self._ws.update(timeout=timeout)
+        except _transport_errors() + (Exception,):  # the websocket library's own errors
+            return b"", b""
+        return self._ws.read_stdout(timeout=0) or b"", self._ws.read_stderr(timeout=0) or b""
+
+    def exit_code(self) -> int:
+        """The command's exit code, once it ended."""
+        code = self._ws.returncode
+        return 0 if code is None else int(code)
+
+    def close(self) -> None:
+        """Let go of the connection."""
+        self._ws.close()
 
 
 def _module(name: str) -> Any:

@@ -25,21 +25,24 @@ What it owns, one concern per method of the runtime contract (``osmo.runtime.api
   :meth:`KubernetesRuntime.clean_orphans` deletes every pod and group Service of this
   instance a previous life left (found by label): the server reschedules those attempts.
 
-- port-forward: the node dials the pod's IP (:meth:`KubernetesRuntime.connector`); the
-  node's session relays it over zenoh as on every node.
+- exec: the Kubernetes exec API (a WebSocket), held by a relay process the node spawns
+  (``osmo.runtime.kubernetes.exec_relay``); port-forward: the node dials the pod's IP
+  (:meth:`KubernetesRuntime.connector`); the node's session relays both over zenoh as on
+  every node.
 
-Not here yet: ``exec`` (the Kubernetes exec API relayed by the node), inputs fetched by an
-init container and outputs taken by a sidecar (today the pod
+Not here yet: inputs fetched by an init container and outputs taken by a sidecar (today the pod
 sees the node's folders through the work volume, so the node's own checks and atomic
 promotion hold unchanged).
 """
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import signal
 import subprocess
+import sys
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -47,7 +50,6 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import IO, Any
 
-from osmo.errors import OsmoError
 from osmo.runtime.api import (
     Attempt,
     ConnectError,
@@ -68,6 +70,7 @@ from osmo.runtime.kubernetes.follow import GIVE_UP_AFTER, PodFollower
 from osmo.runtime.kubernetes.groups import Groups, hostname
 from osmo.runtime.kubernetes.kube import Kube, KubeError, connect
 from osmo.runtime.kubernetes.manifest import (
+    CONTAINER,
     LABEL_INSTANCE,
     GroupPlan,
     PodPlan,
@@ -87,6 +90,8 @@ LOST = 3
 """The exit code reported for a lost pod (with ``lost``)."""
 KILLED = 137
 """The exit code of an attempt reaped before its pod ended."""
+_RELAY = "osmo.runtime.kubernetes.exec_relay"
+_PACKAGE_ROOT = Path(__file__).resolve().parents[3]  # the relay imports this very osmo
 _SLEEP = [shutil.which("sleep") or "sleep", "2147483647"]  # the sentinel: waits to be killed
 
 
@@ -256,13 +261,22 @@ class KubernetesRuntime:
 
     def exec(self, launch: Launch, command: Sequence[str], *, tty: bool,
              term: str | None) -> ExecCommand:
-        """Not yet: the Kubernetes exec API is not relayed (the node says so).
+        """``command`` in the pod's task container, through the API's exec.
 
-        Raises:
-            OsmoError: always.
+        The node spawns a relay (``osmo.runtime.kubernetes.exec_relay``) that holds the
+        exec's WebSocket; with a TTY, ``TERM`` is set for the command.
         """
-        raise OsmoError("osmo workflow exec does not reach Kubernetes pods yet "
-                        f"(pod {_run(launch).name}: use kubectl exec)")
+        argv = list(command)
+        if tty and term:
+            argv = ["env", f"TERM={term}", *argv]
+        spec = {"kubeconfig": self.pool.kubeconfig, "context": self.pool.context,
+                "namespace": self.pool.namespace, "pod": _run(launch).name,
+                "container": CONTAINER, "command": argv, "tty": tty}
+        env = dict(os.environ)
+        env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(_PACKAGE_ROOT),
+                                                          env.get("PYTHONPATH")]))
+        return ExecCommand([sys.executable, "-m", _RELAY, json.dumps(spec)], launch.cwd, env,
+                           ctty=tty)
 
     def connector(self, launch: Launch, handle: ProcessHandle) -> Connector:
         """To the task's ports on its pod's IP (the node dials it; the node's session relays).
