@@ -23,8 +23,7 @@ with an ``AssertionError`` listing every broken promise:
 3. ``kill`` (SIGTERM) ends a running task with exit code 143; a task that ignores SIGTERM
    ends with 137 after ``kill(force=True)``; killing a released handle is harmless;
 4. a command that cannot run fails its start (``StartError``) or exits non-zero at once;
-5. ``exec`` runs a command beside the running task, in its environment (a runtime checked
-   with ``exec_supported=False`` must refuse it with an ``OsmoError`` saying so instead);
+5. ``exec`` runs a command beside the running task, in its environment;
 6. ``connector`` reaches a port the task listens on.
 
 The tasks need ``sh``, ``sleep``, ``echo`` and a listener (``listen``, default ``nc -l -p
@@ -55,8 +54,7 @@ _TERM, _KILL = 128 + 15, 128 + 9
 
 def check_runtime(runtime: Runtime, folder: str | os.PathLike[str], *,
                   image: str | None = None, listen: Sequence[str] = ("nc", "-l", "-p", "{port}"),
-                  timeout: float = 60.0, exec_supported: bool = True,
-                  merged_output: bool = False) -> None:
+                  timeout: float = 60.0, merged_output: bool = False) -> None:
     """Check that ``runtime`` keeps the runtime contract (see the module docstring).
 
     Args:
@@ -65,7 +63,6 @@ def check_runtime(runtime: Runtime, folder: str | os.PathLike[str], *,
         image: the image every task names (for a runtime that runs tasks in their image).
         listen: argv of a TCP listener that prints what it receives, ``{port}`` its port.
         timeout: seconds to wait for each step.
-        exec_supported: False for a runtime that has no ``exec`` yet: it must refuse it.
         merged_output: the runtime's engine keeps one log for both streams (a pod's): the
             task's stdout and stderr lines may arrive on either pipe.
 
@@ -73,7 +70,7 @@ def check_runtime(runtime: Runtime, folder: str | os.PathLike[str], *,
         AssertionError: listing every broken promise.
     """
     check = _RuntimeCheck(runtime, Path(folder).absolute(), image, tuple(listen), timeout,
-                          exec_supported, merged_output)
+                          merged_output)
     for step in (check.describes, check.runs, check.exits, check.terminates, check.kills,
                  check.fails_to_start, check.execs, check.connects):
         try:
@@ -165,11 +162,10 @@ class _RuntimeCheck:
     """The steps of :func:`check_runtime` and the problems they found."""
 
     def __init__(self, runtime: Runtime, root: Path, image: str | None,
-                 listen: tuple[str, ...], timeout: float, exec_supported: bool = True,
-                 merged_output: bool = False) -> None:
+                 listen: tuple[str, ...], timeout: float, merged_output: bool = False) -> None:
         self.runtime, self.root, self.image = runtime, root, image
         self.listen, self.timeout = listen, timeout
-        self.exec_supported, self.merged_output = exec_supported, merged_output
+        self.merged_output = merged_output
         self.workflow_id = f"conformance-{uuid.uuid4().hex[:8]}"
         self.problems: list[str] = []
         self._running: list[_Started] = []
@@ -308,16 +304,6 @@ class _RuntimeCheck:
                                          environment={"FROM_SPEC": "spec-value"}))
         if not started.until(b"ready", self.timeout):
             self.problems.append(f"execd: never ran (stderr {bytes(started.err)!r})")
-            return
-        if not self.exec_supported:
-            from osmo.errors import OsmoError
-
-            try:
-                self.runtime.exec(started.launch, ["true"], tty=False, term=None)
-            except OsmoError as exc:
-                self.expect(bool(str(exc)), "execd: exec refused with no message")
-            else:
-                self.problems.append("execd: exec_supported=False, but exec did not refuse")
             return
         command = self.runtime.exec(started.launch, ["sh", "-c", 'echo "$FROM_SPEC $OSMO_TASK"'],
                                     tty=False, term=None)

@@ -43,7 +43,6 @@ class Case:
     runtime: Runtime
     image: str | None = None  # what every task names (a runtime that runs tasks in images)
     listen: Sequence[str] = ("nc", "-l", "-p", "{port}")
-    exec_supported: bool = True
     merged_output: bool = False
 
 
@@ -99,7 +98,7 @@ def case(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Case]:
 
 def test_every_runtime_keeps_the_contract(case: Case, tmp_path: Path) -> None:
     check_runtime(case.runtime, tmp_path / "attempts", image=case.image, listen=case.listen,
-                  exec_supported=case.exec_supported, merged_output=case.merged_output)
+                  merged_output=case.merged_output)
 
 
 class _Broken:
