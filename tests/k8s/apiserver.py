@@ -34,6 +34,7 @@ import select
 import socket
 import struct
 import subprocess
+import sys
 import threading
 import time
 import traceback
@@ -183,6 +184,12 @@ class _Server(ThreadingHTTPServer):
         with self.guard:
             self.connections.discard(request)
         super().shutdown_request(request)
+
+    def handle_error(self, request: Any, client_address: Any) -> None:
+        """A client that hung up (a watch it closed, a node killed) is not an error."""
+        if isinstance(sys.exc_info()[1], (ConnectionResetError, BrokenPipeError)):
+            return
+        super().handle_error(request, client_address)
 
     def close_all(self) -> None:
         with self.guard:
