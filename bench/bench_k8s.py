@@ -7,9 +7,10 @@ the offline busybox image). Rows:
 - **limit: podman kube play of the same pod, N** — N pods running ``true``, played with bare
   ``podman kube play`` at once and waited for (``tests/k8s/measure.py``'s ``bare_play``): what
   the machine needs with no orchestrator and no API.
-- **k8s: N tasks, submit → COMPLETED** — ``osmo submit --wait`` of a workflow of N
-  independent tasks of that image running ``true``, each a pod; target: 1.2 × the limit
-  (the issue's "at most 20% over").
+- **k8s: N tasks, submit → COMPLETED** — SDK submit of a workflow of N independent tasks
+  of that image running ``true``, each a pod, until COMPLETED; target: 1.2 × the limit (the
+  issue's "at most 20% over").
+- **the same 1 task as a process** — on the same worker, no image: osmo's own cost.
 - **k8s: API writes per attempt** — writes the stand-in counted (create, delete, ...)
   divided by the attempts; target 3 (pod, Secret, delete).
 
@@ -37,11 +38,19 @@ sys.path.insert(0, str(ROOT / "bench"))
 from benchlib import Row, quick, row, write_rows  # noqa: E402
 
 
-def spec(n: int) -> str:
-    """A workflow of ``n`` independent tasks running ``true`` in the busybox image."""
-    tasks = "".join(f"  - name: t{i}\n    image: alpine:3.18\n    command: [\"true\"]\n"
-                    for i in range(n))
-    return f"workflow:\n  name: bench-k8s-{n}\n  tasks:\n{tasks}"
+def submit(client: object, n: int, image: str | None = "alpine:3.18") -> float:
+    """Seconds from submitting ``n`` independent ``true`` tasks to COMPLETED."""
+    import osmo
+
+    assert isinstance(client, osmo.Client)
+    wf = osmo.Workflow(f"bench-k8s-{n}")
+    for i in range(n):
+        wf.task(f"t{i}", ["true"], image=image)
+    start = time.monotonic()
+    info = client.wait(client.submit(wf, no_cache=True), min_interval=0.01)
+    if not info.ok:
+        raise SystemExit(f"bench workflow ended {info.status.name}")
+    return time.monotonic() - start
 
 
 def main() -> int:
@@ -65,22 +74,24 @@ def main() -> int:
         os.environ["CONTAINERS_CONF"] = env["CONTAINERS_CONF"]
         ensure_images(env)
         cluster = KubeCluster(folder / "cluster", env)
+        import osmo
+
+        client = osmo.Client(home=cluster.osmo.home)
         try:
             cluster.kubelet.add_node("node-big", cpu="256", memory="256Gi")
             cluster.start_worker("kube-bench", "--cpus", "256", groupNetwork="host")
-            cluster.osmo("submit", _write(folder, 1), "--wait", check=True)  # warm-up
+            submit(client, 1)  # warm-up
+            rows.append(row("k8s: the same 1 task as a process (no image), submit → "
+                            "COMPLETED", "s", [submit(client, 1, None)
+                                               for _ in range(args.runs)],
+                            higher_is_better=False, notes="osmo's own cost on this worker"))
             for n in (1, args.tasks):
                 bare = [bare_play(n, env, folder) for _ in range(args.runs)]
                 limit = row(f"limit: podman kube play of the same pod, {n}", "s", bare,
                             higher_is_better=False)
                 rows.append(limit)
                 before = sum(cluster.server.writes.values())
-                took = []
-                for _ in range(args.runs):
-                    start = time.monotonic()
-                    cluster.osmo("submit", _write(folder, n), "--wait", check=True,
-                                 timeout=1800)
-                    took.append(time.monotonic() - start)
+                took = [submit(client, n) for _ in range(args.runs)]
                 rows.append(row(f"k8s: {n} tasks as pods, submit → COMPLETED", "s", took,
                                 higher_is_better=False, limit_of=limit["name"],
                                 target=1.2 * statistics.median(bare)))
@@ -89,17 +100,12 @@ def main() -> int:
                                 [writes], higher_is_better=False, target=3.0,
                                 notes="counted by the API stand-in"))
         finally:
+            client.close()
             left = cluster.stop()
         if left != ([], []):
             print(f"bench_k8s: podman still had {left}", file=sys.stderr)
     write_rows(args.json, rows)
     return 0
-
-
-def _write(folder: Path, n: int) -> str:
-    path = folder / f"bench-{n}.yaml"
-    path.write_text(spec(n))
-    return str(path)
 
 
 if __name__ == "__main__":

@@ -15,7 +15,8 @@
 4. a kill (``stop``): delete the pod with the 3 s grace (``force``: with none); a pod still
    there :data:`FORCE_AFTER` seconds later is deleted with no grace, and the follower gives
    up :data:`GIVE_UP_AFTER` seconds after the kill (the node's next start deletes it).
-5. at the end, whatever the verdict, the pod is deleted (its Secret goes with it).
+5. at the end, whatever the verdict, the pod is deleted (its Secret goes with it), after
+   the verdict was handed on.
 """
 
 from __future__ import annotations
@@ -74,8 +75,11 @@ class PodFollower:
         self.image_id: str | None = None
         self._silence = silence
 
-    def run(self) -> Verdict:
+    def run(self, ended: Callable[[Verdict], None] | None = None) -> Verdict:
         """Create, follow and delete the pod; what became of the attempt.
+
+        ``ended`` gets the verdict as soon as the task's log is complete, before the pod is
+        deleted (the deletion is not the attempt's to wait for).
 
         Raises:
             KubeError: the pod could not be created (nothing is left then).
@@ -91,6 +95,8 @@ class PodFollower:
             self._delete(grace=0)
             raise
         self._finish_logs(found)
+        if ended is not None:
+            ended(found)
         self._delete(grace=0)
         return found
 

@@ -357,9 +357,17 @@ class KubernetesRuntime:
                              os.fdopen(err_w, "wb", buffering=0))
 
     def _follow(self, follower: PodFollower, live: _Live, handle: ProcessHandle) -> None:
-        """The attempt's thread: the pod's life, then its verdict and the handle's end."""
+        """The attempt's thread: the pod's life, then its verdict and the handle's end.
+
+        The handle ends with the verdict; the pod's deletion follows on this thread.
+        """
+        def ended(verdict: Verdict) -> None:
+            live.verdict = verdict
+            live.close()
+            _end_sentinel(handle)
+
         try:
-            live.verdict = follower.run()
+            live.verdict = follower.run(ended)
         except KubeError as exc:
             live.note(str(exc))
             live.verdict = Verdict(Outcome.START_FAILED, str(exc))
