@@ -61,7 +61,11 @@ def test_hello_world_runs_as_a_pod(kube: KubeCluster) -> None:
     assert lines["hello"] == ["Hello from OSMO!"]
     osmo_log = kube.osmo("logs", wf_id, check=True).out
     assert "pod osmo-" in osmo_log and "namespace osmo-tasks" in osmo_log, osmo_log
-    assert "kubernetes (namespace osmo-tasks)" in kube.osmo("resource", "list", check=True).out
+    node = kube.osmo_cluster.nodes()["kube-1"]
+    assert node["runtime"] == "kubernetes (namespace osmo-tasks)", node
+    # its capacity is the stand-in node's allocatable (8 cpu, 16Gi, 1 GPU), not this machine's
+    assert (node["total"]["cpu"], node["total"]["gpu"], node["total"]["memory"]) == (
+        8.0, 1, 16 << 30), node
 
 
 def test_serial_workflow_hands_outputs_on_between_pods(kube: KubeCluster) -> None:
