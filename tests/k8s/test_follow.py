@@ -11,6 +11,7 @@ from typing import Any
 
 import pytest
 
+from osmo.runtime.container.run import RegistryAuth
 from osmo.runtime.kubernetes.config import KubePool
 from osmo.runtime.kubernetes.follow import PodFollower
 from osmo.runtime.kubernetes.kube import Kube
@@ -113,6 +114,19 @@ def test_credentials_go_in_a_secret_owned_by_the_pod(api: Cluster,
     assert found.exit_code == 0 and run.out.getvalue() == b"token=s3cr3t\n"
     assert api.server.writes == {("create", "pods"): 1, ("create", "secrets"): 1,
                                  ("delete", "pods"): 1}  # the Secret goes with its owner
+    assert list(api.server.store.objects([PODS, SECRETS])) == []
+
+
+def test_a_pull_secret_is_made_before_its_pod_and_deleted_after(
+        api: Cluster, images: dict[str, str]) -> None:
+    pulled = plan("pulled", "true")
+    secret = secret_manifest(pulled, {}, POOL, registry=RegistryAuth("r.example", "u", "p"))
+    follower = PodFollower(Kube(api.client), pod_manifest(pulled, POOL, secret=pulled.name,
+                                                          pulls_with_secret=True),
+                           secret, out=io.BytesIO(), note=print, stop=threading.Event())
+    assert follower.run().exit_code == 0
+    assert api.server.writes == {("create", "secrets"): 1, ("create", "pods"): 1,
+                                 ("delete", "pods"): 1, ("delete", "secrets"): 1}
     assert list(api.server.store.objects([PODS, SECRETS])) == []
 
 

@@ -9,21 +9,25 @@ fixture checks at the end).
 
 from __future__ import annotations
 
+import base64
+import json
 import re
 import signal
 import subprocess
 import sys
 import time
+import uuid
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from kubernetes import client, watch
 
 from tests.conftest import REPO
 from tests.containers.conftest import images, podman_env  # noqa: F401 - fixtures
 from tests.containers.submitting import lineage_of, submitted_id, task_lines, tasks
-from tests.k8s.nodes import KubeCluster, started
-from tests.k8s.store import PODS
+from tests.k8s.nodes import NAMESPACE, KubeCluster, started
+from tests.k8s.store import PODS, SECRETS
 
 TUTORIALS = Path(__file__).parent.parent / "containers" / "osmo_tutorials"
 
@@ -117,6 +121,33 @@ def test_group_tasks_run_as_a_kai_gang(kube: KubeCluster) -> None:
     assert kube.server.calls[("create", "podgroups.scheduling.run.ai")] == before + 1
     assert nothing_left(kube) == []  # the PodGroup went with the group's last member
 
+
+
+def test_a_missing_image_fails_to_start_with_a_pull_secret_of_its_own(
+        kube: KubeCluster, tmp_path: Path) -> None:
+    password = f"pw-{uuid.uuid4().hex}"
+    kube.osmo("credential", "set", "registry://registry.invalid", "--payload", "username=me",
+              "--payload", f"password={password}", check=True)
+    spec = tmp_path / "missing.yaml"
+    spec.write_text('workflow:\n  name: missing\n  tasks:\n  - name: pulled\n'
+                    '    image: registry.invalid/osmo/nothing:1\n    command: ["true"]\n')
+    since = str(kube.server.store.list(SECRETS)[1])
+    r = kube.osmo("submit", str(spec), "--wait", timeout=180)
+    wf_id = submitted_id(r.out)
+    row = tasks(kube.osmo, wf_id)["pulled"]
+    assert row["status"] == "FAILED_START_ERROR", row
+    assert "image pull failed" in row["message"], row
+    with client.ApiClient(client.Configuration(host=kube.server.url)) as api:
+        made = [e["raw_object"] for e in watch.Watch().stream(
+            client.CoreV1Api(api).list_namespaced_secret, NAMESPACE, resource_version=since,
+            timeout_seconds=1) if e["type"] == "ADDED"]
+    (secret,) = made  # made before its pod, deleted after it
+    assert secret["type"] == "kubernetes.io/dockerconfigjson"
+    auths = json.loads(base64.b64decode(secret["data"][".dockerconfigjson"]))["auths"]
+    assert auths["registry.invalid"]["password"] == password
+    everything = json.dumps(kube.osmo.query(wf_id)) + kube.osmo("logs", wf_id).out
+    assert password not in everything
+    assert nothing_left(kube) == []
 
 
 SLEEPER = """\

@@ -4,7 +4,9 @@
 
 1. create the pod, then its Secret owned by it (the pod waits for the Secret, as
    ``CreateContainerConfigError``; the API's garbage collector deletes the Secret with the
-   pod). API writes per attempt: pod, Secret (only with credentials), delete.
+   pod). API writes per attempt: pod, Secret (only with credentials), delete. A Secret that
+   also holds the image's registry credentials is created first, with no owner (the kubelet
+   needs it to pull), and deleted after the pod: one write more.
 2. follow the pod by list + watch from its resourceVersion: a watch that ends, goes silent
    longer than :data:`SILENCE`, or answers 410 Gone is replaced by a fresh list and watch.
    Each version goes through the status table (``osmo.runtime.kubernetes.status``); a new
@@ -84,21 +86,40 @@ class PodFollower:
         Raises:
             KubeError: the pod could not be created (nothing is left then).
         """
-        created = self.kube.create("pod", self.namespace, self.pod)
+        first = self.secret is not None and "ownerReferences" not in self.secret["metadata"]
+        if first:  # a pull Secret: the kubelet needs it before it pulls
+            assert self.secret is not None
+            self.kube.create("secret", self.namespace, self.secret)
         try:
-            if self.secret is not None:
+            created = self.kube.create("pod", self.namespace, self.pod)
+        except BaseException:
+            self._delete_secret(first)
+            raise
+        try:
+            if self.secret is not None and not first:
                 owned = copy.deepcopy(self.secret)
                 owned["metadata"]["ownerReferences"][0]["uid"] = created["metadata"]["uid"]
                 self.kube.create("secret", self.namespace, owned)
             found = self._follow(created)
         except BaseException:
             self._delete(grace=0)
+            self._delete_secret(first)
             raise
         self._finish_logs(found)
         if ended is not None:
             ended(found)
         self._delete(grace=0)
+        self._delete_secret(first)
         return found
+
+    def _delete_secret(self, unowned: bool) -> None:
+        """A pull Secret has no owner: it is deleted after its pod."""
+        if not unowned:
+            return
+        try:
+            self.kube.delete("secret", self.namespace, self.name)
+        except KubeError as exc:
+            self.note(f"secret {self.name}: cannot delete it: {exc}")
 
     # ------------------------------------------------------------ following
 

@@ -14,7 +14,9 @@ headless Service. What each pod gets:
 - OSMO's data layout (``osmo.runtime.container.layout``): the same binds as a container
   task, each a volume of the node's attempt folder (a ``hostPath``, or a ``subPath`` of the
   pool's work claim);
-- credential variables from its Secret (``secretKeyRef``), never as literal values;
+- credential variables from its Secret (``secretKeyRef``), never as literal values; the
+  image's registry credentials (osmo's stored ``registry:HOST`` credential) in that same
+  Secret as a ``.dockerconfigjson``, named in ``imagePullSecrets``;
 - ``resources``: cpu and memory as requests and limits, ``nvidia.com/gpu`` and
   ``ephemeral-storage`` (the task's ``storage``) as limits, and a memory ``/dev/shm`` of the
   pool's ``shmSize`` for a GPU task;
@@ -35,6 +37,7 @@ from __future__ import annotations
 
 import base64
 import hashlib
+import json
 import posixpath
 import re
 from collections.abc import Mapping
@@ -43,11 +46,11 @@ from pathlib import Path
 from typing import Any
 
 from osmo.errors import OsmoError
-from osmo.runtime.container.run import Mount
+from osmo.runtime.container.run import Mount, RegistryAuth
 from osmo.runtime.kubernetes.config import KubePool, Placement
 
 __all__ = ["CONTAINER", "LABEL_ATTEMPT", "LABEL_GROUP", "LABEL_INSTANCE", "LABEL_LEAD",
-           "LABEL_WORKFLOW", "GroupPlan",
+           "LABEL_WORKFLOW", "GroupPlan", "docker_config",
            "ManifestError", "PodPlan", "label_value", "object_name", "pod_manifest",
            "plan_labels", "pod_group_manifest", "secret_manifest", "selector",
            "service_manifest"]
@@ -158,9 +161,11 @@ def plan_labels(plan: PodPlan) -> dict[str, str]:
     return {k: label_value(v) for k, v in labels.items()}
 
 
-def pod_manifest(plan: PodPlan, pool: KubePool, *, secret: str | None = None
-                 ) -> dict[str, Any]:
-    """The attempt's Pod (``secret``: its Secret's name, when it has credential variables).
+def pod_manifest(plan: PodPlan, pool: KubePool, *, secret: str | None = None,
+                 pulls_with_secret: bool = False) -> dict[str, Any]:
+    """The attempt's Pod (``secret``: its Secret's name, when it has one).
+
+    ``pulls_with_secret``: that Secret also holds the registry's credentials for the image.
 
     Raises:
         ManifestError: a value no manifest can hold (an environment name, a mount path).
@@ -191,8 +196,9 @@ def pod_manifest(plan: PodPlan, pool: KubePool, *, secret: str | None = None
     priority = pool.priority_classes.get("default")
     if priority:
         spec["priorityClassName"] = priority
-    if pool.image_pull_secrets:
-        spec["imagePullSecrets"] = [{"name": n} for n in pool.image_pull_secrets]
+    pulls = [*pool.image_pull_secrets, *([secret] if pulls_with_secret and secret else [])]
+    if pulls:
+        spec["imagePullSecrets"] = [{"name": n} for n in pulls]
     meta: dict[str, Any] = {"name": plan.name, "namespace": pool.namespace,
                             "labels": plan_labels(plan),
                             "annotations": {"osmo.dev/attempt-id": plan.attempt_id}}
@@ -206,16 +212,34 @@ def pod_manifest(plan: PodPlan, pool: KubePool, *, secret: str | None = None
 
 
 def secret_manifest(plan: PodPlan, values: Mapping[str, str], pool: KubePool, *,
-                    owner_uid: str | None = None) -> dict[str, Any]:
-    """The attempt's Secret of ``values``, owned by its pod (``owner_uid``: the pod's uid)."""
+                    owner_uid: str | None = None, registry: RegistryAuth | None = None
+                    ) -> dict[str, Any]:
+    """The attempt's Secret of ``values``, owned by its pod (``owner_uid``: the pod's uid).
+
+    With ``registry`` it is also the pod's pull Secret (type
+    ``kubernetes.io/dockerconfigjson``): it must exist before the pod, so it has no owner
+    and is deleted after the pod.
+    """
     meta: dict[str, Any] = {"name": plan.name, "namespace": pool.namespace,
                             "labels": plan_labels(plan)}
-    if owner_uid is not None:
+    if owner_uid is not None and registry is None:
         meta["ownerReferences"] = [{"apiVersion": "v1", "kind": "Pod", "name": plan.name,
                                     "uid": owner_uid}]
     data = {_secret_key(k): base64.b64encode(v.encode()).decode() for k, v in values.items()}
-    return {"apiVersion": "v1", "kind": "Secret", "type": "Opaque", "metadata": meta,
+    kind = "Opaque"
+    if registry is not None:
+        kind = "kubernetes.io/dockerconfigjson"
+        data[".dockerconfigjson"] = base64.b64encode(docker_config(registry).encode()).decode()
+    return {"apiVersion": "v1", "kind": "Secret", "type": kind, "metadata": meta,
             "data": data}
+
+
+def docker_config(auth: RegistryAuth) -> str:
+    """A ``.dockerconfigjson`` holding one registry's credentials."""
+    token = base64.b64encode(f"{auth.username}:{auth.password}".encode()).decode()
+    host = "https://index.docker.io/v1/" if auth.registry == "docker.io" else auth.registry
+    return json.dumps({"auths": {host: {"username": auth.username, "password": auth.password,
+                                        "auth": token}}})
 
 
 def service_manifest(group: GroupPlan, labels: Mapping[str, str], pool: KubePool

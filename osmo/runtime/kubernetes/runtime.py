@@ -63,7 +63,7 @@ from osmo.runtime.api import (
     dial,
 )
 from osmo.runtime.container.engine import ContainerEngine, EngineNotFound, detect_engine
-from osmo.runtime.container.images import ImageIds
+from osmo.runtime.container.images import ImageIds, registry_auth
 from osmo.runtime.container.layout import DATA_LAYOUT, mounts
 from osmo.runtime.kubernetes.config import KubePool, load_pool
 from osmo.runtime.kubernetes.follow import GIVE_UP_AFTER, PodFollower
@@ -154,6 +154,9 @@ class KubernetesRuntime:
     def clean_orphans(self) -> list[str]:
         """Delete every pod and group Service of this instance (a previous life's).
 
+        Each pod's Secret goes too (it is the pod's name; a pull Secret has no owner).
+        Secrets are never listed: the node may not read them.
+
         Returns ``kind/name`` of each. (A PodGroup left by a crash stays: it holds nothing.)
         """
         mine = f"{LABEL_INSTANCE}={self.instance}"
@@ -165,6 +168,8 @@ class KubernetesRuntime:
                 self.kube.delete(kind, self.pool.namespace, name,
                                  grace=0 if kind == "pod" else None)
                 names.append(f"{kind}/{name}")
+                if kind == "pod" and self.kube.delete("secret", self.pool.namespace, name):
+                    names.append(f"secret/{name}")  # a pull Secret (no owner) of that pod
         return names
 
     def paths(self, cmd: PrepareAttempt) -> Paths:
@@ -184,9 +189,12 @@ class KubernetesRuntime:
         pinned = self.images.known(cmd.workflow_id, task.image) if self.images else None
         plan = attempt_plan(launch, attempt, instance=self.instance, image=pinned)
         group, lead, workdir = plan.group, plan.lead, plan.workdir
-        secret = (secret_manifest(plan, launch.secret_env, self.pool, owner_uid="")
-                  if launch.secret_env else None)
-        pod = pod_manifest(plan, self.pool, secret=plan.name if secret else None)
+        registry = registry_auth(task.image, attempt.credential)
+        secret = (secret_manifest(plan, launch.secret_env, self.pool, owner_uid="",
+                                  registry=registry)
+                  if launch.secret_env or registry else None)
+        pod = pod_manifest(plan, self.pool, secret=plan.name if secret else None,
+                           pulls_with_secret=registry is not None)
         self._hand_over(dirs.output_partial, dirs.work if workdir else None)
         if group is not None:
             self.gangs.join(cmd, group)

@@ -15,7 +15,7 @@ from typing import Any
 import pytest
 
 from osmo.errors import UsageError
-from osmo.runtime.container.run import Mount
+from osmo.runtime.container.run import Mount, RegistryAuth
 from osmo.runtime.kubernetes.config import GANGS, KubePool, Placement, load_pool
 from osmo.runtime.kubernetes.manifest import (
     GroupPlan,
@@ -64,6 +64,11 @@ def cases() -> dict[str, list[dict[str, Any]]]:
                         secret_manifest(secret, {"WANDB_API_KEY": "not-a-real-key"}, POOL,
                                         owner_uid="00000000-0000-0000-0000-000000000001")],
     }
+    pulled = plan(secret_env=("TOKEN",))
+    found["registry-credentials"] = [
+        secret_manifest(pulled, {"TOKEN": "not-a-real-token"}, POOL, owner_uid="unused",
+                        registry=RegistryAuth("nvcr.io", "$oauthtoken", "not-a-real-key")),
+        pod_manifest(pulled, POOL, secret=pulled.name, pulls_with_secret=True)]
     for gang in GANGS:
         pool = KubePool(namespace="osmo-tasks", gang=gang, queue="research")
         group = GroupPlan(object_name("wf-1", "training"), 2)
