@@ -62,11 +62,12 @@ from osmo.runtime.api import (
     StartError,
     dial,
 )
+from osmo.runtime.background import Background
 from osmo.runtime.container.engine import ContainerEngine, EngineNotFound, detect_engine
 from osmo.runtime.container.images import ImageIds, registry_auth
 from osmo.runtime.container.layout import DATA_LAYOUT, mounts
 from osmo.runtime.kubernetes.config import KubePool, load_pool
-from osmo.runtime.kubernetes.follow import GIVE_UP_AFTER, PodFollower
+from osmo.runtime.kubernetes.follow import PodFollower
 from osmo.runtime.kubernetes.groups import Groups, hostname
 from osmo.runtime.kubernetes.kube import Kube, KubeError, connect
 from osmo.runtime.kubernetes.manifest import (
@@ -125,7 +126,8 @@ class KubernetesRuntime:
         self.images = images
         self.gangs = Groups(kube, pool, self.instance)
         self._runs: dict[ProcessHandle, _Live] = {}
-        self._threads: set[threading.Thread] = set()
+        self._background = Background("osmo-kube-call")
+        self._followers = Background("osmo-pod")  # one per started attempt, until its pod went
         self._lock = threading.Lock()
 
     @classmethod
@@ -217,11 +219,9 @@ class KubernetesRuntime:
         handle, live = self._sentinel(run)
         follower = PodFollower(self.kube, run.pod, run.secret, out=live.out,
                                note=live.note, stop=live.stop, force=live.force)
-        live.thread = threading.Thread(target=self._follow, args=(follower, live, handle),
-                                       name=f"osmo-pod-{run.name}", daemon=True)
         with self._lock:
             self._runs[handle] = live
-        live.thread.start()
+        self._followers.later(self._follow, follower, live, handle)
         return handle
 
     def kill(self, handle: ProcessHandle, *, force: bool = False) -> None:
@@ -310,21 +310,15 @@ class KubernetesRuntime:
         """
         run = launch.run
         if isinstance(run, KubeRun) and run.group is not None:
-            self._later(self.gangs.leave, run.group)
+            self._background.later(self.gangs.leave, run.group)
 
     def close(self) -> None:
-        """Wait for the pods still being deleted and the group objects; let go of the API."""
-        with self._lock:
-            followers = [live.thread for live in self._runs.values() if live.thread]
-        for thread in followers:
-            thread.join(GIVE_UP_AFTER + 5)
-        while True:
-            with self._lock:
-                threads = list(self._threads)
-            if not threads:
-                break
-            for thread in threads:
-                thread.join()
+        """Wait for the followers (pods still being deleted), the group objects; close the API.
+
+        A follower ends at most ``follow.GIVE_UP_AFTER`` seconds after its kill.
+        """
+        self._followers.close()
+        self._background.close()
         self.kube.close()
 
     # ------------------------------------------------------------ internals
@@ -386,19 +380,6 @@ class KubernetesRuntime:
             live.close()
             _end_sentinel(handle)
 
-    def _later(self, fn: Callable[..., object], *args: object) -> None:
-        def run() -> None:
-            try:
-                fn(*args)
-            finally:
-                with self._lock:
-                    self._threads.discard(thread)
-
-        thread = threading.Thread(target=run, name="osmo-kube-call", daemon=True)
-        with self._lock:
-            self._threads.add(thread)
-        thread.start()
-
 
 def attempt_plan(launch: Launch, attempt: Attempt, *, instance: str,
                  image: str | None = None) -> PodPlan:
@@ -430,7 +411,6 @@ class _Live:
     stop: threading.Event = field(default_factory=threading.Event)
     force: threading.Event = field(default_factory=threading.Event)
     verdict: Verdict | None = None
-    thread: threading.Thread | None = None
 
     def note(self, line: str) -> None:
         """An osmo line about the pod, on the task's stderr."""
