@@ -100,6 +100,32 @@ def test_combination_workflow_simple(kube: KubeCluster) -> None:
 
 
 
+FILES = """\
+workflow:
+  name: files
+  tasks:
+  - name: f
+    image: alpine:3.18
+    command: ["sh", "-c", "for f in /etc/osmo-test/config.txt rel.txt; do cat $f; echo; done; pwd; id -u; echo x > {{output}}/o"]
+    files:
+    - path: /etc/osmo-test/config.txt
+      contents: hello-abs
+    - path: rel.txt
+      contents: hello-rel
+"""
+
+
+def test_files_at_their_paths_as_a_non_root_user(kube: KubeCluster, tmp_path: Path) -> None:
+    spec = tmp_path / "files.yaml"
+    spec.write_text(FILES)
+    r = kube.osmo("submit", str(spec), "--wait", timeout=180)
+    wf_id = submitted_id(r.out)
+    lines = task_lines(kube.osmo, wf_id)
+    assert r.code == 0, (r.out, r.err, lines)
+    assert lines["f"] == ["hello-abs", "hello-rel", "/osmo/run/work", "1000"], lines
+    assert (Path(tasks(kube.osmo, wf_id)["f"]["output"]) / "o").read_text() == "x\n"
+
+
 def test_group_tasks_communication_lead_first(kube: KubeCluster) -> None:
     _, lines, _ = run(kube, "group_tasks_communication.yaml")
     assert lines["client"][0] == "Client: Starting..."
