@@ -22,7 +22,10 @@ RUN python -m venv /opt/osmo
 WORKDIR /src
 COPY pyproject.toml README.md ./
 COPY osmo ./osmo
-RUN if [ -n "${OSMO_EXTRAS}" ]; then spec="/src[${OSMO_EXTRAS}]"; else spec="/src"; fi \
+# The kubernetes extra always: a chart pool of kind kubernetes runs `osmo worker --runtime
+# kubernetes` from this image (the client is all it needs; tasks run in their own images).
+RUN if [ -n "${OSMO_EXTRAS}" ]; then spec="/src[kubernetes,${OSMO_EXTRAS}]"; \
+    else spec="/src[kubernetes]"; fi \
  && /opt/osmo/bin/pip install "${spec}" \
  && /opt/osmo/bin/osmo --help >/dev/null
 

@@ -61,11 +61,12 @@ def add_runtime_arguments(p: argparse.ArgumentParser) -> None:
                         "':'-separated, e.g. /scratch:/data:ro). Tasks get their own empty "
                         "/tmp otherwise. As root, tasks run as nobody: a writable share must "
                         "be writable by nobody")
-    p.add_argument("--runtime", choices=("auto", "container", "process"),
+    p.add_argument("--runtime", choices=("auto", "container", "process", "kubernetes"),
                    default=os.environ.get("OSMO_RUNTIME") or "auto",
                    help="run tasks that name an image in containers (container), as host "
                         "processes (process), or in containers when an engine is installed "
-                        "(auto, the default; OSMO_RUNTIME)")
+                        "(auto, the default; OSMO_RUNTIME); kubernetes: as pods of a "
+                        "cluster (osmo worker only; see --kubernetes-config)")
     p.add_argument("--container-engine", choices=("podman", "docker"),
                    default=os.environ.get("OSMO_CONTAINER_ENGINE") or None,
                    help="the container engine (default: podman, else docker; "

@@ -55,6 +55,10 @@ def _types(file: str) -> Any:
 
 
 def _submit(args: argparse.Namespace) -> int:
+    if args.runtime is not None and not args.dry_run:
+        raise UsageError("--runtime kubernetes shows what would be created: add --dry-run")
+    if args.dry_run and args.runtime == "kubernetes":
+        return _pods(args)
     if args.dry_run:
         from osmo.spec import load_spec, render_spec
 
@@ -75,6 +79,22 @@ def _submit(args: argparse.Namespace) -> int:
             return 0
         console.print(f"Workflow ID - {wf_id}", markup=False)
         return _wait(client, wf_id, args.format) if args.wait else 0
+
+
+def _pods(args: argparse.Namespace) -> int:
+    """``submit --dry-run --runtime kubernetes``: the objects the attempts would create."""
+    from osmo.runtime.kubernetes.config import load_pool
+    from osmo.spec import load_spec
+    from osmo.worker.pods import pod_manifests
+
+    spec = load_spec(args.file, set_values=args.set_values, set_strings=args.set_strings,
+                     set_env=args.set_env, types=_types(args.file),
+                     allow_localpath=args.allow_localpath)
+    if args.task is not None and args.task not in {t.name for t in spec.all_tasks()}:
+        raise UsageError(f"--task {args.task}: the workflow has no such task")
+    items = pod_manifests(spec, load_pool(args.kubernetes_config), args.task)
+    print_json({"apiVersion": "v1", "kind": "List", "items": items})
+    return 0
 
 
 def _wait(client: Client, wf_id: str, fmt: str = "text") -> int:

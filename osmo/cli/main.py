@@ -91,6 +91,14 @@ def _add_workflow_verbs(sub: argparse._SubParsersAction) -> None:  # type: ignor
                    "ageing: nothing waits forever (default NORMAL)")
     p.add_argument("--wait", action="store_true", help="show progress; exit 0 only if COMPLETED")
     p.add_argument("--dry-run", action="store_true", help="print the rendered spec; submit nothing")
+    p.add_argument("--runtime", choices=("kubernetes",),
+                   help="with --dry-run: print instead the Kubernetes objects (a v1 List: "
+                        "pods, Secrets, group Services, PodGroups) the image tasks' first "
+                        "attempts would create")
+    p.add_argument("--kubernetes-config", metavar="FILE",
+                   help="with --runtime kubernetes: the pool's configuration (as the "
+                        "worker's --kubernetes-config)")
+    p.add_argument("--task", help="with --runtime kubernetes: only this task's objects")
     reuse = p.add_mutually_exclusive_group()
     reuse.add_argument("--no-cache", action="store_true",
                        help="run every task even if an identical earlier run could be reused")

@@ -12,8 +12,13 @@ One folder per runtime family, one module per runtime:
 - ``container/`` — the task's image: ``runtime`` (the runtime), ``engine`` (the only module
   that runs podman or docker), ``run`` (argv), ``runs`` (a run's life), ``pull``,
   ``images``, ``layout`` (OSMO's data layout), ``groups`` (group networks).
+- ``kubernetes/`` — the task's image as a pod of a cluster (``osmo worker --runtime
+  kubernetes``): ``runtime``, ``manifest``, ``status`` (the one status table), ``follow``
+  (a pod's life), ``groups`` (gangs), ``kube`` (the only module importing the client),
+  ``config``, ``capacity``, ``exec_relay``.
+- ``background`` — a runtime's own background calls (removals), waited for at close.
 
-A Kubernetes pod or a Slurm job is one more folder here, one more runtime for the chooser.
+A Slurm job is one more folder here, one more runtime for the chooser.
 Runtimes know nothing of the scheduler's state or of logs; the worker pool drives them.
 """
 

@@ -198,6 +198,12 @@ class ProcessHandle:
             without reading ``/proc``.
         setup_failed: set by ``reap``: the sandbox could not be set up, the command never ran
             (its exit code is bwrap's 1; bwrap's message is on stderr).
+        start_failed: set by ``reap``: the launch never ran its command, for a reason that
+            starting it again would not change (a pod's image cannot be pulled): the
+            attempt fails to start with this message, whatever the exit code.
+        lost: set by ``reap``: the launch was lost to its infrastructure (a pod evicted,
+            preempted, its node lost): the attempt is lost with this message (rescheduled,
+            not counted as a retry), whatever the exit code.
     """
 
     pid: int
@@ -209,6 +215,8 @@ class ProcessHandle:
     status_fd: int = -1
     setup_failed: bool = False
     started_at: float | None = None
+    start_failed: str | None = None
+    lost: str | None = None
 
 
 @dataclass(frozen=True)

@@ -14,7 +14,10 @@ Two choices, each made once:
   server's placement asks :func:`in_container` too (a cache fingerprint names the image id
   of a task that runs in its image), never deciding it again.
 
-A Kubernetes or Slurm runtime joins here: one more runtime for :class:`Runtimes` to choose.
+A node's image runtime may also be a cluster's: :func:`image_runtime_for_node` gives the
+Kubernetes runtime for ``--runtime kubernetes`` (an ``osmo worker`` inside or beside a
+cluster: each image task a pod), else the container runtime as above. The Kubernetes
+runtime is imported only then (its client is an extra).
 """
 
 from __future__ import annotations
@@ -42,13 +45,16 @@ from osmo.runtime.process.sandbox import (
 from osmo.runtime.process.sandboxed import SandboxRuntime
 from osmo.spec.model import TaskSpec
 
-__all__ = ["RUNTIMES", "Runtimes", "container_engine", "container_image",
-           "containers_for_node", "image_ids", "in_container", "processes_for_node"]
+__all__ = ["CLUSTER_RUNTIMES", "RUNTIMES", "Runtimes", "container_engine", "container_image",
+           "containers_for_node", "image_ids", "image_runtime_for_node", "in_container",
+           "processes_for_node"]
 
 _log = logging.getLogger("osmo.worker.pool")
 
 RUNTIMES = ("auto", "container", "process")
-"""The values of ``--runtime``."""
+"""The values of ``--runtime`` that a local engine serves."""
+CLUSTER_RUNTIMES = ("kubernetes",)
+"""The values of ``--runtime`` that run image tasks on a cluster (an ``osmo worker``'s)."""
 
 
 def container_image(task: TaskSpec) -> str | None:
@@ -70,11 +76,11 @@ class Runtimes:
 
     Args:
         process: how tasks run as host processes here (sandboxed or not).
-        container: how tasks run in their images here (None: this node runs no containers).
+        container: how tasks run in their images here: containers or a cluster's pods
+            (None: this node runs image tasks as processes).
     """
 
-    def __init__(self, process: ProcessRuntime,
-                 container: ContainerRuntime | None = None) -> None:
+    def __init__(self, process: ProcessRuntime, container: Runtime | None = None) -> None:
         self.process, self.container = process, container
 
     def choose(self, task: TaskSpec) -> Runtime:
@@ -97,7 +103,7 @@ class Runtimes:
         self.process.hide(path)
 
     def close(self) -> None:
-        """The node stops: the container runtime's calls, then the node's namespaces."""
+        """The node stops: the image runtime's calls, then the node's namespaces."""
         if self.container is not None:
             self.container.close()
         self.process.close()
@@ -164,6 +170,9 @@ def container_engine(runtime: str, engine: str | None = None) -> ContainerEngine
         EngineNotFound: ``container`` with no usable engine (the message says what to install),
             or an unknown ``engine``/``runtime``.
     """
+    if runtime in CLUSTER_RUNTIMES:
+        raise EngineNotFound(f"--runtime {runtime} runs in `osmo worker` (a cluster's node); "
+                             "a server's own pool runs containers or processes")
     if runtime not in RUNTIMES:
         raise EngineNotFound(f"unknown runtime {runtime!r}: choose {', '.join(RUNTIMES)}")
     if runtime == "process":
@@ -208,3 +217,22 @@ def image_ids(runtime: str, engine: str | None, containers: ContainerRuntime | N
     except EngineNotFound:
         return None
     return ImageIds(found).known if found is not None else None
+
+
+def image_runtime_for_node(runtime: str, engine: str | None, home: Home, *,
+                           kubernetes_config: str | None = None) -> Runtime | None:
+    """How a worker's image tasks run: pods (``kubernetes``), containers, or None (processes).
+
+    ``kubernetes_config``: the pool's configuration file (``osmo.runtime.kubernetes.config``).
+    What a previous life on ``home`` left (pods, containers) is removed first.
+
+    Raises:
+        EngineNotFound: ``--runtime container`` with no usable engine.
+        KubeError: ``--runtime kubernetes`` and the cluster cannot be reached.
+        UsageError: the Kubernetes configuration is wrong.
+    """
+    if runtime == "kubernetes":
+        from osmo.runtime.kubernetes.runtime import KubernetesRuntime
+
+        return KubernetesRuntime.for_node(kubernetes_config, instance=owner_id(home.root))
+    return containers_for_node(runtime, engine, home)

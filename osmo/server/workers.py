@@ -379,9 +379,10 @@ class WorkerHub:
                        max_output_bytes=max_output_bytes, spec=spec)
 
     def _contained(self, wid: str) -> bool:
-        """Whether worker ``wid`` runs image tasks in containers (pulling their images)."""
+        """Whether worker ``wid`` pulls images (containers, pods): it gets registry creds."""
         with self._lock:
-            return str(self._info.get(wid, {}).get("runtime") or "").startswith("container")
+            return str(self._info.get(wid, {}).get("runtime") or "").startswith(
+                ("container", "kubernetes"))
 
     def _manifest_of(self, ref: str) -> str:
         found = self._store.output_of(ref)

@@ -37,6 +37,7 @@ TASK_KEYS = ("name", "image", "command", "args", "environment", "files", "inputs
              "privileged", "hostNetwork", "type", "params", "cache")
 _ACTIONS = [a.value for a in ExitAction]
 _ENV_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+_POD_ENV_NAME = re.compile(r"[-._a-zA-Z][-._a-zA-Z0-9]*")  # what a Kubernetes pod takes
 
 
 def _str_map(ctx: Ctx, node: Node, what: str) -> dict[str, str]:
@@ -49,6 +50,22 @@ def _str_map(ctx: Ctx, node: Node, what: str) -> dict[str, str]:
         else:
             out[key.text] = text
     return out
+
+
+def _environment(ctx: Ctx, node: Node, what: str) -> dict[str, str]:
+    """A task's ``environment``: names a Kubernetes pod takes, values with no NUL.
+
+    The same rule on every runtime: the workflow that runs on a laptop runs as pods too.
+    """
+    for var, value in read_map(ctx, node, what) or []:
+        if not _POD_ENV_NAME.fullmatch(var.text):
+            ctx.error(var, f"{what} '{var.text}' is not a usable name (letters, digits, "
+                           "'_', '-' and '.', not starting with a digit)")
+        text = scalar_text(value)
+        if text is not None and "\0" in text:
+            ctx.error(value, f"{what} '{var.text}' holds a NUL character, which no process "
+                             "can be given")
+    return _str_map(ctx, node, what)
 
 
 def _credential_env(ctx: Ctx, node: Map, name: str) -> dict[str, str]:
@@ -185,7 +202,8 @@ def parse_task(ctx: Ctx, node: Node, local: LocalFiles) -> TaskSpec | None:
         image=_optional(ctx, f, "image", _image, where),
         command=_command(ctx, f, node, where),
         args=_optional(ctx, f, "args", read_str_list, f"'args' of {where}") or (),
-        environment=_optional(ctx, f, "environment", _str_map, "environment variable") or {},
+        environment=_optional(ctx, f, "environment", _environment, "environment variable")
+        or {},
         files=_optional(ctx, f, "files", parse_files, local, where) or (),
         inputs=_optional(ctx, f, "inputs", parse_inputs, where) or (),
         outputs=_optional(ctx, f, "outputs", parse_outputs, where) or (),

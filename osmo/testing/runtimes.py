@@ -15,7 +15,8 @@ the runtime's ``paths``, then ``Runtime.prepare``), runs them through the runtim
 with an ``AssertionError`` listing every broken promise:
 
 1. ``describe`` says something; ``paths`` gives ``Paths``; ``prepare`` keeps the command;
-2. a task's stdout and stderr arrive on the handle's pipes, its exit code comes back from
+2. a task's stdout and stderr arrive on the handle's pipes (either pipe, for a runtime
+   checked with ``merged_output=True``: a pod has one log), its exit code comes back from
    ``reap``, what it writes to ``{{output}}`` (and ``$OSMO_OUTPUT``) lands in the attempt's
    ``output.partial`` folder, and a credential variable reaches it without appearing in its
    argv, nor in any file of the attempt's folder once it was released and cleaned up;
@@ -53,7 +54,7 @@ _TERM, _KILL = 128 + 15, 128 + 9
 
 def check_runtime(runtime: Runtime, folder: str | os.PathLike[str], *,
                   image: str | None = None, listen: Sequence[str] = ("nc", "-l", "-p", "{port}"),
-                  timeout: float = 60.0) -> None:
+                  timeout: float = 60.0, merged_output: bool = False) -> None:
     """Check that ``runtime`` keeps the runtime contract (see the module docstring).
 
     Args:
@@ -62,11 +63,14 @@ def check_runtime(runtime: Runtime, folder: str | os.PathLike[str], *,
         image: the image every task names (for a runtime that runs tasks in their image).
         listen: argv of a TCP listener that prints what it receives, ``{port}`` its port.
         timeout: seconds to wait for each step.
+        merged_output: the runtime's engine keeps one log for both streams (a pod's): the
+            task's stdout and stderr lines may arrive on either pipe.
 
     Raises:
         AssertionError: listing every broken promise.
     """
-    check = _RuntimeCheck(runtime, Path(folder).absolute(), image, tuple(listen), timeout)
+    check = _RuntimeCheck(runtime, Path(folder).absolute(), image, tuple(listen), timeout,
+                          merged_output)
     for step in (check.describes, check.runs, check.exits, check.terminates, check.kills,
                  check.fails_to_start, check.execs, check.connects):
         try:
@@ -158,9 +162,10 @@ class _RuntimeCheck:
     """The steps of :func:`check_runtime` and the problems they found."""
 
     def __init__(self, runtime: Runtime, root: Path, image: str | None,
-                 listen: tuple[str, ...], timeout: float) -> None:
+                 listen: tuple[str, ...], timeout: float, merged_output: bool = False) -> None:
         self.runtime, self.root, self.image = runtime, root, image
         self.listen, self.timeout = listen, timeout
+        self.merged_output = merged_output
         self.workflow_id = f"conformance-{uuid.uuid4().hex[:8]}"
         self.problems: list[str] = []
         self._running: list[_Started] = []
@@ -233,7 +238,8 @@ class _RuntimeCheck:
         code = started.finish(self.timeout)
         out, err = bytes(started.out).split(), bytes(started.err).split()
         self.expect(code == 0, f"ok: exit code {code}, expected 0 (stderr {bytes(started.err)!r})")
-        self.expect(b"out" in out and b"err" in err,
+        both = out + err if self.merged_output else None  # one log: no stream of its own
+        self.expect(b"out" in (both or out) and b"err" in (both or err),
                     f"ok: stdout {bytes(started.out)!r}, stderr {bytes(started.err)!r}")
         self.expect(b"has-token" in out, "ok: the credential variable did not reach the task")
         output = launch.cwd.parent / "output.partial"

@@ -19,7 +19,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 from osmo.artifacts import ArtifactStore
 from osmo.artifacts.fsops import remove_tree
-from osmo.scheduler.types import AttemptExited, AttemptStartFailed, Event
+from osmo.scheduler.types import AttemptExited, AttemptLost, AttemptStartFailed, Event
 from osmo.spec.model import ExitAction
 from osmo.worker.live import Attempts, AttemptState, LiveAttempt
 from osmo.worker.machine import GpuSlots
@@ -69,7 +69,7 @@ class Ending:
             self._io.submit(self._promote_io, attempt, code)
 
     def finish(self, attempt: LiveAttempt,
-               event: AttemptExited | AttemptStartFailed | None) -> None:
+               event: AttemptExited | AttemptStartFailed | AttemptLost | None) -> None:
         """The attempt is over: its log closes, what it holds goes, ``event`` is reported."""
         attempt.state = AttemptState.DONE
         try:

@@ -56,6 +56,8 @@ class WorkerOptions:
             writable, ``DIR:ro``: read-only).
         runtime: how it runs image tasks: ``auto``, ``container`` or ``process``.
         container_engine: ``podman`` or ``docker`` (default: the first that answers).
+        kubernetes_config: the Kubernetes pool's JSON configuration, with ``runtime``
+            ``kubernetes`` (``osmo.runtime.kubernetes.config``; None: every default).
         store_limit: bytes its artifact store may hold before cached blobs are removed
             (``osmo.worker.store_keeper``; None: a quarter of its filesystem; 0: no limit).
         log_limit: bytes each attempt's log keeps at most (``osmo.worker.logs``).
@@ -80,6 +82,7 @@ class WorkerOptions:
     sandbox_share: tuple[str, ...] = ()
     runtime: str = "auto"
     container_engine: str | None = None
+    kubernetes_config: str | None = None
     store_limit: int | None = None
     log_limit: int = DEFAULT_LOG_LIMIT
 
@@ -122,6 +125,11 @@ class WorkerOptions:
                             "taken yet are never removed")
         add_log_limit_argument(w)
         add_runtime_arguments(w)
+        w.add_argument("--kubernetes-config", metavar="FILE",
+                       default=os.environ.get("OSMO_KUBERNETES_CONFIG"),
+                       help="with --runtime kubernetes: the pool's JSON configuration "
+                            "(namespace, node selectors, gang scheduler, ...; "
+                            "OSMO_KUBERNETES_CONFIG)")
 
     @classmethod
     def from_args(cls, args: argparse.Namespace) -> WorkerOptions:
@@ -149,7 +157,8 @@ class WorkerOptions:
                    token=_token(args.token, args.token_file), token_file=args.token_file,
                    sandbox=args.sandbox,
                    sandbox_share=shares(args.sandbox_share), runtime=args.runtime,
-                   container_engine=args.container_engine, store_limit=store_limit,
+                   container_engine=args.container_engine,
+                   kubernetes_config=args.kubernetes_config, store_limit=store_limit,
                    log_limit=args.log_limit)
 
 

@@ -76,8 +76,8 @@ from osmo.artifacts.store import DEFAULT_MAX_FILES
 from osmo.errors import UsageError
 from osmo.layout import Home
 from osmo.options import DEFAULT_LOG_LIMIT, SandboxMode
+from osmo.runtime.api import Runtime
 from osmo.runtime.choose import Runtimes, processes_for_node
-from osmo.runtime.container.runtime import ContainerRuntime
 from osmo.runtime.process.sandbox import Sandbox
 from osmo.scheduler.types import (
     LOCAL_NODE,
@@ -136,7 +136,8 @@ class LocalPool:
         address: how peers reach this node's tasks (``{{host:NAME}}``): given to the
             sandboxed tasks' network too (``osmo.runtime.process.netns``).
         procs_dir: record running commands' pids here (see the module docstring).
-        containers: runs image tasks in containers (closed with the pool).
+        containers: runs image tasks in containers, or as a cluster's pods (closed with
+            the pool).
 
     Attributes:
         home: osmo's home.
@@ -175,7 +176,7 @@ class LocalPool:
         sandbox_share: Sequence[str] = (),
         address: str | None = None,
         procs_dir: Path | None = None,
-        containers: ContainerRuntime | None = None,
+        containers: Runtime | None = None,
     ) -> None:
         if not home.root.is_absolute():
             raise UsageError(f"osmo's home must be an absolute path, not {home.root}")

@@ -52,7 +52,9 @@ from osmo.config import write_json_atomic
 from osmo.errors import NotAllowed, OsmoError, UsageError
 from osmo.layout import Home
 from osmo.names import check_worker_name
-from osmo.runtime.choose import containers_for_node
+from osmo.runtime.choose import image_runtime_for_node
+from osmo.runtime.kubernetes.capacity import cluster_capacity
+from osmo.runtime.kubernetes.runtime import KubernetesRuntime
 from osmo.scheduler.types import (
     LOCAL_NODE,
     AttemptExited,
@@ -143,16 +145,18 @@ class RemoteWorker:
         limit = default_limit(home.root) if options.store_limit is None else options.store_limit
         self._keeper = StoreKeeper(home, self.store, self._inputs, limit,
                                    self._protected, self._io)
+        images = image_runtime_for_node(options.runtime, options.container_engine, home,
+                                        kubernetes_config=options.kubernetes_config)
+        cpus, gpus, memory = _capacity(options, images)
         self.pool = LocalPool(
             home=home, emit=self._emit, node_id=self.id, pool=options.pool,
-            cpus=options.cpus, gpus=options.gpus, memory=options.memory,
+            cpus=cpus, gpus=gpus, memory=memory,
             kill_grace=options.kill_grace, artifacts=self.store,
             credential_for=self._url_creds.get, log_sink=self._send_log,
             log_limit=options.log_limit,
             input_manifests=self._inputs.manifest_of, sandbox=options.sandbox,
             sandbox_share=options.sandbox_share, address=self._address,
-            procs_dir=home.procs,
-            containers=containers_for_node(options.runtime, options.container_engine, home))
+            procs_dir=home.procs, containers=images)
         for secret in options.secret_files:
             self.pool.hide(Path(secret))
         self.sessions = NodeSessions(self.link, self.pool, lambda ticket: self._api.call(
@@ -452,6 +456,17 @@ class RemoteWorker:
     def _send_log(self, attempt_id: str, records: bytes) -> None:
         self._api.send("worker_log", {"id": self.id, "attempt_id": attempt_id,
                                       "records": records.decode(errors="replace")})
+
+
+def _capacity(options: WorkerOptions, images: object
+              ) -> tuple[float | None, int | None, int | None]:
+    """What the worker offers: its options', else a cluster's allocatable, else its machine's."""
+    if not isinstance(images, KubernetesRuntime):
+        return options.cpus, options.gpus, options.memory
+    cpus, gpus, memory = cluster_capacity(images.kube, images.pool)
+    return (options.cpus if options.cpus is not None else cpus,
+            options.gpus if options.gpus is not None else gpus,
+            options.memory if options.memory is not None else memory)
 
 
 def _address() -> str:

@@ -11,6 +11,10 @@ A start whose sandbox could not be set up (bubblewrap failed before the command 
 mount vanished under it while containers started or stopped) is started again, up to
 :data:`SETUP_TRIES` times in all with a growing pause; then the attempt fails to start (an
 infrastructure error, exit code 3004), never with bwrap's exit code 1 as the command's.
+
+A runtime may say, when it reaps a launch, that it never ran for good (``start_failed``: a
+pod whose image cannot be pulled; the attempt fails to start) or that it was lost to its
+infrastructure (``lost``: an evicted pod; ``AttemptLost``, rescheduled and not a retry).
 """
 
 from __future__ import annotations
@@ -22,7 +26,13 @@ from concurrent.futures import ThreadPoolExecutor
 
 from osmo.runtime.api import Launch, ProcessHandle, Runtime, StartError
 from osmo.runtime.process.proctable import process_start_time
-from osmo.scheduler.types import AttemptExited, AttemptStarted, AttemptStartFailed, Event
+from osmo.scheduler.types import (
+    AttemptExited,
+    AttemptLost,
+    AttemptStarted,
+    AttemptStartFailed,
+    Event,
+)
 from osmo.worker.checkpoints import start_checkpoints
 from osmo.worker.endings import KILLED_BEFORE_START, Ending
 from osmo.worker.live import AttemptState, LiveAttempt
@@ -180,6 +190,9 @@ class Starting:
             if attempt.checkpoints is not None:
                 attempt.checkpoints.stop()
             attempt.log.flush_partial()
+            if attempt.kill_reason is None and (handle.start_failed or handle.lost):
+                self._not_run(attempt, handle)
+                return
             if handle.setup_failed:  # the command never ran
                 if attempt.kill_reason is None:
                     self._setup_failed(attempt)  # try again, or fail its start
@@ -192,6 +205,15 @@ class Starting:
                 attempt.id, code, None, f"its end could not be recorded: {exc!r}"))
             return
         self._ending.exited(attempt, code)
+
+    def _not_run(self, attempt: LiveAttempt, handle: ProcessHandle) -> None:
+        """Its runtime says it never ran (it fails to start) or was lost (rescheduled)."""
+        if handle.start_failed:
+            self.failed(attempt, handle.start_failed)
+            return
+        message = handle.lost or "lost"
+        attempt.log.line("osmo", f"lost: {message}")
+        self._ending.finish(attempt, AttemptLost(attempt.id, message))
 
     def _setup_failed(self, attempt: LiveAttempt) -> None:
         """Its sandbox could not be set up and the command never ran: start it again, or fail.

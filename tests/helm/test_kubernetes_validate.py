@@ -37,6 +37,9 @@ CASES = {
         "mode": "auto", "podSecurityContext": {
             "seccompProfile": {"type": "Localhost", "localhostProfile": "osmo-bwrap.json"},
             "appArmorProfile": {"type": "Localhost", "localhostProfile": "osmo-bwrap"}}}},
+    "kubernetes-pool": {"pools": [{"name": "pods", "replicas": 1, "kind": "kubernetes",
+                                   "kubernetes": {"workClaim": "osmo-work", "gang": "volcano",
+                                                  "namespace": "osmo-tasks"}}]},
 }
 CASES["router-tls-mtls-auth"]["tls"].update(mtls=True, client={"cert": "c", "key": "k"})
 

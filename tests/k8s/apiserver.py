@@ -6,7 +6,8 @@ serialisation, watch and error paths run for real:
 - ``/api/v1/...`` and ``/apis/GROUP/VERSION/...``, namespaced or not, for the resources of
   ``store.RESOURCES``; verbs get, list, watch (``?watch=true``), create, update (PUT), patch
   (``patches.py``), delete and deletecollection; ``pods/log`` (``follow=true`` streams) and
-  ``pods/status``; ``dryRun=All``; label and field selectors; ``limit``/``continue``.
+  ``pods/status``; ``pods/exec`` (a WebSocket upgrade speaking ``v5``/``v4.channel.k8s.io``,
+  ``websocket.py``; the node runs the command); ``dryRun=All``; label and field selectors; ``limit``/``continue``.
 - A watch is a chunked stream of JSON lines ``{"type": ..., "object": ...}``; one from a
   version the history no longer holds gets a single ERROR event carrying a 410 Expired Status,
   as the real server's watch cache sends it (HTTP 200). ``timeoutSeconds`` ends it.
@@ -26,10 +27,14 @@ from __future__ import annotations
 import base64
 import collections
 import json
+import os
 import queue
 import re
 import select
 import socket
+import struct
+import subprocess
+import sys
 import threading
 import time
 import traceback
@@ -44,8 +49,9 @@ from tests.k8s.patches import apply_patch
 from tests.k8s.selectors import Predicate, SelectorError, field_selector, label_selector
 from tests.k8s.store import ApiError, Obj, Resource, Store
 from tests.k8s.validation import Cause, SchemaCheck, check, decode_secret_data
+from tests.k8s.websocket import CLOSE, WebSocket, accept_key
 
-__all__ = ["ApiServer", "LogSource"]
+__all__ = ["ApiServer", "ExecSource", "LogSource"]
 
 _PATH = re.compile(r"^/(?:api/v1|apis/(?P<group>[^/]+)/(?P<version>[^/]+))"
                    r"(?:/namespaces/(?P<ns>[^/]+))?/(?P<plural>[^/]+)"
@@ -63,6 +69,18 @@ class LogSource(Protocol):
         """The log of ``container`` of ``pod``; ApiError 400 when it has not started."""
 
 
+class ExecSource(Protocol):
+    """How a command runs in a running container (the node side): a started process."""
+
+    def pod_exec(self, pod: Obj, container: str, command: list[str], *,
+                 tty: bool) -> subprocess.Popen[bytes]:
+        """``command`` in ``container`` of ``pod`` with piped stdin, stdout, stderr.
+
+        Raises:
+            ApiError: 400 when the container does not run.
+        """
+
+
 class ApiServer:
     """The HTTP stand-in: start it, point a client at ``url``, stop it.
 
@@ -76,6 +94,7 @@ class ApiServer:
         self.store = store or Store()
         self.schema = SchemaCheck(validate) if validate else None
         self.log_source: LogSource | None = None
+        self.exec_source: ExecSource | None = None
         self.calls: collections.Counter[tuple[str, str]] = collections.Counter()
         self.stopping = threading.Event()
         self._http = _Server(self)
@@ -165,6 +184,12 @@ class _Server(ThreadingHTTPServer):
         with self.guard:
             self.connections.discard(request)
         super().shutdown_request(request)
+
+    def handle_error(self, request: Any, client_address: Any) -> None:
+        """A client that hung up (a watch it closed, a node killed) is not an error."""
+        if isinstance(sys.exc_info()[1], (ConnectionResetError, BrokenPipeError)):
+            return
+        super().handle_error(request, client_address)
 
     def close_all(self) -> None:
         with self.guard:
@@ -271,9 +296,13 @@ class _Handler(BaseHTTPRequestHandler):
 
     def _dispatch(self, method: str, route: _Route, body: Any) -> None:
         self._count(_verb(method, route.name, self.query), route)  # refused ones count too
-        if route.sub not in (None, "status", "log") or (
-                route.sub == "log" and (method != "GET" or route.res != st.PODS)):
+        if route.sub not in (None, "status", "log", "exec") or (
+                route.sub == "log" and (method != "GET" or route.res != st.PODS)) or (
+                route.sub == "exec" and (method not in ("GET", "POST")
+                                         or route.res != st.PODS)):
             raise ApiError(404, "NotFound", "the server could not find the requested resource")
+        if route.sub == "exec":
+            return self._exec(route)
         if method == "GET" and route.name is None:
             if self.query.get("watch") in ("true", "1"):
                 return self._watch(route)
@@ -380,6 +409,38 @@ class _Handler(BaseHTTPRequestHandler):
             if (limit and sent >= limit) or self.api.stopping.is_set():
                 break
         self._chunk(b"")
+
+    def _exec(self, route: _Route) -> None:
+        """``pods/exec``: a WebSocket carrying Kubernetes' channel protocol (v5 or v4)."""
+        pod = self.api.store.get(st.PODS, route.ns, route.name or "")
+        container = self._log_container(pod)
+        query = parse_qs(urlsplit(self.path).query)
+        command = query.get("command") or []
+        offered = [p.strip() for p in (self.headers.get("Sec-WebSocket-Protocol") or "")
+                   .split(",")]
+        protocol = next((p for p in ("v5.channel.k8s.io", "v4.channel.k8s.io")
+                         if p in offered), None)
+        key = self.headers.get("Sec-WebSocket-Key")
+        if self.headers.get("Upgrade", "").lower() != "websocket" or not key:
+            raise ApiError(400, "BadRequest", "Upgrade request required")
+        if protocol is None or not command:
+            raise ApiError(400, "BadRequest", "you must specify at least 1 command and a "
+                           "channel protocol (v4 or v5.channel.k8s.io)")
+        source = self.api.exec_source
+        if source is None:
+            raise ApiError(400, "BadRequest", "no node runs this pod")
+        proc = source.pod_exec(pod, container, command,
+                               tty=query.get("tty", ["false"])[-1] == "true")
+        self._streaming = True
+        self.close_connection = True
+        self.send_response(101, "Switching Protocols")
+        self.send_header("Upgrade", "websocket")
+        self.send_header("Connection", "Upgrade")
+        self.send_header("Sec-WebSocket-Accept", accept_key(key))
+        self.send_header("Sec-WebSocket-Protocol", protocol)
+        self.end_headers()
+        self.wfile.flush()
+        _relay(WebSocket(self.rfile, self.wfile), proc, v5=protocol.startswith("v5"))
 
     def _log_container(self, pod: Obj) -> str:
         spec = pod.get("spec") or {}
@@ -502,6 +563,61 @@ class _Handler(BaseHTTPRequestHandler):
 class _Route:
     def __init__(self, res: Resource, ns: str | None, name: str | None, sub: str | None) -> None:
         self.res, self.ns, self.name, self.sub = res, ns, name, sub
+
+
+def _relay(ws: WebSocket, proc: subprocess.Popen[bytes], *, v5: bool) -> None:
+    """Carry an exec's streams over ``ws`` until the process ends; then its Status."""
+    assert proc.stdin is not None and proc.stdout is not None and proc.stderr is not None
+
+    def pump(pipe: Any, channel: int) -> None:
+        while data := os.read(pipe.fileno(), 65536):
+            ws.send(bytes([channel]) + data)
+
+    def feed() -> None:
+        try:
+            _feed()
+        except OSError:
+            pass  # the client went away
+        if proc.poll() is None:
+            proc.kill()
+
+    def _feed() -> None:
+        while (message := ws.receive()) is not None:
+            opcode, data = message
+            if opcode == CLOSE:
+                break
+            if data[:1] == b"\0" and proc.stdin is not None:
+                try:
+                    proc.stdin.write(data[1:])
+                    proc.stdin.flush()
+                except OSError:
+                    pass
+            elif v5 and data[:2] == b"\xff\0" and proc.stdin is not None:
+                proc.stdin.close()  # the client closed stdin
+
+    pumps = [threading.Thread(target=pump, args=(proc.stdout, 1), daemon=True),
+             threading.Thread(target=pump, args=(proc.stderr, 2), daemon=True)]
+    for thread in pumps:
+        thread.start()
+    threading.Thread(target=feed, daemon=True).start()
+    for thread in pumps:
+        thread.join()
+    code = proc.wait()
+    for pipe in (proc.stdin, proc.stdout, proc.stderr):
+        try:
+            pipe.close()
+        except OSError:
+            pass
+    status: dict[str, Any] = {"metadata": {}, "status": "Success"}
+    if code != 0:
+        status = {"metadata": {}, "status": "Failure", "reason": "NonZeroExitCode",
+                  "message": f"command terminated with non-zero exit code: {code}",
+                  "details": {"causes": [{"reason": "ExitCode", "message": str(code)}]}}
+    try:
+        ws.send(bytes([3]) + json.dumps(status).encode())
+        ws.send(struct.pack("!H", 1000), CLOSE)
+    except OSError:
+        pass
 
 
 def _verb(method: str, name: str | None, query: dict[str, str]) -> str:

@@ -18,6 +18,7 @@ It follows the store's events (never HTTP) and acts as the control plane and the
 - **Deletion**: a graceful delete stops the pod (SIGTERM, SIGKILL after the grace),
   publishes the containers' last states, removes it from podman, then from the API; a forced
   or immediate delete removes it from podman afterwards.
+- **Exec**: ``pods/exec`` runs ``podman exec -i`` in the running container.
 - **Logs**: ``pods/log`` reads ``podman logs`` (``--follow`` streams until the container
   exits); a container that has not started is a 400 "is waiting to start".
 - **Status scripts** (``scripts.py``): a pod whose name has a script registered plays it
@@ -29,6 +30,7 @@ It follows the store's events (never HTTP) and acts as the control plane and the
 from __future__ import annotations
 
 import queue
+import subprocess
 import tempfile
 import threading
 import uuid
@@ -100,6 +102,7 @@ class Kubelet:
         self._closed = threading.Event()
         self._threads: list[threading.Thread] = []
         api.log_source = self
+        api.exec_source = self
         self.store.listen(self._work.put)
         self._spawn(self._control, "k8s-kubelet")
         self._spawn(self._poll, "k8s-poller")
@@ -473,6 +476,10 @@ class Kubelet:
                 play, pod.killed = pod.play, True
             if play is not None and play.poll() is None:
                 play.kill()
+            # the containers first, then the pod's sandbox, as the kubelet does: stopping the
+            # infra container at once would kill a shared PID namespace's processes outright
+            self.podman.stop_containers([f"{pod.podman}-{c}" for c in
+                                         self.podman.played.get(pod.podman, [])], grace)
             self.podman.stop(pod.podman, grace)
             seen = self.podman.states({pod.podman: self.podman.played.get(pod.podman, [])}
                                       ).get(pod.podman, {})
@@ -531,6 +538,20 @@ class Kubelet:
                            f'"{pod["metadata"]["name"]}" is waiting to start: {reason}')
         yield from self.podman.logs(f"{known.podman}-{container}", follow=follow, tail=tail,
                                     timestamps=timestamps)
+
+
+    def pod_exec(self, pod: Obj, container: str, command: list[str], *,
+                 tty: bool) -> subprocess.Popen[bytes]:
+        """``podman exec -i`` of ``command`` in a running container (``ExecSource``).
+
+        With ``tty`` the command gets a terminal too (``-t``, under a pseudo-terminal here).
+        """
+        with self._lock:
+            known = self._pods.get(pod["metadata"]["uid"])
+            seen = known.seen.get(container) if known else None
+        if known is None or seen is None or seen.state != "running":
+            raise ApiError(400, "BadRequest", f"container {container} is not running")
+        return self.podman.exec(f"{known.podman}-{container}", command)
 
 
 class _ScriptView:

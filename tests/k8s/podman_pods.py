@@ -310,6 +310,12 @@ class PodmanPods:
             proc.wait()
             proc.stdout.close()
 
+    def exec(self, container: str, command: Sequence[str]) -> subprocess.Popen[bytes]:
+        """``podman exec -i CONTAINER COMMAND`` with its three streams piped."""
+        return subprocess.Popen(["podman", "exec", "-i", container, *command],
+                                stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, env=self.env)
+
     def leftovers(self) -> tuple[list[str], list[str]]:
         """(pods, containers) this node played that still exist, and any other pod carrying
         its label."""

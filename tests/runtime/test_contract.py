@@ -1,8 +1,9 @@
 """One contract, every runtime (``osmo.runtime.api.Runtime``): the conformance kit
 ``osmo.testing.check_runtime`` runs over the process runtime, the sandboxed process runtime
-(bubblewrap in the node's namespaces) and the container runtime (podman, with the offline
-images of tests/containers). A Kubernetes pod runtime or a Slurm job runtime is done when it
-joins :data:`RUNTIMES` and passes.
+(bubblewrap in the node's namespaces), the container runtime (podman, with the offline
+images of tests/containers) and the Kubernetes runtime (pods of the API stand-in of
+tests/k8s, under podman kube play, its exec through the stand-in's WebSocket). A Slurm job
+runtime is done when it joins :data:`RUNTIMES` and passes.
 """
 
 from __future__ import annotations
@@ -17,6 +18,9 @@ import pytest
 from osmo.runtime.api import Launch, ProcessHandle, Runtime
 from osmo.runtime.choose import processes_for_node
 from osmo.runtime.container import ContainerEngine, ContainerRuntime
+from osmo.runtime.kubernetes.config import KubePool
+from osmo.runtime.kubernetes.kube import Kube
+from osmo.runtime.kubernetes.runtime import KubernetesRuntime
 from osmo.runtime.process.runtime import ProcessRuntime
 from osmo.runtime.process.sandboxed import SandboxRuntime
 from osmo.testing import check_runtime
@@ -25,6 +29,9 @@ from tests.containers.conftest import (  # noqa: F401 - fixtures the container c
     images,
     podman_env,
 )
+from tests.k8s.conftest import Cluster, api  # noqa: F401 - the Kubernetes case's stand-in
+from tests.k8s.nodes import kubeconfig
+from tests.k8s.store import PODS, SECRETS
 
 HOST_LISTENER = ("busybox", "nc", "-l", "-p", "{port}")  # busybox-static: ./dev installs it
 
@@ -36,6 +43,7 @@ class Case:
     runtime: Runtime
     image: str | None = None  # what every task names (a runtime that runs tasks in images)
     listen: Sequence[str] = ("nc", "-l", "-p", "{port}")
+    merged_output: bool = False
 
 
 def _process(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Case]:
@@ -62,10 +70,23 @@ def _container(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Case]
     assert found.remove_labelled({"osmo.owner": owner}) == ([], []), "containers were left"
 
 
+def _kubernetes(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Case]:
+    """Pods of the API stand-in (tests/k8s), run under podman kube play."""
+    request.getfixturevalue("images")
+    cluster: Cluster = request.getfixturevalue("api")
+    pool = KubePool(kubeconfig=str(kubeconfig(cluster.server.url, tmp_path)))
+    runtime = KubernetesRuntime(pool, Kube(cluster.client), instance="contract")
+    yield Case(runtime, image="alpine:3.18", merged_output=True)
+    runtime.close()
+    assert [obj["metadata"]["name"] for _, obj in cluster.server.store.objects(
+        [PODS, SECRETS])] == [], "pods or Secrets were left"
+
+
 RUNTIMES: dict[str, Callable[[pytest.FixtureRequest, Path], Iterator[Case]]] = {
     "process": _process,
     "sandbox": _sandbox,
     "container": _container,
+    "kubernetes": _kubernetes,
 }
 """Every runtime, by name: what the contract runs over (add the next one here)."""
 
@@ -76,7 +97,8 @@ def case(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Case]:
 
 
 def test_every_runtime_keeps_the_contract(case: Case, tmp_path: Path) -> None:
-    check_runtime(case.runtime, tmp_path / "attempts", image=case.image, listen=case.listen)
+    check_runtime(case.runtime, tmp_path / "attempts", image=case.image, listen=case.listen,
+                  merged_output=case.merged_output)
 
 
 class _Broken:

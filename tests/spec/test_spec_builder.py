@@ -89,6 +89,9 @@ def test_jinja_like_text_survives_round_trip() -> None:
 NAMES = st.from_regex(r"[a-z][a-z0-9_-]{0,8}[a-z0-9]", fullmatch=True)
 TEXT = st.text(st.characters(blacklist_categories=("Cs",)), max_size=20)
 WORDS = st.lists(TEXT, min_size=1, max_size=3)
+# environment values never hold NUL: the spec refuses them (no process can be given one)
+ENV_TEXT = st.text(st.characters(blacklist_categories=("Cs",), blacklist_characters="\0"),
+                   max_size=20)
 TOKENS = st.sampled_from(["{{output}}", "{{ workflow_id }}", "{{uuid}}"])
 
 
@@ -120,7 +123,7 @@ def task_kwargs(draw: st.DrawFn, upstream: list[str], with_resources: bool) -> d
         "command": command,
         "args": draw(st.lists(TEXT, max_size=2)),
         "image": draw(st.none() | st.just("python:3.11")),
-        "environment": draw(st.dictionaries(env_keys, TEXT | st.integers() | st.booleans(),
+        "environment": draw(st.dictionaries(env_keys, ENV_TEXT | st.integers() | st.booleans(),
                                             max_size=3)),
         "files": files,
         "inputs": inputs,

@@ -26,6 +26,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from osmo.runtime.api import ProcessHandle, StartError
+from osmo.runtime.background import Background
 from osmo.runtime.container.engine import ContainerEngine
 from osmo.runtime.container.run import ContainerError, ContainerRun, run_argv, secret_env_text
 from osmo.runtime.process.groups import ProcessGroups
@@ -60,7 +61,7 @@ class ContainerRuns:
         self._processes = processes or ProcessGroups()
         self._retry = kill_retry
         self._live: dict[ProcessHandle, _Live] = {}
-        self._threads: set[threading.Thread] = set()
+        self._background = Background("osmo-container-call")
         self._lock = threading.Lock()
 
     def start(self, argv: Sequence[str], *, cwd: Path, env: Mapping[str, str],
@@ -122,13 +123,7 @@ class ContainerRuns:
 
     def close(self) -> None:
         """Wait for the engine calls (kills, removals) still under way."""
-        while True:
-            with self._lock:
-                threads = list(self._threads)
-            if not threads:
-                return
-            for thread in threads:
-                thread.join()
+        self._background.close()
 
     # -------------------------------------------------------------- internals
 
@@ -146,17 +141,7 @@ class ContainerRuns:
 
     def later(self, fn: Callable[..., object], *args: object) -> None:
         """Call ``fn(*args)`` on a thread of its own (an engine call); ``close`` waits for it."""
-        def run() -> None:
-            try:
-                fn(*args)
-            finally:
-                with self._lock:
-                    self._threads.discard(thread)
-
-        thread = threading.Thread(target=run, name="osmo-container-call", daemon=True)
-        with self._lock:
-            self._threads.add(thread)
-        thread.start()
+        self._background.later(fn, *args)
 
     @staticmethod
     def _quietly(fn: Callable[..., object], *args: object) -> None:

@@ -1,0 +1,451 @@
+"""The Kubernetes runtime: each attempt runs as a Pod of its task's image.
+
+What it owns, one concern per method of the runtime contract (``osmo.runtime.api``):
+
+- what the task sees: OSMO's data layout, the container runtime's
+  (``osmo.runtime.container.layout``): ``/osmo/data/input/N``, ``/osmo/data/output``,
+  ``files:`` at their absolute paths, the task's own environment only;
+- the image: pinned to its id where the node has a container engine that knows it (as the
+  container runtime pins it: the id goes into lineage; the server's cache key uses it);
+  otherwise its tag, as the cluster resolves it;
+- the launch (:meth:`KubernetesRuntime.prepare`): the attempt's Pod and Secret manifests
+  (``osmo.runtime.kubernetes.manifest``), the node's attempt folders shared with the pod
+  through the pool's work volume, its output folder handed to the pod's uid;
+- start, kill, reap, release: a thread per attempt follows its pod
+  (``osmo.runtime.kubernetes.follow``: creates the pod and its Secret, watches it, streams
+  its log, deletes it) and writes the log into the handle's pipes; the handle's process is a
+  sleeping sentinel (its pid and pidfd are what the pool watches and records), killed when
+  the pod's life is over, so the handle's exit descriptor becomes readable then. No Python
+  process per attempt: a node follows hundreds of pods at the cost of threads. A kill
+  deletes the pod with its 3 s grace (forced: at once). ``reap`` reads the verdict: a pod
+  whose image could not be pulled fails to start, an evicted, preempted or lost pod is a
+  lost attempt (``ProcessHandle.start_failed`` / ``lost``);
+- clean-up: nothing is left after an attempt (the follower deletes the pod; the API's
+  garbage collector its Secret). A node that dies leaves its pods; at start,
+  :meth:`KubernetesRuntime.clean_orphans` deletes every pod and group Service of this
+  instance a previous life left (found by label): the server reschedules those attempts.
+
+- exec: the Kubernetes exec API (a WebSocket), held by a relay process the node spawns
+  (``osmo.runtime.kubernetes.exec_relay``); port-forward: the node dials the pod's IP
+  (:meth:`KubernetesRuntime.connector`); the node's session relays both over zenoh as on
+  every node.
+
+Not here yet: inputs fetched by an init container and outputs taken by a sidecar (today the pod
+sees the node's folders through the work volume, so the node's own checks and atomic
+promotion hold unchanged).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import IO, Any
+
+from osmo.runtime.api import (
+    Attempt,
+    ConnectError,
+    Connector,
+    ExecCommand,
+    Launch,
+    Paths,
+    ProcessHandle,
+    Runtime,
+    StartError,
+    dial,
+)
+from osmo.runtime.background import Background
+from osmo.runtime.container.engine import ContainerEngine, EngineNotFound, detect_engine
+from osmo.runtime.container.images import ImageIds, registry_auth
+from osmo.runtime.container.layout import DATA_LAYOUT, mounts
+from osmo.runtime.kubernetes.config import KubePool, load_pool
+from osmo.runtime.kubernetes.follow import PodFollower
+from osmo.runtime.kubernetes.groups import Groups, hostname
+from osmo.runtime.kubernetes.kube import Kube, KubeError, connect
+from osmo.runtime.kubernetes.manifest import (
+    CONTAINER,
+    LABEL_INSTANCE,
+    GroupPlan,
+    PodPlan,
+    label_value,
+    pod_manifest,
+    secret_manifest,
+)
+from osmo.runtime.kubernetes.status import Outcome, Verdict
+from osmo.runtime.process.groups import die_with_parent
+from osmo.scheduler.types import PrepareAttempt
+
+__all__ = ["KubeRun", "KubernetesRuntime", "attempt_plan"]
+
+START_FAILED = 125
+"""The exit code reported for a pod that never ran its task (with ``start_failed``)."""
+LOST = 3
+"""The exit code reported for a lost pod (with ``lost``)."""
+KILLED = 137
+"""The exit code of an attempt reaped before its pod ended."""
+_RELAY = "osmo.runtime.kubernetes.exec_relay"
+_PACKAGE_ROOT = Path(__file__).resolve().parents[3]  # the relay imports this very osmo
+_SLEEP = [shutil.which("sleep") or "sleep", "2147483647"]  # the sentinel: waits to be killed
+
+
+@dataclass(frozen=True)
+class KubeRun:
+    """A prepared attempt's pod: its manifests and its gang (never shown)."""
+
+    pod: dict[str, Any] = field(repr=False)
+    secret: dict[str, Any] | None = field(repr=False)
+    group: GroupPlan | None = None
+
+    @property
+    def name(self) -> str:
+        """The pod's name."""
+        return str(self.pod["metadata"]["name"])
+
+
+class KubernetesRuntime:
+    """Attempts as pods (see the module docstring).
+
+    Args:
+        pool: the pool's configuration.
+        kube: the API (the node's own calls: orphans, forced deletes).
+        instance: this node's ``osmo.dev/instance`` label (``owner_id`` of its home).
+        images: the node's container engine's image ids (pins images), if it has one.
+    """
+
+    def __init__(self, pool: KubePool, kube: Kube, *, instance: str,
+                 images: ImageIds | None = None) -> None:
+        self.pool, self.kube, self.instance = pool, kube, label_value(instance)
+        self.images = images
+        self.gangs = Groups(kube, pool, self.instance)
+        self._runs: dict[ProcessHandle, _Live] = {}
+        self._background = Background("osmo-kube-call")
+        self._followers = Background("osmo-pod")  # one per started attempt, until its pod went
+        self._lock = threading.Lock()
+
+    @classmethod
+    def for_node(cls, config: str | None, *, instance: str) -> KubernetesRuntime:
+        """The runtime of a node configured by the file ``config``, its orphans deleted.
+
+        Raises:
+            UsageError: the configuration is wrong.
+            KubeError: the cluster cannot be reached.
+        """
+        pool = load_pool(config)
+        kube = connect(pool.kubeconfig, pool.context)
+        try:
+            engine: ContainerEngine | None = ContainerEngine(detect_engine(None))
+        except EngineNotFound:
+            engine = None
+        made = cls(pool, kube, instance=instance,
+                   images=ImageIds(engine) if engine is not None else None)
+        made.clean_orphans()
+        return made
+
+    def describe(self) -> str:
+        """``kubernetes (namespace NS)``: what ``osmo pool list`` shows."""
+        return f"kubernetes (namespace {self.pool.namespace})"
+
+    def clean_orphans(self) -> list[str]:
+        """Delete every pod and group Service of this instance (a previous life's).
+
+        Each pod's Secret goes too (it is the pod's name; a pull Secret has no owner).
+        Secrets are never listed: the node may not read them.
+
+        Returns ``kind/name`` of each. (A PodGroup left by a crash stays: it holds nothing.)
+        """
+        mine = f"{LABEL_INSTANCE}={self.instance}"
+        names = []
+        for kind in ("pod", "service"):
+            items, _ = self.kube.list_objects(kind, self.pool.namespace, labels=mine)
+            for item in items:
+                name = str(item["metadata"]["name"])
+                self.kube.delete(kind, self.pool.namespace, name,
+                                 grace=0 if kind == "pod" else None)
+                names.append(f"{kind}/{name}")
+                if kind == "pod" and self.kube.delete("secret", self.pool.namespace, name):
+                    names.append(f"secret/{name}")  # a pull Secret (no owner) of that pod
+        return names
+
+    def paths(self, cmd: PrepareAttempt) -> Paths:
+        """OSMO's data layout (the container runtime's); ``{{host:NAME}}`` a group's pod."""
+        hosts = self.gangs.hosts(cmd)
+        return DATA_LAYOUT if hosts is None else replace(DATA_LAYOUT, hosts=hosts)
+
+    def prepare(self, launch: Launch, attempt: Attempt, *,
+                progress: Callable[[str], None]) -> Launch:
+        """The launch with its pod's manifests; its output folder handed to the pod's uid.
+
+        Raises:
+            ManifestError: a value no manifest can hold (the message names it).
+        """
+        cmd, task, dirs = attempt.cmd, attempt.task, attempt.dirs
+        assert task.image is not None, "the chooser gives the Kubernetes runtime image tasks"
+        pinned = self.images.known(cmd.workflow_id, task.image) if self.images else None
+        plan = attempt_plan(launch, attempt, instance=self.instance, image=pinned)
+        group, lead, workdir = plan.group, plan.lead, plan.workdir
+        registry = registry_auth(task.image, attempt.credential)
+        secret = (secret_manifest(plan, launch.secret_env, self.pool, owner_uid="",
+                                  registry=registry)
+                  if launch.secret_env or registry else None)
+        pod = pod_manifest(plan, self.pool, secret=plan.name if secret else None,
+                           pulls_with_secret=registry is not None)
+        self._hand_over(dirs.output_partial, dirs.work if workdir else None)
+        if group is not None:
+            self.gangs.join(cmd, group)
+        run = KubeRun(pod, secret, group)
+        note = (f"pod {plan.name} in namespace {self.pool.namespace}, image '{task.image}'"
+                + (f" is {pinned}" if pinned else ""))
+        waits = group is not None and not lead and self.pool.gang == "none"
+        return replace(launch, run=run, image_id=pinned, notes=(*launch.notes, note),
+                       waits=waits)
+
+    def start(self, launch: Launch) -> ProcessHandle:
+        """Start following the attempt's pod (a thread here) and its sentinel process.
+
+        Raises:
+            StartError: the sentinel or the pipes cannot be made.
+        """
+        run = _run(launch)
+        if launch.waits and run.group is not None:
+            self.gangs.wait_for_lead(run.group)
+        handle, live = self._sentinel(run)
+        follower = PodFollower(self.kube, run.pod, run.secret, out=live.out,
+                               note=live.note, stop=live.stop, force=live.force)
+        with self._lock:
+            self._runs[handle] = live
+        self._followers.later(self._follow, follower, live, handle)
+        return handle
+
+    def kill(self, handle: ProcessHandle, *, force: bool = False) -> None:
+        """Delete the pod with its 3 s grace (``force``: at once); never raises."""
+        with self._lock:
+            live = self._runs.get(handle)
+        if live is None:
+            return
+        live.stop.set()
+        if force:
+            live.force.set()
+
+    def reap(self, handle: ProcessHandle) -> int:
+        """The task's exit code; a pod that never ran or was lost says so on the handle.
+
+        Reaped before its end (the pool closing): the pod is deleted at once, in the
+        background, and the attempt counts as killed (137).
+        """
+        with self._lock:
+            live = self._runs.get(handle)
+        if live is not None and live.verdict is None:
+            live.stop.set()
+            live.force.set()
+        _end_sentinel(handle)
+        handle.popen.wait()
+        found = live.verdict if live is not None else None
+        if found is None:
+            return KILLED
+        if found.outcome is Outcome.START_FAILED:
+            handle.start_failed = found.message or "the pod could not start"
+            return START_FAILED
+        if found.outcome is Outcome.LOST:
+            handle.lost = found.message or "the pod was lost"
+            return LOST
+        return found.exit_code if found.exit_code is not None else 1
+
+    def release(self, handle: ProcessHandle) -> None:
+        """Close the handle's descriptors (idempotent)."""
+        with self._lock:
+            self._runs.pop(handle, None)
+        for fd in (handle.stdout_fd, handle.stderr_fd, handle.exit_fd):
+            if fd >= 0:
+                os.close(fd)
+        handle.stdout_fd = handle.stderr_fd = handle.exit_fd = -1
+
+    def exec(self, launch: Launch, command: Sequence[str], *, tty: bool,
+             term: str | None) -> ExecCommand:
+        """``command`` in the pod's task container, through the API's exec.
+
+        The node spawns a relay (``osmo.runtime.kubernetes.exec_relay``) that holds the
+        exec's WebSocket; with a TTY, ``TERM`` is set for the command.
+        """
+        argv = list(command)
+        if tty and term:
+            argv = ["env", f"TERM={term}", *argv]
+        spec = {"kubeconfig": self.pool.kubeconfig, "context": self.pool.context,
+                "namespace": self.pool.namespace, "pod": _run(launch).name,
+                "container": CONTAINER, "command": argv, "tty": tty}
+        env = dict(os.environ)
+        env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(_PACKAGE_ROOT),
+                                                          env.get("PYTHONPATH")]))
+        return ExecCommand([sys.executable, "-m", _RELAY, json.dumps(spec)], launch.cwd, env,
+                           ctty=tty)
+
+    def connector(self, launch: Launch, handle: ProcessHandle) -> Connector:
+        """To the task's ports on its pod's IP (the node dials it; the node's session relays).
+
+        An in-cluster node reaches pod IPs directly, as every pod of a cluster does (unless
+        a NetworkPolicy forbids it); it does not go through the API's port-forward.
+
+        Raises:
+            ConnectError: the pod has no IP (not running) or is gone.
+            KubeError: the API cannot be asked.
+        """
+        name = _run(launch).name
+        pod = self.kube.read_pod(self.pool.namespace, name)
+        address = str(((pod or {}).get("status") or {}).get("podIP") or "")
+        if not address:
+            raise ConnectError(f"pod {name} has no IP (it is not running)")
+        return lambda port, udp: dial(address, port, udp=udp)
+
+    def cleanup(self, launch: Launch) -> None:
+        """Its group's objects go with the group's last member here (in the background).
+
+        The pod itself was deleted by its follower.
+        """
+        run = launch.run
+        if isinstance(run, KubeRun) and run.group is not None:
+            self._background.later(self.gangs.leave, run.group)
+
+    def close(self) -> None:
+        """Wait for the followers (pods still being deleted), the group objects; close the API.
+
+        A follower ends at most ``follow.GIVE_UP_AFTER`` seconds after its kill.
+        """
+        self._followers.close()
+        self._background.close()
+        self.kube.close()
+
+    # ------------------------------------------------------------ internals
+
+    def _hand_over(self, *folders: Path | None) -> None:
+        """Let the pod's uid write the attempt's output (and working) folder.
+
+        As root, the folders become the pod's uid's; otherwise pods run as this uid
+        (``runAsUser`` must then be it).
+        """
+        if os.geteuid() != 0 or self.pool.security_context is not None:
+            return
+        for folder in folders:
+            if folder is not None:
+                os.chown(folder, self.pool.run_as_user, self.pool.run_as_user)
+
+    def _sentinel(self, run: KubeRun) -> tuple[ProcessHandle, _Live]:
+        """The handle: a sleeping local process (its pid, its pidfd) and the log's pipes."""
+        fds: list[int] = []
+        try:
+            out_r, out_w = os.pipe2(os.O_CLOEXEC)
+            fds += [out_r, out_w]
+            err_r, err_w = os.pipe2(os.O_CLOEXEC)
+            fds += [err_r, err_w]
+            popen = subprocess.Popen(_SLEEP, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                     stderr=subprocess.DEVNULL, start_new_session=True,
+                                     preexec_fn=die_with_parent())
+        except OSError as exc:
+            for fd in fds:
+                os.close(fd)
+            raise StartError(f"cannot follow pod {run.name}: {exc.strerror or exc}") from exc
+        started = time.time()
+        os.set_blocking(out_r, False)
+        os.set_blocking(err_r, False)
+        handle = ProcessHandle(popen.pid, os.pidfd_open(popen.pid), out_r, err_r, popen,
+                               started_at=started)
+        return handle, _Live(run, os.fdopen(out_w, "wb", buffering=0),
+                             os.fdopen(err_w, "wb", buffering=0))
+
+    def _follow(self, follower: PodFollower, live: _Live, handle: ProcessHandle) -> None:
+        """The attempt's thread: the pod's life, then its verdict and the handle's end.
+
+        The handle ends with the verdict; the pod's deletion follows on this thread.
+        """
+        def ended(verdict: Verdict) -> None:
+            live.verdict = verdict
+            live.close()
+            _end_sentinel(handle)
+
+        try:
+            live.verdict = follower.run(ended)
+        except KubeError as exc:
+            live.note(str(exc))
+            live.verdict = Verdict(Outcome.START_FAILED, str(exc))
+        except Exception as exc:  # noqa: BLE001 - a bug: the attempt fails, the node goes on
+            live.note(f"following the pod failed: {exc!r}")
+            live.verdict = Verdict(Outcome.START_FAILED, f"following the pod failed: {exc!r}")
+        finally:
+            live.close()
+            _end_sentinel(handle)
+
+
+def attempt_plan(launch: Launch, attempt: Attempt, *, instance: str,
+                 image: str | None = None) -> PodPlan:
+    """What the pod of a prepared attempt is made of (pure; ``image``: its pinned form).
+
+    ``osmo.worker.pods`` uses it too, to show a spec's pods without a cluster.
+    """
+    cmd, task, request = attempt.cmd, attempt.task, attempt.resources
+    assert task.image is not None, "only image tasks run as pods"
+    binds, workdir = mounts(attempt.dirs, launch.files, launch.inputs)
+    group = Groups.of(cmd)
+    return PodPlan(
+        attempt_id=cmd.attempt_id, workflow_id=cmd.workflow_id, task=cmd.task,
+        retry=cmd.retry, instance=instance, image=image or task.image, argv=launch.argv,
+        env=dict(launch.env), secret_env=tuple(sorted(launch.secret_env)), mounts=binds,
+        workdir=workdir, cpu=float(request.cpu or 0) or None, memory=request.memory,
+        gpus=request.gpu or 0, storage=request.storage, platform=request.platform,
+        group=group, hostname=hostname(cmd.task) if group else None,
+        lead=task.lead or next(iter(cmd.hosts), cmd.task) == cmd.task)
+
+
+@dataclass(eq=False)
+class _Live:
+    """A started attempt: its pod, the write ends of its log pipes, its kill and verdict."""
+
+    run: KubeRun
+    out: IO[bytes]
+    err: IO[bytes]
+    stop: threading.Event = field(default_factory=threading.Event)
+    force: threading.Event = field(default_factory=threading.Event)
+    verdict: Verdict | None = None
+
+    def note(self, line: str) -> None:
+        """An osmo line about the pod, on the task's stderr."""
+        try:
+            self.err.write(f"osmo: {line}\n".encode())
+        except OSError:
+            pass  # the pool let go of the attempt
+
+    def close(self) -> None:
+        """The log ends: close the write ends."""
+        for pipe in (self.out, self.err):
+            try:
+                pipe.close()
+            except OSError:
+                pass
+
+
+def _end_sentinel(handle: ProcessHandle) -> None:
+    """The attempt ended: its sentinel goes, so the handle's exit descriptor is readable."""
+    if handle.popen.returncode is None:
+        try:
+            os.killpg(handle.pid, signal.SIGKILL)
+        except (ProcessLookupError, PermissionError):
+            pass
+
+
+def _run(launch: Launch) -> KubeRun:
+    run = launch.run
+    if not isinstance(run, KubeRun):
+        raise TypeError(f"{launch!r} was not prepared by the Kubernetes runtime")
+    return run
+
+
+def _conforms(runtime: KubernetesRuntime) -> Runtime:
+    """Never called: mypy checks here that KubernetesRuntime keeps the runtime contract."""
+    return runtime
+
+

@@ -1,0 +1,91 @@
+"""A pool of kind ``kubernetes`` (issue #28): its worker runs ``osmo worker --runtime
+kubernetes`` with the pool's configuration, a ServiceAccount of its own, and a Role in the
+tasks' namespace that grants nothing beyond what the worker uses (the rendered RBAC is read
+here, rule by rule); the configuration the chart writes is what the worker reads.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from osmo.runtime.kubernetes.config import load_pool
+from tests.helm.chart import FULLNAME, NAMESPACE, container, env, flag, lint, render
+
+POD_GROUPS = {"kai": "scheduling.run.ai", "volcano": "scheduling.volcano.sh",
+              "coscheduling": "scheduling.x-k8s.io"}
+
+
+def values(**kube: Any) -> dict[str, Any]:
+    return {"pools": [{"name": "cpu", "replicas": 1},
+                      {"name": "pods", "replicas": 2, "kind": "kubernetes",
+                       "kubernetes": {"workClaim": "osmo-work", **kube}}]}
+
+
+def rules(rendered: Any, name: str = f"{FULLNAME}-kube-pods") -> set[tuple[str, str, str]]:
+    return {(group, resource, verb) for rule in rendered.get("Role", name)["rules"]
+            for group in rule["apiGroups"] for resource in rule["resources"]
+            for verb in rule["verbs"]}
+
+
+@pytest.mark.parametrize("gang", ["none", "kai", "volcano", "kueue", "coscheduling"])
+def test_the_role_grants_only_what_the_worker_uses(gang: str) -> None:
+    rendered = render(values(gang=gang, namespace="osmo-tasks"))
+    expected = {("", "pods", v) for v in ("create", "get", "list", "watch", "delete")}
+    expected |= {("", "pods/log", "get")}
+    expected |= {("", "secrets", v) for v in ("create", "delete")}  # never read
+    expected |= {("", "pods/exec", "create"), ("", "pods/exec", "get")}
+    expected |= {("", "services", v) for v in ("create", "list", "delete")}
+    if gang in POD_GROUPS:
+        expected |= {(POD_GROUPS[gang], "podgroups", v) for v in ("create", "delete")}
+    assert rules(rendered) == expected
+    role = rendered.get("Role", f"{FULLNAME}-kube-pods")
+    assert role["metadata"]["namespace"] == "osmo-tasks"
+    binding = rendered.get("RoleBinding", f"{FULLNAME}-kube-pods")
+    assert binding["subjects"] == [{"kind": "ServiceAccount", "name": f"{FULLNAME}-kube-pods",
+                                    "namespace": NAMESPACE}]
+    nodes = rendered.get("ClusterRole", f"{NAMESPACE}-{FULLNAME}-kube-pods-nodes")
+    assert nodes["rules"] == [{"apiGroups": [""], "resources": ["nodes"],
+                               "verbs": ["get", "list", "watch"]}]
+    assert len(rendered.of_kind("Role")) == 1 and len(rendered.of_kind("ClusterRole")) == 1
+
+
+def test_read_nodes_off_leaves_no_cluster_role() -> None:
+    assert render(values(readNodes=False)).of_kind("ClusterRole") == []
+
+
+def test_the_worker_runs_the_kubernetes_runtime_with_the_written_pool(tmp_path: Path) -> None:
+    rendered = render(values(gang="kai", queue="research", nodeSelector={"pool": "robots"},
+                             platforms={"dgx": {"nodeSelector": {"gpu": "h100"}}},
+                             priorityClasses={"default": "osmo-normal"}))
+    deployment = rendered.get("Deployment", f"{FULLNAME}-worker-pods")
+    worker = container(deployment, "worker")
+    assert flag(worker["args"], "--runtime") == ["kubernetes"]
+    assert flag(worker["args"], "--kubernetes-config") == ["/etc/osmo/kubernetes/pool.json"]
+    assert env(worker)["OSMO_HOME"] == "/var/lib/osmo/home/$(POD_NAME)"
+    spec = deployment["spec"]["template"]["spec"]
+    assert spec["serviceAccountName"] == f"{FULLNAME}-kube-pods"
+    assert spec["automountServiceAccountToken"] is True
+    claim = {v["name"]: v for v in spec["volumes"]}["home"]
+    assert claim == {"name": "home", "persistentVolumeClaim": {"claimName": "osmo-work"}}
+    text = rendered.get("ConfigMap", f"{FULLNAME}-kube-pods")["data"]["pool.json"]
+    (tmp_path / "pool.json").write_text(text)
+    pool = load_pool(tmp_path / "pool.json")  # what the worker reads
+    assert (pool.namespace, pool.gang, pool.queue) == (NAMESPACE, "kai", "research")
+    assert pool.placement.node_selector == {"pool": "robots"}
+    assert pool.platforms["dgx"].node_selector == {"gpu": "h100"}
+    assert (pool.work_claim, str(pool.work_mount)) == ("osmo-work", "/var/lib/osmo")
+    assert pool.kubeconfig is None  # in-cluster: its ServiceAccount's token
+    other = container(rendered.get("Deployment", f"{FULLNAME}-worker-cpu"), "worker")
+    assert "--runtime" not in other["args"]
+    assert json.loads(text)["groupNetwork"] == "service"
+
+
+def test_a_kubernetes_pool_needs_its_work_claim_and_lints_clean() -> None:
+    with pytest.raises(Exception, match="workClaim"):
+        render({"pools": [{"name": "p", "replicas": 1, "kind": "kubernetes",
+                           "kubernetes": {"gang": "kai"}}]})
+    assert lint(values(gang="volcano")) == []

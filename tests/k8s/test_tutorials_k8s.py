@@ -1,0 +1,249 @@
+"""OSMO's tutorials end to end through pods: ``osmo submit`` to a server whose only worker is
+``osmo worker --runtime kubernetes``, its pods created through the official client against
+the API stand-in and run under ``podman kube play`` with the offline test images.
+
+Each tutorial must complete with its tasks' lines in ``osmo logs``, its outputs recorded
+(lineage), and no pod, Secret or Service left in the API (nor anything in podman: the
+fixture checks at the end).
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import re
+import signal
+import subprocess
+import sys
+import time
+import uuid
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from kubernetes import client, watch
+
+from tests.conftest import REPO
+from tests.containers.conftest import images, podman_env  # noqa: F401 - fixtures
+from tests.containers.submitting import lineage_of, submitted_id, task_lines, tasks
+from tests.k8s.nodes import NAMESPACE, KubeCluster, started
+from tests.k8s.store import PODS, SECRETS
+
+TUTORIALS = Path(__file__).parent.parent / "containers" / "osmo_tutorials"
+
+
+@pytest.fixture(scope="module")
+def kube(tmp_path_factory: pytest.TempPathFactory, podman_env: dict[str, str],  # noqa: F811
+         images: dict[str, str]) -> Iterator[KubeCluster]:  # noqa: F811
+    for cluster in started(tmp_path_factory.mktemp("k8s"), podman_env):
+        # the stand-in runs every pod on this host's network: {{host:X}} is X's node address
+        cluster.start_worker("kube-1", groupNetwork="host")
+        yield cluster
+
+
+def run(kube: KubeCluster, name: str) -> tuple[str, dict[str, list[str]], dict[str, dict]]:
+    """Submit a tutorial and wait; its id, its tasks' lines and query rows."""
+    r = kube.osmo("submit", str(TUTORIALS / name), "--wait", timeout=300)
+    wf_id = submitted_id(r.out)
+    lines, rows = task_lines(kube.osmo, wf_id), tasks(kube.osmo, wf_id)
+    assert r.code == 0, f"{r.out}{r.err}{lines}{rows}\n{kube.osmo_cluster.worker_log('kube-1')}"
+    assert {row["status"] for row in rows.values()} == {"COMPLETED"}
+    assert nothing_left(kube) == []
+    return wf_id, lines, rows
+
+
+def nothing_left(kube: KubeCluster, timeout: float = 20) -> list[str]:
+    """What the API still holds once ``timeout`` passed (or nothing)."""
+    deadline = time.monotonic() + timeout
+    while (left := kube.left()) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    return left
+
+
+def test_hello_world_runs_as_a_pod(kube: KubeCluster) -> None:
+    wf_id, lines, _ = run(kube, "hello_world.yaml")
+    assert lines["hello"] == ["Hello from OSMO!"]
+    osmo_log = kube.osmo("logs", wf_id, check=True).out
+    assert "pod osmo-" in osmo_log and "namespace osmo-tasks" in osmo_log, osmo_log
+    node = kube.osmo_cluster.nodes()["kube-1"]
+    assert node["runtime"] == "kubernetes (namespace osmo-tasks)", node
+    # its capacity is the stand-in node's allocatable (8 cpu, 16Gi, 1 GPU), not this machine's
+    assert (node["total"]["cpu"], node["total"]["gpu"], node["total"]["memory"]) == (
+        8.0, 1, 16 << 30), node
+
+
+def test_serial_workflow_hands_outputs_on_between_pods(kube: KubeCluster) -> None:
+    wf_id, lines, rows = run(kube, "serial_workflow.yaml")
+    assert len(lines["task1"]) == 1 and re.fullmatch(r"Hello from task1 \S+", lines["task1"][0])
+    assert lines["task3"] == ["Hello from task3 /osmo/data/output", "Reading from task 1",
+                              "a line: Data from task 1", "Reading from task 2",
+                              "a line: Data from task 2"]
+    for n in (1, 2, 3):
+        output = Path(rows[f"task{n}"]["output"])
+        assert (output / "test_read.txt").read_text() == f"Data from task {n}\n"
+    lineage = lineage_of(kube.osmo, f"{wf_id}:task3")
+    assert lineage["image"] == "ubuntu:24.04" or lineage.get("image_id"), lineage
+
+
+def test_parallel_tasks_run_as_pods(kube: KubeCluster) -> None:
+    _, lines, _ = run(kube, "parallel_tasks.yaml")
+    for name in ("task-a", "task-b", "task-c"):
+        assert lines[name] == [f"Hello from {name}"]
+
+
+def test_combination_workflow_simple(kube: KubeCluster) -> None:
+    _, lines, rows = run(kube, "combination_workflow_simple.yaml")
+    samples = [f"sample_{i},value_{i}" for i in range(1, 11)]
+    csv = Path(rows["generate-data"]["output"]) / "data" / "training_data.csv"
+    assert csv.read_text().splitlines() == samples
+    assert lines["train-model-a"] == ["Training Model A...", *samples, "✓ Model A complete!"]
+
+
+
+FILES = """\
+workflow:
+  name: files
+  tasks:
+  - name: f
+    image: alpine:3.18
+    command: ["sh", "-c", "for f in /etc/osmo-test/config.txt rel.txt; do cat $f; echo; done; pwd; id -u; echo x > {{output}}/o"]
+    files:
+    - path: /etc/osmo-test/config.txt
+      contents: hello-abs
+    - path: rel.txt
+      contents: hello-rel
+"""
+
+
+def test_files_at_their_paths_as_a_non_root_user(kube: KubeCluster, tmp_path: Path) -> None:
+    spec = tmp_path / "files.yaml"
+    spec.write_text(FILES)
+    r = kube.osmo("submit", str(spec), "--wait", timeout=180)
+    wf_id = submitted_id(r.out)
+    lines = task_lines(kube.osmo, wf_id)
+    assert r.code == 0, (r.out, r.err, lines)
+    assert lines["f"] == ["hello-abs", "hello-rel", "/osmo/run/work", "1000"], lines
+    assert (Path(tasks(kube.osmo, wf_id)["f"]["output"]) / "o").read_text() == "x\n"
+
+
+def test_group_tasks_communication_lead_first(kube: KubeCluster) -> None:
+    _, lines, _ = run(kube, "group_tasks_communication.yaml")
+    assert lines["client"][0] == "Client: Starting..."
+    assert lines["client"][2:] == ["Received from server: hello", "Client: Complete"]
+    assert lines["server"] == ["Server: Starting...", "Server: Complete"]
+
+
+
+def test_group_tasks_run_as_a_kai_gang(kube: KubeCluster) -> None:
+    kube.start_worker("kube-gang", pool="gang", gang="kai", groupNetwork="host")
+    before = kube.server.calls[("create", "podgroups.scheduling.run.ai")]
+    r = kube.osmo("submit", str(TUTORIALS / "group_tasks.yaml"), "--pool", "gang", "--wait",
+                  timeout=300)
+    wf_id = submitted_id(r.out)
+    assert r.code == 0, r.out + r.err + kube.osmo_cluster.worker_log("kube-gang")
+    lines = task_lines(kube.osmo, wf_id)
+    said = [line for line in lines["processor-2"] if not line.startswith("osmo: ")]
+    assert said[0] == "Processor 2: Starting..."
+    assert kube.server.calls[("create", "podgroups.scheduling.run.ai")] == before + 1
+    assert nothing_left(kube) == []  # the PodGroup went with the group's last member
+
+
+
+def test_a_missing_image_fails_to_start_with_a_pull_secret_of_its_own(
+        kube: KubeCluster, tmp_path: Path) -> None:
+    password = f"pw-{uuid.uuid4().hex}"
+    kube.osmo("credential", "set", "registry://registry.invalid", "--payload", "username=me",
+              "--payload", f"password={password}", check=True)
+    spec = tmp_path / "missing.yaml"
+    spec.write_text('workflow:\n  name: missing\n  tasks:\n  - name: pulled\n'
+                    '    image: registry.invalid/osmo/nothing:1\n    command: ["true"]\n')
+    since = str(kube.server.store.list(SECRETS)[1])
+    r = kube.osmo("submit", str(spec), "--wait", timeout=180)
+    wf_id = submitted_id(r.out)
+    row = tasks(kube.osmo, wf_id)["pulled"]
+    assert row["status"] == "FAILED_START_ERROR", row
+    assert "image pull failed" in row["message"], row
+    with client.ApiClient(client.Configuration(host=kube.server.url)) as api:
+        made = [e["raw_object"] for e in watch.Watch().stream(
+            client.CoreV1Api(api).list_namespaced_secret, NAMESPACE, resource_version=since,
+            timeout_seconds=1) if e["type"] == "ADDED"]
+    (secret,) = made  # made before its pod, deleted after it
+    assert secret["type"] == "kubernetes.io/dockerconfigjson"
+    auths = json.loads(base64.b64decode(secret["data"][".dockerconfigjson"]))["auths"]
+    assert auths["registry.invalid"]["password"] == password
+    everything = json.dumps(kube.osmo.query(wf_id)) + kube.osmo("logs", wf_id).out
+    assert password not in everything
+    assert nothing_left(kube) == []
+
+
+SLEEPER = """\
+workflow:
+  name: sleeper
+  tasks:
+  - name: t
+    image: alpine:3.18
+    command: ["sh", "-c", "echo ready; exec sleep 300"]
+    environment: {GREETING: hola}
+"""
+
+
+def test_exec_and_cancel_reach_the_pod(kube: KubeCluster, tmp_path: Path) -> None:
+    spec = tmp_path / "sleeper.yaml"
+    spec.write_text(SLEEPER)
+    wf_id = kube.osmo.submit(spec)
+    deadline = time.monotonic() + 60
+    while not running_pods(kube) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    r = kube.osmo("workflow", "exec", wf_id, "t", "--", "sh", "-c",
+                  'echo "$GREETING $OSMO_TASK"; echo oops >&2; exit 7')
+    assert (r.code, r.out, r.err) == (7, "hola t\n", "oops\n"), r
+    proc = subprocess.run([sys.executable, "-m", "osmo", "workflow", "exec", wf_id, "t", "--",
+                           "wc", "-c"], input=b"x" * 100_000, capture_output=True,
+                          env=kube.osmo.env, cwd=REPO, timeout=120)
+    assert proc.returncode == 0 and proc.stdout.strip() == b"100000", proc.stderr
+    started = time.monotonic()
+    assert kube.osmo("cancel", wf_id).code == 0
+    info = kube.osmo.wait_for(wf_id, lambda i: i["status"] not in ("RUNNING", "PENDING"))
+    assert info["status"] != "COMPLETED", info
+    assert nothing_left(kube) == [] and time.monotonic() - started < 30
+    deletes = [k for k in kube.server.calls if k[0] == "delete" and k[1] == "pods"]
+    assert deletes, kube.server.calls
+
+
+CHAOS = """\
+workflow:
+  name: chaos
+  tasks:
+  - name: slow
+    image: alpine:3.18
+    command: ["sh", "-c", "echo started; sleep 4; echo survived > {{output}}/x; echo done"]
+"""
+
+
+def running_pods(kube: KubeCluster) -> list[str]:
+    return [obj["metadata"]["name"] for _, obj in kube.server.store.objects([PODS])
+            if (obj.get("status") or {}).get("phase") == "Running"]
+
+
+def test_a_killed_node_leaves_nothing_and_the_attempt_runs_again(kube: KubeCluster,
+                                                                 tmp_path: Path) -> None:
+    """Chaos (last in this module: it restarts the worker): SIGKILL of the node mid-run."""
+    spec = tmp_path / "chaos.yaml"
+    spec.write_text(CHAOS)
+    wf_id = kube.osmo.submit(spec)
+    kube.osmo.wait_for(wf_id, lambda info: any(
+        t["status"] == "RUNNING" for t in info["tasks"]))
+    deadline = time.monotonic() + 60
+    while not running_pods(kube) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert running_pods(kube), kube.left()
+    kube.osmo_cluster.signal("kube-1", signal.SIGKILL)
+    kube.osmo_cluster.workers["kube-1"].wait(30)
+    assert running_pods(kube)  # a dead node's pods stay until it is back
+    kube.start_worker("kube-1")  # it deletes them by label; the server reschedules
+    info = kube.osmo.wait_for(wf_id, lambda i: i["status"] in ("COMPLETED", "FAILED"),
+                              timeout=180)
+    assert info["status"] == "COMPLETED", info
+    row = info["tasks"][0]
+    assert (Path(row["output"]) / "x").read_text() == "survived\n"
+    assert nothing_left(kube) == []
