@@ -36,11 +36,12 @@ def test_the_role_grants_only_what_the_worker_uses(gang: str) -> None:
     rendered = render(values(gang=gang, namespace="osmo-tasks"))
     expected = {("", "pods", v) for v in ("create", "get", "list", "watch", "delete")}
     expected |= {("", "pods/log", "get")}
-    expected |= {("", "secrets", v) for v in ("create", "delete")}  # never read
+    expected |= {("", "secrets", v) for v in ("create", "delete", "deletecollection")}  # not read
     expected |= {("", "pods/exec", "create"), ("", "pods/exec", "get")}
-    expected |= {("", "services", v) for v in ("create", "list", "delete")}
+    expected |= {("", "services", v) for v in ("create", "delete", "deletecollection")}
     if gang in POD_GROUPS:
-        expected |= {(POD_GROUPS[gang], "podgroups", v) for v in ("create", "delete")}
+        expected |= {(POD_GROUPS[gang], "podgroups", v)
+                     for v in ("create", "delete", "deletecollection")}
     assert rules(rendered) == expected
     role = rendered.get("Role", f"{FULLNAME}-kube-pods")
     assert role["metadata"]["namespace"] == "osmo-tasks"

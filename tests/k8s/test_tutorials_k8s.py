@@ -27,7 +27,7 @@ from tests.conftest import REPO
 from tests.containers.conftest import images, podman_env  # noqa: F401 - fixtures
 from tests.containers.submitting import lineage_of, submitted_id, task_lines, tasks
 from tests.k8s.nodes import NAMESPACE, KubeCluster, started
-from tests.k8s.store import PODS, SECRETS
+from tests.k8s.store import COSCHEDULING, KAI, PODS, SECRETS, SERVICES, Resource
 
 TUTORIALS = Path(__file__).parent.parent / "containers" / "osmo_tutorials"
 
@@ -237,13 +237,52 @@ def test_a_killed_node_leaves_nothing_and_the_attempt_runs_again(kube: KubeClust
     while not running_pods(kube) and time.monotonic() < deadline:
         time.sleep(0.1)
     assert running_pods(kube), kube.left()
+    (pod,) = [obj for _, obj in kube.server.store.objects([PODS])]
+    instance = pod["metadata"]["labels"]["osmo.dev/instance"]
     kube.osmo_cluster.signal("kube-1", signal.SIGKILL)
     kube.osmo_cluster.workers["kube-1"].wait(30)
     assert running_pods(kube)  # a dead node's pods stay until it is back
+    foreign = leave_remains(kube, instance)
     kube.start_worker("kube-1")  # it deletes them by label; the server reschedules
     info = kube.osmo.wait_for(wf_id, lambda i: i["status"] in ("COMPLETED", "FAILED"),
                               timeout=180)
     assert info["status"] == "COMPLETED", info
     row = info["tasks"][0]
     assert (Path(row["output"]) / "x").read_text() == "survived\n"
+    try:  # another instance's stay
+        assert sorted(nothing_left(kube, timeout=5)) == sorted(
+            f"{res.kind}/{name}" for res, name in foreign)
+    finally:
+        for res, name in foreign:
+            kube.server.store.delete(res, NAMESPACE, name)
     assert nothing_left(kube) == []
+
+
+GANG = "osmo-wf-crashed-gang"
+
+
+def leave_remains(kube: KubeCluster, instance: str) -> list[tuple[Resource, str]]:
+    """What a crashed life of ``instance`` leaves beside its pods (a pull Secret made before
+    a pod that never came, a gang's Service and PodGroups); the same objects of another
+    instance too, which must stay. Returns the other instance's."""
+    with client.ApiClient(client.Configuration(host=kube.server.url)) as api:
+        core, custom = client.CoreV1Api(api), client.CustomObjectsApi(api)
+        for owner in (instance, "another-instance"):
+            suffix = "" if owner == instance else "-other"
+            labels = {"osmo.dev/instance": owner, "osmo.dev/group": GANG + suffix}
+            meta = {"labels": labels, "namespace": NAMESPACE}
+            core.create_namespaced_secret(NAMESPACE, {
+                "metadata": {**meta, "name": f"osmo-pull{suffix}"},
+                "type": "kubernetes.io/dockerconfigjson",
+                "data": {".dockerconfigjson": base64.b64encode(b'{"auths": {}}').decode()}})
+            core.create_namespaced_service(NAMESPACE, {
+                "metadata": {**meta, "name": GANG + suffix},
+                "spec": {"clusterIP": "None", "selector": {"osmo.dev/group": GANG}}})
+            for res in (KAI, COSCHEDULING):
+                custom.create_namespaced_custom_object(
+                    res.group, res.version, NAMESPACE, res.plural,
+                    {"apiVersion": f"{res.group}/{res.version}", "kind": "PodGroup",
+                     "metadata": {**meta, "name": GANG + suffix}, "spec": {"minMember": 2}})
+    assert len([k for k in kube.left() if not k.startswith("Pod/")]) == 2 * 4
+    return [(SECRETS, "osmo-pull-other"), (SERVICES, f"{GANG}-other"),
+            (KAI, f"{GANG}-other"), (COSCHEDULING, f"{GANG}-other")]

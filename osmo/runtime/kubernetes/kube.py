@@ -1,8 +1,9 @@
 """The only module that imports the ``kubernetes`` client; its errors become :class:`KubeError`.
 
 :class:`Kube` is what osmo asks of an API server: create, read, list, watch and delete pods,
-Secrets, Services and PodGroups of one namespace, stream a container's log, run a command in
-a container (:class:`ExecSession`: the exec API's WebSocket), list nodes.
+Secrets, Services and PodGroups of one namespace (or every one a label selects), stream a
+container's log, run a command in a container (:class:`ExecSession`: the exec API's
+WebSocket), list nodes.
 Objects go and come as plain dicts (JSON as the API serves it; responses are not turned into
 the client's models, which is slower and loses fields the models do not know).
 
@@ -124,6 +125,27 @@ class Kube:
                 return False
             raise
         return True
+
+    def delete_labelled(self, kind: str | tuple[str, str, str], namespace: str, labels: str
+                        ) -> list[str]:
+        """Delete every ``secret``/``service``/``pod`` (or custom ``kind``) ``labels`` selects.
+
+        One ``deletecollection`` call: the caller needs that verb, not ``list``. The API
+        answers with the deleted objects; only their names are kept (returned).
+        """
+        if isinstance(kind, tuple):
+            group, version, plural = kind
+            call: Any = self.custom.delete_collection_namespaced_custom_object
+            args: tuple[Any, ...] = (group, version, namespace, plural)
+        else:
+            call = {"pod": self.core.delete_collection_namespaced_pod,
+                    "secret": self.core.delete_collection_namespaced_secret,
+                    "service": self.core.delete_collection_namespaced_service}[kind]
+            args = (namespace,)
+        found = _json(self._call(call, *args, label_selector=labels, _preload_content=False,
+                                 _request_timeout=_REQUEST_TIMEOUT))
+        return [str((item.get("metadata") or {}).get("name"))
+                for item in found.get("items") or []]
 
     def read_pod(self, namespace: str, name: str) -> Obj | None:
         """The pod (None: there is none)."""

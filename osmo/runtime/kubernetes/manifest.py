@@ -50,7 +50,7 @@ from osmo.runtime.container.run import Mount, RegistryAuth
 from osmo.runtime.kubernetes.config import KubePool, Placement
 
 __all__ = ["CONTAINER", "LABEL_ATTEMPT", "LABEL_GROUP", "LABEL_INSTANCE", "LABEL_LEAD",
-           "LABEL_WORKFLOW", "GroupPlan", "docker_config",
+           "LABEL_WORKFLOW", "POD_GROUPS", "GroupPlan", "docker_config",
            "ManifestError", "PodPlan", "label_value", "object_name", "pod_manifest",
            "plan_labels", "pod_group_manifest", "secret_manifest", "selector",
            "service_manifest"]
@@ -252,17 +252,18 @@ def service_manifest(group: GroupPlan, labels: Mapping[str, str], pool: KubePool
                      "selector": {LABEL_GROUP: group.name}}}
 
 
-_POD_GROUPS = {
+POD_GROUPS = {
     "kai": ("scheduling.run.ai", "v2alpha2", "podgroups"),
     "volcano": ("scheduling.volcano.sh", "v1beta1", "podgroups"),
     "coscheduling": ("scheduling.x-k8s.io", "v1alpha1", "podgroups"),
 }
+"""Each gang scheduler's PodGroup kind: ``(group, version, plural)``."""
 
 
 def pod_group_manifest(group: GroupPlan, labels: Mapping[str, str], pool: KubePool
                        ) -> tuple[tuple[str, str, str], dict[str, Any]] | None:
     """``((group, version, plural), body)`` of the gang's PodGroup (None: the gang has none)."""
-    kind = _POD_GROUPS.get(pool.gang)
+    kind = POD_GROUPS.get(pool.gang)
     if kind is None:
         return None
     spec: dict[str, Any] = {"minMember": group.size}

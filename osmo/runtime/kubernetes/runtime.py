@@ -22,8 +22,9 @@ What it owns, one concern per method of the runtime contract (``osmo.runtime.api
   lost attempt (``ProcessHandle.start_failed`` / ``lost``);
 - clean-up: nothing is left after an attempt (the follower deletes the pod; the API's
   garbage collector its Secret). A node that dies leaves its pods; at start,
-  :meth:`KubernetesRuntime.clean_orphans` deletes every pod and group Service of this
-  instance a previous life left (found by label): the server reschedules those attempts.
+  :meth:`KubernetesRuntime.clean_orphans` deletes every pod, Secret, group Service and
+  PodGroup of this instance a previous life left (found by label): the server reschedules
+  those attempts.
 
 - exec: the Kubernetes exec API (a WebSocket), held by a relay process the node spawns
   (``osmo.runtime.kubernetes.exec_relay``); port-forward: the node dials the pod's IP
@@ -73,6 +74,7 @@ from osmo.runtime.kubernetes.kube import Kube, KubeError, connect
 from osmo.runtime.kubernetes.manifest import (
     CONTAINER,
     LABEL_INSTANCE,
+    POD_GROUPS,
     GroupPlan,
     PodPlan,
     label_value,
@@ -154,24 +156,34 @@ class KubernetesRuntime:
         return f"kubernetes (namespace {self.pool.namespace})"
 
     def clean_orphans(self) -> list[str]:
-        """Delete every pod and group Service of this instance (a previous life's).
+        """Delete everything of this instance a previous life left (found by its label).
 
-        Each pod's Secret goes too (it is the pod's name; a pull Secret has no owner).
-        Secrets are never listed: the node may not read them.
+        Its pods (at once), then every Secret (an attempt's, or a pull Secret made before a
+        pod that never came), group Service and PodGroup of the instance: one
+        ``deletecollection`` per kind, so the node never lists (reads) a Secret. PodGroups
+        of every gang scheduler go (the pool's choice may have changed); a kind the API does
+        not serve (404) or the node may not delete (403: not the pool's gang) is passed by.
 
-        Returns ``kind/name`` of each. (A PodGroup left by a crash stays: it holds nothing.)
+        Returns ``kind/name`` of each object deleted.
         """
         mine = f"{LABEL_INSTANCE}={self.instance}"
+        namespace = self.pool.namespace
+        pods, _ = self.kube.list_objects("pod", namespace, labels=mine)
         names = []
-        for kind in ("pod", "service"):
-            items, _ = self.kube.list_objects(kind, self.pool.namespace, labels=mine)
-            for item in items:
-                name = str(item["metadata"]["name"])
-                self.kube.delete(kind, self.pool.namespace, name,
-                                 grace=0 if kind == "pod" else None)
-                names.append(f"{kind}/{name}")
-                if kind == "pod" and self.kube.delete("secret", self.pool.namespace, name):
-                    names.append(f"secret/{name}")  # a pull Secret (no owner) of that pod
+        for pod in pods:
+            name = str(pod["metadata"]["name"])
+            if self.kube.delete("pod", namespace, name, grace=0):
+                names.append(f"pod/{name}")
+        for kind in ("secret", "service"):
+            names += [f"{kind}/{n}" for n in self.kube.delete_labelled(kind, namespace, mine)]
+        for gang, kind_of in POD_GROUPS.items():
+            try:
+                gone = self.kube.delete_labelled(kind_of, namespace, mine)
+            except KubeError as exc:
+                if exc.status in (403, 404, 405) and gang != self.pool.gang:
+                    continue
+                raise
+            names += [f"{kind_of[2]}.{kind_of[0]}/{n}" for n in gone]
         return names
 
     def paths(self, cmd: PrepareAttempt) -> Paths:
