@@ -8,7 +8,7 @@ from decimal import Decimal
 
 import pytest
 
-from osmo.runtime.kubernetes.capacity import cluster_capacity, quantity
+from osmo.runtime.kubernetes.capacity import cluster_capacity, platform_capacity, quantity
 from osmo.runtime.kubernetes.config import KubePool, Placement
 from osmo.runtime.kubernetes.kube import Kube
 from tests.k8s.conftest import Cluster
@@ -30,6 +30,44 @@ def test_capacity_is_the_selected_nodes_allocatable(api: Cluster) -> None:
         obj["spec"]["unschedulable"] = True
     api.server.store.update(NODES, None, "gpu-1", cordon)
     assert cluster_capacity(kube, robots)[:2] == (3.8, 2)
+
+
+GPU_TAINT = {"key": "nvidia.com/gpu", "value": "present", "effect": "NoSchedule"}
+
+
+def test_platforms_are_those_some_ready_node_takes(api: Cluster) -> None:
+    """A platform is offered when a Ready, schedulable node both selectors pick carries it
+    and its pods tolerate that node's taints; its capacity is those nodes' allocatable."""
+    add = api.kubelet.add_node
+    add("h100-1", cpu="32", memory="256Gi", gpus=8, taints=[GPU_TAINT],
+        labels={"pool": "robots", "gpu": "h100"})
+    add("h100-2", cpu="32", memory="256Gi", gpus=8, taints=[GPU_TAINT],
+        labels={"pool": "robots", "gpu": "h100"})
+    add("h100-elsewhere", cpu="32", memory="256Gi", gpus=8, labels={"gpu": "h100"})
+    add("orin-1", cpu="12", memory="32Gi", gpus=1, labels={"pool": "robots", "arch": "orin"})
+    add("arm-1", cpu="8", memory="16Gi", labels={"pool": "robots", "arch": "arm"},
+        taints=[{"key": "dedicated", "value": "ci", "effect": "NoExecute"}])
+    gpu = {"key": "nvidia.com/gpu", "operator": "Exists", "effect": "NoSchedule"}
+    pool = KubePool(placement=Placement({"pool": "robots"}), platforms={
+        "dgx": Placement({"gpu": "h100"}, (gpu,)),
+        "dgx-untolerated": Placement({"gpu": "h100"}),  # the taint keeps its pods off
+        "jetson": Placement({"arch": "orin"}),
+        "arm": Placement({"arch": "arm"}),  # its only node is tainted for others
+        "arm-ci": Placement({"arch": "arm"}, ({"key": "dedicated", "value": "ci"},)),
+        "gb200": Placement({"gpu": "gb200"}),  # no such node
+    })
+    kube = Kube(api.client)
+    assert platform_capacity(kube, pool) == {
+        "arm-ci": (8.0, 0, 16 << 30),
+        "dgx": (64.0, 16, 512 << 30),  # not h100-elsewhere: outside the pool's selector
+        "jetson": (12.0, 1, 32 << 30)}
+
+    def not_ready(obj: dict) -> None:
+        obj["status"]["conditions"][0]["status"] = "False"
+    api.server.store.update(NODES, None, "orin-1", not_ready)
+    api.server.store.update(NODES, None, "h100-1", not_ready)
+    assert platform_capacity(kube, pool) == {"arm-ci": (8.0, 0, 16 << 30),
+                                             "dgx": (32.0, 8, 256 << 30)}
 
 
 @pytest.mark.parametrize(("text", "value"), [

@@ -67,6 +67,7 @@ from osmo.runtime.background import Background
 from osmo.runtime.container.engine import ContainerEngine, EngineNotFound, detect_engine
 from osmo.runtime.container.images import ImageIds, registry_auth
 from osmo.runtime.container.layout import DATA_LAYOUT, mounts
+from osmo.runtime.kubernetes.capacity import Capacity, platform_capacity
 from osmo.runtime.kubernetes.config import KubePool, load_pool
 from osmo.runtime.kubernetes.follow import PodFollower
 from osmo.runtime.kubernetes.groups import Groups, hostname
@@ -154,6 +155,17 @@ class KubernetesRuntime:
     def describe(self) -> str:
         """``kubernetes (namespace NS)``: what ``osmo pool list`` shows."""
         return f"kubernetes (namespace {self.pool.namespace})"
+
+    def platforms(self) -> dict[str, Capacity]:
+        """The pool's platforms some Ready node can take, each with its nodes' allocatable.
+
+        (``capacity.platform_capacity``.) The worker registers one platform today
+        (``--platform``): offering these needs a registration that carries several.
+
+        Raises:
+            KubeError: the nodes cannot be listed.
+        """
+        return platform_capacity(self.kube, self.pool)
 
     def clean_orphans(self) -> list[str]:
         """Delete everything of this instance a previous life left (found by its label).
