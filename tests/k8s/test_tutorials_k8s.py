@@ -27,7 +27,15 @@ from tests.conftest import REPO
 from tests.containers.conftest import images, podman_env  # noqa: F401 - fixtures
 from tests.containers.submitting import lineage_of, submitted_id, task_lines, tasks
 from tests.k8s.nodes import NAMESPACE, KubeCluster, started
-from tests.k8s.store import COSCHEDULING, KAI, PODS, SECRETS, SERVICES, Resource
+from tests.k8s.store import (
+    COSCHEDULING,
+    KAI,
+    NODES,
+    PODS,
+    SECRETS,
+    SERVICES,
+    Resource,
+)
 
 TUTORIALS = Path(__file__).parent.parent / "containers" / "osmo_tutorials"
 
@@ -208,6 +216,48 @@ def test_exec_and_cancel_reach_the_pod(kube: KubeCluster, tmp_path: Path) -> Non
     assert nothing_left(kube) == [] and time.monotonic() - started < 30
     deletes = [k for k in kube.server.calls if k[0] == "delete" and k[1] == "pods"]
     assert deletes, kube.server.calls
+
+
+WAITER = """\
+workflow:
+  name: waiter
+  tasks:
+  - name: w
+    image: alpine:3.18
+    command: ["sh", "-c", "echo started; sleep 6; echo done"]
+"""
+TAINT = {"key": "osmo.dev/test-maintenance", "value": "yes", "effect": "NoSchedule"}
+
+
+def set_taints(kube: KubeCluster, taints: list[dict[str, str]]) -> None:
+    def change(node: dict) -> None:
+        node["spec"]["taints"] = taints
+    kube.server.store.update(NODES, None, "node-1", change)
+
+
+def test_query_shows_why_a_pod_waits(kube: KubeCluster, tmp_path: Path) -> None:
+    """The scheduler's reason is the running task's progress in osmo query while its pod
+    waits, and goes once the pod runs."""
+    spec = tmp_path / "waiter.yaml"
+    spec.write_text(WAITER)
+    set_taints(kube, [TAINT])  # the only node takes no pod: Unschedulable
+    try:
+        wf_id = kube.osmo.submit(spec)
+        info = kube.osmo.wait_for(wf_id, lambda i: "unschedulable" in str(
+            i["tasks"][0].get("progress")), timeout=60)
+        row = info["tasks"][0]
+        assert row["status"] == "RUNNING", row
+        assert "untolerated taint {osmo.dev/test-maintenance: yes}" in row["progress"], row
+        assert "unschedulable" in kube.osmo("query", wf_id, check=True).out
+    finally:
+        set_taints(kube, [])
+    kube.osmo.wait_for(wf_id, lambda i: i["tasks"][0].get("progress") is None
+                       and "started" in "".join(task_lines(kube.osmo, wf_id).get("w", [])),
+                       timeout=60)
+    info = kube.osmo.wait_for(wf_id, lambda i: i["status"] in ("COMPLETED", "FAILED"),
+                              timeout=120)
+    assert info["status"] == "COMPLETED", info
+    assert nothing_left(kube) == []
 
 
 CHAOS = """\

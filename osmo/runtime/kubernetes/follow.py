@@ -11,8 +11,10 @@
    longer than :data:`SILENCE`, or answers 410 Gone is replaced by a fresh list and watch.
    Each version goes through the status table (``osmo.runtime.kubernetes.status``); a new
    waiting reason other than the ordinary ones (pending, ContainerCreating) is noted
-   (``note``: the task's stderr, so the attempt's log, as ``osmo: pod P: waiting:
-   unschedulable: 0/3 nodes ...``).
+   (``note``: the task's stderr, so the attempt's log) as a progress line (``osmo:
+   [osmo:progress] pod P: waiting: unschedulable: 0/3 nodes ...``), which ``osmo query``
+   shows as the running task's progress; an empty progress line clears it once the pod
+   waits no more.
 3. once the task's container runs (or ended), stream its log to ``out`` until it ends.
 4. a kill (``stop``): delete the pod with the 3 s grace (``force``: with none); a pod still
    there :data:`FORCE_AFTER` seconds later is deleted with no grace, and the follower gives
@@ -33,6 +35,7 @@ from typing import IO, Any
 from osmo.runtime.kubernetes.kube import Gone, Kube, KubeError
 from osmo.runtime.kubernetes.manifest import CONTAINER
 from osmo.runtime.kubernetes.status import Outcome, Verdict, verdict
+from osmo.tasktypes.api import PROGRESS_PREFIX
 
 __all__ = ["FORCE_AFTER", "GIVE_UP_AFTER", "SILENCE", "PodFollower"]
 
@@ -147,7 +150,10 @@ class PodFollower:
             if (last.outcome is Outcome.WAITING and last.message != shown
                     and last.message not in _ORDINARY and not self._own_secret(last)):
                 shown = last.message
-                self.note(f"pod {self.name}: waiting: {last.message}")
+                self.note(f"{PROGRESS_PREFIX} pod {self.name}: waiting: {last.message}")
+            if last.outcome is not Outcome.WAITING and shown:
+                shown = ""
+                self.note(f"{PROGRESS_PREFIX}")  # waits no more: osmo query shows no reason
             if last.outcome in (Outcome.RUNNING, Outcome.EXITED) and self._log_thread is None:
                 self._image(obj)
                 self._start_logs()
