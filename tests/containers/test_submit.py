@@ -20,6 +20,7 @@ import pytest
 from osmo.runtime.container import ContainerEngine
 from tests.conftest import Osmo, ended, write
 from tests.containers.submitting import (
+    container_osmo,
     leftovers,
     lineage_of,
     osmo_lines,
@@ -303,3 +304,41 @@ workflow:
     assert r.code == 2, r  # refused before anything runs, with its position
     assert f"{spec}:6:12: 'image' of task 'bad'" in r.err and "Traceback" not in r.err
     assert cosmo("list", "--format", "json", check=True).json() == []
+
+
+def test_two_homes_run_the_same_workflow_at_once_apart(
+        cosmo: Osmo, podman_env: dict[str, str], engine: ContainerEngine,
+        tmp_path: Path) -> None:
+    """Two users' servers on one host, the same workflow name (so the same workflow id):
+    each has its own containers and its own group network, neither takes the other's name,
+    and a group's members reach only their own peers."""
+    spec = write(tmp_path / "pair.yaml", """
+workflow:
+  name: pair
+  groups:
+  - name: pair
+    tasks:
+    - name: lead
+      lead: true
+      image: alpine:3.18
+      command: [sh, -c, "hostname -i > {{output}}/ip; sleep 4"]
+    - name: peer
+      image: alpine:3.18
+      command: [sh, -c, "sleep 1; nslookup lead > {{output}}/lead.txt 2>&1; sleep 2"]
+""")
+    other = container_osmo(tmp_path / "other-home", podman_env)
+    try:
+        for osmo in (cosmo, other):
+            osmo("server", "start", "--cpus", "4", check=True)
+        ids = [osmo.submit(spec) for osmo in (cosmo, other)]
+        assert ids[0] == ids[1]  # the same id in each home: the names must still differ
+        for osmo, wf in zip((cosmo, other), ids, strict=True):
+            info = osmo.wait_for(wf, ended, timeout=120)
+            assert info["status"] == "COMPLETED", (info, tasks(osmo, wf), task_lines(osmo, wf))
+            rows = tasks(osmo, wf)
+            lead_ip = (Path(rows["lead"]["output"]) / "ip").read_text().split()
+            seen = (Path(rows["peer"]["output"]) / "lead.txt").read_text()
+            assert any(ip in seen for ip in lead_ip), (lead_ip, seen)  # its own lead
+    finally:
+        other.stop_server()
+    assert leftovers(engine, owner_labels(other)) == ([], [])

@@ -75,7 +75,7 @@ def run(osmo: Osmo, engine: ContainerEngine, name: str) -> tuple[dict[str, list[
     wf_id = submitted_id(r.out)
     lines, rows = task_lines(osmo, wf_id), tasks(osmo, wf_id)
     assert r.code == 0, f"{r.out}{r.err}{lines}{rows}"
-    assert {row["status"] for row in rows.values()} == {"COMPLETED"}
+    assert {row["status"] for row in rows.values()} == {"COMPLETED"}, f"{rows}{lines}"
     assert leftovers(engine, owner_labels(osmo)) == ([], [])
     return lines, rows
 

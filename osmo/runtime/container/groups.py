@@ -49,14 +49,14 @@ class Groups:
         self._leads: dict[str, threading.Event] = {}  # network → its lead was started
         self._lead_since: dict[str, float] = {}  # network → when its lead's CLI was spawned
 
-    @staticmethod
-    def network(cmd: PrepareAttempt) -> str | None:
-        """The group's network: its own, ``host`` (spread over hosts) or None (one task)."""
+    def network(self, cmd: PrepareAttempt) -> str | None:
+        """The group's network: this owner's own, ``host`` (spread over hosts) or None."""
         if len(cmd.hosts) < 2:
             return None
         if len(set(cmd.hosts.values())) > 1:
             return "host"
-        return safe_name(cmd.workflow_id, *sorted(cmd.hosts))
+        return safe_name(cmd.workflow_id, *sorted(cmd.hosts),
+                         owner=self.labels.get("osmo.owner", ""))
 
     def hosts(self, cmd: PrepareAttempt) -> dict[str, str] | None:
         """``{{host:NAME}}`` of each member: its alias on the group's network (None: none)."""

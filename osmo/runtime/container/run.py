@@ -147,10 +147,15 @@ class RegistryAuth:
     password: str = field(repr=False)
 
 
-def safe_name(*parts: str) -> str:
-    """A container or network name for ``parts``: engine-safe, readable, unique per parts."""
+def safe_name(*parts: str, owner: str = "") -> str:
+    """A container or network name for ``parts``: engine-safe, readable, unique per parts.
+
+    ``owner`` (an ``osmo.owner`` label) is in the digest, not the readable part: two homes
+    on one host run the same workflow ids, and their names must not meet.
+    """
     readable = re.sub(r"[^A-Za-z0-9_.-]+", "-", "-".join(parts)).strip("-.")[:40]
-    digest = hashlib.sha256("\0".join(parts).encode()).hexdigest()[:12]
+    named = (owner, *parts) if owner else parts
+    digest = hashlib.sha256("\0".join(named).encode()).hexdigest()[:12]
     return f"osmo-{readable}-{digest}" if readable else f"osmo-{digest}"
 
 

@@ -133,7 +133,8 @@ class ContainerRuntime:
         binds, workdir = mounts(dirs, launch.files, launch.inputs)
         request = attempt.resources
         run = ContainerRun(
-            image=image, name=safe_name(cmd.attempt_id), argv=launch.argv, env=dict(launch.env),
+            image=image, name=safe_name(cmd.attempt_id, owner=self.labels["osmo.owner"]),
+            argv=launch.argv, env=dict(launch.env),
             labels=labels, user=f"{os.getuid()}:{os.getgid()}", network=network,
             aliases=(alias(cmd.task),) if grouped else (),
             hostname=alias(cmd.task) if grouped else None,
