@@ -1,8 +1,9 @@
 """One contract, every runtime (``osmo.runtime.api.Runtime``): the conformance kit
 ``osmo.testing.check_runtime`` runs over the process runtime, the sandboxed process runtime
 (bubblewrap in the node's namespaces) and the container runtime (podman, with the offline
-images of tests/containers). A Kubernetes pod runtime or a Slurm job runtime is done when it
-joins :data:`RUNTIMES` and passes.
+images of tests/containers) and the Slurm runtime (a batch job per attempt, on the session's
+cluster of tests/slurm). A Kubernetes pod runtime is done when it joins :data:`RUNTIMES` and
+passes.
 """
 
 from __future__ import annotations
@@ -19,12 +20,15 @@ from osmo.runtime.choose import processes_for_node
 from osmo.runtime.container import ContainerEngine, ContainerRuntime
 from osmo.runtime.process.runtime import ProcessRuntime
 from osmo.runtime.process.sandboxed import SandboxRuntime
+from osmo.runtime.slurm import Slurm, SlurmRuntime
 from osmo.testing import check_runtime
 from tests.containers.conftest import (  # noqa: F401 - fixtures the container case asks for
     engine,
     images,
     podman_env,
 )
+from tests.slurm.cluster import SlurmCluster
+from tests.slurm.conftest import slurm_session  # noqa: F401 - the Slurm case's cluster
 
 HOST_LISTENER = ("busybox", "nc", "-l", "-p", "{port}")  # busybox-static: ./dev installs it
 
@@ -62,10 +66,21 @@ def _container(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Case]
     assert found.remove_labelled({"osmo.owner": owner}) == ([], []), "containers were left"
 
 
+def _slurm(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Case]:
+    cluster: SlurmCluster = request.getfixturevalue("slurm_session")
+    owner = f"contract-{uuid.uuid4().hex}"
+    runtime = SlurmRuntime(Slurm(cluster.env), owner=owner)
+    yield Case(runtime, listen=HOST_LISTENER)
+    runtime.close()
+    left = [job for job in runtime.slurm.owned(owner) if job.state in ("PENDING", "RUNNING")]
+    assert not left, f"jobs were left: {left}"
+
+
 RUNTIMES: dict[str, Callable[[pytest.FixtureRequest, Path], Iterator[Case]]] = {
     "process": _process,
     "sandbox": _sandbox,
     "container": _container,
+    "slurm": _slurm,
 }
 """Every runtime, by name: what the contract runs over (add the next one here)."""
 

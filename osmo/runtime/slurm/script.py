@@ -1,0 +1,110 @@
+"""An attempt's batch job as text: the script and sbatch's options (pure: runs nothing).
+
+The decisions that keep user text out of Slurm's languages:
+
+- The batch script is fixed text: ``exec PYTHON -I AGENT FOLDER``, its three paths quoted
+  with :func:`shlex.quote`. The task's command, arguments and environment are in the
+  folder's ``launch.json`` (read by the agent, run as an argv): the script never runs user
+  text as shell, and ``scontrol write batch_script`` shows nothing of the task.
+- Every option is one ``--opt=value`` word of sbatch's own argv, none a ``#SBATCH`` line:
+  nothing a value holds can start another directive. Values osmo computes (numbers) or
+  takes from the node's configuration (partition, account, QOS, checked here) only.
+- The job's name (``osmo-<task>-<hash>``) keeps ``[A-Za-z0-9_.-]`` of the task's name, so
+  ``squeue`` shows which task it is; its comment is the node's owner id, how a restarted
+  node finds its jobs.
+- ``--export=NONE``: the job's environment as Slurm records it is only Slurm's own; the
+  agent gives the task its environment from ``launch.json``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import re
+import shlex
+from dataclasses import dataclass
+from pathlib import Path
+
+from osmo.errors import UsageError
+from osmo.spec.model import ResourceSpec
+
+__all__ = ["JobOptions", "batch_script", "job_name", "sbatch_args"]
+
+_NAME_CHARS = re.compile(r"[^A-Za-z0-9_.-]")
+_WORD = re.compile(r"^[A-Za-z0-9_.+-]+$")  # a partition, account, QOS or constraint
+
+
+@dataclass(frozen=True)
+class JobOptions:
+    """What the node's configuration adds to every job of its pool.
+
+    Attributes:
+        partitions: the partitions it may use (``--partition``, comma-separated; none:
+            Slurm's default).
+        account: ``--account``.
+        qos: ``--qos``.
+        constraint: ``--constraint`` (node features).
+        extra: more sbatch options, each one ``--opt=value`` word, as the operator wrote them.
+    """
+
+    partitions: tuple[str, ...] = ()
+    account: str | None = None
+    qos: str | None = None
+    constraint: str | None = None
+    extra: tuple[str, ...] = ()
+
+    def check(self) -> None:
+        """Raise UsageError for a value that is not a plain Slurm word."""
+        for flag, value in (*(("--slurm-partition", p) for p in self.partitions),
+                            ("--slurm-account", self.account), ("--slurm-qos", self.qos),
+                            ("--slurm-constraint", self.constraint)):
+            if value is not None and not _WORD.match(value):
+                raise UsageError(f"{flag} {value!r}: only letters, digits and _ . + - are "
+                                 "allowed")
+        for word in self.extra:
+            if not word.startswith("--") or "\n" in word:
+                raise UsageError(f"--slurm-option {word!r}: write one --option=value word")
+
+
+def job_name(task: str, attempt_id: str) -> str:
+    """``osmo-<task>-<hash of the attempt id>``: readable, unique, safe in any Slurm field."""
+    digest = hashlib.sha256(attempt_id.encode()).hexdigest()[:10]
+    return f"osmo-{_NAME_CHARS.sub('_', task)[:40]}-{digest}"
+
+
+def sbatch_args(*, name: str, owner: str, folder: Path, resources: ResourceSpec,
+                options: JobOptions) -> list[str]:
+    """Sbatch's options for one attempt (one ``--opt=value`` word each)."""
+    args = [f"--job-name={name}", f"--comment={owner}", f"--chdir={folder}",
+            f"--output={folder / 'out'}", f"--error={folder / 'err'}", "--open-mode=append",
+            "--export=NONE", "--nodes=1", "--ntasks=1",
+            f"--cpus-per-task={max(1, int(resources.cpu or 1))}"]
+    if resources.memory:
+        args.append(f"--mem={_mebibytes(resources.memory)}M")
+    if resources.gpu:
+        args.append(f"--gres=gpu:{int(resources.gpu)}")
+    if resources.storage:
+        args.append(f"--tmp={_mebibytes(resources.storage)}M")
+    partitions = options.partitions
+    if resources.platform and resources.platform in partitions:
+        partitions = (resources.platform,)  # a platform that names one of them picks it
+    if partitions:
+        args.append(f"--partition={','.join(partitions)}")
+    for flag, value in (("--account", options.account), ("--qos", options.qos),
+                        ("--constraint", options.constraint)):
+        if value:
+            args.append(f"{flag}={value}")
+    args.extend(options.extra)
+    return args
+
+
+def batch_script(python: str, agent: Path, folder: Path) -> str:
+    """The batch script: the agent, on the attempt's folder, and nothing else."""
+    words = " ".join(shlex.quote(str(w)) for w in (python, "-I", agent, folder))
+    return f"#!/bin/sh\nexec {words}\n"
+
+
+def _mebibytes(size: int) -> int:
+    return max(1, math.ceil(size / (1 << 20)))
+
+
