@@ -18,6 +18,7 @@ from osmo.errors import UsageError
 from osmo.options import (
     DEFAULT_LOG_LIMIT,
     SandboxMode,
+    SlurmOptions,
     add_log_limit_argument,
     add_runtime_arguments,
     shares,
@@ -54,7 +55,11 @@ class WorkerOptions:
         sandbox: run commands in bubblewrap: ``auto`` (when it works here), ``on``, ``off``.
         sandbox_share: host folders every sandboxed task sees (``--sandbox-share DIR``:
             writable, ``DIR:ro``: read-only).
-        runtime: how it runs image tasks: ``auto``, ``container`` or ``process``.
+        runtime: how it runs image tasks: ``auto``, ``container`` or ``process``; ``slurm``:
+            every task as a Slurm batch job (a worker on a login host).
+        slurm: what every Slurm job of its pool gets (partitions, account, QOS, constraint).
+        slurm_python: the Python its Slurm jobs run their agent with on the compute nodes
+            (default: the worker's own, on a filesystem they share).
         container_engine: ``podman`` or ``docker`` (default: the first that answers).
         store_limit: bytes its artifact store may hold before cached blobs are removed
             (``osmo.worker.store_keeper``; None: a quarter of its filesystem; 0: no limit).
@@ -79,6 +84,8 @@ class WorkerOptions:
     sandbox: SandboxMode = "auto"
     sandbox_share: tuple[str, ...] = ()
     runtime: str = "auto"
+    slurm: SlurmOptions = field(default_factory=SlurmOptions)
+    slurm_python: str | None = None
     container_engine: str | None = None
     store_limit: int | None = None
     log_limit: int = DEFAULT_LOG_LIMIT
@@ -122,6 +129,18 @@ class WorkerOptions:
                             "taken yet are never removed")
         add_log_limit_argument(w)
         add_runtime_arguments(w)
+        s = w.add_argument_group("Slurm (--runtime slurm)")
+        s.add_argument("--slurm-partition", action="append", default=[], metavar="NAME",
+                       help="a partition its jobs may use (repeatable; default: Slurm's "
+                            "default partition); its capacity is theirs. A task whose "
+                            "platform names one of them goes there")
+        s.add_argument("--slurm-account", metavar="NAME", help="the account its jobs charge")
+        s.add_argument("--slurm-qos", metavar="NAME", help="the QOS of its jobs")
+        s.add_argument("--slurm-constraint", metavar="FEATURES",
+                       help="node features its jobs require (--constraint)")
+        s.add_argument("--slurm-python", metavar="PATH",
+                       help="the Python 3 the jobs run osmo's agent with on the compute "
+                            "nodes (default: this worker's, on a shared filesystem)")
 
     @classmethod
     def from_args(cls, args: argparse.Namespace) -> WorkerOptions:
@@ -149,8 +168,17 @@ class WorkerOptions:
                    token=_token(args.token, args.token_file), token_file=args.token_file,
                    sandbox=args.sandbox,
                    sandbox_share=shares(args.sandbox_share), runtime=args.runtime,
+                   slurm=_slurm(args), slurm_python=args.slurm_python,
                    container_engine=args.container_engine, store_limit=store_limit,
                    log_limit=args.log_limit)
+
+
+def _slurm(args: argparse.Namespace) -> SlurmOptions:
+    """The ``--slurm-*`` flags (UsageError: one is not a plain Slurm word)."""
+    made = SlurmOptions(partitions=tuple(args.slurm_partition), account=args.slurm_account,
+                      qos=args.slurm_qos, constraint=args.slurm_constraint)
+    made.check()
+    return made
 
 
 def _token(token: str | None, token_file: str | None) -> str | None:

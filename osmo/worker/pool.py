@@ -76,6 +76,7 @@ from osmo.artifacts.store import DEFAULT_MAX_FILES
 from osmo.errors import UsageError
 from osmo.layout import Home
 from osmo.options import DEFAULT_LOG_LIMIT, SandboxMode
+from osmo.runtime.api import Runtime
 from osmo.runtime.choose import Runtimes, processes_for_node
 from osmo.runtime.container.runtime import ContainerRuntime
 from osmo.runtime.process.sandbox import Sandbox
@@ -137,6 +138,9 @@ class LocalPool:
             sandboxed tasks' network too (``osmo.runtime.process.netns``).
         procs_dir: record running commands' pids here (see the module docstring).
         containers: runs image tasks in containers (closed with the pool).
+        cluster: runs every task as a cluster scheduler's job (``--runtime slurm``:
+            ``osmo.runtime.choose.slurm_for_node``; closed with the pool).
+        cluster_images: the cluster's runtime for tasks that run in their image.
 
     Attributes:
         home: osmo's home.
@@ -176,6 +180,8 @@ class LocalPool:
         address: str | None = None,
         procs_dir: Path | None = None,
         containers: ContainerRuntime | None = None,
+        cluster: Runtime | None = None,
+        cluster_images: Runtime | None = None,
     ) -> None:
         if not home.root.is_absolute():
             raise UsageError(f"osmo's home must be an absolute path, not {home.root}")
@@ -190,7 +196,7 @@ class LocalPool:
         self.no_sandbox_why, self.sandbox_warning = process.why, process.warning
         if self.sandbox_warning:
             _log.warning("%s", self.sandbox_warning)
-        self._runtimes = Runtimes(process, containers)
+        self._runtimes = Runtimes(process, containers, cluster, cluster_images)
         self._procs = ProcessRecords(procs_dir) if procs_dir is not None else None
         self._attempts = Attempts()
         self._reactor = Reactor(f"osmo-pool-{pool}")

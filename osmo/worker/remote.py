@@ -52,7 +52,7 @@ from osmo.config import write_json_atomic
 from osmo.errors import NotAllowed, OsmoError, UsageError
 from osmo.layout import Home
 from osmo.names import check_worker_name
-from osmo.runtime.choose import containers_for_node
+from osmo.runtime.choose import containers_for_node, slurm_for_node
 from osmo.scheduler.types import (
     LOCAL_NODE,
     AttemptExited,
@@ -143,16 +143,23 @@ class RemoteWorker:
         limit = default_limit(home.root) if options.store_limit is None else options.store_limit
         self._keeper = StoreKeeper(home, self.store, self._inputs, limit,
                                    self._protected, self._io)
+        cluster = slurm_for_node(options.runtime, home, options.slurm,
+                                 python=options.slurm_python, engine=options.container_engine)
+        offered = cluster[0].capacity() if cluster is not None else None
         self.pool = LocalPool(
             home=home, emit=self._emit, node_id=self.id, pool=options.pool,
-            cpus=options.cpus, gpus=options.gpus, memory=options.memory,
+            cpus=options.cpus if offered is None or options.cpus is not None else offered.cpus,
+            gpus=options.gpus if offered is None or options.gpus is not None else offered.gpus,
+            memory=(options.memory if offered is None or options.memory is not None
+                    else offered.memory),
             kill_grace=options.kill_grace, artifacts=self.store,
             credential_for=self._url_creds.get, log_sink=self._send_log,
             log_limit=options.log_limit,
             input_manifests=self._inputs.manifest_of, sandbox=options.sandbox,
             sandbox_share=options.sandbox_share, address=self._address,
             procs_dir=home.procs,
-            containers=containers_for_node(options.runtime, options.container_engine, home))
+            containers=containers_for_node(options.runtime, options.container_engine, home),
+            cluster=cluster[0] if cluster else None, cluster_images=cluster[1] if cluster else None)
         for secret in options.secret_files:
             self.pool.hide(Path(secret))
         self.sessions = NodeSessions(self.link, self.pool, lambda ticket: self._api.call(

@@ -17,6 +17,11 @@ from collections.abc import Iterator
 
 import pytest
 
+from tests.containers.conftest import (  # noqa: F401 - for the tutorials through Slurm
+    engine,
+    images,
+    podman_env,
+)
 from tests.slurm.cluster import SlurmCluster, missing_programs
 
 

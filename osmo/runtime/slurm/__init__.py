@@ -13,7 +13,6 @@
 
 from osmo.runtime.slurm.commands import JobInfo, Partition, Slurm, SlurmError
 from osmo.runtime.slurm.runtime import SlurmJob, SlurmRuntime
-from osmo.runtime.slurm.script import JobOptions
 
-__all__ = ["JobInfo", "JobOptions", "Partition", "Slurm", "SlurmError", "SlurmJob",
+__all__ = ["JobInfo", "Partition", "Slurm", "SlurmError", "SlurmJob",
            "SlurmRuntime"]

@@ -29,6 +29,16 @@ What it owns, one concern per method of the runtime contract:
 - port-forward: to the task's port on the address of the node its job runs on.
 - clean-up: the job is cancelled if it still runs, the secret file goes.
 
+Images: a runtime made with ``containers`` (the node's container engine, found on the login
+host and expected on the compute nodes: rootless podman) runs tasks in their image: the
+container runtime prepares the run (image id, OSMO's data layout, binds, user, labels,
+secret file) and the job's agent runs the engine's ``run`` argv
+(``osmo.runtime.container.run.run_argv``) on the compute node. The image is resolved on the
+login host: its storage must be the compute nodes' (a shared one), or the run fails at
+once with podman's message. Without an engine an image task fails at start, saying what is
+missing; it never runs as a bare process. pyxis (``srun --container-image``) is detected
+(``Slurm.has_pyxis``) but not used yet.
+
 Orphans: :meth:`SlurmRuntime.cancel_orphans` cancels every job carrying the node's owner
 comment; a node's runtime is made with it (``osmo.runtime.choose``), before anything new
 runs: no job outlives the node that submitted it (a restarted node's attempts are
@@ -46,6 +56,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
+from osmo.options import SlurmOptions
 from osmo.runtime.api import (
     HOST_PATHS,
     Attempt,
@@ -60,9 +71,11 @@ from osmo.runtime.api import (
     StartError,
     dial,
 )
+from osmo.runtime.container.run import ContainerError, ContainerRun, run_argv, secret_env_text
+from osmo.runtime.container.runtime import ContainerRuntime
 from osmo.runtime.process.groups import ProcessGroups
-from osmo.runtime.slurm.commands import JobInfo, Slurm, SlurmError
-from osmo.runtime.slurm.script import JobOptions, batch_script, job_name, sbatch_args
+from osmo.runtime.slurm.commands import JobInfo, Partition, Slurm, SlurmError
+from osmo.runtime.slurm.script import batch_script, job_name, sbatch_args
 from osmo.runtime.slurm.states import Phase, verdict
 from osmo.scheduler.types import PrepareAttempt
 
@@ -83,11 +96,13 @@ class SlurmJob:
         folder: its job folder (``launch.json``, ``job.sh``, the job's output files).
         name: its Slurm job name.
         args: sbatch's options.
+        container: the container its task runs in, on the compute node (None: none).
     """
 
     folder: Path
     name: str
     args: tuple[str, ...]
+    container: ContainerRun | None = None
 
     @property
     def script(self) -> Path:
@@ -107,6 +122,7 @@ class _Live:
     nodes: str = ""
     lost: int = 0
     said: set[str] = field(default_factory=set)
+    notes: int = -1  # write end of the handle's notes pipe
 
 
 class SlurmRuntime:
@@ -118,12 +134,17 @@ class SlurmRuntime:
         options: partitions, account, QOS... for every job.
         python: the Python the jobs run their agent with, on the compute nodes.
         poll: seconds between two looks at the node's live jobs.
+        containers: runs the tasks in their images, through this engine on the compute
+            nodes (the container runtime prepares each run: image, binds, user, labels); its
+            paths are then OSMO's data layout. None: image tasks are refused.
     """
 
-    def __init__(self, slurm: Slurm, *, owner: str, options: JobOptions | None = None,
-                 python: str = sys.executable, poll: float = 0.25) -> None:
+    def __init__(self, slurm: Slurm, *, owner: str, options: SlurmOptions | None = None,
+                 python: str = sys.executable, poll: float = 0.25,
+                 containers: ContainerRuntime | None = None) -> None:
         self.slurm, self.owner = slurm, owner
-        self.options = options or JobOptions()
+        self._containers = containers
+        self.options = options or SlurmOptions()
         self.options.check()
         self._python, self._poll = python, poll
         self._processes = ProcessGroups()
@@ -136,13 +157,30 @@ class SlurmRuntime:
         self._version: str | None = None
 
     def describe(self) -> str:
-        """``slurm (slurm 22.05.8)``."""
+        """``slurm (slurm 22.05.8)``; ``slurm (slurm 22.05.8, podman 4.3.1)`` with images."""
         if self._version is None:
             try:
                 self._version = self.slurm.version()
             except SlurmError:
                 self._version = "version unknown"
-        return f"slurm ({self._version})"
+        if self._containers is None:
+            return f"slurm ({self._version})"
+        engine = self._containers.engine.engine
+        return f"slurm ({self._version}, {engine.name} {engine.version})"
+
+    def capacity(self) -> Partition:
+        """What its pool may use: its partitions' nodes (Slurm's default one: every node).
+
+        Raises:
+            SlurmError: sinfo fails, or knows none of the partitions.
+        """
+        found = self.slurm.partitions(self.options.partitions)
+        if not found:
+            raise SlurmError(f"sinfo shows no partition {','.join(self.options.partitions)}"
+                             if self.options.partitions else "sinfo shows no partition")
+        return Partition(",".join(p.name for p in found), sum(p.cpus for p in found),
+                         sum(p.memory for p in found), sum(p.gpus for p in found),
+                         sum(p.nodes for p in found))
 
     def cancel_orphans(self) -> list[str]:
         """Cancel every job of this owner still queued or running (a previous life's)."""
@@ -154,8 +192,8 @@ class SlurmRuntime:
         return cancelled
 
     def paths(self, cmd: PrepareAttempt) -> Paths:
-        """The host's own paths (a shared filesystem), credentials kept apart."""
-        return _PATHS
+        """The host's paths (shared), credentials apart; in a container, OSMO's layout."""
+        return _PATHS if self._containers is None else self._containers.paths(cmd)
 
     def prepare(self, launch: Launch, attempt: Attempt, *,
                 progress: Callable[[str], None]) -> Launch:
@@ -166,21 +204,35 @@ class SlurmRuntime:
                 nodes yet), or its job folder cannot be written.
         """
         task, dirs = attempt.task, attempt.dirs
-        if task.image is not None and task.type is None:
+        argv, env, container = list(launch.argv), dict(launch.env), None
+        if self._containers is None and task.image is not None and task.type is None:
+            # the chooser gives image tasks to this runtime when the node has no engine
             raise PrepareError(
                 f"task {task.name!r} names image '{task.image}', and this Slurm pool cannot "
                 "run images: it needs pyxis (srun --container-image) or podman on its compute "
                 "nodes; the task is not run as a bare process instead")
+        if self._containers is not None:
+            launch = replace(self._containers.prepare(launch, attempt, progress=progress),
+                             waits=False)
+            container = replace(_container(launch), argv=launch.argv, env=dict(launch.env))
+            try:
+                argv = run_argv(self._containers.engine.engine, container)
+            except ContainerError as exc:
+                raise PrepareError(str(exc)) from exc
+            # its own cgroup namespace: it is made inside the job's cgroup, whose path the
+            # compute node may show otherwise than the host does (a node in a container)
+            argv.insert(2, "--cgroupns=private")
+            env = self._containers.engine.env
         folder = dirs.root / "slurm"
         name = job_name(task.name, attempt.cmd.attempt_id)
         try:
             folder.mkdir(mode=0o700, exist_ok=True)
             _write_private(folder / "launch.json", json.dumps({
-                "argv": list(launch.argv), "cwd": str(launch.cwd), "env": launch.env,
+                "argv": argv, "cwd": str(launch.cwd), "env": env,
                 "output": str(dirs.output_partial)}))
             job = SlurmJob(folder, name, tuple(sbatch_args(
                 name=name, owner=self.owner, folder=folder, resources=attempt.resources,
-                options=self.options)))
+                options=self.options)), container)
             _write_private(job.script, batch_script(self._python, AGENT, folder))
         except OSError as exc:
             raise PrepareError(f"cannot write the job folder {folder}: "
@@ -197,15 +249,18 @@ class SlurmRuntime:
         """
         job = _job(launch)
         secret = job.folder / "secret.json"
+        box = job.container
         try:
-            if launch.secret_env:
+            if box is not None and box.secret_env and box.secret_env_file is not None:
+                secret = box.secret_env_file  # the container sources it
+                _write_private(secret, secret_env_text(box.secret_env))
+            elif launch.secret_env:
                 _write_private(secret, json.dumps(launch.secret_env))
             job_id = self.slurm.sbatch(str(job.script), job.args, cwd=str(job.folder))
         except (OSError, SlurmError) as exc:
             _unlink(secret)
             raise StartError(f"Slurm did not take the job: {exc}") from exc
         live = _Live(job, job_id)
-        self._note(live, f"Slurm job {job_id} submitted")
         try:
             handle = self._processes.start(
                 [self._python, "-I", str(WATCHER), str(job.folder)], cwd=launch.cwd,
@@ -214,7 +269,9 @@ class SlurmRuntime:
             self._quietly(self.slurm.cancel, job_id)
             _unlink(secret)
             raise
+        handle.notes_fd, live.notes = os.pipe2(os.O_NONBLOCK | os.O_CLOEXEC)
         live.handle = handle
+        self._note(live, f"Slurm job {job_id} submitted")
         with self._lock:
             self._jobs[job.folder] = live
             if self._poller is None:
@@ -242,11 +299,14 @@ class SlurmRuntime:
         return self._processes.reap(handle)
 
     def release(self, handle: ProcessHandle) -> None:
-        """Close the watcher's descriptors; the secret file goes."""
+        """Close the watcher's descriptors and the notes pipe; the secret file goes."""
         self._processes.release(handle)
         live = self._live(handle)
         if live is not None:
-            _unlink(live.job.folder / "secret.json")
+            _unlink_secrets(live.job)
+            with self._lock:
+                live.notes = _close(live.notes)
+        handle.notes_fd = _close(handle.notes_fd)
 
     def exec(self, launch: Launch, command: Sequence[str], *, tty: bool,
              term: str | None) -> ExecCommand:
@@ -255,15 +315,20 @@ class SlurmRuntime:
         Raises:
             SlurmError: srun is missing.
         """
-        live = self._jobs.get(_job(launch).folder)
+        job = _job(launch)
+        live = self._jobs.get(job.folder)
         job_id = live.job_id if live is not None else "0"
+        env = dict(launch.env)
+        if job.container is not None and self._containers is not None:
+            inner = self._containers.exec(replace(launch, run=job.container), command,
+                                          tty=tty, term=term)
+            command, env = inner.argv, inner.env
+        elif tty and term is not None:
+            env["TERM"] = term
         argv = self.slurm.srun_argv(f"--jobid={job_id}", "--overlap", "--nodes=1",
                                     "--ntasks=1", "--quiet", f"--chdir={launch.cwd}",
                                     "--export=ALL", *(["--pty"] if tty else []), *command)
-        env = {**launch.env, **{k: v for k, v in self.slurm.env.items()
-                                if k.startswith("SLURM_CONF")}}
-        if tty and term is not None:
-            env["TERM"] = term
+        env.update((k, v) for k, v in self.slurm.env.items() if k.startswith("SLURM_CONF"))
         return ExecCommand(argv, launch.cwd, env)
 
     def connector(self, launch: Launch, handle: ProcessHandle) -> Connector:
@@ -284,11 +349,13 @@ class SlurmRuntime:
         job = launch.run
         if not isinstance(job, SlurmJob):
             return
-        _unlink(job.folder / "secret.json")
+        _unlink_secrets(job)
         with self._lock:
             live = self._jobs.pop(job.folder, None)
         if live is not None and not live.ended:
             self._later(self._quietly, self.slurm.cancel, live.job_id)
+        if job.container is not None and self._containers is not None:
+            self._containers.cleanup(replace(launch, run=job.container))
 
     def close(self) -> None:
         """Stop the poller; cancel the jobs still running; wait for Slurm calls under way."""
@@ -343,9 +410,10 @@ class SlurmRuntime:
             self._resubmit(live, seen.reason or "lost")
         elif seen.phase is Phase.ENDED:
             killed = live.killed and not seen.override
+            if seen.reason and not killed:
+                self._note(live, seen.reason)
             ended = {"state": live.state, "code": 137 if killed else seen.code,
-                     "override": seen.override,
-                     "reason": None if killed else seen.reason}
+                     "override": seen.override}
             _write_private(live.job.folder / "ended.json", json.dumps(ended))
             live.ended = True
 
@@ -362,10 +430,14 @@ class SlurmRuntime:
             live.said.add(line)
             self._note(live, line)
 
-    @staticmethod
-    def _note(live: _Live, line: str) -> None:
-        with (live.job.folder / "notes").open("a") as f:
-            f.write(f"osmo: {line}\n")
+    def _note(self, live: _Live, line: str) -> None:
+        """A line for the attempt's log, as osmo's (dropped once the attempt let go)."""
+        with self._lock:  # release closes the pipe under it: never a write to a reused fd
+            if live.notes >= 0:
+                try:
+                    os.write(live.notes, f"{line}\n".encode())
+                except OSError:  # full: a note is not worth a stall
+                    pass
 
     # -------------------------------------------------------------- internals
 
@@ -378,9 +450,13 @@ class SlurmRuntime:
             if force:
                 self._quietly(self.slurm.cancel, live.job_id, signal="KILL")
                 self.slurm.cancel(live.job_id)
+                box = live.job.container
+                if box is not None and self._containers is not None:
+                    # the engine's CLI died with the job; its container may not have
+                    self._containers.engine.remove(box.name)
             else:
                 self.slurm.cancel(live.job_id, signal="TERM")
-        except SlurmError:
+        except (SlurmError, ContainerError):
             self._quietly(self.slurm.cancel, live.job_id)  # pending: it cannot be signalled
         self._wake.set()
 
@@ -413,6 +489,19 @@ def _job(launch: Launch) -> SlurmJob:
     return job
 
 
+def _container(launch: Launch) -> ContainerRun:
+    run = launch.run
+    if not isinstance(run, ContainerRun):
+        raise TypeError(f"{launch!r} was not prepared by a container runtime")
+    return run
+
+
+def _unlink_secrets(job: SlurmJob) -> None:
+    _unlink(job.folder / "secret.json")
+    if job.container is not None and job.container.secret_env_file is not None:
+        _unlink(job.container.secret_env_file)
+
+
 def _write_private(path: Path, text: str) -> None:
     """Write ``text`` to a 0600 file at ``path``, never through a symlink."""
     flags = os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NOFOLLOW | os.O_CLOEXEC
@@ -422,6 +511,16 @@ def _write_private(path: Path, text: str) -> None:
         os.write(fd, text.encode())
     finally:
         os.close(fd)
+
+
+def _close(fd: int) -> int:
+    """Close ``fd`` if open; -1."""
+    if fd >= 0:
+        try:
+            os.close(fd)
+        except OSError:
+            pass
+    return -1
 
 
 def _unlink(path: Path) -> None:

@@ -8,7 +8,8 @@ The decisions that keep user text out of Slurm's languages:
   text as shell, and ``scontrol write batch_script`` shows nothing of the task.
 - Every option is one ``--opt=value`` word of sbatch's own argv, none a ``#SBATCH`` line:
   nothing a value holds can start another directive. Values osmo computes (numbers) or
-  takes from the node's configuration (partition, account, QOS, checked here) only.
+  takes from the node's configuration (partition, account, QOS: plain words,
+  ``osmo.options.SlurmOptions.check``) only.
 - The job's name (``osmo-<task>-<hash>``) keeps ``[A-Za-z0-9_.-]`` of the task's name, so
   ``squeue`` shows which task it is; its comment is the node's owner id, how a restarted
   node finds its jobs.
@@ -22,48 +23,14 @@ import hashlib
 import math
 import re
 import shlex
-from dataclasses import dataclass
 from pathlib import Path
 
-from osmo.errors import UsageError
+from osmo.options import SlurmOptions
 from osmo.spec.model import ResourceSpec
 
-__all__ = ["JobOptions", "batch_script", "job_name", "sbatch_args"]
+__all__ = ["batch_script", "job_name", "sbatch_args"]
 
 _NAME_CHARS = re.compile(r"[^A-Za-z0-9_.-]")
-_WORD = re.compile(r"^[A-Za-z0-9_.+-]+$")  # a partition, account, QOS or constraint
-
-
-@dataclass(frozen=True)
-class JobOptions:
-    """What the node's configuration adds to every job of its pool.
-
-    Attributes:
-        partitions: the partitions it may use (``--partition``, comma-separated; none:
-            Slurm's default).
-        account: ``--account``.
-        qos: ``--qos``.
-        constraint: ``--constraint`` (node features).
-        extra: more sbatch options, each one ``--opt=value`` word, as the operator wrote them.
-    """
-
-    partitions: tuple[str, ...] = ()
-    account: str | None = None
-    qos: str | None = None
-    constraint: str | None = None
-    extra: tuple[str, ...] = ()
-
-    def check(self) -> None:
-        """Raise UsageError for a value that is not a plain Slurm word."""
-        for flag, value in (*(("--slurm-partition", p) for p in self.partitions),
-                            ("--slurm-account", self.account), ("--slurm-qos", self.qos),
-                            ("--slurm-constraint", self.constraint)):
-            if value is not None and not _WORD.match(value):
-                raise UsageError(f"{flag} {value!r}: only letters, digits and _ . + - are "
-                                 "allowed")
-        for word in self.extra:
-            if not word.startswith("--") or "\n" in word:
-                raise UsageError(f"--slurm-option {word!r}: write one --option=value word")
 
 
 def job_name(task: str, attempt_id: str) -> str:
@@ -73,7 +40,7 @@ def job_name(task: str, attempt_id: str) -> str:
 
 
 def sbatch_args(*, name: str, owner: str, folder: Path, resources: ResourceSpec,
-                options: JobOptions) -> list[str]:
+                options: SlurmOptions) -> list[str]:
     """Sbatch's options for one attempt (one ``--opt=value`` word each)."""
     args = [f"--job-name={name}", f"--comment={owner}", f"--chdir={folder}",
             f"--output={folder / 'out'}", f"--error={folder / 'err'}", "--open-mode=append",

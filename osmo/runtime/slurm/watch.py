@@ -3,16 +3,14 @@
 The worker pool watches every launch through a local process (``osmo.runtime.api``): for a
 Slurm job it is this one, spawned by ``osmo.runtime.slurm.runtime`` right after ``sbatch``.
 It copies what the job writes to its ``out`` and ``err`` files (on the shared filesystem)
-to its own stdout and stderr as it comes, and the node's ``notes`` (a PENDING reason, a
-requeue) to its stderr, so they stream into ``osmo logs``; it exits with the job's exit
-code:
+to its own stdout and stderr as it comes, so they stream into ``osmo logs``; it exits with
+the job's exit code:
 
 - ``exit.json`` (the job's agent, ``osmo.runtime.slurm.agent``): the task's exit code;
-  when that says it was killed (128+N), the node's verdict is awaited a little, for the
-  reason (OUT_OF_MEMORY, TIMEOUT, cancelled);
+  when that says it was killed (128+N), the node's verdict is awaited a little: it may
+  override the code (OUT_OF_MEMORY is 137), and the node logs the reason before it;
 - ``ended.json`` (the node, from Slurm's state: ``osmo.runtime.slurm.states``): the job
-  ended without its agent's word (killed, out of memory, failed to start): its code and
-  reason.
+  ended without its agent's word (killed, out of memory, failed to start): its code.
 
 Standard library only, run as a file (``python3 -I watch.py FOLDER``). It polls the folder
 a few times a second; it must not call Slurm (one poller per node does, for every job).
@@ -59,7 +57,7 @@ def read(path: Path) -> dict[str, object] | None:
 
 def main(folder: Path) -> int:
     """Stream the job's output until it ended; its exit code."""
-    tails = [Tail(folder / "out", 1), Tail(folder / "err", 2), Tail(folder / "notes", 2)]
+    tails = [Tail(folder / "out", 1), Tail(folder / "err", 2)]
     while True:
         for tail in tails:
             tail.pump()
@@ -76,8 +74,6 @@ def main(folder: Path) -> int:
     for tail in tails:
         tail.pump()
     if verdict is not None:
-        if verdict.get("reason"):
-            os.write(2, f"osmo: {verdict['reason']}\n".encode())
         if own is None or verdict.get("override"):
             code = int(verdict.get("code", 1))  # type: ignore[call-overload]
     return code
