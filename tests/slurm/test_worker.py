@@ -11,6 +11,7 @@ once for all its tests (0.2 s to start).
 from __future__ import annotations
 
 import re
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -131,3 +132,103 @@ workflow:
     _, lines, rows = run(grid, spec)
     assert re.fullmatch(r"job \d+", lines["first"][0]), lines
     assert lines["second"] == ["data"]
+
+
+def logs(grid: Cluster, wf_id: str) -> str:
+    return grid.osmo("logs", wf_id, check=True).out
+
+
+def until_logged(grid: Cluster, wf_id: str, text: str, timeout: float = 90) -> str:
+    """The workflow's logs once they hold ``text``."""
+    deadline = time.monotonic() + timeout
+    while text not in (seen := logs(grid, wf_id)):
+        assert time.monotonic() < deadline, f"never logged {text!r}:\n{seen}"
+        time.sleep(0.2)
+    return seen
+
+
+def until_no_job(cluster: SlurmCluster, name_part: str, timeout: float = 30) -> None:
+    deadline = time.monotonic() + timeout
+    while any(name_part in line for line in jobs_of(cluster)):
+        assert time.monotonic() < deadline, f"a job is left: {jobs_of(cluster)}"
+        time.sleep(0.2)
+
+
+def test_exec_reaches_the_running_job_and_cancel_sends_sigterm_through_scancel(
+        grid: Cluster, roomy: SlurmCluster, tmp_path: Path) -> None:
+    spec = write(tmp_path / "wf.yaml", """
+workflow:
+  name: held
+  tasks:
+  - name: held
+    command: [sh, -c, 'trap "echo got-term; exit 143" TERM; echo up; while :; do sleep 0.2; done']
+    environment: {GREETING: hola}
+""")
+    wf_id = grid.osmo.submit(spec)
+    until_logged(grid, wf_id, "[held] up")
+    r = grid.osmo("workflow", "exec", wf_id, "held", "--", "sh", "-c",
+                  'echo "$GREETING $OSMO_TASK $SLURM_JOB_ID"; exit 7')
+    assert r.code == 7, r.out + r.err
+    greeting, task, job = r.out.split()
+    assert (greeting, task) == ("hola", "held") and job.isdigit(), r.out
+    grid.osmo("cancel", wf_id, check=True)
+    info = grid.osmo.wait_for(wf_id, lambda i: i["status"] == "FAILED_CANCELED", timeout=60)
+    assert "[held] got-term" in logs(grid, wf_id), info
+    until_no_job(roomy, "osmo-held-")
+
+
+def test_osmo_exec_timeout_cancels_the_job(grid: Cluster, roomy: SlurmCluster,
+                                           tmp_path: Path) -> None:
+    spec = write(tmp_path / "wf.yaml", """
+workflow:
+  name: timed
+  timeout: {exec_timeout: 3s}
+  tasks:
+  - name: slow
+    command: [sh, -c, 'echo up; exec sleep 600']
+""")
+    wf_id = grid.osmo.submit(spec)
+    info = grid.osmo.wait_for(wf_id, lambda i: i["status"].startswith("FAILED"), timeout=90)
+    assert info["status"] == "FAILED_EXEC_TIMEOUT", info
+    until_no_job(roomy, "osmo-slow-")
+
+
+def test_a_task_over_its_memory_ends_out_of_memory_137_with_the_reason(
+        grid: Cluster, tmp_path: Path) -> None:
+    spec = write(tmp_path / "wf.yaml", """
+workflow:
+  name: hungry
+  resources:
+    default: {cpu: 1, memory: 60Mi}
+  tasks:
+  - name: hungry
+    command: [python3, -c, 'import time; x = bytearray(400 << 20); time.sleep(30)']
+""")
+    wf_id, _, rows = run(grid, spec, code=1)
+    assert rows["hungry"]["exit_code"] == 137, rows
+    said = osmo_lines(grid.osmo, wf_id, "hungry")
+    assert any("OUT_OF_MEMORY" in line for line in said), said
+
+
+def test_a_pending_job_shows_its_reason_then_runs_when_the_nodes_free(
+        grid: Cluster, roomy: SlurmCluster, tmp_path: Path) -> None:
+    blockers = [roomy.sbatch("sleep 600", "--cpus-per-task=2", f"--nodelist={node}")
+                for node in roomy.nodes]
+    for job in blockers:
+        roomy.wait_job(job, ["RUNNING"])
+    spec = write(tmp_path / "wf.yaml", """
+workflow:
+  name: queued
+  tasks:
+  - name: queued
+    command: [echo, ran]
+""")
+    wf_id = grid.osmo.submit(spec)
+    try:
+        seen = until_logged(grid, wf_id, "PENDING (Resources)")
+        assert "[queued] ran" not in seen
+    finally:
+        for job in blockers:
+            roomy.run("scancel", job)
+    info = grid.osmo.wait_for(wf_id, lambda i: i["status"] == "COMPLETED", timeout=90)
+    assert "[queued] ran" in logs(grid, wf_id), info
