@@ -4,18 +4,13 @@ a real Slurm cluster (tests/slurm/cluster.py), driven through the real CLI.
 OSMO's tutorials (tests/containers/osmo_tutorials, unmodified) run as Slurm batch jobs whose
 agent runs each task in its image through podman on the compute node, with the offline
 test images; their outputs, lineage and logs are checked as the container tests check
-them. The cluster is this module's own (nodes of 2 GiB: the tutorials ask for 1Gi), made
-once for all its tests (0.2 s to start).
+them. The cluster and the worker are the session's (tests/slurm/grid.py).
 """
 
 from __future__ import annotations
 
 import re
-import time
-from collections.abc import Iterator
 from pathlib import Path
-
-import pytest
 
 from osmo.runtime.container import ContainerEngine
 from osmo.runtime.container.runtime import owner_id
@@ -31,41 +26,7 @@ from tests.containers.submitting import (
 from tests.containers.test_tutorials import TUTORIALS
 from tests.e2e.cluster import Cluster
 from tests.slurm.cluster import SlurmCluster
-from tests.slurm.conftest import require_slurm
-
-WORKER = "login"
-
-
-@pytest.fixture(scope="module")
-def roomy() -> Iterator[SlurmCluster]:
-    """A cluster whose two nodes have 2 GiB each (OSMO's tutorials ask for 1Gi)."""
-    require_slurm()
-    cluster = SlurmCluster(memory_mb=2048).start()
-    try:
-        yield cluster
-    finally:
-        assert not cluster.stop(), "the cluster left processes"
-
-
-@pytest.fixture(scope="module")
-def grid(roomy: SlurmCluster, podman_env: dict[str, str], images: dict[str, str],
-         tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cluster]:
-    """A server and one ``osmo worker --runtime slurm`` (podman for image tasks)."""
-    root = tmp_path_factory.mktemp("slurm-grid")
-    made = Cluster(root)
-    made.start_server()
-    made.start_worker(WORKER, "--runtime", "slurm", env={
-        "SLURM_CONF": str(roomy.conf), "PATH": roomy.env["PATH"],
-        "CONTAINERS_CONF": podman_env["CONTAINERS_CONF"]})
-    try:
-        yield made
-    finally:
-        made.stop()
-
-
-def jobs_of(cluster: SlurmCluster) -> list[str]:
-    """Every job the cluster still runs or queues."""
-    return cluster.run("squeue", "-h", "-o", "%i %T %j").stdout.split("\n")[:-1]
+from tests.slurm.grid import WORKER, jobs_of, logs, until_logged, until_no_job
 
 
 def run(grid: Cluster, spec: Path, *, code: int = 0) -> tuple[str, dict[str, list[str]],
@@ -132,26 +93,6 @@ workflow:
     _, lines, rows = run(grid, spec)
     assert re.fullmatch(r"job \d+", lines["first"][0]), lines
     assert lines["second"] == ["data"]
-
-
-def logs(grid: Cluster, wf_id: str) -> str:
-    return grid.osmo("logs", wf_id, check=True).out
-
-
-def until_logged(grid: Cluster, wf_id: str, text: str, timeout: float = 90) -> str:
-    """The workflow's logs once they hold ``text``."""
-    deadline = time.monotonic() + timeout
-    while text not in (seen := logs(grid, wf_id)):
-        assert time.monotonic() < deadline, f"never logged {text!r}:\n{seen}"
-        time.sleep(0.2)
-    return seen
-
-
-def until_no_job(cluster: SlurmCluster, name_part: str, timeout: float = 30) -> None:
-    deadline = time.monotonic() + timeout
-    while any(name_part in line for line in jobs_of(cluster)):
-        assert time.monotonic() < deadline, f"a job is left: {jobs_of(cluster)}"
-        time.sleep(0.2)
 
 
 def test_exec_reaches_the_running_job_and_cancel_sends_sigterm_through_scancel(

@@ -26,6 +26,7 @@ import shlex
 from pathlib import Path
 
 from osmo.options import SlurmOptions
+from osmo.runtime.api import PrepareError
 from osmo.spec.model import ResourceSpec
 
 __all__ = ["batch_script", "job_name", "sbatch_args"]
@@ -66,7 +67,16 @@ def sbatch_args(*, name: str, owner: str, folder: Path, resources: ResourceSpec,
 
 
 def batch_script(python: str, agent: Path, folder: Path) -> str:
-    """The batch script: the agent, on the attempt's folder, and nothing else."""
+    """The batch script: the agent, on the attempt's folder, and nothing else.
+
+    Raises:
+        PrepareError: a path holds a control character (a line break would start a line
+            of its own, which sbatch might read as a directive).
+    """
+    for word in (python, str(agent), str(folder)):
+        if any(ord(c) < 32 or c == "\x7f" for c in word):
+            raise PrepareError(f"{word!r}: a path with a control character cannot go into "
+                               "a Slurm batch script")
     words = " ".join(shlex.quote(str(w)) for w in (python, "-I", agent, folder))
     return f"#!/bin/sh\nexec {words}\n"
 
