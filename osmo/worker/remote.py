@@ -138,13 +138,14 @@ class RemoteWorker:
         self._refused: NotAllowed | None = None  # the server refused to register it
         self._io = ThreadPoolExecutor(4, thread_name_prefix="osmo-inputs")
         self._token: Subscription | None = None
+        # a cluster's jobs a previous life left are cancelled before their folders go
+        cluster = slurm_for_node(options.runtime, home, options.slurm,
+                                 python=options.slurm_python, engine=options.container_engine)
         kill_recorded(home.procs)  # before it announces itself
         clear_runs(home, self._io)  # a previous life's attempts were all rescheduled
         limit = default_limit(home.root) if options.store_limit is None else options.store_limit
         self._keeper = StoreKeeper(home, self.store, self._inputs, limit,
                                    self._protected, self._io)
-        cluster = slurm_for_node(options.runtime, home, options.slurm,
-                                 python=options.slurm_python, engine=options.container_engine)
         offered = cluster[0].capacity() if cluster is not None else None
         self.pool = LocalPool(
             home=home, emit=self._emit, node_id=self.id, pool=options.pool,

@@ -47,15 +47,19 @@ def grid(roomy: SlurmCluster, podman_env: dict[str, str], images: dict[str, str]
          tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cluster]:
     """A server and one ``osmo worker --runtime slurm`` (podman for image tasks)."""
     root = tmp_path_factory.mktemp("slurm-grid")
-    made = Cluster(root)
+    made = Cluster(root, env={"SLURM_CONF": str(roomy.conf), "PATH": roomy.env["PATH"],
+                              "CONTAINERS_CONF": podman_env["CONTAINERS_CONF"]})
     made.start_server()
-    made.start_worker(WORKER, "--runtime", "slurm", env={
-        "SLURM_CONF": str(roomy.conf), "PATH": roomy.env["PATH"],
-        "CONTAINERS_CONF": podman_env["CONTAINERS_CONF"]})
+    start_login(made)
     try:
         yield made
     finally:
         made.stop()
+
+
+def start_login(grid: Cluster) -> None:
+    """Start (or start again) the grid's Slurm worker; wait until it is online."""
+    grid.start_worker(WORKER, "--runtime", "slurm")
 
 
 def jobs_of(cluster: SlurmCluster) -> list[str]:
@@ -78,8 +82,10 @@ def until_logged(grid: Cluster, wf_id: str, text: str, timeout: float = 90) -> s
 
 
 def until_no_job(cluster: SlurmCluster, name_part: str, timeout: float = 30) -> None:
-    """Wait until no job whose name holds ``name_part`` is queued or running."""
+    """Wait until no job whose id is ``name_part``, or whose name holds it, is queued or
+    running."""
     deadline = time.monotonic() + timeout
-    while any(name_part in line for line in jobs_of(cluster)):
+    while any(name_part == line.split()[0] or name_part in line.split()[-1]
+              for line in jobs_of(cluster)):
         assert time.monotonic() < deadline, f"a job is left: {jobs_of(cluster)}"
         time.sleep(0.2)

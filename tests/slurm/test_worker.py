@@ -10,6 +10,7 @@ them. The cluster and the worker are the session's (tests/slurm/grid.py).
 from __future__ import annotations
 
 import re
+import signal
 from pathlib import Path
 
 from osmo.runtime.container import ContainerEngine
@@ -26,7 +27,7 @@ from tests.containers.submitting import (
 from tests.containers.test_tutorials import TUTORIALS
 from tests.e2e.cluster import Cluster
 from tests.slurm.cluster import SlurmCluster
-from tests.slurm.grid import WORKER, jobs_of, logs, until_logged, until_no_job
+from tests.slurm.grid import WORKER, jobs_of, logs, start_login, until_logged, until_no_job
 
 
 def run(grid: Cluster, spec: Path, *, code: int = 0) -> tuple[str, dict[str, list[str]],
@@ -173,3 +174,29 @@ workflow:
             roomy.run("scancel", job)
     info = grid.osmo.wait_for(wf_id, lambda i: i["status"] == "COMPLETED", timeout=90)
     assert "[queued] ran" in logs(grid, wf_id), info
+
+
+def test_a_restarted_worker_cancels_the_job_it_left_and_the_task_runs_again(
+        grid: Cluster, roomy: SlurmCluster, tmp_path: Path) -> None:
+    runs, gate = tmp_path / "runs", tmp_path / "gate"
+    spec = write(tmp_path / "wf.yaml", f"""
+workflow:
+  name: again
+  tasks:
+  - name: again
+    command: [sh, -c, 'echo "$SLURM_JOB_ID" >> {runs}; echo up;
+      while [ ! -e {gate} ]; do sleep 0.2; done']
+""")
+    wf_id = grid.osmo.submit(spec)
+    until_logged(grid, wf_id, "[again] up")
+    first = runs.read_text().split()[0]
+    grid.signal(WORKER, signal.SIGKILL)
+    grid.workers[WORKER].wait(timeout=30)
+    assert any(line.startswith(f"{first} RUNNING") for line in jobs_of(roomy))  # for now
+    start_login(grid)
+    until_no_job(roomy, first)
+    gate.touch()
+    info = grid.osmo.wait_for(wf_id, lambda i: i["status"] == "COMPLETED", timeout=120)
+    ran = runs.read_text().split()
+    assert len(ran) == 2 and ran[0] == first and ran[1] != first, (ran, info)
+    assert roomy.sacct(first)["State"].startswith("CANCELLED"), roomy.sacct(first)
