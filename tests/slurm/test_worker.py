@@ -13,6 +13,7 @@ import re
 import signal
 from pathlib import Path
 
+from osmo.config import free_port
 from osmo.runtime.container import ContainerEngine
 from osmo.runtime.container.runtime import owner_id
 from tests.conftest import write
@@ -200,3 +201,61 @@ workflow:
     ran = runs.read_text().split()
     assert len(ran) == 2 and ran[0] == first and ran[1] != first, (ran, info)
     assert roomy.sacct(first)["State"].startswith("CANCELLED"), roomy.sacct(first)
+
+
+def test_group_communication_tutorial_runs_as_one_job(grid: Cluster) -> None:
+    wf_id, lines, _ = run(grid, TUTORIALS / "group_tasks_communication.yaml")
+    # {{host:server}} is the address of the node Slurm gave the server (both 127.0.0.1 here)
+    assert lines["client"] == ["Client: Starting...", "Calling server at 127.0.0.1...",
+                               "Received from server: hello", "Client: Complete"]
+    assert lines["server"] == ["Server: Starting...", "Server: Complete"]
+    said = osmo_lines(grid.osmo, wf_id, "client") + osmo_lines(grid.osmo, wf_id, "server")
+    jobs = {m.group(1) for line in said
+            if (m := re.fullmatch(r"Slurm job (\d+)\+[01] submitted .*", line))}
+    assert len(jobs) == 1, said  # one heterogeneous job for the group
+
+
+def test_combination_tutorial(grid: Cluster) -> None:
+    _, lines, rows = run(grid, TUTORIALS / "combination_workflow_simple.yaml")
+    samples = [f"sample_{i},value_{i}" for i in range(1, 11)]
+    csv = Path(rows["generate-data"]["output"]) / "data" / "training_data.csv"
+    assert csv.read_text().splitlines() == samples
+    assert lines["train-model-a"] == ["Training Model A...", *samples, "✓ Model A complete!"]
+
+
+GANG = """
+workflow:
+  name: gang
+  resources:
+    default: {cpu: 2, memory: 100Mi}
+  groups:
+  - name: pair
+    tasks:
+    - name: server
+      lead: true
+      command: [sh, -c, 'echo "server on $SLURMD_NODENAME"; echo hello | busybox nc -l -p PORT']
+    - name: client
+      command: [sh, -c, 'echo "client on $SLURMD_NODENAME";
+        for i in $(seq 100); do busybox nc {{host:server}} PORT && exit 0; sleep 0.2; done;
+        exit 1']
+"""
+
+
+def test_a_group_is_one_allocation_across_two_nodes_and_waits_whole_for_room(
+        grid: Cluster, roomy: SlurmCluster, tmp_path: Path) -> None:
+    blocker = roomy.sbatch("sleep 600", "--cpus-per-task=2", "--nodelist=n1")
+    roomy.wait_job(blocker, ["RUNNING"])
+    spec = write(tmp_path / "wf.yaml", GANG.replace("PORT", str(free_port(0))))
+    wf_id = grid.osmo.submit(spec)
+    try:
+        seen = until_logged(grid, wf_id, "PENDING (Resources)")
+        assert " on n" not in seen  # neither member runs while the other cannot
+    finally:
+        roomy.run("scancel", blocker)
+    info = grid.osmo.wait_for(wf_id, lambda i: i["status"] in ("COMPLETED", "FAILED"),
+                              timeout=90)
+    lines = task_lines(grid.osmo, wf_id)
+    assert info["status"] == "COMPLETED", (info, lines)
+    assert lines["client"][-1] == "hello", lines
+    nodes = {lines["server"][0].split()[-1], lines["client"][0].split()[-1]}
+    assert nodes == {"n1", "n2"}, lines  # two CPUs each: one node each

@@ -16,9 +16,19 @@ folder on the filesystem the login host and the compute nodes share
 - ``started``: written here when the task starts; found at a start, it means Slurm runs the
   job again (requeued after a node failure or a preemption): the output folder is emptied
   first, so nothing of the lost run is kept or duplicated.
+- ``gang.json`` (a group's member, one component of a heterogeneous job): ``hosts``, the
+  placeholder ``__OSMO_SLURM_HOST_<i>__`` of each member, replaced in the task's argv,
+  environment and files by the address of the node Slurm gave component ``i``
+  (``SLURM_JOB_NODELIST_HET_GROUP_<i>``, its ``NodeAddr`` from ``scontrol``); ``after``, an
+  argv that prints ``true`` once the group's lead runs (a peer starts after its lead, at
+  most 30 s later, as in OSMO).
 
-What Slurm gives the job (``SLURM_*``, ``CUDA_VISIBLE_DEVICES``: the GPUs it allocated) is
-added to the task's environment. SIGTERM, SIGINT, SIGHUP, SIGUSR1 and SIGUSR2 (``scancel
+With ``--own-output`` (a gang's members, started by one ``srun``) the task's stdout and
+stderr go to the folder's ``out`` and ``err`` (appended); otherwise Slurm's ``--output``
+and ``--error`` already point there.
+
+What Slurm gives the job (``SLURM_*``, ``SLURMD_NODENAME``, ``CUDA_VISIBLE_DEVICES``: the
+GPUs it allocated) is added to the task's environment. SIGTERM, SIGINT, SIGHUP, SIGUSR1 and SIGUSR2 (``scancel
 --signal``, Slurm's time limit) are passed on to the task's process group.
 
 It must not import osmo: the compute node may not have it.
@@ -32,14 +42,25 @@ import shutil
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
-_FROM_SLURM = ("SLURM_", "CUDA_VISIBLE_DEVICES", "GPU_DEVICE_ORDINAL", "ROCR_VISIBLE_DEVICES")
+_FROM_SLURM = ("SLURM_", "SLURMD_", "CUDA_VISIBLE_DEVICES", "GPU_DEVICE_ORDINAL",
+               "ROCR_VISIBLE_DEVICES")
 _FORWARDED = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP, signal.SIGUSR1, signal.SIGUSR2)
 
 
-def main(folder: Path) -> int:
+PLACEHOLDER = "__OSMO_SLURM_HOST_{}__"
+_LEAD_WAIT = 30.0
+
+
+def main(folder: Path, *, own_output: bool = False) -> int:
     """Run the attempt described in ``folder``; its exit code (also in ``exit.json``)."""
+    if own_output:
+        for fd, name in ((1, "out"), (2, "err")):
+            target = os.open(folder / name, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o600)
+            os.dup2(target, fd)
+            os.close(target)
     launch = json.loads((folder / "launch.json").read_text())
     secret_file = folder / "secret.json"
     secrets = json.loads(secret_file.read_text()) if secret_file.exists() else {}
@@ -51,7 +72,18 @@ def main(folder: Path) -> int:
              f"{os.environ.get('SLURMD_NODENAME', '?')}): the lost run's output is removed")
         empty(Path(launch["output"]))
     marker.write_text(os.environ.get("SLURM_JOB_ID", ""))
-    code = run(launch["argv"], launch["cwd"], env)
+    argv = launch["argv"]
+    gang_file = folder / "gang.json"
+    if gang_file.exists():
+        gang = json.loads(gang_file.read_text())
+        hosts = {PLACEHOLDER.format(i): address(i) for i in range(int(gang["size"]))}
+        argv = [replace_all(word, hosts) for word in argv]
+        env = {k: replace_all(v, hosts) for k, v in env.items()}
+        if launch.get("files"):
+            rewrite(Path(launch["files"]), hosts)
+        if gang.get("after"):
+            wait_for(gang["after"], gang.get("after_env") or env)
+    code = run(argv, launch["cwd"], env)
     write_exit(folder, code)
     return code
 
@@ -77,6 +109,51 @@ def run(argv: list[str], cwd: str, env: dict[str, str]) -> int:
     return 128 - code if code < 0 else code
 
 
+def address(index: int) -> str:
+    """Where the node of heterogeneous component ``index`` is reached (its NodeAddr)."""
+    node = os.environ.get(f"SLURM_JOB_NODELIST_HET_GROUP_{index}", "").split(",")[0]
+    try:
+        shown = subprocess.run(["scontrol", "show", "node", "--oneliner", node],
+                               capture_output=True, text=True, timeout=30, check=False).stdout
+    except (OSError, subprocess.TimeoutExpired):
+        return node
+    for word in shown.split():
+        if word.startswith("NodeAddr="):
+            return word.partition("=")[2]
+    return node
+
+
+def replace_all(text: str, values: dict[str, str]) -> str:
+    """``text`` with every key of ``values`` replaced by its value."""
+    for key, value in values.items():
+        text = text.replace(key, value)
+    return text
+
+
+def rewrite(folder: Path, values: dict[str, str]) -> None:
+    """Replace the placeholders in every file under ``folder`` (the task's ``files:``)."""
+    for path in folder.rglob("*"):
+        if path.is_file() and not path.is_symlink():
+            data = path.read_bytes()
+            if b"__OSMO_SLURM_HOST_" in data:
+                text = replace_all(data.decode("utf-8", "surrogateescape"), values)
+                path.write_bytes(text.encode("utf-8", "surrogateescape"))
+
+
+def wait_for(argv: list[str], env: dict[str, str]) -> None:
+    """Until ``argv`` prints ``true`` (the lead runs), at most 30 s."""
+    deadline = time.monotonic() + _LEAD_WAIT
+    while time.monotonic() < deadline:
+        try:
+            said = subprocess.run(argv, env=env, capture_output=True, text=True, timeout=10,
+                                  check=False).stdout
+        except (OSError, subprocess.TimeoutExpired):
+            said = ""
+        if said.strip() == "true":
+            return
+        time.sleep(0.1)
+
+
 def empty(folder: Path) -> None:
     """Remove everything inside ``folder`` (not the folder itself)."""
     for entry in folder.iterdir() if folder.is_dir() else ():
@@ -100,4 +177,5 @@ def note(text: str) -> None:
 
 
 if __name__ == "__main__":
-    sys.exit(main(Path(sys.argv[1])))
+    own = "--own-output" in sys.argv[1:-1]
+    sys.exit(main(Path(sys.argv[-1]), own_output=own))

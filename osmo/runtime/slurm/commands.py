@@ -100,11 +100,16 @@ class Slurm:
         return job_id
 
     def jobs(self, job_ids: Iterable[str]) -> dict[str, JobInfo]:
-        """The jobs among ``job_ids`` slurmctld still knows (ended ones too, for a while)."""
-        wanted = sorted(set(job_ids))
+        """The jobs among ``job_ids`` slurmctld still knows (ended ones too, for a while).
+
+        A heterogeneous job's component is ``JOB+N`` (as squeue names it).
+        """
+        wanted = set(job_ids)
         if not wanted:
             return {}
-        return {job.job_id: job for job in self._squeue("-j", ",".join(wanted))}
+        bases = sorted({job_id.split("+")[0] for job_id in wanted})
+        return {job.job_id: job for job in self._squeue("-j", ",".join(bases))
+                if job.job_id in wanted}
 
     def owned(self, comment: str) -> list[JobInfo]:
         """The jobs (any state) whose comment is ``comment``."""

@@ -14,6 +14,13 @@ What it owns, one concern per method of the runtime contract:
 - start: credentials to ``secret.json`` (0600), ``sbatch``, then the attempt's watcher
   (``osmo.runtime.slurm.watch``, the local process the pool watches: the job's output as
   it comes, its exit code at the end).
+- groups are gangs: a group's members (``PrepareAttempt.hosts``) go to Slurm as one
+  heterogeneous job, one component each, submitted when the last member starts (the
+  group barrier), so Slurm places all of them or none (PENDING with its reason until it
+  can). One ``srun`` starts every member's agent in its component. ``{{host:NAME}}`` is a
+  placeholder the agent replaces with the address of NAME's node; containers use their
+  node's network; a peer starts once its lead's task (container) runs. A lost gang
+  (NODE_FAIL...) ends every member with 137: the group is retried whole.
 - status: one poller thread per node asks ``squeue`` about every live job of the node at
   once, a few times a second, and reads the state through the one table
   (``osmo.runtime.slurm.states``): a PENDING reason and the node a job runs on go to the
@@ -74,12 +81,20 @@ from osmo.runtime.api import (
 from osmo.runtime.container.run import ContainerError, ContainerRun, run_argv, secret_env_text
 from osmo.runtime.container.runtime import ContainerRuntime
 from osmo.runtime.process.groups import ProcessGroups
+from osmo.runtime.slurm.agent import PLACEHOLDER
 from osmo.runtime.slurm.commands import JobInfo, Partition, Slurm, SlurmError
-from osmo.runtime.slurm.script import batch_script, job_name, sbatch_args
+from osmo.runtime.slurm.script import (
+    batch_script,
+    gang_args,
+    gang_script,
+    job_name,
+    resource_args,
+    sbatch_args,
+)
 from osmo.runtime.slurm.states import Phase, verdict
 from osmo.scheduler.types import PrepareAttempt
 
-__all__ = ["SlurmJob", "SlurmRuntime"]
+__all__ = ["Gang", "SlurmJob", "SlurmRuntime"]
 
 _log = logging.getLogger(__name__)
 
@@ -97,17 +112,39 @@ class SlurmJob:
         name: its Slurm job name.
         args: sbatch's options.
         container: the container its task runs in, on the compute node (None: none).
+        resources: the options of what it asks for (a gang's component).
+        gang: a group member's gang: its key, its members in component order, its index
+            among them (None: a job of its own).
     """
 
     folder: Path
     name: str
     args: tuple[str, ...]
     container: ContainerRun | None = None
+    resources: tuple[str, ...] = ()
+    gang: Gang | None = None
 
     @property
     def script(self) -> Path:
         """The batch script."""
         return self.folder / "job.sh"
+
+
+@dataclass(frozen=True)
+class Gang:
+    """A group member's place in its gang (one heterogeneous job for the whole group).
+
+    Attributes:
+        key: the group's attempt (workflow, retry, members).
+        members: the members' task names, in component order.
+        index: this member's component.
+        lead: this member is the group's lead (its peers start once it runs).
+    """
+
+    key: str
+    members: tuple[str, ...]
+    index: int
+    lead: bool
 
 
 @dataclass(eq=False)
@@ -149,6 +186,7 @@ class SlurmRuntime:
         self._python, self._poll = python, poll
         self._processes = ProcessGroups()
         self._jobs: dict[Path, _Live] = {}  # by job folder
+        self._gangs: dict[str, dict[int, _Live]] = {}  # members started, until submitted
         self._lock = threading.Lock()
         self._wake = threading.Event()
         self._closing = threading.Event()
@@ -192,8 +230,16 @@ class SlurmRuntime:
         return cancelled
 
     def paths(self, cmd: PrepareAttempt) -> Paths:
-        """The host's paths (shared), credentials apart; in a container, OSMO's layout."""
-        return _PATHS if self._containers is None else self._containers.paths(cmd)
+        """The host's paths (shared), credentials apart; in a container, OSMO's layout.
+
+        A group member's ``{{host:NAME}}`` is a placeholder the job's agent replaces with
+        the address of the node Slurm gives NAME (``osmo.runtime.slurm.agent``).
+        """
+        hosts = _placeholders(cmd)
+        if self._containers is not None:
+            seen = self._containers.paths(replace(cmd, hosts=hosts))
+            return seen if not hosts else replace(seen, hosts=hosts)
+        return _PATHS if not hosts else replace(_PATHS, hosts=hosts)
 
     def prepare(self, launch: Launch, attempt: Attempt, *,
                 progress: Callable[[str], None]) -> Launch:
@@ -203,7 +249,7 @@ class SlurmRuntime:
             PrepareError: the task names an image (no container runtime on the compute
                 nodes yet), or its job folder cannot be written.
         """
-        task, dirs = attempt.task, attempt.dirs
+        task, dirs, cmd = attempt.task, attempt.dirs, attempt.cmd
         argv, env, container = list(launch.argv), dict(launch.env), None
         if self._containers is None and task.image is not None and task.type is None:
             # the chooser gives image tasks to this runtime when the node has no engine
@@ -212,7 +258,9 @@ class SlurmRuntime:
                 "run images: it needs pyxis (srun --container-image) or podman on its compute "
                 "nodes; the task is not run as a bare process instead")
         if self._containers is not None:
-            launch = replace(self._containers.prepare(launch, attempt, progress=progress),
+            # a group's containers use their nodes' networks (``_placeholders``)
+            spread = replace(attempt, cmd=replace(attempt.cmd, hosts=_placeholders(cmd)))
+            launch = replace(self._containers.prepare(launch, spread, progress=progress),
                              waits=False)
             container = replace(_container(launch), argv=launch.argv, env=dict(launch.env))
             try:
@@ -224,15 +272,21 @@ class SlurmRuntime:
             argv.insert(2, "--cgroupns=private")
             env = self._containers.engine.env
         folder = dirs.root / "slurm"
-        name = job_name(task.name, attempt.cmd.attempt_id)
+        name = job_name(task.name, cmd.attempt_id)
+        gang = None
+        if len(cmd.hosts) > 1:
+            members = tuple(cmd.hosts)
+            gang = Gang(f"{cmd.workflow_id}\0{cmd.retry}\0{chr(0).join(members)}", members,
+                        members.index(task.name), task.lead)
         try:
             folder.mkdir(mode=0o700, exist_ok=True)
             _write_private(folder / "launch.json", json.dumps({
                 "argv": argv, "cwd": str(launch.cwd), "env": env,
-                "output": str(dirs.output_partial)}))
+                "output": str(dirs.output_partial), "files": str(dirs.files)}))
             job = SlurmJob(folder, name, tuple(sbatch_args(
                 name=name, owner=self.owner, folder=folder, resources=attempt.resources,
-                options=self.options)), container)
+                options=self.options)), container,
+                tuple(resource_args(attempt.resources, self.options)), gang)
             _write_private(job.script, batch_script(self._python, AGENT, folder))
         except OSError as exc:
             raise PrepareError(f"cannot write the job folder {folder}: "
@@ -241,7 +295,7 @@ class SlurmRuntime:
         return replace(launch, run=job, notes=(*launch.notes, note))
 
     def start(self, launch: Launch) -> ProcessHandle:
-        """Submit the job and start its watcher.
+        """Submit the job (a gang's, once its last member starts) and start its watcher.
 
         Raises:
             StartError: sbatch refused the job (its message: no node can ever fit it, an
@@ -256,7 +310,8 @@ class SlurmRuntime:
                 _write_private(secret, secret_env_text(box.secret_env))
             elif launch.secret_env:
                 _write_private(secret, json.dumps(launch.secret_env))
-            job_id = self.slurm.sbatch(str(job.script), job.args, cwd=str(job.folder))
+            job_id = "" if job.gang else self.slurm.sbatch(str(job.script), job.args,
+                                                           cwd=str(job.folder))
         except (OSError, SlurmError) as exc:
             _unlink(secret)
             raise StartError(f"Slurm did not take the job: {exc}") from exc
@@ -266,20 +321,82 @@ class SlurmRuntime:
                 [self._python, "-I", str(WATCHER), str(job.folder)], cwd=launch.cwd,
                 env={"PATH": os.environ.get("PATH", "/usr/bin:/bin")})
         except StartError:
-            self._quietly(self.slurm.cancel, job_id)
+            if job_id:
+                self._quietly(self.slurm.cancel, job_id)
             _unlink(secret)
             raise
         handle.notes_fd, live.notes = os.pipe2(os.O_NONBLOCK | os.O_CLOEXEC)
         live.handle = handle
-        self._note(live, f"Slurm job {job_id} submitted")
         with self._lock:
             self._jobs[job.folder] = live
             if self._poller is None:
                 self._poller = threading.Thread(target=self._watch, name="osmo-slurm-poll",
                                                 daemon=True)
                 self._poller.start()
+        if job.gang is None:
+            self._note(live, f"Slurm job {job_id} submitted")
+        else:
+            self._join(live, job.gang)
         self._wake.set()
         return handle
+
+    def _join(self, live: _Live, gang: Gang) -> None:
+        """One more member of ``gang`` started: the last one submits the gang's job."""
+        with self._lock:
+            started = self._gangs.setdefault(gang.key, {})
+            started[gang.index] = live
+            complete = len(started) == len(gang.members)
+            if complete:
+                del self._gangs[gang.key]
+        if not complete:
+            self._note(live, f"waits for its group ({len(started)} of {len(gang.members)} "
+                             "members ready) to go to Slurm as one job")
+            return
+        members = [started[i] for i in range(len(gang.members))]
+        if any(member.killed for member in members):
+            for member in members:
+                self._end(member, 137)
+            return
+        try:
+            job_id = self._submit_gang(members)
+        except (OSError, SlurmError, PrepareError) as exc:
+            for member in members:
+                self._note(member, f"Slurm did not take the group's job: {exc}")
+                self._end(member, 1)
+            return
+        for index, member in enumerate(members):
+            member.job_id = f"{job_id}+{index}"
+            self._note(member, f"Slurm job {member.job_id} submitted (one job for the group "
+                               f"of {len(members)}: all placed, or none)")
+
+    def _submit_gang(self, members: list[_Live]) -> str:
+        """Write each member's ``gang.json`` and the gang's script; sbatch; the job id."""
+        lead = next((m for m in members if m.job.gang and m.job.gang.lead), members[0])
+        # its peers start once it runs, as in OSMO (a container's, as its engine says)
+        box = lead.job.container
+        after = None
+        if box is not None and self._containers is not None:
+            after = [self._containers.engine.engine.path, "container", "inspect",
+                     "--format", "{{.State.Running}}", box.name]
+        for member in members:
+            _write_private(member.job.folder / "gang.json", json.dumps({
+                "size": len(members),
+                "after": after if member is not lead else None,
+                "after_env": self._containers.engine.env if after and self._containers
+                else None}))
+        first = members[0].job.folder
+        script = first / "gang.sh"
+        _write_private(script, gang_script(self._python, AGENT,
+                                           [m.job.folder for m in members]))
+        name = members[0].job.name.replace("osmo-", "osmo-group-", 1)
+        args = gang_args(name=name, owner=self.owner, folder=first,
+                         components=[m.job.resources for m in members])
+        return self.slurm.sbatch(str(script), args, cwd=str(first))
+
+    def _end(self, live: _Live, code: int) -> None:
+        """``live`` ended without a job's word: its watcher exits with ``code``."""
+        _write_private(live.job.folder / "ended.json", json.dumps({"code": code}))
+        live.ended = True
 
     def kill(self, handle: ProcessHandle, *, force: bool = False) -> None:
         """``scancel`` with SIGTERM (SIGKILL, then the job cancelled, when ``force``)."""
@@ -288,6 +405,9 @@ class SlurmRuntime:
             self._processes.kill(handle, force=force)
             return
         live.killed = True
+        if not live.job_id:  # a gang member whose group's job is not submitted yet
+            self._end(live, 137 if force else 143)
+            return
         self._later(self._cancel, live, force)
 
     def reap(self, handle: ProcessHandle) -> int:
@@ -352,7 +472,7 @@ class SlurmRuntime:
         _unlink_secrets(job)
         with self._lock:
             live = self._jobs.pop(job.folder, None)
-        if live is not None and not live.ended:
+        if live is not None and live.job_id and not live.ended:
             self._later(self._quietly, self.slurm.cancel, live.job_id)
         if job.container is not None and self._containers is not None:
             self._containers.cleanup(replace(launch, run=job.container))
@@ -364,7 +484,7 @@ class SlurmRuntime:
         if self._poller is not None:
             self._poller.join()
         with self._lock:
-            left = [live for live in self._jobs.values() if not live.ended]
+            left = [live for live in self._jobs.values() if live.job_id and not live.ended]
         for live in left:
             self._quietly(self.slurm.cancel, live.job_id)
         while True:
@@ -382,7 +502,7 @@ class SlurmRuntime:
             self._wake.wait(self._poll)
             self._wake.clear()
             with self._lock:
-                live = [job for job in self._jobs.values() if not job.ended]
+                live = [job for job in self._jobs.values() if job.job_id and not job.ended]
             if not live:
                 continue
             try:
@@ -406,8 +526,11 @@ class SlurmRuntime:
             self._say(live, f"Slurm job {live.job_id} {info.state} ({info.reason})")
         elif seen.phase is Phase.RUNNING and info is not None and info.nodes:
             self._say(live, f"Slurm job {live.job_id} RUNNING on {info.nodes}")
-        elif seen.phase is Phase.LOST:
+        elif seen.phase is Phase.LOST and live.job.gang is None:
             self._resubmit(live, seen.reason or "lost")
+        elif seen.phase is Phase.LOST:  # a gang's: its group fails and is retried whole
+            self._note(live, seen.reason or "lost")
+            self._end(live, 137)
         elif seen.phase is Phase.ENDED:
             killed = live.killed and not seen.override
             if seen.reason and not killed:
@@ -487,6 +610,18 @@ def _job(launch: Launch) -> SlurmJob:
     if not isinstance(job, SlurmJob):
         raise TypeError(f"{launch!r} was not prepared by the Slurm runtime")
     return job
+
+
+def _placeholders(cmd: PrepareAttempt) -> dict[str, str]:
+    """A group member's ``{{host:NAME}}`` placeholders, by member (none alone).
+
+    Each names a component of the group's job; the agent replaces it with the address of
+    the node Slurm gives that component. Distinct, they also tell the container runtime
+    that the members are spread over hosts: its containers use their node's network.
+    """
+    if len(cmd.hosts) < 2:
+        return {}
+    return {name: PLACEHOLDER.format(index) for index, name in enumerate(cmd.hosts)}
 
 
 def _container(launch: Launch) -> ContainerRun:

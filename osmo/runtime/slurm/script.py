@@ -23,13 +23,15 @@ import hashlib
 import math
 import re
 import shlex
+from collections.abc import Sequence
 from pathlib import Path
 
 from osmo.options import SlurmOptions
 from osmo.runtime.api import PrepareError
 from osmo.spec.model import ResourceSpec
 
-__all__ = ["batch_script", "job_name", "sbatch_args"]
+__all__ = ["batch_script", "gang_args", "gang_script", "job_args", "job_name",
+           "resource_args", "sbatch_args"]
 
 _NAME_CHARS = re.compile(r"[^A-Za-z0-9_.-]")
 
@@ -43,10 +45,34 @@ def job_name(task: str, attempt_id: str) -> str:
 def sbatch_args(*, name: str, owner: str, folder: Path, resources: ResourceSpec,
                 options: SlurmOptions) -> list[str]:
     """Sbatch's options for one attempt (one ``--opt=value`` word each)."""
-    args = [f"--job-name={name}", f"--comment={owner}", f"--chdir={folder}",
+    return [*job_args(name=name, owner=owner, folder=folder),
+            *resource_args(resources, options)]
+
+
+def job_args(*, name: str, owner: str, folder: Path) -> list[str]:
+    """The job's own options: name, owner comment, folder, output files, environment."""
+    return [f"--job-name={name}", f"--comment={owner}", f"--chdir={folder}",
             f"--output={folder / 'out'}", f"--error={folder / 'err'}", "--open-mode=append",
-            "--export=NONE", "--nodes=1", "--ntasks=1",
-            f"--cpus-per-task={max(1, int(resources.cpu or 1))}"]
+            "--export=NONE"]
+
+
+def gang_args(*, name: str, owner: str, folder: Path,
+              components: Sequence[Sequence[str]]) -> list[str]:
+    """A heterogeneous job's options: one component per member (``resource_args``).
+
+    Slurm places all of them or none. The batch script's own output goes to ``folder``'s
+    ``out`` and ``err`` (each member's agent writes its task's to its own folder).
+    """
+    args = job_args(name=name, owner=owner, folder=folder)
+    for index, component in enumerate(components):
+        args.extend([":"] if index else [])
+        args.extend(component)
+    return args
+
+
+def resource_args(resources: ResourceSpec, options: SlurmOptions) -> list[str]:
+    """What one task asks for: one node, one task, its CPUs, memory, GPUs, disk; where."""
+    args = ["--nodes=1", "--ntasks=1", f"--cpus-per-task={max(1, int(resources.cpu or 1))}"]
     if resources.memory:
         args.append(f"--mem={_mebibytes(resources.memory)}M")
     if resources.gpu:
@@ -73,12 +99,30 @@ def batch_script(python: str, agent: Path, folder: Path) -> str:
         PrepareError: a path holds a control character (a line break would start a line
             of its own, which sbatch might read as a directive).
     """
-    for word in (python, str(agent), str(folder)):
+    _check_words(python, str(agent), str(folder))
+    words = " ".join(shlex.quote(str(w)) for w in (python, "-I", agent, folder))
+    return f"#!/bin/sh\nexec {words}\n"
+
+
+def gang_script(python: str, agent: Path, folders: Sequence[Path]) -> str:
+    """A gang's batch script: one ``srun`` starting every member's agent in its component.
+
+    Raises:
+        PrepareError: a path holds a control character.
+    """
+    _check_words(python, str(agent), *map(str, folders))
+    steps = " : ".join(
+        " ".join(shlex.quote(str(w)) for w in (f"--het-group={index}", python, "-I", agent,
+                                               "--own-output", folder))
+        for index, folder in enumerate(folders))
+    return f"#!/bin/sh\nexec srun --kill-on-bad-exit=0 {steps}\n"
+
+
+def _check_words(*words: str) -> None:
+    for word in words:
         if any(ord(c) < 32 or c == "\x7f" for c in word):
             raise PrepareError(f"{word!r}: a path with a control character cannot go into "
                                "a Slurm batch script")
-    words = " ".join(shlex.quote(str(w)) for w in (python, "-I", agent, folder))
-    return f"#!/bin/sh\nexec {words}\n"
 
 
 def _mebibytes(size: int) -> int:
