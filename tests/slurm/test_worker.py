@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import re
 import signal
+import time
 from pathlib import Path
 
 from osmo.config import free_port
@@ -259,3 +260,34 @@ def test_a_group_is_one_allocation_across_two_nodes_and_waits_whole_for_room(
     assert lines["client"][-1] == "hello", lines
     nodes = {lines["server"][0].split()[-1], lines["client"][0].split()[-1]}
     assert nodes == {"n1", "n2"}, lines  # two CPUs each: one node each
+
+
+def test_a_failed_node_s_job_runs_again_on_the_other_node_nothing_lost_or_doubled(
+        grid: Cluster, roomy: SlurmCluster, tmp_path: Path) -> None:
+    runs, gate = tmp_path / "runs", tmp_path / "gate"
+    spec = write(tmp_path / "wf.yaml", f"""
+workflow:
+  name: survivor
+  tasks:
+  - name: survivor
+    command: [sh, -c, 'echo "$SLURMD_NODENAME" >> {runs}; echo line >> {{{{output}}}}/data.txt;
+      echo up; while [ ! -e {gate} ]; do sleep 0.2; done']
+""")
+    wf_id = grid.osmo.submit(spec)
+    until_logged(grid, wf_id, "[survivor] up")
+    first = runs.read_text().split()[0]
+    started = time.monotonic()
+    roomy.kill_slurmd(first)
+    try:
+        gate.touch()
+        info = grid.osmo.wait_for(wf_id, lambda i: i["status"] in ("COMPLETED", "FAILED"),
+                                  timeout=150)
+    finally:
+        roomy.start_slurmd(first)
+    print(f"a failed node's attempt completed {time.monotonic() - started:.1f}s after the kill")
+    ran = runs.read_text().split()
+    assert info["status"] == "COMPLETED", (info, logs(grid, wf_id))
+    assert len(ran) == 2 and ran[0] == first and ran[1] != first, ran
+    row = tasks(grid.osmo, wf_id)["survivor"]
+    assert row["retry"] == 0, row  # Slurm's requeue: the same attempt, not a retry
+    assert (Path(row["output"]) / "data.txt").read_text() == "line\n"  # the lost run's: gone
