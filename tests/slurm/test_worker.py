@@ -10,6 +10,7 @@ them. The cluster and the worker are the session's (tests/slurm/grid.py).
 from __future__ import annotations
 
 import re
+import shlex
 import signal
 import time
 from pathlib import Path
@@ -291,3 +292,37 @@ workflow:
     row = tasks(grid.osmo, wf_id)["survivor"]
     assert row["retry"] == 0, row  # Slurm's requeue: the same attempt, not a retry
     assert (Path(row["output"]) / "data.txt").read_text() == "line\n"  # the lost run's: gone
+
+
+GUIDE = Path(__file__).parents[2] / "docs" / "tutorials" / "slurm.md"
+
+
+def test_the_operator_guide_s_commands_start_a_worker_that_runs_tasks(
+        grid: Cluster, tmp_path: Path) -> None:
+    create, start = re.findall(r"```sh\n(.*?)```", GUIDE.read_text(), re.S)
+    token = grid.osmo(*shlex.split(create)[1:], check=True).out.strip()
+    argv = shlex.split(start.replace("\\\n", " "))
+    assert argv[:2] == ["osmo", "worker"], argv
+    given, rest = {}, []
+    words = iter(argv[2:])
+    for word in words:
+        if word in ("--connect", "--name", "--pool"):
+            given[word] = next(words)
+        else:
+            rest.append(word)
+    name, pool = given["--name"] + "-guide", given["--pool"]
+    grid.start_worker(name, *rest, pool=pool, token=token)
+    try:
+        assert grid.nodes()[name]["runtime"].startswith("slurm ("), grid.nodes()[name]
+        spec = write(tmp_path / "wf.yaml", """
+workflow:
+  name: guide
+  tasks:
+  - name: hello
+    command: [sh, -c, 'echo "hello from job $SLURM_JOB_ID"']
+""")
+        r = grid.osmo("submit", str(spec), "--pool", pool, "--wait", timeout=120)
+        assert r.code == 0, r.out + r.err + grid.worker_log(name)
+    finally:
+        grid.signal(name, signal.SIGTERM)
+        grid.workers[name].wait(timeout=60)
