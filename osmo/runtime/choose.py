@@ -219,8 +219,9 @@ def slurm_for_node(runtime: str, home: Home, options: SlurmOptions | None = None
     """A login host's Slurm runtimes: every task's, and image tasks' (None: not ``slurm``).
 
     Image tasks run through the container engine found here (``engine``: podman or docker,
-    default the first that answers), expected on the compute nodes too; without one the
-    second is None and image tasks fail at start. The jobs a crashed predecessor on
+    default the first that answers), expected on the compute nodes too; else through pyxis
+    (``srun --container-image``) when the cluster has it; without either the second is None
+    and image tasks fail at start. The jobs a crashed predecessor on
     ``home`` left queued or running are cancelled first.
 
     Raises:
@@ -236,7 +237,9 @@ def slurm_for_node(runtime: str, home: Home, options: SlurmOptions | None = None
     try:
         found = ContainerEngine(detect_engine(engine))
     except EngineNotFound:
-        return made, None
+        images = slurm.has_pyxis() and engine is None
+        return made, SlurmRuntime(slurm, owner=owner, options=options, pyxis=True,
+                                  python=python or sys.executable) if images else None
     boxes = ContainerRuntime(found, owner=owner)
     return made, SlurmRuntime(slurm, owner=owner, options=options,
                               python=python or sys.executable, containers=boxes)

@@ -18,6 +18,7 @@ from pathlib import Path
 from osmo.config import free_port
 from osmo.runtime.container import ContainerEngine
 from osmo.runtime.container.runtime import owner_id
+from osmo.runtime.slurm import Slurm
 from tests.conftest import write
 from tests.containers.submitting import (
     leftovers,
@@ -42,7 +43,9 @@ def run(grid: Cluster, spec: Path, *, code: int = 0) -> tuple[str, dict[str, lis
     return wf_id, lines, rows
 
 
-def test_the_worker_offers_its_partitions_capacity(grid: Cluster) -> None:
+def test_the_worker_offers_its_partitions_capacity(grid: Cluster, roomy: SlurmCluster
+                                                   ) -> None:
+    assert not Slurm(roomy.env).has_pyxis()  # Debian's Slurm: image tasks go to podman
     node = grid.nodes()[WORKER]
     assert node["runtime"].startswith("slurm (slurm-wlm 22.05"), node
     assert "podman" in node["runtime"], node

@@ -28,8 +28,8 @@ stderr go to the folder's ``out`` and ``err`` (appended); otherwise Slurm's ``--
 and ``--error`` already point there.
 
 What Slurm gives the job (``SLURM_*``, ``SLURMD_NODENAME``, ``CUDA_VISIBLE_DEVICES``: the
-GPUs it allocated) is added to the task's environment. SIGTERM, SIGINT, SIGHUP, SIGUSR1 and SIGUSR2 (``scancel
---signal``, Slurm's time limit) are passed on to the task's process group.
+GPUs it allocated) is added to the task's environment. SIGTERM, SIGINT, SIGHUP, SIGUSR1 and
+SIGUSR2 (``scancel --signal``, Slurm's time limit) are passed on to the task's process group.
 
 It must not import osmo: the compute node may not have it.
 """

@@ -43,8 +43,9 @@ secret file) and the job's agent runs the engine's ``run`` argv
 (``osmo.runtime.container.run.run_argv``) on the compute node. The image is resolved on the
 login host: its storage must be the compute nodes' (a shared one), or the run fails at
 once with podman's message. Without an engine an image task fails at start, saying what is
-missing; it never runs as a bare process. pyxis (``srun --container-image``) is detected
-(``Slurm.has_pyxis``) but not used yet.
+missing; it never runs as a bare process. Where the cluster has pyxis and the login host no
+engine, a runtime made with ``pyxis`` runs them through ``srun --container-image``
+(``osmo.runtime.slurm.script.pyxis_argv``: OSMO's data layout as ``--container-mounts``).
 
 Orphans: :meth:`SlurmRuntime.cancel_orphans` cancels every job carrying the node's owner
 comment; a node's runtime is made with it (``osmo.runtime.choose``), before anything new
@@ -78,6 +79,7 @@ from osmo.runtime.api import (
     StartError,
     dial,
 )
+from osmo.runtime.container.layout import DATA_LAYOUT, mounts
 from osmo.runtime.container.run import ContainerError, ContainerRun, run_argv, secret_env_text
 from osmo.runtime.container.runtime import ContainerRuntime
 from osmo.runtime.process.groups import ProcessGroups
@@ -88,6 +90,7 @@ from osmo.runtime.slurm.script import (
     gang_args,
     gang_script,
     job_name,
+    pyxis_argv,
     resource_args,
     sbatch_args,
 )
@@ -174,13 +177,15 @@ class SlurmRuntime:
         containers: runs the tasks in their images, through this engine on the compute
             nodes (the container runtime prepares each run: image, binds, user, labels); its
             paths are then OSMO's data layout. None: image tasks are refused.
+        pyxis: runs the tasks in their images through ``srun --container-image`` (the
+            cluster's pyxis plugin; ``containers`` is then None); OSMO's data layout.
     """
 
     def __init__(self, slurm: Slurm, *, owner: str, options: SlurmOptions | None = None,
                  python: str = sys.executable, poll: float = 0.25,
-                 containers: ContainerRuntime | None = None) -> None:
+                 containers: ContainerRuntime | None = None, pyxis: bool = False) -> None:
         self.slurm, self.owner = slurm, owner
-        self._containers = containers
+        self._containers, self._pyxis = containers, pyxis
         self.options = options or SlurmOptions()
         self.options.check()
         self._python, self._poll = python, poll
@@ -201,6 +206,8 @@ class SlurmRuntime:
                 self._version = self.slurm.version()
             except SlurmError:
                 self._version = "version unknown"
+        if self._pyxis:
+            return f"slurm ({self._version}, pyxis)"
         if self._containers is None:
             return f"slurm ({self._version})"
         engine = self._containers.engine.engine
@@ -236,6 +243,8 @@ class SlurmRuntime:
         the address of the node Slurm gives NAME (``osmo.runtime.slurm.agent``).
         """
         hosts = _placeholders(cmd)
+        if self._pyxis:
+            return DATA_LAYOUT if not hosts else replace(DATA_LAYOUT, hosts=hosts)
         if self._containers is not None:
             seen = self._containers.paths(replace(cmd, hosts=hosts))
             return seen if not hosts else replace(seen, hosts=hosts)
@@ -251,7 +260,12 @@ class SlurmRuntime:
         """
         task, dirs, cmd = attempt.task, attempt.dirs, attempt.cmd
         argv, env, container = list(launch.argv), dict(launch.env), None
-        if self._containers is None and task.image is not None and task.type is None:
+        if self._pyxis:
+            assert task.image is not None, "the chooser gives this runtime image tasks only"
+            binds, workdir = mounts(dirs, launch.files, launch.inputs)
+            argv = pyxis_argv(self.slurm.srun_argv()[0], task.image, binds, workdir,
+                              launch.argv)
+        elif self._containers is None and task.image is not None and task.type is None:
             # the chooser gives image tasks to this runtime when the node has no engine
             raise PrepareError(
                 f"task {task.name!r} names image '{task.image}', and this Slurm pool cannot "

@@ -28,9 +28,10 @@ from pathlib import Path
 
 from osmo.options import SlurmOptions
 from osmo.runtime.api import PrepareError
+from osmo.runtime.container.run import Mount
 from osmo.spec.model import ResourceSpec
 
-__all__ = ["batch_script", "gang_args", "gang_script", "job_args", "job_name",
+__all__ = ["batch_script", "gang_args", "gang_script", "job_args", "job_name", "pyxis_argv",
            "resource_args", "sbatch_args"]
 
 _NAME_CHARS = re.compile(r"[^A-Za-z0-9_.-]")
@@ -116,6 +117,31 @@ def gang_script(python: str, agent: Path, folders: Sequence[Path]) -> str:
                                                "--own-output", folder))
         for index, folder in enumerate(folders))
     return f"#!/bin/sh\nexec srun --kill-on-bad-exit=0 {steps}\n"
+
+
+def pyxis_argv(srun: str, image: str, mounts: Sequence[Mount], workdir: str | None,
+               argv: Sequence[str]) -> list[str]:
+    """``srun`` running ``argv`` in ``image`` through pyxis, OSMO's layout bound in.
+
+    One step of the job's own allocation (``--ntasks=1``); the binds are pyxis's
+    ``--container-mounts`` list (``SRC:DST[:ro]``, comma-separated), the working folder
+    ``--container-workdir``; the task's environment is srun's (the agent's), as pyxis
+    passes it.
+
+    Raises:
+        PrepareError: a path that list cannot hold (a comma, a colon, a control character).
+    """
+    binds = []
+    for mount in mounts:
+        for path in (str(mount.source), mount.target):
+            if any(c in path for c in ",:") or any(ord(c) < 32 for c in path):
+                raise PrepareError(f"{path!r}: pyxis cannot bind a path holding ',' or ':'")
+        binds.append(f"{mount.source}:{mount.target}" + (":ro" if mount.read_only else ""))
+    args = [srun, "--ntasks=1", "--nodes=1", f"--container-image={image}",
+            "--no-container-mount-home"]
+    args += [f"--container-mounts={','.join(binds)}"] if binds else []
+    args += [f"--container-workdir={workdir}"] if workdir else []
+    return [*args, "--", *argv]
 
 
 def _check_words(*words: str) -> None:
