@@ -59,8 +59,8 @@ def test_hello_world(grid: Cluster, roomy: SlurmCluster, engine: ContainerEngine
     assert lines["hello"] == ["Hello from OSMO!"]
     said = osmo_lines(grid.osmo, wf_id, "hello")
     assert any(re.fullmatch(r"Slurm job \d+ submitted", line) for line in said), said
-    assert any(re.fullmatch(r"Slurm job \d+ RUNNING on n[12]", line) for line in said) or \
-        rows["hello"]["status"] == "COMPLETED", said
+    assert any(re.fullmatch(r"\[osmo:progress\] Slurm job \d+ RUNNING on n[12]", line)
+               for line in said), said
     assert jobs_of(roomy) == []
     owner = {"osmo.owner": owner_id(grid.root / WORKER)}
     assert leftovers(engine, owner) == ([], [])
@@ -175,6 +175,8 @@ workflow:
     try:
         seen = until_logged(grid, wf_id, "PENDING (Resources)")
         assert "[queued] ran" not in seen
+        progress = tasks(grid.osmo, wf_id)["queued"]["progress"]
+        assert re.fullmatch(r"Slurm job \d+ PENDING \(Resources\)", progress), progress
     finally:
         for job in blockers:
             roomy.run("scancel", job)

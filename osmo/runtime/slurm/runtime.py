@@ -24,8 +24,9 @@ What it owns, one concern per method of the runtime contract:
 - status: one poller thread per node asks ``squeue`` about every live job of the node at
   once, a few times a second, and reads the state through the one table
   (``osmo.runtime.slurm.states``): a PENDING reason and the node a job runs on go to the
-  attempt's log; an end the agent could not report (killed, OUT_OF_MEMORY, TIMEOUT) is
-  written for the watcher (``ended.json``) with its code and reason; a lost job
+  attempt's log as progress lines (``osmo query`` shows the latest); an end the agent
+  could not report (killed, OUT_OF_MEMORY, TIMEOUT) is written for the watcher
+  (``ended.json``) with its code, and its reason logged; a lost job
   (NODE_FAIL, PREEMPTED, BOOT_FAIL) is submitted again as the same attempt, not counted
   against its retries. A job Slurm requeues by itself (a failed node, by default) is the
   same job: the agent empties the lost run's output when it runs again.
@@ -96,6 +97,7 @@ from osmo.runtime.slurm.script import (
 )
 from osmo.runtime.slurm.states import Phase, verdict
 from osmo.scheduler.types import PrepareAttempt
+from osmo.tasktypes.api import PROGRESS_PREFIX
 
 __all__ = ["Gang", "SlurmJob", "SlurmRuntime"]
 
@@ -536,10 +538,12 @@ class SlurmRuntime:
         else:
             seen = verdict(info.state)
             live.state, live.nodes = info.state, info.nodes or live.nodes
-        if seen.phase is Phase.WAITING and info is not None:
-            self._say(live, f"Slurm job {live.job_id} {info.state} ({info.reason})")
+        if seen.phase is Phase.WAITING and info is not None:  # osmo query shows it
+            self._say(live, f"{PROGRESS_PREFIX} Slurm job {live.job_id} {info.state} "
+                            f"({info.reason})")
         elif seen.phase is Phase.RUNNING and info is not None and info.nodes:
-            self._say(live, f"Slurm job {live.job_id} RUNNING on {info.nodes}")
+            self._say(live, f"{PROGRESS_PREFIX} Slurm job {live.job_id} RUNNING on "
+                            f"{info.nodes}")
         elif seen.phase is Phase.LOST and live.job.gang is None:
             self._resubmit(live, seen.reason or "lost")
         elif seen.phase is Phase.LOST:  # a gang's: its group fails and is retried whole
