@@ -481,14 +481,16 @@ class SlurmRuntime:
         return lambda port, udp: dial(address, port, udp=udp)
 
     def cleanup(self, launch: Launch) -> None:
-        """Its job is cancelled if it still runs; the secret file goes."""
+        """Its job is cancelled if its task may still run; the secret file goes."""
         job = launch.run
         if not isinstance(job, SlurmJob):
             return
         _unlink_secrets(job)
         with self._lock:
             live = self._jobs.pop(job.folder, None)
-        if live is not None and live.job_id and not live.ended:
+        agent_done = (job.folder / "exit.json").exists()  # the job ends by itself
+        if live is not None and live.job_id and not live.ended and not agent_done:
+            # (a gang member's cancel would end its whole group: only one still running)
             self._later(self._quietly, self.slurm.cancel, live.job_id)
         if job.container is not None and self._containers is not None:
             self._containers.cleanup(replace(launch, run=job.container))
