@@ -9,9 +9,12 @@ them. The cluster and the worker are the session's (tests/slurm/grid.py).
 
 from __future__ import annotations
 
+import os
 import re
 import shlex
 import signal
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -19,7 +22,7 @@ from osmo.config import free_port
 from osmo.runtime.container import ContainerEngine
 from osmo.runtime.container.runtime import owner_id
 from osmo.runtime.slurm import Slurm
-from tests.conftest import write
+from tests.conftest import REPO, write
 from tests.containers.submitting import (
     leftovers,
     lineage_of,
@@ -331,3 +334,15 @@ workflow:
     finally:
         grid.signal(name, signal.SIGTERM)
         grid.workers[name].wait(timeout=60)
+
+
+def test_a_login_host_without_slurm_s_commands_refuses_to_start_saying_which(
+        grid: Cluster) -> None:
+    env = dict(os.environ, OSMO_HOME=str(grid.root / "no-slurm"), PATH="/nonexistent",
+               OSMO_TOKEN=grid.token("no-slurm"))
+    done = subprocess.run([sys.executable, "-m", "osmo", "worker", "--connect", grid.endpoint,
+                           "--name", "no-slurm", "--runtime", "slurm"], env=env, cwd=REPO,
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 3, done.stdout + done.stderr
+    assert "sbatch not found on PATH" in done.stderr, done.stderr
+    assert "Traceback" not in done.stderr
