@@ -53,10 +53,10 @@ class JobInfo:
 
 @dataclass(frozen=True)
 class Partition:
-    """A partition a node may use, as ``sinfo`` counts it (one row per node kind).
+    """Partitions a node may use, as ``sinfo`` counts them.
 
     Attributes:
-        name: the partition.
+        name: the partitions (comma-separated).
         cpus: CPUs of its nodes, summed.
         memory: bytes of memory of its nodes, summed.
         gpus: GPUs of its nodes (their ``gpu`` GRES), summed.
@@ -102,14 +102,21 @@ class Slurm:
     def jobs(self, job_ids: Iterable[str]) -> dict[str, JobInfo]:
         """The jobs among ``job_ids`` slurmctld still knows (ended ones too, for a while).
 
-        A heterogeneous job's component is ``JOB+N`` (as squeue names it).
+        A heterogeneous job's component is ``JOB+N`` (as squeue names it). A job slurmctld
+        forgot is missing from the answer (squeue refuses such a list: the user's jobs are
+        asked for instead).
         """
         wanted = set(job_ids)
         if not wanted:
             return {}
         bases = sorted({job_id.split("+")[0] for job_id in wanted})
-        return {job.job_id: job for job in self._squeue("-j", ",".join(bases))
-                if job.job_id in wanted}
+        try:
+            found = self._squeue("-j", ",".join(bases))
+        except SlurmError as exc:
+            if "Invalid job id" not in str(exc):
+                raise
+            found = self._squeue("--me")  # one of them was forgotten (MinJobAge)
+        return {job.job_id: job for job in found if job.job_id in wanted}
 
     def owned(self, comment: str) -> list[JobInfo]:
         """The jobs (any state) whose comment is ``comment``."""
@@ -120,22 +127,11 @@ class Slurm:
         args = [f"--signal={signal}", "--full"] if signal else []
         self._run("scancel", *args, job_id)
 
-    def partitions(self, names: Sequence[str] = ()) -> list[Partition]:
-        """The partitions ``names`` (default: every one), their nodes' CPUs, memory, GPUs."""
-        args = ["-p", ",".join(names)] if names else []
-        out = self._run("sinfo", "-h", "-N", *args, "-o", f"%R{_SEP}%N{_SEP}%c{_SEP}%m{_SEP}%G")
-        seen: dict[str, dict[str, tuple[int, int, int]]] = {}
-        for line in out.splitlines():
-            fields = line.split(_SEP)
-            if len(fields) != 5:
-                continue
-            part, node, cpus, memory, gres = fields
-            seen.setdefault(part, {})[node] = (_int(cpus), _int(memory.rstrip("+")) << 20,
-                                                gpus_of(gres))
-        return [Partition(name, sum(c for c, _, _ in nodes.values()),
-                          sum(m for _, m, _ in nodes.values()),
-                          sum(g for _, _, g in nodes.values()), len(nodes))
-                for name, nodes in seen.items()]
+    def capacity(self, names: Sequence[str] = ()) -> Partition:
+        """The partitions ``names`` together, each node counted once (one may be in several)."""
+        rows = self._node_rows(names)
+        return _summed(",".join(dict.fromkeys(part for part, _, _ in rows)),
+                       {node: counts for _, node, counts in rows})
 
     def node_address(self, node: str) -> str:
         """Where the login host reaches ``node`` (its ``NodeAddr``). Raises SlurmError."""
@@ -160,6 +156,19 @@ class Slurm:
             return False
 
     # -------------------------------------------------------------- internals
+
+    def _node_rows(self, names: Sequence[str]) -> list[tuple[str, str, tuple[int, int, int]]]:
+        """``(partition, node, (cpus, memory bytes, gpus))`` of every node ``sinfo`` shows."""
+        args = ["-p", ",".join(names)] if names else []
+        out = self._run("sinfo", "-h", "-N", *args, "-o", f"%R{_SEP}%N{_SEP}%c{_SEP}%m{_SEP}%G")
+        rows = []
+        for line in out.splitlines():
+            fields = line.split(_SEP)
+            if len(fields) == 5:
+                part, node, cpus, memory, gres = fields
+                rows.append((part, node, (_int(cpus), _int(memory.rstrip("+")) << 20,
+                                          gpus_of(gres))))
+        return rows
 
     def _squeue(self, *args: str) -> list[JobInfo]:
         fmt = _SEP.join(("%i", "%T", "%r", "%N", "%j", "%k"))
@@ -200,6 +209,12 @@ def gpus_of(gres: str) -> int:
         if parts[0] == "gpu" and len(parts) > 1 and parts[-1].isdigit():
             total += int(parts[-1])
     return total
+
+
+def _summed(name: str, nodes: dict[str, tuple[int, int, int]]) -> Partition:
+    return Partition(name, sum(c for c, _, _ in nodes.values()),
+                     sum(m for _, m, _ in nodes.values()),
+                     sum(g for _, _, g in nodes.values()), len(nodes))
 
 
 def _int(text: str) -> int:

@@ -221,13 +221,11 @@ class SlurmRuntime:
         Raises:
             SlurmError: sinfo fails, or knows none of the partitions.
         """
-        found = self.slurm.partitions(self.options.partitions)
-        if not found:
+        found = self.slurm.capacity(self.options.partitions)
+        if not found.nodes:
             raise SlurmError(f"sinfo shows no partition {','.join(self.options.partitions)}"
                              if self.options.partitions else "sinfo shows no partition")
-        return Partition(",".join(p.name for p in found), sum(p.cpus for p in found),
-                         sum(p.memory for p in found), sum(p.gpus for p in found),
-                         sum(p.nodes for p in found))
+        return found
 
     def cancel_orphans(self) -> list[str]:
         """Cancel every job of this owner still queued or running (a previous life's)."""
