@@ -34,6 +34,7 @@ import os
 import subprocess
 import sys
 import time
+import uuid
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -146,8 +147,11 @@ def measure(runs: int, jobs: int) -> list[Row]:
 
 
 def workflow(folder: Path, tasks: int) -> Path:
-    """A workflow of ``tasks`` independent tasks of ``true``."""
-    body = "".join(f"  - name: t{i}\n    command: [\"true\"]\n" for i in range(tasks))
+    """A workflow of ``tasks`` independent tasks of ``true``, never reused from the cache
+    (each workflow's tasks carry a fresh value in their environment)."""
+    nonce = uuid.uuid4().hex
+    body = "".join(f"  - name: t{i}\n    command: [\"true\"]\n"
+                   f"    environment: {{RUN: \"{nonce}\"}}\n" for i in range(tasks))
     return write(folder / f"wf-{tasks}.yaml", f"workflow:\n  name: b{tasks}\n  tasks:\n{body}")
 
 
@@ -160,6 +164,8 @@ def osmo_through_slurm(grid: Cluster, spec: Path) -> tuple[float, float]:
         raise SystemExit(f"osmo submit failed: {done.out}{done.err}")
     wf_id = done.out.splitlines()[0].split(" - ", 1)[1].strip()
     info = grid.osmo.query(wf_id)
+    if any(t.get("reused") for t in info["tasks"]):
+        raise SystemExit(f"{wf_id}: a task was reused from the cache, not run")
     ended = max(float(t["ended_at"]) for t in info["tasks"])
     return wall, ended - float(info["submitted_at"])
 
