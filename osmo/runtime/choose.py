@@ -241,6 +241,7 @@ def slurm_for_node(runtime: str, home: Home, options: SlurmOptions | None = None
         return made, SlurmRuntime(slurm, owner=owner, options=options, pyxis=True,
                                   python=python or sys.executable) if images else None
     boxes = ContainerRuntime(found, owner=owner)
+    boxes.clean_orphans()  # what a crashed predecessor's jobs left
     return made, SlurmRuntime(slurm, owner=owner, options=options,
                               python=python or sys.executable, containers=boxes)
 

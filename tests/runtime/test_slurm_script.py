@@ -39,6 +39,7 @@ def test_a_gang_is_one_heterogeneous_job() -> None:
     args = gang_args(name="g", owner="o", folder=Path("/f"),
                      components=[["--cpus-per-task=1"], ["--cpus-per-task=2"]])
     assert args[-3:] == ["--cpus-per-task=1", ":", "--cpus-per-task=2"]
+    assert "--output=/f/gang.log" in args and "--error=/f/gang.log" in args
 
 
 @pytest.mark.parametrize("flag, value", [("partitions", ("a b",)), ("account", "x\n#SBATCH"),

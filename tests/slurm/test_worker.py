@@ -225,8 +225,11 @@ def test_group_communication_tutorial_runs_as_one_job(grid: Cluster) -> None:
     assert len(jobs) == 1, said  # one heterogeneous job for the group
 
 
-def test_combination_tutorial(grid: Cluster) -> None:
+def test_combination_tutorial_leaves_no_container(grid: Cluster, engine: ContainerEngine
+                                                  ) -> None:
     _, lines, rows = run(grid, TUTORIALS / "combination_workflow_simple.yaml")
+    # a lead's end stops its peers: killed, their containers go too, even one being made
+    assert leftovers(engine, {"osmo.owner": owner_id(grid.root / WORKER)}) == ([], [])
     samples = [f"sample_{i},value_{i}" for i in range(1, 11)]
     csv = Path(rows["generate-data"]["output"]) / "data" / "training_data.csv"
     assert csv.read_text().splitlines() == samples

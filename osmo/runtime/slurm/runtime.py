@@ -17,7 +17,8 @@ What it owns, one concern per method of the runtime contract:
 - groups are gangs: a group's members (``PrepareAttempt.hosts``) go to Slurm as one
   heterogeneous job, one component each, submitted when the last member starts (the
   group barrier), so Slurm places all of them or none (PENDING with its reason until it
-  can). One ``srun`` starts every member's agent in its component. ``{{host:NAME}}`` is a
+  can). One ``srun`` starts every member's agent in its component (its own messages
+  go to the first member's job folder, ``gang.log``). ``{{host:NAME}}`` is a
   placeholder the agent replaces with the address of NAME's node; containers use their
   node's network; a peer starts once its lead's task (container) runs. A lost gang
   (NODE_FAIL...) ends every member with 137: the group is retried whole.
@@ -492,6 +493,8 @@ class SlurmRuntime:
             self._later(self._quietly, self.slurm.cancel, live.job_id)
         if job.container is not None and self._containers is not None:
             self._containers.cleanup(replace(launch, run=job.container))
+            if live is not None and live.killed:  # its engine CLI may have died mid-create
+                self._later(self._remove_container, job.container.name)
 
     def close(self) -> None:
         """Stop the poller; cancel the jobs still running; wait for Slurm calls under way."""
@@ -600,6 +603,18 @@ class SlurmRuntime:
         except (SlurmError, ContainerError):
             self._quietly(self.slurm.cancel, live.job_id)  # pending: it cannot be signalled
         self._wake.set()
+
+    def _remove_container(self, name: str, tries: int = 10, pause: float = 0.5) -> None:
+        """Remove a killed task's container, which may appear a moment after its job ended."""
+        assert self._containers is not None
+        for _ in range(tries):
+            try:
+                if self._containers.engine.remove(name):
+                    return
+            except ContainerError:
+                pass
+            if self._closing.wait(pause):
+                return
 
     def _later(self, fn: Callable[..., object], *args: object) -> None:
         """Call ``fn(*args)`` on a thread of its own (a Slurm call); ``close`` waits for it."""

@@ -50,21 +50,26 @@ def sbatch_args(*, name: str, owner: str, folder: Path, resources: ResourceSpec,
             *resource_args(resources, options)]
 
 
-def job_args(*, name: str, owner: str, folder: Path) -> list[str]:
-    """The job's own options: name, owner comment, folder, output files, environment."""
+def job_args(*, name: str, owner: str, folder: Path, log: str | None = None) -> list[str]:
+    """The job's own options: name, owner comment, folder, output files, environment.
+
+    The batch script's stdout and stderr go to ``folder``'s ``out`` and ``err``, or both to
+    ``log`` there.
+    """
+    out, err = (folder / log, folder / log) if log else (folder / "out", folder / "err")
     return [f"--job-name={name}", f"--comment={owner}", f"--chdir={folder}",
-            f"--output={folder / 'out'}", f"--error={folder / 'err'}", "--open-mode=append",
-            "--export=NONE"]
+            f"--output={out}", f"--error={err}", "--open-mode=append", "--export=NONE"]
 
 
 def gang_args(*, name: str, owner: str, folder: Path,
               components: Sequence[Sequence[str]]) -> list[str]:
     """A heterogeneous job's options: one component per member (``resource_args``).
 
-    Slurm places all of them or none. The batch script's own output goes to ``folder``'s
-    ``out`` and ``err`` (each member's agent writes its task's to its own folder).
+    Slurm places all of them or none. The batch script's own output (srun's messages
+    about every member) goes to ``folder``'s ``gang.log``; each member's agent writes its
+    task's output to its own folder.
     """
-    args = job_args(name=name, owner=owner, folder=folder)
+    args = job_args(name=name, owner=owner, folder=folder, log="gang.log")
     for index, component in enumerate(components):
         args.extend([":"] if index else [])
         args.extend(component)
