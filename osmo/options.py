@@ -64,6 +64,9 @@ class SlurmOptions:
         qos: ``--qos``.
         constraint: ``--constraint`` (node features).
         extra: more sbatch options, each one ``--opt=value`` word, as the operator wrote them.
+        nice: a workflow's priority as ``--nice``: HIGH none, NORMAL this, LOW twice this
+            (0: no ``--nice``; a user may only lower a job's priority).
+        priority_qos: priority (``HIGH``...) → the QOS its jobs use instead of ``qos``.
     """
 
     partitions: tuple[str, ...] = ()
@@ -71,15 +74,20 @@ class SlurmOptions:
     qos: str | None = None
     constraint: str | None = None
     extra: tuple[str, ...] = ()
+    nice: int = 100
+    priority_qos: tuple[tuple[str, str], ...] = ()
 
     def check(self) -> None:
         """Raise UsageError for a value that is not a plain Slurm word."""
         for flag, value in (*(("--slurm-partition", p) for p in self.partitions),
                             ("--slurm-account", self.account), ("--slurm-qos", self.qos),
-                            ("--slurm-constraint", self.constraint)):
+                            ("--slurm-constraint", self.constraint),
+                            *(("--slurm-priority-qos", q) for _, q in self.priority_qos)):
             if value is not None and not _SLURM_WORD.match(value):
                 raise UsageError(f"{flag} {value!r}: only letters, digits and _ . + - are "
                                  "allowed")
+        if not 0 <= self.nice <= 100_000:
+            raise UsageError(f"--slurm-nice {self.nice}: a number from 0 to 100000")
         for word in self.extra:
             if not word.startswith("--") or "\n" in word:
                 raise UsageError(f"--slurm-option {word!r}: write one --option=value word")

@@ -62,7 +62,7 @@ from osmo.spec.model import ResourceSpec, TaskSpec
 
 __all__ = ["HOST_PATHS", "Attempt", "ConnectError", "Connector", "ExecCommand",
            "Launch", "Paths", "PrepareError", "ProcessHandle", "Runtime", "SocketMaker",
-           "StartError", "dial"]
+           "StartError", "Terms", "dial"]
 
 class StartError(OsmoError):
     """A command could not be started (not found, not executable, bad working folder)."""
@@ -170,6 +170,7 @@ class Attempt:
         resources: its request (a container's cpu and memory limits).
         gpus: the GPU indices the pool assigned it.
         credential: stored credentials by name (a registry's, for a pull); None: none.
+        terms: its workflow's time limit and priority, for a cluster's own scheduler.
     """
 
     cmd: PrepareAttempt
@@ -178,6 +179,22 @@ class Attempt:
     resources: ResourceSpec = field(default_factory=ResourceSpec)
     gpus: tuple[int, ...] = ()
     credential: Callable[[str], Mapping[str, str] | None] | None = None
+    terms: Terms = field(default_factory=lambda: Terms())
+
+
+@dataclass(frozen=True)
+class Terms:
+    """What a workflow asks of a cluster scheduler beside resources (``wire.Prepare``).
+
+    Attributes:
+        exec_timeout: the workflow's ``exec_timeout`` in seconds (None: none, or unknown).
+            osmo's own timeout (the server's) still holds; a cluster job may ask for
+            this much time (Slurm's ``--time``).
+        priority: ``HIGH``, ``NORMAL`` or ``LOW`` (None: unknown).
+    """
+
+    exec_timeout: float | None = None
+    priority: str | None = None
 
 
 @dataclass(eq=False)

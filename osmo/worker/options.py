@@ -23,6 +23,7 @@ from osmo.options import (
     add_runtime_arguments,
     shares,
 )
+from osmo.scheduler.types import PRIORITIES
 
 __all__ = ["DEFAULT_KILL_GRACE", "DEFAULT_POOL", "WorkerOptions"]
 
@@ -136,6 +137,13 @@ class WorkerOptions:
                             "platform names one of them goes there")
         s.add_argument("--slurm-account", metavar="NAME", help="the account its jobs charge")
         s.add_argument("--slurm-qos", metavar="NAME", help="the QOS of its jobs")
+        s.add_argument("--slurm-nice", type=int, default=100, metavar="N",
+                       help="a workflow's priority as --nice: HIGH none, NORMAL N, LOW 2N "
+                            "(default 100; 0: no --nice)")
+        s.add_argument("--slurm-priority-qos", action="append", default=[],
+                       metavar="PRIORITY=QOS",
+                       help="the QOS of the jobs of workflows of that priority (HIGH, NORMAL "
+                            "or LOW; repeatable), instead of --slurm-qos")
         s.add_argument("--slurm-constraint", metavar="FEATURES",
                        help="node features its jobs require (--constraint)")
         s.add_argument("--slurm-python", metavar="PATH",
@@ -175,8 +183,16 @@ class WorkerOptions:
 
 def _slurm(args: argparse.Namespace) -> SlurmOptions:
     """The ``--slurm-*`` flags (UsageError: one is not a plain Slurm word)."""
+    by_priority = []
+    for item in args.slurm_priority_qos:
+        priority, _, qos = item.partition("=")
+        if priority.upper() not in PRIORITIES or not qos:
+            raise UsageError(f"--slurm-priority-qos {item!r}: write PRIORITY=QOS, PRIORITY "
+                             f"one of {', '.join(PRIORITIES)}")
+        by_priority.append((priority.upper(), qos))
     made = SlurmOptions(partitions=tuple(args.slurm_partition), account=args.slurm_account,
-                      qos=args.slurm_qos, constraint=args.slurm_constraint)
+                        qos=args.slurm_qos, constraint=args.slurm_constraint,
+                        nice=args.slurm_nice, priority_qos=tuple(by_priority))
     made.check()
     return made
 

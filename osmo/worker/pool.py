@@ -76,7 +76,7 @@ from osmo.artifacts.store import DEFAULT_MAX_FILES
 from osmo.errors import UsageError
 from osmo.layout import Home
 from osmo.options import DEFAULT_LOG_LIMIT, SandboxMode
-from osmo.runtime.api import Runtime
+from osmo.runtime.api import Runtime, Terms
 from osmo.runtime.choose import Runtimes, processes_for_node
 from osmo.runtime.container.runtime import ContainerRuntime
 from osmo.runtime.process.sandbox import Sandbox
@@ -231,15 +231,18 @@ class LocalPool:
 
     def prepare(self, cmd: PrepareAttempt, task: TaskSpec, secrets: Secrets | None = None,
                 *, max_output_bytes: int | None = None,
-                resources: ResourceSpec | None = None) -> None:
+                resources: ResourceSpec | None = None, terms: Terms | None = None) -> None:
         """Prepare an attempt's folder; later emits AttemptPrepared or AttemptStartFailed.
 
         ``secrets``: payloads of the credentials ``task`` names (None: ask ``task_secrets``).
         ``max_output_bytes``: the task's ``storage`` request; a larger output fails it.
         ``resources``: its request (a container's cpu/memory limits and GPUs).
+        ``terms``: its workflow's time limit and priority (a cluster runtime's job asks for
+        them).
         """
         self._reactor.call_soon(self._preparing.prepare, cmd, task, secrets,
-                                replace(resources or ResourceSpec(), storage=max_output_bytes))
+                                replace(resources or ResourceSpec(), storage=max_output_bytes),
+                                terms or Terms())
 
     def runtime_name(self) -> str:
         """How this pool runs image tasks: ``container (podman 4.3.1)`` or ``process``."""

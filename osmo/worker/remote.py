@@ -52,6 +52,7 @@ from osmo.config import write_json_atomic
 from osmo.errors import NotAllowed, OsmoError, UsageError
 from osmo.layout import Home
 from osmo.names import check_worker_name
+from osmo.runtime.api import Terms
 from osmo.runtime.choose import containers_for_node, slurm_for_node
 from osmo.scheduler.types import (
     LOCAL_NODE,
@@ -399,7 +400,8 @@ class RemoteWorker:
             pending = self._pending.pop(cmd.attempt_id, _Pending())
             self._active.add(cmd.attempt_id)
         self.pool.prepare(cmd, task, values, max_output_bytes=order.max_output_bytes,
-                          resources=self._request(cmd, task))
+                          resources=self._request(cmd, task),
+                          terms=Terms(order.exec_timeout, order.priority))
         if pending.kill is not None:
             self.pool.kill(KillAttempt(cmd.attempt_id, self.id, pending.kill))
         elif pending.run:

@@ -10,7 +10,7 @@ import pytest
 
 from osmo.errors import UsageError
 from osmo.options import SlurmOptions
-from osmo.runtime.api import PrepareError
+from osmo.runtime.api import PrepareError, Terms
 from osmo.runtime.container.run import Mount
 from osmo.runtime.slurm.commands import gpus_of
 from osmo.runtime.slurm.script import gang_args, pyxis_argv, resource_args, sbatch_args
@@ -33,6 +33,34 @@ def test_resources_become_one_option_word_each() -> None:
                     "--constraint=a100"]
     plain = resource_args(ResourceSpec(), SlurmOptions(partitions=("a", "b")))
     assert plain == ["--nodes=1", "--ntasks=1", "--cpus-per-task=1", "--partition=a,b"]
+
+
+@pytest.mark.parametrize("timeout, time", [(3, "1"), (60, "1"), (61, "2"), (7200, "120")])
+def test_exec_timeout_is_the_job_s_time_in_whole_minutes_rounded_up(timeout: float,
+                                                                    time: str) -> None:
+    args = resource_args(ResourceSpec(), SlurmOptions(), Terms(exec_timeout=timeout))
+    assert [a for a in args if a.startswith("--time")] == [f"--time={time}"]
+    assert not any(a.startswith("--time") for a in resource_args(ResourceSpec(),
+                                                                 SlurmOptions()))
+
+
+@pytest.mark.parametrize("priority, nice", [("HIGH", None), ("NORMAL", "--nice=100"),
+                                            ("LOW", "--nice=200"), (None, None)])
+def test_priority_is_nice(priority: str | None, nice: str | None) -> None:
+    args = resource_args(ResourceSpec(), SlurmOptions(), Terms(priority=priority))
+    assert [a for a in args if a.startswith("--nice")] == ([nice] if nice else [])
+    off = resource_args(ResourceSpec(), SlurmOptions(nice=0), Terms(priority="LOW"))
+    assert not any(a.startswith("--nice") for a in off)
+
+
+def test_a_priority_s_configured_qos_replaces_the_pool_s() -> None:
+    options = SlurmOptions(qos="normal", priority_qos=(("HIGH", "urgent"),))
+    high = resource_args(ResourceSpec(), options, Terms(priority="HIGH"))
+    low = resource_args(ResourceSpec(), options, Terms(priority="LOW"))
+    assert "--qos=urgent" in high and "--qos=normal" not in high
+    assert "--qos=normal" in low
+    with pytest.raises(UsageError, match="only letters"):
+        SlurmOptions(priority_qos=(("HIGH", "a b"),)).check()
 
 
 def test_a_gang_is_one_heterogeneous_job() -> None:

@@ -110,18 +110,22 @@ def test_exec_reaches_the_running_job_and_cancel_sends_sigterm_through_scancel(
     spec = write(tmp_path / "wf.yaml", """
 workflow:
   name: held
+  timeout: {exec_timeout: 61s}
   tasks:
   - name: held
     command: [sh, -c, 'trap "echo got-term; exit 143" TERM; echo up; while :; do sleep 0.2; done']
     environment: {GREETING: hola}
 """)
-    wf_id = grid.osmo.submit(spec)
+    wf_id = grid.osmo.submit(spec, "--priority", "LOW")
     until_logged(grid, wf_id, "[held] up")
     r = grid.osmo("workflow", "exec", wf_id, "held", "--", "sh", "-c",
                   'echo "$GREETING $OSMO_TASK $SLURM_JOB_ID"; exit 7')
     assert r.code == 7, r.out + r.err
     greeting, task, job = r.out.split()
     assert (greeting, task) == ("hola", "held") and job.isdigit(), r.out
+    shown = roomy.run("scontrol", "show", "job", job).stdout
+    # exec_timeout 61 s: two whole minutes; LOW: twice the pool's nice step
+    assert "TimeLimit=00:02:00" in shown and "Nice=200" in shown, shown
     grid.osmo("cancel", wf_id, check=True)
     info = grid.osmo.wait_for(wf_id, lambda i: i["status"] == "FAILED_CANCELED", timeout=60)
     assert "[held] got-term" in logs(grid, wf_id), info

@@ -300,8 +300,8 @@ class SlurmRuntime:
                 "output": str(dirs.output_partial), "files": str(dirs.files)}))
             job = SlurmJob(folder, name, tuple(sbatch_args(
                 name=name, owner=self.owner, folder=folder, resources=attempt.resources,
-                options=self.options)), container,
-                tuple(resource_args(attempt.resources, self.options)), gang)
+                options=self.options, terms=attempt.terms)), container,
+                tuple(resource_args(attempt.resources, self.options, attempt.terms)), gang)
             _write_private(job.script, batch_script(self._python, AGENT, folder))
         except OSError as exc:
             raise PrepareError(f"cannot write the job folder {folder}: "

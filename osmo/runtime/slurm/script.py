@@ -10,6 +10,10 @@ The decisions that keep user text out of Slurm's languages:
   nothing a value holds can start another directive. Values osmo computes (numbers) or
   takes from the node's configuration (partition, account, QOS: plain words,
   ``osmo.options.SlurmOptions.check``) only.
+- The workflow's ``exec_timeout`` is the job's ``--time``, rounded up to whole minutes
+  (Slurm's unit; osmo's own timeout, the server's, ends the task first); its priority is
+  ``--nice`` (HIGH none, NORMAL the pool's step, LOW twice it: a user may only lower a
+  job's priority) and, where the pool configures one, its priority's QOS.
 - The job's name (``osmo-<task>-<hash>``) keeps ``[A-Za-z0-9_.-]`` of the task's name, so
   ``squeue`` shows which task it is; its comment is the node's owner id, how a restarted
   node finds its jobs.
@@ -27,7 +31,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from osmo.options import SlurmOptions
-from osmo.runtime.api import PrepareError
+from osmo.runtime.api import PrepareError, Terms
 from osmo.runtime.container.run import Mount
 from osmo.spec.model import ResourceSpec
 
@@ -44,10 +48,10 @@ def job_name(task: str, attempt_id: str) -> str:
 
 
 def sbatch_args(*, name: str, owner: str, folder: Path, resources: ResourceSpec,
-                options: SlurmOptions) -> list[str]:
+                options: SlurmOptions, terms: Terms | None = None) -> list[str]:
     """Sbatch's options for one attempt (one ``--opt=value`` word each)."""
     return [*job_args(name=name, owner=owner, folder=folder),
-            *resource_args(resources, options)]
+            *resource_args(resources, options, terms)]
 
 
 def job_args(*, name: str, owner: str, folder: Path, log: str | None = None) -> list[str]:
@@ -76,8 +80,14 @@ def gang_args(*, name: str, owner: str, folder: Path,
     return args
 
 
-def resource_args(resources: ResourceSpec, options: SlurmOptions) -> list[str]:
-    """What one task asks for: one node, one task, its CPUs, memory, GPUs, disk; where."""
+def resource_args(resources: ResourceSpec, options: SlurmOptions,
+                  terms: Terms | None = None) -> list[str]:
+    """What one task asks for: node, task, CPUs, memory, GPUs, disk, where, time, priority.
+
+    ``terms``: the workflow's ``exec_timeout`` (``--time``) and priority (``--nice``, or its
+    QOS where the pool configures one).
+    """
+    terms = terms or Terms()
     args = ["--nodes=1", "--ntasks=1", f"--cpus-per-task={max(1, int(resources.cpu or 1))}"]
     if resources.memory:
         args.append(f"--mem={_mebibytes(resources.memory)}M")
@@ -90,10 +100,16 @@ def resource_args(resources: ResourceSpec, options: SlurmOptions) -> list[str]:
         partitions = (resources.platform,)  # a platform that names one of them picks it
     if partitions:
         args.append(f"--partition={','.join(partitions)}")
-    for flag, value in (("--account", options.account), ("--qos", options.qos),
+    qos = dict(options.priority_qos).get(terms.priority or "NORMAL", options.qos)
+    for flag, value in (("--account", options.account), ("--qos", qos),
                         ("--constraint", options.constraint)):
         if value:
             args.append(f"{flag}={value}")
+    if terms.exec_timeout is not None:
+        args.append(f"--time={max(1, math.ceil(terms.exec_timeout / 60))}")
+    nice = {"NORMAL": options.nice, "LOW": 2 * options.nice}.get(terms.priority or "", 0)
+    if nice:
+        args.append(f"--nice={nice}")
     args.extend(options.extra)
     return args
 
