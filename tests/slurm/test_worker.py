@@ -148,6 +148,32 @@ workflow:
     until_no_job(roomy, "osmo-slow-")
 
 
+def test_a_job_slurm_ends_at_its_time_limit_is_failed_exec_timeout(
+        grid: Cluster, roomy: SlurmCluster, tmp_path: Path) -> None:
+    """The one test that waits out Slurm's minute-granular TIMEOUT: a job started while its
+    partition allows one minute (no exec_timeout of osmo's, which would end it first)."""
+    spec = write(tmp_path / "wf.yaml", """
+workflow:
+  name: late
+  tasks:
+  - name: late
+    command: [sh, -c, 'echo up; exec sleep 600']
+""")
+    roomy.run("scontrol", "update", "PartitionName=debug", "MaxTime=1")
+    try:
+        wf_id = grid.osmo.submit(spec)
+        until_logged(grid, wf_id, "[late] up")
+    finally:
+        roomy.run("scontrol", "update", "PartitionName=debug", "MaxTime=INFINITE")
+    info = grid.osmo.wait_for(wf_id, lambda i: i["status"].startswith("FAILED"), timeout=240)
+    rows = tasks(grid.osmo, wf_id)
+    assert info["status"] == "FAILED_EXEC_TIMEOUT", (info, rows)
+    assert rows["late"]["exit_code"] == 3002, rows  # ExitCode.EXEC_TIMEOUT
+    said = osmo_lines(grid.osmo, wf_id, "late")
+    assert any("TIMEOUT" in line for line in said), said
+    until_no_job(roomy, "osmo-late-")
+
+
 def test_a_task_over_its_memory_ends_out_of_memory_137_with_the_reason(
         grid: Cluster, tmp_path: Path) -> None:
     spec = write(tmp_path / "wf.yaml", """

@@ -98,6 +98,7 @@ from osmo.runtime.slurm.script import (
 )
 from osmo.runtime.slurm.states import Phase, verdict
 from osmo.scheduler.types import PrepareAttempt
+from osmo.status import ExitCode
 from osmo.tasktypes.api import PROGRESS_PREFIX
 
 __all__ = ["Gang", "SlurmJob", "SlurmRuntime"]
@@ -426,12 +427,19 @@ class SlurmRuntime:
         self._later(self._cancel, live, force)
 
     def reap(self, handle: ProcessHandle) -> int:
-        """The job's exit code, once its watcher ended (a job still running is cancelled)."""
+        """The job's exit code, once its watcher ended (a job still running is cancelled).
+
+        A job Slurm ended at its time limit (TIMEOUT) and osmo did not kill is
+        ``ExitCode.EXEC_TIMEOUT``: the task is FAILED_EXEC_TIMEOUT.
+        """
         live = self._live(handle)
         if live is not None and handle.popen.poll() is None:
             live.killed = True
             self._quietly(self.slurm.cancel, live.job_id)  # the pool closes under it
-        return self._processes.reap(handle)
+        code = self._processes.reap(handle)
+        if live is not None and not live.killed and _timed_out(live.job.folder):
+            return ExitCode.EXEC_TIMEOUT
+        return code
 
     def release(self, handle: ProcessHandle) -> None:
         """Close the watcher's descriptors and the notes pipe; the secret file goes."""
@@ -662,6 +670,15 @@ def _container(launch: Launch) -> ContainerRun:
     if not isinstance(run, ContainerRun):
         raise TypeError(f"{launch!r} was not prepared by a container runtime")
     return run
+
+
+def _timed_out(folder: Path) -> bool:
+    """Whether the poller saw the job end in Slurm's TIMEOUT (``ended.json``)."""
+    try:
+        ended = json.loads((folder / "ended.json").read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(ended, dict) and str(ended.get("state") or "").split()[:1] == ["TIMEOUT"]
 
 
 def _unlink_secrets(job: SlurmJob) -> None:

@@ -14,7 +14,10 @@ CANCELLED                                              **ended**: the agent's co
 OUT_OF_MEMORY                                          **ended**: 137, "over its --mem"
 TIMEOUT, DEADLINE                                      **ended**: the agent's code (143: the
                                                        task got SIGTERM), else 137; osmo's own
-                                                       ``exec_timeout`` is kept beside it
+                                                       ``exec_timeout`` is kept beside it; the
+                                                       runtime reports a TIMEOUT osmo did not
+                                                       cause as ``ExitCode.EXEC_TIMEOUT``: the
+                                                       task is FAILED_EXEC_TIMEOUT
 NODE_FAIL, PREEMPTED, BOOT_FAIL                        **lost**: submitted again, the same
                                                        attempt, not counted against its retries
 =====================================================  ===========================================
