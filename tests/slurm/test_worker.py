@@ -18,6 +18,8 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
+
 from osmo.config import free_port
 from osmo.runtime.container import ContainerEngine
 from osmo.runtime.container.runtime import owner_id
@@ -304,8 +306,11 @@ def test_a_group_is_one_allocation_across_two_nodes_and_waits_whole_for_room(
     assert nodes == {"n1", "n2"}, lines  # two CPUs each: one node each
 
 
+@pytest.mark.parametrize("requeue", [True, False], ids=["requeued", "node_fail"])
 def test_a_failed_node_s_job_runs_again_on_the_other_node_nothing_lost_or_doubled(
-        grid: Cluster, roomy: SlurmCluster, tmp_path: Path) -> None:
+        grid: Cluster, roomy: SlurmCluster, tmp_path: Path, requeue: bool) -> None:
+    """Slurm requeues a failed node's job by itself (the same job); a job it may not requeue
+    ends NODE_FAIL, a lost attempt the node submits again. Neither is a retry."""
     runs, gate = tmp_path / "runs", tmp_path / "gate"
     spec = write(tmp_path / "wf.yaml", f"""
 workflow:
@@ -313,11 +318,14 @@ workflow:
   tasks:
   - name: survivor
     command: [sh, -c, 'echo "$SLURMD_NODENAME" >> {runs}; echo line >> {{{{output}}}}/data.txt;
-      echo up; while [ ! -e {gate} ]; do sleep 0.2; done']
+      echo "$SLURM_JOB_ID" > {runs}.job; echo up; while [ ! -e {gate} ]; do sleep 0.2; done']
 """)
     wf_id = grid.osmo.submit(spec)
     until_logged(grid, wf_id, "[survivor] up")
     first = runs.read_text().split()[0]
+    job = Path(f"{runs}.job").read_text().strip()
+    if not requeue:
+        roomy.run("scontrol", "update", f"JobId={job}", "Requeue=0")
     started = time.monotonic()
     roomy.kill_slurmd(first)
     try:
@@ -333,6 +341,11 @@ workflow:
     row = tasks(grid.osmo, wf_id)["survivor"]
     assert row["retry"] == 0, row  # Slurm's requeue: the same attempt, not a retry
     assert (Path(row["output"]) / "data.txt").read_text() == "line\n"  # the lost run's: gone
+    if not requeue:
+        assert roomy.sacct(job)["State"] == "NODE_FAIL", roomy.sacct(job)
+        said = osmo_lines(grid.osmo, wf_id, "survivor")
+        assert any(line.startswith(f"job {job}: Slurm: NODE_FAIL: the attempt is lost")
+                   for line in said), said
 
 
 GUIDE = Path(__file__).parents[2] / "docs" / "tutorials" / "slurm.md"
