@@ -110,3 +110,24 @@ def test_the_state_table(state: str, phase: Phase, code: int | None, override: b
 def test_gpus_are_read_from_gres() -> None:
     assert gpus_of("gpu:2") == 2 and gpus_of("gpu:a100:4(S:0-1),mps:100") == 4
     assert gpus_of("(null)") == 0 and gpus_of("gpu:1,gpu:v100:2") == 3
+
+
+def _worker_slurm_options(*flags: str) -> SlurmOptions:
+    import argparse
+
+    from osmo.worker.options import WorkerOptions
+
+    parser = argparse.ArgumentParser()
+    WorkerOptions.add_arguments(parser)
+    args = parser.parse_args(["--connect", "tcp/127.0.0.1:1", "--token", "t", *flags])
+    return WorkerOptions.from_args(args).slurm
+
+
+def test_the_worker_s_priority_flags() -> None:
+    made = _worker_slurm_options("--slurm-nice", "50", "--slurm-priority-qos", "high=urgent")
+    assert (made.nice, made.priority_qos) == (50, (("HIGH", "urgent"),))
+    assert _worker_slurm_options().nice == 100
+    for bad in (["--slurm-priority-qos", "URGENT=x"], ["--slurm-priority-qos", "HIGH"],
+                ["--slurm-priority-qos", "HIGH=a;b"], ["--slurm-nice", "-5"]):
+        with pytest.raises(UsageError):
+            _worker_slurm_options(*bad)

@@ -10,7 +10,9 @@ What it owns, one concern per method of the runtime contract:
 - the launch (:meth:`SlurmRuntime.prepare`): the attempt's job folder (``<attempt>/slurm``,
   0700) with ``launch.json`` for the agent, the fixed batch script ``job.sh`` and sbatch's
   options (``osmo.runtime.slurm.script``: resources → ``--cpus-per-task``, ``--mem``,
-  ``--gres=gpu:N``, ``--tmp``; the pool's partitions, account, QOS; name and owner comment).
+  ``--gres=gpu:N``, ``--tmp``; the pool's partitions, account, QOS; the workflow's
+  ``exec_timeout`` → ``--time`` and priority → ``--nice`` or QOS (``Attempt.terms``); name
+  and owner comment).
 - start: credentials to ``secret.json`` (0600), ``sbatch``, then the attempt's watcher
   (``osmo.runtime.slurm.watch``, the local process the pool watches: the job's output as
   it comes, its exit code at the end).
