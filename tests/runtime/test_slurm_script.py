@@ -12,7 +12,7 @@ from osmo.errors import UsageError
 from osmo.options import SlurmOptions
 from osmo.runtime.api import PrepareError, Terms
 from osmo.runtime.container.run import Mount
-from osmo.runtime.slurm.commands import gpus_of
+from osmo.runtime.slurm.commands import gpus_of, minutes_of
 from osmo.runtime.slurm.script import gang_args, pyxis_argv, resource_args, sbatch_args
 from osmo.runtime.slurm.states import Phase, verdict
 from osmo.spec.model import ResourceSpec
@@ -131,3 +131,11 @@ def test_the_worker_s_priority_flags() -> None:
                 ["--slurm-priority-qos", "HIGH=a;b"], ["--slurm-nice", "-5"]):
         with pytest.raises(UsageError):
             _worker_slurm_options(*bad)
+
+
+@pytest.mark.parametrize("shown, minutes", [("infinite", None), ("UNLIMITED", None),
+                                            ("5", 5), ("1:00", 1), ("1:01", 2),
+                                            ("2:03:04", 124), ("1-00:00:00", 1440),
+                                            ("n/a", None), ("1-x", None)])
+def test_partition_time_limits_as_sinfo_shows_them(shown: str, minutes: int | None) -> None:
+    assert minutes_of(shown) == minutes

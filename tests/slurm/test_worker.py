@@ -24,6 +24,7 @@ from osmo.config import free_port
 from osmo.runtime.container import ContainerEngine
 from osmo.runtime.container.runtime import owner_id
 from osmo.runtime.slurm import Slurm
+from osmo.runtime.slurm.runtime import LIMIT_TTL
 from tests.conftest import REPO, write
 from tests.containers.submitting import (
     leftovers,
@@ -152,27 +153,39 @@ workflow:
 
 def test_a_job_slurm_ends_at_its_time_limit_is_failed_exec_timeout(
         grid: Cluster, roomy: SlurmCluster, tmp_path: Path) -> None:
-    """The one test that waits out Slurm's minute-granular TIMEOUT: a job started while its
-    partition allows one minute (no exec_timeout of osmo's, which would end it first)."""
+    """The one Slurm test that waits out its minute-granular TIMEOUT (60 to ~100 s: Slurm
+    checks time limits about every 30 s): a job started while its
+    partition allows one minute. Its exec_timeout (5 min) is over that limit: the job asks
+    for the limit (more would keep it PENDING for ever), and Slurm ends it there."""
     spec = write(tmp_path / "wf.yaml", """
 workflow:
   name: late
+  timeout: {exec_timeout: 5m}
   tasks:
   - name: late
     command: [sh, -c, 'echo up; exec sleep 600']
 """)
     roomy.run("scontrol", "update", "PartitionName=debug", "MaxTime=1")
     try:
+        time.sleep(LIMIT_TTL + 0.5)  # the worker reads the partitions' limits again
         wf_id = grid.osmo.submit(spec)
         until_logged(grid, wf_id, "[late] up")
+        started = time.monotonic()
     finally:
         roomy.run("scontrol", "update", "PartitionName=debug", "MaxTime=INFINITE")
     info = grid.osmo.wait_for(wf_id, lambda i: i["status"].startswith("FAILED"), timeout=240)
+    print(f"\na job of a one-minute partition ended {time.monotonic() - started:.1f} s after "
+          "its task started")
     rows = tasks(grid.osmo, wf_id)
     assert info["status"] == "FAILED_EXEC_TIMEOUT", (info, rows)
     assert rows["late"]["exit_code"] == 3002, rows  # ExitCode.EXEC_TIMEOUT
     said = osmo_lines(grid.osmo, wf_id, "late")
     assert any("TIMEOUT" in line for line in said), said
+    job = next(m.group(1) for line in said
+               if (m := re.fullmatch(r"Slurm job (\d+) submitted", line)))
+    assert roomy.sacct(job)["State"] == "TIMEOUT", roomy.sacct(job)
+    assert any(line.startswith("exec_timeout 300s is over the partitions' time limit: the "
+                               "job asks for 1 min") for line in said), said
     until_no_job(roomy, "osmo-late-")
 
 

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 from osmo.errors import InfrastructureError
 
-__all__ = ["JobInfo", "Partition", "Slurm", "SlurmError"]
+__all__ = ["JobInfo", "Partition", "Slurm", "SlurmError", "gpus_of", "minutes_of"]
 
 _TIMEOUT = 30.0
 _SEP = "\x1f"  # a field separator no job name, reason or node list holds
@@ -133,6 +133,17 @@ class Slurm:
         return _summed(",".join(dict.fromkeys(part for part, _, _ in rows)),
                        {node: counts for _, node, counts in rows})
 
+    def max_minutes(self, names: Sequence[str] = ()) -> int | None:
+        """The longest ``MaxTime`` of the partitions ``names``, in minutes.
+
+        ``names`` empty: every partition. None when one has no limit (``infinite``).
+        Raises SlurmError.
+        """
+        args = ["-p", ",".join(names)] if names else []
+        out = self._run("sinfo", "-h", *args, "-o", f"%R{_SEP}%l")
+        limits = [minutes_of(line.split(_SEP)[-1]) for line in out.splitlines() if line]
+        return None if not limits or None in limits else max(m for m in limits if m is not None)
+
     def node_address(self, node: str) -> str:
         """Where the login host reaches ``node`` (its ``NodeAddr``). Raises SlurmError."""
         out = self._run("scontrol", "show", "node", "--oneliner", node)
@@ -209,6 +220,26 @@ def gpus_of(gres: str) -> int:
         if parts[0] == "gpu" and len(parts) > 1 and parts[-1].isdigit():
             total += int(parts[-1])
     return total
+
+
+def minutes_of(limit: str) -> int | None:
+    """Minutes in a time limit as ``sinfo`` shows it, seconds rounded up.
+
+    ``1-02:03:04``, ``2:03:04``, ``3:04`` (minutes and seconds), ``5`` (minutes); None
+    for ``infinite`` or what it cannot read.
+    """
+    days, _, clock = limit.strip().rpartition("-")
+    parts = clock.split(":")
+    if not all(p.isdigit() for p in parts) or not 1 <= len(parts) <= 3 or (
+            days and not days.isdigit()):
+        return None
+    seconds = [0, 0, 0]  # h, m, s; one number alone is minutes
+    if len(parts) == 1:
+        seconds[1] = int(parts[0])
+    else:
+        seconds[3 - len(parts):] = map(int, parts)
+    total = ((int(days or 0) * 24 + seconds[0]) * 60 + seconds[1]) * 60 + seconds[2]
+    return -(-total // 60)
 
 
 def _summed(name: str, nodes: dict[str, tuple[int, int, int]]) -> Partition:

@@ -64,6 +64,7 @@ import logging
 import os
 import sys
 import threading
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -81,6 +82,7 @@ from osmo.runtime.api import (
     ProcessHandle,
     Runtime,
     StartError,
+    Terms,
     dial,
 )
 from osmo.runtime.container.layout import DATA_LAYOUT, mounts
@@ -110,6 +112,7 @@ _log = logging.getLogger(__name__)
 _HERE = Path(__file__).parent
 AGENT, WATCHER = _HERE / "agent.py", _HERE / "watch.py"
 _PATHS = replace(HOST_PATHS, hidden_secrets=True)
+LIMIT_TTL = 10.0  # s the partitions' time limit is known for
 
 
 @dataclass(frozen=True)
@@ -204,6 +207,8 @@ class SlurmRuntime:
         self._poller: threading.Thread | None = None
         self._threads: set[threading.Thread] = set()
         self._version: str | None = None
+        self._max_minutes: int | None = None
+        self._max_minutes_until = 0.0
 
     def describe(self) -> str:
         """``slurm (slurm 22.05.8)``; ``slurm (slurm 22.05.8, podman 4.3.1)`` with images."""
@@ -301,16 +306,51 @@ class SlurmRuntime:
             _write_private(folder / "launch.json", json.dumps({
                 "argv": argv, "cwd": str(launch.cwd), "env": env,
                 "output": str(dirs.output_partial), "files": str(dirs.files)}))
+            terms = self._within_partitions(attempt.terms, launch)
             job = SlurmJob(folder, name, tuple(sbatch_args(
                 name=name, owner=self.owner, folder=folder, resources=attempt.resources,
-                options=self.options, terms=attempt.terms)), container,
-                tuple(resource_args(attempt.resources, self.options, attempt.terms)), gang)
+                options=self.options, terms=terms)), container,
+                tuple(resource_args(attempt.resources, self.options, terms)), gang)
             _write_private(job.script, batch_script(self._python, AGENT, folder))
         except OSError as exc:
             raise PrepareError(f"cannot write the job folder {folder}: "
                                f"{exc.strerror or exc}") from exc
         note = f"runs as a Slurm batch job ({self.describe()}): {name}"
-        return replace(launch, run=job, notes=(*launch.notes, note))
+        notes = (*launch.notes, *self._capped_note(attempt.terms, terms), note)
+        return replace(launch, run=job, notes=notes)
+
+    def _within_partitions(self, terms: Terms, launch: Launch) -> Terms:
+        """``terms`` with its time no longer than the partitions allow.
+
+        A job asking for more than its partition's ``MaxTime`` would stay PENDING
+        (PartitionTimeLimit) for ever: it asks for that limit instead, and Slurm ends it
+        there (FAILED_EXEC_TIMEOUT). A limit is known for ``LIMIT_TTL`` seconds; one that
+        would shorten the job is read again first.
+        """
+        if terms.exec_timeout is None:
+            return terms
+        now = time.monotonic()
+        with self._lock:
+            known = self._max_minutes if now < self._max_minutes_until else False
+        if known is False or (known is not None and terms.exec_timeout > known * 60):
+            try:
+                known = self.slurm.max_minutes(self.options.partitions)
+            except SlurmError as exc:
+                _log.warning("cannot read the partitions' time limits: %s", exc)
+                known = None
+            with self._lock:
+                self._max_minutes, self._max_minutes_until = known, now + LIMIT_TTL
+        if known is None or terms.exec_timeout <= known * 60:
+            return terms
+        return replace(terms, exec_timeout=float(known * 60))
+
+    @staticmethod
+    def _capped_note(asked: Terms, given: Terms) -> tuple[str, ...]:
+        if asked.exec_timeout == given.exec_timeout or given.exec_timeout is None:
+            return ()
+        return (f"exec_timeout {asked.exec_timeout:g}s is over the partitions' time limit: "
+                f"the job asks for {given.exec_timeout / 60:g} min (--time), Slurm ends it "
+                "there",)
 
     def start(self, launch: Launch) -> ProcessHandle:
         """Submit the job (a gang's, once its last member starts) and start its watcher.
