@@ -284,6 +284,7 @@ def test_combination_tutorial_leaves_no_container(grid: Cluster, engine: Contain
 GANG = """
 workflow:
   name: gang
+  timeout: {exec_timeout: 10m}
   resources:
     default: {cpu: 2, memory: 100Mi}
   groups:
@@ -308,6 +309,10 @@ def test_a_group_is_one_allocation_across_two_nodes_and_waits_whole_for_room(
     try:
         seen = until_logged(grid, wf_id, "PENDING (Resources)")
         assert " on n" not in seen  # neither member runs while the other cannot
+        job = re.search(r"Slurm job (\d+)\+0 submitted", seen)
+        assert job is not None, seen
+        shown = roomy.run("scontrol", "show", "job", job.group(1)).stdout
+        assert shown.count("TimeLimit=00:10:00") == 2, shown  # each component: --time
     finally:
         roomy.run("scancel", blocker)
     info = grid.osmo.wait_for(wf_id, lambda i: i["status"] in ("COMPLETED", "FAILED"),
