@@ -13,6 +13,11 @@ configuration and stopped at the end. Rows:
   every 20 ms: Slurm's own latency without sbatch's polling (the scheduler's cycle is the
   submit → RUNNING part).
 - **100 jobs submitted back to back → all COMPLETED** — polled with ``squeue`` every 50 ms.
+- **osmo through Slurm** (the executor, ``osmo worker --runtime slurm``): a server and a
+  Slurm worker on the same cluster; ``osmo submit --wait`` of a workflow of 1 task and of
+  N independent tasks of ``true``, wall time until it returns (the CLI's start included),
+  against the ``sbatch --wait`` rows (target: at most 20% over), and the engine's own
+  figure (the workflow's submit time → its last task's end, from ``osmo query``).
 
 Each is measured with the cluster's ``SchedulerParameters`` (:data:`CHOSEN`) and the
 submit → RUNNING row also with Slurm's defaults (``batch_sched_delay=3``: batch jobs wait up
@@ -29,6 +34,7 @@ import os
 import subprocess
 import sys
 import time
+import uuid
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -38,6 +44,8 @@ sys.path.insert(0, str(ROOT / "bench"))
 
 from benchlib import Row, quick, row, write_rows  # noqa: E402
 
+from tests.conftest import write  # noqa: E402
+from tests.e2e.cluster import Cluster  # noqa: E402
 from tests.slurm.cluster import (  # noqa: E402
     DEFAULT_SCHEDULER_PARAMETERS,
     SlurmCluster,
@@ -46,6 +54,7 @@ from tests.slurm.cluster import (  # noqa: E402
 
 CHOSEN = DEFAULT_SCHEDULER_PARAMETERS
 LIMIT = "limit: slurm `sbatch --wait` of `true`, 1 job"
+LIMIT_MANY = "slurm: `sbatch --wait` of `true`, N in parallel, all exited"
 
 
 def sbatch_wait(cluster: SlurmCluster) -> float:
@@ -118,7 +127,7 @@ def measure(runs: int, jobs: int) -> list[Row]:
     return [
         row(LIMIT, "ms", single, higher_is_better=False,
             notes=f"sbatch polls 2 s after submit, then every 8 s; {setup}"),
-        row("slurm: `sbatch --wait` of `true`, N in parallel, all exited", "ms", many,
+        row(LIMIT_MANY, "ms", many,
             higher_is_better=False, notes=f"N={jobs}; {setup}"),
         row("slurm: `sbatch --wait` of `true`, N in parallel, per job", "ms",
             [m / jobs for m in many], higher_is_better=False, notes=f"N={jobs}; {setup}"),
@@ -137,6 +146,62 @@ def measure(runs: int, jobs: int) -> list[Row]:
     ]
 
 
+def workflow(folder: Path, tasks: int) -> Path:
+    """A workflow of ``tasks`` independent tasks of ``true``, never reused from the cache
+    (each workflow's tasks carry a fresh value in their environment)."""
+    nonce = uuid.uuid4().hex
+    body = "".join(f"  - name: t{i}\n    command: [\"true\"]\n"
+                   f"    environment: {{RUN: \"{nonce}\"}}\n" for i in range(tasks))
+    return write(folder / f"wf-{tasks}.yaml", f"workflow:\n  name: b{tasks}\n  tasks:\n{body}")
+
+
+def osmo_through_slurm(grid: Cluster, spec: Path) -> tuple[float, float]:
+    """Seconds of ``osmo submit --wait`` of ``spec``, and the engine's submit → last end."""
+    t0 = time.perf_counter()
+    done = grid.osmo("submit", str(spec), "--wait", timeout=900)
+    wall = time.perf_counter() - t0
+    if done.code != 0:
+        raise SystemExit(f"osmo submit failed: {done.out}{done.err}")
+    wf_id = done.out.splitlines()[0].split(" - ", 1)[1].strip()
+    info = grid.osmo.query(wf_id)
+    if any(t.get("reused") for t in info["tasks"]):
+        raise SystemExit(f"{wf_id}: a task was reused from the cache, not run")
+    ended = max(float(t["ended_at"]) for t in info["tasks"])
+    return wall, ended - float(info["submitted_at"])
+
+
+def measure_osmo(runs: int, jobs: int, limits: dict[str, float]) -> list[Row]:
+    """osmo's rows: a server and an ``osmo worker --runtime slurm`` on a fresh cluster."""
+    import tempfile
+
+    cluster = SlurmCluster(scheduler_parameters=CHOSEN).start()
+    folder = Path(tempfile.mkdtemp(prefix="osmo-bench-slurm-"))
+    folder.chmod(0o755)
+    grid = Cluster(folder, env={"SLURM_CONF": str(cluster.conf), "PATH": cluster.env["PATH"],
+                                "OSMO_BENCH_RUN": os.environ.get("OSMO_BENCH_RUN", "")})
+    try:
+        grid.start_server()
+        grid.start_worker("login", "--runtime", "slurm", "--sandbox", "off")
+        osmo_through_slurm(grid, workflow(folder, 1))  # warm-up
+        one = [osmo_through_slurm(grid, workflow(folder, 1)) for _ in range(runs)]
+        many = [osmo_through_slurm(grid, workflow(folder, jobs))]
+    finally:
+        grid.stop()
+        cluster.stop()
+    setup = f"2 nodes x 2 CPUs on {os.cpu_count()} cores, 1 Slurm worker, tasks `true`"
+    return [
+        row("osmo through slurm: submit --wait → COMPLETED, 1 task", "ms",
+            [w * 1000 for w, _ in one], higher_is_better=False, limit_of=LIMIT,
+            target=limits[LIMIT] * 1.2, notes=f"the CLI's start included; {setup}"),
+        row("osmo through slurm: submit → last task ended (engine), 1 task", "ms",
+            [e * 1000 for _, e in one], higher_is_better=False, limit_of=LIMIT,
+            notes=f"osmo query's submitted_at → ended_at; {setup}"),
+        row("osmo through slurm: submit --wait → COMPLETED, N tasks", "ms",
+            [w * 1000 for w, _ in many], higher_is_better=False, limit_of=LIMIT_MANY,
+            target=limits[LIMIT_MANY] * 1.2, notes=f"N={jobs} independent tasks; {setup}"),
+    ]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--runs", type=int, default=5)
@@ -152,6 +217,8 @@ def main() -> None:
     jobs = 4 if quick() else args.jobs
     try:
         rows = measure(runs, jobs)
+        limits = {r["name"]: float(r["median"]) for r in rows}
+        rows += measure_osmo(runs, jobs, limits)
     except subprocess.CalledProcessError as exc:
         raise SystemExit(f"slurm command failed: {exc}") from exc
     write_rows(args.json, rows)

@@ -23,6 +23,7 @@ import argparse
 import dataclasses
 import json
 import os
+import re
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,7 +34,8 @@ from osmo.errors import UsageError
 from osmo.layout import Home
 
 __all__ = ["DEFAULT_LOG_LIMIT", "MIN_LOG_LIMIT", "SANDBOX_MODES", "SandboxMode",
-           "ServerOptions", "absolute", "add_log_limit_argument", "add_runtime_arguments",
+           "ServerOptions", "SlurmOptions", "absolute", "add_log_limit_argument",
+           "add_runtime_arguments",
            "option_changes", "options_from_argv", "parse_log_limit", "remember",
            "parse_share", "saved_options", "shares"]
 
@@ -46,6 +48,49 @@ DEFAULT_LOG_LIMIT = 64 << 20
 """Bytes one attempt's log may hold before its oldest records are dropped (``osmo.worker.logs``)."""
 MIN_LOG_LIMIT = 1 << 20
 """The smallest ``--log-limit``: room for several of the longest records."""
+
+
+_SLURM_WORD = re.compile(r"^[A-Za-z0-9_.+-]+$")  # a partition, account, QOS, feature
+
+
+@dataclass(frozen=True)
+class SlurmOptions:
+    """What a Slurm worker's configuration adds to every job of its pool (``--slurm-*``).
+
+    Attributes:
+        partitions: the partitions it may use (``--partition``, comma-separated; none:
+            Slurm's default).
+        account: ``--account``.
+        qos: ``--qos``.
+        constraint: ``--constraint`` (node features).
+        extra: more sbatch options, each one ``--opt=value`` word, as the operator wrote them.
+        nice: a workflow's priority as ``--nice``: HIGH none, NORMAL this, LOW twice this
+            (0: no ``--nice``; a user may only lower a job's priority).
+        priority_qos: priority (``HIGH``...) → the QOS its jobs use instead of ``qos``.
+    """
+
+    partitions: tuple[str, ...] = ()
+    account: str | None = None
+    qos: str | None = None
+    constraint: str | None = None
+    extra: tuple[str, ...] = ()
+    nice: int = 100
+    priority_qos: tuple[tuple[str, str], ...] = ()
+
+    def check(self) -> None:
+        """Raise UsageError for a value that is not a plain Slurm word."""
+        for flag, value in (*(("--slurm-partition", p) for p in self.partitions),
+                            ("--slurm-account", self.account), ("--slurm-qos", self.qos),
+                            ("--slurm-constraint", self.constraint),
+                            *(("--slurm-priority-qos", q) for _, q in self.priority_qos)):
+            if value is not None and not _SLURM_WORD.match(value):
+                raise UsageError(f"{flag} {value!r}: only letters, digits and _ . + - are "
+                                 "allowed")
+        if not 0 <= self.nice <= 100_000:
+            raise UsageError(f"--slurm-nice {self.nice}: a number from 0 to 100000")
+        for word in self.extra:
+            if not word.startswith("--") or "\n" in word:
+                raise UsageError(f"--slurm-option {word!r}: write one --option=value word")
 
 
 def add_runtime_arguments(p: argparse.ArgumentParser) -> None:
@@ -61,12 +106,13 @@ def add_runtime_arguments(p: argparse.ArgumentParser) -> None:
                         "':'-separated, e.g. /scratch:/data:ro). Tasks get their own empty "
                         "/tmp otherwise. As root, tasks run as nobody: a writable share must "
                         "be writable by nobody")
-    p.add_argument("--runtime", choices=("auto", "container", "process", "kubernetes"),
+    p.add_argument("--runtime", choices=("auto", "container", "process", "kubernetes", "slurm"),
                    default=os.environ.get("OSMO_RUNTIME") or "auto",
                    help="run tasks that name an image in containers (container), as host "
                         "processes (process), or in containers when an engine is installed "
-                        "(auto, the default; OSMO_RUNTIME); kubernetes: as pods of a "
-                        "cluster (osmo worker only; see --kubernetes-config)")
+                        "(auto, the default; OSMO_RUNTIME); osmo worker only: kubernetes, "
+                        "as pods of a cluster (see --kubernetes-config); slurm (a worker on "
+                        "a Slurm login host), every task as a Slurm batch job")
     p.add_argument("--container-engine", choices=("podman", "docker"),
                    default=os.environ.get("OSMO_CONTAINER_ENGINE") or None,
                    help="the container engine (default: podman, else docker; "
@@ -222,7 +268,14 @@ class ServerOptions:
 
     @classmethod
     def from_args(cls, args: argparse.Namespace) -> ServerOptions:
-        """The options parsed by a parser that :meth:`add_arguments` set up."""
+        """The options parsed by a parser that :meth:`add_arguments` set up.
+
+        Raises:
+            UsageError: ``--runtime slurm`` (a worker's, on a login host).
+        """
+        if args.runtime == "slurm" and args.local_pool:
+            raise UsageError("--runtime slurm is for a worker on a Slurm login host (osmo "
+                             "worker --runtime slurm); a server's own pool runs tasks here")
         return cls(listen=tuple(args.listen or ()), connect=tuple(args.connect or ()),
                    zenoh_config=args.zenoh_config, cluster=args.cluster, cpus=args.cpus,
                    gpus=args.gpus, local_pool=args.local_pool,

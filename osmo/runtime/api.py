@@ -18,8 +18,9 @@ the attempt runs is the runtime's, one method per concern, called in this order:
                                            calls it off its reactor.
 *wait*                                     the handle's ``exit_fd`` becomes readable when the
                                            launch ended; its output is on ``stdout_fd`` and
-                                           ``stderr_fd`` (non-blocking). The pool's reactor
-                                           selects on all three: nothing polls.
+                                           ``stderr_fd`` (non-blocking), the runtime's own
+                                           lines on ``notes_fd`` if it has one. The pool's
+                                           reactor selects on them all: nothing polls.
 ``kill(handle, force=)``                   SIGTERM (the pool sends ``force`` after its grace).
 ``reap(handle)``                           the exit code, once ``exit_fd`` was readable (128+N:
                                            killed by signal N; ``handle.setup_failed``: the
@@ -61,7 +62,7 @@ from osmo.spec.model import ResourceSpec, TaskSpec
 
 __all__ = ["HOST_PATHS", "Attempt", "ConnectError", "Connector", "ExecCommand",
            "Launch", "Paths", "PrepareError", "ProcessHandle", "Runtime", "SocketMaker",
-           "StartError", "dial"]
+           "StartError", "Terms", "dial"]
 
 class StartError(OsmoError):
     """A command could not be started (not found, not executable, bad working folder)."""
@@ -169,6 +170,7 @@ class Attempt:
         resources: its request (a container's cpu and memory limits).
         gpus: the GPU indices the pool assigned it.
         credential: stored credentials by name (a registry's, for a pull); None: none.
+        terms: its workflow's time limit and priority, for a cluster's own scheduler.
     """
 
     cmd: PrepareAttempt
@@ -177,6 +179,22 @@ class Attempt:
     resources: ResourceSpec = field(default_factory=ResourceSpec)
     gpus: tuple[int, ...] = ()
     credential: Callable[[str], Mapping[str, str] | None] | None = None
+    terms: Terms = field(default_factory=lambda: Terms())
+
+
+@dataclass(frozen=True)
+class Terms:
+    """What a workflow asks of a cluster scheduler beside resources (``wire.Prepare``).
+
+    Attributes:
+        exec_timeout: the workflow's ``exec_timeout`` in seconds (None: none, or unknown).
+            osmo's own timeout (the server's) still holds; a cluster job may ask for
+            this much time (Slurm's ``--time``).
+        priority: ``HIGH``, ``NORMAL`` or ``LOW`` (None: unknown).
+    """
+
+    exec_timeout: float | None = None
+    priority: str | None = None
 
 
 @dataclass(eq=False)
@@ -193,6 +211,9 @@ class ProcessHandle:
         stderr_fd: read end of the stderr pipe (non-blocking).
         sandboxed: the command runs in a sandbox (``pid`` is bwrap's).
         status_fd: read end of bwrap's status pipe (non-blocking; -1: none).
+        notes_fd: read end of a pipe of the runtime's own lines about the launch (a cluster
+            job's queue reason, its node), logged as osmo's (non-blocking; -1: none; the
+            runtime closes it on ``release``).
         started_at: the clock of ``osmo.runtime.process.proctable.process_start_time`` read
             just before the spawn: at most a moment before the process's own start time,
             without reading ``/proc``.
@@ -213,6 +234,7 @@ class ProcessHandle:
     popen: subprocess.Popen[bytes]
     sandboxed: bool = False
     status_fd: int = -1
+    notes_fd: int = -1
     setup_failed: bool = False
     started_at: float | None = None
     start_failed: str | None = None

@@ -13,6 +13,9 @@ Two choices, each made once:
   every other task runs as a (sandboxed) process, its image only noted in its log. The
   server's placement asks :func:`in_container` too (a cache fingerprint names the image id
   of a task that runs in its image), never deciding it again.
+- **a cluster node's** (``--runtime slurm``: :func:`slurm_for_node`): every attempt runs as
+  a job of the cluster's scheduler (``osmo.runtime.slurm``); the node's :class:`Runtimes`
+  holds it as its ``cluster`` runtime, which then runs every task.
 
 A node's image runtime may also be a cluster's: :func:`image_runtime_for_node` gives the
 Kubernetes runtime for ``--runtime kubernetes`` (an ``osmo worker`` inside or beside a
@@ -24,12 +27,13 @@ from __future__ import annotations
 
 import logging
 import os
+import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from osmo.errors import InfrastructureError, UsageError
 from osmo.layout import Home
-from osmo.options import SandboxMode, parse_share
+from osmo.options import SandboxMode, SlurmOptions, parse_share
 from osmo.runtime.api import Runtime
 from osmo.runtime.container.engine import ContainerEngine, EngineNotFound, detect_engine
 from osmo.runtime.container.images import ImageIds
@@ -43,16 +47,17 @@ from osmo.runtime.process.sandbox import (
     unavailable_summary,
 )
 from osmo.runtime.process.sandboxed import SandboxRuntime
+from osmo.runtime.slurm import Slurm, SlurmRuntime
 from osmo.spec.model import TaskSpec
 
 __all__ = ["CLUSTER_RUNTIMES", "RUNTIMES", "Runtimes", "container_engine", "container_image",
            "containers_for_node", "image_ids", "image_runtime_for_node", "in_container",
-           "processes_for_node"]
+           "processes_for_node", "slurm_for_node"]
 
 _log = logging.getLogger("osmo.worker.pool")
 
-RUNTIMES = ("auto", "container", "process")
-"""The values of ``--runtime`` that a local engine serves."""
+RUNTIMES = ("auto", "container", "process", "slurm")
+"""The values of ``--runtime`` a node's own engine or its Slurm serves."""
 CLUSTER_RUNTIMES = ("kubernetes",)
 """The values of ``--runtime`` that run image tasks on a cluster (an ``osmo worker``'s)."""
 
@@ -78,13 +83,24 @@ class Runtimes:
         process: how tasks run as host processes here (sandboxed or not).
         container: how tasks run in their images here: containers or a cluster's pods
             (None: this node runs image tasks as processes).
+        cluster: a cluster scheduler's runtime that runs every task (None: none).
+        cluster_images: the cluster's runtime for tasks that run in their image (None: the
+            cluster has no container engine; ``cluster`` then refuses them).
     """
 
-    def __init__(self, process: ProcessRuntime, container: Runtime | None = None) -> None:
+    def __init__(self, process: ProcessRuntime,
+                 container: Runtime | None = None,
+                 cluster: Runtime | None = None,
+                 cluster_images: Runtime | None = None) -> None:
         self.process, self.container = process, container
+        self.cluster, self.cluster_images = cluster, cluster_images
 
     def choose(self, task: TaskSpec) -> Runtime:
         """The runtime that runs ``task``'s attempts here."""
+        if self.cluster is not None:
+            if self.cluster_images is not None and in_container(task):
+                return self.cluster_images
+            return self.cluster
         if self.container is not None and in_container(task):
             return self.container
         return self.process
@@ -95,15 +111,19 @@ class Runtimes:
         return self.process.sandbox
 
     def describe(self) -> str:
-        """How image tasks run here: ``container (podman 4.3.1)`` or ``process``."""
-        return (self.container or self.process).describe()
+        """How image tasks run here: ``container (podman 4.3.1)``, ``slurm (...)``, ``process``."""
+        return (self.cluster_images or self.cluster or self.container
+                or self.process).describe()
 
     def hide(self, path: Path) -> None:
         """Also hide ``path`` from sandboxed tasks (another home, a secret file)."""
         self.process.hide(path)
 
     def close(self) -> None:
-        """The node stops: the image runtime's calls, then the node's namespaces."""
+        """The node stops: the cluster's and container runtime's calls, then the namespaces."""
+        for cluster in (self.cluster, self.cluster_images):
+            if cluster is not None:
+                cluster.close()
         if self.container is not None:
             self.container.close()
         self.process.close()
@@ -175,7 +195,7 @@ def container_engine(runtime: str, engine: str | None = None) -> ContainerEngine
                              "a server's own pool runs containers or processes")
     if runtime not in RUNTIMES:
         raise EngineNotFound(f"unknown runtime {runtime!r}: choose {', '.join(RUNTIMES)}")
-    if runtime == "process":
+    if runtime in ("process", "slurm"):
         return None
     try:
         return ContainerEngine(detect_engine(engine))
@@ -200,6 +220,39 @@ def containers_for_node(runtime: str, engine: str | None, home: Home
     made = ContainerRuntime(found, owner=owner_id(home.root))
     made.clean_orphans()
     return made
+
+
+def slurm_for_node(runtime: str, home: Home, options: SlurmOptions | None = None, *,
+                   python: str | None = None, engine: str | None = None
+                   ) -> tuple[SlurmRuntime, SlurmRuntime | None] | None:
+    """A login host's Slurm runtimes: every task's, and image tasks' (None: not ``slurm``).
+
+    Image tasks run through the container engine found here (``engine``: podman or docker,
+    default the first that answers), expected on the compute nodes too; else through pyxis
+    (``srun --container-image``) when the cluster has it; without either the second is None
+    and image tasks fail at start. The jobs a crashed predecessor on
+    ``home`` left queued or running are cancelled first.
+
+    Raises:
+        SlurmError: Slurm's commands are missing or slurmctld does not answer.
+        UsageError: a partition, account or QOS that is not a plain Slurm word.
+    """
+    if runtime != "slurm":
+        return None
+    owner, slurm = owner_id(home.root), Slurm()
+    made = SlurmRuntime(slurm, owner=owner, options=options, python=python or sys.executable)
+    slurm.version()  # fails now, with what is missing, rather than at the first task
+    made.cancel_orphans()
+    try:
+        found = ContainerEngine(detect_engine(engine))
+    except EngineNotFound:
+        images = slurm.has_pyxis() and engine is None
+        return made, SlurmRuntime(slurm, owner=owner, options=options, pyxis=True,
+                                  python=python or sys.executable) if images else None
+    boxes = ContainerRuntime(found, owner=owner)
+    boxes.clean_orphans()  # what a crashed predecessor's jobs left
+    return made, SlurmRuntime(slurm, owner=owner, options=options,
+                              python=python or sys.executable, containers=boxes)
 
 
 def image_ids(runtime: str, engine: str | None, containers: ContainerRuntime | None

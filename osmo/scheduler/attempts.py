@@ -9,6 +9,8 @@ This module owns fencing and the per-task outcome of an attempt (documented beha
 - Exit actions: ``task.exit_action(code)``. COMPLETE needs an output reference (None means
   promotion failed: FAILED with ``ExitCode.OUTPUT_ERROR``). RESCHEDULE retries while the
   task's ``user_retries`` < the workflow's ``max_retries``, else FAILED "retry cap N reached".
+  Exit code ``ExitCode.EXEC_TIMEOUT`` (a worker's cluster job ended by the cluster's own
+  time limit: Slurm's TIMEOUT) is FAILED_EXEC_TIMEOUT, whatever the exit actions say.
 - A lost attempt (worker gone, node down) is RESCHEDULED without using a user retry, up to
   ``max_lost_retries`` times, then FAILED_SERVER_ERROR with ``ExitCode.LOST`` and a message
   saying that ``osmo restart`` runs it again. An attempt lost to a restart of the server
@@ -90,6 +92,10 @@ def _started(world: World, run: Run, task: TaskState) -> None:
 
 def _exited(world: World, run: Run, task: TaskState, report: AttemptExited) -> None:
     code = report.exit_code
+    if code == ExitCode.EXEC_TIMEOUT:  # a cluster's own time limit ended it (Slurm TIMEOUT)
+        _finish(world, run, task, TaskStatus.FAILED_EXEC_TIMEOUT, code,
+                report.message or "the cluster's time limit for its job was reached")
+        return
     action = run.task_specs[task.name].exit_action(code)
     if action is ExitAction.COMPLETE:
         if report.output is None:

@@ -60,6 +60,7 @@ from osmo.server.remote_logs import RemoteLogs
 from osmo.server.worker_access import WorkerAccess, has_secrets, task_secrets
 from osmo.server.worker_outputs import OutputIntake
 from osmo.spec.model import ResourceSpec, TaskSpec
+from osmo.spec.stored import StoredSpec
 from osmo.store.sqlite import Store
 from osmo.transport.auth import Identity
 from osmo.transport.blobs import SERVER, BlobServer, SameHost, host_id
@@ -82,6 +83,7 @@ __all__ = ["WorkerHub"]
 
 log = logging.getLogger("osmo.server.workers")
 _MAX_RECORDS = 4 << 20  # characters of one log batch
+_KEPT_TIMEOUTS = 256  # workflows whose exec_timeout is kept for their next orders
 
 class WorkerHub:
     """Remote workers, as seen by the server (see the module docstring).
@@ -120,6 +122,7 @@ class WorkerHub:
         self._draining: set[str] = set()
         self._same_host: dict[str, SameHost | None] = {}
         self._sent_specs: dict[str, set[str]] = {}
+        self._timeouts: dict[str, float | None] = {}  # workflow -> exec_timeout (a few kept)
         self._logs = RemoteLogs(home, log_limit)
         self._access = WorkerAccess(self._is_alive)
         self._outputs = OutputIntake(artifacts=artifacts, home=home, emit=emit,
@@ -365,18 +368,39 @@ class WorkerHub:
             sent = self._sent_specs.setdefault(cmd.node_id, set())
             first = cmd.workflow_id not in sent
             sent.add(cmd.workflow_id)
-        spec = None
-        if first:
-            row = self._store.workflow(cmd.workflow_id)
-            if row is None:
-                raise OsmoError(f"workflow {cmd.workflow_id} is not in the store")
-            spec = row.spec
+        row = self._store.workflow(cmd.workflow_id, with_spec=first)
+        if row is None:
+            raise OsmoError(f"workflow {cmd.workflow_id} is not in the store")
+        spec = row.spec if first else None
         return Prepare(cmd, {ref: self._manifest_of(ref) for ref in set(cmd.inputs.values())
                              if not _is_url(ref)},
                        # the values are asked for by the worker (``worker_secrets``)
                        secrets=has_secrets(task, self._store.credential, self._url_credential,
                                            containers=self._contained(cmd.node_id)),
-                       max_output_bytes=max_output_bytes, spec=spec)
+                       max_output_bytes=max_output_bytes, spec=spec,
+                       exec_timeout=self._exec_timeout(cmd.workflow_id, row.spec if first
+                                                       else None),
+                       priority=row.options.priority)
+
+    def _exec_timeout(self, workflow_id: str, spec: StoredSpec | None) -> float | None:
+        """The workflow's ``exec_timeout`` (its spec read once per workflow, then kept)."""
+        with self._lock:
+            if workflow_id in self._timeouts:
+                return self._timeouts[workflow_id]
+        if spec is None:
+            row = self._store.workflow(workflow_id)
+            if row is None:
+                return None
+            spec = row.spec
+        try:
+            found = spec.load().timeout.exec_timeout
+        except OsmoError:
+            found = None
+        with self._lock:
+            self._timeouts[workflow_id] = found
+            while len(self._timeouts) > _KEPT_TIMEOUTS:
+                del self._timeouts[next(iter(self._timeouts))]
+        return found
 
     def _contained(self, wid: str) -> bool:
         """Whether worker ``wid`` pulls images (containers, pods): it gets registry creds."""

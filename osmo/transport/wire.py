@@ -55,6 +55,7 @@ from osmo.errors import UsageError
 from osmo.names import check_worker_name, shown
 from osmo.scheduler.types import (
     LOCAL_NODE,
+    PRIORITIES,
     AttemptExited,
     AttemptLost,
     AttemptPrepared,
@@ -255,6 +256,11 @@ class Prepare:
             (``worker_secrets``); an order never carries one.
         max_output_bytes: the task's storage limit (None: none).
         spec: the workflow's spec, the first time the worker hears of the workflow.
+        exec_timeout: the workflow's ``exec_timeout`` in seconds (None: none, or a server
+            from before this field); osmo's own timeout is the server's, this is the
+            upper bound a cluster job may ask its scheduler for (Slurm's ``--time``).
+        priority: the workflow's priority, ``HIGH``, ``NORMAL`` or ``LOW`` (None: a server
+            from before this field).
     """
 
     cmd: PrepareAttempt
@@ -262,6 +268,8 @@ class Prepare:
     secrets: bool = False
     max_output_bytes: int | None = None
     spec: StoredSpec | None = None
+    exec_timeout: float | None = None
+    priority: str | None = None
 
     @property
     def attempt_id(self) -> str:
@@ -313,7 +321,8 @@ def order_to_dict(order: Order) -> dict[str, Any]:
     if isinstance(order, Prepare):
         out: dict[str, Any] = {"attempt_id": order.attempt_id, "cmd": asdict(order.cmd),
                                "manifests": dict(order.manifests), "secrets": order.secrets,
-                               "max_output_bytes": order.max_output_bytes}
+                               "max_output_bytes": order.max_output_bytes,
+                               "exec_timeout": order.exec_timeout, "priority": order.priority}
         if order.spec is not None:
             out["spec"] = order.spec.to_dict()
     else:
@@ -364,4 +373,26 @@ def _prepare_from_dict(data: dict[str, Any]) -> Prepare:
         raise UsageError(f"'cmd' or 'spec' is not a placement and its spec ({exc!r})") from None
     return Prepare(placed, manifests, secrets=field(data, "secrets", bool, default=False),
                    max_output_bytes=field(data, "max_output_bytes", int, default=None),
-                   spec=stored)
+                   spec=stored, exec_timeout=_seconds(data.get("exec_timeout")),
+                   priority=_priority(data.get("priority")))
+
+
+def _seconds(value: object) -> float | None:
+    """A positive finite number of seconds, or None (absent, or from an older server)."""
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, int | float) or not (
+            0 < value < float("inf")):
+        raise UsageError(f"'exec_timeout' must be a positive number of seconds, not "
+                         f"{shown(value)}")
+    return float(value)
+
+
+def _priority(value: object) -> str | None:
+    """``HIGH``, ``NORMAL`` or ``LOW``, or None (absent, or from an older server)."""
+    if value is None:
+        return None
+    if value not in PRIORITIES:
+        raise UsageError(f"'priority' must be one of {', '.join(PRIORITIES)}, not "
+                         f"{shown(value)}")
+    return str(value)

@@ -20,7 +20,7 @@ from osmo.worker.checkpoints import Checkpointer
 from osmo.worker.logs import LogWriter
 from osmo.worker.reactor import Reactor, Timer
 
-__all__ = ["AttemptState", "Attempts", "LiveAttempt", "Running"]
+__all__ = ["AttemptState", "Attempts", "LiveAttempt", "Running", "streams"]
 
 _REMEMBER_FINISHED = 4096  # finished ids kept to ignore late run()/kill() for them
 
@@ -85,11 +85,17 @@ class LiveAttempt:
         Bounded: a process that escaped the group (``setsid``) and keeps writing to an
         inherited pipe is not waited for.
         """
-        for fd, stream in ((handle.stdout_fd, "stdout"), (handle.stderr_fd, "stderr")):
+        for fd, stream in streams(handle):
             for _ in range(_DRAIN_READS):
                 if not self.read(reactor, fd, stream):
                     break
             self.unwatch(reactor, fd)
+
+
+def streams(handle: ProcessHandle) -> list[tuple[int, str]]:
+    """The handle's pipes and the log stream each goes to (its notes are osmo's lines)."""
+    found = [(handle.stdout_fd, "stdout"), (handle.stderr_fd, "stderr")]
+    return [*found, (handle.notes_fd, "osmo")] if handle.notes_fd >= 0 else found
 
 
 @dataclass(frozen=True)

@@ -18,10 +18,12 @@ from osmo.errors import UsageError
 from osmo.options import (
     DEFAULT_LOG_LIMIT,
     SandboxMode,
+    SlurmOptions,
     add_log_limit_argument,
     add_runtime_arguments,
     shares,
 )
+from osmo.scheduler.types import PRIORITIES
 
 __all__ = ["DEFAULT_KILL_GRACE", "DEFAULT_POOL", "WorkerOptions"]
 
@@ -54,7 +56,11 @@ class WorkerOptions:
         sandbox: run commands in bubblewrap: ``auto`` (when it works here), ``on``, ``off``.
         sandbox_share: host folders every sandboxed task sees (``--sandbox-share DIR``:
             writable, ``DIR:ro``: read-only).
-        runtime: how it runs image tasks: ``auto``, ``container`` or ``process``.
+        runtime: how it runs image tasks: ``auto``, ``container`` or ``process``; ``slurm``:
+            every task as a Slurm batch job (a worker on a login host).
+        slurm: what every Slurm job of its pool gets (partitions, account, QOS, constraint).
+        slurm_python: the Python its Slurm jobs run their agent with on the compute nodes
+            (default: the worker's own, on a filesystem they share).
         container_engine: ``podman`` or ``docker`` (default: the first that answers).
         kubernetes_config: the Kubernetes pool's JSON configuration, with ``runtime``
             ``kubernetes`` (``osmo.runtime.kubernetes.config``; None: every default).
@@ -81,6 +87,8 @@ class WorkerOptions:
     sandbox: SandboxMode = "auto"
     sandbox_share: tuple[str, ...] = ()
     runtime: str = "auto"
+    slurm: SlurmOptions = field(default_factory=SlurmOptions)
+    slurm_python: str | None = None
     container_engine: str | None = None
     kubernetes_config: str | None = None
     store_limit: int | None = None
@@ -130,6 +138,25 @@ class WorkerOptions:
                        help="with --runtime kubernetes: the pool's JSON configuration "
                             "(namespace, node selectors, gang scheduler, ...; "
                             "OSMO_KUBERNETES_CONFIG)")
+        s = w.add_argument_group("Slurm (--runtime slurm)")
+        s.add_argument("--slurm-partition", action="append", default=[], metavar="NAME",
+                       help="a partition its jobs may use (repeatable; default: Slurm's "
+                            "default partition); its capacity is theirs. A task whose "
+                            "platform names one of them goes there")
+        s.add_argument("--slurm-account", metavar="NAME", help="the account its jobs charge")
+        s.add_argument("--slurm-qos", metavar="NAME", help="the QOS of its jobs")
+        s.add_argument("--slurm-nice", type=int, default=100, metavar="N",
+                       help="a workflow's priority as --nice: HIGH none, NORMAL N, LOW 2N "
+                            "(default 100; 0: no --nice)")
+        s.add_argument("--slurm-priority-qos", action="append", default=[],
+                       metavar="PRIORITY=QOS",
+                       help="the QOS of the jobs of workflows of that priority (HIGH, NORMAL "
+                            "or LOW; repeatable), instead of --slurm-qos")
+        s.add_argument("--slurm-constraint", metavar="FEATURES",
+                       help="node features its jobs require (--constraint)")
+        s.add_argument("--slurm-python", metavar="PATH",
+                       help="the Python 3 the jobs run osmo's agent with on the compute "
+                            "nodes (default: this worker's, on a shared filesystem)")
 
     @classmethod
     def from_args(cls, args: argparse.Namespace) -> WorkerOptions:
@@ -157,9 +184,26 @@ class WorkerOptions:
                    token=_token(args.token, args.token_file), token_file=args.token_file,
                    sandbox=args.sandbox,
                    sandbox_share=shares(args.sandbox_share), runtime=args.runtime,
+                   slurm=_slurm(args), slurm_python=args.slurm_python,
                    container_engine=args.container_engine,
                    kubernetes_config=args.kubernetes_config, store_limit=store_limit,
                    log_limit=args.log_limit)
+
+
+def _slurm(args: argparse.Namespace) -> SlurmOptions:
+    """The ``--slurm-*`` flags (UsageError: one is not a plain Slurm word)."""
+    by_priority = []
+    for item in args.slurm_priority_qos:
+        priority, _, qos = item.partition("=")
+        if priority.upper() not in PRIORITIES or not qos:
+            raise UsageError(f"--slurm-priority-qos {item!r}: write PRIORITY=QOS, PRIORITY "
+                             f"one of {', '.join(PRIORITIES)}")
+        by_priority.append((priority.upper(), qos))
+    made = SlurmOptions(partitions=tuple(args.slurm_partition), account=args.slurm_account,
+                        qos=args.slurm_qos, constraint=args.slurm_constraint,
+                        nice=args.slurm_nice, priority_qos=tuple(by_priority))
+    made.check()
+    return made
 
 
 def _token(token: str | None, token_file: str | None) -> str | None:

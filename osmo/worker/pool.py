@@ -76,7 +76,7 @@ from osmo.artifacts.store import DEFAULT_MAX_FILES
 from osmo.errors import UsageError
 from osmo.layout import Home
 from osmo.options import DEFAULT_LOG_LIMIT, SandboxMode
-from osmo.runtime.api import Runtime
+from osmo.runtime.api import Runtime, Terms
 from osmo.runtime.choose import Runtimes, processes_for_node
 from osmo.runtime.process.sandbox import Sandbox
 from osmo.scheduler.types import (
@@ -138,6 +138,9 @@ class LocalPool:
         procs_dir: record running commands' pids here (see the module docstring).
         containers: runs image tasks in containers, or as a cluster's pods (closed with
             the pool).
+        cluster: runs every task as a cluster scheduler's job (``--runtime slurm``:
+            ``osmo.runtime.choose.slurm_for_node``; closed with the pool).
+        cluster_images: the cluster's runtime for tasks that run in their image.
 
     Attributes:
         home: osmo's home.
@@ -177,6 +180,8 @@ class LocalPool:
         address: str | None = None,
         procs_dir: Path | None = None,
         containers: Runtime | None = None,
+        cluster: Runtime | None = None,
+        cluster_images: Runtime | None = None,
     ) -> None:
         if not home.root.is_absolute():
             raise UsageError(f"osmo's home must be an absolute path, not {home.root}")
@@ -191,7 +196,7 @@ class LocalPool:
         self.no_sandbox_why, self.sandbox_warning = process.why, process.warning
         if self.sandbox_warning:
             _log.warning("%s", self.sandbox_warning)
-        self._runtimes = Runtimes(process, containers)
+        self._runtimes = Runtimes(process, containers, cluster, cluster_images)
         self._procs = ProcessRecords(procs_dir) if procs_dir is not None else None
         self._attempts = Attempts()
         self._reactor = Reactor(f"osmo-pool-{pool}")
@@ -226,15 +231,18 @@ class LocalPool:
 
     def prepare(self, cmd: PrepareAttempt, task: TaskSpec, secrets: Secrets | None = None,
                 *, max_output_bytes: int | None = None,
-                resources: ResourceSpec | None = None) -> None:
+                resources: ResourceSpec | None = None, terms: Terms | None = None) -> None:
         """Prepare an attempt's folder; later emits AttemptPrepared or AttemptStartFailed.
 
         ``secrets``: payloads of the credentials ``task`` names (None: ask ``task_secrets``).
         ``max_output_bytes``: the task's ``storage`` request; a larger output fails it.
         ``resources``: its request (a container's cpu/memory limits and GPUs).
+        ``terms``: its workflow's time limit and priority (a cluster runtime's job asks for
+        them).
         """
         self._reactor.call_soon(self._preparing.prepare, cmd, task, secrets,
-                                replace(resources or ResourceSpec(), storage=max_output_bytes))
+                                replace(resources or ResourceSpec(), storage=max_output_bytes),
+                                terms or Terms())
 
     def runtime_name(self) -> str:
         """How this pool runs image tasks: ``container (podman 4.3.1)`` or ``process``."""

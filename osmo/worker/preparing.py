@@ -31,7 +31,7 @@ from dataclasses import replace
 from osmo.artifacts import ArtifactStore
 from osmo.errors import OsmoError
 from osmo.layout import AttemptDirs, Home
-from osmo.runtime.api import Attempt, Launch, ProcessHandle, Runtime, StartError
+from osmo.runtime.api import Attempt, Launch, ProcessHandle, Runtime, StartError, Terms
 from osmo.runtime.choose import Runtimes
 from osmo.scheduler.types import AttemptPrepared, AttemptStartFailed, Event, PrepareAttempt
 from osmo.spec.model import ResourceSpec, TaskSpec
@@ -84,14 +84,14 @@ class Preparing:
         self._run_pending: set[str] = set()  # run() came while its folders were being made
 
     def prepare(self, cmd: PrepareAttempt, task: TaskSpec, secrets: Secrets | None,
-                resources: ResourceSpec) -> None:
+                resources: ResourceSpec, terms: Terms | None = None) -> None:
         """Prepare an attempt (reactor thread); emits AttemptPrepared or AttemptStartFailed."""
         if cmd.attempt_id in self._attempts or cmd.attempt_id in self._pending:
             _log.warning("attempt %s is already active; prepare ignored", cmd.attempt_id)
             return
         self._attempts.again(cmd.attempt_id)
         self._pending[cmd.attempt_id] = None
-        self._io.submit(self._prepare_io, cmd, task, secrets, resources)
+        self._io.submit(self._prepare_io, cmd, task, secrets, resources, terms or Terms())
 
     def kill(self, attempt_id: str, reason: str) -> bool:
         """Kill an attempt being prepared, once it is (False: it is not being prepared)."""
@@ -108,7 +108,7 @@ class Preparing:
         return True
 
     def _prepare_io(self, cmd: PrepareAttempt, task: TaskSpec, secrets: Secrets | None,
-                    resources: ResourceSpec) -> None:
+                    resources: ResourceSpec, terms: Terms) -> None:
         """I/O thread: the steps of the module docstring; the outcome goes to the reactor."""
         launch: Launch | None = None
         log: LogWriter | None = None
@@ -126,7 +126,8 @@ class Preparing:
             log = self._open_log(cmd, dirs, launch)
             gpus = self._gpus.take(cmd.attempt_id, resources.gpu) if resources.gpu else ()
             lookup = self._task_secrets if self._task_secrets is not None else secrets.get
-            launch = runtime.prepare(launch, Attempt(placed, task, dirs, resources, gpus, lookup),
+            attempt = Attempt(placed, task, dirs, resources, gpus, lookup, terms)
+            launch = runtime.prepare(launch, attempt,
                                      progress=functools.partial(_pull_line, log))
         except Exception as exc:  # every prepare must get its one final report
             message = str(exc) if isinstance(exc, OsmoError) else f"cannot prepare: {exc!r}"

@@ -52,9 +52,11 @@ from osmo.config import write_json_atomic
 from osmo.errors import NotAllowed, OsmoError, UsageError
 from osmo.layout import Home
 from osmo.names import check_worker_name
-from osmo.runtime.choose import image_runtime_for_node
+from osmo.runtime.api import Terms
+from osmo.runtime.choose import image_runtime_for_node, slurm_for_node
 from osmo.runtime.kubernetes.capacity import cluster_capacity
 from osmo.runtime.kubernetes.runtime import KubernetesRuntime
+from osmo.runtime.slurm import SlurmRuntime
 from osmo.scheduler.types import (
     LOCAL_NODE,
     AttemptExited,
@@ -140,6 +142,9 @@ class RemoteWorker:
         self._refused: NotAllowed | None = None  # the server refused to register it
         self._io = ThreadPoolExecutor(4, thread_name_prefix="osmo-inputs")
         self._token: Subscription | None = None
+        # a cluster's jobs a previous life left are cancelled before their folders go
+        cluster = slurm_for_node(options.runtime, home, options.slurm,
+                                 python=options.slurm_python, engine=options.container_engine)
         kill_recorded(home.procs)  # before it announces itself
         clear_runs(home, self._io)  # a previous life's attempts were all rescheduled
         limit = default_limit(home.root) if options.store_limit is None else options.store_limit
@@ -147,7 +152,7 @@ class RemoteWorker:
                                    self._protected, self._io)
         images = image_runtime_for_node(options.runtime, options.container_engine, home,
                                         kubernetes_config=options.kubernetes_config)
-        cpus, gpus, memory = _capacity(options, images)
+        cpus, gpus, memory = _capacity(options, images, cluster[0] if cluster else None)
         self.pool = LocalPool(
             home=home, emit=self._emit, node_id=self.id, pool=options.pool,
             cpus=cpus, gpus=gpus, memory=memory,
@@ -156,7 +161,8 @@ class RemoteWorker:
             log_limit=options.log_limit,
             input_manifests=self._inputs.manifest_of, sandbox=options.sandbox,
             sandbox_share=options.sandbox_share, address=self._address,
-            procs_dir=home.procs, containers=images)
+            procs_dir=home.procs, containers=images,
+            cluster=cluster[0] if cluster else None, cluster_images=cluster[1] if cluster else None)
         for secret in options.secret_files:
             self.pool.hide(Path(secret))
         self.sessions = NodeSessions(self.link, self.pool, lambda ticket: self._api.call(
@@ -395,7 +401,8 @@ class RemoteWorker:
             pending = self._pending.pop(cmd.attempt_id, _Pending())
             self._active.add(cmd.attempt_id)
         self.pool.prepare(cmd, task, values, max_output_bytes=order.max_output_bytes,
-                          resources=self._request(cmd, task))
+                          resources=self._request(cmd, task),
+                          terms=Terms(order.exec_timeout, order.priority))
         if pending.kill is not None:
             self.pool.kill(KillAttempt(cmd.attempt_id, self.id, pending.kill))
         elif pending.run:
@@ -458,12 +465,19 @@ class RemoteWorker:
                                       "records": records.decode(errors="replace")})
 
 
-def _capacity(options: WorkerOptions, images: object
+def _capacity(options: WorkerOptions, images: object, cluster: SlurmRuntime | None
               ) -> tuple[float | None, int | None, int | None]:
-    """What the worker offers: its options', else a cluster's allocatable, else its machine's."""
-    if not isinstance(images, KubernetesRuntime):
+    """What the worker offers: its options', else its cluster's, else its machine's."""
+    cpus: float | None
+    gpus: int | None
+    memory: int | None
+    if cluster is not None:
+        offered = cluster.capacity()
+        cpus, gpus, memory = offered.cpus, offered.gpus, offered.memory
+    elif isinstance(images, KubernetesRuntime):
+        cpus, gpus, memory = cluster_capacity(images.kube, images.pool)
+    else:
         return options.cpus, options.gpus, options.memory
-    cpus, gpus, memory = cluster_capacity(images.kube, images.pool)
     return (options.cpus if options.cpus is not None else cpus,
             options.gpus if options.gpus is not None else gpus,
             options.memory if options.memory is not None else memory)

@@ -35,7 +35,7 @@ from osmo.scheduler.types import (
 )
 from osmo.worker.checkpoints import start_checkpoints
 from osmo.worker.endings import KILLED_BEFORE_START, Ending
-from osmo.worker.live import AttemptState, LiveAttempt
+from osmo.worker.live import AttemptState, LiveAttempt, streams
 from osmo.worker.logs import exit_note
 from osmo.worker.procs import ProcessRecords
 from osmo.worker.reactor import Reactor
@@ -138,7 +138,7 @@ class Starting:
         """Watch a started launch's pipes and exit; start the attempt's checkpoints."""
         attempt.handle, attempt.state = handle, AttemptState.RUNNING
         reactor = self._reactor
-        for fd, stream in ((handle.stdout_fd, "stdout"), (handle.stderr_fd, "stderr")):
+        for fd, stream in streams(handle):
             attempt.open_fds.add(fd)
             reactor.add_reader(fd, lambda a=attempt, f=fd, s=stream: a.read(reactor, f, s))
         reactor.add_reader(handle.exit_fd, lambda a=attempt: self._exited(a))

@@ -1,9 +1,10 @@
 """One contract, every runtime (``osmo.runtime.api.Runtime``): the conformance kit
 ``osmo.testing.check_runtime`` runs over the process runtime, the sandboxed process runtime
 (bubblewrap in the node's namespaces), the container runtime (podman, with the offline
-images of tests/containers) and the Kubernetes runtime (pods of the API stand-in of
-tests/k8s, under podman kube play, its exec through the stand-in's WebSocket). A Slurm job
-runtime is done when it joins :data:`RUNTIMES` and passes.
+images of tests/containers), the Kubernetes runtime (pods of the API stand-in of tests/k8s,
+under podman kube play, its exec through the stand-in's WebSocket) and the Slurm runtime (a
+batch job per attempt, on the session's cluster of tests/slurm). The next runtime is done when
+it joins :data:`RUNTIMES` and passes.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from osmo.runtime.kubernetes.kube import Kube
 from osmo.runtime.kubernetes.runtime import KubernetesRuntime
 from osmo.runtime.process.runtime import ProcessRuntime
 from osmo.runtime.process.sandboxed import SandboxRuntime
+from osmo.runtime.slurm import Slurm, SlurmRuntime
 from osmo.testing import check_runtime
 from tests.containers.conftest import (  # noqa: F401 - fixtures the container case asks for
     engine,
@@ -32,6 +34,8 @@ from tests.containers.conftest import (  # noqa: F401 - fixtures the container c
 from tests.k8s.conftest import Cluster, api  # noqa: F401 - the Kubernetes case's stand-in
 from tests.k8s.nodes import kubeconfig
 from tests.k8s.store import PODS, SECRETS
+from tests.slurm.cluster import SlurmCluster
+from tests.slurm.conftest import slurm_session  # noqa: F401 - the Slurm case's cluster
 
 HOST_LISTENER = ("busybox", "nc", "-l", "-p", "{port}")  # busybox-static: ./dev installs it
 
@@ -82,11 +86,22 @@ def _kubernetes(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Case
         [PODS, SECRETS])] == [], "pods or Secrets were left"
 
 
+def _slurm(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Case]:
+    cluster: SlurmCluster = request.getfixturevalue("slurm_session")
+    owner = f"contract-{uuid.uuid4().hex}"
+    runtime = SlurmRuntime(Slurm(cluster.env), owner=owner)
+    yield Case(runtime, listen=HOST_LISTENER)
+    runtime.close()
+    left = [job for job in runtime.slurm.owned(owner) if job.state in ("PENDING", "RUNNING")]
+    assert not left, f"jobs were left: {left}"
+
+
 RUNTIMES: dict[str, Callable[[pytest.FixtureRequest, Path], Iterator[Case]]] = {
     "process": _process,
     "sandbox": _sandbox,
     "container": _container,
     "kubernetes": _kubernetes,
+    "slurm": _slurm,
 }
 """Every runtime, by name: what the contract runs over (add the next one here)."""
 

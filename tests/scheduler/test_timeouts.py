@@ -128,3 +128,16 @@ def test_canceled_queued_request_is_never_placed() -> None:
     assert sim.of(PrepareAttempt, play(sim, "run a")) == []
     assert sim.status("b", "wf-2") == "FAILED_CANCELED"
     assert sim.s.used("n1").cpu == 0
+
+
+def test_an_attempt_a_cluster_s_time_limit_ended_is_failed_exec_timeout() -> None:
+    """A Slurm job's TIMEOUT (its --time, or its partition's limit) reaches the scheduler as
+    exit code ExitCode.EXEC_TIMEOUT: the task is FAILED_EXEC_TIMEOUT, not retried."""
+    sim = Sim()
+    sim.submit(workflow(task("t", rules=[("RESCHEDULE", [(0, 255)])])))
+    play(sim, f"run t={ExitCode.EXEC_TIMEOUT}")
+    t = sim.task("t")
+    assert (t.status.name, t.retry, t.exit_code) == ("FAILED_EXEC_TIMEOUT", 0,
+                                                     ExitCode.EXEC_TIMEOUT)
+    assert "time limit" in t.message
+    assert sim.wf() == "FAILED_EXEC_TIMEOUT"

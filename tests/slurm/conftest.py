@@ -12,22 +12,21 @@ root (the daemons and the nodes' namespaces need it) the tests are skipped, and 
 
 from __future__ import annotations
 
-import os
 from collections.abc import Iterator
 
 import pytest
 
-from tests.slurm.cluster import SlurmCluster, missing_programs
-
-
-def require_slurm() -> None:
-    """Skip unless this process may run a cluster (root, and Slurm's programs present)."""
-    if os.geteuid() != 0:
-        pytest.skip("needs root: the Slurm test cluster (its daemons, the nodes' namespaces)")
-    missing = missing_programs()
-    if missing:
-        pytest.skip(f"Slurm is not installed (missing {', '.join(missing)}); "
-                    "./dev test installs it: apt-get install slurm-wlm munge")
+from tests.containers.conftest import (  # noqa: F401 - for the tutorials through Slurm
+    engine,
+    images,
+    podman_env,
+)
+from tests.slurm.cluster import SlurmCluster
+from tests.slurm.grid import (  # noqa: F401 - the session's Slurm worker
+    grid,
+    require_slurm,
+    roomy,
+)
 
 
 @pytest.fixture(scope="session")

@@ -27,7 +27,7 @@ SPEC = StoredSpec(spec_to_dict(Workflow("w").task("a", ["true"]).build()), "wf.y
 
 ORDERS = [
     Prepare(CMD, manifests={"/runs/w-1/up/0/output": '{"entries": []}'}, secrets=True,
-            max_output_bytes=1 << 20, spec=SPEC),
+            max_output_bytes=1 << 20, spec=SPEC, exec_timeout=90.5, priority="LOW"),
     Prepare(CMD, manifests={}),
     Run("w-1:a:0"),
     Kill("w-1:a:0", "cancelled"),
@@ -53,6 +53,14 @@ def test_the_json_form_is_the_one_workers_already_read() -> None:
     assert "spec" not in order_to_dict(ORDERS[1])  # sent only the first time
 
 
+def test_an_order_from_a_server_before_time_limits_and_priorities_has_none() -> None:
+    old = {k: v for k, v in order_to_dict(ORDERS[0]).items()
+           if k not in ("exec_timeout", "priority")}
+    got = order_from_dict(old)
+    assert isinstance(got, Prepare)
+    assert (got.exec_timeout, got.priority) == (None, None)
+
+
 @pytest.mark.parametrize("data", [
     {"op": "reboot", "attempt_id": "x"},  # an order this worker does not know
     {"attempt_id": "x"},
@@ -68,6 +76,12 @@ def test_the_json_form_is_the_one_workers_already_read() -> None:
      "spec": "wf.yaml"},
     {"op": "prepare", "cmd": order_to_dict(ORDERS[1])["cmd"], "manifests": {},
      "max_output_bytes": "lots"},
+    {"op": "prepare", "cmd": order_to_dict(ORDERS[1])["cmd"], "manifests": {},
+     "exec_timeout": -1},
+    {"op": "prepare", "cmd": order_to_dict(ORDERS[1])["cmd"], "manifests": {},
+     "exec_timeout": "1h"},
+    {"op": "prepare", "cmd": order_to_dict(ORDERS[1])["cmd"], "manifests": {},
+     "priority": "URGENT"},
     [],
 ])
 def test_a_malformed_order_is_a_value_error(data: Any) -> None:

@@ -1,0 +1,412 @@
+"""``osmo worker --runtime slurm`` end to end: a server, a worker on the "login host" and
+a real Slurm cluster (tests/slurm/cluster.py), driven through the real CLI.
+
+OSMO's tutorials (tests/containers/osmo_tutorials, unmodified) run as Slurm batch jobs whose
+agent runs each task in its image through podman on the compute node, with the offline
+test images; their outputs, lineage and logs are checked as the container tests check
+them. The cluster and the worker are the session's (tests/slurm/grid.py).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shlex
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from osmo.config import free_port
+from osmo.runtime.container import ContainerEngine
+from osmo.runtime.container.runtime import owner_id
+from osmo.runtime.slurm import Slurm
+from osmo.runtime.slurm.runtime import LIMIT_TTL
+from tests.conftest import REPO, write
+from tests.containers.submitting import (
+    leftovers,
+    lineage_of,
+    osmo_lines,
+    submitted_id,
+    task_lines,
+    tasks,
+)
+from tests.containers.test_tutorials import TUTORIALS
+from tests.e2e.cluster import Cluster
+from tests.slurm.cluster import SlurmCluster
+from tests.slurm.grid import WORKER, jobs_of, logs, start_login, until_logged, until_no_job
+
+
+def run(grid: Cluster, spec: Path, *, code: int = 0) -> tuple[str, dict[str, list[str]],
+                                                              dict[str, dict]]:
+    r = grid.osmo("submit", str(spec), "--wait", timeout=300)
+    wf_id = submitted_id(r.out)
+    lines, rows = task_lines(grid.osmo, wf_id), tasks(grid.osmo, wf_id)
+    assert r.code == code, f"{r.out}{r.err}{lines}{rows}\n{grid.worker_log(WORKER)}"
+    return wf_id, lines, rows
+
+
+def test_the_worker_offers_its_partitions_capacity(grid: Cluster, roomy: SlurmCluster
+                                                   ) -> None:
+    assert not Slurm(roomy.env).has_pyxis()  # Debian's Slurm: image tasks go to podman
+    node = grid.nodes()[WORKER]
+    assert node["runtime"].startswith("slurm (slurm-wlm 22.05"), node
+    assert "podman" in node["runtime"], node
+    assert node["total"]["cpu"] == 4, node  # two nodes of 2 CPUs
+    assert node["total"]["gpu"] == 2, node  # one fake GPU each
+    assert node["total"]["memory"] == 2 * 2048 << 20, node
+
+
+def test_hello_world(grid: Cluster, roomy: SlurmCluster, engine: ContainerEngine) -> None:
+    wf_id, lines, rows = run(grid, TUTORIALS / "hello_world.yaml")
+    assert lines["hello"] == ["Hello from OSMO!"]
+    said = osmo_lines(grid.osmo, wf_id, "hello")
+    assert any(re.fullmatch(r"Slurm job \d+ submitted", line) for line in said), said
+    assert any(re.fullmatch(r"\[osmo:progress\] Slurm job \d+ RUNNING on n[12]", line)
+               for line in said), said
+    assert jobs_of(roomy) == []
+    owner = {"osmo.owner": owner_id(grid.root / WORKER)}
+    assert leftovers(engine, owner) == ([], [])
+
+
+def test_serial_workflow_outputs_and_lineage(grid: Cluster) -> None:
+    wf_id, lines, rows = run(grid, TUTORIALS / "serial_workflow.yaml")
+    assert lines["task3"] == ["Hello from task3 /osmo/data/output", "Reading from task 1",
+                              "a line: Data from task 1", "Reading from task 2",
+                              "a line: Data from task 2"]
+    for n in (1, 2, 3):
+        output = Path(rows[f"task{n}"]["output"])
+        assert (output / "test_read.txt").read_text() == f"Data from task {n}\n"
+    made = lineage_of(grid.osmo, f"{wf_id}:task3")
+    assert made["task"] == "task3", made
+
+
+def test_parallel_tasks(grid: Cluster) -> None:
+    _, lines, _ = run(grid, TUTORIALS / "parallel_tasks.yaml")
+    for name in ("task-a", "task-b", "task-c"):
+        assert lines[name] == [f"Hello from {name}"]
+
+
+def test_a_process_task_sees_its_job_and_its_secret_stays_out_of_slurm(
+        grid: Cluster, roomy: SlurmCluster, tmp_path: Path) -> None:
+    spec = write(tmp_path / "wf.yaml", """
+workflow:
+  name: plain
+  tasks:
+  - name: first
+    command: [sh, -c, 'echo "job $SLURM_JOB_ID"; echo data > {{output}}/a.txt']
+  - name: second
+    command: [sh, -c, 'cat {{input:0}}/a.txt']
+    inputs:
+    - task: first
+""")
+    _, lines, rows = run(grid, spec)
+    assert re.fullmatch(r"job \d+", lines["first"][0]), lines
+    assert lines["second"] == ["data"]
+
+
+def test_exec_reaches_the_running_job_and_cancel_sends_sigterm_through_scancel(
+        grid: Cluster, roomy: SlurmCluster, tmp_path: Path) -> None:
+    spec = write(tmp_path / "wf.yaml", """
+workflow:
+  name: held
+  timeout: {exec_timeout: 61s}
+  tasks:
+  - name: held
+    command: [sh, -c, 'trap "echo got-term; exit 143" TERM; echo up; while :; do sleep 0.2; done']
+    environment: {GREETING: hola}
+""")
+    wf_id = grid.osmo.submit(spec, "--priority", "LOW")
+    until_logged(grid, wf_id, "[held] up")
+    r = grid.osmo("workflow", "exec", wf_id, "held", "--", "sh", "-c",
+                  'echo "$GREETING $OSMO_TASK $SLURM_JOB_ID"; exit 7')
+    assert r.code == 7, r.out + r.err
+    greeting, task, job = r.out.split()
+    assert (greeting, task) == ("hola", "held") and job.isdigit(), r.out
+    shown = roomy.run("scontrol", "show", "job", job).stdout
+    # exec_timeout 61 s: two whole minutes; LOW: twice the pool's nice step
+    assert "TimeLimit=00:02:00" in shown and "Nice=200" in shown, shown
+    grid.osmo("cancel", wf_id, check=True)
+    info = grid.osmo.wait_for(wf_id, lambda i: i["status"] == "FAILED_CANCELED", timeout=60)
+    assert "[held] got-term" in logs(grid, wf_id), info
+    until_no_job(roomy, "osmo-held-")
+
+
+def test_osmo_exec_timeout_cancels_the_job(grid: Cluster, roomy: SlurmCluster,
+                                           tmp_path: Path) -> None:
+    spec = write(tmp_path / "wf.yaml", """
+workflow:
+  name: timed
+  timeout: {exec_timeout: 3s}
+  tasks:
+  - name: slow
+    command: [sh, -c, 'echo up; exec sleep 600']
+""")
+    wf_id = grid.osmo.submit(spec)
+    info = grid.osmo.wait_for(wf_id, lambda i: i["status"].startswith("FAILED"), timeout=90)
+    assert info["status"] == "FAILED_EXEC_TIMEOUT", info
+    until_no_job(roomy, "osmo-slow-")
+
+
+def test_a_job_slurm_ends_at_its_time_limit_is_failed_exec_timeout(
+        grid: Cluster, roomy: SlurmCluster, tmp_path: Path) -> None:
+    """The one Slurm test that waits out its minute-granular TIMEOUT (60 to ~100 s: Slurm
+    checks time limits about every 30 s): a job started while its
+    partition allows one minute. Its exec_timeout (5 min) is over that limit: the job asks
+    for the limit (more would keep it PENDING for ever), and Slurm ends it there."""
+    spec = write(tmp_path / "wf.yaml", """
+workflow:
+  name: late
+  timeout: {exec_timeout: 5m}
+  tasks:
+  - name: late
+    command: [sh, -c, 'echo up; exec sleep 600']
+""")
+    roomy.run("scontrol", "update", "PartitionName=debug", "MaxTime=1")
+    try:
+        time.sleep(LIMIT_TTL + 0.5)  # the worker reads the partitions' limits again
+        wf_id = grid.osmo.submit(spec)
+        until_logged(grid, wf_id, "[late] up")
+        started = time.monotonic()
+    finally:
+        roomy.run("scontrol", "update", "PartitionName=debug", "MaxTime=INFINITE")
+    info = grid.osmo.wait_for(wf_id, lambda i: i["status"].startswith("FAILED"), timeout=240)
+    print(f"\na job of a one-minute partition ended {time.monotonic() - started:.1f} s after "
+          "its task started")
+    rows = tasks(grid.osmo, wf_id)
+    assert info["status"] == "FAILED_EXEC_TIMEOUT", (info, rows)
+    assert rows["late"]["exit_code"] == 3002, rows  # ExitCode.EXEC_TIMEOUT
+    said = osmo_lines(grid.osmo, wf_id, "late")
+    assert any("TIMEOUT" in line for line in said), said
+    job = next(m.group(1) for line in said
+               if (m := re.fullmatch(r"Slurm job (\d+) submitted", line)))
+    assert roomy.sacct(job)["State"] == "TIMEOUT", roomy.sacct(job)
+    assert any(line.startswith("exec_timeout 300s is over the partitions' time limit: the "
+                               "job asks for 1 min") for line in said), said
+    until_no_job(roomy, "osmo-late-")
+
+
+def test_a_task_over_its_memory_ends_out_of_memory_137_with_the_reason(
+        grid: Cluster, tmp_path: Path) -> None:
+    spec = write(tmp_path / "wf.yaml", """
+workflow:
+  name: hungry
+  resources:
+    default: {cpu: 1, memory: 60Mi}
+  tasks:
+  - name: hungry
+    command: [python3, -c, 'import time; x = bytearray(400 << 20); time.sleep(30)']
+""")
+    wf_id, _, rows = run(grid, spec, code=1)
+    assert rows["hungry"]["exit_code"] == 137, rows
+    said = osmo_lines(grid.osmo, wf_id, "hungry")
+    assert any("OUT_OF_MEMORY" in line for line in said), said
+
+
+def test_a_pending_job_shows_its_reason_then_runs_when_the_nodes_free(
+        grid: Cluster, roomy: SlurmCluster, tmp_path: Path) -> None:
+    blockers = [roomy.sbatch("sleep 600", "--cpus-per-task=2", f"--nodelist={node}")
+                for node in roomy.nodes]
+    for job in blockers:
+        roomy.wait_job(job, ["RUNNING"])
+    spec = write(tmp_path / "wf.yaml", """
+workflow:
+  name: queued
+  tasks:
+  - name: queued
+    command: [echo, ran]
+""")
+    wf_id = grid.osmo.submit(spec)
+    try:
+        seen = until_logged(grid, wf_id, "PENDING (Resources)")
+        assert "[queued] ran" not in seen
+        progress = tasks(grid.osmo, wf_id)["queued"]["progress"]
+        assert re.fullmatch(r"Slurm job \d+ PENDING \(Resources\)", progress), progress
+    finally:
+        for job in blockers:
+            roomy.run("scancel", job)
+    info = grid.osmo.wait_for(wf_id, lambda i: i["status"] == "COMPLETED", timeout=90)
+    assert "[queued] ran" in logs(grid, wf_id), info
+
+
+def test_a_restarted_worker_cancels_the_job_it_left_and_the_task_runs_again(
+        grid: Cluster, roomy: SlurmCluster, tmp_path: Path) -> None:
+    runs, gate = tmp_path / "runs", tmp_path / "gate"
+    spec = write(tmp_path / "wf.yaml", f"""
+workflow:
+  name: again
+  tasks:
+  - name: again
+    command: [sh, -c, 'echo "$SLURM_JOB_ID" >> {runs}; echo up;
+      while [ ! -e {gate} ]; do sleep 0.2; done']
+""")
+    wf_id = grid.osmo.submit(spec)
+    until_logged(grid, wf_id, "[again] up")
+    first = runs.read_text().split()[0]
+    grid.signal(WORKER, signal.SIGKILL)
+    grid.workers[WORKER].wait(timeout=30)
+    assert any(line.startswith(f"{first} RUNNING") for line in jobs_of(roomy))  # for now
+    start_login(grid)
+    until_no_job(roomy, first)
+    gate.touch()
+    info = grid.osmo.wait_for(wf_id, lambda i: i["status"] == "COMPLETED", timeout=120)
+    ran = runs.read_text().split()
+    assert len(ran) == 2 and ran[0] == first and ran[1] != first, (ran, info)
+    assert roomy.sacct(first)["State"].startswith("CANCELLED"), roomy.sacct(first)
+
+
+def test_group_communication_tutorial_runs_as_one_job(grid: Cluster) -> None:
+    wf_id, lines, _ = run(grid, TUTORIALS / "group_tasks_communication.yaml")
+    # {{host:server}} is the address of the node Slurm gave the server (both 127.0.0.1 here)
+    assert lines["client"] == ["Client: Starting...", "Calling server at 127.0.0.1...",
+                               "Received from server: hello", "Client: Complete"]
+    assert lines["server"] == ["Server: Starting...", "Server: Complete"]
+    said = osmo_lines(grid.osmo, wf_id, "client") + osmo_lines(grid.osmo, wf_id, "server")
+    jobs = {m.group(1) for line in said
+            if (m := re.fullmatch(r"Slurm job (\d+)\+[01] submitted .*", line))}
+    assert len(jobs) == 1, said  # one heterogeneous job for the group
+
+
+def test_combination_tutorial_leaves_no_container(grid: Cluster, engine: ContainerEngine
+                                                  ) -> None:
+    _, lines, rows = run(grid, TUTORIALS / "combination_workflow_simple.yaml")
+    # a lead's end stops its peers: killed, their containers go too, even one being made
+    assert leftovers(engine, {"osmo.owner": owner_id(grid.root / WORKER)}) == ([], [])
+    samples = [f"sample_{i},value_{i}" for i in range(1, 11)]
+    csv = Path(rows["generate-data"]["output"]) / "data" / "training_data.csv"
+    assert csv.read_text().splitlines() == samples
+    assert lines["train-model-a"] == ["Training Model A...", *samples, "✓ Model A complete!"]
+
+
+GANG = """
+workflow:
+  name: gang
+  timeout: {exec_timeout: 10m}
+  resources:
+    default: {cpu: 2, memory: 100Mi}
+  groups:
+  - name: pair
+    tasks:
+    - name: server
+      lead: true
+      command: [sh, -c, 'echo "server on $SLURMD_NODENAME"; echo hello | busybox nc -l -p PORT']
+    - name: client
+      command: [sh, -c, 'echo "client on $SLURMD_NODENAME";
+        for i in $(seq 100); do busybox nc {{host:server}} PORT && exit 0; sleep 0.2; done;
+        exit 1']
+"""
+
+
+def test_a_group_is_one_allocation_across_two_nodes_and_waits_whole_for_room(
+        grid: Cluster, roomy: SlurmCluster, tmp_path: Path) -> None:
+    blocker = roomy.sbatch("sleep 600", "--cpus-per-task=2", "--nodelist=n1")
+    roomy.wait_job(blocker, ["RUNNING"])
+    spec = write(tmp_path / "wf.yaml", GANG.replace("PORT", str(free_port(0))))
+    wf_id = grid.osmo.submit(spec)
+    try:
+        seen = until_logged(grid, wf_id, "PENDING (Resources)")
+        assert " on n" not in seen  # neither member runs while the other cannot
+        job = re.search(r"Slurm job (\d+)\+0 submitted", seen)
+        assert job is not None, seen
+        shown = roomy.run("scontrol", "show", "job", job.group(1)).stdout
+        assert shown.count("TimeLimit=00:10:00") == 2, shown  # each component: --time
+    finally:
+        roomy.run("scancel", blocker)
+    info = grid.osmo.wait_for(wf_id, lambda i: i["status"] in ("COMPLETED", "FAILED"),
+                              timeout=90)
+    lines = task_lines(grid.osmo, wf_id)
+    assert info["status"] == "COMPLETED", (info, lines)
+    assert lines["client"][-1] == "hello", lines
+    nodes = {lines["server"][0].split()[-1], lines["client"][0].split()[-1]}
+    assert nodes == {"n1", "n2"}, lines  # two CPUs each: one node each
+
+
+@pytest.mark.parametrize("requeue", [True, False], ids=["requeued", "node_fail"])
+def test_a_failed_node_s_job_runs_again_on_the_other_node_nothing_lost_or_doubled(
+        grid: Cluster, roomy: SlurmCluster, tmp_path: Path, requeue: bool) -> None:
+    """Slurm requeues a failed node's job by itself (the same job); a job it may not requeue
+    ends NODE_FAIL, a lost attempt the node submits again. Neither is a retry."""
+    runs, gate = tmp_path / "runs", tmp_path / "gate"
+    spec = write(tmp_path / "wf.yaml", f"""
+workflow:
+  name: survivor
+  tasks:
+  - name: survivor
+    command: [sh, -c, 'echo "$SLURMD_NODENAME" >> {runs}; echo line >> {{{{output}}}}/data.txt;
+      echo "$SLURM_JOB_ID" > {runs}.job; echo up; while [ ! -e {gate} ]; do sleep 0.2; done']
+""")
+    wf_id = grid.osmo.submit(spec)
+    until_logged(grid, wf_id, "[survivor] up")
+    first = runs.read_text().split()[0]
+    job = Path(f"{runs}.job").read_text().strip()
+    if not requeue:
+        roomy.run("scontrol", "update", f"JobId={job}", "Requeue=0")
+    started = time.monotonic()
+    roomy.kill_slurmd(first)
+    try:
+        gate.touch()
+        info = grid.osmo.wait_for(wf_id, lambda i: i["status"] in ("COMPLETED", "FAILED"),
+                                  timeout=150)
+    finally:
+        roomy.start_slurmd(first)
+    print(f"a failed node's attempt completed {time.monotonic() - started:.1f}s after the kill")
+    ran = runs.read_text().split()
+    assert info["status"] == "COMPLETED", (info, logs(grid, wf_id))
+    assert len(ran) == 2 and ran[0] == first and ran[1] != first, ran
+    row = tasks(grid.osmo, wf_id)["survivor"]
+    assert row["retry"] == 0, row  # Slurm's requeue: the same attempt, not a retry
+    assert (Path(row["output"]) / "data.txt").read_text() == "line\n"  # the lost run's: gone
+    if not requeue:
+        assert roomy.sacct(job)["State"] == "NODE_FAIL", roomy.sacct(job)
+        said = osmo_lines(grid.osmo, wf_id, "survivor")
+        assert any(line.startswith(f"job {job}: Slurm: NODE_FAIL: the attempt is lost")
+                   for line in said), said
+
+
+GUIDE = Path(__file__).parents[2] / "docs" / "tutorials" / "slurm.md"
+
+
+def test_the_operator_guide_s_commands_start_a_worker_that_runs_tasks(
+        grid: Cluster, tmp_path: Path) -> None:
+    create, start = re.findall(r"```sh\n(.*?)```", GUIDE.read_text(), re.S)
+    token = grid.osmo(*shlex.split(create)[1:], check=True).out.strip()
+    argv = shlex.split(start.replace("\\\n", " "))
+    assert argv[:2] == ["osmo", "worker"], argv
+    given, rest = {}, []
+    words = iter(argv[2:])
+    for word in words:
+        if word in ("--connect", "--name", "--pool"):
+            given[word] = next(words)
+        else:
+            rest.append(word)
+    name, pool = given["--name"] + "-guide", given["--pool"]
+    grid.start_worker(name, *rest, pool=pool, token=token)
+    try:
+        assert grid.nodes()[name]["runtime"].startswith("slurm ("), grid.nodes()[name]
+        spec = write(tmp_path / "wf.yaml", """
+workflow:
+  name: guide
+  tasks:
+  - name: hello
+    command: [sh, -c, 'echo "hello from job $SLURM_JOB_ID"']
+""")
+        r = grid.osmo("submit", str(spec), "--pool", pool, "--wait", timeout=120)
+        assert r.code == 0, r.out + r.err + grid.worker_log(name)
+    finally:
+        grid.signal(name, signal.SIGTERM)
+        grid.workers[name].wait(timeout=60)
+
+
+def test_a_login_host_without_slurm_s_commands_refuses_to_start_saying_which(
+        grid: Cluster) -> None:
+    env = dict(os.environ, OSMO_HOME=str(grid.root / "no-slurm"), PATH="/nonexistent",
+               OSMO_TOKEN=grid.token("no-slurm"))
+    done = subprocess.run([sys.executable, "-m", "osmo", "worker", "--connect", grid.endpoint,
+                           "--name", "no-slurm", "--runtime", "slurm"], env=env, cwd=REPO,
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 3, done.stdout + done.stderr
+    assert "sbatch not found on PATH" in done.stderr, done.stderr
+    assert "Traceback" not in done.stderr
