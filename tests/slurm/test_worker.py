@@ -366,7 +366,7 @@ workflow:
                    for line in said), said
 
 
-GUIDE = Path(__file__).parents[2] / "docs" / "tutorials" / "slurm.md"
+GUIDE = Path(__file__).parents[2] / "docs/tutorials/slurm.md"
 
 
 def test_the_operator_guide_s_commands_start_a_worker_that_runs_tasks(
