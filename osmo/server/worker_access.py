@@ -102,6 +102,16 @@ class WorkerAccess:
                 if self._placed.get(aid, (None, None))[0] != wid:
                     self._placed[aid] = (wid, None)
 
+    def forget(self, wid: str) -> None:
+        """``wid`` is gone: its attempts are lost, none of them is placed on it any more.
+
+        A late report, log batch or secrets request of it is then refused here (if it comes
+        back, its registration restores what the engine still places on it).
+        """
+        with self._lock:
+            for aid in [aid for aid, (on, _) in self._placed.items() if on == wid]:
+                del self._placed[aid]
+
     def placed_on(self, verb: str, wid: str, aid: str, who: Identity) -> TaskSpec | None:
         """The task of attempt ``aid`` (None if restored) if it is placed on ``wid``.
 

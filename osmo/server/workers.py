@@ -325,6 +325,7 @@ class WorkerHub:
             self._emit(NodeUp(self._announced(wid)))
         elif not alive and registered:
             log.warning("worker %s is gone", wid)
+            self._access.forget(wid)
             self._emit(NodeDown(wid))
 
     def workers(self) -> list[dict[str, Any]]:

@@ -109,19 +109,19 @@ class Cluster:
     def worker_log(self, name: str) -> str:
         return (self.root / f"{name}.log").read_text(errors="replace")
 
-    def server_log_line(self, text: str, timeout: float = 30) -> tuple[float, str]:
-        """Wait for the first server.log line containing ``text``; return its wall-clock
-        time (``time.time()`` scale, from the line's timestamp) and the line."""
+    def server_log_line(self, *texts: str, timeout: float = 30) -> tuple[float, str]:
+        """Wait for the first server.log line containing one of ``texts``; return its
+        wall-clock time (``time.time()`` scale, from the line's timestamp) and the line."""
         log = self.osmo.home / "server.log"
         deadline = time.monotonic() + timeout
         while True:
             for line in log.read_text(errors="replace").splitlines():
                 found = _LOG_TIME.match(line)
-                if text in line and found is not None:
+                if any(text in line for text in texts) and found is not None:
                     at = datetime.datetime.strptime(found.group(1), "%Y-%m-%d %H:%M:%S")
                     return at.timestamp() + int(found.group(2)) / 1000, line
             if time.monotonic() > deadline:
-                raise AssertionError(f"server.log never said {text!r}:\n{log.read_text()}")
+                raise AssertionError(f"server.log never said {texts!r}:\n{log.read_text()}")
             time.sleep(0.02)
 
     def signal(self, name: str, sig: int) -> None:

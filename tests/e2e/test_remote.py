@@ -223,9 +223,12 @@ def test_a_cut_off_worker_is_rescheduled_and_its_late_report_ignored(
     (tmp_path / f"release-{victim}").touch()
     _wait_file(tmp_path / f"done-{victim}")
     cluster.signal(victim, signal.SIGCONT)  # it wakes up and reports its stale attempt
-    # refused: the attempt is no longer placed on that worker (the engine would fence it too)
-    cluster.server_log_line(f"refused a finished report of worker {victim}: attempt "
-                            f"'{wf}:slow:0' is not placed on it")
+    # refused: the attempt is no longer placed on that worker (the engine would fence it too),
+    # whether the report comes with its registration or on its own just before it
+    cluster.server_log_line(
+        f"refused a finished report of worker {victim}: attempt '{wf}:slow:0' is not placed "
+        "on it", f"refused worker_report from {victim} (worker): attempt '{wf}:slow:0' is "
+        f"not placed on worker {victim}")
     slow = _task(cluster.osmo.query(wf), "slow")
     assert (slow["status"], slow["retry"], slow["node"]) == ("RUNNING", 1, survivor), slow
     (tmp_path / f"release-{survivor}").touch()
