@@ -92,7 +92,8 @@ def _pods(args: argparse.Namespace) -> int:
                      allow_localpath=args.allow_localpath)
     if args.task is not None and args.task not in {t.name for t in spec.all_tasks()}:
         raise UsageError(f"--task {args.task}: the workflow has no such task")
-    items = pod_manifests(spec, load_pool(args.kubernetes_config), args.task)
+    items = pod_manifests(spec, load_pool(args.kubernetes_config), args.task,
+                          priority=args.priority)
     print_json({"apiVersion": "v1", "kind": "List", "items": items})
     return 0
 

@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from osmo.layout import AttemptDirs
-from osmo.runtime.api import Attempt
+from osmo.runtime.api import Attempt, Terms
 from osmo.runtime.choose import container_image
 from osmo.runtime.container.layout import DATA_LAYOUT
 from osmo.runtime.kubernetes.config import KubePool
@@ -45,9 +45,12 @@ _WORKFLOW = "WORKFLOW_ID"
 _INSTANCE = "INSTANCE"
 
 
-def pod_manifests(spec: WorkflowSpec, pool: KubePool, task: str | None = None
-                  ) -> list[dict[str, Any]]:
+def pod_manifests(spec: WorkflowSpec, pool: KubePool, task: str | None = None, *,
+                  priority: str | None = None) -> list[dict[str, Any]]:
     """The objects each image task's first attempt would create (only ``task``'s if given).
+
+    ``priority``: the workflow's (``HIGH``, ``NORMAL``, ``LOW``), which picks its pods'
+    PriorityClass.
 
     Raises:
         PrepareError: a task's tokens cannot be resolved.
@@ -63,7 +66,8 @@ def pod_manifests(spec: WorkflowSpec, pool: KubePool, task: str | None = None
                     continue
                 cmd = PrepareAttempt(f"{_WORKFLOW}:{each.name}:0", _WORKFLOW, each.name, 0,
                                      "preview", _upstream(each), hosts)
-                out += _objects(cmd, each, spec, pool, Path(folder), made_groups)
+                out += _objects(cmd, each, spec, pool, Path(folder), made_groups,
+                                Terms(priority=priority))
     return out
 
 
@@ -72,13 +76,13 @@ def _upstream(task: TaskSpec) -> dict[str, str]:
 
 
 def _objects(cmd: PrepareAttempt, task: TaskSpec, spec: WorkflowSpec, pool: KubePool,
-             folder: Path, made_groups: set[str]) -> list[dict[str, Any]]:
+             folder: Path, made_groups: set[str], terms: Terms) -> list[dict[str, Any]]:
     dirs = AttemptDirs(folder / cmd.task)
     paths = group_hosts(cmd, pool)
     layout = DATA_LAYOUT if paths is None else replace(DATA_LAYOUT, hosts=paths)
     secrets = {name: _placeholders(name, value) for name, value in task.credentials.items()}
     launch = prepare(dirs, cmd, task, {}, secrets, paths=layout)
-    plan = attempt_plan(launch, Attempt(cmd, task, dirs, spec.resource_for(task)),
+    plan = attempt_plan(launch, Attempt(cmd, task, dirs, spec.resource_for(task), terms=terms),
                         instance=_INSTANCE)
     root = NODE_ROOT if pool.work_mount is None else pool.work_mount / NODE_ROOT.name
     plan = replace(plan, mounts=tuple(replace(m, source=root / m.source.relative_to(

@@ -39,3 +39,19 @@ def test_runtime_without_dry_run_is_a_usage_error(tmp_path: Path) -> None:
     r = Osmo(tmp_path / "home")("submit", str(TUTORIALS / "hello_world.yaml"), "--runtime",
                                 "kubernetes")
     assert r.code == 2 and "--dry-run" in r.err, r.err
+
+
+def test_the_workflow_s_priority_picks_the_pods_priority_class(tmp_path: Path) -> None:
+    pool = tmp_path / "pool.json"
+    pool.write_text(json.dumps({"priorityClasses": {"HIGH": "osmo-high", "default": "osmo-std"}}))
+    osmo = Osmo(tmp_path / "home")
+
+    def classes(*priority: str) -> list[str | None]:
+        r = osmo("submit", str(TUTORIALS / "hello_world.yaml"), "--dry-run", "--runtime",
+                 "kubernetes", "--kubernetes-config", str(pool), *priority)
+        assert r.code == 0, r.err
+        return [item["spec"].get("priorityClassName") for item in json.loads(r.out)["items"]
+                if item["kind"] == "Pod"]
+
+    assert classes("--priority", "HIGH") == ["osmo-high"]
+    assert classes() == ["osmo-std"]  # NORMAL has no class of its own here: the default

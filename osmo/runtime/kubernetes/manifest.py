@@ -51,9 +51,9 @@ from osmo.runtime.kubernetes.config import KubePool, Placement
 
 __all__ = ["CONTAINER", "LABEL_ATTEMPT", "LABEL_GROUP", "LABEL_INSTANCE", "LABEL_LEAD",
            "LABEL_WORKFLOW", "POD_GROUPS", "GroupPlan", "docker_config",
-           "ManifestError", "PodPlan", "label_value", "object_name", "pod_manifest",
-           "plan_labels", "pod_group_manifest", "secret_manifest", "selector",
-           "service_manifest"]
+           "ManifestError", "PodPlan", "label_value", "object_name", "plan_labels",
+           "pod_group_manifest", "pod_manifest", "priority_class", "secret_manifest",
+           "selector", "service_manifest"]
 
 CONTAINER = "task"
 """The name of the task's container in its pod."""
@@ -101,6 +101,7 @@ class PodPlan:
         group: its gang (None: it runs alone).
         hostname: its name in its group's Service.
         lead: it is its group's lead (the others may wait for it).
+        priority: its workflow's priority, ``HIGH``, ``NORMAL`` or ``LOW`` (None: unknown).
     """
 
     attempt_id: str
@@ -122,6 +123,7 @@ class PodPlan:
     group: GroupPlan | None = None
     hostname: str | None = None
     lead: bool = False
+    priority: str | None = None
 
     @property
     def name(self) -> str:
@@ -161,6 +163,17 @@ def plan_labels(plan: PodPlan) -> dict[str, str]:
     return {k: label_value(v) for k, v in labels.items()}
 
 
+def priority_class(plan: PodPlan, pool: KubePool) -> str | None:
+    """The PriorityClass of the attempt's pod (None: none).
+
+    The pool's class for its workflow's priority (``HIGH``, ``NORMAL``, ``LOW``; "" there:
+    none), else the pool's ``default`` class.
+    """
+    classes = pool.priority_classes
+    key = plan.priority if plan.priority in classes else "default"
+    return classes.get(key or "default") or None
+
+
 def pod_manifest(plan: PodPlan, pool: KubePool, *, secret: str | None = None,
                  pulls_with_secret: bool = False) -> dict[str, Any]:
     """The attempt's Pod (``secret``: its Secret's name, when it has one).
@@ -193,7 +206,7 @@ def pod_manifest(plan: PodPlan, pool: KubePool, *, secret: str | None = None,
         spec["nodeSelector"] = dict(placement.node_selector)
     if placement.tolerations:
         spec["tolerations"] = [dict(t) for t in placement.tolerations]
-    priority = pool.priority_classes.get("default")
+    priority = priority_class(plan, pool)
     if priority:
         spec["priorityClassName"] = priority
     pulls = [*pool.image_pull_secrets, *([secret] if pulls_with_secret and secret else [])]

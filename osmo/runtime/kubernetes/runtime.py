@@ -422,7 +422,8 @@ def attempt_plan(launch: Launch, attempt: Attempt, *, instance: str,
         workdir=workdir, cpu=float(request.cpu or 0) or None, memory=request.memory,
         gpus=request.gpu or 0, storage=request.storage, platform=request.platform,
         group=group, hostname=hostname(cmd.task) if group else None,
-        lead=task.lead or next(iter(cmd.hosts), cmd.task) == cmd.task)
+        lead=task.lead or next(iter(cmd.hosts), cmd.task) == cmd.task,
+        priority=attempt.terms.priority)
 
 
 @dataclass(eq=False)

@@ -85,6 +85,7 @@ from osmo.runtime.api import (
     Terms,
     dial,
 )
+from osmo.runtime.background import Background
 from osmo.runtime.container.layout import DATA_LAYOUT, mounts
 from osmo.runtime.container.run import ContainerError, ContainerRun, run_argv, secret_env_text
 from osmo.runtime.container.runtime import ContainerRuntime
@@ -205,7 +206,7 @@ class SlurmRuntime:
         self._wake = threading.Event()
         self._closing = threading.Event()
         self._poller: threading.Thread | None = None
-        self._threads: set[threading.Thread] = set()
+        self._calls = Background("osmo-slurm-call")  # Slurm calls off the reactor
         self._version: str | None = None
         self._max_minutes: int | None = None
         self._max_minutes_until = 0.0
@@ -466,7 +467,7 @@ class SlurmRuntime:
         if not live.job_id:  # a gang member whose group's job is not submitted yet
             self._end(live, 137 if force else 143)
             return
-        self._later(self._cancel, live, force)
+        self._calls.later(self._cancel, live, force)
 
     def reap(self, handle: ProcessHandle) -> int:
         """The job's exit code, once its watcher ended (a job still running is cancelled).
@@ -540,11 +541,11 @@ class SlurmRuntime:
         agent_done = (job.folder / "exit.json").exists()  # the job ends by itself
         if live is not None and live.job_id and not live.ended and not agent_done:
             # (a gang member's cancel would end its whole group: only one still running)
-            self._later(self._quietly, self.slurm.cancel, live.job_id)
+            self._calls.later(self._quietly, self.slurm.cancel, live.job_id)
         if job.container is not None and self._containers is not None:
             self._containers.cleanup(replace(launch, run=job.container))
             if live is not None and live.killed:  # its engine CLI may have died mid-create
-                self._later(self._remove_container, job.container.name)
+                self._calls.later(self._remove_container, job.container.name)
 
     def close(self) -> None:
         """Stop the poller; cancel the jobs still running; wait for Slurm calls under way."""
@@ -556,13 +557,7 @@ class SlurmRuntime:
             left = [live for live in self._jobs.values() if live.job_id and not live.ended]
         for live in left:
             self._quietly(self.slurm.cancel, live.job_id)
-        while True:
-            with self._lock:
-                threads = list(self._threads)
-            if not threads:
-                return
-            for thread in threads:
-                thread.join()
+        self._calls.close()
 
     # -------------------------------------------------------------- the poller
 
@@ -665,20 +660,6 @@ class SlurmRuntime:
                 pass
             if self._closing.wait(pause):
                 return
-
-    def _later(self, fn: Callable[..., object], *args: object) -> None:
-        """Call ``fn(*args)`` on a thread of its own (a Slurm call); ``close`` waits for it."""
-        def run() -> None:
-            try:
-                fn(*args)
-            finally:
-                with self._lock:
-                    self._threads.discard(thread)
-
-        thread = threading.Thread(target=run, name="osmo-slurm-call", daemon=True)
-        with self._lock:
-            self._threads.add(thread)
-        thread.start()
 
     @staticmethod
     def _quietly(fn: Callable[..., object], *args: object, **kwargs: object) -> None:

@@ -152,3 +152,12 @@ def test_the_pool_configuration_refuses_unknown_keys_and_root(tmp_path: Path) ->
     conf.write_text(json.dumps({"gang": "volcano", "platforms": {"a": {"nodeSelector":
                                                                        {"k": "v"}}}}))
     assert load_pool(conf).platforms["a"].node_selector == {"k": "v"}
+
+
+def test_a_workflow_s_priority_picks_its_priority_class() -> None:
+    pool = KubePool(priority_classes={"HIGH": "osmo-high", "NORMAL": "", "default": "osmo-std"})
+    assert pod_manifest(plan(priority="HIGH"), pool)["spec"]["priorityClassName"] == "osmo-high"
+    assert "priorityClassName" not in pod_manifest(plan(priority="NORMAL"), pool)["spec"]
+    assert pod_manifest(plan(priority="LOW"), pool)["spec"]["priorityClassName"] == "osmo-std"
+    assert pod_manifest(plan(), pool)["spec"]["priorityClassName"] == "osmo-std"
+    assert "priorityClassName" not in pod_manifest(plan(priority="HIGH"), KubePool())["spec"]
