@@ -227,7 +227,7 @@ def test_a_cut_off_worker_is_rescheduled_and_its_late_report_ignored(
     # whether the report comes with its registration or on its own just before it
     cluster.server_log_line(
         f"refused a finished report of worker {victim}: attempt '{wf}:slow:0' is not placed "
-        "on it", f"refused worker_report from {victim} (worker): attempt '{wf}:slow:0' is "
+        "on it", f"refused 'worker_report' from {victim} (worker): attempt '{wf}:slow:0' is "
         f"not placed on worker {victim}")
     slow = _task(cluster.osmo.query(wf), "slow")
     assert (slow["status"], slow["retry"], slow["node"]) == ("RUNNING", 1, survivor), slow
