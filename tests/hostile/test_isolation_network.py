@@ -201,12 +201,9 @@ open(sys.argv[3] + "/got", "wb").write(conn.recv(5))
 """
 
 
-def test_tasks_of_a_group_reach_each_other_on_the_nodes_network(osmo: Osmo,
-                                                                tmp_path: Path) -> None:
-    """``{{host:NAME}}`` of the local pool is 127.0.0.1: the node's own loopback, which every
-    task of the node shares (not the host's)."""
-    port = 20000 + os.getpid() % 20000
-    spec = write(tmp_path / "group.yaml", f"""
+def _pair(tmp_path: Path, port: int) -> Path:
+    """A group whose client asks its server, at ``{{host:server}}`` on ``port``, for 5 bytes."""
+    return write(tmp_path / "group.yaml", f"""
 workflow:
   name: pair
   groups:
@@ -220,6 +217,13 @@ workflow:
       command: [python3, /tmp/ask.py, "{{{{host:server}}}}", "{port}", "{{{{output}}}}"]
       files: [{{path: /tmp/ask.py, contents: {json.dumps(ASK)}}}]
 """)
+
+
+def test_tasks_of_a_group_reach_each_other_on_the_nodes_network(osmo: Osmo,
+                                                                tmp_path: Path) -> None:
+    """``{{host:NAME}}`` of the local pool is 127.0.0.1: the node's own loopback, which every
+    task of the node shares (not the host's)."""
+    spec = _pair(tmp_path, 20000 + os.getpid() % 20000)
     info = osmo.wait_for(osmo.submit(spec), ended, timeout=120)
     assert info["status"] == "COMPLETED", info
     client = [t for t in info["tasks"] if t["name"] == "client"][0]
@@ -233,21 +237,7 @@ def test_tasks_of_a_group_reach_each_other_on_a_workers_address(tmp_path: Path) 
     try:
         cluster.start_server()
         cluster.start_worker("w1")
-        port = 20000 + (os.getpid() + 7) % 20000
-        spec = write(tmp_path / "group.yaml", f"""
-workflow:
-  name: pair
-  groups:
-  - name: g
-    tasks:
-    - name: server
-      command: [python3, /tmp/serve.py, "{{{{host:server}}}}", "{port}"]
-      files: [{{path: /tmp/serve.py, contents: {json.dumps(SERVE)}}}]
-    - name: client
-      lead: true
-      command: [python3, /tmp/ask.py, "{{{{host:server}}}}", "{port}", "{{{{output}}}}"]
-      files: [{{path: /tmp/ask.py, contents: {json.dumps(ASK)}}}]
-""")
+        spec = _pair(tmp_path, 20000 + (os.getpid() + 7) % 20000)
         wf = cluster.osmo.submit(spec)
         info = cluster.osmo.wait_for(wf, ended, timeout=120)
         assert info["status"] == "COMPLETED", cluster.osmo("logs", wf).out
