@@ -82,3 +82,14 @@ def lineage_of(osmo: Osmo, target: str) -> dict:
     graph = json.loads(osmo("lineage", target, "--format", "json", check=True).out)
     task = target.rsplit(":", 1)[1]
     return next(n for n in graph["nodes"].values() if n["task"] == task)
+
+
+def check_serial_tutorial(lines: dict[str, list[str]], rows: dict[str, dict]) -> None:
+    """What OSMO's serial_workflow tutorial must leave, on any runtime: task3 read both
+    upstream outputs, and each task wrote its own file."""
+    assert lines["task3"] == ["Hello from task3 /osmo/data/output", "Reading from task 1",
+                              "a line: Data from task 1", "Reading from task 2",
+                              "a line: Data from task 2"]
+    for n in (1, 2, 3):
+        output = Path(rows[f"task{n}"]["output"])
+        assert (output / "test_read.txt").read_text() == f"Data from task {n}\n"

@@ -25,7 +25,13 @@ from kubernetes import client, watch
 
 from tests.conftest import REPO
 from tests.containers.conftest import images, podman_env  # noqa: F401 - fixtures
-from tests.containers.submitting import lineage_of, submitted_id, task_lines, tasks
+from tests.containers.submitting import (
+    check_serial_tutorial,
+    lineage_of,
+    submitted_id,
+    task_lines,
+    tasks,
+)
 from tests.k8s.nodes import NAMESPACE, KubeCluster, started
 from tests.k8s.store import (
     COSCHEDULING,
@@ -83,12 +89,7 @@ def test_hello_world_runs_as_a_pod(kube: KubeCluster) -> None:
 def test_serial_workflow_hands_outputs_on_between_pods(kube: KubeCluster) -> None:
     wf_id, lines, rows = run(kube, "serial_workflow.yaml")
     assert len(lines["task1"]) == 1 and re.fullmatch(r"Hello from task1 \S+", lines["task1"][0])
-    assert lines["task3"] == ["Hello from task3 /osmo/data/output", "Reading from task 1",
-                              "a line: Data from task 1", "Reading from task 2",
-                              "a line: Data from task 2"]
-    for n in (1, 2, 3):
-        output = Path(rows[f"task{n}"]["output"])
-        assert (output / "test_read.txt").read_text() == f"Data from task {n}\n"
+    check_serial_tutorial(lines, rows)
     lineage = lineage_of(kube.osmo, f"{wf_id}:task3")
     assert lineage["image"] == "ubuntu:24.04" or lineage.get("image_id"), lineage
 

@@ -27,6 +27,7 @@ from osmo.runtime.slurm import Slurm
 from osmo.runtime.slurm.runtime import LIMIT_TTL
 from tests.conftest import REPO, write
 from tests.containers.submitting import (
+    check_serial_tutorial,
     leftovers,
     lineage_of,
     osmo_lines,
@@ -74,12 +75,7 @@ def test_hello_world(grid: Cluster, roomy: SlurmCluster, engine: ContainerEngine
 
 def test_serial_workflow_outputs_and_lineage(grid: Cluster) -> None:
     wf_id, lines, rows = run(grid, TUTORIALS / "serial_workflow.yaml")
-    assert lines["task3"] == ["Hello from task3 /osmo/data/output", "Reading from task 1",
-                              "a line: Data from task 1", "Reading from task 2",
-                              "a line: Data from task 2"]
-    for n in (1, 2, 3):
-        output = Path(rows[f"task{n}"]["output"])
-        assert (output / "test_read.txt").read_text() == f"Data from task {n}\n"
+    check_serial_tutorial(lines, rows)
     made = lineage_of(grid.osmo, f"{wf_id}:task3")
     assert made["task"] == "task3", made
 
