@@ -1,4 +1,4 @@
-"""Attempt reports: prepared, started, exited, start-failed, lost (and node loss).
+"""Attempt reports: prepared, started, waiting, exited, start-failed, lost (and node loss).
 
 This module owns fencing and the per-task outcome of an attempt (documented behaviour):
 
@@ -17,6 +17,11 @@ This module owns fencing and the per-task outcome of an attempt (documented beha
   before its command started (INITIALIZING: placed or preparing) is rescheduled without
   counting: a crash loop of the server is not the task's fault.
 - A retried task is queued alone; it is not held by its group's barrier.
+- Waiting (``AttemptWaiting``): a node's cluster holds the placed attempt (a pod Pending, a
+  Slurm job PENDING). A new reason becomes the task's message and ``node_wait``, and one
+  transition of its unchanged status ("waiting: REASON"); the same reason again changes
+  nothing; an empty one clears them, with one transition ("waits no more"). The task keeps
+  its status and its place; leaving INITIALIZING/RUNNING clears them (``World.set_status``).
 """
 
 from __future__ import annotations
@@ -31,6 +36,8 @@ from osmo.scheduler.types import (
     AttemptPrepared,
     AttemptStarted,
     AttemptStartFailed,
+    AttemptWaiting,
+    wait_reason,
 )
 from osmo.scheduler.world import World
 from osmo.spec.model import ExitAction
@@ -38,7 +45,8 @@ from osmo.status import ExitCode, TaskStatus
 
 __all__ = ["Report", "lose", "on_report"]
 
-Report = AttemptPrepared | AttemptStarted | AttemptExited | AttemptStartFailed | AttemptLost
+Report = (AttemptPrepared | AttemptStarted | AttemptExited | AttemptStartFailed | AttemptLost
+          | AttemptWaiting)
 _FINAL = (AttemptExited, AttemptStartFailed, AttemptLost)
 
 
@@ -58,6 +66,8 @@ def on_report(world: World, report: Report) -> None:
         _prepared(world, run, task)
     elif isinstance(report, AttemptStarted):
         _started(world, run, task)
+    elif isinstance(report, AttemptWaiting):
+        _waiting(world, run, task, wait_reason(report.reason))
     elif isinstance(report, AttemptExited):
         _exited(world, run, task, report)
     elif isinstance(report, AttemptStartFailed):
@@ -86,8 +96,18 @@ def _started(world: World, run: Run, task: TaskState) -> None:
     if task.status is not TaskStatus.INITIALIZING:
         return
     task.started_at = world.now
-    world.set_status(run, task, TaskStatus.RUNNING, "")
+    world.set_status(run, task, TaskStatus.RUNNING,  # its pod may wait already
+                     f"waiting: {task.node_wait}" if task.node_wait else "")
     start_exec_clock(world, run, run.group_of(task))
+
+
+def _waiting(world: World, run: Run, task: TaskState, reason: str) -> None:
+    if reason == task.node_wait:
+        return
+    task.node_wait, task.node_wait_since = reason, world.now if reason else None
+    task.message = f"waiting: {reason}" if reason else ""
+    world.note_task(run, task)
+    world.log(run, task, task.status.name, task.message or "waits no more")
 
 
 def _exited(world: World, run: Run, task: TaskState, report: AttemptExited) -> None:

@@ -36,6 +36,7 @@ from osmo.scheduler.types import (
     AttemptPrepared,
     AttemptStarted,
     AttemptStartFailed,
+    AttemptWaiting,
     CancelWorkflow,
     Capacity,
     Changes,
@@ -56,7 +57,8 @@ from osmo.status import TaskStatus
 
 __all__ = ["Scheduler"]
 
-_REPORTS = (AttemptPrepared, AttemptStarted, AttemptExited, AttemptStartFailed, AttemptLost)
+_REPORTS = (AttemptPrepared, AttemptStarted, AttemptExited, AttemptStartFailed, AttemptLost,
+            AttemptWaiting)
 
 
 class Scheduler:

@@ -41,6 +41,9 @@ class TaskState:
         scheduling_at: when the current retry entered SCHEDULING.
         started_at: first RUNNING of the current retry.
         ended_at: when the task became terminal.
+        node_wait: why its placed attempt waits on its node's cluster scheduler (a pod
+            Pending, a Slurm job PENDING), as the node said; empty while it does not.
+        node_wait_since: when that reason was first said.
     """
 
     workflow_id: str
@@ -60,6 +63,8 @@ class TaskState:
     scheduling_at: float | None = None
     started_at: float | None = None
     ended_at: float | None = None
+    node_wait: str = ""
+    node_wait_since: float | None = None
 
     def copy(self) -> TaskState:
         """An independent copy (a snapshot; its fields are immutable values)."""

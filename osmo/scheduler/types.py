@@ -12,6 +12,7 @@ attempt id that is not the task's current attempt is ignored (fencing).
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
 
 from osmo.scheduler.state import TaskState, WorkflowState
@@ -23,9 +24,11 @@ __all__ = [
     "AttemptPrepared",
     "AttemptStarted",
     "AttemptStartFailed",
+    "AttemptWaiting",
     "DEFAULT_MAX_RETRIES",
     "DEFAULT_NO_WORKER_TIMEOUT",
     "LOCAL_NODE",
+    "MAX_WAIT_REASON",
     "PRIORITIES",
     "PRIORITY_AGEING",
     "CancelWorkflow",
@@ -45,6 +48,7 @@ __all__ = [
     "WorkflowSubmitted",
     "attempt_id",
     "priority_key",
+    "wait_reason",
 ]
 
 
@@ -245,6 +249,40 @@ class AttemptLost:
     server_restart: bool = False
 
 
+MAX_WAIT_REASON = 300
+"""Characters of a waiting reason kept (:func:`wait_reason`); the rest is cut."""
+
+_UNPRINTABLE = re.compile(r"[\x00-\x1f\x7f-\x9f\u2028\u2029\u200b-\u200f\u202a-\u202e"
+                          r"\u2066-\u2069\ufeff]+")
+
+
+def wait_reason(text: object) -> str:
+    """A node's waiting reason as osmo keeps and shows it: one line of plain text.
+
+    It is a cluster's (or a hostile worker's) text: control, format and bidirectional
+    characters become spaces, runs of white space one space, and it is cut to
+    :data:`MAX_WAIT_REASON` characters (``...`` marks a cut).
+    """
+    line = " ".join(_UNPRINTABLE.sub(" ", str(text)[:4 * MAX_WAIT_REASON]).split())
+    return line if len(line) <= MAX_WAIT_REASON else line[:MAX_WAIT_REASON - 3] + "..."
+
+
+@dataclass(frozen=True)
+class AttemptWaiting:
+    """A node says why a placed attempt waits on its cluster's scheduler, or that it no longer does.
+
+    A Kubernetes pod Pending (``0/2 nodes are available: 2 Insufficient cpu.``) or a Slurm
+    job PENDING (``Resources``): the attempt holds its place, and ``osmo query`` and
+    ``osmo events`` say why it has not started. Fenced like every report.
+
+    Attributes:
+        reason: why it waits (cleaned by :func:`wait_reason`); empty: it waits no more.
+    """
+
+    attempt_id: str
+    reason: str = ""
+
+
 @dataclass(frozen=True)
 class CancelWorkflow:
     """A user asked to cancel a workflow."""
@@ -278,6 +316,7 @@ Event = (
     | AttemptExited
     | AttemptStartFailed
     | AttemptLost
+    | AttemptWaiting
     | CancelWorkflow
     | NodeUp
     | NodeDown

@@ -114,6 +114,10 @@ class World:
 
     # ------------------------------------------------------------------ task primitives
 
+    def note_task(self, run: Run, task: TaskState) -> None:
+        """Record that ``task`` changed without a status change (it goes into the next Changes)."""
+        self._tasks[(run.id, task.name)] = task
+
     def set_status(self, run: Run, task: TaskState, status: TaskStatus,
                    message: str | None = None) -> None:
         """Change ``task``'s status, keeping counters, the log and barrier batches right."""
@@ -123,6 +127,8 @@ class World:
         task.status = status
         if message is not None:
             task.message = message
+        if not status.active:  # what its node said of an attempt it no longer has
+            task.node_wait, task.node_wait_since = "", None
         if status.terminal:
             task.ended_at = self.now
         if status is TaskStatus.RUNNING and run.state.started_at is None:

@@ -215,6 +215,10 @@ class Handlers:
     def get(self, request: dict[str, Any]) -> dict[str, Any]:
         """A workflow's state and its tasks' states (``waiting``: and why waiting tasks wait).
 
+        A placed task whose node said its cluster holds the attempt (``node_wait``: a pod
+        Pending, a Slurm job PENDING) has that reason as its ``waiting``, whatever ``waiting``
+        asks (it is stored, it costs nothing).
+
         With ``limit`` (the most tasks to return) or ``statuses`` (only tasks with one of
         them), the reply also holds ``counts`` (status → tasks) and ``matched`` (tasks with
         the statuses asked for), and only the first ``limit`` of those in spec order are
@@ -235,6 +239,10 @@ class Handlers:
                                        spec=lambda: self._row(row.id, with_spec=True).spec.data)
             tasks, extra = page.tasks, {"counts": page.counts, "matched": page.matched}
         for task in tasks:  # typed tasks report progress as log lines, pulls too: the latest
+            if task.get("node_wait") and task.get("status") in ("RUNNING", "INITIALIZING"):
+                # its node's cluster holds it (a pod Pending, a Slurm job PENDING)
+                task["waiting"] = {"reason": task["node_wait"], "since": task.get(
+                    "node_wait_since"), "fails_at": None}
             if task.get("status") in ("RUNNING", "INITIALIZING"):
                 dirs = self._home.attempt(row.id, task["name"], int(task.get("retry", 0)))
                 task["progress"] = (last_progress(dirs.log) if task["status"] == "RUNNING"

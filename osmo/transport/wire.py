@@ -23,8 +23,10 @@ Keys, under the cluster prefix ``osmo/<cluster>``:
   them only as these classes (:func:`order_to_dict`, :func:`order_from_dict`). Secrets are
   asked for apart (``worker_secrets``), so an order never holds one.
 - ``api/worker_report`` — ``{"id", "report"}``: the worker's reports (:func:`event_to_dict`),
-  ``prepared``, ``started``, ``exited``, ``start_failed``, ``lost`` (handed back while
-  draining);
+  ``prepared``, ``started``, ``waiting`` (why its cluster holds the attempt: a pod Pending,
+  a Slurm job PENDING; ``""`` once it runs; hostile text, cut and cleaned by
+  ``osmo.scheduler.types.wait_reason``), ``exited``, ``start_failed``, ``lost`` (handed
+  back while draining);
   ``api/worker_log`` — ``{"id", "attempt_id", "records"}``: log records, appended by the
   server to its copy of the log; ``api/worker_secrets`` — ``{"id", "attempt_id"}``: the
   attempt's secrets and data-URL credentials. Like every API request they are sealed on
@@ -61,10 +63,12 @@ from osmo.scheduler.types import (
     AttemptPrepared,
     AttemptStarted,
     AttemptStartFailed,
+    AttemptWaiting,
     Capacity,
     Event,
     Node,
     PrepareAttempt,
+    wait_reason,
 )
 from osmo.spec.stored import StoredSpec
 from osmo.transport.blobs import SERVER
@@ -103,6 +107,8 @@ def event_to_dict(event: Event) -> dict[str, Any]:
         return {"op": "prepared", "attempt_id": event.attempt_id}
     if isinstance(event, AttemptStarted):
         return {"op": "started", "attempt_id": event.attempt_id}
+    if isinstance(event, AttemptWaiting):
+        return {"op": "waiting", "attempt_id": event.attempt_id, "reason": event.reason}
     if isinstance(event, AttemptStartFailed):
         return {"op": "start_failed", "attempt_id": event.attempt_id, "message": event.message}
     if isinstance(event, AttemptLost):
@@ -125,6 +131,8 @@ def event_from_dict(data: dict[str, Any]) -> Event:
         return AttemptPrepared(aid)
     if op == "started":
         return AttemptStarted(aid)
+    if op == "waiting":
+        return AttemptWaiting(aid, wait_reason(data.get("reason") or ""))
     if op == "start_failed":
         return AttemptStartFailed(aid, str(data.get("message", "")))
     if op == "lost":

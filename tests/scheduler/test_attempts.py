@@ -9,6 +9,7 @@ from osmo.scheduler import (
     AttemptLost,
     AttemptPrepared,
     AttemptStarted,
+    AttemptWaiting,
     NodeUp,
     PrepareAttempt,
 )
@@ -142,6 +143,8 @@ def test_node_down_loses_its_attempts_and_they_move_to_another_node() -> None:
     AttemptStarted("wf-1:t:0"),
     AttemptExited("wf-1:t:0", 0, "late-output"),
     AttemptLost("wf-1:t:0"),
+    AttemptWaiting("wf-1:t:0", "Resources"),
+    AttemptWaiting("wf-1:t:7", "Resources"),
     AttemptExited("wf-1:t:7", 0, "never-existed"),
     AttemptExited("nope", 0, "unknown"),
 ])
@@ -165,3 +168,52 @@ def test_a_terminal_task_is_never_committed_twice() -> None:
     assert (t.status.name, t.exit_code, t.output) == ("COMPLETED", 0, "out:t")
     assert sim.s.attempt("wf-1:t:0") == t
     assert sim.s.attempt("wf-1:x:0") is None
+
+
+def test_a_waiting_reason_is_the_message_and_one_event_per_change() -> None:
+    sim = Sim()
+    sim.submit(workflow(task("t")))
+    play(sim, "prepare t; start t")
+    aid = sim.aid("t")
+    waits = [AttemptWaiting(aid, "Priority"), AttemptWaiting(aid, "Priority"),
+             AttemptWaiting(aid, "Resources")]
+    for n, report in enumerate(waits):
+        assert sim.send(report, at=100.0 + n) == []
+    t = sim.task("t")
+    assert (t.status.name, t.message, t.node_wait, t.node_wait_since) == (
+        "RUNNING", "waiting: Resources", "Resources", 102.0)
+    said = [(e.status, e.message) for e in sim.transitions if e.task == "t"][-2:]
+    assert said == [("RUNNING", "waiting: Priority"), ("RUNNING", "waiting: Resources")]
+    sim.send(AttemptWaiting(aid, ""))  # it runs now
+    t = sim.task("t")
+    assert (t.message, t.node_wait, t.node_wait_since) == ("", "", None)
+    assert sim.transitions[-1].message == "waits no more"
+    play(sim, "exit t")
+    assert sim.status("t") == "COMPLETED"
+
+
+def test_a_reason_said_before_the_start_is_kept_and_a_retry_starts_clean() -> None:
+    sim = Sim()
+    sim.submit(workflow(task("t", rules=RETRY_ON_3)))
+    play(sim, "prepare t")
+    sim.send(AttemptWaiting(sim.aid("t"), "0/2 nodes are available: 2 Insufficient cpu."))
+    play(sim, "start t")
+    t = sim.task("t")
+    assert (t.status.name, t.message) == (
+        "RUNNING", "waiting: 0/2 nodes are available: 2 Insufficient cpu.")
+    play(sim, "exit t=3")  # RESCHEDULE: the next retry has no reason of its own yet
+    t = sim.task("t")
+    assert (t.retry, t.node_wait, t.node_wait_since) == (1, "", None)
+
+
+@pytest.mark.parametrize(("said", "kept"), [
+    ("Insufficient\x1b[31m cpu\n\rfake line\u202e", "Insufficient [31m cpu fake line"),
+    ("x" * 100_000, "x" * 297 + "..."),
+    ("\x00\x07\t", ""),
+])
+def test_a_reason_is_one_bounded_line_of_plain_text(said: str, kept: str) -> None:
+    sim = Sim()
+    sim.submit(workflow(task("t")))
+    play(sim, "prepare t; start t")
+    sim.send(AttemptWaiting(sim.aid("t"), said))
+    assert sim.task("t").node_wait == kept
