@@ -171,6 +171,9 @@ class Attempt:
         gpus: the GPU indices the pool assigned it.
         credential: stored credentials by name (a registry's, for a pull); None: none.
         terms: its workflow's time limit and priority, for a cluster's own scheduler.
+        waiting: tells the server why a cluster's scheduler holds the started attempt (a pod
+            Pending, a Slurm job PENDING), and ``""`` once it runs: any thread, cheap; say
+            a reason once, not at every poll (the node's ``AttemptWaiting`` report).
     """
 
     cmd: PrepareAttempt
@@ -180,6 +183,7 @@ class Attempt:
     gpus: tuple[int, ...] = ()
     credential: Callable[[str], Mapping[str, str] | None] | None = None
     terms: Terms = field(default_factory=lambda: Terms())
+    waiting: Callable[[str], None] = field(default=lambda _reason: None, repr=False)
 
 
 @dataclass(frozen=True)

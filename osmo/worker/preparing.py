@@ -33,7 +33,13 @@ from osmo.errors import OsmoError
 from osmo.layout import AttemptDirs, Home
 from osmo.runtime.api import Attempt, Launch, ProcessHandle, Runtime, StartError, Terms
 from osmo.runtime.choose import Runtimes
-from osmo.scheduler.types import AttemptPrepared, AttemptStartFailed, Event, PrepareAttempt
+from osmo.scheduler.types import (
+    AttemptPrepared,
+    AttemptStartFailed,
+    AttemptWaiting,
+    Event,
+    PrepareAttempt,
+)
 from osmo.spec.model import ResourceSpec, TaskSpec
 from osmo.worker.live import Attempts, LiveAttempt
 from osmo.worker.logs import LogWriter
@@ -126,7 +132,8 @@ class Preparing:
             log = self._open_log(cmd, dirs, launch)
             gpus = self._gpus.take(cmd.attempt_id, resources.gpu) if resources.gpu else ()
             lookup = self._task_secrets if self._task_secrets is not None else secrets.get
-            attempt = Attempt(placed, task, dirs, resources, gpus, lookup, terms)
+            attempt = Attempt(placed, task, dirs, resources, gpus, lookup, terms,
+                              waiting=functools.partial(self._waiting, cmd.attempt_id))
             launch = runtime.prepare(launch, attempt,
                                      progress=functools.partial(_pull_line, log))
         except Exception as exc:  # every prepare must get its one final report
@@ -157,6 +164,10 @@ class Preparing:
         """The attempt's log writer (the file is opened on its first record)."""
         sink = functools.partial(self._log_sink, cmd.attempt_id) if self._log_sink else None
         return LogWriter(dirs.log, launch.secrets, sink, limit=self._log_limit)
+
+    def _waiting(self, attempt_id: str, reason: str) -> None:
+        """Any thread: the attempt's cluster holds it (``reason``), or no longer (``""``)."""
+        self._emit(AttemptWaiting(attempt_id, reason))
 
     def _not_prepared(self, attempt_id: str, message: str) -> None:
         """Reactor thread: the attempt could not be prepared; it fails to start."""

@@ -36,11 +36,13 @@ class Run:
     def __init__(self, api: Cluster, plan: PodPlan, secret: dict[str, str] | None = None,
                  silence: int = 20) -> None:
         self.out, self.notes, self.stop = io.BytesIO(), [], threading.Event()
+        self.waits: list[str] = []
         self.name = plan.name
         body = pod_manifest(plan, POOL, secret=plan.name if secret else None)
         owned = secret_manifest(plan, secret, POOL, owner_uid="") if secret else None
         self.follower = PodFollower(Kube(api.client), body, owned, out=self.out,
-                                    note=self.notes.append, stop=self.stop, silence=silence)
+                                    note=self.notes.append, stop=self.stop, silence=silence,
+                                    waiting=self.waits.append)
 
     def run(self) -> Verdict:
         return self.follower.run()
@@ -69,10 +71,13 @@ def test_each_scripted_life_gives_its_verdict(api: Cluster, script: str, outcome
     assert api.core.list_namespaced_pod("default").items == []  # deleted whatever happened
 
 
-def test_unschedulable_is_noted_and_the_log_arrives(api: Cluster) -> None:
+def test_unschedulable_is_said_once_then_cleared_and_the_log_arrives(api: Cluster) -> None:
     run = scripted(api, SCRIPTS["unschedulable-running-succeeded"])
     assert run.run().exit_code == 0
     assert any("unschedulable: 0/1 nodes are available" in n for n in run.notes), run.notes
+    [reason, cleared] = run.waits  # once per reason, whatever the watch repeats; then ""
+    assert reason == "unschedulable: 0/1 nodes are available: 1 Insufficient nvidia.com/gpu."
+    assert cleared == ""
     assert run.out.getvalue() == b"hello from a script\n"
 
 

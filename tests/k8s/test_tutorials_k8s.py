@@ -15,6 +15,7 @@ import re
 import signal
 import subprocess
 import sys
+import threading
 import time
 import uuid
 from collections.abc import Iterator
@@ -33,10 +34,10 @@ from tests.containers.submitting import (
     tasks,
 )
 from tests.k8s.nodes import NAMESPACE, KubeCluster, started
+from tests.k8s.scripts import Script, running, scheduled, wait
 from tests.k8s.store import (
     COSCHEDULING,
     KAI,
-    NODES,
     PODS,
     SECRETS,
     SERVICES,
@@ -222,42 +223,56 @@ def test_exec_and_cancel_reach_the_pod(kube: KubeCluster, tmp_path: Path) -> Non
 WAITER = """\
 workflow:
   name: waiter
+  resources:
+    default: {cpu: 2, memory: 1Gi}
   tasks:
   - name: w
     image: alpine:3.18
-    command: ["sh", "-c", "echo started; sleep 6; echo done"]
+    command: ["sh", "-c", "echo started; sleep 2; echo done"]
 """
-TAINT = {"key": "osmo.dev/test-maintenance", "value": "yes", "effect": "NoSchedule"}
 
 
-def set_taints(kube: KubeCluster, taints: list[dict[str, str]]) -> None:
-    def change(node: dict) -> None:
-        node["spec"]["taints"] = taints
-    kube.server.store.update(NODES, None, "node-1", change)
+def hog(kube: KubeCluster, cpu: str, release: threading.Event) -> str:
+    """A pod that is not osmo's, bound to node-1 with ``cpu`` requested until ``release``."""
+    name = f"hog-{uuid.uuid4().hex[:6]}"
+    kube.kubelet.script(name, Script((scheduled(), running(), wait(release))), NAMESPACE)
+    core = client.CoreV1Api(client.ApiClient(client.Configuration(host=kube.server.url)))
+    core.create_namespaced_pod(NAMESPACE, {
+        "apiVersion": "v1", "kind": "Pod", "metadata": {"name": name},
+        "spec": {"containers": [{"name": "hog", "image": "busybox",
+                                 "resources": {"requests": {"cpu": cpu}}}]}})
+    return name
 
 
-def test_query_shows_why_a_pod_waits(kube: KubeCluster, tmp_path: Path) -> None:
-    """The scheduler's reason is the running task's progress in osmo query while its pod
-    waits, and goes once the pod runs."""
+def test_query_and_events_show_why_a_pod_waits(kube: KubeCluster, tmp_path: Path) -> None:
+    """The scheduler's reason is the running task's waiting reason in osmo query and one
+    event in osmo events while its pod waits; it goes once capacity frees and the pod runs."""
     spec = tmp_path / "waiter.yaml"
     spec.write_text(WAITER)
-    set_taints(kube, [TAINT])  # the only node takes no pod: Unschedulable
+    release = threading.Event()
+    name = hog(kube, "7", release)  # node-1 has 8 cpus: the task's 2 do not fit
+    core = client.CoreV1Api(client.ApiClient(client.Configuration(host=kube.server.url)))
     try:
         wf_id = kube.osmo.submit(spec)
-        info = kube.osmo.wait_for(wf_id, lambda i: "unschedulable" in str(
-            i["tasks"][0].get("progress")), timeout=60)
+        info = kube.osmo.wait_for(wf_id, lambda i: i["tasks"][0].get("waiting") is not None,
+                                  timeout=60)
         row = info["tasks"][0]
         assert row["status"] == "RUNNING", row
-        assert "untolerated taint {osmo.dev/test-maintenance: yes}" in row["progress"], row
-        assert "unschedulable" in kube.osmo("query", wf_id, check=True).out
+        assert row["waiting"]["reason"] == (
+            "unschedulable: 0/1 nodes are available: 1 Insufficient cpu."), row
+        assert "Insufficient cpu" in kube.osmo("query", wf_id, check=True).out
+        assert "Insufficient cpu" in kube.osmo("events", wf_id, check=True).out
     finally:
-        set_taints(kube, [])
-    kube.osmo.wait_for(wf_id, lambda i: i["tasks"][0].get("progress") is None
-                       and "started" in "".join(task_lines(kube.osmo, wf_id).get("w", [])),
-                       timeout=60)
+        release.set()
+        core.delete_namespaced_pod(name, NAMESPACE, grace_period_seconds=0)
     info = kube.osmo.wait_for(wf_id, lambda i: i["status"] in ("COMPLETED", "FAILED"),
                               timeout=120)
     assert info["status"] == "COMPLETED", info
+    assert info["tasks"][0].get("waiting") is None and info["tasks"][0]["message"] == "", info
+    events = kube.osmo("events", wf_id, check=True).out
+    assert events.count("Insufficient cpu") == 1, events  # once, not per watch event
+    assert "waits no more" in events, events
+    assert "started" in "".join(task_lines(kube.osmo, wf_id).get("w", []))
     assert nothing_left(kube) == []
 
 

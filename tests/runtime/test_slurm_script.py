@@ -14,7 +14,7 @@ from osmo.runtime.api import PrepareError, Terms
 from osmo.runtime.container.run import Mount
 from osmo.runtime.slurm.commands import gpus_of, minutes_of
 from osmo.runtime.slurm.script import gang_args, pyxis_argv, resource_args, sbatch_args
-from osmo.runtime.slurm.states import Phase, verdict
+from osmo.runtime.slurm.states import REASONS, Phase, verdict, waiting_reason
 from osmo.spec.model import ResourceSpec
 
 MI = 1 << 20
@@ -105,6 +105,22 @@ def test_the_state_table(state: str, phase: Phase, code: int | None, override: b
     seen = verdict(state)
     assert (seen.phase, seen.code, seen.override) == (phase, code, override)
     assert verdict("SOMETHING_NEW", listed=False).phase is Phase.ENDED
+
+
+@pytest.mark.parametrize("reason", sorted(REASONS))
+def test_each_known_pending_reason_is_said_in_words(reason: str) -> None:
+    said = waiting_reason("12", "PENDING", reason)
+    assert said == f"Slurm job 12 PENDING: {reason} ({REASONS[reason]})"
+
+
+@pytest.mark.parametrize(("state", "reason", "said"), [
+    ("PENDING", "SomeNewReason", "Slurm job 7 PENDING: SomeNewReason"),
+    ("REQUEUE_HOLD", "", "Slurm job 7 REQUEUE_HOLD: None"),
+    ("PENDING", "None", "Slurm job 7 PENDING: None"),
+])
+def test_any_other_pending_reason_is_shown_as_slurm_says_it(state: str, reason: str,
+                                                            said: str) -> None:
+    assert waiting_reason("7", state, reason) == said
 
 
 def test_gpus_are_read_from_gres() -> None:

@@ -217,15 +217,23 @@ workflow:
 """)
     wf_id = grid.osmo.submit(spec)
     try:
-        seen = until_logged(grid, wf_id, "PENDING (Resources)")
+        seen = until_logged(grid, wf_id, "PENDING: Resources")
         assert "[queued] ran" not in seen
-        progress = tasks(grid.osmo, wf_id)["queued"]["progress"]
-        assert re.fullmatch(r"Slurm job \d+ PENDING \(Resources\)", progress), progress
+        row = tasks(grid.osmo, wf_id)["queued"]
+        assert row["status"] == "RUNNING", row
+        assert re.fullmatch(r"Slurm job \d+ PENDING: Resources \(the nodes it needs are "
+                            r"busy\)", row["waiting"]["reason"]), row
+        assert "PENDING: Resources" in grid.osmo("query", wf_id, check=True).out
     finally:
         for job in blockers:
             roomy.run("scancel", job)
     info = grid.osmo.wait_for(wf_id, lambda i: i["status"] == "COMPLETED", timeout=90)
     assert "[queued] ran" in logs(grid, wf_id), info
+    assert info["tasks"][0].get("waiting") is None, info
+    events = grid.osmo("events", wf_id, check=True).out
+    assert len(re.findall(r"RUNNING +on \S+ +waiting: Slurm job \d+ PENDING: Resources",
+                          events)) == 1, events  # once, however many polls saw it
+    assert "waits no more" in events, events
 
 
 def test_a_restarted_worker_cancels_the_job_it_left_and_the_task_runs_again(

@@ -10,11 +10,11 @@
 2. follow the pod by list + watch from its resourceVersion: a watch that ends, goes silent
    longer than :data:`SILENCE`, or answers 410 Gone is replaced by a fresh list and watch.
    Each version goes through the status table (``osmo.runtime.kubernetes.status``); a new
-   waiting reason other than the ordinary ones (pending, ContainerCreating) is noted
-   (``note``: the task's stderr, so the attempt's log) as a progress line (``osmo:
-   [osmo:progress] pod P: waiting: unschedulable: 0/3 nodes ...``), which ``osmo query``
-   shows as the running task's progress; an empty progress line clears it once the pod
-   waits no more.
+   waiting reason other than the ordinary ones (pending, ContainerCreating) goes to the
+   server (``waiting``: the node's ``AttemptWaiting`` report, so ``osmo query`` and ``osmo
+   events`` show ``unschedulable: 0/3 nodes are available: 3 Insufficient cpu.``) and is
+   noted in the attempt's log (``note``: ``osmo: pod P: waiting: ...``); ``waiting("")``
+   clears it once the pod waits no more.
 3. once the task's container runs (or ended), stream its log to ``out`` until it ends.
 4. a kill (``stop``): delete the pod with the 3 s grace (``force``: with none); a pod still
    there :data:`FORCE_AFTER` seconds later is deleted with no grace, and the follower gives
@@ -35,7 +35,6 @@ from typing import IO, Any
 from osmo.runtime.kubernetes.kube import Gone, Kube, KubeError
 from osmo.runtime.kubernetes.manifest import CONTAINER
 from osmo.runtime.kubernetes.status import Outcome, Verdict, verdict
-from osmo.tasktypes.api import PROGRESS_PREFIX
 
 __all__ = ["FORCE_AFTER", "GIVE_UP_AFTER", "SILENCE", "PodFollower"]
 
@@ -63,15 +62,17 @@ class PodFollower:
         stop: set to kill the attempt.
         force: set (with ``stop``) to delete the pod at once, with no grace.
         silence: seconds a watch may stay silent before it is replaced.
+        waiting: why the pod waits, told once per new reason (``""``: it waits no more).
     """
 
     def __init__(self, kube: Kube, pod: Obj, secret: Obj | None, *, out: IO[bytes],
                  note: Callable[[str], None], stop: threading.Event,
-                 force: threading.Event | None = None, silence: int = SILENCE) -> None:
+                 force: threading.Event | None = None, silence: int = SILENCE,
+                 waiting: Callable[[str], None] = lambda _reason: None) -> None:
         self.kube, self.pod, self.secret = kube, pod, secret
         self.namespace = str(pod["metadata"]["namespace"])
         self.name = str(pod["metadata"]["name"])
-        self.out, self.note, self.stop = out, note, stop
+        self.out, self.note, self.stop, self.waiting = out, note, stop, waiting
         self.force = force or threading.Event()
         self._events: queue.Queue[tuple[str, Obj | None] | BaseException] = queue.Queue()
         self._log_thread: threading.Thread | None = None
@@ -150,10 +151,11 @@ class PodFollower:
             if (last.outcome is Outcome.WAITING and last.message != shown
                     and last.message not in _ORDINARY and not self._own_secret(last)):
                 shown = last.message
-                self.note(f"{PROGRESS_PREFIX} pod {self.name}: waiting: {last.message}")
+                self.waiting(last.message)
+                self.note(f"pod {self.name}: waiting: {last.message}")
             if last.outcome is not Outcome.WAITING and shown:
                 shown = ""
-                self.note(f"{PROGRESS_PREFIX}")  # waits no more: osmo query shows no reason
+                self.waiting("")  # waits no more: osmo query shows no reason
             if last.outcome in (Outcome.RUNNING, Outcome.EXITED) and self._log_thread is None:
                 self._image(obj)
                 self._start_logs()

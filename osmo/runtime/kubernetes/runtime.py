@@ -106,6 +106,7 @@ class KubeRun:
     pod: dict[str, Any] = field(repr=False)
     secret: dict[str, Any] | None = field(repr=False)
     group: GroupPlan | None = None
+    waiting: Callable[[str], None] = field(default=lambda _reason: None, repr=False)
 
     @property
     def name(self) -> str:
@@ -224,7 +225,7 @@ class KubernetesRuntime:
         self._hand_over(dirs.output_partial, dirs.work if workdir else None)
         if group is not None:
             self.gangs.join(cmd, group)
-        run = KubeRun(pod, secret, group)
+        run = KubeRun(pod, secret, group, attempt.waiting)
         note = (f"pod {plan.name} in namespace {self.pool.namespace}, image '{task.image}'"
                 + (f" is {pinned}" if pinned else ""))
         waits = group is not None and not lead and self.pool.gang == "none"
@@ -242,7 +243,8 @@ class KubernetesRuntime:
             self.gangs.wait_for_lead(run.group)
         handle, live = self._sentinel(run)
         follower = PodFollower(self.kube, run.pod, run.secret, out=live.out,
-                               note=live.note, stop=live.stop, force=live.force)
+                               note=live.note, stop=live.stop, force=live.force,
+                               waiting=run.waiting)
         with self._lock:
             self._runs[handle] = live
         self._followers.later(self._follow, follower, live, handle)

@@ -26,8 +26,10 @@ What it owns, one concern per method of the runtime contract:
   (NODE_FAIL...) ends every member with 137: the group is retried whole.
 - status: one poller thread per node asks ``squeue`` about every live job of the node at
   once, a few times a second, and reads the state through the one table
-  (``osmo.runtime.slurm.states``): a PENDING reason and the node a job runs on go to the
-  attempt's log as progress lines (``osmo query`` shows the latest); an end the agent
+  (``osmo.runtime.slurm.states``): a PENDING reason goes to the server once per new
+  reason (``Attempt.waiting``: ``osmo query`` and ``osmo events`` show it; cleared when the
+  job runs) and to the attempt's log, the node a job runs on to the log as a progress
+  line (``osmo query`` shows the latest); an end the agent
   could not report (killed, OUT_OF_MEMORY, TIMEOUT) is written for the watcher
   (``ended.json``) with its code, and its reason logged; a lost job
   (NODE_FAIL, PREEMPTED, BOOT_FAIL) is submitted again as the same attempt, not counted
@@ -101,7 +103,7 @@ from osmo.runtime.slurm.script import (
     resource_args,
     sbatch_args,
 )
-from osmo.runtime.slurm.states import Phase, verdict
+from osmo.runtime.slurm.states import Phase, verdict, waiting_reason
 from osmo.scheduler.types import PrepareAttempt
 from osmo.status import ExitCode
 from osmo.tasktypes.api import PROGRESS_PREFIX
@@ -136,6 +138,8 @@ class SlurmJob:
     container: ContainerRun | None = None
     resources: tuple[str, ...] = ()
     gang: Gang | None = None
+    waiting: Callable[[str], None] = field(default=lambda _reason: None, repr=False,
+                                           compare=False)
 
     @property
     def script(self) -> Path:
@@ -311,7 +315,8 @@ class SlurmRuntime:
             job = SlurmJob(folder, name, tuple(sbatch_args(
                 name=name, owner=self.owner, folder=folder, resources=attempt.resources,
                 options=self.options, terms=terms)), container,
-                tuple(resource_args(attempt.resources, self.options, terms)), gang)
+                tuple(resource_args(attempt.resources, self.options, terms)), gang,
+                attempt.waiting)
             _write_private(job.script, batch_script(self._python, AGENT, folder))
         except OSError as exc:
             raise PrepareError(f"cannot write the job folder {folder}: "
@@ -586,10 +591,12 @@ class SlurmRuntime:
         else:
             seen = verdict(info.state)
             live.state, live.nodes = info.state, info.nodes or live.nodes
-        if seen.phase is Phase.WAITING and info is not None:  # osmo query shows it
-            self._say(live, f"{PROGRESS_PREFIX} Slurm job {live.job_id} {info.state} "
-                            f"({info.reason})")
-        elif seen.phase is Phase.RUNNING and info is not None and info.nodes:
+        if seen.phase is Phase.WAITING:
+            if info is not None:  # osmo query and osmo events show it
+                self._waits(live, waiting_reason(live.job_id, info.state, info.reason))
+            return
+        self._waits(live, "")
+        if seen.phase is Phase.RUNNING and info is not None and info.nodes:
             self._say(live, f"{PROGRESS_PREFIX} Slurm job {live.job_id} RUNNING on "
                             f"{info.nodes}")
         elif seen.phase is Phase.LOST and live.job.gang is None:
@@ -613,6 +620,14 @@ class SlurmRuntime:
                                         cwd=str(live.job.folder))
         live.said.clear()
         self._note(live, f"job {old}: {reason}; submitted again as job {live.job_id}")
+
+    def _waits(self, live: _Live, reason: str) -> None:
+        """Tell the server why the job waits (``""``: no more), once per new reason."""
+        if reason != live.reason:
+            live.reason = reason
+            live.job.waiting(reason)
+            if reason:
+                self._note(live, reason)
 
     def _say(self, live: _Live, line: str) -> None:
         if line not in live.said:

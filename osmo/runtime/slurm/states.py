@@ -5,7 +5,9 @@ Slurm state                                            for osmo
 =====================================================  ===========================================
 PENDING, REQUEUED, REQUEUE_HOLD, REQUEUE_FED,          **waiting**: its reason (``Resources``,
 RESV_DEL_HOLD, CONFIGURING                             ``Priority``, ``QOSMaxJobsPerUserLimit``...)
-                                                       goes to the attempt's log
+                                                       is the attempt's waiting reason in ``osmo
+                                                       query`` and ``osmo events``
+                                                       (:func:`waiting_reason`) and goes to its log
 RUNNING, COMPLETING, SIGNALING, STAGE_OUT, RESIZING,   **running**
 SUSPENDED, STOPPED
 COMPLETED, FAILED, SPECIAL_EXIT                        **ended**: the agent's exit code (1 when
@@ -24,6 +26,9 @@ NODE_FAIL, PREEMPTED, BOOT_FAIL                        **lost**: submitted again
 
 A state missing from the table (a newer Slurm's) counts as running while the job is in
 ``squeue`` (the node asks again) and as ended with code 1 once it has gone.
+
+:data:`REASONS` says in a few words what the commonest of squeue's pending reasons (``%r``)
+mean; any other is shown as Slurm words it.
 """
 
 from __future__ import annotations
@@ -31,7 +36,7 @@ from __future__ import annotations
 import enum
 from dataclasses import dataclass
 
-__all__ = ["STATES", "Phase", "Verdict", "verdict"]
+__all__ = ["REASONS", "STATES", "Phase", "Verdict", "verdict", "waiting_reason"]
 
 
 class Phase(enum.Enum):
@@ -96,3 +101,26 @@ def verdict(state: str, *, listed: bool = True) -> Verdict:
     if listed:
         return _R
     return Verdict(Phase.ENDED, 1, reason=f"Slurm: the job ended in state {state!r}")
+
+
+REASONS: dict[str, str] = {
+    "Resources": "the nodes it needs are busy",
+    "Priority": "jobs of a higher priority are queued before it",
+    "Dependency": "it waits for another job",
+    "JobHeldUser": "held by a user (scontrol release)",
+    "JobHeldAdmin": "held by an administrator",
+    "BeginTime": "its start time has not come",
+    "ReqNodeNotAvail": "a node it needs is down, drained or reserved",
+    "PartitionTimeLimit": "it asks for more time than its partition allows",
+    "QOSMaxJobsPerUserLimit": "its QOS's limit of jobs per user is reached",
+    "AssocGrpCpuLimit": "its account's CPU limit is reached",
+    "AssocMaxJobsLimit": "its account's job limit is reached",
+}
+"""squeue's commonest pending reasons, in a few words (:func:`waiting_reason`)."""
+
+
+def waiting_reason(job_id: str, state: str, reason: str) -> str:
+    """Why a waiting job waits, for ``osmo query``: ``Slurm job 12 PENDING: Resources (...)``."""
+    word = reason.strip() or "None"
+    meaning = REASONS.get(word)
+    return f"Slurm job {job_id} {state}: {word}" + (f" ({meaning})" if meaning else "")
