@@ -56,7 +56,7 @@ def run_pool(args: argparse.Namespace) -> int:
                                                "platforms": set(), "runtimes": set(),
                                                "used": {}, "total": {}, "sandboxes": []})
         pool["nodes"] += 1
-        pool["platforms"].add(node["platform"] or "-")
+        pool["platforms"].update(node.get("platforms") or [node["platform"] or "-"])
         pool["runtimes"].add(node.get("runtime") or "-")
         pool["sandboxes"].append(node.get("sandbox", "none"))
         for side in ("used", "total"):

@@ -410,7 +410,11 @@ def _gib(n: float) -> str:
 
 
 def resource_table(rows: list[dict[str, Any]], *, by: str) -> Table:
-    """Nodes or pools with cpu/gpu/memory as used/total."""
+    """Nodes or pools with cpu/gpu/memory as used/total.
+
+    A node that serves several platforms (a cluster node's gpu and cpu nodes) has a line
+    per platform under its own (``  platform gpu``), with that platform's used/total.
+    """
     from rich.table import Table
 
     table = Table(box=None, pad_edge=False)
@@ -419,16 +423,24 @@ def resource_table(rows: list[dict[str, Any]], *, by: str) -> Table:
     for col in (*first, "CPU", "GPU", "Memory", "Sandbox"):
         table.add_column(col)
     for r in rows:
-        used, total = r["used"], r["total"]
-        head = ([safe(r["node"]), safe(r["pool"]), safe(r["platform"] or "-"),
+        platforms = r.get("platforms") or {}
+        head = ([safe(r["node"]), safe(r["pool"]),
+                 safe(", ".join(platforms) or r["platform"] or "-"),
                  safe(r.get("status", "online")), safe(r.get("runtime") or "-")] if by == "node"
-                else [safe(r["pool"]), str(r["nodes"]), safe(", ".join(r["platforms"])),
+                else [safe(r["pool"]), str(r["nodes"]), safe(", ".join(platforms)),
                       safe(", ".join(r.get("runtimes", ())) or "-")])
-        table.add_row(*head, f"{used['cpu']:g}/{total['cpu']:g}",
-                      f"{used['gpu']}/{total['gpu']}",
-                      f"{_gib(used['memory'])}/{_gib(total['memory'])}",
-                      safe(_sandbox(r)))
+        table.add_row(*head, *_amounts(r["used"], r["total"]), safe(_sandbox(r)))
+        if by == "node" and len(platforms) > 1:
+            for name, amounts in platforms.items():
+                table.add_row(f"  platform {safe(name)}", "", safe(name), "", "",
+                              *_amounts(amounts["used"], amounts["total"]), "")
     return table
+
+
+def _amounts(used: dict[str, Any], total: dict[str, Any]) -> tuple[str, str, str]:
+    """CPU, GPU and memory as used/total."""
+    return (f"{used['cpu']:g}/{total['cpu']:g}", f"{used['gpu']}/{total['gpu']}",
+            f"{_gib(used['memory'])}/{_gib(total['memory'])}")
 
 
 def _sandbox(row: dict[str, Any]) -> str:

@@ -252,9 +252,12 @@ class Scheduler:
         """Ids of the attempts placed on ``node_id`` that have not sent their final report."""
         return self._world.ledger.held_on(node_id)
 
-    def used(self, node_id: str) -> Capacity:
-        """Resources held on ``node_id`` by attempts that have not sent their final report."""
-        return self._world.ledger.used(node_id)
+    def used(self, node_id: str, platform: str | None = None) -> Capacity:
+        """Resources held on ``node_id`` (of ``platform``) by unfinished attempts.
+
+        (Those that have not sent their final report.)
+        """
+        return self._world.ledger.used(node_id, platform)
 
     def forget(self, workflow_id: str) -> None:
         """Drop a terminal workflow from memory (unknown ids are ignored).
@@ -328,8 +331,9 @@ class Scheduler:
             run.active += 1
             run.running += task.status is TaskStatus.RUNNING
             if task.attempt_id is not None and task.node_id is not None:
-                world.ledger.reserve(task.attempt_id, task.node_id,
-                                     run.requests[task.name].capacity)
+                asked = run.requests[task.name]
+                world.ledger.reserve(task.attempt_id, task.node_id, asked.capacity,
+                                     asked.platform)
 
     def _restore_group(self, run: Run, name: str) -> None:
         world, group = self._world, run.groups[name]

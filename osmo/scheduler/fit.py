@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from osmo.scheduler.resources import Request, first_fit, requests_of, total
+from osmo.scheduler.resources import Request, first_fit, requests_of, room, total
 from osmo.scheduler.types import Capacity, Node
 from osmo.spec.model import GroupSpec, WorkflowSpec
 
@@ -67,20 +67,21 @@ def check_fit(spec: WorkflowSpec, pool: str | None, nodes: Sequence[Node]) -> li
 
 def _request_problem(req: Request, nodes: Sequence[Node], where: str) -> str | None:
     """Why no node can ever take a task with ``req`` (after "task 'NAME' "), or None."""
-    if req.platform is not None and not any(n.platform == req.platform for n in nodes):
-        platforms = sorted({n.platform for n in nodes if n.platform}) or ["none"]
+    if req.platform is not None and not any(n.offers(req.platform) for n in nodes):
+        platforms = sorted({p for n in nodes for p in n.served()}) or ["none"]
         return (f"requests platform '{req.platform}' but no node in {where} has it "
                 f"(platforms: {', '.join(platforms)})")
     eligible = [n for n in nodes if req.allows(n)]
     if not eligible:
         return f"excludes every eligible node in {where}"
+    offered = [room(n, req, {}) or n.capacity for n in eligible]  # a platform's, if it asks
     for dim in DIMENSIONS:
         need = getattr(req.capacity, dim)
-        best = max(getattr(n.capacity, dim) for n in eligible)
+        best = max(getattr(cap, dim) for cap in offered)
         if need > best + 1e-9:
             return (f"requests {dim}={format_amount(dim, need)} but no node in {where} has "
                     f"more than {format_amount(dim, best)} {dim}")
-    if not any(req.capacity.fits_in(n.capacity) for n in eligible):
+    if not any(req.capacity.fits_in(cap) for cap in offered):
         return (f"requests {format_capacity(req.capacity)} but no single node in {where} "
                 "has all of it")
     return None

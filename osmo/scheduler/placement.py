@@ -76,7 +76,8 @@ def _commit(world: World, request: Queued, plan: dict[str, str]) -> None:
         task = run.tasks[name]
         aid = attempt_id(run.id, name, task.retry)
         task.attempt_id, task.node_id = aid, plan[name]
-        world.ledger.reserve(aid, plan[name], run.requests[name].capacity)
+        request_of = run.requests[name]
+        world.ledger.reserve(aid, plan[name], request_of.capacity, request_of.platform)
         world.attempts[aid] = (run, name)
         world.set_status(run, task, TaskStatus.INITIALIZING, "")
     held = request.gang and group.spec.barrier and len(request.tasks) > 1

@@ -6,8 +6,12 @@ attempt holds on which node, and the packing rule. It knows nothing of statuses 
 Rules (documented behaviour):
     - A task's request is its resource spec with ``cpu`` defaulting to 1 and ``gpu``,
       ``memory``, ``storage`` to 0 when unset.
-    - A node is eligible when it is in the target pool (``None`` = any pool), matches the
-      requested ``platform`` (if any) and is not in ``nodesExcluded``.
+    - A node is eligible when it is in the target pool (``None`` = any pool), serves the
+      requested ``platform`` (if any: ``Node.offers``) and is not in ``nodesExcluded``.
+    - Room (:func:`room`, the one fit check): a task fits what its node has free, and a
+      task with a platform also what that platform of the node has free (its capacity
+      less what the node's attempts of that platform hold): a cluster node's gpu nodes
+      and cpu nodes fill up apart.
     - Packing is *first-fit decreasing*: the tasks of a gang are taken largest first
       (gpu, cpu, memory, storage), each onto the first eligible node (by id) with room.
       There is no backtracking, so a packing that exists may be missed; ``check_fit`` uses
@@ -25,9 +29,13 @@ from dataclasses import dataclass
 from osmo.scheduler.types import Capacity, Node
 from osmo.spec.model import ResourceSpec, TaskSpec, WorkflowSpec
 
-__all__ = ["ZERO", "Ledger", "Request", "first_fit", "request_for", "requests_of", "total"]
+__all__ = ["ZERO", "Ledger", "Request", "Used", "first_fit", "request_for", "requests_of",
+           "room", "total"]
 
 ZERO = Capacity()
+
+Used = Mapping[tuple[str, str | None], Capacity]
+"""What attempts hold: ``(node id, None)`` on the node, ``(node id, platform)`` of a platform."""
 
 
 @dataclass(frozen=True)
@@ -40,9 +48,7 @@ class Request:
 
     def allows(self, node: Node) -> bool:
         """True if ``node``'s platform and id are acceptable (capacity not checked)."""
-        if self.platform is not None and node.platform != self.platform:
-            return False
-        return node.id not in self.excluded
+        return node.id not in self.excluded and node.offers(self.platform) is not None
 
 
 def request_for(spec: WorkflowSpec, task: TaskSpec) -> Request:
@@ -84,28 +90,51 @@ def _size(item: tuple[str, Request]) -> tuple[float, ...]:
     return (cap.gpu, cap.cpu, cap.memory, cap.storage)
 
 
+def room(node: Node, req: Request, used: Used, extra: Used | None = None) -> Capacity | None:
+    """What ``node`` has free for ``req`` now (None: it cannot take it at all).
+
+    The node's capacity less what it holds; for a request with a platform, also no more
+    than that platform's capacity less what the node's attempts of that platform hold.
+    ``extra``: more held, not reserved yet (a gang being packed).
+    """
+    if not req.allows(node):
+        return None
+    offered = node.offers(req.platform)
+    assert offered is not None  # allows() checked it
+
+    def held(key: tuple[str, str | None]) -> Capacity:
+        more = extra.get(key) if extra else None
+        return used.get(key, ZERO) + more if more is not None else used.get(key, ZERO)
+
+    free = node.capacity - held((node.id, None))
+    if req.platform is None:
+        return free
+    own = offered - held((node.id, req.platform))
+    return Capacity(min(free.cpu, own.cpu), min(free.gpu, own.gpu),
+                    min(free.memory, own.memory), min(free.storage, own.storage))
+
+
 def first_fit(tasks: Sequence[tuple[str, Request]], nodes: Sequence[Node],
-              used: Mapping[str, Capacity]) -> dict[str, str] | None:
+              used: Used) -> dict[str, str] | None:
     """Place every task at once (first-fit decreasing), or return None.
 
     Args:
         tasks: (task name, request) pairs of one gang.
         nodes: eligible-pool nodes, sorted by id.
-        used: node id → capacity already reserved there.
+        used: what is already reserved (:data:`Used`).
 
     Returns:
         task name → node id for every task, or None when the gang does not fit.
     """
-    extra: dict[str, Capacity] = {}
+    extra: dict[tuple[str, str | None], Capacity] = {}
     plan: dict[str, str] = {}
     for name, req in sorted(tasks, key=_size, reverse=True):  # sorted() is stable
         for node in nodes:
-            if not req.allows(node):
-                continue
-            taken = used.get(node.id, ZERO) + extra.get(node.id, ZERO)
-            if req.capacity.fits_in(node.capacity - taken):
+            free = room(node, req, used, extra)
+            if free is not None and req.capacity.fits_in(free):
                 plan[name] = node.id
-                extra[node.id] = extra.get(node.id, ZERO) + req.capacity
+                for key in {(node.id, None), (node.id, req.platform)}:
+                    extra[key] = extra.get(key, ZERO) + req.capacity
                 break
         else:
             return None
@@ -117,8 +146,8 @@ class Ledger:
 
     def __init__(self) -> None:
         self._nodes: dict[str, Node] = {}
-        self._used: dict[str, Capacity] = {}
-        self._held: dict[str, tuple[str, Capacity]] = {}  # attempt id → (node id, amount)
+        self._used: dict[tuple[str, str | None], Capacity] = {}  # see Used
+        self._held: dict[str, tuple[str, str | None, Capacity]] = {}  # attempt → where, amount
         self._on_node: dict[str, set[str]] = {}  # node id → attempt ids held there
         self._by_pool: dict[str | None, list[Node]] = {}  # cache, reset on node changes
 
@@ -130,9 +159,13 @@ class Ledger:
         """The node called ``node_id``, if known."""
         return self._nodes.get(node_id)
 
-    def used(self, node_id: str) -> Capacity:
-        """What attempts hold on ``node_id`` (zero when nothing)."""
-        return self._used.get(node_id, ZERO)
+    def used(self, node_id: str, platform: str | None = None) -> Capacity:
+        """What attempts hold on ``node_id`` (of ``platform``; zero when nothing)."""
+        return self._used.get((node_id, platform), ZERO)
+
+    def usage(self) -> Used:
+        """What attempts hold, by node and platform (read only)."""
+        return self._used
 
     def held_on(self, node_id: str) -> list[str]:
         """Ids of the attempts holding resources on ``node_id``."""
@@ -148,27 +181,32 @@ class Ledger:
         self._nodes.pop(node_id, None)
         self._by_pool.clear()
         held = sorted(self._on_node.pop(node_id, ()))
+        platforms: set[str | None] = {None}
         for aid in held:
-            del self._held[aid]
-        self._used.pop(node_id, None)
+            platforms.add(self._held.pop(aid)[1])
+        for platform in platforms:
+            self._used.pop((node_id, platform), None)
         return held
 
-    def reserve(self, attempt: str, node_id: str, amount: Capacity) -> None:
-        """Hold ``amount`` on ``node_id`` for ``attempt`` (idempotent per attempt)."""
+    def reserve(self, attempt: str, node_id: str, amount: Capacity,
+                platform: str | None = None) -> None:
+        """Hold ``amount`` on ``node_id`` (of ``platform``) for ``attempt`` (once per attempt)."""
         if attempt in self._held:
             return
-        self._held[attempt] = (node_id, amount)
+        self._held[attempt] = (node_id, platform, amount)
         self._on_node.setdefault(node_id, set()).add(attempt)
-        self._used[node_id] = self._used.get(node_id, ZERO) + amount
+        for key in {(node_id, None), (node_id, platform)}:
+            self._used[key] = self._used.get(key, ZERO) + amount
 
     def release(self, attempt: str) -> bool:
         """Free what ``attempt`` holds; False when it held nothing."""
         found = self._held.pop(attempt, None)
         if found is None:
             return False
-        node_id, amount = found
+        node_id, platform, amount = found
         self._on_node[node_id].discard(attempt)
-        self._used[node_id] = self._used[node_id] - amount
+        for key in {(node_id, None), (node_id, platform)}:
+            self._used[key] = self._used[key] - amount
         return True
 
     def candidates(self, pool: str | None) -> list[Node]:
@@ -182,7 +220,7 @@ class Ledger:
     def place(self, tasks: Sequence[tuple[str, Request]],
               pool: str | None) -> dict[str, str] | None:
         """First-fit the gang ``tasks`` into what is free now (nothing is reserved)."""
-        return first_fit(tasks, self.candidates(pool), self._used)
+        return first_fit(tasks, self.candidates(pool), self._used)  # Used: read only there
 
 
 def total(amounts: Iterable[Capacity]) -> Capacity:

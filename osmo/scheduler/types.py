@@ -147,6 +147,10 @@ class Node:
         capacity: total resources it offers.
         platform: platform name (matched against a resource spec's ``platform``).
         address: where its tasks can be reached by peers (``{{host:task}}``).
+        platforms: every platform the node serves, each with what it offers tasks that ask
+            for it (a cluster node's gpu nodes and cpu nodes): a task with ``platform: X``
+            fits only within X's capacity (and the node's). Empty: it serves ``platform``
+            (if any) with its whole capacity, as a worker from before this field does.
     """
 
     id: str
@@ -155,6 +159,20 @@ class Node:
     platform: str | None = None
     address: str = "127.0.0.1"
     labels: dict[str, str] = field(default_factory=dict)
+    platforms: dict[str, Capacity] = field(default_factory=dict)
+
+    def offers(self, platform: str | None) -> Capacity | None:
+        """What the node offers a task asking for ``platform`` (None: it does not serve it)."""
+        if platform is None:
+            return self.capacity
+        found = self.platforms.get(platform)
+        if found is not None:
+            return found
+        return self.capacity if platform == self.platform else None
+
+    def served(self) -> list[str]:
+        """The platforms it serves, sorted."""
+        return sorted(self.platforms or ([self.platform] if self.platform else []))
 
 
 # ---------------------------------------------------------------- events (facts, inputs)

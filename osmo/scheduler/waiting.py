@@ -24,7 +24,7 @@ from __future__ import annotations
 from collections.abc import Collection
 
 from osmo.scheduler.fit import DIMENSIONS, format_amount, format_capacity
-from osmo.scheduler.resources import Request, first_fit, total
+from osmo.scheduler.resources import ZERO, Request, first_fit, room, total
 from osmo.scheduler.runs import Group, Run
 from osmo.scheduler.state import TaskState
 from osmo.scheduler.types import Capacity, Node, Waiting
@@ -80,11 +80,14 @@ def _unplaced(world: World, run: Run, task: TaskState, gang: Group | None) -> Wa
     req = run.requests[task.name]
     eligible = [n for n in nodes if req.allows(n)]
     if not eligible:
-        if req.platform is not None and not any(n.platform == req.platform for n in nodes):
-            return Waiting(f"no online worker in {where} has platform '{req.platform}'")
+        if req.platform is not None and not any(n.offers(req.platform) for n in nodes):
+            served = sorted({p for n in nodes for p in n.served()})
+            return Waiting(f"no online worker in {where} has platform '{req.platform}' "
+                           f"(platforms: {', '.join(served) or 'none'})")
         return Waiting(f"every online worker in {where} is in its nodesExcluded")
-    free = {n.id: n.capacity - world.ledger.used(n.id) for n in eligible}
-    short = _short(req.capacity, eligible, free, where)
+    used = world.ledger.usage()
+    free = {n.id: room(n, req, used) or ZERO for n in eligible}
+    short = _short(req.capacity, eligible, free, where, req.platform)
     if short is not None:
         return Waiting(short)
     if not any(req.capacity.fits_in(free[n.id]) for n in eligible):
@@ -92,7 +95,7 @@ def _unplaced(world: World, run: Run, task: TaskState, gang: Group | None) -> Wa
                        f"{where} has all of it free")
     if gang is not None:
         members = [(t.name, run.requests[t.name]) for t in gang.spec.tasks]
-        if first_fit(members, nodes, {n.id: world.ledger.used(n.id) for n in nodes}) is None:
+        if first_fit(members, nodes, used) is None:
             need = total(r.capacity for _, r in members)
             return Waiting(f"its group '{gang.name}' starts all at once and needs "
                            f"{format_capacity(need)}; that does not fit what is free in "
@@ -101,16 +104,17 @@ def _unplaced(world: World, run: Run, task: TaskState, gang: Group | None) -> Wa
 
 
 def _short(need: Capacity, nodes: list[Node], free: dict[str, Capacity],
-           where: str) -> str | None:
+           where: str, platform: str | None = None) -> str | None:
     """The first dimension ``need`` exceeds on every node: in total, or free now."""
+    of = f" for platform '{platform}'" if platform is not None else ""
     for dim in DIMENSIONS:
         amount = getattr(need, dim)
         if not amount:
             continue
-        largest = max(getattr(n.capacity, dim) for n in nodes)
+        largest = max(getattr(n.offers(platform) or n.capacity, dim) for n in nodes)
         if amount > largest + 1e-9:
             return (f"needs {format_amount(dim, amount)} {dim}, the largest worker in {where} "
-                    f"has {format_amount(dim, largest)}")
+                    f"has {format_amount(dim, largest)}{of}")
         largest_free = max(getattr(free[n.id], dim) for n in nodes)
         if amount > largest_free + 1e-9:
             return (f"needs {format_amount(dim, amount)} {dim}, largest free is "

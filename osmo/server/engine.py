@@ -291,7 +291,9 @@ class Engine:
             case AttemptsOn(node_id=node_id):
                 return self.scheduler.attempts_on(node_id)
             case ListNodes():
-                return [(node, self.scheduler.used(node.id)) for node in self.scheduler.nodes()]
+                return [(node, self.scheduler.used(node.id),
+                         {p: self.scheduler.used(node.id, p) for p in node.platforms})
+                        for node in self.scheduler.nodes()]
             case WaitReasons(workflow_id=wf_id, names=names):
                 return self.scheduler.waiting(wf_id, names)
         raise TypeError(f"not a request: {request!r}")

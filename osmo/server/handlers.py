@@ -315,12 +315,15 @@ class Handlers:
     def pools(self, _request: dict[str, Any]) -> builtins.list[dict[str, Any]]:
         """Known nodes with their pool, platform, sandbox and capacity used/total.
 
+        ``platforms``: each platform the node serves (one, or a cluster node's several),
+        with its own capacity used/total.
+
         ``sandbox`` is ``bwrap`` or ``none``; ``sandbox_why`` says why not, in a few words
         (None when sandboxed, or from a worker too old to say).
         """
         remote = {w["id"]: w for w in self._workers.workers()} if self._workers else {}
         out = []
-        for node, used in self._engine.ask(ListNodes()):
+        for node, used, by_platform in self._engine.ask(ListNodes()):
             worker = remote.get(node.id, {})
             about = worker or self._info
             sandbox = node.labels.get("sandbox", "none")
@@ -329,7 +332,10 @@ class Handlers:
                         "kind": "remote" if worker else "local", "sandbox": sandbox,
                         "sandbox_why": about.get("sandbox_why") if sandbox == "none" else None,
                         "runtime": about.get("runtime"),
-                        "total": vars(node.capacity), "used": vars(used)})
+                        "total": vars(node.capacity), "used": vars(used),
+                        "platforms": {p: {"total": vars(node.offers(p) or node.capacity),
+                                          "used": vars(by_platform.get(p, used))}
+                                      for p in node.served()}})
         return out
 
     def _attempt(self, row: WorkflowRow, request: dict[str, Any]) -> tuple[str | None,

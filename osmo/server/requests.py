@@ -84,7 +84,10 @@ class AttemptsOn:
 
 @dataclass(frozen=True)
 class ListNodes:
-    """Every known node with what its attempts hold: ``[(Node, Capacity used)]``."""
+    """Every known node with what its attempts hold.
+
+    ``[(Node, Capacity used, {platform: Capacity its attempts of that platform hold})]``.
+    """
 
 
 @dataclass(frozen=True)

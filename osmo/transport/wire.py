@@ -74,9 +74,10 @@ from osmo.spec.stored import StoredSpec
 from osmo.transport.blobs import SERVER
 from osmo.transport.rpc import MAX_INT, field, str_list, str_map
 
-__all__ = ["BEAT_EVERY", "LEASE", "PEER_ALLOW", "PEER_DENY", "Ack", "Hello", "Kill",
-           "OpenSession", "Order", "Prepare", "Run", "capacity_from_dict", "capacity_to_dict",
-           "event_from_dict", "event_to_dict", "order_from_dict", "order_to_dict", "worker_id"]
+__all__ = ["BEAT_EVERY", "LEASE", "MAX_PLATFORMS", "PEER_ALLOW", "PEER_DENY", "Ack", "Hello",
+           "Kill", "OpenSession", "Order", "Prepare", "Run", "capacity_from_dict",
+           "capacity_to_dict", "event_from_dict", "event_to_dict", "order_from_dict",
+           "order_to_dict", "worker_id"]
 
 #: zenoh access-control message -> keys (under the cluster prefix) a remote peer may use;
 #: the server's router denies everything else (``osmo.transport.zenoh_link.Acl``).
@@ -99,6 +100,9 @@ LEASE = 10.0
 """Seconds without a beat after which a registered worker is down."""
 
 _TEXT = 4096  # characters of a name, an address or a folder in a worker's message
+MAX_PLATFORMS = 256
+"""Platforms one worker may register (a cluster node's node labels or partitions)."""
+_PLATFORM = re.compile(r"[^\x00-\x20\x7f-\x9f]{1,253}")  # one printable word
 
 
 def event_to_dict(event: Event) -> dict[str, Any]:
@@ -194,7 +198,10 @@ class Hello:
     It says hello again after a server restart.
 
     Attributes:
-        node: its name, pool, capacity, platform, address and labels.
+        node: its name, pool, capacity, platform, address and labels, and every platform it
+            serves with each one's capacity (``platforms``: a Kubernetes node's from its
+            nodes' labels, a Slurm node's from its partitions; a worker from before that
+            field sends ``platform`` only, which then has its whole capacity).
         pid: its process id (shown by ``osmo resource list``).
         host_id, artifacts: its host and its artifact folder (a server on the same host
             links blobs from there instead of fetching them).
@@ -221,6 +228,8 @@ class Hello:
         node = self.node
         return {"id": node.id, "pool": node.pool, "platform": node.platform,
                 "capacity": capacity_to_dict(node.capacity), "labels": dict(node.labels),
+                "platforms": {name: capacity_to_dict(cap)
+                              for name, cap in node.platforms.items()},
                 "address": node.address, "host_id": self.host_id, "artifacts": self.artifacts,
                 "pid": self.pid, "draining": self.draining, "active": list(self.active),
                 "finished": list(self.finished), "runtime": self.runtime,
@@ -237,7 +246,7 @@ class Hello:
                     capacity=capacity_from_dict(field(data, "capacity", dict, default={})),
                     platform=field(data, "platform", str, default=None, max_len=_TEXT),
                     address=field(data, "address", str, max_len=_TEXT),
-                    labels=str_map(data, "labels"))
+                    labels=str_map(data, "labels"), platforms=_platforms(data))
         finished = field(data, "finished", list, default=[])
         if not all(isinstance(report, dict) for report in finished):
             raise UsageError("'finished' must be a list of reports (objects)")
@@ -248,6 +257,28 @@ class Hello:
                    active=tuple(str_list(data, "active")), finished=tuple(finished),
                    runtime=field(data, "runtime", str, default=None, max_len=_TEXT),
                    sandbox_why=field(data, "sandbox_why", str, default=None, max_len=_TEXT))
+
+
+def _platforms(data: dict[str, Any]) -> dict[str, Capacity]:
+    """A hello's ``platforms``: name → capacity, each checked (absent: none).
+
+    Raises:
+        UsageError: not an object of at most :data:`MAX_PLATFORMS` printable names (no
+            spaces) to capacities.
+    """
+    found = field(data, "platforms", dict, default={})
+    if len(found) > MAX_PLATFORMS:
+        raise UsageError(f"'platforms' holds {len(found)} platforms; at most "
+                         f"{MAX_PLATFORMS} may be registered")
+    out: dict[str, Capacity] = {}
+    for name, amounts in found.items():
+        if not _PLATFORM.fullmatch(name):
+            raise UsageError(f"'platforms' names a platform {shown(name)}: a platform is "
+                             "1 to 253 printable characters, no spaces")
+        if not isinstance(amounts, dict):
+            raise UsageError(f"'platforms.{name}' must be a capacity (an object)")
+        out[name] = capacity_from_dict(amounts)
+    return out
 
 
 # ---------------------------------------------------------------------- orders

@@ -62,6 +62,7 @@ from osmo.scheduler.types import (
     AttemptExited,
     AttemptLost,
     AttemptStartFailed,
+    Capacity,
     Event,
     KillAttempt,
     PrepareAttempt,
@@ -153,6 +154,7 @@ class RemoteWorker:
         images = image_runtime_for_node(options.runtime, options.container_engine, home,
                                         kubernetes_config=options.kubernetes_config)
         cpus, gpus, memory = _capacity(options, images, cluster[0] if cluster else None)
+        self._clusters = (images, cluster[0] if cluster else None)  # their platforms
         self.pool = LocalPool(
             home=home, emit=self._emit, node_id=self.id, pool=options.pool,
             cpus=cpus, gpus=gpus, memory=memory,
@@ -279,7 +281,8 @@ class RemoteWorker:
     def _register(self) -> bool:
         own = self.pool.node()  # its labels (the sandbox) win over the user's
         node = replace(own, platform=self.opts.platform, address=self._address,
-                       labels={**self.opts.labels, **own.labels})
+                       labels={**self.opts.labels, **own.labels},
+                       platforms=_platforms(*self._clusters, own.capacity.storage))
         with self._lock:
             hello = Hello(node, pid=os.getpid(), host_id=host_id(),
                           artifacts=str(self.store.root), draining=self._draining,
@@ -481,6 +484,29 @@ def _capacity(options: WorkerOptions, images: object, cluster: SlurmRuntime | No
     return (options.cpus if options.cpus is not None else cpus,
             options.gpus if options.gpus is not None else gpus,
             options.memory if options.memory is not None else memory)
+
+
+def _platforms(images: object, cluster: SlurmRuntime | None,
+               storage: int) -> dict[str, Capacity]:
+    """Every platform a cluster node serves, with its capacity.
+
+    A Kubernetes pool's come from its nodes' labels, a Slurm pool's from its partitions;
+    any other worker has none (its one ``--platform`` has its whole capacity). A cluster
+    that cannot say now offers none.
+    """
+    try:
+        if cluster is not None:
+            found = {name: (float(p.cpus), p.gpus, p.memory)
+                     for name, p in cluster.platforms().items()}
+        elif isinstance(images, KubernetesRuntime):
+            found = images.platforms()
+        else:
+            return {}
+    except OsmoError as exc:
+        log.warning("cannot read the cluster's platforms (registering none): %s", exc)
+        return {}
+    return {name: Capacity(cpus, gpus, memory, storage)
+            for name, (cpus, gpus, memory) in found.items()}
 
 
 def _address() -> str:

@@ -20,6 +20,7 @@ import time
 import uuid
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 from kubernetes import client, watch
@@ -273,6 +274,60 @@ def test_query_and_events_show_why_a_pod_waits(kube: KubeCluster, tmp_path: Path
     assert events.count("Insufficient cpu") == 1, events  # once, not per watch event
     assert "waits no more" in events, events
     assert "started" in "".join(task_lines(kube.osmo, wf_id).get("w", []))
+    assert nothing_left(kube) == []
+
+
+PLATFORMS = """\
+workflow:
+  name: platforms
+  resources:
+    gpu: {platform: gpu, cpu: 1, gpu: 1, memory: 1Gi}
+    cpu: {platform: cpu, cpu: 6, memory: 1Gi}
+  tasks:
+  - name: on-gpu
+    image: alpine:3.18
+    resource: gpu
+    command: ["sh", "-c", "echo gpu"]
+  - name: on-cpu
+    image: alpine:3.18
+    resource: cpu
+    command: ["sh", "-c", "echo cpu"]
+"""
+KIND = "osmo.dev/test-kind"
+
+
+def test_a_node_serves_each_platform_of_its_nodes_labels(kube: KubeCluster,
+                                                         tmp_path: Path) -> None:
+    """Platforms from node labels: registered with their own capacity, shown by osmo
+    resource list, and each task's pod goes to a node of its platform."""
+    kube.kubelet.add_node("gpu-1", cpu="4", memory="8Gi", gpus=2, labels={KIND: "gpu"})
+    kube.kubelet.add_node("cpu-1", cpu="8", memory="16Gi", labels={KIND: "cpu"})
+    bound: dict[str, str] = {}
+
+    def seen(event: Any) -> None:
+        labels = event.obj.get("metadata", {}).get("labels") or {}
+        if event.res == PODS and event.obj.get("spec", {}).get("nodeName"):
+            bound.setdefault(labels.get("osmo.dev/task", ""), event.obj["spec"]["nodeName"])
+
+    kube.server.store.listen(seen)
+    kube.start_worker("kube-p", pool="plat", groupNetwork="host", platforms={
+        "gpu": {"nodeSelector": {KIND: "gpu"}}, "cpu": {"nodeSelector": {KIND: "cpu"}}})
+    node = kube.osmo_cluster.nodes()["kube-p"]
+    assert {name: (p["total"]["cpu"], p["total"]["gpu"])
+            for name, p in node["platforms"].items()} == {"gpu": (4, 2), "cpu": (8, 0)}, node
+    listed = kube.osmo("resource", "list", check=True).out
+    assert "platform gpu" in listed and "platform cpu" in listed, listed
+    spec = tmp_path / "platforms.yaml"
+    spec.write_text(PLATFORMS)
+    r = kube.osmo("submit", str(spec), "--pool", "plat", "--wait", timeout=300)
+    assert r.code == 0, r.out + r.err
+    assert {bound.get("on-gpu"), bound.get("on-cpu")} == {"gpu-1", "cpu-1"}, bound
+    assert (bound["on-gpu"], bound["on-cpu"]) == ("gpu-1", "cpu-1"), bound
+    spec.write_text(PLATFORMS.replace("platform: cpu", "platform: arm"))
+    r = kube.osmo("submit", str(spec), "--pool", "plat")
+    assert r.code == 2, r.out + r.err
+    assert ("requests platform 'arm' but no node in pool 'plat' has it (platforms: cpu, gpu)"
+            in r.err), r.err
     assert nothing_left(kube) == []
 
 

@@ -95,3 +95,55 @@ def test_placement_honours_pool_platform_and_exclusions() -> None:
     assert sim.task("p", "wf-2").node_id == "a1"
     sim.submit(workflow(task("q")), wid="wf-3", pool="nowhere")
     assert sim.status("q", "wf-3") == "SCHEDULING"
+
+
+def two_platforms(node_id: str = "k1") -> object:
+    """A cluster node: 16 cpu in all, 4 of them (and 2 gpus) on its gpu nodes."""
+    from osmo.scheduler.types import Capacity, Node
+    return Node(node_id, "local", Capacity(16, 2, 64 * GiB, 100 * GiB), address="a",
+                platforms={"gpu": Capacity(4, 2, 16 * GiB, 100 * GiB),
+                           "cpu": Capacity(12, 0, 48 * GiB, 100 * GiB)})
+
+
+@pytest.mark.parametrize(("resources", "reasons"), [
+    ({"default": R(platform="gpu", cpu=4, gpu=2)}, []),
+    ({"default": R(platform="cpu", cpu=12)}, []),
+    ({"default": R(platform="gpu", cpu=8)},
+     ["task 'a' requests cpu=8 but no node in pool 'local' has more than 4 cpu",
+      "task 'b' requests cpu=8 but no node in pool 'local' has more than 4 cpu"]),
+    ({"default": R(platform="cpu", gpu=1)},
+     ["task 'a' requests gpu=1 but no node in pool 'local' has more than 0 gpu",
+      "task 'b' requests gpu=1 but no node in pool 'local' has more than 0 gpu"]),
+    ({"default": R(platform="arm")},
+     ["task 'a' requests platform 'arm' but no node in pool 'local' has it "
+      "(platforms: cpu, gpu)", "task 'b' requests platform 'arm' but no node in pool "
+      "'local' has it (platforms: cpu, gpu)"]),
+])
+def test_a_node_with_platforms_offers_each_its_own_capacity(resources: dict,
+                                                            reasons: list[str]) -> None:
+    spec = workflow(task("a"), task("b"), resources=resources)
+    assert sched(two_platforms()).check_fit(spec, "local") == reasons
+
+
+def test_tasks_fill_each_platform_apart_and_wait_for_their_own() -> None:
+    sim = Sim(two_platforms())
+    spec = workflow(task("g1", resource="g"), task("g2", resource="g"),
+                    task("c1", resource="c"), task("c2", resource="c"),
+                    resources={"g": R(platform="gpu", cpu=3, gpu=1),
+                               "c": R(platform="cpu", cpu=6)})
+    sim.submit(spec)
+    # the gpu platform has 4 cpus: one gpu task at a time; the cpu platform takes both
+    assert sim.statuses() == {"g1": "INITIALIZING", "g2": "SCHEDULING",
+                              "c1": "INITIALIZING", "c2": "INITIALIZING"}
+    waiting = sim.s.waiting("wf-1")["g2"].reason
+    assert waiting == "needs 3 cpu, largest free is 1", waiting
+    assert (sim.s.used("k1").cpu, sim.s.used("k1", "gpu").cpu) == (15, 3)
+    sim.run("g1")
+    assert sim.status("g2") == "INITIALIZING"
+    assert sim.s.used("k1", "gpu").cpu == 3
+
+
+def test_a_worker_of_one_platform_still_serves_it_with_its_whole_capacity() -> None:
+    sim = Sim(node("n1", cpu=4, platform="x86"))
+    sim.submit(workflow(task("a"), task("b"), resources={"default": R(platform="x86", cpu=2)}))
+    assert sim.statuses() == {"a": "INITIALIZING", "b": "INITIALIZING"}

@@ -22,7 +22,7 @@ def _reason(sim: Sim, name: str, wid: str = "wf-1") -> Waiting:
     ([node("n1", gpu=2)], None, "gpu4", "needs 4 gpu, the largest worker in any pool has 2"),
     ([node("n1", gpu=2)], "gpu2", "gpu2", "needs 2 gpu, largest free is 0"),
     ([node("n1", gpu=4), node("n2", gpu=2)], "gpu2", "gpu4", "needs 4 gpu, largest free is 2"),
-    ([node("n1", platform="x86")], None, "arm", "no online worker in any pool has platform 'arm'"),
+    ([node("n1", platform="x86")], None, "arm", "no online worker in any pool has platform 'arm' (platforms: x86)"),
     ([node("n1", memory=16 * GiB)], "mem", "mem", "needs 12Gi memory, largest free is 4Gi"),
 ])
 def test_a_task_that_does_not_fit_says_what_it_lacks(nodes: list, busy: str | None,

@@ -6,11 +6,13 @@ from typing import Any
 
 import pytest
 
-from osmo.scheduler.types import AttemptLost, PrepareAttempt
+from osmo.errors import UsageError
+from osmo.scheduler.types import AttemptLost, AttemptWaiting, Capacity, Node, PrepareAttempt
 from osmo.spec import Workflow, spec_to_dict
 from osmo.spec.stored import StoredSpec
 from osmo.transport.wire import (
     Ack,
+    Hello,
     Kill,
     OpenSession,
     Prepare,
@@ -92,3 +94,41 @@ def test_a_malformed_order_is_a_value_error(data: Any) -> None:
 def test_a_handed_back_attempt_is_reported_through_the_wire_form() -> None:
     lost = AttemptLost("w-1:a:0", "worker w drained; attempt handed back")
     assert event_from_dict(event_to_dict(lost)) == lost
+
+
+def test_a_waiting_report_round_trips_and_is_cleaned_on_arrival() -> None:
+    said = AttemptWaiting("w-1:a:0", "0/2 nodes are available: 2 Insufficient cpu.")
+    assert event_from_dict(event_to_dict(said)) == said
+    hostile = {"op": "waiting", "attempt_id": "w-1:a:0", "reason": "a\x1b[2J\nb" * 1000}
+    reason = event_from_dict(hostile).reason  # type: ignore[union-attr]
+    assert reason.startswith("a [2J ba [2J b") and len(reason) == 300
+    assert event_from_dict({"op": "waiting", "attempt_id": "x", "reason": None}) == (
+        AttemptWaiting("x", ""))
+
+
+GPU = Capacity(4, 2, 16 << 30, 0)
+NODE = Node("k1", "default", Capacity(16, 2, 64 << 30, 0), address="10.0.0.2",
+            platforms={"gpu": GPU, "cpu": Capacity(12, 0, 48 << 30, 0)})
+
+
+def test_a_hello_carries_every_platform_with_its_capacity() -> None:
+    assert Hello.from_dict(Hello(NODE).to_dict()).node == NODE
+    old = Hello(Node("w", "default", Capacity(2), platform="x86")).to_dict()
+    del old["platforms"]  # a worker from before platforms: its one platform, whole
+    node = Hello.from_dict(old).node
+    assert (node.platforms, node.offers("x86"), node.served()) == ({}, Capacity(2), ["x86"])
+
+
+@pytest.mark.parametrize(("platforms", "words"), [
+    ({f"p{n}": {} for n in range(257)}, "at most 256"),
+    ({"a b": {}}, "no spaces"),
+    ({"\x1b[31m": {}}, "printable"),
+    ({"x" * 254: {}}, "1 to 253"),
+    ({"gpu": 3}, "must be a capacity"),
+    ({"gpu": {"cpu": -1}}, "must be a number from 0"),
+    ([], "platforms"),
+])
+def test_a_malformed_platform_list_is_refused(platforms: Any, words: str) -> None:
+    hello = {**Hello(NODE).to_dict(), "platforms": platforms}
+    with pytest.raises(UsageError, match=words):
+        Hello.from_dict(hello)

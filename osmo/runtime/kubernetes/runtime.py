@@ -160,8 +160,9 @@ class KubernetesRuntime:
     def platforms(self) -> dict[str, Capacity]:
         """The pool's platforms some Ready node can take, each with its nodes' allocatable.
 
-        (``capacity.platform_capacity``.) The worker registers one platform today
-        (``--platform``): offering these needs a registration that carries several.
+        (``capacity.platform_capacity``.) The worker registers them all, each with its
+        capacity (``wire.Hello``): the server places a task with ``platform:`` only where
+        its platform has room.
 
         Raises:
             KubeError: the nodes cannot be listed.

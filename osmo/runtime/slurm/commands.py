@@ -133,6 +133,13 @@ class Slurm:
         return _summed(",".join(dict.fromkeys(part for part, _, _ in rows)),
                        {node: counts for _, node, counts in rows})
 
+    def partitions(self, names: Sequence[str]) -> dict[str, Partition]:
+        """Each of the partitions ``names`` that ``sinfo`` shows, counted on its own."""
+        nodes: dict[str, dict[str, tuple[int, int, int]]] = {}
+        for part, node, counts in self._node_rows(names):
+            nodes.setdefault(part, {})[node] = counts
+        return {part: _summed(part, found) for part, found in nodes.items()}
+
     def max_minutes(self, names: Sequence[str] = ()) -> int | None:
         """The longest ``MaxTime`` of the partitions ``names``, in minutes.
 

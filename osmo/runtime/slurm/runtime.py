@@ -241,6 +241,16 @@ class SlurmRuntime:
                              if self.options.partitions else "sinfo shows no partition")
         return found
 
+    def platforms(self) -> dict[str, Partition]:
+        """Each partition the pool names, a platform of its own with its nodes' capacity.
+
+        A task with ``platform: P`` goes to partition P (``script.resource_args``); a pool
+        that names no partition (Slurm's default one) has no platforms. Raises SlurmError.
+        """
+        if not self.options.partitions:
+            return {}
+        return self.slurm.partitions(self.options.partitions)
+
     def cancel_orphans(self) -> list[str]:
         """Cancel every job of this owner still queued or running (a previous life's)."""
         cancelled = []
