@@ -414,3 +414,46 @@ def test_a_login_host_without_slurm_s_commands_refuses_to_start_saying_which(
     assert done.returncode == 3, done.stdout + done.stderr
     assert "sbatch not found on PATH" in done.stderr, done.stderr
     assert "Traceback" not in done.stderr
+
+
+def test_each_partition_is_a_platform_and_a_task_runs_in_its_own(
+        grid: Cluster, roomy: SlurmCluster, tmp_path: Path) -> None:
+    """A node that may use two partitions registers each as a platform with its capacity;
+    a task with ``platform: P`` runs in partition P (on its node)."""
+    parts = {"left": roomy.nodes[0], "right": roomy.nodes[1]}
+    for part, node in parts.items():
+        roomy.run("scontrol", "create", f"PartitionName={part}", f"Nodes={node}",
+                  "MaxTime=INFINITE", "State=UP")
+    spec = write(tmp_path / "wf.yaml", """
+workflow:
+  name: sides
+  resources:
+    left: {platform: left, cpu: 1}
+    right: {platform: right, cpu: 1}
+  tasks:
+  - name: on-left
+    resource: left
+    command: [echo, left]
+  - name: on-right
+    resource: right
+    command: [echo, right]
+""")
+    try:
+        grid.start_worker("login-sides", "--runtime", "slurm", "--slurm-partition", "left",
+                          "--slurm-partition", "right", pool="sides")
+        node = grid.nodes()["login-sides"]
+        assert {p: v["total"]["cpu"] for p, v in node["platforms"].items()} == {
+            "left": 2, "right": 2}, node
+        wf_id = grid.osmo.submit(spec, "--pool", "sides")
+        info = grid.osmo.wait_for(wf_id, lambda i: i["status"] not in ("PENDING", "RUNNING"),
+                                  timeout=120)
+        assert info["status"] == "COMPLETED", info
+        for task, part in (("on-left", "left"), ("on-right", "right")):
+            said = osmo_lines(grid.osmo, wf_id, task)
+            assert any(line.endswith(f"RUNNING on {parts[part]}") for line in said), said
+    finally:
+        if "login-sides" in grid.workers:
+            grid.signal("login-sides", signal.SIGTERM)
+            grid.workers["login-sides"].wait(timeout=60)
+        for part in parts:
+            roomy.run("scontrol", "delete", f"PartitionName={part}")
