@@ -97,19 +97,19 @@ def room(node: Node, req: Request, used: Used, extra: Used | None = None) -> Cap
     than that platform's capacity less what the node's attempts of that platform hold.
     ``extra``: more held, not reserved yet (a gang being packed).
     """
-    if not req.allows(node):
-        return None
     offered = node.offers(req.platform)
-    assert offered is not None  # allows() checked it
-
-    def held(key: tuple[str, str | None]) -> Capacity:
-        more = extra.get(key) if extra else None
-        return used.get(key, ZERO) + more if more is not None else used.get(key, ZERO)
-
-    free = node.capacity - held((node.id, None))
+    if offered is None or node.id in req.excluded:
+        return None
+    key: tuple[str, str | None] = (node.id, None)
+    free = node.capacity - used.get(key, ZERO)
+    if extra:
+        free = free - extra.get(key, ZERO)
     if req.platform is None:
         return free
-    own = offered - held((node.id, req.platform))
+    key = (node.id, req.platform)
+    own = offered - used.get(key, ZERO)
+    if extra:
+        own = own - extra.get(key, ZERO)
     return Capacity(min(free.cpu, own.cpu), min(free.gpu, own.gpu),
                     min(free.memory, own.memory), min(free.storage, own.storage))
 

@@ -43,7 +43,7 @@ class TaskInfo:
     reused: bool  # its outputs came from an earlier identical run (cache or restart)
     node: str | None = None  # where its latest attempt was placed ("local" or a worker)
     progress: str | None = None  # a running typed task's latest progress ("3/10 message")
-    waiting: TaskWaiting | None = None  # why it waits, while WAITING or SCHEDULING
+    waiting: TaskWaiting | None = None  # why it waits: WAITING, SCHEDULING, or its pod/job held
 
     @property
     def duration(self) -> float | None:
