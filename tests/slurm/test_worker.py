@@ -311,8 +311,12 @@ def test_a_group_is_one_allocation_across_two_nodes_and_waits_whole_for_room(
     spec = write(tmp_path / "wf.yaml", GANG.replace("PORT", str(free_port(0))))
     wf_id = grid.osmo.submit(spec)
     try:
-        seen = until_logged(grid, wf_id, "PENDING (Resources)")
+        seen = until_logged(grid, wf_id, "PENDING: Resources")
         assert " on n" not in seen  # neither member runs while the other cannot
+        rows = grid.osmo.wait_for(wf_id, lambda i: all(
+            t.get("waiting") for t in i["tasks"]), timeout=30)["tasks"]
+        assert all(re.fullmatch(r"Slurm job \d+\+[01] PENDING: Resources \(.*\)",
+                                t["waiting"]["reason"]) for t in rows), rows
         job = re.search(r"Slurm job (\d+)\+0 submitted", seen)
         assert job is not None, seen
         shown = roomy.run("scontrol", "show", "job", job.group(1)).stdout
