@@ -416,7 +416,8 @@ def resource_table(rows: list[dict[str, Any]], *, by: str) -> Table:
     table = Table(box=None, pad_edge=False)
     first = (["Node", "Pool", "Platform", "Status", "Runtime"] if by == "node"
              else ["Pool", "Nodes", "Platforms", "Runtimes"])
-    for col in (*first, "CPU", "GPU", "Memory", "Sandbox"):
+    warm = by == "node" and any(r.get("warm") for r in rows)
+    for col in (*first, "CPU", "GPU", "Memory", "Sandbox", *(["Warm"] if warm else [])):
         table.add_column(col)
     for r in rows:
         used, total = r["used"], r["total"]
@@ -427,8 +428,14 @@ def resource_table(rows: list[dict[str, Any]], *, by: str) -> Table:
         table.add_row(*head, f"{used['cpu']:g}/{total['cpu']:g}",
                       f"{used['gpu']}/{total['gpu']}",
                       f"{_gib(used['memory'])}/{_gib(total['memory'])}",
-                      safe(_sandbox(r)))
+                      safe(_sandbox(r)), *([_warm(r.get("warm") or [])] if warm else []))
     return table
+
+
+def _warm(runners: list[dict[str, Any]]) -> str:
+    """A node's warm runners: ``sim.rollout@1 x3 (91Mi)`` for each, one a line."""
+    return "\n".join(f"{safe(str(r['type']))} x{r['started']} ({r['rss'] / 2**20:.0f}Mi)"
+                     for r in runners) or "-"
 
 
 def _sandbox(row: dict[str, Any]) -> str:

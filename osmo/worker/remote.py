@@ -162,7 +162,8 @@ class RemoteWorker:
             input_manifests=self._inputs.manifest_of, sandbox=options.sandbox,
             sandbox_share=options.sandbox_share, address=self._address,
             procs_dir=home.procs, containers=images,
-            cluster=cluster[0] if cluster else None, cluster_images=cluster[1] if cluster else None)
+            cluster=cluster[0] if cluster else None, cluster_images=cluster[1] if cluster else None,
+            warm=options.warm)
         for secret in options.secret_files:
             self.pool.hide(Path(secret))
         self.sessions = NodeSessions(self.link, self.pool, lambda ticket: self._api.call(
