@@ -149,13 +149,13 @@ def test_a_runner_killed_under_its_attempt_is_replaced(warm_osmo: Osmo, tmp_path
     gate = tmp_path / "gate"
     wf = warm_osmo.submit(_project(tmp_path, GATED.format(gate=gate, more="")))
     pid = read_pid(gate)
-    runner = int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
+    runner = _parent(pid)
     gate.unlink()
     os.kill(runner, signal.SIGKILL)
     wait_gone(pid)
     again = read_pid(gate, timeout=120)  # rescheduled, forked from a new runner
     assert again != pid and process_alive(again)
-    assert int(Path(f"/proc/{again}/stat").read_text().rsplit(")", 1)[1].split()[1]) != runner
+    assert _parent(again) != runner
     warm_osmo("cancel", wf, check=True)
     info = warm_osmo.wait_for(wf, ended)
     assert info["tasks"][0]["retry"] == 1, info["tasks"]
@@ -166,6 +166,7 @@ def test_cancel_and_timeout_end_warm_attempts(warm_osmo: Osmo, tmp_path: Path) -
     gate, late = tmp_path / "gate", tmp_path / "late"
     wf = warm_osmo.submit(_project(tmp_path, GATED.format(gate=gate, more="")))
     first = read_pid(gate)
+    assert _parent(first) != warm_osmo.server_pid()  # forked from a runner
     warm_osmo("cancel", wf, check=True)
     wait_gone(first, timeout=60)
     assert warm_osmo.wait_for(wf, ended)["status"] != "COMPLETED"
@@ -177,11 +178,15 @@ def test_cancel_and_timeout_end_warm_attempts(warm_osmo: Osmo, tmp_path: Path) -
     assert info["status"].startswith("FAILED"), info
 
 
+def _parent(pid: int) -> int:
+    return int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
+
+
 def test_kill_9_of_the_server_leaves_no_warm_attempt(warm_osmo: Osmo, tmp_path: Path) -> None:
     gate = tmp_path / "gate"
     warm_osmo.submit(_project(tmp_path, GATED.format(gate=gate, more="")))
     pid = read_pid(gate)
-    runner = int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
+    runner = _parent(pid)
     server = warm_osmo.server_pid()
     assert server is not None and runner != server
     os.kill(server, signal.SIGKILL)
@@ -217,8 +222,8 @@ def test_warm_off_and_warm_false_start_cold(osmo: Osmo, tmp_path: Path) -> None:
 def test_warm_on_a_task_without_a_type_is_refused_with_its_place(osmo: Osmo,
                                                                  tmp_path: Path) -> None:
     spec = write(tmp_path / "wf.yaml", "workflow:\n  name: w\n  tasks:\n  - name: a\n"
-                                       "    command: [true]\n    warm: nope\n  - name: b\n"
-                                       "    command: [true]\n    warm: false\n")
+                                       "    command: ['true']\n    warm: nope\n  - name: b\n"
+                                       "    command: ['true']\n    warm: false\n")
     done = osmo("submit", str(spec))
     assert done.code == 2, done
     assert f"{spec}:6:11:" in done.err and f"{spec}:9:11:" in done.err, done.err

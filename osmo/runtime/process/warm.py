@@ -20,9 +20,9 @@ fork of it. What it owns:
   end is passed with the fork request: only the forked child reads it.
 - **an attempt's start, kill and exit** (:class:`WarmHandle`): its stdout and stderr are
   pipes made here, their write ends passed to the runner (``SCM_RIGHTS``) and on to the
-  child; the child leads its own process group (made before the runner answers); the runner
-  answers with a pidfd of it. ``kill`` signals the child through its pidfd and then its
-  group (never a reused pid); ``exit_fd`` is a status pipe on which the runner writes the
+  child; the child leads its own session and process group (before the runner answers);
+  the runner answers with a pidfd of it. ``kill`` signals the child through its pidfd and
+  then its group (never a reused pid); ``exit_fd`` is a status pipe on which the runner writes the
   exit code (``128+N``: killed by signal N) once it reaped the child. A runner that died
   before it did so leaves the attempt ``lost`` (its child died with it).
 - **what ``osmo resource list`` shows**: :meth:`WarmRunners.runners`.

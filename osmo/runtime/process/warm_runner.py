@@ -18,9 +18,9 @@ no credential. What it owns:
   thread is refused: a thread of the runner would outlive every attempt and see them all.
 - **the forks**: each request on the socket carries four descriptors (the attempt's stdout
   and stderr pipes, the read end of its request pipe, the write end of its status pipe). The
-  runner forks, puts the child in its own process group (before it answers, so a kill from
-  the pool always finds the group), answers the child's pid with a pidfd of it, and closes its
-  copies of the attempt's descriptors. It never reads the request pipe: only the child does.
+  runner forks, waits until the child leads its own session and process group (before it
+  answers, so a kill from the pool always finds the group), answers the child's pid with a
+  pidfd of it, and closes its copies of the attempt's descriptors. It never reads the request pipe: only the child does.
 - **the exits**: it reaps its children and writes each one's exit code (``128+N`` for signal
   N) to its status pipe, then closes it.
 - **its end**: when the pool closes its end of the socket, it takes no more requests and
@@ -28,7 +28,8 @@ no credential. What it owns:
   seconds), it exits by itself. It dies with the pool (``PR_SET_PDEATHSIG``, set by the pool's
   spawn), and its children die with it (the same signal, set in each child).
 
-The child (:func:`_attempt`): ``PR_SET_PDEATHSIG`` (SIGKILL), default signal handlers, every
+The child (:func:`_attempt`): ``PR_SET_PDEATHSIG`` (SIGKILL), its own session (as a cold
+attempt's ``start_new_session``), default signal handlers, every
 descriptor of the runner closed, its request read from the pipe (argv, working folder,
 complete environment, as JSON), stdin from ``/dev/null``, stdout and stderr the attempt's
 pipes; the environment then *replaces* the runner's. A typed task's argv
@@ -171,13 +172,16 @@ class _Runner:
         out, err, request, status = fds
         sys.stdout.flush()
         sys.stderr.flush()
+        led_r, led_w = os.pipe2(os.O_CLOEXEC)
         pid = os.fork()
         if pid == 0:
-            _attempt(out, err, request,
+            os.close(led_r)
+            _attempt(out, err, request, led_w,
                      drop=(self.sock.fileno(), self.wake_r, self.wake_w, status,
                            *self.children.values()))
-        with contextlib.suppress(OSError):  # the child does it too: whichever is first
-            os.setpgid(pid, pid)
+        os.close(led_w)
+        os.read(led_r, 1)  # its end closed: the child leads its session (or is gone)
+        os.close(led_r)
         for fd in (out, err, request):
             os.close(fd)
         self.children[pid] = status
@@ -208,13 +212,16 @@ class _Runner:
             os.close(status)
 
 
-def _attempt(out: int, err: int, request: int, *, drop: tuple[int, ...]) -> None:
-    """In the forked child: become the attempt, then run it; never returns."""
+def _attempt(out: int, err: int, request: int, led: int, *, drop: tuple[int, ...]) -> None:
+    """In the forked child: become the attempt, then run it; never returns.
+
+    ``led``: closed once the child leads its own session (and process group).
+    """
     code = 127
     try:
         _die_with_parent()
-        with contextlib.suppress(OSError):
-            os.setpgid(0, 0)
+        os.setsid()
+        os.close(led)
         signal.set_wakeup_fd(-1)
         for sig in (signal.SIGCHLD, signal.SIGTERM, signal.SIGINT, signal.SIGPIPE):
             signal.signal(sig, signal.SIG_DFL)
