@@ -20,7 +20,8 @@ no credential. What it owns:
   and stderr pipes, the read end of its request pipe, the write end of its status pipe). The
   runner forks, waits until the child leads its own session and process group (before it
   answers, so a kill from the pool always finds the group), answers the child's pid with a
-  pidfd of it, and closes its copies of the attempt's descriptors. It never reads the request pipe: only the child does.
+  pidfd of it, and closes its copies of the attempt's descriptors. It never reads the
+  request pipe: only the child does.
 - **the exits**: it reaps its children and writes each one's exit code (``128+N`` for signal
   N) to its status pipe, then closes it.
 - **its end**: when the pool closes its end of the socket, it takes no more requests and
