@@ -310,8 +310,8 @@ class Handlers:
         """Known nodes with their pool, platform, sandbox and capacity used/total.
 
         ``sandbox`` is ``bwrap`` or ``none``; ``sandbox_why`` says why not, in a few words
-        (None when sandboxed, or from a worker too old to say). ``warm``: the local pool's
-        warm runners (type, pid, rss, started, running; a remote node's are not known).
+        (None when sandboxed, or from a worker too old to say). ``warm``: the node's warm
+        runners (type, pid, rss, started, running; a remote worker's as of its last beat).
         """
         remote = {w["id"]: w for w in self._workers.workers()} if self._workers else {}
         out = []
@@ -324,7 +324,8 @@ class Handlers:
                         "kind": "remote" if worker else "local", "sandbox": sandbox,
                         "sandbox_why": about.get("sandbox_why") if sandbox == "none" else None,
                         "runtime": about.get("runtime"),
-                        "warm": None if worker or self._warm is None else self._warm(),
+                        "warm": worker.get("warm") if worker else
+                        self._warm() if self._warm is not None else None,
                         "total": vars(node.capacity), "used": vars(used)})
         return out
 

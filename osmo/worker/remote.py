@@ -210,7 +210,8 @@ class RemoteWorker:
     def _beat(self) -> None:
         """Tell the server this worker is alive; register again if it no longer counts it."""
         try:
-            self._api.call("worker_beat", {"id": self.id}, timeout=BEAT_EVERY * 2)
+            self._api.call("worker_beat", {"id": self.id, "warm": self.pool.warm_runners()},
+                           timeout=BEAT_EVERY * 2)
         except NotAllowed:
             log.info("the server no longer counts worker %s: registering again", self.id)
             self._register_now.set()

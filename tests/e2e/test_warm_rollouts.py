@@ -2,16 +2,19 @@
 
 The server's pool runs unsandboxed (``--sandbox off``, where warm starts apply): every
 rollout after the first is forked from one runner that imported gymnasium and MuJoCo once,
-and ``osmo resource list`` shows that runner, how many attempts it started and its memory.
+and ``osmo resource list`` shows that runner, how many attempts it started and its memory;
+a remote worker's runners too, as its last beat said.
 """
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import pytest
 
 from tests.conftest import Osmo, write
+from tests.e2e.cluster import Cluster
 
 pytest.importorskip("mujoco")
 pytest.importorskip("gymnasium")
@@ -39,3 +42,21 @@ def test_a_rollout_sweep_runs_on_one_warm_runner(osmo: Osmo, tmp_path: Path) -> 
     assert f"sim.rollout@2 x{TASKS}" in text, text
     log = osmo("logs", wf, "-t", "rollout-3", check=True).out
     assert "warm start: forked from a runner of sim.rollout" in log, log
+
+
+def test_a_remote_workers_warm_runners_show_in_resource_list(tmp_path: Path) -> None:
+    """A worker's beat carries its runners: ``osmo resource list`` shows them for its node."""
+    with Cluster.started(tmp_path) as cluster:
+        cluster.start_worker("w1", "--sandbox", "off", "--cpus", "2")
+        spec = write(tmp_path / "sweep.yaml", SWEEP.replace(f"rollout-{TASKS - 1}", "last"))
+        wf = cluster.osmo.submit(spec, "--wait", timeout=300)
+        assert {t["status"] for t in cluster.osmo.query(wf)["tasks"]} == {"COMPLETED"}
+        deadline = time.monotonic() + 30
+        while True:  # the next beat (every 2 s) says it
+            nodes = cluster.osmo("resource", "list", "--format", "json", check=True).json()
+            assert isinstance(nodes, list)
+            warm = [r for n in nodes if n["node"] == "w1" for r in n.get("warm") or []]
+            if warm or time.monotonic() > deadline:
+                break
+            time.sleep(0.5)
+        assert [(r["type"], r["started"]) for r in warm] == [("sim.rollout@2", TASKS)], nodes

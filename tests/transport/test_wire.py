@@ -6,6 +6,7 @@ from typing import Any
 
 import pytest
 
+from osmo.errors import UsageError
 from osmo.scheduler.types import AttemptLost, PrepareAttempt
 from osmo.spec import Workflow, spec_to_dict
 from osmo.spec.stored import StoredSpec
@@ -19,6 +20,7 @@ from osmo.transport.wire import (
     event_to_dict,
     order_from_dict,
     order_to_dict,
+    warm_runners,
 )
 
 CMD = PrepareAttempt(attempt_id="w-1:a:0", workflow_id="w-1", task="a", retry=0, node_id="n1",
@@ -92,3 +94,24 @@ def test_a_malformed_order_is_a_value_error(data: Any) -> None:
 def test_a_handed_back_attempt_is_reported_through_the_wire_form() -> None:
     lost = AttemptLost("w-1:a:0", "worker w drained; attempt handed back")
     assert event_from_dict(event_to_dict(lost)) == lost
+
+
+_RUNNER = {"type": "sim.rollout@2", "pid": 7, "rss": 1 << 20, "started": 3, "running": 1}
+
+
+@pytest.mark.parametrize(("warm", "message"), [
+    ("many", "'warm' must be a list"),
+    ([1], "a list of runners"),
+    ([{**_RUNNER, "pid": "7"}], "'warm.pid' must be"),
+    ([{**_RUNNER, "rss": -1}], "numbers are from 0"),
+    ([{**_RUNNER, "type": "x" * 201}], "'warm.type' is too long"),
+    ([dict(_RUNNER)] * 257, "at most 256"),
+])
+def test_a_beats_warm_runners_are_checked(warm: Any, message: str) -> None:
+    with pytest.raises(UsageError, match=message):
+        warm_runners({"id": "w1", "warm": warm})
+
+
+def test_a_beats_warm_runners_round_trip() -> None:
+    assert warm_runners({"id": "w1", "warm": [_RUNNER]}) == [_RUNNER]
+    assert warm_runners({"id": "w1"}) == []  # a worker from before the field
