@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.conftest import Osmo, ended, process_alive, read_pid, wait_gone, write
+from tests.conftest import Osmo, ended, read_pid, wait_gone, write
 
 TYPES = r'''
 import ctypes, json, os, threading, time
@@ -41,9 +41,10 @@ def probe(ctx):
         globals()["HELD"] = open(out / "held.txt", "w")
     if mode == "segfault":
         ctypes.string_at(0)
-    if mode == "wait":
-        Path(ctx.params["gate"]).write_text(f"{os.getpid()}\n")
-        while True:
+    if mode == "wait":  # until the test removes the gate
+        gate = Path(ctx.params["gate"])
+        gate.write_text(f"{os.getpid()}\n")
+        while gate.exists():
             time.sleep(0.2)
     fds = sorted(os.readlink(f"/proc/self/fd/{n}") for n in os.listdir("/proc/self/fd")
                  if os.path.exists(f"/proc/self/fd/{n}"))
@@ -154,12 +155,11 @@ def test_a_runner_killed_under_its_attempt_is_replaced(warm_osmo: Osmo, tmp_path
     os.kill(runner, signal.SIGKILL)
     wait_gone(pid)
     again = read_pid(gate, timeout=120)  # rescheduled, forked from a new runner
-    assert again != pid and process_alive(again)
-    assert _parent(again) != runner
-    warm_osmo("cancel", wf, check=True)
+    assert again != pid and _parent(again) not in (runner, warm_osmo.server_pid())
+    gate.unlink()
     info = warm_osmo.wait_for(wf, ended)
+    assert info["status"] == "COMPLETED", info
     assert info["tasks"][0]["retry"] == 1, info["tasks"]
-    wait_gone(again)
 
 
 def test_cancel_and_timeout_end_warm_attempts(warm_osmo: Osmo, tmp_path: Path) -> None:
@@ -183,8 +183,9 @@ def _parent(pid: int) -> int:
 
 
 def test_kill_9_of_the_server_leaves_no_warm_attempt(warm_osmo: Osmo, tmp_path: Path) -> None:
+    """Nothing of the server's runners outlives it; restarted, it finishes the workflow."""
     gate = tmp_path / "gate"
-    warm_osmo.submit(_project(tmp_path, GATED.format(gate=gate, more="")))
+    wf = warm_osmo.submit(_project(tmp_path, GATED.format(gate=gate, more="")))
     pid = read_pid(gate)
     runner = _parent(pid)
     server = warm_osmo.server_pid()
@@ -193,6 +194,13 @@ def test_kill_9_of_the_server_leaves_no_warm_attempt(warm_osmo: Osmo, tmp_path: 
     wait_gone(server)
     wait_gone(runner)
     wait_gone(pid)
+    gate.unlink()
+    warm_osmo("server", "start", "--sandbox", "off", check=True)
+    again = read_pid(gate, timeout=120)
+    assert _parent(again) not in (runner, warm_osmo.server_pid())  # a new server's runner
+    gate.unlink()
+    info = warm_osmo.wait_for(wf, ended)
+    assert info["status"] == "COMPLETED", info
 
 
 def test_a_runner_over_its_memory_limit_is_replaced(osmo: Osmo, tmp_path: Path) -> None:
