@@ -11,11 +11,15 @@ environment (``osmo.worker.taskenv``) with the type's ``PYTHONPATH``: no attempt
 no credential. What it owns:
 
 - **the import**: it puts the folders on ``sys.path``, resolves the type (which imports its
-  module and whatever that imports) and the modules every attempt uses, then says ``ready``
+  module and whatever that imports), calls the type's optional ``warm()`` (a built-in
+  plugin imports its implementation and the libraries every run needs there), imports the
+  modules every attempt uses, then says ``ready``
   (with the files of the modules it imported from the type's folders and their mtimes:
   the pool retires it when one changes) or ``error: WHY`` (the pool then runs that type
-  cold). A module whose import started a
-  thread is refused: a thread of the runner would outlive every attempt and see them all.
+  cold). A type whose import started a
+  Python thread is refused: its code would run on in the runner, beside every fork request.
+  (Native threads of libraries, such as a BLAS pool, are not counted: they do not survive a
+  fork, and the libraries that start them handle it.)
 - **the forks**: each request on the socket carries four descriptors (the attempt's stdout
   and stderr pipes, the read end of its request pipe, the write end of its status pipe). The
   runner forks, waits until the child leads its own session and process group (before it
@@ -76,14 +80,6 @@ def _die_with_parent() -> None:
     ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
 
 
-def _threads() -> int:
-    """How many threads this process has (native ones included)."""
-    try:
-        return len(os.listdir("/proc/self/task"))
-    except OSError:
-        return threading.active_count()
-
-
 def _load(ref: str, version: str, folders: Sequence[str]) -> str:
     """Import the type and what every attempt uses; empty, or why it cannot be warm."""
     for folder in reversed(folders):
@@ -103,8 +99,14 @@ def _load(ref: str, version: str, folders: Sequence[str]) -> str:
         return f"importing {ref}: {exc!r}"
     if version != "-" and str(obj.version) != version:
         return f"{ref} is version {obj.version} here, not {version}"
-    if _threads() != 1:
-        return f"importing {ref} started threads; a warm runner must have none"
+    warm = getattr(obj, "warm", None)
+    if callable(warm):
+        try:
+            warm()
+        except Exception as exc:  # noqa: BLE001 - its own warm-up failed: run it cold
+            return f"warming {ref}: {exc!r}"
+    if threading.active_count() != 1:
+        return f"importing {ref} started a Python thread; a warm runner must have none"
     return ""
 
 
