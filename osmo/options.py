@@ -25,7 +25,7 @@ import json
 import os
 import re
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal, NoReturn
 
@@ -34,7 +34,7 @@ from osmo.errors import UsageError
 from osmo.layout import Home
 
 __all__ = ["DEFAULT_LOG_LIMIT", "MIN_LOG_LIMIT", "SANDBOX_MODES", "SandboxMode",
-           "ServerOptions", "SlurmOptions", "absolute", "add_log_limit_argument",
+           "ServerOptions", "SlurmOptions", "WarmOptions", "absolute", "add_log_limit_argument",
            "add_runtime_arguments",
            "option_changes", "options_from_argv", "parse_log_limit", "remember",
            "parse_share", "saved_options", "shares"]
@@ -117,6 +117,65 @@ def add_runtime_arguments(p: argparse.ArgumentParser) -> None:
                    default=os.environ.get("OSMO_CONTAINER_ENGINE") or None,
                    help="the container engine (default: podman, else docker; "
                         "OSMO_CONTAINER_ENGINE)")
+
+
+@dataclass(frozen=True)
+class WarmOptions:
+    """A pool's warm runners for typed tasks (``osmo.runtime.process.warm``).
+
+    Attributes:
+        on: typed tasks start as forks of a runner that imported their type (``--warm on``,
+            the default) or as fresh interpreters (``--warm off``).
+        idle: seconds a runner waits for its next attempt before it exits (``--warm-idle``).
+        max_memory: bytes of resident memory over which a runner is replaced
+            (``--warm-max-memory``; None: no limit).
+    """
+
+    on: bool = True
+    idle: float = 60.0
+    max_memory: int | None = 2 << 30
+
+    @staticmethod
+    def add_arguments(p: argparse.ArgumentParser) -> None:
+        """``--warm``, ``--warm-idle``, ``--warm-max-memory`` (server and worker)."""
+        d = WarmOptions()
+        p.add_argument("--warm", choices=("on", "off"),
+                       default=os.environ.get("OSMO_WARM") or "on",
+                       help="start typed tasks (type:) as forks of a runner that imported "
+                            "their type once: on (the default; OSMO_WARM) or off (a fresh "
+                            "interpreter per attempt). Process tasks without a sandbox only")
+        p.add_argument("--warm-idle", type=float, default=d.idle, metavar="SECONDS",
+                       help=f"a warm runner exits after this long without tasks ({d.idle:g})")
+        p.add_argument("--warm-max-memory", default="2Gi", metavar="SIZE",
+                       help="a warm runner whose resident memory is above this is replaced "
+                            "(default 2Gi; 0: no limit)")
+
+    @classmethod
+    def from_args(cls, args: argparse.Namespace) -> WarmOptions:
+        """The options :meth:`add_arguments` parsed. Raises UsageError: a bad size or time."""
+        from osmo.spec.units import parse_size
+
+        if not args.warm_idle > 0:
+            raise UsageError(f"--warm-idle {args.warm_idle:g}: a number of seconds above 0")
+        try:
+            limit = parse_size(str(args.warm_max_memory))
+        except ValueError as exc:
+            raise UsageError(f"--warm-max-memory {args.warm_max_memory!r}: {exc} "
+                             "(e.g. 2Gi, 0 for no limit)") from None
+        return cls(on=args.warm == "on", idle=args.warm_idle, max_memory=limit or None)
+
+    def __str__(self) -> str:
+        """``on``, ``off``, or its flags that differ from the defaults."""
+        return " ".join(self.to_argv()) or "on"
+
+    def to_argv(self) -> list[str]:
+        """The same options as flags (those that differ from the defaults)."""
+        d = WarmOptions()
+        out = [] if self.on else ["--warm", "off"]
+        out += [] if self.idle == d.idle else ["--warm-idle", f"{self.idle:g}"]
+        if self.max_memory != d.max_memory:
+            out += ["--warm-max-memory", str(self.max_memory or 0)]
+        return out
 
 
 def add_log_limit_argument(p: argparse.ArgumentParser) -> None:
@@ -203,6 +262,7 @@ class ServerOptions:
         container_engine: ``podman`` or ``docker`` (default: the first that answers).
         log_limit: bytes each attempt's log keeps at most, on the local pool and as stored
             from remote workers' batches (``osmo.worker.logs``).
+        warm: the local pool's warm runners (``--warm``; :class:`WarmOptions`).
     """
 
     listen: tuple[str, ...] = ()
@@ -220,6 +280,7 @@ class ServerOptions:
     runtime: str = "auto"
     container_engine: str | None = None
     log_limit: int = DEFAULT_LOG_LIMIT
+    warm: WarmOptions = field(default_factory=WarmOptions)
 
     @property
     def secret_files(self) -> tuple[str, ...]:
@@ -265,6 +326,7 @@ class ServerOptions:
                             "travel in clear")
         add_log_limit_argument(p)
         add_runtime_arguments(p)
+        WarmOptions.add_arguments(p)
 
     @classmethod
     def from_args(cls, args: argparse.Namespace) -> ServerOptions:
@@ -284,7 +346,7 @@ class ServerOptions:
                    accept_tokens=tuple(getattr(args, "accept_token", None) or ()),
                    sandbox=args.sandbox, sandbox_share=shares(args.sandbox_share),
                    runtime=args.runtime, container_engine=args.container_engine,
-                   log_limit=args.log_limit)
+                   log_limit=args.log_limit, warm=WarmOptions.from_args(args))
 
     def to_argv(self) -> list[str]:
         """The same options as flags, to start the server in another process.
@@ -304,6 +366,7 @@ class ServerOptions:
             if value != getattr(d, flag[2:].replace("-", "_")):
                 out += [flag, str(value)]
         out += [arg for d in self.sandbox_share for arg in ("--sandbox-share", d)]
+        out += self.warm.to_argv()
         out += [] if self.local_pool else ["--no-local-pool"]
         out += [arg for spec in self.accept_tokens for arg in ("--accept-token", spec)]
         return out + (["--insecure"] if self.insecure else [])

@@ -420,7 +420,8 @@ def resource_table(rows: list[dict[str, Any]], *, by: str) -> Table:
     table = Table(box=None, pad_edge=False)
     first = (["Node", "Pool", "Platform", "Status", "Runtime"] if by == "node"
              else ["Pool", "Nodes", "Platforms", "Runtimes"])
-    for col in (*first, "CPU", "GPU", "Memory", "Sandbox"):
+    warm = by == "node" and any(r.get("warm") for r in rows)
+    for col in (*first, "CPU", "GPU", "Memory", "Sandbox", *(["Warm"] if warm else [])):
         table.add_column(col)
     for r in rows:
         platforms = r.get("platforms") or {}
@@ -429,11 +430,13 @@ def resource_table(rows: list[dict[str, Any]], *, by: str) -> Table:
                  safe(r.get("status", "online")), safe(r.get("runtime") or "-")] if by == "node"
                 else [safe(r["pool"]), str(r["nodes"]), safe(", ".join(platforms)),
                       safe(", ".join(r.get("runtimes", ())) or "-")])
-        table.add_row(*head, *_amounts(r["used"], r["total"]), safe(_sandbox(r)))
+        table.add_row(*head, *_amounts(r["used"], r["total"]), safe(_sandbox(r)),
+                      *([_warm(r.get("warm") or [])] if warm else []))
         if by == "node" and len(platforms) > 1:
             for name, amounts in platforms.items():
                 table.add_row(f"  platform {safe(name)}", "", safe(name), "", "",
-                              *_amounts(amounts["used"], amounts["total"]), "")
+                              *_amounts(amounts["used"], amounts["total"]), "",
+                              *([""] if warm else []))
     return table
 
 
@@ -441,6 +444,12 @@ def _amounts(used: dict[str, Any], total: dict[str, Any]) -> tuple[str, str, str
     """CPU, GPU and memory as used/total."""
     return (f"{used['cpu']:g}/{total['cpu']:g}", f"{used['gpu']}/{total['gpu']}",
             f"{_gib(used['memory'])}/{_gib(total['memory'])}")
+
+
+def _warm(runners: list[dict[str, Any]]) -> str:
+    """A node's warm runners: ``sim.rollout@1 x3 (91Mi)`` for each, one a line."""
+    return "\n".join(f"{safe(str(r['type']))} x{r['started']} ({r['rss'] / 2**20:.0f}Mi)"
+                     for r in runners) or "-"
 
 
 def _sandbox(row: dict[str, Any]) -> str:

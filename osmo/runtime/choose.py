@@ -47,6 +47,7 @@ from osmo.runtime.process.sandbox import (
     unavailable_summary,
 )
 from osmo.runtime.process.sandboxed import SandboxRuntime
+from osmo.runtime.process.warm import WarmRunners
 from osmo.runtime.slurm import Slurm, SlurmRuntime
 from osmo.spec.model import TaskSpec
 
@@ -130,7 +131,8 @@ class Runtimes:
 
 
 def processes_for_node(mode: SandboxMode, shares: Sequence[str], *, home: Path,
-                       address: str | None, pool: str) -> ProcessRuntime:
+                       address: str | None, pool: str,
+                       warm: WarmRunners | None = None) -> ProcessRuntime:
     """How a node's tasks run as host processes: in bubblewrap, in the node's namespaces, or not.
 
     Args:
@@ -139,6 +141,8 @@ def processes_for_node(mode: SandboxMode, shares: Sequence[str], *, home: Path,
         home: osmo's home, which no task may see (nor a share inside it).
         address: how peers reach this node's tasks (given to the node's network).
         pool: the pool's name (for the warning when ``auto`` finds no sandbox).
+        warm: the node's warm runners, which typed tasks start from when they run
+            unsandboxed (a sandboxed task starts cold; closed with the runtime).
 
     Without a sandbox, the runtime says why in each task's log (``note``), in a few words
     for ``osmo resource list`` (``why``), and, when ``auto`` found none, once at start
@@ -156,7 +160,7 @@ def processes_for_node(mode: SandboxMode, shares: Sequence[str], *, home: Path,
     sandbox = choose(mode, shares)
     if mode == "off":
         return ProcessRuntime(note="no sandbox: this task sees the host as the worker's user "
-                                   "(--sandbox off)", why="--sandbox off")
+                                   "(--sandbox off)", why="--sandbox off", warm=warm)
     if sandbox is None:
         reason, summary = unavailable_reason(), unavailable_summary()
     else:
@@ -169,6 +173,8 @@ def processes_for_node(mode: SandboxMode, shares: Sequence[str], *, home: Path,
         else:
             if network.caveat:
                 _log.warning("sandboxed tasks: %s", network.caveat)
+            if warm is not None:
+                warm.close()
             return SandboxRuntime(sandbox.joined(network), network, hidden=(home,),
                                   note=network.caveat or None)
     return ProcessRuntime(
@@ -176,7 +182,7 @@ def processes_for_node(mode: SandboxMode, shares: Sequence[str], *, home: Path,
         why=summary,
         warning=f"UNSANDBOXED: pool {pool} runs its tasks without a sandbox (--sandbox {mode})"
                 f": {reason}. They see the host as uid {os.geteuid()}, osmo's home (state, "
-                "credentials) included; --sandbox on refuses to start instead")
+                "credentials) included; --sandbox on refuses to start instead", warm=warm)
 
 
 def container_engine(runtime: str, engine: str | None = None) -> ContainerEngine | None:

@@ -178,7 +178,8 @@ class _Server:
                          task_secrets=store.credential,
                          sandbox=options.sandbox, sandbox_share=options.sandbox_share,
                          procs_dir=self.home.procs, containers=boxes,
-                         log_limit=options.log_limit) if options.local_pool else None
+                         log_limit=options.log_limit,
+                         warm=options.warm) if options.local_pool else None
         for secret in options.secret_files:  # a token file a task must not read
             if pool is not None:
                 pool.hide(Path(secret))
@@ -221,7 +222,8 @@ class _Server:
         handlers = Handlers(self.engine, self.home, self.info, on_shutdown=self.stopping.set,
                             workers=self.hub, link=self.link, gate=self.gate,
                             tokens=TokenHandlers(self.store, self.gate),
-                            sessions=Sessions(self.store, self.hub, self.local_sessions))
+                            sessions=Sessions(self.store, self.hub, self.local_sessions),
+                            warm=self.pool.warm_runners if self.pool is not None else None)
         return ApiServer(self.link, handlers.handle, self.gate, inline=WorkerHub.INLINE,
                          on_crash=lambda exc: log.error("API handler crashed", exc_info=exc))
 

@@ -84,7 +84,9 @@ class Handlers:
                  on_shutdown: Callable[[], None], workers: WorkerHub | None = None,
                  link: Link | None = None, gate: Gate | None = None,
                  tokens: TokenHandlers | None = None,
-                 sessions: Sessions | None = None) -> None:
+                 sessions: Sessions | None = None,
+                 warm: Callable[[], builtins.list[dict[str, Any]]] | None = None) -> None:
+        self._warm = warm  # the local pool's warm runners, now
         self._workers = workers  # the WorkerHub: its verbs, and worker status for pools
         self._engine = engine
         self._store = engine.store
@@ -319,7 +321,8 @@ class Handlers:
         with its own capacity used/total.
 
         ``sandbox`` is ``bwrap`` or ``none``; ``sandbox_why`` says why not, in a few words
-        (None when sandboxed, or from a worker too old to say).
+        (None when sandboxed, or from a worker too old to say). ``warm``: the node's warm
+        runners (type, pid, rss, started, running; a remote worker's as of its last beat).
         """
         remote = {w["id"]: w for w in self._workers.workers()} if self._workers else {}
         out = []
@@ -332,6 +335,8 @@ class Handlers:
                         "kind": "remote" if worker else "local", "sandbox": sandbox,
                         "sandbox_why": about.get("sandbox_why") if sandbox == "none" else None,
                         "runtime": about.get("runtime"),
+                        "warm": worker.get("warm") if worker else
+                        self._warm() if self._warm is not None else None,
                         "total": vars(node.capacity), "used": vars(used),
                         "platforms": {p: {"total": vars(node.offers(p) or node.capacity),
                                           "used": vars(by_platform.get(p, used))}

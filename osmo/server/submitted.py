@@ -85,8 +85,10 @@ class ClientTypes:
             resolved = _resolved(name, data)
             params = task.get("params")
             given: dict[str, Any] = params if isinstance(params, dict) else {}
+            known = self._custom.get(ref)  # another task of the same type: both its params
+            taken = {k: Param(type(v), default=None) for k, v in given.items()}
             self._custom[ref] = _Described(resolved.version, {}, {
-                k: Param(type(v), default=None) for k, v in given.items()})
+                **taken, **(known.params if known is not None else {})})
             self._paths[ref] = resolved.paths
             self.described[name] = resolved
 

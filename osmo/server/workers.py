@@ -76,6 +76,7 @@ from osmo.transport.wire import (
     Run,
     event_from_dict,
     order_to_dict,
+    warm_runners,
 )
 from osmo.transport.zenoh_link import Link, Subscription
 
@@ -184,6 +185,9 @@ class WorkerHub:
     def beat(self, request: dict[str, Any], who: Identity) -> dict[str, Any]:
         """A registered worker is alive (refused once this server forgot it: it registers again).
 
+        Its beat also lists its warm runners (``wire.warm_runners``), kept for ``osmo resource
+        list``.
+
         Raises:
             NotAllowed: ``who`` did not register this worker, or the server no longer counts
                 it (restarted, or it was silent past the lease).
@@ -193,6 +197,10 @@ class WorkerHub:
             known = wid in self._nodes
         if not known:
             raise refuse("worker_beat", who, f"worker {wid} is not registered; register again")
+        warm = warm_runners(request)
+        with self._lock:
+            if wid in self._info:
+                self._info[wid]["warm"] = warm
         return {}
 
     def _speaker(self, verb: str, request: dict[str, Any], who: Identity) -> str:

@@ -86,6 +86,7 @@ def _task(t: TaskSpec) -> dict[str, Any]:
         or None,
         "checkpoint": [dict(c) for c in t.checkpoint] or None,
         "cache": t.cache,
+        "warm": t.warm,
     })
 
 

@@ -195,6 +195,7 @@ class TaskSpec:
     type: str | None = None  # [ext]
     params: dict[str, Any] = field(default_factory=dict)  # [ext]
     cache: bool | None = None  # [ext] None: the default (``WorkflowSpec.reuses_by_default``)
+    warm: bool | None = None  # [ext] False: never from a warm runner (None: the pool's choice)
     pos: Pos | None = _pos()
     resolved: ResolvedType | None = field(default=None, compare=False, repr=False)  # [ext]
 

@@ -34,7 +34,7 @@ __all__ = ["TASK_KEYS", "parse_task"]
 
 TASK_KEYS = ("name", "image", "command", "args", "environment", "files", "inputs", "outputs",
              "credentials", "resource", "lead", "exitActions", "checkpoint", "volumeMounts",
-             "privileged", "hostNetwork", "type", "params", "cache")
+             "privileged", "hostNetwork", "type", "params", "cache", "warm")
 _ACTIONS = [a.value for a in ExitAction]
 _ENV_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 _POD_ENV_NAME = re.compile(r"[-._a-zA-Z][-._a-zA-Z0-9]*")  # what a Kubernetes pod takes
@@ -216,17 +216,21 @@ def parse_task(ctx: Ctx, node: Node, local: LocalFiles) -> TaskSpec | None:
         type=_optional(ctx, f, "type", read_str, f"'type' of {where}"),
         params=_params(ctx, f.get("params"), where),
         cache=_optional(ctx, f, "cache", read_bool, f"'cache' of {where}"),
+        warm=_optional(ctx, f, "warm", read_bool, f"'warm' of {where}"),
         pos=node.pos,
     )
 
 
 def _typed_fields(ctx: Ctx, fields: dict[str, Node], where: str) -> None:
-    """``params`` belong to a ``type``; ``args`` to a ``command``."""
+    """``params`` and ``warm`` belong to a ``type``; ``args`` to a ``command``."""
     if "params" in fields and "type" not in fields:
         ctx.error(fields["params"], f"{where} has 'params' but no 'type'; params configure a "
                                     "task type (type: NAME), a command takes 'args'")
     if "args" in fields and "type" in fields:
         ctx.error(fields["args"], f"{where} has 'args' and 'type'; a task type takes 'params'")
+    if "warm" in fields and "type" not in fields:
+        ctx.error(fields["warm"], f"{where} has 'warm' but no 'type'; only a task type's "
+                                  "attempts start from a warm runner")
 
 
 def _params(ctx: Ctx, node: Node | None, where: str) -> dict[str, Any]:

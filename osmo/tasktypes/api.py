@@ -103,7 +103,10 @@ class TaskType(Protocol):
         description: one line for ``osmo plugins list``.
 
     A type may also have a ``report`` attribute: what ``osmo eval report`` shows of its
-    outputs (``osmo.tasktypes.reports.Report``); not part of the required shape.
+    outputs (``osmo.tasktypes.reports.Report``); not part of the required shape. And a
+    ``warm()`` method: a warm runner (``osmo.runtime.process.warm``) calls it once, after
+    importing the type, to import what every run needs (a type that imports its libraries
+    inside ``run``); it must not start a thread or read the task's environment.
     """
 
     name: str

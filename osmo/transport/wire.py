@@ -13,7 +13,8 @@ Keys, under the cluster prefix ``osmo/<cluster>``:
   server pulls the worker's outputs from ``blob/<id>/<digest>`` with queries sealed on the
   channel it registered with (``SQ``);
   ``api/worker_drain`` — ``{"id": <worker>}``: it takes no more work.
-- ``api/worker_beat`` — ``{"id"}``, every :data:`BEAT_EVERY` seconds: the worker is alive
+- ``api/worker_beat`` — ``{"id", "warm"}``, every :data:`BEAT_EVERY` seconds: the worker is
+  alive, and its warm runners now (:func:`warm_runners`; ``osmo resource list``)
   (refused once the server forgot it: it registers again).
 - ``to-worker/<id>`` — the server's orders (:data:`Order`), sealed: :class:`Prepare` (the
   attempt, the workflow's spec the first time, input manifests, whether to ask for the
@@ -77,7 +78,7 @@ from osmo.transport.rpc import MAX_INT, field, str_list, str_map
 __all__ = ["BEAT_EVERY", "LEASE", "MAX_PLATFORMS", "PEER_ALLOW", "PEER_DENY", "Ack", "Hello",
            "Kill", "OpenSession", "Order", "Prepare", "Run", "capacity_from_dict",
            "capacity_to_dict", "event_from_dict", "event_to_dict", "order_from_dict",
-           "order_to_dict", "worker_id"]
+           "order_to_dict", "warm_runners", "worker_id"]
 
 #: zenoh access-control message -> keys (under the cluster prefix) a remote peer may use;
 #: the server's router denies everything else (``osmo.transport.zenoh_link.Acl``).
@@ -103,6 +104,30 @@ _TEXT = 4096  # characters of a name, an address or a folder in a worker's messa
 MAX_PLATFORMS = 256
 """Platforms one worker may register (a cluster node's node labels or partitions)."""
 _PLATFORM = re.compile(r"[^\x00-\x20\x7f-\x9f]{1,253}")  # one printable word
+_MAX_RUNNERS = 256  # warm runners one beat may list
+_RUNNER_FIELDS = {"type": str, "pid": int, "rss": int, "started": int, "running": int}
+
+
+def warm_runners(data: dict[str, Any]) -> list[dict[str, Any]]:
+    """A beat's ``warm``: the worker's warm runners (``osmo.runtime.process.warm``), checked.
+
+    Raises:
+        UsageError: not a list of at most 256 runners, each with ``type`` (text), ``pid``,
+            ``rss``, ``started`` and ``running`` (numbers from 0).
+    """
+    found = field(data, "warm", list, default=[])
+    if len(found) > _MAX_RUNNERS:
+        raise UsageError(f"'warm' lists {len(found)} runners; at most {_MAX_RUNNERS}")
+    out = []
+    for item in found:
+        if not isinstance(item, dict):
+            raise UsageError("'warm' must be a list of runners (objects)")
+        runner = {key: field(item, key, kind, max_len=200, what=f"'warm.{key}'")
+                  for key, kind in _RUNNER_FIELDS.items()}
+        if any(isinstance(v, int) and v < 0 for v in runner.values()):
+            raise UsageError(f"'warm': a runner's numbers are from 0, not {shown(runner)}")
+        out.append(runner)
+    return out
 
 
 def event_to_dict(event: Event) -> dict[str, Any]:

@@ -19,6 +19,7 @@ from osmo.options import (
     DEFAULT_LOG_LIMIT,
     SandboxMode,
     SlurmOptions,
+    WarmOptions,
     add_log_limit_argument,
     add_runtime_arguments,
     shares,
@@ -67,6 +68,7 @@ class WorkerOptions:
         store_limit: bytes its artifact store may hold before cached blobs are removed
             (``osmo.worker.store_keeper``; None: a quarter of its filesystem; 0: no limit).
         log_limit: bytes each attempt's log keeps at most (``osmo.worker.logs``).
+        warm: its warm runners (``--warm``; ``osmo.options.WarmOptions``).
     """
 
     connect: tuple[str, ...]
@@ -93,6 +95,7 @@ class WorkerOptions:
     kubernetes_config: str | None = None
     store_limit: int | None = None
     log_limit: int = DEFAULT_LOG_LIMIT
+    warm: WarmOptions = field(default_factory=WarmOptions)
 
     @property
     def secret_files(self) -> tuple[str, ...]:
@@ -132,6 +135,7 @@ class WorkerOptions:
                             "(default: a quarter of its disk). Outputs the server has not "
                             "taken yet are never removed")
         add_log_limit_argument(w)
+        WarmOptions.add_arguments(w)
         add_runtime_arguments(w)
         w.add_argument("--kubernetes-config", metavar="FILE",
                        default=os.environ.get("OSMO_KUBERNETES_CONFIG"),
@@ -187,7 +191,7 @@ class WorkerOptions:
                    slurm=_slurm(args), slurm_python=args.slurm_python,
                    container_engine=args.container_engine,
                    kubernetes_config=args.kubernetes_config, store_limit=store_limit,
-                   log_limit=args.log_limit)
+                   log_limit=args.log_limit, warm=WarmOptions.from_args(args))
 
 
 def _slurm(args: argparse.Namespace) -> SlurmOptions:

@@ -75,10 +75,11 @@ from osmo.artifacts import ArtifactStore
 from osmo.artifacts.store import DEFAULT_MAX_FILES
 from osmo.errors import UsageError
 from osmo.layout import Home
-from osmo.options import DEFAULT_LOG_LIMIT, SandboxMode
+from osmo.options import DEFAULT_LOG_LIMIT, SandboxMode, WarmOptions
 from osmo.runtime.api import Runtime, Terms
 from osmo.runtime.choose import Runtimes, processes_for_node
 from osmo.runtime.process.sandbox import Sandbox
+from osmo.runtime.process.warm import WarmRunners
 from osmo.scheduler.types import (
     LOCAL_NODE,
     AttemptStartFailed,
@@ -141,6 +142,8 @@ class LocalPool:
         cluster: runs every task as a cluster scheduler's job (``--runtime slurm``:
             ``osmo.runtime.choose.slurm_for_node``; closed with the pool).
         cluster_images: the cluster's runtime for tasks that run in their image.
+        warm: its warm runners for typed tasks (``osmo.runtime.process.warm``; default
+            on: ``osmo.options.WarmOptions``); unsandboxed process tasks only.
 
     Attributes:
         home: osmo's home.
@@ -149,6 +152,7 @@ class LocalPool:
             not found``, ...; None: they run in the sandbox).
         sandbox_warning: what was logged at start because ``auto`` found no sandbox (None
             when it found one, or with ``off``).
+        warm: the warm runners its typed tasks start from (None: none, they start cold).
 
     Raises:
         InfrastructureError: ``sandbox="on"`` and no sandbox works here.
@@ -182,6 +186,7 @@ class LocalPool:
         containers: Runtime | None = None,
         cluster: Runtime | None = None,
         cluster_images: Runtime | None = None,
+        warm: WarmOptions | None = None,
     ) -> None:
         if not home.root.is_absolute():
             raise UsageError(f"osmo's home must be an absolute path, not {home.root}")
@@ -191,8 +196,13 @@ class LocalPool:
         self._emit = emit
         self._node_id, self._pool = node_id, pool
         self._cpus, self._gpus, self._memory = cpus, gpus, memory
+        base = base_env(os.environ) if env is None else dict(env)
+        warm = WarmOptions() if warm is None else warm
+        runners = (WarmRunners(base, idle=warm.idle, max_rss=warm.max_memory) if warm.on
+                   else None)
         process = processes_for_node(sandbox, sandbox_share, home=home.root, address=address,
-                                     pool=pool)
+                                     pool=pool, warm=runners)
+        self.warm = process.warm
         self.no_sandbox_why, self.sandbox_warning = process.why, process.warning
         if self.sandbox_warning:
             _log.warning("%s", self.sandbox_warning)
@@ -211,7 +221,7 @@ class LocalPool:
         self._preparing = Preparing(
             home=home, runtimes=self._runtimes, attempts=self._attempts, reactor=self._reactor,
             io=self._io, emit=emit, starting=self._starting, gpus=slots,
-            env=base_env(os.environ) if env is None else dict(env), task_secrets=task_secrets,
+            env=base, task_secrets=task_secrets,
             credential_for=credential_for, artifacts=artifacts, input_manifests=input_manifests,
             log_sink=log_sink, log_limit=log_limit)
 
@@ -243,6 +253,10 @@ class LocalPool:
         self._reactor.call_soon(self._preparing.prepare, cmd, task, secrets,
                                 replace(resources or ResourceSpec(), storage=max_output_bytes),
                                 terms or Terms())
+
+    def warm_runners(self) -> list[dict[str, object]]:
+        """Its live warm runners, as ``osmo resource list`` shows them (JSON)."""
+        return [r.to_dict() for r in self.warm.runners()] if self.warm is not None else []
 
     def runtime_name(self) -> str:
         """How this pool runs image tasks: ``container (podman 4.3.1)`` or ``process``."""

@@ -164,7 +164,8 @@ class RemoteWorker:
             input_manifests=self._inputs.manifest_of, sandbox=options.sandbox,
             sandbox_share=options.sandbox_share, address=self._address,
             procs_dir=home.procs, containers=images,
-            cluster=cluster[0] if cluster else None, cluster_images=cluster[1] if cluster else None)
+            cluster=cluster[0] if cluster else None, cluster_images=cluster[1] if cluster else None,
+            warm=options.warm)
         for secret in options.secret_files:
             self.pool.hide(Path(secret))
         self.sessions = NodeSessions(self.link, self.pool, lambda ticket: self._api.call(
@@ -211,7 +212,8 @@ class RemoteWorker:
     def _beat(self) -> None:
         """Tell the server this worker is alive; register again if it no longer counts it."""
         try:
-            self._api.call("worker_beat", {"id": self.id}, timeout=BEAT_EVERY * 2)
+            self._api.call("worker_beat", {"id": self.id, "warm": self.pool.warm_runners()},
+                           timeout=BEAT_EVERY * 2)
         except NotAllowed:
             log.info("the server no longer counts worker %s: registering again", self.id)
             self._register_now.set()

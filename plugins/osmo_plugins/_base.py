@@ -9,6 +9,7 @@ rerun installed, and report the missing extra instead of an import error.
 from __future__ import annotations
 
 import importlib
+import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from types import TracebackType
@@ -51,6 +52,10 @@ class PluginType:
     """A task type whose ``run`` calls ``impl`` (``"package.module:function"``).
 
     ``report``: what ``osmo eval report`` shows of its outputs (``osmo.tasktypes.reports``).
+    ``preload``: modules a warm runner imports besides ``impl`` (:meth:`warm`), those every
+    run needs; ``preload_env``: variables set while it imports them (only), so that a module
+    which reads the environment at import decides nothing for the runs (MuJoCo's GL backend:
+    ``MUJOCO_GL=disable`` leaves it to each run's first renderer).
     """
 
     name: str
@@ -61,11 +66,33 @@ class PluginType:
     params: Mapping[str, Param] = field(default_factory=dict)
     resources: Mapping[str, Any] = field(default_factory=dict)
     report: Report | None = None
+    preload: tuple[str, ...] = ()
+    preload_env: Mapping[str, str] = field(default_factory=dict)
 
     def run(self, ctx: TaskContext) -> None:
         """Import the implementation and run it with ``ctx``."""
         module, _, attr = self.impl.partition(":")
         getattr(importlib.import_module(module), attr)(ctx)
+
+    def warm(self) -> None:
+        """Import what every run needs, once, in a warm runner (``osmo.runtime.process.warm``).
+
+        A module that is not installed is left to the run, which then says which extra.
+        """
+        saved = {name: os.environ.get(name) for name in self.preload_env}
+        os.environ.update(self.preload_env)
+        try:
+            for module in (*self.preload, self.impl.partition(":")[0]):
+                try:
+                    importlib.import_module(module)
+                except ImportError:
+                    continue
+        finally:
+            for name, value in saved.items():
+                if value is None:
+                    os.environ.pop(name, None)
+                else:
+                    os.environ[name] = value
 
 
 def find_folder_with(folders: Any, marker: str) -> Any:

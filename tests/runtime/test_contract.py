@@ -9,6 +9,7 @@ it joins :data:`RUNTIMES` and passes.
 
 from __future__ import annotations
 
+import os
 import uuid
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
@@ -24,8 +25,10 @@ from osmo.runtime.kubernetes.kube import Kube
 from osmo.runtime.kubernetes.runtime import KubernetesRuntime
 from osmo.runtime.process.runtime import ProcessRuntime
 from osmo.runtime.process.sandboxed import SandboxRuntime
+from osmo.runtime.process.warm import WarmRunners
 from osmo.runtime.slurm import Slurm, SlurmRuntime
 from osmo.testing import check_runtime
+from osmo.worker.taskenv import base_env
 from tests.containers.conftest import (  # noqa: F401 - fixtures the container case asks for
     engine,
     images,
@@ -53,6 +56,15 @@ class Case:
 def _process(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Case]:
     runtime = ProcessRuntime()
     yield Case(runtime, listen=HOST_LISTENER)
+    runtime.close()
+
+
+def _warm(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Case]:
+    """The process runtime whose every command is forked from a warm runner, then exec'd."""
+    warm = WarmRunners(base_env(os.environ))
+    runtime = ProcessRuntime(warm=warm, warm_commands=True)
+    yield Case(runtime, listen=HOST_LISTENER)
+    assert [(r.type, r.started) for r in warm.runners()] == [("", 6)], "not forked warm"
     runtime.close()
 
 
@@ -98,6 +110,7 @@ def _slurm(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Case]:
 
 RUNTIMES: dict[str, Callable[[pytest.FixtureRequest, Path], Iterator[Case]]] = {
     "process": _process,
+    "warm": _warm,
     "sandbox": _sandbox,
     "container": _container,
     "kubernetes": _kubernetes,

@@ -13,6 +13,7 @@ from pathlib import Path
 import pytest
 
 from osmo.runtime import (
+    Launch,
     ProcessGroups,
     ProcessHandle,
     StartError,
@@ -20,6 +21,8 @@ from osmo.runtime import (
     kill_stale,
     process_start_time,
 )
+from osmo.runtime.process.warm import WarmHandle, WarmRunners, commands_key
+from osmo.worker.taskenv import base_env
 
 TIMEOUT = 30.0
 
@@ -57,9 +60,38 @@ def read_all(fd: int) -> bytes:
         chunks.append(data)
 
 
-@pytest.fixture
-def runtime() -> Iterator[ProcessGroups]:
-    yield ProcessGroups()
+class _Warm:
+    """``ProcessGroups``' calls over warm runners: each command forked from one, then exec'd."""
+
+    def __init__(self) -> None:
+        self.runners = WarmRunners(base_env(os.environ))
+
+    def start(self, argv: list[str], *, cwd: Path, env: dict[str, str]) -> ProcessHandle:
+        return self.runners.start(commands_key(), Launch(tuple(argv), cwd, env))
+
+    def kill(self, handle: ProcessHandle, *, force: bool = False) -> None:
+        assert isinstance(handle, WarmHandle)
+        self.runners.kill(handle, force=force)
+
+    def reap(self, handle: ProcessHandle) -> int:
+        assert isinstance(handle, WarmHandle)
+        return self.runners.reap(handle)
+
+    def release(self, handle: ProcessHandle) -> None:
+        assert isinstance(handle, WarmHandle)
+        self.runners.release(handle)
+
+
+@pytest.fixture(params=["cold", "warm"])
+def runtime(request: pytest.FixtureRequest) -> Iterator[ProcessGroups]:
+    """Plain process groups, and the same calls over a warm runner's forks."""
+    if request.param == "cold":
+        yield ProcessGroups()
+        return
+    warm = _Warm()
+    yield warm  # type: ignore[misc]
+    assert [r.started > 0 for r in warm.runners.runners()] in ([True], []), "not forked warm"
+    warm.runners.close()
 
 
 def start(runtime: ProcessGroups, script: str, cwd: Path) -> ProcessHandle:

@@ -21,6 +21,7 @@ from osmo.transport.wire import (
     event_to_dict,
     order_from_dict,
     order_to_dict,
+    warm_runners,
 )
 
 CMD = PrepareAttempt(attempt_id="w-1:a:0", workflow_id="w-1", task="a", retry=0, node_id="n1",
@@ -132,3 +133,24 @@ def test_a_malformed_platform_list_is_refused(platforms: Any, words: str) -> Non
     hello = {**Hello(NODE).to_dict(), "platforms": platforms}
     with pytest.raises(UsageError, match=words):
         Hello.from_dict(hello)
+
+
+_RUNNER = {"type": "sim.rollout@2", "pid": 7, "rss": 1 << 20, "started": 3, "running": 1}
+
+
+@pytest.mark.parametrize(("warm", "message"), [
+    ("many", "'warm' must be a list"),
+    ([1], "a list of runners"),
+    ([{**_RUNNER, "pid": "7"}], "'warm.pid' must be"),
+    ([{**_RUNNER, "rss": -1}], "numbers are from 0"),
+    ([{**_RUNNER, "type": "x" * 201}], "'warm.type' is too long"),
+    ([dict(_RUNNER)] * 257, "at most 256"),
+])
+def test_a_beats_warm_runners_are_checked(warm: Any, message: str) -> None:
+    with pytest.raises(UsageError, match=message):
+        warm_runners({"id": "w1", "warm": warm})
+
+
+def test_a_beats_warm_runners_round_trip() -> None:
+    assert warm_runners({"id": "w1", "warm": [_RUNNER]}) == [_RUNNER]
+    assert warm_runners({"id": "w1"}) == []  # a worker from before the field

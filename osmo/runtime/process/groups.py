@@ -54,7 +54,7 @@ from osmo.runtime.api import ProcessHandle, StartError
 from osmo.runtime.process.proctable import group_members, start_clock, stat_fields
 from osmo.runtime.process.sandbox import Sandbox, View
 
-__all__ = ["ProcessGroups", "die_with_parent", "exit_code_of"]
+__all__ = ["ProcessGroups", "check_command", "die_with_parent", "exit_code_of"]
 
 
 def exit_code_of(returncode: int) -> int:
@@ -87,7 +87,7 @@ class ProcessGroups:
         fds: tuple[int, ...] = ()
         entered: contextlib.AbstractContextManager[None] = contextlib.nullcontext()
         if self.sandbox is not None and view is not None:
-            _check_command(argv[0], cwd, env, self.sandbox)
+            check_command(argv[0], cwd, env, self.sandbox)
             if self.sandbox.status:
                 status_r, status_w = _status_pipe(argv[0])
             command, preexec = self.sandbox.argv(argv, view, status_w), None  # dies with us
@@ -213,15 +213,22 @@ def die_with_parent() -> Callable[[], object]:
     return functools.partial(prctl, _PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
 
 
-def _check_command(program: str, cwd: Path, env: Mapping[str, str], sandbox: Sandbox) -> None:
-    """Fail a sandboxed start the way an unsandboxed one fails (bwrap would only exit 1).
+def check_command(program: str, cwd: Path, env: Mapping[str, str],
+                  sandbox: Sandbox | None = None) -> None:
+    """Fail a start that cannot run the way a spawn fails (bwrap or a fork would only exit).
 
-    A program is looked up only in the ``PATH`` folders the sandbox shows.
+    A program is looked up in ``env``'s ``PATH``, only in the folders ``sandbox`` shows.
+
+    Raises:
+        StartError: no working folder, or the command is not found or not executable.
     """
+    if not program:
+        raise StartError("empty command")
     if not cwd.is_dir():
         raise StartError(f"working folder not found: '{cwd}'")
     if "/" not in program:
-        if _which(program, _shown_path(env.get("PATH", os.defpath), sandbox)) is None:
+        search = env.get("PATH", os.defpath)
+        if _which(program, search if sandbox is None else _shown_path(search, sandbox)) is None:
             raise StartError(f"command not found: '{program}'")
         return
     path = str(cwd / program)

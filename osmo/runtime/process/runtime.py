@@ -7,7 +7,9 @@ A node runs its tasks so when no sandbox works there or none is wanted (``--sand
   adds the osmo log lines that say how the task runs (no sandbox, and why; an ``image:`` it
   does not use).
 - start, kill, reap, release: one process group per command, dying with its worker
-  (:class:`~osmo.runtime.process.groups.ProcessGroups`).
+  (:class:`~osmo.runtime.process.groups.ProcessGroups`); a typed task's, with ``warm``
+  runners, forked from a runner that imported its type
+  (:class:`~osmo.runtime.process.warm.WarmRunners`), unless the task says ``warm: false``.
 - exec: the command in the attempt's working folder with its environment.
 - port-forward: only to a port a process of the task listens on, at the address it listens
   on (``osmo.runtime.process.ports``), never to another process's port on the node.
@@ -33,6 +35,14 @@ from osmo.runtime.api import (
 from osmo.runtime.process.groups import ProcessGroups
 from osmo.runtime.process.ports import listener_connector
 from osmo.runtime.process.sandbox import Sandbox
+from osmo.runtime.process.warm import (
+    WarmHandle,
+    WarmKey,
+    WarmRunners,
+    WarmStart,
+    commands_key,
+    warm_key,
+)
 from osmo.scheduler.types import PrepareAttempt
 from osmo.spec.model import TaskSpec
 
@@ -60,16 +70,21 @@ class ProcessRuntime:
         warning: what the node says once at start (``auto`` found no sandbox: nobody chose
             to run tasks unsandboxed); None when the operator chose it.
         groups: what spawns its commands (default: unsandboxed process groups).
+        warm: the node's warm runners: typed tasks start as forks of them (None: cold).
+        warm_commands: every command starts from a warm runner (a fork, then its exec),
+            not only typed tasks: what the runtime contract checks of the warm path.
 
     Attributes:
         sandbox: the bubblewrap its commands run in: None here (``SandboxRuntime``'s).
     """
 
     def __init__(self, *, note: str | None = None, why: str | None = None,
-                 warning: str | None = None, groups: ProcessGroups | None = None) -> None:
+                 warning: str | None = None, groups: ProcessGroups | None = None,
+                 warm: WarmRunners | None = None, warm_commands: bool = False) -> None:
         self.note, self.why, self.warning = note, why, warning
         self.sandbox: Sandbox | None = None
         self._groups = groups or ProcessGroups()
+        self.warm, self._warm_commands = warm, warm_commands
 
     def describe(self) -> str:
         """``process``."""
@@ -84,12 +99,34 @@ class ProcessRuntime:
 
     def prepare(self, launch: Launch, attempt: Attempt, *,
                 progress: Callable[[str], None]) -> Launch:
-        """``launch`` with the log lines that say how it runs."""
+        """``launch`` with the log lines that say how it runs; warm when it can be.
+
+        A typed task's first attempt of its kind waits here for its runner's import.
+        """
         notes = tuple(n for n in (self.note, image_note(attempt.task)) if n)
+        key = self._warm_key(launch, attempt)
+        if key is not None and self.warm is not None and self.warm.ready(key):
+            warm = f"warm start: forked from a runner of {key.type or 'commands'}"
+            return replace(launch, run=WarmStart(key), notes=(*launch.notes, *notes, warm))
         return replace(launch, notes=(*launch.notes, *notes)) if notes else launch
 
+    def _warm_key(self, launch: Launch, attempt: Attempt) -> WarmKey | None:
+        """What runner ``launch`` starts from (None: it starts cold)."""
+        task = attempt.task
+        if self.warm is None or task.warm is False:
+            return None
+        if task.type is not None:
+            resolved = task.resolved
+            return warm_key(launch, task.type, resolved.version if resolved else None,
+                            resolved.paths if resolved else ())
+        if self._warm_commands:
+            return commands_key()
+        return None
+
     def start(self, launch: Launch) -> ProcessHandle:
-        """Spawn the command in its own process group. Raises StartError."""
+        """Spawn the command in its own process group, or fork it warm. Raises StartError."""
+        if isinstance(launch.run, WarmStart) and self.warm is not None:
+            return self.warm.start(launch.run.key, launch)
         return self._groups.start(launch.argv, cwd=launch.cwd, env=launch.env)
 
     def kill(self, handle: ProcessHandle, *, force: bool = False) -> None:
@@ -97,17 +134,26 @@ class ProcessRuntime:
 
         In a sandbox, SIGTERM goes to every process in it but bwrap's (``ProcessGroups``).
         """
+        if isinstance(handle, WarmHandle) and self.warm is not None:
+            self.warm.kill(handle, force=force)
+            return
         self._groups.kill(handle, force=force)
 
     def reap(self, handle: ProcessHandle) -> int:
         """Its exit code; what is left of its group is killed.
 
-        ``handle.setup_failed``: a sandbox's command never ran.
+        ``handle.setup_failed``: a sandbox's command never ran; ``handle.lost``: its warm
+        runner died under it.
         """
+        if isinstance(handle, WarmHandle) and self.warm is not None:
+            return self.warm.reap(handle)
         return self._groups.reap(handle)
 
     def release(self, handle: ProcessHandle) -> None:
         """Close its descriptors."""
+        if isinstance(handle, WarmHandle) and self.warm is not None:
+            self.warm.release(handle)
+            return
         self._groups.release(handle)
 
     def exec(self, launch: Launch, command: Sequence[str], *, tty: bool,
@@ -123,7 +169,9 @@ class ProcessRuntime:
         """Nothing of its own to remove."""
 
     def close(self) -> None:
-        """Nothing to wait for."""
+        """Its warm runners end (and what still runs of them)."""
+        if self.warm is not None:
+            self.warm.close()
 
 
 def _conforms(runtime: ProcessRuntime) -> Runtime:

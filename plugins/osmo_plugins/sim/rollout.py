@@ -19,6 +19,8 @@ ROLLOUT = PluginType(
     description="Roll out a policy in a gymnasium/MuJoCo env; episodes → MCAP (one per shard)",
     impl="osmo_plugins.sim._rollout:run",
     extra="sim",
+    preload=("numpy", "gymnasium", "mujoco", "gymnasium.envs.mujoco"),
+    preload_env={"MUJOCO_GL": "disable"},
     resources={"cpu": 1, "memory": "1Gi"},
     params={
         "env": Param(str, "InvertedPendulum-v5", "gymnasium env id (MuJoCo v5 envs)"),

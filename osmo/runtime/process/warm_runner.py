@@ -1,0 +1,302 @@
+"""A warm runner: one process that imported a task type once and forks each attempt from it.
+
+Started by ``osmo.runtime.process.warm`` (the pool's side) as::
+
+    python -m osmo.runtime.process.warm_runner FD TYPE VERSION [FOLDER ...]
+
+``FD`` is its end of a ``SOCK_SEQPACKET`` socket pair with the pool; ``TYPE`` the task type's
+reference as a spec writes it, ``VERSION`` the version the pool expects (``-``: any), the
+``FOLDER`` s those a custom type is imported from. Its environment is the pool's base
+environment (``osmo.worker.taskenv``) with the type's ``PYTHONPATH``: no attempt's variables,
+no credential. What it owns:
+
+- **the import**: it puts the folders on ``sys.path``, resolves the type (which imports its
+  module and whatever that imports), calls the type's optional ``warm()`` (a built-in
+  plugin imports its implementation and the libraries every run needs there), imports the
+  modules every attempt uses, then says ``ready``
+  (with the files of the modules it imported from the type's folders and their mtimes:
+  the pool retires it when one changes) or ``error: WHY`` (the pool then runs that type
+  cold). A type whose import started a
+  Python thread is refused: its code would run on in the runner, beside every fork request.
+  (Native threads of libraries, such as a BLAS pool, are not counted: they do not survive a
+  fork, and the libraries that start them handle it.)
+- **the forks**: each request on the socket carries four descriptors (the attempt's stdout
+  and stderr pipes, the read end of its request pipe, the write end of its status pipe). The
+  runner forks, waits until the child leads its own session and process group (before it
+  answers, so a kill from the pool always finds the group), answers the child's pid with a
+  pidfd of it, and closes its copies of the attempt's descriptors. It never reads the
+  request pipe: only the child does.
+- **the exits**: it reaps its children and writes each one's exit code (``128+N`` for signal
+  N) to its status pipe, then closes it.
+- **its end**: when the pool closes its end of the socket, it takes no more requests and
+  exits once its children have ended; when idle for the time the pool gave it (``OSMO_WARM_IDLE``,
+  seconds), it exits by itself. It dies with the pool (``PR_SET_PDEATHSIG``, set by the pool's
+  spawn), and its children die with it (the same signal, set in each child).
+
+The child (:func:`_attempt`): ``PR_SET_PDEATHSIG`` (SIGKILL), its own session (as a cold
+attempt's ``start_new_session``), default signal handlers, every
+descriptor of the runner closed, its request read from the pipe (argv, working folder,
+complete environment, as JSON), stdin from ``/dev/null``, stdout and stderr the attempt's
+pipes; the environment then *replaces* the runner's. A typed task's argv
+(``osmo.worker.launch.runner_argv``) runs in the child itself (``osmo.tasktypes.runner``, its
+module already imported); any other argv is executed (what the runtime contract's checks
+run). Module state a task changes, threads it starts and memory it takes are its own
+process's: the runner, forked again for the next attempt, never ran it.
+
+It must not import anything of the worker or the server.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import json
+import os
+import selectors
+import signal
+import socket
+import sys
+import threading
+import time
+from collections.abc import Sequence
+from typing import Any
+
+__all__ = ["IDLE_VARIABLE", "READY", "RUNNER_MODULE", "main"]
+
+READY = b"ready"
+"""What the runner sends once it has imported its type."""
+RUNNER_MODULE = "osmo.tasktypes.runner"
+"""The module of a typed task's argv (``python -m osmo.tasktypes.runner CONTEXT``)."""
+IDLE_VARIABLE = "OSMO_WARM_IDLE"
+"""The variable that gives a runner its idle time in seconds (it exits after that long idle)."""
+
+_PR_SET_PDEATHSIG = 1
+_DESCRIPTORS = 4  # stdout, stderr, request pipe, status pipe
+_REQUEST_LIMIT = 64 * 1024 * 1024
+_SOURCES_MAX = 200  # a reply is one datagram: a project's own modules, not a library's
+
+
+def _die_with_parent() -> None:
+    ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+
+
+def _load(ref: str, version: str, folders: Sequence[str]) -> str:
+    """Import the type and what every attempt uses; empty, or why it cannot be warm."""
+    for folder in reversed(folders):
+        if folder not in sys.path:
+            sys.path.insert(0, folder)
+    try:
+        from osmo.errors import OsmoError
+        from osmo.tasktypes import context, runner  # noqa: F401 - what each attempt imports
+        from osmo.tasktypes.registry import resolve
+
+        if not ref:  # a runner of commands (a fork, then their exec): nothing more to import
+            return ""
+        obj = resolve(ref)
+    except OsmoError as exc:
+        return str(exc)
+    except Exception as exc:  # noqa: BLE001 - the type's own import failed: say so, run cold
+        return f"importing {ref}: {exc!r}"
+    if version != "-" and str(obj.version) != version:
+        return f"{ref} is version {obj.version} here, not {version}"
+    warm = getattr(obj, "warm", None)
+    if callable(warm):
+        try:
+            warm()
+        except Exception as exc:  # noqa: BLE001 - its own warm-up failed: run it cold
+            return f"warming {ref}: {exc!r}"
+    if threading.active_count() != 1:
+        return f"importing {ref} started a Python thread; a warm runner must have none"
+    return ""
+
+
+def _sources(folders: Sequence[str]) -> dict[str, int]:
+    """The files of the modules imported from ``folders`` with their mtimes (stale checks)."""
+    tops = tuple(os.path.join(os.path.realpath(f), "") for f in folders)
+    out: dict[str, int] = {}
+    for module in list(sys.modules.values()):
+        path = getattr(module, "__file__", None)
+        if isinstance(path, str) and tops and os.path.realpath(path).startswith(tops):
+            with contextlib.suppress(OSError):
+                out[path] = os.stat(path).st_mtime_ns
+        if len(out) >= _SOURCES_MAX:
+            break
+    return out
+
+
+class _Runner:
+    """The serving loop (see the module docstring)."""
+
+    def __init__(self, sock: socket.socket, idle: float) -> None:
+        self.sock, self.idle = sock, idle
+        self.children: dict[int, int] = {}  # pid -> its status pipe's write end
+        self.accepting = True
+        self.wake_r, self.wake_w = os.pipe2(os.O_NONBLOCK | os.O_CLOEXEC)
+
+    def serve(self) -> None:
+        signal.set_wakeup_fd(self.wake_w)
+        signal.signal(signal.SIGCHLD, lambda *_: None)
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        selector = selectors.DefaultSelector()
+        selector.register(self.sock, selectors.EVENT_READ, "sock")
+        selector.register(self.wake_r, selectors.EVENT_READ, "wake")
+        last = time.monotonic()
+        while self.accepting or self.children:
+            ready = selector.select(timeout=1.0)
+            for key, _ in ready:
+                if key.data == "wake":
+                    with contextlib.suppress(BlockingIOError):
+                        os.read(self.wake_r, 4096)
+                    self._reap()
+                elif not self._serve_one():
+                    self.accepting = False
+                    selector.unregister(self.sock)
+            self._reap()
+            if self.children:
+                last = time.monotonic()
+            elif time.monotonic() - last > self.idle:
+                return
+
+    def _serve_one(self) -> bool:
+        """One request; False when the pool closed its end."""
+        try:
+            data, fds, _, _ = socket.recv_fds(self.sock, 64, _DESCRIPTORS)
+        except OSError:
+            return False
+        if not data:
+            for fd in fds:
+                os.close(fd)
+            return False
+        if len(fds) != _DESCRIPTORS:
+            for fd in fds:
+                os.close(fd)
+            self.sock.send(b"error: expected four descriptors")
+            return True
+        out, err, request, status = fds
+        sys.stdout.flush()
+        sys.stderr.flush()
+        led_r, led_w = os.pipe2(os.O_CLOEXEC)
+        pid = os.fork()
+        if pid == 0:
+            os.close(led_r)
+            _attempt(out, err, request, led_w,
+                     drop=(self.sock.fileno(), self.wake_r, self.wake_w, status,
+                           *self.children.values()))
+        os.close(led_w)
+        os.read(led_r, 1)  # its end closed: the child leads its session (or is gone)
+        os.close(led_r)
+        for fd in (out, err, request):
+            os.close(fd)
+        self.children[pid] = status
+        pidfd = os.pidfd_open(pid)
+        try:
+            socket.send_fds(self.sock, [str(pid).encode()], [pidfd])
+        except OSError:
+            pass  # the pool is gone: the child dies with this runner
+        finally:
+            os.close(pidfd)
+        return True
+
+    def _reap(self) -> None:
+        while self.children:
+            try:
+                pid, wait_status = os.waitpid(-1, os.WNOHANG)
+            except ChildProcessError:
+                return
+            if pid == 0:
+                return
+            status = self.children.pop(pid, -1)
+            if status < 0:
+                continue
+            code = os.waitstatus_to_exitcode(wait_status)
+            code = 128 - code if code < 0 else code
+            with contextlib.suppress(OSError):
+                os.write(status, f"{code}\n".encode())
+            os.close(status)
+
+
+def _attempt(out: int, err: int, request: int, led: int, *, drop: tuple[int, ...]) -> None:
+    """In the forked child: become the attempt, then run it; never returns.
+
+    ``led``: closed once the child leads its own session (and process group).
+    """
+    code = 127
+    try:
+        _die_with_parent()
+        os.setsid()
+        os.close(led)
+        signal.set_wakeup_fd(-1)
+        for sig in (signal.SIGCHLD, signal.SIGTERM, signal.SIGINT, signal.SIGPIPE):
+            signal.signal(sig, signal.SIG_DFL)
+        for fd in drop:
+            with contextlib.suppress(OSError):
+                os.close(fd)
+        with os.fdopen(request, "rb") as pipe:
+            wanted: dict[str, Any] = json.loads(pipe.read(_REQUEST_LIMIT))
+        null = os.open(os.devnull, os.O_RDONLY)
+        os.dup2(null, 0)
+        os.dup2(out, 1)
+        os.dup2(err, 2)
+        for fd in (null, out, err):
+            if fd > 2:
+                os.close(fd)
+        code = _run(list(wanted["argv"]), str(wanted["cwd"]), dict(wanted["env"]))
+    except BaseException as exc:  # noqa: BLE001 - whatever happens, the child must exit here
+        with contextlib.suppress(Exception):
+            os.write(2, f"osmo: warm start failed: {exc!r}\n".encode())
+    finally:
+        os._exit(code)
+
+
+def _run(argv: list[str], cwd: str, env: dict[str, str]) -> int:
+    """The attempt's command in this process: its environment, its folder, its task."""
+    os.chdir(cwd)
+    os.environ.clear()
+    os.environ.update(env)
+    if len(argv) == 4 and argv[1:3] == ["-m", RUNNER_MODULE]:
+        return _typed(argv[3])
+    try:
+        os.execvpe(argv[0], argv, env)
+    except OSError as exc:
+        os.write(2, f"osmo: cannot start '{argv[0]}': {exc.strerror or exc}\n".encode())
+    return 127
+
+
+def _typed(context: str) -> int:
+    """A typed task, as ``python -m osmo.tasktypes.runner CONTEXT`` would run it."""
+    from osmo.tasktypes import runner
+
+    sys.argv = [runner.__file__ or RUNNER_MODULE, context]
+    numpy = sys.modules.get("numpy")
+    if numpy is not None:  # a fork shares its parent's global generator: give it its own
+        with contextlib.suppress(Exception):
+            numpy.random.seed()
+    code = runner.main([context])
+    for thread in threading.enumerate():  # as an interpreter's exit would: its own threads
+        if thread is not threading.current_thread() and not thread.daemon:
+            thread.join()
+    with contextlib.suppress(Exception):
+        sys.stdout.flush()
+        sys.stderr.flush()
+    return code
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m osmo.runtime.process.warm_runner FD TYPE VERSION [FOLDER ...]``."""
+    args = list(sys.argv[1:] if argv is None else argv)
+    if len(args) < 3:
+        sys.stderr.write("usage: python -m osmo.runtime.process.warm_runner FD TYPE VERSION "
+                         "[FOLDER ...]\n")
+        return 2
+    sock = socket.socket(fileno=int(args[0]))
+    why = _load(args[1], args[2], args[3:])
+    if why:
+        sock.send(f"error: {why}".encode()[:4096])
+        return 1
+    sock.send(READY + b" " + json.dumps(_sources(args[3:])).encode())
+    _Runner(sock, float(os.environ.get(IDLE_VARIABLE, "60"))).serve()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
