@@ -23,6 +23,15 @@ server refuses (it restarted, or counted the worker gone) makes it register agai
 attempt's secrets and data-URL credentials are asked for (``worker_secrets``) rather than
 carried by the ``prepare`` order.
 
+Adoption: on a node whose attempts outlive it (``--runtime slurm``: batch jobs), each attempt
+is journaled in its home (``osmo.worker.journal``). A node started again on that home reads
+the journal before anything else, keeps those attempts' folders, re-attaches to their jobs
+(``LocalPool.adopt``: their logs resume where they were shipped, their outputs are
+collected as usual), cancels every other job its previous life left, and registers with
+the adopted attempts as ``active`` and ``outlives`` set (the server held them while it was
+away: ``osmo.server.workers``). An adopted attempt the server no longer places on it (the
+registration's ``placed``: it stayed away past the grace) is killed and reports nothing.
+
 Leftovers: the pool records each running command's pid and start time under ``<home>/procs``;
 a worker started on a home kills whatever a previous life left there before it announces
 itself (``osmo.worker.procs``), so a SIGKILLed worker's task never runs beside its
@@ -68,6 +77,7 @@ from osmo.scheduler.types import (
     RunAttempt,
 )
 from osmo.spec.model import ResourceSpec, TaskSpec, WorkflowSpec
+from osmo.spec.stored import StoredSpec
 from osmo.transport.blobs import SERVER, BlobServer, SameHost, host_id
 from osmo.transport.rpc import ApiClient
 from osmo.transport.seal import Purpose
@@ -85,6 +95,7 @@ from osmo.transport.wire import (
 )
 from osmo.transport.zenoh_link import Link, Subscription
 from osmo.worker.held_inputs import HeldInputs
+from osmo.worker.journal import Journal
 from osmo.worker.options import WorkerOptions
 from osmo.worker.pool import LocalPool
 from osmo.worker.procs import kill_recorded
@@ -125,6 +136,9 @@ class RemoteWorker:
         self._lock = threading.Lock()
         self._changed = threading.Condition(self._lock)
         self._specs: dict[str, WorkflowSpec] = {}
+        self._stored: dict[str, StoredSpec] = {}  # as sent (journaled with its attempts)
+        self._adopted: set[str] = set()  # until the server says which it still places here
+        self._early_logs: list[tuple[str, bytes]] | None = []  # sent once it registered
         self._url_creds: dict[str, dict[str, str]] = {}
         self._pending: dict[str, _Pending] = {}
         self._inputs = HeldInputs(self._api, self.store)
@@ -145,8 +159,13 @@ class RemoteWorker:
         # a cluster's jobs a previous life left are cancelled before their folders go
         cluster = slurm_for_node(options.runtime, home, options.slurm,
                                  python=options.slurm_python, engine=options.container_engine)
+        self._journal = journal = Journal(home.root / "journal", self._stored.get)
+        entries = journal.read(home) if cluster else []
+        if not cluster:
+            journal.clear()
         kill_recorded(home.procs)  # before it announces itself
-        clear_runs(home, self._io)  # a previous life's attempts were all rescheduled
+        # a previous life's attempts were all rescheduled, but those it adopts now
+        clear_runs(home, self._io, keep={entry.dirs.root for entry in entries})
         limit = default_limit(home.root) if options.store_limit is None else options.store_limit
         self._keeper = StoreKeeper(home, self.store, self._inputs, limit,
                                    self._protected, self._io)
@@ -162,7 +181,17 @@ class RemoteWorker:
             input_manifests=self._inputs.manifest_of, sandbox=options.sandbox,
             sandbox_share=options.sandbox_share, address=self._address,
             procs_dir=home.procs, containers=images,
-            cluster=cluster[0] if cluster else None, cluster_images=cluster[1] if cluster else None)
+            cluster=cluster[0] if cluster else None, cluster_images=cluster[1] if cluster else None,
+            journal=journal if cluster else None)
+        for entry in entries:
+            log.info("adopting attempt %s from this node's previous life", entry.attempt_id)
+            with self._lock:
+                self._active.add(entry.attempt_id)
+                self._adopted.add(entry.attempt_id)
+            self.pool.adopt(entry)
+        if cluster:
+            for job in self.pool.cancel_orphans():
+                log.warning("cancelled job %s that this node's previous life left", job)
         for secret in options.secret_files:
             self.pool.hide(Path(secret))
         self.sessions = NodeSessions(self.link, self.pool, lambda ticket: self._api.call(
@@ -250,12 +279,21 @@ class RemoteWorker:
         self._stop.set()
 
     def _close(self) -> None:
+        outlives = self.pool.outlives()
+        if outlives:  # the server would hold them for the node's return: handed back now
+            with self._lock:
+                left = sorted(self._active - self._handed_back)
+                self._handed_back.update(left)
+            for aid in left:
+                self._send(event_to_dict(AttemptLost(aid, f"worker {self.id} stopped")))
         for sub in self._subs:
             sub.close()
         if self._token is not None:
             self._token.close()
         self.sessions.close("the worker is stopping")
-        self.pool.close()
+        self.pool.close()  # its jobs are cancelled: nothing is left to adopt
+        if outlives:
+            self._journal.clear()
         self._io.shutdown(wait=False, cancel_futures=True)
         self.link.close()
         self.home.worker_health.unlink(missing_ok=True)
@@ -286,7 +324,8 @@ class RemoteWorker:
                           active=tuple(sorted(self._active | set(self._pending))),
                           finished=tuple(self._unacked.values()),
                           runtime=self.pool.runtime_name(),
-                          sandbox_why=self.pool.no_sandbox_why).to_dict()
+                          sandbox_why=self.pool.no_sandbox_why,
+                          outlives=self.pool.outlives()).to_dict()
         try:
             reply = self._api.call("worker_register", hello)
         except NotAllowed as exc:  # e.g. a pool its token may not serve: retrying cannot help
@@ -296,6 +335,11 @@ class RemoteWorker:
         except OsmoError as exc:
             log.info("server not reachable yet (%s); retrying", exc)
             return False
+        self._settle_adopted(reply.get("placed"))
+        with self._lock:
+            early, self._early_logs = self._early_logs or [], None
+        for attempt_id, records in early:
+            self._send_log(attempt_id, records)
         same = reply.get("host_id") == hello["host_id"] and reply.get("artifacts")
         self._server_host = SameHost(Path(reply["artifacts"])) if same else None
         if same:  # its tasks must not see the server's home (its state store) either
@@ -306,6 +350,19 @@ class RemoteWorker:
             self._connected = True
         log.info("worker %s registered with the server (pool %s)", self.id, self.opts.pool)
         return True
+
+    def _settle_adopted(self, placed: object) -> None:
+        """Kill the adopted attempts the server no longer places here (they report nothing)."""
+        if not isinstance(placed, list):
+            return
+        with self._lock:
+            stray = sorted(self._adopted - {str(aid) for aid in placed})
+            self._adopted.clear()
+            self._handed_back.update(stray)
+        for aid in stray:
+            log.warning("attempt %s is no longer placed on this node: its job is cancelled",
+                        aid)
+            self.pool.kill(KillAttempt(aid, self.id, "no longer placed on this node"))
 
     def _write_health(self) -> None:
         with self._lock:
@@ -361,6 +418,7 @@ class RemoteWorker:
         with self._lock:
             if order.spec is not None:
                 self._specs[cmd.workflow_id] = order.spec.load()
+                self._stored[cmd.workflow_id] = order.spec
             self._pending[cmd.attempt_id] = _Pending()
         manifests = {ref: Manifest.from_json(body) for ref, body in order.manifests.items()}
         with self._keeper.gate:  # protected before it is checked: no collection between
@@ -461,6 +519,10 @@ class RemoteWorker:
         self._api.send("worker_report", {"id": self.id, "report": data})
 
     def _send_log(self, attempt_id: str, records: bytes) -> None:
+        with self._lock:  # adopted attempts log before the node registered: held till then
+            if self._early_logs is not None:
+                self._early_logs.append((attempt_id, records))
+                return
         self._api.send("worker_log", {"id": self.id, "attempt_id": attempt_id,
                                       "records": records.decode(errors="replace")})
 
