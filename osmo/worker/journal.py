@@ -25,7 +25,6 @@ attempts (``osmo.worker.remote`` and ``osmo.worker.pool`` do).
 from __future__ import annotations
 
 import hashlib
-import json
 import logging
 import os
 import stat
@@ -35,7 +34,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from osmo.config import write_json_atomic
+from osmo.config import read_json_private, write_json_atomic
 from osmo.errors import OsmoError
 from osmo.layout import AttemptDirs, Home
 from osmo.scheduler.types import PrepareAttempt
@@ -209,15 +208,7 @@ class Journal:
 
 def _load(path: Path) -> dict[str, Any]:
     """A journal file's object; never through a symlink, never a huge one."""
-    fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC)
-    with os.fdopen(fd, "rb") as f:
-        raw = f.read(_MAX_FILE + 1)
-    if len(raw) > _MAX_FILE:
-        raise ValueError("it is too large")
-    data = json.loads(raw)
-    if not isinstance(data, dict):
-        raise ValueError("it is not an object")
-    return data
+    return read_json_private(path, _MAX_FILE)
 
 
 def _text(data: Mapping[str, Any], key: str) -> str:

@@ -23,11 +23,13 @@ server refuses (it restarted, or counted the worker gone) makes it register agai
 attempt's secrets and data-URL credentials are asked for (``worker_secrets``) rather than
 carried by the ``prepare`` order.
 
-Adoption: on a node whose attempts outlive it (``--runtime slurm``: batch jobs), each attempt
+Adoption: on a node whose attempts outlive it (``--runtime slurm``: batch jobs;
+``--runtime kubernetes``: pods), each attempt
 is journaled in its home (``osmo.worker.journal``). A node started again on that home reads
 the journal before anything else, keeps those attempts' folders, re-attaches to their jobs
 (``LocalPool.adopt``: their logs resume where they were shipped, their outputs are
-collected as usual), cancels every other job its previous life left, and registers with
+collected as usual), cancels every other job (deletes every other pod) its previous life
+left, and registers with
 the adopted attempts as ``active`` and ``outlives`` set (the server held them while it was
 away: ``osmo.server.workers``). An adopted attempt the server no longer places on it (the
 registration's ``placed``: it stayed away past the grace) is killed and reports nothing.
@@ -61,7 +63,7 @@ from osmo.config import write_json_atomic
 from osmo.errors import NotAllowed, OsmoError, UsageError
 from osmo.layout import Home
 from osmo.names import check_worker_name
-from osmo.runtime.api import Terms
+from osmo.runtime.api import Adopting, Terms
 from osmo.runtime.choose import image_runtime_for_node, slurm_for_node
 from osmo.runtime.kubernetes.capacity import cluster_capacity
 from osmo.runtime.kubernetes.runtime import KubernetesRuntime
@@ -156,12 +158,15 @@ class RemoteWorker:
         self._refused: NotAllowed | None = None  # the server refused to register it
         self._io = ThreadPoolExecutor(4, thread_name_prefix="osmo-inputs")
         self._token: Subscription | None = None
-        # a cluster's jobs a previous life left are cancelled before their folders go
+        # what a previous life left on a cluster is adopted or cancelled (below)
         cluster = slurm_for_node(options.runtime, home, options.slurm,
                                  python=options.slurm_python, engine=options.container_engine)
+        images = image_runtime_for_node(options.runtime, options.container_engine, home,
+                                        kubernetes_config=options.kubernetes_config)
+        outlives = cluster is not None or isinstance(images, Adopting)
         self._journal = journal = Journal(home.root / "journal", self._stored.get)
-        entries = journal.read(home) if cluster else []
-        if not cluster:
+        entries = journal.read(home) if outlives else []
+        if not outlives:
             journal.clear()
         kill_recorded(home.procs)  # before it announces itself
         # a previous life's attempts were all rescheduled, but those it adopts now
@@ -169,8 +174,6 @@ class RemoteWorker:
         limit = default_limit(home.root) if options.store_limit is None else options.store_limit
         self._keeper = StoreKeeper(home, self.store, self._inputs, limit,
                                    self._protected, self._io)
-        images = image_runtime_for_node(options.runtime, options.container_engine, home,
-                                        kubernetes_config=options.kubernetes_config)
         cpus, gpus, memory = _capacity(options, images, cluster[0] if cluster else None)
         self.pool = LocalPool(
             home=home, emit=self._emit, node_id=self.id, pool=options.pool,
@@ -182,16 +185,15 @@ class RemoteWorker:
             sandbox_share=options.sandbox_share, address=self._address,
             procs_dir=home.procs, containers=images,
             cluster=cluster[0] if cluster else None, cluster_images=cluster[1] if cluster else None,
-            journal=journal if cluster else None)
+            journal=journal if outlives else None)
         for entry in entries:
             log.info("adopting attempt %s from this node's previous life", entry.attempt_id)
             with self._lock:
                 self._active.add(entry.attempt_id)
                 self._adopted.add(entry.attempt_id)
             self.pool.adopt(entry)
-        if cluster:
-            for job in self.pool.cancel_orphans():
-                log.warning("cancelled job %s that this node's previous life left", job)
+        for left in self.pool.cancel_orphans():
+            log.warning("cancelled %s that this node's previous life left", left)
         for secret in options.secret_files:
             self.pool.hide(Path(secret))
         self.sessions = NodeSessions(self.link, self.pool, lambda ticket: self._api.call(

@@ -270,7 +270,8 @@ workflow:
 def test_a_restarted_worker_adopts_a_group_s_job_whole(
         grid: Cluster, roomy: SlurmCluster, tmp_path: Path) -> None:
     """A gang (one heterogeneous job, a member on n1 and one on n2) survives a kill -9 of
-    the node: both members are adopted, the job runs once, the group completes."""
+    the node: both members are adopted, the job runs once, the group completes. (The lead
+    ends last: a group's members are stopped when its lead finishes.)"""
     runs, gate = tmp_path / "runs", tmp_path / "gate"
     spec = write(tmp_path / "wf.yaml", f"""
 workflow:
@@ -283,10 +284,10 @@ workflow:
     - name: lead
       lead: true
       command: [sh, -c, 'echo "$SLURM_JOB_ID $SLURMD_NODENAME" >> {runs}; echo up;
-        while [ ! -e {gate} ]; do sleep 0.2; done; echo lead done']
+        while [ ! -e {gate} ] || [ ! -e {runs}.peer ]; do sleep 0.2; done; echo lead done']
     - name: peer
       command: [sh, -c, 'echo "$SLURM_JOB_ID $SLURMD_NODENAME" >> {runs}; echo up;
-        while [ ! -e {gate} ]; do sleep 0.2; done; echo peer done']
+        while [ ! -e {gate} ]; do sleep 0.2; done; echo peer done; touch {runs}.peer']
 """)
     wf_id = grid.osmo.submit(spec)
     until_logged(grid, wf_id, "[lead] up")

@@ -76,6 +76,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
+from osmo.config import read_json_private
 from osmo.errors import OsmoError
 from osmo.layout import AttemptDirs
 from osmo.options import SlurmOptions
@@ -283,8 +284,8 @@ class SlurmRuntime:
         try:
             if not stat.S_ISDIR(os.lstat(folder).st_mode):
                 raise OsmoError(f"{folder} is not a folder")
-            meta = _read_private(folder / "job.json")
-            env = _read_private(folder / "launch.json").get("env")
+            meta = read_json_private(folder / "job.json")
+            env = read_json_private(folder / "launch.json").get("env")
         except (OSError, ValueError) as exc:
             raise OsmoError(f"no Slurm job to adopt in {folder}: {exc}") from exc
         job = _job_of(folder, meta)
@@ -292,13 +293,16 @@ class SlurmRuntime:
         if not isinstance(env, dict) or not all(isinstance(k, str) and isinstance(v, str)
                                                 for k, v in env.items()):
             raise OsmoError(f"the launch in {folder} is not valid")
-        if not (folder / "exit.json").exists() and job_id not in self.slurm.jobs([job_id]):
+        info = self.slurm.jobs([job_id]).get(job_id)
+        if info is None and not (folder / "exit.json").exists():
             raise OsmoError(f"Slurm job {job_id} is gone")
         offsets = [str(max(0, int(shipped.get(s, 0)))) for s in ("stdout", "stderr")]
         handle = self._processes.start(
             [self._python, "-I", str(WATCHER), str(folder), *offsets], cwd=dirs.work,
             env={"PATH": os.environ.get("PATH", "/usr/bin:/bin")})
         live = _Live(job, job_id, handle=handle)
+        if info is not None and info.nodes:  # said by its previous life: not said again
+            live.said.add(f"{PROGRESS_PREFIX} Slurm job {job_id} RUNNING on {info.nodes}")
         handle.notes_fd, live.notes = os.pipe2(os.O_NONBLOCK | os.O_CLOEXEC)
         self._track(live)
         self._note(live, f"Slurm job {job_id} adopted: watched again")
@@ -770,16 +774,6 @@ def _record(live: _Live) -> None:
         "container": job.container.name if job.container is not None else None,
         "gang": None if gang is None else {"key": gang.key, "members": list(gang.members),
                                            "index": gang.index, "lead": gang.lead}}))
-
-
-def _read_private(path: Path) -> dict[str, object]:
-    """A job folder's JSON object, never read through a symlink. Raises OSError, ValueError."""
-    fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC)
-    with os.fdopen(fd, "rb") as f:
-        found = json.loads(f.read(1 << 22))
-    if not isinstance(found, dict):
-        raise ValueError(f"{path.name} is not an object")
-    return found
 
 
 def _job_of(folder: Path, meta: Mapping[str, object]) -> SlurmJob:
