@@ -24,15 +24,16 @@ attempt's secrets and data-URL credentials are asked for (``worker_secrets``) ra
 carried by the ``prepare`` order.
 
 Adoption: on a node whose attempts outlive it (``--runtime slurm``: batch jobs;
-``--runtime kubernetes``: pods), each attempt
-is journaled in its home (``osmo.worker.journal``). A node started again on that home reads
-the journal before anything else, keeps those attempts' folders, re-attaches to their jobs
+``--runtime kubernetes``: pods), each attempt is journaled in its home
+(``osmo.worker.journal``). A node started again on that home reads the journal before
+anything else, keeps those attempts' folders, re-attaches to their jobs or pods
 (``LocalPool.adopt``: their logs resume where they were shipped, their outputs are
-collected as usual), cancels every other job (deletes every other pod) its previous life
-left, and registers with
-the adopted attempts as ``active`` and ``outlives`` set (the server held them while it was
-away: ``osmo.server.workers``). An adopted attempt the server no longer places on it (the
-registration's ``placed``: it stayed away past the grace) is killed and reports nothing.
+collected as usual; log lines wait until it registered), cancels every other job or pod its
+previous life left, and registers with the adopted attempts as ``active`` and ``outlives``
+set (the server held them while it was away: ``osmo.server.workers``). An adopted attempt
+the server no longer places on it (the registration's ``placed``: it stayed away past the
+grace) is killed and reports nothing. Stopped (not killed), it cancels its attempts and
+hands them back at once.
 
 Leftovers: the pool records each running command's pid and start time under ``<home>/procs``;
 a worker started on a home kills whatever a previous life left there before it announces
