@@ -371,7 +371,11 @@ workflow:
         c.workers["late"].wait(timeout=30)
         c.osmo.wait_for(wf_id, lambda i: i["tasks"][0]["retry"] == 1, timeout=60)
         c.start_worker("late", "--runtime", "slurm")
-        until_no_job(roomy, first)
+        try:
+            until_no_job(roomy, first, timeout=60)
+        except AssertionError as exc:
+            raise AssertionError(f"{exc}\n{c.worker_log('late')}\n"
+                                 f"{(c.osmo.home / 'server.log').read_text()}") from None
         gate.touch()
         info = c.osmo.wait_for(wf_id, lambda i: i["status"] in ("COMPLETED", "FAILED"),
                                timeout=120)
@@ -382,7 +386,10 @@ workflow:
         assert gone["State"].startswith("CANCELLED") or gone["ExitCode"] == "143:0", gone
         assert "no longer placed on this node" in c.worker_log("late")
     finally:
-        c.stop()
+        c.stop()  # kill -9: its jobs stay (they outlive it); cancelled here
+        for line in jobs_of(roomy):
+            if line.split()[-1].startswith("osmo-late-"):
+                roomy.run("scancel", line.split()[0])
 
 
 def test_group_communication_tutorial_runs_as_one_job(grid: Cluster) -> None:
