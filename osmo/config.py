@@ -31,6 +31,7 @@ __all__ = [
     "lock_is_held",
     "open_home",
     "private_file",
+    "read_json_private",
     "read_profile",
     "read_server_info",
     "write_json_atomic",
@@ -132,6 +133,24 @@ def write_json_atomic(path: Path, data: dict[str, Any]) -> None:
     with os.fdopen(fd, "w") as f:
         f.write(json.dumps(data, indent=2))
     os.replace(tmp, path)
+
+
+def read_json_private(path: Path, max_bytes: int = 4 << 20) -> dict[str, Any]:
+    """The JSON object in ``path``, never read through a symlink nor past ``max_bytes``.
+
+    Raises:
+        OSError: it cannot be opened (missing, a symlink).
+        ValueError: it is not JSON, not an object, or too large.
+    """
+    fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC)
+    with os.fdopen(fd, "rb") as f:
+        raw = f.read(max_bytes + 1)
+    if len(raw) > max_bytes:
+        raise ValueError(f"{path.name} is too large")
+    data = json.loads(raw)
+    if not isinstance(data, dict):
+        raise ValueError(f"{path.name} is not an object")
+    return data
 
 
 def read_server_info(home: Home) -> ServerInfo | None:

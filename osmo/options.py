@@ -33,8 +33,9 @@ from osmo.config import DEFAULT_CLUSTER
 from osmo.errors import UsageError
 from osmo.layout import Home
 
-__all__ = ["DEFAULT_LOG_LIMIT", "MIN_LOG_LIMIT", "SANDBOX_MODES", "SandboxMode",
-           "ServerOptions", "SlurmOptions", "WarmOptions", "absolute", "add_log_limit_argument",
+__all__ = ["DEFAULT_ADOPT_GRACE", "DEFAULT_LOG_LIMIT", "MIN_LOG_LIMIT", "SANDBOX_MODES",
+           "SandboxMode", "ServerOptions", "SlurmOptions", "WarmOptions", "absolute",
+           "add_log_limit_argument",
            "add_runtime_arguments",
            "option_changes", "options_from_argv", "parse_log_limit", "remember",
            "parse_share", "saved_options", "shares"]
@@ -47,6 +48,9 @@ SANDBOX_MODES: tuple[SandboxMode, ...] = ("auto", "on", "off")
 DEFAULT_LOG_LIMIT = 64 << 20
 """Bytes one attempt's log may hold before its oldest records are dropped (``osmo.worker.logs``)."""
 MIN_LOG_LIMIT = 1 << 20
+DEFAULT_ADOPT_GRACE = 120.0
+"""Seconds a node whose attempts outlive it (a cluster's jobs or pods) may be away before its
+attempts are lost (``osmo server start --adopt-grace``; ``osmo.server.workers``)."""
 """The smallest ``--log-limit``: room for several of the longest records."""
 
 
@@ -251,6 +255,8 @@ class ServerOptions:
         cpus, gpus: override the local pool's detected capacity.
         local_pool: run tasks on the server's host too (off: remote workers only).
         reconnect_grace: seconds remote workers get to come back after a restart.
+        adopt_grace: seconds a node whose attempts outlive it (a cluster's jobs or pods)
+            may be away before its attempts are lost and rescheduled.
         insecure: allow a network listener without zenoh authentication (warned at every
             start; see ``osmo.transport.listeners.check_listeners``).
         accept_tokens: ``NAME:ROLE:FILE`` tokens to accept (Kubernetes Secrets).
@@ -273,6 +279,7 @@ class ServerOptions:
     gpus: int | None = None
     local_pool: bool = True
     reconnect_grace: float = 30.0
+    adopt_grace: float = DEFAULT_ADOPT_GRACE
     insecure: bool = False
     accept_tokens: tuple[str, ...] = ()
     sandbox: SandboxMode = "auto"
@@ -317,6 +324,10 @@ class ServerOptions:
         p.add_argument("--reconnect-grace", type=float, default=d.reconnect_grace,
                        metavar="SECONDS", help="after a restart, how long remote workers get "
                                                f"to come back ({d.reconnect_grace:g})")
+        p.add_argument("--adopt-grace", type=float, default=d.adopt_grace, metavar="SECONDS",
+                       help="how long a node whose attempts outlive it (Slurm jobs, pods) may "
+                            "be away before they are rescheduled; back in time, it adopts "
+                            f"them ({d.adopt_grace:g})")
         p.add_argument("--accept-token", action="append", metavar="NAME:ROLE:FILE",
                        help="accept the API token in FILE as token NAME with ROLE "
                             "(repeatable; e.g. a mounted Kubernetes Secret)")
@@ -341,7 +352,7 @@ class ServerOptions:
         return cls(listen=tuple(args.listen or ()), connect=tuple(args.connect or ()),
                    zenoh_config=args.zenoh_config, cluster=args.cluster, cpus=args.cpus,
                    gpus=args.gpus, local_pool=args.local_pool,
-                   reconnect_grace=args.reconnect_grace,
+                   reconnect_grace=args.reconnect_grace, adopt_grace=args.adopt_grace,
                    insecure=getattr(args, "insecure", False),
                    accept_tokens=tuple(getattr(args, "accept_token", None) or ()),
                    sandbox=args.sandbox, sandbox_share=shares(args.sandbox_share),
@@ -359,6 +370,7 @@ class ServerOptions:
         for flag, value in (("--zenoh-config", self.zenoh_config), ("--cluster", self.cluster),
                             ("--cpus", self.cpus), ("--gpus", self.gpus),
                             ("--reconnect-grace", self.reconnect_grace),
+                            ("--adopt-grace", self.adopt_grace),
                             ("--sandbox", self.sandbox),
                             ("--runtime", self.runtime),
                             ("--container-engine", self.container_engine),

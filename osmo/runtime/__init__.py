@@ -24,6 +24,7 @@ Runtimes know nothing of the scheduler's state or of logs; the worker pool drive
 
 from osmo.runtime.api import (
     HOST_PATHS,
+    Adopting,
     Attempt,
     ConnectError,
     Connector,
@@ -40,6 +41,7 @@ from osmo.runtime.process.proctable import kill_stale, process_start_time
 
 __all__ = [
     "HOST_PATHS",
+    "Adopting",
     "Attempt",
     "ConnectError",
     "Connector",

@@ -42,6 +42,13 @@ Kubernetes pod, a Slurm job) implements :class:`Runtime` and passes
 through a local process (the command itself, the engine's CLI attached to its container, a
 job's watcher), which is what the pool's reactor and a restarted server's clean-up know.
 
+A runtime whose launches are not the node's children and outlive it (a Slurm job, a pod)
+also implements :class:`Adopting`: the pool journals its attempts (``osmo.worker.journal``),
+the node tells the server so when it registers (the server then holds its attempts for a
+grace when it goes), and a restarted node re-attaches to each journaled launch
+(``adopt``) instead of running it again; a launch of its owner it finds and does not adopt
+is cancelled (``cancel_orphans``).
+
 This module holds the contract's types only; it runs nothing.
 """
 
@@ -53,14 +60,14 @@ import subprocess
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Protocol
+from typing import Protocol, runtime_checkable
 
 from osmo.errors import OsmoError
 from osmo.layout import AttemptDirs
 from osmo.scheduler.types import PrepareAttempt
 from osmo.spec.model import ResourceSpec, TaskSpec
 
-__all__ = ["HOST_PATHS", "Attempt", "ConnectError", "Connector", "ExecCommand",
+__all__ = ["HOST_PATHS", "Adopting", "Attempt", "ConnectError", "Connector", "ExecCommand",
            "Launch", "Paths", "PrepareError", "ProcessHandle", "Runtime", "SocketMaker",
            "StartError", "Terms", "dial"]
 
@@ -341,6 +348,35 @@ class Runtime(Protocol):
 
     def close(self) -> None:
         """The node stops: wait for calls still under way, let go of shared resources."""
+        ...
+
+
+@runtime_checkable
+class Adopting(Protocol):
+    """A runtime whose launches outlive the node (see the module docstring)."""
+
+    def adopt(self, dirs: AttemptDirs, shipped: Mapping[str, int]
+              ) -> tuple[Launch, ProcessHandle]:
+        """Re-attach to the launch a previous life of the node started in ``dirs``.
+
+        ``shipped``: bytes of its ``stdout`` and ``stderr`` already logged (the handle's
+        pipes resume after them). Returns its launch as far as the runtime knows it (its
+        ``run`` is the runtime's own), and a handle watched like a started one's.
+
+        Raises:
+            OsmoError: there is nothing to adopt there, or not safely (the attempt is lost).
+        """
+        ...
+
+    def adopted(self) -> set[str]:
+        """The ids of the launches (jobs, pods) it adopted and still watches."""
+        ...
+
+    def cancel_orphans(self, keep: Sequence[str] = ()) -> list[str]:
+        """Cancel every launch of this node's owner but those in ``keep``; the ids cancelled.
+
+        ``keep``: what the node's runtimes adopted (:meth:`adopted`).
+        """
         ...
 
 

@@ -34,7 +34,7 @@ from pathlib import Path
 from osmo.errors import InfrastructureError, UsageError
 from osmo.layout import Home
 from osmo.options import SandboxMode, SlurmOptions, parse_share
-from osmo.runtime.api import Runtime
+from osmo.runtime.api import Adopting, Runtime
 from osmo.runtime.container.engine import ContainerEngine, EngineNotFound, detect_engine
 from osmo.runtime.container.images import ImageIds
 from osmo.runtime.container.runtime import ContainerRuntime, owner_id
@@ -105,6 +105,14 @@ class Runtimes:
         if self.container is not None and in_container(task):
             return self.container
         return self.process
+
+    def adopting(self) -> list[Adopting]:
+        """Its runtimes whose launches outlive the node (``osmo.runtime.api.Adopting``)."""
+        found: list[Adopting] = []
+        for runtime in (self.cluster, self.cluster_images, self.container):
+            if isinstance(runtime, Adopting):
+                found.append(runtime)
+        return found
 
     @property
     def sandbox(self) -> Sandbox | None:
@@ -236,8 +244,8 @@ def slurm_for_node(runtime: str, home: Home, options: SlurmOptions | None = None
     Image tasks run through the container engine found here (``engine``: podman or docker,
     default the first that answers), expected on the compute nodes too; else through pyxis
     (``srun --container-image``) when the cluster has it; without either the second is None
-    and image tasks fail at start. The jobs a crashed predecessor on
-    ``home`` left queued or running are cancelled first.
+    and image tasks fail at start. The jobs a crashed predecessor on ``home`` left queued or
+    running are the node's to adopt or cancel (``Adopting``; ``osmo.worker.remote``).
 
     Raises:
         SlurmError: Slurm's commands are missing or slurmctld does not answer.
@@ -248,7 +256,6 @@ def slurm_for_node(runtime: str, home: Home, options: SlurmOptions | None = None
     owner, slurm = owner_id(home.root), Slurm()
     made = SlurmRuntime(slurm, owner=owner, options=options, python=python or sys.executable)
     slurm.version()  # fails now, with what is missing, rather than at the first task
-    made.cancel_orphans()
     try:
         found = ContainerEngine(detect_engine(engine))
     except EngineNotFound:

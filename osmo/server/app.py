@@ -186,7 +186,8 @@ class _Server:
         hub = WorkerHub(link=self.link, emit=inbox.post, store=store, artifacts=artifacts,
                         home=self.home, url_credential=url_credential(store),
                         attempts_on=lambda node: list(inbox.ask(AttemptsOn(node))),
-                        gate=self.gate, log_limit=options.log_limit)
+                        gate=self.gate, log_limit=options.log_limit,
+                        adopt_grace=options.adopt_grace)
         executors: list[Executor] = [hub] if pool is None else [pool, hub]
         engine = Engine(store=store, scheduler=recovered.restored.scheduler,
                         executors=executors, inbox=inbox, specs=recovered.restored.specs,

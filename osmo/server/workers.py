@@ -25,6 +25,14 @@ turns the engine's commands into orders to workers and worker traffic into event
 - After a server restart, attempts restored on remote nodes are given ``grace`` seconds for
   their worker to register again (reporting what is still running and what finished
   meanwhile); a node that does not come back is taken down.
+- A node whose attempts outlive its process (``Hello.outlives``: a Slurm login host's jobs, an
+  in-cluster node's pods) is not taken down when its token goes or its beats stop: it is
+  *away*, announced with no capacity, its attempts held, for ``adopt_grace`` seconds. Its id
+  stays its token's meanwhile (no other token may register it). Back in time with the same
+  id, it reports what it adopted (its registration's ``active``) and is told what the server
+  still places on it (the reply's ``placed``); kills sent while it was away are sent again.
+  Past the grace it is down: its attempts are lost and rescheduled, and it cancels its
+  leftover jobs or pods when it comes back.
 """
 
 from __future__ import annotations
@@ -40,7 +48,7 @@ from typing import Any
 from osmo.artifacts import ArtifactStore, Manifest
 from osmo.errors import OsmoError
 from osmo.layout import Home
-from osmo.options import DEFAULT_LOG_LIMIT
+from osmo.options import DEFAULT_ADOPT_GRACE, DEFAULT_LOG_LIMIT
 from osmo.scheduler.types import (
     LOCAL_NODE,
     AttemptExited,
@@ -101,6 +109,8 @@ class WorkerHub:
         gate: the server's channels and token identities (``osmo.transport.rpc.Gate``).
         lease: seconds a registered worker may stay silent (no beat) before it is down.
         log_limit: bytes each remote attempt's log keeps at most as stored here.
+        adopt_grace: seconds a node whose attempts outlive it may be away before they are
+            lost (see the module docstring).
     """
 
     INLINE = frozenset({"worker_report", "worker_log"})
@@ -110,22 +120,27 @@ class WorkerHub:
                  artifacts: ArtifactStore, home: Home,
                  url_credential: Callable[[str], dict[str, str] | None],
                  attempts_on: Callable[[str], list[str]], gate: Gate,
-                 lease: float = LEASE, log_limit: int = DEFAULT_LOG_LIMIT) -> None:
+                 lease: float = LEASE, log_limit: int = DEFAULT_LOG_LIMIT,
+                 adopt_grace: float = DEFAULT_ADOPT_GRACE) -> None:
         self._link, self._emit, self._store = link, emit, store
         self._artifacts, self._home = artifacts, home
         self._url_credential, self._attempts_on = url_credential, attempts_on
-        self._gate, self._lease = gate, lease
+        self._gate, self._lease, self._adopt_grace = gate, lease, adopt_grace
         self._lock = threading.Lock()
         self._nodes: dict[str, Node] = {}  # registered workers
         self._info: dict[str, dict[str, Any]] = {}
         self._alive: set[str] = set()
         self._heard: dict[str, tuple[bytes, float]] = {}  # worker id -> (channel, when)
         self._draining: set[str] = set()
+        self._outlives: set[str] = set()  # nodes whose attempts outlive their process
+        self._away: dict[str, int] = {}  # such a node, gone: its absence's number
+        self._absences = 0
+        self._held_kills: dict[str, list[Kill]] = {}  # kills for a node while it is away
         self._same_host: dict[str, SameHost | None] = {}
         self._sent_specs: dict[str, set[str]] = {}
         self._timeouts: dict[str, float | None] = {}  # workflow -> exec_timeout (a few kept)
         self._logs = RemoteLogs(home, log_limit)
-        self._access = WorkerAccess(self._is_alive)
+        self._access = WorkerAccess(self._holds)
         self._outputs = OutputIntake(artifacts=artifacts, home=home, emit=emit,
                                      send=self._send, asker=self._asker,
                                      same_host=self._same_host_of)
@@ -172,12 +187,24 @@ class WorkerHub:
             self._sent_specs[wid] = set()
             if hello.draining:
                 self._draining.add(wid)
+            if hello.outlives:
+                self._outlives.add(wid)
+            else:
+                self._outlives.discard(wid)
+            back = self._away.pop(wid, None) is not None
             alive = wid in self._alive
-        self._reconcile(wid, set(hello.active), list(hello.finished))
+            kills = self._held_kills.pop(wid, [])
+        if back:
+            log.info("worker %s is back: it adopts %d attempt(s)", wid, len(hello.active))
+        placed = self._reconcile(wid, set(hello.active), list(hello.finished))
         if alive:
             self._emit(NodeUp(self._announced(wid)))
+        for kill in kills:
+            self._send(wid, kill)
         log.info("worker %s registered (pool %s, %s)", wid, node.pool, node.capacity)
         reply: dict[str, Any] = {}
+        if hello.outlives:
+            reply["placed"] = sorted(placed)
         if hello.host_id == self._host:  # only a same-host worker learns where the store is
             reply.update(host_id=self._host, artifacts=str(self._artifacts.root))
         return reply
@@ -213,6 +240,12 @@ class WorkerHub:
         with self._lock:
             self._heard[wid] = (who.channel, time.monotonic())
 
+    def _holds(self, wid: str) -> bool:
+        """Its id is taken: it is alive, or away with its attempts held."""
+        with self._lock:
+            away = wid in self._away
+        return away or self._is_alive(wid)
+
     def _is_alive(self, wid: str) -> bool:
         """Its liveliness token is seen and it was heard from within the lease."""
         with self._lock:
@@ -227,12 +260,46 @@ class WorkerHub:
             with self._lock:
                 silent = [wid for wid in self._nodes
                           if now - self._heard.get(wid, (b"", now))[1] > self._lease]
+                gone = [(wid, self._nodes.pop(wid)) for wid in silent]
                 for wid in silent:
-                    self._nodes.pop(wid, None)
                     self._draining.discard(wid)
-            for wid in silent:
+            for wid, node in gone:
+                if self._went_away(wid, node):
+                    continue
                 log.warning("worker %s is silent (no beat for %.0fs): down", wid, self._lease)
                 self._emit(NodeDown(wid))
+
+    def _went_away(self, wid: str, node: Node) -> bool:
+        """A node that went: away (True) if its attempts outlive it, else down (False).
+
+        Away, it is announced with no capacity; if it is not back within the grace it is
+        down then.
+        """
+        with self._lock:
+            if wid not in self._outlives:
+                return False
+            self._absences += 1
+            absence = self._away[wid] = self._absences
+        log.warning("worker %s is gone; its attempts outlive it: held %.0fs for it to come "
+                    "back", wid, self._adopt_grace)
+        self._emit(NodeUp(replace(node, capacity=Capacity())))
+
+        def check() -> None:
+            with self._lock:
+                late = self._away.get(wid) == absence
+                if late:
+                    del self._away[wid]
+                    self._held_kills.pop(wid, None)
+            if late:
+                log.warning("worker %s did not come back within %.0fs: down", wid,
+                            self._adopt_grace)
+                self._access.forget(wid)
+                self._emit(NodeDown(wid))
+
+        timer = threading.Timer(self._adopt_grace, check)
+        timer.daemon = True
+        timer.start()
+        return True
 
     def _asker(self, wid: str) -> ServerAsker | None:
         """Asks worker ``wid``'s blob server on the channel it last spoke on."""
@@ -286,10 +353,14 @@ class WorkerHub:
             node = self._nodes[wid]
             return replace(node, capacity=Capacity()) if wid in self._draining else node
 
-    def _reconcile(self, wid: str, active: set[str], finished: list[dict[str, Any]]) -> None:
+    def _reconcile(self, wid: str, active: set[str], finished: list[dict[str, Any]]
+                   ) -> set[str]:
         """After a (re-)registration, replay finished reports and lose forgotten attempts.
 
         Attempts the scheduler placed there that the worker knows nothing of are lost.
+
+        Returns:
+            the attempts the scheduler still places on ``wid``.
         """
         known = set(self._attempts_on(wid))
         done = {str(r.get("attempt_id")) for r in finished}
@@ -303,6 +374,7 @@ class WorkerHub:
                 self._send(wid, Ack(str(report.get("attempt_id"))))
         for aid in sorted(known - active - done):
             self._emit(AttemptLost(aid, f"worker {wid} no longer runs this attempt"))
+        return known
 
     def expect(self, node_ids: set[str], grace: float) -> None:
         """Restored attempts sit on ``node_ids``: take down those not back within ``grace``."""
@@ -321,16 +393,20 @@ class WorkerHub:
 
     def _on_token(self, key: str, alive: bool) -> None:
         wid = key.rsplit("/", 1)[1]
+        node: Node | None = None
         with self._lock:
             if alive:
                 self._alive.add(wid)
                 registered = wid in self._nodes
             else:
                 self._alive.discard(wid)
-                registered = self._nodes.pop(wid, None) is not None
+                node = self._nodes.pop(wid, None)
+                registered = node is not None
                 self._draining.discard(wid)
         if alive and registered:
             self._emit(NodeUp(self._announced(wid)))
+        elif not alive and node is not None and self._went_away(wid, node):
+            return
         elif not alive and registered:
             log.warning("worker %s is gone", wid)
             self._access.forget(wid)
@@ -432,7 +508,13 @@ class WorkerHub:
     def kill(self, cmd: KillAttempt) -> None:
         """Stop an attempt on its worker."""
         self._access.restored(cmd.node_id, [cmd.attempt_id])
-        self._send(cmd.node_id, Kill(cmd.attempt_id, cmd.reason))
+        kill = Kill(cmd.attempt_id, cmd.reason)
+        with self._lock:
+            away = cmd.node_id in self._away
+            if away:
+                self._held_kills.setdefault(cmd.node_id, []).append(kill)
+        if not away:
+            self._send(cmd.node_id, kill)
 
     def tell(self, wid: str, order: Order) -> None:
         """Send worker ``wid`` an order (sealed on its channel)."""

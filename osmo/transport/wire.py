@@ -9,9 +9,11 @@ Keys, under the cluster prefix ``osmo/<cluster>``:
   away (process killed, network cut: noticed within the 1 s lease) is its ``NodeDown``; the
   server's token coming back tells a worker to register again (both hints, see Trust).
 - ``api/worker_register`` — a worker's :class:`Hello`, answered with the server's host id
-  and artifact folder (a worker on the same host links blobs instead of fetching); the
-  server pulls the worker's outputs from ``blob/<id>/<digest>`` with queries sealed on the
-  channel it registered with (``SQ``);
+  and artifact folder (a worker on the same host links blobs instead of fetching) and, for a
+  node whose attempts outlive it (``Hello.outlives``), ``placed``: the attempts the server
+  still places on it (it cancels any other it adopted); the server pulls the worker's
+  outputs from ``blob/<id>/<digest>`` with queries sealed on the channel it registered with
+  (``SQ``);
   ``api/worker_drain`` — ``{"id": <worker>}``: it takes no more work.
 - ``api/worker_beat`` — ``{"id", "warm"}``, every :data:`BEAT_EVERY` seconds: the worker is
   alive, and its warm runners now (:func:`warm_runners`; ``osmo resource list``)
@@ -236,6 +238,8 @@ class Hello:
         runtime: how it runs image tasks: ``container (podman 4.3.1)`` or ``process``.
         sandbox_why: why it runs process tasks unsandboxed, in a few words (``bwrap not
             found``); None: sandboxed, or a worker from before this field.
+        outlives: its attempts outlive its process (a cluster's jobs or pods): when it goes
+            down the server holds them for a grace and it adopts them when it comes back.
     """
 
     node: Node
@@ -247,6 +251,7 @@ class Hello:
     finished: tuple[dict[str, Any], ...] = ()
     runtime: str | None = None
     sandbox_why: str | None = None
+    outlives: bool = False
 
     def to_dict(self) -> dict[str, Any]:
         """The hello as JSON-safe data."""
@@ -258,7 +263,7 @@ class Hello:
                 "address": node.address, "host_id": self.host_id, "artifacts": self.artifacts,
                 "pid": self.pid, "draining": self.draining, "active": list(self.active),
                 "finished": list(self.finished), "runtime": self.runtime,
-                "sandbox_why": self.sandbox_why}
+                "sandbox_why": self.sandbox_why, "outlives": self.outlives}
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> Hello:
@@ -281,7 +286,8 @@ class Hello:
                    draining=field(data, "draining", bool, default=False),
                    active=tuple(str_list(data, "active")), finished=tuple(finished),
                    runtime=field(data, "runtime", str, default=None, max_len=_TEXT),
-                   sandbox_why=field(data, "sandbox_why", str, default=None, max_len=_TEXT))
+                   sandbox_why=field(data, "sandbox_why", str, default=None, max_len=_TEXT),
+                   outlives=field(data, "outlives", bool, default=False))
 
 
 def _platforms(data: dict[str, Any]) -> dict[str, Capacity]:

@@ -21,6 +21,7 @@ from osmo.artifacts import ArtifactStore
 from osmo.artifacts.fsops import remove_tree
 from osmo.scheduler.types import AttemptExited, AttemptLost, AttemptStartFailed, Event
 from osmo.spec.model import ExitAction
+from osmo.worker.journal import Journal
 from osmo.worker.live import Attempts, AttemptState, LiveAttempt
 from osmo.worker.machine import GpuSlots
 from osmo.worker.reactor import Reactor
@@ -46,16 +47,19 @@ class Ending:
         artifacts: where promoted outputs are ingested (None: not ingested).
         credential_for: ``url -> credential`` for ``url`` outputs.
         max_output_files: the most files one attempt's output may hold.
+        journal: where attempts whose launches outlive the node are journaled (their
+            entry goes when they end; None: none is).
     """
 
     def __init__(self, *, attempts: Attempts, reactor: Reactor, io: ThreadPoolExecutor,
                  emit: Callable[[Event], None], gpus: GpuSlots,
                  artifacts: ArtifactStore | None, credential_for: CredentialLookup | None,
-                 max_output_files: int | None) -> None:
+                 max_output_files: int | None, journal: Journal | None = None) -> None:
         self._attempts, self._reactor, self._io, self._emit = attempts, reactor, io, emit
         self._gpus = gpus
         self._artifacts, self._credential_for = artifacts, credential_for
         self._max_output_files = max_output_files
+        self._journal = journal
 
     def exited(self, attempt: LiveAttempt, code: int) -> None:
         """Its launch ended with ``code`` (reaped and logged): report it, or promote first."""
@@ -76,11 +80,18 @@ class Ending:
             attempt.log.close()
         finally:  # a log that cannot be written must not keep the report (or a secret) back
             remove_secret_files(attempt.launch)
+            if self._journal is not None:
+                self._journal.remove(attempt.id)
             self._gpus.give_back(attempt.id)
             self._let_go(attempt)
             self._attempts.drop(attempt.id)
             if event is not None:
                 self._emit(event)
+
+    def forget(self, attempt_id: str) -> None:
+        """An attempt that will not end here (not adopted): its journal entry goes."""
+        if self._journal is not None:
+            self._journal.remove(attempt_id)
 
     def abandon(self, attempt: LiveAttempt) -> None:
         """The pool closes with ``attempt`` live: its log closes, its secret files go.

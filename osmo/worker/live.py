@@ -10,7 +10,7 @@ from __future__ import annotations
 import collections
 import enum
 import os
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 
 from osmo.layout import AttemptDirs
@@ -57,6 +57,10 @@ class LiveAttempt:
     checkpoints: Checkpointer | None = None
     setup_failures: int = 0  # starts whose sandbox could not be set up
     stderr_tail: bytes = b""  # the end of what was read from stderr (at most 2 x _TAIL)
+    # a journaled attempt (its launch outlives the node): bytes of stdout and stderr read,
+    # and where the bytes logged whole so far are told (``osmo.worker.journal``)
+    consumed: dict[str, int] | None = None
+    on_shipped: Callable[[dict[str, int]], None] | None = None
 
     def read(self, reactor: Reactor, fd: int, stream: str) -> bool:
         """Log one chunk from a pipe; False when nothing was there (closed at EOF)."""
@@ -70,6 +74,11 @@ class LiveAttempt:
             self.log.write(stream, data)
             if stream == "stderr":
                 self.stderr_tail = self.stderr_tail[-_TAIL:] + data[-_TAIL:]
+            if self.consumed is not None and stream in self.consumed:
+                self.consumed[stream] += len(data)
+                if self.on_shipped is not None:
+                    self.on_shipped({name: read - self.log.pending(name)
+                                     for name, read in self.consumed.items()})
         else:
             self.unwatch(reactor, fd)
         return bool(data)

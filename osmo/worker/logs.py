@@ -160,6 +160,10 @@ class LogWriter:
         """Record one line of text, secrets masked (used for ``osmo`` lines)."""
         self._append(stream, [self._masker.mask_text(text)])
 
+    def pending(self, stream: str) -> int:
+        """Bytes of ``stream``'s unfinished last line, held back until its end comes."""
+        return len(self._partial.get(stream, b""))
+
     def flush_partial(self) -> None:
         """Write every stream's unfinished last line as a record of its own."""
         partial, self._partial = self._partial, {}

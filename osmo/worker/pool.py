@@ -55,6 +55,13 @@ working sandbox also logs :attr:`LocalPool.sandbox_warning` (level WARNING) when
 made: nobody chose to run tasks unsandboxed, so it is said at start, not only in each task's
 log.
 
+Adoption: with a ``journal`` (``osmo.worker.journal``), an attempt whose runtime's launches
+outlive the node (a Slurm job, a pod: ``osmo.runtime.api.Adopting``) is journaled before it
+starts and until its end; a pool made by the node's next life re-attaches to each journaled
+attempt (:meth:`LocalPool.adopt`: watched as if it had started it, its log resumed where it
+was shipped, its outputs promoted and reported as usual) and then cancels what of its
+owner's launches it did not adopt (:meth:`LocalPool.cancel_orphans`).
+
 A pool records each command's pid and start time in ``procs_dir`` right after the spawn
 (one appended line; ``osmo.worker.procs``), so that a server or worker restarted after a
 crash can kill what its previous life left, even a command whose start it never reported.
@@ -66,6 +73,7 @@ from __future__ import annotations
 
 import logging
 import os
+import threading
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
@@ -73,15 +81,16 @@ from pathlib import Path
 
 from osmo.artifacts import ArtifactStore
 from osmo.artifacts.store import DEFAULT_MAX_FILES
-from osmo.errors import UsageError
+from osmo.errors import OsmoError, UsageError
 from osmo.layout import Home
 from osmo.options import DEFAULT_LOG_LIMIT, SandboxMode, WarmOptions
-from osmo.runtime.api import Runtime, Terms
+from osmo.runtime.api import Adopting, Runtime, Terms
 from osmo.runtime.choose import Runtimes, processes_for_node
 from osmo.runtime.process.sandbox import Sandbox
 from osmo.runtime.process.warm import WarmRunners
 from osmo.scheduler.types import (
     LOCAL_NODE,
+    AttemptLost,
     AttemptStartFailed,
     Event,
     KillAttempt,
@@ -91,7 +100,8 @@ from osmo.scheduler.types import (
 )
 from osmo.spec.model import ResourceSpec, TaskSpec
 from osmo.worker.endings import KILLED_BEFORE_START, Ending
-from osmo.worker.live import Attempts, AttemptState, Running
+from osmo.worker.journal import Entry, Journal
+from osmo.worker.live import Attempts, AttemptState, LiveAttempt, Running
 from osmo.worker.machine import GpuSlots, detect_capacity, raise_fd_limit
 from osmo.worker.options import DEFAULT_KILL_GRACE
 from osmo.worker.preparing import Preparing
@@ -144,6 +154,8 @@ class LocalPool:
         cluster_images: the cluster's runtime for tasks that run in their image.
         warm: its warm runners for typed tasks (``osmo.runtime.process.warm``; default
             on: ``osmo.options.WarmOptions``); unsandboxed process tasks only.
+        journal: where attempts whose launches outlive the node are journaled (see the
+            module docstring; None: nowhere, nothing is adopted).
 
     Attributes:
         home: osmo's home.
@@ -187,6 +199,7 @@ class LocalPool:
         cluster: Runtime | None = None,
         cluster_images: Runtime | None = None,
         warm: WarmOptions | None = None,
+        journal: Journal | None = None,
     ) -> None:
         if not home.root.is_absolute():
             raise UsageError(f"osmo's home must be an absolute path, not {home.root}")
@@ -214,7 +227,8 @@ class LocalPool:
         slots = GpuSlots(self.node().capacity.gpu)
         self._ending = Ending(attempts=self._attempts, reactor=self._reactor, io=self._io,
                               emit=emit, gpus=slots, artifacts=artifacts,
-                              credential_for=credential_for, max_output_files=max_output_files)
+                              credential_for=credential_for, max_output_files=max_output_files,
+                              journal=journal)
         self._starting = Starting(reactor=self._reactor, io=self._io, emit=emit,
                                   ending=self._ending, procs=self._procs, grace=kill_grace,
                                   credential_for=credential_for)
@@ -223,7 +237,7 @@ class LocalPool:
             io=self._io, emit=emit, starting=self._starting, gpus=slots,
             env=base, task_secrets=task_secrets,
             credential_for=credential_for, artifacts=artifacts, input_manifests=input_manifests,
-            log_sink=log_sink, log_limit=log_limit)
+            log_sink=log_sink, log_limit=log_limit, journal=journal)
 
     # -------------------------------------------------------------- public (any thread)
 
@@ -261,6 +275,33 @@ class LocalPool:
     def runtime_name(self) -> str:
         """How this pool runs image tasks: ``container (podman 4.3.1)`` or ``process``."""
         return self._runtimes.describe()
+
+    def outlives(self) -> bool:
+        """Whether attempts of this node outlive its process (a cluster's jobs or pods)."""
+        return bool(self._runtimes.adopting())
+
+    def adopt(self, entry: Entry) -> None:
+        """Re-attach to a journaled attempt a previous life of the node started (blocks).
+
+        It is then watched as if started here: one final report, as for any attempt
+        (``AttemptLost`` if there is nothing to adopt).
+        """
+        done = threading.Event()
+
+        def adopt() -> None:
+            try:
+                self._adopt(entry)
+            finally:
+                done.set()
+
+        self._reactor.call_soon(adopt)
+        done.wait()
+
+    def cancel_orphans(self) -> list[str]:
+        """Cancel the launches of this node's owner that were not adopted (after ``adopt``)."""
+        adopting = self._runtimes.adopting()
+        keep = sorted({launch for runtime in adopting for launch in runtime.adopted()})
+        return adopting[0].cancel_orphans(keep) if adopting else []
 
     def hide(self, path: Path) -> None:
         """Also hide ``path`` from sandboxed tasks.
@@ -315,6 +356,30 @@ class LocalPool:
             return
         if attempt.state is AttemptState.PREPARED:
             self._starting.start(attempt)
+
+    def _adopt(self, entry: Entry) -> None:
+        runtime = self._runtimes.choose(entry.spec)
+        log = self._preparing.open_log(entry.attempt_id, entry.dirs, entry.secrets)
+        try:
+            if not isinstance(runtime, Adopting):
+                raise OsmoError("its runtime's launches do not outlive the node")
+            launch, handle = runtime.adopt(entry.dirs, entry.shipped)
+        except (OsmoError, OSError) as exc:
+            message = f"the restarted node could not adopt it: {exc}"
+            _log.warning("attempt %s: %s", entry.attempt_id, message)
+            log.line("osmo", f"lost: {message}")
+            log.close()
+            self._attempts.remember(entry.attempt_id)
+            self._ending.forget(entry.attempt_id)
+            self._emit(AttemptLost(entry.attempt_id, message))
+            return
+        launch = replace(launch, argv=entry.argv, image_id=entry.image_id,
+                         secrets=entry.secrets, max_output_bytes=entry.max_output_bytes)
+        attempt = LiveAttempt(entry.attempt_id, entry.spec, entry.dirs, launch, log, runtime)
+        self._preparing.journaled(attempt, dict(entry.shipped))
+        self._attempts.add(attempt)
+        attempt.log.line("osmo", f"adopted by node {self._node_id} after its restart")
+        self._starting.watch(attempt, handle)
 
     def _kill(self, attempt_id: str, reason: str) -> None:
         if self._preparing.kill(attempt_id, reason):

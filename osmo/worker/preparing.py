@@ -31,7 +31,15 @@ from dataclasses import replace
 from osmo.artifacts import ArtifactStore
 from osmo.errors import OsmoError
 from osmo.layout import AttemptDirs, Home
-from osmo.runtime.api import Attempt, Launch, ProcessHandle, Runtime, StartError, Terms
+from osmo.runtime.api import (
+    Adopting,
+    Attempt,
+    Launch,
+    ProcessHandle,
+    Runtime,
+    StartError,
+    Terms,
+)
 from osmo.runtime.choose import Runtimes
 from osmo.scheduler.types import (
     AttemptPrepared,
@@ -41,6 +49,7 @@ from osmo.scheduler.types import (
     PrepareAttempt,
 )
 from osmo.spec.model import ResourceSpec, TaskSpec
+from osmo.worker.journal import Journal
 from osmo.worker.live import Attempts, LiveAttempt
 from osmo.worker.logs import LogWriter
 from osmo.worker.machine import GpuSlots
@@ -71,6 +80,8 @@ class Preparing:
         input_manifests: input reference → its manifest, for inputs that are artifacts.
         log_sink: also gets ``(attempt id, records)`` for every log record written.
         log_limit: bytes each attempt's log keeps at most.
+        journal: where an attempt whose runtime's launches outlive the node
+            (``osmo.runtime.api.Adopting``) is journaled before it starts (None: nowhere).
     """
 
     def __init__(self, *, home: Home, runtimes: Runtimes, attempts: Attempts, reactor: Reactor,
@@ -78,7 +89,8 @@ class Preparing:
                  gpus: GpuSlots, env: Mapping[str, str],
                  task_secrets: SecretLookup | None, credential_for: CredentialLookup | None,
                  artifacts: ArtifactStore | None, input_manifests: ManifestLookup | None,
-                 log_sink: Callable[[str, bytes], None] | None, log_limit: int) -> None:
+                 log_sink: Callable[[str, bytes], None] | None, log_limit: int,
+                 journal: Journal | None = None) -> None:
         self._home, self._runtimes = home, runtimes
         self._attempts, self._reactor, self._io, self._emit = attempts, reactor, io, emit
         self._starting, self._gpus = starting, gpus
@@ -86,6 +98,7 @@ class Preparing:
         self._credential_for, self._artifacts = credential_for, artifacts
         self._input_manifests = input_manifests
         self._log_sink, self._log_limit = log_sink, log_limit
+        self._journal = journal
         self._pending: dict[str, str | None] = {}  # attempt id → kill reason, if killed
         self._run_pending: set[str] = set()  # run() came while its folders were being made
 
@@ -136,6 +149,9 @@ class Preparing:
                               waiting=functools.partial(self._waiting, cmd.attempt_id))
             launch = runtime.prepare(launch, attempt,
                                      progress=functools.partial(_pull_line, log))
+            if self._journal is not None and isinstance(runtime, Adopting):
+                self._journal.add(cmd, argv=launch.argv, image_id=launch.image_id,
+                                  secrets=launch.secrets, max_output_bytes=resources.storage)
         except Exception as exc:  # every prepare must get its one final report
             message = str(exc) if isinstance(exc, OsmoError) else f"cannot prepare: {exc!r}"
             if log is not None:  # its runtime could not take it: say so where it is looked for
@@ -161,9 +177,22 @@ class Preparing:
         self._reactor.call_soon(self._prepared, cmd, task, dirs, launch, runtime, log, started)
 
     def _open_log(self, cmd: PrepareAttempt, dirs: AttemptDirs, launch: Launch) -> LogWriter:
-        """The attempt's log writer (the file is opened on its first record)."""
-        sink = functools.partial(self._log_sink, cmd.attempt_id) if self._log_sink else None
-        return LogWriter(dirs.log, launch.secrets, sink, limit=self._log_limit)
+        return self.open_log(cmd.attempt_id, dirs, launch.secrets)
+
+    def open_log(self, attempt_id: str, dirs: AttemptDirs, secrets: tuple[str, ...]
+                 ) -> LogWriter:
+        """The attempt's log writer (the file is opened, or appended to, on its first record)."""
+        sink = functools.partial(self._log_sink, attempt_id) if self._log_sink else None
+        return LogWriter(dirs.log, secrets, sink, limit=self._log_limit)
+
+    def journaled(self, attempt: LiveAttempt, shipped: dict[str, int] | None = None) -> None:
+        """Count what ``attempt``'s log shipped, in the journal, if its launch outlives the node.
+
+        ``shipped``: what an adopted attempt's previous life shipped.
+        """
+        if self._journal is not None and isinstance(attempt.runtime, Adopting):
+            attempt.consumed = dict(shipped or {"stdout": 0, "stderr": 0})
+            attempt.on_shipped = functools.partial(self._journal.shipped, attempt.id)
 
     def _waiting(self, attempt_id: str, reason: str) -> None:
         """Any thread: the attempt's cluster holds it (``reason``), or no longer (``""``)."""
@@ -174,6 +203,8 @@ class Preparing:
         self._pending.pop(attempt_id, None)
         self._run_pending.discard(attempt_id)
         self._attempts.remember(attempt_id)
+        if self._journal is not None:
+            self._journal.remove(attempt_id)
         self._emit(AttemptStartFailed(attempt_id, message))
 
     def _prepared(self, cmd: PrepareAttempt, task: TaskSpec, dirs: AttemptDirs, launch: Launch,
@@ -184,6 +215,7 @@ class Preparing:
         run_now = cmd.run or cmd.attempt_id in self._run_pending
         self._run_pending.discard(cmd.attempt_id)
         attempt = LiveAttempt(cmd.attempt_id, task, dirs, launch, log, runtime)
+        self.journaled(attempt)
         for note in launch.notes:
             attempt.log.line("osmo", note)
         self._attempts.add(attempt)

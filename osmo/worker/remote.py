@@ -23,6 +23,18 @@ server refuses (it restarted, or counted the worker gone) makes it register agai
 attempt's secrets and data-URL credentials are asked for (``worker_secrets``) rather than
 carried by the ``prepare`` order.
 
+Adoption: on a node whose attempts outlive it (``--runtime slurm``: batch jobs;
+``--runtime kubernetes``: pods), each attempt is journaled in its home
+(``osmo.worker.journal``). A node started again on that home reads the journal before
+anything else, keeps those attempts' folders, re-attaches to their jobs or pods
+(``LocalPool.adopt``: their logs resume where they were shipped, their outputs are
+collected as usual; log lines wait until it registered), cancels every other job or pod its
+previous life left, and registers with the adopted attempts as ``active`` and ``outlives``
+set (the server held them while it was away: ``osmo.server.workers``). An adopted attempt
+the server no longer places on it (the registration's ``placed``: it stayed away past the
+grace) is killed and reports nothing. Stopped (not killed), it cancels its attempts and
+hands them back at once.
+
 Leftovers: the pool records each running command's pid and start time under ``<home>/procs``;
 a worker started on a home kills whatever a previous life left there before it announces
 itself (``osmo.worker.procs``), so a SIGKILLed worker's task never runs beside its
@@ -52,7 +64,7 @@ from osmo.config import write_json_atomic
 from osmo.errors import NotAllowed, OsmoError, UsageError
 from osmo.layout import Home
 from osmo.names import check_worker_name
-from osmo.runtime.api import Terms
+from osmo.runtime.api import Adopting, Terms
 from osmo.runtime.choose import image_runtime_for_node, slurm_for_node
 from osmo.runtime.kubernetes.capacity import cluster_capacity
 from osmo.runtime.kubernetes.runtime import KubernetesRuntime
@@ -69,6 +81,7 @@ from osmo.scheduler.types import (
     RunAttempt,
 )
 from osmo.spec.model import ResourceSpec, TaskSpec, WorkflowSpec
+from osmo.spec.stored import StoredSpec
 from osmo.transport.blobs import SERVER, BlobServer, SameHost, host_id
 from osmo.transport.rpc import ApiClient
 from osmo.transport.seal import Purpose
@@ -86,6 +99,7 @@ from osmo.transport.wire import (
 )
 from osmo.transport.zenoh_link import Link, Subscription
 from osmo.worker.held_inputs import HeldInputs
+from osmo.worker.journal import Journal
 from osmo.worker.options import WorkerOptions
 from osmo.worker.pool import LocalPool
 from osmo.worker.procs import kill_recorded
@@ -126,6 +140,9 @@ class RemoteWorker:
         self._lock = threading.Lock()
         self._changed = threading.Condition(self._lock)
         self._specs: dict[str, WorkflowSpec] = {}
+        self._stored: dict[str, StoredSpec] = {}  # as sent (journaled with its attempts)
+        self._adopted: set[str] = set()  # until the server says which it still places here
+        self._early_logs: list[tuple[str, bytes]] | None = []  # sent once it registered
         self._url_creds: dict[str, dict[str, str]] = {}
         self._pending: dict[str, _Pending] = {}
         self._inputs = HeldInputs(self._api, self.store)
@@ -143,16 +160,22 @@ class RemoteWorker:
         self._refused: NotAllowed | None = None  # the server refused to register it
         self._io = ThreadPoolExecutor(4, thread_name_prefix="osmo-inputs")
         self._token: Subscription | None = None
-        # a cluster's jobs a previous life left are cancelled before their folders go
+        # what a previous life left on a cluster is adopted or cancelled (below)
         cluster = slurm_for_node(options.runtime, home, options.slurm,
                                  python=options.slurm_python, engine=options.container_engine)
+        images = image_runtime_for_node(options.runtime, options.container_engine, home,
+                                        kubernetes_config=options.kubernetes_config)
+        outlives = cluster is not None or isinstance(images, Adopting)
+        self._journal = journal = Journal(home.root / "journal", self._stored.get)
+        entries = journal.read(home) if outlives else []
+        if not outlives:
+            journal.clear()
         kill_recorded(home.procs)  # before it announces itself
-        clear_runs(home, self._io)  # a previous life's attempts were all rescheduled
+        # a previous life's attempts were all rescheduled, but those it adopts now
+        clear_runs(home, self._io, keep={entry.dirs.root for entry in entries})
         limit = default_limit(home.root) if options.store_limit is None else options.store_limit
         self._keeper = StoreKeeper(home, self.store, self._inputs, limit,
                                    self._protected, self._io)
-        images = image_runtime_for_node(options.runtime, options.container_engine, home,
-                                        kubernetes_config=options.kubernetes_config)
         cpus, gpus, memory = _capacity(options, images, cluster[0] if cluster else None)
         self._clusters = (images, cluster[0] if cluster else None)  # their platforms
         self.pool = LocalPool(
@@ -165,7 +188,15 @@ class RemoteWorker:
             sandbox_share=options.sandbox_share, address=self._address,
             procs_dir=home.procs, containers=images,
             cluster=cluster[0] if cluster else None, cluster_images=cluster[1] if cluster else None,
-            warm=options.warm)
+            warm=options.warm, journal=journal if outlives else None)
+        for entry in entries:
+            log.info("adopting attempt %s from this node's previous life", entry.attempt_id)
+            with self._lock:
+                self._active.add(entry.attempt_id)
+                self._adopted.add(entry.attempt_id)
+            self.pool.adopt(entry)
+        for left in self.pool.cancel_orphans():
+            log.warning("cancelled %s that this node's previous life left", left)
         for secret in options.secret_files:
             self.pool.hide(Path(secret))
         self.sessions = NodeSessions(self.link, self.pool, lambda ticket: self._api.call(
@@ -254,12 +285,21 @@ class RemoteWorker:
         self._stop.set()
 
     def _close(self) -> None:
+        outlives = self.pool.outlives()
+        if outlives:  # the server would hold them for the node's return: handed back now
+            with self._lock:
+                left = sorted(self._active - self._handed_back)
+                self._handed_back.update(left)
+            for aid in left:
+                self._send(event_to_dict(AttemptLost(aid, f"worker {self.id} stopped")))
         for sub in self._subs:
             sub.close()
         if self._token is not None:
             self._token.close()
         self.sessions.close("the worker is stopping")
-        self.pool.close()
+        self.pool.close()  # its jobs are cancelled: nothing is left to adopt
+        if outlives:
+            self._journal.clear()
         self._io.shutdown(wait=False, cancel_futures=True)
         self.link.close()
         self.home.worker_health.unlink(missing_ok=True)
@@ -291,7 +331,8 @@ class RemoteWorker:
                           active=tuple(sorted(self._active | set(self._pending))),
                           finished=tuple(self._unacked.values()),
                           runtime=self.pool.runtime_name(),
-                          sandbox_why=self.pool.no_sandbox_why).to_dict()
+                          sandbox_why=self.pool.no_sandbox_why,
+                          outlives=self.pool.outlives()).to_dict()
         try:
             reply = self._api.call("worker_register", hello)
         except NotAllowed as exc:  # e.g. a pool its token may not serve: retrying cannot help
@@ -301,6 +342,11 @@ class RemoteWorker:
         except OsmoError as exc:
             log.info("server not reachable yet (%s); retrying", exc)
             return False
+        self._settle_adopted(reply.get("placed"))
+        with self._lock:
+            early, self._early_logs = self._early_logs or [], None
+        for attempt_id, records in early:
+            self._send_log(attempt_id, records)
         same = reply.get("host_id") == hello["host_id"] and reply.get("artifacts")
         self._server_host = SameHost(Path(reply["artifacts"])) if same else None
         if same:  # its tasks must not see the server's home (its state store) either
@@ -311,6 +357,19 @@ class RemoteWorker:
             self._connected = True
         log.info("worker %s registered with the server (pool %s)", self.id, self.opts.pool)
         return True
+
+    def _settle_adopted(self, placed: object) -> None:
+        """Kill the adopted attempts the server no longer places here (they report nothing)."""
+        if not isinstance(placed, list):
+            return
+        with self._lock:
+            stray = sorted(self._adopted - {str(aid) for aid in placed})
+            self._adopted.clear()
+            self._handed_back.update(stray)
+        for aid in stray:
+            log.warning("attempt %s is no longer placed on this node: its job is cancelled",
+                        aid)
+            self.pool.kill(KillAttempt(aid, self.id, "no longer placed on this node"))
 
     def _write_health(self) -> None:
         with self._lock:
@@ -366,6 +425,7 @@ class RemoteWorker:
         with self._lock:
             if order.spec is not None:
                 self._specs[cmd.workflow_id] = order.spec.load()
+                self._stored[cmd.workflow_id] = order.spec
             self._pending[cmd.attempt_id] = _Pending()
         manifests = {ref: Manifest.from_json(body) for ref, body in order.manifests.items()}
         with self._keeper.gate:  # protected before it is checked: no collection between
@@ -466,6 +526,10 @@ class RemoteWorker:
         self._api.send("worker_report", {"id": self.id, "report": data})
 
     def _send_log(self, attempt_id: str, records: bytes) -> None:
+        with self._lock:  # adopted attempts log before the node registered: held till then
+            if self._early_logs is not None:
+                self._early_logs.append((attempt_id, records))
+                return
         self._api.send("worker_log", {"id": self.id, "attempt_id": attempt_id,
                                       "records": records.decode(errors="replace")})
 

@@ -32,7 +32,7 @@ import os
 import shutil
 import threading
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Collection, Iterable
 from concurrent.futures import Executor
 from pathlib import Path
 
@@ -162,13 +162,17 @@ class StoreKeeper:
                 self._collecting = False
 
 
-def clear_runs(home: Home, io: Executor) -> None:
+def clear_runs(home: Home, io: Executor, keep: Collection[Path] = ()) -> None:
     """Remove every attempt folder a previous life of the worker left (before it takes work).
 
-    Its attempts were rescheduled when it died, and their reports were never acknowledged.
-    The folder is renamed at once, and removed on ``io``.
+    Its attempts were rescheduled when it died, and their reports were never acknowledged;
+    but the attempts in ``keep`` (folders the node adopts): they and their workflow's and
+    task's folders stay. The folders are renamed at once, and removed on ``io``.
     """
     if not home.runs.exists():
+        return
+    if keep:
+        _clear_but(home, io, {Path(folder) for folder in keep})
         return
     old = home.root / f"runs.old-{os.getpid()}-{time.monotonic_ns()}"
     try:
@@ -177,6 +181,28 @@ def clear_runs(home: Home, io: Executor) -> None:
         log.warning("could not clear the attempt folders of a previous run: %s", exc)
         return
     for stale in home.root.glob("runs.old-*"):  # this one, and any a crash left
+        io.submit(_logged, _remove, stale)
+
+
+def _clear_but(home: Home, io: Executor, keep: set[Path]) -> None:
+    """Move every attempt folder (and its ``.inputs``) but ``keep`` aside, then remove it."""
+    old = home.root / f"runs.old-{os.getpid()}-{time.monotonic_ns()}"
+    old.mkdir(mode=0o700)
+    runs = home.runs.absolute()
+    parents = {folder.parent for folder in keep} | {folder.parent.parent for folder in keep}
+    for n, path in enumerate(p for p in runs.glob("*/*/*") if p not in keep
+                             and p.with_name(p.name.removesuffix(".inputs")) not in keep):
+        try:
+            path.rename(old / str(n))
+        except OSError as exc:
+            log.warning("could not clear %s: %s", path, exc)
+    for folder in [*runs.glob("*/*"), *runs.glob("*")]:
+        if folder not in parents:
+            try:
+                folder.rmdir()
+            except OSError:
+                pass  # not empty, or not a folder: it stays
+    for stale in home.root.glob("runs.old-*"):
         io.submit(_logged, _remove, stale)
 
 

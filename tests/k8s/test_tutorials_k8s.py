@@ -30,6 +30,7 @@ from tests.containers.conftest import images, podman_env  # noqa: F401 - fixture
 from tests.containers.submitting import (
     check_serial_tutorial,
     lineage_of,
+    osmo_lines,
     submitted_id,
     task_lines,
     tasks,
@@ -337,7 +338,7 @@ workflow:
   tasks:
   - name: slow
     image: alpine:3.18
-    command: ["sh", "-c", "echo started; sleep 4; echo survived > {{output}}/x; echo done"]
+    command: ["sh", "-c", "echo started; sleep 8; echo survived > {{output}}/x; echo done"]
 """
 
 
@@ -346,30 +347,40 @@ def running_pods(kube: KubeCluster) -> list[str]:
             if (obj.get("status") or {}).get("phase") == "Running"]
 
 
-def test_a_killed_node_leaves_nothing_and_the_attempt_runs_again(kube: KubeCluster,
-                                                                 tmp_path: Path) -> None:
-    """Chaos (last in this module: it restarts the worker): SIGKILL of the node mid-run."""
+def test_a_killed_node_adopts_its_pod_which_runs_once_and_leaves_nothing(
+        kube: KubeCluster, tmp_path: Path) -> None:
+    """Chaos (last in this module: it restarts the worker): SIGKILL of the node mid-run.
+    Its pod runs on; the restarted node adopts it (no second pod is created), its log is
+    whole with no line twice, its output is promoted; what else its previous life left
+    goes, another instance's stays."""
     spec = tmp_path / "chaos.yaml"
     spec.write_text(CHAOS)
     wf_id = kube.osmo.submit(spec)
     kube.osmo.wait_for(wf_id, lambda info: any(
         t["status"] == "RUNNING" for t in info["tasks"]))
     deadline = time.monotonic() + 60
-    while not running_pods(kube) and time.monotonic() < deadline:
+    while "started" not in task_lines(kube.osmo, wf_id).get("slow", []):
+        assert time.monotonic() < deadline, kube.left()
         time.sleep(0.1)
     assert running_pods(kube), kube.left()
     (pod,) = [obj for _, obj in kube.server.store.objects([PODS])]
     instance = pod["metadata"]["labels"]["osmo.dev/instance"]
+    created = kube.server.writes[("create", "pods")]
     kube.osmo_cluster.signal("kube-1", signal.SIGKILL)
     kube.osmo_cluster.workers["kube-1"].wait(30)
-    assert running_pods(kube)  # a dead node's pods stay until it is back
+    assert running_pods(kube)  # a dead node's pods run on
     foreign = leave_remains(kube, instance)
-    kube.start_worker("kube-1")  # it deletes them by label; the server reschedules
+    kube.start_worker("kube-1")  # it adopts its pod, deletes the rest by label
     info = kube.osmo.wait_for(wf_id, lambda i: i["status"] in ("COMPLETED", "FAILED"),
                               timeout=180)
     assert info["status"] == "COMPLETED", info
     row = info["tasks"][0]
+    assert row["retry"] == 0, row
     assert (Path(row["output"]) / "x").read_text() == "survived\n"
+    assert kube.server.writes[("create", "pods")] == created, "one pod, never created again"
+    assert task_lines(kube.osmo, wf_id)["slow"] == ["started", "done"]
+    said = osmo_lines(kube.osmo, wf_id, "slow")
+    assert any("adopted by node kube-1 after its restart" in line for line in said), said
     try:  # another instance's stay
         assert sorted(nothing_left(kube, timeout=5)) == sorted(
             f"{res.kind}/{name}" for res, name in foreign)

@@ -82,10 +82,11 @@ def until_logged(grid: Cluster, wf_id: str, text: str, timeout: float = 90) -> s
 
 
 def until_no_job(cluster: SlurmCluster, name_part: str, timeout: float = 30) -> None:
-    """Wait until no job whose id is ``name_part``, or whose name holds it, is queued or
-    running."""
+    """Wait until no job whose id is ``name_part``, or whose name holds it (a name part
+    that is not a job id: digits would match a name's digest), is queued or running."""
     deadline = time.monotonic() + timeout
-    while any(name_part == line.split()[0] or name_part in line.split()[-1]
+    while any(name_part == line.split()[0]
+              or (not name_part.isdigit() and name_part in line.split()[-1])
               for line in jobs_of(cluster)):
         assert time.monotonic() < deadline, f"a job is left: {jobs_of(cluster)}"
         time.sleep(0.2)

@@ -9,6 +9,7 @@ them. The cluster and the worker are the session's (tests/slurm/grid.py).
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import shlex
@@ -236,30 +237,167 @@ workflow:
     assert "waits no more" in events, events
 
 
-def test_a_restarted_worker_cancels_the_job_it_left_and_the_task_runs_again(
+def test_a_restarted_worker_adopts_its_job_which_runs_once_with_its_log_and_output_whole(
         grid: Cluster, roomy: SlurmCluster, tmp_path: Path) -> None:
+    """kill -9 of the login host's node during a job, then a restart: the job is adopted,
+    not run again (one job, the task's side effect once), its log is whole with no line
+    twice (what was shipped before the kill is not sent again), its output is promoted."""
     runs, gate = tmp_path / "runs", tmp_path / "gate"
     spec = write(tmp_path / "wf.yaml", f"""
 workflow:
-  name: again
+  name: adopted
   tasks:
-  - name: again
+  - name: adopted
+    command: [sh, -c, 'echo "$SLURM_JOB_ID" >> {runs}; echo up; echo "warm" >&2;
+      while [ ! -e {gate} ]; do sleep 0.2; done; echo after; echo kept > {{{{output}}}}/r.txt']
+""")
+    wf_id = grid.osmo.submit(spec)
+    until_logged(grid, wf_id, "[adopted] warm")
+    first = runs.read_text().split()[0]
+    grid.signal(WORKER, signal.SIGKILL)
+    grid.workers[WORKER].wait(timeout=30)
+    start_login(grid)
+    gate.touch()
+    info = grid.osmo.wait_for(wf_id, lambda i: i["status"] in ("COMPLETED", "FAILED"),
+                              timeout=120)
+    said = osmo_lines(grid.osmo, wf_id, "adopted")
+    assert info["status"] == "COMPLETED", (info, said, grid.worker_log(WORKER))
+    assert runs.read_text().split() == [first], "the task ran once"
+    assert roomy.sacct(first)["State"] == "COMPLETED", roomy.sacct(first)
+    row = tasks(grid.osmo, wf_id)["adopted"]
+    assert row["retry"] == 0, row
+    assert (Path(row["output"]) / "r.txt").read_text() == "kept\n"
+    assert task_lines(grid.osmo, wf_id)["adopted"] == ["up", "warm", "after"]
+    assert any("adopted by node login after its restart" in line for line in said), "\n".join(said)
+    name = roomy.sacct(first)["JobName"]
+    every = roomy.run("sacct", "-c", "-P", "-n", "-o", "JobID,JobName").stdout.splitlines()
+    assert [line for line in every if line.endswith(f"|{name}")] == [f"{first}|{name}"], \
+        every  # one job of that attempt, ever
+
+
+def test_a_restarted_worker_adopts_a_group_s_job_whole(
+        grid: Cluster, roomy: SlurmCluster, tmp_path: Path) -> None:
+    """A gang (one heterogeneous job, a member on n1 and one on n2) survives a kill -9 of
+    the node: both members are adopted, the job runs once, the group completes. (The lead
+    ends last: a group's members are stopped when its lead finishes.)"""
+    runs, gate = tmp_path / "runs", tmp_path / "gate"
+    spec = write(tmp_path / "wf.yaml", f"""
+workflow:
+  name: gang-adopted
+  resources:
+    default: {{cpu: 2, memory: 100Mi}}
+  groups:
+  - name: pair
+    tasks:
+    - name: lead
+      lead: true
+      command: [sh, -c, 'echo "$SLURM_JOB_ID $SLURMD_NODENAME" >> {runs}; echo up;
+        while [ ! -e {gate} ] || [ ! -e {runs}.peer ]; do sleep 0.2; done; echo lead done']
+    - name: peer
+      command: [sh, -c, 'echo "$SLURM_JOB_ID $SLURMD_NODENAME" >> {runs}; echo up;
+        while [ ! -e {gate} ]; do sleep 0.2; done; echo peer done; touch {runs}.peer']
+""")
+    wf_id = grid.osmo.submit(spec)
+    until_logged(grid, wf_id, "[lead] up")
+    until_logged(grid, wf_id, "[peer] up")
+    before = sorted(runs.read_text().splitlines())
+    grid.signal(WORKER, signal.SIGKILL)
+    grid.workers[WORKER].wait(timeout=30)
+    start_login(grid)
+    gate.touch()
+    info = grid.osmo.wait_for(wf_id, lambda i: i["status"] in ("COMPLETED", "FAILED"),
+                              timeout=120)
+    lines = task_lines(grid.osmo, wf_id)
+    assert info["status"] == "COMPLETED", (info, lines, grid.worker_log(WORKER))
+    assert sorted(runs.read_text().splitlines()) == before, "each member ran once"
+    assert {line.split()[1] for line in before} == {"n1", "n2"}, before
+    assert lines == {"lead": ["up", "lead done"], "peer": ["up", "peer done"]}, lines
+    assert all(row["retry"] == 0 for row in tasks(grid.osmo, wf_id).values())
+
+
+def test_a_tampered_journal_entry_is_not_adopted_its_job_is_cancelled_and_rerun(
+        grid: Cluster, roomy: SlurmCluster, tmp_path: Path) -> None:
+    """Issue 29 item 6, hostile: the entry of the running attempt is rewritten while the
+    node is down to name a folder outside its home. The restarted node drops it with a
+    warning, cancels its job (never adopted through it) and the attempt runs again."""
+    runs, gate = tmp_path / "runs", tmp_path / "gate"
+    spec = write(tmp_path / "wf.yaml", f"""
+workflow:
+  name: tampered
+  tasks:
+  - name: tampered
     command: [sh, -c, 'echo "$SLURM_JOB_ID" >> {runs}; echo up;
       while [ ! -e {gate} ]; do sleep 0.2; done']
 """)
     wf_id = grid.osmo.submit(spec)
-    until_logged(grid, wf_id, "[again] up")
+    until_logged(grid, wf_id, "[tampered] up")
     first = runs.read_text().split()[0]
     grid.signal(WORKER, signal.SIGKILL)
     grid.workers[WORKER].wait(timeout=30)
-    assert any(line.startswith(f"{first} RUNNING") for line in jobs_of(roomy))  # for now
+    journal = grid.root / WORKER / "worker" / "journal"
+    entries = list(journal.glob("attempt-*.json"))
+    assert len(entries) == 1, entries
+    assert oct(journal.stat().st_mode & 0o777) == "0o700"
+    data = json.loads(entries[0].read_text())
+    entries[0].write_text(json.dumps({**data, "task": "../../../../../tmp"}))
     start_login(grid)
     until_no_job(roomy, first)
     gate.touch()
-    info = grid.osmo.wait_for(wf_id, lambda i: i["status"] == "COMPLETED", timeout=120)
+    info = grid.osmo.wait_for(wf_id, lambda i: i["status"] in ("COMPLETED", "FAILED"),
+                              timeout=120)
+    assert info["status"] == "COMPLETED", (info, grid.worker_log(WORKER))
     ran = runs.read_text().split()
-    assert len(ran) == 2 and ran[0] == first and ran[1] != first, (ran, info)
+    assert len(ran) == 2 and ran[0] == first, ran
     assert roomy.sacct(first)["State"].startswith("CANCELLED"), roomy.sacct(first)
+    assert "dropped the journal entry" in grid.worker_log(WORKER)
+
+
+def test_a_node_away_past_the_grace_has_its_attempt_rescheduled_and_its_job_cancelled(
+        roomy: SlurmCluster, podman_env: dict[str, str], tmp_path: Path) -> None:
+    """Past ``--adopt-grace`` the node's attempt is lost and rescheduled; the node, back,
+    is told it no longer holds it and cancels the job it left (no job outlives its
+    attempt), then runs the new attempt."""
+    runs, gate = tmp_path / "runs", tmp_path / "gate"
+    c = Cluster(tmp_path / "c", server_args=("--adopt-grace", "2"),
+                env={"SLURM_CONF": str(roomy.conf), "PATH": roomy.env["PATH"],
+                     "CONTAINERS_CONF": podman_env["CONTAINERS_CONF"]})
+    c.start_server()
+    try:
+        c.start_worker("late", "--runtime", "slurm")
+        spec = write(tmp_path / "wf.yaml", f"""
+workflow:
+  name: late
+  tasks:
+  - name: late
+    command: [sh, -c, 'echo "$SLURM_JOB_ID" >> {runs}; echo up;
+      while [ ! -e {gate} ]; do sleep 0.2; done']
+""")
+        wf_id = c.osmo.submit(spec)
+        until_logged(c, wf_id, "[late] up")
+        first = runs.read_text().split()[0]
+        c.signal("late", signal.SIGKILL)
+        c.workers["late"].wait(timeout=30)
+        c.osmo.wait_for(wf_id, lambda i: i["tasks"][0]["retry"] == 1, timeout=60)
+        c.start_worker("late", "--runtime", "slurm")
+        try:
+            until_no_job(roomy, first, timeout=60)
+        except AssertionError as exc:
+            raise AssertionError(f"{exc}\n{c.worker_log('late')}\n"
+                                 f"{(c.osmo.home / 'server.log').read_text()}") from None
+        gate.touch()
+        info = c.osmo.wait_for(wf_id, lambda i: i["status"] in ("COMPLETED", "FAILED"),
+                               timeout=120)
+        assert info["status"] == "COMPLETED", (info, c.worker_log("late"))
+        ran = runs.read_text().split()
+        assert len(ran) == 2 and ran[0] == first, ran
+        gone = roomy.sacct(first)  # killed as a cancel kills: scancel's SIGTERM to the task
+        assert gone["State"].startswith("CANCELLED") or gone["ExitCode"] == "143:0", gone
+        assert "no longer placed on this node" in c.worker_log("late")
+    finally:
+        c.stop()  # kill -9: its jobs stay (they outlive it); cancelled here
+        for line in jobs_of(roomy):
+            if line.split()[-1].startswith("osmo-late-"):
+                roomy.run("scancel", line.split()[0])
 
 
 def test_group_communication_tutorial_runs_as_one_job(grid: Cluster) -> None:

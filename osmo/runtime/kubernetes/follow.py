@@ -21,6 +21,10 @@
    up :data:`GIVE_UP_AFTER` seconds after the kill (the node's next start deletes it).
 5. at the end, whatever the verdict, the pod is deleted (its Secret goes with it), after
    the verdict was handed on.
+
+A follower made with ``adopted`` (the pod as the API has it: a restarted node adopts it)
+creates nothing: it follows that pod from step 2, and its log from after the ``skip`` bytes
+a previous life already sent.
 """
 
 from __future__ import annotations
@@ -63,12 +67,15 @@ class PodFollower:
         force: set (with ``stop``) to delete the pod at once, with no grace.
         silence: seconds a watch may stay silent before it is replaced.
         waiting: why the pod waits, told once per new reason (``""``: it waits no more).
+        adopted: the pod, found running by a restarted node: it is followed, not created.
+        skip: bytes of the task's log already sent (an adopted pod's): not sent again.
     """
 
     def __init__(self, kube: Kube, pod: Obj, secret: Obj | None, *, out: IO[bytes],
                  note: Callable[[str], None], stop: threading.Event,
                  force: threading.Event | None = None, silence: int = SILENCE,
-                 waiting: Callable[[str], None] = lambda _reason: None) -> None:
+                 waiting: Callable[[str], None] = lambda _reason: None,
+                 adopted: Obj | None = None, skip: int = 0) -> None:
         self.kube, self.pod, self.secret = kube, pod, secret
         self.namespace = str(pod["metadata"]["namespace"])
         self.name = str(pod["metadata"]["name"])
@@ -80,6 +87,7 @@ class PodFollower:
         self._forced = False
         self.image_id: str | None = None
         self._silence = silence
+        self._adopted, self._skip = adopted, skip
 
     def run(self, ended: Callable[[Verdict], None] | None = None) -> Verdict:
         """Create, follow and delete the pod; what became of the attempt.
@@ -90,6 +98,8 @@ class PodFollower:
         Raises:
             KubeError: the pod could not be created (nothing is left then).
         """
+        if self._adopted is not None:
+            return self._follow_adopted(self._adopted, ended)
         first = self.secret is not None and "ownerReferences" not in self.secret["metadata"]
         if first:  # a pull Secret: the kubelet needs it before it pulls
             assert self.secret is not None
@@ -114,6 +124,19 @@ class PodFollower:
             ended(found)
         self._delete(grace=0)
         self._delete_secret(first)
+        return found
+
+    def _follow_adopted(self, pod: Obj, ended: Callable[[Verdict], None] | None) -> Verdict:
+        """Steps 2 to 5 for a pod a previous life of the node created."""
+        try:
+            found = self._follow(pod)
+        except BaseException:
+            self._delete(grace=0)
+            raise
+        self._finish_logs(found)
+        if ended is not None:
+            ended(found)
+        self._delete(grace=0)
         return found
 
     def _delete_secret(self, unowned: bool) -> None:
@@ -235,9 +258,13 @@ class PodFollower:
 
     def _logs(self) -> None:
         for _ in range(20):
+            skip = self._skip  # the stream starts at the log's start each time
             try:
                 for chunk in self.kube.logs(self.namespace, self.name, CONTAINER):
-                    self.out.write(chunk)
+                    cut = min(skip, len(chunk))
+                    skip -= cut
+                    if cut < len(chunk):
+                        self.out.write(chunk[cut:])
                 return
             except OSError:
                 return  # nobody reads the log any more (the attempt was let go)

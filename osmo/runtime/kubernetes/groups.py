@@ -121,6 +121,11 @@ class Groups:
             self.leave(group)
             raise
 
+    def adopt(self, group: GroupPlan) -> None:
+        """A member a previous life of the node prepared is adopted: its objects exist."""
+        with self._lock:
+            self._members[group.name] = self._members.get(group.name, 0) + 1
+
     def leave(self, group: GroupPlan) -> None:
         """A member is done here; the group's objects go with its last one (blocks: I/O)."""
         with self._lock:

@@ -21,10 +21,14 @@ What it owns, one concern per method of the runtime contract (``osmo.runtime.api
   whose image could not be pulled fails to start, an evicted, preempted or lost pod is a
   lost attempt (``ProcessHandle.start_failed`` / ``lost``);
 - clean-up: nothing is left after an attempt (the follower deletes the pod; the API's
-  garbage collector its Secret). A node that dies leaves its pods; at start,
-  :meth:`KubernetesRuntime.clean_orphans` deletes every pod, Secret, group Service and
-  PodGroup of this instance a previous life left (found by label): the server reschedules
-  those attempts.
+  garbage collector its Secret). A node that dies leaves its pods running: its pods outlive
+  it (``osmo.runtime.api.Adopting``). Each attempt's pod name and group are kept in its
+  folder (``pod.json``); a restarted node adopts a journaled attempt's pod
+  (:meth:`KubernetesRuntime.adopt`: followed again, its log resumed after what was sent;
+  only a pod carrying this node's instance label), then
+  :meth:`KubernetesRuntime.cancel_orphans` deletes every other pod, Secret, group Service
+  and PodGroup of this instance (by label), and a whole group's pods when one of its
+  members was not adopted (:meth:`KubernetesRuntime.clean_orphans`: all of them).
 
 - exec: the Kubernetes exec API (a WebSocket), held by a relay process the node spawns
   (``osmo.runtime.kubernetes.exec_relay``); port-forward: the node dials the pod's IP
@@ -40,17 +44,21 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import IO, Any
 
+from osmo.config import read_json_private, write_json_atomic
+from osmo.errors import OsmoError
+from osmo.layout import AttemptDirs
 from osmo.runtime.api import (
     Attempt,
     ConnectError,
@@ -74,6 +82,8 @@ from osmo.runtime.kubernetes.groups import Groups, hostname
 from osmo.runtime.kubernetes.kube import Kube, KubeError, connect
 from osmo.runtime.kubernetes.manifest import (
     CONTAINER,
+    LABEL_ATTEMPT,
+    LABEL_GROUP,
     LABEL_INSTANCE,
     POD_GROUPS,
     GroupPlan,
@@ -97,6 +107,7 @@ KILLED = 137
 _RELAY = "osmo.runtime.kubernetes.exec_relay"
 _PACKAGE_ROOT = Path(__file__).resolve().parents[3]  # the relay imports this very osmo
 _SLEEP = [shutil.which("sleep") or "sleep", "2147483647"]  # the sentinel: waits to be killed
+_OBJECT_NAME = re.compile(r"[a-z0-9]([-a-z0-9]{0,61}[a-z0-9])?")
 
 
 @dataclass(frozen=True)
@@ -136,7 +147,10 @@ class KubernetesRuntime:
 
     @classmethod
     def for_node(cls, config: str | None, *, instance: str) -> KubernetesRuntime:
-        """The runtime of a node configured by the file ``config``, its orphans deleted.
+        """The runtime of a node configured by the file ``config``.
+
+        What a previous life of the node left is the node's to adopt or delete
+        (:meth:`adopt`, :meth:`cancel_orphans`).
 
         Raises:
             UsageError: the configuration is wrong.
@@ -148,10 +162,8 @@ class KubernetesRuntime:
             engine: ContainerEngine | None = ContainerEngine(detect_engine(None))
         except EngineNotFound:
             engine = None
-        made = cls(pool, kube, instance=instance,
+        return cls(pool, kube, instance=instance,
                    images=ImageIds(engine) if engine is not None else None)
-        made.clean_orphans()
-        return made
 
     def describe(self) -> str:
         """``kubernetes (namespace NS)``: what ``osmo pool list`` shows."""
@@ -168,6 +180,88 @@ class KubernetesRuntime:
             KubeError: the nodes cannot be listed.
         """
         return platform_capacity(self.kube, self.pool)
+
+    def adopted(self) -> set[str]:
+        """The pods it follows (adopted ones among them)."""
+        with self._lock:
+            return {live.run.name for live in self._runs.values()}
+
+    def adopt(self, dirs: AttemptDirs, shipped: Mapping[str, int]
+              ) -> tuple[Launch, ProcessHandle]:
+        """Follow again the pod a previous life of the node created for ``dirs``.
+
+        Its log resumes after ``shipped["stdout"]`` bytes.
+
+        Raises:
+            OsmoError: no pod was recorded there, the record is not valid, the pod is gone
+                or is not this node's (another instance label).
+        """
+        try:
+            meta = read_json_private(dirs.root / "pod.json")
+        except (OSError, ValueError) as exc:
+            raise OsmoError(f"no pod to adopt in {dirs.root}: {exc}") from exc
+        name, group = meta.get("name"), meta.get("group")
+        if not isinstance(name, str) or not _OBJECT_NAME.fullmatch(name):
+            raise OsmoError(f"{dirs.root}/pod.json names no pod")
+        plan = None
+        if group is not None:
+            if not (isinstance(group, dict) and isinstance(group.get("name"), str)
+                    and _OBJECT_NAME.fullmatch(group["name"])
+                    and type(group.get("size")) is int and group["size"] > 1):
+                raise OsmoError(f"{dirs.root}/pod.json names no valid group")
+            plan = GroupPlan(group["name"], group["size"])
+        pod = self.kube.read_pod(self.pool.namespace, name)
+        if pod is None:
+            raise OsmoError(f"pod {name} is gone")
+        if ((pod.get("metadata") or {}).get("labels") or {}).get(LABEL_INSTANCE) \
+                != self.instance:
+            raise OsmoError(f"pod {name} is not this node's")
+        run = KubeRun(pod, None, plan)
+        if plan is not None:
+            self.gangs.adopt(plan)
+        handle, live = self._sentinel(run)
+        follower = PodFollower(self.kube, pod, None, out=live.out, note=live.note,
+                               stop=live.stop, force=live.force, adopted=pod,
+                               skip=max(0, int(shipped.get("stdout", 0))))
+        with self._lock:
+            self._runs[handle] = live
+        self._followers.later(self._follow, follower, live, handle)
+        return Launch((), dirs.work, {}, run=run), handle
+
+    def cancel_orphans(self, keep: Sequence[str] = ()) -> list[str]:
+        """Delete what of this instance a previous life left but the pods in ``keep``.
+
+        A group with a member not kept is deleted whole. Nothing kept: :meth:`clean_orphans`.
+        Returns ``kind/name`` of each object deleted.
+        """
+        if not keep:
+            return self.clean_orphans()
+        mine = f"{LABEL_INSTANCE}={self.instance}"
+        namespace = self.pool.namespace
+        pods, _ = self.kube.list_objects("pod", namespace, labels=mine)
+        labels = {str(p["metadata"]["name"]): (p["metadata"].get("labels") or {}) for p in pods}
+        broken = {lb.get(LABEL_GROUP) for name, lb in labels.items() if name not in keep}
+        kept = {name: lb for name, lb in labels.items()
+                if name in keep and lb.get(LABEL_GROUP) not in broken}
+        names = [f"pod/{name}" for name in labels if name not in kept
+                 and self.kube.delete("pod", namespace, name, grace=0)]
+        attempts = sorted({lb[LABEL_ATTEMPT] for lb in kept.values() if LABEL_ATTEMPT in lb})
+        groups = sorted({lb[LABEL_GROUP] for lb in kept.values() if LABEL_GROUP in lb})
+        secrets = mine + (f",{LABEL_ATTEMPT} notin ({','.join(attempts)})" if attempts else "")
+        others = mine + (f",{LABEL_GROUP} notin ({','.join(groups)})" if groups else "")
+        names += [f"secret/{n}" for n in self.kube.delete_labelled("secret", namespace,
+                                                                   secrets)]
+        names += [f"service/{n}" for n in self.kube.delete_labelled("service", namespace,
+                                                                    others)]
+        for gang, kind_of in POD_GROUPS.items():
+            try:
+                gone = self.kube.delete_labelled(kind_of, namespace, others)
+            except KubeError as exc:
+                if exc.status in (403, 404, 405) and gang != self.pool.gang:
+                    continue
+                raise
+            names += [f"{kind_of[2]}.{kind_of[0]}/{n}" for n in gone]
+        return names
 
     def clean_orphans(self) -> list[str]:
         """Delete everything of this instance a previous life left (found by its label).
@@ -224,6 +318,10 @@ class KubernetesRuntime:
         pod = pod_manifest(plan, self.pool, secret=plan.name if secret else None,
                            pulls_with_secret=registry is not None)
         self._hand_over(dirs.output_partial, dirs.work if workdir else None)
+        # what a restarted node adopts the pod by (``adopt``)
+        write_json_atomic(dirs.root / "pod.json", {
+            "name": plan.name, "group": None if group is None else {
+                "name": group.name, "size": group.size}})
         if group is not None:
             self.gangs.join(cmd, group)
         run = KubeRun(pod, secret, group, attempt.waiting)

@@ -53,10 +53,15 @@ missing; it never runs as a bare process. Where the cluster has pyxis and the lo
 engine, a runtime made with ``pyxis`` runs them through ``srun --container-image``
 (``osmo.runtime.slurm.script.pyxis_argv``: OSMO's data layout as ``--container-mounts``).
 
-Orphans: :meth:`SlurmRuntime.cancel_orphans` cancels every job carrying the node's owner
-comment; a node's runtime is made with it (``osmo.runtime.choose``), before anything new
-runs: no job outlives the node that submitted it (a restarted node's attempts are
-rescheduled by the server).
+Adoption: a job outlives the node that submitted it (``osmo.runtime.api.Adopting``). Each
+job's id, name and options are kept in its job folder (``job.json``, rewritten when it is
+submitted again); a restarted node re-attaches to a journaled attempt's job
+(:meth:`SlurmRuntime.adopt`: a new watcher resumes its output after what was shipped, the
+poller watches it again), then :meth:`SlurmRuntime.cancel_orphans` cancels every other job
+carrying the node's owner comment, and a whole group's job when one of its members was not
+adopted (a gang comes back whole or not at all). A job whose task runs in a container is
+not adopted yet (its attempt is lost and rescheduled, its job cancelled). No job outlives
+its workflow: what the server no longer places on the node is killed when it registers.
 """
 
 from __future__ import annotations
@@ -64,13 +69,18 @@ from __future__ import annotations
 import json
 import logging
 import os
+import re
+import stat
 import sys
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
+from osmo.config import read_json_private
+from osmo.errors import OsmoError
+from osmo.layout import AttemptDirs
 from osmo.options import SlurmOptions
 from osmo.runtime.api import (
     HOST_PATHS,
@@ -109,6 +119,8 @@ from osmo.status import ExitCode
 from osmo.tasktypes.api import PROGRESS_PREFIX
 
 __all__ = ["Gang", "SlurmJob", "SlurmRuntime"]
+
+_JOB_ID = re.compile(r"[0-9]{1,20}(\+[0-9]{1,6})?")
 
 _log = logging.getLogger(__name__)
 
@@ -251,14 +263,65 @@ class SlurmRuntime:
             return {}
         return self.slurm.partitions(self.options.partitions)
 
-    def cancel_orphans(self) -> list[str]:
-        """Cancel every job of this owner still queued or running (a previous life's)."""
+    def cancel_orphans(self, keep: Sequence[str] = ()) -> list[str]:
+        """Cancel every job of this owner still queued or running but those in ``keep``.
+
+        A group's job with a member not kept is cancelled whole (its members end with it).
+        """
+        live = [job for job in self.slurm.owned(self.owner)
+                if verdict(job.state).phase in (Phase.WAITING, Phase.RUNNING)]
+        whole = {job.job_id.split("+")[0] for job in live if job.job_id not in keep}
         cancelled = []
-        for job in self.slurm.owned(self.owner):
-            if verdict(job.state).phase in (Phase.WAITING, Phase.RUNNING):
-                self._quietly(self.slurm.cancel, job.job_id)
-                cancelled.append(job.job_id)
+        for base in sorted(whole):
+            self._quietly(self.slurm.cancel, base)
+            cancelled.append(base)
+        self._wake.set()
         return cancelled
+
+    def adopted(self) -> set[str]:
+        """The jobs it watches (adopted ones among them)."""
+        with self._lock:
+            return {live.job_id for live in self._jobs.values() if live.job_id}
+
+    def adopt(self, dirs: AttemptDirs, shipped: Mapping[str, int]
+              ) -> tuple[Launch, ProcessHandle]:
+        """Re-attach to the job a previous life of the node submitted for ``dirs``.
+
+        Its folder's ``job.json`` names the job; a new watcher resumes its output files after
+        ``shipped`` bytes; the poller watches it again.
+
+        Raises:
+            OsmoError: no job was submitted there, its record is not valid, Slurm no longer
+                knows it (and its agent left no exit), or its task runs in a container.
+        """
+        folder = dirs.root / "slurm"
+        try:
+            if not stat.S_ISDIR(os.lstat(folder).st_mode):
+                raise OsmoError(f"{folder} is not a folder")
+            meta = read_json_private(folder / "job.json")
+            env = read_json_private(folder / "launch.json").get("env")
+        except (OSError, ValueError) as exc:
+            raise OsmoError(f"no Slurm job to adopt in {folder}: {exc}") from exc
+        job = _job_of(folder, meta)
+        job_id = str(meta["job_id"])
+        if not isinstance(env, dict) or not all(isinstance(k, str) and isinstance(v, str)
+                                                for k, v in env.items()):
+            raise OsmoError(f"the launch in {folder} is not valid")
+        info = self.slurm.jobs([job_id]).get(job_id)
+        if info is None and not (folder / "exit.json").exists():
+            raise OsmoError(f"Slurm job {job_id} is gone")
+        offsets = [str(max(0, int(shipped.get(s, 0)))) for s in ("stdout", "stderr")]
+        handle = self._processes.start(
+            [self._python, "-I", str(WATCHER), str(folder), *offsets], cwd=dirs.work,
+            env={"PATH": os.environ.get("PATH", "/usr/bin:/bin")})
+        live = _Live(job, job_id, handle=handle)
+        if info is not None and info.nodes:  # said by its previous life: not said again
+            live.said.add(f"{PROGRESS_PREFIX} Slurm job {job_id} RUNNING on {info.nodes}")
+        handle.notes_fd, live.notes = os.pipe2(os.O_NONBLOCK | os.O_CLOEXEC)
+        self._track(live)
+        self._note(live, f"Slurm job {job_id} adopted: watched again")
+        launch = Launch((), dirs.work, dict(env), run=job)
+        return launch, handle
 
     def paths(self, cmd: PrepareAttempt) -> Paths:
         """The host's paths (shared), credentials apart; in a container, OSMO's layout.
@@ -401,18 +464,24 @@ class SlurmRuntime:
             raise
         handle.notes_fd, live.notes = os.pipe2(os.O_NONBLOCK | os.O_CLOEXEC)
         live.handle = handle
-        with self._lock:
-            self._jobs[job.folder] = live
-            if self._poller is None:
-                self._poller = threading.Thread(target=self._watch, name="osmo-slurm-poll",
-                                                daemon=True)
-                self._poller.start()
+        self._track(live)
         if job.gang is None:
+            _record(live)
             self._note(live, f"Slurm job {job_id} submitted")
         else:
             self._join(live, job.gang)
         self._wake.set()
         return handle
+
+    def _track(self, live: _Live) -> None:
+        """Watch ``live`` (its poller started with the first job)."""
+        with self._lock:
+            self._jobs[live.job.folder] = live
+            if self._poller is None:
+                self._poller = threading.Thread(target=self._watch, name="osmo-slurm-poll",
+                                                daemon=True)
+                self._poller.start()
+        self._wake.set()
 
     def _join(self, live: _Live, gang: Gang) -> None:
         """One more member of ``gang`` started: the last one submits the gang's job."""
@@ -440,6 +509,7 @@ class SlurmRuntime:
             return
         for index, member in enumerate(members):
             member.job_id = f"{job_id}+{index}"
+            _record(member)
             self._note(member, f"Slurm job {member.job_id} submitted (one job for the group "
                                f"of {len(members)}: all placed, or none)")
 
@@ -628,6 +698,7 @@ class SlurmRuntime:
         old = live.job_id
         live.job_id = self.slurm.sbatch(str(live.job.script), live.job.args,
                                         cwd=str(live.job.folder))
+        _record(live)
         live.said.clear()
         self._note(live, f"job {old}: {reason}; submitted again as job {live.job_id}")
 
@@ -718,6 +789,43 @@ def _container(launch: Launch) -> ContainerRun:
     if not isinstance(run, ContainerRun):
         raise TypeError(f"{launch!r} was not prepared by a container runtime")
     return run
+
+
+def _record(live: _Live) -> None:
+    """Keep what adopting ``live``'s job takes in its folder (``job.json``)."""
+    job, gang = live.job, live.job.gang
+    _write_private(job.folder / "job.json", json.dumps({
+        "job_id": live.job_id, "name": job.name, "args": list(job.args),
+        "container": job.container.name if job.container is not None else None,
+        "gang": None if gang is None else {"key": gang.key, "members": list(gang.members),
+                                           "index": gang.index, "lead": gang.lead}}))
+
+
+def _job_of(folder: Path, meta: Mapping[str, object]) -> SlurmJob:
+    """The job ``job.json`` describes (``_record``), every field checked.
+
+    Raises:
+        OsmoError: a field is missing or of the wrong type, or its task runs in a container.
+    """
+    job_id, name, args, gang = (meta.get("job_id"), meta.get("name"), meta.get("args"),
+                                meta.get("gang"))
+    if not isinstance(job_id, str) or not _JOB_ID.fullmatch(job_id):
+        raise OsmoError(f"{folder}/job.json names no Slurm job id")
+    if not isinstance(name, str) or not isinstance(args, list) or not all(
+            isinstance(a, str) for a in args):
+        raise OsmoError(f"{folder}/job.json is not valid")
+    if meta.get("container") is not None:
+        raise OsmoError(f"job {job_id} runs its task in a container: not adopted yet")
+    found = None
+    if gang is not None:
+        if not isinstance(gang, dict):
+            raise OsmoError(f"{folder}/job.json names no valid group")
+        key, members, index = gang.get("key"), gang.get("members"), gang.get("index")
+        if not (isinstance(key, str) and isinstance(members, list) and type(index) is int
+                and all(isinstance(m, str) for m in members) and 0 <= index < len(members)):
+            raise OsmoError(f"{folder}/job.json names no valid group")
+        found = Gang(key, tuple(members), index, gang.get("lead") is True)
+    return SlurmJob(folder, name, tuple(args), gang=found)
 
 
 def _timed_out(folder: Path) -> bool:

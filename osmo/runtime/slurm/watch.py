@@ -12,6 +12,9 @@ the job's exit code:
 - ``ended.json`` (the node, from Slurm's state: ``osmo.runtime.slurm.states``): the job
   ended without its agent's word (killed, out of memory, failed to start): its code.
 
+A node that restarted starts a new watcher for a job it adopts, from what its previous life
+shipped: ``python3 -I watch.py FOLDER OUT_OFFSET ERR_OFFSET``.
+
 Standard library only, run as a file (``python3 -I watch.py FOLDER``). It polls the folder
 a few times a second; it must not call Slurm (one poller per node does, for every job).
 """
@@ -31,8 +34,8 @@ _VERDICT_WAIT = 10.0  # s a killed task's exit waits for the node's word on why
 class Tail:
     """A file read from where it was last read to, into a descriptor."""
 
-    def __init__(self, path: Path, fd: int) -> None:
-        self.path, self.fd, self.offset = path, fd, 0
+    def __init__(self, path: Path, fd: int, offset: int = 0) -> None:
+        self.path, self.fd, self.offset = path, fd, offset
 
     def pump(self) -> None:
         """Copy what was added to the file since the last pump."""
@@ -55,9 +58,9 @@ def read(path: Path) -> dict[str, object] | None:
     return found if isinstance(found, dict) else None
 
 
-def main(folder: Path) -> int:
-    """Stream the job's output until it ended; its exit code."""
-    tails = [Tail(folder / "out", 1), Tail(folder / "err", 2)]
+def main(folder: Path, out_from: int = 0, err_from: int = 0) -> int:
+    """Stream the job's output (from these offsets) until it ended; its exit code."""
+    tails = [Tail(folder / "out", 1, out_from), Tail(folder / "err", 2, err_from)]
     while True:
         for tail in tails:
             tail.pump()
@@ -80,4 +83,4 @@ def main(folder: Path) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main(Path(sys.argv[1])))
+    sys.exit(main(Path(sys.argv[1]), *(int(arg) for arg in sys.argv[2:4])))
