@@ -274,6 +274,8 @@ def main() -> None:
     env["OSMO_BENCH_RUN"] = f"{os.getpid()}-{time.time_ns()}"
     if args.quick:
         env["OSMO_BENCH_QUICK"] = "1"
+    if args.peers:  # scripts that compare with a peer themselves (bench_sim.py) run it too
+        env["OSMO_BENCH_PEERS"] = "1"
     machine = machine_info()
     scripts = sorted(Path(args.scripts).glob("bench_*.py"))
     if args.peers:

@@ -29,9 +29,11 @@ import shutil
 import signal
 import subprocess
 import sys
+import sysconfig
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parents[1]
@@ -63,10 +65,16 @@ def pip(*args: str) -> bool:
 def ensure_venv() -> str:
     """Create/refresh the peer venv; return how the peers were installed."""
     marker = VENV / "osmo-bench-peers.json"
-    if marker.exists() and json.loads(marker.read_text()).get("pinned") == PINNED:
+    python = f"{sys.version_info.major}.{sys.version_info.minor}"
+    if marker.exists() and json.loads(marker.read_text()).get("pinned") == PINNED and \
+            json.loads(marker.read_text()).get("python") == python:
         return json.loads(marker.read_text())["how"]
-    if not (VENV / "bin" / "python").exists():
-        subprocess.run(["python3", "-m", "venv", str(VENV)], check=True)
+    if (VENV / "bin" / "python").exists() and not marker.exists():
+        pass  # a half-made venv: pip finishes it below
+    elif marker.exists():  # another Python (the sim rows import osmo's own packages): remake
+        shutil.rmtree(VENV)
+    if not (VENV / "bin" / "python").exists():  # osmo's Python: torch & co. load beside Ray
+        subprocess.run([sys.executable, "-m", "venv", str(VENV)], check=True)
     print(f"installing {' '.join(PINNED)} into {VENV}", flush=True)
     if pip(*PINNED):
         how = "pip install " + " ".join(PINNED)
@@ -77,7 +85,7 @@ def ensure_venv() -> str:
             if not pip(*step):
                 raise SystemExit(f"cannot install the peers: pip install {' '.join(step)}")
         how = "prefect 3.9.1 --no-deps over its other requirements (certifi pin unavailable)"
-    marker.write_text(json.dumps({"pinned": PINNED, "how": how}))
+    marker.write_text(json.dumps({"pinned": PINNED, "how": how, "python": python}))
     return how
 
 
@@ -98,22 +106,38 @@ def leftovers(pgid: int, private: str) -> list[str]:
 
 def run_peer(peer: str, tasks: int, log: Path, bodies: str) -> dict[str, object]:
     """One peer process (warm-up + every shape × body); its JSON, plus any leak found."""
-    private = tempfile.mkdtemp(prefix=f"osmo-peer-{peer[:3]}-", dir="/tmp")  # short: sockets
+    return run_peer_script(f"{peer}_dag.py", ["--tasks", str(tasks), "--bodies", bodies], log,
+                           ray=peer == "ray")
+
+
+def run_peer_script(script: str, args: list[str], log: Path, *, ray: bool,
+                    env: dict[str, str] | None = None, out_dir: bool = False,
+                    timeout: float = 600) -> dict[str, Any]:
+    """Run ``peers/SCRIPT ARGS --json OUT`` under the peer venv in a private folder.
+
+    Returns its JSON plus ``leaked`` (processes of its group, or naming its folder, found
+    alive after it exited: killed). ``ray``: also pass ``--temp-dir`` (Ray's session files);
+    ``out_dir``: also pass ``--out`` (a folder for the tasks' outputs), both in the private
+    folder, removed after.
+    """
+    private = tempfile.mkdtemp(prefix=f"osmo-peer-{script[:3]}-", dir="/tmp")  # short: sockets
     out_json = Path(private) / "out.json"
-    env = dict(os.environ, PREFECT_HOME=private, PREFECT_SERVER_ANALYTICS_ENABLED="false",
-               PREFECT_SERVER_ALLOW_EPHEMERAL_MODE="true", RAY_USAGE_STATS_ENABLED="0")
-    env.pop("PREFECT_API_URL", None)
-    env.pop("OSMO_BENCH_QUICK", None)
-    cmd = [str(VENV / "bin" / "python"), str(HERE / f"{peer}_dag.py"), "--tasks", str(tasks),
-           "--bodies", bodies, "--json", str(out_json)]
-    if peer == "ray":
+    run_env = dict(os.environ, PREFECT_HOME=private, PREFECT_SERVER_ANALYTICS_ENABLED="false",
+                   PREFECT_SERVER_ALLOW_EPHEMERAL_MODE="true", RAY_USAGE_STATS_ENABLED="0",
+                   **(env or {}))
+    run_env.pop("PREFECT_API_URL", None)
+    run_env.pop("OSMO_BENCH_QUICK", None)
+    cmd = [str(VENV / "bin" / "python"), str(HERE / script), *args, "--json", str(out_json)]
+    if ray:
         cmd += ["--temp-dir", str(Path(private) / "ray")]
+    if out_dir:
+        cmd += ["--out", str(Path(private) / "out")]
     try:
         with open(log, "a") as out:
-            proc = subprocess.Popen(cmd, env=env, stdout=out, stderr=out,
+            proc = subprocess.Popen(cmd, env=run_env, stdout=out, stderr=out,
                                     start_new_session=True)
             try:
-                proc.wait(timeout=600)
+                proc.wait(timeout=timeout)
             except subprocess.TimeoutExpired:
                 pass
         leaked = leftovers(proc.pid, private)
@@ -123,12 +147,27 @@ def run_peer(peer: str, tasks: int, log: Path, bodies: str) -> dict[str, object]
             except ProcessLookupError:
                 pass
         if proc.returncode != 0 or not out_json.exists():
-            raise RuntimeError(f"{peer} exited {proc.returncode}; see {log}")
-        result: dict[str, object] = json.loads(out_json.read_text())
+            raise RuntimeError(f"{script} exited {proc.returncode}; see {log}")
+        result: dict[str, Any] = json.loads(out_json.read_text())
         result["leaked"] = leaked
         return result
     finally:
         shutil.rmtree(private, ignore_errors=True)
+
+
+def ensure_sim_path() -> str:
+    """Let the peer venv import the plugins' stacks (torch, mujoco, ...) from osmo's venv.
+
+    A ``.pth`` line in the peer venv appends osmo's site-packages *after* its own, so Ray's
+    pinned dependencies win and only what the peer venv lacks comes from osmo's; the Python
+    versions match (the venv is made with osmo's). Returns the folder added.
+    """
+    ours = sysconfig.get_paths()["purelib"]
+    theirs = subprocess.run([str(VENV / "bin" / "python"), "-c",
+                             "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
+                            capture_output=True, text=True, check=True).stdout.strip()
+    (Path(theirs) / "osmo-bench-sim.pth").write_text(ours + "\n")
+    return ours
 
 
 def tps(tasks: int, seconds: float) -> float:
