@@ -141,15 +141,20 @@ def cluster(workers: int, *, local_pool: bool = False,
             c.close()
 
 
-def dispatch(runs: int, n: int, local: bool) -> list[list[float]]:
-    """Per run: every task's placed → completed seconds."""
-    samples: list[list[float]] = []
+def dispatch(runs: int, n: int) -> tuple[list[list[float]], list[list[float]]]:
+    """Per run: every task's placed → completed seconds, on a remote worker and locally.
+
+    Each run measures both, one after the other (interleaved), so both see the same load.
+    """
+    remote: list[list[float]] = []
+    local: list[list[float]] = []
     for _ in range(runs):
-        with cluster(0 if local else 1, local_pool=local) as c, c.client() as client:
-            info = client.wait(client.submit(chain(n), no_cache=True))
-            assert info.ok, info.status
-            samples.append(round_trips(c.root / "server", info.id))
-    return samples
+        for on_pool, out in ((False, remote), (True, local)):
+            with cluster(0 if on_pool else 1, local_pool=on_pool) as c, c.client() as client:
+                info = client.wait(client.submit(chain(n), no_cache=True))
+                assert info.ok, info.status
+                out.append(round_trips(c.root / "server", info.id))
+    return remote, local
 
 
 def transfer(runs: int, size_mib: int) -> list[float]:
@@ -200,8 +205,7 @@ def main() -> None:
         args.runs, args.chain, args.fanout, args.size_mib = 1, 10, 20, 8
     print(f"machine: {machine_info()}")
     rows = []
-    remote = dispatch(args.runs, args.chain, local=False)
-    local = dispatch(args.runs, args.chain, local=True)
+    remote, local = dispatch(args.runs, args.chain)
     for q in (0.5, 0.99):
         name = f"p{int(q * 100)}"
         rem = [pct([s * 1000 for s in run], q) for run in remote]
