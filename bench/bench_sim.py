@@ -28,8 +28,9 @@ no overhead at all: the sum over the DAG's levels (tasks at the same depth) of
 max(the level's compute ÷ slots, its longest task), slots = 2. For a sweep (one level) that is
 makespan × 2 ÷ tasks − the mean compute. Compute is always measured inside the task.
 
-Rounds alternate the order (osmo first, then Ray first); ratios are per round (osmo ÷ Ray,
-the same round). Rows carry the targets of issue 30: makespan ≤ Ray's (the rollout sweep's
+Each workload runs under both systems back to back, and which goes first alternates round by
+round (the pipeline: ``--pipeline-rounds``); ratios are per round (osmo ÷ Ray, the same
+round). Rows carry the targets of issue 30: makespan ≤ Ray's (the rollout sweep's
 stretch: 0.8×), the pipeline's osmo workflow time ≤ 120 s.
 
 Usage: python bench/bench_sim.py [--rounds 2] [--pipeline-rounds 1] [--rollouts 200]
@@ -246,29 +247,31 @@ def main() -> None:
 
 def measure(args: argparse.Namespace, project: Path, plans: dict[str, list[dict[str, Any]]],
             checkpoint: Path) -> dict[str, dict[str, list[dict[str, Any]]]]:
-    """Run the rounds, alternating which system goes first; results[system][workload]."""
+    """Run the rounds; results[system][workload], one entry per round.
+
+    Each workload runs under both systems back to back (so a pair sees the same load); which
+    system goes first alternates round by round. Ray runs each workload in its own process.
+    """
     results: dict[str, dict[str, list[dict[str, Any]]]] = {"osmo": {}, "ray": {}}
     log = Path(tempfile.gettempdir()) / "osmo-bench-sim-ray.log"
     log.write_text("")
     for r in range(max(args.rounds, args.pipeline_rounds)):
-        names = [n for n in plans if n != "pipeline" and r < args.rounds]
-        names += ["pipeline"] if "pipeline" in plans and r < args.pipeline_rounds else []
+        names = [n for n in plans if r < (args.pipeline_rounds if n == "pipeline"
+                                           else args.rounds)]
         order = ["osmo", "ray"] if r % 2 == 0 else ["ray", "osmo"]
-        for system in order:
-            if system == "ray" and args.peers:
-                ray = run_ray({n: plans[n] for n in names}, log)
-                print(f"round {r + 1}: ray start-up {ray['startup_s']:.1f} s", flush=True)
-                for n in names:
-                    res = ray["results"][n]
-                    res["startup_s"] = ray["startup_s"]
-                    results["ray"].setdefault(n, []).append(res)
-                    print(f"round {r + 1}: ray {n} {res['makespan_s']:.1f} s", flush=True)
-            elif system == "osmo":
-                for n in names:
+        for n in names:
+            for system in order:
+                if system == "ray" and args.peers:
+                    ray = run_ray({n: plans[n]}, log)
+                    res = dict(ray["results"][n], startup_s=ray["startup_s"])
+                elif system == "osmo":
                     res = run_osmo(project / f"{n}.yaml", plans[n],
                                    checkpoint if n == "eval" else None)
-                    results["osmo"].setdefault(n, []).append(res)
-                    print(f"round {r + 1}: osmo {n} {res['makespan_s']:.1f} s", flush=True)
+                else:
+                    continue
+                results[system].setdefault(n, []).append(res)
+                print(f"round {r + 1}: {system} {n} {res['makespan_s']:.1f} s "
+                      f"(load {os.getloadavg()[0]:.1f})", flush=True)
     return results
 
 
