@@ -245,6 +245,7 @@ def main() -> None:
         label = SHAPES[shape][0]
         name = f"peers: osmo {label} {n:,}, `true` tasks, {MODES[mode]}"
         rows.append(row(name, "tasks/s", values, higher_is_better=True,
+                        limit_of=SANDBOX_LIMIT if mode == "on" else None,
                         notes="fresh server per run; submit → COMPLETED"))
         if mode == "on":
             rows.append(row(f"peers: osmo {label} {n:,}, sandboxed ÷ the sandbox alone", "%",
