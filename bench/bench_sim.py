@@ -100,15 +100,16 @@ def pipeline_yaml() -> str:
     return text
 
 
-def build_checkpoint(folder: Path) -> Path:
+def build_checkpoint(folder: Path, episodes: int = 20, steps: int = 100) -> Path:
     """A small trained ACT policy for InvertedPendulum, made here by the shipped functions."""
     from osmo_bench_timed import call
 
-    call("sim.rollout", {"env": ENV, "policy": "expert", "episodes": 20, "max_steps": 50},
+    call("sim.rollout", {"env": ENV, "policy": "expert", "episodes": episodes, "max_steps": 50},
          [], str(folder / "rollout"), "rollout")
     call("lerobot.dataset", {"images": False}, [("rollout", str(folder / "rollout"))],
          str(folder / "dataset"), "dataset")
-    call("lerobot.train", {"steps": 100, "batch_size": 32}, [("dataset", str(folder / "dataset"))],
+    call("lerobot.train", {"steps": steps, "batch_size": 32},
+         [("dataset", str(folder / "dataset"))],
          str(folder / "checkpoint"), "train")
     return folder / "checkpoint"
 
@@ -239,7 +240,7 @@ def main() -> None:
         for name, text in specs.items():
             (project / f"{name}.yaml").write_text(text)
         print("building the evaluated checkpoint (not timed)", flush=True)
-        checkpoint = build_checkpoint(Path(tmp) / "policy")
+        checkpoint = build_checkpoint(Path(tmp) / "policy", *((2, 5) if small else (20, 100)))
         plans = {name: plan_of(project / f"{name}.yaml", checkpoint) for name in specs}
         results = measure(args, project, plans, checkpoint)
     write_rows(args.json, rows_of(args, plans, results))
