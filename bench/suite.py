@@ -267,11 +267,11 @@ def main() -> None:
     ap.add_argument("--out", default=str(HERE / "results"), help="results folder")
     ap.add_argument("--scripts", default=str(HERE), help="folder of bench_*.py scripts")
     ap.add_argument("--timeout", type=float, default=None,
-                    help="seconds per script (default 900, quick 180)")
+                    help="seconds per script (default 900, quick 360)")
     args = ap.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    timeout = args.timeout or (180.0 if args.quick else 900.0)
+    timeout = args.timeout or (360.0 if args.quick else 900.0)
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     env.pop("OSMO_SERVER", None)
     env.pop("OSMO_HOME", None)
