@@ -37,7 +37,8 @@ ENV = "osmo/ReachVision-v1"
 TINY = ["shards=2", "episodes=2", "steps=20", "eval_episodes=2"]
 
 
-def _osmo(home: Path, *args: str, timeout: float = 3600) -> str:
+def osmo_cli(home: Path, *args: str, timeout: float = 3600) -> str:
+    """Run ``osmo ARGS`` with ``OSMO_HOME=home``; its stdout (RuntimeError when it fails)."""
     env = dict(os.environ, OSMO_HOME=str(home))
     env.pop("OSMO_SERVER", None)
     proc = subprocess.run([sys.executable, "-m", "osmo", *args], env=env, cwd=ROOT,
@@ -48,19 +49,28 @@ def _osmo(home: Path, *args: str, timeout: float = 3600) -> str:
     return proc.stdout
 
 
+def submit_wait(home: Path, spec: Path, settings: list[str]) -> tuple[float, str]:
+    """``osmo submit SPEC --wait --set ...`` to the server of ``home``: seconds and workflow id.
+
+    The seconds run from starting the CLI to its exit (the workflow COMPLETED).
+    """
+    sets = [a for s in settings for a in ("--set", s)]
+    start = time.perf_counter()
+    out = osmo_cli(home, "submit", str(spec), "--wait", *sets)
+    elapsed = time.perf_counter() - start
+    wf = next(ln for ln in out.splitlines() if ln.startswith("Workflow ID - ")).split(
+        " - ", 1)[1].strip()
+    return elapsed, wf
+
+
 def one_run(settings: list[str]) -> tuple[float, dict[str, dict[str, Any]]]:
     """Seconds from submit to COMPLETED, and the eval rows by policy."""
     with tempfile.TemporaryDirectory() as tmp:
         home = Path(tmp)
-        _osmo(home, "server", "start")  # not part of the pipeline's time
-        sets = [a for s in settings for a in ("--set", s)]
-        start = time.perf_counter()
-        out = _osmo(home, "submit", str(ROOT / "workflows/reach-vision.yaml"), "--wait", *sets)
-        elapsed = time.perf_counter() - start
-        wf = next(ln for ln in out.splitlines() if ln.startswith("Workflow ID - ")).split(
-            " - ", 1)[1].strip()
-        rows = json.loads(_osmo(home, "eval", "report", wf, "--format", "json"))
-        _osmo(home, "server", "stop")
+        osmo_cli(home, "server", "start")  # not part of the pipeline's time
+        elapsed, wf = submit_wait(home, ROOT / "workflows/reach-vision.yaml", settings)
+        rows = json.loads(osmo_cli(home, "eval", "report", wf, "--format", "json"))
+        osmo_cli(home, "server", "stop")
     return elapsed, {r["policy"]: r for r in rows if r["env"] == ENV}
 
 

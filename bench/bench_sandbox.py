@@ -135,25 +135,54 @@ def namespace_costs(sandbox: Sandbox, folder: Path, n: int, rounds: int
         "the system view in the node's namespaces (tasks now)": (
             sandbox.argv(["true"], view), sandbox),
     }
+    out: dict[str, list[float]] = {name: [] for name in ways}
+    for _ in range(rounds):
+        for name, (argv, joined) in ways.items():
+            out[name].append(two_at_a_time(argv, joined, n))
+    return out
 
-    def start(argv: list[str], joined: Sandbox | None) -> None:
+
+def two_at_a_time(argv: list[str], joined: Sandbox | None, n: int) -> float:
+    """ms per start of ``argv`` (spawn, wait) when two threads start ``n`` each.
+
+    ``joined``: a sandbox whose node namespaces each start enters (its fds passed).
+    """
+    def start() -> None:
         for _ in range(n):
             with joined.entered() if joined else contextlib.nullcontext():
                 proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, start_new_session=True,
                                         pass_fds=joined.fds if joined else ())
             proc.wait()
 
-    out: dict[str, list[float]] = {name: [] for name in ways}
-    for _ in range(rounds):
-        for name, (argv, joined) in ways.items():
-            t0 = time.perf_counter()
-            pair = [threading.Thread(target=start, args=(argv, joined)) for _ in range(2)]
-            for thread in pair:
-                thread.start()
-            for thread in pair:
-                thread.join()
-            out[name].append((time.perf_counter() - t0) * 1e3 / (2 * n))
-    return out
+    t0 = time.perf_counter()
+    pair = [threading.Thread(target=start) for _ in range(2)]
+    for thread in pair:
+        thread.start()
+    for thread in pair:
+        thread.join()
+    return (time.perf_counter() - t0) * 1e3 / (2 * n)
+
+
+def sandbox_spawn_limit(n: int, base: str | None = None) -> float:
+    """Starts/s of `true` in osmo's own sandbox (an attempt's view, the node's namespaces).
+
+    Two at a time on a fresh node network, no orchestrator: the bare spawn limit of the same
+    isolation a sandboxed task gets (bench/peers/compare.py's limit row).
+    """
+    found = choose("on")
+    if found is None:
+        raise SystemExit("no working sandbox here (bubblewrap)")
+    network = node_network()
+    try:
+        sandbox = found.joined(network)
+        with tempfile.TemporaryDirectory(dir=base) as folder:
+            os.chmod(folder, 0o755)
+            work = _work(Path(folder), sandbox)
+            view = View(hidden=(Path(folder),), readonly=(Path(folder),), writable=(work,),
+                        cwd=work)
+            return 1000 / two_at_a_time(sandbox.argv(["true"], view), sandbox, n)
+    finally:
+        network.close()
 
 
 def network_start_ms(n: int) -> list[float]:

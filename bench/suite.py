@@ -62,6 +62,7 @@ def run_script(script: Path, out_dir: Path, env: dict[str, str], timeout: float
     fd, json_path = tempfile.mkstemp(prefix=f"{name}-", suffix=".json")
     os.close(fd)
     print(f"== {name}", flush=True)
+    load_before = os.getloadavg()[0]
     t0 = time.perf_counter()
     proc = subprocess.Popen([sys.executable, str(script), "--json", json_path], env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
@@ -87,7 +88,8 @@ def run_script(script: Path, out_dir: Path, env: dict[str, str], timeout: float
     leaked = reap_leftovers(env["OSMO_BENCH_RUN"])
     seconds = time.perf_counter() - t0
     record = {"script": name, "path": str(script), "seconds": round(seconds, 1),
-              "log": str(log_path), "status": "ok", "leftover_processes": leaked}
+              "log": str(log_path), "status": "ok", "leftover_processes": leaked,
+              "loadavg_1m": [round(load_before, 2), round(os.getloadavg()[0], 2)]}
     if leaked:
         print(f"!! {name} left {len(leaked)} process(es) running (killed): {leaked}", flush=True)
     rows: list[Row] = []
@@ -219,7 +221,7 @@ def markdown(machine: dict[str, Any], scripts: list[dict[str, Any]], rows: list[
              "",
              f"{machine['date']} · {machine['cpu']} · {machine['cores']} cores · "
              f"Python {machine['python']} · {machine['kernel']} · load average at start "
-             f"{machine['loadavg_1m_at_start']}",
+             f"{machine['loadavg_1m_at_start']}, at the end {machine.get('loadavg_1m_at_end')}",
              "", "Medians of the runs, with min–max. \"of limit\": the figure as a fraction of "
              "the machine's own limit (100% = nothing added).", ""]
     targeted = [r for r in rows if "pass" in r]
@@ -237,7 +239,9 @@ def markdown(machine: dict[str, Any], scripts: list[dict[str, Any]], rows: list[
     for s in scripts:
         failed = {"ok": "", "skipped": f", skipped: {s.get('error', '')}"}.get(
             s["status"], ", FAILED")
-        lines.append(f"| **{s['script']}** ({s['seconds']:.0f} s{failed}) | | | | | | | |")
+        load = "load {} → {}".format(*s["loadavg_1m"]) if "loadavg_1m" in s else ""
+        lines.append(f"| **{s['script']}** ({s['seconds']:.0f} s{failed}) | | | | | | | "
+                     f"{load} |")
         for r in (r for r in rows if r["script"] == s["script"]):
             frac = r.get("fraction_of_limit")
             notes = str(r.get("notes", "")).replace("|", "\\|")
@@ -263,17 +267,19 @@ def main() -> None:
     ap.add_argument("--out", default=str(HERE / "results"), help="results folder")
     ap.add_argument("--scripts", default=str(HERE), help="folder of bench_*.py scripts")
     ap.add_argument("--timeout", type=float, default=None,
-                    help="seconds per script (default 900, quick 180)")
+                    help="seconds per script (default 900, quick 360)")
     args = ap.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    timeout = args.timeout or (180.0 if args.quick else 900.0)
+    timeout = args.timeout or (360.0 if args.quick else 900.0)
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     env.pop("OSMO_SERVER", None)
     env.pop("OSMO_HOME", None)
     env["OSMO_BENCH_RUN"] = f"{os.getpid()}-{time.time_ns()}"
     if args.quick:
         env["OSMO_BENCH_QUICK"] = "1"
+    if args.peers:  # scripts that compare with a peer themselves (bench_sim.py) run it too
+        env["OSMO_BENCH_PEERS"] = "1"
     machine = machine_info()
     scripts = sorted(Path(args.scripts).glob("bench_*.py"))
     if args.peers:
@@ -286,6 +292,7 @@ def main() -> None:
         record, script_rows = run_script(script, out, env, timeout)
         records.append(record)
         rows += script_rows
+    machine["loadavg_1m_at_end"] = round(os.getloadavg()[0], 2)
     resolve_limits(rows)
     rows += derive(rows)
     check_targets(rows)
