@@ -15,7 +15,8 @@ its module is imported):
 - **the demo pipeline**: ``workflows/reach-vision.yaml`` with its defaults (4 rollout shards
   → dataset → train → eval), its ``type:`` names swapped for the timed twins.
 
-**osmo**: a fresh ``osmo server start`` (local pool, one slot per core, the default sandbox)
+**osmo**: a fresh ``osmo server start`` (local pool, one slot per core, the default sandbox;
+and again with ``--sandbox off``, where typed tasks start from warm runners: ``--osmo-sandbox``)
 per workload and round, then one ``osmo submit FILE --wait`` through the real CLI, timed from
 the CLI's start to its exit; each task's compute is read back from its log. The spec files are
 written to a temporary folder with a copy of the timed module beside them (a custom type is
@@ -146,13 +147,13 @@ def ideal(plan: list[dict[str, Any]], compute: dict[str, float]) -> float:
 
 
 @contextmanager
-def server(checkpoint: Path | None) -> Iterator[Path]:
+def server(checkpoint: Path | None, sandbox: str = "auto") -> Iterator[Path]:
     """A fresh osmo home with a started server (and the checkpoint uploaded as a dataset)."""
     import osmo
 
     with tempfile.TemporaryDirectory(prefix="osmo-bench-sim-") as tmp:
         home = Path(tmp)
-        osmo_cli(home, "server", "start")
+        osmo_cli(home, "server", "start", "--sandbox", sandbox)
         try:
             if checkpoint is not None:
                 with osmo.Client(home=home) as client:
@@ -162,14 +163,14 @@ def server(checkpoint: Path | None) -> Iterator[Path]:
             osmo_cli(home, "server", "stop")
 
 
-def run_osmo(spec: Path, plan: list[dict[str, Any]], checkpoint: Path | None
-             ) -> dict[str, Any]:
+def run_osmo(spec: Path, plan: list[dict[str, Any]], checkpoint: Path | None,
+             sandbox: str = "auto") -> dict[str, Any]:
     """One workload through the CLI on a fresh server: makespan and each task's compute."""
     from osmo_bench_timed import compute_of
 
     import osmo
 
-    with server(checkpoint) as home:
+    with server(checkpoint, sandbox) as home:
         makespan, wf = submit_wait(home, spec, [])
         with osmo.Client(home=home) as client:
             lines: dict[str, list[str]] = {}
@@ -221,6 +222,10 @@ def main() -> None:
                     help="also run Ray (bench/run --peers sets this)")
     ap.add_argument("--no-pipeline", action="store_true", default=small,
                     help="skip the demo pipeline (the quick run skips it: bench_pipeline runs it)")
+    ap.add_argument("--osmo-sandbox", default="auto" if small else "auto,off",
+                    help="osmo's sandbox modes to run, comma-separated (a system each: 'osmo' "
+                         "is the default sandbox, 'osmo --sandbox off' runs typed tasks from "
+                         "warm runners, which need no sandbox today)")
     ap.add_argument("--json")
     args = ap.parse_args()
     missing = [m for m in ("gymnasium", "mujoco", "lerobot", "torch")
@@ -253,27 +258,33 @@ def measure(args: argparse.Namespace, project: Path, plans: dict[str, list[dict[
     Each workload runs under both systems back to back (so a pair sees the same load); which
     system goes first alternates round by round. Ray runs each workload in its own process.
     """
-    results: dict[str, dict[str, list[dict[str, Any]]]] = {"osmo": {}, "ray": {}}
+    osmos = {_system(mode): mode for mode in args.osmo_sandbox.split(",") if mode}
+    results: dict[str, dict[str, list[dict[str, Any]]]] = {s: {} for s in (*osmos, "ray")}
     log = Path(tempfile.gettempdir()) / "osmo-bench-sim-ray.log"
     log.write_text("")
     for r in range(max(args.rounds, args.pipeline_rounds)):
         names = [n for n in plans if r < (args.pipeline_rounds if n == "pipeline"
                                            else args.rounds)]
-        order = ["osmo", "ray"] if r % 2 == 0 else ["ray", "osmo"]
+        order = [*osmos, "ray"] if r % 2 == 0 else ["ray", *reversed(osmos)]
         for n in names:
             for system in order:
                 if system == "ray" and args.peers:
                     ray = run_ray({n: plans[n]}, log)
                     res = dict(ray["results"][n], startup_s=ray["startup_s"])
-                elif system == "osmo":
+                elif system in osmos:
                     res = run_osmo(project / f"{n}.yaml", plans[n],
-                                   checkpoint if n == "eval" else None)
+                                   checkpoint if n == "eval" else None, osmos[system])
                 else:
                     continue
                 results[system].setdefault(n, []).append(res)
                 print(f"round {r + 1}: {system} {n} {res['makespan_s']:.1f} s "
                       f"(load {os.getloadavg()[0]:.1f})", flush=True)
     return results
+
+
+def _system(sandbox: str) -> str:
+    """The name of osmo's system in the rows for one sandbox mode."""
+    return "osmo" if sandbox == "auto" else f"osmo --sandbox {sandbox}"
 
 
 LABELS = {"rollout": "rollout sweep", "eval": "evaluation sweep",
@@ -286,7 +297,7 @@ def rows_of(args: argparse.Namespace, plans: dict[str, list[dict[str, Any]]],
     rows: list[Row] = []
     for name, plan in plans.items():
         label = f"sim: {LABELS[name]} ({len(plan)} tasks)"
-        for system, runs in ((s, results[s].get(name, [])) for s in ("osmo", "ray")):
+        for system, runs in ((s, results[s].get(name, [])) for s in results):
             if not runs:
                 continue
             computes = [statistics.mean(r["compute_s"].values()) for r in runs]
@@ -299,9 +310,12 @@ def rows_of(args: argparse.Namespace, plans: dict[str, list[dict[str, Any]]],
                             higher_is_better=False,
                             notes="(makespan − ideal) × 2 slots ÷ tasks; ideal: the compute "
                                   "alone, packed on 2 slots level by level"))
-        osmo_runs, ray_runs = results["osmo"].get(name, []), results["ray"].get(name, [])
-        if osmo_runs and ray_runs:
-            rows.append(row(f"{label}, osmo ÷ Ray makespan", "×",
+        ray_runs = results["ray"].get(name, [])
+        for system in (s for s in results if s != "ray"):
+            osmo_runs = results[system].get(name, [])
+            if not (osmo_runs and ray_runs):
+                continue
+            rows.append(row(f"{label}, {system} ÷ Ray makespan", "×",
                             [o["makespan_s"] / r["makespan_s"]
                              for o, r in zip(osmo_runs, ray_runs, strict=False)],
                             higher_is_better=False, target=TARGETS[name],
@@ -309,11 +323,13 @@ def rows_of(args: argparse.Namespace, plans: dict[str, list[dict[str, Any]]],
                                   f"{statistics.median(r['startup_s'] for r in ray_runs):.1f} s "
                                   "not counted" + ("; stretch target 0.8×"
                                                    if name == "rollout" else "")))
-        if name == "pipeline" and osmo_runs:
-            rows.append(row("sim: reach-vision pipeline, osmo workflow time", "s",
-                            [o["workflow_s"] for o in osmo_runs], higher_is_better=False,
-                            target=120.0, notes="submitted → COMPLETED as the server records "
-                                                "it, the workflow's defaults"))
+        for system in (s for s in results if s != "ray"):
+            osmo_runs = results[system].get(name, [])
+            if name == "pipeline" and osmo_runs:
+                rows.append(row(f"sim: reach-vision pipeline, {system} workflow time", "s",
+                                [o["workflow_s"] for o in osmo_runs], higher_is_better=False,
+                                target=120.0, notes="submitted → COMPLETED as the server "
+                                                    "records it, the workflow's defaults"))
     return rows
 
 

@@ -46,10 +46,9 @@ MARK = "osmo-bench: compute "
 class TimedType(PluginType):
     """A shipped :class:`PluginType` whose ``run`` also times the shipped function.
 
-    ``preload``: modules the implementation imports lazily, imported before the clock.
+    Its ``preload`` (the shipped type's, plus what the implementation imports lazily) is
+    imported before the clock: by a warm runner before the attempt, else here.
     """
-
-    preload: tuple[str, ...] = ()
 
     def run(self, ctx: Any) -> None:
         """Import the implementation, then run and time it; print :data:`MARK` + seconds."""
@@ -69,8 +68,9 @@ class TimedType(PluginType):
 
 
 def _twin(shipped: PluginType, *preload: str) -> TimedType:
-    return TimedType(**{f.name: getattr(shipped, f.name) for f in dataclasses.fields(shipped)},
-                     preload=preload)
+    fields = {f.name: getattr(shipped, f.name) for f in dataclasses.fields(shipped)}
+    fields["preload"] = (*shipped.preload, *(m for m in preload if m not in shipped.preload))
+    return TimedType(**fields)
 
 
 _SIM = ("gymnasium", "mujoco", "osmo_plugins.sim.reach_vision", "osmo_plugins.sim.reacher")
