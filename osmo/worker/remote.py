@@ -163,6 +163,8 @@ class RemoteWorker:
             sandbox_share=options.sandbox_share, address=self._address,
             procs_dir=home.procs, containers=images,
             cluster=cluster[0] if cluster else None, cluster_images=cluster[1] if cluster else None)
+        if isinstance(images, KubernetesRuntime):  # its pods' own data, with the pool's `data`
+            images.serve_pod_data(self.link, self.id, list(options.connect), options.cluster)
         for secret in options.secret_files:
             self.pool.hide(Path(secret))
         self.sessions = NodeSessions(self.link, self.pool, lambda ticket: self._api.call(

@@ -285,17 +285,38 @@ class Kubelet:
             pod.limited = {c["name"] for c in obj["spec"]["containers"]
                            + obj["spec"].get("initContainers", [])
                            if ((c.get("resources") or {}).get("limits") or {}).get("memory")}
-            pod.play = self.podman.play(path)
+            if "osmo-standin-inits" not in manifest["spec"]:
+                self.podman.make_sub_paths(manifest)
+                pod.play = self.podman.play(path)
         self._publish(pod)
-        self._spawn(self._await_play, f"k8s-play-{pod.name}", pod)
+        self._spawn(self._await_play, f"k8s-play-{pod.name}", pod, manifest, path)
 
-    def _await_play(self, pod: _Pod) -> None:
+    def _await_play(self, pod: _Pod, manifest: Obj, path: Path) -> None:
+        if pod.play is None:  # init containers first, on their own (podman_pods.py)
+            failed = self.podman.run_inits(pod.podman, manifest)
+            with self._lock:
+                stage = pod.stage
+            if stage == "gone":
+                self.podman.remove(pod.podman)  # its init containers may have come after
+            with self._lock:
+                if pod.stage != "playing":
+                    return  # deleted meanwhile
+                if failed:
+                    pod.stage = "running"  # the poller publishes the failed init container
+                    return
+                self.podman.make_sub_paths(manifest)
+                pod.play = self.podman.play(path)
         out, err = pod.play.communicate()
         with self._lock:
             failed = pod.play.returncode != 0
             pod.play = None
-            if pod.stage != "playing":
-                return  # deleted meanwhile
+            gone = pod.stage == "gone"
+            if pod.stage != "playing" and not gone:
+                return  # being deleted: _terminate removes it
+        if gone:  # it left the API while being played: what the play made goes too
+            self.podman.remove(pod.podman)
+            return
+        with self._lock:
             pod.stage = "running"
             if failed and "init container" not in err:
                 pull = any(marker in err for marker in PULL_FAILURES)
