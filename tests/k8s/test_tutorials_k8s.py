@@ -310,6 +310,51 @@ def test_a_killed_node_leaves_nothing_and_the_attempt_runs_again(kube: KubeClust
     assert nothing_left(kube) == []
 
 
+MAKES = """\
+workflow:
+  name: makes
+  tasks:
+  - name: make
+    image: alpine:3.18
+    command: ["sh", "-c", "echo precious-{tag} > {{{{output}}}}/kept.txt"]
+"""
+READS = """\
+workflow:
+  name: reads
+  tasks:
+  - name: read
+    image: alpine:3.18
+    command: ["sh", "-c", "cat {{{{input:0}}}}/kept.txt"]
+    inputs:
+    - task: {upstream}:make
+"""
+
+
+def test_a_tampered_input_fails_the_start_naming_it(kube: KubeCluster, data_pool: str,
+                                                    tmp_path: Path) -> None:
+    tag = uuid.uuid4().hex
+    spec = tmp_path / "makes.yaml"
+    spec.write_text(MAKES.format(tag=tag))
+    r = kube.osmo("submit", str(spec), "--pool", data_pool, "--wait", timeout=180)
+    assert r.code == 0, r.out + r.err
+    upstream = submitted_id(r.out)
+    content = f"precious-{tag}\n".encode()
+    blobs = [p for p in kube.osmo_cluster.root.rglob("*") if p.is_file()
+             and not p.is_symlink() and p.stat().st_size == len(content)
+             and p.read_bytes() == content and "artifacts" in p.parts]
+    assert blobs, "the output's blob was not found in any store"
+    for blob in blobs:  # bit rot in the stores (hard links of one another on this host)
+        blob.chmod(0o644)
+        blob.write_bytes(b"X" * len(content))
+    spec = tmp_path / "reads.yaml"
+    spec.write_text(READS.format(upstream=upstream))
+    r = kube.osmo("submit", str(spec), "--pool", data_pool, "--wait", timeout=180)
+    row = tasks(kube.osmo, submitted_id(r.out))["read"]
+    assert r.code == 1 and row["status"] == "FAILED_START_ERROR", (r.out, r.err, row)
+    assert "now hashes to" in row["message"] and "it was not used" in row["message"], row
+    assert nothing_left(kube) == []
+
+
 GANG = "osmo-wf-crashed-gang"
 
 
