@@ -52,6 +52,7 @@ __all__ = ["Kubelet"]
 
 POLL = 0.3  # seconds between two looks at the containers of running pods
 BACKOFF = 1.0  # seconds from ErrImagePull to ImagePullBackOff
+PLAY_WAIT = 30.0  # seconds a deleted pod's play may take to end before it is killed
 HOST_IP = "127.0.0.1"  # every pod shares the host's network (podman_pods.py says why)
 
 
@@ -496,7 +497,10 @@ class Kubelet:
             with self._lock:
                 play, pod.killed = pod.play, True
             if play is not None and play.poll() is None:
-                play.kill()
+                try:  # let it end (killed half-way it can leave a pod no removal saw)
+                    play.wait(timeout=PLAY_WAIT)
+                except subprocess.TimeoutExpired:
+                    play.kill()
             # the containers first, then the pod's sandbox, as the kubelet does: stopping the
             # infra container at once would kill a shared PID namespace's processes outright
             self.podman.stop_containers([f"{pod.podman}-{c}" for c in
@@ -524,9 +528,18 @@ class Kubelet:
             was, pod.stage = pod.stage, "gone"
             play = pod.play
         if play is not None and play.poll() is None:
-            play.kill()
-        if pod.script is None and was not in ("deleting", "pending"):
+            # its play ends first (killing it half-way can leave a pod no removal saw)
+            self._spawn(self._remove_after_play, f"k8s-remove-{pod.name}", pod, play)
+        elif pod.script is None and was not in ("deleting", "pending"):
             self._spawn(self.podman.remove, f"k8s-remove-{pod.name}", pod.podman)
+
+    def _remove_after_play(self, pod: _Pod, play: Any) -> None:
+        try:
+            play.wait(timeout=PLAY_WAIT)
+        except subprocess.TimeoutExpired:
+            play.kill()
+            play.wait()
+        self.podman.remove(pod.podman)
 
     # ------------------------------------------------------------------ scripts
 

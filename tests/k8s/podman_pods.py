@@ -53,6 +53,7 @@ import json
 import os
 import shutil
 import subprocess
+import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -376,7 +377,12 @@ class PodmanPods:
 
     def remove(self, podman_name: str) -> None:
         """Remove a pod and its containers (stopping them at once), and its files."""
-        self.run("pod", "rm", "-f", "-t", "0", podman_name)
+        for _ in range(5):  # under load podman now and then refuses; a pod must not stay
+            done = self.run("pod", "rm", "-f", "-t", "0", podman_name)
+            if done.returncode == 0 or self.run("pod", "exists", podman_name).returncode:
+                break
+            print(f"k8s stand-in: podman pod rm {podman_name}: {done.stderr.strip()}")
+            time.sleep(0.5)
         self.run("rm", "-f", "--ignore", *[f"{podman_name}-{c}" for c in
                                            self.played.get(podman_name, [])])
         shutil.rmtree(self.folder / podman_name, ignore_errors=True)
