@@ -236,6 +236,10 @@ class ProcessHandle:
         lost: set by ``reap``: the launch was lost to its infrastructure (a pod evicted,
             preempted, its node lost): the attempt is lost with this message (rescheduled,
             not counted as a retry), whatever the exit code.
+        output_failed: set by ``reap``: the command ran, but its output could not be taken
+            back from where it ran (a pod's collector failed, or sent what the node refused):
+            an exit that would hand outputs on fails with this message instead, and nothing
+            is promoted.
     """
 
     pid: int
@@ -250,6 +254,7 @@ class ProcessHandle:
     started_at: float | None = None
     start_failed: str | None = None
     lost: str | None = None
+    output_failed: str | None = None
 
 
 @dataclass(frozen=True)

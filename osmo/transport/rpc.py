@@ -161,6 +161,8 @@ def _unsealed(message: str) -> bytes:
 class ApiServer:
     """Serves ``<prefix>/api/<verb>`` queries with ``handler(verb, request, identity)``.
 
+    ``root``: another key than ``api`` (a node's own small API, e.g. its pods' data).
+
     ``api/hello`` opens a channel (``osmo.transport.seal``); every other request must be
     sealed on one, and names its caller by it: ``gate.identity`` checks, once per request and
     before anything else, that the channel's token is still live. The reply is sealed on the
@@ -173,15 +175,15 @@ class ApiServer:
 
     def __init__(self, link: Link, handler: Handler, gate: Gate, *,
                  threads: int = 8, on_crash: Callable[[BaseException], None] | None = None,
-                 inline: frozenset[str] = frozenset()) -> None:
+                 inline: frozenset[str] = frozenset(), root: str = "api") -> None:
         self._handler = handler
         self._gate = gate
         self._on_crash = on_crash
         self._inline = inline
         self._pool = ThreadPoolExecutor(threads, thread_name_prefix="osmo-api")
         self._cut = len(link.prefix) + 1
-        self._prefix = link.key("api") + "/"
-        self._queryable = link.serve(link.key("api", "**"), self._dispatch)
+        self._prefix = link.key(root) + "/"
+        self._queryable = link.serve(link.key(root, "**"), self._dispatch)
 
     def _dispatch(self, request: Request) -> None:
         if request.key[len(self._prefix):] in self._inline:
@@ -338,8 +340,10 @@ class ApiClient:
     an unsealed one (an error, or a forgery) counts only if no sealed one comes.
     """
 
-    def __init__(self, link: Link, *, timeout: float = 30.0, token: str | None = None) -> None:
+    def __init__(self, link: Link, *, timeout: float = 30.0, token: str | None = None,
+                 root: str = "api") -> None:
         self._link = link
+        self._root = root
         self._timeout = timeout
         self._token = token.strip() if token else None
         self._lock = threading.Lock()
@@ -375,7 +379,7 @@ class ApiClient:
                 "`osmo profile set token TOKEN` (an admin creates it with `osmo token "
                 "create NAME --role user`)")
         shake = hello(self._token)
-        pending = self._link.ask(self._link.key("api", HELLO), shake.request(),
+        pending = self._link.ask(self._link.key(self._root, HELLO), shake.request(),
                                  timeout=self._timeout)
         error: dict[str, Any] | None = None
         for payload, _att in Link.replies(pending):
@@ -437,7 +441,7 @@ class ApiClient:
         if channel is None:
             log.info("dropped a %s request: no channel open yet", shown(verb))
             return
-        _ask(self._link, channel, Purpose.REQ, Purpose.REP, f"api/{verb}",
+        _ask(self._link, channel, Purpose.REQ, Purpose.REP, f"{self._root}/{verb}",
              json.dumps(request).encode(), self._timeout)
 
     def call(self, verb: str, request: dict[str, Any] | None = None,
@@ -451,7 +455,7 @@ class ApiClient:
         """
         payload = json.dumps(request or {}).encode()
         for again in (False, True):
-            pending = self.ask(f"api/{verb}", payload, timeout=timeout)
+            pending = self.ask(f"{self._root}/{verb}", payload, timeout=timeout)
             answer = self.answer(pending)
             if answer is None:
                 raise ServerUnreachable(

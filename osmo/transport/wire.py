@@ -85,9 +85,10 @@ __all__ = ["BEAT_EVERY", "LEASE", "MAX_PLATFORMS", "PEER_ALLOW", "PEER_DENY", "A
 #: zenoh access-control message -> keys (under the cluster prefix) a remote peer may use;
 #: the server's router denies everything else (``osmo.transport.zenoh_link.Acl``).
 PEER_ALLOW: dict[str, tuple[str, ...]] = {
-    "query": ("api/*", f"blob/{SERVER}/*"),  # the API; the server's blobs
-    "declare_queryable": ("blob/*/*",),  # a worker's (or an upload's) blobs, for the server
-    "reply": ("blob/*/*",),
+    "query": ("api/*", f"blob/{SERVER}/*", "podio/**"),  # the API; the server's blobs;
+    # a Kubernetes node's pod-data API (osmo.runtime.kubernetes.podio), for its pods
+    "declare_queryable": ("blob/*/*", "podio/**"),  # a worker's blobs, for the server
+    "reply": ("blob/*/*", "podio/**"),
     "declare_subscriber": ("to-worker/*", "events/*", "stream/*/*"),
     "put": ("stream/*/*",),  # exec and port-forward frames
     "liveliness_token": ("alive/worker/*",),

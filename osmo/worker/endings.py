@@ -68,6 +68,10 @@ class Ending:
                                                f"killed: {attempt.kill_reason}"))
         elif attempt.task.exit_action(code) is not ExitAction.COMPLETE:
             self.finish(attempt, AttemptExited(attempt.id, code))
+        elif attempt.handle is not None and attempt.handle.output_failed:
+            message = f"outputs could not be taken back: {attempt.handle.output_failed}"
+            attempt.log.line("osmo", message)
+            self.finish(attempt, AttemptExited(attempt.id, code, None, message))
         else:
             attempt.state = AttemptState.FINISHING
             self._io.submit(self._promote_io, attempt, code)

@@ -6,7 +6,9 @@ with the Kubernetes runtime's paths, then ``osmo.runtime.kubernetes.runtime.atte
 in a temporary folder, and its Pod, Secret and group objects are rendered. What only the
 node can know is shown as placeholders: the node's folders (under ``/osmo-node``, or under
 the work claim's mount when the pool has one), an upstream task's output, a credential's
-values (``<credential NAME>``), an image's digest.
+values (``<credential NAME>``), an image's digest. With the pool's ``data`` the pod fetches
+and sends back its own data: its Secret then holds ``<ticket>`` placeholders and its data
+containers dial ``<the worker's endpoints>`` unless ``data.connect`` names them.
 """
 
 from __future__ import annotations
@@ -26,6 +28,8 @@ from osmo.runtime.kubernetes.manifest import (
     LABEL_GROUP,
     LABEL_INSTANCE,
     LABEL_WORKFLOW,
+    TICKETS,
+    DataPlan,
     label_value,
     pod_group_manifest,
     pod_manifest,
@@ -96,9 +100,14 @@ def _objects(cmd: PrepareAttempt, task: TaskSpec, spec: WorkflowSpec, pool: Kube
             objects.append(service_manifest(plan.group, labels, pool))
         pod_group = pod_group_manifest(plan.group, labels, pool)
         objects += [pod_group[1]] if pod_group else []
-    secret = (secret_manifest(plan, launch.secret_env, pool, owner_uid="POD_UID")
-              if launch.secret_env else None)
-    objects.append(pod_manifest(plan, pool, secret=plan.name if secret else None))
+    values = dict(launch.secret_env)
+    data = None
+    if pool.data_image is not None:
+        data = DataPlan(pool.data_image, pool.data_connect or ("<the worker's endpoints>",),
+                        "<cluster>", "<worker>")
+        values.update({key: "<ticket>" for key in TICKETS.values()})
+    secret = secret_manifest(plan, values, pool, owner_uid="POD_UID") if values else None
+    objects.append(pod_manifest(plan, pool, secret=plan.name if secret else None, data=data))
     objects += [secret] if secret else []
     return objects
 

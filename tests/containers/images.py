@@ -12,6 +12,13 @@ build the images OSMO's tutorials name, from what the host has:
   it finds its standard library) with the standard library minus tests, caches, tkinter and
   site-packages, and the shared libraries its extension modules load: about 30 MB, a few
   seconds to build. Typed tasks inside containers will need it; the tutorials do not.
+- ``localhost/osmo-test/osmo:<key>`` (tagged ``localhost/osmo:test``), only when asked for
+  (``KINDS_OSMO``) — the python image plus this checkout's ``osmo`` package and its core
+  dependencies as installed in this venv (the closure of ``pyproject.toml``'s requirements
+  without extras, from their installed files), so pods of the Kubernetes stand-in run osmo's own
+  init and collector containers (``osmo.runtime.kubernetes.podside``) as the chart's image
+  would. ``/root`` is world-readable in it: the interpreter lives under pyenv's ``/root``
+  here, and those containers run as the task's non-root uid.
 
 Each image has the label ``osmo.test-image=<kind>`` and is built once per *recipe key* (the
 sha256 of this recipe's version and its input files' paths, sizes and mtimes) under
@@ -44,19 +51,23 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
-__all__ = ["CONTAINERS_CONF", "KINDS_PYTHON", "KINDS_TUTORIALS", "TEST_IMAGE_LABEL",
+__all__ = ["CONTAINERS_CONF", "KINDS_OSMO", "KINDS_PYTHON", "KINDS_TUTORIALS", "OSMO_IMAGE", "TEST_IMAGE_LABEL",
            "ensure_images", "podman", "write_containers_conf"]
 
 CONTAINERS_CONF = '[containers]\ndefault_ulimits = []\n\n[engine]\nruntime = "runc"\n'
 TEST_IMAGE_LABEL = "osmo.test-image"
 KINDS_TUTORIALS = ("busybox", "bash")
 KINDS_PYTHON = ("python",)
+KINDS_OSMO = ("osmo",)
+OSMO_IMAGE = "localhost/osmo:test"
+"""The tag of the osmo image (``KINDS_OSMO``)."""
 _RECIPE = "1"  # bump when a builder changes what it puts in an image
 _PY = f"{sys.version_info.major}.{sys.version_info.minor}"
 NAMES = {
     "busybox": ("alpine:3.18",),
     "bash": ("ubuntu:22.04", "ubuntu:24.04"),
     "python": (f"python:{_PY}-slim",),
+    "osmo": ("localhost/osmo:test",),
 }
 _PATH = "/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin"
 _LOCK = Path(tempfile.gettempdir()) / "osmo-test-images.lock"
@@ -156,8 +167,12 @@ class _Recipe:
         if kind == "bash":
             bash = Path(shutil.which("bash") or "/bin/bash").resolve()
             files += [(bash, "/bin/bash"), *_libraries([bash])]
-        elif kind == "python":
+        elif kind in ("python", "osmo"):
             files += _python_files()
+            if kind == "osmo":
+                have = {target for _, target in files}
+                files += [f for f in dict((t, (s, t)) for s, t in _osmo_files()).values()
+                          if f[1] not in have]
             exe = _python_executable().as_posix()
             links += [(p, exe) for p in ("/usr/local/bin/python3", "/usr/local/bin/python",
                                          f"/usr/bin/python{_PY}", "/usr/bin/python3") if p != exe]
@@ -212,6 +227,43 @@ def _python_files() -> list[tuple[Path, str]]:
     return files + [f for f in _libraries([exe.resolve(), *shared]) if f[1] != exe.as_posix()]
 
 
+def _osmo_files() -> list[tuple[Path, str]]:
+    """This checkout's ``osmo`` and the installed files of its core dependencies, placed in
+    the image's ``site-packages`` (the interpreter's own), with the libraries they load."""
+    import importlib.metadata as metadata
+    import tomllib
+
+    from packaging.requirements import Requirement
+
+    target = Path(sysconfig.get_paths(vars={"base": sys.base_prefix,
+                                            "platbase": sys.base_prefix})["purelib"])
+    package = Path(__file__).resolve().parents[2] / "osmo"
+    files = [(Path(folder, n), str(target / Path(folder, n).relative_to(package.parent)))
+             for folder, dirs, names in os.walk(package)
+             for n in sorted(names) if n.endswith(".py") or n == "py.typed"
+             if "__pycache__" not in folder]
+    seen: set[str] = set()
+    # the checkout's own requirements: the venv's record of them may be older
+    project = tomllib.loads((package.parent / "pyproject.toml").read_text())["project"]
+    todo = list(project["dependencies"])
+    while todo:
+        req = Requirement(todo.pop())
+        name = req.name.lower().replace("_", "-")
+        if name in seen or (req.marker is not None and not req.marker.evaluate({"extra": ""})):
+            continue
+        seen.add(name)
+        dist = metadata.distribution(req.name)
+        for entry in dist.files or []:
+            if entry.parts[:1] == ("..",):
+                continue  # a script outside site-packages: not needed
+            source = Path(str(dist.locate_file(entry))).resolve()
+            if source.is_file() and "__pycache__" not in entry.parts:
+                files.append((source, str(target / entry)))
+        todo += dist.requires or []
+    shared = [s for s, _ in files if s.suffix == ".so" or ".so." in s.name]
+    return files + _libraries(shared)
+
+
 # ---------------------------------------------------------------- build
 
 
@@ -239,7 +291,7 @@ def _rootfs(tar: tarfile.TarFile, recipe: _Recipe) -> None:
 
     for path, mode in [("bin", 0o755), ("sbin", 0o755), ("usr/bin", 0o755),
                        ("usr/sbin", 0o755), ("usr/local/bin", 0o755), ("etc", 0o755),
-                       ("root", 0o700), ("home", 0o755), ("tmp", 0o1777), ("var/tmp", 0o1777),
+                       ("root", 0o755 if recipe.kind == "osmo" else 0o700), ("home", 0o755), ("tmp", 0o1777), ("var/tmp", 0o1777),
                        ("proc", 0o555), ("sys", 0o555), ("dev", 0o755), ("run", 0o755)]:
         folder(path, mode)
     for name, text in [("etc/passwd", "root:x:0:0:root:/root:/bin/sh\n"

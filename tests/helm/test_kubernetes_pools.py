@@ -85,8 +85,20 @@ def test_the_worker_runs_the_kubernetes_runtime_with_the_written_pool(tmp_path: 
     assert json.loads(text)["groupNetwork"] == "service"
 
 
-def test_a_kubernetes_pool_needs_its_work_claim_and_lints_clean() -> None:
-    with pytest.raises(Exception, match="workClaim"):
-        render({"pools": [{"name": "p", "replicas": 1, "kind": "kubernetes",
-                           "kubernetes": {"gang": "kai"}}]})
+def test_a_kubernetes_pool_lints_clean() -> None:
     assert lint(values(gang="volcano")) == []
+
+
+def test_without_a_work_claim_pods_get_their_data_from_the_charts_image(
+        tmp_path: Path) -> None:
+    rendered = render({"pools": [{"name": "pods", "replicas": 1, "kind": "kubernetes",
+                                  "kubernetes": {"gang": "kai"}}]})
+    deployment = rendered.get("Deployment", f"{FULLNAME}-worker-pods")
+    worker = container(deployment, "worker")
+    text = rendered.get("ConfigMap", f"{FULLNAME}-kube-pods")["data"]["pool.json"]
+    (tmp_path / "pool.json").write_text(text)
+    pool = load_pool(tmp_path / "pool.json")
+    assert pool.work_claim is None and pool.data_image == worker["image"], (text, worker)
+    assert env(worker)["OSMO_HOME"] == "/var/lib/osmo/home"
+    volumes = {v["name"]: v for v in deployment["spec"]["template"]["spec"]["volumes"]}
+    assert "emptyDir" in volumes["home"], volumes  # nothing shared with the task pods

@@ -52,6 +52,7 @@ __all__ = ["Kubelet"]
 
 POLL = 0.3  # seconds between two looks at the containers of running pods
 BACKOFF = 1.0  # seconds from ErrImagePull to ImagePullBackOff
+PLAY_WAIT = 30.0  # seconds a deleted pod's play may take to end before it is killed
 HOST_IP = "127.0.0.1"  # every pod shares the host's network (podman_pods.py says why)
 
 
@@ -285,17 +286,38 @@ class Kubelet:
             pod.limited = {c["name"] for c in obj["spec"]["containers"]
                            + obj["spec"].get("initContainers", [])
                            if ((c.get("resources") or {}).get("limits") or {}).get("memory")}
-            pod.play = self.podman.play(path)
+            if "osmo-standin-inits" not in manifest["spec"]:
+                self.podman.make_sub_paths(manifest)
+                pod.play = self.podman.play(path)
         self._publish(pod)
-        self._spawn(self._await_play, f"k8s-play-{pod.name}", pod)
+        self._spawn(self._await_play, f"k8s-play-{pod.name}", pod, manifest, path)
 
-    def _await_play(self, pod: _Pod) -> None:
+    def _await_play(self, pod: _Pod, manifest: Obj, path: Path) -> None:
+        if pod.play is None:  # init containers first, on their own (podman_pods.py)
+            failed = self.podman.run_inits(pod.podman, manifest)
+            with self._lock:
+                stage = pod.stage
+            if stage == "gone":
+                self.podman.remove(pod.podman)  # its init containers may have come after
+            with self._lock:
+                if pod.stage != "playing":
+                    return  # deleted meanwhile
+                if failed:
+                    pod.stage = "running"  # the poller publishes the failed init container
+                    return
+                self.podman.make_sub_paths(manifest)
+                pod.play = self.podman.play(path)
         out, err = pod.play.communicate()
         with self._lock:
             failed = pod.play.returncode != 0
             pod.play = None
-            if pod.stage != "playing":
-                return  # deleted meanwhile
+            gone = pod.stage == "gone"
+            if pod.stage != "playing" and not gone:
+                return  # being deleted: _terminate removes it
+        if gone:  # it left the API while being played: what the play made goes too
+            self.podman.remove(pod.podman)
+            return
+        with self._lock:
             pod.stage = "running"
             if failed and "init container" not in err:
                 pull = any(marker in err for marker in PULL_FAILURES)
@@ -475,7 +497,10 @@ class Kubelet:
             with self._lock:
                 play, pod.killed = pod.play, True
             if play is not None and play.poll() is None:
-                play.kill()
+                try:  # let it end (killed half-way it can leave a pod no removal saw)
+                    play.wait(timeout=PLAY_WAIT)
+                except subprocess.TimeoutExpired:
+                    play.kill()
             # the containers first, then the pod's sandbox, as the kubelet does: stopping the
             # infra container at once would kill a shared PID namespace's processes outright
             self.podman.stop_containers([f"{pod.podman}-{c}" for c in
@@ -503,9 +528,18 @@ class Kubelet:
             was, pod.stage = pod.stage, "gone"
             play = pod.play
         if play is not None and play.poll() is None:
-            play.kill()
-        if pod.script is None and was not in ("deleting", "pending"):
+            # its play ends first (killing it half-way can leave a pod no removal saw)
+            self._spawn(self._remove_after_play, f"k8s-remove-{pod.name}", pod, play)
+        elif pod.script is None and was not in ("deleting", "pending"):
             self._spawn(self.podman.remove, f"k8s-remove-{pod.name}", pod.podman)
+
+    def _remove_after_play(self, pod: _Pod, play: Any) -> None:
+        try:
+            play.wait(timeout=PLAY_WAIT)
+        except subprocess.TimeoutExpired:
+            play.kill()
+            play.wait()
+        self.podman.remove(pod.podman)
 
     # ------------------------------------------------------------------ scripts
 

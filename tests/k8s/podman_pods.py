@@ -26,6 +26,17 @@ The only module of the stand-in that runs podman. What podman 4.3 needs, found b
   So :func:`translate` resolves both itself: env becomes literal values, a Secret volume a
   read-only ``hostPath`` folder of decoded files (0700, under the node's private folder).
   ``fieldRef`` env for the pod's name, namespace, uid, node and host IP is resolved too.
+- **subPath** is ignored by podman 4.3 for an ``emptyDir`` (the whole volume is mounted), and
+  a ``hostPath`` must exist when the manifest is read. So an ``emptyDir`` that some
+  container mounts with a ``subPath`` becomes a ``hostPath`` folder (0777, as the kubelet
+  makes it) under the node's private folder, and each ``subPath`` mount a ``hostPath`` of
+  its own folder in it, made when missing just before the regular containers are played,
+  as the kubelet makes a missing subPath. A
+  ``subPath`` naming a *file* that an init container writes cannot be had this way (podman
+  reads the manifest before init containers run). So a pod with such volumes has its init
+  containers run first, one by one, as plain ``podman run`` containers named as podman
+  names a pod's (``<pod>-<container>``, with the same mounts, environment and user), and
+  only its regular containers are played once they all succeeded (``PodmanPods.run_inits``).
 - **Fields podman ignores or cannot honour** are removed (``nodeName``, ``nodeSelector``,
   ``tolerations``, ``affinity``, ``schedulerName``, ``priorityClassName``,
   ``imagePullSecrets``, service account fields); ``resources`` stay (memory and cpu limits are
@@ -42,6 +53,7 @@ import json
 import os
 import shutil
 import subprocess
+import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -127,11 +139,13 @@ def translate(pod: Obj, podman_name: str, prefix: str, folder: Path, secrets: Se
                                                            "type": "Directory"}}
             _read_only(spec, volume["name"])
         volumes.append(volume)
-    spec["volumes"] = volumes
-    names = {v["name"] for v in volumes}
+    spec["volumes"] = volumes + _sub_paths(spec, volumes, folder)
+    names = {v["name"] for v in spec["volumes"]}
     for container in spec["containers"] + spec.get("initContainers", []):
         container["volumeMounts"] = [m for m in container.get("volumeMounts") or []
                                      if m.get("name") in names]
+    if any("-sub" in v["name"] for v in spec["volumes"]) and spec.get("initContainers"):
+        spec["osmo-standin-inits"] = spec.pop("initContainers")  # run_inits runs them first
     annotations = {k: str(v) for k, v in (meta.get("annotations") or {}).items()}
     annotations[INIT_TYPE] = "always"
     manifest = {"apiVersion": "v1", "kind": "Pod", "spec": spec,
@@ -201,6 +215,38 @@ def _secret_volume(volume: Obj, folder: Path, secrets: SecretLookup) -> Path | N
     return folder
 
 
+def _sub_paths(spec: Obj, volumes: list[Obj], folder: Path) -> list[Obj]:
+    """Turn ``emptyDir`` volumes mounted with a ``subPath`` into host folders (module doc);
+    return the volumes their subPath mounts now name."""
+    containers = spec["containers"] + spec.get("initContainers", [])
+    wanted = {m["name"] for c in containers for m in c.get("volumeMounts") or []
+              if m.get("subPath")}
+    roots: dict[str, Path] = {}
+    for index, volume in enumerate(volumes):
+        if "emptyDir" in volume and volume["name"] in wanted:
+            root = folder / "emptydir" / volume["name"]
+            root.mkdir(parents=True, exist_ok=True)
+            root.chmod(0o777)
+            roots[volume["name"]] = root
+            volumes[index] = {"name": volume["name"],
+                              "hostPath": {"path": str(root), "type": "Directory"}}
+    added: list[Obj] = []
+    for container in containers:
+        for mount in container.get("volumeMounts") or []:
+            root = roots.get(mount.get("name", ""))
+            if root is None or not mount.get("subPath"):
+                continue
+            sub = mount.pop("subPath")
+            path = (root / sub).resolve()
+            if not path.is_relative_to(root.resolve()):
+                raise ValueError(f"subPath {sub!r} leaves its volume")
+            spec.setdefault("osmo-standin-subpaths", []).append([str(root), str(path)])
+            mount["name"] = f"{mount['name']}-sub{len(added)}"
+            added.append({"name": mount["name"], "hostPath": {"path": str(path),
+                                                             "type": "Directory"}})
+    return added
+
+
 def _read_only(spec: Obj, volume: str) -> None:
     for container in spec["containers"] + spec.get("initContainers", []):
         for mount in container.get("volumeMounts") or []:
@@ -235,10 +281,12 @@ class PodmanPods:
     def write(self, podman_name: str, manifest: Obj) -> Path:
         """Write a manifest (JSON is YAML) into the node's folder; return its path."""
         path = self.folder / f"{podman_name}.json"
-        path.write_text(json.dumps(manifest))
         spec = manifest["spec"]
         self.played[podman_name] = [c["name"] for c in spec.get("initContainers", [])
-                                    + spec["containers"]]
+                                    + spec.get("osmo-standin-inits", []) + spec["containers"]]
+        played = {**manifest, "spec": {k: v for k, v in spec.items()
+                                       if not k.startswith("osmo-standin-")}}
+        path.write_text(json.dumps(played))
         return path
 
     def play(self, manifest: Path) -> subprocess.Popen[str]:
@@ -273,6 +321,51 @@ class PodmanPods:
                 bool(state.get("OOMKilled")), entry.get("Id", ""), entry.get("Image", ""))
         return out
 
+    @staticmethod
+    def make_sub_paths(manifest: Obj) -> None:
+        """Make the subPath folders that do not exist (as the kubelet does), just before the
+        regular containers are played."""
+        for root, sub in manifest["spec"].get("osmo-standin-subpaths", []):
+            path = Path(sub)
+            if path.exists():
+                continue
+            path.mkdir(parents=True, exist_ok=True)
+            for made in [path, *path.parents]:
+                if made == Path(root):
+                    break
+                made.chmod(0o777)
+
+    def run_inits(self, podman_name: str, manifest: Obj) -> str:
+        """Run the init containers ``translate`` set apart, in order; "" or podman's error.
+
+        Each is ``podman run`` with the pod's host paths, environment, user and working
+        folder, named ``<pod>-<container>`` (so :meth:`states` reads it) and labelled as the
+        node's; it stays (stopped) until :meth:`remove`.
+        """
+        spec = manifest["spec"]
+        paths = {v["name"]: v["hostPath"]["path"] for v in spec["volumes"] if "hostPath" in v}
+        for container in spec.pop("osmo-standin-inits", []):
+            args = ["run", "--name", f"{podman_name}-{container['name']}", "--network", "host",
+                    "--pull=never", "--label", f"{LABEL}={self.prefix}"]
+            for mount in container.get("volumeMounts") or []:
+                ro = ":ro" if mount.get("readOnly") else ""
+                args += ["-v", f"{paths[mount['name']]}:{mount['mountPath']}{ro}"]
+            for var in container.get("env") or []:
+                args += ["--env", f"{var['name']}={var.get('value', '')}"]
+            security = container.get("securityContext") or {}
+            if "runAsUser" in security:
+                args += ["--user", f"{security['runAsUser']}:{security.get('runAsGroup', 0)}"]
+            if container.get("workingDir"):
+                args += ["--workdir", container["workingDir"]]
+            command = [*container.get("command", []), *container.get("args", [])]
+            if command:
+                args += ["--entrypoint", json.dumps(command[:1])]
+            args += [container["image"], *command[1:]]
+            done = self.run(*args, timeout=600)
+            if done.returncode != 0:
+                return f"init container {container['name']} exited with code {done.returncode}"
+        return ""
+
     def stop(self, podman_name: str, grace: int) -> None:
         """Stop a pod: SIGTERM, and SIGKILL after ``grace`` seconds."""
         self.run("pod", "stop", "-t", str(max(grace, 0)), podman_name, timeout=grace + 60)
@@ -284,7 +377,14 @@ class PodmanPods:
 
     def remove(self, podman_name: str) -> None:
         """Remove a pod and its containers (stopping them at once), and its files."""
-        self.run("pod", "rm", "-f", "-t", "0", podman_name)
+        for _ in range(5):  # under load podman now and then refuses; a pod must not stay
+            done = self.run("pod", "rm", "-f", "-t", "0", podman_name)
+            if done.returncode == 0 or self.run("pod", "exists", podman_name).returncode:
+                break
+            print(f"k8s stand-in: podman pod rm {podman_name}: {done.stderr.strip()}")
+            time.sleep(0.5)
+        self.run("rm", "-f", "--ignore", *[f"{podman_name}-{c}" for c in
+                                           self.played.get(podman_name, [])])
         shutil.rmtree(self.folder / podman_name, ignore_errors=True)
         (self.folder / f"{podman_name}.json").unlink(missing_ok=True)
 

@@ -25,7 +25,7 @@ def test_the_documented_pool_configuration_loads(tmp_path: Path) -> None:
     (config,) = blocks("json")
     (tmp_path / "pool.json").write_text(config)
     pool = load_pool(tmp_path / "pool.json")
-    assert pool.namespace == "osmo-tasks" and pool.work_claim == "osmo-work"
+    assert pool.namespace == "osmo-tasks" and pool.data_image == "osmo:0.1.0"
     assert pool.platforms["dgx"].tolerations[0]["key"] == "nvidia.com/gpu"
 
 
@@ -38,7 +38,10 @@ def test_the_documented_commands(tmp_path: Path) -> None:
     osmo.env["PYTHONPATH"] = str(REPO)  # this checkout's osmo, run from another folder
     r = osmo(*dry_run[1:], cwd=tmp_path)
     assert r.code == 0, r.err
-    (pod,) = json.loads(r.out)["items"]
+    pod, secret = json.loads(r.out)["items"]
     assert pod["kind"] == "Pod" and pod["metadata"]["namespace"] == "osmo-tasks"
     mounts = pod["spec"]["containers"][0]["volumeMounts"]
     assert {m["mountPath"] for m in mounts} == {"/osmo/data/output"}
+    assert [c["name"] for c in pod["spec"]["initContainers"]] == ["osmo-fetch"]
+    assert secret["kind"] == "Secret" and set(secret["data"]) == {"osmo-fetch-ticket",
+                                                                 "osmo-collect-ticket"}

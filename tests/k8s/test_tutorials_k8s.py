@@ -27,6 +27,7 @@ from kubernetes import client, watch
 
 from tests.conftest import REPO
 from tests.containers.conftest import images, podman_env  # noqa: F401 - fixtures
+from tests.containers.images import KINDS_OSMO, OSMO_IMAGE, ensure_images
 from tests.containers.submitting import (
     check_serial_tutorial,
     lineage_of,
@@ -390,7 +391,113 @@ def test_a_killed_node_adopts_its_pod_which_runs_once_and_leaves_nothing(
     assert nothing_left(kube) == []
 
 
+MAKES = """\
+workflow:
+  name: makes
+  tasks:
+  - name: make
+    image: alpine:3.18
+    command: ["sh", "-c", "echo precious-{tag} > {{{{output}}}}/kept.txt"]
+"""
+READS = """\
+workflow:
+  name: reads
+  tasks:
+  - name: read
+    image: alpine:3.18
+    command: ["sh", "-c", "cat {{{{input:0}}}}/kept.txt"]
+    inputs:
+    - task: {upstream}:make
+"""
+
+
+def test_a_tampered_input_fails_the_start_naming_it(kube: KubeCluster, data_pool: str,
+                                                    tmp_path: Path) -> None:
+    tag = uuid.uuid4().hex
+    spec = tmp_path / "makes.yaml"
+    spec.write_text(MAKES.format(tag=tag))
+    r = kube.osmo("submit", str(spec), "--pool", data_pool, "--wait", timeout=180)
+    assert r.code == 0, r.out + r.err
+    upstream = submitted_id(r.out)
+    content = f"precious-{tag}\n".encode()
+    blobs = [p for p in kube.osmo_cluster.root.rglob("*") if p.is_file()
+             and not p.is_symlink() and p.stat().st_size == len(content)
+             and p.read_bytes() == content and "artifacts" in p.parts]
+    assert blobs, "the output's blob was not found in any store"
+    for blob in blobs:  # bit rot in the stores (hard links of one another on this host)
+        blob.chmod(0o644)
+        blob.write_bytes(b"X" * len(content))
+    spec = tmp_path / "reads.yaml"
+    spec.write_text(READS.format(upstream=upstream))
+    r = kube.osmo("submit", str(spec), "--pool", data_pool, "--wait", timeout=180)
+    row = tasks(kube.osmo, submitted_id(r.out))["read"]
+    assert r.code == 1 and row["status"] == "FAILED_START_ERROR", (r.out, r.err, row)
+    assert "now hashes to" in row["message"] and "it was not used" in row["message"], row
+    assert nothing_left(kube) == []
+
+
 GANG = "osmo-wf-crashed-gang"
+
+
+# ---------------------------------------------------------------- pods with their own data
+
+@pytest.fixture(scope="module")
+def data_pool(kube: KubeCluster, podman_env: dict[str, str]) -> str:  # noqa: F811
+    """A worker whose pods share no volume with it: osmo's image fetches and collects."""
+    ensure_images(podman_env, KINDS_OSMO)
+    kube.start_worker("kube-data", pool="data", groupNetwork="host",
+                      data={"image": OSMO_IMAGE})
+    return "data"
+
+
+def test_serial_workflow_with_no_shared_volume(kube: KubeCluster, data_pool: str) -> None:
+    made: list[dict] = []
+    kube.server.store.listen(lambda e: made.append(e.obj) if (
+        e.res == PODS and e.type == "ADDED") else None)
+    r = kube.osmo("submit", str(TUTORIALS / "serial_workflow.yaml"), "--pool", data_pool,
+                  "--no-cache", "--wait", timeout=300)
+    wf_id = submitted_id(r.out)
+    lines, rows = task_lines(kube.osmo, wf_id), tasks(kube.osmo, wf_id)
+    assert r.code == 0, f"{r.out}{r.err}{lines}{rows}\n" + kube.osmo_cluster.worker_log(
+        "kube-data")
+    check_serial_tutorial(lines, rows)
+    assert len(made) == 3
+    for pod in made:
+        spec = pod["spec"]
+        assert [v for v in spec["volumes"] if "hostPath" in v or "persistentVolumeClaim" in v
+                ] == [], spec["volumes"]
+        assert [c["name"] for c in spec["initContainers"]] == ["osmo-fetch"]
+        task = next(c for c in spec["containers"] if c["name"] == "task")
+        assert "osmo-tickets" not in json.dumps(task), task  # the task never sees a ticket
+    assert nothing_left(kube) == []
+
+
+FAILS = """\
+workflow:
+  name: fails
+  tasks:
+  - name: broken
+    image: alpine:3.18
+    command: ["sh", "-c", "echo half > {{output}}/half.txt; exit 3"]
+  - name: after
+    image: alpine:3.18
+    command: ["sh", "-c", "cat {{input:0}}/half.txt"]
+    inputs:
+    - task: broken
+"""
+
+
+def test_a_failed_pod_hands_nothing_on(kube: KubeCluster, data_pool: str,
+                                       tmp_path: Path) -> None:
+    spec = tmp_path / "fails.yaml"
+    spec.write_text(FAILS)
+    r = kube.osmo("submit", str(spec), "--pool", data_pool, "--wait", timeout=180)
+    rows = tasks(kube.osmo, submitted_id(r.out))
+    assert r.code == 1, (r.out, r.err, rows)
+    assert (rows["broken"]["status"], rows["broken"]["exit_code"]) == ("FAILED", 3), rows
+    assert not rows["broken"].get("output"), rows
+    assert rows["after"]["status"] == "FAILED_UPSTREAM", rows
+    assert nothing_left(kube) == []
 
 
 def leave_remains(kube: KubeCluster, instance: str) -> list[tuple[Resource, str]]:

@@ -277,9 +277,9 @@ auth.serverUser. This is the second wall: every message is also sealed end to en
 {{- $p := "osmo/local/" -}}
 {{- $all := list "put" "delete" "declare_subscriber" "query" "reply" "declare_queryable" "liveliness_token" "declare_liveliness_subscriber" "liveliness_query" -}}
 {{- $allow := list
-  (list "query" (list "api/*" "blob/server/*"))
-  (list "declare_queryable" (list "blob/*/*"))
-  (list "reply" (list "blob/*/*"))
+  (list "query" (list "api/*" "blob/server/*" "podio/**"))
+  (list "declare_queryable" (list "blob/*/*" "podio/**"))
+  (list "reply" (list "blob/*/*" "podio/**"))
   (list "declare_subscriber" (list "to-worker/*" "events/*" "stream/*/*"))
   (list "put" (list "stream/*/*"))
   (list "liveliness_token" (list "alive/worker/*"))

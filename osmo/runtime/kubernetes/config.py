@@ -18,7 +18,14 @@ JSON object (the chart writes it from ``values.yaml``)::
      "runAsUser": 1000,
      "imagePullSecrets": ["regcred"],
      "shmSize": "1Gi",                      # /dev/shm of a GPU task
-     "work": {"hostPath": true}}            # how pods see the node's attempt folders
+     "data": {"image": "osmo:0.1.0"},       # pods fetch and send back their own data
+     "work": {"hostPath": true}}            # or: they see the node's attempt folders
+
+``data``: each pod gets its data without any volume shared with the node: an init
+container of osmo's image ``image`` fetches its inputs and files into the pod's own
+``emptyDir`` and a second container sends its output back once the task ended, both over
+zenoh to the node (``osmo.runtime.kubernetes.podio``), dialling ``connect`` (default: the
+endpoints the worker itself dials). It takes precedence over ``work``.
 
 ``work``: the node's attempt folders (inputs, files, output) reach the pod through a volume.
 ``{"hostPath": true}`` binds each folder from the node's host: the node and its pods share a
@@ -46,7 +53,7 @@ GANGS = ("none", "kai", "volcano", "kueue", "coscheduling")
 
 _KEYS = {"namespace", "kubeconfig", "context", "nodeSelector", "tolerations", "platforms",
          "priorityClasses", "gang", "securityContext", "runAsUser", "imagePullSecrets",
-         "shmSize", "work", "queue", "groupNetwork"}
+         "shmSize", "work", "queue", "groupNetwork", "data"}
 
 
 @dataclass(frozen=True)
@@ -78,6 +85,8 @@ class KubePool:
         shm_size: ``/dev/shm`` of a GPU task (a memory emptyDir).
         work_claim: the claim holding the node's attempt folders (None: hostPath binds).
         work_mount: where the node has ``work_claim`` mounted.
+        data_image: osmo's image for the pods' own data containers (None: ``work``).
+        data_connect: the endpoints those containers dial (empty: the worker's own).
     """
 
     namespace: str = "default"
@@ -95,6 +104,8 @@ class KubePool:
     shm_size: str = "1Gi"
     work_claim: str | None = None
     work_mount: Path | None = None
+    data_image: str | None = None
+    data_connect: tuple[str, ...] = ()
 
 
 def load_pool(path: str | Path | None) -> KubePool:
@@ -137,6 +148,11 @@ def _pool(raw: Any) -> KubePool:
     if claim is not None and not (isinstance(work.get("mount"), str)
                                   and str(work["mount"]).startswith("/")):
         raise ValueError("work.claim needs work.mount: where the node has it mounted")
+    data = raw.get("data")
+    if data is not None and not (isinstance(data, dict) and isinstance(data.get("image"), str)
+                                 and data["image"] and set(data) <= {"image", "connect"}
+                                 and isinstance(data.get("connect") or [], list)):
+        raise ValueError('data: {"image": IMAGE} or {"image": IMAGE, "connect": [ENDPOINT]}')
     platforms = raw.get("platforms") or {}
     if not isinstance(platforms, dict):
         raise ValueError("platforms must be an object of platform → placement")
@@ -157,7 +173,9 @@ def _pool(raw: Any) -> KubePool:
         gang=gang, queue=raw.get("queue"), group_network=network,
         security_context=security, run_as_user=user,
         image_pull_secrets=tuple(pulls), shm_size=_str(raw, "shmSize", "1Gi"),
-        work_claim=claim, work_mount=Path(work["mount"]) if claim is not None else None)
+        work_claim=claim, work_mount=Path(work["mount"]) if claim is not None else None,
+        data_image=data["image"] if data else None,
+        data_connect=tuple(str(e) for e in (data or {}).get("connect") or ()))
 
 
 def _str(raw: Mapping[str, Any], key: str, default: str) -> str:

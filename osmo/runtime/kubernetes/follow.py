@@ -20,7 +20,8 @@
    there :data:`FORCE_AFTER` seconds later is deleted with no grace, and the follower gives
    up :data:`GIVE_UP_AFTER` seconds after the kill (the node's next start deletes it).
 5. at the end, whatever the verdict, the pod is deleted (its Secret goes with it), after
-   the verdict was handed on.
+   the verdict was handed on; ``on_end`` sees it first (a pod that sends its own output
+   back is waited for there, while it still exists).
 
 A follower made with ``adopted`` (the pod as the API has it: a restarted node adopts it)
 creates nothing: it follows that pod from step 2, and its log from after the ``skip`` bytes
@@ -69,13 +70,16 @@ class PodFollower:
         waiting: why the pod waits, told once per new reason (``""``: it waits no more).
         adopted: the pod, found running by a restarted node: it is followed, not created.
         skip: bytes of the task's log already sent (an adopted pod's): not sent again.
+        on_end: gets the verdict once the pod's task ended, before it is handed on and the
+            pod deleted; returns the verdict to hand on.
     """
 
     def __init__(self, kube: Kube, pod: Obj, secret: Obj | None, *, out: IO[bytes],
                  note: Callable[[str], None], stop: threading.Event,
                  force: threading.Event | None = None, silence: int = SILENCE,
                  waiting: Callable[[str], None] = lambda _reason: None,
-                 adopted: Obj | None = None, skip: int = 0) -> None:
+                 adopted: Obj | None = None, skip: int = 0,
+                 on_end: Callable[[Verdict], Verdict] | None = None) -> None:
         self.kube, self.pod, self.secret = kube, pod, secret
         self.namespace = str(pod["metadata"]["namespace"])
         self.name = str(pod["metadata"]["name"])
@@ -88,6 +92,7 @@ class PodFollower:
         self.image_id: str | None = None
         self._silence = silence
         self._adopted, self._skip = adopted, skip
+        self._on_end = on_end
 
     def run(self, ended: Callable[[Verdict], None] | None = None) -> Verdict:
         """Create, follow and delete the pod; what became of the attempt.
@@ -120,6 +125,8 @@ class PodFollower:
             self._delete_secret(first)
             raise
         self._finish_logs(found)
+        if self._on_end is not None:
+            found = self._on_end(found)
         if ended is not None:
             ended(found)
         self._delete(grace=0)

@@ -12,8 +12,13 @@ headless Service. What each pod gets:
   task's ``command``/``args`` (the image's entrypoint replaced, as OSMO does), its
   environment, its working folder;
 - OSMO's data layout (``osmo.runtime.container.layout``): the same binds as a container
-  task, each a volume of the node's attempt folder (a ``hostPath``, or a ``subPath`` of the
-  pool's work claim);
+  task. With a :class:`DataPlan` (the pool names osmo's image), each is a ``subPath`` of
+  the pod's own ``emptyDir`` (at its absolute path: ``osmo/data/input/0``, ``etc/x.cfg``),
+  filled before the task starts by the init container ``osmo-fetch`` and sent back after it
+  ended by the container ``osmo-collect``, both of osmo's image, both mounting the
+  attempt's Secret (their one-time tickets) that the task's container never mounts
+  (``osmo.runtime.kubernetes.podio``). Otherwise each is a volume of the node's attempt
+  folder (a ``hostPath``, or a ``subPath`` of the pool's work claim);
 - credential variables from its Secret (``secretKeyRef``), never as literal values; the
   image's registry credentials (osmo's stored ``registry:HOST`` credential) in that same
   Secret as a ``.dockerconfigjson``, named in ``imagePullSecrets``;
@@ -49,7 +54,8 @@ from osmo.errors import OsmoError
 from osmo.runtime.container.run import Mount, RegistryAuth
 from osmo.runtime.kubernetes.config import KubePool, Placement
 
-__all__ = ["CONTAINER", "LABEL_ATTEMPT", "LABEL_GROUP", "LABEL_INSTANCE", "LABEL_LEAD",
+__all__ = ["COLLECTOR", "CONTAINER", "DataPlan", "FETCHER", "LABEL_ATTEMPT", "TICKETS",
+           "in_volume", "LABEL_GROUP", "LABEL_INSTANCE", "LABEL_LEAD",
            "LABEL_WORKFLOW", "POD_GROUPS", "GroupPlan", "docker_config",
            "ManifestError", "PodPlan", "label_value", "object_name", "plan_labels",
            "pod_group_manifest", "pod_manifest", "priority_class", "secret_manifest",
@@ -57,6 +63,14 @@ __all__ = ["CONTAINER", "LABEL_ATTEMPT", "LABEL_GROUP", "LABEL_INSTANCE", "LABEL
 
 CONTAINER = "task"
 """The name of the task's container in its pod."""
+FETCHER = "osmo-fetch"
+"""The init container that fetches the attempt's data into the pod (``DataPlan``)."""
+COLLECTOR = "osmo-collect"
+"""The container that sends the task's output back once it ended (``DataPlan``)."""
+TICKETS = {"fetch": "osmo-fetch-ticket", "collect": "osmo-collect-ticket"}
+"""Each pod-data role → its ticket's key in the attempt's Secret."""
+_DATA_ROOT = "/osmo-pod"  # where osmo's containers mount the pod's data volume
+_TICKET_DIR = "/var/run/osmo-tickets"
 
 LABEL_INSTANCE = "osmo.dev/instance"
 LABEL_WORKFLOW = "osmo.dev/workflow"
@@ -80,6 +94,28 @@ class GroupPlan:
 
     name: str
     size: int
+
+
+@dataclass(frozen=True)
+class DataPlan:
+    """How a pod gets its data without a shared volume (``osmo.runtime.kubernetes.podio``).
+
+    Attributes:
+        image: osmo's image, for the init container and the collector.
+        connect: the zenoh endpoints they dial (the node's router).
+        cluster: the osmo cluster's name (its key prefix).
+        node: the node whose pod-data API they speak to.
+    """
+
+    image: str
+    connect: tuple[str, ...]
+    cluster: str
+    node: str
+
+
+def in_volume(target: str) -> str:
+    """Where a layout path (``/osmo/data/input/0``) lives in the pod's data volume."""
+    return posixpath.normpath(target).lstrip("/")
 
 
 @dataclass(frozen=True)
@@ -175,16 +211,20 @@ def priority_class(plan: PodPlan, pool: KubePool) -> str | None:
 
 
 def pod_manifest(plan: PodPlan, pool: KubePool, *, secret: str | None = None,
-                 pulls_with_secret: bool = False) -> dict[str, Any]:
+                 pulls_with_secret: bool = False, data: DataPlan | None = None
+                 ) -> dict[str, Any]:
     """The attempt's Pod (``secret``: its Secret's name, when it has one).
 
     ``pulls_with_secret``: that Secret also holds the registry's credentials for the image.
+    ``data``: the pod fetches and sends back its data itself (its Secret holds the tickets).
 
     Raises:
         ManifestError: a value no manifest can hold (an environment name, a mount path).
     """
     _check(plan)
-    volumes, mounts = _volumes(plan, pool)
+    if data is not None and secret is None:
+        raise ManifestError("a pod that fetches its data needs the attempt's Secret")
+    volumes, mounts = _volumes(plan, pool, data is not None)
     container: dict[str, Any] = {
         "name": CONTAINER, "image": plan.image, "imagePullPolicy": "IfNotPresent",
         "env": _env(plan, secret), "resources": _resources(plan),
@@ -202,6 +242,9 @@ def pod_manifest(plan: PodPlan, pool: KubePool, *, secret: str | None = None,
         "automountServiceAccountToken": False,
         "securityContext": {"runAsNonRoot": True,
                             "seccompProfile": {"type": "RuntimeDefault"}}}
+    if data is not None:
+        assert secret is not None
+        _data_containers(spec, plan, data, secret, container["securityContext"])
     if placement.node_selector:
         spec["nodeSelector"] = dict(placement.node_selector)
     if placement.tolerations:
@@ -346,12 +389,51 @@ def _default_security(pool: KubePool) -> dict[str, Any]:
             "privileged": False, "capabilities": {"drop": ["ALL"]}}
 
 
-def _volumes(plan: PodPlan, pool: KubePool) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+def _data_containers(spec: dict[str, Any], plan: PodPlan, data: DataPlan, secret: str,
+                     security: dict[str, Any]) -> None:
+    """Add osmo's init container and collector, the data volume and the tickets' volume."""
+    spec["volumes"] += [
+        {"name": "osmo-data", "emptyDir": {}},
+        {"name": "osmo-tickets", "secret": {
+            "secretName": secret, "defaultMode": 0o444,
+            "items": [{"key": key, "path": role} for role, key in TICKETS.items()]}}]
+    mounts: list[dict[str, Any]] = [{"name": "osmo-data", "mountPath": _DATA_ROOT},
+                                    {"name": "osmo-tickets", "mountPath": _TICKET_DIR,
+                                     "readOnly": True}]
+
+    def side(name: str, role: str) -> dict[str, Any]:
+        argv = ["python3", "-m", "osmo.runtime.kubernetes.podside", role]
+        for endpoint in data.connect:
+            argv += ["--connect", endpoint]
+        argv += ["--cluster", data.cluster, "--node", data.node, "--attempt",
+                 plan.attempt_id, "--ticket", f"{_TICKET_DIR}/{role}", "--root", _DATA_ROOT]
+        return {"name": name, "image": data.image, "imagePullPolicy": "IfNotPresent",
+                "command": argv, "volumeMounts": [dict(m) for m in mounts],
+                "securityContext": dict(security),
+                "terminationMessagePolicy": "FallbackToLogsOnError"}
+
+    spec["initContainers"] = [side(FETCHER, "fetch")]
+    spec["containers"].append(side(COLLECTOR, "collect"))
+
+
+def _volumes(plan: PodPlan, pool: KubePool, own_data: bool = False
+             ) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
     volumes: list[dict[str, Any]] = []
     mounts: list[dict[str, Any]] = []
-    if pool.work_claim is not None:
+    if own_data:
+        for mount in plan.mounts:
+            target = posixpath.normpath(mount.target)
+            if not target.startswith("/") or target in ("/", "/proc", "/sys", "/dev"):
+                raise ManifestError(f"cannot mount at {mount.target!r}")
+            mounts.append({"name": "osmo-data", "mountPath": target,
+                           "subPath": in_volume(target), "readOnly": mount.read_only})
+        targets = [m["mountPath"] for m in mounts]
+        nested = [t for t in targets if any(t.startswith(o + "/") for o in targets)]
+        if nested:
+            raise ManifestError(f"{nested[0]} lies inside another of the task's mounts")
+    elif pool.work_claim is not None:
         volumes.append({"name": "work", "persistentVolumeClaim": {"claimName": pool.work_claim}})
-    for index, mount in enumerate(plan.mounts):
+    for index, mount in enumerate(() if own_data else plan.mounts):
         target = posixpath.normpath(mount.target)
         if not target.startswith("/") or target in ("/", "/proc", "/sys", "/dev"):
             raise ManifestError(f"cannot mount at {mount.target!r}")

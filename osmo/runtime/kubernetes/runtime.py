@@ -35,9 +35,14 @@ What it owns, one concern per method of the runtime contract (``osmo.runtime.api
   (:meth:`KubernetesRuntime.connector`); the node's session relays both over zenoh as on
   every node.
 
-Not here yet: inputs fetched by an init container and outputs taken by a sidecar (today the pod
-sees the node's folders through the work volume, so the node's own checks and atomic
-promotion hold unchanged).
+- data: with the pool's ``data`` (osmo's image), the pod shares no volume with the node:
+  ``prepare`` lists and hashes what the task must find (``podio.scan_mounts``), opens the
+  attempt on the node's pod-data API (:meth:`KubernetesRuntime.serve_pod_data`) and puts
+  its two one-time tickets in the attempt's Secret; the pod's init container fetches, its
+  collector sends the output back once the node saw the task's container end, and the
+  follower hands the verdict on only after that (``_data_end``): a collection that failed
+  is ``ProcessHandle.output_failed``, so nothing is promoted. Without ``data``, the pod sees
+  the node's folders through the work volume (claim or hostPath).
 """
 
 from __future__ import annotations
@@ -82,19 +87,25 @@ from osmo.runtime.kubernetes.groups import Groups, hostname
 from osmo.runtime.kubernetes.kube import Kube, KubeError, connect
 from osmo.runtime.kubernetes.manifest import (
     CONTAINER,
+    FETCHER,
     LABEL_ATTEMPT,
     LABEL_GROUP,
     LABEL_INSTANCE,
     POD_GROUPS,
+    TICKETS,
+    DataPlan,
     GroupPlan,
     PodPlan,
+    in_volume,
     label_value,
     pod_manifest,
     secret_manifest,
 )
+from osmo.runtime.kubernetes.podio import PodData, scan_mounts
 from osmo.runtime.kubernetes.status import Outcome, Verdict
 from osmo.runtime.process.groups import die_with_parent
 from osmo.scheduler.types import PrepareAttempt
+from osmo.transport.zenoh_link import Link
 
 __all__ = ["KubeRun", "KubernetesRuntime", "attempt_plan"]
 
@@ -108,6 +119,7 @@ _RELAY = "osmo.runtime.kubernetes.exec_relay"
 _PACKAGE_ROOT = Path(__file__).resolve().parents[3]  # the relay imports this very osmo
 _SLEEP = [shutil.which("sleep") or "sleep", "2147483647"]  # the sentinel: waits to be killed
 _OBJECT_NAME = re.compile(r"[a-z0-9]([-a-z0-9]{0,61}[a-z0-9])?")
+_COLLECT_WAIT = 600.0  # seconds a collector may take to send an ended task's output back
 
 
 @dataclass(frozen=True)
@@ -118,6 +130,7 @@ class KubeRun:
     secret: dict[str, Any] | None = field(repr=False)
     group: GroupPlan | None = None
     waiting: Callable[[str], None] = field(default=lambda _reason: None, repr=False)
+    data: str | None = None  # the attempt id, when the pod fetches its own data
 
     @property
     def name(self) -> str:
@@ -144,6 +157,21 @@ class KubernetesRuntime:
         self._background = Background("osmo-kube-call")
         self._followers = Background("osmo-pod")  # one per started attempt, until its pod went
         self._lock = threading.Lock()
+        self.pod_data: PodData | None = None
+        self._data: DataPlan | None = None
+
+    def serve_pod_data(self, link: Link, node: str, connect: Sequence[str],
+                       cluster: str) -> None:
+        """Serve the pods' own data (the pool's ``data``) on ``link`` as node ``node``.
+
+        Its pods dial the pool's ``data.connect``, else ``connect`` (the worker's own).
+        Without ``data`` in the pool, nothing is served: pods use the work volume.
+        """
+        if self.pool.data_image is None:
+            return
+        self.pod_data = PodData(link, node)
+        self._data = DataPlan(self.pool.data_image,
+                              tuple(self.pool.data_connect or connect), cluster, node)
 
     @classmethod
     def for_node(cls, config: str | None, *, instance: str) -> KubernetesRuntime:
@@ -194,13 +222,17 @@ class KubernetesRuntime:
 
         Raises:
             OsmoError: no pod was recorded there, the record is not valid, the pod is gone
-                or is not this node's (another instance label).
+                or is not this node's (another instance label), or the pod fetches and sends
+                back its own data (its one-time tickets died with the previous life).
         """
         try:
             meta = read_json_private(dirs.root / "pod.json")
         except (OSError, ValueError) as exc:
             raise OsmoError(f"no pod to adopt in {dirs.root}: {exc}") from exc
         name, group = meta.get("name"), meta.get("group")
+        if meta.get("data") is not False and meta.get("data") is not None:
+            # its tickets and the transfer it was in lived in the previous life's memory
+            raise OsmoError(f"pod {name!r} sends its own data back: not adopted (it runs again)")
         if not isinstance(name, str) or not _OBJECT_NAME.fullmatch(name):
             raise OsmoError(f"{dirs.root}/pod.json names no pod")
         plan = None
@@ -312,19 +344,24 @@ class KubernetesRuntime:
         plan = attempt_plan(launch, attempt, instance=self.instance, image=pinned)
         group, lead, workdir = plan.group, plan.lead, plan.workdir
         registry = registry_auth(task.image, attempt.credential)
-        secret = (secret_manifest(plan, launch.secret_env, self.pool, owner_uid="",
-                                  registry=registry)
-                  if launch.secret_env or registry else None)
-        pod = pod_manifest(plan, self.pool, secret=plan.name if secret else None,
-                           pulls_with_secret=registry is not None)
-        self._hand_over(dirs.output_partial, dirs.work if workdir else None)
+        own = self._data is not None
+        pod = pod_manifest(plan, self.pool,
+                           secret=plan.name if launch.secret_env or registry or own else None,
+                           pulls_with_secret=registry is not None, data=self._data)
+        values = dict(launch.secret_env)
+        if own:
+            values.update(self._open_data(plan, launch, dirs.output_partial))
+        else:
+            self._hand_over(dirs.output_partial, dirs.work if workdir else None)
+        secret = (secret_manifest(plan, values, self.pool, owner_uid="", registry=registry)
+                  if values or registry else None)
         # what a restarted node adopts the pod by (``adopt``)
         write_json_atomic(dirs.root / "pod.json", {
-            "name": plan.name, "group": None if group is None else {
+            "name": plan.name, "data": own, "group": None if group is None else {
                 "name": group.name, "size": group.size}})
         if group is not None:
             self.gangs.join(cmd, group)
-        run = KubeRun(pod, secret, group, attempt.waiting)
+        run = KubeRun(pod, secret, group, attempt.waiting, cmd.attempt_id if own else None)
         note = (f"pod {plan.name} in namespace {self.pool.namespace}, image '{task.image}'"
                 + (f" is {pinned}" if pinned else ""))
         waits = group is not None and not lead and self.pool.gang == "none"
@@ -343,7 +380,9 @@ class KubernetesRuntime:
         handle, live = self._sentinel(run)
         follower = PodFollower(self.kube, run.pod, run.secret, out=live.out,
                                note=live.note, stop=live.stop, force=live.force,
-                               waiting=run.waiting)
+                               waiting=run.waiting,
+                               on_end=None if run.data is None else (
+                                   lambda found: self._data_end(live, found)))
         with self._lock:
             self._runs[handle] = live
         self._followers.later(self._follow, follower, live, handle)
@@ -381,6 +420,8 @@ class KubernetesRuntime:
         if found.outcome is Outcome.LOST:
             handle.lost = found.message or "the pod was lost"
             return LOST
+        if live is not None:
+            handle.output_failed = live.output_failed
         return found.exit_code if found.exit_code is not None else 1
 
     def release(self, handle: ProcessHandle) -> None:
@@ -434,6 +475,8 @@ class KubernetesRuntime:
         The pod itself was deleted by its follower.
         """
         run = launch.run
+        if isinstance(run, KubeRun) and run.data is not None and self.pod_data is not None:
+            self.pod_data.close(run.data)
         if isinstance(run, KubeRun) and run.group is not None:
             self._background.later(self.gangs.leave, run.group)
 
@@ -444,9 +487,50 @@ class KubernetesRuntime:
         """
         self._followers.close()
         self._background.close()
+        if self.pod_data is not None:
+            self.pod_data.stop()
         self.kube.close()
 
     # ------------------------------------------------------------ internals
+
+    def _open_data(self, plan: PodPlan, launch: Launch, output: Path) -> dict[str, str]:
+        """Open the attempt on the pod-data API; its tickets as Secret values."""
+        assert self.pod_data is not None
+        sources = [(m.source, in_volume(m.target)) for m in plan.mounts
+                   if m.target != DATA_LAYOUT.output]
+        files, folders = scan_mounts(sources)
+        folders.append(in_volume(str(DATA_LAYOUT.output)))
+        tickets = self.pod_data.open(plan.attempt_id, files, folders, output,
+                                     max_bytes=launch.max_output_bytes)
+        return {TICKETS[role]: token for role, token in tickets.items()}
+
+    def _data_end(self, live: _Live, found: Verdict) -> Verdict:
+        """The pod's task ended: wait for its collector (a task that exited), or let go.
+
+        An init container that gave up says why (its own report beats the API's reason).
+        """
+        assert self.pod_data is not None and live.run.data is not None
+        attempt = live.run.data
+        exited = found.outcome is Outcome.EXITED and not live.stop.is_set()
+        self.pod_data.ended(attempt, collect=exited)
+        if exited:
+            live.output_failed = self.pod_data.collected(attempt, _COLLECT_WAIT)
+        if found.outcome is Outcome.START_FAILED and found.row == "init-failed":
+            why = self.pod_data.fetch_failure(attempt) or self._fetch_log(live.run)
+            if why:
+                return Verdict(found.outcome, f"{found.message}: {why}", found.exit_code,
+                               found.row)
+        return found
+
+    def _fetch_log(self, run: KubeRun) -> str:
+        """The last line the pod's init container wrote (what it said when it gave up)."""
+        try:
+            text = b"".join(self.kube.logs(self.pool.namespace, run.name, FETCHER,
+                                           follow=False)).decode("utf-8", "replace")
+        except KubeError:
+            return ""
+        lines = [line for line in text.splitlines() if line.strip()]
+        return lines[-1][:1000] if lines else ""
 
     def _hand_over(self, *folders: Path | None) -> None:
         """Let the pod's uid write the attempt's output (and working) folder.
@@ -537,6 +621,7 @@ class _Live:
     stop: threading.Event = field(default_factory=threading.Event)
     force: threading.Event = field(default_factory=threading.Event)
     verdict: Verdict | None = None
+    output_failed: str | None = None  # why the pod's output did not come back whole
 
     def note(self, line: str) -> None:
         """An osmo line about the pod, on the task's stderr."""

@@ -13,6 +13,9 @@ row                   the pod shows                             osmo
 ``evicted``           reason Evicted (the kubelet's)            lost
 ``disrupted``         DisruptionTarget True (preemption, taint  lost
                       manager, eviction API)
+``init-failed``       an init container ended with an error     FAILED_START_ERROR with its
+                      (osmo's fetch: an input that did not      reason
+                      match its digest)
 ``pull-failed``       the task container waits: ErrImagePull,   FAILED_START_ERROR with the
                       ImagePullBackOff, InvalidImageName, ...   registry's message
 ``config-failed``     waits: CreateContainerError,              FAILED_START_ERROR
@@ -111,6 +114,22 @@ def _unschedulable(pod: Pod | None) -> bool:
     return found is not None and found.get("status") == "False"
 
 
+def _failed_init(pod: Pod | None) -> Mapping[str, Any] | None:
+    """The first init container that ended with an error: its status entry (None: none)."""
+    for entry in _status(pod).get("initContainerStatuses") or []:
+        ended = (entry.get("state") or {}).get("terminated")
+        if ended and int(ended.get("exitCode", 0)) != 0:
+            return entry  # type: ignore[no-any-return]
+    return None
+
+
+def _init_failed(pod: Pod | None) -> Verdict:
+    entry = _failed_init(pod) or {}
+    info = (entry.get("state") or {}).get("terminated") or {}
+    return Verdict(Outcome.START_FAILED, f"init container {entry.get('name')} failed (exit "
+                   f"{info.get('exitCode')}): " + _why(info, "Error"))
+
+
 def _why(info: Mapping[str, Any], fallback: str = "") -> str:
     reason, message = info.get("reason") or fallback, info.get("message") or ""
     return f"{reason}: {message}" if reason and message else reason or message
@@ -141,6 +160,7 @@ TABLE: tuple[Row, ...] = (
     Row("disrupted", _disrupted,
         lambda pod: Verdict(Outcome.LOST, "the pod was disrupted: " + _why(
             _condition(pod, "DisruptionTarget") or {}))),
+    Row("init-failed", lambda pod: _failed_init(pod) is not None, _init_failed),
     Row("pull-failed", lambda pod: _state(pod)[0] == "waiting"
         and _state(pod)[1].get("reason") in PULL_FAILURES,
         lambda pod: Verdict(Outcome.START_FAILED, "image pull failed: " + _why(_state(pod)[1]))),

@@ -29,6 +29,11 @@ ROWS: dict[str, tuple[dict | None, Outcome, int | None, str]] = {
     "disrupted": (pod("Running", {"running": {}}, conditions=[condition(
         "DisruptionTarget", "PreemptionByScheduler", "preempting")]), Outcome.LOST, None,
         "PreemptionByScheduler"),
+    "init-failed": (pod("Failed", {"waiting": {"reason": "PodInitializing"}},
+                        initContainerStatuses=[{"name": "osmo-fetch", "state": {"terminated": {
+                            "exitCode": 1, "reason": "Error",
+                            "message": "fetch: a.txt does not match its digest"}}}]),
+                    Outcome.START_FAILED, None, "a.txt does not match its digest"),
     "pull-failed": (pod(state={"waiting": {"reason": "ImagePullBackOff",
                                            "message": 'Back-off pulling image "x:1"'}}),
                     Outcome.START_FAILED, None, 'Back-off pulling image "x:1"'),
