@@ -321,14 +321,7 @@ def test_a_tampered_journal_entry_is_not_adopted_its_job_is_cancelled_and_rerun(
     node is down to name a folder outside its home. The restarted node drops it with a
     warning, cancels its job (never adopted through it) and the attempt runs again."""
     runs, gate = tmp_path / "runs", tmp_path / "gate"
-    spec = write(tmp_path / "wf.yaml", f"""
-workflow:
-  name: tampered
-  tasks:
-  - name: tampered
-    command: [sh, -c, 'echo "$SLURM_JOB_ID" >> {runs}; echo up;
-      while [ ! -e {gate} ]; do sleep 0.2; done']
-""")
+    spec = gated_spec(tmp_path, "tampered", runs, gate)
     wf_id = grid.osmo.submit(spec)
     until_logged(grid, wf_id, "[tampered] up")
     first = runs.read_text().split()[0]
@@ -364,14 +357,7 @@ def test_a_node_away_past_the_grace_has_its_attempt_rescheduled_and_its_job_canc
     c.start_server()
     try:
         c.start_worker("late", "--runtime", "slurm")
-        spec = write(tmp_path / "wf.yaml", f"""
-workflow:
-  name: late
-  tasks:
-  - name: late
-    command: [sh, -c, 'echo "$SLURM_JOB_ID" >> {runs}; echo up;
-      while [ ! -e {gate} ]; do sleep 0.2; done']
-""")
+        spec = gated_spec(tmp_path, "late", runs, gate)
         wf_id = c.osmo.submit(spec)
         until_logged(c, wf_id, "[late] up")
         first = runs.read_text().split()[0]
@@ -599,3 +585,15 @@ workflow:
             grid.workers["login-sides"].wait(timeout=60)
         for part in parts:
             roomy.run("scontrol", "delete", f"PartitionName={part}")
+
+
+def gated_spec(tmp_path: Path, name: str, runs: Path, gate: Path) -> Path:
+    """One task NAME that appends its Slurm job id to ``runs``, says up, and waits for ``gate``."""
+    return write(tmp_path / "wf.yaml", f"""
+workflow:
+  name: {name}
+  tasks:
+  - name: {name}
+    command: [sh, -c, 'echo "$SLURM_JOB_ID" >> {runs}; echo up;
+      while [ ! -e {gate} ]; do sleep 0.2; done']
+""")

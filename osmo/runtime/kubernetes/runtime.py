@@ -285,15 +285,7 @@ class KubernetesRuntime:
                                                                    secrets)]
         names += [f"service/{n}" for n in self.kube.delete_labelled("service", namespace,
                                                                     others)]
-        for gang, kind_of in POD_GROUPS.items():
-            try:
-                gone = self.kube.delete_labelled(kind_of, namespace, others)
-            except KubeError as exc:
-                if exc.status in (403, 404, 405) and gang != self.pool.gang:
-                    continue
-                raise
-            names += [f"{kind_of[2]}.{kind_of[0]}/{n}" for n in gone]
-        return names
+        return names + self._delete_pod_groups(others)
 
     def clean_orphans(self) -> list[str]:
         """Delete everything of this instance a previous life left (found by its label).
@@ -316,9 +308,18 @@ class KubernetesRuntime:
                 names.append(f"pod/{name}")
         for kind in ("secret", "service"):
             names += [f"{kind}/{n}" for n in self.kube.delete_labelled(kind, namespace, mine)]
+        return names + self._delete_pod_groups(mine)
+
+    def _delete_pod_groups(self, selector: str) -> list[str]:
+        """Delete the PodGroups ``selector`` picks, of every gang scheduler's kind.
+
+        A kind the API does not serve (404) or the node may not delete (403: not the pool's
+        gang) is passed by. Returns ``kind/name`` of each deleted.
+        """
+        names = []
         for gang, kind_of in POD_GROUPS.items():
             try:
-                gone = self.kube.delete_labelled(kind_of, namespace, mine)
+                gone = self.kube.delete_labelled(kind_of, self.pool.namespace, selector)
             except KubeError as exc:
                 if exc.status in (403, 404, 405) and gang != self.pool.gang:
                     continue
