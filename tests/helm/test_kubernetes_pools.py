@@ -62,7 +62,7 @@ def test_the_worker_runs_the_kubernetes_runtime_with_the_written_pool(tmp_path: 
     rendered = render(values(gang="kai", queue="research", nodeSelector={"pool": "robots"},
                              platforms={"dgx": {"nodeSelector": {"gpu": "h100"}}},
                              priorityClasses={"default": "osmo-normal"}))
-    deployment = rendered.get("Deployment", f"{FULLNAME}-worker-pods")
+    deployment = rendered.get("StatefulSet", f"{FULLNAME}-worker-pods")
     worker = container(deployment, "worker")
     assert flag(worker["args"], "--runtime") == ["kubernetes"]
     assert flag(worker["args"], "--kubernetes-config") == ["/etc/osmo/kubernetes/pool.json"]
@@ -85,6 +85,35 @@ def test_the_worker_runs_the_kubernetes_runtime_with_the_written_pool(tmp_path: 
     assert json.loads(text)["groupNetwork"] == "service"
 
 
+def test_a_replaced_kubernetes_worker_keeps_its_name_hence_its_instance() -> None:
+    """A kubernetes pool's workers are a StatefulSet: a replacement pod has its predecessor's
+    name (its ``--name``, host name and home path, so its instance label) and cleans up or
+    adopts what that one left; updates still replace one worker at a time; a process pool
+    stays a Deployment (its tasks die with its pod)."""
+    rendered = render(values())
+    assert [d["metadata"]["name"] for d in rendered.of_kind("Deployment")] == [
+        f"{FULLNAME}-worker-cpu"]
+    workers = rendered.get("StatefulSet", f"{FULLNAME}-worker-pods")
+    spec = workers["spec"]
+    assert spec["replicas"] == 2
+    assert spec["updateStrategy"] == {"type": "RollingUpdate"}
+    assert spec["podManagementPolicy"] == "Parallel"
+    assert "volumeClaimTemplates" not in spec  # the home is on the work claim
+    worker = container(workers, "worker")
+    assert flag(worker["args"], "--name") == ["$(POD_NAME)"]
+    assert env(worker)["POD_NAME"] == {"fieldRef": {"fieldPath": "metadata.name"}}
+    assert env(worker)["OSMO_HOME"] == "/var/lib/osmo/home/$(POD_NAME)"
+    service = rendered.get("Service", spec["serviceName"])
+    assert service["spec"]["clusterIP"] == "None"
+    assert service["spec"]["selector"] == spec["selector"]["matchLabels"]
+    selected = [o["metadata"]["name"] for o in rendered.objects if o["kind"] in (
+        "Deployment", "StatefulSet") and service["spec"]["selector"].items()
+        <= o["spec"]["template"]["metadata"]["labels"].items()]
+    assert selected == [f"{FULLNAME}-worker-pods"]  # this pool's workers only
+    assert "statefulset/" + f"{FULLNAME}-worker-pods" in rendered.notes
+    assert "deployment/" + f"{FULLNAME}-worker-cpu" in rendered.notes
+
+
 def test_a_kubernetes_pool_lints_clean() -> None:
     assert lint(values(gang="volcano")) == []
 
@@ -93,7 +122,7 @@ def test_without_a_work_claim_pods_get_their_data_from_the_charts_image(
         tmp_path: Path) -> None:
     rendered = render({"pools": [{"name": "pods", "replicas": 1, "kind": "kubernetes",
                                   "kubernetes": {"gang": "kai"}}]})
-    deployment = rendered.get("Deployment", f"{FULLNAME}-worker-pods")
+    deployment = rendered.get("StatefulSet", f"{FULLNAME}-worker-pods")
     worker = container(deployment, "worker")
     text = rendered.get("ConfigMap", f"{FULLNAME}-kube-pods")["data"]["pool.json"]
     (tmp_path / "pool.json").write_text(text)
