@@ -12,6 +12,7 @@ from __future__ import annotations
 import base64
 import json
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -525,3 +526,54 @@ def leave_remains(kube: KubeCluster, instance: str) -> list[tuple[Resource, str]
     assert len([k for k in kube.left() if not k.startswith("Pod/")]) == 2 * 4
     return [(SECRETS, "osmo-pull-other"), (SERVICES, f"{GANG}-other"),
             (KAI, f"{GANG}-other"), (COSCHEDULING, f"{GANG}-other")]
+
+
+REPLACED = """\
+workflow:
+  name: replaced
+  tasks:
+  - name: slow
+    image: alpine:3.18
+    command: ["sh", "-c", "echo started; sleep 6; echo ran > {{output}}/x; echo done"]
+"""
+
+
+def test_a_replaced_worker_deletes_what_its_predecessor_left_and_the_attempt_runs_again(
+        kube: KubeCluster, data_pool: str, tmp_path: Path) -> None:
+    """Chaos (last in this module: it replaces the data pool's worker): the chart's
+    StatefulSet replaces a lost worker pod by one of the same name on a fresh home (an
+    emptyDir; same host name and home path, so the same instance). The SIGKILLed worker's
+    pod is deleted by the new one (its Secret, which the pod owns, goes with it), and the
+    attempt runs again there."""
+    spec = tmp_path / "replaced.yaml"
+    spec.write_text(REPLACED)
+    wf_id = kube.osmo.submit(spec, "--pool", data_pool)
+    deadline = time.monotonic() + 90
+    while "started" not in task_lines(kube.osmo, wf_id).get("slow", []):
+        assert time.monotonic() < deadline, (kube.left(), kube.osmo.query(wf_id))
+        time.sleep(0.2)
+    (pod,) = [obj for _, obj in kube.server.store.objects([PODS])]
+    old = {f"{res.kind}/{obj['metadata']['name']}" for res, obj in kube.server.store.objects(
+        [PODS, SECRETS]) if obj["metadata"]["labels"].get("osmo.dev/attempt")
+        == pod["metadata"]["labels"]["osmo.dev/attempt"]}
+    assert len(old) == 2 and any(k.startswith("Secret/") for k in old), kube.left()
+    kube.osmo_cluster.signal("kube-data", signal.SIGKILL)
+    kube.osmo_cluster.workers["kube-data"].wait(30)
+    assert running_pods(kube) == [pod["metadata"]["name"]]  # a dead node's pod runs on
+    home = kube.osmo_cluster.root / "kube-data"
+    shutil.rmtree(home)  # the replacement's fresh emptyDir, at the same path
+    home.mkdir()
+    kube.start_worker("kube-data", pool=data_pool, groupNetwork="host",
+                      data={"image": OSMO_IMAGE})
+    info = kube.osmo.wait_for(wf_id, lambda i: i["status"] in ("COMPLETED", "FAILED"),
+                              timeout=180)
+    assert info["status"] == "COMPLETED", (info, kube.osmo_cluster.worker_log("kube-data"))
+    row = info["tasks"][0]
+    assert row["retry"] == 1, row  # lost with its node: run again as a new retry
+    assert (Path(row["output"]) / "x").read_text() == "ran\n"
+    assert task_lines(kube.osmo, wf_id)["slow"][-2:] == ["started", "done"]
+    log = kube.osmo_cluster.worker_log("kube-data")
+    cancelled = re.findall(r"cancelled (\S+) that this node's previous life left", log)
+    assert cancelled == [f"pod/{pod['metadata']['name']}"], log  # its Secret went with it
+    assert old.isdisjoint(kube.left()), kube.left()
+    assert nothing_left(kube) == []
