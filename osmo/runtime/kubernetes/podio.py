@@ -49,6 +49,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from osmo.artifacts.fsops import hash_fd
 from osmo.artifacts.store import DEFAULT_MAX_FILES
 from osmo.errors import NotAllowed, NotAuthenticated, UsageError
 from osmo.transport.auth import Identity, Role, new_token, token_digest
@@ -421,8 +422,6 @@ def scan_mounts(mounts: Iterable[tuple[Path, str]]) -> tuple[list[PodFile], list
 
 
 def _pod_file(path: Path, target: str, st: os.stat_result) -> PodFile:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        while data := f.read(1 << 20):
-            h.update(data)
-    return PodFile(target, path, st.st_size, "sha256:" + h.hexdigest(), stat.S_IMODE(st.st_mode))
+    with open(path, "rb", buffering=0) as f:
+        digest, _ = hash_fd(f, st.st_size)
+    return PodFile(target, path, st.st_size, digest, stat.S_IMODE(st.st_mode))
