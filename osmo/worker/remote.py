@@ -165,7 +165,8 @@ class RemoteWorker:
                                  python=options.slurm_python, engine=options.container_engine)
         images = image_runtime_for_node(options.runtime, options.container_engine, home,
                                         kubernetes_config=options.kubernetes_config)
-        outlives = cluster is not None or isinstance(images, Adopting)
+        # the pool's rule (``Runtimes.adopting``), before the pool exists: the journal comes first
+        outlives = any(isinstance(r, Adopting) for r in (images, *(cluster or ())))
         self._journal = journal = Journal(home.root / "journal", self._stored.get)
         entries = journal.read(home) if outlives else []
         if not outlives:
