@@ -149,8 +149,8 @@ def processes_for_node(mode: SandboxMode, shares: Sequence[str], *, home: Path,
         home: osmo's home, which no task may see (nor a share inside it).
         address: how peers reach this node's tasks (given to the node's network).
         pool: the pool's name (for the warning when ``auto`` finds no sandbox).
-        warm: the node's warm runners, which typed tasks start from when they run
-            unsandboxed (a sandboxed task starts cold; closed with the runtime).
+        warm: the node's warm runners, which typed tasks start from (in the sandbox: only
+            types osmo ships, and only for a root osmo; closed with the runtime).
 
     Without a sandbox, the runtime says why in each task's log (``note``), in a few words
     for ``osmo resource list`` (``why``), and, when ``auto`` found none, once at start
@@ -181,10 +181,8 @@ def processes_for_node(mode: SandboxMode, shares: Sequence[str], *, home: Path,
         else:
             if network.caveat:
                 _log.warning("sandboxed tasks: %s", network.caveat)
-            if warm is not None:
-                warm.close()
             return SandboxRuntime(sandbox.joined(network), network, hidden=(home,),
-                                  note=network.caveat or None)
+                                  note=network.caveat or None, warm=warm)
     return ProcessRuntime(
         note=f"no sandbox: this task sees the host as the worker's user ({reason})",
         why=summary,

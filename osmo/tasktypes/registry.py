@@ -38,7 +38,8 @@ from osmo.names import object_ref
 from osmo.tasktypes.api import Param, TaskType
 from osmo.tasktypes.params import schema_problems
 
-__all__ = ["GROUP", "Resolver", "TaskTypeError", "TypeEntry", "entry_points", "extra_of",
+__all__ = ["GROUP", "Resolver", "TaskTypeError", "TypeEntry", "builtin_type", "entry_points",
+           "extra_of",
            "import_failure", "is_custom", "list_types", "ref_of", "resolve", "shape_problems"]
 
 GROUP = "osmo.task_types"
@@ -77,6 +78,23 @@ class TypeEntry:
 def is_custom(ref: str) -> bool:
     """True for a ``module:attr`` reference, False for an installed type's name."""
     return ":" in ref
+
+
+_SHIPPED = ("osmo", "osmo_plugins")  # the packages of osmo's own distribution
+
+
+def builtin_type(ref: str) -> bool:
+    """Whether ``ref`` names a type osmo ships (an entry point of osmo's own distribution).
+
+    Its import code is osmo's own, trusted as osmo is: a sandboxed warm runner may import it
+    (``osmo.runtime.process.warm``). A custom type, or another distribution's, is not.
+    """
+    if is_custom(ref):
+        return False
+    ep = entry_points().get(ref)
+    if ep is None or ep.dist is None or ep.dist.name != "osmo":
+        return False
+    return ep.module.split(".", 1)[0] in _SHIPPED
 
 
 def entry_points(group: str = GROUP) -> dict[str, importlib.metadata.EntryPoint]:

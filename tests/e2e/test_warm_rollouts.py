@@ -1,6 +1,8 @@
 """Warm runners end to end: a sweep of tiny ``sim.rollout`` tasks through the real CLI.
 
-The server's pool runs unsandboxed (``--sandbox off``, where warm starts apply): every
+The server's pool runs unsandboxed (``--sandbox off``) or in the default sandbox (a
+built-in type's runner is then a sandbox of its own, each attempt a fork of it in the view
+bubblewrap would give it cold): every
 rollout after the first is forked from one runner that imported gymnasium and MuJoCo once,
 and ``osmo resource list`` shows that runner, how many attempts it started and its memory;
 a remote worker's runners too, as its last beat said.
@@ -8,6 +10,7 @@ a remote worker's runners too, as its last beat said.
 
 from __future__ import annotations
 
+import os
 import time
 from pathlib import Path
 
@@ -25,8 +28,13 @@ SWEEP = "workflow:\n  name: warm-sweep\n  tasks:\n" + "".join(
     f"    params: {{episodes: 1, max_steps: 20, seed: {i}}}\n" for i in range(TASKS))
 
 
-def test_a_rollout_sweep_runs_on_one_warm_runner(osmo: Osmo, tmp_path: Path) -> None:
-    osmo("server", "start", "--sandbox", "off", "--warm-idle", "300", check=True)
+@pytest.mark.parametrize("sandbox", ["off", "auto"])
+def test_a_rollout_sweep_runs_on_one_warm_runner(osmo: Osmo, tmp_path: Path,
+                                                 sandbox: str) -> None:
+    """Unsandboxed, and in the default sandbox (a built-in type, a root osmo)."""
+    if sandbox == "auto" and os.geteuid() != 0:
+        pytest.skip("sandboxed warm starts need a root osmo (a non-root one starts cold)")
+    osmo("server", "start", "--sandbox", sandbox, "--warm-idle", "300", check=True)
     wf = osmo.submit(write(tmp_path / "sweep.yaml", SWEEP), "--wait", timeout=300)
     tasks = osmo.query(wf)["tasks"]
     assert {t["status"] for t in tasks} == {"COMPLETED"}, tasks

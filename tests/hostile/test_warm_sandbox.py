@@ -15,9 +15,28 @@ green with them on.
 
 from __future__ import annotations
 
+import contextlib
 import json
+import os
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
+import pytest
+
+from osmo.layout import AttemptDirs
+from osmo.runtime.api import Attempt, Launch
+from osmo.runtime.process.sandbox import choose, node_network
+from osmo.runtime.process.sandboxed import SandboxRuntime
+from osmo.runtime.process.warm import WarmRunners
+from osmo.scheduler.types import PrepareAttempt
+from osmo.spec.model import TaskSpec
+from osmo.tasktypes.registry import builtin_type
+from osmo.testing.runtimes import Pipes
+from osmo.worker.taskenv import base_env
+from osmo.worker.workdir import prepare
 from tests.conftest import Osmo, write
 
 SPY = r'''
@@ -104,3 +123,119 @@ def test_import_code_sees_only_its_own_attempt(osmo: Osmo, tmp_path: Path) -> No
     report = _seen(osmo, looked, "look")
     assert not any(report["seen"].values()), report  # the planted secret never reached it
     assert Path(_seen(osmo, planted, "plant")["mine"], "work", "planted.txt").exists()
+
+
+# ------------------------------------------------------------------ sandboxed warm starts
+# A built-in type's import code is osmo's own: its attempts start warm in the sandbox (a root
+# osmo). What each attempt then sees must be what bubblewrap gives it cold. The attempts
+# below are commands forked from a sandboxed runner that imports no type (the runner every
+# sandboxed warm start is made from), so that a shell can probe what the attempt sees.
+
+
+@dataclass
+class _Node:
+    runtime: SandboxRuntime
+    warm: WarmRunners
+    home: Path
+    count: int = 0
+
+    def launch(self, command: str, *, credentials: dict | None = None,
+               secrets: dict | None = None) -> Launch:
+        self.count += 1
+        name = f"t{self.count}"
+        task = TaskSpec(name, command=("sh", "-c", command), credentials=credentials or {})
+        cmd = PrepareAttempt(f"wf:{name}:0", "wf", name, 0, "pool", {}, {})
+        dirs = AttemptDirs(self.home / "workflows" / "wf" / name / "0")
+        made = prepare(dirs, cmd, task, base_env(os.environ), secrets or {},
+                       paths=self.runtime.paths(cmd))
+        return self.runtime.prepare(made, Attempt(cmd, task, dirs), progress=lambda _: None)
+
+    def start(self, launch: Launch) -> Pipes:
+        return Pipes(self.runtime.start(launch))
+
+    def finish(self, pipes: Pipes) -> tuple[int, str, str]:
+        deadline = time.monotonic() + 60
+        while not pipes.ended() and time.monotonic() < deadline:
+            pipes.pump(0.1)
+        while pipes.pump(0):
+            pass
+        code = self.runtime.reap(pipes.handle)
+        self.runtime.release(pipes.handle)
+        return code, bytes(pipes.out).decode(), bytes(pipes.err).decode()
+
+    def run(self, command: str, **kwargs: Any) -> tuple[int, str, str]:
+        return self.finish(self.start(self.launch(command, **kwargs)))
+
+
+@pytest.fixture
+def node(tmp_path: Path) -> Iterator[_Node]:
+    if os.geteuid() != 0:
+        pytest.skip("sandboxed warm starts need a root osmo (a non-root one starts cold)")
+    home = tmp_path / "home"
+    home.mkdir(mode=0o700)
+    (home / "state.db").write_text("SECRET-state")
+    found = choose("on")
+    assert found is not None
+    network = node_network(outbound=False)
+    warm = WarmRunners(base_env(os.environ))
+    runtime = SandboxRuntime(found.joined(network), network, hidden=(home,), warm=warm,
+                             warm_commands=True)
+    yield _Node(runtime, warm, home)
+    runtime.close()
+
+
+def _tree(pid: int) -> list[int]:
+    out = [pid]
+    for task in os.listdir(f"/proc/{pid}/task"):
+        with contextlib.suppress(OSError):
+            for child in Path(f"/proc/{pid}/task/{task}/children").read_text().split():
+                out += _tree(int(child))
+    return out
+
+
+def test_two_sandboxed_warm_attempts_in_a_row_share_nothing(node: _Node) -> None:
+    dirty = ('echo leak > /tmp/leak; echo leak > /dev/shm/leak; echo "token=$TOKEN"')
+    code, out, err = node.run(dirty, credentials={"api": {"TOKEN": "token"}},
+                              secrets={"api": {"token": "warm-S3CRET"}})
+    assert code == 0 and "token=warm-S3CRET" in out, (code, out, err)
+    code, out, err = node.run('ls -a /tmp /dev/shm; echo "token=$TOKEN."')
+    assert code == 0, (code, out, err)
+    assert "leak" not in out and "token=." in out, out  # its own /tmp, /dev/shm, environment
+    runners = node.warm.runners()
+    assert [(r.type, r.started) for r in runners] == [("", 2)], runners  # one runner, twice
+    for pid in _tree(runners[0].pid):  # the runner never held the attempt's credentials
+        assert b"warm-S3CRET" not in Path(f"/proc/{pid}/environ").read_bytes()
+
+
+def test_a_sandboxed_warm_attempt_sees_neither_home_nor_others_nor_its_runner(
+        node: _Node) -> None:
+    other = node.launch('echo SECRET-other > work/marker; echo ready; exec sleep 300')
+    running = node.start(other)
+    assert running.until(b"ready", 60), bytes(running.err)
+    marker = other.cwd / "marker"
+    runner = node.warm.runners()[0].pid
+    probe = (f'ls /proc | grep -c "^[0-9]"; ls -a {node.home}; cat {marker} || echo unread; '
+             f'kill -9 {runner} {running.handle.pid} || echo unkillable; '
+             'grep -E "^(CapEff|CapBnd|NoNewPrivs|Uid):" /proc/self/status; '
+             'echo mine > out.txt; mount -t tmpfs x /tmp || echo nomount')
+    code, out, err = node.run(probe)
+    assert code == 0, (code, out, err)
+    lines = out.splitlines()
+    assert int(lines[0]) <= 4, out  # its init, its shell and what the shell runs
+    assert "SECRET-other" not in out and "unread" in out and "unkillable" in out, out
+    listed = lines[1:lines.index("unread")]
+    assert sorted(listed) == [".", "..", "workflows"], out  # only the way to its own folder
+    assert "CapEff:\t0000000000000000" in out and "CapBnd:\t0000000000000000" in out, out
+    assert "NoNewPrivs:\t1" in out and "Uid:\t0\t0\t0\t0" in out and "nomount" in out, out
+    assert os.path.exists(f"/proc/{runner}") and not running.ended()  # both untouched
+    written = next(node.home.glob("workflows/wf/*/0/work/out.txt"))
+    assert written.stat().st_uid == 65534  # root inside is nobody on the host
+    node.runtime.kill(running.handle, force=True)
+    assert node.finish(running)[0] == 137
+
+
+def test_only_the_types_osmo_ships_are_trusted_in_a_runner() -> None:
+    """A custom or another distribution's type runs its import code cold, in its attempt."""
+    assert builtin_type("sim.rollout") and builtin_type("lerobot.train")
+    assert not builtin_type("spytypes:spy") and not builtin_type("osmo_plugins.sim.rollout:X")
+    assert not builtin_type("no.such.type")

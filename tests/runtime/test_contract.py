@@ -24,6 +24,7 @@ from osmo.runtime.kubernetes.config import KubePool
 from osmo.runtime.kubernetes.kube import Kube
 from osmo.runtime.kubernetes.runtime import KubernetesRuntime
 from osmo.runtime.process.runtime import ProcessRuntime
+from osmo.runtime.process.sandbox import choose, node_network
 from osmo.runtime.process.sandboxed import SandboxRuntime
 from osmo.runtime.process.warm import WarmRunners
 from osmo.runtime.slurm import Slurm, SlurmRuntime
@@ -76,6 +77,24 @@ def _sandbox(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Case]:
     runtime.close()
 
 
+def _sandbox_warm(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Case]:
+    """The sandboxed runtime whose every command is forked from a sandboxed warm runner.
+
+    Each attempt gets, in a fork of the runner, the view bubblewrap would give it cold.
+    """
+    if os.geteuid() != 0:
+        pytest.skip("sandboxed warm starts need a root osmo (a non-root one starts cold)")
+    warm = WarmRunners(base_env(os.environ))
+    found = choose("on")
+    assert found is not None  # ./dev test installs bubblewrap
+    network = node_network(outbound=False)
+    runtime = SandboxRuntime(found.joined(network), network, hidden=(tmp_path / "home",),
+                             warm=warm, warm_commands=True)
+    yield Case(runtime, listen=HOST_LISTENER)
+    assert [(r.type, r.started) for r in warm.runners()] == [("", 6)], "not forked warm"
+    runtime.close()
+
+
 def _container(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Case]:
     found: ContainerEngine = request.getfixturevalue("engine")
     request.getfixturevalue("images")
@@ -112,6 +131,7 @@ RUNTIMES: dict[str, Callable[[pytest.FixtureRequest, Path], Iterator[Case]]] = {
     "process": _process,
     "warm": _warm,
     "sandbox": _sandbox,
+    "sandbox-warm": _sandbox_warm,
     "container": _container,
     "kubernetes": _kubernetes,
     "slurm": _slurm,

@@ -98,7 +98,7 @@ from osmo.errors import InfrastructureError, UsageError
 from osmo.options import SANDBOX_MODES, SandboxMode, parse_share
 from osmo.runtime.process.netns import Entry, NodeNetwork, entered
 
-__all__ = ["COVERED", "SYSTEM", "TASK_USER", "Sandbox", "SandboxMode", "View", "choose",
+__all__ = ["COVERED", "SYSTEM", "TASK_USER", "Layout", "Sandbox", "SandboxMode", "View", "choose",
            "node_network", "parse_share", "runtime_folders", "unavailable_reason",
            "unavailable_summary"]
 
@@ -141,6 +141,24 @@ class View:
     cwd: Path
     masked: tuple[Path, ...] = ()
     code: tuple[Path, ...] = ()
+
+
+@dataclass(frozen=True)
+class Layout:
+    """Where one attempt's view is mounted (real paths), in the order bubblewrap mounts it.
+
+    Attributes:
+        hidden: folders covered by an empty tmpfs (osmo's homes), parents first.
+        masked: files covered by ``/dev/null``.
+        binds: ``(path, writable)`` bound at the same path, parents first, a parent's
+            read-only bind before its writable children.
+        cwd: the command's working folder.
+    """
+
+    hidden: tuple[str, ...]
+    masked: tuple[str, ...]
+    binds: tuple[tuple[str, bool], ...]
+    cwd: str
 
 
 @dataclass(frozen=True)
@@ -217,25 +235,56 @@ class Sandbox:
         for folder in code:  # (a share that shows it already keeps its own access)
             out += _parent_dir(folder, made)
             out += ["--ro-bind-try", folder, folder]
-        tops = (*self._tops, *code) if self.owner is not None else ()
-        hidden = sorted({_closed_root(_real_root(str(p)), tops) for p in view.hidden},
-                        key=_depth)
-        for folder in hidden:
+        placed = self.layout(view, code)
+        for folder in placed.hidden:
             out += ["--tmpfs", folder]
             made.add(folder)
-        roots = [(str(p), _real_root(str(p))) for p in view.hidden]
-        for file in view.masked:
-            out += ["--ro-bind", "/dev/null", _real_under(file, roots)]
-        binds = [(_real_under(p, roots), "--ro-bind-try") for p in view.readonly]
-        binds += [(_real_under(p, roots), "--bind-try") for p in view.writable]
-        for bound, flag in sorted(binds, key=lambda b: (_depth(b[0]), b[1] == "--bind-try")):
+        for file in placed.masked:
+            out += ["--ro-bind", "/dev/null", file]
+        for bound, writable in placed.binds:
             out += _parent_dir(bound, made)
-            out += [flag, bound, bound]
+            out += ["--bind-try" if writable else "--ro-bind-try", bound, bound]
             made.add(bound)
-        out += ["--chdir", _real_under(view.cwd, roots), "--"]
+        out += ["--chdir", placed.cwd, "--"]
         if entry.userns_fd >= 0:  # root: the command becomes uid 0 of the node's namespace
             out += [self.setpriv, *_AS_ROOT_INSIDE]
         return [*out, *command]
+
+    def layout(self, view: View, code: Sequence[str] = ()) -> Layout:
+        """Where ``view``'s mounts go, in the order :meth:`argv` makes them (real paths).
+
+        ``code``: the typed task's code folders shown before the homes are hidden.
+        """
+        tops = (*self._tops, *code) if self.owner is not None else ()
+        hidden = sorted({_closed_root(_real_root(str(p)), tops) for p in view.hidden},
+                        key=_depth)
+        roots = [(str(p), _real_root(str(p))) for p in view.hidden]
+        binds = [(_real_under(p, roots), False) for p in view.readonly]
+        binds += [(_real_under(p, roots), True) for p in view.writable]
+        return Layout(tuple(hidden), tuple(_real_under(f, roots) for f in view.masked),
+                      tuple(sorted(binds, key=lambda b: (_depth(b[0]), b[1]))),
+                      _real_under(view.cwd, roots))
+
+    def runner_argv(self, command: Sequence[str], hidden: Sequence[Path]) -> list[str]:
+        """``command`` in a sandbox that hides ``hidden``, as a sandboxed warm runner.
+
+        The view of an attempt with no folders of its own, except that the command keeps
+        ``CAP_SYS_ADMIN`` and ``CAP_SETPCAP`` in the node's user namespace: what it needs to
+        build each forked attempt's view (``osmo.runtime.process.warm_runner``), which drops
+        them. Only for a root osmo (:attr:`owner`), whose runner is trusted code (a built-in
+        task type): a runner reads its attempts' folders once they run a program.
+        """
+        if self.owner is None:
+            raise InfrastructureError("a sandboxed warm runner needs a root osmo")
+        argv = self.argv(command, View(hidden=tuple(hidden), readonly=(), writable=(),
+                                       cwd=Path("/")))
+        out: list[str] = []
+        for arg in argv:
+            out.append("--bounding-set=-all,+sys_admin,+setpcap"
+                       if arg == "--bounding-set=-all" else arg)
+            if arg == "ALL" and out[-2:-1] == ["--cap-drop"]:
+                out += ["--cap-add", "CAP_SYS_ADMIN"]
+        return out
 
     @functools.cached_property
     def _tops(self) -> tuple[str, ...]:

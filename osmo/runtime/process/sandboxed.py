@@ -48,7 +48,9 @@ from osmo.runtime.process.netns import NodeNetwork
 from osmo.runtime.process.ports import listener_connector
 from osmo.runtime.process.runtime import ProcessRuntime, image_note, term_env
 from osmo.runtime.process.sandbox import Sandbox, View
+from osmo.runtime.process.warm import BINDS_MAX, WarmKey, WarmRunners, WarmStart
 from osmo.scheduler.types import PrepareAttempt
+from osmo.tasktypes.registry import builtin_type
 
 __all__ = ["SANDBOX_PATHS", "SandboxRuntime", "attempt_view", "hand_over", "sandbox_env"]
 
@@ -68,15 +70,26 @@ class SandboxRuntime(ProcessRuntime):
         network: the node's namespaces its tasks share (closed with the runtime).
         hidden: folders no task sees (osmo's home).
         note: a line for each attempt's log (what its network lacks); None: nothing to say.
+        warm: the node's warm runners: a typed task of a type osmo ships starts as a fork
+            of a sandboxed runner, in the view it would have cold (a root osmo only;
+            :meth:`warm_key`).
+        warm_commands: every command starts so (what the runtime contract checks).
     """
 
     def __init__(self, sandbox: Sandbox, network: NodeNetwork, *, hidden: Sequence[Path] = (),
-                 note: str | None = None) -> None:
-        super().__init__(note=note, groups=ProcessGroups(sandbox))
+                 note: str | None = None, warm: WarmRunners | None = None,
+                 warm_commands: bool = False) -> None:
+        if sandbox.owner is None and warm is not None:  # a runner would share its tasks' uid
+            warm.close()
+            warm = None
+        super().__init__(note=note, groups=ProcessGroups(sandbox), warm=warm,
+                         warm_commands=warm_commands)
         self.sandbox: Sandbox = sandbox
         self.network = network
         self._hidden = [Path(p).absolute() for p in hidden]
         self._masked: list[Path] = []
+        if warm is not None:
+            warm.enclose(sandbox, self._hidden)
 
     def hide(self, path: Path) -> None:
         """Also hide ``path`` from every task started after this call.
@@ -111,11 +124,33 @@ class SandboxRuntime(ProcessRuntime):
         if self.sandbox.owner is not None:
             hand_over(dirs, self.sandbox.owner)
         notes = tuple(n for n in (self.note, image_note(task)) if n)
-        return replace(launch, run=view, env={**launch.env, **sandbox_env(launch.env, dirs.work)},
+        run: View | WarmStart = view
+        key = self._sandboxed_key(launch, attempt, view)
+        if key is not None and self.warm is not None and self.warm.ready(key):
+            run = WarmStart(key, view)
+            notes += (f"warm start: forked from a runner of {key.type or 'commands'} (in its "
+                      "sandbox)",)
+        return replace(launch, run=run, env={**launch.env, **sandbox_env(launch.env, dirs.work)},
                        notes=(*launch.notes, *notes))
 
+    def _sandboxed_key(self, launch: Launch, attempt: Attempt, view: View) -> WarmKey | None:
+        """The sandboxed runner ``launch`` starts from (None: it starts cold).
+
+        Only a type osmo ships (or the runner of commands, which imports none): a runner is
+        its attempts' parent, with their uid in the node's user namespace, and reads their
+        folders once they run a program, so no custom type's import code may run in one.
+        """
+        key = self._warm_key(launch, attempt)
+        if key is None or view.code or len(view.readonly) + len(view.writable) > BINDS_MAX:
+            return None
+        if key.type and not builtin_type(key.type):
+            return None
+        return replace(key, sandboxed=True)
+
     def start(self, launch: Launch) -> ProcessHandle:
-        """Spawn bubblewrap over the launch's view. Raises StartError."""
+        """Spawn bubblewrap over the launch's view, or fork it warm. Raises StartError."""
+        if isinstance(launch.run, WarmStart) and self.warm is not None:
+            return self.warm.start(launch.run.key, launch)
         return self._groups.start(launch.argv, cwd=launch.cwd, env=launch.env,
                                   view=_view(launch))
 
@@ -137,13 +172,14 @@ class SandboxRuntime(ProcessRuntime):
         return listener_connector(handle.pid, self.network.socket)
 
     def close(self) -> None:
-        """End the node's namespaces (slirp4netns and the keeper)."""
+        """End its warm runners (and what runs of them), then the node's namespaces."""
+        super().close()
         self.network.close()
 
 
 
 def _view(launch: Launch) -> View:
-    view = launch.run
+    view = launch.run.view if isinstance(launch.run, WarmStart) else launch.run
     if not isinstance(view, View):
         raise TypeError(f"{launch!r} was not prepared by a sandboxed runtime")
     return view

@@ -57,8 +57,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from osmo.runtime.api import Launch, ProcessHandle, StartError
+from osmo.runtime.process import mounts
 from osmo.runtime.process.groups import check_command, die_with_parent
 from osmo.runtime.process.proctable import start_clock
+from osmo.runtime.process.sandbox import Sandbox, View
 from osmo.runtime.process.warm_runner import IDLE_VARIABLE, READY, RUNNER_MODULE
 
 __all__ = ["DEFAULT_IDLE", "RunnerInfo", "WarmHandle", "WarmKey", "WarmRunners", "WarmStart",
@@ -71,6 +73,8 @@ DEFAULT_IDLE = 60.0
 _READY_TIMEOUT = 300.0  # an import of torch and its friends on a loaded machine
 _REPLY_TIMEOUT = 30.0
 _REPLY_MAX = 65536
+BINDS_MAX = 200
+"""The most folders a sandboxed warm attempt's view binds (more: it starts cold)."""
 
 
 @dataclass(frozen=True)
@@ -83,6 +87,8 @@ class WarmKey:
         paths: the folders a custom type is imported from.
         python: the interpreter.
         pythonpath: the attempt's ``PYTHONPATH`` (``osmo.worker.launch.runner_env``).
+        sandboxed: the runner is a sandbox of its own, each attempt a fork of it in its own
+            view (:meth:`WarmRunners.enclose`; only for a type osmo ships).
     """
 
     type: str
@@ -90,13 +96,20 @@ class WarmKey:
     paths: tuple[str, ...]
     python: str
     pythonpath: str
+    sandboxed: bool = False
 
 
 @dataclass(frozen=True)
 class WarmStart:
-    """A launch's ``run`` when it starts from a warm runner (the runtime sets it)."""
+    """A launch's ``run`` when it starts from a warm runner (the runtime sets it).
+
+    Attributes:
+        key: its runner's.
+        view: a sandboxed attempt's view (what bubblewrap would show it cold).
+    """
 
     key: WarmKey
+    view: View | None = None
 
 
 @dataclass(frozen=True)
@@ -168,12 +181,13 @@ class _Runner:
     started: int = 0
     running: set[int] = field(default_factory=set)
     broken: bool = False
+    main: int = 0  # the runner's own pid (a sandboxed one's is below bubblewrap's)
 
     def alive(self) -> bool:
         return not self.broken and self.popen.poll() is None
 
     def rss(self) -> int:
-        return _rss(self.popen.pid)
+        return _rss(self.main or self.popen.pid)
 
     def stale(self) -> bool:
         for path, mtime in self.sources.items():
@@ -209,6 +223,16 @@ class WarmRunners:
         self._lock = threading.Lock()
         self._starting: dict[WarmKey, threading.Lock] = {}
         self._closed = False
+        self._sandbox: Sandbox | None = None
+        self._hidden: Sequence[Path] = ()
+
+    def enclose(self, sandbox: Sandbox, hidden: Sequence[Path]) -> None:
+        """Make sandboxed runners (keys with ``sandboxed``) in ``sandbox``, hiding ``hidden``.
+
+        ``sandbox`` must be a root osmo's that joined the node's namespaces; ``hidden`` is
+        read at each runner's start (the runtime's list of osmo's homes).
+        """
+        self._sandbox, self._hidden = sandbox, hidden
 
     # ------------------------------------------------------------ runners
 
@@ -261,11 +285,18 @@ class WarmRunners:
         env = {**self._env, "PYTHONPATH": key.pythonpath, IDLE_VARIABLE: f"{self.idle:g}"}
         argv = [key.python, "-m", "osmo.runtime.process.warm_runner", str(theirs.fileno()),
                 key.type, key.version or "-", *key.paths]
+        sandbox = self._sandbox
+        passed: tuple[int, ...] = (theirs.fileno(),)
         try:
-            popen = subprocess.Popen(argv, cwd="/", env=env, stdin=subprocess.DEVNULL,
-                                     stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                                     start_new_session=True, preexec_fn=die_with_parent(),
-                                     pass_fds=(theirs.fileno(),))
+            if key.sandboxed:
+                if sandbox is None:
+                    raise OSError("no sandbox for a sandboxed runner")
+                argv, passed = sandbox.runner_argv(argv, self._hidden), (*passed, *sandbox.fds)
+            with sandbox.entered() if key.sandboxed and sandbox else contextlib.nullcontext():
+                popen = subprocess.Popen(argv, cwd="/", env=env, stdin=subprocess.DEVNULL,
+                                         stdout=subprocess.DEVNULL,
+                                         stderr=subprocess.DEVNULL, start_new_session=True,
+                                         preexec_fn=die_with_parent(), pass_fds=passed)
         except (OSError, subprocess.SubprocessError) as exc:
             ours.close()
             self._refuse(key, f"cannot start a warm runner: {exc}")
@@ -287,7 +318,10 @@ class WarmRunners:
             sources = json.loads(reply[len(READY):] or b"{}")
         except ValueError:
             sources = {}
-        return _Runner(key, popen, ours, sources)
+        runner = _Runner(key, popen, ours, sources)
+        if key.sandboxed:  # bubblewrap, its pid 1, then the runner
+            runner.main = _descendant(popen.pid, 2)
+        return runner
 
     def _refuse(self, key: WarmKey, why: str) -> None:
         _log.info("task type %s runs cold: %s", key.type, why)
@@ -350,11 +384,15 @@ class WarmRunners:
             err_r, err_w = _pipe(made)
             req_r, req_w = _pipe(made)
             status_r, status_w = _pipe(made)
+            request, extra, relay = b"fork", list[int](), None
+            if isinstance(launch.run, WarmStart) and launch.run.view is not None:
+                request, extra, relay = self._enclosed(launch.run.view, made)
             started_at = start_clock()
+            passed = [out_w, err_w, req_r, status_w, *extra]
             with runner.lock:
-                socket.send_fds(runner.sock, [b"fork"], [out_w, err_w, req_r, status_w])
+                socket.send_fds(runner.sock, [request], passed)
                 reply, fds = _receive(runner.sock, _REPLY_TIMEOUT)
-            for fd in (out_w, err_w, req_r, status_w):
+            for fd in passed:
                 os.close(fd)
                 made.remove(fd)
             if not reply or not fds or not reply.isdigit():
@@ -362,6 +400,10 @@ class WarmRunners:
                     os.close(fd)
                 raise OSError(f"the runner answered {reply[:200]!r}")
             pid, pidfd = int(reply), fds[0]
+            if relay is not None:  # its pid is the runner's namespace's: ours is the pidfd's
+                pid = _pidfd_pid(pidfd) or pid
+                _mount_proc(relay)
+                relay.close()
             _write_request(req_w, launch)
             made.remove(req_w)
         except BaseException:
@@ -376,6 +418,34 @@ class WarmRunners:
                             runner=runner.popen.pid)
         handle.started_at = started_at
         return handle
+
+    def _enclosed(self, view: View, made: list[int]) -> tuple[bytes, list[int], socket.socket]:
+        """A sandboxed fork request: its layout, its folders' detached mounts, its relay.
+
+        The mounts are clones of the attempt's folders made here (the runner cannot reach
+        them: osmo's home is hidden from it); missing ones are left out, as bubblewrap's
+        ``--bind-try`` does. The relay is the socket on which its pid 1 asks for ``/proc``.
+        """
+        sandbox = self._sandbox
+        if sandbox is None:
+            raise OSError("no sandbox for a sandboxed warm start")
+        layout = sandbox.layout(view)
+        binds: list[list[object]] = []
+        clones: list[int] = []
+        for path, writable in layout.binds:
+            try:
+                fd = mounts.detached(path, readonly=not writable)
+            except FileNotFoundError:
+                continue
+            made.append(fd)
+            clones.append(fd)
+            binds.append([path, writable, os.path.isdir(path)])
+        ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        relay = theirs.detach()
+        made.append(relay)
+        request = json.dumps({"hidden": layout.hidden, "masked": layout.masked,
+                              "binds": binds, "cwd": layout.cwd}).encode()
+        return b"fork " + request, [relay, *clones], ours
 
     def kill(self, handle: WarmHandle, *, force: bool = False) -> None:
         """SIGTERM (SIGKILL when ``force``) to the child, then to its group. Never raises."""
@@ -439,6 +509,52 @@ def warm_key(launch: Launch, type_ref: str, version: str | None,
 def commands_key() -> WarmKey:
     """The key of a runner that imports no type: commands forked from it, then exec'd."""
     return WarmKey("", None, (), sys.executable, str(Path(__file__).resolve().parents[3]))
+
+
+def _mount_proc(relay: socket.socket) -> None:
+    """Mount the proc context a sandboxed attempt's pid 1 sends, and send it the mount.
+
+    A pid 1 that died first sends nothing: its attempt then reports its own failure.
+    """
+    try:
+        _, fds = _receive(relay, _REPLY_TIMEOUT)
+    except OSError:
+        return
+    for context in fds:
+        try:
+            mounted = mounts.proc_mount(context)
+        except OSError as exc:
+            _log.warning("cannot mount a warm attempt's /proc: %s", exc)
+            continue
+        finally:
+            os.close(context)
+        with contextlib.suppress(OSError):
+            socket.send_fds(relay, [b"proc"], [mounted])
+        os.close(mounted)
+
+
+def _pidfd_pid(pidfd: int) -> int:
+    """The pid (in our namespace) of the process ``pidfd`` refers to; 0 when gone."""
+    try:
+        for line in Path(f"/proc/self/fdinfo/{pidfd}").read_text().splitlines():
+            if line.startswith("Pid:"):
+                return max(int(line.split()[1]), 0)
+    except (OSError, ValueError, IndexError):
+        pass
+    return 0
+
+
+def _descendant(pid: int, depth: int) -> int:
+    """The first child's first child ... ``depth`` levels below ``pid`` (0: none yet)."""
+    for _ in range(depth):
+        try:
+            children = Path(f"/proc/{pid}/task/{pid}/children").read_text().split()
+        except OSError:
+            return 0
+        if not children:
+            return 0
+        pid = int(children[0])
+    return pid
 
 
 def _pipe(made: list[int]) -> tuple[int, int]:

@@ -61,6 +61,8 @@ import time
 from collections.abc import Sequence
 from typing import Any
 
+from osmo.runtime.process import mounts
+
 __all__ = ["IDLE_VARIABLE", "READY", "RUNNER_MODULE", "main"]
 
 READY = b"ready"
@@ -72,6 +74,8 @@ IDLE_VARIABLE = "OSMO_WARM_IDLE"
 
 _PR_SET_PDEATHSIG = 1
 _DESCRIPTORS = 4  # stdout, stderr, request pipe, status pipe
+_BINDS_MAX = 200  # a sandboxed attempt's folders, one descriptor each (SCM_RIGHTS: <= 253)
+_DATAGRAM_MAX = 1 << 20
 _REQUEST_LIMIT = 64 * 1024 * 1024
 _SOURCES_MAX = 200  # a reply is one datagram: a project's own modules, not a library's
 
@@ -160,19 +164,22 @@ class _Runner:
     def _serve_one(self) -> bool:
         """One request; False when the pool closed its end."""
         try:
-            data, fds, _, _ = socket.recv_fds(self.sock, 64, _DESCRIPTORS)
+            data, fds, _, _ = socket.recv_fds(self.sock, _DATAGRAM_MAX,
+                                              _DESCRIPTORS + 1 + _BINDS_MAX)
         except OSError:
             return False
         if not data:
             for fd in fds:
                 os.close(fd)
             return False
-        if len(fds) != _DESCRIPTORS:
+        layout = _layout(data)
+        if len(fds) != _DESCRIPTORS + (1 + len(layout["binds"]) if layout else 0):
             for fd in fds:
                 os.close(fd)
-            self.sock.send(b"error: expected four descriptors")
+            self.sock.send(b"error: a fork request without its descriptors")
             return True
-        out, err, request, status = fds
+        out, err, request, status = fds[:_DESCRIPTORS]
+        extra = fds[_DESCRIPTORS:]
         sys.stdout.flush()
         sys.stderr.flush()
         led_r, led_w = os.pipe2(os.O_CLOEXEC)
@@ -181,11 +188,11 @@ class _Runner:
             os.close(led_r)
             _attempt(out, err, request, led_w,
                      drop=(self.sock.fileno(), self.wake_r, self.wake_w, status,
-                           *self.children.values()))
+                           *self.children.values()), layout=layout, extra=extra)
         os.close(led_w)
         os.read(led_r, 1)  # its end closed: the child leads its session (or is gone)
         os.close(led_r)
-        for fd in (out, err, request):
+        for fd in (out, err, request, *extra):
             os.close(fd)
         self.children[pid] = status
         pidfd = os.pidfd_open(pid)
@@ -215,10 +222,21 @@ class _Runner:
             os.close(status)
 
 
-def _attempt(out: int, err: int, request: int, led: int, *, drop: tuple[int, ...]) -> None:
+def _layout(data: bytes) -> dict[str, Any] | None:
+    """A sandboxed fork request's layout (``fork LAYOUT``); None for a plain ``fork``."""
+    if not data.startswith(b"fork "):
+        return None
+    layout: dict[str, Any] = json.loads(data[5:])
+    return layout
+
+
+def _attempt(out: int, err: int, request: int, led: int, *, drop: tuple[int, ...],
+             layout: dict[str, Any] | None = None, extra: Sequence[int] = ()) -> None:
     """In the forked child: become the attempt, then run it; never returns.
 
-    ``led``: closed once the child leads its own session (and process group).
+    ``led``: closed once the child leads its own session (and process group). ``layout``
+    and ``extra`` (a sandboxed attempt's): where its view goes, and the descriptors of its
+    relay to the pool and of its folders' detached mounts (:func:`_enclose`).
     """
     code = 127
     try:
@@ -231,8 +249,6 @@ def _attempt(out: int, err: int, request: int, led: int, *, drop: tuple[int, ...
         for fd in drop:
             with contextlib.suppress(OSError):
                 os.close(fd)
-        with os.fdopen(request, "rb") as pipe:
-            wanted: dict[str, Any] = json.loads(pipe.read(_REQUEST_LIMIT))
         null = os.open(os.devnull, os.O_RDONLY)
         os.dup2(null, 0)
         os.dup2(out, 1)
@@ -240,12 +256,114 @@ def _attempt(out: int, err: int, request: int, led: int, *, drop: tuple[int, ...
         for fd in (null, out, err):
             if fd > 2:
                 os.close(fd)
-        code = _run(list(wanted["argv"]), str(wanted["cwd"]), dict(wanted["env"]))
+        cwd = _enclose(layout, extra[0], extra[1:], request) if layout is not None else None
+        with os.fdopen(request, "rb") as pipe:  # its credentials: read here, never before
+            wanted: dict[str, Any] = json.loads(pipe.read(_REQUEST_LIMIT))
+        code = _run(list(wanted["argv"]), cwd or str(wanted["cwd"]), dict(wanted["env"]))
     except BaseException as exc:  # noqa: BLE001 - whatever happens, the child must exit here
         with contextlib.suppress(Exception):
             os.write(2, f"osmo: warm start failed: {exc!r}\n".encode())
     finally:
         os._exit(code)
+
+
+def _enclose(layout: dict[str, Any], relay: int, binds: Sequence[int], request: int) -> str:
+    """Make this fork a sandboxed attempt's, as bubblewrap would; its working folder.
+
+    Returns only in the attempt's own process (pid 2 of a new pid namespace, every
+    capability dropped, ``no_new_privs``); this process waits for it as bubblewrap's monitor
+    does and exits with its code, and its pid 1 (the namespace's init) exits when it does.
+    Its own namespaces (mount, pid, IPC, UTS) inside the runner's sandbox; the runner's
+    mounts copied, then what bubblewrap mounts for this attempt: an empty tmpfs over osmo's
+    homes (``hidden``), ``/dev/null`` over the ``masked`` files, its folders (``binds``:
+    ``[path, writable, folder]``, their detached mounts from the pool) at their paths, an
+    empty ``/tmp``, a ``/dev`` of its own (the runner's device nodes, a private ``shm``
+    and ``pts``), and a ``/proc`` of its pid namespace (mounted by the pool: ``relay``) with
+    ``/proc/sys`` read-only.
+    """
+    os.umask(0o022)
+    mounts.unshare(mounts.NEWNS | mounts.NEWPID | mounts.NEWIPC | mounts.NEWUTS)
+    mounts.make_private()
+    _fresh_dev(_devices())  # in bubblewrap's order: /dev, /tmp, the homes, covers, binds
+    mounts.mount_tmpfs("/tmp", 0o1777)
+    for folder in layout["hidden"]:
+        os.makedirs(folder, exist_ok=True)
+        mounts.mount_tmpfs(folder, 0o755)
+    for file in layout["masked"]:
+        mounts.bind("/dev/null", file, readonly=True)
+    for (path, _, folder), fd in zip(layout["binds"], binds, strict=True):
+        _mount_point(path, folder)
+        mounts.move(fd, path)
+        os.close(fd)
+    init = os.fork()
+    if init:  # bubblewrap's monitor: it waits, and its death ends the attempt's namespace
+        for fd in (relay, request):
+            os.close(fd)
+        for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
+            signal.signal(sig, signal.SIG_IGN)
+        os._exit(_exit_code(os.waitpid(init, 0)[1]))
+    mounts.die_with_parent()
+    relay_sock = socket.socket(fileno=relay)
+    socket.send_fds(relay_sock, [b"proc"], [mounts.proc_context()])
+    _, got, _, _ = socket.recv_fds(relay_sock, 16, 1)
+    if not got:
+        raise OSError("the pool did not mount this attempt's /proc")
+    mounts.move(got[0], "/proc")
+    os.close(got[0])
+    relay_sock.close()
+    mounts.bind("/proc/sys", "/proc/sys", readonly=True)
+    mounts.drop_privileges()
+    task = os.fork()
+    if task == 0:
+        return str(layout["cwd"])
+    os.close(request)
+    while True:  # the namespace's init: reap, until the attempt's own process ends
+        pid, status = os.waitpid(-1, 0)
+        if pid == task:
+            os._exit(_exit_code(status))
+
+
+def _exit_code(status: int) -> int:
+    code = os.waitstatus_to_exitcode(status)
+    return 128 - code if code < 0 else code
+
+
+def _mount_point(path: str, folder: bool) -> None:
+    if folder:
+        os.makedirs(path, exist_ok=True)
+        return
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    if not os.path.exists(path):
+        os.close(os.open(path, os.O_WRONLY | os.O_CREAT, 0o644))
+
+
+def _devices() -> list[tuple[str, str | int, bool]]:
+    """The runner's ``/dev`` as bubblewrap made it: symlinks, clones of its nodes' mounts."""
+    out: list[tuple[str, str | int, bool]] = []
+    for entry in os.scandir("/dev"):
+        if entry.is_symlink():
+            out.append((entry.name, os.readlink(entry.path), False))
+        elif entry.name not in ("shm", "pts") and os.path.ismount(entry.path):
+            clone = mounts.detached(entry.path, readonly=False, device=True)
+            out.append((entry.name, clone, entry.is_dir(follow_symlinks=False)))
+    return out
+
+
+def _fresh_dev(devices: list[tuple[str, str | int, bool]]) -> None:
+    """A ``/dev`` of this attempt's own over the runner's (nothing written there is shared)."""
+    mounts.mount_tmpfs("/dev", 0o755)
+    for name, what, folder in devices:
+        path = os.path.join("/dev", name)
+        if isinstance(what, str):
+            os.symlink(what, path)
+            continue
+        _mount_point(path, folder)
+        mounts.move(what, path)
+        os.close(what)
+    os.mkdir("/dev/shm")
+    os.chmod("/dev/shm", 0o1777)
+    os.mkdir("/dev/pts")
+    mounts.devpts("/dev/pts")
 
 
 def _run(argv: list[str], cwd: str, env: dict[str, str]) -> int:
