@@ -20,7 +20,7 @@ import json
 import os
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -28,16 +28,17 @@ import pytest
 
 from osmo.layout import AttemptDirs
 from osmo.runtime.api import Attempt, Launch
-from osmo.runtime.process.sandbox import choose, node_network
+from osmo.runtime.process.sandbox import View, choose, node_network
 from osmo.runtime.process.sandboxed import SandboxRuntime
-from osmo.runtime.process.warm import WarmRunners
+from osmo.runtime.process.warm import WarmKey, WarmRunners, WarmStart
 from osmo.scheduler.types import PrepareAttempt
-from osmo.spec.model import TaskSpec
+from osmo.spec.model import ResolvedType, TaskSpec
 from osmo.tasktypes.registry import builtin_type
 from osmo.testing.runtimes import Pipes
 from osmo.worker.taskenv import base_env
 from osmo.worker.workdir import prepare
 from tests.conftest import Osmo, write
+from tests.hostile.test_warm_runners import TYPES
 
 SPY = r'''
 import json, os
@@ -140,10 +141,11 @@ class _Node:
     count: int = 0
 
     def launch(self, command: str, *, credentials: dict | None = None,
-               secrets: dict | None = None) -> Launch:
+               secrets: dict | None = None, **typed: Any) -> Launch:
         self.count += 1
         name = f"t{self.count}"
-        task = TaskSpec(name, command=("sh", "-c", command), credentials=credentials or {})
+        task = (TaskSpec(name, credentials=credentials or {}, **typed) if typed else
+                TaskSpec(name, command=("sh", "-c", command), credentials=credentials or {}))
         cmd = PrepareAttempt(f"wf:{name}:0", "wf", name, 0, "pool", {}, {})
         dirs = AttemptDirs(self.home / "workflows" / "wf" / name / "0")
         made = prepare(dirs, cmd, task, base_env(os.environ), secrets or {},
@@ -167,21 +169,26 @@ class _Node:
         return self.finish(self.start(self.launch(command, **kwargs)))
 
 
-@pytest.fixture
-def node(tmp_path: Path) -> Iterator[_Node]:
+def _started(tmp_path: Path, shares: tuple[str, ...] = ()) -> _Node:
     if os.geteuid() != 0:
         pytest.skip("sandboxed warm starts need a root osmo (a non-root one starts cold)")
     home = tmp_path / "home"
     home.mkdir(mode=0o700)
     (home / "state.db").write_text("SECRET-state")
-    found = choose("on")
+    found = choose("on", shares)
     assert found is not None
     network = node_network(outbound=False)
     warm = WarmRunners(base_env(os.environ))
     runtime = SandboxRuntime(found.joined(network), network, hidden=(home,), warm=warm,
                              warm_commands=True)
-    yield _Node(runtime, warm, home)
-    runtime.close()
+    return _Node(runtime, warm, home)
+
+
+@pytest.fixture
+def node(tmp_path: Path) -> Iterator[_Node]:
+    started = _started(tmp_path)
+    yield started
+    started.runtime.close()
 
 
 def _tree(pid: int) -> list[int]:
@@ -239,3 +246,44 @@ def test_only_the_types_osmo_ships_are_trusted_in_a_runner() -> None:
     assert builtin_type("sim.rollout") and builtin_type("lerobot.train")
     assert not builtin_type("spytypes:spy") and not builtin_type("osmo_plugins.sim.rollout:X")
     assert not builtin_type("no.such.type")
+
+
+def test_typed_attempts_of_one_sandboxed_runner_share_nothing(tmp_path: Path) -> None:
+    """What a typed attempt keeps of the one before it on a sandboxed runner: nothing.
+
+    The runtime never imports a custom type in a runner (it starts cold: checked first);
+    the node's runners are driven here with one on purpose, shown to the runner read-only,
+    so that the type can probe what a typed attempt sees: its module state, threads,
+    descriptors, environment and credentials, after an attempt that changed them all.
+    """
+    project = tmp_path / "project"
+    write(project / "warmtypes.py", TYPES)
+    node = _started(tmp_path, (f"{project}:ro",))
+    try:
+        resolved = ResolvedType("1", paths=(str(project),))
+        seen = []
+        for mode, env, creds in (("dirty", {"OWN": "dirty-own"}, {"api": {"TOKEN": "token"}}),
+                                 ("probe", {}, {})):
+            launch = node.launch("", type="warmtypes:probe", params={"mode": mode},
+                                 environment=env, credentials=creds, resolved=resolved,
+                                 secrets={"api": {"token": "warm-S3CRET"}})
+            assert isinstance(launch.run, View), launch.run  # a custom type: cold
+            key = WarmKey("warmtypes:probe", "1", (str(project),), launch.argv[0],
+                          launch.env["PYTHONPATH"], sandboxed=True)
+            assert node.warm.ready(key), node.warm.refused(key)
+            code, out, err = node.finish(node.start(replace(launch, run=WarmStart(key,
+                                                                                  launch.run))))
+            assert code == 0, (code, out, err)
+            seen.append(json.loads((launch.cwd.parent / "output.partial" / "seen.json")
+                                   .read_text()))
+        dirty, probe = seen
+        assert [(r.type, r.started) for r in node.warm.runners()] == [("warmtypes:probe@1", 2)]
+        assert dirty["secret"] == "warm-S3CRET" and dirty["own"] == "dirty-own"
+        assert dirty["leaked"] == "1" and dirty["touched"] and dirty["patched"]
+        assert probe["secret"] is None and probe["own"] is None, probe
+        assert probe["leaked"] is None and not probe["touched"] and not probe["patched"], probe
+        assert probe["threads"] == 1, probe
+        assert not any("held.txt" in fd for fd in probe["fds"]), probe["fds"]
+        assert probe["ppid"] == 1 and probe["pid"] == 2, probe  # its own pid namespace
+    finally:
+        node.runtime.close()
