@@ -28,6 +28,9 @@ passes: same uid, same user namespace, the attempt's capabilities a subset of th
 That is the blocker for custom types: their import code must not run in a process that is
 an ancestor of attempts in their uid.
 
+osmo builds its sandboxed warm starts on these steps for the types it ships only
+(``osmo.runtime.process.warm``); this blocker is why a custom type starts cold there.
+
 Usage (as root, from the repository): python bench/warm_sandbox_probe.py [--attempts N]
 """
 

@@ -6,11 +6,11 @@ imported (once, in a warm runner, if sandboxed warm starts exist) and leaves a h
 and for the files of another attempt. Started cold in the sandbox, its import runs inside
 the attempt's own view: it sees its own attempt's folder and nothing else of the home.
 
-A sandboxed typed attempt still starts cold (``docs/how-to/warm-runners.md``): a runner is
-the parent of its attempts, with their uid in the node's user namespace, so its code reads
-an attempt's folders through ``/proc/PID/root`` once that attempt runs any program
-(``bench/warm_sandbox_probe.py``). Whoever builds sandboxed warm starts keeps this test
-green with them on.
+A sandboxed attempt of a custom type still starts cold (``docs/how-to/warm-runners.md``):
+a runner is the parent of its attempts, with their uid in the node's user namespace, so its
+code reads an attempt's folders through ``/proc/PID/root`` once that attempt runs any
+program (``bench/warm_sandbox_probe.py``). Only the types osmo ships start warm in the
+sandbox; the tests below check that such an attempt sees what a cold one does.
 """
 
 from __future__ import annotations
@@ -224,7 +224,8 @@ def test_a_sandboxed_warm_attempt_sees_neither_home_nor_others_nor_its_runner(
     probe = (f'ls /proc | grep -c "^[0-9]"; ls -a {node.home}; cat {marker} || echo unread; '
              f'kill -9 {runner} {running.handle.pid} || echo unkillable; '
              'grep -E "^(CapEff|CapBnd|NoNewPrivs|Uid):" /proc/self/status; '
-             'echo mine > out.txt; mount -t tmpfs x /tmp || echo nomount')
+             'echo mine > out.txt; mount -t tmpfs x /tmp || echo nomount; '
+             '(echo x > /proc/sys/kernel/hostname) 2>/dev/null || echo rosys')
     code, out, err = node.run(probe)
     assert code == 0, (code, out, err)
     lines = out.splitlines()
@@ -234,6 +235,7 @@ def test_a_sandboxed_warm_attempt_sees_neither_home_nor_others_nor_its_runner(
     assert sorted(listed) == [".", "..", "workflows"], out  # only the way to its own folder
     assert "CapEff:\t0000000000000000" in out and "CapBnd:\t0000000000000000" in out, out
     assert "NoNewPrivs:\t1" in out and "Uid:\t0\t0\t0\t0" in out and "nomount" in out, out
+    assert "rosys" in out, out  # /proc/sys read-only
     assert os.path.exists(f"/proc/{runner}") and not running.ended()  # both untouched
     written = next(node.home.glob("workflows/wf/*/0/work/out.txt"))
     assert written.stat().st_uid == 65534  # root inside is nobody on the host

@@ -67,6 +67,10 @@ setup, and its setup must be root's to bind osmo's 0700 home), the view's binds 
 ``/proc/sys`` 0.2 ms, IPC and UTS 0.25 ms; entering the node's network 0.1 ms (a
 ``setns`` of the spawning thread).
 
+A sandboxed warm runner (``osmo.runtime.process.warm``) is made here too
+(:meth:`Sandbox.runner_argv`), and its attempts' views from :meth:`Sandbox.layout`, the
+same mounts in the same order as :meth:`Sandbox.argv`.
+
 Availability: :func:`choose` probes once per process whether ``bwrap`` exists and can make
 the whole sandbox here, node namespaces included, and whether it reports the command's exit
 code on a status pipe (``--json-status-fd``): with it, a failure of bwrap's own setup (its

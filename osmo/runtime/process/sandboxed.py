@@ -16,7 +16,9 @@ the node's shared namespaces ``osmo.runtime.process.netns``. What it owns:
   read-only there, so libraries that cache under ``~/.cache`` write to ``work/.cache``.
 - start, kill, reap, release: bubblewrap spawned in the node's namespaces through
   :class:`~osmo.runtime.process.groups.ProcessGroups` (a setup that failed before the command
-  ran marks the handle ``setup_failed``).
+  ran marks the handle ``setup_failed``); for a typed task of a type osmo ships, on a root
+  osmo, a fork of a sandboxed warm runner given the same view
+  (``osmo.runtime.process.warm``).
 - exec: the command in a new sandbox over the attempt's own view, in the node's namespaces
   (it sees what the task sees, its network and uid included; a pid namespace of its own).
 - port-forward: to a port a process of the task listens on, from inside the node's network

@@ -32,6 +32,16 @@ typed tasks, unless the pool's ``--warm off`` or the task's ``warm: false``. A t
 import fails, or starts threads, runs cold (its attempts then report the failure as a cold
 runner does).
 
+**Sandboxed runners** (``WarmKey.sandboxed``; the sandboxed runtime's choice,
+``osmo.runtime.process.sandboxed``: only types osmo ships, only a root osmo): the runner
+is started in a bubblewrap sandbox of its own (:meth:`WarmRunners.enclose`,
+``Sandbox.runner_argv``: osmo's homes hidden, ``CAP_SYS_ADMIN`` kept in the node's user
+namespace). For each attempt the pool sends, with the fork request, its view's layout
+(``Sandbox.layout``: exactly what bubblewrap would mount for it cold), a detached clone of
+each of its folders (``osmo.runtime.process.mounts``; the runner cannot reach them) and a
+relay socket, on which the attempt's pid 1 sends a proc context that the pool mounts for
+it. The child's pid is the runner's namespace's: the pool takes its own from the pidfd.
+
 What a warm start does not change: the user (the pool's), the environment (the attempt's
 own, replacing the runner's), the log, the kill and timeout rules, the exit codes. What it
 does change: variables the type's module reads *at import* come from the pool's

@@ -43,6 +43,12 @@ module already imported); any other argv is executed (what the runtime contract'
 run). Module state a task changes, threads it starts and memory it takes are its own
 process's: the runner, forked again for the next attempt, never ran it.
 
+A **sandboxed** runner (started in bubblewrap by the pool, with ``CAP_SYS_ADMIN`` in the
+node's user namespace) gets ``fork LAYOUT`` requests with two more kinds of descriptor: a
+relay socket and a detached mount of each of the attempt's folders. Its child then makes
+the attempt's view before anything else (:func:`_enclose`), and the attempt's own process
+(pid 2 of its pid namespace, no capability, ``no_new_privs``) reads the request only then.
+
 It must not import anything of the worker or the server.
 """
 
