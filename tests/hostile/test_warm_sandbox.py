@@ -18,6 +18,9 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import signal
+import subprocess
+import sys
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
@@ -37,7 +40,7 @@ from osmo.tasktypes.registry import builtin_type
 from osmo.testing.runtimes import Pipes
 from osmo.worker.taskenv import base_env
 from osmo.worker.workdir import prepare
-from tests.conftest import Osmo, write
+from tests.conftest import Osmo, unique_sleep, wait_gone, wait_no_process, write
 from tests.hostile.test_warm_runners import TYPES
 
 SPY = r'''
@@ -289,3 +292,42 @@ def test_typed_attempts_of_one_sandboxed_runner_share_nothing(tmp_path: Path) ->
         assert probe["ppid"] == 1 and probe["pid"] == 2, probe  # its own pid namespace
     finally:
         node.runtime.close()
+
+
+POOL = r"""
+import json, sys, time
+from pathlib import Path
+from tests.hostile.test_warm_sandbox import _started
+
+node = _started(Path(sys.argv[1]))
+pipes = node.start(node.launch("echo ready; exec sleep " + sys.argv[2]))
+assert pipes.until(b"ready", 60), bytes(pipes.err)
+print(json.dumps({"attempt": pipes.handle.pid, "runner": node.warm.runners()[0].pid}),
+      flush=True)
+time.sleep(600)
+"""
+
+
+def test_kill_9_of_the_pool_ends_its_sandboxed_runner_and_attempts(tmp_path: Path) -> None:
+    """Nothing of a sandboxed runner outlives the process that started it (its pool)."""
+    if os.geteuid() != 0:
+        pytest.skip("sandboxed warm starts need a root osmo (a non-root one starts cold)")
+    mark = unique_sleep()
+    pool = subprocess.Popen([sys.executable, "-c", POOL, str(tmp_path), mark],
+                            cwd=Path(__file__).parents[2], stdout=subprocess.PIPE)
+    try:
+        assert pool.stdout is not None
+        pids = json.loads(pool.stdout.readline())
+        with pytest.raises(AssertionError):  # the attempt's sleep runs
+            wait_no_process(mark, timeout=0.5)
+        os.kill(pool.pid, signal.SIGKILL)
+        pool.wait()
+        wait_gone(pids["runner"])
+        wait_gone(pids["attempt"])
+        wait_no_process(mark)
+    finally:
+        if pool.poll() is None:
+            pool.kill()
+            pool.wait()
+        if pool.stdout is not None:
+            pool.stdout.close()

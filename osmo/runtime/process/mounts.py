@@ -21,11 +21,12 @@ of osmo: the runner imports it before its fork.
 from __future__ import annotations
 
 import ctypes
+import functools
 import os
 
 __all__ = ["NEWIPC", "NEWNS", "NEWPID", "NEWUTS", "devpts", "bind", "detached", "die_with_parent",
            "drop_privileges", "make_private", "mount_tmpfs", "move", "proc_context",
-           "proc_mount", "unshare"]
+           "proc_mount", "unshare", "unsupported"]
 
 NEWNS, NEWUTS, NEWIPC, NEWPID = 0x20000, 0x04000000, 0x08000000, 0x20000000
 """``unshare`` flags: a mount, a UTS, an IPC and a pid namespace."""
@@ -76,6 +77,22 @@ def _mount(source: str | None, target: str, fstype: str | None, flags: int,
     enc = [s.encode() if s is not None else None for s in (source, target, fstype, data)]
     _checked(f"mount {target}", _LIBC.mount(enc[0], enc[1], enc[2], ctypes.c_ulong(flags),
                                             enc[3]))
+
+
+@functools.cache  # the kernel does not change while we run
+def unsupported() -> str:
+    """Why this kernel lacks what a sandboxed warm start needs (empty: it has it all).
+
+    Tried once, as the pool: a detached read-only clone (``open_tree``, ``mount_setattr``:
+    Linux 5.12) and a proc context (``fsopen``, ``fsconfig``; ``fsmount`` is tried by the
+    first attempt, in its own pid namespace).
+    """
+    try:
+        os.close(detached("/", readonly=True))
+        os.close(proc_context())
+    except OSError as exc:
+        return str(exc)
+    return ""
 
 
 def detached(path: str, *, readonly: bool, device: bool = False) -> int:

@@ -45,6 +45,7 @@ from osmo.runtime.api import (
     ProcessHandle,
     Runtime,
 )
+from osmo.runtime.process import mounts
 from osmo.runtime.process.groups import ProcessGroups
 from osmo.runtime.process.netns import NodeNetwork
 from osmo.runtime.process.ports import listener_connector
@@ -81,8 +82,8 @@ class SandboxRuntime(ProcessRuntime):
     def __init__(self, sandbox: Sandbox, network: NodeNetwork, *, hidden: Sequence[Path] = (),
                  note: str | None = None, warm: WarmRunners | None = None,
                  warm_commands: bool = False) -> None:
-        if sandbox.owner is None and warm is not None:  # a runner would share its tasks' uid
-            warm.close()
+        if warm is not None and (sandbox.owner is None or mounts.unsupported()):
+            warm.close()  # a non-root osmo: a runner would share its tasks' uid
             warm = None
         super().__init__(note=note, groups=ProcessGroups(sandbox), warm=warm,
                          warm_commands=warm_commands)
