@@ -15,8 +15,10 @@ its module is imported):
 - **the demo pipeline**: ``workflows/reach-vision.yaml`` with its defaults (4 rollout shards
   → dataset → train → eval), its ``type:`` names swapped for the timed twins.
 
-**osmo**: a fresh ``osmo server start`` (local pool, one slot per core, the default sandbox;
-and again with ``--sandbox off``, where typed tasks start from warm runners: ``--osmo-sandbox``)
+**osmo**: a fresh ``osmo server start`` (local pool, one slot per core, the default sandbox,
+where only the types osmo ships start from warm runners: the timed twins, custom types, start
+cold there; and again with ``--sandbox off``, where every typed task starts from a warm
+runner: ``--osmo-sandbox``)
 per workload and round, then one ``osmo submit FILE --wait`` through the real CLI, timed from
 the CLI's start to its exit; each task's compute is read back from its log. The spec files are
 written to a temporary folder with a copy of the timed module beside them (a custom type is
@@ -224,8 +226,8 @@ def main() -> None:
                     help="skip the demo pipeline (the quick run skips it: bench_pipeline runs it)")
     ap.add_argument("--osmo-sandbox", default="auto" if small else "auto,off",
                     help="osmo's sandbox modes to run, comma-separated (a system each: 'osmo' "
-                         "is the default sandbox, 'osmo --sandbox off' runs typed tasks from "
-                         "warm runners, which need no sandbox today)")
+                         "is the default sandbox, where the timed twins, custom types, start cold; "
+                         "'osmo --sandbox off' runs them from warm runners)")
     ap.add_argument("--json")
     args = ap.parse_args()
     missing = [m for m in ("gymnasium", "mujoco", "lerobot", "torch")
