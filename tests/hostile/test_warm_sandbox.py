@@ -228,7 +228,8 @@ def test_a_sandboxed_warm_attempt_sees_neither_home_nor_others_nor_its_runner(
              f'kill -9 {runner} {running.handle.pid} || echo unkillable; '
              'grep -E "^(CapEff|CapBnd|NoNewPrivs|Uid):" /proc/self/status; '
              'echo mine > out.txt; mount -t tmpfs x /tmp || echo nomount; '
-             '(echo x > /proc/sys/kernel/hostname) 2>/dev/null || echo rosys')
+             '(echo x > /proc/sys/kernel/hostname) 2>/dev/null || echo rosys; '
+             '(: > ../planted) 2>/dev/null || echo rofolder')
     code, out, err = node.run(probe)
     assert code == 0, (code, out, err)
     lines = out.splitlines()
@@ -238,7 +239,7 @@ def test_a_sandboxed_warm_attempt_sees_neither_home_nor_others_nor_its_runner(
     assert sorted(listed) == [".", "..", "workflows"], out  # only the way to its own folder
     assert "CapEff:\t0000000000000000" in out and "CapBnd:\t0000000000000000" in out, out
     assert "NoNewPrivs:\t1" in out and "Uid:\t0\t0\t0\t0" in out and "nomount" in out, out
-    assert "rosys" in out, out  # /proc/sys read-only
+    assert "rosys" in out and "rofolder" in out, out  # /proc/sys, its folder read-only
     assert os.path.exists(f"/proc/{runner}") and not running.ended()  # both untouched
     written = next(node.home.glob("workflows/wf/*/0/work/out.txt"))
     assert written.stat().st_uid == 65534  # root inside is nobody on the host
