@@ -332,3 +332,4 @@ def test_kill_9_of_the_pool_ends_its_sandboxed_runner_and_attempts(tmp_path: Pat
             pool.wait()
         if pool.stdout is not None:
             pool.stdout.close()
+

@@ -331,7 +331,40 @@ class WarmRunners:
         runner = _Runner(key, popen, ours, sources)
         if key.sandboxed:  # bubblewrap, its pid 1, then the runner
             runner.main = _descendant(popen.pid, 2)
+            why = self._trial(runner)
+            if why:
+                runner.retire()
+                popen.kill()
+                popen.wait()
+                self._refuse(key, f"a sandboxed attempt cannot be set up here: {why}")
+                return None
         return runner
+
+    def _trial(self, runner: _Runner) -> str:
+        """Why a sandboxed runner cannot make an attempt's view here (empty: it can).
+
+        One attempt of ``true`` with no folders of its own, before any task's: a host that
+        refuses one of the child's mounts then runs that type cold instead of failing it.
+        """
+        launch = Launch(("true",), Path("/"), {"PATH": "/usr/bin:/bin"},
+                        run=WarmStart(runner.key, View(hidden=tuple(self._hidden), readonly=(),
+                                                       writable=(), cwd=Path("/"))))
+        try:
+            handle = self._fork(runner, launch)
+        except OSError as exc:
+            return str(exc)
+        try:
+            os.set_blocking(handle.exit_fd, True)
+            select.select([handle.exit_fd], [], [], _REPLY_TIMEOUT)
+            code = self.reap(handle)
+            err = b""
+            with contextlib.suppress(OSError):
+                err = os.read(handle.stderr_fd, 4096)
+        finally:
+            self.release(handle)
+        runner.started = 0
+        runner.running.clear()
+        return "" if code == 0 else (err.decode("utf-8", "replace").strip() or f"exit {code}")
 
     def _refuse(self, key: WarmKey, why: str) -> None:
         _log.info("task type %s runs cold: %s", key.type, why)
