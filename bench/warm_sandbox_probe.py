@@ -51,10 +51,8 @@ from pathlib import Path
 
 _LIBC = ctypes.CDLL(None, use_errno=True)
 _AT_FDCWD = -100
-_AT_EMPTY_PATH, _AT_RECURSIVE = 0x1000, 0x8000
-_OPEN_TREE_CLONE, _OPEN_TREE_CLOEXEC = 1, 0o2000000
 _MOVE_MOUNT_F_EMPTY_PATH = 4
-_MOUNT_ATTR_RDONLY, _MOUNT_ATTR_NOSUID, _MOUNT_ATTR_NODEV, _MOUNT_ATTR_NOEXEC = 1, 2, 4, 8
+_MOUNT_ATTR_NOSUID, _MOUNT_ATTR_NODEV = 2, 4
 _FSCONFIG_CMD_CREATE = 6
 _SYS = {"open_tree": 428, "move_mount": 429, "fsopen": 430, "fsconfig": 431, "fsmount": 432,
         "mount_setattr": 442}
@@ -62,11 +60,6 @@ _CLONE_NEWNS, _CLONE_NEWPID, _CLONE_NEWUSER = 0x20000, 0x20000000, 0x10000000
 _MS_NOSUID, _MS_NODEV, _MS_NOEXEC, _MS_RDONLY = 2, 4, 8, 1
 _MS_REMOUNT, _MS_BIND, _MS_REC, _MS_SLAVE = 32, 4096, 16384, 1 << 19
 _PR_SET_PDEATHSIG, _PR_SET_DUMPABLE, _PR_CAPBSET_DROP, _PR_SET_NO_NEW_PRIVS = 1, 4, 24, 38
-
-
-class _MountAttr(ctypes.Structure):
-    _fields_ = [("attr_set", ctypes.c_uint64), ("attr_clr", ctypes.c_uint64),
-                ("propagation", ctypes.c_uint64), ("userns_fd", ctypes.c_uint64)]
 
 
 def _call(name: str, result: int) -> int:
@@ -238,14 +231,9 @@ def _runner(fd: int, home: str) -> None:
 # ---------------------------------------------------------------- the pool (root, the host)
 
 def _detached(path: str, readonly: bool) -> int:
-    fd = _call("open_tree", _LIBC.syscall(_SYS["open_tree"], _AT_FDCWD, path.encode(),
-                                          _OPEN_TREE_CLONE | _OPEN_TREE_CLOEXEC | _AT_RECURSIVE))
-    attr = _MountAttr(_MOUNT_ATTR_NOSUID | _MOUNT_ATTR_NODEV
-                      | (_MOUNT_ATTR_RDONLY if readonly else 0))
-    _call("mount_setattr", _LIBC.syscall(_SYS["mount_setattr"], fd, b"",
-                                         _AT_EMPTY_PATH | _AT_RECURSIVE, ctypes.byref(attr),
-                                         ctypes.sizeof(attr)))
-    return fd
+    from osmo.runtime.process import mounts  # the pool's side only: osmo's own adapter
+
+    return mounts.detached(path, readonly=readonly)
 
 
 def _runner_argv(sandbox: object, view: object, fd: int, home: str) -> list[str]:
