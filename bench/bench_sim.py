@@ -1,9 +1,9 @@
 """Realistic workloads, osmo against Ray: a rollout sweep, an evaluation sweep, the demo pipeline.
 
-Each workload is the same Python code under both systems: the shipped plugin functions
-(``plugins/osmo_plugins``), run through their timed twins (``bench/workloads/osmo_bench_timed.py``:
-the shipped type, with ``perf_counter`` read inside the task around the shipped function, after
-its module is imported):
+Each workload is the same Python code under both systems: the shipped plugin types
+(``plugins/osmo_plugins``), timed inside the task the same way under both
+(``bench/workloads/osmo_bench_timed.py``: ``perf_counter`` around the type's ``run``, after what
+it imports; under osmo, by osmo's runner with ``OSMO_TASK_TIMING=1`` in the task's environment):
 
 - **rollout sweep**: ``--rollouts`` ``sim.rollout`` tasks (default 200), each one expert
   episode of InvertedPendulum-v5, 50 steps, written as its MCAP (shard i of N: distinct seeds);
@@ -13,16 +13,13 @@ its module is imported):
   functions (20 expert episodes, 100 training steps; nothing downloaded); both systems
   evaluate that same folder (osmo as an uploaded dataset);
 - **the demo pipeline**: ``workflows/reach-vision.yaml`` with its defaults (4 rollout shards
-  → dataset → train → eval), its ``type:`` names swapped for the timed twins.
+  → dataset → train → eval), each task given ``OSMO_TASK_TIMING=1``.
 
-**osmo**: a fresh ``osmo server start`` (local pool, one slot per core, the default sandbox,
-where only the types osmo ships start from warm runners: the timed twins, custom types, start
-cold there; and again with ``--sandbox off``, where every typed task starts from a warm
-runner: ``--osmo-sandbox``)
-per workload and round, then one ``osmo submit FILE --wait`` through the real CLI, timed from
-the CLI's start to its exit; each task's compute is read back from its log. The spec files are
-written to a temporary folder with a copy of the timed module beside them (a custom type is
-imported from its spec's folder). **Ray** (``--peers``, or ``bench/run --peers``): the same
+**osmo**: a fresh ``osmo server start`` (local pool, one slot per core, the default sandbox;
+and again with ``--sandbox off``: ``--osmo-sandbox``; the shipped types start from warm
+runners in both, in the sandbox where osmo runs as root) per workload and round, then one
+``osmo submit FILE --wait`` through the real CLI, timed from the CLI's start to its exit; each
+task's compute is read back from its log. **Ray** (``--peers``, or ``bench/run --peers``): the same
 rendered tasks and params as a DAG of Ray tasks (``peers/ray_sim.py``), ``ray.init(num_cpus=2)``,
 in the peer venv (``peers/compare.py``), one process per round.
 
@@ -46,7 +43,6 @@ import argparse
 import importlib.util
 import json
 import os
-import shutil
 import statistics
 import sys
 import tempfile
@@ -64,9 +60,7 @@ from bench_pipeline import osmo_cli, submit_wait  # noqa: E402
 from benchlib import Row, quick, row, write_rows  # noqa: E402
 
 SLOTS = 2
-MODULE = "osmo_bench_timed"
-ATTRS = {"sim.rollout": "rollout", "sim.eval": "evaluate", "lerobot.dataset": "dataset",
-         "lerobot.train": "train"}  # shipped type → its timed twin in MODULE
+TIMED = '    environment: {OSMO_TASK_TIMING: "1"}\n'  # osmo's runner prints the compute
 ENV = "InvertedPendulum-v5"
 POLICY = "bench-policy"
 TARGETS = {"rollout": 1.0, "eval": 1.0, "pipeline": 1.0}
@@ -76,8 +70,9 @@ def rollout_yaml(n: int) -> str:
     """n sim.rollout tasks, one 50-step expert episode each, shard i of n (distinct seeds)."""
     tasks = "".join(f"""
   - name: rollout-{i}
-    type: {MODULE}:rollout
-    params: {{env: {ENV}, policy: expert, episodes: 1, max_steps: 50, shard: {i}, shards: {n}}}
+    type: sim.rollout
+{TIMED}    params: {{env: {ENV}, policy: expert, episodes: 1, max_steps: 50, shard: {i},
+              shards: {n}}}
 """ for i in range(n))
     return f"version: 2\nworkflow:\n  name: bench-rollout-sweep\n  tasks:{tasks}"
 
@@ -86,8 +81,8 @@ def eval_yaml(n: int, episodes: int) -> str:
     """n sim.eval tasks of the checkpoint dataset, ``episodes`` 50-step episodes each."""
     tasks = "".join(f"""
   - name: eval-{i}
-    type: {MODULE}:evaluate
-    params: {{envs: [{ENV}], policies: [checkpoint], episodes: {episodes}, max_steps: 50,
+    type: sim.eval
+{TIMED}    params: {{envs: [{ENV}], policies: [checkpoint], episodes: {episodes}, max_steps: 50,
               seed: {10_000 + i * episodes}, rrd: false}}
     inputs:
     - dataset: {{name: {POLICY}}}
@@ -96,11 +91,9 @@ def eval_yaml(n: int, episodes: int) -> str:
 
 
 def pipeline_yaml() -> str:
-    """workflows/reach-vision.yaml with each shipped type swapped for its timed twin."""
-    text = (ROOT / "workflows" / "reach-vision.yaml").read_text()
-    for shipped, attr in ATTRS.items():
-        text = text.replace(f"type: {shipped}\n", f"type: {MODULE}:{attr}\n")
-    return text
+    """workflows/reach-vision.yaml with each task's compute timed by osmo's runner."""
+    lines = (ROOT / "workflows" / "reach-vision.yaml").read_text().splitlines(keepends=True)
+    return "".join(line + TIMED if line.startswith("    type: ") else line for line in lines)
 
 
 def build_checkpoint(folder: Path, episodes: int = 20, steps: int = 100) -> Path:
@@ -121,17 +114,16 @@ def plan_of(spec_path: Path, checkpoint: Path) -> list[dict[str, Any]]:
     """The rendered spec's tasks as Ray's plan: shipped type, params, inputs; upstream first."""
     from osmo.spec import load_spec
 
-    by_attr = {attr: shipped for shipped, attr in ATTRS.items()}
     tasks = []
     for t in load_spec(spec_path).all_tasks():
-        assert t.type is not None and t.type.startswith(f"{MODULE}:"), t.type
+        assert t.type is not None and t.environment.get("OSMO_TASK_TIMING") == "1", t.name
         inputs: list[dict[str, str]] = []
         for i in t.inputs:
             if i.task:
                 inputs.append({"task": i.task})
             elif i.dataset:
                 inputs.append({"name": i.dataset, "path": str(checkpoint)})
-        tasks.append({"name": t.name, "kind": by_attr[t.type.split(":", 1)[1]],
+        tasks.append({"name": t.name, "kind": t.type,
                       "params": dict(t.params), "inputs": inputs})
     return tasks
 
@@ -226,8 +218,8 @@ def main() -> None:
                     help="skip the demo pipeline (the quick run skips it: bench_pipeline runs it)")
     ap.add_argument("--osmo-sandbox", default="auto" if small else "auto,off",
                     help="osmo's sandbox modes to run, comma-separated (a system each: 'osmo' "
-                         "is the default sandbox, where the timed twins, custom types, start cold; "
-                         "'osmo --sandbox off' runs them from warm runners)")
+                         "is the default sandbox, 'osmo --sandbox off' none; the shipped types "
+                         "start from warm runners in both where osmo runs as root)")
     ap.add_argument("--json")
     args = ap.parse_args()
     missing = [m for m in ("gymnasium", "mujoco", "lerobot", "torch")
@@ -239,7 +231,6 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="osmo-bench-sim-") as tmp:
         project = Path(tmp) / "project"
         project.mkdir()
-        shutil.copy(WORKLOADS / f"{MODULE}.py", project)
         specs = {"rollout": rollout_yaml(args.rollouts), "eval": eval_yaml(args.evals,
                                                                            args.episodes)}
         if not args.no_pipeline:

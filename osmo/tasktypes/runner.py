@@ -6,6 +6,12 @@ folders on ``sys.path``, resolves the type, checks it is still the version the w
 submitted against, fills in parameter defaults, builds a
 :class:`~osmo.tasktypes.context.RunContext` and calls ``run(ctx)``.
 
+With ``OSMO_TASK_TIMING=1`` in the task's environment, the runner first imports what the type
+declares every run needs (its ``warm()``, as a warm runner does before the attempt), then
+reads ``time.perf_counter`` around ``run(ctx)`` and prints one line :data:`TIMING_MARK`
+``SECONDS`` to stdout (the task's log): the task's own compute, imports excluded, so a
+benchmark can tell it from osmo's overhead under a cold start and a warm one alike.
+
 Exit codes: 0 when ``run`` returns; 1 when it raises (the traceback goes to the task's log)
 or the type cannot be loaded or has changed version since submit; 143 (as if killed by
 SIGTERM) when it raises ``TaskCancelled`` or returns after being asked to stop. SIGTERM only
@@ -16,8 +22,10 @@ its grace period.
 from __future__ import annotations
 
 import json
+import os
 import signal
 import sys
+import time
 import traceback
 from collections.abc import Sequence
 from pathlib import Path
@@ -25,13 +33,20 @@ from typing import Any
 
 from osmo.tasktypes.api import TaskCancelled
 
-__all__ = ["CANCELLED", "FORMAT", "main", "run_context_file"]
+__all__ = ["CANCELLED", "FORMAT", "TIMING", "TIMING_MARK", "main", "run_context_file"]
 
 CANCELLED = 128 + signal.SIGTERM
 """The exit code of a task that stopped because it was asked to."""
 
 FORMAT = 1
 """The version of the context file this runner reads (written by ``osmo.worker.launch``)."""
+
+
+TIMING = "OSMO_TASK_TIMING"
+"""The task environment variable that turns the compute line on (``1``)."""
+
+TIMING_MARK = "osmo: compute "
+"""The start of the line a timed run prints; the seconds follow."""
 
 
 def _fail(message: str) -> int:
@@ -85,8 +100,14 @@ def run_context_file(path: Path) -> int:
     ctx = _context(data, fill_defaults(obj.params, data.get("params") or {}),
                    f"{ref}@{obj.version}")
     signal.signal(signal.SIGTERM, lambda *_: ctx.cancel())
+    timing = os.environ.get(TIMING) == "1"
     try:
+        if timing and callable(warm := getattr(obj, "warm", None)):
+            warm()
+        start = time.perf_counter()
         obj.run(ctx)
+        if timing:
+            print(f"{TIMING_MARK}{time.perf_counter() - start:.6f}", flush=True)
     except TaskCancelled as exc:
         ctx.log.warning("stopped: %s", exc)
         return CANCELLED

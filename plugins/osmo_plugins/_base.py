@@ -18,7 +18,20 @@ from typing import Any, Self
 from osmo.tasktypes.api import Param, TaskContext
 from osmo.tasktypes.reports import Report
 
-__all__ = ["Committing", "PluginType", "find_folder_with", "offline"]
+__all__ = ["ACT_PRELOAD", "OFFLINE_ENV", "SIM_PRELOAD", "Committing", "PluginType",
+           "find_folder_with", "offline"]
+
+OFFLINE_ENV: Mapping[str, str] = {"HF_HUB_OFFLINE": "1", "HF_DATASETS_OFFLINE": "1"}
+"""Hugging Face's offline switches (:func:`offline`). Its libraries read them when imported,
+so a type that preloads ``lerobot`` in a warm runner sets them there too (``preload_env``)."""
+
+SIM_PRELOAD = ("numpy", "gymnasium", "mujoco", "gymnasium.envs.mujoco",
+               "osmo_plugins.sim.reach_vision", "osmo_plugins.sim.reacher")
+"""What every simulation run imports: the stack and osmo's own envs."""
+
+ACT_PRELOAD = ("torch", "lerobot.policies.act.configuration_act",
+               "lerobot.policies.act.modeling_act", "lerobot.policies.factory")
+"""What loading or training an ACT policy imports (torch and LeRobot's ACT: seconds each)."""
 
 
 class Committing:
@@ -114,7 +127,5 @@ def offline() -> None:
     Plugins never download weights or datasets at run time (set before ``lerobot`` or
     ``huggingface_hub`` is imported).
     """
-    import os
-
-    os.environ.setdefault("HF_HUB_OFFLINE", "1")
-    os.environ.setdefault("HF_DATASETS_OFFLINE", "1")
+    for name, value in OFFLINE_ENV.items():
+        os.environ.setdefault(name, value)

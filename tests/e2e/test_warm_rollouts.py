@@ -25,7 +25,8 @@ pytest.importorskip("gymnasium")
 TASKS = 6
 SWEEP = "workflow:\n  name: warm-sweep\n  tasks:\n" + "".join(
     f"  - name: rollout-{i}\n    type: sim.rollout\n"
-    f"    params: {{episodes: 1, max_steps: 20, seed: {i}}}\n" for i in range(TASKS))
+    + ("    environment: {OSMO_TASK_TIMING: '1'}\n" if i == 3 else "")
+    + f"    params: {{episodes: 1, max_steps: 20, seed: {i}}}\n" for i in range(TASKS))
 
 
 @pytest.mark.parametrize("sandbox", ["off", "auto"])
@@ -50,6 +51,10 @@ def test_a_rollout_sweep_runs_on_one_warm_runner(osmo: Osmo, tmp_path: Path,
     assert f"sim.rollout@2 x{TASKS}" in text, text
     log = osmo("logs", wf, "-t", "rollout-3", check=True).out
     assert "warm start: forked from a runner of sim.rollout" in log, log
+    # OSMO_TASK_TIMING: the run's own seconds, its imports done by the runner before
+    compute = [line for line in log.splitlines() if "osmo: compute " in line]
+    assert len(compute) == 1 and 0 < float(compute[0].split()[-1]) < 30, log
+    assert "osmo: compute " not in osmo("logs", wf, "-t", "rollout-2", check=True).out
 
 
 def test_a_remote_workers_warm_runners_show_in_resource_list(tmp_path: Path) -> None:

@@ -29,6 +29,19 @@ def write_words(ctx):
         mc.write(ch, {"x": 1})
     ctx.log.info("done")
 
+class Slow:
+    """A type whose warm() (what a warm runner does first) takes 0.5 s, its run 0.1 s."""
+    name, version, description, params, resources = "slow", "1", "slow", {}, {}
+
+    def warm(self):
+        time.sleep(0.5)
+
+    def run(self, ctx):
+        time.sleep(0.1)
+        print("ran")
+
+slow = Slow()
+
 @task_type(version="1")
 def explode(ctx):
     raise ValueError("the sensor is on fire")
@@ -62,9 +75,9 @@ def _env() -> dict[str, str]:
     return dict(os.environ, OSMO_WORKFLOW_ID="wf-1", OSMO_TASK="t", OSMO_RETRY="0")
 
 
-def _run(context: Path) -> subprocess.CompletedProcess[str]:
+def _run(context: Path, **env: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run([sys.executable, "-m", "osmo.tasktypes.runner", str(context)],
-                          capture_output=True, text=True, timeout=60, env=_env(),
+                          capture_output=True, text=True, timeout=60, env=_env() | env,
                           cwd=context.parent / "work")
 
 
@@ -78,6 +91,18 @@ def test_success_fills_defaults_and_stamps_lineage(tmp_path: Path) -> None:
     assert lineage is not None
     assert (lineage.plugin, lineage.attempt_id, lineage.params) == (
         "mytypes:write_words@5", "wf-1:t:0", {"word": "go", "n": 3})
+
+
+def test_timing_prints_the_run_s_own_seconds_after_its_imports(tmp_path: Path) -> None:
+    """``OSMO_TASK_TIMING=1``: one compute line, the run alone (warm()'s 0.5 s not in it)."""
+    context = _context(tmp_path, "mytypes:slow", {})
+    proc = _run(context, OSMO_TASK_TIMING="1")
+    assert proc.returncode == 0, proc.stderr
+    ran, line = proc.stdout.splitlines()
+    assert ran == "ran" and line.startswith("osmo: compute "), proc.stdout
+    assert 0.1 <= float(line.split()[-1]) < 0.5, line
+    untimed = _run(context)
+    assert untimed.returncode == 0 and untimed.stdout.splitlines() == ["ran"], untimed.stdout
 
 
 def test_exception_exits_1_with_traceback(tmp_path: Path) -> None:

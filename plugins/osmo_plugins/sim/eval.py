@@ -23,7 +23,7 @@ Its report (``osmo eval report``) is the leaderboard of :mod:`osmo_plugins.sim.r
 from __future__ import annotations
 
 from osmo.tasktypes.api import Param
-from osmo_plugins._base import PluginType
+from osmo_plugins._base import ACT_PRELOAD, OFFLINE_ENV, SIM_PRELOAD, PluginType
 from osmo_plugins.sim.report import LEADERBOARD
 
 __all__ = ["EVAL"]
@@ -34,8 +34,8 @@ EVAL = PluginType(
     description="Evaluate checkpoints and baselines on fixed seeds × envs → metrics, MCAP, .rrd",
     impl="osmo_plugins.sim._eval:run",
     extra="sim",
-    preload=("numpy", "gymnasium", "mujoco", "gymnasium.envs.mujoco", "torch"),
-    preload_env={"MUJOCO_GL": "disable"},
+    preload=(*SIM_PRELOAD, *ACT_PRELOAD, "osmo_plugins.lerobot.policy_io"),
+    preload_env={"MUJOCO_GL": "disable", **OFFLINE_ENV},
     resources={"cpu": 1, "memory": "2Gi"},
     report=LEADERBOARD,
     params={

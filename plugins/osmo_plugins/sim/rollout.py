@@ -9,7 +9,7 @@ task runs). One task writes one shard: ``episodes-shardNNN.mcap`` in the episode
 from __future__ import annotations
 
 from osmo.tasktypes.api import Param
-from osmo_plugins._base import PluginType
+from osmo_plugins._base import SIM_PRELOAD, PluginType
 
 __all__ = ["ROLLOUT"]
 
@@ -19,7 +19,7 @@ ROLLOUT = PluginType(
     description="Roll out a policy in a gymnasium/MuJoCo env; episodes → MCAP (one per shard)",
     impl="osmo_plugins.sim._rollout:run",
     extra="sim",
-    preload=("numpy", "gymnasium", "mujoco", "gymnasium.envs.mujoco"),
+    preload=SIM_PRELOAD,
     preload_env={"MUJOCO_GL": "disable"},
     resources={"cpu": 1, "memory": "1Gi"},
     params={
