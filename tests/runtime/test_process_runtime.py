@@ -325,7 +325,9 @@ def _run_true(warm: _Warm, tmp_path: Path) -> ProcessHandle:
 
 def test_a_warm_runner_forks_the_next_attempt_ahead_of_its_request(tmp_path: Path) -> None:
     """The fork is off the start's path: the next attempt is the child forked beforehand,
-    which leads its own session and holds nothing but its socket to the runner."""
+    which leads its own session and holds nothing but its socket to the runner. Its handle
+    has the process's own start time (what ``kill_stale`` matches after a crash), not the
+    request's."""
     warm = _Warm()
     try:
         _run_true(warm, tmp_path)
@@ -336,9 +338,11 @@ def test_a_warm_runner_forks_the_next_attempt_ahead_of_its_request(tmp_path: Pat
         fds = {n: os.readlink(f"/proc/{spare}/fd/{n}") for n in os.listdir(f"/proc/{spare}/fd")}
         extra = {n: target for n, target in fds.items() if n not in ("0", "1", "2")}
         assert len(extra) == 1 and next(iter(extra.values())).startswith("socket:"), fds
+        time.sleep(1.0)  # the spare is older than the request
         handle = warm.start(["sh", "-c", "echo $$"], cwd=tmp_path,
                             env={"PATH": os.environ["PATH"]})
         assert handle.pid == spare
+        assert handle.started_at == process_start_time(spare)
         assert read_all(handle.stdout_fd) == f"{spare}\n".encode()
         wait_exit(handle)
         assert warm.reap(handle) == 0
