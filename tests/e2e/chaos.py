@@ -14,13 +14,22 @@ A trial, from a seed (everything random comes from ``random.Random(seed)``):
    (``mode="remote"``). After a server kill, the next CLI call starts a new server (with the
    saved options); a killed worker starts again under the same name and home, and counts
    as back once its new process says it registered (``worker.json``).
+   With ``warm``, every other task of the fan-outs is a *typed* task (``chaostype:step``, a
+   custom type written beside the spec, doing the same as the command) and the pool runs
+   unsandboxed (``--sandbox off``; remotely, only worker ``w2``): those attempts are forks
+   of warm runners (``osmo.runtime.process.warm``), and each notes in ``shared/warm`` that it
+   was one; one that finds, after its sleep, that the pool it was forked for died notes it
+   in ``shared/orphans`` (two seconds later, if it is still alive then).
 3. Checks, after the workflow ended and everything was stopped: the workflow COMPLETED
    (or, where the caller allows it, failed only by the documented quarantine rule: a kill
    that lands while the server applies an attempt's report fails that attempt);
    every task has exactly one committed attempt (one lineage record for its output, one
    COMPLETED transition); every output's digest is the expected one; no task saw a partial
    input; no process of the trial is left (found by the trial's folder in a process's
-   command line or environment, and killed by pid).
+   command line or environment, and killed by pid). With ``warm``: at each kill, the warm
+   runners under the killed process (and their forked attempts) are gone a few seconds
+   after it, no forked attempt outlives its pool (``shared/orphans``; both:
+   :attr:`TrialResult.warm_survivors`), and none is left at the end.
 
 Leftover task processes of a SIGKILLed *remote worker* are counted apart
 (:attr:`TrialResult.leftover_tasks`): a task dying with its worker is issue 15 item 1, not
@@ -40,6 +49,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from osmo.layout import Home
+from osmo.runtime.process import warm_runner
 from osmo.store.sqlite import Store
 from tests.conftest import Osmo, process_alive, wait_gone
 from tests.e2e.cluster import Cluster
@@ -62,6 +72,57 @@ for item in inputs:
 time.sleep(float(delay))
 with open(os.path.join(out, "data.bin"), "wb") as f:
     f.write(content(name))
+"""
+
+
+TYPE = """
+import hashlib, os, time
+from osmo import Param, task_type
+
+
+def stat(pid):
+    with open(f"/proc/{pid}/stat") as f:
+        return f.read().rsplit(")", 1)[1].split()
+
+
+def alive(pid, start):
+    try:
+        fields = stat(pid)
+    except OSError:
+        return False
+    return fields[19] == start and fields[0] != "Z"
+
+
+@task_type(version="1", params={"seed": Param(int), "shared": Param(str), "delay": Param(float)})
+def step(ctx):
+    \"\"\"The chaos task, typed: it checks its inputs, sleeps, writes its 64 KiB.\"\"\"
+    name, seed, shared = ctx.task, ctx.params["seed"], ctx.params["shared"]
+    with open(os.path.join(shared, "starts"), "a") as f:
+        f.write(name + "\\n")
+    pool = None
+    with open(f"/proc/{os.getppid()}/cmdline", "rb") as f:
+        if b"warm_runner" in f.read():  # forked from a runner: note it, and whose it is
+            with open(os.path.join(shared, "warm"), "a") as w:
+                w.write(name + "\\n")
+            pool = stat(os.getppid())[1]
+            try:
+                pool = (pool, stat(pool)[19])
+            except OSError:  # already gone
+                pool = (pool, None)
+    def content(task):
+        return hashlib.sha256(f"{seed}:{task}".encode()).digest() * 2048
+    for upstream, path in ctx.input_named.items():
+        data = (path / "data.bin").read_bytes()
+        if data != content(upstream):
+            with open(os.path.join(shared, "partial"), "a") as f:
+                f.write(f"{name} read {len(data)} wrong bytes from {upstream}\\n")
+            raise SystemExit(99)
+    time.sleep(ctx.params["delay"])
+    if pool is not None and alive(*pool) is False:  # its pool died: it must die too
+        time.sleep(2)  # (its death is on its way, by signal: give it time)
+        with open(os.path.join(shared, "orphans"), "a") as f:
+            f.write(f"{name} (pid {os.getpid()}) outlived its pool (pid {pool[0]})\\n")
+    (ctx.output / "data.bin").write_bytes(content(name))
 """
 
 
@@ -89,6 +150,9 @@ class TrialResult:
     leftover_tasks: list[int] = field(default_factory=list)
     leftover_other: list[int] = field(default_factory=list)  # servers, workers
     leftover_detail: list[str] = field(default_factory=list)  # what each leftover was
+    warm_starts: int = 0  # attempts forked from a warm runner
+    warm_at_kills: int = 0  # warm runner processes (and forks) under the killed processes
+    warm_survivors: list[str] = field(default_factory=list)  # alive after their pool died
     seconds: float = 0.0
 
     def problems(self, *, task_leftovers: bool = True, quarantine: bool = False) -> list[str]:
@@ -106,7 +170,8 @@ class TrialResult:
                             ("committed twice", self.duplicated),
                             ("wrong digest", self.bad_digests), ("saw a partial input",
                                                                   self.partial),
-                            ("processes left (server/worker)", self.leftover_other)):
+                            ("processes left (server/worker)", self.leftover_other),
+                            ("warm runners outlived their pool", self.warm_survivors)):
             if items:
                 out.append(f"{what}: {items}")
         if task_leftovers and self.leftover_tasks:
@@ -114,8 +179,10 @@ class TrialResult:
         return out
 
 
-def spec_text(seed: int, width: int, shared: Path) -> tuple[str, list[str]]:
-    """The trial's workflow (YAML) and its task names."""
+def spec_text(seed: int, width: int, shared: Path,
+              warm: bool = False) -> tuple[str, list[str]]:
+    """The trial's workflow (YAML) and its task names; with ``warm``, every other task of
+    the fan-outs is of the type ``chaostype:step`` (:data:`TYPE`, beside the spec)."""
     rng = random.Random(seed)
     layers = [["source"], [f"a{i}" for i in range(width)], ["join"],
               [f"b{i}" for i in range(max(1, width // 2))], ["sink"]]
@@ -123,12 +190,17 @@ def spec_text(seed: int, width: int, shared: Path) -> tuple[str, list[str]]:
     for depth, layer in enumerate(layers):
         ups = layers[depth - 1] if depth else []
         for name in layer:
-            args = [name, str(seed), "{{output}}", str(shared), f"{rng.uniform(0.1, 0.6):.2f}"]
+            delay = f"{rng.uniform(0.1, 0.6):.2f}"
+            inputs = ["    inputs: [" + ", ".join(f"{{task: {u}}}" for u in ups) + "]"] * bool(ups)
+            if warm and len(layer) > 1 and int(name[1:]) % 2:
+                lines += [f"  - name: {name}", "    type: chaostype:step",
+                          f"    params: {{seed: {seed}, shared: {json.dumps(str(shared))}, "
+                          f"delay: {delay}}}", *inputs]
+                continue
+            args = [name, str(seed), "{{output}}", str(shared), delay]
             args += [f"{u}={{{{input:{u}}}}}" for u in ups]
             lines += [f"  - name: {name}", "    command: [python3, /opt/chaos_task.py]",
-                      f"    args: {json.dumps(args)}"]
-            if ups:
-                lines.append("    inputs: [" + ", ".join(f"{{task: {u}}}" for u in ups) + "]")
+                      f"    args: {json.dumps(args)}", *inputs]
             lines += ["    files:", "    - path: /opt/chaos_task.py", "      contents: |"]
             lines += [f"        {line}" if line else "" for line in TASK.strip().splitlines()]
     return "\n".join(lines) + "\n", [n for layer in layers for n in layer]
@@ -138,14 +210,17 @@ class Trial:
     """Runs one trial under ``root`` (see the module docstring)."""
 
     def __init__(self, root: Path, seed: int, *, mode: str = "local", kills: int = 3,
-                 width: int = 6) -> None:
+                 width: int = 6, warm: bool = False) -> None:
         assert mode in ("local", "remote"), mode
         self.root, self.seed, self.mode, self.kills = root, seed, mode, kills
+        self.warm = warm
         self.rng = random.Random(seed ^ 0x5EED)
         self.shared = root / "shared"
         self.shared.mkdir(parents=True, exist_ok=True)
         self.shared.chmod(0o1777)  # a root server's sandboxed tasks write here as nobody
-        self.spec, self.names = spec_text(seed, width, self.shared)
+        self.spec, self.names = spec_text(seed, width, self.shared, warm)
+        if warm:
+            _write(root / "chaostype.py", TYPE)
         self.cluster = Cluster(root, env={"OSMO_HOST_ID": f"chaos-{seed}"})
         self.osmo: Osmo = self.cluster.osmo
         self.result = TrialResult(seed, mode, len(self.names))
@@ -178,13 +253,18 @@ class Trial:
 
     def _start(self) -> None:
         if self.mode == "local":
-            self.osmo("server", "start", check=True)
+            self.osmo("server", "start", *self._pool_args("local"), check=True)
         else:
             self.cluster.start_server()
             for name in ("w1", "w2"):
-                self.cluster.start_worker(name, "--cpus", "1", wait=False)
+                self.cluster.start_worker(name, *self._pool_args(name), wait=False)
             for name in ("w1", "w2"):
                 self.cluster.wait_online(name)
+
+    def _pool_args(self, pool: str) -> tuple[str, ...]:
+        """A pool's options: warm trials run the local pool and worker w2 unsandboxed."""
+        cpus = () if pool == "local" else ("--cpus", "1")
+        return (*cpus, "--sandbox", "off") if self.warm and pool in ("local", "w2") else cpus
 
     def _note_server(self) -> None:
         pid = self.osmo.server_pid()
@@ -198,20 +278,36 @@ class Trial:
             pid = self.osmo.server_pid()
             if pid is None:
                 return
+            runners = _warm_runners_under(pid)
             killed = time.monotonic()
             os.kill(pid, signal.SIGKILL)
             wait_gone(pid)
+            self._check_runners_die(target, runners)
             self.osmo("list", "--count", "1", check=True)  # the next call starts a server
             self._note_server()
         else:
             proc = self.cluster.workers[target]
+            runners = _warm_runners_under(proc.pid)
             killed = time.monotonic()
             os.kill(proc.pid, signal.SIGKILL)
             proc.wait(timeout=30)
+            self._check_runners_die(target, runners)
             time.sleep(self.rng.uniform(0.0, 0.5))
-            new = self.cluster.start_worker(target, "--cpus", "1", wait=False)
+            new = self.cluster.start_worker(target, *self._pool_args(target), wait=False)
             self._wait_registered(target, new.pid)
         self.result.kills.append((target, time.monotonic() - killed))
+
+    def _check_runners_die(self, target: str, runners: dict[int, int],
+                           timeout: float = 15) -> None:
+        """The warm runners (and forked attempts) that were under killed ``target``: each
+        must be gone within ``timeout`` s (they die with their pool; not a timing promise)."""
+        self.result.warm_at_kills += len(runners)
+        deadline = time.monotonic() + timeout
+        alive = dict(runners)
+        while alive and time.monotonic() < deadline:
+            alive = {pid: start for pid, start in alive.items() if _same_process(pid, start)}
+            time.sleep(0.05)
+        self.result.warm_survivors += [f"{target}: {_describe(pid, b'')}" for pid in alive]
 
     def _wait_registered(self, name: str, pid: int, timeout: float = 60) -> None:
         """Until worker ``name``'s new process ``pid`` says it registered with the server."""
@@ -282,6 +378,11 @@ class Trial:
         self.result.reruns = len(starts) - len(set(starts))
         partial = self.shared / "partial"
         self.result.partial = partial.read_text().splitlines() if partial.exists() else []
+        warm = self.shared / "warm"
+        self.result.warm_starts = len(warm.read_text().split()) if warm.exists() else 0
+        orphans = self.shared / "orphans"
+        if orphans.exists():
+            self.result.warm_survivors += orphans.read_text().splitlines()
 
     def _check_leftovers(self) -> None:
         """Find (and kill, by pid) every process still naming the trial's folder."""
@@ -315,6 +416,40 @@ def _describe(pid: int, cmdline: bytes) -> str:
         return f"{pid}: gone"
     words = [w.decode(errors="replace")[-60:] for w in cmdline.split(b"\0") if w]
     return f"{pid}: state {state}, parent {ppid}, age {age:.2f} s: {' '.join(words)[:600]}"
+
+
+def _warm_runners_under(root: int) -> dict[int, int]:
+    """The warm runner processes (and their forked attempts, which share their command line)
+    descending from ``root``: pid -> start time (so a reused pid is not mistaken for one)."""
+    children: dict[int, list[int]] = {}
+    for pid in _pids():
+        stat = _stat(pid)
+        if stat is not None:
+            children.setdefault(int(stat[1]), []).append(pid)
+    found, todo = {}, [root]
+    while todo:
+        for pid in children.get(todo.pop(), []):
+            todo.append(pid)
+            with contextlib.suppress(OSError):
+                if warm_runner.__name__.encode() in Path(f"/proc/{pid}/cmdline").read_bytes():
+                    stat = _stat(pid)
+                    if stat is not None:
+                        found[pid] = int(stat[19])
+    return found
+
+
+def _same_process(pid: int, start: int) -> bool:
+    """``pid`` is still the process that started at ``start`` and is not a zombie."""
+    stat = _stat(pid)
+    return stat is not None and int(stat[19]) == start and stat[0] != "Z"
+
+
+def _stat(pid: int) -> list[str] | None:
+    """The fields of ``/proc/PID/stat`` after the command (state first), or None if gone."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except (OSError, IndexError):
+        return None
 
 
 def _pids() -> list[int]:

@@ -10,6 +10,11 @@ promise is checked. Server and worker processes left behind always fail the tria
 A kill that lands while the server applies an attempt's final report (about 1 kill in 70
 here) makes the task run again; only a second such crash on the same task quarantines it
 (docs/concepts/durability.md, "When the server itself fails"). The trials do not excuse a quarantined task.
+
+Warm runners (issue 30): one local trial runs its pool unsandboxed, where typed tasks are
+forks of warm runners, and the remote trial's worker w2 does too (w1 stays sandboxed). Their
+typed tasks keep every promise above, and the runners under a killed server or worker are
+gone with it.
 """
 
 from __future__ import annotations
@@ -28,25 +33,29 @@ from tests.e2e.cluster import Cluster
 SEED = int(os.environ.get("OSMO_CHAOS_SEED", "1515"))
 
 
-@pytest.mark.parametrize("offset", [0, 1])
-def test_chaos_server_kills_on_the_local_pool(tmp_path: Path, offset: int) -> None:
+@pytest.mark.parametrize(("offset", "warm"), [(0, False), (1, False), (2, True)])
+def test_chaos_server_kills_on_the_local_pool(tmp_path: Path, offset: int, warm: bool) -> None:
     seed = SEED + offset
-    print(f"chaos seed {seed} (local pool)")
-    result = Trial(tmp_path / "t", seed, mode="local", kills=3).run()
+    print(f"chaos seed {seed} (local pool{', warm runners' if warm else ''})")
+    result = Trial(tmp_path / "t", seed, mode="local", kills=3, warm=warm).run()
     print(result)
     assert [k for k, _ in result.kills] == ["server"] * len(result.kills)
     assert result.kills, f"seed {seed}: the workflow ended before the first kill"
     assert result.problems() == [], f"seed {seed}: {result}"
+    if warm:
+        assert result.warm_starts > 0, f"seed {seed}: no typed task ran warm: {result}"
+        assert result.warm_at_kills > 0, f"seed {seed}: no kill found a warm runner: {result}"
 
 
 def test_chaos_server_and_worker_kills_with_remote_workers(tmp_path: Path) -> None:
     seed = SEED + 100
     print(f"chaos seed {seed} (remote workers)")
-    result = Trial(tmp_path / "t", seed, mode="remote", kills=3).run()
+    result = Trial(tmp_path / "t", seed, mode="remote", kills=3, warm=True).run()
     print(result)
     assert result.kills, f"seed {seed}: the workflow ended before the first kill"
     problems = result.problems(task_leftovers=False)
     assert problems == [], f"seed {seed}: {result}"
+    assert result.warm_starts > 0, f"seed {seed}: no typed task ran warm on w2: {result}"
 
 
 def test_an_output_that_finishes_across_a_server_restart_keeps_its_lineage(

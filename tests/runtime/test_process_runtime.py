@@ -295,3 +295,74 @@ def test_kill_stale_of_a_gone_group_is_false() -> None:
     assert proc.stdout is not None
     proc.stdout.close()
     assert not kill_stale(proc.pid, started)
+
+
+# ---------------------------------------------------------------- a warm runner's spare child
+
+
+def _children(pid: int) -> list[int]:
+    """Live (not zombie) children of ``pid``."""
+    out = []
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                with open(f"/proc/{entry}/stat") as f:
+                    fields = f.read().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            if int(fields[1]) == pid and fields[0] not in ("Z", "X"):
+                out.append(int(entry))
+    return out
+
+
+def _run_true(warm: _Warm, tmp_path: Path) -> ProcessHandle:
+    handle = warm.start(["true"], cwd=tmp_path, env={"PATH": os.environ["PATH"]})
+    wait_exit(handle)
+    assert warm.reap(handle) == 0
+    warm.release(handle)
+    return handle
+
+
+def test_a_warm_runner_forks_the_next_attempt_ahead_of_its_request(tmp_path: Path) -> None:
+    """The fork is off the start's path: the next attempt is the child forked beforehand,
+    which leads its own session and holds nothing but its socket to the runner. Its handle
+    has the process's own start time (what ``kill_stale`` matches after a crash), not the
+    request's."""
+    warm = _Warm()
+    try:
+        _run_true(warm, tmp_path)
+        [runner] = warm.runners.runners()
+        wait_until(lambda: len(_children(runner.pid)) == 1)
+        [spare] = _children(runner.pid)
+        assert os.getsid(spare) == spare and os.getpgid(spare) == spare
+        fds = {n: os.readlink(f"/proc/{spare}/fd/{n}") for n in os.listdir(f"/proc/{spare}/fd")}
+        extra = {n: target for n, target in fds.items() if n not in ("0", "1", "2")}
+        assert len(extra) == 1 and next(iter(extra.values())).startswith("socket:"), fds
+        time.sleep(1.0)  # the spare is older than the request
+        handle = warm.start(["sh", "-c", "echo $$"], cwd=tmp_path,
+                            env={"PATH": os.environ["PATH"]})
+        assert handle.pid == spare
+        assert handle.started_at == process_start_time(spare)
+        assert read_all(handle.stdout_fd) == f"{spare}\n".encode()
+        wait_exit(handle)
+        assert warm.reap(handle) == 0
+        warm.release(handle)
+    finally:
+        warm.runners.close()
+
+
+def test_a_spare_killed_from_outside_is_replaced(tmp_path: Path) -> None:
+    warm = _Warm()
+    try:
+        _run_true(warm, tmp_path)
+        [runner] = warm.runners.runners()
+        wait_until(lambda: len(_children(runner.pid)) == 1)
+        [spare] = _children(runner.pid)
+        os.kill(spare, signal.SIGKILL)
+        wait_until(lambda: spare not in _children(runner.pid))
+        handle = _run_true(warm, tmp_path)
+        assert handle.pid != spare
+        assert [r.pid for r in warm.runners.runners()] == [runner.pid]  # the same runner
+    finally:
+        warm.runners.close()
+    wait_until(lambda: not alive(runner.pid))

@@ -69,7 +69,7 @@ from pathlib import Path
 from osmo.runtime.api import Launch, ProcessHandle, StartError
 from osmo.runtime.process import mounts
 from osmo.runtime.process.groups import check_command, die_with_parent
-from osmo.runtime.process.proctable import start_clock
+from osmo.runtime.process.proctable import process_start_time, start_clock
 from osmo.runtime.process.sandbox import Sandbox, View
 from osmo.runtime.process.warm_runner import IDLE_VARIABLE, READY, RUNNER_MODULE
 
@@ -459,7 +459,8 @@ class WarmRunners:
         runner.running.add(pid)
         handle = WarmHandle(pid, status_r, out_r, err_r, _Forked(pid), pidfd=pidfd,
                             runner=runner.popen.pid)
-        handle.started_at = started_at
+        # the child was forked before the request (the runner's spare): its own start time
+        handle.started_at = process_start_time(pid) or started_at
         return handle
 
     def _enclosed(self, view: View, made: list[int]) -> tuple[bytes, list[int], socket.socket]:

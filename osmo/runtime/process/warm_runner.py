@@ -22,10 +22,13 @@ no credential. What it owns:
   fork, and the libraries that start them handle it.)
 - **the forks**: each request on the socket carries four descriptors (the attempt's stdout
   and stderr pipes, the read end of its request pipe, the write end of its status pipe). The
-  runner forks, waits until the child leads its own session and process group (before it
-  answers, so a kill from the pool always finds the group), answers the child's pid with a
-  pidfd of it, and closes its copies of the attempt's descriptors. It never reads the
-  request pipe: only the child does.
+  runner hands them (and a sandboxed request's own, below) to its *spare*, a child it forked
+  ahead of the request (over a socket pair of their own), or forks one then if it has none;
+  it answers the child's pid with a pidfd of it, closes its copies of the attempt's
+  descriptors, and only then forks the next spare: the fork is off an attempt's start. A
+  spare leads its own session and process group before the runner counts it as one (so a
+  kill from the pool always finds the group) and holds nothing of any attempt until it is
+  handed one. The runner never reads the request pipe: only the child does.
 - **the exits**: it reaps its children and writes each one's exit code (``128+N`` for signal
   N) to its status pipe, then closes it.
 - **its end**: when the pool closes its end of the socket, it takes no more requests and
@@ -33,9 +36,10 @@ no credential. What it owns:
   seconds), it exits by itself. It dies with the pool (``PR_SET_PDEATHSIG``, set by the pool's
   spawn), and its children die with it (the same signal, set in each child).
 
-The child (:func:`_attempt`): ``PR_SET_PDEATHSIG`` (SIGKILL), its own session (as a cold
-attempt's ``start_new_session``), default signal handlers, every
-descriptor of the runner closed, its request read from the pipe (argv, working folder,
+The child (:func:`_spare`, then :func:`_attempt`): ``PR_SET_PDEATHSIG`` (SIGKILL), its own
+session (as a cold attempt's ``start_new_session``), default signal handlers, every
+descriptor of the runner closed, its attempt's descriptors received, its request read from
+the pipe (argv, working folder,
 complete environment, as JSON), stdin from ``/dev/null``, stdout and stderr the attempt's
 pipes; the environment then *replaces* the runner's. A typed task's argv
 (``osmo.worker.launch.runner_argv``) runs in the child itself (``osmo.tasktypes.runner``, its
@@ -140,17 +144,20 @@ class _Runner:
     def __init__(self, sock: socket.socket, idle: float) -> None:
         self.sock, self.idle = sock, idle
         self.children: dict[int, int] = {}  # pid -> its status pipe's write end
+        self.spare: tuple[int, socket.socket] | None = None  # forked ahead: pid, its socket
         self.accepting = True
         self.wake_r, self.wake_w = os.pipe2(os.O_NONBLOCK | os.O_CLOEXEC)
+        self.selector = selectors.DefaultSelector()
 
     def serve(self) -> None:
         signal.set_wakeup_fd(self.wake_w)
         signal.signal(signal.SIGCHLD, lambda *_: None)
         signal.signal(signal.SIGTERM, signal.SIG_DFL)
-        selector = selectors.DefaultSelector()
+        selector = self.selector
         selector.register(self.sock, selectors.EVENT_READ, "sock")
         selector.register(self.wake_r, selectors.EVENT_READ, "wake")
         last = time.monotonic()
+        self._fork_spare()
         while self.accepting or self.children:
             ready = selector.select(timeout=1.0)
             for key, _ in ready:
@@ -184,21 +191,10 @@ class _Runner:
                 os.close(fd)
             self.sock.send(b"error: a fork request without its descriptors")
             return True
-        out, err, request, status = fds[:_DESCRIPTORS]
-        extra = fds[_DESCRIPTORS:]
-        sys.stdout.flush()
-        sys.stderr.flush()
-        led_r, led_w = os.pipe2(os.O_CLOEXEC)
-        pid = os.fork()
-        if pid == 0:
-            os.close(led_r)
-            _attempt(out, err, request, led_w,
-                     drop=(self.sock.fileno(), self.wake_r, self.wake_w, status,
-                           *self.children.values()), layout=layout, extra=extra)
-        os.close(led_w)
-        os.read(led_r, 1)  # its end closed: the child leads its session (or is gone)
-        os.close(led_r)
-        for fd in (out, err, request, *extra):
+        status = fds[_DESCRIPTORS - 1]
+        handed = [*fds[:_DESCRIPTORS - 1], *fds[_DESCRIPTORS:]]  # all but the status pipe
+        pid = self._hand_over(data, handed, status)
+        for fd in handed:
             os.close(fd)
         self.children[pid] = status
         pidfd = os.pidfd_open(pid)
@@ -208,7 +204,49 @@ class _Runner:
             pass  # the pool is gone: the child dies with this runner
         finally:
             os.close(pidfd)
+        self._fork_spare()
         return True
+
+    def _hand_over(self, data: bytes, fds: list[int], status: int) -> int:
+        """The request (``data``) and the attempt's descriptors to the spare; the child's pid.
+
+        With no spare (or a dead one), one is forked now.
+        """
+        while True:
+            if self.spare is None:  # its copies of these: only those it is handed
+                self._fork_spare(*fds, status)
+            assert self.spare is not None
+            pid, sock = self.spare
+            self.spare = None
+            try:
+                socket.send_fds(sock, [data], fds)
+                return pid
+            except OSError:  # it died (killed from outside): it is reaped as a stranger
+                continue
+            finally:
+                sock.close()
+
+    def _fork_spare(self, *also_drop: int) -> None:
+        """Fork the child of the next attempt ahead of its request (see the module docstring).
+
+        Returns once the child leads its own session (or is gone).
+        """
+        ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        sys.stdout.flush()
+        sys.stderr.flush()
+        led_r, led_w = os.pipe2(os.O_CLOEXEC)
+        pid = os.fork()
+        if pid == 0:
+            os.close(led_r)
+            _spare(theirs.fileno(), led_w,
+                   drop=(self.sock.fileno(), self.wake_r, self.wake_w, ours.fileno(),
+                         self.selector.fileno(),
+                         *also_drop, *self.children.values()))
+        theirs.close()
+        os.close(led_w)
+        os.read(led_r, 1)  # its end closed: the child leads its session (or is gone)
+        os.close(led_r)
+        self.spare = (pid, ours)
 
     def _reap(self) -> None:
         while self.children:
@@ -219,6 +257,9 @@ class _Runner:
             if pid == 0:
                 return
             status = self.children.pop(pid, -1)
+            if self.spare is not None and pid == self.spare[0]:  # a spare killed from outside
+                self.spare[1].close()
+                self.spare = None
             if status < 0:
                 continue
             code = os.waitstatus_to_exitcode(wait_status)
@@ -236,13 +277,14 @@ def _layout(data: bytes) -> dict[str, Any] | None:
     return layout
 
 
-def _attempt(out: int, err: int, request: int, led: int, *, drop: tuple[int, ...],
-             layout: dict[str, Any] | None = None, extra: Sequence[int] = ()) -> None:
-    """In the forked child: become the attempt, then run it; never returns.
+def _spare(sock: int, led: int, *, drop: tuple[int, ...]) -> None:
+    """In the forked child: lead a session, await an attempt, become it; never returns.
 
-    ``led``: closed once the child leads its own session (and process group). ``layout``
-    and ``extra`` (a sandboxed attempt's): where its view goes, and the descriptors of its
-    relay to the pool and of its folders' detached mounts (:func:`_enclose`).
+    It waits for its attempt's request and descriptors on ``sock``, then runs
+    :func:`_attempt`.
+
+    ``led``: closed once the child leads its own session (and process group). The runner
+    closing its end of ``sock`` (or dying) before handing an attempt over ends the child.
     """
     code = 127
     try:
@@ -255,6 +297,28 @@ def _attempt(out: int, err: int, request: int, led: int, *, drop: tuple[int, ...
         for fd in drop:
             with contextlib.suppress(OSError):
                 os.close(fd)
+        with socket.socket(fileno=sock) as handed:
+            data, fds, _, _ = socket.recv_fds(handed, _DATAGRAM_MAX, _DESCRIPTORS + _BINDS_MAX)
+        if len(fds) >= _DESCRIPTORS - 1:
+            out, err, request, *extra = fds
+            code = _attempt(out, err, request, layout=_layout(data), extra=extra)
+    except BaseException as exc:  # noqa: BLE001 - whatever happens, the child must exit here
+        with contextlib.suppress(Exception):
+            os.write(2, f"osmo: warm start failed: {exc!r}\n".encode())
+    finally:
+        os._exit(code)
+
+
+def _attempt(out: int, err: int, request: int, *, layout: dict[str, Any] | None = None,
+             extra: Sequence[int] = ()) -> int:
+    """In the child, handed its attempt: become it, then run it; its exit code.
+
+    ``layout`` and ``extra`` (a sandboxed attempt's): where its view goes, and the
+    descriptors of its relay to the pool and of its folders' detached mounts
+    (:func:`_enclose`).
+    """
+    code = 127
+    try:
         null = os.open(os.devnull, os.O_RDONLY)
         os.dup2(null, 0)
         os.dup2(out, 1)
@@ -266,11 +330,10 @@ def _attempt(out: int, err: int, request: int, led: int, *, drop: tuple[int, ...
         with os.fdopen(request, "rb") as pipe:  # its credentials: read here, never before
             wanted: dict[str, Any] = json.loads(pipe.read(_REQUEST_LIMIT))
         code = _run(list(wanted["argv"]), cwd or str(wanted["cwd"]), dict(wanted["env"]))
-    except BaseException as exc:  # noqa: BLE001 - whatever happens, the child must exit here
+    except BaseException as exc:  # noqa: BLE001 - whatever happens, the child must exit
         with contextlib.suppress(Exception):
             os.write(2, f"osmo: warm start failed: {exc!r}\n".encode())
-    finally:
-        os._exit(code)
+    return code
 
 
 def _enclose(layout: dict[str, Any], relay: int, binds: Sequence[int], request: int) -> str:
