@@ -21,7 +21,7 @@ from tests.containers.conftest import images, podman_env  # noqa: F401 - fixture
 from tests.containers.images import KINDS_OSMO, OSMO_IMAGE, ensure_images
 from tests.containers.submitting import check_serial_tutorial, submitted_id, task_lines, tasks
 from tests.helm.chart import auth_secret, local_router_config, router_config
-from tests.k8s.nodes import KubeCluster, started
+from tests.k8s.nodes import KubeCluster, pool_config, started
 from tests.k8s.store import PODS
 
 TUTORIALS = Path(__file__).parent.parent / "containers" / "osmo_tutorials"
@@ -113,3 +113,20 @@ def test_the_task_container_holds_no_router_credentials(
     assert "PATH=" in text and "0" in lines, text
     assert [line for line in lines if line.startswith("/")] == [], text
     assert secret["pod-password"] not in text and "osmo-pod" not in text
+
+
+def test_a_worker_whose_pods_could_not_log_in_refuses_to_start(
+        kube: tuple[KubeCluster, dict[str, str]]) -> None:
+    """No ``data.zenohConfig`` while its own router authenticates: every pod would fail to
+    connect; the worker says so at start (exit 2) instead."""
+    cluster, _ = kube
+    folder = cluster.root / "kube-bare-config"
+    folder.mkdir(exist_ok=True)
+    conf = pool_config(folder, cluster.kubeconfig, groupNetwork="host",
+                       data={"image": OSMO_IMAGE})
+    proc = cluster.osmo_cluster.start_worker(
+        "kube-bare", "--runtime", "kubernetes", "--kubernetes-config", str(conf), pool="data",
+        env={"OSMO_ZENOH_CONFIG": str(cluster.root.parent / "worker.json5")}, wait=False)
+    assert proc.wait(timeout=120) == 2, cluster.osmo_cluster.worker_log("kube-bare")
+    log = cluster.osmo_cluster.worker_log("kube-bare")
+    assert "give the pool's data a zenohConfig" in log and "Traceback" not in log, log

@@ -62,7 +62,7 @@ from pathlib import Path
 from typing import IO, Any
 
 from osmo.config import read_json_private, write_json_atomic
-from osmo.errors import OsmoError
+from osmo.errors import OsmoError, UsageError
 from osmo.layout import AttemptDirs
 from osmo.runtime.api import (
     Attempt,
@@ -165,7 +165,7 @@ class KubernetesRuntime:
         self._data_zenoh: dict[str, str] = {}  # Secret key → what the data containers show
 
     def serve_pod_data(self, link: Link, node: str, connect: Sequence[str],
-                       cluster: str) -> None:
+                       cluster: str, *, config_file: str | None = None) -> None:
         """Serve the pods' own data (the pool's ``data``) on ``link`` as node ``node``.
 
         Its pods dial the pool's ``data.connect``, else ``connect`` (the worker's own), with
@@ -173,10 +173,21 @@ class KubernetesRuntime:
         Without ``data`` in the pool, nothing is served: pods use the work volume.
 
         Raises:
-            UsageError: ``data.zenohConfig``, or a file it names, cannot be read.
+            UsageError: ``data.zenohConfig``, or a file it names, cannot be read; or there is
+                none while the pods would dial the worker's own endpoints, which the worker
+                reaches only with a user or TLS (``config_file``): they could not connect.
         """
         if self.pool.data_image is None:
             return
+        if (self.pool.data_zenoh_config is None and not self.pool.data_connect
+                and config_file and json.loads(client_credentials(config_file, "")[0])[
+                    "transport"]):
+            raise UsageError(
+                f"the pool's pods fetch their own data from the router this worker dials "
+                f"with a user or TLS ({config_file}), and would have neither: give the "
+                "pool's data a zenohConfig, a zenoh client config with a user of the pods' "
+                "own that the router confines to podio/** (the chart's auth.podUser), or "
+                "the pool a work volume instead of data")
         files: dict[str, str] = {}
         if self.pool.data_zenoh_config is not None:
             config, files = client_credentials(self.pool.data_zenoh_config, TICKET_DIR)
