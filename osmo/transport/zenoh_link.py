@@ -34,7 +34,8 @@ import zenoh
 from osmo.config import DEFAULT_CLUSTER
 from osmo.errors import InfrastructureError, ServerUnreachable, UsageError
 
-__all__ = ["MESSAGES", "Acl", "Link", "Request", "Subscription", "authenticates"]
+__all__ = ["MESSAGES", "Acl", "Link", "Request", "Subscription",
+           "authenticates", "client_credentials"]
 
 LEASE_MS = 1000
 
@@ -136,6 +137,49 @@ def authenticates(config_file: str | None) -> bool:
     except (zenoh.ZError, OSError, ValueError) as exc:
         raise UsageError(f"cannot read zenoh config {config_file}: {exc}") from exc
     return bool(usrpwd.get("dictionary_file")) or bool(tls.get("enable_mtls"))
+
+
+_TLS_FILES = {"root_ca_certificate": "ca.crt", "connect_certificate": "tls.crt",
+              "connect_private_key": "tls.key"}
+_TLS_KEEP = ("enable_mtls", "verify_name_on_connect")
+
+
+def client_credentials(config_file: str, folder: str) -> tuple[str, dict[str, str]]:
+    """What a client of ``config_file`` shows a router, to hand to another client.
+
+    Returns a zenoh config (JSON text) holding only the user/password and the TLS settings of
+    ``config_file`` (nothing else of it: no listener, no dictionary, no access control), and
+    the certificates and key it names, as name -> text (``ca.crt``, ``tls.crt``,
+    ``tls.key``), named in that config as ``folder/<name>``, where the other client will
+    find them.
+
+    Raises:
+        UsageError: the file, or a file it names, cannot be read.
+    """
+    try:
+        conf = zenoh.Config.from_file(config_file)
+        usrpwd = json.loads(conf.get_json("transport/auth/usrpwd") or "{}") or {}
+        tls = json.loads(conf.get_json("transport/link/tls") or "{}") or {}
+    except (zenoh.ZError, OSError, ValueError) as exc:
+        raise UsageError(f"cannot read zenoh config {config_file}: {exc}") from exc
+    files: dict[str, str] = {}
+    transport: dict[str, Any] = {}
+    if usrpwd.get("user") is not None:
+        transport["auth"] = {"usrpwd": {"user": usrpwd["user"],
+                                        "password": usrpwd.get("password") or ""}}
+    link_tls = {k: tls[k] for k in _TLS_KEEP if tls.get(k) is not None}
+    for key, name in _TLS_FILES.items():
+        if tls.get(key):
+            try:
+                with open(tls[key], encoding="utf-8") as f:
+                    files[name] = f.read()
+            except (OSError, ValueError) as exc:
+                raise UsageError(f"cannot read {tls[key]} ({key} of zenoh config "
+                                 f"{config_file}): {exc}") from exc
+            link_tls[key] = f"{folder}/{name}"
+    if link_tls:
+        transport["link"] = {"tls": link_tls}
+    return json.dumps({"transport": transport}, indent=2), files
 
 
 def _refused(connect: Sequence[str], config_file: str | None, exc: Exception) -> ServerUnreachable:

@@ -29,6 +29,8 @@ from osmo.runtime.kubernetes.manifest import (
     LABEL_INSTANCE,
     LABEL_WORKFLOW,
     TICKETS,
+    ZENOH_CONFIG,
+    ZENOH_KEY,
     DataPlan,
     label_value,
     pod_group_manifest,
@@ -103,9 +105,13 @@ def _objects(cmd: PrepareAttempt, task: TaskSpec, spec: WorkflowSpec, pool: Kube
     values = dict(launch.secret_env)
     data = None
     if pool.data_image is not None:
+        # the router credentials: named, never read here (they are the node's, not the user's)
+        zenoh = (ZENOH_CONFIG,) if pool.data_zenoh_config else ()
         data = DataPlan(pool.data_image, pool.data_connect or ("<the worker's endpoints>",),
-                        "<cluster>", "<worker>")
+                        "<cluster>", "<worker>", zenoh_files=zenoh)
         values.update({key: "<ticket>" for key in TICKETS.values()})
+        values.update({ZENOH_KEY + name: f"<the user of {pool.data_zenoh_config}>"
+                       for name in zenoh})
     secret = secret_manifest(plan, values, pool, owner_uid="POD_UID") if values else None
     objects.append(pod_manifest(plan, pool, secret=plan.name if secret else None, data=data))
     objects += [secret] if secret else []

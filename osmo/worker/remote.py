@@ -191,7 +191,8 @@ class RemoteWorker:
             cluster=cluster[0] if cluster else None, cluster_images=cluster[1] if cluster else None,
             warm=options.warm, journal=journal if outlives else None)
         if isinstance(images, KubernetesRuntime):  # its pods' own data, with the pool's `data`
-            images.serve_pod_data(self.link, self.id, list(options.connect), options.cluster)
+            images.serve_pod_data(self.link, self.id, list(options.connect), options.cluster,
+                                  config_file=options.zenoh_config)
         for entry in entries:
             log.info("adopting attempt %s from this node's previous life", entry.attempt_id)
             with self._lock:

@@ -31,7 +31,8 @@ class Cluster:
     """One server (home ``root/server``) plus workers (homes ``root/<name>``)."""
 
     def __init__(self, root: Path, *, server_args: tuple[str, ...] = (),
-                 env: dict[str, str] | None = None, open_router: bool = False) -> None:
+                 env: dict[str, str] | None = None, open_router: bool = False,
+                 router_config: Path | None = None) -> None:
         self.root = root
         self.port = free_port(0)
         self.endpoint = f"tcp/127.0.0.1:{self.port}"
@@ -39,8 +40,12 @@ class Cluster:
         self.osmo.env.update(env or {})
         # open_router: a bare zenoh router with no access control at ``endpoint`` (in this
         # process), which the server joins: what is left when the router's wall is off
-        self.router: Link | None = Link.router([self.endpoint]) if open_router else None
-        where = ("--connect", self.endpoint) if open_router else ("--listen", self.endpoint)
+        # router_config: the same, configured by that zenoh file (its users, its access control)
+        self.router: Link | None = (
+            Link.router([self.endpoint], config_file=str(router_config)) if router_config
+            else Link.router([self.endpoint]) if open_router else None)
+        where = (("--connect", self.endpoint) if self.router is not None
+                 else ("--listen", self.endpoint))
         self.server_args = (*where, "--no-local-pool", *server_args)
         self.workers: dict[str, subprocess.Popen[bytes]] = {}
         self.env = env or {}

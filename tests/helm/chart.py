@@ -8,13 +8,20 @@ files for ``kubernetes-validate``.
 
 from __future__ import annotations
 
+import base64
 import copy
+import json
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import helm_python as helm
 import yaml
+import zenoh
+
+from osmo.config import free_port
 
 REPO = Path(__file__).resolve().parents[2]
 CHART = REPO / "helm" / "osmo"
@@ -118,3 +125,52 @@ def tls_values(**extra: Any) -> dict[str, Any]:
     values: dict[str, Any] = {"tls": {"enabled": True, "ca": PEM, "cert": PEM, "key": PEM}}
     values.update(extra)
     return values
+
+
+ROUTER = {"router": {"enabled": True}, "auth": {"enabled": True, "password": "pw"}}
+"""Values with the standalone router (which needs user/password auth)."""
+
+
+def auth_secret(values: dict[str, Any]) -> dict[str, str]:
+    """The rendered zenoh auth Secret's keys, decoded."""
+    data = render(values).get("Secret", f"{FULLNAME}-auth")["data"]
+    return {k: base64.b64decode(v).decode() for k, v in data.items()}
+
+
+def router_config(values: dict[str, Any]) -> dict[str, Any]:
+    """The rendered ``router.json5`` (plain JSON)."""
+    files = render(values).get("ConfigMap", f"{FULLNAME}-zenoh")["data"]
+    config: dict[str, Any] = json.loads(files["router.json5"])
+    return config
+
+
+def local_router_config(config: dict[str, Any], dictionary: str, folder: Path) -> tuple[
+        dict[str, Any], str]:
+    """``config`` listening on a free loopback port with ``dictionary`` written in
+    ``folder``; the config and its endpoint."""
+    port = free_port(0)
+    (folder / "dictionary").write_text(dictionary)
+    config = json.loads(json.dumps(config))
+    config["listen"]["endpoints"] = [f"tcp/127.0.0.1:{port}"]
+    config["transport"]["auth"]["usrpwd"]["dictionary_file"] = str(folder / "dictionary")
+    return config, f"tcp/127.0.0.1:{port}"
+
+
+@contextmanager
+def zenoh_router(config: dict[str, Any], dictionary: str, folder: Path) -> Iterator[str]:
+    """A real zenoh router in this process running the rendered ``config`` on loopback, with
+    the password ``dictionary``; yields its endpoint."""
+    config, endpoint = local_router_config(config, dictionary, folder)
+    session = zenoh.open(zenoh.Config.from_json5(json.dumps(config)))
+    try:
+        yield endpoint
+    finally:
+        session.close()
+
+
+def zenoh_login(endpoint: str, user: str, password: str) -> zenoh.Session:
+    """A zenoh client session logged in to ``endpoint`` as ``user``."""
+    return zenoh.open(zenoh.Config.from_json5(json.dumps({
+        "mode": "client", "connect": {"endpoints": [endpoint]},
+        "scouting": {"multicast": {"enabled": False}},
+        "transport": {"auth": {"usrpwd": {"user": user, "password": password}}}})))

@@ -13,7 +13,7 @@ from typing import Any
 import pytest
 
 from osmo.runtime.kubernetes.config import load_pool
-from tests.helm.chart import FULLNAME, NAMESPACE, container, env, flag, lint, render
+from tests.helm.chart import FULLNAME, NAMESPACE, container, env, flag, lint, render, tls_values
 
 POD_GROUPS = {"kai": "scheduling.run.ai", "volcano": "scheduling.volcano.sh",
               "coscheduling": "scheduling.x-k8s.io"}
@@ -131,3 +131,48 @@ def test_without_a_work_claim_pods_get_their_data_from_the_charts_image(
     assert env(worker)["OSMO_HOME"] == "/var/lib/osmo/home"
     volumes = {v["name"]: v for v in deployment["spec"]["template"]["spec"]["volumes"]}
     assert "emptyDir" in volumes["home"], volumes  # nothing shared with the task pods
+
+
+AUTH_DATA = {"router": {"enabled": True}, "auth": {"enabled": True, "password": "pw"},
+             "pools": [{"name": "pods", "replicas": 1, "kind": "kubernetes", "kubernetes": {}}]}
+
+
+def test_with_auth_the_pods_data_containers_log_in_as_the_pod_user(tmp_path: Path) -> None:
+    """auth.enabled, no workClaim: the worker's init container writes its pods' zenoh config
+    (auth.podUser's password from the auth Secret, never in the pool's ConfigMap), the pool
+    hands it to the pods, and the router knows that user (its rules: tests/hostile)."""
+    rendered = render(AUTH_DATA)
+    workers = rendered.get("StatefulSet", f"{FULLNAME}-worker-pods")
+    init = workers["spec"]["template"]["spec"]["initContainers"][0]
+    assert init["command"][2:] == [
+        "/etc/osmo/zenoh/client.json5", "/etc/osmo/auth/user", "/etc/osmo/auth/password",
+        "/run/osmo/zenoh/client.json5", "/etc/osmo/auth/pod-user",
+        "/etc/osmo/auth/pod-password", "/run/osmo/zenoh/pod.json5"]
+    text = rendered.get("ConfigMap", f"{FULLNAME}-kube-pods")["data"]["pool.json"]
+    (tmp_path / "pool.json").write_text(text)
+    pool = load_pool(tmp_path / "pool.json")
+    assert pool.data_zenoh_config == "/run/osmo/zenoh/pod.json5"
+    acl = json.loads(rendered.get("ConfigMap", f"{FULLNAME}-zenoh")["data"]["router.json5"])[
+        "access_control"]
+    assert {"id": "osmo-pods", "usernames": ["osmo-pod"]} in acl["subjects"]
+    rules = {r["id"]: r for r in acl["rules"]}
+    pods = next(p for p in acl["policies"] if p["id"] == "osmo-pods")
+    assert [(rules[r]["messages"], rules[r]["flows"], rules[r]["key_exprs"])
+            for r in pods["rules"]] == [(["query"], ["ingress"], ["osmo/local/podio/**"]),
+                                        (["reply"], ["egress"], ["osmo/local/podio/**"])]
+    # a pool with a work claim needs no pod user, and the router knows none
+    claimed = render({**AUTH_DATA, "pools": [{**AUTH_DATA["pools"][0],
+                                              "kubernetes": {"workClaim": "work"}}]})
+    plain = json.loads(claimed.get("ConfigMap", f"{FULLNAME}-zenoh")["data"]["router.json5"])
+    assert "osmo-pod" not in json.dumps(plain)
+    assert "pod-user" not in claimed.get("Secret", f"{FULLNAME}-auth")["data"]
+
+
+
+def test_with_tls_alone_the_pods_data_containers_get_the_ca() -> None:
+    rendered = render(tls_values(pools=AUTH_DATA["pools"]))
+    pool = json.loads(rendered.get("ConfigMap", f"{FULLNAME}-kube-pods")["data"]["pool.json"])
+    assert pool["data"]["zenohConfig"] == "/etc/osmo/zenoh/client.json5"
+    client = json.loads(rendered.get("ConfigMap", f"{FULLNAME}-zenoh")["data"]["client.json5"])
+    assert client["transport"]["link"]["tls"] == {
+        "root_ca_certificate": "/etc/osmo/tls/server/ca.crt"}  # what the worker copies

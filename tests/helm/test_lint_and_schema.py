@@ -12,7 +12,7 @@ import json
 import helm_python as helm
 import pytest
 
-from tests.helm.chart import EXAMPLES, lint, load_values, render
+from tests.helm.chart import EXAMPLES, PEM, lint, load_values, render, tls_values
 
 
 def test_lint_is_clean_for_the_defaults() -> None:
@@ -72,6 +72,16 @@ BAD_COMBINATIONS = [
     ({"router": {"enabled": True}, "auth": {"enabled": True, "password": "pw", "serverUser": "osmo"}},
      "auth.serverUser must differ from auth.user"),
     ({"sandbox": {"hostUsers": True}}, "allows procMount Unmasked only with hostUsers false"),
+    # task pods fetching their data log in as auth.podUser: only the router confines it
+    ({"auth": {"enabled": True, "password": "pw"}, "pools": [
+        {"name": "k", "replicas": 1, "kind": "kubernetes", "kubernetes": {}}]},
+     "a kubernetes pool without workClaim needs router.enabled"),
+    ({"router": {"enabled": True}, "auth": {"enabled": True, "password": "pw", "podUser": "osmo"},
+      "pools": [{"name": "k", "replicas": 1, "kind": "kubernetes", "kubernetes": {}}]},
+     "auth.podUser must differ"),
+    ({**tls_values(), "tls": {**tls_values()["tls"], "mtls": True, "client": {"cert": PEM, "key": PEM}},
+      "pools": [{"name": "k", "replicas": 1, "kind": "kubernetes", "kubernetes": {}}]},
+     "tls.mtls with a kubernetes pool without workClaim needs auth.enabled"),
 ]
 
 

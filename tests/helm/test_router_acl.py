@@ -11,39 +11,32 @@ and a rogue peer holding the workers' credentials.
 
 from __future__ import annotations
 
-import base64
-import json
 import threading
 import time
-from collections.abc import Iterator
-from contextlib import ExitStack, contextmanager
+from contextlib import ExitStack
 from pathlib import Path
-from typing import Any
 
 import pytest
 import zenoh
 
-from osmo.config import DEFAULT_CLUSTER, free_port
+from osmo.config import DEFAULT_CLUSTER
 from osmo.transport.wire import PEER_ALLOW, PEER_DENY
-from tests.helm.chart import FULLNAME, container, render
+from tests.helm.chart import (
+    FULLNAME,
+    ROUTER,
+    auth_secret,
+    container,
+    render,
+    router_config,
+    zenoh_login,
+    zenoh_router,
+)
 
-ROUTER = {"router": {"enabled": True}, "auth": {"enabled": True, "password": "pw"}}
 PREFIX = f"osmo/{DEFAULT_CLUSTER}/"
 
 
-def _secret(values: dict[str, Any]) -> dict[str, str]:
-    data = render(values).get("Secret", f"{FULLNAME}-auth")["data"]
-    return {k: base64.b64decode(v).decode() for k, v in data.items()}
-
-
-def _router_config(values: dict[str, Any]) -> dict[str, Any]:
-    files = render(values).get("ConfigMap", f"{FULLNAME}-zenoh")["data"]
-    config: dict[str, Any] = json.loads(files["router.json5"])
-    return config
-
-
 def test_the_router_allows_peers_exactly_the_wire_allow_list() -> None:
-    acl = _router_config(ROUTER)["access_control"]
+    acl = router_config(ROUTER)["access_control"]
     assert acl["enabled"] is True and acl["default_permission"] == "deny"
     rules = {rule["id"]: rule for rule in acl["rules"]}
     policies = {p["id"]: p for p in acl["policies"]}
@@ -64,51 +57,30 @@ def test_the_router_allows_peers_exactly_the_wire_allow_list() -> None:
 
 
 def test_the_server_logs_in_to_the_router_as_its_own_user() -> None:
-    secret = _secret(ROUTER)
+    secret = auth_secret(ROUTER)
     assert secret["server-user"] == "osmo-server"
     assert len(secret["server-password"]) >= 32  # generated
     assert secret["dictionary"].splitlines() == ["osmo:pw", f"osmo-server:{secret['server-password']}"]
-    given = _secret({**ROUTER, "auth": {**ROUTER["auth"], "serverPassword": "sp"}})
+    given = auth_secret({**ROUTER, "auth": {**ROUTER["auth"], "serverPassword": "sp"}})
     assert given["server-password"] == "sp" and "osmo-server:sp" in given["dictionary"]
     out = render(ROUTER)
     init = out.get("StatefulSet", f"{FULLNAME}-server")["spec"]["template"]["spec"]["initContainers"][0]
     assert init["command"][3:5] == ["/etc/osmo/auth/server-user", "/etc/osmo/auth/server-password"]
     # without the router there is no server user: the server is the listener itself
-    assert "server-user" not in _secret({"auth": {"enabled": True, "password": "pw"}})
+    assert "server-user" not in auth_secret({"auth": {"enabled": True, "password": "pw"}})
     assert container(out.get("StatefulSet", f"{FULLNAME}-server"), "server")["args"][:2] == ["server", "run"]
-
-
-@contextmanager
-def _router(config: dict[str, Any], dictionary: str, tmp_path: Path) -> Iterator[str]:
-    port = free_port(0)
-    (tmp_path / "dictionary").write_text(dictionary)
-    config = json.loads(json.dumps(config))
-    config["listen"]["endpoints"] = [f"tcp/127.0.0.1:{port}"]
-    config["transport"]["auth"]["usrpwd"]["dictionary_file"] = str(tmp_path / "dictionary")
-    session = zenoh.open(zenoh.Config.from_json5(json.dumps(config)))
-    try:
-        yield f"tcp/127.0.0.1:{port}"
-    finally:
-        session.close()
-
-
-def _login(endpoint: str, user: str, password: str) -> zenoh.Session:
-    return zenoh.open(zenoh.Config.from_json5(json.dumps({
-        "mode": "client", "connect": {"endpoints": [endpoint]},
-        "scouting": {"multicast": {"enabled": False}},
-        "transport": {"auth": {"usrpwd": {"user": user, "password": password}}}})))
 
 
 @pytest.mark.parametrize("rules", ["rendered", "none"])
 def test_a_peer_with_the_workers_credentials_cannot_speak_as_the_server(
         rules: str, tmp_path: Path) -> None:
     """A forged order and a fake API never reach anyone; without the rules (control) they do."""
-    config, secret = _router_config(ROUTER), _secret(ROUTER)
+    config, secret = router_config(ROUTER), auth_secret(ROUTER)
     if rules == "none":
         del config["access_control"]
-    with ExitStack() as stack, _router(config, secret["dictionary"], tmp_path) as endpoint:
+    with ExitStack() as stack, zenoh_router(config, secret["dictionary"], tmp_path) as endpoint:
         def login(user: str, password: str) -> zenoh.Session:
-            session = _login(endpoint, user, password)
+            session = zenoh_login(endpoint, user, password)
             stack.callback(session.close)
             return session
 

@@ -42,7 +42,8 @@ def pool_config(folder: Path, kube: Path, **extra: Any) -> Path:
 class KubeCluster:
     """The stand-in, an osmo server, and Kubernetes workers (stop with :meth:`stop`)."""
 
-    def __init__(self, root: Path, podman_env: dict[str, str]) -> None:
+    def __init__(self, root: Path, podman_env: dict[str, str], **cluster: Any) -> None:
+        """``cluster``: :class:`tests.e2e.cluster.Cluster`'s keywords (a router of its own)."""
         root.mkdir(parents=True, exist_ok=True)
         self.root = root
         self.server = ApiServer().start()
@@ -50,19 +51,21 @@ class KubeCluster:
         self.kubelet.add_node("node-1", cpu="8", memory="16Gi", gpus=1)
         self.kubeconfig = kubeconfig(self.server.url, root)
         self.osmo_cluster = Cluster(root / "osmo", env={"CONTAINERS_CONF":
-                                                        podman_env["CONTAINERS_CONF"]})
+                                                        podman_env["CONTAINERS_CONF"]}, **cluster)
         self.osmo_cluster.root.mkdir(parents=True, exist_ok=True)
         self.osmo_cluster.start_server()
         self.osmo = self.osmo_cluster.osmo
 
-    def start_worker(self, name: str, *args: str, pool: str = "default", **config: Any) -> None:
+    def start_worker(self, name: str, *args: str, pool: str = "default",
+                     env: dict[str, str] | None = None, **config: Any) -> None:
         """``osmo worker --runtime kubernetes`` named ``name`` serving ``pool`` (``config``:
-        the Kubernetes pool's keys)."""
+        the Kubernetes pool's keys; ``env``: more of the worker's environment)."""
         folder = self.root / f"{name}-config"
         folder.mkdir(exist_ok=True)
         conf = pool_config(folder, self.kubeconfig, **config)
         self.osmo_cluster.start_worker(name, "--runtime", "kubernetes",
-                                       "--kubernetes-config", str(conf), *args, pool=pool)
+                                       "--kubernetes-config", str(conf), *args, pool=pool,
+                                       env=env)
 
     def left(self) -> list[str]:
         """``kind/name`` of every pod, Secret, Service and PodGroup the stand-in holds now."""
@@ -80,9 +83,9 @@ class KubeCluster:
         return left
 
 
-def started(root: Path, podman_env: dict[str, str]) -> Iterator[KubeCluster]:
+def started(root: Path, podman_env: dict[str, str], **options: Any) -> Iterator[KubeCluster]:
     """A :class:`KubeCluster` for a fixture; nothing of podman may be left after it."""
-    cluster = KubeCluster(root, podman_env)
+    cluster = KubeCluster(root, podman_env, **options)
     try:
         yield cluster
     finally:

@@ -1,8 +1,11 @@
 """Write a zenoh client config with the user and password from the auth Secret filled in.
 
-Run by the chart's init container: render-client-config.py SOURCE USER_FILE PASSWORD_FILE DEST.
-SOURCE is the ConfigMap's client.json5 (plain JSON, a subset of JSON5). DEST is written
-owner-only in a memory-backed volume, so the password never lands in a ConfigMap or on disk.
+Run by the chart's init container:
+render-client-config.py SOURCE USER_FILE PASSWORD_FILE DEST [USER_FILE PASSWORD_FILE DEST]...
+SOURCE is the ConfigMap's client.json5 (plain JSON, a subset of JSON5); each DEST gets it with
+the user and password before it (a kubernetes pool's worker also writes its pods' config).
+DEST is written owner-only in a memory-backed volume, so the password never lands in a
+ConfigMap or on disk.
 """
 
 import json
@@ -27,6 +30,8 @@ def main(source: str, user_file: str, password_file: str, dest: str) -> None:
 
 
 if __name__ == "__main__":
-    if len(sys.argv) != 5:
-        sys.exit("usage: render-client-config.py SOURCE USER_FILE PASSWORD_FILE DEST")
-    main(*sys.argv[1:])
+    if len(sys.argv) < 5 or (len(sys.argv) - 2) % 3:
+        sys.exit("usage: render-client-config.py SOURCE USER_FILE PASSWORD_FILE DEST "
+                 "[USER_FILE PASSWORD_FILE DEST]...")
+    for at in range(2, len(sys.argv), 3):
+        main(sys.argv[1], *sys.argv[at:at + 3])

@@ -6,7 +6,10 @@ Names, labels, endpoints and the pieces every osmo pod shares. File paths inside
   /etc/osmo/tls/server the server certificate Secret (ca.crt, tls.crt, tls.key)
   /etc/osmo/tls/client the client certificate Secret (mtls only)
   /etc/osmo/auth       the user/password Secret (user, password, dictionary; with the router
-                       also server-user, server-password)
+                       also server-user, server-password; with data-mode pods pod-user,
+                       pod-password)
+  /run/osmo/zenoh/pod.json5  the client config a kubernetes pool's worker hands its task pods
+                       (auth.podUser; data-mode pools with auth.enabled only)
 */}}
 
 {{- define "osmo.name" -}}
@@ -73,6 +76,14 @@ app.kubernetes.io/instance: {{ .Release.Name }}
 
 {{- define "osmo.tokensSecretName" -}}
 {{- default (printf "%s-tokens" (include "osmo.fullname" .)) .Values.tokens.existingSecret -}}
+{{- end -}}
+
+{{/* Does a pool run task pods that fetch their own data (kind kubernetes without workClaim)?
+"true" or "". With auth.enabled their osmo containers log in as auth.podUser. */}}
+{{- define "osmo.podData" -}}
+{{- range .Values.pools -}}
+{{- if and (eq (toString .kind) "kubernetes") (not (default dict .kubernetes).workClaim) -}}true{{- end -}}
+{{- end -}}
 {{- end -}}
 
 {{/* Does zenoh authenticate every peer (user/password or mutual TLS)? "true" or "". Without
@@ -206,7 +217,8 @@ user/password are filled in at pod start from the auth Secret (see render-client
 {{/* With user/password auth, an init container writes the client config with the credentials
 from the Secret into a memory-backed volume, so the password never sits in a ConfigMap. Args:
 root, image, pullPolicy, server (true: the server's own user, which the router's access
-control lets use the server's keys). */}}
+control lets use the server's keys), pods (true: also pod.json5, with auth.podUser, which the
+worker hands its task pods' data containers). */}}
 {{- define "osmo.clientConfigInitContainer" -}}
 {{- if .root.Values.auth.enabled }}
 - name: zenoh-client-config
@@ -224,6 +236,11 @@ control lets use the server's keys). */}}
     - /etc/osmo/auth/password
     {{- end }}
     - /run/osmo/zenoh/client.json5
+    {{- if .pods }}
+    - /etc/osmo/auth/pod-user
+    - /etc/osmo/auth/pod-password
+    - /run/osmo/zenoh/pod.json5
+    {{- end }}
   securityContext:
     {{- toYaml .root.Values.containerSecurityContext | nindent 4 }}
   resources:
@@ -271,7 +288,8 @@ not 8.589934592e+09), other numbers as they print. */}}
 (auth.user) may use only what osmo.transport.wire PEER_ALLOW lists (minus PEER_DENY), under the
 cluster prefix osmo/local/; the server (auth.serverUser) may use the whole prefix. zenoh
 matches a subject by its authenticated user name; the dictionary holds only auth.user and
-auth.serverUser. This is the second wall: every message is also sealed end to end
+auth.serverUser (and auth.podUser, with data-mode pods: it may only query podio/** and hear
+the replies). This is the second wall: every message is also sealed end to end
 (osmo.transport.seal). */}}
 {{- define "osmo.routerAccessControl" -}}
 {{- $p := "osmo/local/" -}}
@@ -305,6 +323,14 @@ auth.serverUser. This is the second wall: every message is also sealed end to en
 {{- end -}}
 {{- $subjects := list (dict "id" "osmo-peers" "usernames" (list .Values.auth.user)) (dict "id" "osmo-server" "usernames" (list .Values.auth.serverUser)) -}}
 {{- $policies := list (dict "id" "osmo-peers" "subjects" (list "osmo-peers") "rules" $peer) (dict "id" "osmo-server" "subjects" (list "osmo-server") "rules" (list "osmo-egress" "osmo-server-all")) -}}
+{{- if include "osmo.podData" . -}}
+{{- /* the data containers of task pods: ask a worker's pod-data API, hear its answers */ -}}
+{{- $podio := list (printf "%spodio/**" $p) -}}
+{{- $rules = append $rules (dict "id" "osmo-pod-query" "messages" (list "query") "flows" (list "ingress") "permission" "allow" "key_exprs" $podio) -}}
+{{- $rules = append $rules (dict "id" "osmo-pod-reply" "messages" (list "reply") "flows" (list "egress") "permission" "allow" "key_exprs" $podio) -}}
+{{- $subjects = append $subjects (dict "id" "osmo-pods" "usernames" (list .Values.auth.podUser)) -}}
+{{- $policies = append $policies (dict "id" "osmo-pods" "subjects" (list "osmo-pods") "rules" (list "osmo-pod-query" "osmo-pod-reply")) -}}
+{{- end -}}
 {{- dict "enabled" true "default_permission" "deny" "rules" $rules "subjects" $subjects "policies" $policies | toJson -}}
 {{- end -}}
 

@@ -18,14 +18,19 @@ JSON object (the chart writes it from ``values.yaml``)::
      "runAsUser": 1000,
      "imagePullSecrets": ["regcred"],
      "shmSize": "1Gi",                      # /dev/shm of a GPU task
-     "data": {"image": "osmo:0.1.0"},       # pods fetch and send back their own data
+     "data": {"image": "osmo:0.1.0",        # pods fetch and send back their own data
+              "zenohConfig": "/run/osmo/zenoh/pod.json5"},
      "work": {"hostPath": true}}            # or: they see the node's attempt folders
 
 ``data``: each pod gets its data without any volume shared with the node: an init
 container of osmo's image ``image`` fetches its inputs and files into the pod's own
 ``emptyDir`` and a second container sends its output back once the task ended, both over
 zenoh to the node (``osmo.runtime.kubernetes.podio``), dialling ``connect`` (default: the
-endpoints the worker itself dials). It takes precedence over ``work``.
+endpoints the worker itself dials). ``zenohConfig``: a zenoh client config (on the node) with
+what those containers show the router: a user and password of their own, which the router
+should confine to ``podio/**`` (the chart's ``auth.podUser``), and TLS certificates; the
+node hands them to each pod in the attempt's Secret
+(``osmo.transport.zenoh_link.client_credentials``). It takes precedence over ``work``.
 
 ``work``: the node's attempt folders (inputs, files, output) reach the pod through a volume.
 ``{"hostPath": true}`` binds each folder from the node's host: the node and its pods share a
@@ -87,6 +92,7 @@ class KubePool:
         work_mount: where the node has ``work_claim`` mounted.
         data_image: osmo's image for the pods' own data containers (None: ``work``).
         data_connect: the endpoints those containers dial (empty: the worker's own).
+        data_zenoh_config: the zenoh client config they connect with (None: none).
     """
 
     namespace: str = "default"
@@ -106,6 +112,7 @@ class KubePool:
     work_mount: Path | None = None
     data_image: str | None = None
     data_connect: tuple[str, ...] = ()
+    data_zenoh_config: str | None = None
 
 
 def load_pool(path: str | Path | None) -> KubePool:
@@ -150,9 +157,12 @@ def _pool(raw: Any) -> KubePool:
         raise ValueError("work.claim needs work.mount: where the node has it mounted")
     data = raw.get("data")
     if data is not None and not (isinstance(data, dict) and isinstance(data.get("image"), str)
-                                 and data["image"] and set(data) <= {"image", "connect"}
-                                 and isinstance(data.get("connect") or [], list)):
-        raise ValueError('data: {"image": IMAGE} or {"image": IMAGE, "connect": [ENDPOINT]}')
+                                 and data["image"]
+                                 and set(data) <= {"image", "connect", "zenohConfig"}
+                                 and isinstance(data.get("connect") or [], list)
+                                 and isinstance(data.get("zenohConfig") or "", str)):
+        raise ValueError('data: {"image": IMAGE}, optionally with "connect": [ENDPOINT] and '
+                         '"zenohConfig": FILE')
     platforms = raw.get("platforms") or {}
     if not isinstance(platforms, dict):
         raise ValueError("platforms must be an object of platform → placement")
@@ -175,7 +185,8 @@ def _pool(raw: Any) -> KubePool:
         image_pull_secrets=tuple(pulls), shm_size=_str(raw, "shmSize", "1Gi"),
         work_claim=claim, work_mount=Path(work["mount"]) if claim is not None else None,
         data_image=data["image"] if data else None,
-        data_connect=tuple(str(e) for e in (data or {}).get("connect") or ()))
+        data_connect=tuple(str(e) for e in (data or {}).get("connect") or ()),
+        data_zenoh_config=(data or {}).get("zenohConfig") or None)
 
 
 def _str(raw: Mapping[str, Any], key: str, default: str) -> str:

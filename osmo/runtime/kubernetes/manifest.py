@@ -55,6 +55,7 @@ from osmo.runtime.container.run import Mount, RegistryAuth
 from osmo.runtime.kubernetes.config import KubePool, Placement
 
 __all__ = ["COLLECTOR", "CONTAINER", "DataPlan", "FETCHER", "LABEL_ATTEMPT", "TICKETS",
+           "TICKET_DIR", "ZENOH_CONFIG", "ZENOH_KEY",
            "in_volume", "LABEL_GROUP", "LABEL_INSTANCE", "LABEL_LEAD",
            "LABEL_WORKFLOW", "POD_GROUPS", "GroupPlan", "docker_config",
            "ManifestError", "PodPlan", "label_value", "object_name", "plan_labels",
@@ -69,8 +70,13 @@ COLLECTOR = "osmo-collect"
 """The container that sends the task's output back once it ended (``DataPlan``)."""
 TICKETS = {"fetch": "osmo-fetch-ticket", "collect": "osmo-collect-ticket"}
 """Each pod-data role → its ticket's key in the attempt's Secret."""
+ZENOH_KEY = "osmo-zenoh-"
+"""The prefix of the Secret's keys holding what the data containers show the router."""
+ZENOH_CONFIG = "zenoh.json5"
+"""The data containers' zenoh config among ``DataPlan.zenoh_files``."""
+TICKET_DIR = "/var/run/osmo-tickets"
+"""Where osmo's data containers find the Secret's tickets and router credentials."""
 _DATA_ROOT = "/osmo-pod"  # where osmo's containers mount the pod's data volume
-_TICKET_DIR = "/var/run/osmo-tickets"
 
 LABEL_INSTANCE = "osmo.dev/instance"
 LABEL_WORKFLOW = "osmo.dev/workflow"
@@ -105,12 +111,16 @@ class DataPlan:
         connect: the zenoh endpoints they dial (the node's router).
         cluster: the osmo cluster's name (its key prefix).
         node: the node whose pod-data API they speak to.
+        zenoh_files: the files of what they show the router
+            (``osmo.transport.zenoh_link.client_credentials``: its config and certificates),
+            each in the attempt's Secret under :data:`ZENOH_KEY` + its name; empty: none.
     """
 
     image: str
     connect: tuple[str, ...]
     cluster: str
     node: str
+    zenoh_files: tuple[str, ...] = ()
 
 
 def in_volume(target: str) -> str:
@@ -396,9 +406,10 @@ def _data_containers(spec: dict[str, Any], plan: PodPlan, data: DataPlan, secret
         {"name": "osmo-data", "emptyDir": {}},
         {"name": "osmo-tickets", "secret": {
             "secretName": secret, "defaultMode": 0o444,
-            "items": [{"key": key, "path": role} for role, key in TICKETS.items()]}}]
+            "items": [*({"key": key, "path": role} for role, key in TICKETS.items()),
+                      *({"key": ZENOH_KEY + name, "path": name} for name in data.zenoh_files)]}}]
     mounts: list[dict[str, Any]] = [{"name": "osmo-data", "mountPath": _DATA_ROOT},
-                                    {"name": "osmo-tickets", "mountPath": _TICKET_DIR,
+                                    {"name": "osmo-tickets", "mountPath": TICKET_DIR,
                                      "readOnly": True}]
 
     def side(name: str, role: str) -> dict[str, Any]:
@@ -406,7 +417,9 @@ def _data_containers(spec: dict[str, Any], plan: PodPlan, data: DataPlan, secret
         for endpoint in data.connect:
             argv += ["--connect", endpoint]
         argv += ["--cluster", data.cluster, "--node", data.node, "--attempt",
-                 plan.attempt_id, "--ticket", f"{_TICKET_DIR}/{role}", "--root", _DATA_ROOT]
+                 plan.attempt_id, "--ticket", f"{TICKET_DIR}/{role}", "--root", _DATA_ROOT]
+        if ZENOH_CONFIG in data.zenoh_files:
+            argv += ["--zenoh-config", f"{TICKET_DIR}/{ZENOH_CONFIG}"]
         return {"name": name, "image": data.image, "imagePullPolicy": "IfNotPresent",
                 "command": argv, "volumeMounts": [dict(m) for m in mounts],
                 "securityContext": dict(security),

@@ -5,10 +5,13 @@ Run in osmo's own image, beside a task's container, never in it::
     python3 -m osmo.runtime.kubernetes.podside fetch   --connect EP --cluster C --node N \
         --attempt ID --ticket /var/run/osmo/fetch --root /osmo-pod
     python3 -m osmo.runtime.kubernetes.podside collect --connect EP --cluster C --node N \
-        --attempt ID --ticket /var/run/osmo/collect --root /osmo-pod
+        --attempt ID --ticket /var/run/osmo/collect --root /osmo-pod \
+        [--zenoh-config /var/run/osmo/zenoh.json5]
 
 ``--root`` is where the pod's data volume (an ``emptyDir``) is mounted in this container; the
-task's container mounts parts of it at OSMO's layout. Each side trades its one-time ticket
+task's container mounts parts of it at OSMO's layout. ``--zenoh-config`` is what the side
+shows a router that authenticates (its own user, TLS certificates), from the same Secret.
+Each side trades its one-time ticket
 (a file of the attempt's Secret) for a sealed channel to the node
 (``osmo.runtime.kubernetes.podio`` is the node's side):
 
@@ -154,6 +157,7 @@ def _args(argv: Sequence[str] | None) -> argparse.Namespace:
     p.add_argument("--attempt", required=True)
     p.add_argument("--ticket", required=True, help="the file holding this side's ticket")
     p.add_argument("--root", required=True, help="where the pod's data volume is mounted")
+    p.add_argument("--zenoh-config", help="a zenoh client config (the router's user, TLS)")
     p.add_argument("--timeout", type=float, default=30.0)
     return p.parse_args(argv)
 
@@ -165,7 +169,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     api: ApiClient | None = None
     try:
         ticket = Path(args.ticket).read_text().strip()
-        link = Link.client(args.connect, args.cluster)
+        link = Link.client(args.connect, args.cluster, config_file=args.zenoh_config)
         api = ApiClient(link, timeout=args.timeout, token=ticket, root=root_of(args.node))
         root = Path(args.root)
         done = (fetch if args.side == "fetch" else collect)(api, args.attempt, root)

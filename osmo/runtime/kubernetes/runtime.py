@@ -62,7 +62,7 @@ from pathlib import Path
 from typing import IO, Any
 
 from osmo.config import read_json_private, write_json_atomic
-from osmo.errors import OsmoError
+from osmo.errors import OsmoError, UsageError
 from osmo.layout import AttemptDirs
 from osmo.runtime.api import (
     Attempt,
@@ -92,7 +92,10 @@ from osmo.runtime.kubernetes.manifest import (
     LABEL_GROUP,
     LABEL_INSTANCE,
     POD_GROUPS,
+    TICKET_DIR,
     TICKETS,
+    ZENOH_CONFIG,
+    ZENOH_KEY,
     DataPlan,
     GroupPlan,
     PodPlan,
@@ -105,7 +108,7 @@ from osmo.runtime.kubernetes.podio import PodData, scan_mounts
 from osmo.runtime.kubernetes.status import Outcome, Verdict
 from osmo.runtime.process.groups import die_with_parent
 from osmo.scheduler.types import PrepareAttempt
-from osmo.transport.zenoh_link import Link
+from osmo.transport.zenoh_link import Link, client_credentials
 
 __all__ = ["KubeRun", "KubernetesRuntime", "attempt_plan"]
 
@@ -159,19 +162,40 @@ class KubernetesRuntime:
         self._lock = threading.Lock()
         self.pod_data: PodData | None = None
         self._data: DataPlan | None = None
+        self._data_zenoh: dict[str, str] = {}  # Secret key → what the data containers show
 
     def serve_pod_data(self, link: Link, node: str, connect: Sequence[str],
-                       cluster: str) -> None:
+                       cluster: str, *, config_file: str | None = None) -> None:
         """Serve the pods' own data (the pool's ``data``) on ``link`` as node ``node``.
 
-        Its pods dial the pool's ``data.connect``, else ``connect`` (the worker's own).
+        Its pods dial the pool's ``data.connect``, else ``connect`` (the worker's own), with
+        the user and certificates of the pool's ``data.zenohConfig`` (read once, here).
         Without ``data`` in the pool, nothing is served: pods use the work volume.
+
+        Raises:
+            UsageError: ``data.zenohConfig``, or a file it names, cannot be read; or there is
+                none while the pods would dial the worker's own endpoints, which the worker
+                reaches only with a user or TLS (``config_file``): they could not connect.
         """
         if self.pool.data_image is None:
             return
+        if (self.pool.data_zenoh_config is None and not self.pool.data_connect
+                and config_file and json.loads(client_credentials(config_file, "")[0])[
+                    "transport"]):
+            raise UsageError(
+                f"the pool's pods fetch their own data from the router this worker dials "
+                f"with a user or TLS ({config_file}), and would have neither: give the "
+                "pool's data a zenohConfig, a zenoh client config with a user of the pods' "
+                "own that the router confines to podio/** (the chart's auth.podUser), or "
+                "the pool a work volume instead of data")
+        files: dict[str, str] = {}
+        if self.pool.data_zenoh_config is not None:
+            config, files = client_credentials(self.pool.data_zenoh_config, TICKET_DIR)
+            files[ZENOH_CONFIG] = config
+        self._data_zenoh = {ZENOH_KEY + name: text for name, text in files.items()}
         self.pod_data = PodData(link, node)
-        self._data = DataPlan(self.pool.data_image,
-                              tuple(self.pool.data_connect or connect), cluster, node)
+        self._data = DataPlan(self.pool.data_image, tuple(self.pool.data_connect or connect),
+                              cluster, node, zenoh_files=tuple(sorted(files)))
 
     @classmethod
     def for_node(cls, config: str | None, *, instance: str) -> KubernetesRuntime:
@@ -351,6 +375,7 @@ class KubernetesRuntime:
                            pulls_with_secret=registry is not None, data=self._data)
         values = dict(launch.secret_env)
         if own:
+            values.update(self._data_zenoh)
             values.update(self._open_data(plan, launch, dirs.output_partial))
         else:
             self._hand_over(dirs.output_partial, dirs.work if workdir else None)
