@@ -36,6 +36,9 @@ from tests.helm.chart import REPO
 from tests.k8s.podside_image import fetch_and_collect
 
 UID = 10001  # the Dockerfile's OSMO_UID, the chart's podSecurityContext.runAsUser
+# the first test carries the build: 2.5-5 min here (a Debian bootstrap and two stages' downloads),
+# longer at load 8 on 2 cores
+pytestmark = pytest.mark.timeout(1500)
 
 
 def _podman(env: dict[str, str], *args: str, timeout: float = 120
@@ -58,7 +61,8 @@ def chart_image(podman_env: dict[str, str],  # noqa: F811
         bundle = Path(ssl.get_default_verify_paths().openssl_cafile).resolve()
         assert bundle.is_file(), f"the host has no CA bundle at {bundle}"
         (folder / "pip.conf").write_text("[global]\ncert = /etc/osmo-build-ca.crt\n")
-        built = _podman(podman_env, "build", "--network", "host", "--pull=never",
+        # --jobs 2: the runtime stage's apt-get runs beside the builder's pip install
+        built = _podman(podman_env, "build", "--network", "host", "--pull=never", "--jobs", "2",
                         "--layers=false", "-v", f"{folder / 'pip.conf'}:/etc/pip.conf:ro",
                         "-v", f"{bundle}:/etc/osmo-build-ca.crt:ro",
                         "--build-arg", f"PYTHON_IMAGE={base}",
