@@ -9,6 +9,9 @@
 # the runtime stage copies only that virtualenv onto a fresh slim base with the task sandbox
 # (bubblewrap, slirp4netns) and runs as an unprivileged user (uid 10001), so no compiler, pip cache or
 # source tree ships in the image.
+#
+# tests/helm/test_dockerfile_build.py builds this file as it is, with podman, on a local stand-in
+# for python:3.12-slim (--build-arg PYTHON_IMAGE=...), and runs the image as the chart does.
 
 ARG PYTHON_IMAGE=python:3.12-slim
 

@@ -1,4 +1,4 @@
-"""The Dockerfile's shape, checked without a Docker engine (none runs in CI or here).
+"""The Dockerfile's shape, checked by reading it (``test_dockerfile_build.py`` builds it).
 
 A small parser reads instructions (comments dropped, ``\\`` continuations joined) into stages,
 then the tests check what the chart relies on: a builder and a slim Python 3.12 runtime stage,
