@@ -163,7 +163,7 @@ class Kubelet:
             thread.join(timeout=60)
         for pod in left:
             self.podman.remove(pod.podman)
-        self._sweep()
+        self.sweep()
         leftovers = self.podman.leftovers()
         if self._tmp is not None:
             self._tmp.cleanup()
@@ -238,11 +238,13 @@ class Kubelet:
     # ------------------------------------------------------------------ scheduling
 
     def _schedule(self) -> None:
-        pods, _ = self.store.list(st.PODS)
-        nodes, _ = self.store.list(st.NODES)
         with self._lock:
             mine = {uid: p for uid, p in self._pods.items()
                     if p.stage == "pending" and p.script is None}
+        if not mine:
+            return  # an empty queue: nothing to list (every pod's end would list them all)
+        pods, _ = self.store.list(st.PODS)
+        nodes, _ = self.store.list(st.NODES)
         live = [p for p in pods if "deletionTimestamp" not in p["metadata"]]
         bound = [p for p in live if p["spec"].get("nodeName")
                  and p.get("status", {}).get("phase") not in ("Succeeded", "Failed")]
@@ -602,12 +604,12 @@ class Kubelet:
     def _collect_garbage(self) -> None:
         while not self._closed.wait(GC_PERIOD):
             try:
-                self._sweep()
+                self.sweep()
             except Exception as exc:  # noqa: BLE001 - the collector must outlive one failure
                 print(f"k8s stand-in gc: {exc!r}")
 
-    def _sweep(self) -> None:
-        """Remove every garbage pod from podman (one ``podman pod rm``)."""
+    def sweep(self) -> None:
+        """Remove every deleted pod from podman now (one ``podman pod rm``)."""
         with self._gc_lock:
             with self._lock:
                 batch, self._garbage = sorted(self._garbage), set()
