@@ -14,8 +14,11 @@ the offline busybox image). Rows:
 - **k8s: API writes per attempt** — writes the stand-in counted (create, delete, ...)
   divided by the attempts; target 3 (pod, Secret, delete).
 
-N is 1 and 100 (1 and 5 with ``OSMO_BENCH_QUICK=1``). Needs root, podman and its offline test
-images (built on first use): otherwise the script writes no rows.
+N is 1 and 100 (1 and 5 with ``OSMO_BENCH_QUICK=1``). The limit's runs and the measured ones
+alternate, so that what other work loads the machine meanwhile falls on both alike; before
+each, the previous run's pods are gone (the stand-in's garbage swept, bare pods removed).
+Needs root, podman and its offline test images (built on first use): otherwise the script
+writes no rows.
 
 Usage: python bench/bench_k8s.py [--runs 3] [--tasks 100] [--json out.json]
 """
@@ -53,6 +56,18 @@ def submit(client: object, n: int, image: str | None = "alpine:3.18") -> float:
     return time.monotonic() - start
 
 
+def settle(cluster: object) -> None:
+    """Wait until the last run's pods left the API and podman (so the next run is alone)."""
+    from tests.k8s import store as st
+    from tests.k8s.nodes import KubeCluster
+
+    assert isinstance(cluster, KubeCluster)
+    deadline = time.monotonic() + 120
+    while cluster.server.store.list(st.PODS)[0] and time.monotonic() < deadline:
+        time.sleep(0.1)
+    cluster.kubelet.sweep()
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--runs", type=int, default=1 if quick() else 3)
@@ -86,12 +101,15 @@ def main() -> int:
                                                for _ in range(args.runs)],
                             higher_is_better=False, notes="osmo's own cost on this worker"))
             for n in (1, args.tasks):
-                bare = [bare_play(n, env, folder) for _ in range(args.runs)]
+                before = sum(cluster.server.writes.values())
+                bare, took = [], []
+                for _ in range(args.runs):  # in turn: other load falls on both alike
+                    bare.append(bare_play(n, env, folder))
+                    took.append(submit(client, n))
+                    settle(cluster)
                 limit = row(f"limit: podman kube play of the same pod, {n}", "s", bare,
                             higher_is_better=False)
                 rows.append(limit)
-                before = sum(cluster.server.writes.values())
-                took = [submit(client, n) for _ in range(args.runs)]
                 rows.append(row(f"k8s: {n} tasks as pods, submit → COMPLETED", "s", took,
                                 higher_is_better=False, limit_of=limit["name"],
                                 target=1.2 * statistics.median(bare)))

@@ -168,6 +168,7 @@ def invalid(res: Resource, name: str, causes: list[Cause]) -> ApiError:
 
 class _Server(ThreadingHTTPServer):
     daemon_threads = True
+    request_queue_size = 1024  # a real API server's listen backlog is the system's maximum
 
     def __init__(self, api: ApiServer) -> None:
         self.api = api

@@ -8,19 +8,26 @@ It follows the store's events (never HTTP) and acts as the control plane and the
   a PodGroup appears, or a gang member arrives.
 - **Running**: a bound pod's Secrets are resolved (a missing one keeps it waiting, reason
   CreateContainerConfigError for env or ContainerCreating for a volume, until it appears),
-  then it is played with ``podman kube play`` (``podman_pods.py``). One poller follows every
-  container (``podman inspect``) and publishes the pod's status: phase, initContainerStatuses,
+  then it is played with ``podman kube play`` (``podman_pods.py``). One observer looks at a
+  pod's containers (``podman inspect``, one call for all the pods that changed) when podman's
+  event stream says one of them started, died or was OOM-killed, or when its play ended, and
+  every :data:`RELIST` seconds at all of them (as the kubelet's PLEG relists), and publishes
+  the pod's status: phase, initContainerStatuses,
   containerStatuses (waiting/running/terminated with exitCode and reason Completed, Error or
   OOMKilled), conditions, podIP and hostIP (both 127.0.0.1: pods share the host's
   network). An image that cannot be pulled shows ErrImagePull with podman's message, then
   ImagePullBackOff (the pull is not retried). Native sidecars are stopped once the regular
   containers have exited.
 - **Deletion**: a graceful delete stops the pod (SIGTERM, SIGKILL after the grace),
-  publishes the containers' last states, removes it from podman, then from the API; a forced
-  or immediate delete removes it from podman afterwards.
+  publishes the containers' last states, then removes it from the API; a forced or
+  immediate delete removes it from the API at once. What podman keeps of a deleted pod is
+  garbage, removed every :data:`GC_PERIOD` seconds in one ``podman pod rm`` (as the
+  kubelet's housekeeping removes dead pods' containers and sandboxes), or at once when a
+  new pod needs its name.
 - **Exec**: ``pods/exec`` runs ``podman exec -i`` in the running container.
-- **Logs**: ``pods/log`` reads ``podman logs`` (``--follow`` streams until the container
-  exits); a container that has not started is a 400 "is waiting to start".
+- **Logs**: ``pods/log`` reads the container's log file (CRI format, podman's ``k8s-file``
+  driver; ``follow`` streams until the container exited), as the kubelet does; a container
+  that has not started is a 400 "is waiting to start".
 - **Status scripts** (``scripts.py``): a pod whose name has a script registered plays it
   instead of podman.
 
@@ -42,7 +49,13 @@ from typing import Any
 from tests.k8s import scheduling
 from tests.k8s import store as st
 from tests.k8s.apiserver import ApiServer
-from tests.k8s.podman_pods import PULL_FAILURES, ContainerState, MissingSecret, PodmanPods
+from tests.k8s.podman_pods import (
+    PULL_FAILURES,
+    ContainerState,
+    MissingSecret,
+    PodmanPods,
+    read_log,
+)
 from tests.k8s.podman_pods import translate as to_podman
 from tests.k8s.scripts import Script
 from tests.k8s.store import ApiError, Event, Obj
@@ -50,7 +63,8 @@ from tests.k8s.validation import decode_secret_data
 
 __all__ = ["Kubelet"]
 
-POLL = 0.3  # seconds between two looks at the containers of running pods
+RELIST = 5.0  # seconds between two looks at every running pod's containers (events between)
+GC_PERIOD = 2.0  # seconds between two removals of deleted pods from podman
 BACKOFF = 1.0  # seconds from ErrImagePull to ImagePullBackOff
 PLAY_WAIT = 30.0  # seconds a deleted pod's play may take to end before it is killed
 HOST_IP = "127.0.0.1"  # every pod shares the host's network (podman_pods.py says why)
@@ -102,11 +116,18 @@ class Kubelet:
         self._work: queue.Queue[Event | str | None] = queue.Queue()
         self._closed = threading.Event()
         self._threads: list[threading.Thread] = []
+        self._containers: dict[str, str] = {}  # podman container name → its pod's uid
+        self._changed: set[str] = set()  # uids whose containers podman said changed
+        self._wake = threading.Event()  # set when _changed grew
+        self._garbage: set[str] = set()  # podman pods of deleted pods, not yet removed
+        self._gc_lock = threading.Lock()  # held while garbage is removed
         api.log_source = self
         api.exec_source = self
         self.store.listen(self._work.put)
+        self._podman_events = self.podman.events(self._container_changed)
         self._spawn(self._control, "k8s-kubelet")
         self._spawn(self._poll, "k8s-poller")
+        self._spawn(self._collect_garbage, "k8s-gc")
 
     # ------------------------------------------------------------------ public
 
@@ -125,9 +146,13 @@ class Kubelet:
         (pods, containers): both empty when all went well."""
         self._closed.set()
         self._work.put(None)
-        control, poller = self._threads[:2]
+        self._wake.set()
+        control, poller, collector = self._threads[:3]
         control.join(timeout=60)  # no new work after this
         poller.join(timeout=60)
+        collector.join(timeout=60)
+        self._podman_events.terminate()
+        self._podman_events.wait()
         with self._lock:
             left = [p for p in self._pods.values() if p.script is None]
             for pod in left:
@@ -138,6 +163,7 @@ class Kubelet:
             thread.join(timeout=60)
         for pod in left:
             self.podman.remove(pod.podman)
+        self.sweep()
         leftovers = self.podman.leftovers()
         if self._tmp is not None:
             self._tmp.cleanup()
@@ -154,9 +180,9 @@ class Kubelet:
     def _spawn(self, target: Any, name: str, *args: Any) -> None:
         thread = threading.Thread(target=target, args=args, name=name, daemon=True)
         thread.start()
-        with self._lock:  # the first two (control, poller) stay: close() joins them first
-            self._threads = self._threads[:2] + [
-                t for t in self._threads[2:] if t.is_alive()] + [thread]
+        with self._lock:  # the first three (control, poller, gc) stay: close() joins them first
+            self._threads = self._threads[:3] + [
+                t for t in self._threads[3:] if t.is_alive()] + [thread]
 
     def _control(self) -> None:
         """Handle the store's events one at a time (the listener only queues them)."""
@@ -212,11 +238,13 @@ class Kubelet:
     # ------------------------------------------------------------------ scheduling
 
     def _schedule(self) -> None:
-        pods, _ = self.store.list(st.PODS)
-        nodes, _ = self.store.list(st.NODES)
         with self._lock:
             mine = {uid: p for uid, p in self._pods.items()
                     if p.stage == "pending" and p.script is None}
+        if not mine:
+            return  # an empty queue: nothing to list (every pod's end would list them all)
+        pods, _ = self.store.list(st.PODS)
+        nodes, _ = self.store.list(st.NODES)
         live = [p for p in pods if "deletionTimestamp" not in p["metadata"]]
         bound = [p for p in live if p["spec"].get("nodeName")
                  and p.get("status", {}).get("phase") not in ("Succeeded", "Failed")]
@@ -280,8 +308,11 @@ class Kubelet:
                                else "ContainerCreating", str(missing))
             self._publish(pod)
             return
+        self._reclaim(pod.podman)
         path = self.podman.write(pod.podman, manifest)
         with self._lock:
+            for container in self.podman.played[pod.podman]:
+                self._containers[f"{pod.podman}-{container}"] = pod.uid
             pod.stage, pod.waiting, pod.sidecars = "playing", None, sidecars
             pod.limited = {c["name"] for c in obj["spec"]["containers"]
                            + obj["spec"].get("initContainers", [])
@@ -298,12 +329,13 @@ class Kubelet:
             with self._lock:
                 stage = pod.stage
             if stage == "gone":
-                self.podman.remove(pod.podman)  # its init containers may have come after
+                self._discard(pod)  # its init containers may have come after
             with self._lock:
                 if pod.stage != "playing":
                     return  # deleted meanwhile
                 if failed:
                     pod.stage = "running"  # the poller publishes the failed init container
+                    self._look_at(pod.uid)
                     return
                 self.podman.make_sub_paths(manifest)
                 pod.play = self.podman.play(path)
@@ -315,10 +347,11 @@ class Kubelet:
             if pod.stage != "playing" and not gone:
                 return  # being deleted: _terminate removes it
         if gone:  # it left the API while being played: what the play made goes too
-            self.podman.remove(pod.podman)
+            self._discard(pod)
             return
         with self._lock:
             pod.stage = "running"
+            self._look_at(pod.uid)  # its containers run now (or ran)
             if failed and "init container" not in err:
                 pull = any(marker in err for marker in PULL_FAILURES)
                 message = " ".join(line for line in err.strip().splitlines()
@@ -343,11 +376,31 @@ class Kubelet:
             pod.waiting = ("ImagePullBackOff", f'Back-off pulling image "{image}"')
         self._publish(pod)
 
+    def _container_changed(self, name: str) -> None:
+        """podman's events: container ``name`` started, died or was OOM-killed."""
+        with self._lock:
+            uid = self._containers.get(name)
+            if uid is not None:
+                self._look_at(uid)
+
+    def _look_at(self, uid: str) -> None:
+        """Have the poller look at this pod's containers soon (the lock is held)."""
+        self._changed.add(uid)
+        self._wake.set()
+
     def _poll(self) -> None:
-        """Look at every container of this node's pods; publish what changed."""
-        while not self._closed.wait(POLL):
+        """Look at the containers of the pods that changed (all, every RELIST seconds);
+        publish what changed."""
+        while not self._closed.is_set():
+            told = self._wake.wait(RELIST)
+            if self._closed.is_set():
+                return
+            self._wake.clear()
             with self._lock:
-                active = [p for p in self._pods.values() if p.stage in ("playing", "running")]
+                uids = self._changed if told else set(self._pods)
+                self._changed = set()
+                active = [p for uid, p in self._pods.items()
+                          if uid in uids and p.stage in ("playing", "running")]
             if not active:
                 continue
             try:
@@ -511,7 +564,7 @@ class Kubelet:
             with self._lock:
                 pod.seen = {**pod.seen, **seen}
             self._publish(pod)
-            self.podman.remove(pod.podman)
+            self._discard(pod)
         else:
             def change(obj: Obj) -> None:
                 for status in obj.get("status", {}).get("containerStatuses") or []:
@@ -531,7 +584,7 @@ class Kubelet:
             # its play ends first (killing it half-way can leave a pod no removal saw)
             self._spawn(self._remove_after_play, f"k8s-remove-{pod.name}", pod, play)
         elif pod.script is None and was not in ("deleting", "pending"):
-            self._spawn(self.podman.remove, f"k8s-remove-{pod.name}", pod.podman)
+            self._discard(pod)
 
     def _remove_after_play(self, pod: _Pod, play: Any) -> None:
         try:
@@ -539,7 +592,37 @@ class Kubelet:
         except subprocess.TimeoutExpired:
             play.kill()
             play.wait()
-        self.podman.remove(pod.podman)
+        self._discard(pod)
+
+    def _discard(self, pod: _Pod) -> None:
+        """What podman has of a deleted pod is garbage: the next sweep removes it."""
+        with self._lock:
+            self._garbage.add(pod.podman)
+            for container in self.podman.played.get(pod.podman, []):
+                self._containers.pop(f"{pod.podman}-{container}", None)
+
+    def _collect_garbage(self) -> None:
+        while not self._closed.wait(GC_PERIOD):
+            try:
+                self.sweep()
+            except Exception as exc:  # noqa: BLE001 - the collector must outlive one failure
+                print(f"k8s stand-in gc: {exc!r}")
+
+    def sweep(self) -> None:
+        """Remove every deleted pod from podman now (one ``podman pod rm``)."""
+        with self._gc_lock:
+            with self._lock:
+                batch, self._garbage = sorted(self._garbage), set()
+            self.podman.remove_many(batch)
+
+    def _reclaim(self, podman_name: str) -> None:
+        """A new pod takes the name of a deleted one: that one goes from podman first."""
+        with self._gc_lock:
+            with self._lock:
+                if podman_name not in self._garbage:
+                    return
+                self._garbage.discard(podman_name)
+            self.podman.remove_many([podman_name])
 
     # ------------------------------------------------------------------ scripts
 
@@ -570,8 +653,18 @@ class Kubelet:
             reason = waiting[0] if waiting else "ContainerCreating"
             raise ApiError(400, "BadRequest", f'container "{container}" in pod '
                            f'"{pod["metadata"]["name"]}" is waiting to start: {reason}')
-        yield from self.podman.logs(f"{known.podman}-{container}", follow=follow, tail=tail,
-                                    timestamps=timestamps)
+        if not seen.log_path:  # another log driver than k8s-file: podman reads it
+            yield from self.podman.logs(f"{known.podman}-{container}", follow=follow,
+                                        tail=tail, timestamps=timestamps)
+            return
+        yield from read_log(seen.log_path, follow=follow, tail=tail, timestamps=timestamps,
+                            ended=lambda: self._over(known, container))
+
+    def _over(self, pod: _Pod, container: str) -> bool:
+        """Whether a container's log can grow no more (it ended, or its pod went)."""
+        with self._lock:
+            seen = pod.seen.get(container)
+            return pod.stage in ("gone", "done") or (seen is not None and seen.ended)
 
 
     def pod_exec(self, pod: Obj, container: str, command: list[str], *,

@@ -44,6 +44,14 @@ The only module of the stand-in that runs podman. What podman 4.3 needs, found b
 - **Exits.** ``podman inspect`` by name gives states, exit codes and ``OOMKilled``,
   which podman does not set on hybrid cgroups (these machines), so an exit of
   137 of a container with a memory limit that the node did not stop counts as OOMKilled.
+  When to look is told by one ``podman events`` stream filtered by the node's label
+  (:meth:`PodmanPods.events`): a container's start, death or OOM, as the kubelet's evented
+  PLEG learns them from the runtime, rather than a ``podman inspect`` every round.
+- **Logs.** podman's ``k8s-file`` log driver (the default here) writes the CRI log format a
+  kubelet reads (``TIME STREAM P|F TEXT`` lines, in the file ``HostConfig.LogConfig.Path``
+  names): :func:`read_log` serves them from that file as the kubelet does, with no process
+  per read; ``podman logs`` only for another driver.
+- **Removal** of many pods is one ``podman pod rm`` (:meth:`PodmanPods.remove_many`).
 """
 
 from __future__ import annotations
@@ -53,13 +61,14 @@ import json
 import os
 import shutil
 import subprocess
+import threading
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-__all__ = ["LABEL", "ContainerState", "MissingSecret", "PodmanPods", "translate"]
+__all__ = ["LABEL", "ContainerState", "MissingSecret", "PodmanPods", "read_log", "translate"]
 
 LABEL = "osmo.k8s-standin"
 INIT_TYPE = "io.podman.annotations.init.container.type"
@@ -68,6 +77,8 @@ DROPPED_SPEC = ("nodeName", "nodeSelector", "tolerations", "affinity", "schedule
                 "serviceAccountName", "serviceAccount", "automountServiceAccountToken",
                 "topologySpreadConstraints", "schedulingGates", "enableServiceLinks",
                 "runtimeClassName", "overhead", "readinessGates")
+EVENTS = frozenset({"start", "died", "oom"})  # container events that change what a pod shows
+LOG_WAIT = 0.1  # seconds between two reads of a followed log that had nothing new
 PULL_FAILURES = ("Trying to pull", "initializing source", "pinging container registry",
                  "manifest unknown", "unable to pull", "image not known", "name unknown",
                  "requested access to the resource is denied")
@@ -88,6 +99,7 @@ class ContainerState:
     oom_killed: bool
     container_id: str
     image_id: str
+    log_path: str = ""  # its CRI-format log file (podman's k8s-file driver), if it has one
 
     @property
     def ended(self) -> bool:
@@ -268,6 +280,7 @@ class PodmanPods:
         self.prefix = prefix
         self.folder = folder
         self.played: dict[str, list[str]] = {}  # podman pod → its containers, ever played
+        self.run_alone: set[str] = set()  # podman pods whose init containers run_inits runs
 
     def podman_name(self, namespace: str, name: str) -> str:
         """The podman pod name for a Kubernetes pod."""
@@ -284,6 +297,8 @@ class PodmanPods:
         spec = manifest["spec"]
         self.played[podman_name] = [c["name"] for c in spec.get("initContainers", [])
                                     + spec.get("osmo-standin-inits", []) + spec["containers"]]
+        if spec.get("osmo-standin-inits"):
+            self.run_alone.add(podman_name)
         played = {**manifest, "spec": {k: v for k, v in spec.items()
                                        if not k.startswith("osmo-standin-")}}
         path.write_text(json.dumps(played))
@@ -318,8 +333,30 @@ class PodmanPods:
             out.setdefault(pod, {})[name] = ContainerState(
                 name, state.get("Status", ""), int(state.get("ExitCode") or 0),
                 _seconds(state.get("StartedAt")), _seconds(state.get("FinishedAt")),
-                bool(state.get("OOMKilled")), entry.get("Id", ""), entry.get("Image", ""))
+                bool(state.get("OOMKilled")), entry.get("Id", ""), entry.get("Image", ""),
+                _log_file(entry))
         return out
+
+    def events(self, seen: Callable[[str], None]) -> subprocess.Popen[str]:
+        """Start ``podman events`` for this node's containers; a thread calls ``seen`` with
+        the container's name for each start, death or OOM. The caller ends it
+        (``terminate`` and ``wait`` on what this returns)."""
+        proc = subprocess.Popen(["podman", "events", "--format", "json", "--filter",
+                                 f"label={LABEL}={self.prefix}"], stdout=subprocess.PIPE,
+                                stderr=subprocess.DEVNULL, text=True, env=self.env)
+
+        def read() -> None:
+            assert proc.stdout is not None
+            for line in proc.stdout:
+                try:
+                    event = json.loads(line)
+                except ValueError:
+                    continue
+                if event.get("Type") == "container" and event.get("Status") in EVENTS:
+                    seen(str(event.get("Name", "")))
+            proc.stdout.close()
+        threading.Thread(target=read, name="k8s-podman-events", daemon=True).start()
+        return proc
 
     @staticmethod
     def make_sub_paths(manifest: Obj) -> None:
@@ -388,9 +425,27 @@ class PodmanPods:
         shutil.rmtree(self.folder / podman_name, ignore_errors=True)
         (self.folder / f"{podman_name}.json").unlink(missing_ok=True)
 
+    def remove_many(self, podman_names: Sequence[str]) -> None:
+        """Remove several pods at once (one ``podman pod rm``), each alone if that fails."""
+        if not podman_names:
+            return
+        done = self.run("pod", "rm", "-f", "--ignore", "-t", "0", *podman_names)
+        if done.returncode != 0:
+            for name in podman_names:
+                self.remove(name)
+            return
+        standalone = [f"{pod}-{c}" for pod in podman_names for c in self.played.get(pod, [])
+                      if pod in self.run_alone]
+        if standalone:  # run_inits' containers are not the pod's: they go on their own
+            self.run("rm", "-f", "--ignore", *standalone)
+        for name in podman_names:
+            shutil.rmtree(self.folder / name, ignore_errors=True)
+            (self.folder / f"{name}.json").unlink(missing_ok=True)
+
     def logs(self, container: str, *, follow: bool, tail: int | None,
              timestamps: bool) -> Iterator[bytes]:
-        """The output of a container (stdout and stderr together), streamed."""
+        """The output of a container (stdout and stderr together) by ``podman logs``, for a
+        log driver whose file :func:`read_log` cannot read."""
         args = ["podman", "logs"]
         if follow:
             args.append("--follow")
@@ -426,6 +481,63 @@ class PodmanPods:
         states = self.states(self.played)
         containers = [f"{pod}-{name}" for pod, names in states.items() for name in names]
         return sorted(set(found) | set(left)), sorted(containers)
+
+
+def read_log(path: str, *, follow: bool, tail: int | None, timestamps: bool,
+             ended: Callable[[], bool]) -> Iterator[bytes]:
+    """A container's output from its CRI-format log file, as the kubelet serves it.
+
+    Each ``TIME STREAM TAG TEXT`` line gives its text, with a newline unless its tag is
+    ``P`` (a partial line), prefixed with its time when ``timestamps``. ``tail``: only the
+    last lines. ``follow``: more as it comes, until ``ended()`` and the file has no more.
+    """
+    try:
+        handle = open(path, "rb")  # noqa: SIM115 - held across the generator's yields
+    except FileNotFoundError:
+        return
+    with handle:
+        pending = b""
+        lines = handle.read().splitlines(keepends=True)
+        if lines and not lines[-1].endswith(b"\n"):
+            pending = lines.pop()
+        if tail is not None:
+            lines = lines[-tail:] if tail > 0 else []
+        out = b"".join(_cri_text(line, timestamps) for line in lines)
+        if out:
+            yield out
+        while follow:
+            over = ended()  # asked before the read: what was written before its end is read
+            more = handle.read()
+            if more:
+                lines = (pending + more).splitlines(keepends=True)
+                pending = lines.pop() if not lines[-1].endswith(b"\n") else b""
+                out = b"".join(_cri_text(line, timestamps) for line in lines)
+                if out:
+                    yield out
+            elif over:
+                return
+            else:
+                time.sleep(LOG_WAIT)
+
+
+def _cri_text(line: bytes, timestamps: bool) -> bytes:
+    """The text of one CRI log line (``TIME STREAM TAG TEXT``)."""
+    parts = line.rstrip(b"\n").split(b" ", 3)
+    if len(parts) < 3:
+        return b""
+    text = parts[3] if len(parts) == 4 else b""
+    if parts[2] != b"P":
+        text += b"\n"
+    if timestamps:
+        stamp = parts[0].replace(b"+00:00", b"Z")
+        text = stamp + b" " + text
+    return text
+
+
+def _log_file(entry: Mapping[str, Any]) -> str:
+    """The k8s-file log path ``podman inspect`` gave, "" for another log driver."""
+    config = (entry.get("HostConfig") or {}).get("LogConfig") or {}
+    return str(config.get("Path") or "") if config.get("Type") == "k8s-file" else ""
 
 
 def _seconds(stamp: str | None) -> str:

@@ -16,6 +16,7 @@ from osmo.runtime.kubernetes.config import KubePool
 from osmo.runtime.kubernetes.follow import PodFollower
 from osmo.runtime.kubernetes.kube import Kube
 from osmo.runtime.kubernetes.manifest import PodPlan, pod_manifest, secret_manifest
+from osmo.runtime.kubernetes.podwatch import PodWatch
 from osmo.runtime.kubernetes.status import Outcome, Verdict
 from tests.k8s import scripts
 from tests.k8s.conftest import Cluster
@@ -34,7 +35,7 @@ class Run:
     """A follower of one pod, its log and notes."""
 
     def __init__(self, api: Cluster, plan: PodPlan, secret: dict[str, str] | None = None,
-                 silence: int = 20) -> None:
+                 silence: int = 20, watch: PodWatch | None = None) -> None:
         self.out, self.notes, self.stop = io.BytesIO(), [], threading.Event()
         self.waits: list[str] = []
         self.name = plan.name
@@ -42,14 +43,15 @@ class Run:
         owned = secret_manifest(plan, secret, POOL, owner_uid="") if secret else None
         self.follower = PodFollower(Kube(api.client), body, owned, out=self.out,
                                     note=self.notes.append, stop=self.stop, silence=silence,
-                                    waiting=self.waits.append)
+                                    waiting=self.waits.append, watch=watch)
 
     def run(self) -> Verdict:
         return self.follower.run()
 
 
-def scripted(api: Cluster, script: Script, task: str = "scripted", silence: int = 20) -> Run:
-    made = Run(api, plan(task), silence=silence)
+def scripted(api: Cluster, script: Script, task: str = "scripted", silence: int = 20,
+             watch: PodWatch | None = None) -> Run:
+    made = Run(api, plan(task), silence=silence, watch=watch)
     api.kubelet.script(made.name, script)
     return made
 
@@ -84,6 +86,25 @@ def test_unschedulable_is_said_once_then_cleared_and_the_log_arrives(api: Cluste
 def test_a_silent_watch_is_replaced(api: Cluster) -> None:
     run = scripted(api, SCRIPTS["watch-stalls"], silence=1)
     assert run.run().exit_code == 0
+
+
+def test_followers_share_one_watch_of_the_nodes_pods(api: Cluster) -> None:
+    shared = PodWatch(Kube(api.client), "default", labels="osmo.dev/instance=test")
+    runs = [scripted(api, SCRIPTS["unschedulable-running-succeeded"], task=f"t{i}",
+                     watch=shared) for i in range(3)]
+    runs.append(scripted(api, SCRIPTS["evicted"], task="lost", watch=shared))
+    done: dict[str, Verdict] = {}
+    threads = [threading.Thread(target=lambda r=r: done.update({r.name: r.run()}))
+               for r in runs]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(60)
+    assert [(done[r.name].outcome, done[r.name].exit_code) for r in runs] == [
+        (Outcome.EXITED, 0)] * 3 + [(Outcome.LOST, None)], done
+    assert all(r.out.getvalue() == b"hello from a script\n" for r in runs[:3])
+    assert api.server.calls[("watch", "pods")] == 1  # not one per pod
+    assert api.core.list_namespaced_pod("default").items == []
 
 
 def test_a_watch_too_old_lists_again(api: Cluster) -> None:

@@ -25,6 +25,7 @@ from kubernetes.client.rest import ApiException
 
 from tests.k8s import scripts
 from tests.k8s.conftest import Cluster
+from tests.k8s.podman_pods import read_log
 from tests.k8s.scripts import SCRIPTS, Script
 
 NS = "default"
@@ -620,3 +621,44 @@ def test_init_failures_and_native_sidecars(api: Cluster, images: dict[str, str])
     assert api.core.read_namespaced_pod_log("sidecar", NS, container="main") == "main-done\n"
     for name in ("broken", "sidecar"):
         api.core.delete_namespaced_pod(name, NS)
+
+
+def test_a_deleted_pods_name_is_free_again_at_once(api: Cluster, images: dict[str, str]) -> None:
+    # podman keeps a deleted pod until the node's next sweep: a new pod of that name must
+    # not wait for it, nor fail on podman's name being taken
+    for round_ in ("first", "second"):
+        since = version(api)
+        api.core.create_namespaced_pod(NS, pod("again", f"echo {round_}"))
+        events = watch_pod(api, "again", since, phase_is("Succeeded", "Failed"))
+        assert events[-1]["object"].status.phase == "Succeeded", [summary(e) for e in events]
+        assert api.core.read_namespaced_pod_log("again", NS) == f"{round_}\n"
+        since = events[-1]["object"].metadata.resource_version
+        api.core.delete_namespaced_pod("again", NS, grace_period_seconds=0)
+        assert watch_pod(api, "again", since, deleted)[-1]["type"] == "DELETED"
+
+
+def test_a_cri_log_file_is_served_as_the_kubelet_serves_it(tmp_path: Path) -> None:
+    log = tmp_path / "ctr.log"
+    log.write_bytes(b"2026-11-27T19:58:13.128436922+00:00 stdout F one\n"
+                    b"2026-11-27T19:58:13.2+00:00 stderr P tw\n"
+                    b"2026-11-27T19:58:13.3+00:00 stdout F o\n"
+                    b"2026-11-27T19:58:13.4+00:00 stdout F \n"
+                    b"2026-11-27T19:58:13.5+00:00 stdout F thr")  # still being written
+
+    def read(**how: Any) -> bytes:
+        return b"".join(read_log(str(log), ended=lambda: True, **how))
+    assert read(follow=False, tail=None, timestamps=False) == b"one\ntwo\n\n"
+    assert read(follow=False, tail=1, timestamps=False) == b"\n"
+    assert read(follow=False, tail=0, timestamps=False) == b""
+    assert read(follow=False, tail=1, timestamps=True) == b"2026-11-27T19:58:13.4Z \n"
+    over = threading.Event()
+    lines = read_log(str(log), follow=True, tail=None, timestamps=False, ended=over.is_set)
+    assert next(lines) == b"one\ntwo\n\n"
+    with log.open("ab") as more:
+        more.write(b"ee\n2026-11-27T19:58:13.6+00:00 stdout F four\n")
+    over.set()
+    assert b"".join(lines) == b"three\nfour\n"
+    assert read(follow=True, tail=None, timestamps=False) == b"one\ntwo\n\nthree\nfour\n"
+    assert read(follow=False, tail=None, timestamps=False) == b"one\ntwo\n\nthree\nfour\n"
+    assert b"".join(read_log(str(tmp_path / "none"), follow=True, tail=None,
+                             timestamps=False, ended=lambda: True)) == b""

@@ -7,9 +7,12 @@
    pod). API writes per attempt: pod, Secret (only with credentials), delete. A Secret that
    also holds the image's registry credentials is created first, with no owner (the kubelet
    needs it to pull), and deleted after the pod: one write more.
-2. follow the pod by list + watch from its resourceVersion: a watch that ends, goes silent
-   longer than :data:`SILENCE`, or answers 410 Gone is replaced by a fresh list and watch.
-   Each version goes through the status table (``osmo.runtime.kubernetes.status``); a new
+2. follow the pod's versions as the node's shared watch hands them over
+   (``osmo.runtime.kubernetes.podwatch``: one list + watch for all the node's pods, replaced
+   when it ends, goes silent longer than :data:`SILENCE`, or answers 410 Gone; a follower
+   made without one watches its pod alone the same way). A list that lacks the pod makes
+   the follower read it: gone, or created after that list. Each version goes through the
+   status table (``osmo.runtime.kubernetes.status``); a new
    waiting reason other than the ordinary ones (pending, ContainerCreating) goes to the
    server (``waiting``: the node's ``AttemptWaiting`` report, so ``osmo query`` and ``osmo
    events`` show ``unschedulable: 0/3 nodes are available: 3 Insufficient cpu.``) and is
@@ -37,16 +40,15 @@ import time
 from collections.abc import Callable
 from typing import IO, Any
 
-from osmo.runtime.kubernetes.kube import Gone, Kube, KubeError
+from osmo.runtime.kubernetes.kube import Kube, KubeError
 from osmo.runtime.kubernetes.manifest import CONTAINER
+from osmo.runtime.kubernetes.podwatch import ABSENT, SILENCE, Item, PodWatch
 from osmo.runtime.kubernetes.status import Outcome, Verdict, verdict
 
 __all__ = ["FORCE_AFTER", "GIVE_UP_AFTER", "SILENCE", "PodFollower"]
 
 Obj = dict[str, Any]
 
-SILENCE = 20
-"""Seconds a watch may deliver nothing before it is replaced by a list and a new watch."""
 FORCE_AFTER = 5.0
 """Seconds after a graceful delete (3 s grace) before the pod is deleted with no grace."""
 GIVE_UP_AFTER = 30.0
@@ -66,7 +68,9 @@ class PodFollower:
         note: where osmo's lines about the pod go (waiting reasons, the kill).
         stop: set to kill the attempt.
         force: set (with ``stop``) to delete the pod at once, with no grace.
-        silence: seconds a watch may stay silent before it is replaced.
+        silence: seconds a watch may stay silent before it is replaced (without ``watch``).
+        watch: the node's shared watch of its pods (None: the follower watches its pod
+            alone).
         waiting: why the pod waits, told once per new reason (``""``: it waits no more).
         adopted: the pod, found running by a restarted node: it is followed, not created.
         skip: bytes of the task's log already sent (an adopted pod's): not sent again.
@@ -79,18 +83,20 @@ class PodFollower:
                  force: threading.Event | None = None, silence: int = SILENCE,
                  waiting: Callable[[str], None] = lambda _reason: None,
                  adopted: Obj | None = None, skip: int = 0,
-                 on_end: Callable[[Verdict], Verdict] | None = None) -> None:
+                 on_end: Callable[[Verdict], Verdict] | None = None,
+                 watch: PodWatch | None = None) -> None:
         self.kube, self.pod, self.secret = kube, pod, secret
         self.namespace = str(pod["metadata"]["namespace"])
         self.name = str(pod["metadata"]["name"])
         self.out, self.note, self.stop, self.waiting = out, note, stop, waiting
         self.force = force or threading.Event()
-        self._events: queue.Queue[tuple[str, Obj | None] | BaseException] = queue.Queue()
+        self._watch = watch or PodWatch(kube, self.namespace, silence=silence,
+                                        fields=f"metadata.name={self.name}")
+        self._events: queue.Queue[Item] = queue.Queue()
         self._log_thread: threading.Thread | None = None
         self._deleting_at: float | None = None
         self._forced = False
         self.image_id: str | None = None
-        self._silence = silence
         self._adopted, self._skip = adopted, skip
         self._on_end = on_end
 
@@ -103,8 +109,17 @@ class PodFollower:
         Raises:
             KubeError: the pod could not be created (nothing is left then).
         """
-        if self._adopted is not None:
-            return self._follow_adopted(self._adopted, ended)
+        self._events = self._watch.follow(self.name)  # before the pod exists: nothing missed
+        try:
+            if self._adopted is not None:
+                self._events.put((ABSENT, None))  # read again: it changed since it was found
+                return self._follow_adopted(self._adopted, ended)
+            return self._create_and_follow(ended)
+        finally:
+            self._watch.forget(self.name)
+
+    def _create_and_follow(self, ended: Callable[[Verdict], None] | None) -> Verdict:
+        """Steps 1 to 5 (the module docstring)."""
         first = self.secret is not None and "ownerReferences" not in self.secret["metadata"]
         if first:  # a pull Secret: the kubelet needs it before it pulls
             assert self.secret is not None
@@ -158,9 +173,6 @@ class PodFollower:
     # ------------------------------------------------------------ following
 
     def _follow(self, created: Obj) -> Verdict:
-        watcher = threading.Thread(target=self._watch, args=(created,), daemon=True,
-                                   name="osmo-pod-watch")
-        watcher.start()
         last = verdict(created)
         shown = ""
         while True:
@@ -173,6 +185,9 @@ class PodFollower:
             if isinstance(item, BaseException):
                 raise item
             kind, obj = item
+            if kind == ABSENT:  # a list lacked it: gone, or created after that list?
+                obj = self.kube.read_pod(self.namespace, self.name)
+                kind = "DELETED" if obj is None else "MODIFIED"
             last = verdict(None if kind == "DELETED" and not _ended(obj) else obj)
             if self._deleting_at is not None and last.outcome is Outcome.LOST:
                 code = _exit_code(obj)  # none: gone before its container said (SIGKILL if forced)
@@ -193,33 +208,6 @@ class PodFollower:
                 if last.outcome is Outcome.EXITED and self._deleting_at is not None:
                     return Verdict(Outcome.EXITED, last.message, last.exit_code or 143)
                 return last
-
-    def _watch(self, created: Obj) -> None:
-        """Feed the pod's versions to the follower: watch, and list again when needed."""
-        version = str(created["metadata"].get("resourceVersion", ""))
-        fields = f"metadata.name={self.name}"
-        while True:
-            try:
-                for kind, obj in self.kube.watch_pods(self.namespace, version=version,
-                                                      fields=fields, timeout=self._silence):
-                    version = str(obj.get("metadata", {}).get("resourceVersion") or version)
-                    self._events.put((kind, obj))
-                    if kind == "DELETED":
-                        return
-            except Gone:
-                pass  # too old: list again below
-            except KubeError as exc:
-                self._events.put(exc)
-                return
-            try:  # the watch ended, went silent or was too old: where is the pod now?
-                items, version = self.kube.list_objects("pod", self.namespace, fields=fields)
-            except KubeError as exc:
-                self._events.put(exc)
-                return
-            if not items:
-                self._events.put(("DELETED", None))
-                return
-            self._events.put(("MODIFIED", items[0]))
 
     def _own_secret(self, found: Verdict) -> bool:
         """The pod waits for its own Secret, created just after it: nothing to say."""

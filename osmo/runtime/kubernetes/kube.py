@@ -28,6 +28,7 @@ __all__ = ["ExecSession", "Gone", "Kube", "KubeError", "connect"]
 
 Obj = dict[str, Any]
 _REQUEST_TIMEOUT = 30.0  # seconds for one ordinary call (watches and logs have none)
+_POOL_SIZE = 128  # connections kept to the API server (one per followed log, and calls)
 
 
 class KubeError(OsmoError):
@@ -65,6 +66,10 @@ def connect(kubeconfig: str | None = None, context: str | None = None) -> Kube:
     except Exception as exc:  # noqa: BLE001 - the client raises several kinds
         raise KubeError(f"cannot load the Kubernetes configuration "
                         f"{kubeconfig or '(default)'}: {exc}") from None
+    # a node holds a log stream per running pod beside its calls: a pool of the client's
+    # default size (5 per core) would open and drop a connection per call beyond it
+    configuration.connection_pool_maxsize = max(configuration.connection_pool_maxsize or 0,
+                                                _POOL_SIZE)
     return Kube(client.ApiClient(configuration))
 
 

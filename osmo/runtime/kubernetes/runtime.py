@@ -12,11 +12,13 @@ What it owns, one concern per method of the runtime contract (``osmo.runtime.api
   (``osmo.runtime.kubernetes.manifest``), the node's attempt folders shared with the pod
   through the pool's work volume, its output folder handed to the pod's uid;
 - start, kill, reap, release: a thread per attempt follows its pod
-  (``osmo.runtime.kubernetes.follow``: creates the pod and its Secret, watches it, streams
-  its log, deletes it) and writes the log into the handle's pipes; the handle's process is a
-  sleeping sentinel (its pid and pidfd are what the pool watches and records), killed when
-  the pod's life is over, so the handle's exit descriptor becomes readable then. No Python
-  process per attempt: a node follows hundreds of pods at the cost of threads. A kill
+  (``osmo.runtime.kubernetes.follow``: creates the pod and its Secret, follows its versions
+  through the node's one watch of its pods (``osmo.runtime.kubernetes.podwatch``, by the
+  instance label), streams its log, deletes it) and writes the log into the handle's
+  pipes; the handle's process is a sleeping sentinel (its pid and pidfd are what the pool
+  watches and records), killed when the pod's life is over, so the handle's exit
+  descriptor becomes readable then. No Python process per attempt: a node follows
+  hundreds of pods at the cost of threads (one watch for them all). A kill
   deletes the pod with its 3 s grace (forced: at once). ``reap`` reads the verdict: a pod
   whose image could not be pulled fails to start, an evicted, preempted or lost pod is a
   lost attempt (``ProcessHandle.start_failed`` / ``lost``);
@@ -105,6 +107,7 @@ from osmo.runtime.kubernetes.manifest import (
     secret_manifest,
 )
 from osmo.runtime.kubernetes.podio import PodData, scan_mounts
+from osmo.runtime.kubernetes.podwatch import PodWatch
 from osmo.runtime.kubernetes.status import Outcome, Verdict
 from osmo.runtime.process.groups import die_with_parent
 from osmo.scheduler.types import PrepareAttempt
@@ -156,6 +159,7 @@ class KubernetesRuntime:
         self.pool, self.kube, self.instance = pool, kube, label_value(instance)
         self.images = images
         self.gangs = Groups(kube, pool, self.instance)
+        self.watch = PodWatch(kube, pool.namespace, labels=f"{LABEL_INSTANCE}={self.instance}")
         self._runs: dict[ProcessHandle, _Live] = {}
         self._background = Background("osmo-kube-call")
         self._followers = Background("osmo-pod")  # one per started attempt, until its pod went
@@ -278,7 +282,7 @@ class KubernetesRuntime:
         handle, live = self._sentinel(run)
         follower = PodFollower(self.kube, pod, None, out=live.out, note=live.note,
                                stop=live.stop, force=live.force, adopted=pod,
-                               skip=max(0, int(shipped.get("stdout", 0))))
+                               skip=max(0, int(shipped.get("stdout", 0))), watch=self.watch)
         with self._lock:
             self._runs[handle] = live
         self._followers.later(self._follow, follower, live, handle)
@@ -406,7 +410,7 @@ class KubernetesRuntime:
         handle, live = self._sentinel(run)
         follower = PodFollower(self.kube, run.pod, run.secret, out=live.out,
                                note=live.note, stop=live.stop, force=live.force,
-                               waiting=run.waiting,
+                               waiting=run.waiting, watch=self.watch,
                                on_end=None if run.data is None else (
                                    lambda found: self._data_end(live, found)))
         with self._lock:
