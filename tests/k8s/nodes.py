@@ -42,15 +42,16 @@ def pool_config(folder: Path, kube: Path, **extra: Any) -> Path:
 class KubeCluster:
     """The stand-in, an osmo server, and Kubernetes workers (stop with :meth:`stop`)."""
 
-    def __init__(self, root: Path, podman_env: dict[str, str]) -> None:
+    def __init__(self, root: Path, podman_env: dict[str, str],
+                 server_args: tuple[str, ...] = ()) -> None:
         root.mkdir(parents=True, exist_ok=True)
         self.root = root
         self.server = ApiServer().start()
         self.kubelet = Kubelet(self.server, podman_env, root / "kubelet")
         self.kubelet.add_node("node-1", cpu="8", memory="16Gi", gpus=1)
         self.kubeconfig = kubeconfig(self.server.url, root)
-        self.osmo_cluster = Cluster(root / "osmo", env={"CONTAINERS_CONF":
-                                                        podman_env["CONTAINERS_CONF"]})
+        self.osmo_cluster = Cluster(root / "osmo", server_args=server_args,
+                                    env={"CONTAINERS_CONF": podman_env["CONTAINERS_CONF"]})
         self.osmo_cluster.root.mkdir(parents=True, exist_ok=True)
         self.osmo_cluster.start_server()
         self.osmo = self.osmo_cluster.osmo
@@ -80,9 +81,10 @@ class KubeCluster:
         return left
 
 
-def started(root: Path, podman_env: dict[str, str]) -> Iterator[KubeCluster]:
+def started(root: Path, podman_env: dict[str, str],
+            server_args: tuple[str, ...] = ()) -> Iterator[KubeCluster]:
     """A :class:`KubeCluster` for a fixture; nothing of podman may be left after it."""
-    cluster = KubeCluster(root, podman_env)
+    cluster = KubeCluster(root, podman_env, server_args)
     try:
         yield cluster
     finally:

@@ -31,7 +31,8 @@ What it owns, one concern per method of the runtime contract (``osmo.runtime.api
   members was not adopted (:meth:`KubernetesRuntime.clean_orphans`: all of them). A pod
   with its own data is adopted too (:meth:`KubernetesRuntime._serve_again`): its
   collector's ticket digest is in ``pod.json`` and must give the pod's annotation
-  (``podio.ticket_seal``).
+  (``podio.ticket_seal``). What a node down for good left is deleted by another node of
+  the pool when the server orders it (:meth:`KubernetesRuntime.sweep`).
 
 - exec: the Kubernetes exec API (a WebSocket), held by a relay process the node spawns
   (``osmo.runtime.kubernetes.exec_relay``); port-forward: the node dials the pod's IP
@@ -308,6 +309,22 @@ class KubernetesRuntime:
         Returns ``kind/name`` of each object deleted.
         """
         return self._delete_instance(self.instance)
+
+    def sweep(self, instance: str) -> list[str]:
+        """Delete what another node of the pool, down for good, left (labelled ``instance``).
+
+        Only the server orders it (``wire.Sweep``: that node's grace ended and the server no
+        longer holds its attempts); this node's own instance, or a value that is no label
+        value, is refused. Returns ``kind/name`` of each object deleted.
+
+        Raises:
+            OsmoError: ``instance`` is refused.
+            KubeError: the API refused a call.
+        """
+        if instance == self.instance or not instance or label_value(instance) != instance:
+            raise OsmoError(f"refused to sweep instance {instance[:80]!r}: not another "
+                            "node's label value")
+        return self._delete_instance(instance)
 
     def _delete_instance(self, instance: str) -> list[str]:
         """Delete every pod, Secret, Service and PodGroup labelled with ``instance``."""
