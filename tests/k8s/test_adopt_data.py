@@ -1,6 +1,7 @@
 """A node whose pods fetch and send back their own data (the pool's ``data``) is killed and
 restarted: its pods are adopted (their collectors wait for the node, then send the output
 once, whole), and a pod whose journaled tickets were tampered with is deleted and run again.
+The chaos run: a workflow of serial and parallel tasks, the node killed while two pods run.
 
 Each test SIGKILLs the in-cluster node mid-run and starts it again on the same home (the
 chart's emptyDir home survives a worker container's restart).
@@ -29,7 +30,7 @@ workflow:
   tasks:
   - name: slow
     image: alpine:3.18
-    command: ["sh", "-c", "echo started; sleep 8; mkdir -p {{output}}/d; \
+    command: ["sh", "-c", "echo started; sleep 15; mkdir -p {{output}}/d; \
 echo survived > {{output}}/d/x; echo done"]
 """
 
@@ -116,4 +117,65 @@ def test_a_tampered_ticket_record_is_refused_and_its_pod_runs_again(
     assert kube.server.writes[("create", "pods")] == created + 2, "deleted and made again"
     assert f"cancelled pod/{pod['metadata']['name']}" in log, log
     assert "tickets" in log and "could not adopt" in log, log
+    assert nothing_left(kube) == []
+
+
+MIXED = """\
+workflow:
+  name: mixed
+  tasks:
+  - name: first
+    image: alpine:3.18
+    command: ["sh", "-c", "echo one > {{output}}/one.txt"]
+  - name: left
+    image: alpine:3.18
+    command: ["sh", "-c", "echo started; sleep 20; sed s/one/left/ {{input:0}}/one.txt \
+> {{output}}/l.txt"]
+    inputs:
+    - task: first
+  - name: right
+    image: alpine:3.18
+    command: ["sh", "-c", "echo started; sleep 20; sed s/one/right/ {{input:0}}/one.txt \
+> {{output}}/r.txt"]
+    inputs:
+    - task: first
+  - name: last
+    image: alpine:3.18
+    command: ["sh", "-c", "cat {{input:0}}/l.txt {{input:1}}/r.txt"]
+    inputs:
+    - task: left
+    - task: right
+"""
+
+
+def test_chaos_a_node_killed_mid_run_leaves_nothing_and_loses_nothing(
+        kube: KubeCluster, tmp_path: Path) -> None:
+    """Chaos (#28): kill -9 of the in-cluster node while two parallel pods run (after a
+    serial one), restarted: every pod is adopted or deleted, every task's output and log is
+    whole, and no pod or Secret is left behind."""
+    created = kube.server.writes[("create", "pods")]
+    spec = tmp_path / "mixed.yaml"
+    spec.write_text(MIXED)
+    wf_id = kube.osmo.submit(spec, "--pool", "data", "--no-cache")
+    deadline = time.monotonic() + 120
+    while not all("started" in task_lines(kube.osmo, wf_id).get(t, []) for t in ("left",
+                                                                                 "right")):
+        assert time.monotonic() < deadline, kube.osmo.query(wf_id)
+        time.sleep(0.2)
+    kube.osmo_cluster.signal(NODE, signal.SIGKILL)
+    kube.osmo_cluster.workers[NODE].wait(30)
+    start(kube)
+    info = kube.osmo.wait_for(wf_id, lambda i: i["status"] in ("COMPLETED", "FAILED"),
+                              timeout=180)
+    assert info["status"] == "COMPLETED", (info, kube.osmo_cluster.worker_log(NODE))
+    rows = {row["name"]: row for row in info["tasks"]}
+    assert {name: row["retry"] for name, row in rows.items()} == dict.fromkeys(
+        ("first", "left", "right", "last"), 0)
+    assert kube.server.writes[("create", "pods")] == created + 4, "each pod made once"
+    lines = task_lines(kube.osmo, wf_id)
+    assert lines["last"] == ["left", "right"], lines
+    assert lines["left"] == lines["right"] == ["started"], lines
+    for name in ("left", "right"):
+        said = osmo_lines(kube.osmo, wf_id, name)
+        assert any("adopted by node" in line for line in said), said
     assert nothing_left(kube) == []
