@@ -32,7 +32,9 @@ turns the engine's commands into orders to workers and worker traffic into event
   id, it reports what it adopted (its registration's ``active``) and is told what the server
   still places on it (the reply's ``placed``); kills sent while it was away are sent again.
   Past the grace it is down: its attempts are lost and rescheduled, and it cancels its
-  leftover jobs or pods when it comes back.
+  leftover jobs or pods when it comes back. A node that never comes back leaves its pods and
+  their objects: another live node of its pool is ordered to delete them
+  (``osmo.server.sweeps``, ``wire.Sweep``).
 """
 
 from __future__ import annotations
@@ -65,6 +67,7 @@ from osmo.scheduler.types import (
 )
 from osmo.server.auth import check_pool, refuse
 from osmo.server.remote_logs import RemoteLogs
+from osmo.server.sweeps import Sweeps
 from osmo.server.worker_access import WorkerAccess, has_secrets, task_secrets
 from osmo.server.worker_outputs import OutputIntake
 from osmo.spec.model import ResourceSpec, TaskSpec
@@ -82,6 +85,7 @@ from osmo.transport.wire import (
     Order,
     Prepare,
     Run,
+    Sweep,
     event_from_dict,
     order_to_dict,
     warm_runners,
@@ -136,6 +140,7 @@ class WorkerHub:
         self._away: dict[str, int] = {}  # such a node, gone: its absence's number
         self._absences = 0
         self._held_kills: dict[str, list[Kill]] = {}  # kills for a node while it is away
+        self._sweeps = Sweeps()  # what nodes down for good left in their cluster
         self._same_host: dict[str, SameHost | None] = {}
         self._sent_specs: dict[str, set[str]] = {}
         self._timeouts: dict[str, float | None] = {}  # workflow -> exec_timeout (a few kept)
@@ -192,6 +197,7 @@ class WorkerHub:
             else:
                 self._outlives.discard(wid)
             back = self._away.pop(wid, None) is not None
+            self._sweeps.registered(wid, node.pool, hello.instance)
             alive = wid in self._alive
             kills = self._held_kills.pop(wid, [])
         if back:
@@ -201,6 +207,8 @@ class WorkerHub:
             self._emit(NodeUp(self._announced(wid)))
         for kill in kills:
             self._send(wid, kill)
+        if alive:
+            self._sweep(wid)
         log.info("worker %s registered (pool %s, %s)", wid, node.pool, node.capacity)
         reply: dict[str, Any] = {}
         if hello.outlives:
@@ -295,11 +303,36 @@ class WorkerHub:
                             self._adopt_grace)
                 self._access.forget(wid)
                 self._emit(NodeDown(wid))
+                self._sweeps.down(wid)
+                self._sweep_pool(node.pool)
 
         timer = threading.Timer(self._adopt_grace, check)
         timer.daemon = True
         timer.start()
         return True
+
+    def _sweep(self, wid: str) -> None:
+        """Order ``wid`` to delete what nodes of its pool, down for good, left.
+
+        Only an alive node that makes cluster objects (``osmo.server.sweeps``).
+        """
+        with self._lock:
+            node = self._nodes.get(wid)
+        if node is None or not self._sweeps.sweeper(wid) or not self._is_alive(wid):
+            return
+        for instance in self._sweeps.due(node.pool):
+            log.info("worker %s deletes what node instance %s left (down for good)", wid,
+                     instance)
+            self._send(wid, Sweep(instance))
+
+    def _sweep_pool(self, pool: str) -> None:
+        """One live node of ``pool`` that can sweep does (none: the next one registered)."""
+        with self._lock:
+            nodes = sorted(wid for wid, node in self._nodes.items() if node.pool == pool)
+        for wid in nodes:
+            if self._sweeps.sweeper(wid) and self._is_alive(wid):
+                self._sweep(wid)
+                return
 
     def _asker(self, wid: str) -> ServerAsker | None:
         """Asks worker ``wid``'s blob server on the channel it last spoke on."""
@@ -405,6 +438,7 @@ class WorkerHub:
                 self._draining.discard(wid)
         if alive and registered:
             self._emit(NodeUp(self._announced(wid)))
+            self._sweep(wid)
         elif not alive and node is not None and self._went_away(wid, node):
             return
         elif not alive and registered:

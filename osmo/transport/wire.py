@@ -22,7 +22,8 @@ Keys, under the cluster prefix ``osmo/<cluster>``:
   attempt, the workflow's spec the first time, input manifests, whether to ask for the
   attempt's secrets, the task's storage limit), :class:`Run`, :class:`Kill`, :class:`Ack`
   (an exit report was received and its outputs are safe on the server), and
-  :class:`OpenSession` (an exec or port-forward session's ticket). Both sides build and read
+  :class:`OpenSession` (an exec or port-forward session's ticket), :class:`Sweep` (delete
+  what a node of the pool, down for good, left in the cluster). Both sides build and read
   them only as these classes (:func:`order_to_dict`, :func:`order_from_dict`). Secrets are
   asked for apart (``worker_secrets``), so an order never holds one.
 - ``api/worker_report`` — ``{"id", "report"}``: the worker's reports (:func:`event_to_dict`),
@@ -78,7 +79,7 @@ from osmo.transport.blobs import SERVER
 from osmo.transport.rpc import MAX_INT, field, str_list, str_map
 
 __all__ = ["BEAT_EVERY", "LEASE", "MAX_PLATFORMS", "PEER_ALLOW", "PEER_DENY", "Ack", "Hello",
-           "Kill", "OpenSession", "Order", "Prepare", "Run", "capacity_from_dict",
+           "Kill", "OpenSession", "Order", "Prepare", "Run", "Sweep", "capacity_from_dict",
            "capacity_to_dict", "event_from_dict", "event_to_dict", "order_from_dict",
            "order_to_dict", "warm_runners", "worker_id"]
 
@@ -241,6 +242,9 @@ class Hello:
             found``); None: sandboxed, or a worker from before this field.
         outlives: its attempts outlive its process (a cluster's jobs or pods): when it goes
             down the server holds them for a grace and it adopts them when it comes back.
+        instance: the label its cluster objects carry (a Kubernetes node's
+            ``osmo.dev/instance``; None: it makes none). When it is down for good, the
+            server orders another node of its pool to delete them (:class:`Sweep`).
     """
 
     node: Node
@@ -253,6 +257,7 @@ class Hello:
     runtime: str | None = None
     sandbox_why: str | None = None
     outlives: bool = False
+    instance: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """The hello as JSON-safe data."""
@@ -264,7 +269,8 @@ class Hello:
                 "address": node.address, "host_id": self.host_id, "artifacts": self.artifacts,
                 "pid": self.pid, "draining": self.draining, "active": list(self.active),
                 "finished": list(self.finished), "runtime": self.runtime,
-                "sandbox_why": self.sandbox_why, "outlives": self.outlives}
+                "sandbox_why": self.sandbox_why, "outlives": self.outlives,
+                "instance": self.instance}
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> Hello:
@@ -288,7 +294,8 @@ class Hello:
                    active=tuple(str_list(data, "active")), finished=tuple(finished),
                    runtime=field(data, "runtime", str, default=None, max_len=_TEXT),
                    sandbox_why=field(data, "sandbox_why", str, default=None, max_len=_TEXT),
-                   outlives=field(data, "outlives", bool, default=False))
+                   outlives=field(data, "outlives", bool, default=False),
+                   instance=field(data, "instance", str, default=None, max_len=63))
 
 
 def _platforms(data: dict[str, Any]) -> dict[str, Capacity]:
@@ -380,11 +387,23 @@ class OpenSession:
     ticket: str
 
 
-Order = Prepare | Run | Kill | Ack | OpenSession
+@dataclass(frozen=True)
+class Sweep:
+    """Delete what a node of this pool left in the cluster: it is down for good.
+
+    ``instance`` is the label its objects carry (its hello's ``instance``); the server
+    orders it only once that node's grace ended, and never for an instance a registered
+    or away node holds.
+    """
+
+    instance: str
+
+
+Order = Prepare | Run | Kill | Ack | OpenSession | Sweep
 """An order of the server to a worker (``to-worker/<id>``)."""
 
 _OPS: dict[type[Any], str] = {Prepare: "prepare", Run: "run", Kill: "kill", Ack: "ack",
-                              OpenSession: "session"}
+                              OpenSession: "session", Sweep: "sweep"}
 
 
 def order_to_dict(order: Order) -> dict[str, Any]:
@@ -415,6 +434,8 @@ def order_from_dict(data: object) -> Order:
             return _prepare_from_dict(data)
         if op == "session":
             return OpenSession(field(data, "ticket", str, max_len=_TEXT))
+        if op == "sweep":
+            return Sweep(field(data, "instance", str, max_len=63))
         aid = field(data, "attempt_id", str, max_len=_TEXT)
         if op == "run":
             return Run(aid)

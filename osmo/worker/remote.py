@@ -94,6 +94,7 @@ from osmo.transport.wire import (
     Order,
     Prepare,
     Run,
+    Sweep,
     event_to_dict,
     order_from_dict,
 )
@@ -336,7 +337,8 @@ class RemoteWorker:
                           finished=tuple(self._unacked.values()),
                           runtime=self.pool.runtime_name(),
                           sandbox_why=self.pool.no_sandbox_why,
-                          outlives=self.pool.outlives()).to_dict()
+                          outlives=self.pool.outlives(),
+                          instance=self._instance()).to_dict()
         try:
             reply = self._api.call("worker_register", hello)
         except NotAllowed as exc:  # e.g. a pool its token may not serve: retrying cannot help
@@ -416,6 +418,8 @@ class RemoteWorker:
                     self.pool.kill(KillAttempt(aid, self.id, order.reason))
             case OpenSession(ticket=ticket):  # exec / port-forward: a ticket for its grant
                 self.sessions.order(ticket)
+            case Sweep(instance=instance):  # a node of this pool is down for good
+                self._io.submit(self._sweep, instance)
             case Ack(attempt_id=aid):
                 with self._changed:
                     acked = self._unacked.pop(aid, None) is not None
@@ -423,6 +427,27 @@ class RemoteWorker:
                     self._changed.notify_all()
                 if acked:
                     self._keeper.acknowledged(aid)
+
+    def _instance(self) -> str | None:
+        """The label this node's cluster objects carry (None: it makes none)."""
+        runtime = self._clusters[0]
+        return runtime.instance if isinstance(runtime, KubernetesRuntime) else None
+
+    def _sweep(self, instance: str) -> None:
+        """Delete what node instance ``instance`` left (``wire.Sweep``); never raises."""
+        runtime = self._clusters[0]
+        if not isinstance(runtime, KubernetesRuntime):
+            log.warning("ignored an order to sweep instance %r: this node makes no cluster "
+                        "objects", instance[:80])
+            return
+        try:
+            swept = runtime.sweep(instance)
+        except OsmoError as exc:
+            log.warning("could not sweep instance %r: %s", instance[:80], exc)
+            return
+        for name in swept:
+            log.warning("deleted %s that node instance %s left (it is down for good)", name,
+                        instance)
 
     def _prepare(self, order: Prepare) -> None:
         cmd = order.cmd

@@ -3,24 +3,28 @@
 
 Attacks: a ticket replayed, a ticket of another attempt (or of the other role), an input
 changed on its way, a collector that sends paths out of the output (``..``, absolute, a
-symlink), an upload larger than the task's storage, outputs offered before the task ended.
+symlink), an upload larger than the task's storage, outputs offered before the task ended,
+a node restarted mid-collection (its collector's ticket served again from its digest only).
 """
 
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import pytest
 
 from osmo.config import free_port
 from osmo.errors import NotAllowed, NotAuthenticated, UsageError
-from osmo.runtime.kubernetes import podside
-from osmo.runtime.kubernetes.podio import COLLECT, FETCH, PodData, root_of, scan_mounts
+from osmo.runtime.kubernetes import podio, podside
+from osmo.runtime.kubernetes.podio import CHUNK, COLLECT, FETCH, PodData, root_of, scan_mounts
+from osmo.transport.auth import token_digest
 from osmo.transport.rpc import ApiClient
 from osmo.transport.zenoh_link import Link
 from tests.conftest import REPO
@@ -33,6 +37,7 @@ class Bus:
     node: PodData
     pod: Link
     endpoint: str
+    router: Link
 
     def client(self, ticket: str) -> ApiClient:
         return ApiClient(self.pod, timeout=5.0, token=ticket, root=root_of(NODE))
@@ -44,7 +49,7 @@ def bus() -> Iterator[Bus]:
     router = Link.router([endpoint])
     node = PodData(router, NODE)
     pod = Link.client([endpoint])
-    yield Bus(node, pod, endpoint)
+    yield Bus(node, pod, endpoint, router)
     pod.close()
     node.stop()
     router.close()
@@ -191,3 +196,82 @@ def test_a_failed_task_hands_nothing_back(bus: Bus, tmp_path: Path) -> None:
     assert podside.collect(bus.client(tickets[COLLECT]), "a1", root) == 0
     assert bus.node.collected("a1", 5) is not None
     assert list(output.iterdir()) == []
+
+
+def _output(root: Path) -> dict[str, bytes]:
+    """A collector's output of several chunks, in the pod's data volume under ``root``."""
+    made = {"big.bin": os.urandom(3 * CHUNK + 17), "sub/small.txt": b"small\n"}
+    for name, data in made.items():
+        (root / podside.OUTPUT / name).parent.mkdir(parents=True, exist_ok=True)
+        (root / podside.OUTPUT / name).write_bytes(data)
+    return made
+
+
+def _empty(folder: Path) -> None:
+    for child in folder.iterdir():
+        shutil.rmtree(child) if child.is_dir() else child.unlink()
+
+
+def test_a_node_back_from_a_restart_gets_the_output_whole_from_a_waiting_collector(
+        bus: Bus, tmp_path: Path) -> None:
+    """Killed while the collector waited; the next life serves its ticket again from the
+    journaled digest alone, and the collector (patient) sends everything once."""
+    tickets, _, output = _attempt(bus, tmp_path, "a1")
+    root = tmp_path / "pod"
+    made = _output(root)
+    collector = bus.client(tickets[COLLECT])
+    assert collector.call("wait", {"attempt": "a1"}, timeout=15) == {"ended": False,
+                                                                     "collect": False}
+    bus.node.stop()  # killed: its channels and tickets die with it
+    again = PodData(bus.router, NODE)
+    try:
+        again.reopen("a1", token_digest(tickets[COLLECT]), output)
+        again.ended("a1", collect=True)
+        assert podside.collect(collector, "a1", root, pause=0.1) == sum(map(len, made.values()))
+        assert again.collected("a1", 5) is None
+        assert {n: (output / n).read_bytes() for n in made} == made
+        # the served-again ticket opened one channel; a second hello with it opens nothing
+        with pytest.raises(NotAuthenticated):
+            bus.client(tickets[COLLECT]).call("wait", {"attempt": "a1"})
+    finally:
+        again.stop()
+
+
+def test_a_node_restarted_mid_upload_gets_the_output_again_whole(
+        bus: Bus, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The node's memory is lost after the collector's first chunk (a new life: the ticket
+    served again, the partial output emptied): the collector notices the new channel and
+    sends the whole output again; nothing half is kept."""
+    tickets, _, output = _attempt(bus, tmp_path, "a1")
+    root = tmp_path / "pod"
+    made = _output(root)
+    put = podio._VERBS[(COLLECT, "put")]
+    lives: list[str] = []
+
+    def restarting_put(node: PodData, entry: Any, request: dict[str, Any]) -> Any:
+        done = put(node, entry, request)
+        if not lives:  # after the first chunk: the node "restarts"
+            lives.append("restarted")
+            node.close("a1")
+            _empty(output)
+            node.reopen("a1", token_digest(tickets[COLLECT]), output)
+            node.ended("a1", collect=True)
+        return done
+
+    monkeypatch.setitem(podio._VERBS, (COLLECT, "put"), restarting_put)
+    bus.node.ended("a1", collect=True)
+    podside.collect(bus.client(tickets[COLLECT]), "a1", root, pause=0.1)
+    assert lives == ["restarted"]
+    assert bus.node.collected("a1", 5) is None
+    assert {n: (output / n).read_bytes() for n in made} == made
+
+
+def test_a_collector_gives_up_on_a_node_that_never_comes_back(bus: Bus,
+                                                              tmp_path: Path) -> None:
+    tickets, _, _ = _attempt(bus, tmp_path, "a1")
+    root = tmp_path / "pod"
+    _output(root)
+    bus.node.stop()
+    with pytest.raises(podside.ServerUnreachable):
+        podside.collect(ApiClient(bus.pod, timeout=0.5, token=tickets[COLLECT],
+                                  root=root_of(NODE)), "a1", root, patience=1.5, pause=0.2)

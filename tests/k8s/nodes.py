@@ -43,7 +43,8 @@ class KubeCluster:
     """The stand-in, an osmo server, and Kubernetes workers (stop with :meth:`stop`)."""
 
     def __init__(self, root: Path, podman_env: dict[str, str], **cluster: Any) -> None:
-        """``cluster``: :class:`tests.e2e.cluster.Cluster`'s keywords (a router of its own)."""
+        """``cluster``: :class:`tests.e2e.cluster.Cluster`'s keywords (a router of its own,
+        ``server_args``)."""
         root.mkdir(parents=True, exist_ok=True)
         self.root = root
         self.server = ApiServer().start()

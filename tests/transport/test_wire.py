@@ -17,6 +17,7 @@ from osmo.transport.wire import (
     OpenSession,
     Prepare,
     Run,
+    Sweep,
     event_from_dict,
     event_to_dict,
     order_from_dict,
@@ -36,6 +37,7 @@ ORDERS = [
     Kill("w-1:a:0", "cancelled"),
     Ack("w-1:a:0"),
     OpenSession("f" * 32),
+    Sweep("0123456789abcdef0123"),
 ]
 
 
@@ -85,6 +87,8 @@ def test_an_order_from_a_server_before_time_limits_and_priorities_has_none() -> 
      "exec_timeout": "1h"},
     {"op": "prepare", "cmd": order_to_dict(ORDERS[1])["cmd"], "manifests": {},
      "priority": "URGENT"},
+    {"op": "sweep"},
+    {"op": "sweep", "instance": "x" * 64},
     [],
 ])
 def test_a_malformed_order_is_a_value_error(data: Any) -> None:
@@ -114,6 +118,8 @@ NODE = Node("k1", "default", Capacity(16, 2, 64 << 30, 0), address="10.0.0.2",
 
 def test_a_hello_carries_every_platform_with_its_capacity() -> None:
     assert Hello.from_dict(Hello(NODE).to_dict()).node == NODE
+    hello = Hello(NODE, outlives=True, instance="0123456789abcdef0123")
+    assert Hello.from_dict(hello.to_dict()) == hello
     old = Hello(Node("w", "default", Capacity(2), platform="x86")).to_dict()
     del old["platforms"]  # a worker from before platforms: its one platform, whole
     node = Hello.from_dict(old).node

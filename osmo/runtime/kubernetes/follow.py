@@ -156,6 +156,8 @@ class PodFollower:
             self._delete(grace=0)
             raise
         self._finish_logs(found)
+        if self._on_end is not None:  # an adopted pod with its own data: its collection
+            found = self._on_end(found)
         if ended is not None:
             ended(found)
         self._delete(grace=0)

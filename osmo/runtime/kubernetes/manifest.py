@@ -54,8 +54,8 @@ from osmo.errors import OsmoError
 from osmo.runtime.container.run import Mount, RegistryAuth
 from osmo.runtime.kubernetes.config import KubePool, Placement
 
-__all__ = ["COLLECTOR", "CONTAINER", "DataPlan", "FETCHER", "LABEL_ATTEMPT", "TICKETS",
-           "TICKET_DIR", "ZENOH_CONFIG", "ZENOH_KEY",
+__all__ = ["ATTEMPT_ID", "COLLECTOR", "CONTAINER", "DataPlan", "FETCHER", "LABEL_ATTEMPT",
+           "TICKETS", "TICKET_DIR", "ZENOH_CONFIG", "ZENOH_KEY",
            "in_volume", "LABEL_GROUP", "LABEL_INSTANCE", "LABEL_LEAD",
            "LABEL_WORKFLOW", "POD_GROUPS", "GroupPlan", "docker_config",
            "ManifestError", "PodPlan", "label_value", "object_name", "plan_labels",
@@ -85,6 +85,8 @@ LABEL_RETRY = "osmo.dev/retry"
 LABEL_ATTEMPT = "osmo.dev/attempt"
 LABEL_GROUP = "osmo.dev/group"
 LABEL_LEAD = "osmo.dev/lead"
+ATTEMPT_ID = "osmo.dev/attempt-id"
+"""The annotation holding the pod's attempt id (whole: a label value may not hold it)."""
 
 _GRACE = 3  # seconds: what a cancel gives the task, as osmo's other runtimes
 _ENV_NAME = re.compile(r"[-._a-zA-Z][-._a-zA-Z0-9]*")
@@ -267,7 +269,7 @@ def pod_manifest(plan: PodPlan, pool: KubePool, *, secret: str | None = None,
         spec["imagePullSecrets"] = [{"name": n} for n in pulls]
     meta: dict[str, Any] = {"name": plan.name, "namespace": pool.namespace,
                             "labels": plan_labels(plan),
-                            "annotations": {"osmo.dev/attempt-id": plan.attempt_id}}
+                            "annotations": {ATTEMPT_ID: plan.attempt_id}}
     if plan.group is not None:
         _gang(meta, spec, plan.group, pool)
         if pool.group_network == "host":

@@ -13,6 +13,9 @@ which only those two containers mount (never the task's container, never its spe
 A ticket opens exactly one channel: its first hello spends it, so a ticket read later
 (replayed) opens nothing. A channel acts for its own attempt and role only: every request
 names the attempt, and one that names another attempt is refused, whatever its ticket.
+A restarted node that adopts a pod (``KubernetesRuntime.adopt``) serves its collector again
+from the ticket's digest it journaled (:meth:`PodData.reopen`): the ticket then opens one
+channel once more, in the node's new life (the previous life's channels died with it).
 
 What each side may do:
 
@@ -58,7 +61,8 @@ from osmo.transport.rpc import field as req_field
 from osmo.transport.seal import ChannelTable, Signer, TokenKeys
 from osmo.transport.zenoh_link import Link
 
-__all__ = ["CHUNK", "FETCH", "COLLECT", "PodData", "PodFile", "root_of", "scan_mounts"]
+__all__ = ["CHUNK", "COLLECT", "FETCH", "SEALED", "PodData", "PodFile", "root_of", "scan_mounts",
+           "ticket_seal"]
 
 FETCH = "fetch"
 COLLECT = "collect"
@@ -66,7 +70,21 @@ CHUNK = 256 << 10
 """Bytes per ``read``/``put`` (base64 in JSON: a third more on the wire)."""
 WAIT = 5.0
 """Seconds one ``wait`` is held before it answers that the task still runs."""
+SEALED = "osmo.dev/collect-ticket"
+"""The annotation of a data pod that binds its collector's ticket (:func:`ticket_seal`)."""
 _MAX_PATH = 4096
+
+
+def ticket_seal(attempt_id: str, digest: str) -> str:
+    """What binds a collector's ticket to its attempt: the pod's annotation :data:`SEALED`.
+
+    The hash of the attempt id and the ticket's digest (itself no key: the digest cannot be
+    found from it). A restarted node adopts a data pod only when its journaled digest gives
+    the pod's annotation, which the API holds and the pod cannot change. 160 bits: podman
+    refuses annotation values past 63 characters.
+    """
+    seal = hashlib.sha256(f"osmo podio ticket v1\0{attempt_id}\0{digest}".encode())
+    return seal.hexdigest()[:40]
 
 
 def root_of(node: str) -> str:
@@ -139,13 +157,28 @@ class PodData:
         """Serve ``attempt_id``'s pod; its two tickets (role → token) for its Secret."""
         entry = _Attempt(attempt_id, tuple(files), tuple(dirs), output, max_bytes, max_files)
         tickets = {FETCH: new_token(), COLLECT: new_token()}
-        with self._lock:
-            self._attempts[attempt_id] = entry
-            for role, token in tickets.items():
-                digest = token_digest(token)
-                self._tickets[TokenKeys.from_digest(digest).id] = digest
-                self._holders[digest] = _Holder(attempt_id, role)
+        self._serve(entry, {role: token_digest(token) for role, token in tickets.items()})
         return tickets
+
+    def reopen(self, attempt_id: str, collect: str, output: Path, *,
+               max_bytes: int | None = None, max_files: int = DEFAULT_MAX_FILES) -> None:
+        """Serve again the collector of a pod a previous life of the node opened.
+
+        ``collect`` is its ticket's digest (what the node journaled, never the ticket): the
+        ticket opens one channel again, in this life. ``output`` must be empty: whatever the
+        collector sent the previous life is sent again, whole. Its init container's ticket
+        opens nothing: the node adopts only a pod whose fetch was done.
+        """
+        self._serve(_Attempt(attempt_id, (), (), output, max_bytes, max_files),
+                    {COLLECT: collect})
+
+    def _serve(self, entry: _Attempt, digests: dict[str, str]) -> None:
+        """Serve ``entry``; each role's ticket (by its digest) opens one channel for it."""
+        with self._lock:
+            self._attempts[entry.attempt_id] = entry
+            for role, digest in digests.items():
+                self._tickets[TokenKeys.from_digest(digest).id] = digest
+                self._holders[digest] = _Holder(entry.attempt_id, role)
 
     def ended(self, attempt_id: str, *, collect: bool) -> None:
         """The task's container ended (``collect``: take its output; else hand nothing)."""

@@ -36,21 +36,24 @@ import base64
 import hashlib
 import os
 import sys
+import time
 from collections.abc import Sequence
 from pathlib import Path
 
 from osmo.artifacts.errors import OutputRejected
 from osmo.artifacts.scan import scan
-from osmo.errors import OsmoError, UsageError
+from osmo.errors import NotAuthenticated, OsmoError, ServerUnreachable, UsageError
 from osmo.runtime.kubernetes.podio import CHUNK, check_relative, root_of
 from osmo.transport.rpc import ApiClient
 from osmo.transport.zenoh_link import Link
 
-__all__ = ["OUTPUT", "collect", "fetch", "main"]
+__all__ = ["OUTPUT", "PATIENCE", "collect", "fetch", "main"]
 
 OUTPUT = "osmo/data/output"
 """The output folder in the pod's data volume (``/osmo/data/output`` in the task's view)."""
 _TERMINATION_LOG = Path("/dev/termination-log")
+PATIENCE = 900.0
+"""Seconds a collector waits for a node that cannot be reached (killed, restarting)."""
 
 
 class DataError(OsmoError):
@@ -95,13 +98,41 @@ def fetch(api: ApiClient, attempt: str, root: Path) -> int:
     return total
 
 
-def collect(api: ApiClient, attempt: str, root: Path, *, max_files: int | None = None) -> int:
+def collect(api: ApiClient, attempt: str, root: Path, *, max_files: int | None = None,
+            patience: float = PATIENCE, pause: float = 1.0) -> int:
     """Send ``root``'s output folder to the node once the task ended; the bytes sent.
+
+    A node that cannot be reached (killed, restarting) is waited for up to ``patience``
+    seconds, asked again every ``pause``; a node that came back in a new life (it opened a
+    new channel for the ticket: it adopted the pod) gets the whole output again, from the
+    start: what it received before died with its previous life.
 
     Raises:
         DataError: the output holds what cannot be sent (a symlink out of it, a FIFO).
         RemoteError, UsageError, NotAllowed: the node refused it (the message says why).
+        ServerUnreachable, NotAuthenticated: the node did not come back in time.
     """
+    deadline = time.monotonic() + patience
+    while True:
+        try:
+            return _collect_once(api, attempt, root, max_files)
+        except (ServerUnreachable, NotAuthenticated, _Restarted) as exc:
+            if time.monotonic() >= deadline:
+                raise (exc.cause if isinstance(exc, _Restarted) else exc) from None
+            print(f"osmo: collect: the node is away ({exc}); asking again", file=sys.stderr)
+            time.sleep(pause)
+
+
+class _Restarted(OsmoError):
+    """The node answered on a new channel mid-collection: it restarted (send it all again)."""
+
+    def __init__(self, cause: OsmoError) -> None:
+        super().__init__(str(cause))
+        self.cause = cause
+
+
+def _collect_once(api: ApiClient, attempt: str, root: Path, max_files: int | None) -> int:
+    """One collection from its ``wait`` to its ``done`` (:func:`collect`)."""
     while True:
         state = api.call("wait", {"attempt": attempt})
         if state["ended"]:
@@ -113,6 +144,17 @@ def collect(api: ApiClient, attempt: str, root: Path, *, max_files: int | None =
         listed = sorted(scan(str(folder), max_files=max_files)) if folder.is_dir() else []
     except OutputRejected as exc:
         raise DataError(str(exc)) from None
+    life = api.channel()  # the node's life that takes the output
+    try:
+        return _send(api, attempt, listed)
+    except OsmoError as exc:
+        if not isinstance(exc, ServerUnreachable) and api.channel() is not life:
+            raise _Restarted(exc) from None
+        raise
+
+
+def _send(api: ApiClient, attempt: str, listed: list[tuple[str, str, int]]) -> int:
+    """Offer ``listed`` (name, real path, size), send each file, then every digest."""
     api.call("offer", {"attempt": attempt,
                        "files": [{"path": name, "size": size} for name, _, size in listed]})
     digests, total = [], 0

@@ -30,7 +30,11 @@ What it owns, one concern per method of the runtime contract (``osmo.runtime.api
   only a pod carrying this node's instance label), then
   :meth:`KubernetesRuntime.cancel_orphans` deletes every other pod, Secret, group Service
   and PodGroup of this instance (by label), and a whole group's pods when one of its
-  members was not adopted (:meth:`KubernetesRuntime.clean_orphans`: all of them).
+  members was not adopted (:meth:`KubernetesRuntime.clean_orphans`: all of them). A pod
+  with its own data is adopted too (:meth:`KubernetesRuntime._serve_again`): its
+  collector's ticket digest is in ``pod.json`` and must give the pod's annotation
+  (``podio.ticket_seal``). What a node down for good left is deleted by another node of
+  the pool when the server orders it (:meth:`KubernetesRuntime.sweep`).
 
 - exec: the Kubernetes exec API (a WebSocket), held by a relay process the node spawns
   (``osmo.runtime.kubernetes.exec_relay``); port-forward: the node dials the pod's IP
@@ -49,6 +53,7 @@ What it owns, one concern per method of the runtime contract (``osmo.runtime.api
 
 from __future__ import annotations
 
+import hmac
 import json
 import os
 import re
@@ -88,6 +93,8 @@ from osmo.runtime.kubernetes.follow import PodFollower
 from osmo.runtime.kubernetes.groups import Groups, hostname
 from osmo.runtime.kubernetes.kube import Kube, KubeError, connect
 from osmo.runtime.kubernetes.manifest import (
+    ATTEMPT_ID,
+    COLLECTOR,
     CONTAINER,
     FETCHER,
     LABEL_ATTEMPT,
@@ -106,11 +113,12 @@ from osmo.runtime.kubernetes.manifest import (
     pod_manifest,
     secret_manifest,
 )
-from osmo.runtime.kubernetes.podio import PodData, scan_mounts
+from osmo.runtime.kubernetes.podio import COLLECT, SEALED, PodData, scan_mounts, ticket_seal
 from osmo.runtime.kubernetes.podwatch import PodWatch
 from osmo.runtime.kubernetes.status import Outcome, Verdict
 from osmo.runtime.process.groups import die_with_parent
 from osmo.scheduler.types import PrepareAttempt
+from osmo.transport.auth import token_digest
 from osmo.transport.zenoh_link import Link, client_credentials
 
 __all__ = ["KubeRun", "KubernetesRuntime", "attempt_plan"]
@@ -125,6 +133,7 @@ _RELAY = "osmo.runtime.kubernetes.exec_relay"
 _PACKAGE_ROOT = Path(__file__).resolve().parents[3]  # the relay imports this very osmo
 _SLEEP = [shutil.which("sleep") or "sleep", "2147483647"]  # the sentinel: waits to be killed
 _OBJECT_NAME = re.compile(r"[a-z0-9]([-a-z0-9]{0,61}[a-z0-9])?")
+_DIGEST = re.compile(r"[0-9a-f]{64}")
 _COLLECT_WAIT = 600.0  # seconds a collector may take to send an ended task's output back
 
 
@@ -250,17 +259,15 @@ class KubernetesRuntime:
 
         Raises:
             OsmoError: no pod was recorded there, the record is not valid, the pod is gone
-                or is not this node's (another instance label), or the pod fetches and sends
-                back its own data (its one-time tickets died with the previous life).
+                or is not this node's (another instance label), or it is a pod with its own
+                data that cannot be served again (:meth:`_serve_again` says why).
         """
         try:
             meta = read_json_private(dirs.root / "pod.json")
         except (OSError, ValueError) as exc:
             raise OsmoError(f"no pod to adopt in {dirs.root}: {exc}") from exc
         name, group = meta.get("name"), meta.get("group")
-        if meta.get("data") is not False and meta.get("data") is not None:
-            # its tickets and the transfer it was in lived in the previous life's memory
-            raise OsmoError(f"pod {name!r} sends its own data back: not adopted (it runs again)")
+        own = _own_data(meta.get("data"), name)
         if not isinstance(name, str) or not _OBJECT_NAME.fullmatch(name):
             raise OsmoError(f"{dirs.root}/pod.json names no pod")
         plan = None
@@ -276,13 +283,16 @@ class KubernetesRuntime:
         if ((pod.get("metadata") or {}).get("labels") or {}).get(LABEL_INSTANCE) \
                 != self.instance:
             raise OsmoError(f"pod {name} is not this node's")
-        run = KubeRun(pod, None, plan)
+        attempt = None if own is None else self._serve_again(pod, own, dirs.output_partial)
+        run = KubeRun(pod, None, plan, data=attempt)
         if plan is not None:
             self.gangs.adopt(plan)
         handle, live = self._sentinel(run)
         follower = PodFollower(self.kube, pod, None, out=live.out, note=live.note,
                                stop=live.stop, force=live.force, adopted=pod,
-                               skip=max(0, int(shipped.get("stdout", 0))), watch=self.watch)
+                               skip=max(0, int(shipped.get("stdout", 0))), watch=self.watch,
+                               on_end=None if attempt is None else (
+                                   lambda found: self._data_end(live, found)))
         with self._lock:
             self._runs[handle] = live
         self._followers.later(self._follow, follower, live, handle)
@@ -326,7 +336,27 @@ class KubernetesRuntime:
 
         Returns ``kind/name`` of each object deleted.
         """
-        mine = f"{LABEL_INSTANCE}={self.instance}"
+        return self._delete_instance(self.instance)
+
+    def sweep(self, instance: str) -> list[str]:
+        """Delete what another node of the pool, down for good, left (labelled ``instance``).
+
+        Only the server orders it (``wire.Sweep``: that node's grace ended and the server no
+        longer holds its attempts); this node's own instance, or a value that is no label
+        value, is refused. Returns ``kind/name`` of each object deleted.
+
+        Raises:
+            OsmoError: ``instance`` is refused.
+            KubeError: the API refused a call.
+        """
+        if instance == self.instance or not instance or label_value(instance) != instance:
+            raise OsmoError(f"refused to sweep instance {instance[:80]!r}: not another "
+                            "node's label value")
+        return self._delete_instance(instance)
+
+    def _delete_instance(self, instance: str) -> list[str]:
+        """Delete every pod, Secret, Service and PodGroup labelled with ``instance``."""
+        mine = f"{LABEL_INSTANCE}={instance}"
         namespace = self.pool.namespace
         pods, _ = self.kube.list_objects("pod", namespace, labels=mine)
         names = []
@@ -378,16 +408,24 @@ class KubernetesRuntime:
                            secret=plan.name if launch.secret_env or registry or own else None,
                            pulls_with_secret=registry is not None, data=self._data)
         values = dict(launch.secret_env)
+        data: dict[str, Any] | None = None
         if own:
             values.update(self._data_zenoh)
-            values.update(self._open_data(plan, launch, dirs.output_partial))
+            tickets = self._open_data(plan, launch, dirs.output_partial)
+            values.update({TICKETS[role]: token for role, token in tickets.items()})
+            # what a restarted node serves its collector again by (never the ticket itself)
+            data = {"collect": token_digest(tickets[COLLECT]),
+                    "max_bytes": launch.max_output_bytes}
+            pod["metadata"].setdefault("annotations", {})[SEALED] = ticket_seal(
+                plan.attempt_id, data["collect"])
         else:
             self._hand_over(dirs.output_partial, dirs.work if workdir else None)
         secret = (secret_manifest(plan, values, self.pool, owner_uid="", registry=registry)
                   if values or registry else None)
-        # what a restarted node adopts the pod by (``adopt``)
+        # what a restarted node adopts the pod by (``adopt``); private (0600): the digest
+        # opens the collector's channel
         write_json_atomic(dirs.root / "pod.json", {
-            "name": plan.name, "data": own, "group": None if group is None else {
+            "name": plan.name, "data": data, "group": None if group is None else {
                 "name": group.name, "size": group.size}})
         if group is not None:
             self.gangs.join(cmd, group)
@@ -524,15 +562,45 @@ class KubernetesRuntime:
     # ------------------------------------------------------------ internals
 
     def _open_data(self, plan: PodPlan, launch: Launch, output: Path) -> dict[str, str]:
-        """Open the attempt on the pod-data API; its tickets as Secret values."""
+        """Open the attempt on the pod-data API; its tickets (role → token)."""
         assert self.pod_data is not None
         sources = [(m.source, in_volume(m.target)) for m in plan.mounts
                    if m.target != DATA_LAYOUT.output]
         files, folders = scan_mounts(sources)
         folders.append(in_volume(str(DATA_LAYOUT.output)))
-        tickets = self.pod_data.open(plan.attempt_id, files, folders, output,
-                                     max_bytes=launch.max_output_bytes)
-        return {TICKETS[role]: token for role, token in tickets.items()}
+        return self.pod_data.open(plan.attempt_id, files, folders, output,
+                                  max_bytes=launch.max_output_bytes)
+
+    def _serve_again(self, pod: dict[str, Any], own: _OwnData, output: Path) -> str:
+        """Serve an adopted data pod's collector again; its attempt id.
+
+        Only a pod whose init container fetched its data and whose collector still runs
+        (waits for the task's end, or is sending: it sends again, whole, into an emptied
+        ``output``), and whose annotation the journaled ticket digest gives
+        (``podio.ticket_seal``): a record altered, or another attempt's, is refused.
+
+        Raises:
+            OsmoError: the pod cannot be adopted (the message says why).
+        """
+        name = str(pod["metadata"]["name"])
+        if self.pod_data is None:
+            raise OsmoError(f"pod {name} fetches its own data, but this node's pool has no "
+                            "'data' any more")
+        notes = pod["metadata"].get("annotations") or {}
+        attempt = notes.get(ATTEMPT_ID)
+        if not isinstance(attempt, str) or not hmac.compare_digest(
+                ticket_seal(attempt, own.collect), str(notes.get(SEALED) or "")):
+            raise OsmoError(f"pod {name}: its journaled tickets are not its own (altered, or "
+                            "another attempt's)")
+        states = _states(pod)
+        fetched = (states.get(FETCHER) or {}).get("terminated") or {}
+        if fetched.get("exitCode") != 0:
+            raise OsmoError(f"pod {name} had not fetched its data (it starts again)")
+        if "terminated" in (states.get(COLLECTOR) or {}):
+            raise OsmoError(f"pod {name}'s collector ended while the node was away")
+        _empty(output)
+        self.pod_data.reopen(attempt, own.collect, output, max_bytes=own.max_bytes)
+        return attempt
 
     def _data_end(self, live: _Live, found: Verdict) -> Verdict:
         """The pod's task ended: wait for its collector (a task that exited), or let go.
@@ -667,6 +735,49 @@ class _Live:
                 pipe.close()
             except OSError:
                 pass
+
+
+@dataclass(frozen=True)
+class _OwnData:
+    """A data pod's record in ``pod.json``: its collector's ticket digest, its output limit."""
+
+    collect: str
+    max_bytes: int | None
+
+
+def _own_data(data: object, name: object) -> _OwnData | None:
+    """The data pod record ``data`` of ``pod.json`` (None: the pod shares the node's volume).
+
+    Raises:
+        OsmoError: the record is not one (an older node's ``true``: not adopted).
+    """
+    if data is None or data is False:
+        return None
+    if not isinstance(data, dict):
+        raise OsmoError(f"pod {name!r} sends its own data back but its tickets were not "
+                        "journaled: not adopted (it runs again)")
+    collect, limit = data.get("collect"), data.get("max_bytes")
+    if not isinstance(collect, str) or not _DIGEST.fullmatch(collect) or not (
+            limit is None or (type(limit) is int and limit >= 0)):
+        raise OsmoError(f"pod {name!r}: its journaled tickets are not valid: not adopted")
+    return _OwnData(collect, limit)
+
+
+def _states(pod: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """Each container's (init containers' too) state, by its name, as the API has it."""
+    status = pod.get("status") or {}
+    return {str(entry.get("name")): entry.get("state") or {}
+            for key in ("initContainerStatuses", "containerStatuses")
+            for entry in status.get(key) or []}
+
+
+def _empty(folder: Path) -> None:
+    """Remove what ``folder`` holds (the node's own folder: nothing followed)."""
+    for child in folder.iterdir():
+        if child.is_dir() and not child.is_symlink():
+            shutil.rmtree(child)
+        else:
+            child.unlink()
 
 
 def _end_sentinel(handle: ProcessHandle) -> None:

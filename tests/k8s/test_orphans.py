@@ -1,0 +1,96 @@
+"""Nothing outlives its workflow when an in-cluster node never comes back: once its grace
+ended, the server orders a live node of its pool to delete what it left (``wire.Sweep``,
+``osmo.server.sweeps``), and the attempt runs again there. A live node's objects stay.
+"""
+
+from __future__ import annotations
+
+import signal
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from kubernetes import client
+
+from osmo.runtime.container.runtime import owner_id
+from tests.containers.conftest import images, podman_env  # noqa: F401 - fixtures
+from tests.containers.images import KINDS_OSMO, OSMO_IMAGE, ensure_images
+from tests.containers.submitting import task_lines
+from tests.k8s.nodes import NAMESPACE, KubeCluster, started
+from tests.k8s.store import PODS, SECRETS, SERVICES
+
+GRACE = 4.0
+SLOW = """\
+workflow:
+  name: never-back
+  tasks:
+  - name: slow
+    image: alpine:3.18
+    command: ["sh", "-c", "echo started; sleep 25; echo ran > {{output}}/x; echo done"]
+"""
+
+
+@pytest.fixture(scope="module")
+def kube(tmp_path_factory: pytest.TempPathFactory, podman_env: dict[str, str],  # noqa: F811
+         images: dict[str, str]) -> Iterator[KubeCluster]:  # noqa: F811
+    ensure_images(podman_env, KINDS_OSMO)
+    yield from started(tmp_path_factory.mktemp("k8s"), podman_env,
+                       ("--adopt-grace", str(GRACE)))
+
+
+def start(kube: KubeCluster, name: str) -> None:
+    kube.start_worker(name, pool="data", groupNetwork="host", data={"image": OSMO_IMAGE})
+
+
+def service(kube: KubeCluster, name: str, instance: str) -> None:
+    """A group Service of ``instance`` (as a gang's lead node makes it)."""
+    with client.ApiClient(client.Configuration(host=kube.server.url)) as api:
+        client.CoreV1Api(api).create_namespaced_service(NAMESPACE, {
+            "metadata": {"name": name, "namespace": NAMESPACE,
+                         "labels": {"osmo.dev/instance": instance,
+                                    "osmo.dev/group": name}},
+            "spec": {"clusterIP": "None", "selector": {"osmo.dev/group": name}}})
+
+
+def names(kube: KubeCluster) -> set[str]:
+    return {f"{res.kind}/{obj['metadata']['name']}"
+            for res, obj in kube.server.store.objects([PODS, SECRETS, SERVICES])}
+
+
+def test_a_node_that_never_comes_back_leaves_nothing_after_its_grace(
+        kube: KubeCluster, tmp_path: Path) -> None:
+    start(kube, "kube-gone")
+    spec = tmp_path / "slow.yaml"
+    spec.write_text(SLOW)
+    wf_id = kube.osmo.submit(spec, "--pool", "data", "--no-cache")
+    deadline = time.monotonic() + 120
+    while "started" not in task_lines(kube.osmo, wf_id).get("slow", []):
+        assert time.monotonic() < deadline, (kube.left(), kube.osmo.query(wf_id))
+        time.sleep(0.2)
+    (pod,) = [obj for _, obj in kube.server.store.objects([PODS])]
+    gone = pod["metadata"]["labels"]["osmo.dev/instance"]
+    service(kube, "osmo-wf-gone-gang", gone)
+    left = names(kube)
+    assert len(left) == 3 and {k.split("/")[0] for k in left} == {"Pod", "Secret", "Service"}
+    kube.osmo_cluster.signal("kube-gone", signal.SIGKILL)  # never started again
+    kube.osmo_cluster.workers["kube-gone"].wait(30)
+    start(kube, "kube-live")  # within the grace or after it: it sweeps (ordered by the server)
+    mine = owner_id(kube.osmo_cluster.root / "kube-live")  # the live node's instance label
+    service(kube, "osmo-wf-live-gang", mine)
+    info = kube.osmo.wait_for(wf_id, lambda i: i["status"] in ("COMPLETED", "FAILED"),
+                              timeout=180)
+    log = kube.osmo_cluster.worker_log("kube-live")
+    assert info["status"] == "COMPLETED", (info, log)
+    row = info["tasks"][0]
+    assert row["node"] == "kube-live", row  # lost with its node, run again on the live one
+    assert (Path(row["output"]) / "x").read_text() == "ran\n"
+    deadline = time.monotonic() + 30
+    while left & names(kube):
+        assert time.monotonic() < deadline, (names(kube), log)
+        time.sleep(0.2)
+    assert f"deleted pod/{pod['metadata']['name']} that node instance {gone} left" in \
+        kube.osmo_cluster.worker_log("kube-live")
+    assert kube.server.writes[("create", "pods")] == 2
+    assert names(kube) == {"Service/osmo-wf-live-gang"}  # a live node's object stays
+    kube.server.store.delete(SERVICES, NAMESPACE, "osmo-wf-live-gang")
