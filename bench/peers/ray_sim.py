@@ -37,7 +37,7 @@ import ray  # noqa: E402
 @ray.remote(num_cpus=1)
 def run_task(kind: str, params: dict[str, Any], name: str, output: str,
              *inputs: dict[str, Any]) -> dict[str, Any]:
-    """One task: the shipped type ``kind``, timed, on its inputs' folders; its output and seconds."""
+    """One task: the shipped type ``kind``, timed, on its inputs' folders; output, seconds."""
     import osmo_bench_timed
 
     pairs = [(i["name"], i["output"]) for i in inputs]

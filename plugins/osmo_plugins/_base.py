@@ -31,7 +31,12 @@ SIM_PRELOAD = ("numpy", "gymnasium", "mujoco", "gymnasium.envs.mujoco",
 
 ACT_PRELOAD = ("torch", "lerobot.policies.act.configuration_act",
                "lerobot.policies.act.modeling_act", "lerobot.policies.factory")
-"""What loading or training an ACT policy imports (torch and LeRobot's ACT: seconds each)."""
+"""What loading an ACT policy imports (torch and LeRobot's ACT: seconds each).
+
+Not preloaded by the LeRobot types themselves: these modules import Hugging Face's
+``datasets``, which fixes its cache folders from ``HOME`` when imported, so a runner would
+hand every attempt the runner's folders (not writable in an attempt's sandbox), and training
+and dataset writing use that cache. Evaluation loads a policy and never touches it."""
 
 
 class Committing:

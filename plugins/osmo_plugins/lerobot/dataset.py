@@ -10,7 +10,7 @@ With ``images: true`` and frames in the episodes, frames become ``observation.im
 from __future__ import annotations
 
 from osmo.tasktypes.api import Param
-from osmo_plugins._base import OFFLINE_ENV, PluginType
+from osmo_plugins._base import PluginType
 
 __all__ = ["DATASET"]
 
@@ -20,8 +20,6 @@ DATASET = PluginType(
     description="MCAP episodes from the inputs → a LeRobotDataset (v3) folder, offline",
     impl="osmo_plugins.lerobot._dataset:run",
     extra="learn",
-    preload=("numpy", "lerobot.datasets"),
-    preload_env=OFFLINE_ENV,
     resources={"cpu": 1, "memory": "2Gi"},
     params={
         "repo_id": Param(str, "osmo/episodes", "the dataset's repo id (name only; offline)"),

@@ -15,7 +15,7 @@ re-planned every step); no pretrained weights are ever downloaded.
 from __future__ import annotations
 
 from osmo.tasktypes.api import Param
-from osmo_plugins._base import ACT_PRELOAD, OFFLINE_ENV, PluginType
+from osmo_plugins._base import PluginType
 
 __all__ = ["TRAIN"]
 
@@ -25,8 +25,6 @@ TRAIN = PluginType(
     description="Train a small LeRobot ACT policy (behaviour cloning) on CPU; checkpoint + loss",
     impl="osmo_plugins.lerobot._train:run",
     extra="learn",
-    preload=(*ACT_PRELOAD, "torchvision.ops.misc", "lerobot.datasets"),
-    preload_env=OFFLINE_ENV,
     resources={"cpu": 1, "memory": "4Gi"},
     params={
         "steps": Param(int, 1500, "optimiser steps", min=1),
