@@ -36,7 +36,7 @@ def kube(tmp_path_factory: pytest.TempPathFactory, podman_env: dict[str, str],  
          images: dict[str, str]) -> Iterator[KubeCluster]:  # noqa: F811
     ensure_images(podman_env, KINDS_OSMO)
     yield from started(tmp_path_factory.mktemp("k8s"), podman_env,
-                       ("--adopt-grace", str(GRACE)))
+                       server_args=("--adopt-grace", str(GRACE)))
 
 
 def start(kube: KubeCluster, name: str) -> None:
