@@ -19,6 +19,8 @@ It follows the store's events (never HTTP) and acts as the control plane and the
   publishes the containers' last states, removes it from podman, then from the API; a forced
   or immediate delete removes it from podman afterwards.
 - **Exec**: ``pods/exec`` runs ``podman exec -i`` in the running container.
+- **Port-forward**: ``pods/portforward`` connects to the pod's port on the host's loopback
+  (where a pod's processes listen here).
 - **Logs**: ``pods/log`` reads ``podman logs`` (``--follow`` streams until the container
   exits); a container that has not started is a 400 "is waiting to start".
 - **Status scripts** (``scripts.py``): a pod whose name has a script registered plays it
@@ -30,6 +32,7 @@ It follows the store's events (never HTTP) and acts as the control plane and the
 from __future__ import annotations
 
 import queue
+import socket
 import subprocess
 import tempfile
 import threading
@@ -586,6 +589,14 @@ class Kubelet:
         if known is None or seen is None or seen.state != "running":
             raise ApiError(400, "BadRequest", f"container {container} is not running")
         return self.podman.exec(f"{known.podman}-{container}", command)
+
+    def pod_connect(self, pod: Obj, port: int) -> socket.socket:
+        """A TCP connection to ``port`` of ``pod`` (``ExecSource``): on this host's loopback,
+        since every pod here runs on the host's network (its podIP is 127.0.0.1)."""
+        conn = socket.create_connection(((pod.get("status") or {}).get("podIP") or
+                                         "127.0.0.1", port), timeout=5)
+        conn.settimeout(None)  # connected: the connection may idle as long as it likes
+        return conn
 
 
 class _ScriptView:
