@@ -658,6 +658,7 @@ def test_exec_and_port_forward_reach_the_pods_container(
             "out-hi\n", "err\n", 3)
     finally:
         run.close()
+        run.sock.shutdown()  # websocket-client's close() leaves a socket the server closed open
     forward = portforward(api.core.connect_get_namespaced_pod_portforward, "web", NS,
                           ports=str(port))
     sock = forward.socket(port)

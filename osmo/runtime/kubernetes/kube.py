@@ -303,8 +303,15 @@ class ExecSession:
         return 0 if code is None else int(code)
 
     def close(self) -> None:
-        """Let go of the connection."""
+        """Let go of the connection.
+
+        ``close()`` of the client's WebSocket leaves the socket open when the server closed
+        the connection first (it only says goodbye to a connected peer); ``shutdown()``
+        closes the socket itself.
+        """
         self._ws.close()
+        if self._ws.sock is not None:
+            self._ws.sock.shutdown()
 
 
 def _module(name: str) -> Any:
