@@ -37,7 +37,8 @@ def test_the_role_grants_only_what_the_worker_uses(gang: str) -> None:
     expected = {("", "pods", v) for v in ("create", "get", "list", "watch", "delete")}
     expected |= {("", "pods/log", "get")}
     expected |= {("", "secrets", v) for v in ("create", "delete", "deletecollection")}  # not read
-    expected |= {("", "pods/exec", "create"), ("", "pods/exec", "get")}
+    expected |= {("", sub, v) for sub in ("pods/exec", "pods/portforward")
+                 for v in ("create", "get")}  # exec and port-forward, nothing else of a pod
     expected |= {("", "services", v) for v in ("create", "delete", "deletecollection")}
     if gang in POD_GROUPS:
         expected |= {(POD_GROUPS[gang], "podgroups", v)

@@ -7,7 +7,9 @@ serialisation, watch and error paths run for real:
   ``store.RESOURCES``; verbs get, list, watch (``?watch=true``), create, update (PUT), patch
   (``patches.py``), delete and deletecollection; ``pods/log`` (``follow=true`` streams) and
   ``pods/status``; ``pods/exec`` (a WebSocket upgrade speaking ``v5``/``v4.channel.k8s.io``,
-  ``websocket.py``; the node runs the command); ``dryRun=All``; label and field selectors; ``limit``/``continue``.
+  ``websocket.py``; the node runs the command) and ``pods/portforward`` (``v4.channel.k8s.io``,
+  two channels a port; the node dials the pod's port); ``dryRun=All``; label and field
+  selectors; ``limit``/``continue``.
 - A watch is a chunked stream of JSON lines ``{"type": ..., "object": ...}``; one from a
   version the history no longer holds gets a single ERROR event carrying a 410 Expired Status,
   as the real server's watch cache sends it (HTTP 200). ``timeoutSeconds`` ends it.
@@ -38,7 +40,7 @@ import sys
 import threading
 import time
 import traceback
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 from typing import Any, Protocol
@@ -70,7 +72,8 @@ class LogSource(Protocol):
 
 
 class ExecSource(Protocol):
-    """How a command runs in a running container (the node side): a started process."""
+    """How a command runs in a running container, and how a pod's port is reached (the
+    node side of ``pods/exec`` and ``pods/portforward``)."""
 
     def pod_exec(self, pod: Obj, container: str, command: list[str], *,
                  tty: bool) -> subprocess.Popen[bytes]:
@@ -78,6 +81,13 @@ class ExecSource(Protocol):
 
         Raises:
             ApiError: 400 when the container does not run.
+        """
+
+    def pod_connect(self, pod: Obj, port: int) -> socket.socket:
+        """A TCP connection to ``port`` where ``pod``'s processes listen.
+
+        Raises:
+            OSError: nothing listens there.
         """
 
 
@@ -297,13 +307,15 @@ class _Handler(BaseHTTPRequestHandler):
 
     def _dispatch(self, method: str, route: _Route, body: Any) -> None:
         self._count(_verb(method, route.name, self.query), route)  # refused ones count too
-        if route.sub not in (None, "status", "log", "exec") or (
+        if route.sub not in (None, "status", "log", "exec", "portforward") or (
                 route.sub == "log" and (method != "GET" or route.res != st.PODS)) or (
-                route.sub == "exec" and (method not in ("GET", "POST")
-                                         or route.res != st.PODS)):
+                route.sub in ("exec", "portforward") and (method not in ("GET", "POST")
+                                                          or route.res != st.PODS)):
             raise ApiError(404, "NotFound", "the server could not find the requested resource")
         if route.sub == "exec":
             return self._exec(route)
+        if route.sub == "portforward":
+            return self._portforward(route)
         if method == "GET" and route.name is None:
             if self.query.get("watch") in ("true", "1"):
                 return self._watch(route)
@@ -417,31 +429,63 @@ class _Handler(BaseHTTPRequestHandler):
         container = self._log_container(pod)
         query = parse_qs(urlsplit(self.path).query)
         command = query.get("command") or []
-        offered = [p.strip() for p in (self.headers.get("Sec-WebSocket-Protocol") or "")
-                   .split(",")]
-        protocol = next((p for p in ("v5.channel.k8s.io", "v4.channel.k8s.io")
-                         if p in offered), None)
-        key = self.headers.get("Sec-WebSocket-Key")
-        if self.headers.get("Upgrade", "").lower() != "websocket" or not key:
-            raise ApiError(400, "BadRequest", "Upgrade request required")
+        protocol = self._protocol(("v5.channel.k8s.io", "v4.channel.k8s.io"))
         if protocol is None or not command:
             raise ApiError(400, "BadRequest", "you must specify at least 1 command and a "
                            "channel protocol (v4 or v5.channel.k8s.io)")
-        source = self.api.exec_source
-        if source is None:
+        proc = self._node().pod_exec(pod, container, command,
+                                     tty=query.get("tty", ["false"])[-1] == "true")
+        _relay(self._upgrade(protocol), proc, v5=protocol.startswith("v5"))
+
+    def _portforward(self, route: _Route) -> None:
+        """``pods/portforward``: a WebSocket of ``v4.channel.k8s.io``, two channels a port.
+
+        As the kubelet serves it: port ``i`` (in the order of ``ports``) has data channel
+        ``2i`` and error channel ``2i+1``, each opened by a frame carrying the port (2 bytes,
+        little-endian); the node dials the pod's port, and a dial that fails is a message
+        on the error channel. The WebSocket closes once every port's connection ended (no
+        half-close: the protocol has no message for it).
+        """
+        pod = self.api.store.get(st.PODS, route.ns, route.name or "")
+        ports = _ports(parse_qs(urlsplit(self.path).query).get("ports") or [])
+        protocol = self._protocol(("v4.channel.k8s.io",))
+        if protocol is None:
+            raise ApiError(400, "BadRequest", "port forwarding needs the v4.channel.k8s.io "
+                           "WebSocket protocol")
+        phase = (pod.get("status") or {}).get("phase")
+        if phase != "Running":
+            raise ApiError(400, "BadRequest", f"unable to forward port: pod "
+                           f"{pod['metadata']['name']} is not running (phase {phase})")
+        node = self._node()
+        _forward(self._upgrade(protocol), ports,
+                 lambda port: node.pod_connect(pod, port), pod["metadata"]["name"])
+
+    def _protocol(self, served: tuple[str, ...]) -> str | None:
+        """The first of ``served`` the client offers; 400 without a WebSocket upgrade."""
+        if self.headers.get("Upgrade", "").lower() != "websocket" or \
+                not self.headers.get("Sec-WebSocket-Key"):
+            raise ApiError(400, "BadRequest", "Upgrade request required")
+        offered = [p.strip() for p in (self.headers.get("Sec-WebSocket-Protocol") or "")
+                   .split(",")]
+        return next((p for p in served if p in offered), None)
+
+    def _node(self) -> ExecSource:
+        if self.api.exec_source is None:
             raise ApiError(400, "BadRequest", "no node runs this pod")
-        proc = source.pod_exec(pod, container, command,
-                               tty=query.get("tty", ["false"])[-1] == "true")
+        return self.api.exec_source
+
+    def _upgrade(self, protocol: str) -> WebSocket:
+        """Switch to a WebSocket speaking ``protocol``."""
         self._streaming = True
         self.close_connection = True
         self.send_response(101, "Switching Protocols")
         self.send_header("Upgrade", "websocket")
         self.send_header("Connection", "Upgrade")
-        self.send_header("Sec-WebSocket-Accept", accept_key(key))
+        self.send_header("Sec-WebSocket-Accept", accept_key(self.headers["Sec-WebSocket-Key"]))
         self.send_header("Sec-WebSocket-Protocol", protocol)
         self.end_headers()
         self.wfile.flush()
-        _relay(WebSocket(self.rfile, self.wfile), proc, v5=protocol.startswith("v5"))
+        return WebSocket(self.rfile, self.wfile)
 
     def _log_container(self, pod: Obj) -> str:
         spec = pod.get("spec") or {}
@@ -616,6 +660,68 @@ def _relay(ws: WebSocket, proc: subprocess.Popen[bytes], *, v5: bool) -> None:
                   "details": {"causes": [{"reason": "ExitCode", "message": str(code)}]}}
     try:
         ws.send(bytes([3]) + json.dumps(status).encode())
+        ws.send(struct.pack("!H", 1000), CLOSE)
+    except OSError:
+        pass
+
+
+def _ports(values: list[str]) -> list[int]:
+    """The ``ports`` of a port-forward request; 400 when one is not a port."""
+    ports: list[int] = []
+    for value in values:
+        for text in value.split(","):
+            if not text.strip().isdigit() or not 0 < int(text) < 65536 or int(text) in ports:
+                raise ApiError(400, "BadRequest", f"invalid port {text!r}")
+            ports.append(int(text))
+    if not ports:
+        raise ApiError(400, "BadRequest", "at least 1 port is required (ports=N)")
+    return ports
+
+
+def _forward(ws: WebSocket, ports: list[int], dial: Callable[[int], socket.socket],
+             pod: str) -> None:
+    """Carry each port's bytes over ``ws`` (see ``_Handler._portforward``) until all ended."""
+    conns: dict[int, socket.socket] = {}
+    for index, port in enumerate(ports):
+        prefix = struct.pack("<H", port)
+        ws.send(bytes([2 * index]) + prefix)
+        ws.send(bytes([2 * index + 1]) + prefix)
+        try:
+            conns[index] = dial(port)
+        except OSError as exc:
+            ws.send(bytes([2 * index + 1]) + f"error forwarding port {port} to pod {pod}: "
+                    f"dial tcp4 127.0.0.1:{port}: {exc.strerror or exc}".encode())
+
+    def pump(index: int, conn: socket.socket) -> None:
+        try:
+            while data := conn.recv(65536):
+                ws.send(bytes([2 * index]) + data)
+        except OSError:
+            pass  # the client went away (its side closed the connection)
+
+    def feed() -> None:
+        try:
+            while (message := ws.receive()) is not None and message[0] != CLOSE:
+                conn = conns.get(message[1][0] // 2) if message[1] else None
+                if conn is not None and message[1][0] % 2 == 0:
+                    conn.sendall(message[1][1:])
+        except OSError:
+            pass
+        for conn in conns.values():  # the client is gone: so are its connections
+            try:
+                conn.shutdown(socket.SHUT_RDWR)
+            except OSError:
+                pass
+
+    pumps = [threading.Thread(target=pump, args=item, daemon=True) for item in conns.items()]
+    for thread in pumps:
+        thread.start()
+    threading.Thread(target=feed, daemon=True).start()
+    for thread in pumps:
+        thread.join()
+    for conn in conns.values():
+        conn.close()
+    try:
         ws.send(struct.pack("!H", 1000), CLOSE)
     except OSError:
         pass

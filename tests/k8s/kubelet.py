@@ -25,6 +25,8 @@ It follows the store's events (never HTTP) and acts as the control plane and the
   kubelet's housekeeping removes dead pods' containers and sandboxes), or at once when a
   new pod needs its name.
 - **Exec**: ``pods/exec`` runs ``podman exec -i`` in the running container.
+- **Port-forward**: ``pods/portforward`` connects to the pod's port on the host's loopback
+  (where a pod's processes listen here).
 - **Logs**: ``pods/log`` reads the container's log file (CRI format, podman's ``k8s-file``
   driver; ``follow`` streams until the container exited), as the kubelet does; a container
   that has not started is a 400 "is waiting to start".
@@ -37,6 +39,7 @@ It follows the store's events (never HTTP) and acts as the control plane and the
 from __future__ import annotations
 
 import queue
+import socket
 import subprocess
 import tempfile
 import threading
@@ -679,6 +682,14 @@ class Kubelet:
         if known is None or seen is None or seen.state != "running":
             raise ApiError(400, "BadRequest", f"container {container} is not running")
         return self.podman.exec(f"{known.podman}-{container}", command)
+
+    def pod_connect(self, pod: Obj, port: int) -> socket.socket:
+        """A TCP connection to ``port`` of ``pod`` (``ExecSource``): on this host's loopback,
+        since every pod here runs on the host's network (its podIP is 127.0.0.1)."""
+        conn = socket.create_connection(((pod.get("status") or {}).get("podIP") or
+                                         "127.0.0.1", port), timeout=5)
+        conn.settimeout(None)  # connected: the connection may idle as long as it likes
+        return conn
 
 
 class _ScriptView:

@@ -662,3 +662,74 @@ def test_a_cri_log_file_is_served_as_the_kubelet_serves_it(tmp_path: Path) -> No
     assert read(follow=False, tail=None, timestamps=False) == b"one\ntwo\n\nthree\nfour\n"
     assert b"".join(read_log(str(tmp_path / "none"), follow=True, tail=None,
                              timestamps=False, ended=lambda: True)) == b""
+
+
+# ---------------------------------------------------------------------- exec and port-forward
+
+
+def _recv_until(sock: Any, want: bytes, timeout: float = 30) -> bytes:
+    sock.settimeout(timeout)
+    got = b""
+    while want not in got:
+        data = sock.recv(65536)
+        if not data:
+            break
+        got += data
+    return got
+
+
+def test_exec_and_port_forward_reach_the_pods_container(
+        api: Cluster, images: dict[str, str]) -> None:
+    """The real client's ``stream`` (exec) and ``portforward`` on the stand-in's WebSocket:
+    a command's streams and exit code, and bytes both ways to a port the pod listens on."""
+    from kubernetes.stream import portforward, stream
+
+    from osmo.config import free_port
+
+    port, closed = free_port(0), free_port(0)
+    since = version(api)
+    api.core.create_namespaced_pod(NS, pod("web", f"exec nc -ll -p {port} -e cat"))
+    watch_pod(api, "web", since, phase_is("Running", "Failed", "Succeeded"))
+    run = stream(api.core.connect_get_namespaced_pod_exec, "web", NS, container="main",
+                 command=["sh", "-c", "read x; echo out-$x; echo err >&2; exit 3"],
+                 stdin=True, stdout=True, stderr=True, tty=False, _preload_content=False)
+    try:
+        run.write_stdin("hi\n")
+        run.run_forever(timeout=60)
+        assert (run.read_stdout(), run.read_stderr(), run.returncode) == (
+            "out-hi\n", "err\n", 3)
+    finally:
+        run.close()
+        run.sock.shutdown()  # websocket-client's close() leaves a socket the server closed open
+    forward = portforward(api.core.connect_get_namespaced_pod_portforward, "web", NS,
+                          ports=str(port))
+    sock = forward.socket(port)
+    try:
+        for _ in range(2):  # one connection, several exchanges
+            sock.sendall(b"ping\n" + bytes(range(256)) * 400)
+            assert _recv_until(sock, bytes(range(256)) * 400) == \
+                b"ping\n" + bytes(range(256)) * 400
+        assert forward.error(port) is None
+    finally:
+        forward.close()
+    refused = portforward(api.core.connect_get_namespaced_pod_portforward, "web", NS,
+                          ports=str(closed))
+    try:  # nothing listens there: the connection ends, the error channel says why
+        assert _recv_until(refused.socket(closed), b"never") == b""
+        assert "error forwarding port" in (refused.error(closed) or ""), refused.error(closed)
+    finally:
+        refused.close()
+    api.core.delete_namespaced_pod("web", NS, grace_period_seconds=0)
+
+
+def test_port_forward_requests_the_server_refuses(api: Cluster) -> None:
+    from kubernetes.stream import portforward
+
+    api.core.create_namespaced_pod(NS, unplaceable("waiting"))
+    for name, ports, code in (("waiting", "80", 400), ("nobody", "80", 404)):
+        with pytest.raises(ApiException) as refused:
+            portforward(api.core.connect_get_namespaced_pod_portforward, name, NS, ports=ports)
+        assert str(code) in str(refused.value), refused.value
+    with pytest.raises(ApiException) as plain:  # not a WebSocket: the real answer
+        api.core.connect_get_namespaced_pod_portforward("waiting", NS, ports="80")
+    assert plain.value.status == 400 and "Upgrade request required" in plain.value.body

@@ -3,6 +3,7 @@
 :class:`Kube` is what osmo asks of an API server: create, read, list, watch and delete pods,
 Secrets, Services and PodGroups of one namespace (or every one a label selects), stream a
 container's log, run a command in a container (:class:`ExecSession`: the exec API's
+WebSocket), connect to a pod's port (:meth:`Kube.port_forward`: the port-forward API's
 WebSocket), list nodes.
 Objects go and come as plain dicts (JSON as the API serves it; responses are not turned into
 the client's models, which is slower and loses fields the models do not know).
@@ -19,6 +20,8 @@ from __future__ import annotations
 import importlib
 import json
 import os
+import re
+import socket
 from collections.abc import Iterator
 from typing import Any
 
@@ -233,10 +236,31 @@ class Kube:
             KubeError: the API refused it (the container does not run, no permission).
         """
         stream = _module("kubernetes.stream").stream
-        socket = self._call(stream, self.core.connect_get_namespaced_pod_exec, name, namespace,
-                            container=container, command=command, stdin=True, stdout=True,
-                            stderr=True, tty=tty, _preload_content=False, binary=True)
-        return ExecSession(socket)
+        ws = self._call(stream, self.core.connect_get_namespaced_pod_exec, name, namespace,
+                        container=container, command=command, stdin=True, stdout=True,
+                        stderr=True, tty=tty, _preload_content=False, binary=True)
+        return ExecSession(ws)
+
+    def port_forward(self, namespace: str, name: str, port: int) -> socket.socket:
+        """A TCP connection to ``port`` of the pod, through the API's port-forward.
+
+        Each connection is a WebSocket of its own (``v4.channel.k8s.io``: a data and an
+        error channel for the port), relayed to the returned socket by the client's thread.
+        The protocol has no half-close: a ``shutdown(SHUT_WR)`` of the returned socket does
+        nothing (the pod's answer still comes back), and the connection ends when either
+        side closes it. A port nothing listens on gives a connection that ends at once.
+
+        Raises:
+            KubeError: the API refused it (the pod does not run, no permission).
+        """
+        forward = self._call(_module("kubernetes.stream").portforward,
+                             self.core.connect_get_namespaced_pod_portforward, name, namespace,
+                             ports=str(port))
+        made = forward.socket(port)  # the client's wrapper of its socketpair's end
+        try:
+            return _Forwarded(fileno=os.dup(made.fileno()))
+        finally:
+            made.close()
 
     # ------------------------------------------------------------ errors
 
@@ -254,8 +278,8 @@ class Kube:
 class ExecSession:
     """One exec's streams (the client's WebSocket of Kubernetes' channel protocol)."""
 
-    def __init__(self, socket: Any) -> None:
-        self._ws = socket
+    def __init__(self, ws: Any) -> None:
+        self._ws = ws
 
     @property
     def open(self) -> bool:
@@ -284,8 +308,15 @@ class ExecSession:
         return 0 if code is None else int(code)
 
     def close(self) -> None:
-        """Let go of the connection."""
+        """Let go of the connection.
+
+        ``close()`` of the client's WebSocket leaves the socket open when the server closed
+        the connection first (it only says goodbye to a connected peer); ``shutdown()``
+        closes the socket itself.
+        """
         self._ws.close()
+        if self._ws.sock is not None:
+            self._ws.sock.shutdown()
 
 
 def _module(name: str) -> Any:
@@ -307,10 +338,31 @@ def _json(response: Any) -> Obj:
 
 
 def _message(exc: Any) -> str:
-    """The API's own message from a Status body, else the HTTP reason."""
+    """The API's own message from a Status body, else the HTTP reason.
+
+    A refused WebSocket upgrade (exec, port-forward) comes as status 0 with the handshake's
+    status, headers and body in the reason: ``Handshake status 400 Bad Request -+-+- {...}
+    -+-+- BODY``; its Status is read from there.
+    """
+    raw, status, reason = exc.body, exc.status, str(exc.reason)
+    handshake = re.match(r"Handshake status (\d+)", reason)
+    if not raw and handshake:
+        status, raw = int(handshake[1]), reason.rsplit(" -+-+- ", 1)[-1]
     try:
-        body = json.loads(exc.body or "{}")
+        body = json.loads(raw or "{}")
     except ValueError:
         body = {}
     message = body.get("message") if isinstance(body, dict) else None
-    return f"Kubernetes API: {message or exc.reason} ({exc.status})"
+    return f"Kubernetes API: {message or reason} ({status})"
+
+
+class _Forwarded(socket.socket):
+    """A port-forward's socket, whose write half cannot be shut down alone.
+
+    The API's protocol carries no half-close (see :meth:`Kube.port_forward`).
+    """
+
+    def shutdown(self, how: int) -> None:
+        """Shut down reading, or both halves; writing alone stays open."""
+        if how != socket.SHUT_WR:
+            super().shutdown(how)

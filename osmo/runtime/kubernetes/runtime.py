@@ -37,9 +37,9 @@ What it owns, one concern per method of the runtime contract (``osmo.runtime.api
   the pool when the server orders it (:meth:`KubernetesRuntime.sweep`).
 
 - exec: the Kubernetes exec API (a WebSocket), held by a relay process the node spawns
-  (``osmo.runtime.kubernetes.exec_relay``); port-forward: the node dials the pod's IP
-  (:meth:`KubernetesRuntime.connector`); the node's session relays both over zenoh as on
-  every node.
+  (``osmo.runtime.kubernetes.exec_relay``); port-forward: the API's port-forward (a
+  WebSocket per connection, :meth:`KubernetesRuntime.connector`); the node's session relays
+  both over zenoh as on every node.
 
 - data: with the pool's ``data`` (osmo's image), the pod shares no volume with the node:
   ``prepare`` lists and hashes what the task must find (``podio.scan_mounts``), opens the
@@ -59,6 +59,7 @@ import os
 import re
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -81,7 +82,6 @@ from osmo.runtime.api import (
     ProcessHandle,
     Runtime,
     StartError,
-    dial,
 )
 from osmo.runtime.background import Background
 from osmo.runtime.container.engine import ContainerEngine, EngineNotFound, detect_engine
@@ -521,21 +521,33 @@ class KubernetesRuntime:
                            ctty=tty)
 
     def connector(self, launch: Launch, handle: ProcessHandle) -> Connector:
-        """To the task's ports on its pod's IP (the node dials it; the node's session relays).
+        """To the task's TCP ports through the API's port-forward (the node's session relays).
 
-        An in-cluster node reaches pod IPs directly, as every pod of a cluster does (unless
-        a NetworkPolicy forbids it); it does not go through the API's port-forward.
+        Each connection is a port-forward of its own (``Kube.port_forward``), so the node
+        needs nothing but the API: no route to pod IPs, whatever the NetworkPolicies, and the
+        Role's ``pods/portforward``. UDP is refused: the API forwards TCP only.
 
         Raises:
-            ConnectError: the pod has no IP (not running) or is gone.
-            KubeError: the API cannot be asked.
+            ConnectError: the pod is gone or not running, or the API cannot be asked.
         """
         name = _run(launch).name
-        pod = self.kube.read_pod(self.pool.namespace, name)
-        address = str(((pod or {}).get("status") or {}).get("podIP") or "")
-        if not address:
-            raise ConnectError(f"pod {name} has no IP (it is not running)")
-        return lambda port, udp: dial(address, port, udp=udp)
+        try:
+            pod = self.kube.read_pod(self.pool.namespace, name)
+        except KubeError as exc:
+            raise ConnectError(f"pod {name}: {exc}") from None
+        phase = ((pod or {}).get("status") or {}).get("phase")
+        if phase != "Running":
+            raise ConnectError(f"pod {name} is not running ({phase or 'gone'})")
+
+        def connect(port: int, udp: bool) -> socket.socket:
+            if udp:
+                raise ConnectError("the Kubernetes API forwards TCP only, not UDP")
+            try:
+                return self.kube.port_forward(self.pool.namespace, name, port)
+            except KubeError as exc:
+                raise ConnectError(f"cannot forward port {port} of pod {name}: {exc}"
+                                   ) from None
+        return connect
 
     def cleanup(self, launch: Launch) -> None:
         """Its group's objects go with the group's last member here (in the background).
