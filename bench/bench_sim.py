@@ -147,8 +147,8 @@ def server(checkpoint: Path | None, sandbox: str = "auto") -> Iterator[Path]:
 
     with tempfile.TemporaryDirectory(prefix="osmo-bench-sim-") as tmp:
         home = Path(tmp)
-        osmo_cli(home, "server", "start", "--sandbox", sandbox)
-        try:
+        try:  # a start that timed out may still have left its server running
+            osmo_cli(home, "server", "start", "--sandbox", sandbox)
             if checkpoint is not None:
                 with osmo.Client(home=home) as client:
                     client.upload_dataset(POLICY, checkpoint)
