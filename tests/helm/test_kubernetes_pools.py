@@ -13,7 +13,17 @@ from typing import Any
 import pytest
 
 from osmo.runtime.kubernetes.config import load_pool
-from tests.helm.chart import FULLNAME, NAMESPACE, container, env, flag, lint, render, tls_values
+from tests.helm.chart import (
+    FULLNAME,
+    NAMESPACE,
+    container,
+    env,
+    flag,
+    lint,
+    render,
+    tls_values,
+    volumes,
+)
 
 POD_GROUPS = {"kai": "scheduling.run.ai", "volcano": "scheduling.volcano.sh",
               "coscheduling": "scheduling.x-k8s.io"}
@@ -177,3 +187,24 @@ def test_with_tls_alone_the_pods_data_containers_get_the_ca() -> None:
     client = json.loads(rendered.get("ConfigMap", f"{FULLNAME}-zenoh")["data"]["client.json5"])
     assert client["transport"]["link"]["tls"] == {
         "root_ca_certificate": "/etc/osmo/tls/server/ca.crt"}  # what the worker copies
+
+
+def test_a_worker_reads_only_its_own_users_credentials_never_the_servers() -> None:
+    """The auth Secret holds every zenoh user's password and the router's dictionary; a
+    worker pod (a task's neighbour) gets only its own user's keys, and a data-mode pool's
+    the pods' user's, so a compromised worker cannot log in to the router as the server."""
+    rendered = render({**AUTH_DATA, "pools": [
+        *AUTH_DATA["pools"], {"name": "claimed", "replicas": 1, "kind": "kubernetes",
+                              "kubernetes": {"workClaim": "work"}},
+        {"name": "cpu", "replicas": 1}]})
+    secret = rendered.get("Secret", f"{FULLNAME}-auth")
+    assert {"server-password", "dictionary", "pod-password"} <= set(secret["data"])
+    expected = {"pods": ["user", "password", "pod-user", "pod-password"],
+                "claimed": ["user", "password"], "cpu": ["user", "password"]}
+    for pool, keys in expected.items():
+        kind = "Deployment" if pool == "cpu" else "StatefulSet"
+        owner = rendered.get(kind, f"{FULLNAME}-worker-{pool}")
+        items = volumes(owner)["auth"]["secret"].get("items")
+        assert [(i["key"], i["path"]) for i in items or []] == [(k, k) for k in keys], pool
+    server = rendered.get("StatefulSet", f"{FULLNAME}-server")
+    assert "items" not in volumes(server)["auth"]["secret"]  # the server reads them all

@@ -159,7 +159,13 @@ user/password are filled in at pod start from the auth Secret (see render-client
 {{- end -}}
 
 {{/* Volumes carrying the zenoh config and the Secrets it points at. */}}
+{{/* The pod volumes of the zenoh config, TLS and auth Secrets. Args: root, authKeys (the auth
+Secret's keys the pod may read; empty: all, the server's). A worker gets only its own user's
+(and, for a data-mode kubernetes pool, the pods' user's): never the server's password or the
+router's dictionary, which would let a compromised worker log in as the server. */}}
 {{- define "osmo.securityVolumes" -}}
+{{- $keys := .authKeys -}}
+{{- with .root -}}
 {{- if include "osmo.zenohConfigured" . }}
 - name: zenoh-config
   configMap:
@@ -182,11 +188,19 @@ user/password are filled in at pod start from the auth Secret (see render-client
   secret:
     secretName: {{ include "osmo.authSecretName" . }}
     defaultMode: 0440
+    {{- with $keys }}
+    items:
+      {{- range . }}
+      - key: {{ . }}
+        path: {{ . }}
+      {{- end }}
+    {{- end }}
 - name: zenoh-client-config
   emptyDir:
     medium: Memory
     sizeLimit: 1Mi
 {{- end }}
+{{- end -}}
 {{- end -}}
 
 {{- define "osmo.securityVolumeMounts" -}}
