@@ -247,6 +247,25 @@ def test_a_sandboxed_warm_attempt_sees_neither_home_nor_others_nor_its_runner(
     assert node.finish(running)[0] == 137
 
 
+def test_what_the_runner_shows_under_tmp_stays_shown_to_each_attempt(tmp_path: Path) -> None:
+    """A share under ``/tmp`` (or osmo's own code, as in a clone under ``/tmp``) is bound
+    into the view after its ``/tmp``, cold or warm; each attempt's ``/tmp`` is still its own."""
+    share = tmp_path / "share"
+    share.mkdir()
+    (share / "data.txt").write_text("shared-data")
+    node = _started(tmp_path, (f"{share}:ro",))
+    try:
+        code, out, err = node.run(f"cat {share}/data.txt; echo leak > /tmp/mine")
+        assert (code, out) == (0, "shared-data"), (code, out, err)
+        code, out, err = node.run(
+            f"cat {share}/data.txt; ls /tmp; (: > {share}/w) 2>/dev/null || echo ro")
+        assert code == 0 and "shared-data" in out and "mine" not in out and "ro" in out, (
+            code, out, err)
+        assert [(r.type, r.started) for r in node.warm.runners()] == [("", 2)]
+    finally:
+        node.runtime.close()
+
+
 def test_only_the_types_osmo_ships_are_trusted_in_a_runner() -> None:
     """A custom or another distribution's type runs its import code cold, in its attempt."""
     assert builtin_type("sim.rollout") and builtin_type("lerobot.train")

@@ -62,6 +62,7 @@ import contextlib
 import ctypes
 import json
 import os
+import re
 import selectors
 import signal
 import socket
@@ -354,7 +355,12 @@ def _enclose(layout: dict[str, Any], relay: int, binds: Sequence[int], request: 
     mounts.unshare(mounts.NEWNS | mounts.NEWPID | mounts.NEWIPC | mounts.NEWUTS)
     mounts.make_private()
     _fresh_dev(_devices())  # in bubblewrap's order: /dev, /tmp, the homes, covers, binds
+    shown = _shown_under("/tmp", layout["hidden"])  # bound after /tmp, as cold: keep them
     mounts.mount_tmpfs("/tmp", 0o1777)
+    for path, folder, fd in shown:
+        _mount_point(path, folder)
+        mounts.move(fd, path)
+        os.close(fd)
     for folder in layout["hidden"]:
         os.makedirs(folder, exist_ok=True)
         mounts.mount_tmpfs(folder, 0o755)
@@ -390,6 +396,37 @@ def _enclose(layout: dict[str, Any], relay: int, binds: Sequence[int], request: 
         pid, status = os.waitpid(-1, 0)
         if pid == task:
             os._exit(_exit_code(status))
+
+
+def _shown_under(root: str, hidden: Sequence[str]) -> list[tuple[str, bool, int]]:
+    """The runner's mounts under ``root`` as detached clones: (path, folder?, descriptor).
+
+    What the runner's own sandbox binds on its ``/tmp`` (a share, osmo's code when it lives
+    under ``/tmp``), which bubblewrap binds after the ``/tmp`` of a cold attempt too; each
+    clone keeps its mount's flags (a read-only one stays read-only), nested mounts with it.
+    Osmo's homes (``hidden``) are left out: the attempt gets an empty tmpfs there anyway.
+    """
+    found: list[str] = []
+    with open("/proc/self/mountinfo", "rb") as table:
+        for line in table:
+            point = os.fsdecode(re.sub(rb"\\([0-7]{3})",
+                                       lambda m: bytes([int(m.group(1), 8)]),
+                                       line.split()[4]))
+            if point.startswith(root + "/"):
+                found.append(point)
+    out: list[tuple[str, bool, int]] = []
+    kept: list[str] = []
+    for point in sorted(set(found)):
+        if any(_within(point, top) for top in (*kept, *hidden)):
+            continue  # comes with its parent's clone, or lies under a home
+        kept.append(point)
+        folder = os.path.isdir(point)
+        out.append((point, folder, mounts.detached(point, readonly=False)))
+    return out
+
+
+def _within(path: str, folder: str) -> bool:
+    return path == folder or path.startswith(folder.rstrip("/") + "/")
 
 
 def _exit_code(status: int) -> int:
