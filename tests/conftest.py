@@ -19,9 +19,10 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Generator, Iterator
+from collections.abc import Callable, Generator, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TypeVar
 
 import pytest
 
@@ -226,6 +227,21 @@ def wait_gone(pid: int, timeout: float = 15) -> float:
             raise AssertionError(f"process {pid} is still alive after {timeout}s")
         time.sleep(0.02)
     return time.monotonic()
+
+
+T = TypeVar("T")
+
+
+def retry_oserror(fn: Callable[[], T], timeout: float = 30) -> T:
+    """``fn()`` once it stops raising OSError (a task's server may still be starting)."""
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            return fn()
+        except OSError:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.2)
 
 
 def unique_sleep() -> str:

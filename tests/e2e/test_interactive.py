@@ -28,7 +28,7 @@ from osmo.errors import NotAllowed
 from osmo.transport.rpc import ApiClient
 from osmo.transport.streams import Frame, Kind, SessionGrant, Stream
 from osmo.transport.zenoh_link import Link
-from tests.conftest import REPO, Osmo, unique_sleep, wait_no_process, write
+from tests.conftest import REPO, Osmo, retry_oserror, unique_sleep, wait_no_process, write
 from tests.e2e.cluster import Cluster
 
 LOCAL, REMOTE = "local", "remote"
@@ -300,17 +300,6 @@ def _stop(proc: subprocess.Popen[str]) -> None:
     proc.communicate(timeout=30)  # and close its pipes
 
 
-def _retry(fn, timeout: float = 30):  # type: ignore[no-untyped-def]
-    deadline = time.monotonic() + timeout
-    while True:
-        try:
-            return fn()
-        except OSError:
-            if time.monotonic() > deadline:
-                raise
-            time.sleep(0.2)
-
-
 def test_port_forward_serves_concurrent_fetches_from_a_remote_task(
         cluster: Cluster, tmp_path: Path) -> None:
     port, local = free_port(0), free_port(0)
@@ -325,7 +314,7 @@ workflow:
     proc = _forward(cluster.osmo, wf, "--port", f"{local}:{port}")
     try:
         url = f"http://127.0.0.1:{local}"
-        want = _retry(lambda: urllib.request.urlopen(f"{url}/sum.txt", timeout=30).read())
+        want = retry_oserror(lambda: urllib.request.urlopen(f"{url}/sum.txt", timeout=30).read())
         with concurrent.futures.ThreadPoolExecutor(20) as pool:
             got = list(pool.map(lambda _: urllib.request.urlopen(f"{url}/blob.bin",
                                                                  timeout=60).read(), range(20)))
@@ -356,7 +345,7 @@ workflow:
     wf = _running(cluster.osmo, spec, pool)
     proc = _forward(cluster.osmo, wf, "--port", f"{local}:{port}")
     try:
-        page = _retry(lambda: urllib.request.urlopen(f"http://127.0.0.1:{local}/page.txt",
+        page = retry_oserror(lambda: urllib.request.urlopen(f"http://127.0.0.1:{local}/page.txt",
                                                      timeout=30).read())
         assert page == b"served\n"
     finally:
@@ -391,9 +380,9 @@ workflow:
                 sock.sendto(data, ("127.0.0.1", local))
                 return sock.recvfrom(65535)[0]
 
-            assert _retry(lambda: echo_once(b"hello")) == b"olleh"
+            assert retry_oserror(lambda: echo_once(b"hello")) == b"olleh"
             big = os.urandom(40_000)
-            assert _retry(lambda: echo_once(big)) == big[::-1]
+            assert retry_oserror(lambda: echo_once(big)) == big[::-1]
         os.kill(proc.pid, signal.SIGINT)
         _, err = proc.communicate(timeout=30)
         assert proc.returncode == 0 and "port-forward stopped" in err
@@ -486,7 +475,7 @@ workflow:
                 sock.sendall(b"ping")
                 return sock.recv(4)
 
-        assert _retry(echo_once) == b"ping"  # the session is up
+        assert retry_oserror(echo_once) == b"ping"  # the session is up
         with socket.create_connection(("127.0.0.1", local_clogged), timeout=30) as stuck:
             time.sleep(0.5)  # its OPEN reaches the node, which starts connecting
             assert echo_once() == b"ping"

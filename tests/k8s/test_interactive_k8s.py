@@ -13,14 +13,13 @@ import subprocess
 import sys
 import time
 import urllib.request
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
 
 import pytest
 
 from osmo.config import free_port
-from tests.conftest import REPO, Osmo, write
+from tests.conftest import REPO, Osmo, retry_oserror, write
 from tests.containers.conftest import images, podman_env  # noqa: F401 - fixtures
 from tests.k8s.nodes import KubeCluster, started
 from tests.k8s.store import PODS
@@ -50,18 +49,6 @@ def _running(kube: KubeCluster, spec: Path) -> str:
         assert time.monotonic() < deadline, kube.osmo.query(wf)
         time.sleep(0.2)
     return wf
-
-
-def _retry(fn: Callable[[], Any], timeout: float = 60) -> Any:
-    """``fn()`` once it stops raising OSError (the task's server may still be starting)."""
-    deadline = time.monotonic() + timeout
-    while True:
-        try:
-            return fn()
-        except OSError:
-            if time.monotonic() > deadline:
-                raise
-            time.sleep(0.3)
 
 
 def _forward(osmo: Osmo, wf: str, ports: str) -> subprocess.Popen[str]:
@@ -108,14 +95,15 @@ def test_port_forward_reaches_the_pods_ports_through_the_api(kube: KubeCluster,
     before = kube.server.calls[("get", "pods/portforward")]
     proc = _forward(kube.osmo, wf, f"{local_http}:{http},{local_echo}:{echo}")
     try:
-        body = _retry(lambda: urllib.request.urlopen(
-            f"http://127.0.0.1:{local_http}/blob", timeout=60).read())
+        body = retry_oserror(lambda: urllib.request.urlopen(
+            f"http://127.0.0.1:{local_http}/blob", timeout=60).read(), timeout=60)
         want = kube.osmo("workflow", "exec", wf, "t", "--", "sha256sum",
                          "/osmo/data/output/www/blob")
         assert want.code == 0, want
         assert hashlib.sha256(body).hexdigest() == want.out.split()[0]
         payload = bytes(range(256)) * 1000
-        assert _retry(lambda: _echo(local_echo, payload, half_close=False)) == payload
+        assert retry_oserror(lambda: _echo(local_echo, payload, half_close=False),
+                             timeout=60) == payload
         # the API's port-forward has no half-close: the answer still comes back
         assert _echo(local_echo, b"last words\n", half_close=True) == b"last words\n"
     finally:
