@@ -5,29 +5,36 @@ each attempt is prepared as the pool prepares it, then timed from ``start`` to i
 (a one-episode, 20-step InvertedPendulum rollout: the import is most of a cold start).
 Warm and cold attempts alternate; the first warm one (the runner's import) is not counted.
 
-Usage (as root, from the repository): python bench/bench_warm_sandbox.py [--runs 8]
+Rows: the warm and the cold start, medians of ``--runs`` (8; 1 with ``OSMO_BENCH_QUICK=1``),
+and cold ÷ warm. A non-root run writes no rows (its sandboxed attempts start cold).
+
+Usage (as root, from the repository): python bench/bench_warm_sandbox.py [--runs 8] [--json F]
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import os
 import selectors
-import statistics
 import sys
 import tempfile
 import time
 from pathlib import Path
 
-from osmo.layout import AttemptDirs
-from osmo.runtime.api import Attempt, Launch
-from osmo.runtime.process.sandbox import choose, node_network
-from osmo.runtime.process.sandboxed import SandboxRuntime
-from osmo.runtime.process.warm import WarmRunners, WarmStart
-from osmo.scheduler.types import PrepareAttempt
-from osmo.spec.model import ResolvedType, TaskSpec
-from osmo.worker.taskenv import base_env
-from osmo.worker.workdir import prepare
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from benchlib import quick, row, write_rows  # noqa: E402
+
+from osmo.layout import AttemptDirs  # noqa: E402
+from osmo.runtime.api import Attempt, Launch  # noqa: E402
+from osmo.runtime.process.sandbox import choose, node_network  # noqa: E402
+from osmo.runtime.process.sandboxed import SandboxRuntime  # noqa: E402
+from osmo.runtime.process.warm import WarmRunners, WarmStart  # noqa: E402
+from osmo.scheduler.types import PrepareAttempt  # noqa: E402
+from osmo.spec.model import ResolvedType, TaskSpec  # noqa: E402
+from osmo.worker.taskenv import base_env  # noqa: E402
+from osmo.worker.workdir import prepare  # noqa: E402
 
 
 def _launch(runtime: SandboxRuntime, home: Path, name: str, warm: bool) -> Launch:
@@ -68,10 +75,14 @@ def _run(runtime: SandboxRuntime, launch: Launch) -> float:
 def main() -> None:
     """Run the measurement (see the module docstring)."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--runs", type=int, default=8)
+    parser.add_argument("--runs", type=int, default=1 if quick() else 8)
+    parser.add_argument("--json")
     args = parser.parse_args()
-    if os.geteuid() != 0:
-        sys.exit("run it as root: a non-root osmo's sandboxed attempts start cold")
+    if os.geteuid() != 0 or importlib.util.find_spec("mujoco") is None:
+        print("skipped: needs root (a non-root osmo's sandboxed attempts start cold) and "
+              "osmo[sim]")
+        write_rows(args.json, [])
+        return
     sandbox = choose("on")
     assert sandbox is not None
     network = node_network(outbound=False)
@@ -89,10 +100,15 @@ def main() -> None:
                 times[warm].append(_run(runtime, launch))
     finally:
         runtime.close()
-    for warm in (True, False):
-        print(f"sandboxed {'warm' if warm else 'cold'}: median "
-              f"{statistics.median(times[warm]) * 1000:.0f} ms of {args.runs} "
-              f"(min {min(times[warm]) * 1000:.0f}, max {max(times[warm]) * 1000:.0f})")
+    rows = [row(f"warm sandbox: one sim.rollout start, {'warm' if warm else 'cold'}", "ms",
+                [t * 1000 for t in times[warm]], higher_is_better=False,
+                notes="start → exit, 1 episode of 20 steps; the runner's first start not counted"
+                if warm else "start → exit, the same task with warm: false")
+            for warm in (True, False)]
+    rows.append(row("warm sandbox: cold ÷ warm start", "×",
+                    [c / w for c, w in zip(times[False], times[True], strict=True)],
+                    higher_is_better=True))
+    write_rows(args.json, rows)
 
 
 if __name__ == "__main__":

@@ -68,6 +68,11 @@ SLURM = [
     "slurm: submit → RUNNING, 1 job (the scheduler's cycle)",
     "slurm: N jobs submitted back to back → all COMPLETED, per job",
 ]
+WARM_SANDBOX = [  # bench_warm_sandbox.py: root and osmo[sim]
+    "warm sandbox: one sim.rollout start, warm",
+    "warm sandbox: one sim.rollout start, cold",
+    "warm sandbox: cold ÷ warm start",
+]
 PIPELINE = [
     "pipeline: reach-vision wall time, submit → COMPLETED",
     "pipeline: reach-vision trained success / expert success",
@@ -103,11 +108,13 @@ def test_quick_run_writes_every_expected_row(tmp_path: Path) -> None:
     for script in report["scripts"]:
         wanted = "skipped" if (script["script"] == "bench_datagen" and not sim) or (
             script["script"] in ("bench_pipeline", "bench_sim") and not learn) or (
-            script["script"] == "bench_slurm" and not slurm) else "ok"
+            script["script"] == "bench_slurm" and not slurm) or (
+            script["script"] == "bench_warm_sandbox" and not (sim and os.geteuid() == 0)) \
+            else "ok"
         assert script["status"] == wanted, script
     rows = {r["name"]: r for r in report["rows"]}
     expected = (EXPECTED + (DATAGEN if sim else []) + (PIPELINE if learn else [])
-                + (SLURM if slurm else []))
+                + (SLURM if slurm else []) + (WARM_SANDBOX if sim and os.geteuid() == 0 else []))
     for name in expected:
         assert name in rows, f"missing row {name!r}; have {sorted(rows)}"
         r = rows[name]
