@@ -113,13 +113,17 @@ def collect(api: ApiClient, attempt: str, root: Path, *, max_files: int | None =
         ServerUnreachable, NotAuthenticated: the node did not come back in time.
     """
     deadline = time.monotonic() + patience
+    said = ""  # the last reason told: once per reason, not once per second of waiting
     while True:
         try:
             return _collect_once(api, attempt, root, max_files)
         except (ServerUnreachable, NotAuthenticated, _Restarted) as exc:
             if time.monotonic() >= deadline:
                 raise (exc.cause if isinstance(exc, _Restarted) else exc) from None
-            print(f"osmo: collect: the node is away ({exc}); asking again", file=sys.stderr)
+            if str(exc) != said:
+                said = str(exc)
+                print(f"osmo: collect: the node is away ({exc}); asking again until it is "
+                      "back", file=sys.stderr)
             time.sleep(pause)
 
 
