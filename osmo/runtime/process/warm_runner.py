@@ -70,6 +70,7 @@ import sys
 import threading
 import time
 from collections.abc import Sequence
+from pathlib import PurePosixPath
 from typing import Any
 
 from osmo.runtime.process import mounts
@@ -417,16 +418,12 @@ def _shown_under(root: str, hidden: Sequence[str]) -> list[tuple[str, bool, int]
     out: list[tuple[str, bool, int]] = []
     kept: list[str] = []
     for point in sorted(set(found)):
-        if any(_within(point, top) for top in (*kept, *hidden)):
+        if any(PurePosixPath(point).is_relative_to(top) for top in (*kept, *hidden)):
             continue  # comes with its parent's clone, or lies under a home
         kept.append(point)
         folder = os.path.isdir(point)
         out.append((point, folder, mounts.detached(point, readonly=False)))
     return out
-
-
-def _within(path: str, folder: str) -> bool:
-    return path == folder or path.startswith(folder.rstrip("/") + "/")
 
 
 def _exit_code(status: int) -> int:
