@@ -322,20 +322,36 @@ class _RuntimeCheck:
 
         port = free_port(0)
         listen = " ".join(word.replace("{port}", str(port)) for word in self.listen)
-        started = self.start(self.launch("listener", ["sh", "-c", f"echo ready; {listen}"]))
+        # its stdin stays open: a listener (busybox nc) may end at once on stdin's end, which
+        # a pod's container (no stdin) gives it, before what is sent arrives
+        started = self.start(self.launch("listener", [
+            "sh", "-c", f"echo ready; sleep {int(self.timeout) + 5} | {listen}"]))
         if not started.until(b"ready", self.timeout):
             self.problems.append(f"listener: never ran (stderr {bytes(started.err)!r})")
             return
         connect = self.runtime.connector(started.launch, started.handle)
-        sock, why = _retry(lambda: connect(port, False), ConnectError, self.timeout)
-        if sock is None:
-            self.problems.append(f"listener: port {port} never reached: {why}")
-            return
-        with sock:
-            sock.sendall(b"ping-through-the-connector\n")
-        self.expect(started.until(b"ping-through-the-connector", self.timeout),
-                    f"listener: the task did not get what was sent (stdout "
-                    f"{bytes(started.out)!r}, stderr {bytes(started.err)!r})")
+        # "ready" comes just before the listener listens, and a connection through an
+        # engine's relay (the API's port-forward) is made, then ends, when nothing listens
+        # yet: what was sent is sent again on a new connection until the task has it
+        deadline = time.monotonic() + self.timeout
+        while True:
+            left = deadline - time.monotonic()
+            sock, why = _retry(lambda: connect(port, False), ConnectError, max(left, 0.1))
+            if sock is None:
+                if not started.until(b"ping-through-the-connector", 1.0):  # a slow earlier one
+                    self.problems.append(f"listener: port {port} never reached: {why}")
+                return
+            try:
+                with sock:
+                    sock.sendall(b"ping-through-the-connector\n")
+            except OSError:
+                pass  # ended by the relay: nothing listened yet
+            if started.until(b"ping-through-the-connector", min(3.0, max(left, 0.1))):
+                return
+            if time.monotonic() >= deadline:
+                break
+        self.problems.append(f"listener: the task did not get what was sent (stdout "
+                             f"{bytes(started.out)!r}, stderr {bytes(started.err)!r})")
 
 
 def _retry(attempt: Callable[[], Any], error: type[Exception], timeout: float

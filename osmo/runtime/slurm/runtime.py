@@ -70,6 +70,7 @@ import json
 import logging
 import os
 import re
+import socket
 import stat
 import sys
 import threading
@@ -605,15 +606,26 @@ class SlurmRuntime:
     def connector(self, launch: Launch, handle: ProcessHandle) -> Connector:
         """To the task's ports on the address of its job's node.
 
+        The node is looked up at each connection: the task may run (and listen) before the
+        poller has heard from Slurm where, and a connection then gets a ConnectError to retry.
+
         Raises:
-            ConnectError: the job runs on no node yet.
-            SlurmError: scontrol cannot say where that node is.
+            ConnectError: the job is no longer followed here.
         """
-        live = self._jobs.get(_job(launch).folder)
-        if live is None or not live.nodes:
-            raise ConnectError("the task's Slurm job is not running on a node yet")
-        address = self.slurm.node_address(live.nodes.split(",")[0])
-        return lambda port, udp: dial(address, port, udp=udp)
+        folder = _job(launch).folder
+        if folder not in self._jobs:
+            raise ConnectError("the task's Slurm job is not running")
+
+        def connect(port: int, udp: bool) -> socket.socket:
+            live = self._jobs.get(folder)
+            if live is None or not live.nodes:
+                raise ConnectError("the task's Slurm job is not running on a node yet")
+            try:
+                address = self.slurm.node_address(live.nodes.split(",")[0])
+            except SlurmError as exc:
+                raise ConnectError(str(exc)) from None
+            return dial(address, port, udp=udp)
+        return connect
 
     def cleanup(self, launch: Launch) -> None:
         """Its job is cancelled if its task may still run; the secret file goes."""
