@@ -121,7 +121,7 @@ def rows_of(mode: str, results: list[TrialResult], warm: bool = False) -> list[d
 def main() -> None:
     """Run the trials and write the rows."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--trials", type=int, default=2 if quick() else 50)
+    parser.add_argument("--trials", type=int, default=1 if quick() else 50)
     parser.add_argument("--mode", choices=("local", "remote", "both"), default="both")
     parser.add_argument("--kills", type=int, default=3)
     parser.add_argument("--seed", type=int, default=1000)

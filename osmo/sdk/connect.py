@@ -39,7 +39,7 @@ from osmo.transport.zenoh_link import Link
 
 __all__ = ["Connection", "running_options", "server_status", "start_server", "stop_server"]
 
-START_TIMEOUT = 20.0
+START_TIMEOUT = 60.0  # a server's start takes 1-2 s; minutes of load can stretch it
 
 
 class Connection:
@@ -71,6 +71,10 @@ def _wait_ready(home: Home, proc: subprocess.Popen[bytes] | None, timeout: float
             log = home.server_log.read_text(errors="replace")[-2000:]
             raise InfrastructureError(f"the osmo server exited at start:\n{log}")
         time.sleep(0.02)  # start-up only: waiting for another process to write its file
+    if proc is not None and proc.poll() is None:  # still starting: it serves once ready
+        raise InfrastructureError(f"the osmo server (pid {proc.pid}) is still starting after "
+                                  f"{timeout:.0f}s; run the command again, or see "
+                                  f"{home.server_log}")
     raise InfrastructureError(f"the osmo server did not become ready within {timeout:.0f}s; "
                               f"see {home.server_log}")
 
