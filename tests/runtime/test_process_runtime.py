@@ -222,6 +222,25 @@ def test_start_error_not_executable(runtime: ProcessGroups, tmp_path: Path) -> N
         runtime.start([str(script)], cwd=tmp_path, env={})
 
 
+@pytest.mark.parametrize(
+    ("head", "message"),
+    [
+        ("#!/no/such/interpreter\ntrue\n", "command not found: '{path}'"),
+        ("true\n", "cannot start '{path}': Exec format error"),  # no shebang, no binary
+    ],
+)
+def test_start_error_of_a_file_the_kernel_cannot_execute(
+    runtime: ProcessGroups, tmp_path: Path, head: str, message: str
+) -> None:
+    """What execve refuses fails the start, as a spawn does (a shell would run the second)."""
+    script = tmp_path / "script"
+    script.write_text(head)
+    script.chmod(0o755)
+    with pytest.raises(StartError) as info:
+        runtime.start([str(script)], cwd=tmp_path, env={"PATH": os.environ["PATH"]})
+    assert str(info.value) == message.format(path=script)
+
+
 def test_start_error_missing_cwd(runtime: ProcessGroups, tmp_path: Path) -> None:
     with pytest.raises(StartError, match="working folder not found"):
         runtime.start(["true"], cwd=tmp_path / "gone", env={"PATH": os.environ["PATH"]})

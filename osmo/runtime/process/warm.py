@@ -68,7 +68,7 @@ from pathlib import Path
 
 from osmo.runtime.api import Launch, ProcessHandle, StartError
 from osmo.runtime.process import mounts
-from osmo.runtime.process.groups import check_command, die_with_parent
+from osmo.runtime.process.groups import check_runnable, die_with_parent
 from osmo.runtime.process.proctable import process_start_time, start_clock
 from osmo.runtime.process.sandbox import Sandbox, View
 from osmo.runtime.process.warm_runner import IDLE_VARIABLE, READY, RUNNER_MODULE
@@ -407,7 +407,7 @@ class WarmRunners:
                 runner could fork it.
         """
         if list(launch.argv[1:3]) != ["-m", RUNNER_MODULE]:
-            check_command(launch.argv[0] if launch.argv else "", launch.cwd, launch.env)
+            check_runnable(launch.argv[0] if launch.argv else "", launch.cwd, launch.env)
         why = "no warm runner"
         for _ in range(2):  # a runner that just retired or died: once more on a new one
             runner = self._runner(key)
