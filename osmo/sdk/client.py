@@ -245,8 +245,9 @@ class Client:
         """Block until the workflow is terminal; returns its final info.
 
         Wakes on the server's signed change notices (zenoh subscription) and re-reads the status
-        (at most every ``min_interval`` seconds, so a busy workflow costs the server little);
-        also re-reads at least every second in case a notice was missed. ``on_update`` gets
+        (at most every ``min_interval`` seconds since the last read, so a busy workflow costs
+        the server little, and a notice after a quiet spell is read at once); also re-reads
+        at least every second in case a notice was missed. ``on_update`` gets
         the full workflow (with tasks) at each wake.
 
         Raises:
@@ -273,8 +274,11 @@ class Client:
                     return self.get(workflow_id)
                 if deadline is not None and time.monotonic() > deadline:
                     raise TimeoutError(f"workflow {workflow_id} still {status.name}")
+                read = time.monotonic()
                 changed.wait(timeout=1.0)
-                time.sleep(min_interval)  # coalesce bursts of notices into one re-read
+                pause = min_interval - (time.monotonic() - read)
+                if pause > 0:  # coalesce bursts of notices into one re-read
+                    time.sleep(pause)
         finally:
             sub.close()
 

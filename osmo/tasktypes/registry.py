@@ -83,18 +83,42 @@ def is_custom(ref: str) -> bool:
 _SHIPPED = ("osmo", "osmo_plugins")  # the packages of osmo's own distribution
 
 
+_builtin_seen: dict[str, tuple[tuple[tuple[str, int], ...], bool]] = {}
+
+
 def builtin_type(ref: str) -> bool:
     """Whether ``ref`` names a type osmo ships (an entry point of osmo's own distribution).
 
     Its import code is osmo's own, trusted as osmo is: a sandboxed warm runner may import it
     (``osmo.runtime.process.warm``). A custom type, or another distribution's, is not.
+
+    The answer is kept while no folder of ``sys.path`` changed (their mtimes, which any
+    distribution installed or removed there changes: ``importlib.metadata`` keeps its own
+    lookups by the same rule), so a sandboxed pool asks it for each attempt without reading
+    every installed distribution's entry points each time.
     """
     if is_custom(ref):
         return False
+    stamp = _path_stamp()
+    seen = _builtin_seen.get(ref)
+    if seen is not None and seen[0] == stamp:
+        return seen[1]
     ep = entry_points().get(ref)
-    if ep is None or ep.dist is None or ep.dist.name != "osmo":
-        return False
-    return ep.module.split(".", 1)[0] in _SHIPPED
+    shipped = (ep is not None and ep.dist is not None and ep.dist.name == "osmo"
+               and ep.module.split(".", 1)[0] in _SHIPPED)
+    _builtin_seen[ref] = (stamp, shipped)
+    return shipped
+
+
+def _path_stamp() -> tuple[tuple[str, int], ...]:
+    """Each ``sys.path`` folder with its mtime (-1: missing)."""
+    stamp = []
+    for folder in sys.path:
+        try:
+            stamp.append((folder, os.stat(folder or ".").st_mtime_ns))
+        except OSError:
+            stamp.append((folder, -1))
+    return tuple(stamp)
 
 
 def entry_points(group: str = GROUP) -> dict[str, importlib.metadata.EntryPoint]:

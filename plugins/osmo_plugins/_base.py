@@ -25,9 +25,19 @@ OFFLINE_ENV: Mapping[str, str] = {"HF_HUB_OFFLINE": "1", "HF_DATASETS_OFFLINE": 
 """Hugging Face's offline switches (:func:`offline`). Its libraries read them when imported,
 so a type that preloads ``lerobot`` in a warm runner sets them there too (``preload_env``)."""
 
+MUJOCO_V5 = ("ant", "half_cheetah", "hopper", "humanoid", "humanoidstandup",
+             "inverted_double_pendulum", "inverted_pendulum", "pusher", "reacher", "swimmer",
+             "walker2d")
+"""Gymnasium's MuJoCo v5 envs (``gymnasium.envs.mujoco.NAME_v5``: ``gym.make`` imports one)."""
+
 SIM_PRELOAD = ("numpy", "gymnasium", "mujoco", "gymnasium.envs.mujoco",
-               "osmo_plugins.sim.reach_vision", "osmo_plugins.sim.reacher")
-"""What every simulation run imports: the stack and osmo's own envs."""
+               *(f"gymnasium.envs.mujoco.{name}_v5" for name in MUJOCO_V5),
+               "osmo_plugins.sim.reach_vision", "osmo_plugins.sim.reacher",
+               "foxglove", "foxglove.mcap", "foxglove.channels", "foxglove.messages",
+               "osmo_plugins.foxglove_io")
+"""What every simulation run imports: the stack, its MuJoCo envs (each run makes one, which
+imports its module), osmo's own envs and the MCAP writer (the Foxglove SDK: every run
+records its episodes; about 10 ms to import, in each fork otherwise)."""
 
 ACT_PRELOAD = ("torch", "lerobot.policies.act.configuration_act",
                "lerobot.policies.act.modeling_act", "lerobot.policies.factory")

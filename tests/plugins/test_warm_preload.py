@@ -38,6 +38,9 @@ def test_the_rollout_type_warms_its_runner_without_choosing_a_gl_backend() -> No
     assert seen["plugins"].startswith(str(REPO)), seen["plugins"]
     loaded = set(seen["loaded"])
     assert {"gymnasium", "mujoco", "osmo_plugins.sim._rollout"} <= loaded, sorted(loaded)
+    # what each run would import again in its fork: its env's module, the MCAP writer
+    assert {"gymnasium.envs.mujoco.inverted_pendulum_v5", "foxglove.mcap",
+            "osmo_plugins.foxglove_io"} <= loaded, sorted(loaded)
     assert seen["gl"] is None  # set only while importing, then gone
     assert not loaded & {"OpenGL", "mujoco.egl", "mujoco.osmesa"}, sorted(loaded)  # no backend
     assert seen["frame"] == [64, 64, 3]

@@ -8,7 +8,14 @@ from pathlib import Path
 import pytest
 
 import osmo
-from osmo.tasktypes.registry import Resolver, TaskTypeError, list_types, ref_of, resolve
+from osmo.tasktypes.registry import (
+    Resolver,
+    TaskTypeError,
+    builtin_type,
+    list_types,
+    ref_of,
+    resolve,
+)
 from tests.conftest import write
 from tests.tasktypes.conftest import write_dist
 
@@ -107,3 +114,12 @@ def test_types_of_the_main_script_are_refused() -> None:
     fake.fn.__module__ = "__main__"
     with pytest.raises(TaskTypeError, match="move them into a module"):
         ref_of(fake)
+
+
+def test_a_distribution_installed_later_is_seen_by_the_shipped_type_check(on_path: Path) -> None:
+    """``builtin_type`` keeps its answer only while no ``sys.path`` folder changed: a
+    distribution installed first on the path, shadowing a shipped type, is seen at once."""
+    assert builtin_type("sim.rollout") and builtin_type("sim.rollout")  # the second: kept
+    write(on_path / "shadow_types.py", GOOD)
+    write_dist(on_path, "shadow-types", {"sim.rollout": "shadow_types:COUNT"})
+    assert not builtin_type("sim.rollout")

@@ -139,3 +139,28 @@ def test_sigterm_cancels_with_143(tmp_path: Path) -> None:
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 143
     assert "stopped: task 't' was asked to stop" in err
+
+
+KEPT = """
+import sys
+from pathlib import Path
+from osmo.tasktypes import runner
+sys.path.insert(0, {folder!r})  # where a warm runner puts the type's folders
+import mytypes
+runner.keep_resolved("mytypes:explode", mytypes.slow)  # a stand-in that shows it is taken
+if {moved}:
+    sys.path.append({folder!r} + "/elsewhere")  # not the path it was resolved on
+sys.exit(runner.run_context_file(Path({context!r})))
+"""
+
+
+def test_a_kept_resolution_is_taken_only_on_the_path_it_was_made_on(tmp_path: Path) -> None:
+    """A warm runner's fork takes the type its runner resolved, not a fresh entry-point scan;
+    with another ``sys.path`` it resolves the type again."""
+    context = _context(tmp_path, "mytypes:explode", {})
+    for moved, code, seen in ((False, 0, "ran"), (True, 1, "the sensor is on fire")):
+        script = KEPT.format(folder=str(tmp_path), moved=moved, context=str(context))
+        proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                              timeout=60, env=_env(), cwd=tmp_path / "work")
+        assert proc.returncode == code, proc.stderr
+        assert seen in proc.stdout + proc.stderr

@@ -109,6 +109,7 @@ def _load(ref: str, version: str, folders: Sequence[str]) -> str:
         if not ref:  # a runner of commands (a fork, then their exec): nothing more to import
             return ""
         obj = resolve(ref)
+        runner.keep_resolved(ref, obj)
     except OsmoError as exc:
         return str(exc)
     except Exception as exc:  # noqa: BLE001 - the type's own import failed: say so, run cold
