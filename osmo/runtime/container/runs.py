@@ -3,7 +3,9 @@
 :class:`ContainerRuns` spawns the engine's attached ``run`` CLI (``run_argv``) through
 ``ProcessGroups``: the container's output is that process's stdout/stderr, its exit code
 the container's (125: the engine failed, its message on stderr; 126/127, or 1 from ``--init``
-with a missing program: the command cannot run).
+with a missing program: the command cannot run). A container we removed while it ran (a
+forced kill) ends with 137, also when the CLI, finding it gone before it read its exit code,
+says 127.
 
 Kill goes to the container by name: ``kill --signal=TERM``, and ``rm -f`` for the forced kill
 (it also removes a container still being created), each retried on a background thread until
@@ -36,12 +38,17 @@ __all__ = ["ContainerRuns"]
 _KILL_DEADLINE = 60.0  # s: a CLI that neither creates its container nor ends by then is stuck
 
 
+_VANISHED = 127  # podman's exit when its container is gone before it read its exit code
+_KILLED = 128 + 9
+
+
 @dataclass(eq=False)
 class _Live:
     name: str
     secret_file: Path | None
     done: threading.Event
     killed: bool = False
+    removed: bool = False  # removed (SIGKILL) by us while it ran: a forced kill or early reap
     code: int | None = None
 
 
@@ -94,6 +101,7 @@ class ContainerRuns:
             self._processes.kill(handle, force=force)
             return
         live.killed = True
+        live.removed = live.removed or force
         self.later(self._signal_until_taken, live, force)
 
     def reap(self, handle: ProcessHandle) -> int:
@@ -102,8 +110,11 @@ class ContainerRuns:
         if live is not None and handle.popen.poll() is None:
             # reaped before it ended (a pool shutting down): the container must go first,
             # or killing the CLI would leave it running
+            live.removed = True
             self._quietly(self.engine.remove, live.name)
         code = self._processes.reap(handle)
+        if live is not None and live.removed and code == _VANISHED:
+            code = _KILLED  # the CLI lost the race to read its exit: the removal's SIGKILL
         if live is not None:
             live.code = code
             live.done.set()
