@@ -27,6 +27,7 @@ import argparse
 import contextlib
 import os
 import re
+import shutil
 import signal
 import sqlite3
 import statistics
@@ -152,7 +153,7 @@ def dispatch(runs: int, n: int) -> tuple[list[list[float]], list[list[float]]]:
         for on_pool, out in ((False, remote), (True, local)):
             with cluster(0 if on_pool else 1, local_pool=on_pool) as c, c.client() as client:
                 info = client.wait(client.submit(chain(n), no_cache=True))
-                assert info.ok, info.status
+                check_ok(client, info, c)
                 out.append(round_trips(c.root / "server", info.id))
     return remote, local
 
@@ -164,11 +165,27 @@ def transfer(runs: int, size_mib: int) -> list[float]:
             wf = osmo.Workflow("bench-remote-transfer")
             write = f"head -c {size_mib}M /dev/urandom > " + "{{output}}/big.bin"
             wf.task("big", ["sh", "-c", write])
-            assert client.wait(client.submit(wf, no_cache=True)).ok
+            check_ok(client, client.wait(client.submit(wf, no_cache=True)), c)
             log = (c.root / "server" / "server.log").read_text()
             found = re.findall(r"fetched from worker \S+ in [\d.]+s \((\d+) MiB/s\)", log)
             rates.append(float(found[-1]))
     return rates
+
+
+def check_ok(client: osmo.Client, info: osmo.WorkflowInfo, c: Cluster) -> None:
+    """Fail the run, saying which tasks did not complete and why, and keeping the cluster's
+    folders (a copy under the system's temp folder) to look at."""
+    if info.ok:
+        return
+    tasks = client.get(info.id).tasks
+    bad = [t for t in tasks if t.status.name != "COMPLETED"]
+    kept = Path(tempfile.mkdtemp(prefix="osmo-bench-remote-failed-"))
+    try:
+        shutil.copytree(c.root, kept / "cluster", symlinks=True, dirs_exist_ok=True)
+    except (OSError, shutil.Error):
+        pass  # sockets and files that went away: what could be copied is kept
+    raise SystemExit(f"workflow {info.id} ended {info.status.name}: {len(bad)} of "
+                     f"{len(tasks)} tasks not COMPLETED, e.g. {bad[:3]}; folders kept in {kept}")
 
 
 def fanout(runs: int, n: int) -> tuple[list[float], list[float]]:
@@ -183,7 +200,7 @@ def fanout(runs: int, n: int) -> tuple[list[float], list[float]]:
             with cluster(workers, local_pool=not workers,
                          cpus=None if workers else 4) as c, c.client() as client:
                 t0 = time.perf_counter()
-                assert client.wait(client.submit(fan_out(n), no_cache=True)).ok
+                check_ok(client, client.wait(client.submit(fan_out(n), no_cache=True)), c)
                 out.append((n + 2) / (time.perf_counter() - t0))
     return remote, local
 
