@@ -92,8 +92,9 @@ class ProcessGroups:
         status_r = status_w = -1
         fds: tuple[int, ...] = ()
         entered: contextlib.AbstractContextManager[None] = contextlib.nullcontext()
-        sandboxed = self.sandbox is not None and view is not None
+        sandboxed = False
         if self.sandbox is not None and view is not None:
+            sandboxed = True
             check_command(argv[0], cwd, env, self.sandbox)
             if self.sandbox.status:
                 status_r, status_w = _status_pipe(argv[0])
@@ -251,11 +252,9 @@ def check_runnable(program: str, cwd: Path, env: Mapping[str, str]) -> None:
     Raises:
         StartError: the message a failed spawn gives.
     """
-    check_command(program, cwd, env)
-    path = (cwd / program if "/" in program
-            else _which(program, env.get("PATH", os.defpath)))
+    path = check_command(program, cwd, env)
     try:
-        with open(path or program, "rb") as file:
+        with open(path, "rb") as file:
             head = file.read(256)
     except OSError:
         return  # unreadable but executable: the exec itself decides
@@ -268,10 +267,13 @@ def check_runnable(program: str, cwd: Path, env: Mapping[str, str]) -> None:
 
 
 def check_command(program: str, cwd: Path, env: Mapping[str, str],
-                  sandbox: Sandbox | None = None) -> None:
+                  sandbox: Sandbox | None = None) -> str:
     """Fail a start that cannot run the way a spawn fails (bwrap or a fork would only exit).
 
     A program is looked up in ``env``'s ``PATH``, only in the folders ``sandbox`` shows.
+
+    Returns:
+        where the program was found.
 
     Raises:
         StartError: no working folder, or the command is not found or not executable.
@@ -282,14 +284,16 @@ def check_command(program: str, cwd: Path, env: Mapping[str, str],
         raise StartError(f"working folder not found: '{cwd}'")
     if "/" not in program:
         search = env.get("PATH", os.defpath)
-        if _which(program, search if sandbox is None else _shown_path(search, sandbox)) is None:
+        found = _which(program, search if sandbox is None else _shown_path(search, sandbox))
+        if found is None:
             raise StartError(f"command not found: '{program}'")
-        return
+        return found
     path = str(cwd / program)
     if not os.path.exists(path):
         raise StartError(f"command not found: '{program}'")
     if not os.access(path, os.X_OK) or os.path.isdir(path):
         raise StartError(f"command not executable: '{program}' (permission denied)")
+    return path
 
 
 @functools.lru_cache(maxsize=64)  # a pool's tasks share a few PATHs
