@@ -241,6 +241,25 @@ def test_start_error_of_a_file_the_kernel_cannot_execute(
     assert str(info.value) == message.format(path=script)
 
 
+def test_a_program_named_like_an_option_runs_as_the_program(
+    runtime: ProcessGroups, tmp_path: Path
+) -> None:
+    """A hostile name (``--pdeathsig``) is the task's program, never a wrapper's option."""
+    folder = tmp_path / "bin"
+    folder.mkdir()
+    script = folder / "--pdeathsig"
+    script.write_text("#!/bin/sh\necho ran \"$@\"\n")
+    script.chmod(0o755)
+    handle = runtime.start(["--pdeathsig", "KILL", "--help"], cwd=tmp_path,
+                           env={"PATH": f"{folder}:{os.environ['PATH']}"})
+    try:
+        assert read_all(handle.stdout_fd) == b"ran KILL --help\n"
+        wait_exit(handle)
+        assert runtime.reap(handle) == 0
+    finally:
+        runtime.release(handle)
+
+
 def test_start_error_missing_cwd(runtime: ProcessGroups, tmp_path: Path) -> None:
     with pytest.raises(StartError, match="working folder not found"):
         runtime.start(["true"], cwd=tmp_path / "gone", env={"PATH": os.environ["PATH"]})
