@@ -12,6 +12,15 @@ The base (:data:`BASE_VARIABLES`), copied from the worker's environment when set
 - ``HOME``, ``USER``, ``LOGNAME``, ``SHELL``: who runs it (read-only in the sandbox);
 - ``LANG``, ``LANGUAGE``, ``LC_ALL``, ``LC_CTYPE``, ``TZ``: how text and time read.
 
+One variable is osmo's own default, unless the worker sets it: ``OMP_WAIT_POLICY=PASSIVE``
+(:data:`DEFAULTS`). An OpenMP library (libgomp, under torch and many BLAS builds) otherwise
+spins its idle threads for up to a few milliseconds at every barrier; when the machine is
+busier than its cores (another task, another program), the spinning threads take the CPU from
+the ones doing the work. Measured on 2 cores at load 5, a ResNet-18 training step of 2
+threads took 2.2–3.5 s spinning against 0.45–0.61 s passive (``bench/README.md``). A spec
+that wants spinning sets ``OMP_WAIT_POLICY: ACTIVE`` in its ``environment`` (a cold start; a
+warm runner's libraries read it once, at its import, from this base).
+
 ``TMPDIR`` is left out on purpose: the default ``/tmp`` is the task's own in the sandbox,
 while the worker's ``TMPDIR`` may be shared or read-only there.
 
@@ -29,7 +38,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
-__all__ = ["BASE_VARIABLES", "DEFAULT_PATH", "base_env"]
+__all__ = ["BASE_VARIABLES", "DEFAULTS", "DEFAULT_PATH", "base_env"]
 
 BASE_VARIABLES = ("PATH", "HOME", "USER", "LOGNAME", "SHELL",
                   "LANG", "LANGUAGE", "LC_ALL", "LC_CTYPE", "TZ")
@@ -39,8 +48,14 @@ DEFAULT_PATH = "/usr/local/bin:/usr/bin:/bin"
 """``PATH`` when the worker has none."""
 
 
+DEFAULTS = {"OMP_WAIT_POLICY": "PASSIVE"}
+"""osmo's own defaults, each replaced by the worker's value when it sets one (see above)."""
+
+
 def base_env(environ: Mapping[str, str]) -> dict[str, str]:
     """The base of every task's environment, taken from ``environ`` (the worker's)."""
     env = {name: environ[name] for name in BASE_VARIABLES if name in environ}
     env.setdefault("PATH", DEFAULT_PATH)
+    for name, value in DEFAULTS.items():
+        env[name] = environ.get(name, value)
     return env

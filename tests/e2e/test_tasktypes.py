@@ -230,3 +230,32 @@ def _alive(pid: int) -> bool:
     except ProcessLookupError:
         return False
     return True
+
+
+def test_tasks_wait_passively_unless_their_spec_says_otherwise(shared_osmo: Osmo,
+                                                                tmp_path: Path) -> None:
+    """OpenMP's idle threads do not spin (``OMP_WAIT_POLICY=PASSIVE``, osmo's default in every
+    task's base environment, a typed task's included); a spec's ``environment`` wins."""
+    write(tmp_path / "omptypes.py", """
+import os
+from osmo import task_type
+
+@task_type(version="1")
+def policy(ctx):
+    (ctx.output / "v").write_text(os.environ.get("OMP_WAIT_POLICY", "unset"))
+""")
+    spec = write(tmp_path / "omp.yaml", """
+workflow:
+  name: omp
+  tasks:
+  - name: plain
+    command: [sh, -c, 'printf %s "${OMP_WAIT_POLICY-unset}" > {{output}}/v']
+  - name: spins
+    command: [sh, -c, 'printf %s "${OMP_WAIT_POLICY-unset}" > {{output}}/v']
+    environment: {OMP_WAIT_POLICY: ACTIVE}
+  - name: typed
+    type: omptypes:policy
+""")
+    tasks = _tasks(shared_osmo, shared_osmo.submit(spec, "--wait"))
+    seen = {name: (Path(t["output"]) / "v").read_text() for name, t in tasks.items()}
+    assert seen == {"plain": "PASSIVE", "spins": "ACTIVE", "typed": "PASSIVE"}, tasks
