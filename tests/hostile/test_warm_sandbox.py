@@ -261,6 +261,14 @@ def test_a_sandboxed_warm_attempts_pid_1_reaps_is_out_of_reach_and_ends_the_rest
     assert code == 5 and "reaped" in out and "sealed" in out and "alive" in out, (code, out)
     assert out.count(":\t0000000000000000") == 3, out
     wait_no_process(mark, timeout=2)  # killed with its pid namespace, before the exit
+    mark = unique_sleep()
+    running = node.start(node.launch(f'(setsid sleep {mark} > /dev/null 2>&1 &); echo ready; '
+                                      'exec sleep 300'))
+    assert running.until(b"ready", 60), bytes(running.err)
+    node.runtime.kill(running.handle)  # SIGTERM: the task ends, and so does its daemon
+    code, _, _ = node.finish(running)
+    assert code == 128 + signal.SIGTERM
+    wait_no_process(mark, timeout=2)
 
 
 def test_what_the_runner_shows_under_tmp_stays_shown_to_each_attempt(tmp_path: Path) -> None:
