@@ -369,8 +369,9 @@ def _enclose(layout: dict[str, Any], relay: int, binds: Sequence[int], request: 
     process stays the namespace's init, as bubblewrap's pid 1 does: it reaps what the
     attempt leaves, exits with the attempt's code when the attempt's process ends, and its
     exit (or its kill) ends every process left in the namespace. It holds no capability
-    and cannot be traced once the attempt's process runs; as the namespace's init, it gets
-    no signal from inside but those it handles (none).
+    and cannot be traced once the attempt's process runs; as the namespace's init, the
+    kernel drops every signal from inside that it has no handler for (SIGKILL and SIGSTOP
+    too).
 
     Its own namespaces (mount, IPC, UTS) inside the runner's sandbox; the runner's mounts
     copied, then what bubblewrap mounts for this attempt: an empty tmpfs over osmo's homes
