@@ -320,11 +320,11 @@ def _spare(sock: int, led: int, *, enclosed: bool, drop: tuple[int, ...]) -> Non
                 os.close(fd)
         with socket.socket(fileno=sock) as handed:
             data, fds, _, _ = socket.recv_fds(handed, _DATAGRAM_MAX, _DESCRIPTORS + _BINDS_MAX)
-        layout = _layout(data)
-        if (layout is not None) != enclosed:
-            raise OSError(f"a {'plain' if enclosed else 'sandboxed'} request to a "
-                          f"{'sandboxed' if enclosed else 'plain'} runner")
-        if len(fds) >= _DESCRIPTORS - 1:
+        if len(fds) >= _DESCRIPTORS - 1:  # none: the runner closed its end (it retires)
+            layout = _layout(data)
+            if (layout is not None) != enclosed:
+                raise OSError(f"a {'plain' if enclosed else 'sandboxed'} request to a "
+                              f"{'sandboxed' if enclosed else 'plain'} runner")
             out, err, request, *extra = fds
             code = _attempt(out, err, request, layout=layout, extra=extra)
     except BaseException as exc:  # noqa: BLE001 - whatever happens, the child must exit here
