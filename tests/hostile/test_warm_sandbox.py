@@ -247,6 +247,30 @@ def test_a_sandboxed_warm_attempt_sees_neither_home_nor_others_nor_its_runner(
     assert node.finish(running)[0] == 137
 
 
+def test_a_sandboxed_warm_attempts_pid_1_reaps_is_out_of_reach_and_ends_the_rest(
+        node: _Node) -> None:
+    """Its pid 1 (the runner's child): no capability, not traceable nor signalled from inside;
+    it reaps orphans, and what the task leaves running ends with the attempt."""
+    mark = unique_sleep()
+    probe = (f'(setsid sleep {mark} > /dev/null 2>&1 &); (sleep 0.1 &); sleep 0.5; '
+             'grep -l "^State:.*Z" /proc/[0-9]*/status || echo reaped; '
+             'grep -E "^(CapEff|CapPrm|CapBnd):" /proc/1/status; '
+             'cat /proc/1/environ > /dev/null 2>&1 || echo sealed; '
+             'kill -KILL 1; kill -STOP 1; kill -TERM 1; sleep 0.2; echo alive; exit 5')
+    code, out, err = node.run(probe)
+    assert code == 5 and "reaped" in out and "sealed" in out and "alive" in out, (code, out)
+    assert out.count(":\t0000000000000000") == 3, out
+    wait_no_process(mark, timeout=2)  # killed with its pid namespace, before the exit
+    mark = unique_sleep()
+    running = node.start(node.launch(f'(setsid sleep {mark} > /dev/null 2>&1 &); echo ready; '
+                                      'exec sleep 300'))
+    assert running.until(b"ready", 60), bytes(running.err)
+    node.runtime.kill(running.handle)  # SIGTERM: the task ends, and so does its daemon
+    code, _, _ = node.finish(running)
+    assert code == 128 + signal.SIGTERM
+    wait_no_process(mark, timeout=2)
+
+
 def test_what_the_runner_shows_under_tmp_stays_shown_to_each_attempt(tmp_path: Path) -> None:
     """A share under ``/tmp`` (or osmo's own code, as in a clone under ``/tmp``) is bound
     into the view after its ``/tmp``, cold or warm; each attempt's ``/tmp`` is still its own."""

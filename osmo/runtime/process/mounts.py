@@ -11,8 +11,9 @@ cold (``osmo.runtime.process.sandbox``):
   (:func:`proc_context`); the pool mounts it (:func:`proc_mount`: the attempt's own
   ``mount("proc")`` is refused, EPERM, because bubblewrap's covers in the runner's ``/proc``
   are locked in the node's user namespace) and the attempt moves the result into place;
-- the rest: :func:`unshare`, tmpfs and bind mounts (:func:`mount_tmpfs`, :func:`bind`),
-  :func:`drop_privileges` (every capability, ``no_new_privs``), :func:`die_with_parent`.
+- the rest: :func:`unshare` and :func:`setns` (the runner's pid namespace for each child),
+  tmpfs and bind mounts (:func:`mount_tmpfs`, :func:`bind`), :func:`drop_privileges`
+  (every capability, ``no_new_privs``), :func:`undumpable`, :func:`die_with_parent`.
 
 Every failure raises ``OSError`` with the call's name and errno. It must not import anything
 of osmo: the runner imports it before its fork.
@@ -26,7 +27,7 @@ import os
 
 __all__ = ["NEWIPC", "NEWNS", "NEWPID", "NEWUTS", "devpts", "bind", "detached", "die_with_parent",
            "drop_privileges", "make_private", "mount_tmpfs", "move", "proc_context",
-           "proc_mount", "unshare", "unsupported"]
+           "proc_mount", "setns", "undumpable", "unshare", "unsupported"]
 
 NEWNS, NEWUTS, NEWIPC, NEWPID = 0x20000, 0x04000000, 0x08000000, 0x20000000
 """``unshare`` flags: a mount, a UTS, an IPC and a pid namespace."""
@@ -42,7 +43,7 @@ _SYSCALLS = {"open_tree": 428, "move_mount": 429, "fsopen": 430, "fsconfig": 431
            "fsmount": 432, "mount_setattr": 442}  # one numbering on every architecture (>= 424)
 _MS_RDONLY, _MS_NOSUID, _MS_NODEV, _MS_NOEXEC = 1, 2, 4, 8
 _MS_REMOUNT, _MS_BIND, _MS_REC, _MS_PRIVATE = 32, 4096, 16384, 1 << 18
-_PR_SET_PDEATHSIG, _PR_CAPBSET_DROP, _PR_SET_NO_NEW_PRIVS = 1, 24, 38
+_PR_SET_PDEATHSIG, _PR_SET_DUMPABLE, _PR_CAPBSET_DROP, _PR_SET_NO_NEW_PRIVS = 1, 4, 24, 38
 _CAP_LAST = 63
 _SIGKILL = 9
 
@@ -141,6 +142,11 @@ def unshare(flags: int) -> None:
     _checked("unshare", _LIBC.unshare(flags))
 
 
+def setns(fd: int, flags: int) -> None:
+    """Join the namespace ``fd`` refers to (``NEWPID``: the one of the caller's next children)."""
+    _checked("setns", _LIBC.setns(fd, flags))
+
+
 def make_private() -> None:
     """Nothing mounted here from now on propagates to or from the runner's mounts."""
     _mount(None, "/", None, _MS_REC | _MS_PRIVATE)
@@ -172,6 +178,14 @@ def drop_privileges() -> None:
     _checked("no_new_privs", _LIBC.prctl(_PR_SET_NO_NEW_PRIVS, 1, 0, 0, 0))
     _checked("capset", _LIBC.capset(ctypes.byref(_CapHeader(0x20080522, 0)),
                                     (_CapData * 2)()))
+
+
+def undumpable() -> None:
+    """Make the calling process undumpable: no process without ``CAP_SYS_PTRACE`` traces it.
+
+    Nor reads its ``/proc/PID`` files that need that (``mem``, ``environ``, ``fd``, ...).
+    """
+    _checked("prctl", _LIBC.prctl(_PR_SET_DUMPABLE, 0, 0, 0, 0))
 
 
 def die_with_parent() -> None:

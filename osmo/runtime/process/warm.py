@@ -36,7 +36,8 @@ runner does).
 ``osmo.runtime.process.sandboxed``: only types osmo ships, only a root osmo): the runner
 is started in a bubblewrap sandbox of its own (:meth:`WarmRunners.enclose`,
 ``Sandbox.runner_argv``: osmo's homes hidden, ``CAP_SYS_ADMIN`` kept in the node's user
-namespace). For each attempt the pool sends, with the fork request, its view's layout
+namespace; ``SANDBOXED_VARIABLE`` set: each of its children is a new pid namespace's pid 1).
+For each attempt the pool sends, with the fork request, its view's layout
 (``Sandbox.layout``: exactly what bubblewrap would mount for it cold), a detached clone of
 each of its folders (``osmo.runtime.process.mounts``; the runner cannot reach them) and a
 relay socket, on which the attempt's pid 1 sends a proc context that the pool mounts for
@@ -71,7 +72,12 @@ from osmo.runtime.process import mounts
 from osmo.runtime.process.groups import check_runnable, die_with_parent
 from osmo.runtime.process.proctable import process_start_time, start_clock
 from osmo.runtime.process.sandbox import Sandbox, View
-from osmo.runtime.process.warm_runner import IDLE_VARIABLE, READY, RUNNER_MODULE
+from osmo.runtime.process.warm_runner import (
+    IDLE_VARIABLE,
+    READY,
+    RUNNER_MODULE,
+    SANDBOXED_VARIABLE,
+)
 
 __all__ = ["DEFAULT_IDLE", "RunnerInfo", "WarmHandle", "WarmKey", "WarmRunners", "WarmStart",
            "commands_key", "warm_key"]
@@ -292,7 +298,8 @@ class WarmRunners:
 
     def _spawn(self, key: WarmKey) -> _Runner | None:
         ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
-        env = {**self._env, "PYTHONPATH": key.pythonpath, IDLE_VARIABLE: f"{self.idle:g}"}
+        env = {**self._env, "PYTHONPATH": key.pythonpath, IDLE_VARIABLE: f"{self.idle:g}",
+               **({SANDBOXED_VARIABLE: "1"} if key.sandboxed else {})}
         argv = [key.python, "-m", "osmo.runtime.process.warm_runner", str(theirs.fileno()),
                 key.type, key.version or "-", *key.paths]
         sandbox = self._sandbox
@@ -329,8 +336,8 @@ class WarmRunners:
         except ValueError:
             sources = {}
         runner = _Runner(key, popen, ours, sources)
-        if key.sandboxed:  # bubblewrap, its pid 1, then the runner
-            runner.main = _descendant(popen.pid, 2)
+        if key.sandboxed:  # bubblewrap, its pid 1, the runner's parent, then the runner
+            runner.main = _descendant(popen.pid, 3)
             why = self._trial(runner)
             if why:
                 runner.retire()

@@ -48,10 +48,15 @@ run). Module state a task changes, threads it starts and memory it takes are its
 process's: the runner, forked again for the next attempt, never ran it.
 
 A **sandboxed** runner (started in bubblewrap by the pool, with ``CAP_SYS_ADMIN`` in the
-node's user namespace) gets ``fork LAYOUT`` requests with two more kinds of descriptor: a
-relay socket and a detached mount of each of the attempt's folders. Its child then makes
-the attempt's view before anything else (:func:`_enclose`), and the attempt's own process
-(pid 2 of its pid namespace, no capability, ``no_new_privs``) reads the request only then.
+node's user namespace, and ``OSMO_WARM_SANDBOXED=1``) gets ``fork LAYOUT`` requests with
+two more kinds of descriptor: a relay socket and a detached mount of each of the
+attempt's folders. Each of its children is forked into a new pid namespace, whose pid 1
+it is (the runner makes that namespace before the fork and returns to its own after it:
+for that it runs as the pid 1 of a pid namespace it made itself, below bubblewrap's, its
+first process waiting for it). A child handed an attempt makes the attempt's view before
+anything else and forks the attempt's own process (:func:`_enclose`: pid 2, no
+capability, ``no_new_privs``), which reads the request only then; the child stays the
+namespace's init, and the runner reaps it as any child: its exit is the attempt's.
 
 It must not import anything of the worker or the server.
 """
@@ -71,11 +76,11 @@ import threading
 import time
 from collections.abc import Sequence
 from pathlib import PurePosixPath
-from typing import Any
+from typing import Any, NoReturn
 
 from osmo.runtime.process import mounts
 
-__all__ = ["IDLE_VARIABLE", "READY", "RUNNER_MODULE", "main"]
+__all__ = ["IDLE_VARIABLE", "READY", "RUNNER_MODULE", "SANDBOXED_VARIABLE", "main"]
 
 READY = b"ready"
 """What the runner sends once it has imported its type."""
@@ -83,6 +88,8 @@ RUNNER_MODULE = "osmo.tasktypes.runner"
 """The module of a typed task's argv (``python -m osmo.tasktypes.runner CONTEXT``)."""
 IDLE_VARIABLE = "OSMO_WARM_IDLE"
 """The variable that gives a runner its idle time in seconds (it exits after that long idle)."""
+SANDBOXED_VARIABLE = "OSMO_WARM_SANDBOXED"
+"""The variable that makes a runner sandboxed (``1``: each child a new pid namespace's pid 1)."""
 
 _PR_SET_PDEATHSIG = 1
 _DESCRIPTORS = 4  # stdout, stderr, request pipe, status pipe
@@ -144,8 +151,11 @@ def _sources(folders: Sequence[str]) -> dict[str, int]:
 class _Runner:
     """The serving loop (see the module docstring)."""
 
-    def __init__(self, sock: socket.socket, idle: float) -> None:
+    def __init__(self, sock: socket.socket, idle: float, *, sandboxed: bool = False) -> None:
         self.sock, self.idle = sock, idle
+        # a sandboxed runner's children: each the pid 1 of a pid namespace of its own, made
+        # by an unshare before the fork; the runner returns to its own with this
+        self.pid_ns = os.open("/proc/self/ns/pid", os.O_RDONLY | os.O_CLOEXEC) if sandboxed else -1
         self.children: dict[int, int] = {}  # pid -> its status pipe's write end
         self.spare: tuple[int, socket.socket] | None = None  # forked ahead: pid, its socket
         self.accepting = True
@@ -238,13 +248,19 @@ class _Runner:
         sys.stdout.flush()
         sys.stderr.flush()
         led_r, led_w = os.pipe2(os.O_CLOEXEC)
-        pid = os.fork()
-        if pid == 0:
-            os.close(led_r)
-            _spare(theirs.fileno(), led_w,
-                   drop=(self.sock.fileno(), self.wake_r, self.wake_w, ours.fileno(),
-                         self.selector.fileno(),
-                         *also_drop, *self.children.values()))
+        if self.pid_ns >= 0:
+            mounts.unshare(mounts.NEWPID)  # the next child: a new pid namespace's pid 1
+        try:
+            pid = os.fork()
+            if pid == 0:
+                os.close(led_r)
+                _spare(theirs.fileno(), led_w, enclosed=self.pid_ns >= 0,
+                       drop=(self.sock.fileno(), self.wake_r, self.wake_w, ours.fileno(),
+                             self.selector.fileno(), self.pid_ns,
+                             *also_drop, *self.children.values()))
+        finally:
+            if self.pid_ns >= 0:  # the runner's next child (a spare too) is no child of it
+                mounts.setns(self.pid_ns, mounts.NEWPID)
         theirs.close()
         os.close(led_w)
         os.read(led_r, 1)  # its end closed: the child leads its session (or is gone)
@@ -280,11 +296,13 @@ def _layout(data: bytes) -> dict[str, Any] | None:
     return layout
 
 
-def _spare(sock: int, led: int, *, drop: tuple[int, ...]) -> None:
+def _spare(sock: int, led: int, *, enclosed: bool, drop: tuple[int, ...]) -> None:
     """In the forked child: lead a session, await an attempt, become it; never returns.
 
     It waits for its attempt's request and descriptors on ``sock``, then runs
-    :func:`_attempt`.
+    :func:`_attempt`. ``enclosed``: it is the pid 1 of a pid namespace of its own (a
+    sandboxed runner's child), which takes only sandboxed requests (``fork LAYOUT``), as a
+    runner's child that is not takes only plain ones.
 
     ``led``: closed once the child leads its own session (and process group). The runner
     closing its end of ``sock`` (or dying) before handing an attempt over ends the child.
@@ -302,9 +320,13 @@ def _spare(sock: int, led: int, *, drop: tuple[int, ...]) -> None:
                 os.close(fd)
         with socket.socket(fileno=sock) as handed:
             data, fds, _, _ = socket.recv_fds(handed, _DATAGRAM_MAX, _DESCRIPTORS + _BINDS_MAX)
-        if len(fds) >= _DESCRIPTORS - 1:
+        if len(fds) >= _DESCRIPTORS - 1:  # none: the runner closed its end (it retires)
+            layout = _layout(data)
+            if (layout is not None) != enclosed:
+                raise OSError(f"a {'plain' if enclosed else 'sandboxed'} request to a "
+                              f"{'sandboxed' if enclosed else 'plain'} runner")
             out, err, request, *extra = fds
-            code = _attempt(out, err, request, layout=_layout(data), extra=extra)
+            code = _attempt(out, err, request, layout=layout, extra=extra)
     except BaseException as exc:  # noqa: BLE001 - whatever happens, the child must exit here
         with contextlib.suppress(Exception):
             os.write(2, f"osmo: warm start failed: {exc!r}\n".encode())
@@ -342,19 +364,31 @@ def _attempt(out: int, err: int, request: int, *, layout: dict[str, Any] | None 
 def _enclose(layout: dict[str, Any], relay: int, binds: Sequence[int], request: int) -> str:
     """Make this fork a sandboxed attempt's, as bubblewrap would; its working folder.
 
-    Returns only in the attempt's own process (pid 2 of a new pid namespace, every
-    capability dropped, ``no_new_privs``); this process waits for it as bubblewrap's monitor
-    does and exits with its code, and its pid 1 (the namespace's init) exits when it does.
-    Its own namespaces (mount, pid, IPC, UTS) inside the runner's sandbox; the runner's
-    mounts copied, then what bubblewrap mounts for this attempt: an empty tmpfs over osmo's
-    homes (``hidden``), ``/dev/null`` over the ``masked`` files, its folders (``binds``:
+    Called in the pid 1 of a pid namespace of its own (the runner made it); returns only in
+    the attempt's own process (pid 2, every capability dropped, ``no_new_privs``). This
+    process stays the namespace's init, as bubblewrap's pid 1 does: it reaps what the
+    attempt leaves, exits with the attempt's code when the attempt's process ends, and its
+    exit (or its kill) ends every process left in the namespace. It holds no capability
+    and cannot be traced once the attempt's process runs; as the namespace's init, the
+    kernel drops every signal from inside that it has no handler for (SIGKILL and SIGSTOP
+    too).
+
+    Its own namespaces (mount, IPC, UTS) inside the runner's sandbox; the runner's mounts
+    copied, then what bubblewrap mounts for this attempt: an empty tmpfs over osmo's homes
+    (``hidden``), ``/dev/null`` over the ``masked`` files, its folders (``binds``:
     ``[path, writable, folder]``, their detached mounts from the pool) at their paths, an
     empty ``/tmp``, a ``/dev`` of its own (the runner's device nodes, a private ``shm``
-    and ``pts``), and a ``/proc`` of its pid namespace (mounted by the pool: ``relay``) with
-    ``/proc/sys`` read-only.
+    and ``pts``), and a ``/proc`` of its pid namespace with ``/proc/sys`` read-only: its
+    context goes first on ``relay`` and the pool mounts it meanwhile.
     """
+    if os.getpid() != 1:
+        raise OSError("a sandboxed attempt's process is not its pid namespace's pid 1")
     os.umask(0o022)
-    mounts.unshare(mounts.NEWNS | mounts.NEWPID | mounts.NEWIPC | mounts.NEWUTS)
+    mounts.unshare(mounts.NEWNS | mounts.NEWIPC | mounts.NEWUTS)
+    relay_sock = socket.socket(fileno=relay)
+    context = mounts.proc_context()  # in a mount namespace of the node's user namespace
+    socket.send_fds(relay_sock, [b"proc"], [context])
+    os.close(context)
     mounts.make_private()
     _fresh_dev(_devices())  # in bubblewrap's order: /dev, /tmp, the homes, covers, binds
     shown = _shown_under("/tmp", layout["hidden"])  # bound after /tmp, as cold: keep them
@@ -372,29 +406,30 @@ def _enclose(layout: dict[str, Any], relay: int, binds: Sequence[int], request: 
         _mount_point(path, folder)
         mounts.move(fd, path)
         os.close(fd)
-    init = os.fork()
-    if init:  # bubblewrap's monitor: it waits, and its death ends the attempt's namespace
-        for fd in (relay, request):
-            os.close(fd)
-        for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
-            signal.signal(sig, signal.SIG_IGN)
-        os._exit(_exit_code(os.waitpid(init, 0)[1]))
-    mounts.die_with_parent()
-    relay_sock = socket.socket(fileno=relay)
-    socket.send_fds(relay_sock, [b"proc"], [mounts.proc_context()])
     _, got, _, _ = socket.recv_fds(relay_sock, 16, 1)
+    relay_sock.close()
     if not got:
         raise OSError("the pool did not mount this attempt's /proc")
     mounts.move(got[0], "/proc")
     os.close(got[0])
-    relay_sock.close()
     mounts.bind("/proc/sys", "/proc/sys", readonly=True)
-    mounts.drop_privileges()
     task = os.fork()
     if task == 0:
+        mounts.drop_privileges()
         return str(layout["cwd"])
+    _init(task, request)
+
+
+def _init(task: int, request: int) -> NoReturn:
+    """The attempt's pid 1 once its process (``task``) runs: reap, then exit with its code."""
+    mounts.undumpable()  # before its capabilities go: never traceable by the attempt
+    mounts.drop_privileges()
     os.close(request)
-    while True:  # the namespace's init: reap, until the attempt's own process ends
+    null = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(null, 1)  # the attempt's output ends when its own processes end
+    os.dup2(null, 2)
+    os.close(null)
+    while True:  # reap, until the attempt's own process ends
         pid, status = os.waitpid(-1, 0)
         if pid == task:
             os._exit(_exit_code(status))
@@ -503,6 +538,22 @@ def _typed(context: str) -> int:
     return code
 
 
+def _own_pid_namespace(sock: int) -> None:
+    """Go on as the pid 1 of a new pid namespace; this process waits for it and exits with it.
+
+    A sandboxed runner's: bubblewrap made its pid namespace before entering the node's
+    user namespace, so only in one the runner made itself may it return to its own pid
+    namespace after each spare's (``setns``). Done before the import: what waits is small.
+    """
+    mounts.unshare(mounts.NEWPID)
+    pid = os.fork()
+    if pid == 0:
+        mounts.die_with_parent()  # and if this one is gone already, bubblewrap ends it
+        return
+    os.close(sock)  # the runner's end: the pool sees the runner's exit, not this one's
+    os._exit(_exit_code(os.waitpid(pid, 0)[1]))
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """``python -m osmo.runtime.process.warm_runner FD TYPE VERSION [FOLDER ...]``."""
     args = list(sys.argv[1:] if argv is None else argv)
@@ -510,13 +561,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         sys.stderr.write("usage: python -m osmo.runtime.process.warm_runner FD TYPE VERSION "
                          "[FOLDER ...]\n")
         return 2
+    sandboxed = os.environ.pop(SANDBOXED_VARIABLE, "") == "1"
+    if sandboxed:
+        _own_pid_namespace(int(args[0]))
     sock = socket.socket(fileno=int(args[0]))
     why = _load(args[1], args[2], args[3:])
     if why:
         sock.send(f"error: {why}".encode()[:4096])
         return 1
     sock.send(READY + b" " + json.dumps(_sources(args[3:])).encode())
-    _Runner(sock, float(os.environ.get(IDLE_VARIABLE, "60"))).serve()
+    _Runner(sock, float(os.environ.get(IDLE_VARIABLE, "60")), sandboxed=sandboxed).serve()
     return 0
 
 
