@@ -177,8 +177,11 @@ class Preparing:
                 started = f"cannot start: {exc!r}"
         # Its log's first records (and so the file, an inode) are made here, while its command
         # starts, not on the reactor; the reactor reads the command's output after them.
-        for note in launch.notes:
-            log.line("osmo", note)
+        try:
+            for note in launch.notes:
+                log.line("osmo", note)
+        except Exception:  # noqa: BLE001 - e.g. its log's sink: the attempt still goes on
+            _log.exception("the notes of %s could not be logged", cmd.attempt_id)
         self._reactor.call_soon(self._prepared, cmd, task, dirs, launch, runtime, log, started)
 
     def _open_log(self, cmd: PrepareAttempt, dirs: AttemptDirs, launch: Launch) -> LogWriter:
