@@ -5,7 +5,9 @@ batch of state changes is committed in one transaction *before* any command of t
 executed, so a server killed at any instant restarts into a consistent state. Events from
 executors and typed requests from API threads (``osmo.server.requests``) arrive in one
 inbox (``osmo.server.inbox``); the loop blocks on it until something arrives or the
-scheduler's next deadline (a timeout) is due — no polling.
+scheduler's next deadline (a timeout) is due — no polling. A turn that holds only start reports
+(nothing to send for them) waits a few milliseconds more for the next report, so that both are
+committed at once (``_starts_only``).
 
 Fault isolation: no exception stops the loop. When applying a batch raises — in the
 scheduler, while building lineage, or in the commit itself — nothing of the batch was
@@ -42,6 +44,7 @@ from osmo.scheduler.types import (
     DEFAULT_MAX_RETRIES,
     AttemptExited,
     AttemptLost,
+    AttemptPrepared,
     AttemptStarted,
     AttemptStartFailed,
     CancelWorkflow,
@@ -79,6 +82,8 @@ from osmo.store.sqlite import NewWorkflowRow, Store, TagRow
 __all__ = ["Engine"]
 
 log = logging.getLogger("osmo.server")
+
+_RIDE = 0.01  # seconds a turn of start reports alone waits for more (``_starts_only``)
 
 
 class Engine:
@@ -176,7 +181,14 @@ class Engine:
     def _wait(self) -> list[Any]:
         deadline = self.scheduler.next_deadline()
         timeout = None if deadline is None else max(0.0, deadline - self._clock())
-        return self._inbox.take(timeout) or [Tick()]
+        items = self._inbox.take(timeout) or [Tick()]
+        if _starts_only(items):
+            # Their attempts run already and nothing is to be sent for them: they ride with
+            # what comes next (the exit of a short task, the other slot's report), one
+            # commit for both, if it comes soon. Nothing else waits meanwhile.
+            ride = _RIDE if deadline is None else min(_RIDE, max(0.0, deadline - self._clock()))
+            items += self._inbox.take(ride)
+        return items
 
     def _step(self, items: list[Any]) -> bool:
         """Apply what was queued (isolating a culprit if it raises); False after ``stop()``.
@@ -407,6 +419,21 @@ class Engine:
         """Where the scheduler placed ``attempt_id`` (None: not a current attempt)."""
         task = self.scheduler.attempt(attempt_id)
         return task.node_id if task is not None else None
+
+
+def _starts_only(items: list[Any]) -> bool:
+    """Whether ``items`` are start reports of attempts their worker started by itself.
+
+    Each an ``AttemptStarted``, or an ``AttemptPrepared`` with its attempt's ``AttemptStarted``
+    (no barrier held it: a prepared report alone may release a group's). Applied, they send
+    nothing: the commit of their change (RUNNING) may wait for the next turn's, which is
+    committed before any command of its own is sent. A crash meanwhile loses only what a crash
+    before their arrival would have lost (their attempt is recovered as any that did not
+    report its start).
+    """
+    started = {i.attempt_id for i in items if isinstance(i, AttemptStarted)}
+    return bool(started) and all(isinstance(i, AttemptStarted) or (
+        isinstance(i, AttemptPrepared) and i.attempt_id in started) for i in items)
 
 
 def _parts(items: list[Any], suspect: Callable[[str], bool] | None) -> list[list[Any]]:

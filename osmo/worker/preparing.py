@@ -12,7 +12,8 @@ work to an I/O thread, in one straight line:
 4. its launch completed by its runtime (``Runtime.prepare``: a sandbox's view, a container's
    image, pulled if missing, its progress in the log);
 5. with no barrier, its spawn right there (``Starting.spawn``), so the slots' spawns overlap
-   and the reactor never waits on fork/exec.
+   and the reactor never waits on fork/exec;
+6. its launch's notes written to its log (the log's file made) while it starts.
 
 The outcome goes back to the reactor, which makes the attempt live and reports it prepared
 (and started), applies a kill or a run that came meanwhile, or fails its start. Every
@@ -174,6 +175,13 @@ class Preparing:
             except Exception as exc:  # noqa: BLE001 - a bug: fail the start, report it
                 _log.exception("starting %s failed", cmd.attempt_id)
                 started = f"cannot start: {exc!r}"
+        # Its log's first records (and so the file, an inode) are made here, while its command
+        # starts, not on the reactor; the reactor reads the command's output after them.
+        try:
+            for note in launch.notes:
+                log.line("osmo", note)
+        except Exception:  # noqa: BLE001 - e.g. its log's sink: the attempt still goes on
+            _log.exception("the notes of %s could not be logged", cmd.attempt_id)
         self._reactor.call_soon(self._prepared, cmd, task, dirs, launch, runtime, log, started)
 
     def _open_log(self, cmd: PrepareAttempt, dirs: AttemptDirs, launch: Launch) -> LogWriter:
@@ -216,8 +224,6 @@ class Preparing:
         self._run_pending.discard(cmd.attempt_id)
         attempt = LiveAttempt(cmd.attempt_id, task, dirs, launch, log, runtime)
         self.journaled(attempt)
-        for note in launch.notes:
-            attempt.log.line("osmo", note)
         self._attempts.add(attempt)
         if isinstance(started, ProcessHandle):
             self._starting.watch(attempt, started)
