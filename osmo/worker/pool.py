@@ -117,6 +117,7 @@ __all__ = ["KILLED_BEFORE_START", "LocalPool"]
 _log = logging.getLogger(__name__)
 
 _IO_THREADS = 4
+_WARM_SWEEP = 5.0  # seconds between two reaps of the warm runners that exited
 
 
 class LocalPool:
@@ -238,6 +239,8 @@ class LocalPool:
             env=base, task_secrets=task_secrets,
             credential_for=credential_for, artifacts=artifacts, input_manifests=input_manifests,
             log_sink=log_sink, log_limit=log_limit, journal=journal)
+        if self.warm is not None:
+            self._reactor.call_soon(self._sweep_warm)
 
     # -------------------------------------------------------------- public (any thread)
 
@@ -344,6 +347,12 @@ class LocalPool:
         self._runtimes.close()
 
     # -------------------------------------------------------------- reactor thread
+
+    def _sweep_warm(self) -> None:
+        """Reap the warm runners that exited (idle, or retired), and again in a while."""
+        assert self.warm is not None
+        self.warm.sweep()
+        self._reactor.call_later(_WARM_SWEEP, self._sweep_warm)
 
     def _run(self, attempt_id: str) -> None:
         if self._preparing.run(attempt_id):

@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import os
 import signal
+import time
 from pathlib import Path
 
 import pytest
@@ -236,3 +237,26 @@ def test_warm_on_a_task_without_a_type_is_refused_with_its_place(osmo: Osmo,
     assert done.code == 2, done
     assert f"{spec}:6:11:" in done.err and f"{spec}:9:11:" in done.err, done.err
     assert "'warm' but no 'type'" in done.err, done.err
+
+
+def _reaped(pid: int, timeout: float = 20) -> bool:
+    """Whether ``pid`` is gone from the process table (reaped, not a zombie) within ``timeout``."""
+    deadline = time.monotonic() + timeout
+    while Path(f"/proc/{pid}").exists():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.1)
+    return True
+
+
+def test_runners_that_exit_are_reaped_not_left_zombies(osmo: Osmo, tmp_path: Path) -> None:
+    """A runner retired while its attempt ran (over its memory: each attempt a new runner)
+    and one that exits idle are both reaped by the server, with nothing more submitted."""
+    osmo("server", "start", "--sandbox", "off", "--warm-max-memory", "1Mi", "--warm-idle", "1",
+         check=True)
+    spec = TWO_IN_A_ROW.replace("    credentials: {api: {TOKEN: token}}\n", "")
+    wf = osmo.submit(_project(tmp_path, spec), "--wait")
+    runners = {_seen(osmo, wf, "dirty")["ppid"], _seen(osmo, wf, "probe")["ppid"]}
+    assert len(runners) == 2 and osmo.server_pid() not in runners, runners
+    left = [pid for pid in runners if not _reaped(pid)]
+    assert not left, [Path(f"/proc/{pid}/stat").read_text() for pid in left]

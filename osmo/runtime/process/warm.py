@@ -25,6 +25,9 @@ fork of it. What it owns:
   then its group (never a reused pid); ``exit_fd`` is a status pipe on which the runner writes the
   exit code (``128+N``: killed by signal N) once it reaped the child. A runner that died
   before it did so leaves the attempt ``lost`` (its child died with it).
+- **its exit reaped**: a runner that exited (idle, or retired while attempts of it still
+  ran) is reaped by :meth:`WarmRunners.sweep`, which the pool calls every few seconds, and
+  by each look at the runners; none is left a zombie of a long-lived server or worker.
 - **what ``osmo resource list`` shows**: :meth:`WarmRunners.runners`.
 
 Which tasks run warm is the process runtime's choice (``osmo.runtime.process.runtime``):
@@ -238,6 +241,7 @@ class WarmRunners:
         self._refused: dict[WarmKey, str] = {}
         self._lock = threading.Lock()
         self._starting: dict[WarmKey, threading.Lock] = {}
+        self._retired: list[_Runner] = []  # dropped while still running: reaped by sweep()
         self._closed = False
         self._sandbox: Sandbox | None = None
         self._hidden: Sequence[Path] = ()
@@ -294,7 +298,21 @@ class WarmRunners:
             if self._runners.get(runner.key) is runner:
                 del self._runners[runner.key]
         runner.retire()
-        runner.popen.poll()
+        if runner.popen.poll() is None:  # its attempts still run: it exits after them
+            with self._lock:
+                self._retired.append(runner)
+
+    def sweep(self) -> None:
+        """Reap every runner that exited: idle ones (forgotten here) and retired ones."""
+        with self._lock:
+            found = list(self._runners.values())
+            retired, self._retired = self._retired, []
+        for runner in found:
+            if runner.popen.poll() is not None:
+                self._drop(runner)
+        still = [runner for runner in retired if runner.popen.poll() is None]
+        with self._lock:
+            self._retired += still
 
     def _spawn(self, key: WarmKey) -> _Runner | None:
         ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
@@ -396,8 +414,9 @@ class WarmRunners:
         """The node stops: every runner is retired and, with what still runs of it, killed."""
         with self._lock:
             self._closed = True
-            found = list(self._runners.values())
+            found = [*self._runners.values(), *self._retired]
             self._runners.clear()
+            self._retired.clear()
         for runner in found:
             runner.retire()
             with contextlib.suppress(ProcessLookupError):
