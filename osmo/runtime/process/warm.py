@@ -218,11 +218,16 @@ class _Runner:
         return False
 
     def retire(self) -> None:
-        """No more attempts: it exits once those running ended."""
+        """No more attempts: it exits once those running ended.
+
+        Under its lock: a fork request being sent on its socket (any thread) is never cut by
+        the close, nor sent to a descriptor that took the closed one's number.
+        """
         self.broken = True
-        with contextlib.suppress(OSError):
-            self.sock.shutdown(socket.SHUT_RDWR)
-        self.sock.close()
+        with self.lock:
+            with contextlib.suppress(OSError):
+                self.sock.shutdown(socket.SHUT_RDWR)
+            self.sock.close()
 
 
 class WarmRunners:
