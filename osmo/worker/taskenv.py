@@ -17,9 +17,10 @@ One variable is osmo's own default, unless the worker sets it: ``OMP_WAIT_POLICY
 spins its idle threads for up to a few milliseconds at every barrier; when the machine is
 busier than its cores (another task, another program), the spinning threads take the CPU from
 the ones doing the work. Measured on 2 cores at load 5, a ResNet-18 training step of 2
-threads took 2.2–3.5 s spinning against 0.45–0.61 s passive (``bench/README.md``). A spec
-that wants spinning sets ``OMP_WAIT_POLICY: ACTIVE`` in its ``environment`` (a cold start; a
-warm runner's libraries read it once, at its import, from this base).
+threads took 2.2–3.5 s spinning against 0.45–0.61 s passive, and 5–9% longer passive on an
+idle machine (``bench/README.md``). A spec that wants spinning sets ``OMP_WAIT_POLICY:
+ACTIVE`` in its ``environment`` (a cold start; a warm runner's libraries read it once, at
+its import, from this base).
 
 ``TMPDIR`` is left out on purpose: the default ``/tmp`` is the task's own in the sandbox,
 while the worker's ``TMPDIR`` may be shared or read-only there.
