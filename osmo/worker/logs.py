@@ -272,11 +272,10 @@ class CappedFile:
         flags = os.O_WRONLY | os.O_CREAT | os.O_APPEND | os.O_CLOEXEC
         self._fd = os.open(self.path, flags, 0o644)
         self._size = os.fstat(self._fd).st_size
-        if not self._size:  # a new log (an attempt's first record): no marker to read
-            self._head = self._dropped = 0
-            return
-        with open(self.path, "rb") as f:
-            marker = marker_of(f)
+        marker = None
+        if self._size:  # a new log (an attempt's first record) has no marker to read
+            with open(self.path, "rb") as f:
+                marker = marker_of(f)
         self._head = marker.length if marker else 0
         self._dropped = marker.dropped if marker else 0
 

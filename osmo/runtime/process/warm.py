@@ -402,13 +402,13 @@ class WarmRunners:
             self._refused[key] = why
 
     def runners(self) -> list[RunnerInfo]:
-        """The live runners (a runner that exited is forgotten here)."""
+        """The live runners (a runner that exited is reaped and forgotten here)."""
+        self.sweep()
         with self._lock:
             found = list(self._runners.values())
         out = []
         for runner in found:
-            if not runner.alive():
-                self._drop(runner)
+            if not runner.alive():  # exited since the sweep: the next one reaps it
                 continue
             kind = runner.key.type + (f"@{runner.key.version}" if runner.key.version else "")
             out.append(RunnerInfo(kind, runner.popen.pid, runner.rss(), runner.started,
