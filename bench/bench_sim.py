@@ -270,8 +270,11 @@ def measure(args: argparse.Namespace, project: Path, plans: dict[str, list[dict[
                 else:
                     continue
                 results[system].setdefault(n, []).append(res)
+                each = " ".join(f"{t} {c:.2f}" for t, c in res["compute_s"].items())
                 print(f"round {r + 1}: {system} {n} {res['makespan_s']:.1f} s "
-                      f"(load {os.getloadavg()[0]:.1f})", flush=True)
+                      f"(load {os.getloadavg()[0]:.1f})"
+                      + (f"; compute inside: {each}" if len(res["compute_s"]) <= 10 else ""),
+                      flush=True)
     return results
 
 
