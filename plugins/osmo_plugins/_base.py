@@ -18,12 +18,16 @@ from typing import Any, Self
 from osmo.tasktypes.api import Param, TaskContext
 from osmo.tasktypes.reports import Report
 
-__all__ = ["ACT_PRELOAD", "OFFLINE_ENV", "SIM_PRELOAD", "Committing", "PluginType",
+__all__ = ["ACT_PRELOAD", "HF_ENV", "SIM_PRELOAD", "Committing", "PluginType",
            "find_folder_with", "offline"]
 
-OFFLINE_ENV: Mapping[str, str] = {"HF_HUB_OFFLINE": "1", "HF_DATASETS_OFFLINE": "1"}
-"""Hugging Face's offline switches (:func:`offline`). Its libraries read them when imported,
-so a type that preloads ``lerobot`` in a warm runner sets them there too (``preload_env``)."""
+HF_ENV: Mapping[str, str] = {"HF_HUB_OFFLINE": "1", "HF_DATASETS_OFFLINE": "1",
+                             "HF_DATASETS_DISABLE_PROGRESS_BARS": "1"}
+"""Hugging Face's offline switches and no progress bars of ``datasets`` (:func:`offline`).
+Its libraries read them when imported, so a type that preloads ``lerobot`` in a warm runner
+sets them there too (``preload_env``). Without the last, writing a LeRobotDataset put two
+progress-bar lines per episode into the task's log (800 for the demo's dataset); osmo reports
+a task's progress itself (``ctx.progress``)."""
 
 MUJOCO_V5 = ("ant", "half_cheetah", "hopper", "humanoid", "humanoidstandup",
              "inverted_double_pendulum", "inverted_pendulum", "pusher", "reacher", "swimmer",
@@ -137,10 +141,10 @@ def find_folder_with(folders: Any, marker: str) -> Any:
 
 
 def offline() -> None:
-    """Make Hugging Face libraries work from local files only.
+    """Make Hugging Face libraries work from local files only, with no progress bars.
 
     Plugins never download weights or datasets at run time (set before ``lerobot`` or
-    ``huggingface_hub`` is imported).
+    ``huggingface_hub`` is imported). A task's own environment wins (``HF_ENV``).
     """
-    for name, value in OFFLINE_ENV.items():
+    for name, value in HF_ENV.items():
         os.environ.setdefault(name, value)

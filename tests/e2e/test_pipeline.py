@@ -118,6 +118,12 @@ def test_reach_vision_tiny(shared_osmo: Osmo, tmp_path: Path) -> None:
                             "--set", "episodes=2", "--set", "steps=20",
                             "--set", "eval_episodes=2", timeout=WAIT)
     assert shared_osmo.query(wf)["status"] == "COMPLETED", shared_osmo("logs", wf).out
+    # a task's log is no terminal: no progress bar of Hugging Face's per episode saved
+    # (osmo reports the task's own progress); its own lines are still there
+    for task in ("dataset", "train"):
+        log = shared_osmo("logs", wf, "--task", task, check=True).out
+        assert "%|" not in log and "examples/s" not in log, log
+    assert "LeRobotDataset with 4 episodes" in shared_osmo("logs", wf, "--task", "dataset").out
     rows = shared_osmo("eval", "report", wf, "--format", "json", check=True).json()
     got = _by_policy(rows, "osmo/ReachVision-v1")
     assert set(got) == {"train", "expert", "random"}

@@ -23,7 +23,7 @@ Its report (``osmo eval report``) is the leaderboard of :mod:`osmo_plugins.sim.r
 from __future__ import annotations
 
 from osmo.tasktypes.api import Param
-from osmo_plugins._base import ACT_PRELOAD, OFFLINE_ENV, SIM_PRELOAD, PluginType
+from osmo_plugins._base import ACT_PRELOAD, HF_ENV, SIM_PRELOAD, PluginType
 from osmo_plugins.sim.report import LEADERBOARD
 
 __all__ = ["EVAL"]
@@ -35,7 +35,7 @@ EVAL = PluginType(
     impl="osmo_plugins.sim._eval:run",
     extra="sim",
     preload=(*SIM_PRELOAD, *ACT_PRELOAD, "osmo_plugins.lerobot.policy_io"),
-    preload_env={"MUJOCO_GL": "disable", **OFFLINE_ENV},
+    preload_env={"MUJOCO_GL": "disable", **HF_ENV},
     resources={"cpu": 1, "memory": "2Gi"},
     report=LEADERBOARD,
     params={
