@@ -7,7 +7,11 @@ from __future__ import annotations
 
 import enum
 
-__all__ = ["CACHED_MESSAGE", "ExitCode", "TaskStatus", "WorkflowStatus", "reused_attempt"]
+__all__ = ["CACHED_MESSAGE", "PRIORITIES", "ExitCode", "TaskStatus", "WorkflowStatus",
+           "reused_attempt"]
+
+PRIORITIES = ("HIGH", "NORMAL", "LOW")
+"""A workflow's priority (``submit --priority``), highest first; NORMAL by default."""
 
 CACHED_MESSAGE = "cached: outputs of "
 """The message of a task completed from the cache, before the id of the attempt it reused."""

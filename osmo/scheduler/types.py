@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 
 from osmo.scheduler.state import TaskState, WorkflowState
 from osmo.spec.model import WorkflowSpec
+from osmo.status import PRIORITIES
 
 __all__ = [
     "AttemptExited",
@@ -55,9 +56,6 @@ __all__ = [
 DEFAULT_MAX_RETRIES = 3
 """How many times a task that exits with a RESCHEDULE action is retried, unless its workflow's
 ``maxRetries`` says otherwise."""
-
-PRIORITIES = ("HIGH", "NORMAL", "LOW")
-"""A workflow's priority (``submit --priority``), highest first; NORMAL by default."""
 
 PRIORITY_AGEING = 600.0
 """Seconds of waiting that make up one priority level (the ageing rule).

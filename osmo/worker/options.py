@@ -24,7 +24,7 @@ from osmo.options import (
     add_runtime_arguments,
     shares,
 )
-from osmo.scheduler.types import PRIORITIES
+from osmo.status import PRIORITIES
 
 __all__ = ["DEFAULT_KILL_GRACE", "DEFAULT_POOL", "WorkerOptions"]
 
