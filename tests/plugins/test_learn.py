@@ -96,6 +96,21 @@ def test_dataset_needs_episodes(tmp_path: Path) -> None:
         DATASET.run(make_ctx(DATASET, tmp_path, "dataset", inputs=[empty]))
 
 
+def test_training_refuses_a_dataset_marker_whose_root_leaves_its_folder(tmp_path: Path) -> None:
+    """An upstream ``osmo_dataset.json`` names the dataset's folder: only one beside it."""
+    ds = make_ctx(DATASET, tmp_path, "dataset", inputs=_shards(tmp_path))
+    DATASET.run(ds)
+    other = make_ctx(DATASET, tmp_path, "other", inputs=_shards(tmp_path / "o"))
+    DATASET.run(other)
+    marker = ds.output / "osmo_dataset.json"
+    info = json.loads(marker.read_text())
+    for n, root in enumerate(("../other/out/dataset", str(other.output / "dataset"), "..", "",
+                              None, "missing")):
+        marker.write_text(json.dumps({**info, "root": root}))
+        with pytest.raises(ValueError, match="'root' must name a folder beside it"):
+            TRAIN.run(make_ctx(TRAIN, tmp_path, f"train{n}", inputs=[ds.output], steps=1))
+
+
 def test_backbone_norms_train_and_fold_back_unchanged() -> None:
     """From scratch the ResNet trains real batch norms; folded back into LeRobot's frozen
     ones, the saved network computes exactly what the trained one does in eval mode."""

@@ -13,7 +13,7 @@ from osmo_plugins._base import offline
 from osmo_plugins.episodes import Episode, episode_files, read_episodes
 from osmo_plugins.sim.envs import require
 
-__all__ = ["DATASET_MARKER", "features_for", "pad", "run"]
+__all__ = ["DATASET_MARKER", "dataset_root", "features_for", "pad", "run"]
 
 DATASET_MARKER = "osmo_dataset.json"
 STATE, ENV_STATE, ACTION, CAMERA = ("observation.state", "observation.environment_state",
@@ -56,6 +56,16 @@ def _load(ctx: TaskContext) -> list[Episode]:
     if len(envs) > 1:
         raise ValueError(f"episodes from several envs cannot share a dataset: {sorted(envs)}")
     return episodes
+
+
+def dataset_root(source: Path, info: dict[str, Any]) -> Path:
+    """The LeRobotDataset folder an ``osmo_dataset.json`` in ``source`` names: inside it only."""
+    root = info.get("root")
+    if not isinstance(root, str) or not root or root in (".", "..") or "/" in root \
+            or "\\" in root or not (source / root).is_dir():
+        raise ValueError(f"{source / DATASET_MARKER}: 'root' must name a folder beside it, "
+                         f"not {root!r}")
+    return source / root
 
 
 def run(ctx: TaskContext) -> None:

@@ -13,7 +13,7 @@ import numpy as np
 
 from osmo.tasktypes.api import TaskContext
 from osmo_plugins._base import find_folder_with, offline
-from osmo_plugins.lerobot._dataset import CAMERA, DATASET_MARKER
+from osmo_plugins.lerobot._dataset import CAMERA, DATASET_MARKER, dataset_root
 from osmo_plugins.lerobot.policy_io import POLICY_MARKER
 from osmo_plugins.sim.envs import require
 
@@ -60,7 +60,7 @@ def run(ctx: TaskContext) -> None:
     if source is None:
         raise ValueError(f"no {DATASET_MARKER} in the inputs (expected a lerobot.dataset output)")
     info = json.loads((source / DATASET_MARKER).read_text())
-    root = source / info["root"]
+    root = dataset_root(source, info)
     meta = LeRobotDatasetMetadata(info["repo_id"], root=root)
     cfg = make_config(p, bool(info["images"]))
     policy = make_policy(cfg, ds_meta=meta)
