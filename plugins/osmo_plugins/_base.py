@@ -25,9 +25,9 @@ HF_ENV: Mapping[str, str] = {"HF_HUB_OFFLINE": "1", "HF_DATASETS_OFFLINE": "1",
                              "HF_DATASETS_DISABLE_PROGRESS_BARS": "1"}
 """Hugging Face's offline switches and no progress bars of ``datasets`` (:func:`offline`).
 Its libraries read them when imported, so a type that preloads ``lerobot`` in a warm runner
-sets them there too (``preload_env``). Without the last, writing a LeRobotDataset put two
-progress-bar lines per episode into the task's log (800 for the demo's dataset); osmo reports
-a task's progress itself (``ctx.progress``)."""
+sets them there too (``preload_env``). Without the last, writing a LeRobotDataset put a
+progress-bar line per saved episode into the task's log (400 of the demo dataset task's 810
+lines); osmo reports a task's progress itself (``ctx.progress``)."""
 
 MUJOCO_V5 = ("ant", "half_cheetah", "hopper", "humanoid", "humanoidstandup",
              "inverted_double_pendulum", "inverted_pendulum", "pusher", "reacher", "swimmer",
