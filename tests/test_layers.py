@@ -126,27 +126,25 @@ def test_parts_kept_apart_do_not_import_each_other() -> None:
     assert crossing == []
 
 
+def _loaded_by(modules: list[str], parts: list[str]) -> list[str]:
+    """The modules of ``osmo.<part>`` a fresh interpreter holds after importing ``modules``."""
+    code = ("import sys\n" + "".join(f"import {m}\n" for m in modules)
+            + "print('\\n'.join(m for m in sys.modules if m.split('.')[:2] in "
+              f"{[['osmo', part] for part in parts]!r}))")
+    return subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True,
+                          text=True, check=True).stdout.split()
+
+
 def test_importing_the_sdk_loads_no_server_worker_or_runtime_module() -> None:
     """What the rule above means at run time: ``import osmo.sdk.*`` stays a client's import."""
     sdk = sorted(_module_of(p) for p in (PACKAGE / "sdk").glob("*.py"))
-    code = ("import sys\n" + "".join(f"import {m}\n" for m in sdk)
-            + "print('\\n'.join(m for m in sys.modules if m.split('.')[:2] in "
-              f"{[['osmo', part] for part in sorted(APART['sdk'])]!r}))")
-    loaded = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True,
-                            text=True, check=True).stdout.split()
-    assert loaded == []
+    assert _loaded_by(sdk, sorted(APART["sdk"])) == []
 
 
 def test_starting_the_cli_loads_no_scheduler_server_or_runtime_module() -> None:
     """Every ``osmo`` command imports ``osmo.cli.main`` first: what only a server or a runtime
     needs is imported where it runs (the scheduler's types alone cost ~16 modules, ~40 ms)."""
-    code = ("import sys, osmo.cli.main\n"
-            "print('\\n'.join(m for m in sys.modules if m.split('.')[:2] in "
-            "[['osmo', 'scheduler'], ['osmo', 'server'], ['osmo', 'runtime'], "
-            "['osmo', 'store'], ['osmo', 'spec']]))")
-    loaded = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True,
-                            text=True, check=True).stdout.split()
-    assert loaded == []
+    assert _loaded_by(["osmo.cli.main"], ["runtime", "scheduler", "server", "spec", "store"]) == []
 
 
 def test_the_core_reaches_plugins_only_through_entry_points() -> None:
