@@ -8,44 +8,73 @@ and the server orders one live node of the same pool (the same namespace) to del
 (``wire.Sweep``), at once or when such a node next registers.
 
 The server decides, never a node: a node cannot name another's instance to have it swept,
-and an instance that a registered or away node holds (whatever its pool) is never swept.
+and an instance that a registered or away node holds is never swept.
 A node that comes back under a swept-to-be instance cleans up after itself instead.
 
-This module keeps that bookkeeping (pure, no I/O: ``osmo.server.workers`` sends the
-orders). What is pending is held in memory: a server restarted meanwhile forgets it, and
-the objects stay until their own node's instance comes back (documented in the chart's
-README).
+This module keeps that bookkeeping; ``osmo.server.workers`` sends the orders. Each node's
+instance and what is still to be swept are written through to the store
+(``osmo.store.instances``), so a restarted server knows them: the nodes of its previous
+life that do not come back within its grace are down for good then
+(:meth:`Sweeps.restored`). An instance is ordered swept once; if the node so ordered dies
+before it did, the objects stay until their own instance comes back or the labels are
+deleted by hand (documented in the Kubernetes tutorial).
 """
 
 from __future__ import annotations
 
+import logging
 import threading
+from collections.abc import Callable
+
+from osmo.errors import OsmoError
+from osmo.store.instances import InstanceRows
 
 __all__ = ["Sweeps"]
 
+log = logging.getLogger("osmo.server.workers")
+
 
 class Sweeps:
-    """Instances of nodes, and those of nodes down for good still to be swept, per pool."""
+    """Instances of nodes, and those of nodes down for good still to be swept, per pool.
 
-    def __init__(self) -> None:
+    Args:
+        rows: where they are kept across restarts (None: memory only); read once here.
+    """
+
+    def __init__(self, rows: InstanceRows | None = None) -> None:
         self._lock = threading.Lock()
+        self._rows = rows
         self._instances: dict[str, tuple[str, str]] = {}  # node id -> (pool, instance)
         self._pending: dict[str, set[str]] = {}  # pool -> instances to sweep
+        if rows is not None:
+            self._instances = rows.node_instances()
+            self._pending = rows.pending_sweeps()
+        self._restored = frozenset(self._instances)
+
+    def restored(self) -> frozenset[str]:
+        """The nodes the store knew when this server started (its previous life's)."""
+        return self._restored
 
     def registered(self, node: str, pool: str, instance: str | None) -> None:
         """Node ``node`` of ``pool`` registered, labelling its objects ``instance``."""
         with self._lock:
+            before = self._instances.get(node)
             if instance is None:
                 self._instances.pop(node, None)
             else:
                 self._instances[node] = (pool, instance)
+            changed = before != (None if instance is None else (pool, instance))
+            if changed:
+                self._write(lambda rows: rows.set_node_instance(node, pool, instance))
 
     def down(self, node: str) -> None:
         """Node ``node`` is down for good: its instance is to be swept (unless held)."""
         with self._lock:
             found = self._instances.pop(node, None)
             if found is not None:
-                self._pending.setdefault(found[0], set()).add(found[1])
+                pool, instance = found
+                self._pending.setdefault(pool, set()).add(instance)
+                self._write(lambda rows: rows.node_down(node, pool, instance))
 
     def sweeper(self, node: str) -> bool:
         """Whether ``node`` can sweep (it labels objects of its own)."""
@@ -59,4 +88,17 @@ class Sweeps:
         """
         with self._lock:
             held = {instance for _pool, instance in self._instances.values()}
-            return sorted(self._pending.pop(pool, set()) - held)
+            pending = self._pending.pop(pool, set())
+            if pending:
+                self._write(lambda rows: rows.drop_sweeps(pool))
+            return sorted(pending - held)
+
+    def _write(self, change: Callable[[InstanceRows], None]) -> None:
+        """Apply ``change(rows)`` to the store; a store that fails leaves it in memory only."""
+        if self._rows is None:
+            return
+        try:
+            change(self._rows)
+        except OsmoError as exc:
+            log.warning("could not keep node instances in the store (kept in memory): %s",
+                        exc)

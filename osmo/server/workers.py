@@ -140,7 +140,7 @@ class WorkerHub:
         self._away: dict[str, int] = {}  # such a node, gone: its absence's number
         self._absences = 0
         self._held_kills: dict[str, list[Kill]] = {}  # kills for a node while it is away
-        self._sweeps = Sweeps()  # what nodes down for good left in their cluster
+        self._sweeps = Sweeps(store)  # what nodes down for good left in their cluster
         self._same_host: dict[str, SameHost | None] = {}
         self._sent_specs: dict[str, set[str]] = {}
         self._timeouts: dict[str, float | None] = {}  # workflow -> exec_timeout (a few kept)
@@ -197,9 +197,9 @@ class WorkerHub:
             else:
                 self._outlives.discard(wid)
             back = self._away.pop(wid, None) is not None
-            self._sweeps.registered(wid, node.pool, hello.instance)
             alive = wid in self._alive
             kills = self._held_kills.pop(wid, [])
+        self._sweeps.registered(wid, node.pool, hello.instance)  # writes to the store
         if back:
             log.info("worker %s is back: it adopts %d attempt(s)", wid, len(hello.active))
         placed = self._reconcile(wid, set(hello.active), list(hello.finished))
@@ -410,16 +410,26 @@ class WorkerHub:
         return known
 
     def expect(self, node_ids: set[str], grace: float) -> None:
-        """Restored attempts sit on ``node_ids``: take down those not back within ``grace``."""
+        """Restored attempts sit on ``node_ids``: take down those not back within ``grace``.
+
+        So are the cluster nodes of the server's previous life (``Sweeps.restored``): what
+        they left is swept then.
+        """
+        labelled = self._sweeps.restored()
 
         def check() -> None:
             with self._lock:
-                missing = node_ids - set(self._nodes)
-            for wid in sorted(missing):
+                here = set(self._nodes) | set(self._away)
+                pools = {wid: node.pool for wid, node in self._nodes.items()}
+            for wid in sorted(node_ids - here):
                 log.warning("worker %s did not come back within %.0fs", wid, grace)
                 self._emit(NodeDown(wid))
+            for wid in sorted(labelled - here):
+                self._sweeps.down(wid)
+            for pool in sorted(set(pools.values())):
+                self._sweep_pool(pool)
 
-        if node_ids:
+        if node_ids or labelled:
             timer = threading.Timer(grace, check)
             timer.daemon = True
             timer.start()

@@ -26,6 +26,7 @@ from typing import Any
 from osmo.config import private_file
 from osmo.errors import InfrastructureError
 from osmo.scheduler.types import Changes
+from osmo.store.instances import InstanceRows
 from osmo.store.lineage import LineageQueries
 from osmo.store.rows import (
     AttemptRow,
@@ -141,6 +142,19 @@ def _v7(db: sqlite3.Connection) -> None:
     db.execute("""UPDATE tokens SET pools = '["*"]' WHERE role = 'worker'""")
 
 
+def _v8(db: sqlite3.Connection) -> None:
+    """Cluster nodes' instance labels, and the instances of nodes down for good to sweep."""
+    _run_script(
+        db,
+        """
+        CREATE TABLE node_instances (
+            node TEXT PRIMARY KEY, pool TEXT NOT NULL, instance TEXT NOT NULL);
+        CREATE TABLE sweeps (
+            pool TEXT NOT NULL, instance TEXT NOT NULL, PRIMARY KEY (pool, instance));
+        """,
+    )
+
+
 def _run_script(db: sqlite3.Connection, script: str) -> None:
     """Run ``;``-separated DDL inside the caller's transaction (``executescript`` would commit)."""
     for statement in script.split(";"):
@@ -151,11 +165,11 @@ def _run_script(db: sqlite3.Connection, script: str) -> None:
 _NO_SPEC = "id, name, status, submitted_at, '{}' AS spec, options, state"
 
 _MIGRATIONS: dict[int, Callable[[sqlite3.Connection], None]] = {
-    1: _v1, 2: _v2, 3: _v3, 4: _v4, 5: _v5, 6: _v6, 7: _v7}
+    1: _v1, 2: _v2, 3: _v3, 4: _v4, 5: _v5, 6: _v6, 7: _v7, 8: _v8}
 SCHEMA_VERSION = max(_MIGRATIONS)
 
 
-class Store(LineageQueries, TaskQueries, TokenRows):
+class Store(LineageQueries, TaskQueries, TokenRows, InstanceRows):
     """The SQLite state store under ``OSMO_HOME``.
 
     Args:

@@ -1,10 +1,13 @@
 """Nothing outlives its workflow when an in-cluster node never comes back: once its grace
 ended, the server orders a live node of its pool to delete what it left (``wire.Sweep``,
-``osmo.server.sweeps``), and the attempt runs again there. A live node's objects stay.
+``osmo.server.sweeps``), and the attempt runs again there. A live node's objects stay. The
+server keeps what nodes label their objects with in its store: a node gone while the server
+restarts is swept too.
 """
 
 from __future__ import annotations
 
+import os
 import signal
 import time
 from collections.abc import Iterator
@@ -14,6 +17,7 @@ import pytest
 from kubernetes import client
 
 from osmo.runtime.container.runtime import owner_id
+from tests.conftest import wait_gone
 from tests.containers.conftest import images, podman_env  # noqa: F401 - fixtures
 from tests.containers.images import KINDS_OSMO, OSMO_IMAGE, ensure_images
 from tests.containers.submitting import task_lines
@@ -36,11 +40,12 @@ def kube(tmp_path_factory: pytest.TempPathFactory, podman_env: dict[str, str],  
          images: dict[str, str]) -> Iterator[KubeCluster]:  # noqa: F811
     ensure_images(podman_env, KINDS_OSMO)
     yield from started(tmp_path_factory.mktemp("k8s"), podman_env,
-                       server_args=("--adopt-grace", str(GRACE)))
+                       server_args=("--adopt-grace", str(GRACE),
+                                    "--reconnect-grace", str(GRACE)))
 
 
-def start(kube: KubeCluster, name: str) -> None:
-    kube.start_worker(name, pool="data", groupNetwork="host", data={"image": OSMO_IMAGE})
+def start(kube: KubeCluster, name: str, pool: str = "data") -> None:
+    kube.start_worker(name, pool=pool, groupNetwork="host", data={"image": OSMO_IMAGE})
 
 
 def service(kube: KubeCluster, name: str, instance: str) -> None:
@@ -58,17 +63,25 @@ def names(kube: KubeCluster) -> set[str]:
             for res, obj in kube.server.store.objects([PODS, SECRETS, SERVICES])}
 
 
-def test_a_node_that_never_comes_back_leaves_nothing_after_its_grace(
-        kube: KubeCluster, tmp_path: Path) -> None:
-    start(kube, "kube-gone")
+def running_slow(kube: KubeCluster, tmp_path: Path, pool: str) -> tuple[str, dict]:
+    """Submit SLOW to ``pool``; its workflow id and pod once its task said it started."""
     spec = tmp_path / "slow.yaml"
     spec.write_text(SLOW)
-    wf_id = kube.osmo.submit(spec, "--pool", "data", "--no-cache")
+    before = {obj["metadata"]["name"] for _, obj in kube.server.store.objects([PODS])}
+    wf_id = kube.osmo.submit(spec, "--pool", pool, "--no-cache")
     deadline = time.monotonic() + 120
     while "started" not in task_lines(kube.osmo, wf_id).get("slow", []):
         assert time.monotonic() < deadline, (kube.left(), kube.osmo.query(wf_id))
         time.sleep(0.2)
-    (pod,) = [obj for _, obj in kube.server.store.objects([PODS])]
+    (pod,) = [obj for _, obj in kube.server.store.objects([PODS])
+              if obj["metadata"]["name"] not in before]
+    return wf_id, pod
+
+
+def test_a_node_that_never_comes_back_leaves_nothing_after_its_grace(
+        kube: KubeCluster, tmp_path: Path) -> None:
+    start(kube, "kube-gone")
+    wf_id, pod = running_slow(kube, tmp_path, "data")
     gone = pod["metadata"]["labels"]["osmo.dev/instance"]
     service(kube, "osmo-wf-gone-gang", gone)
     left = names(kube)
@@ -94,3 +107,40 @@ def test_a_node_that_never_comes_back_leaves_nothing_after_its_grace(
     assert kube.server.writes[("create", "pods")] == 2
     assert names(kube) == {"Service/osmo-wf-live-gang"}  # a live node's object stays
     kube.server.store.delete(SERVICES, NAMESPACE, "osmo-wf-live-gang")
+
+
+def test_a_node_gone_while_the_server_restarts_is_swept_by_the_new_server(
+        kube: KubeCluster, tmp_path: Path) -> None:
+    """The node and the server are killed together (kill -9): the new server knows the
+    node's instance from its store, and once the node's grace ended it has a live node of
+    its pool delete the pod still running there, while the attempt runs again."""
+    start(kube, "kube-gone-2", pool="data2")
+    wf_id, pod = running_slow(kube, tmp_path, "data2")
+    gone = pod["metadata"]["labels"]["osmo.dev/instance"]
+    kube.osmo_cluster.signal("kube-gone-2", signal.SIGKILL)  # never started again
+    kube.osmo_cluster.workers["kube-gone-2"].wait(30)
+    server = kube.osmo.server_pid()
+    assert server is not None
+    os.kill(server, signal.SIGKILL)
+    wait_gone(server)
+    kube.osmo_cluster.start_server()
+    start(kube, "kube-live-2", pool="data2")
+    deadline = time.monotonic() + 60
+    name = pod["metadata"]["name"]
+    while name in {obj["metadata"]["name"] for _, obj in kube.server.store.objects([PODS])}:
+        assert time.monotonic() < deadline, (kube.left(), kube.osmo_cluster.worker_log(
+            "kube-live-2"))
+        time.sleep(0.2)
+    said = f"deleted pod/{name} that node instance {gone} left"
+    while said not in kube.osmo_cluster.worker_log("kube-live-2"):  # logged after the deletes
+        assert time.monotonic() < deadline, kube.osmo_cluster.worker_log("kube-live-2")
+        time.sleep(0.2)
+    info = kube.osmo.wait_for(wf_id, lambda i: i["tasks"][0].get("node") == "kube-live-2",
+                              timeout=60)  # lost with its node, run again on the live one
+    assert info["status"] == "RUNNING", info
+    kube.osmo("cancel", wf_id, check=True)
+    kube.osmo.wait_for(wf_id, lambda i: i["status"] != "RUNNING", timeout=60)
+    deadline = time.monotonic() + 30
+    while any(k.startswith("Pod/") for k in kube.left()):
+        assert time.monotonic() < deadline, kube.left()
+        time.sleep(0.2)
