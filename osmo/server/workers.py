@@ -137,7 +137,8 @@ class WorkerHub:
         self._heard: dict[str, tuple[bytes, float]] = {}  # worker id -> (channel, when)
         self._draining: set[str] = set()
         self._outlives: set[str] = set()  # nodes whose attempts outlive their process
-        self._away: dict[str, int] = {}  # such a node, gone: its absence's number
+        self._away: dict[str, tuple[int, Node]] = {}  # such a node, gone: (its absence's
+        # number, what it registered as)
         self._absences = 0
         self._held_kills: dict[str, list[Kill]] = {}  # kills for a node while it is away
         self._sweeps = Sweeps(store)  # what nodes down for good left in their cluster
@@ -287,14 +288,15 @@ class WorkerHub:
             if wid not in self._outlives:
                 return False
             self._absences += 1
-            absence = self._away[wid] = self._absences
+            absence = self._absences
+            self._away[wid] = (absence, node)
         log.warning("worker %s is gone; its attempts outlive it: held %.0fs for it to come "
                     "back", wid, self._adopt_grace)
         self._emit(NodeUp(replace(node, capacity=Capacity())))
 
         def check() -> None:
             with self._lock:
-                late = self._away.get(wid) == absence
+                late = self._away.get(wid, (None,))[0] == absence
                 if late:
                     del self._away[wid]
                     self._held_kills.pop(wid, None)
@@ -457,12 +459,18 @@ class WorkerHub:
             self._emit(NodeDown(wid))
 
     def workers(self) -> list[dict[str, Any]]:
-        """Registered workers with their status (for ``osmo resource list``)."""
+        """Registered workers with their status (for ``osmo resource list``).
+
+        A node whose attempts outlive it is listed while it is away (``away``: its attempts
+        are held for it until its grace ends).
+        """
         with self._lock:
+            nodes = {**{wid: n for wid, (_, n) in self._away.items()}, **self._nodes}
             return [{"id": wid, "pool": n.pool, "platform": n.platform,
-                     "status": ("draining" if wid in self._draining else
+                     "status": ("away" if wid in self._away else
+                                "draining" if wid in self._draining else
                                 "online" if wid in self._alive else "connecting"),
-                     **self._info.get(wid, {})} for wid, n in sorted(self._nodes.items())]
+                     **self._info.get(wid, {})} for wid, n in sorted(nodes.items())]
 
     # ------------------------------------------------------------------ orders
 

@@ -24,7 +24,8 @@ from tests.containers.submitting import task_lines
 from tests.k8s.nodes import NAMESPACE, KubeCluster, started
 from tests.k8s.store import PODS, SECRETS, SERVICES
 
-GRACE = 4.0
+GRACE = 4.0  # for the server's restart
+ADOPT_GRACE = 8.0  # for a node gone: long enough to see it listed away
 SLOW = """\
 workflow:
   name: never-back
@@ -40,7 +41,7 @@ def kube(tmp_path_factory: pytest.TempPathFactory, podman_env: dict[str, str],  
          images: dict[str, str]) -> Iterator[KubeCluster]:  # noqa: F811
     ensure_images(podman_env, KINDS_OSMO)
     yield from started(tmp_path_factory.mktemp("k8s"), podman_env,
-                       server_args=("--adopt-grace", str(GRACE),
+                       server_args=("--adopt-grace", str(ADOPT_GRACE),
                                     "--reconnect-grace", str(GRACE)))
 
 
@@ -88,6 +89,13 @@ def test_a_node_that_never_comes_back_leaves_nothing_after_its_grace(
     assert len(left) == 3 and {k.split("/")[0] for k in left} == {"Pod", "Secret", "Service"}
     kube.osmo_cluster.signal("kube-gone", signal.SIGKILL)  # never started again
     kube.osmo_cluster.workers["kube-gone"].wait(30)
+    statuses = []  # osmo resource list shows it away (no capacity) until its grace ends
+    deadline = time.monotonic() + ADOPT_GRACE + 30
+    while "kube-gone" in (listed := kube.osmo_cluster.nodes()):
+        assert time.monotonic() < deadline, statuses
+        statuses.append((listed["kube-gone"]["status"], listed["kube-gone"]["total"]["cpu"]))
+        time.sleep(0.2)
+    assert ("away", 0) in statuses, statuses
     start(kube, "kube-live")  # within the grace or after it: it sweeps (ordered by the server)
     mine = owner_id(kube.osmo_cluster.root / "kube-live")  # the live node's instance label
     service(kube, "osmo-wf-live-gang", mine)
