@@ -111,11 +111,13 @@ def build_checkpoint(folder: Path, episodes: int = 20, steps: int = 100) -> Path
 
 
 def plan_of(spec_path: Path, checkpoint: Path) -> list[dict[str, Any]]:
-    """The rendered spec's tasks as Ray's plan: shipped type, params, inputs; upstream first."""
+    """The rendered spec's tasks as Ray's plan: shipped type, params, inputs, cpus; upstream
+    first."""
     from osmo.spec import load_spec
 
     tasks = []
-    for t in load_spec(spec_path).all_tasks():
+    spec = load_spec(spec_path)
+    for t in spec.all_tasks():
         assert t.type is not None and t.environment.get("OSMO_TASK_TIMING") == "1", t.name
         inputs: list[dict[str, str]] = []
         for i in t.inputs:
@@ -123,8 +125,8 @@ def plan_of(spec_path: Path, checkpoint: Path) -> list[dict[str, Any]]:
                 inputs.append({"task": i.task})
             elif i.dataset:
                 inputs.append({"name": i.dataset, "path": str(checkpoint)})
-        tasks.append({"name": t.name, "kind": t.type,
-                      "params": dict(t.params), "inputs": inputs})
+        tasks.append({"name": t.name, "kind": t.type, "params": dict(t.params),
+                      "inputs": inputs, "cpu": spec.resource_for(t).cpu or 1})
     return tasks
 
 

@@ -2,8 +2,8 @@
 
 The plan (a JSON file written by bench_sim.py) lists workloads, each a DAG of tasks: name,
 shipped task type, params (as the spec rendered them), and inputs (an upstream task of the same
-workload, or a folder made before the clock, such as the evaluated checkpoint). Each task is a
-Ray task (``num_cpus=1``, like the types' declared ``cpu: 1``) that calls
+workload, or a folder made before the clock, such as the evaluated checkpoint), and the cpus
+it requests. Each task is a Ray task with as many ``num_cpus`` as osmo reserves for it that calls
 ``osmo_bench_timed.call``: the shipped plugin function, timed inside the task exactly as under
 osmo, writing its outputs (the MCAPs, the checkpoint) under ``--out``. Upstream results are
 object-ref arguments, so Ray runs a task when its inputs are done.
@@ -57,8 +57,8 @@ def run_workload(tasks: list[dict[str, Any]], out: str) -> dict[str, Any]:
     for t in tasks:  # the plan lists upstream tasks first
         args = [refs[i["task"]] if "task" in i else {"name": i["name"], "output": i["path"]}
                 for i in t["inputs"]]
-        refs[t["name"]] = run_task.remote(t["kind"], t["params"], t["name"],
-                                          os.path.join(out, t["name"]), *args)
+        refs[t["name"]] = run_task.options(num_cpus=t.get("cpu", 1)).remote(
+            t["kind"], t["params"], t["name"], os.path.join(out, t["name"]), *args)
     done = ray.get(list(refs.values()))
     makespan = time.perf_counter() - t0
     return {"makespan_s": makespan, "compute_s": {d["name"]: d["compute_s"] for d in done},

@@ -6,10 +6,11 @@ Rules (documented for users):
   equal. In the bare-tasks form a task's one-task group shares its name, which is fine.
 - Resources: if ``workflow.resources`` is written, a task without ``resource:`` uses
   ``default``, and a missing ``default`` entry is an error at that task (unless its task
-  type declares resources, which then apply; see ``WorkflowSpec.resource_for``); a ``resource:``
-  naming an unknown entry is an error. Without ``workflow.resources`` tasks request nothing
-  specific (``ResourceSpec()``: the pool's defaults apply), and only ``resource: default``
-  may be written.
+  type declares resources, which then apply; see ``WorkflowSpec.resource_for``; loaded
+  without a type resolver, a typed task's missing ``default`` is not checked, as its
+  ``params`` are not); a ``resource:`` naming an unknown entry is an error. Without
+  ``workflow.resources`` tasks request nothing specific (``ResourceSpec()``: the pool's
+  defaults apply), and only ``resource: default`` may be written.
 - ``- task: X`` must name another task of the workflow, not the task itself and not a task of
   the same group (a group's tasks start together, so waiting for a peer would deadlock).
 - The groups, linked by their inputs, must form a DAG; a cycle is reported once, by name.
@@ -97,6 +98,8 @@ def _resources(ctx: Ctx, parsed: Parsed) -> None:
         elif task.resource not in defined and explicit:
             ctx.error(_field_pos(node, "resource"), f"resource '{task.resource}' of {where} is "
                       f"not in 'workflow.resources'{did_you_mean(task.resource, defined)}")
+        elif task.type is not None and task.resolved is None:
+            continue  # its type's resources are unknown without a resolver (not checked)
         elif task.resource not in defined and not (task.resolved and task.resolved.resources):
             ctx.error(node, f"{where} has no 'resource:' and 'workflow.resources' has no "
                             "'default' entry; add 'resource: NAME' or a 'default' resource")

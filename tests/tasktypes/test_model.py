@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 import osmo
-from osmo.errors import UsageError
+from osmo.errors import SpecError, UsageError
 from osmo.server.cache import fingerprint
 from osmo.spec import ResolvedType, ResourceSpec, load_spec, spec_from_dict
 from osmo.tasktypes.registry import Resolver
@@ -69,6 +69,14 @@ workflow:
     assert spec.resource_for(spec.task("a")) == ResourceSpec(cpu=3, memory=1 << 30)
     assert spec.resource_for(spec.task("b")).cpu == 1
     assert "rtypes" not in sys.modules
+    # without a resolver a typed task's params and defaults are not checked, nor is the
+    # missing default entry its type's resources stand for
+    bare = load_spec(spec_file)
+    assert bare.task("a").resolved is None and bare.resource_for(bare.task("b")).cpu == 1
+    plain = write(tmp_path / "plain.yaml", spec_file.read_text().replace(
+        '{name: a, type: "rtypes:heavy", params: {n: 1}}', "{name: a, command: [true]}"))
+    with pytest.raises(SpecError, match="task 'a' has no 'resource:'"):
+        load_spec(plain)  # an untyped task still needs the default entry
 
 
 def test_fingerprint_changes_with_the_type_version() -> None:
