@@ -305,10 +305,14 @@ class PodmanPods:
         return path
 
     def play(self, manifest: Path) -> subprocess.Popen[str]:
-        """Start ``podman kube play`` of ``manifest`` (it returns once init containers ran)."""
+        """Start ``podman kube play`` of ``manifest`` (it returns once init containers ran).
+
+        In the node's folder: conmon, which podman starts there, writes a file ``oom`` into
+        its working folder when a container of it is killed for memory.
+        """
         return subprocess.Popen(["podman", "kube", "play", "--network", "host", str(manifest)],
-                                stdout=subprocess.PIPE,
-                                stderr=subprocess.PIPE, text=True, env=self.env)
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                env=self.env, cwd=self.folder)
 
     def states(self, pods: Mapping[str, Sequence[str]]) -> dict[str, dict[str, ContainerState]]:
         """The containers of ``pods`` ({podman pod: container names}) that exist now.

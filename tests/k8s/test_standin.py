@@ -594,10 +594,12 @@ def test_a_container_over_its_memory_limit_is_oomkilled(
     body = pod("hog", "x=0123456789abcdef; while true; do x=$x$x; done")
     body["spec"]["containers"][0]["resources"] = {"limits": {"memory": "20Mi"}}
     since = version(api)
+    left = Path("oom").exists()  # conmon's mark of an OOM kill, in its working folder
     api.core.create_namespaced_pod(NS, body)
     done = watch_pod(api, "hog", since, phase_is("Succeeded", "Failed"))[-1]["object"]
     ended = done.status.container_statuses[0].state.terminated
     assert (done.status.phase, ended.exit_code, ended.reason) == ("Failed", 137, "OOMKilled")
+    assert left or not Path("oom").exists()  # in the node's folder, not the test's
     api.core.delete_namespaced_pod("hog", NS)
 
 
