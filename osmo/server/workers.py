@@ -86,6 +86,7 @@ from osmo.transport.wire import (
     Prepare,
     Run,
     Sweep,
+    beat_offer,
     event_from_dict,
     order_to_dict,
     warm_runners,
@@ -222,7 +223,9 @@ class WorkerHub:
         """A registered worker is alive (refused once this server forgot it: it registers again).
 
         Its beat also lists its warm runners (``wire.warm_runners``), kept for ``osmo resource
-        list``.
+        list``, and a cluster node's may carry what its cluster offers now
+        (``wire.beat_offer``): the node is announced again with that capacity and those
+        platforms (the scheduler keeps what its attempts hold).
 
         Raises:
             NotAllowed: ``who`` did not register this worker, or the server no longer counts
@@ -233,10 +236,22 @@ class WorkerHub:
             known = wid in self._nodes
         if not known:
             raise refuse("worker_beat", who, f"worker {wid} is not registered; register again")
-        warm = warm_runners(request)
+        warm, offer = warm_runners(request), beat_offer(request)
         with self._lock:
             if wid in self._info:
                 self._info[wid]["warm"] = warm
+            node = self._nodes.get(wid)
+            changed = None
+            if offer is not None and node is not None and (node.capacity,
+                                                           node.platforms) != offer:
+                changed = self._nodes[wid] = replace(node, capacity=offer[0],
+                                                     platforms=offer[1])
+            alive = wid in self._alive
+        if changed is not None:
+            log.info("worker %s offers %s now (platforms: %s)", wid, changed.capacity,
+                     ", ".join(changed.platforms) or "none")
+            if alive:
+                self._emit(NodeUp(self._announced(wid)))
         return {}
 
     def _speaker(self, verb: str, request: dict[str, Any], who: Identity) -> str:

@@ -79,9 +79,9 @@ from osmo.transport.blobs import SERVER
 from osmo.transport.rpc import MAX_INT, field, str_list, str_map
 
 __all__ = ["BEAT_EVERY", "LEASE", "MAX_PLATFORMS", "PEER_ALLOW", "PEER_DENY", "Ack", "Hello",
-           "Kill", "OpenSession", "Order", "Prepare", "Run", "Sweep", "capacity_from_dict",
-           "capacity_to_dict", "event_from_dict", "event_to_dict", "order_from_dict",
-           "order_to_dict", "warm_runners", "worker_id"]
+           "Kill", "OpenSession", "Order", "Prepare", "Run", "Sweep", "beat_offer",
+           "capacity_from_dict", "capacity_to_dict", "event_from_dict", "event_to_dict",
+           "offer_to_dict", "order_from_dict", "order_to_dict", "warm_runners", "worker_id"]
 
 #: zenoh access-control message -> keys (under the cluster prefix) a remote peer may use;
 #: the server's router denies everything else (``osmo.transport.zenoh_link.Acl``).
@@ -132,6 +132,24 @@ def warm_runners(data: dict[str, Any]) -> list[dict[str, Any]]:
             raise UsageError(f"'warm': a runner's numbers are from 0, not {shown(runner)}")
         out.append(runner)
     return out
+
+
+def offer_to_dict(capacity: Capacity, platforms: dict[str, Capacity]) -> dict[str, Any]:
+    """A beat's ``offer``: what a cluster node offers now (its capacity and platforms)."""
+    return {"capacity": capacity_to_dict(capacity),
+            "platforms": {name: capacity_to_dict(cap) for name, cap in platforms.items()}}
+
+
+def beat_offer(data: dict[str, Any]) -> tuple[Capacity, dict[str, Capacity]] | None:
+    """A beat's ``offer``, checked as a hello's capacity and platforms (None: none sent).
+
+    Raises:
+        UsageError: not an object, or a capacity or platform a hello could not hold.
+    """
+    offer = field(data, "offer", dict, default=None)
+    if offer is None:
+        return None
+    return capacity_from_dict(field(offer, "capacity", dict, default={})), _platforms(offer)
 
 
 def event_to_dict(event: Event) -> dict[str, Any]:

@@ -50,6 +50,9 @@ class WorkerOptions:
         zenoh_config: a zenoh JSON5 file (TLS, user/password).
         drain_timeout: on SIGTERM, how long running attempts may finish before they are
             handed back.
+        capacity_every: a cluster node (Kubernetes, Slurm) reads its cluster's capacity and
+            platforms again this often (seconds; 0: only at registration) and offers what
+            changed with its next beat.
         kill_grace: seconds between SIGTERM and SIGKILL when an attempt is killed.
         address: how peers reach its tasks (default: the outbound interface's address).
         token: its API token, role worker (``osmo token create NAME --role worker``).
@@ -82,6 +85,7 @@ class WorkerOptions:
     cluster: str = DEFAULT_CLUSTER
     zenoh_config: str | None = None
     drain_timeout: float = 600.0
+    capacity_every: float = 30.0
     kill_grace: float = DEFAULT_KILL_GRACE
     address: str | None = None
     token: str | None = None
@@ -129,6 +133,11 @@ class WorkerOptions:
         w.add_argument("--drain-timeout", type=float, default=d.drain_timeout,
                        metavar="SECONDS", help="on SIGTERM, how long running tasks may finish "
                                                f"before being handed back ({d.drain_timeout:g})")
+        w.add_argument("--capacity-every", type=float, default=d.capacity_every,
+                       metavar="SECONDS",
+                       help="with --runtime kubernetes or slurm: how often the cluster's "
+                            "capacity and platforms are read again, so nodes added or gone "
+                            f"count ({d.capacity_every:g}; 0: only at registration)")
         w.add_argument("--store-limit", metavar="SIZE",
                        help="how much its artifact store may hold before cached outputs and "
                             "inputs are removed, oldest first, e.g. 50Gi; 0: no limit "
@@ -167,7 +176,8 @@ class WorkerOptions:
         """The options parsed by a parser that :meth:`add_arguments` set up.
 
         Raises:
-            UsageError: a ``--memory`` or ``--label`` that cannot be read.
+            UsageError: a ``--memory``, ``--label`` or ``--capacity-every`` that cannot be
+                read.
         """
         from osmo.spec.units import parse_size
 
@@ -176,6 +186,9 @@ class WorkerOptions:
                       parse_size(args.memory) if args.memory else None)
         except ValueError as exc:
             raise UsageError(f"--memory {args.memory!r}: {exc} (e.g. 8Gi, 512Mi)") from None
+        if not 0 <= args.capacity_every < float("inf"):
+            raise UsageError(f"--capacity-every {args.capacity_every:g}: seconds from 0 "
+                             "(0: only at registration)")
         try:
             store_limit = None if args.store_limit is None else parse_size(args.store_limit)
         except ValueError as exc:
@@ -185,6 +198,7 @@ class WorkerOptions:
                    platform=args.platform, cpus=args.cpus, gpus=args.gpus, memory=memory,
                    labels=_labels(args.label), cluster=args.cluster,
                    zenoh_config=args.zenoh_config, drain_timeout=args.drain_timeout,
+                   capacity_every=args.capacity_every,
                    token=_token(args.token, args.token_file), token_file=args.token_file,
                    sandbox=args.sandbox,
                    sandbox_share=shares(args.sandbox_share), runtime=args.runtime,

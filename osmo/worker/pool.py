@@ -249,6 +249,10 @@ class LocalPool:
         """The sandbox its process tasks run in (None: they run unsandboxed)."""
         return self._runtimes.sandbox
 
+    def offer(self, cpus: float | None, gpus: int | None, memory: int | None) -> None:
+        """Offer this capacity from now on (a cluster node's cluster grew or shrank)."""
+        self._cpus, self._gpus, self._memory = cpus, gpus, memory
+
     def node(self) -> Node:
         """This machine as a scheduler node, with its (or the configured) capacity."""
         capacity = detect_capacity(self.home.root, cpus=self._cpus, gpus=self._gpus,

@@ -96,6 +96,7 @@ from osmo.transport.wire import (
     Run,
     Sweep,
     event_to_dict,
+    offer_to_dict,
     order_from_dict,
 )
 from osmo.transport.zenoh_link import Link, Subscription
@@ -157,6 +158,8 @@ class RemoteWorker:
         self._connected = False
         self._server_lost = False
         self._register_now = threading.Event()
+        self._offered: dict[str, Any] | None = None  # what the server last heard it offers
+        self._offer_read = time.monotonic()  # when the cluster's capacity was last read
         self._stop = threading.Event()
         self._refused: NotAllowed | None = None  # the server refused to register it
         self._io = ThreadPoolExecutor(4, thread_name_prefix="osmo-inputs")
@@ -246,10 +249,21 @@ class RemoteWorker:
             raise self._refused
 
     def _beat(self) -> None:
-        """Tell the server this worker is alive; register again if it no longer counts it."""
+        """Tell the server this worker is alive; register again if it no longer counts it.
+
+        A cluster node's beat carries what its cluster offers when that changed
+        (:meth:`_new_offer`).
+        """
+        beat: dict[str, Any] = {"id": self.id, "warm": self.pool.warm_runners()}
+        offer = self._new_offer()
+        if offer is not None:
+            beat["offer"] = offer
         try:
-            self._api.call("worker_beat", {"id": self.id, "warm": self.pool.warm_runners()},
-                           timeout=BEAT_EVERY * 2)
+            self._api.call("worker_beat", beat, timeout=BEAT_EVERY * 2)
+            if offer is not None:
+                log.info("offered the server its cluster's capacity now: %s", offer)
+                with self._lock:
+                    self._offered = offer
         except NotAllowed:
             log.info("the server no longer counts worker %s: registering again", self.id)
             self._register_now.set()
@@ -325,11 +339,35 @@ class RemoteWorker:
         if came_back:
             self._register_now.set()
 
+    def _new_offer(self) -> dict[str, Any] | None:
+        """What its cluster offers now (``wire.offer_to_dict``), if the server has not heard it.
+
+        A cluster node only reads it, every ``capacity_every`` seconds.
+        """
+        images, cluster = self._clusters
+        every = self.opts.capacity_every
+        if every <= 0 or (cluster is None and not isinstance(images, KubernetesRuntime)):
+            return None
+        now = time.monotonic()
+        if now - self._offer_read < every:
+            return None
+        self._offer_read = now
+        try:
+            self.pool.offer(*_capacity(self.opts, images, cluster))
+        except OsmoError as exc:
+            log.warning("cannot read the cluster's capacity (offering what it did): %s", exc)
+            return None
+        own = self.pool.node()
+        offer = offer_to_dict(own.capacity, _platforms(images, cluster, own.capacity.storage))
+        with self._lock:
+            return None if offer == self._offered else offer
+
     def _register(self) -> bool:
         own = self.pool.node()  # its labels (the sandbox) win over the user's
         node = replace(own, platform=self.opts.platform, address=self._address,
                        labels={**self.opts.labels, **own.labels},
                        platforms=_platforms(*self._clusters, own.capacity.storage))
+        offered = offer_to_dict(node.capacity, node.platforms)
         with self._lock:
             hello = Hello(node, pid=os.getpid(), host_id=host_id(),
                           artifacts=str(self.store.root), draining=self._draining,
@@ -361,6 +399,7 @@ class RemoteWorker:
             self._token = self.link.token(self.link.key("alive", "worker", self.id))
         with self._lock:
             self._connected = True
+            self._offered = offered
         log.info("worker %s registered with the server (pool %s)", self.id, self.opts.pool)
         return True
 

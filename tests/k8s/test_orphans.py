@@ -22,7 +22,7 @@ from tests.containers.conftest import images, podman_env  # noqa: F401 - fixture
 from tests.containers.images import KINDS_OSMO, OSMO_IMAGE, ensure_images
 from tests.containers.submitting import task_lines
 from tests.k8s.nodes import NAMESPACE, KubeCluster, started
-from tests.k8s.store import PODS, SECRETS, SERVICES
+from tests.k8s.store import NODES, PODS, SECRETS, SERVICES
 
 GRACE = 4.0  # for the server's restart
 ADOPT_GRACE = 8.0  # for a node gone: long enough to see it listed away
@@ -152,3 +152,30 @@ def test_a_node_gone_while_the_server_restarts_is_swept_by_the_new_server(
     while any(k.startswith("Pod/") for k in kube.left()):
         assert time.monotonic() < deadline, kube.left()
         time.sleep(0.2)
+
+
+def test_a_node_offers_what_its_cluster_has_now(kube: KubeCluster) -> None:
+    """A Kubernetes node added after the worker registered (or removed) changes what the
+    worker offers, and its platforms, within ``--capacity-every``: shown by osmo resource
+    list, used by the scheduler."""
+    kube.start_worker("kube-grow", "--capacity-every", "0.5", pool="grow",
+                      groupNetwork="host", data={"image": OSMO_IMAGE},
+                      platforms={"big": {"nodeSelector": {"osmo.dev/test-kind": "big"}}})
+
+    def offered() -> tuple[float, dict[str, float]]:
+        node = kube.osmo_cluster.nodes()["kube-grow"]
+        return node["total"]["cpu"], {name: p["total"]["cpu"]
+                                      for name, p in node["platforms"].items()}
+
+    def until(expected: tuple[float, dict[str, float]]) -> None:
+        deadline = time.monotonic() + 30
+        while (now := offered()) != expected:
+            assert time.monotonic() < deadline, (now, kube.osmo_cluster.worker_log("kube-grow"))
+            time.sleep(0.2)
+
+    assert offered() == (8, {})  # node-1 only
+    kube.kubelet.add_node("node-big", cpu="4", memory="8Gi",
+                          labels={"osmo.dev/test-kind": "big"})
+    until((12, {"big": 4}))
+    kube.server.store.delete(NODES, None, "node-big")
+    until((8, {}))
