@@ -498,6 +498,57 @@ workflow:
                    for line in said), said
 
 
+def test_a_failed_node_s_gang_runs_again_whole_and_is_no_retry(
+        grid: Cluster, roomy: SlurmCluster, tmp_path: Path) -> None:
+    """A group's one heterogeneous job ends NODE_FAIL when a node of it fails (and it may not
+    be requeued): each member's attempt is lost, not failed, and the group's job is submitted
+    again, as a new attempt of each member that uses none of the workflow's retries."""
+    runs, gate = tmp_path / "runs", tmp_path / "gate"
+    member = ('[sh, -c, \'echo "{name} $SLURMD_NODENAME $SLURM_JOB_ID" >> ' + str(runs)
+              + '; echo up; while [ ! -e ' + str(gate) + ' ]; do sleep 0.2; done\']')
+    spec = write(tmp_path / "wf.yaml", f"""
+workflow:
+  name: gang-lost
+  resources:
+    default: {{cpu: 1, memory: 100Mi}}
+  groups:
+  - name: pair
+    tasks:
+    - name: lead
+      lead: true
+      command: {member.format(name="lead")}
+    - name: peer
+      command: {member.format(name="peer")}
+""")
+    wf_id = grid.osmo.submit(spec)
+    until_logged(grid, wf_id, "[lead] up")
+    until_logged(grid, wf_id, "[peer] up")
+    first = {line.split()[0]: line.split()[1:] for line in runs.read_text().splitlines()}
+    node, job = first["lead"]
+    leader = job.split("+")[0]
+    roomy.run("scontrol", "update", f"JobId={leader}", "Requeue=0")
+    roomy.kill_slurmd(node)
+    try:
+        rows = grid.osmo.wait_for(wf_id, lambda i: i["status"] != "RUNNING" or all(
+            t["retry"] == 1 and t["status"] == "RUNNING" for t in i["tasks"]), timeout=150)
+    finally:
+        roomy.start_slurmd(node)  # back: the new job may need it (or the other node)
+    gate.touch()
+    info = grid.osmo.wait_for(wf_id, lambda i: i["status"] in ("COMPLETED", "FAILED"),
+                              timeout=120)
+    assert info["status"] == "COMPLETED", (info, logs(grid, wf_id))
+    again = [line.split() for line in runs.read_text().splitlines()[2:]]
+    assert sorted(name for name, *_ in again) == ["lead", "peer"], again  # once each
+    assert len({job.split("+")[0] for *_, job in again} - {leader}) == 1, again  # a new job
+    assert [t["retry"] for t in rows["tasks"]] == [1, 1], rows
+    said = osmo_lines(grid.osmo, wf_id, "lead")
+    assert any("NODE_FAIL: the attempt is lost" in line for line in said), said
+    events = grid.osmo("events", wf_id, "--format", "json", check=True).json()
+    assert {e["message"] for e in events if e["status"] == "RESCHEDULED"} and all(
+        "lost" in e["message"] or "NODE_FAIL" in e["message"]
+        for e in events if e["status"] == "RESCHEDULED"), events
+
+
 GUIDE = Path(__file__).parents[2] / "docs/tutorials/slurm.md"
 
 

@@ -23,7 +23,9 @@ What it owns, one concern per method of the runtime contract:
   go to the first member's job folder, ``gang.log``). ``{{host:NAME}}`` is a
   placeholder the agent replaces with the address of NAME's node; containers use their
   node's network; a peer starts once its lead's task (container) runs. A lost gang
-  (NODE_FAIL...) ends every member with 137: the group is retried whole.
+  (NODE_FAIL...) ends every member as lost (``ProcessHandle.lost``): each runs again as a
+  new attempt that uses none of the workflow's retries, and the members' new attempts
+  (the same retry) form the group's job again.
 - status: one poller thread per node asks ``squeue`` about every live job of the node at
   once, a few times a second, and reads the state through the one table
   (``osmo.runtime.slurm.states``): a PENDING reason goes to the server once per new
@@ -129,6 +131,8 @@ _HERE = Path(__file__).parent
 AGENT, WATCHER = _HERE / "agent.py", _HERE / "watch.py"
 _PATHS = replace(HOST_PATHS, hidden_secrets=True)
 LIMIT_TTL = 10.0  # s the partitions' time limit is known for
+LOST = 3
+"""The exit code of a gang member whose job was lost (with ``ProcessHandle.lost``)."""
 
 
 @dataclass(frozen=True)
@@ -188,6 +192,7 @@ class _Live:
     reason: str = ""
     nodes: str = ""
     lost: int = 0
+    lost_as: str = ""  # a gang's job was lost: why (its attempt is lost, not failed)
     said: set[str] = field(default_factory=set)
     notes: int = -1  # write end of the handle's notes pipe
 
@@ -559,13 +564,16 @@ class SlurmRuntime:
         """The job's exit code, once its watcher ended (a job still running is cancelled).
 
         A job Slurm ended at its time limit (TIMEOUT) and osmo did not kill is
-        ``ExitCode.EXEC_TIMEOUT``: the task is FAILED_EXEC_TIMEOUT.
+        ``ExitCode.EXEC_TIMEOUT``: the task is FAILED_EXEC_TIMEOUT. A gang member whose job
+        was lost says so on the handle (``lost``).
         """
         live = self._live(handle)
         if live is not None and handle.popen.poll() is None:
             live.killed = True
             self._quietly(self.slurm.cancel, live.job_id)  # the pool closes under it
         code = self._processes.reap(handle)
+        if live is not None and not live.killed and live.lost_as:
+            handle.lost = live.lost_as
         if live is not None and not live.killed and _timed_out(live.job.folder):
             return ExitCode.EXEC_TIMEOUT
         return code
@@ -693,9 +701,10 @@ class SlurmRuntime:
                             f"{info.nodes}")
         elif seen.phase is Phase.LOST and live.job.gang is None:
             self._resubmit(live, seen.reason or "lost")
-        elif seen.phase is Phase.LOST:  # a gang's: its group fails and is retried whole
-            self._note(live, seen.reason or "lost")
-            self._end(live, 137)
+        elif seen.phase is Phase.LOST:  # a gang's: every member is lost, and runs again
+            live.lost_as = f"job {live.job_id}: {seen.reason or 'lost'}"
+            self._note(live, live.lost_as)
+            self._end(live, LOST)
         elif seen.phase is Phase.ENDED:
             killed = live.killed and not seen.override
             if seen.reason and not killed:
