@@ -57,6 +57,7 @@ from osmo.worker.machine import GpuSlots
 from osmo.worker.reactor import Reactor
 from osmo.worker.secrets import SecretLookup, Secrets, gather
 from osmo.worker.starts import Starting, started_event
+from osmo.worker.taskenv import with_threads
 from osmo.worker.transfer import CredentialLookup, ManifestLookup, make_ready
 from osmo.worker.workdir import remove_secret_files
 
@@ -137,12 +138,13 @@ class Preparing:
             dirs = self._home.attempt(cmd.workflow_id, cmd.task, cmd.retry)
             if secrets is None:
                 secrets = gather(task, self._task_secrets)
+            paths = runtime.paths(cmd)
             placed, launch = make_ready(dirs, cmd, task, env=self._env, secrets=secrets,
                                         credential_for=self._credential_for,
                                         artifacts=self._artifacts,
-                                        input_manifests=self._input_manifests,
-                                        paths=runtime.paths(cmd))
-            launch = replace(launch, max_output_bytes=resources.storage)
+                                        input_manifests=self._input_manifests, paths=paths)
+            env = launch.env if paths.own_env else with_threads(launch.env, resources.cpu)
+            launch = replace(launch, env=env, max_output_bytes=resources.storage)
             log = self._open_log(cmd, dirs, launch)
             gpus = self._gpus.take(cmd.attempt_id, resources.gpu) if resources.gpu else ()
             lookup = self._task_secrets if self._task_secrets is not None else secrets.get

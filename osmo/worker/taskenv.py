@@ -22,6 +22,13 @@ idle machine (``bench/README.md``). A spec that wants spinning sets ``OMP_WAIT_P
 ACTIVE`` in its ``environment`` (a cold start; a warm runner's libraries read it once, at
 its import, from this base).
 
+A task that requests cpus (its resource's ``cpu``, or its type's) gets
+``OMP_NUM_THREADS`` set to that count (:func:`with_threads`), unless its spec's
+``environment`` or the worker sets it: OpenMP and the BLAS libraries under numpy and torch
+otherwise start a thread per core of the machine in every task, and two tasks of one cpu
+each on a busy node fight over the cores. Ray does the same for its tasks' ``num_cpus``.
+A container task's environment is its image's (``Paths.own_env``): it is not set there.
+
 ``TMPDIR`` is left out on purpose: the default ``/tmp`` is the task's own in the sandbox,
 while the worker's ``TMPDIR`` may be shared or read-only there.
 
@@ -39,10 +46,13 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
-__all__ = ["BASE_VARIABLES", "DEFAULTS", "DEFAULT_PATH", "base_env"]
+__all__ = ["BASE_VARIABLES", "DEFAULTS", "DEFAULT_PATH", "THREADS", "base_env", "with_threads"]
+
+THREADS = "OMP_NUM_THREADS"
+"""Set to a task's cpu request (:func:`with_threads`)."""
 
 BASE_VARIABLES = ("PATH", "HOME", "USER", "LOGNAME", "SHELL",
-                  "LANG", "LANGUAGE", "LC_ALL", "LC_CTYPE", "TZ")
+                  "LANG", "LANGUAGE", "LC_ALL", "LC_CTYPE", "TZ", THREADS)
 """The worker's variables every task gets (when set)."""
 
 DEFAULT_PATH = "/usr/local/bin:/usr/bin:/bin"
@@ -60,3 +70,14 @@ def base_env(environ: Mapping[str, str]) -> dict[str, str]:
     for name, value in DEFAULTS.items():
         env[name] = environ.get(name, value)
     return env
+
+
+def with_threads(env: Mapping[str, str], cpu: int | None) -> dict[str, str]:
+    """``env`` with ``OMP_NUM_THREADS`` = ``cpu`` (at least 1) when the task requests cpus.
+
+    A value already in ``env`` (the spec's ``environment``, or the worker's own) is kept.
+    """
+    out = dict(env)
+    if cpu is not None and THREADS not in out:
+        out[THREADS] = str(max(1, int(cpu)))
+    return out

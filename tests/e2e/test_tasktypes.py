@@ -259,3 +259,49 @@ workflow:
     tasks = _tasks(shared_osmo, shared_osmo.submit(spec, "--wait"))
     seen = {name: (Path(t["output"]) / "v").read_text() for name, t in tasks.items()}
     assert seen == {"plain": "PASSIVE", "spins": "ACTIVE", "typed": "PASSIVE"}, tasks
+
+
+def test_a_task_s_cpu_request_is_its_thread_count(shared_osmo: Osmo, tmp_path: Path) -> None:
+    """``OMP_NUM_THREADS`` is the task's cpu request (its resource's, or its type's, which a
+    warm runner imports with), as Ray sets it from ``num_cpus``; a spec's ``environment``
+    wins, and a task that requests nothing gets none."""
+    write(tmp_path / "thrtypes.py", """
+import os
+from osmo import task_type
+
+@task_type(version="1", resources={"cpu": 2})
+def two(ctx):
+    (ctx.output / "v").write_text(os.environ.get("OMP_NUM_THREADS", "unset"))
+""")
+    show = """command: [sh, -c, 'printf %s "${OMP_NUM_THREADS-unset}" > {{output}}/v']"""
+    spec = write(tmp_path / "threads.yaml", f"""
+workflow:
+  name: threads
+  resources:
+    default: {{cpu: 1}}
+    two: {{cpu: 2}}
+  tasks:
+  - name: one
+    {show}
+  - name: two
+    resource: two
+    {show}
+  - name: own
+    resource: two
+    environment: {{OMP_NUM_THREADS: "5"}}
+    {show}
+  - name: typed
+    type: thrtypes:two
+""")
+    bare = write(tmp_path / "bare.yaml", f"""
+workflow:
+  name: bare
+  tasks:
+  - name: none
+    {show}
+""")
+    seen = {}
+    for path in (spec, bare):
+        tasks = _tasks(shared_osmo, shared_osmo.submit(path, "--wait"))
+        seen.update({name: (Path(t["output"]) / "v").read_text() for name, t in tasks.items()})
+    assert seen == {"one": "1", "two": "2", "own": "5", "typed": "2", "none": "unset"}, seen
