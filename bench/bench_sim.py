@@ -13,7 +13,7 @@ it imports; under osmo, by osmo's runner with ``OSMO_TASK_TIMING=1`` in the task
   functions (20 expert episodes, 100 training steps; nothing downloaded); both systems
   evaluate that same folder (osmo as an uploaded dataset);
 - **the demo pipeline**: ``workflows/reach-vision.yaml`` with its defaults (4 rollout shards
-  → dataset → train → eval), each task given ``OSMO_TASK_TIMING=1``.
+  → a dataset per shard → train on the 4 → eval), each task given ``OSMO_TASK_TIMING=1``.
 
 **osmo**: a fresh ``osmo server start`` (local pool, one slot per core, the default sandbox;
 and again with ``--sandbox off``: ``--osmo-sandbox``; the shipped types start from warm

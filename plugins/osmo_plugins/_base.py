@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import importlib
 import os
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from types import TracebackType
 from typing import Any, Self
@@ -19,7 +19,7 @@ from osmo.tasktypes.api import Param, TaskContext
 from osmo.tasktypes.reports import Report
 
 __all__ = ["ACT_PRELOAD", "HF_ENV", "SIM_PRELOAD", "Committing", "PluginType",
-           "find_folder_with", "offline"]
+           "find_folder_with", "find_folders_with", "offline"]
 
 HF_ENV: Mapping[str, str] = {"HF_HUB_OFFLINE": "1", "HF_DATASETS_OFFLINE": "1",
                              "HF_DATASETS_DISABLE_PROGRESS_BARS": "1"}
@@ -128,16 +128,24 @@ class PluginType:
 
 
 def find_folder_with(folders: Any, marker: str) -> Any:
-    """The first folder holding a file ``marker``, or None.
+    """The first folder holding a file ``marker`` (:func:`find_folders_with`), or None."""
+    return next(_folders_with(folders, marker), None)
 
-    Each input folder is searched recursively, in order.
+
+def find_folders_with(folders: Any, marker: str) -> list[Any]:
+    """Every folder holding a file ``marker``.
+
+    Each input folder is searched recursively, in order (the hits of one input sorted).
     """
+    return list(_folders_with(folders, marker))
+
+
+def _folders_with(folders: Any, marker: str) -> Iterator[Any]:
     from pathlib import Path
 
     for folder in folders:
         for hit in sorted(Path(folder).rglob(marker)):
-            return hit.parent
-    return None
+            yield hit.parent
 
 
 def offline() -> None:

@@ -61,7 +61,7 @@ def test_the_ideal_makespan_packs_each_level_on_two_slots() -> None:
 
 def test_every_task_of_the_workloads_is_timed_by_osmo_s_runner(tmp_path: Path) -> None:
     specs = {"rollout": (bench_sim.rollout_yaml(3), 3), "eval": (bench_sim.eval_yaml(2, 1), 2),
-             "pipeline": (bench_sim.pipeline_yaml(), 7)}
+             "pipeline": (bench_sim.pipeline_yaml(), 10)}
     for name, (text, count) in specs.items():
         path = tmp_path / f"{name}.yaml"
         path.write_text(text)

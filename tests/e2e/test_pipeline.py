@@ -120,10 +120,14 @@ def test_reach_vision_tiny(shared_osmo: Osmo, tmp_path: Path) -> None:
     assert shared_osmo.query(wf)["status"] == "COMPLETED", shared_osmo("logs", wf).out
     # a task's log is no terminal: no progress bar of Hugging Face's per episode saved
     # (osmo reports the task's own progress); its own lines are still there
-    for task in ("dataset", "train"):
+    for task in ("dataset-0", "dataset-1", "train"):
         log = shared_osmo("logs", wf, "--task", task, check=True).out
         assert "%|" not in log and "examples/s" not in log, log
-    assert "LeRobotDataset with 4 episodes" in shared_osmo("logs", wf, "--task", "dataset").out
+    for task in ("dataset-0", "dataset-1"):  # a dataset per shard, trained on as one
+        assert "LeRobotDataset with 2 episodes" in shared_osmo("logs", wf, "--task", task).out
+    train = next(t for t in shared_osmo.query(wf)["tasks"] if t["name"] == "train")
+    marker = json.loads((Path(train["output"]) / "checkpoint/osmo_policy.json").read_text())
+    assert marker["dataset_episodes"] == 4, marker
     rows = shared_osmo("eval", "report", wf, "--format", "json", check=True).json()
     got = _by_policy(rows, "osmo/ReachVision-v1")
     assert set(got) == {"train", "expert", "random"}

@@ -143,3 +143,45 @@ def test_cosine_schedule_decays_the_learning_rate(tmp_path: Path) -> None:
     TRAIN.run(train)
     lrs = [row["lr"] for row in json.loads((train.output / "loss.json").read_text())]
     assert lrs == sorted(lrs, reverse=True) and lrs[0] < 0.01 and lrs[-1] < 0.0002
+
+
+def test_training_on_shard_datasets_equals_training_on_their_merge(tmp_path: Path) -> None:
+    """Two ``lerobot.dataset`` outputs, one per rollout shard, train as the one dataset made
+    from both shards: the same frames in the same order and the same statistics (LeRobot's
+    aggregation), so the same loss curve; the marker counts every episode."""
+    shards = _shards(tmp_path)
+    merged = make_ctx(DATASET, tmp_path, "merged", inputs=shards)
+    DATASET.run(merged)
+    parts = []
+    for n, shard in enumerate(shards):
+        part = make_ctx(DATASET, tmp_path, f"part{n}", inputs=[shard])
+        DATASET.run(part)
+        parts.append(part.output)
+    curves, markers = [], []
+    for name, inputs in (("one", [merged.output]), ("two", parts)):
+        train = make_ctx(TRAIN, tmp_path, f"train-{name}", inputs=inputs, steps=10,
+                         log_every=5)
+        TRAIN.run(train)
+        curves.append([r["loss"] for r in json.loads((train.output / "loss.json").read_text())])
+        markers.append(json.loads((train.output / "checkpoint/osmo_policy.json").read_text()))
+    assert curves[1] == pytest.approx(curves[0], rel=1e-4), curves
+    assert markers[0]["dataset_episodes"] == markers[1]["dataset_episodes"] == 4
+
+
+def test_datasets_that_disagree_are_not_trained_on_together(tmp_path: Path) -> None:
+    shards = _shards(tmp_path)
+    parts = []
+    for n, shard in enumerate(shards):
+        part = make_ctx(DATASET, tmp_path, f"part{n}", inputs=[shard])
+        DATASET.run(part)
+        parts.append(part.output)
+    marker = parts[1] / "osmo_dataset.json"
+    good = marker.read_text()
+    for n, (text, error) in enumerate((
+            (good.replace('"obs_dim": 4', '"obs_dim": 5'), "differ in obs_dim"),
+            (good.replace('"episodes": 2', '"episodes": "2"'), "must be counts"),
+            ("[1, 2]", "is not an object"))):
+        marker.write_text(text)
+        train = make_ctx(TRAIN, tmp_path, f"train{n}", inputs=parts, steps=2)
+        with pytest.raises(ValueError, match=error):
+            TRAIN.run(train)

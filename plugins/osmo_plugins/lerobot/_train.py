@@ -1,4 +1,10 @@
-"""The work of ``lerobot.train`` (params in :mod:`osmo_plugins.lerobot.train`)."""
+"""The work of ``lerobot.train`` (params in :mod:`osmo_plugins.lerobot.train`).
+
+It trains on every ``lerobot.dataset`` output among its inputs, in input order, as one
+dataset: their frames concatenated, their statistics aggregated (LeRobot's
+``aggregate_stats``). So shards converted by parallel dataset tasks need no merge; the
+datasets must agree on the env, the dimensions, the frame rate and the images.
+"""
 
 from __future__ import annotations
 
@@ -12,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from osmo.tasktypes.api import TaskContext
-from osmo_plugins._base import find_folder_with, offline
+from osmo_plugins._base import find_folders_with, offline
 from osmo_plugins.lerobot._dataset import CAMERA, DATASET_MARKER, dataset_root
 from osmo_plugins.lerobot.policy_io import POLICY_MARKER
 from osmo_plugins.sim.envs import require
@@ -56,18 +62,15 @@ def run(ctx: TaskContext) -> None:
     from lerobot.datasets import LeRobotDataset, LeRobotDatasetMetadata, resolve_delta_timestamps
     from lerobot.policies.factory import make_policy, make_pre_post_processors
 
-    source = find_folder_with(ctx.inputs, DATASET_MARKER)
-    if source is None:
-        raise ValueError(f"no {DATASET_MARKER} in the inputs (expected a lerobot.dataset output)")
-    info = json.loads((source / DATASET_MARKER).read_text())
-    root = dataset_root(source, info)
-    meta = LeRobotDatasetMetadata(info["repo_id"], root=root)
+    found, info = _datasets(ctx)
+    metas = [LeRobotDatasetMetadata(one["repo_id"], root=root) for root, one in found]
     cfg = make_config(p, bool(info["images"]))
-    policy = make_policy(cfg, ds_meta=meta)
-    dataset = LeRobotDataset(info["repo_id"], root=root, video_backend="pyav",
-                             delta_timestamps=resolve_delta_timestamps(cfg, meta))
-    pre, post = make_pre_post_processors(cfg, dataset_stats=dataset.meta.stats)
-    loader = _memory_batches(torch, dataset, cfg.chunk_size, p["batch_size"], p["seed"],
+    policy = make_policy(cfg, ds_meta=metas[0])
+    datasets = [LeRobotDataset(one["repo_id"], root=root, video_backend="pyav",
+                               delta_timestamps=resolve_delta_timestamps(cfg, meta))
+                for (root, one), meta in zip(found, metas, strict=True)]
+    pre, post = make_pre_post_processors(cfg, dataset_stats=_stats(datasets))
+    loader = _memory_batches(torch, datasets, cfg.chunk_size, p["batch_size"], p["seed"],
                              images=[CAMERA] if info["images"] else [])
     if info["images"]:
         _norms(torch, policy.model.backbone, trainable=True)
@@ -76,6 +79,50 @@ def run(ctx: TaskContext) -> None:
     if info["images"]:
         _norms(torch, policy.model.backbone, trainable=False)
     _save(ctx, policy, pre, post, info, curve)
+
+
+_SAME = ("env", "obs_dim", "action_dim", "padded_action_dim", "fps", "images", "image_size")
+"""What the datasets trained on together must agree on."""
+
+
+def _datasets(ctx: TaskContext) -> tuple[list[tuple[Path, dict[str, Any]]], dict[str, Any]]:
+    """Each input dataset's folder and marker, in input order; the markers combined.
+
+    Raises:
+        ValueError: no dataset among the inputs, a marker that is no object, has no counts
+            or names a root outside its folder, or datasets that disagree on :data:`_SAME`.
+    """
+    sources = find_folders_with(ctx.inputs, DATASET_MARKER)
+    if not sources:
+        raise ValueError(f"no {DATASET_MARKER} in the inputs (expected a lerobot.dataset output)")
+    found = []
+    for source in sources:
+        info = json.loads((source / DATASET_MARKER).read_text())
+        if not isinstance(info, dict):
+            raise ValueError(f"{source / DATASET_MARKER} is not an object")
+        counts = [info.get(key) for key in ("episodes", "frames")]
+        if not all(isinstance(n, int) and not isinstance(n, bool) and n >= 0 for n in counts):
+            raise ValueError(f"{source / DATASET_MARKER}: 'episodes' and 'frames' must be "
+                             f"counts, not {counts!r}"[:300])
+        found.append((dataset_root(source, info), info))
+    first = found[0][1]
+    for root, info in found[1:]:
+        differ = [key for key in _SAME if info.get(key) != first.get(key)]
+        if differ:
+            raise ValueError(f"the datasets in {found[0][0].parent} and {root.parent} differ "
+                             f"in {', '.join(differ)}: they cannot be trained on together")
+    combined = {**first, "episodes": sum(info["episodes"] for _, info in found),
+                "frames": sum(info["frames"] for _, info in found)}
+    return found, combined
+
+
+def _stats(datasets: list[Any]) -> Any:
+    """The normalisation statistics of the datasets as one (LeRobot's own aggregation)."""
+    if len(datasets) == 1:
+        return datasets[0].meta.stats
+    from lerobot.datasets.compute_stats import aggregate_stats
+
+    return aggregate_stats([dataset.meta.stats for dataset in datasets])
 
 
 def _norms(torch: Any, module: Any, *, trainable: bool) -> None:
@@ -105,20 +152,26 @@ def _norms(torch: Any, module: Any, *, trainable: bool) -> None:
             _norms(torch, child, trainable=trainable)
 
 
-def _memory_batches(torch: Any, dataset: Any, chunk: int, batch_size: int, seed: int,
+def _memory_batches(torch: Any, datasets: list[Any], chunk: int, batch_size: int, seed: int,
                     images: list[str]) -> Any:
-    """Random batches of the dataset held in memory.
+    """Random batches of the datasets (concatenated, in order) held in memory.
 
     The same keys, dtypes and padding as LeRobot's ``delta_timestamps`` loader (action chunks
     clamped at the episode's end, with ``action_is_pad``; images as float CHW in [0, 1]),
     about 50× faster than reading frame by frame on this CPU. Frames stay uint8 until a batch
     is drawn (64×64: 12 KB each).
     """
-    hf = dataset.hf_dataset.with_format("numpy")
-    cols = {k: np.asarray(np.stack(hf[k]), dtype=np.float32) for k in
-            ("observation.state", "observation.environment_state", "action")}
-    frames = {k: torch.from_numpy(np.stack(list(hf[k])).astype(np.uint8)) for k in images}
-    episode = np.asarray(hf["episode_index"]).astype(np.int64)
+    hfs = [dataset.hf_dataset.with_format("numpy") for dataset in datasets]
+    cols = {k: np.concatenate([np.asarray(np.stack(hf[k]), dtype=np.float32) for hf in hfs])
+            for k in ("observation.state", "observation.environment_state", "action")}
+    frames = {k: torch.from_numpy(np.concatenate([np.stack(list(hf[k])).astype(np.uint8)
+                                                  for hf in hfs])) for k in images}
+    episodes, offset = [], 0
+    for hf in hfs:  # each dataset numbers its episodes from 0: kept apart
+        own = np.asarray(hf["episode_index"]).astype(np.int64)
+        episodes.append(own + offset)
+        offset += int(own.max()) + 1 if len(own) else 0
+    episode = np.concatenate(episodes)
     end = np.zeros_like(episode)
     for e in np.unique(episode):
         rows = np.nonzero(episode == e)[0]

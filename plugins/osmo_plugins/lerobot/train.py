@@ -1,7 +1,8 @@
 """``lerobot.train``: behaviour cloning of a small LeRobot ACT policy on CPU.
 
-Reads the LeRobotDataset made by ``lerobot.dataset`` (its first input holding one), trains
-for ``steps`` optimiser steps with a fixed seed, and writes:
+Reads the LeRobotDatasets made by ``lerobot.dataset`` (every input holding one, as one
+dataset: shards converted by parallel tasks need no merge), trains for ``steps`` optimiser
+steps with a fixed seed, and writes:
 
 - ``checkpoint/``: the policy and its pre/post-processors saved the LeRobot way
   (``save_pretrained``; loads offline with ``from_pretrained``), plus ``osmo_policy.json``
@@ -21,7 +22,7 @@ __all__ = ["TRAIN"]
 
 TRAIN = PluginType(
     name="lerobot.train",
-    version="2",
+    version="3",
     description="Train a small LeRobot ACT policy (behaviour cloning) on CPU; checkpoint + loss",
     impl="osmo_plugins.lerobot._train:run",
     extra="learn",
