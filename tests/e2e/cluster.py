@@ -19,8 +19,10 @@ import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 from osmo.config import free_port
+from osmo.transport.rpc import ApiClient
 from osmo.transport.zenoh_link import Link
 from tests.conftest import REPO, Osmo
 
@@ -99,6 +101,22 @@ class Cluster:
         if wait:
             self.wait_online(name)
         return proc
+
+    @contextlib.contextmanager
+    def fake_worker(self, hello: dict[str, Any]) -> Iterator[ApiClient]:
+        """A peer with a worker token of its own, registered as ``hello`` and holding its
+        liveliness token: a worker that says only what the test makes it say."""
+        link = Link.client([self.endpoint], "local")
+        try:
+            fake = ApiClient(link, timeout=10, token=self.token(hello["id"]))
+            fake.call("worker_register", hello)
+            alive = link.token(link.key("alive", "worker", hello["id"]))
+            try:
+                yield fake
+            finally:
+                alive.close()
+        finally:
+            link.close()
 
     def nodes(self) -> dict[str, dict]:
         r = self.osmo("resource", "list", "--format", "json", check=True)

@@ -17,7 +17,6 @@ import pytest
 
 from osmo.errors import NotAllowed
 from osmo.transport.rpc import ApiClient
-from osmo.transport.zenoh_link import Link
 from tests.conftest import write
 from tests.e2e.cluster import Cluster
 
@@ -46,44 +45,43 @@ def test_a_hostile_reason_is_one_bounded_line_and_only_for_its_own_attempt(
         tmp_path: Path) -> None:
     c = Cluster(tmp_path)
     c.start_server()
-    link = Link.client([c.endpoint], "local")
     try:
-        fake = ApiClient(link, timeout=10, token=c.token("fake"))
-        fake.call("worker_register", FAKE)
-        alive = link.token(link.key("alive", "worker", "fake"))  # a worker's token: placed on
-        wf = c.osmo.submit(_spec(tmp_path))
-        c.osmo.wait_for(wf, lambda i: i["tasks"][0]["status"] == "INITIALIZING")
-        aid = f"{wf}:t:0"
-        for other in (f"{wf}:t:1", "nobody:t:0"):
-            with pytest.raises(NotAllowed, match="is not placed on worker fake"):
-                _wait(fake, other, "Priority")
-        fake.call("worker_report", {"id": "fake", "report": {"op": "started",
-                                                             "attempt_id": aid}})
-        _wait(fake, aid, EVIL)
-        _wait(fake, aid, EVIL)  # the same again: no new event
-        info = c.osmo.wait_for(wf, lambda i: i["tasks"][0].get("waiting") is not None,
-                               timeout=30)
-        task = info["tasks"][0]
-        shown = task["waiting"]["reason"]
-        assert shown.startswith("Insufficient cpu ]0;pwned [2J ERROR forged line AAA"), shown
-        assert shown.endswith("...") and len(shown) == 300
-        assert task["status"] == "RUNNING" and task["message"] == f"waiting: {shown}"
-        events = json.loads(c.osmo("events", wf, "--format", "json", check=True).out)
-        said = [e["message"] for e in events if e["task"] == "t"
-                and e["message"].startswith("waiting:")]
-        assert said == [f"waiting: {shown}"]
-        for args in (("query", wf), ("events", wf), ("query", wf, "-v")):
-            out = c.osmo(*args, check=True).out
-            assert "Insufficient cpu" in out, out
-            assert not any(ch in out for ch in "\x1b\x07\r\u202e"), repr(out)
-            assert "\nERROR forged line" not in out
-        _wait(fake, aid, "")  # it runs now
-        info = c.osmo.wait_for(wf, lambda i: i["tasks"][0].get("waiting") is None, timeout=30)
-        assert info["tasks"][0]["message"] == ""
-        assert "waits no more" in c.osmo("events", wf, check=True).out
-        refused = (c.osmo.home / "server.log").read_text()
-        assert refused.count("refused 'worker_report' from fake (worker)") == 2
-        alive.close()
+        with c.fake_worker(FAKE) as fake:  # its liveliness token held: placed on
+            _waiting_is_one_line_of_its_own(c, fake, tmp_path)
     finally:
-        link.close()
         c.stop()
+
+
+def _waiting_is_one_line_of_its_own(c: Cluster, fake: ApiClient, tmp_path: Path) -> None:
+    wf = c.osmo.submit(_spec(tmp_path))
+    c.osmo.wait_for(wf, lambda i: i["tasks"][0]["status"] == "INITIALIZING")
+    aid = f"{wf}:t:0"
+    for other in (f"{wf}:t:1", "nobody:t:0"):
+        with pytest.raises(NotAllowed, match="is not placed on worker fake"):
+            _wait(fake, other, "Priority")
+    fake.call("worker_report", {"id": "fake", "report": {"op": "started",
+                                                         "attempt_id": aid}})
+    _wait(fake, aid, EVIL)
+    _wait(fake, aid, EVIL)  # the same again: no new event
+    info = c.osmo.wait_for(wf, lambda i: i["tasks"][0].get("waiting") is not None,
+                           timeout=30)
+    task = info["tasks"][0]
+    shown = task["waiting"]["reason"]
+    assert shown.startswith("Insufficient cpu ]0;pwned [2J ERROR forged line AAA"), shown
+    assert shown.endswith("...") and len(shown) == 300
+    assert task["status"] == "RUNNING" and task["message"] == f"waiting: {shown}"
+    events = json.loads(c.osmo("events", wf, "--format", "json", check=True).out)
+    said = [e["message"] for e in events if e["task"] == "t"
+            and e["message"].startswith("waiting:")]
+    assert said == [f"waiting: {shown}"]
+    for args in (("query", wf), ("events", wf), ("query", wf, "-v")):
+        out = c.osmo(*args, check=True).out
+        assert "Insufficient cpu" in out, out
+        assert not any(ch in out for ch in "\x1b\x07\r\u202e"), repr(out)
+        assert "\nERROR forged line" not in out
+    _wait(fake, aid, "")  # it runs now
+    info = c.osmo.wait_for(wf, lambda i: i["tasks"][0].get("waiting") is None, timeout=30)
+    assert info["tasks"][0]["message"] == ""
+    assert "waits no more" in c.osmo("events", wf, check=True).out
+    refused = (c.osmo.home / "server.log").read_text()
+    assert refused.count("refused 'worker_report' from fake (worker)") == 2

@@ -13,8 +13,6 @@ from pathlib import Path
 import pytest
 
 from osmo.errors import UsageError
-from osmo.transport.rpc import ApiClient
-from osmo.transport.zenoh_link import Link
 from tests.conftest import write
 from tests.e2e.cluster import Cluster
 
@@ -48,28 +46,24 @@ workflow:
 def test_an_offer_is_checked_and_changes_what_the_node_has_room_for(tmp_path: Path) -> None:
     c = Cluster(tmp_path)
     c.start_server()
-    link = Link.client([c.endpoint], "local")
     try:
-        fake = ApiClient(link, timeout=10, token=c.token("fake"))
-        fake.call("worker_register", FAKE)
-        alive = link.token(link.key("alive", "worker", "fake"))
-        wf = c.osmo.submit(_spec(tmp_path))
-        info = c.osmo.wait_for(wf, lambda i: any(t["status"] == "INITIALIZING"
-                                                 for t in i["tasks"]))
-        assert sorted(t["status"] for t in info["tasks"]) == ["INITIALIZING", "SCHEDULING"]
-        for offer in BAD:
-            with pytest.raises(UsageError):
-                fake.call("worker_beat", {"id": "fake", "offer": offer})
-        assert c.nodes()["fake"]["total"]["cpu"] == 1
-        fake.call("worker_beat", {"id": "fake", "offer": {
-            "capacity": {"cpu": 2, "memory": 8 << 30, "storage": 100 << 30},
-            "platforms": {"big": {"cpu": 2}}}})
-        c.osmo.wait_for(wf, lambda i: all(t["status"] == "INITIALIZING" for t in i["tasks"]))
-        node = c.nodes()["fake"]  # the held attempt kept its cpu; the second one got the new
-        assert (node["total"]["cpu"], node["used"]["cpu"]) == (2, 2), node
-        assert node["platforms"]["big"]["total"]["cpu"] == 2, node
+        with c.fake_worker(FAKE) as fake:
+            wf = c.osmo.submit(_spec(tmp_path))
+            info = c.osmo.wait_for(wf, lambda i: any(t["status"] == "INITIALIZING"
+                                                     for t in i["tasks"]))
+            assert sorted(t["status"] for t in info["tasks"]) == ["INITIALIZING", "SCHEDULING"]
+            for offer in BAD:
+                with pytest.raises(UsageError):
+                    fake.call("worker_beat", {"id": "fake", "offer": offer})
+            assert c.nodes()["fake"]["total"]["cpu"] == 1
+            fake.call("worker_beat", {"id": "fake", "offer": {
+                "capacity": {"cpu": 2, "memory": 8 << 30, "storage": 100 << 30},
+                "platforms": {"big": {"cpu": 2}}}})
+            c.osmo.wait_for(wf, lambda i: all(t["status"] == "INITIALIZING"
+                                              for t in i["tasks"]))
+            node = c.nodes()["fake"]  # the held attempt kept its cpu; the second got the new
+            assert (node["total"]["cpu"], node["used"]["cpu"]) == (2, 2), node
+            assert node["platforms"]["big"]["total"]["cpu"] == 2, node
         assert "Traceback" not in (c.osmo.home / "server.log").read_text()
-        alive.close()
     finally:
-        link.close()
         c.stop()
