@@ -160,6 +160,7 @@ class RemoteWorker:
         self._register_now = threading.Event()
         self._offered: dict[str, Any] | None = None  # what the server last heard it offers
         self._offer_read = time.monotonic()  # when the cluster's capacity was last read
+        self._offer_failing = False  # the last read failed (said once)
         self._stop = threading.Event()
         self._refused: NotAllowed | None = None  # the server refused to register it
         self._io = ThreadPoolExecutor(4, thread_name_prefix="osmo-inputs")
@@ -348,15 +349,23 @@ class RemoteWorker:
         every = self.opts.capacity_every
         if every <= 0 or (cluster is None and not isinstance(images, KubernetesRuntime)):
             return None
+        opts = self.opts
+        platforms = (cluster.options.partitions if cluster is not None
+                     else images.pool.platforms if isinstance(images, KubernetesRuntime) else ())
+        if None not in (opts.cpus, opts.gpus, opts.memory) and not platforms:
+            return None  # nothing of it comes from the cluster
         now = time.monotonic()
         if now - self._offer_read < every:
             return None
         self._offer_read = now
         try:
             self.pool.offer(*_capacity(self.opts, images, cluster))
-        except OsmoError as exc:
-            log.warning("cannot read the cluster's capacity (offering what it did): %s", exc)
+        except OsmoError as exc:  # said once while it keeps failing
+            (log.debug if self._offer_failing else log.warning)(
+                "cannot read the cluster's capacity (offering what it did): %s", exc)
+            self._offer_failing = True
             return None
+        self._offer_failing = False
         own = self.pool.node()
         offer = offer_to_dict(own.capacity, _platforms(images, cluster, own.capacity.storage))
         with self._lock:
@@ -604,10 +613,16 @@ class RemoteWorker:
 
 def _capacity(options: WorkerOptions, images: object, cluster: SlurmRuntime | None
               ) -> tuple[float | None, int | None, int | None]:
-    """What the worker offers: its options', else its cluster's, else its machine's."""
+    """What the worker offers: its options', else its cluster's, else its machine's.
+
+    The cluster is not asked when the options say all three (a Kubernetes pool that may not
+    read nodes, ``readNodes: false`` in the chart, must).
+    """
     cpus: float | None
     gpus: int | None
     memory: int | None
+    if None not in (options.cpus, options.gpus, options.memory):
+        return options.cpus, options.gpus, options.memory
     if cluster is not None:
         offered = cluster.capacity()
         cpus, gpus, memory = offered.cpus, offered.gpus, offered.memory

@@ -4,14 +4,21 @@ real client from the stand-in; and Kubernetes quantities."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from decimal import Decimal
+from pathlib import Path
 
 import pytest
 
+from osmo.config import free_port
 from osmo.runtime.kubernetes.capacity import cluster_capacity, platform_capacity, quantity
 from osmo.runtime.kubernetes.config import KubePool, Placement
-from osmo.runtime.kubernetes.kube import Kube
+from osmo.runtime.kubernetes.kube import Kube, KubeError, connect
+from osmo.runtime.kubernetes.runtime import KubernetesRuntime
+from osmo.worker.options import WorkerOptions
+from osmo.worker.remote import _capacity
 from tests.k8s.conftest import Cluster
+from tests.k8s.nodes import kubeconfig
 from tests.k8s.store import NODES
 
 
@@ -68,6 +75,22 @@ def test_platforms_are_those_some_ready_node_takes(api: Cluster) -> None:
     api.server.store.update(NODES, None, "h100-1", not_ready)
     assert platform_capacity(kube, pool) == {"arm-ci": (8.0, 0, 16 << 30),
                                              "dgx": (32.0, 8, 256 << 30)}
+
+
+def test_a_worker_told_its_capacity_reads_no_node(tmp_path: Path) -> None:
+    """A pool that may not read nodes (the chart's ``readNodes: false``) gives ``--cpus``,
+    ``--gpus`` and ``--memory``: the worker then never asks the API (here: none listens);
+    missing one of them, it asks."""
+    config = kubeconfig(f"http://127.0.0.1:{free_port(0)}", tmp_path)
+    runtime = KubernetesRuntime(KubePool(kubeconfig=str(config)), connect(str(config)),
+                                instance="me")
+    try:
+        told = WorkerOptions(connect=(), cpus=4, gpus=0, memory=1 << 30)
+        assert _capacity(told, runtime, None) == (4, 0, 1 << 30)
+        with pytest.raises(KubeError, match="cannot be reached"):
+            _capacity(replace(told, memory=None), runtime, None)
+    finally:
+        runtime.close()
 
 
 @pytest.mark.parametrize(("text", "value"), [
