@@ -615,18 +615,18 @@ def _capacity(options: WorkerOptions, images: object, cluster: SlurmRuntime | No
               ) -> tuple[float | None, int | None, int | None]:
     """What the worker offers: its options', else its cluster's, else its machine's.
 
-    The cluster is not asked when the options say all three (a Kubernetes pool that may not
-    read nodes, ``readNodes: false`` in the chart, must).
+    Kubernetes is not asked when the options say all three (a pool that may not read nodes,
+    ``readNodes: false`` in the chart, must). Slurm always is: ``sinfo`` also checks that
+    the pool's partitions exist.
     """
     cpus: float | None
     gpus: int | None
     memory: int | None
-    if None not in (options.cpus, options.gpus, options.memory):
-        return options.cpus, options.gpus, options.memory
+    told = None not in (options.cpus, options.gpus, options.memory)
     if cluster is not None:
         offered = cluster.capacity()
         cpus, gpus, memory = offered.cpus, offered.gpus, offered.memory
-    elif isinstance(images, KubernetesRuntime):
+    elif isinstance(images, KubernetesRuntime) and not told:
         cpus, gpus, memory = cluster_capacity(images.kube, images.pool)
     else:
         return options.cpus, options.gpus, options.memory
