@@ -57,15 +57,15 @@ class Sweeps:
 
     def registered(self, node: str, pool: str, instance: str | None) -> None:
         """Node ``node`` of ``pool`` registered, labelling its objects ``instance``."""
+        now = None if instance is None else (pool, instance)
         with self._lock:
-            before = self._instances.get(node)
-            if instance is None:
-                self._instances.pop(node, None)
+            if self._instances.get(node) == now:
+                return
+            if now is None:
+                del self._instances[node]
             else:
-                self._instances[node] = (pool, instance)
-            changed = before != (None if instance is None else (pool, instance))
-            if changed:
-                self._write(lambda rows: rows.set_node_instance(node, pool, instance))
+                self._instances[node] = now
+            self._write(lambda rows: rows.set_node_instance(node, pool, instance))
 
     def down(self, node: str) -> None:
         """Node ``node`` is down for good: its instance is to be swept (unless held)."""

@@ -349,11 +349,6 @@ class RemoteWorker:
         every = self.opts.capacity_every
         if every <= 0 or (cluster is None and not isinstance(images, KubernetesRuntime)):
             return None
-        opts = self.opts
-        platforms = (cluster.options.partitions if cluster is not None
-                     else images.pool.platforms if isinstance(images, KubernetesRuntime) else ())
-        if None not in (opts.cpus, opts.gpus, opts.memory) and not platforms:
-            return None  # nothing of it comes from the cluster
         now = time.monotonic()
         if now - self._offer_read < every:
             return None

@@ -63,12 +63,12 @@ def run(ctx: TaskContext) -> None:
     from lerobot.policies.factory import make_policy, make_pre_post_processors
 
     found, info = _datasets(ctx)
-    metas = [LeRobotDatasetMetadata(one["repo_id"], root=root) for root, one in found]
+    meta = LeRobotDatasetMetadata(info["repo_id"], root=found[0][0])  # they agree (_SAME)
     cfg = make_config(p, bool(info["images"]))
-    policy = make_policy(cfg, ds_meta=metas[0])
+    policy = make_policy(cfg, ds_meta=meta)
+    delta = resolve_delta_timestamps(cfg, meta)
     datasets = [LeRobotDataset(one["repo_id"], root=root, video_backend="pyav",
-                               delta_timestamps=resolve_delta_timestamps(cfg, meta))
-                for (root, one), meta in zip(found, metas, strict=True)]
+                               delta_timestamps=delta) for root, one in found]
     pre, post = make_pre_post_processors(cfg, dataset_stats=_stats(datasets))
     loader = _memory_batches(torch, datasets, cfg.chunk_size, p["batch_size"], p["seed"],
                              images=[CAMERA] if info["images"] else [])
