@@ -96,7 +96,8 @@ class Engine:
             that owns its node. The engine closes them when it stops.
         inbox: where events and requests for the engine arrive.
         specs: workflow id → spec for every workflow the scheduler holds.
-        on_changed: called with the ids of workflows whose state changed (after commit).
+        on_changed: called with the ids of workflows whose state changed (after commit), and
+            those of them that ended.
         on_finished: called with the id of each workflow that ended (after commit).
         datasets: resolves dataset inputs and records dataset outputs.
         reuse: workflow id → True if submitted with ``--reuse``, False with ``--no-cache``
@@ -112,7 +113,7 @@ class Engine:
 
     def __init__(self, *, store: Store, scheduler: Scheduler, executors: Sequence[Executor],
                  inbox: Inbox,
-                 specs: dict[str, WorkflowSpec], on_changed: Callable[[set[str]], None],
+                 specs: dict[str, WorkflowSpec], on_changed: Callable[[set[str], set[str]], None],
                  home: Home, on_finished: Callable[[str], None] = lambda _wf: None,
                  datasets: Datasets | None = None, reuse: dict[str, bool] | None = None,
                  restore: Callable[[], Restored] | None = None,
@@ -360,7 +361,8 @@ class Engine:
         changed = {w.id for w in changes.workflows}
         changed |= {t.workflow_id for t in changes.tasks}
         if changed:
-            guard(self._on_changed, changed)
+            guard(self._on_changed, changed, {w.id for w in changes.workflows
+                                              if w.status.terminal})
         for wf in changes.workflows:
             if wf.status.terminal:
                 guard(self.scheduler.forget, wf.id)

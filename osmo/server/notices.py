@@ -10,9 +10,10 @@ meanwhile (a burst of changes becomes one notice).
 
 After sending, the thread lets ``interval`` seconds pass before it sends again: the first
 change after a quiet spell is told at once, and a busy workflow gets at most one notice per
-interval (a waiting client re-reads at most every 50 ms anyway, ``Client.wait``), carrying
-every change since the last one. A change is never told more than ``interval`` late, and
-none is dropped: what is pending when the notifier closes is sent then.
+interval, carrying every change since the last one. A change is never told more than
+``interval`` late, and none is dropped: what is pending when the notifier closes is sent then.
+A workflow's end is told at once (``ended``), interval or not: a client waiting for it (``osmo
+submit --wait``) returns that much sooner.
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from osmo.transport.zenoh_link import Link
 __all__ = ["NOTICE_INTERVAL", "Notifier"]
 
 NOTICE_INTERVAL = 0.05
-"""Seconds between two sends of notices: a waiting client re-reads at most this often anyway."""
+"""Seconds between two sends of notices (but for a workflow's end)."""
 
 
 class Notifier:
@@ -45,14 +46,19 @@ class Notifier:
         self._cond = threading.Condition()
         self._closed = False
         self._idle = False  # the thread waits for changes (not out its interval)
+        self._ended = False  # a workflow's end is pending: sent without waiting out the interval
         self._thread = threading.Thread(target=self._run, name="osmo-notices", daemon=True)
         self._thread.start()
 
-    def changed(self, ids: set[str]) -> None:
-        """Queue notices for ``ids`` (cheap; called by the engine after each commit)."""
+    def changed(self, ids: set[str], ended: set[str] | frozenset[str] = frozenset()) -> None:
+        """Queue notices for ``ids`` (cheap; called by the engine after each commit).
+
+        ``ended``: those of them that reached their end (told at once).
+        """
         with self._cond:
             self._pending |= ids
-            if self._idle:  # within its interval the thread would only wake to wait again
+            self._ended = self._ended or bool(ended & ids)
+            if self._idle or self._ended:  # else, within its interval, it would only wait again
                 self._cond.notify()
 
     def _run(self) -> None:
@@ -63,10 +69,10 @@ class Notifier:
                 self._idle = False
                 if self._closed:
                     return
-                ids, self._pending = self._pending, set()
+                ids, self._pending, self._ended = self._pending, set(), False
             self._send(ids)
             with self._cond:  # coalesce what changes meanwhile into the next send
-                self._cond.wait_for(lambda: self._closed, timeout=self._interval)
+                self._cond.wait_for(lambda: self._closed or self._ended, timeout=self._interval)
 
     def _send(self, ids: set[str]) -> None:
         for wf_id in ids:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import pytest
@@ -23,6 +24,28 @@ def test_builder_submit_wait_and_logs(shared_osmo: Osmo) -> None:
         texts = [r.text for r in client.logs(wf_id, task="double") if r.stream == "stdout"]
         assert texts == ["40"]
         assert wf_id in [w.id for w in client.list(name="sdk-chain")]
+
+
+def test_wait_sees_the_end_at_once_and_shows_updates_at_most_every_interval(
+        shared_osmo: Osmo) -> None:
+    """``min_interval`` spaces the full reads ``on_update`` gets, never the end: a workflow
+    that ends within the interval is returned at its end, its final state shown once more."""
+    wf = osmo.Workflow("sdk-wait")
+    wf.task("first", ["sleep", "0.4"])
+    wf.task("second", ["sleep", "0.4"], inputs=["first"])
+    shown: list[tuple[float, osmo.WorkflowInfo]] = []
+    with osmo.Client(home=shared_osmo.home) as client:
+        wf_id = client.submit(wf)
+        started = time.monotonic()
+        result = client.wait(wf_id, timeout=120, min_interval=30,
+                             on_update=lambda i: shown.append((time.monotonic(), i)))
+        waited = time.monotonic() - started
+    assert result.status is osmo.WorkflowStatus.COMPLETED
+    assert waited < 30, "the end waited out the update interval"
+    assert len(shown) == 2, [i.status for _, i in shown]  # the first read, then the end
+    assert shown[0][1].status is not osmo.WorkflowStatus.COMPLETED
+    assert shown[-1][1].status is osmo.WorkflowStatus.COMPLETED
+    assert [t.status for t in shown[-1][1].tasks] == [osmo.TaskStatus.COMPLETED] * 2
 
 
 def test_submit_dict_and_failure_result(shared_osmo: Osmo) -> None:

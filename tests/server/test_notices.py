@@ -94,6 +94,16 @@ def test_a_change_held_back_is_told_one_interval_later(told: Told) -> None:
     assert got[1] - got[0] >= interval / 2, got
 
 
+def test_a_workflow_s_end_is_told_at_once_within_the_interval(told: Told) -> None:
+    notifier, (got, arrived) = told("wf-4", 30)
+    notifier.changed({"wf-4"})  # told at once: nothing was sent before
+    assert arrived.wait(10)
+    arrived.clear()
+    notifier.changed({"wf-4"}, ended={"wf-4"})  # within the interval, but its end
+    assert arrived.wait(10), "a workflow's end waited out the interval"
+    assert len(got) == 2 and got[1] - got[0] < 10, got
+
+
 def test_a_change_pending_at_close_is_sent(told: Told) -> None:
     notifier, (got, arrived) = told("wf-2", 30)
     notifier.changed({"wf-2"})  # sent at once: nothing was sent before
