@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterator
 
 import pytest
 
 from osmo.runtime.slurm import Slurm, SlurmError
+from osmo.runtime.slurm.commands import takes_jobs
 from tests.slurm.cluster import SlurmCluster
 from tests.slurm.grid import require_slurm
 
@@ -41,3 +43,34 @@ def test_a_failing_command_says_which_and_why_and_a_forgotten_job_is_just_missin
         assert list(slurm.jobs([job, "999999"])) == [job]
     finally:
         two_partitions.run("scancel", job)
+
+
+def test_a_node_that_takes_no_jobs_adds_no_capacity_until_it_is_resumed(
+        two_partitions: SlurmCluster) -> None:
+    slurm = Slurm(two_partitions.env)
+    two_partitions.run("scontrol", "update", "NodeName=n1", "State=DRAIN", "Reason=maintenance")
+    try:
+        drained = slurm.capacity(("debug", "other"))
+        assert (drained.cpus, drained.gpus, drained.nodes, drained.listed) == (2, 1, 1, 2), drained
+        assert slurm.partitions(("other",))["other"].cpus == 2
+        two_partitions.run("scontrol", "update", "NodeName=n2", "State=DRAIN", "Reason=too")
+        none = slurm.capacity(())  # every node drained: the partition is there, empty
+        assert (none.cpus, none.memory, none.nodes, none.listed) == (0, 0, 0, 2), none
+    finally:
+        two_partitions.run("scontrol", "update", "NodeName=n1,n2", "State=RESUME")
+    deadline = time.monotonic() + 30  # resumed, each is "idle*" until slurmctld reached it
+    while (back := slurm.capacity(("debug", "other"))).nodes < 2:
+        assert back.listed == 2 and time.monotonic() < deadline, back
+        time.sleep(0.2)
+    assert (back.cpus, back.nodes) == (4, 2), back
+
+
+@pytest.mark.parametrize(("state", "takes"), [
+    ("idle", True), ("mixed", True), ("allocated", True), ("completing", True),
+    ("idle~", True), ("idle#", True), ("planned", True), ("mixed-", True),
+    ("drained", False), ("draining", False), ("down", False), ("down*", False),
+    ("idle*", False), ("fail", False), ("failing", False), ("reserved", False),
+    ("maint", False), ("reboot_issued", False), ("unknown", False), ("future", False),
+    ("inval", False), ("", False)])
+def test_which_node_states_take_jobs(state: str, takes: bool) -> None:
+    assert takes_jobs(state) is takes

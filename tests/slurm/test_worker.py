@@ -62,6 +62,32 @@ def test_the_worker_offers_its_partitions_capacity(grid: Cluster, roomy: SlurmCl
     assert node["total"]["memory"] == 2 * 2048 << 20, node
 
 
+def test_a_drained_node_stops_counting_in_what_the_worker_offers(
+        grid: Cluster, roomy: SlurmCluster) -> None:
+    """A node drained for maintenance leaves the worker's offer within ``--capacity-every``,
+    and comes back when it is resumed (before: a drained node's CPUs still counted)."""
+    proc = grid.start_worker("login-drain", "--runtime", "slurm", "--capacity-every", "0.5",
+                             pool="drain")
+
+    def until(cpus: float) -> None:
+        deadline = time.monotonic() + 30
+        while (now := grid.nodes()["login-drain"]["total"]["cpu"]) != cpus:
+            assert time.monotonic() < deadline, (now, grid.worker_log("login-drain"))
+            time.sleep(0.2)
+
+    try:
+        until(4)
+        roomy.run("scontrol", "update", "NodeName=n2", "State=DRAIN", "Reason=maintenance")
+        try:
+            until(2)
+        finally:
+            roomy.run("scontrol", "update", "NodeName=n2", "State=RESUME")
+        until(4)
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(60) == 0, grid.worker_log("login-drain")
+
+
 def test_hello_world(grid: Cluster, roomy: SlurmCluster, engine: ContainerEngine) -> None:
     wf_id, lines, rows = run(grid, TUTORIALS / "hello_world.yaml")
     assert lines["hello"] == ["Hello from OSMO!"]

@@ -55,12 +55,17 @@ class JobInfo:
 class Partition:
     """Partitions a node may use, as ``sinfo`` counts them.
 
+    Only nodes that take jobs are counted (:func:`takes_jobs`): one that is down, drained
+    or draining, failing or not responding adds nothing until Slurm may start jobs on it
+    again.
+
     Attributes:
         name: the partitions (comma-separated).
         cpus: CPUs of its nodes, summed.
         memory: bytes of memory of its nodes, summed.
         gpus: GPUs of its nodes (their ``gpu`` GRES), summed.
         nodes: how many nodes.
+        listed: how many nodes ``sinfo`` shows, those that take no job included.
     """
 
     name: str
@@ -68,6 +73,7 @@ class Partition:
     memory: int
     gpus: int
     nodes: int
+    listed: int = 0
 
 
 class Slurm:
@@ -135,7 +141,7 @@ class Slurm:
 
     def partitions(self, names: Sequence[str]) -> dict[str, Partition]:
         """Each of the partitions ``names`` that ``sinfo`` shows, counted on its own."""
-        nodes: dict[str, dict[str, tuple[int, int, int]]] = {}
+        nodes: dict[str, dict[str, tuple[int, int, int] | None]] = {}
         for part, node, counts in self._node_rows(names):
             nodes.setdefault(part, {})[node] = counts
         return {part: _summed(part, found) for part, found in nodes.items()}
@@ -175,17 +181,20 @@ class Slurm:
 
     # -------------------------------------------------------------- internals
 
-    def _node_rows(self, names: Sequence[str]) -> list[tuple[str, str, tuple[int, int, int]]]:
-        """``(partition, node, (cpus, memory bytes, gpus))`` of every node ``sinfo`` shows."""
+    def _node_rows(self, names: Sequence[str]
+                   ) -> list[tuple[str, str, tuple[int, int, int] | None]]:
+        """``(partition, node, (cpus, memory bytes, gpus))`` of every node ``sinfo`` shows;
+        None for the counts of a node that takes no jobs (:func:`takes_jobs`)."""
         args = ["-p", ",".join(names)] if names else []
-        out = self._run("sinfo", "-h", "-N", *args, "-o", f"%R{_SEP}%N{_SEP}%c{_SEP}%m{_SEP}%G")
-        rows = []
+        out = self._run("sinfo", "-h", "-N", *args, "-o",
+                        _SEP.join(("%R", "%N", "%c", "%m", "%G", "%T")))
+        rows: list[tuple[str, str, tuple[int, int, int] | None]] = []
         for line in out.splitlines():
             fields = line.split(_SEP)
-            if len(fields) == 5:
-                part, node, cpus, memory, gres = fields
+            if len(fields) == 6:
+                part, node, cpus, memory, gres, state = fields
                 rows.append((part, node, (_int(cpus), _int(memory.rstrip("+")) << 20,
-                                          gpus_of(gres))))
+                                          gpus_of(gres)) if takes_jobs(state) else None))
         return rows
 
     def _squeue(self, *args: str) -> list[JobInfo]:
@@ -249,10 +258,25 @@ def minutes_of(limit: str) -> int | None:
     return -(-total // 60)
 
 
-def _summed(name: str, nodes: dict[str, tuple[int, int, int]]) -> Partition:
-    return Partition(name, sum(c for c, _, _ in nodes.values()),
-                     sum(m for _, m, _ in nodes.values()),
-                     sum(g for _, _, g in nodes.values()), len(nodes))
+def takes_jobs(state: str) -> bool:
+    """Whether Slurm may start jobs on a node in ``state`` (``sinfo``'s ``%T``).
+
+    Idle, mixed, allocated, completing or planned, powered down or powering up included
+    (Slurm resumes such a node for a job); not down, drained or draining, failing,
+    reserved, in maintenance or rebooting, nor not responding (``*``).
+    """
+    if "*" in state:
+        return False
+    return state.rstrip("~#!%$@^-+").lower() in _TAKING
+
+
+_TAKING = frozenset({"idle", "mixed", "allocated", "completing", "planned"})
+
+
+def _summed(name: str, nodes: dict[str, tuple[int, int, int] | None]) -> Partition:
+    counts = [c for c in nodes.values() if c is not None]
+    return Partition(name, sum(c for c, _, _ in counts), sum(m for _, m, _ in counts),
+                     sum(g for _, _, g in counts), len(counts), len(nodes))
 
 
 def _int(text: str) -> int:

@@ -248,13 +248,14 @@ class SlurmRuntime:
         return f"slurm ({self._version}, {engine.name} {engine.version})"
 
     def capacity(self) -> Partition:
-        """What its pool may use: its partitions' nodes (Slurm's default one: every node).
+        """What its pool may use: its partitions' nodes that take jobs (Slurm's default
+        partition: every node); none while each of them is down or drained.
 
         Raises:
             SlurmError: sinfo fails, or knows none of the partitions.
         """
         found = self.slurm.capacity(self.options.partitions)
-        if not found.nodes:
+        if not found.listed:
             raise SlurmError(f"sinfo shows no partition {','.join(self.options.partitions)}"
                              if self.options.partitions else "sinfo shows no partition")
         return found
