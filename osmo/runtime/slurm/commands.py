@@ -183,8 +183,11 @@ class Slurm:
 
     def _node_rows(self, names: Sequence[str]
                    ) -> list[tuple[str, str, tuple[int, int, int] | None]]:
-        """``(partition, node, (cpus, memory bytes, gpus))`` of every node ``sinfo`` shows;
-        None for the counts of a node that takes no jobs (:func:`takes_jobs`)."""
+        """``(partition, node, counts)`` of every node ``sinfo`` shows.
+
+        ``counts``: ``(cpus, memory bytes, gpus)``, None for a node that takes no jobs
+        (:func:`takes_jobs`).
+        """
         args = ["-p", ",".join(names)] if names else []
         out = self._run("sinfo", "-h", "-N", *args, "-o",
                         _SEP.join(("%R", "%N", "%c", "%m", "%G", "%T")))

@@ -248,8 +248,9 @@ class SlurmRuntime:
         return f"slurm ({self._version}, {engine.name} {engine.version})"
 
     def capacity(self) -> Partition:
-        """What its pool may use: its partitions' nodes that take jobs (Slurm's default
-        partition: every node); none while each of them is down or drained.
+        """What its pool may use: its partitions' nodes that take jobs.
+
+        Slurm's default partition: every node. None while each of them is down or drained.
 
         Raises:
             SlurmError: sinfo fails, or knows none of the partitions.
