@@ -454,6 +454,33 @@ workflow:
 """
 
 
+def test_a_group_larger_than_the_cluster_fails_at_once_and_says_why(
+        grid: Cluster, roomy: SlurmCluster, tmp_path: Path) -> None:
+    """Slurm gives each component of a heterogeneous job a node of its own: a group of 3 on
+    2 nodes would stay PENDING ("Resources") for ever. It fails, saying so."""
+    spec = write(tmp_path / "wf.yaml", """
+workflow:
+  name: gang-of-three
+  groups:
+  - name: trio
+    tasks:
+    - name: a
+      lead: true
+      command: [sh, -c, "echo a"]
+    - name: b
+      command: [sh, -c, "echo b"]
+    - name: c
+      command: [sh, -c, "echo c"]
+""")
+    wf_id, _, rows = run(grid, spec, code=1)
+    assert {name: row["status"] for name, row in rows.items()} == dict.fromkeys(
+        "abc", "FAILED"), rows
+    said = osmo_lines(grid.osmo, wf_id, "b")
+    assert any("the pool's partitions have 2 nodes for its 3 members: it could never start"
+               in line for line in said), said
+    assert jobs_of(roomy) == []
+
+
 def test_a_group_is_one_allocation_across_two_nodes_and_waits_whole_for_room(
         grid: Cluster, roomy: SlurmCluster, tmp_path: Path) -> None:
     blocker = roomy.sbatch("sleep 600", "--cpus-per-task=2", "--nodelist=n1")

@@ -522,7 +522,18 @@ class SlurmRuntime:
                                f"of {len(members)}: all placed, or none)")
 
     def _submit_gang(self, members: list[_Live]) -> str:
-        """Write each member's ``gang.json`` and the gang's script; sbatch; the job id."""
+        """Write each member's ``gang.json`` and the gang's script; sbatch; the job id.
+
+        Slurm gives each component of a heterogeneous job a node of its own: a group with
+        more members than the pool's partitions have nodes could never start, and is
+        refused here rather than left PENDING for ever.
+        """
+        nodes = self.slurm.capacity(self.options.partitions).listed
+        if len(members) > nodes:
+            raise SlurmError(f"Slurm runs each member of a group on a node of its own (one "
+                             f"heterogeneous job), and the pool's partitions have {nodes} "
+                             f"node{'s' if nodes != 1 else ''} for its {len(members)} "
+                             "members: it could never start")
         lead = next((m for m in members if m.job.gang and m.job.gang.lead), members[0])
         # its peers start once it runs, as in OSMO (a container's, as its engine says)
         box = lead.job.container
