@@ -106,6 +106,7 @@ API: Mapping[str, Rule] = MappingProxyType({
     "worker_secrets": Rule(_WORKERS, "workers.secrets", caller=True),
     "worker_session": Rule(_WORKERS, "sessions.worker_session", caller=True),
     "worker_beat": Rule(_WORKERS, "workers.beat", caller=True),
+    "worker_swept": Rule(_WORKERS, "workers.swept", caller=True),
     # users: their own workflows
     "cancel": Rule(_USERS, "api.cancel", caller=True, owner=True),
     "restart": Rule(_USERS, "api.restart", caller=True, owner=True),

@@ -15,9 +15,10 @@ This module keeps that bookkeeping; ``osmo.server.workers`` sends the orders. Ea
 instance and what is still to be swept are written through to the store
 (``osmo.store.instances``), so a restarted server knows them: the nodes of its previous
 life that do not come back within its grace are down for good then
-(:meth:`Sweeps.restored`). An instance is ordered swept once; if the node so ordered dies
-before it did, the objects stay until their own instance comes back or the labels are
-deleted by hand (documented in the Kubernetes tutorial).
+(:meth:`Sweeps.restored`). An instance is ordered to one node at a time and stays to be
+swept until that node says it swept it (``worker_swept``, :meth:`Sweeps.swept`): if that node
+leaves (or registers again) first, or the server restarts, it is ordered again, to the next
+live node of its pool. Sweeping twice does no harm (what is gone is not found again).
 """
 
 from __future__ import annotations
@@ -46,6 +47,7 @@ class Sweeps:
         self._rows = rows
         self._instances: dict[str, tuple[str, str]] = {}  # node id -> (pool, instance)
         self._pending: dict[str, set[str]] = {}  # pool -> instances to sweep
+        self._ordered: dict[tuple[str, str], str] = {}  # (pool, instance) -> node, unswept
         if rows is not None:
             self._instances = rows.node_instances()
             self._pending = rows.pending_sweeps()
@@ -81,17 +83,52 @@ class Sweeps:
         with self._lock:
             return node in self._instances
 
-    def due(self, pool: str) -> list[str]:
-        """The instances a node of ``pool`` is to sweep now (taken: each is ordered once).
+    def due(self, pool: str, node: str) -> list[str]:
+        """The instances ``node`` (of ``pool``) is to sweep now; each is ordered to it.
 
-        An instance a known node holds is not swept (that node cleans up after itself).
+        An instance ordered to a node stays its own until that node says it is swept
+        (:meth:`swept`) or leaves (:meth:`release`). An instance a known node holds is
+        dropped (that node cleans up after itself).
         """
         with self._lock:
             held = {instance for _pool, instance in self._instances.values()}
-            pending = self._pending.pop(pool, set())
-            if pending:
-                self._write(lambda rows: rows.drop_sweeps(pool))
-            return sorted(pending - held)
+            pending = self._pending.get(pool, set())
+            for instance in sorted(pending & held):
+                self._drop(pool, instance)
+            out = sorted(i for i in pending if (pool, i) not in self._ordered)
+            for instance in out:
+                self._ordered[(pool, instance)] = node
+            return out
+
+    def swept(self, node: str, instance: str) -> bool:
+        """``node`` says it swept ``instance``: done, if that was ordered to it."""
+        with self._lock:
+            found = next((pool for (pool, i), n in self._ordered.items()
+                          if i == instance and n == node), None)
+            if found is not None:
+                self._drop(found, instance)
+            return found is not None
+
+    def release(self, node: str) -> list[str]:
+        """``node`` left, or registered again: what it did not sweep is due again.
+
+        The pools of what it was ordered, to order it again.
+        """
+        with self._lock:
+            mine = [key for key, n in self._ordered.items() if n == node]
+            for key in mine:
+                del self._ordered[key]
+            return sorted({pool for pool, _ in mine})
+
+    def _drop(self, pool: str, instance: str) -> None:
+        """Nothing of ``instance`` is to be swept any more (the lock held)."""
+        self._ordered.pop((pool, instance), None)
+        pending = self._pending.get(pool)
+        if pending is not None:
+            pending.discard(instance)
+            if not pending:
+                del self._pending[pool]
+        self._write(lambda rows: rows.drop_sweep(pool, instance))
 
     def _write(self, change: Callable[[InstanceRows], None]) -> None:
         """Apply ``change(rows)`` to the store; a store that fails leaves it in memory only."""

@@ -48,7 +48,7 @@ from pathlib import Path
 from typing import Any
 
 from osmo.artifacts import ArtifactStore, Manifest
-from osmo.errors import OsmoError
+from osmo.errors import OsmoError, UsageError
 from osmo.layout import Home
 from osmo.options import DEFAULT_ADOPT_GRACE, DEFAULT_LOG_LIMIT
 from osmo.scheduler.types import (
@@ -202,6 +202,7 @@ class WorkerHub:
             alive = wid in self._alive
             kills = self._held_kills.pop(wid, [])
         self._sweeps.registered(wid, node.pool, hello.instance)  # writes to the store
+        self._sweeps.release(wid)  # what its previous run did not say it swept: again
         if back:
             log.info("worker %s is back: it adopts %d attempt(s)", wid, len(hello.active))
         placed = self._reconcile(wid, set(hello.active), list(hello.finished))
@@ -288,6 +289,7 @@ class WorkerHub:
                 for wid in silent:
                     self._draining.discard(wid)
             for wid, node in gone:
+                self._resweep(wid)
                 if self._went_away(wid, node):
                     continue
                 log.warning("worker %s is silent (no beat for %.0fs): down", wid, self._lease)
@@ -337,10 +339,33 @@ class WorkerHub:
             node = self._nodes.get(wid)
         if node is None or not self._sweeps.sweeper(wid) or not self._is_alive(wid):
             return
-        for instance in self._sweeps.due(node.pool):
+        for instance in self._sweeps.due(node.pool, wid):
             log.info("worker %s deletes what node instance %s left (down for good)", wid,
                      instance)
             self._send(wid, Sweep(instance))
+
+    def _resweep(self, wid: str) -> None:
+        """``wid`` left: what it did not say it swept goes to another live node of its pool."""
+        for pool in self._sweeps.release(wid):
+            self._sweep_pool(pool)
+
+    def swept(self, request: dict[str, Any], who: Identity) -> dict[str, Any]:
+        """A worker says it deleted what a node instance left (``wire.Sweep``).
+
+        Raises:
+            UsageError: no instance named.
+            NotAllowed: the caller speaks for another worker, or that instance was not
+                ordered to it (it stays to be swept).
+        """
+        wid = self._speaker("worker_swept", request, who)
+        instance = request.get("instance")
+        if not isinstance(instance, str) or not instance:
+            raise UsageError("worker_swept: 'instance' must be a non-empty string")
+        if not self._sweeps.swept(wid, instance):
+            raise refuse("worker_swept", who, f"instance {instance[:80]!r} was not ordered "
+                                              f"swept by worker {wid}")
+        log.info("worker %s swept what node instance %s left", wid, instance)
+        return {}
 
     def _sweep_pool(self, pool: str) -> None:
         """One live node of ``pool`` that can sweep does (none: the next one registered)."""
@@ -463,12 +488,15 @@ class WorkerHub:
                 node = self._nodes.pop(wid, None)
                 registered = node is not None
                 self._draining.discard(wid)
-        if alive and registered:
-            self._emit(NodeUp(self._announced(wid)))
-            self._sweep(wid)
-        elif not alive and node is not None and self._went_away(wid, node):
+        if alive:
+            if registered:
+                self._emit(NodeUp(self._announced(wid)))
+                self._sweep(wid)
             return
-        elif not alive and registered:
+        if node is None:
+            return
+        self._resweep(wid)
+        if not self._went_away(wid, node):
             log.warning("worker %s is gone", wid)
             self._access.forget(wid)
             self._emit(NodeDown(wid))

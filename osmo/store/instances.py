@@ -41,10 +41,10 @@ class InstanceRows:
             db.execute("DELETE FROM node_instances WHERE node = ?", (node,))
             db.execute("INSERT OR IGNORE INTO sweeps VALUES (?,?)", (pool, instance))
 
-    def drop_sweeps(self, pool: str) -> None:
-        """The instances pending for ``pool`` were taken (ordered, or held again)."""
+    def drop_sweep(self, pool: str, instance: str) -> None:
+        """``instance`` is no longer to be swept by ``pool`` (swept, or held again)."""
         with self._tx() as db:
-            db.execute("DELETE FROM sweeps WHERE pool = ?", (pool,))
+            db.execute("DELETE FROM sweeps WHERE pool = ? AND instance = ?", (pool, instance))
 
     def node_instances(self) -> dict[str, tuple[str, str]]:
         """Node id → (pool, instance) of every node recorded."""

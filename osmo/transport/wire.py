@@ -14,7 +14,9 @@ Keys, under the cluster prefix ``osmo/<cluster>``:
   still places on it (it cancels any other it adopted); the server pulls the worker's
   outputs from ``blob/<id>/<digest>`` with queries sealed on the channel it registered with
   (``SQ``);
-  ``api/worker_drain`` — ``{"id": <worker>}``: it takes no more work.
+  ``api/worker_drain`` — ``{"id": <worker>}``: it takes no more work;
+  ``api/worker_swept`` — ``{"id", "instance"}``: it did what a :class:`Sweep` ordered it
+  (until then the server holds the order for it; refused for one not ordered to it).
 - ``api/worker_beat`` — ``{"id", "warm"}``, every :data:`BEAT_EVERY` seconds: the worker is
   alive, and its warm runners now (:func:`warm_runners`; ``osmo resource list``)
   (refused once the server forgot it: it registers again).

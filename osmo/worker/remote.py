@@ -477,7 +477,11 @@ class RemoteWorker:
         return runtime.instance if isinstance(runtime, KubernetesRuntime) else None
 
     def _sweep(self, instance: str) -> None:
-        """Delete what node instance ``instance`` left (``wire.Sweep``); never raises."""
+        """Delete what node instance ``instance`` left (``wire.Sweep``); never raises.
+
+        Once done, it says so (``worker_swept``): until then the server holds the order for
+        it, and gives it to another node of the pool if this one leaves first.
+        """
         runtime = self._clusters[0]
         if not isinstance(runtime, KubernetesRuntime):
             log.warning("ignored an order to sweep instance %r: this node makes no cluster "
@@ -491,6 +495,11 @@ class RemoteWorker:
         for name in swept:
             log.warning("deleted %s that node instance %s left (it is down for good)", name,
                         instance)
+        try:
+            self._api.call("worker_swept", {"id": self.id, "instance": instance})
+        except OsmoError as exc:  # it is ordered again when this node registers again
+            log.warning("could not tell the server instance %r is swept: %s", instance[:80],
+                        exc)
 
     def _prepare(self, order: Prepare) -> None:
         cmd = order.cmd
