@@ -328,6 +328,11 @@ def rows_of(args: argparse.Namespace, plans: dict[str, list[dict[str, Any]]],
                                 [o["workflow_s"] for o in osmo_runs], higher_is_better=False,
                                 target=120.0, notes="submitted → COMPLETED as the server "
                                                     "records it, the workflow's defaults"))
+            elif osmo_runs:  # the makespan less the CLI's own start, submit and exit
+                rows.append(row(f"{label}, {system} workflow time", "s",
+                                [o["workflow_s"] for o in osmo_runs], higher_is_better=False,
+                                notes="submitted → COMPLETED as the server records it (no "
+                                      "target: the makespan above is the CLI's)"))
     return rows
 
 
