@@ -8,6 +8,7 @@ what the CLI uses too; every CLI verb is a thin layer over a method here.
 from __future__ import annotations
 
 import builtins
+import contextlib
 import json
 import os
 import threading
@@ -244,50 +245,46 @@ class Client:
              min_interval: float = 0.05) -> WorkflowInfo:
         """Block until the workflow is terminal; returns its final info.
 
-        Wakes on the server's signed change notices (zenoh subscription) and reads the
-        workflow's status at once (a cheap call: its end is seen as soon as it is told);
-        also reads it at least every second in case a notice was missed. ``on_update`` gets
-        the full workflow (with tasks) at most every ``min_interval`` seconds, so a busy
-        workflow costs the server little (a change told meanwhile is shown when the interval
-        has passed), and once more at the end.
+        Wakes on the server's signed change notices (zenoh subscription) and re-reads the status
+        (at most every ``min_interval`` seconds since the last read, so a busy workflow costs
+        the server little, and a notice after a quiet spell is read at once); also re-reads
+        at least every second in case a notice was missed. A notice that tells the
+        workflow's end (``osmo.server.notices``) is read at once, interval or not.
+        ``on_update`` gets the full workflow (with tasks) at each wake.
 
         Raises:
             TimeoutError: ``timeout`` seconds passed first.
         """
-        changed = threading.Event()
+        changed, ended = threading.Event(), threading.Event()
         api = self._conn.api
         api.channel()  # learn the server's notice key first
 
         def on_notice(key: str, payload: bytes, signature: bytes | None) -> None:
-            if api.verifier is not None and api.verifier.notice(key, payload, signature):
-                changed.set()  # a notice a peer made up wakes nobody
+            if api.verifier is None or not api.verifier.notice(key, payload, signature):
+                return  # a notice a peer made up wakes nobody
+            with contextlib.suppress(ValueError, AttributeError):
+                if json.loads(payload).get("ended") is True:
+                    ended.set()
+            changed.set()
 
         sub = self._conn.link.subscribe_raw(self._conn.link.key("events", workflow_id),
                                             on_notice)
         deadline = None if timeout is None else time.monotonic() + timeout
-        shown: float | None = None  # when on_update last got the workflow
-        owed = on_update is not None  # a change on_update has not been shown
         try:
             while True:
                 changed.clear()
+                if on_update is not None:  # (no waiting reasons: they cost the engine)
+                    on_update(self.get(workflow_id, waiting=False))
                 status = WorkflowStatus[self._call("status", workflow_id=workflow_id)["status"]]
                 if status.terminal:
-                    info = self.get(workflow_id)
-                    if on_update is not None:
-                        on_update(info)
-                    return info
-                now = time.monotonic()
-                if owed and (shown is None or now - shown >= min_interval):
-                    assert on_update is not None
-                    on_update(self.get(workflow_id, waiting=False))  # (no waiting reasons:
-                    shown, owed = time.monotonic(), False  # they cost the engine)
-                if deadline is not None and now > deadline:
+                    return self.get(workflow_id)
+                if deadline is not None and time.monotonic() > deadline:
                     raise TimeoutError(f"workflow {workflow_id} still {status.name}")
-                wait = 1.0
-                if owed and shown is not None:  # shown when its interval has passed
-                    wait = max(0.0, min(wait, min_interval - (time.monotonic() - shown)))
-                changed.wait(timeout=wait)
-                owed = owed or (on_update is not None and changed.is_set())
+                read = time.monotonic()
+                changed.wait(timeout=1.0)
+                pause = min_interval - (time.monotonic() - read)
+                if pause > 0:  # coalesce bursts of notices into one re-read; not an end
+                    ended.wait(pause)
         finally:
             sub.close()
 

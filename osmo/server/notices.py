@@ -12,8 +12,8 @@ After sending, the thread lets ``interval`` seconds pass before it sends again: 
 change after a quiet spell is told at once, and a busy workflow gets at most one notice per
 interval, carrying every change since the last one. A change is never told more than
 ``interval`` late, and none is dropped: what is pending when the notifier closes is sent then.
-A workflow's end is told at once (``ended``), interval or not: a client waiting for it (``osmo
-submit --wait``) returns that much sooner.
+A workflow's end is told at once, interval or not, and its notice says so (``"ended":
+true``): a client waiting for it (``osmo submit --wait``) returns that much sooner.
 """
 
 from __future__ import annotations
@@ -46,7 +46,7 @@ class Notifier:
         self._cond = threading.Condition()
         self._closed = False
         self._idle = False  # the thread waits for changes (not out its interval)
-        self._ended = False  # a workflow's end is pending: sent without waiting out the interval
+        self._ended: set[str] = set()  # pending ends: sent without waiting out the interval
         self._thread = threading.Thread(target=self._run, name="osmo-notices", daemon=True)
         self._thread.start()
 
@@ -57,7 +57,7 @@ class Notifier:
         """
         with self._cond:
             self._pending |= ids
-            self._ended = self._ended or bool(ended & ids)
+            self._ended |= ended & ids
             if self._idle or self._ended:  # else, within its interval, it would only wait again
                 self._cond.notify()
 
@@ -69,22 +69,28 @@ class Notifier:
                 self._idle = False
                 if self._closed:
                     return
-                ids, self._pending, self._ended = self._pending, set(), False
-            self._send(ids)
+                ids, ended = self._pending, self._ended
+                self._pending, self._ended = set(), set()
+            self._send(ids, ended)
             with self._cond:  # coalesce what changes meanwhile into the next send
-                self._cond.wait_for(lambda: self._closed or self._ended, timeout=self._interval)
+                self._cond.wait_for(lambda: self._closed or bool(self._ended),
+                                    timeout=self._interval)
 
-    def _send(self, ids: set[str]) -> None:
+    def _send(self, ids: set[str], ended: set[str]) -> None:
         for wf_id in ids:
             key = self._link.key("events", wf_id)
-            payload = json.dumps({"workflow_id": wf_id}).encode()
+            notice: dict[str, object] = {"workflow_id": wf_id}
+            if wf_id in ended:
+                notice["ended"] = True
+            payload = json.dumps(notice).encode()
             self._link.put(key, payload, self._signer.sign_notice(key, payload))
 
     def close(self) -> None:
         """Send what is pending, then stop."""
         with self._cond:
-            ids, self._pending = self._pending, set()
+            ids, ended = self._pending, self._ended
+            self._pending, self._ended = set(), set()
             self._closed = True
             self._cond.notify()
-        self._send(ids)
+        self._send(ids, ended)
         self._thread.join(timeout=5)

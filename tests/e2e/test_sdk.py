@@ -28,8 +28,8 @@ def test_builder_submit_wait_and_logs(shared_osmo: Osmo) -> None:
 
 def test_wait_sees_the_end_at_once_and_shows_updates_at_most_every_interval(
         shared_osmo: Osmo) -> None:
-    """``min_interval`` spaces the full reads ``on_update`` gets, never the end: a workflow
-    that ends within the interval is returned at its end, its final state shown once more."""
+    """``min_interval`` spaces the reads, never the end: the server's notice of a workflow's
+    end cuts the pause short, and the final state is read (and shown) at once."""
     wf = osmo.Workflow("sdk-wait")
     wf.task("first", ["sleep", "0.4"])
     wf.task("second", ["sleep", "0.4"], inputs=["first"])

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -16,6 +17,7 @@ from tests.transport.conftest import endpoint, links  # noqa: F401 - the fixture
 SIGNER = Signer()
 
 Heard = tuple[list[float], threading.Event]  # arrival times, and "a notice arrived"
+ENDS: list[bool] = []  # whether each notice heard told its workflow's end
 Told = Callable[[str, float], tuple[Notifier, Heard]]
 
 
@@ -31,7 +33,9 @@ def _subscribe(client: Link, wf_id: str) -> Heard:
             arrived.set()
             return
         assert verifier.notice(key, payload, signature), "an unsigned notice"
-        assert payload == b'{"workflow_id": "%s"}' % wf_id.encode()
+        notice = json.loads(payload)
+        assert notice in ({"workflow_id": wf_id}, {"workflow_id": wf_id, "ended": True})
+        ENDS.append(notice.get("ended", False))
         got.append(time.monotonic())
         arrived.set()
 
@@ -102,6 +106,7 @@ def test_a_workflow_s_end_is_told_at_once_within_the_interval(told: Told) -> Non
     notifier.changed({"wf-4"}, ended={"wf-4"})  # within the interval, but its end
     assert arrived.wait(10), "a workflow's end waited out the interval"
     assert len(got) == 2 and got[1] - got[0] < 10, got
+    assert ENDS[-2:] == [False, True]  # the notice says so, signed
 
 
 def test_a_change_pending_at_close_is_sent(told: Told) -> None:
