@@ -71,6 +71,8 @@ def test_a_node_that_takes_no_jobs_adds_no_capacity_until_it_is_resumed(
     ("drained", False), ("draining", False), ("down", False), ("down*", False),
     ("idle*", False), ("fail", False), ("failing", False), ("reserved", False),
     ("maint", False), ("reboot_issued", False), ("unknown", False), ("future", False),
-    ("inval", False), ("", False)])
+    ("inval", False), ("", False), ("idle+cloud", True), ("mixed+drain", False),
+    ("allocated+completing", True), ("idle~+power_down", True), ("idle+maint", False),
+    ("MIXED", True)])
 def test_which_node_states_take_jobs(state: str, takes: bool) -> None:
     assert takes_jobs(state) is takes

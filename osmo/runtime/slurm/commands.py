@@ -266,14 +266,21 @@ def takes_jobs(state: str) -> bool:
 
     Idle, mixed, allocated, completing or planned, powered down or powering up included
     (Slurm resumes such a node for a job); not down, drained or draining, failing,
-    reserved, in maintenance or rebooting, nor not responding (``*``).
+    reserved, in maintenance or rebooting, nor not responding (``*``). A compound state
+    (``mixed+drain``) takes jobs only if none of its flags keeps them off.
     """
     if "*" in state:
         return False
-    return state.rstrip("~#!%$@^-+").lower() in _TAKING
+    base, *flags = (part.rstrip(_SUFFIXES) for part in state.lower().split("+"))
+    return base in _TAKING and not any(flag in _NO_JOBS for flag in flags)
 
 
 _TAKING = frozenset({"idle", "mixed", "allocated", "completing", "planned"})
+_NO_JOBS = frozenset({"down", "drain", "drained", "draining", "fail", "failing", "inval",
+                      "maint", "not_responding", "powering_down", "reboot_issued",
+                      "reboot_requested", "reserved", "unknown"})
+"""Flags of a compound state (``mixed+drain``) that keep new jobs off the node."""
+_SUFFIXES = "~#!%$@^-"  # power saving, rebooting, reserved...: sinfo's marks after a state
 
 
 def _summed(name: str, nodes: dict[str, tuple[int, int, int] | None]) -> Partition:
