@@ -21,7 +21,7 @@ import pytest
 from tests.conftest import Osmo, ended, read_pid, wait_gone, write
 
 TYPES = r'''
-import ctypes, json, os, threading, time
+import atexit, ctypes, json, os, threading, time
 from pathlib import Path
 from osmo import Param, task_type
 
@@ -40,6 +40,11 @@ def probe(ctx):
         json.dumps = lambda *a, **k: "patched"
         threading.Thread(target=time.sleep, args=(3600,), daemon=True).start()
         globals()["HELD"] = open(out / "held.txt", "w")
+    if mode == "unclosed":  # ends as an interpreter exit would end it: flushed, atexit run
+        left = open(out / "unclosed.txt", "w")
+        left.write("written, never closed")
+        globals()["LEFT"] = left
+        atexit.register(lambda: (out / "atexit.txt").write_text("ran"))
     if mode == "segfault":
         ctypes.string_at(0)
     if mode == "wait":  # until the test removes the gate
@@ -108,6 +113,38 @@ def test_two_attempts_on_one_runner_share_nothing(warm_osmo: Osmo, tmp_path: Pat
     assert "warmtypes:probe@1 x2" in listed, listed
     logs = warm_osmo("logs", wf, "-t", "probe", check=True).out
     assert "warm start: forked from a runner of warmtypes:probe" in logs, logs
+
+
+UNCLOSED = """
+workflow:
+  name: warm-unclosed
+  tasks:
+  - name: warm
+    type: warmtypes:probe
+    params: {mode: unclosed}
+  - name: cold
+    type: warmtypes:probe
+    params: {mode: unclosed}
+    warm: false
+  - name: after
+    type: warmtypes:probe
+    inputs: [{task: warm}]
+"""
+
+
+def test_a_warm_attempt_ends_as_a_cold_one_files_flushed_and_atexit_run(
+        warm_osmo: Osmo, tmp_path: Path) -> None:
+    """A warm attempt leaves its process with ``os._exit``: what an interpreter's exit does
+    for a cold one is done first (the files the task left open flushed, its ``atexit``
+    handlers run). Before: the warm attempt's file was empty, its handler never ran."""
+    wf = warm_osmo.submit(_project(tmp_path, UNCLOSED), "--wait")
+    info = {t["name"]: t for t in warm_osmo.query(wf)["tasks"]}
+    for name in ("warm", "cold"):
+        out = Path(info[name]["output"])
+        assert (out / "unclosed.txt").read_text() == "written, never closed", name
+        assert (out / "atexit.txt").read_text() == "ran", name
+    warm = _seen(warm_osmo, wf, "warm")
+    assert warm["ppid"] == _seen(warm_osmo, wf, "after")["ppid"] != warm_osmo.server_pid()
 
 
 CRASH = """

@@ -45,7 +45,9 @@ pipes; the environment then *replaces* the runner's. A typed task's argv
 (``osmo.worker.launch.runner_argv``) runs in the child itself (``osmo.tasktypes.runner``, its
 module already imported); any other argv is executed (what the runtime contract's checks
 run). Module state a task changes, threads it starts and memory it takes are its own
-process's: the runner, forked again for the next attempt, never ran it.
+process's: the runner, forked again for the next attempt, never ran it. A typed task's
+process ends as an interpreter's exit would end it (:func:`_typed`: its threads joined, its
+``atexit`` handlers run, the files it left open flushed), then ``os._exit``.
 
 A **sandboxed** runner (started in bubblewrap by the pool, with ``CAP_SYS_ADMIN`` in the
 node's user namespace, and ``OSMO_WARM_SANDBOXED=1``) gets ``fork LAYOUT`` requests with
@@ -63,8 +65,11 @@ It must not import anything of the worker or the server.
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import ctypes
+import gc
+import io
 import json
 import os
 import re
@@ -520,7 +525,13 @@ def _run(argv: list[str], cwd: str, env: dict[str, str]) -> int:
 
 
 def _typed(context: str) -> int:
-    """A typed task, as ``python -m osmo.tasktypes.runner CONTEXT`` would run it."""
+    """A typed task, as ``python -m osmo.tasktypes.runner CONTEXT`` would run it.
+
+    The process then ends with ``os._exit`` (an interpreter's own exit would tear the
+    runner's imports down again), so first it does what that exit would do for the task:
+    join its threads, run the ``atexit`` handlers it registered (the runner's own, from its
+    imports, are dropped before the task runs) and flush the files it left open.
+    """
     from osmo.tasktypes import runner
 
     sys.argv = [runner.__file__ or RUNNER_MODULE, context]
@@ -528,14 +539,30 @@ def _typed(context: str) -> int:
     if numpy is not None:  # a fork shares its parent's global generator: give it its own
         with contextlib.suppress(Exception):
             numpy.random.seed()
+    atexit._clear()
     code = runner.main([context])
     for thread in threading.enumerate():  # as an interpreter's exit would: its own threads
         if thread is not threading.current_thread() and not thread.daemon:
             thread.join()
+    atexit._run_exitfuncs()
+    _flush_files()
     with contextlib.suppress(Exception):
         sys.stdout.flush()
         sys.stderr.flush()
     return code
+
+
+def _flush_files() -> None:
+    """Flush every file object the attempt left open, as their close at exit would.
+
+    The runner froze what it made before forking (``gc.freeze``), so the collector lists
+    only what the attempt made.
+    """
+    for found in gc.get_objects():
+        if isinstance(found, io.IOBase):
+            with contextlib.suppress(Exception):
+                if not found.closed:
+                    found.flush()
 
 
 def _own_pid_namespace(sock: int) -> None:
@@ -570,6 +597,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         sock.send(f"error: {why}".encode()[:4096])
         return 1
     sock.send(READY + b" " + json.dumps(_sources(args[3:])).encode())
+    gc.freeze()  # what an attempt's collector lists is the attempt's own (_flush_files)
     _Runner(sock, float(os.environ.get(IDLE_VARIABLE, "60")), sandboxed=sandboxed).serve()
     return 0
 
