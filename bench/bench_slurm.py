@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -188,6 +189,7 @@ def measure_osmo(runs: int, jobs: int, limits: dict[str, float]) -> list[Row]:
     finally:
         grid.stop()
         cluster.stop()
+        shutil.rmtree(folder, ignore_errors=True)  # every run left one in the temp folder
     setup = f"2 nodes x 2 CPUs on {os.cpu_count()} cores, 1 Slurm worker, tasks `true`"
     return [
         row("osmo through slurm: submit --wait → COMPLETED, 1 task", "ms",
