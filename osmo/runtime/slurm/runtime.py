@@ -528,7 +528,7 @@ class SlurmRuntime:
         more members than the pool's partitions have nodes could never start, and is
         refused here rather than left PENDING for ever.
         """
-        nodes = self.slurm.capacity(self.options.partitions).listed
+        nodes = self.capacity().listed
         if len(members) > nodes:
             raise SlurmError(f"Slurm runs each member of a group on a node of its own (one "
                              f"heterogeneous job), and the pool's partitions have {nodes} "
