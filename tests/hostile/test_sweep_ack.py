@@ -99,7 +99,8 @@ def test_a_sweep_its_node_did_not_confirm_goes_to_the_next_node(tmp_path: Path) 
                 dies.call("worker_swept", {"id": "dies", "instance": "inst-gone"})
         with _node(c, "next") as (nxt, ordered, _):
             _ordered_until(ordered, "inst-gone")  # the unconfirmed sweep was not lost
-            for bad in ("inst-nobody", "inst-next"):  # never ordered to it
+            for bad in ("inst-nobody", "inst-next", "inst-*", "**", "\x1b[2J" + "A" * 100_000):
+                # never ordered to it: no name, wildcard or hostile text, matches one
                 with pytest.raises(NotAllowed):
                     nxt.call("worker_swept", {"id": "next", "instance": bad})
             for bad in ("", None, 7):
