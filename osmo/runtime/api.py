@@ -68,8 +68,8 @@ from osmo.scheduler.types import PrepareAttempt
 from osmo.spec.model import ResourceSpec, TaskSpec
 
 __all__ = ["HOST_PATHS", "Adopting", "Attempt", "ConnectError", "Connector", "ExecCommand",
-           "Launch", "Paths", "PrepareError", "ProcessHandle", "Runtime", "SocketMaker",
-           "StartError", "Terms", "dial"]
+           "Launch", "Paths", "PrepareError", "ProcessHandle", "RunnerPaths", "Runtime",
+           "SocketMaker", "StartError", "Terms", "dial"]
 
 class StartError(OsmoError):
     """A command could not be started (not found, not executable, bad working folder)."""
@@ -107,6 +107,8 @@ class Paths:
         linked_inputs: its artifact inputs are hard links of the checked blobs rather than
             copies: the runtime shows them read-only.
         hosts: ``{{host:NAME}}`` for each group member (None: the placement's addresses).
+        runner: where a typed task's runner, its context file and osmo's code appear to the
+            task (None: the host's own; a container runtime shows them in the task's image).
     """
 
     output: str | None = None
@@ -117,6 +119,29 @@ class Paths:
     hidden_secrets: bool = False
     linked_inputs: bool = False
     hosts: Mapping[str, str] | None = None
+    runner: RunnerPaths | None = None
+
+
+@dataclass(frozen=True)
+class RunnerPaths:
+    """How a runtime that shows a task other paths than the host's runs a typed task there.
+
+    The runner (``python -m osmo.tasktypes.runner CONTEXT``) then runs on the view's own
+    interpreter (an image's ``python3``), with osmo's code shown read-only under ``code``.
+
+    Attributes:
+        python: the interpreter, as the task's view names it.
+        context: where the attempt's context file is shown (read-only).
+        workdir: where the attempt's working folder is shown (its working folder).
+        code: the folder holding osmo's own packages (``osmo``, ``osmo_plugins``).
+        types: where a custom type's folders are shown, ``{}`` standing for their index.
+    """
+
+    python: str
+    context: str
+    workdir: str
+    code: str
+    types: str
 
 
 HOST_PATHS = Paths()

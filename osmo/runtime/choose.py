@@ -9,7 +9,8 @@ Two choices, each made once:
   (``--runtime auto``; ``container`` requires one, ``process`` refuses it). The node's
   :class:`Runtimes` holds what was chosen.
 - **each attempt's** (:meth:`Runtimes.choose`): a task runs in its image where the node runs
-  containers and :func:`container_image` names its image (not a typed plugin task's);
+  containers and :func:`container_image` names its image (a typed task's only on the node's
+  own engine: a cluster's pods and Slurm's jobs run it as a process);
   every other task runs as a (sandboxed) process, its image only noted in its log. The
   server's placement asks :func:`in_container` too (a cache fingerprint names the image id
   of a task that runs in its image), never deciding it again.
@@ -63,18 +64,20 @@ CLUSTER_RUNTIMES = ("kubernetes",)
 """The values of ``--runtime`` that run image tasks on a cluster (an ``osmo worker``'s)."""
 
 
-def container_image(task: TaskSpec) -> str | None:
+def container_image(task: TaskSpec, *, typed: bool = True) -> str | None:
     """The image ``task`` runs in where the node runs containers (None: none).
 
-    Its ``image:``, unless it is a typed plugin task (those run as osmo's own runner, as
-    host processes); a task with no image runs as a host process everywhere.
+    Its ``image:``; a task with no image runs as a host process everywhere. A typed task
+    (``type:``) runs osmo's runner on its image's ``python3`` where the node's own engine
+    (podman, docker) runs it; a cluster's pods and Slurm's jobs run it as a process
+    (``typed=False``: what they ask).
     """
-    return task.image if task.type is None else None
+    return task.image if typed or task.type is None else None
 
 
-def in_container(task: TaskSpec) -> bool:
-    """Whether ``task`` runs in its image where the node runs containers."""
-    return container_image(task) is not None
+def in_container(task: TaskSpec, *, typed: bool = True) -> bool:
+    """Whether ``task`` runs in its image where the node runs containers (``typed``: above)."""
+    return container_image(task, typed=typed) is not None
 
 
 class Runtimes:
@@ -99,10 +102,11 @@ class Runtimes:
     def choose(self, task: TaskSpec) -> Runtime:
         """The runtime that runs ``task``'s attempts here."""
         if self.cluster is not None:
-            if self.cluster_images is not None and in_container(task):
+            if self.cluster_images is not None and in_container(task, typed=False):
                 return self.cluster_images
             return self.cluster
-        if self.container is not None and in_container(task):
+        if self.container is not None and in_container(
+                task, typed=isinstance(self.container, ContainerRuntime)):
             return self.container
         return self.process
 
@@ -125,8 +129,13 @@ class Runtimes:
                 or self.process).describe()
 
     def hide(self, path: Path) -> None:
-        """Also hide ``path`` from sandboxed tasks (another home, a secret file)."""
+        """Also hide ``path`` (another home, a secret file) from the tasks that could see it.
+
+        Sandboxed tasks, and typed tasks in their image whose type's folder holds it.
+        """
         self.process.hide(path)
+        if isinstance(self.container, ContainerRuntime):
+            self.container.hide(path)
 
     def close(self) -> None:
         """The node stops: the cluster's and container runtime's calls, then the namespaces."""
@@ -229,7 +238,7 @@ def containers_for_node(runtime: str, engine: str | None, home: Home
     found = container_engine(runtime, engine)
     if found is None:
         return None
-    made = ContainerRuntime(found, owner=owner_id(home.root))
+    made = ContainerRuntime(found, owner=owner_id(home.root), hidden=(home.root,))
     made.clean_orphans()
     return made
 

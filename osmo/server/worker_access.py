@@ -141,31 +141,33 @@ def task_urls(task: TaskSpec) -> list[str]:
     return urls + [str(c["url"]) for c in task.checkpoint if c.get("url")]
 
 
-def _registry(task: TaskSpec, credential: Credential, containers: bool
+def _registry(task: TaskSpec, credential: Credential, containers: str | None
               ) -> dict[str, dict[str, str]]:
     """The stored credential of ``task``'s image registry, for a worker that pulls it."""
-    image = container_image(task) if containers else None
+    image = container_image(task, typed=containers == "container") if containers else None
     name = registry_credential(image) if image is not None else None
     payload = credential(name) if name is not None else None
     return {name: payload} if name is not None and payload is not None else {}
 
 
 def has_secrets(task: TaskSpec, credential: Credential, url_credential: Credential, *,
-                containers: bool) -> bool:
+                containers: str | None) -> bool:
     """Whether a worker must ask for secrets (``task_secrets``) before it prepares ``task``.
 
-    ``containers``: the worker runs image tasks in containers (so it pulls their images).
+    ``containers``: how the worker runs image tasks, so pulls their images: ``container``
+    (its own engine, typed tasks' images too), ``kubernetes`` (pods), None (it does not).
     """
     return (bool(task.credentials) or any(url_credential(u) for u in task_urls(task))
             or bool(_registry(task, credential, containers)))
 
 
 def task_secrets(task: TaskSpec, credential: Credential, url_credential: Credential, *,
-                 containers: bool = False) -> dict[str, Any]:
+                 containers: str | None = None) -> dict[str, Any]:
     """What a worker gets for an attempt of ``task``: its secrets and URL credentials.
 
-    A worker that runs containers (``containers``) also gets the stored credential of the
-    registry ``task``'s image is on (``registry://HOST``), and no other registry's.
+    A worker that runs ``task`` in its image (``containers``: as :func:`has_secrets`) also
+    gets the stored credential of the registry that image is on (``registry://HOST``), and
+    no other registry's.
 
     Raises:
         OsmoError: a credential it names is gone.

@@ -582,11 +582,16 @@ class WorkerHub:
                 del self._timeouts[next(iter(self._timeouts))]
         return found
 
-    def _contained(self, wid: str) -> bool:
-        """Whether worker ``wid`` pulls images (containers, pods): it gets registry creds."""
+    def _contained(self, wid: str) -> str | None:
+        """How worker ``wid`` runs image tasks: ``container``, ``kubernetes``, or None.
+
+        The first two pull images, so get registry credentials (its own engine also
+        runs typed tasks in their images).
+        """
         with self._lock:
-            return str(self._info.get(wid, {}).get("runtime") or "").startswith(
-                ("container", "kubernetes"))
+            runtime = str(self._info.get(wid, {}).get("runtime") or "")
+        return next((kind for kind in ("container", "kubernetes") if runtime.startswith(kind)),
+                    None)
 
     def _manifest_of(self, ref: str) -> str:
         found = self._store.output_of(ref)

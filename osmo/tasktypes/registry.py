@@ -22,8 +22,10 @@ so a long-running server can resolve ``tasks:x`` for two projects that both have
 
 from __future__ import annotations
 
+import functools
 import importlib
 import importlib.metadata
+import importlib.util
 import inspect
 import os
 import sys
@@ -31,6 +33,7 @@ import threading
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from osmo.errors import UsageError
@@ -81,6 +84,21 @@ def is_custom(ref: str) -> bool:
 
 
 _SHIPPED = ("osmo", "osmo_plugins")  # the packages of osmo's own distribution
+
+
+@functools.cache  # where a package was imported from does not change while we run
+def shipped_packages() -> dict[str, Path]:
+    """The folders of osmo's own packages (``osmo``, ``osmo_plugins``) this process uses.
+
+    A typed task that runs in its image is shown these, read-only, and nothing else of the
+    install (``osmo.runtime.container.layout``): the image brings Python and the libraries.
+    """
+    out = {}
+    for name in _SHIPPED:
+        spec = importlib.util.find_spec(name)  # locates it without importing it
+        if spec is not None and spec.submodule_search_locations:
+            out[name] = Path(next(iter(spec.submodule_search_locations))).resolve()
+    return out
 
 
 _builtin_seen: dict[str, tuple[tuple[tuple[str, int], ...], bool]] = {}

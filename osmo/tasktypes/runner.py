@@ -105,8 +105,8 @@ def run_context_file(path: Path) -> int:
     ref = str(data["type"])
     try:
         obj = _resolved.get((ref, tuple(sys.path)))
-        if obj is None:
-            obj = resolve(ref)
+        if obj is None:  # in an image, an installed type comes as its entry point
+            obj = resolve(str(data.get("entry") or ref))
     except OsmoError as exc:
         return _fail(str(exc))
     expected = data.get("type_version")
@@ -128,6 +128,11 @@ def run_context_file(path: Path) -> int:
     except TaskCancelled as exc:
         ctx.log.warning("stopped: %s", exc)
         return CANCELLED
+    except ModuleNotFoundError as exc:  # what the task's environment lacks: say where
+        traceback.print_exc()
+        where = f"its image {data['image']!r}" if data.get("image") else "this node's Python"
+        return _fail(f"task type '{ref}' needs the module '{exc.name}', which {where} does "
+                     "not have; install it there")
     except Exception:  # the task's own failure: its traceback is the log's last word
         traceback.print_exc()
         return 1

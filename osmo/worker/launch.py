@@ -22,14 +22,17 @@ the dataset (``NAME[:TAG]`` as written) or the URL. The environment gets ``PYTHO
 osmo and ``osmo_plugins`` were imported from (the worker's install; a task's environment does
 not inherit the worker's ``PYTHONPATH``, see ``osmo.worker.taskenv``).
 
+A typed task that runs in its image (its runtime's ``Paths.runner``) runs the image's
+``python3`` on the same file, its paths being those the image shows (the type's folders
+and osmo's packages bound read-only), and an installed type also named by its entry point
+(``"entry": "module:attr"``); ``"image"`` names the image.
+
 File-system work only; imports no plugin. The runner that reads the file is
 ``osmo.tasktypes.runner``, which owns the format's version.
 """
 
 from __future__ import annotations
 
-import functools
-import importlib.util
 import json
 import os
 import sys
@@ -37,7 +40,9 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from osmo.runtime.api import RunnerPaths
 from osmo.spec.model import InputSpec, TaskSpec
+from osmo.tasktypes.registry import entry_points, is_custom, shipped_packages
 from osmo.tasktypes.runner import FORMAT
 
 __all__ = ["input_name", "osmo_paths", "runner_argv", "runner_env", "write_context"]
@@ -50,41 +55,50 @@ def input_name(spec: InputSpec) -> str:
     return spec.dataset or spec.url or ""
 
 
-def runner_argv(context_file: Path) -> tuple[str, ...]:
-    """The argv that runs a typed task from its context file."""
+def runner_argv(context_file: Path, shown: RunnerPaths | None = None) -> tuple[str, ...]:
+    """The argv that runs a typed task from its context file (``shown``: in its image)."""
+    if shown is not None:
+        return (shown.python, "-m", "osmo.tasktypes.runner", shown.context)
     return (sys.executable, "-m", "osmo.tasktypes.runner", str(context_file))
 
 
-def runner_env(task: TaskSpec, env: Mapping[str, str]) -> dict[str, str]:
+def runner_env(task: TaskSpec, env: Mapping[str, str],
+               shown: RunnerPaths | None = None) -> dict[str, str]:
     """Variables to add for a typed task: ``PYTHONPATH`` with the type's folders first.
 
-    Then the spec's own ``PYTHONPATH`` (in ``env``), then osmo's install (:func:`osmo_paths`).
+    Then the spec's own ``PYTHONPATH`` (in ``env``), then osmo's install (:func:`osmo_paths`);
+    with ``shown`` (the task runs in its image), where the image shows them.
     """
     paths = list(task.resolved.paths) if task.resolved else []
+    code = osmo_paths()
+    if shown is not None:
+        paths = [shown.types.format(index) for index in range(len(paths))]
+        code = (shown.code,)
     current = env.get("PYTHONPATH", "")
-    parts = [*paths, *([current] if current else []), *osmo_paths()]
+    parts = [*paths, *([current] if current else []), *code]
     return {"PYTHONPATH": os.pathsep.join(dict.fromkeys(parts))}
 
 
-@functools.cache  # where a package was imported from does not change while we run
 def osmo_paths() -> tuple[str, ...]:
     """The folders that hold the ``osmo`` and ``osmo_plugins`` packages this process uses."""
-    out = [str(Path(__file__).resolve().parents[2])]  # .../osmo/worker/launch.py
-    spec = importlib.util.find_spec("osmo_plugins")  # locates it without importing it
-    if spec is not None and spec.submodule_search_locations:
-        out.append(str(Path(next(iter(spec.submodule_search_locations))).resolve().parent))
-    return tuple(dict.fromkeys(out))
+    return tuple(dict.fromkeys(str(folder.parent) for folder in shipped_packages().values()))
 
 
 def write_context(path: Path, *, task: TaskSpec, inputs: Sequence[tuple[str, str]],
-                  output: Path, workdir: Path, workflow_id: str, retry: int,
-                  attempt_id: str) -> None:
-    """Write the context file of a typed task (atomically: temp file + rename)."""
+                  output: Path | str, workdir: Path | str, workflow_id: str, retry: int,
+                  attempt_id: str, shown: RunnerPaths | None = None) -> None:
+    """Write the context file of a typed task (atomically: temp file + rename).
+
+    With ``shown`` (the task runs in its image), its paths are the image's view and an
+    installed type is also named by its entry point (``entry``: the image has osmo's code,
+    not the install's metadata that names it).
+    """
+    paths = list(task.resolved.paths) if task.resolved else []
     data: dict[str, Any] = {
         "format": FORMAT,
         "type": task.type,
         "type_version": task.resolved.version if task.resolved else None,
-        "paths": list(task.resolved.paths) if task.resolved else [],
+        "paths": paths if shown is None else [shown.types.format(i) for i in range(len(paths))],
         "params": dict(task.params),
         "inputs": [{"name": name, "path": ref} for name, ref in inputs],
         "output": str(output),
@@ -94,6 +108,12 @@ def write_context(path: Path, *, task: TaskSpec, inputs: Sequence[tuple[str, str
         "retry": retry,
         "attempt_id": attempt_id,
     }
+    if shown is not None:
+        data["image"] = task.image
+    if shown is not None and task.type and not is_custom(task.type):
+        found = entry_points().get(task.type)
+        if found is not None:
+            data["entry"] = f"{found.module}:{found.attr}"
     temp = path.with_name(path.name + ".tmp")
     temp.write_text(json.dumps(data, indent=1, default=str), encoding="utf-8")
     os.replace(temp, path)

@@ -68,7 +68,8 @@ def pod_manifests(spec: WorkflowSpec, pool: KubePool, task: str | None = None, *
         for group in spec.groups:
             hosts = {t.name: t.name for t in group.tasks} if len(group.tasks) > 1 else {}
             for each in group.tasks:
-                if container_image(each) is None or (task is not None and each.name != task):
+                if (container_image(each, typed=False) is None
+                        or (task is not None and each.name != task)):
                     continue
                 cmd = PrepareAttempt(f"{_WORKFLOW}:{each.name}:0", _WORKFLOW, each.name, 0,
                                      "preview", _upstream(each), hosts)

@@ -125,14 +125,14 @@ def prepare(
             *(expand_vars(text(word), defined) for word in task.args))
     env = dict(defined) if paths.own_env else {**base_env, **defined}
     if task.type:  # a typed task: the runner reads its context file (osmo.worker.launch)
-        argv = launch.runner_argv(dirs.context)
-        env.update(launch.runner_env(task, env))
+        argv = launch.runner_argv(dirs.context, paths.runner)
+        env.update(launch.runner_env(task, env, paths.runner))
     try:
         _make_folders(dirs, with_files=bool(task.files or mounted))
         _write_files(mapping, task, text)
         written = _write_mounts(mapping, mounted)
         if task.type:
-            _write_context(dirs, cmd, task)
+            _write_context(dirs, cmd, task, paths)
     except OSError as exc:
         raise PrepareError(f"cannot prepare {exc.filename or dirs.root}: {exc.strerror}") from exc
     return Launch(argv, dirs.work, env, tuple(secret_values(task, secrets)),
@@ -170,17 +170,26 @@ def promote(dirs: AttemptDirs) -> str:
 # ---------------------------------------------------------------- helpers
 
 
-def _write_context(dirs: AttemptDirs, cmd: PrepareAttempt, task: TaskSpec) -> None:
-    """The typed task's context file; its inputs resolve like ``{{input:N}}``."""
+def _write_context(dirs: AttemptDirs, cmd: PrepareAttempt, task: TaskSpec,
+                   paths: Paths) -> None:
+    """The typed task's context file; its inputs resolve like ``{{input:N}}``.
+
+    Its paths are those the task is shown (``paths``: in its image, where it is bound).
+    """
+    shown = paths.runner
     inputs = []
     for index, spec in enumerate(task.inputs):
         ref = _input_ref(index, spec, cmd.inputs)
         if ref is None:
             raise PrepareError(f"task '{task.name}': input {index} is not available")
+        if shown is not None and paths.input_dir is not None and ref.startswith("/"):
+            ref = paths.input_dir.format(index)
         inputs.append((launch.input_name(spec), ref))
     launch.write_context(dirs.context, task=task, inputs=inputs,
-                         output=dirs.output_partial, workdir=dirs.work,
-                         workflow_id=cmd.workflow_id, retry=cmd.retry, attempt_id=cmd.attempt_id)
+                         output=paths.output or dirs.output_partial,
+                         workdir=shown.workdir if shown else dirs.work,
+                         workflow_id=cmd.workflow_id, retry=cmd.retry, attempt_id=cmd.attempt_id,
+                         shown=shown)
 
 
 def _osmo_env(dirs: AttemptDirs, cmd: PrepareAttempt, paths: Paths) -> dict[str, str]:

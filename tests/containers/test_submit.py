@@ -202,31 +202,87 @@ workflow:
         engine.call("untag", tag, tag)  # only this name (no name: every name of it)
 
 
-def test_a_typed_task_that_names_an_image_runs_as_a_process_and_is_reused(
-        cosmo: Osmo, images: dict[str, str], tmp_path: Path) -> None:
-    """A typed task never runs in its image: its placement must not fingerprint the image's
-    id (the attempt reports none, so its output was never recorded for reuse)."""
+def test_a_typed_task_runs_in_its_image_on_its_python_and_is_reused(
+        cosmo: Osmo, python_image: str, engine: ContainerEngine, tmp_path: Path) -> None:
+    """A typed task that names an image runs osmo's runner on that image's python3, with its
+    params, inputs and output where the image shows them, osmo's code read-only; its
+    placement fingerprints the image's id, so the same spec is reused.
+
+    Its type's folder (the workflow's) holds osmo's home here, as a project folder holding
+    ``~/.osmo`` would: the task is shown the folder, and an empty folder where the home is."""
     write(tmp_path / "imgtypes.py", """
-from osmo import task_type
+import json, os, sys
+from osmo import Param, task_type
+
+@task_type(version="1", params={"word": Param(str)})
+def make(ctx):
+    try:
+        open("/osmo/lib/osmo/planted.py", "w").write("x")
+        code = "osmo's code writable"
+    except OSError as exc:
+        code = f"osmo's code: {exc.strerror}"
+    (ctx.output / "out.json").write_text(json.dumps({
+        "word": ctx.params["word"], "container": os.environ.get("container"),
+        "python": sys.executable, "output": str(ctx.output), "workdir": os.getcwd(),
+        "code": code, "home": sorted(os.listdir("/osmo/types/0/" + os.environ["HOME_IN_TYPES"])),
+    }))
 
 @task_type(version="1")
-def make(ctx):
-    (ctx.output / "out.txt").write_text("made")
+def use(ctx):
+    made = json.loads((ctx.input_named["make"] / "out.json").read_text())
+    (ctx.output / "used.txt").write_text(f"{made['word']} from {ctx.inputs[0]}")
 """)
-    spec = write(tmp_path / "typed.yaml", """
+    spec = write(tmp_path / "typed.yaml", f"""
 workflow:
   name: typed-image
   tasks:
   - name: make
     type: imgtypes:make
-    image: alpine:3.18
+    image: {python_image}
+    params: {{word: hello}}
+    environment: {{HOME_IN_TYPES: "{cosmo.home.relative_to(tmp_path)}"}}
+  - name: use
+    type: imgtypes:use
+    image: {python_image}
+    inputs: [{{task: make}}]
 """)
     code, first = submit_wait(cosmo, spec)
-    assert code == 0, tasks(cosmo, first)
-    assert lineage_of(cosmo, f"{first}:make")["image_id"] is None  # it ran as a process
+    assert code == 0, (tasks(cosmo, first), task_lines(cosmo, first))
+    run = Path(cosmo.home) / "runs" / first
+    made = json.loads(next(run.glob("make/*/output/out.json")).read_text())
+    assert made == {"word": "hello", "container": "podman", "python": made["python"],
+                    "output": "/osmo/data/output", "workdir": "/osmo/run/work",
+                    "code": "osmo's code: Read-only file system", "home": []}, made
+    assert made["python"].startswith(("/usr/", "/bin/")), made  # the image's interpreter
+    used = next(run.glob("use/*/output/used.txt")).read_text()
+    assert used == "hello from /osmo/data/input/0"
+    image_id = engine.call("image", "inspect", "--format", "{{.Id}}", python_image).strip()
+    assert lineage_of(cosmo, f"{first}:make")["image_id"].removeprefix("sha256:") == image_id
+    assert any("runs on its python3" in line for line in osmo_lines(cosmo, first, "make"))
     code, again = submit_wait(cosmo, spec)
     assert code == 0 and tasks(cosmo, again)["make"]["message"].startswith("cached:"), \
         tasks(cosmo, again)["make"]
+
+
+def test_a_typed_task_whose_image_lacks_its_libraries_fails_saying_what_is_missing(
+        cosmo: Osmo, python_image: str, tmp_path: Path) -> None:
+    """An installed type (found by its entry point: the image has osmo's code, not its
+    metadata) in an image without its libraries fails with the import error, not a hang."""
+    spec = write(tmp_path / "rollout.yaml", f"""
+workflow:
+  name: rollout-in-image
+  tasks:
+  - name: roll
+    type: sim.rollout
+    image: {python_image}
+""")
+    code, wf = submit_wait(cosmo, spec)
+    assert code != 0
+    row = tasks(cosmo, wf)["roll"]
+    assert row["status"] == "FAILED", row
+    text = "\n".join(task_lines(cosmo, wf).get("roll", []))
+    assert text.endswith(f"osmo: task type 'sim.rollout' needs the module 'numpy', which its "
+                         f"image '{python_image}' does not have; install it there"), text
 
 
 def test_orphans_are_removed_after_a_server_kill_9(cosmo: Osmo, engine: ContainerEngine,

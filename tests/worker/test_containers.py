@@ -12,7 +12,14 @@ from osmo.layout import AttemptDirs
 from osmo.runtime.choose import container_engine
 from osmo.runtime.container import EngineNotFound, owner_id
 from osmo.runtime.container.images import registry_auth
-from osmo.runtime.container.layout import DATA_LAYOUT, WORKDIR, mounts
+from osmo.runtime.container.layout import (
+    DATA_LAYOUT,
+    RUNNER_PATHS,
+    WORKDIR,
+    CoverError,
+    mounts,
+    runner_mounts,
+)
 from osmo.runtime.container.run import DATA_OUTPUT, Mount
 from osmo.scheduler.types import AttemptExited, Capacity, Node, PrepareAttempt
 from osmo.spec.model import FileSpec, InputSpec, TaskSpec
@@ -123,3 +130,30 @@ def test_a_container_secret_is_never_in_argv_or_env_only_in_the_secret_file(tmp_
     assert launch.argv == ("sh", "-c", "echo $(API_TOKEN) p $API_TOKEN")
     assert "API_TOKEN" not in launch.env and "s3cr3t" in launch.secrets
     assert launch.secret_env == {"API_TOKEN": "s3cr3t"}
+
+
+def test_a_typed_task_in_its_image_sees_its_type_folder_with_osmo_s_files_covered(
+        tmp_path: Path) -> None:
+    """A type's folder is the client's word: what of osmo it holds (a home, a token file) is
+    covered, and a folder inside osmo's home is refused."""
+    project = tmp_path / "project"
+    home, token = project / ".osmo", project / "worker.token"
+    home.mkdir(parents=True)
+    token.write_text("secret")
+    dirs = AttemptDirs(tmp_path / "attempt")
+    empty = tmp_path / "empty"
+    packages = {"osmo": tmp_path / "code" / "osmo"}
+    binds = runner_mounts(dirs, packages, [str(project)], hidden=[home, token], empty=empty)
+    assert set(binds) == {
+        Mount(dirs.context, RUNNER_PATHS.context),
+        Mount(dirs.work, RUNNER_PATHS.workdir, read_only=False),
+        Mount(tmp_path / "code" / "osmo", "/osmo/lib/osmo"),
+        Mount(project, "/osmo/types/0"),
+        Mount(empty, "/osmo/types/0/.osmo"),
+        Mount(Path("/dev/null"), "/osmo/types/0/worker.token"),
+    }
+    for inside in (home, home / "runs", project / "link"):
+        if inside.name == "link":
+            inside.symlink_to(home)  # a link into the home is the home
+        with pytest.raises(CoverError, match="inside osmo's own files"):
+            runner_mounts(dirs, packages, [str(inside)], hidden=[home], empty=empty)

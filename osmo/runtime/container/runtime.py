@@ -1,10 +1,12 @@
 """The container runtime: an attempt runs in its task's image, through podman or docker.
 
-A task with an ``image:`` and no ``type:`` runs so where the node runs containers
-(``osmo.runtime.choose``). What it owns, one concern per method of the runtime contract:
+A task with an ``image:`` runs so where the node runs containers (``osmo.runtime.choose``);
+a typed one (``type:``) runs osmo's runner on the image's ``python3``. What it owns, one
+concern per method of the runtime contract:
 
-- what the task sees: OSMO's data layout (``osmo.runtime.container.layout``), and its group
-  peers' aliases for ``{{host:NAME}}`` (``osmo.runtime.container.groups``).
+- what the task sees: OSMO's data layout (``osmo.runtime.container.layout``; a typed task's
+  runner, context and osmo's code too), and its group peers' aliases for ``{{host:NAME}}``
+  (``osmo.runtime.container.groups``).
 - the launch (:meth:`ContainerRuntime.prepare`): the image resolved to its id (pulling a
   missing one, its progress lines to the task's log as the engine prints them, registry
   credentials for the pull only), the container named and labelled (``osmo.owner``,
@@ -34,6 +36,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import replace
 from pathlib import Path
 
+from osmo.layout import AttemptDirs
 from osmo.runtime.api import (
     Attempt,
     ConnectError,
@@ -41,6 +44,7 @@ from osmo.runtime.api import (
     ExecCommand,
     Launch,
     Paths,
+    PrepareError,
     ProcessHandle,
     Runtime,
     dial,
@@ -48,14 +52,23 @@ from osmo.runtime.api import (
 from osmo.runtime.container.engine import ContainerEngine
 from osmo.runtime.container.groups import Groups, alias
 from osmo.runtime.container.images import ImageIds, registry_auth
-from osmo.runtime.container.layout import DATA_LAYOUT, mounts
-from osmo.runtime.container.run import ContainerRun, safe_name
+from osmo.runtime.container.layout import (
+    DATA_LAYOUT,
+    RUNNER_PATHS,
+    CoverError,
+    mounts,
+    runner_mounts,
+)
+from osmo.runtime.container.run import ContainerRun, Mount, safe_name
 from osmo.runtime.container.runs import ContainerRuns
 from osmo.scheduler.types import PrepareAttempt
+from osmo.spec.model import TaskSpec
+from osmo.tasktypes.registry import shipped_packages
 
 __all__ = ["ContainerRuntime", "owner_id"]
 
 _GPU_SHM = 1 << 30  # bytes of /dev/shm for a GPU task (the engines' 64 MiB starves loaders)
+_LAYOUT = replace(DATA_LAYOUT, runner=RUNNER_PATHS)
 
 
 def owner_id(home: Path) -> str:
@@ -84,8 +97,9 @@ class ContainerRuntime:
     """
 
     def __init__(self, engine: ContainerEngine, *, owner: str, pull: bool = True,
-                 kill_retry: float = 0.1) -> None:
+                 kill_retry: float = 0.1, hidden: Sequence[Path] = ()) -> None:
         self.engine = engine
+        self._hidden = [Path(path).absolute() for path in hidden]
         self.images = ImageIds(engine)
         self.labels = {"osmo.owner": owner}
         self._pull = pull
@@ -96,6 +110,16 @@ class ContainerRuntime:
         """``container (podman 4.3.1)``: what ``osmo pool list`` shows."""
         return f"container ({self._engine_text()})"
 
+    def hide(self, path: Path) -> None:
+        """Never show ``path`` (osmo's homes, token files) to a typed task.
+
+        A typed task's type folder may hold it; its own binds are the only host paths a
+        container task sees otherwise.
+        """
+        path = Path(path).absolute()
+        if path not in self._hidden:
+            self._hidden.append(path)
+
     def clean_orphans(self) -> tuple[list[str], list[str]]:
         """Remove every container, then network, of this owner (after a crash; at start)."""
         return self.engine.remove_labelled(self.labels)
@@ -103,7 +127,7 @@ class ContainerRuntime:
     def paths(self, cmd: PrepareAttempt) -> Paths:
         """OSMO's data layout; ``{{host:NAME}}`` a peer's alias when the group is networked."""
         hosts = self._groups.hosts(cmd)
-        return DATA_LAYOUT if hosts is None else replace(DATA_LAYOUT, hosts=hosts)
+        return _LAYOUT if hosts is None else replace(_LAYOUT, hosts=hosts)
 
     def prepare(self, launch: Launch, attempt: Attempt, *,
                 progress: Callable[[str], None]) -> Launch:
@@ -131,6 +155,9 @@ class ContainerRuntime:
             labels.update({"osmo.network": network, "osmo.lead": "1" if lead else "0"})
             self._groups.join(network)
         binds, workdir = mounts(dirs, launch.files, launch.inputs)
+        if task.type is not None:  # osmo's runner on the image's python3
+            binds += self._runner_mounts(dirs, task, {bind.target for bind in binds})
+            workdir = RUNNER_PATHS.workdir
         request = attempt.resources
         run = ContainerRun(
             image=image, name=safe_name(cmd.attempt_id, owner=self.labels["osmo.owner"]),
@@ -143,8 +170,23 @@ class ContainerRuntime:
             secret_env=dict(launch.secret_env),
             secret_env_file=dirs.root / "secret.env" if launch.secret_env else None)
         note = f"image '{task.image}' is {image} ({self._engine_text()})"
+        if task.type is not None:
+            note += (f"; task type {task.type} runs on its python3, osmo's code bound "
+                     f"read-only at {RUNNER_PATHS.code}")
         return replace(launch, run=run, image_id=image, notes=(*launch.notes, note),
                        waits=labels.get("osmo.lead") == "0")
+
+    def _runner_mounts(self, dirs: AttemptDirs, task: TaskSpec, taken: set[str]
+                       ) -> tuple[Mount, ...]:
+        empty = dirs.root / "cover"
+        try:
+            empty.mkdir(mode=0o555, exist_ok=True)
+            found = runner_mounts(dirs, shipped_packages(),
+                                  task.resolved.paths if task.resolved else (),
+                                  hidden=self._hidden, empty=empty)
+        except (OSError, CoverError) as exc:
+            raise PrepareError(f"task '{task.name}': {exc}") from exc
+        return tuple(bind for bind in found if bind.target not in taken)
 
     def start(self, launch: Launch) -> ProcessHandle:
         """Start the container (a peer first waits for its lead's: an I/O thread's call).
