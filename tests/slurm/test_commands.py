@@ -65,6 +65,26 @@ def test_a_node_that_takes_no_jobs_adds_no_capacity_until_it_is_resumed(
     assert (back.cpus, back.nodes) == (4, 2), back
 
 
+def test_a_pool_that_names_no_partition_counts_the_default_partition_only(
+        two_partitions: SlurmCluster) -> None:
+    """A job that names no partition goes to Slurm's default one: only its nodes (and its
+    time limit) are what such a pool has, not every partition's."""
+    slurm = Slurm(two_partitions.env)
+    two_partitions.run("scontrol", "update", "PartitionName=debug", "Default=NO")
+    two_partitions.run("scontrol", "create", "PartitionName=small", "Nodes=n1", "Default=YES",
+                       "MaxTime=7", "State=UP")
+    try:
+        small = slurm.capacity(())
+        assert (small.name, small.cpus, small.nodes, small.listed) == ("small", 2, 1, 1), small
+        assert slurm.max_minutes(()) == 7
+        both = slurm.capacity(("debug", "small"))  # named, as before
+        assert (both.cpus, both.nodes) == (4, 2), both
+    finally:
+        two_partitions.run("scontrol", "delete", "PartitionName=small")
+        two_partitions.run("scontrol", "update", "PartitionName=debug", "Default=YES")
+    assert slurm.capacity(()).cpus == 4
+
+
 @pytest.mark.parametrize(("state", "takes"), [
     ("idle", True), ("mixed", True), ("allocated", True), ("completing", True),
     ("idle~", True), ("idle#", True), ("planned", True), ("mixed-", True),

@@ -149,12 +149,15 @@ class Slurm:
     def max_minutes(self, names: Sequence[str] = ()) -> int | None:
         """The longest ``MaxTime`` of the partitions ``names``, in minutes.
 
-        ``names`` empty: every partition. None when one has no limit (``infinite``).
-        Raises SlurmError.
+        ``names`` empty: the default partition's (every partition's when none is the
+        default). None when one has no limit (``infinite``). Raises SlurmError.
         """
         args = ["-p", ",".join(names)] if names else []
-        out = self._run("sinfo", "-h", *args, "-o", f"%R{_SEP}%l")
-        limits = [minutes_of(line.split(_SEP)[-1]) for line in out.splitlines() if line]
+        out = self._run("sinfo", "-h", *args, "-o", f"%P{_SEP}%l")
+        rows = [line.split(_SEP) for line in out.splitlines() if _SEP in line]
+        if not names and any(part.endswith("*") for part, *_ in rows):
+            rows = [row for row in rows if row[0].endswith("*")]
+        limits = [minutes_of(row[-1]) for row in rows]
         return None if not limits or None in limits else max(m for m in limits if m is not None)
 
     def node_address(self, node: str) -> str:
@@ -185,19 +188,27 @@ class Slurm:
                    ) -> list[tuple[str, str, tuple[int, int, int] | None]]:
         """``(partition, node, counts)`` of every node ``sinfo`` shows.
 
+        ``names`` empty: Slurm's default partition's nodes (where a job that names no
+        partition goes), or every node when no partition is the default.
         ``counts``: ``(cpus, memory bytes, gpus)``, None for a node that takes no jobs
         (:func:`takes_jobs`).
         """
         args = ["-p", ",".join(names)] if names else []
         out = self._run("sinfo", "-h", "-N", *args, "-o",
-                        _SEP.join(("%R", "%N", "%c", "%m", "%G", "%T")))
+                        _SEP.join(("%P", "%N", "%c", "%m", "%G", "%T")))
         rows: list[tuple[str, str, tuple[int, int, int] | None]] = []
+        defaults: set[str] = set()
         for line in out.splitlines():
             fields = line.split(_SEP)
             if len(fields) == 6:
                 part, node, cpus, memory, gres, state = fields
+                if part.endswith("*"):  # sinfo's mark of the default partition
+                    part = part[:-1]
+                    defaults.add(part)
                 rows.append((part, node, (_int(cpus), _int(memory.rstrip("+")) << 20,
                                           gpus_of(gres)) if takes_jobs(state) else None))
+        if not names and defaults:
+            rows = [row for row in rows if row[0] in defaults]
         return rows
 
     def _squeue(self, *args: str) -> list[JobInfo]:

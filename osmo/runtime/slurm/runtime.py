@@ -250,7 +250,8 @@ class SlurmRuntime:
     def capacity(self) -> Partition:
         """What its pool may use: its partitions' nodes that take jobs.
 
-        Slurm's default partition: every node. None while each of them is down or drained.
+        A pool that names none: Slurm's default partition's (where its jobs go). None while
+        each of them is down or drained.
 
         Raises:
             SlurmError: sinfo fails, or knows none of the partitions.
