@@ -18,13 +18,17 @@ life that do not come back within its grace are down for good then
 (:meth:`Sweeps.restored`). An instance is ordered to one node at a time and stays to be
 swept until that node says it swept it (``worker_swept``, :meth:`Sweeps.swept`): if that node
 leaves (or registers again) first, or the server restarts, it is ordered again, to the next
-live node of its pool. Sweeping twice does no harm (what is gone is not found again).
+live node of its pool. An order its node has not confirmed within the retry period (the
+server's ``--adopt-grace``) is sent to it again (:meth:`Sweeps.overdue`): a sweep that failed
+(the API server refused it, say) is tried again while its node lives. Sweeping twice does no
+harm (what is gone is not found again).
 """
 
 from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections.abc import Callable
 
 from osmo.errors import OsmoError
@@ -47,7 +51,8 @@ class Sweeps:
         self._rows = rows
         self._instances: dict[str, tuple[str, str]] = {}  # node id -> (pool, instance)
         self._pending: dict[str, set[str]] = {}  # pool -> instances to sweep
-        self._ordered: dict[tuple[str, str], str] = {}  # (pool, instance) -> node, unswept
+        # (pool, instance) -> (node, when last sent: monotonic s), until that node swept it
+        self._ordered: dict[tuple[str, str], tuple[str, float]] = {}
         if rows is not None:
             self._instances = rows.node_instances()
             self._pending = rows.pending_sweeps()
@@ -96,14 +101,28 @@ class Sweeps:
             for instance in sorted(pending & held):
                 self._drop(pool, instance)
             out = sorted(i for i in pending if (pool, i) not in self._ordered)
+            now = time.monotonic()
             for instance in out:
-                self._ordered[(pool, instance)] = node
+                self._ordered[(pool, instance)] = (node, now)
             return out
+
+    def overdue(self, after: float) -> list[tuple[str, str]]:
+        """The unconfirmed orders last sent ``after`` seconds ago or more, to send again.
+
+        ``(node, instance)`` each; they count as sent now.
+        """
+        now = time.monotonic()
+        with self._lock:
+            late = [(key, node) for key, (node, sent) in self._ordered.items()
+                    if now - sent >= after]
+            for key, node in late:
+                self._ordered[key] = (node, now)
+            return sorted((node, instance) for (_pool, instance), node in late)
 
     def swept(self, node: str, instance: str) -> bool:
         """``node`` says it swept ``instance``: done, if that was ordered to it."""
         with self._lock:
-            found = next((pool for (pool, i), n in self._ordered.items()
+            found = next((pool for (pool, i), (n, _) in self._ordered.items()
                           if i == instance and n == node), None)
             if found is not None:
                 self._drop(found, instance)
@@ -115,7 +134,7 @@ class Sweeps:
         The pools of what it was ordered, to order it again.
         """
         with self._lock:
-            mine = [key for key, n in self._ordered.items() if n == node]
+            mine = [key for key, (n, _) in self._ordered.items() if n == node]
             for key in mine:
                 del self._ordered[key]
             return sorted({pool for pool, _ in mine})

@@ -288,6 +288,11 @@ class WorkerHub:
                 gone = [(wid, self._nodes.pop(wid)) for wid in silent]
                 for wid in silent:
                     self._draining.discard(wid)
+            for wid, instance in self._sweeps.overdue(self._adopt_grace):
+                if self._is_alive(wid):  # one that left had its orders moved on
+                    log.info("worker %s has not said it swept node instance %s: again", wid,
+                             instance)
+                    self._send(wid, Sweep(instance))
             for wid, node in gone:
                 self._resweep(wid)
                 if self._went_away(wid, node):

@@ -81,6 +81,27 @@ def _until_gone(c: Cluster, name: str) -> None:
         time.sleep(0.1)
 
 
+def test_a_sweep_its_live_node_did_not_confirm_is_ordered_again(tmp_path: Path) -> None:
+    """A node whose sweep failed (the API server refused it) says nothing: while it lives,
+    the order comes again each adopt grace, until it confirms."""
+    c = Cluster(tmp_path, server_args=("--adopt-grace", str(GRACE)))
+    c.start_server()
+    try:
+        with _node(c, "gone"):
+            pass
+        _until_gone(c, "gone")
+        with _node(c, "tries") as (tries, ordered, _):
+            _ordered_until(ordered, "inst-gone")
+            started = time.monotonic()
+            again = _ordered_until(ordered, "inst-gone", timeout=GRACE + 10)
+            assert again == ["inst-gone"] and time.monotonic() - started >= GRACE * 0.5, again
+            tries.call("worker_swept", {"id": "tries", "instance": "inst-gone"})
+            with pytest.raises(queue.Empty):  # confirmed: not again
+                ordered.get(timeout=GRACE * 3)
+    finally:
+        c.stop()
+
+
 def test_a_sweep_its_node_did_not_confirm_goes_to_the_next_node(tmp_path: Path) -> None:
     c = Cluster(tmp_path, server_args=("--adopt-grace", str(GRACE)))
     c.start_server()

@@ -38,6 +38,18 @@ def test_what_a_node_did_not_sweep_goes_to_another_when_it_leaves() -> None:
     assert sweeps.swept("c", "inst-a")
 
 
+def test_an_unconfirmed_order_is_due_to_its_node_again_after_the_retry_period() -> None:
+    sweeps = Sweeps()
+    sweeps.registered("a", "gpu", "inst-a")
+    sweeps.registered("b", "gpu", "inst-b")
+    sweeps.down("a")
+    assert sweeps.due("gpu", "b") == ["inst-a"]
+    assert sweeps.overdue(60) == []  # just sent
+    assert sweeps.overdue(0) == [("b", "inst-a")]  # to b again, and counted as sent now
+    assert sweeps.overdue(60) == []
+    assert sweeps.swept("b", "inst-a") and sweeps.overdue(0) == []  # confirmed: done
+
+
 def test_a_node_back_under_its_instance_is_not_swept() -> None:
     sweeps = Sweeps()
     sweeps.registered("a", "gpu", "inst-a")
