@@ -27,7 +27,8 @@ A task that requests cpus (its resource's ``cpu``, or its type's) gets
 ``environment`` or the worker sets it: OpenMP and the BLAS libraries under numpy and torch
 otherwise start a thread per core of the machine in every task, and two tasks of one cpu
 each on a busy node fight over the cores. Ray does the same for its tasks' ``num_cpus``.
-A container task's environment is its image's (``Paths.own_env``): it is not set there.
+A container task's environment is its image's (``Paths.own_env``): the container runtime
+sets it there, unless the image does.
 
 ``TMPDIR`` is left out on purpose: the default ``/tmp`` is the task's own in the sandbox,
 while the worker's ``TMPDIR`` may be shared or read-only there.

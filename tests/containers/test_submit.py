@@ -398,3 +398,43 @@ workflow:
     finally:
         other.stop_server()
     assert leftovers(engine, owner_labels(other)) == ([], [])
+
+
+def test_a_container_task_s_cpu_request_is_its_thread_count_unless_spec_or_image_set_it(
+        cosmo: Osmo, engine: ContainerEngine, tmp_path: Path) -> None:
+    """As for a process, ``OMP_NUM_THREADS`` is the cpu request; the spec's ``environment``
+    wins, and so does an image that sets it (its ``ENV``, read from the engine)."""
+    tag = f"localhost/osmo-test/omp-{uuid.uuid4().hex[:8]}:1"
+    (tmp_path / "Containerfile").write_text("FROM alpine:3.18\nENV OMP_NUM_THREADS=7\n")
+    engine.call("build", "--pull=never", "-t", tag, str(tmp_path))
+    show = """command: [sh, -c, 'printf %s "${OMP_NUM_THREADS-unset}" > {{output}}/v']"""
+    spec = write(tmp_path / "threads.yaml", f"""
+workflow:
+  name: threads
+  resources:
+    default: {{cpu: 1}}
+    two: {{cpu: 2}}
+  tasks:
+  - name: two
+    resource: two
+    image: alpine:3.18
+    {show}
+  - name: own
+    resource: two
+    image: alpine:3.18
+    environment: {{OMP_NUM_THREADS: "5"}}
+    {show}
+  - name: imaged
+    resource: two
+    image: {tag}
+    {show}
+""")
+    try:
+        code, wf = submit_wait(cosmo, spec)
+        assert code == 0, tasks(cosmo, wf)
+        run = Path(cosmo.home) / "runs" / wf
+        seen = {name: next(run.glob(f"{name}/*/output/v")).read_text()
+                for name in ("two", "own", "imaged")}
+        assert seen == {"two": "2", "own": "5", "imaged": "7"}, seen
+    finally:
+        engine.call("rmi", "-f", tag)

@@ -12,7 +12,9 @@ concern per method of the runtime contract:
   credentials for the pull only), the container named and labelled (``osmo.owner``,
   ``osmo.workflow``, ``osmo.task``, ``osmo.attempt``), run as the invoking uid:gid with
   ``--init``, its cpu/memory limits and the GPU indices the pool assigned it, its binds, its
-  secret variables in a 0600 file, and its group's network.
+  secret variables in a 0600 file, and its group's network. A task that requests cpus gets
+  ``OMP_NUM_THREADS`` set to that count, as a process does, unless its spec or its image
+  sets it (the image's variables are read once per image id).
 - start, kill, reap, release: the engine's attached CLI (``osmo.runtime.container.runs``);
   a group's peer starts once its lead's container runs.
 - exec: ``<engine> exec -i [-t]`` into the container (its working folder and environment are
@@ -59,7 +61,7 @@ from osmo.runtime.container.layout import (
     mounts,
     runner_mounts,
 )
-from osmo.runtime.container.run import ContainerRun, Mount, safe_name
+from osmo.runtime.container.run import ContainerError, ContainerRun, Mount, safe_name
 from osmo.runtime.container.runs import ContainerRuns
 from osmo.scheduler.types import PrepareAttempt
 from osmo.spec.model import TaskSpec
@@ -68,6 +70,8 @@ from osmo.tasktypes.registry import shipped_packages
 __all__ = ["ContainerRuntime", "owner_id"]
 
 _GPU_SHM = 1 << 30  # bytes of /dev/shm for a GPU task (the engines' 64 MiB starves loaders)
+_THREADS = "OMP_NUM_THREADS"  # what a task's cpu request sets (``osmo.worker.taskenv``)
+_KEEP_IMAGE_VARIABLES = 256  # image ids whose variables' names are remembered
 _LAYOUT = replace(DATA_LAYOUT, runner=RUNNER_PATHS)
 
 
@@ -100,6 +104,7 @@ class ContainerRuntime:
                  kill_retry: float = 0.1, hidden: Sequence[Path] = ()) -> None:
         self.engine = engine
         self._hidden = [Path(path).absolute() for path in hidden]
+        self._variables: dict[str, frozenset[str]] = {}  # image id -> the names it sets
         self.images = ImageIds(engine)
         self.labels = {"osmo.owner": owner}
         self._pull = pull
@@ -159,9 +164,13 @@ class ContainerRuntime:
             binds += self._runner_mounts(dirs, task, {bind.target for bind in binds})
             workdir = RUNNER_PATHS.workdir
         request = attempt.resources
+        env = dict(launch.env)
+        if (request.cpu is not None and _THREADS not in env
+                and _THREADS not in self._image_variables(image)):
+            env[_THREADS] = str(max(1, int(request.cpu)))
         run = ContainerRun(
             image=image, name=safe_name(cmd.attempt_id, owner=self.labels["osmo.owner"]),
-            argv=launch.argv, env=dict(launch.env),
+            argv=launch.argv, env=env,
             labels=labels, user=f"{os.getuid()}:{os.getgid()}", network=network,
             aliases=(alias(cmd.task),) if grouped else (),
             hostname=alias(cmd.task) if grouped else None,
@@ -175,6 +184,19 @@ class ContainerRuntime:
                      f"read-only at {RUNNER_PATHS.code}")
         return replace(launch, run=run, image_id=image, notes=(*launch.notes, note),
                        waits=labels.get("osmo.lead") == "0")
+
+    def _image_variables(self, image: str) -> frozenset[str]:
+        """What ``image`` (an id: its variables never change) sets; empty if unknown."""
+        found = self._variables.get(image)
+        if found is None:
+            try:
+                found = self.engine.image_variables(image)
+            except ContainerError:
+                return frozenset()
+            if len(self._variables) >= _KEEP_IMAGE_VARIABLES:
+                self._variables.clear()
+            self._variables[image] = found
+        return found
 
     def _runner_mounts(self, dirs: AttemptDirs, task: TaskSpec, taken: set[str]
                        ) -> tuple[Mount, ...]:
