@@ -113,7 +113,8 @@ def _wait(client: Client, wf_id: str, fmt: str = "text") -> int:
                     cached = " (cached)" if t.reused else ""
                     console.print(f"{safe(t.name)}: {t.status.name}{cached}", markup=False)
 
-        info = client.wait(wf_id, on_update=show, min_interval=0.2)
+        info = client.wait(wf_id, on_update=show if fmt == "text" else None,
+                           min_interval=0.2)
         if fmt == "text":
             console.print(workflow_header(info), markup=False)
             console.print(task_table(info.tasks))

@@ -48,6 +48,36 @@ def test_wait_sees_the_end_at_once_and_shows_updates_at_most_every_interval(
     assert [t.status for t in shown[-1][1].tasks] == [osmo.TaskStatus.COMPLETED] * 2
 
 
+def test_wait_reads_a_workflow_no_more_often_than_its_reads_cost(
+        shared_osmo: Osmo, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Full reads for ``on_update`` (a large workflow's cost the server most) are spaced by
+    nine times what the last one took: with each read taking 0.2 s, a workflow that sends
+    a notice every few milliseconds is read about once a second, and its end is shown."""
+    wf = osmo.Workflow("sdk-wait-cost")
+    previous = None
+    for index in range(30):
+        wf.task(f"t{index}", ["sleep", "0.15"], inputs=[previous] if previous else [])
+        previous = f"t{index}"
+    shown: list[float] = []
+    with osmo.Client(home=shared_osmo.home) as client:
+        real_get = client.get
+
+        def slow_get(workflow_id: str, **kwargs: object) -> osmo.WorkflowInfo:
+            time.sleep(0.2)
+            return real_get(workflow_id, **kwargs)  # type: ignore[arg-type]
+
+        monkeypatch.setattr(client, "get", slow_get)
+        wf_id = client.submit(wf)
+        started = time.monotonic()
+        result = client.wait(wf_id, timeout=120, min_interval=0,
+                             on_update=lambda i: shown.append(time.monotonic()))
+        waited = time.monotonic() - started
+    assert result.status is osmo.WorkflowStatus.COMPLETED
+    gaps = [b - a for a, b in zip(shown[:-2], shown[1:-1], strict=True)]  # the end: at once
+    assert waited > 4 and all(gap >= 0.2 * 9 for gap in gaps), (gaps, waited)
+    assert len(shown) <= waited / (0.2 * 10) + 2, (len(shown), waited)
+
+
 def test_submit_dict_and_failure_result(shared_osmo: Osmo) -> None:
     spec = {"workflow": {"name": "sdk-dict", "tasks": [
         {"name": "bad", "command": ["sh", "-c", "echo oops >&2; exit 5"]}]}}
