@@ -25,12 +25,15 @@ import ctypes
 import functools
 import os
 
-__all__ = ["NEWIPC", "NEWNS", "NEWPID", "NEWUTS", "devpts", "bind", "detached", "die_with_parent",
-           "drop_privileges", "make_private", "mount_tmpfs", "move", "proc_context",
-           "proc_mount", "setns", "undumpable", "unshare", "unsupported"]
+__all__ = ["NEWIPC", "NEWNS", "NEWPID", "NEWUSER", "NEWUTS", "devpts", "bind", "detached",
+           "die_with_parent", "drop_privileges", "make_private", "mount_tmpfs", "move",
+           "proc_context", "proc_mount", "readonly_tree", "setns", "undumpable", "unshare",
+           "unsupported"]
 
 NEWNS, NEWUTS, NEWIPC, NEWPID = 0x20000, 0x04000000, 0x08000000, 0x20000000
 """``unshare`` flags: a mount, a UTS, an IPC and a pid namespace."""
+NEWUSER = 0x10000000
+"""``unshare`` flag: a user namespace (a container warm runner's, ``warm_runner``)."""
 
 _LIBC = ctypes.CDLL(None, use_errno=True)
 _AT_FDCWD = -100
@@ -171,10 +174,30 @@ def bind(source: str, target: str, *, readonly: bool) -> None:
                _MS_BIND | _MS_REMOUNT | _MS_RDONLY | _MS_NOSUID | _MS_NODEV)
 
 
-def drop_privileges() -> None:
-    """Empty the bounding set and every capability set; set ``no_new_privs``."""
+def readonly_tree(path: str) -> None:
+    """Make the mount at ``path`` and every mount below it read-only (``mount_setattr``).
+
+    Other flags are left as they are (a locked ``nosuid`` stays set): only read-only is
+    added, which even a mount locked in a less privileged namespace accepts.
+    """
+    attr = _MountAttr(_ATTR_RDONLY)
+    _syscall("mount_setattr", _AT_FDCWD, path.encode(), _AT_RECURSIVE, ctypes.byref(attr),
+             ctypes.sizeof(attr))
+
+
+def drop_privileges(uid: int | None = None, gid: int | None = None) -> None:
+    """Empty the bounding set and every capability set; set ``no_new_privs``.
+
+    ``uid`` and ``gid``: become them (no supplementary groups) once the bounding set is
+    empty and before the other sets are, while ``CAP_SETUID`` and ``CAP_SETGID`` still hold.
+    """
     for cap in range(_CAP_LAST + 1):
         _LIBC.prctl(_PR_CAPBSET_DROP, cap, 0, 0, 0)  # EINVAL past the kernel's last: fine
+    if gid is not None:
+        os.setgroups([])
+        os.setresgid(gid, gid, gid)
+    if uid is not None:
+        os.setresuid(uid, uid, uid)
     _checked("no_new_privs", _LIBC.prctl(_PR_SET_NO_NEW_PRIVS, 1, 0, 0, 0))
     _checked("capset", _LIBC.capset(ctypes.byref(_CapHeader(0x20080522, 0)),
                                     (_CapData * 2)()))

@@ -60,6 +60,23 @@ anything else and forks the attempt's own process (:func:`_enclose`: pid 2, no
 capability, ``no_new_privs``), which reads the request only then; the child stays the
 namespace's init, and the runner reaps it as any child: its exit is the attempt's.
 
+A **container** runner (``OSMO_WARM_CONTAINER=1``, started by
+``osmo.runtime.container.warm`` as the pid 1 of a container of the task's image, with no
+``CAP_SYS_ADMIN``) first makes a user namespace of its own (:func:`_own_user_namespace`:
+every uid mapped to itself, written by the container's pid 1, which keeps ``CAP_SETUID``
+where it was: the pool writes them) and in it a pid namespace, and then serves as a sandboxed runner does:
+each child is the pid 1 of a new pid namespace, in a mount, IPC and UTS namespace of its
+own owned by that user namespace (the container's mounts are locked there, podman's
+covers on ``/proc`` too). Its view (:func:`_enclose_container`): the image's root and
+every mount of the container read-only (the container's writable layer is shared by every
+attempt of the runner), an empty ``/tmp`` and ``/dev/shm``, its own ``/dev/pts``, its
+folders' detached mounts at their container paths, a ``/proc`` of its pid namespace
+through the relay, with podman's covers made again on it; its process runs with the
+request's uid and gid. Its end differs: a container runner whose socket's peer is gone
+without a ``retire`` first (the pool was killed) exits at once, and with it every attempt
+(it is the pid 1 of the namespace theirs are below); ``retire`` makes it exit once its
+attempts ended, as a closed socket makes the others.
+
 It must not import anything of the worker or the server.
 """
 
@@ -85,7 +102,8 @@ from typing import Any, NoReturn
 
 from osmo.runtime.process import mounts
 
-__all__ = ["IDLE_VARIABLE", "READY", "RUNNER_MODULE", "SANDBOXED_VARIABLE", "main"]
+__all__ = ["CONTAINER_VARIABLE", "IDLE_VARIABLE", "MAP", "MAPPED", "READY", "RETIRE", "RUNNER_MODULE",
+           "SANDBOXED_VARIABLE", "main"]
 
 READY = b"ready"
 """What the runner sends once it has imported its type."""
@@ -95,6 +113,13 @@ IDLE_VARIABLE = "OSMO_WARM_IDLE"
 """The variable that gives a runner its idle time in seconds (it exits after that long idle)."""
 SANDBOXED_VARIABLE = "OSMO_WARM_SANDBOXED"
 """The variable that makes a runner sandboxed (``1``: each child a new pid namespace's pid 1)."""
+CONTAINER_VARIABLE = "OSMO_WARM_CONTAINER"
+"""The variable that makes a runner a container's (``1``: see the module docstring)."""
+RETIRE = b"retire"
+"""What the pool sends a container runner to retire it (its attempts run on to their end)."""
+MAP, MAPPED = b"map", b"mapped"
+"""A container runner's request for its user namespace's maps, and the pool's answer."""
+_container = False  # set by main: this runner serves attempts in a container
 
 _PR_SET_PDEATHSIG = 1
 _DESCRIPTORS = 4  # stdout, stderr, request pipe, status pipe
@@ -156,8 +181,10 @@ def _sources(folders: Sequence[str]) -> dict[str, int]:
 class _Runner:
     """The serving loop (see the module docstring)."""
 
-    def __init__(self, sock: socket.socket, idle: float, *, sandboxed: bool = False) -> None:
-        self.sock, self.idle = sock, idle
+    def __init__(self, sock: socket.socket, idle: float, *, sandboxed: bool = False,
+                 container: bool = False) -> None:
+        self.sock, self.idle, self.container = sock, idle, container
+        self.retiring = False
         # a sandboxed runner's children: each the pid 1 of a pid namespace of its own, made
         # by an unshare before the fork; the runner returns to its own with this
         self.pid_ns = os.open("/proc/self/ns/pid", os.O_RDONLY | os.O_CLOEXEC) if sandboxed else -1
@@ -184,6 +211,8 @@ class _Runner:
                         os.read(self.wake_r, 4096)
                     self._reap()
                 elif not self._serve_one():
+                    if self.container and not self.retiring:
+                        return  # the pool is gone: this exit ends every attempt
                     self.accepting = False
                     selector.unregister(self.sock)
             self._reap()
@@ -199,9 +228,10 @@ class _Runner:
                                               _DESCRIPTORS + 1 + _BINDS_MAX)
         except OSError:
             return False
-        if not data:
+        if not data or (self.container and data == RETIRE):
             for fd in fds:
                 os.close(fd)
+            self.retiring = bool(data)
             return False
         layout = _layout(data)
         if len(fds) != _DESCRIPTORS + (1 + len(layout["binds"]) if layout else 0):
@@ -356,7 +386,8 @@ def _attempt(out: int, err: int, request: int, *, layout: dict[str, Any] | None 
         for fd in (null, out, err):
             if fd > 2:
                 os.close(fd)
-        cwd = _enclose(layout, extra[0], extra[1:], request) if layout is not None else None
+        enclose = _enclose_container if _container else _enclose
+        cwd = enclose(layout, extra[0], extra[1:], request) if layout is not None else None
         with os.fdopen(request, "rb") as pipe:  # its credentials: read here, never before
             wanted: dict[str, Any] = json.loads(pipe.read(_REQUEST_LIMIT))
         code = _run(list(wanted["argv"]), cwd or str(wanted["cwd"]), dict(wanted["env"]))
@@ -423,6 +454,101 @@ def _enclose(layout: dict[str, Any], relay: int, binds: Sequence[int], request: 
         mounts.drop_privileges()
         return str(layout["cwd"])
     _init(task, request)
+
+
+def _enclose_container(layout: dict[str, Any], relay: int, binds: Sequence[int],
+                       request: int) -> str:
+    """Make this fork a container attempt's (see the module docstring); its working folder.
+
+    As :func:`_enclose`, in the pid 1 of a pid namespace of its own; returns only in the
+    attempt's process (pid 2, the request's ``user``, no capability, ``no_new_privs``).
+    ``layout``: ``binds`` (``[target, writable, folder]``, one detached mount each), ``cwd``
+    and ``user`` (``[uid, gid]``). Missing mount points of the binds are made on the
+    container's root first (empty folders and files, named as the targets: the only trace
+    an attempt leaves there), before the root turns read-only for this attempt.
+    """
+    if os.getpid() != 1:
+        raise OSError("a container attempt's process is not its pid namespace's pid 1")
+    os.umask(0o022)
+    mounts.unshare(mounts.NEWNS | mounts.NEWIPC | mounts.NEWUTS)
+    relay_sock = socket.socket(fileno=relay)
+    context = mounts.proc_context()
+    socket.send_fds(relay_sock, [b"proc"], [context])
+    os.close(context)
+    mounts.make_private()
+    covers = _proc_covers()
+    for target, _, folder in layout["binds"]:
+        with contextlib.suppress(OSError):  # under /tmp: made again on its tmpfs below
+            _mount_point(target, folder)
+    mounts.readonly_tree("/")
+    mounts.mount_tmpfs("/tmp", 0o1777)
+    mounts.mount_tmpfs("/dev/shm", 0o1777)
+    mounts.devpts("/dev/pts")
+    for (target, _, folder), fd in zip(layout["binds"], binds, strict=True):
+        _mount_point(target, folder)
+        mounts.move(fd, target)
+        os.close(fd)
+    _, got, _, _ = socket.recv_fds(relay_sock, 16, 1)
+    relay_sock.close()
+    if not got:
+        raise OSError("the pool did not mount this attempt's /proc")
+    mounts.move(got[0], "/proc")
+    os.close(got[0])
+    mounts.bind("/proc/sys", "/proc/sys", readonly=True)
+    for path, folder in covers:
+        if folder is None:
+            mounts.bind(path, path, readonly=True)
+        elif os.path.exists(path):
+            if folder:
+                mounts.mount_tmpfs(path, 0o555)
+                mounts.readonly_tree(path)
+            else:  # /dev/null's mount has locked flags: add read-only, keep those
+                mounts.bind("/dev/null", path, readonly=False)
+                mounts.readonly_tree(path)
+    uid, gid = layout.get("user") or (0, 0)
+    task = os.fork()
+    if task == 0:
+        mounts.drop_privileges(int(uid), int(gid))
+        return str(layout["cwd"])
+    _init(task, request)
+
+
+def _proc_covers() -> list[tuple[str, bool | None]]:
+    """The engine's covers on the container's ``/proc``, to make again on an attempt's.
+
+    (path, None): a part of ``/proc`` the engine made read-only; (path, True/False): a
+    folder or file it hid (an empty tmpfs, ``/dev/null``).
+    """
+    out: list[tuple[str, bool | None]] = []
+    with open("/proc/self/mountinfo", "rb") as table:
+        for line in table:
+            fields = line.split()
+            point = os.fsdecode(fields[4])
+            if not point.startswith("/proc/") or point == "/proc/sys":
+                continue
+            kind = fields[fields.index(b"-") + 1]
+            out.append((point, None) if kind == b"proc" else (point, os.path.isdir(point)))
+    return out
+
+
+def _own_user_namespace(sock: socket.socket) -> None:
+    """Go on in a new user namespace in which the pool maps every uid and gid to itself.
+
+    A container runner's: the container's pid 1 (this process) has no ``CAP_SYS_ADMIN``,
+    which the runner needs over the namespaces it makes for each attempt; its own user
+    namespace gives it that over them only. Maps naming more than the caller's own uid
+    need a writer with ``CAP_SYS_ADMIN`` and ``CAP_SETUID`` where this process was: the
+    pool, root on the host, which gets a pidfd of this process (``map``) and answers
+    ``mapped`` once it wrote them.
+    """
+    mounts.unshare(mounts.NEWUSER)
+    me = os.pidfd_open(os.getpid())
+    try:
+        socket.send_fds(sock, [MAP], [me])
+    finally:
+        os.close(me)
+    if sock.recv(64) != MAPPED:
+        raise OSError("the pool did not map this runner's user namespace")
 
 
 def _init(task: int, request: int) -> NoReturn:
@@ -588,17 +714,22 @@ def main(argv: Sequence[str] | None = None) -> int:
         sys.stderr.write("usage: python -m osmo.runtime.process.warm_runner FD TYPE VERSION "
                          "[FOLDER ...]\n")
         return 2
-    sandboxed = os.environ.pop(SANDBOXED_VARIABLE, "") == "1"
+    global _container
+    _container = os.environ.pop(CONTAINER_VARIABLE, "") == "1"
+    sandboxed = os.environ.pop(SANDBOXED_VARIABLE, "") == "1" or _container
+    sock = socket.socket(fileno=int(args[0]))
+    if _container:
+        _own_user_namespace(sock)
     if sandboxed:
         _own_pid_namespace(int(args[0]))
-    sock = socket.socket(fileno=int(args[0]))
     why = _load(args[1], args[2], args[3:])
     if why:
         sock.send(f"error: {why}".encode()[:4096])
         return 1
     sock.send(READY + b" " + json.dumps(_sources(args[3:])).encode())
     gc.freeze()  # what an attempt's collector lists is the attempt's own (_flush_files)
-    _Runner(sock, float(os.environ.get(IDLE_VARIABLE, "60")), sandboxed=sandboxed).serve()
+    _Runner(sock, float(os.environ.get(IDLE_VARIABLE, "60")), sandboxed=sandboxed,
+            container=_container).serve()
     return 0
 
 

@@ -1,0 +1,590 @@
+"""Warm runners inside containers: attempts forked from a runner in a container of their image.
+
+The pool's side of ``osmo.runtime.process.warm_runner``'s container mode. Per
+:class:`ContainerWarmKey` (the image id, the task type and its version, the type's folders,
+the network) :class:`ContainerWarmRunners` keeps one runner container:
+``ENGINE run --rm --preserve-fds=1 ...`` in the foreground (stdin and stdout from and to
+``/dev/null``), whose pid 1 is ``python3 -m osmo.runtime.process.warm_runner 3 TYPE VERSION
+PATHS...`` on the image's own interpreter, fd 3 its end of a ``SOCK_SEQPACKET`` pair with
+the pool. What it owns:
+
+- **the runner container**: osmo's code bound read-only at ``/osmo/lib/osmo`` (and the
+  ``osmo_plugins`` package, if installed, at ``/osmo/lib/osmo_plugins``), custom type
+  folders at ``/osmo/types/N``, ``PYTHONPATH`` those then ``/osmo/lib``; labels
+  ``osmo.owner=OWNER`` and ``osmo.warm=1`` (a restarted node's ``clean_orphans`` by owner
+  removes it); the name ``osmo-warm-<hash of owner and key>``. It runs as root in the
+  container with no capability and ``no-new-privileges``: the user namespace it makes
+  for its attempts (every uid mapped to itself) is mapped by the pool (``map``), which
+  has the ``CAP_SYS_ADMIN`` that needs; it holds no credential and no attempt's data.
+- **its death**: the engine's client gets ``PR_SET_PDEATHSIG``; the runner exits when its
+  socket's peer is gone without a ``retire`` (the pool was killed), and its exit ends the
+  container (it is pid 1) and every attempt (their pid namespaces are below its own);
+  ``--rm`` is done by the engine's own exit command even when the client is gone. Idle
+  (``OSMO_WARM_IDLE``), it exits by itself, and the container with it.
+- **each attempt** (:meth:`ContainerWarmRunners.start`, from a ``ContainerRun``): detached
+  clones (``osmo.runtime.process.mounts.detached``) of its mounts' host folders, read-only
+  per ``Mount.read_only``, moved by the attempt's pid 1 to ``Mount.target``; its ``/proc``
+  mounted here from the context its pid 1 sends on a relay socket; its argv and its whole
+  environment (``run.env`` and ``run.secret_env``) only on its own request pipe, written
+  after the fork. ``workdir`` (or ``/``) and ``user`` (``UID:GID``, default root) too.
+- **per-attempt limits**: a cgroup of its own below the runner container's (cgroup v1:
+  ``memory`` and ``cpu`` hierarchies; the container's path from ``/proc/RUNNER/cgroup``)
+  with ``memory.limit_in_bytes`` = ``run.memory`` and a CFS quota of ``run.cpus``; the
+  attempt's host pid (from its pidfd) is moved in *before* its request is written (its
+  process forks only after), and the cgroup is removed at ``release``. A cgroup that cannot
+  be made fails the start (``StartError``): never an attempt without its limits. cgroup v2
+  would need a leaf for the runner itself (no process may sit in an inner cgroup that has
+  controllers enabled for children): the runner would move itself to ``RUNNER/runner``
+  and each attempt get ``RUNNER/attempt-PID`` with ``memory.max`` and ``cpu.max``; not
+  done here (this machine has v1), so on v2 an attempt with limits fails to start.
+
+Kill, reap and release keep ``osmo.runtime.api.ProcessHandle``'s contract as
+``osmo.runtime.process.warm`` does (SIGTERM/SIGKILL through the pidfd, then the group;
+``128+N``; ``lost`` when the runner died under the attempt).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import importlib.util
+import json
+import logging
+import os
+import signal
+import socket
+import subprocess
+import threading
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from osmo.runtime.api import StartError
+from osmo.runtime.container.engine import ContainerEngine
+from osmo.runtime.container.run import ContainerRun, Mount
+from osmo.runtime.process import mounts
+from osmo.runtime.process.groups import die_with_parent
+from osmo.runtime.process.proctable import process_start_time, start_clock
+from osmo.runtime.process.warm import (
+    DEFAULT_IDLE,
+    WarmHandle,
+    _Forked,
+    _mount_proc,
+    _pidfd_pid,
+    _pipe,
+    _receive,
+)
+from osmo.runtime.process.warm_runner import (
+    CONTAINER_VARIABLE,
+    IDLE_VARIABLE,
+    MAP,
+    MAPPED,
+    READY,
+    RETIRE,
+)
+
+__all__ = ["CODE_ROOT", "ContainerWarmHandle", "ContainerWarmKey", "ContainerWarmRunners",
+           "WARM_LABEL"]
+
+_log = logging.getLogger("osmo.worker.pool")
+
+CODE_ROOT = "/osmo/lib"
+"""Where osmo's code is bound (read-only) in a runner container."""
+TYPES_ROOT = "/osmo/types"
+"""Where a custom type's folders are bound (read-only) in a runner container, ``/N`` each."""
+WARM_LABEL = "osmo.warm"
+"""The label every runner container carries (``1``)."""
+_READY_TIMEOUT = 300.0
+_REPLY_TIMEOUT = 30.0
+_CGROUP_ROOT = Path("/sys/fs/cgroup")
+_CFS_PERIOD = 100_000
+_ID_MAP = "0 0 4294967295"  # every uid and gid to itself
+
+
+@dataclass(frozen=True)
+class ContainerWarmKey:
+    """What one runner container serves.
+
+    Attributes:
+        image: the image (its id: a tag moved meanwhile changes nothing).
+        type: the task type as the spec writes it (empty: a runner of commands).
+        version: the version it was submitted against (None: any).
+        paths: the host folders a custom type is imported from.
+        network: the runner container's ``--network`` (None: the engine's default).
+    """
+
+    image: str
+    type: str
+    version: str | None = None
+    paths: tuple[str, ...] = ()
+    network: str | None = None
+
+
+@dataclass(eq=False)
+class ContainerWarmHandle(WarmHandle):
+    """An attempt forked in a runner container.
+
+    Attributes:
+        cgroups: the folders of its own cgroups (removed at release).
+        container: its runner container's name.
+    """
+
+    cgroups: tuple[str, ...] = ()
+    container: str = ""
+
+
+@dataclass(eq=False)
+class _Runner:
+    key: ContainerWarmKey
+    name: str
+    popen: subprocess.Popen[bytes]
+    sock: socket.socket
+    main: int  # the runner's host pid (below the container's pid 1 and its waiter)
+    cgroups: dict[str, Path]  # controller -> the container's cgroup folder
+    lock: threading.Lock = field(default_factory=threading.Lock)
+    started: int = 0
+    broken: bool = False
+
+    def alive(self) -> bool:
+        return not self.broken and self.popen.poll() is None
+
+    def retire(self) -> None:
+        """No more attempts: it exits once those running ended."""
+        self.broken = True
+        with self.lock:
+            with contextlib.suppress(OSError):
+                self.sock.send(RETIRE)
+            with contextlib.suppress(OSError):
+                self.sock.shutdown(socket.SHUT_RDWR)
+            self.sock.close()
+
+
+class ContainerWarmRunners:
+    """The runner containers of one node (see the module docstring).
+
+    Args:
+        engine: the engine (podman: ``--preserve-fds``).
+        owner: the node's ``osmo.owner`` label value.
+        idle: seconds a runner waits for its next attempt before it (and its container) ends.
+        labels: more labels for the runner containers.
+    """
+
+    def __init__(self, engine: ContainerEngine, owner: str, *, idle: float = DEFAULT_IDLE,
+                 labels: Mapping[str, str] | None = None) -> None:
+        self.engine, self.owner, self.idle = engine, owner, idle
+        self.labels = {**(labels or {}), "osmo.owner": owner, WARM_LABEL: "1"}
+        self._runners: dict[ContainerWarmKey, _Runner] = {}
+        self._refused: dict[ContainerWarmKey, str] = {}
+        self._lock = threading.Lock()
+        self._closed = False
+
+    # ------------------------------------------------------------ runners
+
+    def ready(self, key: ContainerWarmKey) -> bool:
+        """Whether attempts of ``key`` can start warm now; starts its container (blocks)."""
+        return self._runner(key) is not None
+
+    def refused(self, key: ContainerWarmKey) -> str | None:
+        """Why ``key`` cannot run warm (None: it can, or was not tried)."""
+        return self._refused.get(key)
+
+    def runner(self, key: ContainerWarmKey) -> tuple[str, int] | None:
+        """The live runner of ``key``: its container's name and the runner's host pid."""
+        with self._lock:
+            found = self._runners.get(key)
+        return (found.name, found.main) if found is not None and found.alive() else None
+
+    def _runner(self, key: ContainerWarmKey) -> _Runner | None:
+        with self._lock:
+            if self._closed or key in self._refused:
+                return None
+            found = self._runners.get(key)
+            if found is not None and found.alive():
+                return found
+            if found is not None:
+                del self._runners[key]
+                found.retire()
+            made = self._spawn(key)
+            if made is not None:
+                self._runners[key] = made
+            return made
+
+    def name(self, key: ContainerWarmKey) -> str:
+        """The runner container's name for ``key``."""
+        digest = hashlib.sha256(json.dumps([self.owner, key.image, key.type, key.version,
+                                            key.paths, key.network]).encode())
+        return f"osmo-warm-{digest.hexdigest()[:12]}"
+
+    def argv(self, key: ContainerWarmKey) -> list[str]:
+        """The engine's ``run`` argv of ``key``'s runner container (its socket at fd 3)."""
+        engine = self.engine.engine
+        binds = [Mount(Path(_package("osmo")), f"{CODE_ROOT}/osmo")]
+        plugins = _package("osmo_plugins")
+        if plugins:
+            binds.append(Mount(Path(plugins), f"{CODE_ROOT}/osmo_plugins"))
+        types = [f"{TYPES_ROOT}/{i}" for i in range(len(key.paths))]
+        binds += [Mount(Path(path), target) for path, target in zip(key.paths, types, strict=True)]
+        entry = json.dumps(["python3"]) if engine.name == "podman" else "python3"
+        argv = [engine.path, "run", "--rm", "--preserve-fds=1", f"--name={self.name(key)}",
+                "--pull=never", "--user=0:0", "--cap-drop=all",
+                "--security-opt=no-new-privileges",
+                *(f"--label={k}={v}" for k, v in sorted(self.labels.items())),
+                *([f"--network={key.network}"] if key.network else []),
+                *(f"--mount=type=bind,source={m.source},destination={m.target},ro=true"
+                  for m in binds),
+                f"--env=PYTHONPATH={':'.join([*types, CODE_ROOT])}",
+                "--env=PYTHONDONTWRITEBYTECODE=1", f"--env={IDLE_VARIABLE}={self.idle:g}",
+                f"--env={CONTAINER_VARIABLE}=1", f"--entrypoint={entry}", key.image,
+                "-m", "osmo.runtime.process.warm_runner", "3", key.type,
+                key.version or "-", *types]
+        return argv
+
+    def _spawn(self, key: ContainerWarmKey) -> _Runner | None:
+        ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        fd = theirs.fileno()
+        deathsig = die_with_parent()
+
+        def child() -> None:  # the runner's end at fd 3, as --preserve-fds=1 passes it
+            deathsig()
+            os.dup2(fd, 3)
+
+        try:
+            popen = subprocess.Popen(self.argv(key), env=self.engine.env, cwd="/",
+                                     stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                     stderr=subprocess.PIPE, start_new_session=True,
+                                     preexec_fn=child, pass_fds=(3,))
+        except (OSError, subprocess.SubprocessError) as exc:
+            ours.close()
+            self._refuse(key, f"cannot start a warm runner container: {exc}")
+            return None
+        finally:
+            theirs.close()
+        try:
+            reply, fds = _receive(ours, _READY_TIMEOUT)
+            if reply == MAP and fds:
+                _map_users(fds[0])
+                ours.send(MAPPED)
+                reply = _receive(ours, _READY_TIMEOUT)[0]
+            else:
+                for fd in fds:
+                    os.close(fd)
+        except OSError as exc:
+            reply = f"error: {exc}".encode()
+        if not reply.startswith(READY):
+            ours.close()
+            why = reply.decode("utf-8", "replace").removeprefix("error: ")
+            with contextlib.suppress(ProcessLookupError):
+                popen.kill()
+            _, err = popen.communicate()
+            self._refuse(key, why or err.decode("utf-8", "replace").strip()[-2000:]
+                         or "the warm runner container exited while importing")
+            return None
+        assert popen.stderr is not None
+        popen.stderr.close()  # nothing more is read from the client: never fills its pipe
+        popen.stderr = None
+        name = self.name(key)
+        main = self._runner_pid(name)
+        runner = _Runner(key, name, popen, ours, main, _cgroups(main))
+        return runner
+
+    def _runner_pid(self, name: str) -> int:
+        """The runner's host pid: the child of the container's pid 1 (which waits for it)."""
+        top = int(self.engine.call("inspect", "--format={{.State.Pid}}", name).strip() or 0)
+        pid = top
+        for _ in range(1):
+            deadline = time.monotonic() + 5
+            while True:
+                try:
+                    children = Path(f"/proc/{pid}/task/{pid}/children").read_text().split()
+                except OSError:
+                    children = []
+                if children or time.monotonic() > deadline:
+                    break
+                time.sleep(0.01)
+            pid = int(children[0]) if children else pid
+        return pid
+
+    def _refuse(self, key: ContainerWarmKey, why: str) -> None:
+        _log.info("image %s, type %s runs cold: %s", key.image, key.type, why)
+        self._refused[key] = why
+
+    def sweep(self) -> None:
+        """Forget (and reap) runners whose container ended."""
+        with self._lock:
+            for key, runner in list(self._runners.items()):
+                if runner.popen.poll() is not None:
+                    del self._runners[key]
+                    runner.retire()
+
+    def close(self) -> None:
+        """The node stops: every runner container is ended, with what still runs in it."""
+        with self._lock:
+            self._closed = True
+            found = list(self._runners.values())
+            self._runners.clear()
+        for runner in found:
+            runner.broken = True
+            with runner.lock:  # a closed socket without ``retire``: it exits at once
+                with contextlib.suppress(OSError):
+                    runner.sock.shutdown(socket.SHUT_RDWR)
+                runner.sock.close()
+            try:
+                runner.popen.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                runner.popen.kill()
+                runner.popen.wait()
+
+    # ------------------------------------------------------------ attempts
+
+    def start(self, key: ContainerWarmKey, run: ContainerRun) -> ContainerWarmHandle:
+        """Fork ``run``'s attempt in ``key``'s runner container (started if need be).
+
+        Only ``run``'s argv, env, secret_env, mounts, workdir, user, cpus and memory are
+        used: the image, network and names are the runner container's.
+
+        Raises:
+            StartError: no runner, a mount or its limits cannot be set up, or the runner
+                failed to fork it.
+        """
+        if not run.argv:
+            raise StartError("a warm container attempt needs a command")
+        runner = self._runner(key)
+        if runner is None:
+            raise StartError(f"cannot start '{run.argv[0]}' warm: "
+                             f"{self.refused(key) or 'no warm runner'}")
+        try:
+            return self._fork(runner, run)
+        except OSError as exc:
+            if not runner.alive():
+                with self._lock:
+                    if self._runners.get(key) is runner:
+                        del self._runners[key]
+                runner.retire()
+            raise StartError(f"cannot start '{run.argv[0]}' warm: {exc}") from exc
+
+    def _fork(self, runner: _Runner, run: ContainerRun) -> ContainerWarmHandle:
+        made: list[int] = []
+        groups: list[str] = []
+        relay: socket.socket | None = None
+        pidfd = -1
+        try:
+            out_r, out_w = _pipe(made)
+            err_r, err_w = _pipe(made)
+            req_r, req_w = _pipe(made)
+            status_r, status_w = _pipe(made)
+            binds: list[list[object]] = []
+            clones: list[int] = []
+            for mount in run.mounts:
+                fd = mounts.detached(str(mount.source), readonly=mount.read_only)
+                made.append(fd)
+                clones.append(fd)
+                binds.append([mount.target, not mount.read_only, mount.source.is_dir()])
+            ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+            relay = ours
+            made.append(theirs.detach())
+            request = b"fork " + json.dumps({"binds": binds, "cwd": run.workdir or "/",
+                                             "user": _user(run.user)}).encode()
+            started_at = start_clock()
+            passed = [out_w, err_w, req_r, status_w, made[-1], *clones]
+            with runner.lock:
+                if runner.broken:
+                    raise OSError("the runner retired")
+                socket.send_fds(runner.sock, [request], passed)
+                reply, fds = _receive(runner.sock, _REPLY_TIMEOUT)
+            for fd in passed:
+                os.close(fd)
+                made.remove(fd)
+            if not reply or not fds or not reply.isdigit():
+                for fd in fds:
+                    os.close(fd)
+                runner.broken = runner.broken or not reply
+                raise OSError(f"the runner answered {reply[:200]!r}")
+            pidfd = fds[0]
+            pid = _pidfd_pid(pidfd)
+            if not pid:
+                raise OSError("the attempt ended before it started")
+            if run.memory or run.cpus:  # before its process is forked (after its /proc)
+                groups = _limit(runner.cgroups, pid, run.memory, run.cpus)
+            _mount_proc(relay)
+            relay.close()
+            relay = None
+            _write_request(req_w, run)
+            made.remove(req_w)
+        except BaseException:
+            if pidfd >= 0:
+                with contextlib.suppress(OSError):
+                    signal.pidfd_send_signal(pidfd, signal.SIGKILL)
+                os.close(pidfd)
+            if relay is not None:
+                relay.close()
+            for fd in made:
+                os.close(fd)
+            _remove_groups(groups)
+            raise
+        for fd in (out_r, err_r, status_r):
+            os.set_blocking(fd, False)
+        runner.started += 1
+        handle = ContainerWarmHandle(pid, status_r, out_r, err_r, _Forked(pid), pidfd=pidfd,
+                                     runner=runner.main, cgroups=tuple(groups),
+                                     container=runner.name)
+        handle.started_at = process_start_time(pid) or started_at
+        return handle
+
+    def kill(self, handle: ContainerWarmHandle, *, force: bool = False) -> None:
+        """SIGTERM (SIGKILL when ``force``) to the attempt, through its pidfd and its group.
+
+        Its pid 1 takes no SIGTERM from outside (a namespace's init without a handler):
+        the group, which its process shares, brings it there. Never raises.
+        """
+        if handle.popen.returncode is not None or handle.pidfd < 0:
+            return
+        sig = signal.SIGKILL if force else signal.SIGTERM
+        try:
+            signal.pidfd_send_signal(handle.pidfd, sig)
+        except OSError:
+            return
+        with contextlib.suppress(OSError):
+            os.killpg(handle.pid, sig)
+
+    def reap(self, handle: ContainerWarmHandle) -> int:
+        """The exit code the runner reported (``lost`` when it died first: 137)."""
+        if handle.popen.returncode is not None:
+            return handle.popen.returncode
+        try:
+            data = os.read(handle.exit_fd, 64)
+        except OSError:
+            data = b""
+        text = data.strip()
+        if text.isdigit():
+            code = int(text)
+        else:
+            code = 128 + signal.SIGKILL
+            handle.lost = "its warm runner container ended while it ran"
+            with contextlib.suppress(OSError):
+                signal.pidfd_send_signal(handle.pidfd, signal.SIGKILL)
+        with contextlib.suppress(OSError):
+            os.killpg(handle.pid, signal.SIGKILL)
+        handle.popen.returncode = code
+        return code
+
+    def release(self, handle: ContainerWarmHandle) -> None:
+        """Close its descriptors and remove its cgroups (idempotent)."""
+        for name in ("exit_fd", "stdout_fd", "stderr_fd", "pidfd"):
+            fd = getattr(handle, name)
+            if fd >= 0:
+                with contextlib.suppress(OSError):
+                    os.close(fd)
+                setattr(handle, name, -1)
+        _remove_groups(handle.cgroups)
+        handle.cgroups = ()
+
+
+def _map_users(pidfd: int) -> None:
+    """Map every uid and gid to itself in the user namespace of the runner ``pidfd`` names.
+
+    Only a process with ``CAP_SYS_ADMIN`` and ``CAP_SETUID`` in the container's user
+    namespace (the host's, for a rootful engine) may write such maps: this one. Closes
+    ``pidfd``.
+    """
+    try:
+        pid = _pidfd_pid(pidfd)
+        if not pid:
+            raise OSError("the runner ended before its user namespace was mapped")
+        for name in ("uid_map", "gid_map"):
+            Path(f"/proc/{pid}/{name}").write_text(_ID_MAP)
+    finally:
+        os.close(pidfd)
+
+
+def _package(name: str) -> str:
+    """The host folder of the package ``name`` (empty: not installed)."""
+    spec = importlib.util.find_spec(name)
+    if spec is None or not spec.submodule_search_locations:
+        return ""
+    return str(Path(next(iter(spec.submodule_search_locations))).resolve())
+
+
+def _user(user: str | None) -> list[int]:
+    """``UID:GID`` (numbers only: the image's names are not looked up) as [uid, gid]."""
+    if not user:
+        return [0, 0]
+    uid, _, gid = user.partition(":")
+    if not uid.isdigit() or (gid and not gid.isdigit()):
+        raise OSError(f"a warm container attempt's user must be UID:GID, not {user!r}")
+    return [int(uid), int(gid or uid)]
+
+
+def _write_request(fd: int, run: ContainerRun) -> None:
+    """The attempt's argv, folder and environment, for its process only; closes ``fd``."""
+    data = json.dumps({"argv": list(run.argv), "cwd": run.workdir or "/",
+                       "env": {**run.env, **run.secret_env}}).encode()
+    try:
+        with os.fdopen(fd, "wb") as pipe:
+            pipe.write(data)
+    except BrokenPipeError:
+        pass
+
+
+def _cgroups(pid: int) -> dict[str, Path]:
+    """The cgroup v1 folders (``memory``, ``cpu``) of ``pid`` (empty: none found, or v2)."""
+    found: dict[str, Path] = {}
+    try:
+        lines = Path(f"/proc/{pid}/cgroup").read_text().splitlines()
+    except OSError:
+        return found
+    for line in lines:
+        _, controllers, path = line.split(":", 2)
+        for controller in controllers.split(","):
+            folder = _CGROUP_ROOT / controller / path.lstrip("/")
+            if controller in ("memory", "cpu") and folder.is_dir():
+                found[controller] = folder
+    return found
+
+
+def _limit(cgroups: Mapping[str, Path], pid: int, memory: int | None,
+           cpus: float | None) -> list[str]:
+    """Make ``pid``'s own cgroups below the runner's with these limits, move it in.
+
+    Raises:
+        OSError: a cgroup cannot be made, limited or entered (what is made is removed).
+    """
+    wanted = {"memory": memory, "cpu": cpus}
+    made: list[str] = []
+    try:
+        for controller, value in wanted.items():
+            if not value:
+                continue
+            parent = cgroups.get(controller)
+            if parent is None:
+                raise OSError(f"no cgroup v1 '{controller}' hierarchy for the runner container "
+                              "(cgroup v2 is not supported for warm container limits)")
+            folder = parent / f"osmo-attempt-{pid}"
+            folder.mkdir()
+            made.append(str(folder))
+            if controller == "memory":
+                (folder / "memory.limit_in_bytes").write_text(str(int(value)))
+            else:
+                (folder / "cpu.cfs_period_us").write_text(str(_CFS_PERIOD))
+                (folder / "cpu.cfs_quota_us").write_text(str(max(int(value * _CFS_PERIOD),
+                                                                 1000)))
+            (folder / "cgroup.procs").write_text(str(pid))
+    except OSError as exc:
+        _remove_groups(made)
+        raise OSError(f"cannot limit the attempt in its own cgroup: {exc}") from exc
+    return made
+
+
+def _remove_groups(folders: Sequence[str]) -> None:
+    """Remove attempts' cgroups once their processes are gone (a few tries: exits settle)."""
+    for folder in folders:
+        for _ in range(50):
+            try:
+                os.rmdir(folder)
+                break
+            except FileNotFoundError:
+                break
+            except OSError:
+                time.sleep(0.02)
+        else:
+            _log.warning("cannot remove the cgroup %s", folder)
