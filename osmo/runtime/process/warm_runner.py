@@ -63,8 +63,9 @@ namespace's init, and the runner reaps it as any child: its exit is the attempt'
 A **container** runner (``OSMO_WARM_CONTAINER=1``, started by
 ``osmo.runtime.container.warm`` as the pid 1 of a container of the task's image, with no
 ``CAP_SYS_ADMIN``) first makes a user namespace of its own (:func:`_own_user_namespace`:
-every uid mapped to itself, written by the container's pid 1, which keeps ``CAP_SETUID``
-where it was: the pool writes them) and in it a pid namespace, and then serves as a sandboxed runner does:
+every uid mapped to itself; a process without ``CAP_SYS_ADMIN`` cannot write such maps
+where it was: the pool writes them) and in it a pid namespace, and then serves as a
+sandboxed runner does:
 each child is the pid 1 of a new pid namespace, in a mount, IPC and UTS namespace of its
 own owned by that user namespace (the container's mounts are locked there, podman's
 covers on ``/proc`` too). Its view (:func:`_enclose_container`): the image's root and
@@ -102,8 +103,8 @@ from typing import Any, NoReturn
 
 from osmo.runtime.process import mounts
 
-__all__ = ["CONTAINER_VARIABLE", "IDLE_VARIABLE", "MAP", "MAPPED", "READY", "RETIRE", "RUNNER_MODULE",
-           "SANDBOXED_VARIABLE", "main"]
+__all__ = ["CONTAINER_VARIABLE", "IDLE_VARIABLE", "MAP", "MAPPED", "READY", "RETIRE",
+           "RUNNER_MODULE", "SANDBOXED_VARIABLE", "main"]
 
 READY = b"ready"
 """What the runner sends once it has imported its type."""
