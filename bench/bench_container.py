@@ -18,6 +18,11 @@ busy moment of a shared machine hits all of them alike:
 - **the same as a process** — the same task without ``image:`` on the same server.
 - **200-task container fan-out** — one workflow of 200 such tasks (``--cpus 2``: two at a
   time), wall time per task from submit to COMPLETED.
+- **typed tasks in their image, warm and cold** — a 40-task fan-out of a custom type (a
+  few milliseconds of Python) with ``image:`` the Python test image: per task, from submit
+  to COMPLETED, its attempts forked from a runner container (warm) and each in a container
+  of its own (``warm: false``), the two workflows alternated; the runner's start is in the
+  first warm round only (one warm-up workflow of each before).
 
 The image is the busybox ``alpine:3.18`` of the container tests (``tests/containers/images.py``,
 built offline in well under a second). On machines that need it (FACTS.md: no
@@ -81,6 +86,50 @@ def with_osmo_options(env: dict[str, str], folder: Path, engine: EngineInfo) -> 
     subprocess.run(run_argv(engine, run), check=True, env=env, stdin=subprocess.DEVNULL)
 
 
+TYPED = """
+import json, os
+from osmo import task_type
+
+@task_type(version="1")
+def small(ctx):
+    total = sum(i * i for i in range(20000))
+    (ctx.output / "v.json").write_text(json.dumps({"total": total, "pid": os.getpid()}))
+"""
+
+
+def typed_in_image(home: str, rounds: int, tasks: int, image: str, folder: Path
+                   ) -> tuple[list[float], list[float]]:
+    """Per task ms of a ``tasks``-task fan-out of a typed task in ``image``: warm, cold."""
+    (folder / "typedbench.py").write_text(TYPED)
+
+    def spec(warm: bool, index: int) -> Path:
+        lines = ["workflow:", f"  name: typed-{'warm' if warm else 'cold'}-{index}", "  tasks:"]
+        for i in range(tasks):
+            lines += [f"  - name: t{i}", "    type: typedbench:small", f"    image: {image}"]
+            lines += [] if warm else ["    warm: false"]
+        path = folder / f"typed-{warm}-{index}.yaml"
+        path.write_text("\n".join(lines) + "\n")
+        return path
+
+    start_server(home, ServerOptions(runtime="container", cpus=2))
+    warm_ms: list[float] = []
+    cold_ms: list[float] = []
+    try:
+        with osmo.Client(home=home) as client:
+            for index in range(-1, rounds):
+                for warm, out in ((True, warm_ms), (False, cold_ms)):
+                    t0 = time.perf_counter()
+                    info = client.wait(client.submit(spec(warm, index), no_cache=True),
+                                       min_interval=0.05)
+                    if not info.ok:
+                        raise SystemExit(f"typed fan-out ended {info.status.name}")
+                    if index >= 0:  # the first of each: images, page cache, the runner
+                        out.append((time.perf_counter() - t0) * 1000 / tasks)
+    finally:
+        stop_server(home)
+    return warm_ms, cold_ms
+
+
 def through_osmo(home: str, runs: int, fanout: int, env: dict[str, str], folder: Path,
                  engine: EngineInfo) -> tuple[list[float], ...]:
     """Per round: bare ms, osmo's options ms, 1-task workflow ms, as a process ms; fan-out."""
@@ -136,13 +185,15 @@ def main() -> None:
         print("podman is not installed: no container rows")
         write_rows(args.json, [])
         return
-    from tests.containers.images import ensure_images, write_containers_conf
+    from tests.containers.images import KINDS_PYTHON, ensure_images, write_containers_conf
 
     with tempfile.TemporaryDirectory(prefix="osmo-bench-container-") as tmp:
         folder = Path(tmp)
         env = dict(os.environ)
         env.setdefault("CONTAINERS_CONF", str(write_containers_conf(folder)))
         ensure_images(env)
+        python_image = next(name for name in ensure_images(env, KINDS_PYTHON)
+                            if not name.startswith("localhost/"))
         (folder / "in").mkdir()
         (folder / "out").mkdir()
         version = subprocess.run(["podman", "--version"], capture_output=True, text=True,
@@ -152,6 +203,9 @@ def main() -> None:
         limit, options, boxed, plain, per_task = through_osmo(
             str(folder / "home"), runs, fanout, env, folder, engine)
         added = [b - bare_ms for b, bare_ms in zip(boxed, limit, strict=True)]
+        typed_tasks = 4 if quick() else 40
+        warm_ms, cold_ms = typed_in_image(str(folder / "home-typed"), 1 if quick() else 3,
+                                          typed_tasks, python_image, folder)
     rows = [row(LIMIT, "ms", limit, higher_is_better=False,
                 notes=f"{version}, busybox image, sequential, default network"),
             row("container: `podman run` with osmo's options (run_argv), no pool", "ms", options,
@@ -168,7 +222,13 @@ def main() -> None:
                 higher_is_better=False, notes="same server, interleaved runs"),
             row(f"container: {fanout}-task container fan-out, per task (2 at a time)", "ms",
                 per_task, higher_is_better=False,
-                notes="one workflow, --cpus 2, wall time submit → COMPLETED / tasks")]
+                notes="one workflow, --cpus 2, wall time submit → COMPLETED / tasks"),
+            row(f"container: typed task in its image, {typed_tasks}-task fan-out, per task, "
+                "warm (runner container)", "ms", warm_ms, higher_is_better=False,
+                notes="custom type, Python test image, --cpus 2; alternated with cold"),
+            row(f"container: typed task in its image, {typed_tasks}-task fan-out, per task, "
+                "cold (warm: false)", "ms", cold_ms, higher_is_better=False,
+                notes="a container (podman run) and a fresh interpreter per attempt")]
     write_rows(args.json, rows)
 
 

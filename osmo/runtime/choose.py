@@ -238,7 +238,9 @@ def containers_for_node(runtime: str, engine: str | None, home: Home
     found = container_engine(runtime, engine)
     if found is None:
         return None
-    made = ContainerRuntime(found, owner=owner_id(home.root), hidden=(home.root,))
+    cover = home.root / "cover"  # empty: what covers osmo's files in a type's folder
+    cover.mkdir(mode=0o555, parents=True, exist_ok=True)
+    made = ContainerRuntime(found, owner=owner_id(home.root), hidden=(home.root,), cover=cover)
     made.clean_orphans()
     return made
 

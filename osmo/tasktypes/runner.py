@@ -104,9 +104,10 @@ def run_context_file(path: Path) -> int:
             sys.path.insert(0, folder)
     ref = str(data["type"])
     try:
-        obj = _resolved.get((ref, tuple(sys.path)))
-        if obj is None:  # in an image, an installed type comes as its entry point
-            obj = resolve(str(data.get("entry") or ref))
+        target = str(data.get("entry") or ref)  # in an image: an installed type's entry point
+        obj = _resolved.get((target, tuple(sys.path)))
+        if obj is None:
+            obj = resolve(target)
     except OsmoError as exc:
         return _fail(str(exc))
     expected = data.get("type_version")

@@ -86,6 +86,7 @@ from osmo.layout import Home
 from osmo.options import DEFAULT_LOG_LIMIT, SandboxMode, WarmOptions
 from osmo.runtime.api import Adopting, Runtime, Terms
 from osmo.runtime.choose import Runtimes, processes_for_node
+from osmo.runtime.container import ContainerRuntime
 from osmo.runtime.process.sandbox import Sandbox
 from osmo.runtime.process.warm import WarmRunners
 from osmo.scheduler.types import (
@@ -220,6 +221,9 @@ class LocalPool:
         self.no_sandbox_why, self.sandbox_warning = process.why, process.warning
         if self.sandbox_warning:
             _log.warning("%s", self.sandbox_warning)
+        if warm.on and isinstance(containers, ContainerRuntime):  # typed tasks in images
+            containers.warm_up(idle=warm.idle, max_rss=warm.max_memory)
+        self._boxes = containers if isinstance(containers, ContainerRuntime) else None
         self._runtimes = Runtimes(process, containers, cluster, cluster_images)
         self._procs = ProcessRecords(procs_dir) if procs_dir is not None else None
         self._attempts = Attempts()
@@ -239,7 +243,7 @@ class LocalPool:
             env=base, task_secrets=task_secrets,
             credential_for=credential_for, artifacts=artifacts, input_manifests=input_manifests,
             log_sink=log_sink, log_limit=log_limit, journal=journal)
-        if self.warm is not None:
+        if self.warm is not None or self._boxes is not None:
             self._reactor.call_soon(self._sweep_warm)
 
     # -------------------------------------------------------------- public (any thread)
@@ -276,8 +280,13 @@ class LocalPool:
                                 terms or Terms())
 
     def warm_runners(self) -> list[dict[str, object]]:
-        """Its live warm runners, as ``osmo resource list`` shows them (JSON)."""
-        return [r.to_dict() for r in self.warm.runners()] if self.warm is not None else []
+        """Its live warm runners, as ``osmo resource list`` shows them (JSON).
+
+        Its host processes' runners, then its runner containers'.
+        """
+        found = self.warm.runners() if self.warm is not None else []
+        found += self._boxes.warm_runners() if self._boxes is not None else []
+        return [r.to_dict() for r in found]
 
     def runtime_name(self) -> str:
         """How this pool runs image tasks: ``container (podman 4.3.1)`` or ``process``."""
@@ -354,8 +363,10 @@ class LocalPool:
 
     def _sweep_warm(self) -> None:
         """Reap the warm runners that exited (idle, or retired), and again in a while."""
-        assert self.warm is not None
-        self.warm.sweep()
+        if self.warm is not None:
+            self.warm.sweep()
+        if self._boxes is not None:
+            self._boxes.sweep()
         self._reactor.call_later(_WARM_SWEEP, self._sweep_warm)
 
     def _run(self, attempt_id: str) -> None:

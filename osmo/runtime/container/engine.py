@@ -158,15 +158,15 @@ class ContainerEngine:
         return ImageInfo(ident if ident.startswith("sha256:") else f"sha256:{ident}",
                          tuple(digests))
 
-    def image_variables(self, image: str) -> frozenset[str]:
-        """The names of the variables image ``image`` sets (its ``ENV``).
+    def image_environment(self, image: str) -> dict[str, str]:
+        """The variables image ``image`` sets (its ``ENV``).
 
         Raises:
             ContainerError: the engine cannot inspect it.
         """
         out = self.call("image", "inspect", "--format",
                         "{{range .Config.Env}}{{println .}}{{end}}", "--", image)
-        return frozenset(line.partition("=")[0] for line in out.splitlines() if "=" in line)
+        return dict(line.split("=", 1) for line in out.splitlines() if "=" in line)
 
     def store_stamp(self) -> tuple[int, int, int] | None:
         """A fingerprint of the local image store that changes with every image change.

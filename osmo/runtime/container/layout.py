@@ -36,7 +36,8 @@ from osmo.layout import AttemptDirs
 from osmo.runtime.api import Paths, RunnerPaths
 from osmo.runtime.container.run import DATA_INPUT, DATA_OUTPUT, Mount, data_input
 
-__all__ = ["DATA_LAYOUT", "RUNNER_PATHS", "WORKDIR", "CoverError", "mounts", "runner_mounts"]
+__all__ = ["DATA_LAYOUT", "RUNNER_PATHS", "WORKDIR", "CoverError", "code_mounts", "mounts",
+           "runner_mounts"]
 
 WORKDIR = "/osmo/run/work"
 """Where the attempt's working folder is bound (relative ``files:``, a typed task)."""
@@ -81,8 +82,28 @@ def runner_mounts(dirs: AttemptDirs, packages: Mapping[str, Path], type_paths: S
                   hidden: Sequence[Path] = (), empty: Path | None = None) -> tuple[Mount, ...]:
     """The binds a typed task's runner needs in its image (:data:`RUNNER_PATHS`).
 
+    Its context file and working folder, then :func:`code_mounts`.
+
     Args:
         dirs: the attempt's folder (its context file and working folder).
+        packages: as :func:`code_mounts`.
+        type_paths: as :func:`code_mounts`.
+        hidden: as :func:`code_mounts`.
+        empty: as :func:`code_mounts`.
+
+    Raises:
+        CoverError: a type folder is, or lies inside, a hidden path.
+    """
+    shown = RUNNER_PATHS
+    return (Mount(dirs.context, shown.context), Mount(dirs.work, shown.workdir, read_only=False),
+            *code_mounts(packages, type_paths, hidden, empty))
+
+
+def code_mounts(packages: Mapping[str, Path], type_paths: Sequence[str],
+                hidden: Sequence[Path] = (), empty: Path | None = None) -> tuple[Mount, ...]:
+    """The binds of osmo's own packages and a custom type's folders, read-only.
+
+    Args:
         packages: osmo's own packages by name (``osmo.tasktypes.registry.shipped_packages``).
         type_paths: the folders a custom type is imported from (the client's word).
         hidden: what no task may see (osmo's homes, token files): covered where a type
@@ -94,10 +115,7 @@ def runner_mounts(dirs: AttemptDirs, packages: Mapping[str, Path], type_paths: S
         CoverError: a type folder is, or lies inside, a hidden path.
     """
     shown = RUNNER_PATHS
-    binds = [Mount(dirs.context, shown.context),
-             Mount(dirs.work, shown.workdir, read_only=False)]
-    binds += [Mount(folder, posixpath.join(shown.code, name))
-              for name, folder in packages.items()]
+    binds = [Mount(folder, posixpath.join(shown.code, name)) for name, folder in packages.items()]
     secret = [Path(os.path.realpath(path)) for path in hidden]
     for index, folder in enumerate(type_paths):
         real, target = Path(os.path.realpath(folder)), shown.types.format(index)

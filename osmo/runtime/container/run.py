@@ -52,6 +52,7 @@ from osmo.errors import OsmoError
 from osmo.names import image_problem
 
 __all__ = ["DATA_INPUT", "DATA_OUTPUT", "POD_CAPABILITIES", "SECRET_ENV_PATH", "ContainerError",
+           "mount_option",
            "ContainerRun", "EngineInfo", "Mount", "RegistryAuth", "data_input", "pull_argv",
            "pull_reference", "registry_config", "run_argv", "safe_name", "secret_env_text"]
 
@@ -203,7 +204,7 @@ def run_argv(engine: EngineInfo, run: ContainerRun) -> list[str]:
     mounts = list(run.mounts)
     if run.secret_env and run.secret_env_file is not None:
         mounts.append(Mount(run.secret_env_file, SECRET_ENV_PATH))
-    argv += [f"--mount={_mount_csv(m)}" for m in mounts]
+    argv += [f"--mount={mount_option(m)}" for m in mounts]
     argv += [f"--workdir={run.workdir}"] if run.workdir else []
     argv += [f"--env={k}={v}" for k, v in run.env.items() if k != "NVIDIA_VISIBLE_DEVICES"]
     argv.append("--env=NVIDIA_VISIBLE_DEVICES=" + ",".join(str(g) for g in run.gpus))
@@ -315,7 +316,8 @@ def _check_registry(registry: str) -> None:
         raise ContainerError(f"unusable registry {registry!r}")
 
 
-def _mount_csv(mount: Mount) -> str:
+def mount_option(mount: Mount) -> str:
+    """A bind as ``--mount``'s CSV value (both engines read it so; paths may hold commas)."""
     out = io.StringIO()
     fields = ["type=bind", f"source={mount.source}", f"target={mount.target}"]
     csv.writer(out, lineterminator="").writerow(fields + ["readonly"] * mount.read_only)

@@ -16,7 +16,12 @@ concern per method of the runtime contract:
   ``OMP_NUM_THREADS`` set to that count, as a process does, unless its spec or its image
   sets it (the image's variables are read once per image id).
 - start, kill, reap, release: the engine's attached CLI (``osmo.runtime.container.runs``);
-  a group's peer starts once its lead's container runs.
+  a group's peer starts once its lead's container runs. With warm starts on (podman only:
+  :meth:`ContainerRuntime.warm_up`), a typed task's attempt is a fork of a runner in a
+  container of its image that imported its type once (``osmo.runtime.container.warm``):
+  unless the task says ``warm: false``, is in a networked group or has GPUs, or its
+  limits cannot be kept (no cgroup v1 hierarchy); its exec is then a new container over
+  the attempt's view.
 - exec: ``<engine> exec -i [-t]`` into the container (its working folder and environment are
   the container's).
 - port-forward: to the task's port on the container's own address (its network namespace,
@@ -34,6 +39,7 @@ import hashlib
 import os
 import socket
 import time
+import uuid
 from collections.abc import Callable, Sequence
 from dataclasses import replace
 from pathlib import Path
@@ -61,17 +67,31 @@ from osmo.runtime.container.layout import (
     mounts,
     runner_mounts,
 )
-from osmo.runtime.container.run import ContainerError, ContainerRun, Mount, safe_name
+from osmo.runtime.container.run import (
+    ContainerError,
+    ContainerRun,
+    Mount,
+    run_argv,
+    safe_name,
+)
 from osmo.runtime.container.runs import ContainerRuns
+from osmo.runtime.container.warm import (
+    ContainerWarmHandle,
+    ContainerWarmKey,
+    ContainerWarmRunners,
+    WarmRun,
+)
+from osmo.runtime.process.warm import RunnerInfo
 from osmo.scheduler.types import PrepareAttempt
 from osmo.spec.model import TaskSpec
-from osmo.tasktypes.registry import shipped_packages
+from osmo.tasktypes.registry import entry_points, is_custom, shipped_packages
 
 __all__ = ["ContainerRuntime", "owner_id"]
 
 _GPU_SHM = 1 << 30  # bytes of /dev/shm for a GPU task (the engines' 64 MiB starves loaders)
 _THREADS = "OMP_NUM_THREADS"  # what a task's cpu request sets (``osmo.worker.taskenv``)
-_KEEP_IMAGE_VARIABLES = 256  # image ids whose variables' names are remembered
+_KEEP_IMAGE_VARIABLES = 256  # image ids whose variables are remembered
+_ENGINE_PATH = "/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin"  # with no ENV
 _LAYOUT = replace(DATA_LAYOUT, runner=RUNNER_PATHS)
 
 
@@ -93,6 +113,9 @@ class ContainerRuntime:
         owner: the ``osmo.owner`` label value (:func:`owner_id`).
         pull: pull images that are missing (policy "missing"); off: they must be present.
         kill_retry: seconds between tries of a kill that did not take yet.
+        hidden: what no task may see (osmo's homes, token files): covered where a typed
+            task's type folder holds it (:meth:`hide` adds more).
+        cover: an empty folder, bound read-only over such a hidden folder.
 
     Attributes:
         images: the image ids each workflow resolved on this host (shared with the server's
@@ -101,15 +124,39 @@ class ContainerRuntime:
     """
 
     def __init__(self, engine: ContainerEngine, *, owner: str, pull: bool = True,
-                 kill_retry: float = 0.1, hidden: Sequence[Path] = ()) -> None:
+                 kill_retry: float = 0.1, hidden: Sequence[Path] = (),
+                 cover: Path | None = None) -> None:
         self.engine = engine
         self._hidden = [Path(path).absolute() for path in hidden]
-        self._variables: dict[str, frozenset[str]] = {}  # image id -> the names it sets
+        self._cover = cover
+        self._variables: dict[str, dict[str, str]] = {}  # image id -> the variables it sets
         self.images = ImageIds(engine)
         self.labels = {"osmo.owner": owner}
         self._pull = pull
         self._runs = ContainerRuns(engine, kill_retry=kill_retry)
         self._groups = Groups(engine, self.labels)
+        self._warm: ContainerWarmRunners | None = None
+
+    def warm_up(self, *, idle: float, max_rss: int | None) -> None:
+        """Start typed tasks' attempts from runners in containers of their images.
+
+        ``idle``: seconds a runner container waits for its next attempt; ``max_rss``: bytes
+        of resident memory over which it is retired. Only podman passes the runner its
+        socket (``--preserve-fds``): with docker every attempt starts cold.
+        """
+        if self.engine.engine.name == "podman" and self._warm is None:
+            self._warm = ContainerWarmRunners(self.engine, self.labels["osmo.owner"],
+                                              idle=idle, max_rss=max_rss, hidden=self._hidden,
+                                              cover=self._cover)
+
+    def warm_runners(self) -> list[RunnerInfo]:
+        """Its live runner containers (``osmo resource list``)."""
+        return self._warm.runners() if self._warm is not None else []
+
+    def sweep(self) -> None:
+        """Forget the runner containers that ended (idle)."""
+        if self._warm is not None:
+            self._warm.sweep()
 
     def describe(self) -> str:
         """``container (podman 4.3.1)``: what ``osmo pool list`` shows."""
@@ -179,20 +226,52 @@ class ContainerRuntime:
             secret_env=dict(launch.secret_env),
             secret_env_file=dirs.root / "secret.env" if launch.secret_env else None)
         note = f"image '{task.image}' is {image} ({self._engine_text()})"
+        notes: tuple[str, ...] = (note,)
         if task.type is not None:
-            note += (f"; task type {task.type} runs on its python3, osmo's code bound "
-                     f"read-only at {RUNNER_PATHS.code}")
-        return replace(launch, run=run, image_id=image, notes=(*launch.notes, note),
+            notes = (note + f"; task type {task.type} runs on its python3, osmo's code bound "
+                            f"read-only at {RUNNER_PATHS.code}",)
+            warm = self._warm_start(task, run)
+            if warm is not None:
+                notes += (f"warm start: forked from a runner of {task.type} in a container "
+                          "of its image",)
+                return replace(launch, run=warm, image_id=image,
+                               notes=(*launch.notes, *notes))
+        return replace(launch, run=run, image_id=image, notes=(*launch.notes, *notes),
                        waits=labels.get("osmo.lead") == "0")
 
-    def _image_variables(self, image: str) -> frozenset[str]:
+    def _warm_start(self, task: TaskSpec, run: ContainerRun
+                    ) -> WarmRun | None:
+        """How ``run`` starts warm (None: cold), its runner started if need be (blocks)."""
+        if (self._warm is None or task.warm is False or run.network is not None or run.gpus
+                or task.type is None):
+            return None
+        resolved = task.resolved
+        entry = None
+        if not is_custom(task.type):
+            found = entry_points().get(task.type)
+            entry = f"{found.module}:{found.attr}" if found is not None else None
+        key = ContainerWarmKey(run.image, task.type, resolved.version if resolved else None,
+                               tuple(resolved.paths) if resolved else (), entry=entry)
+        if not self._warm.ready(key):
+            return None
+        if (run.cpus or run.memory) and not self._warm.can_limit(key):
+            return None  # never an attempt without its limits: cold, as podman limits it
+        # what a cold container's process starts with: the engine's, the image's, its own
+        uid = (run.user or "0").partition(":")[0]
+        env = {"PATH": _ENGINE_PATH, "container": self.engine.engine.name,
+               "HOME": "/root" if uid == "0" else "/", **self._image_variables(run.image),
+               **run.env}
+        return WarmRun(key, replace(run, env=env, mounts=tuple(
+            m for m in run.mounts if not _in_code(m.target))))
+
+    def _image_variables(self, image: str) -> dict[str, str]:
         """What ``image`` (an id: its variables never change) sets; empty if unknown."""
         found = self._variables.get(image)
         if found is None:
             try:
-                found = self.engine.image_variables(image)
+                found = self.engine.image_environment(image)
             except ContainerError:
-                return frozenset()
+                return {}
             if len(self._variables) >= _KEEP_IMAGE_VARIABLES:
                 self._variables.clear()
             self._variables[image] = found
@@ -200,13 +279,11 @@ class ContainerRuntime:
 
     def _runner_mounts(self, dirs: AttemptDirs, task: TaskSpec, taken: set[str]
                        ) -> tuple[Mount, ...]:
-        empty = dirs.root / "cover"
         try:
-            empty.mkdir(mode=0o555, exist_ok=True)
             found = runner_mounts(dirs, shipped_packages(),
                                   task.resolved.paths if task.resolved else (),
-                                  hidden=self._hidden, empty=empty)
-        except (OSError, CoverError) as exc:
+                                  hidden=self._hidden, empty=self._cover)
+        except CoverError as exc:
             raise PrepareError(f"task '{task.name}': {exc}") from exc
         return tuple(bind for bind in found if bind.target not in taken)
 
@@ -216,6 +293,8 @@ class ContainerRuntime:
         Raises:
             StartError: the engine's CLI cannot be started or the run cannot be expressed.
         """
+        if isinstance(launch.run, WarmRun) and self._warm is not None:
+            return self._warm.start(launch.run.key, launch.run.run)
         run = _run(launch)
         if launch.waits:
             self._groups.wait_for_lead(run)
@@ -226,20 +305,34 @@ class ContainerRuntime:
 
     def kill(self, handle: ProcessHandle, *, force: bool = False) -> None:
         """SIGTERM (SIGKILL and removal when ``force``) to the container; never raises."""
+        if isinstance(handle, ContainerWarmHandle) and self._warm is not None:
+            self._warm.kill(handle, force=force)
+            return
         self._runs.kill(handle, force=force)
 
     def reap(self, handle: ProcessHandle) -> int:
         """The container's exit code, once its CLI has ended."""
+        if isinstance(handle, ContainerWarmHandle) and self._warm is not None:
+            return self._warm.reap(handle)
         return self._runs.reap(handle)
 
     def release(self, handle: ProcessHandle) -> None:
         """Close the handle; the secret file goes, a killed or failed container too."""
+        if isinstance(handle, ContainerWarmHandle) and self._warm is not None:
+            self._warm.release(handle)
+            return
         self._runs.release(handle)
 
     def exec(self, launch: Launch, command: Sequence[str], *, tty: bool,
              term: str | None) -> ExecCommand:
         """``<engine> exec -i [-t]`` of ``command`` in the running container."""
         env = [f"--env=TERM={term}"] if tty and term is not None else []
+        if isinstance(launch.run, WarmRun):  # a new container over the attempt's view
+            run = replace(launch.run.run, name=f"{launch.run.run.name}-exec-{uuid.uuid4().hex[:8]}",
+                          argv=tuple(command), secret_env={}, secret_env_file=None)
+            argv = run_argv(self.engine.engine, run)
+            argv[2:2] = ["-i", *(["-t"] if tty else []), *env]
+            return ExecCommand(argv, launch.cwd, self.engine.env)
         argv = [self.engine.engine.path, "exec", "-i", *(["-t"] if tty else []), *env,
                 _run(launch).name, *command]
         return ExecCommand(argv, launch.cwd, self.engine.env)
@@ -251,7 +344,10 @@ class ContainerRuntime:
             ConnectError: the container has no network address of its own.
             ContainerError: the engine cannot inspect it.
         """
-        address = self.engine.address(_run(launch).name)
+        name = _run(launch).name
+        if isinstance(launch.run, WarmRun) and self._warm is not None:
+            name = self._warm.name(launch.run.key)  # its network is its runner container's
+        address = self.engine.address(name)
         if address is None:
             raise ConnectError("the task's container has no network address of its own")
         return lambda port, udp: dial(address, port, udp=udp)
@@ -263,7 +359,9 @@ class ContainerRuntime:
             self._runs.later(self._groups.left, run)
 
     def close(self) -> None:
-        """Wait for the engine calls still under way; remove the networks still in use."""
+        """End the runner containers, wait for the engine calls, remove the networks."""
+        if self._warm is not None:
+            self._warm.close()
         self._runs.close()
         self._groups.close()
 
@@ -271,8 +369,14 @@ class ContainerRuntime:
         return f"{self.engine.engine.name} {self.engine.engine.version}"
 
 
+def _in_code(target: str) -> bool:
+    """Whether ``target`` is osmo's code or a type's folder (a runner container has them)."""
+    return any(target == root or target.startswith(root + "/") for root in (
+        RUNNER_PATHS.code, RUNNER_PATHS.types.partition("/{}")[0]))
+
+
 def _run(launch: Launch) -> ContainerRun:
-    run = launch.run
+    run = launch.run.run if isinstance(launch.run, WarmRun) else launch.run
     if not isinstance(run, ContainerRun):
         raise TypeError(f"{launch!r} was not prepared by a container runtime")
     return run

@@ -47,7 +47,6 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
-import importlib.util
 import json
 import logging
 import os
@@ -62,18 +61,21 @@ from pathlib import Path
 
 from osmo.runtime.api import StartError
 from osmo.runtime.container.engine import ContainerEngine
-from osmo.runtime.container.run import ContainerRun, Mount
+from osmo.runtime.container.layout import RUNNER_PATHS, CoverError, code_mounts
+from osmo.runtime.container.run import ContainerRun, mount_option
 from osmo.runtime.process import mounts
 from osmo.runtime.process.groups import die_with_parent
 from osmo.runtime.process.proctable import process_start_time, start_clock
 from osmo.runtime.process.warm import (
     DEFAULT_IDLE,
+    RunnerInfo,
     WarmHandle,
     _Forked,
     _mount_proc,
     _pidfd_pid,
     _pipe,
     _receive,
+    _rss,
 )
 from osmo.runtime.process.warm_runner import (
     CONTAINER_VARIABLE,
@@ -83,16 +85,13 @@ from osmo.runtime.process.warm_runner import (
     READY,
     RETIRE,
 )
+from osmo.tasktypes.registry import shipped_packages
 
-__all__ = ["CODE_ROOT", "ContainerWarmHandle", "ContainerWarmKey", "ContainerWarmRunners",
-           "WARM_LABEL"]
+__all__ = ["ContainerWarmHandle", "ContainerWarmKey", "ContainerWarmRunners", "WARM_LABEL",
+           "WarmRun"]
 
 _log = logging.getLogger("osmo.worker.pool")
 
-CODE_ROOT = "/osmo/lib"
-"""Where osmo's code is bound (read-only) in a runner container."""
-TYPES_ROOT = "/osmo/types"
-"""Where a custom type's folders are bound (read-only) in a runner container, ``/N`` each."""
 WARM_LABEL = "osmo.warm"
 """The label every runner container carries (``1``)."""
 _READY_TIMEOUT = 300.0
@@ -112,6 +111,8 @@ class ContainerWarmKey:
         version: the version it was submitted against (None: any).
         paths: the host folders a custom type is imported from.
         network: the runner container's ``--network`` (None: the engine's default).
+        entry: an installed type's ``module:attr`` (its entry point's), which the runner
+            imports: the image has osmo's code, not the node's package metadata.
     """
 
     image: str
@@ -119,6 +120,21 @@ class ContainerWarmKey:
     version: str | None = None
     paths: tuple[str, ...] = ()
     network: str | None = None
+    entry: str | None = None
+
+
+@dataclass(frozen=True)
+class WarmRun:
+    """A launch's ``run`` when its attempt starts in a runner container (the runtime's).
+
+    Attributes:
+        key: its runner's.
+        run: the container it would be cold: its mounts, environment, user and limits are
+            the attempt's.
+    """
+
+    key: ContainerWarmKey
+    run: ContainerRun
 
 
 @dataclass(eq=False)
@@ -142,12 +158,24 @@ class _Runner:
     sock: socket.socket
     main: int  # the runner's host pid (below the container's pid 1 and its waiter)
     cgroups: dict[str, Path]  # controller -> the container's cgroup folder
+    sources: dict[str, int] = field(default_factory=dict)  # a custom type's files: mtimes
     lock: threading.Lock = field(default_factory=threading.Lock)
     started: int = 0
+    running: set[int] = field(default_factory=set)  # its attempts' pids, until reaped
     broken: bool = False
 
     def alive(self) -> bool:
         return not self.broken and self.popen.poll() is None
+
+    def stale(self) -> bool:
+        """Whether a source file of its custom type changed since it imported it."""
+        for path, mtime in self.sources.items():
+            try:
+                if os.stat(path).st_mtime_ns != mtime:
+                    return True
+            except OSError:
+                return True
+        return False
 
     def retire(self) -> None:
         """No more attempts: it exits once those running ended."""
@@ -167,13 +195,21 @@ class ContainerWarmRunners:
         engine: the engine (podman: ``--preserve-fds``).
         owner: the node's ``osmo.owner`` label value.
         idle: seconds a runner waits for its next attempt before it (and its container) ends.
+        max_rss: bytes of resident memory over which a runner is retired (None: no limit).
         labels: more labels for the runner containers.
+        hidden: what no task may see (osmo's homes, token files): covered where a custom
+            type's folder holds it (``osmo.runtime.container.layout.code_mounts``); read at
+            each runner's start.
+        cover: an empty folder, bound over a hidden folder (None: a type folder holding one
+            starts cold).
     """
 
     def __init__(self, engine: ContainerEngine, owner: str, *, idle: float = DEFAULT_IDLE,
-                 labels: Mapping[str, str] | None = None) -> None:
-        self.engine, self.owner, self.idle = engine, owner, idle
+                 max_rss: int | None = None, labels: Mapping[str, str] | None = None,
+                 hidden: Sequence[Path] = (), cover: Path | None = None) -> None:
+        self.engine, self.owner, self.idle, self.max_rss = engine, owner, idle, max_rss
         self.labels = {**(labels or {}), "osmo.owner": owner, WARM_LABEL: "1"}
+        self.hidden, self._cover = hidden, cover
         self._runners: dict[ContainerWarmKey, _Runner] = {}
         self._refused: dict[ContainerWarmKey, str] = {}
         self._lock = threading.Lock()
@@ -200,7 +236,7 @@ class ContainerWarmRunners:
             if self._closed or key in self._refused:
                 return None
             found = self._runners.get(key)
-            if found is not None and found.alive():
+            if found is not None and found.alive() and not self._worn(found):
                 return found
             if found is not None:
                 del self._runners[key]
@@ -210,35 +246,52 @@ class ContainerWarmRunners:
                 self._runners[key] = made
             return made
 
+    def _worn(self, runner: _Runner) -> bool:
+        """Whether ``runner`` must be retired: over its memory, or its sources changed."""
+        return (self.max_rss is not None and _rss(runner.main) > self.max_rss) or runner.stale()
+
+    def can_limit(self, key: ContainerWarmKey) -> bool:
+        """Whether ``key``'s live runner can give its attempts cpu and memory limits."""
+        with self._lock:
+            found = self._runners.get(key)
+        return found is not None and {"memory", "cpu"} <= set(found.cgroups)
+
+    def runners(self) -> list[RunnerInfo]:
+        """The live runner containers, as ``osmo resource list`` shows them."""
+        self.sweep()
+        with self._lock:
+            found = [runner for runner in self._runners.values() if runner.alive()]
+        return [RunnerInfo(f"{runner.key.type}@{runner.key.version}" if runner.key.version
+                           else runner.key.type, runner.main, _rss(runner.main),
+                           runner.started, len(runner.running)) for runner in found]
+
     def name(self, key: ContainerWarmKey) -> str:
         """The runner container's name for ``key``."""
         digest = hashlib.sha256(json.dumps([self.owner, key.image, key.type, key.version,
-                                            key.paths, key.network]).encode())
+                                            key.paths, key.network, key.entry]).encode())
         return f"osmo-warm-{digest.hexdigest()[:12]}"
 
     def argv(self, key: ContainerWarmKey) -> list[str]:
-        """The engine's ``run`` argv of ``key``'s runner container (its socket at fd 3)."""
+        """The engine's ``run`` argv of ``key``'s runner container (its socket at fd 3).
+
+        Raises:
+            CoverError: a type folder lies in what no task may see.
+        """
         engine = self.engine.engine
-        binds = [Mount(Path(_package("osmo")), f"{CODE_ROOT}/osmo")]
-        plugins = _package("osmo_plugins")
-        if plugins:
-            binds.append(Mount(Path(plugins), f"{CODE_ROOT}/osmo_plugins"))
-        types = [f"{TYPES_ROOT}/{i}" for i in range(len(key.paths))]
-        binds += [Mount(Path(path), target) for path, target in zip(key.paths, types, strict=True)]
+        binds = code_mounts(shipped_packages(), key.paths, self.hidden, self._cover)
+        types = [RUNNER_PATHS.types.format(i) for i in range(len(key.paths))]
         entry = json.dumps(["python3"]) if engine.name == "podman" else "python3"
-        argv = [engine.path, "run", "--rm", "--preserve-fds=1", f"--name={self.name(key)}",
+        return [engine.path, "run", "--rm", "--preserve-fds=1", f"--name={self.name(key)}",
                 "--pull=never", "--user=0:0", "--cap-drop=all",
                 "--security-opt=no-new-privileges",
                 *(f"--label={k}={v}" for k, v in sorted(self.labels.items())),
                 *([f"--network={key.network}"] if key.network else []),
-                *(f"--mount=type=bind,source={m.source},destination={m.target},ro=true"
-                  for m in binds),
-                f"--env=PYTHONPATH={':'.join([*types, CODE_ROOT])}",
+                *(f"--mount={mount_option(m)}" for m in binds),
+                f"--env=PYTHONPATH={':'.join([*types, RUNNER_PATHS.code])}",
                 "--env=PYTHONDONTWRITEBYTECODE=1", f"--env={IDLE_VARIABLE}={self.idle:g}",
                 f"--env={CONTAINER_VARIABLE}=1", f"--entrypoint={entry}", key.image,
-                "-m", "osmo.runtime.process.warm_runner", "3", key.type,
+                "-m", "osmo.runtime.process.warm_runner", "3", key.entry or key.type,
                 key.version or "-", *types]
-        return argv
 
     def _spawn(self, key: ContainerWarmKey) -> _Runner | None:
         ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
@@ -250,7 +303,14 @@ class ContainerWarmRunners:
             os.dup2(fd, 3)
 
         try:
-            popen = subprocess.Popen(self.argv(key), env=self.engine.env, cwd="/",
+            argv = self.argv(key)
+        except CoverError as exc:
+            ours.close()
+            theirs.close()
+            self._refuse(key, str(exc))
+            return None
+        try:
+            popen = subprocess.Popen(argv, env=self.engine.env, cwd="/",
                                      stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                                      stderr=subprocess.PIPE, start_new_session=True,
                                      preexec_fn=child, pass_fds=(3,))
@@ -285,8 +345,8 @@ class ContainerWarmRunners:
         popen.stderr = None
         name = self.name(key)
         main = self._runner_pid(name)
-        runner = _Runner(key, name, popen, ours, main, _cgroups(main))
-        return runner
+        return _Runner(key, name, popen, ours, main, _cgroups(main),
+                       _host_sources(reply[len(READY):], key.paths))
 
     def _runner_pid(self, name: str) -> int:
         """The runner's host pid: the child of the container's pid 1 (which waits for it)."""
@@ -425,6 +485,7 @@ class ContainerWarmRunners:
         for fd in (out_r, err_r, status_r):
             os.set_blocking(fd, False)
         runner.started += 1
+        runner.running.add(pid)
         handle = ContainerWarmHandle(pid, status_r, out_r, err_r, _Forked(pid), pidfd=pidfd,
                                      runner=runner.main, cgroups=tuple(groups),
                                      container=runner.name)
@@ -497,12 +558,19 @@ def _map_users(pidfd: int) -> None:
         os.close(pidfd)
 
 
-def _package(name: str) -> str:
-    """The host folder of the package ``name`` (empty: not installed)."""
-    spec = importlib.util.find_spec(name)
-    if spec is None or not spec.submodule_search_locations:
-        return ""
-    return str(Path(next(iter(spec.submodule_search_locations))).resolve())
+def _host_sources(data: bytes, paths: Sequence[str]) -> dict[str, int]:
+    """The runner's sources (container paths under ``/osmo/types/N``: mtimes) on the host."""
+    try:
+        sources = json.loads(data or b"{}")
+    except ValueError:
+        return {}
+    out: dict[str, int] = {}
+    for index, folder in enumerate(paths):
+        shown = RUNNER_PATHS.types.format(index) + "/"
+        for path, mtime in sources.items() if isinstance(sources, dict) else ():
+            if isinstance(path, str) and path.startswith(shown) and isinstance(mtime, int):
+                out[os.path.join(os.path.realpath(folder), path[len(shown):])] = mtime
+    return out
 
 
 def _user(user: str | None) -> list[int]:
