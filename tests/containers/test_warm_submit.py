@@ -84,6 +84,7 @@ def test_two_attempts_in_one_runner_container_share_nothing(
     assert probe["leaked"] is None and not probe["touched"] and not probe["patched"], probe
     assert probe["threads"] == 1, probe  # dirty's thread died with dirty's process
     assert not any("held.txt" in fd for fd in probe["fds"]), probe["fds"]
+    assert not any(fd.startswith("socket:") for fd in probe["fds"]), probe["fds"]  # no runner
     assert probe["cwd"] == dirty["cwd"] == "/osmo/run/work"
     assert (dirty["pid"], probe["pid"]) == (2, 2), (dirty, probe)  # each its own pid namespace
     runners = _runners(cosmo)
@@ -125,3 +126,52 @@ def test_kill_9_of_the_server_leaves_no_runner_container_and_the_rerun_completes
     again[0].unlink()
     info = cosmo.wait_for(wf, ended)
     assert info["status"] == "COMPLETED", info
+
+
+def _gate(cosmo: Osmo, wf: str, task: str = "first", timeout: float = 120) -> Path:
+    """The gate file the running attempt of ``task`` wrote in its output folder."""
+    runs = Path(cosmo.home) / "runs" / wf / task
+    deadline = time.monotonic() + timeout
+    while not (gates := list(runs.glob("*/output.partial/gate"))):
+        assert time.monotonic() < deadline, f"no attempt of {task} is waiting"
+        time.sleep(0.1)
+    return gates[0]
+
+
+def test_cancel_and_timeout_end_warm_attempts_in_their_runner_container(
+        cosmo: Osmo, python_image: str, engine: ContainerEngine, tmp_path: Path) -> None:
+    wf = cosmo.submit(_project(tmp_path, GATED.format(image=python_image)))
+    _gate(cosmo, wf)
+    (runner,) = _runners(cosmo)
+    assert runner["running"] == 1, runner
+    cosmo("cancel", wf, check=True)
+    assert cosmo.wait_for(wf, ended)["status"] != "COMPLETED"
+    deadline = time.monotonic() + 30
+    while (now := _runners(cosmo)) and now[0]["running"]:
+        assert time.monotonic() < deadline, now  # the attempt ended, the runner lives
+        time.sleep(0.2)
+    assert [w["pid"] for w in now] == [runner["pid"]], now
+    timed = GATED.format(image=python_image).replace(
+        "  name: warm-gated-in-image\n",
+        "  name: warm-timed-in-image\n  timeout: {exec_timeout: 3s}\n")
+    wf = cosmo.submit(write(tmp_path / "project" / "timed.yaml", timed))
+    info = cosmo.wait_for(wf, ended, timeout=120)  # its timeout killed it; the gate stays
+    assert info["status"].startswith("FAILED"), info
+    assert _gate(cosmo, wf).exists()
+
+
+def test_a_runner_container_killed_under_its_attempt_is_replaced(
+        cosmo: Osmo, python_image: str, engine: ContainerEngine, tmp_path: Path) -> None:
+    """SIGKILL of the runner: its attempt is lost (not failed) and runs again, forked from
+    a new runner container."""
+    wf = cosmo.submit(_project(tmp_path, GATED.format(image=python_image)))
+    gate = _gate(cosmo, wf)
+    (runner,) = _runners(cosmo)
+    gate.unlink()
+    os.kill(runner["pid"], signal.SIGKILL)
+    wait_gone(runner["pid"])
+    _gate(cosmo, wf).unlink()  # rescheduled, on a new runner
+    info = cosmo.wait_for(wf, ended, timeout=120)
+    assert info["status"] == "COMPLETED", info
+    assert info["tasks"][0]["retry"] == 1, info["tasks"]
+    assert [w["pid"] for w in _runners(cosmo)] not in ([], [runner["pid"]])

@@ -346,7 +346,10 @@ class ContainerRuntime:
         """
         name = _run(launch).name
         if isinstance(launch.run, WarmRun) and self._warm is not None:
-            name = self._warm.name(launch.run.key)  # its network is its runner container's
+            found = self._warm.runner(launch.run.key)  # its network is its runner container's
+            if found is None:
+                raise ConnectError("the task's runner container has ended")
+            name = found[0]
         address = self.engine.address(name)
         if address is None:
             raise ConnectError("the task's container has no network address of its own")

@@ -266,13 +266,16 @@ class ContainerWarmRunners:
                            runner.started, len(runner.running)) for runner in found]
 
     def name(self, key: ContainerWarmKey) -> str:
-        """The runner container's name for ``key``."""
+        """The stem of ``key``'s runner containers' names.
+
+        Each adds a suffix of its own: a runner killed a moment ago may still hold its name.
+        """
         digest = hashlib.sha256(json.dumps([self.owner, key.image, key.type, key.version,
                                             key.paths, key.network, key.entry]).encode())
         return f"osmo-warm-{digest.hexdigest()[:12]}"
 
-    def argv(self, key: ContainerWarmKey) -> list[str]:
-        """The engine's ``run`` argv of ``key``'s runner container (its socket at fd 3).
+    def argv(self, key: ContainerWarmKey, name: str) -> list[str]:
+        """The engine's ``run`` argv of ``key``'s runner container ``name`` (its socket at fd 3).
 
         Raises:
             CoverError: a type folder lies in what no task may see.
@@ -281,7 +284,7 @@ class ContainerWarmRunners:
         binds = code_mounts(shipped_packages(), key.paths, self.hidden, self._cover)
         types = [RUNNER_PATHS.types.format(i) for i in range(len(key.paths))]
         entry = json.dumps(["python3"]) if engine.name == "podman" else "python3"
-        return [engine.path, "run", "--rm", "--preserve-fds=1", f"--name={self.name(key)}",
+        return [engine.path, "run", "--rm", "--preserve-fds=1", f"--name={name}",
                 "--pull=never", "--user=0:0", "--cap-drop=all",
                 "--security-opt=no-new-privileges",
                 *(f"--label={k}={v}" for k, v in sorted(self.labels.items())),
@@ -302,8 +305,9 @@ class ContainerWarmRunners:
             deathsig()
             os.dup2(fd, 3)
 
+        name = f"{self.name(key)}-{os.urandom(4).hex()}"
         try:
-            argv = self.argv(key)
+            argv = self.argv(key, name)
         except CoverError as exc:
             ours.close()
             theirs.close()
@@ -343,7 +347,6 @@ class ContainerWarmRunners:
         assert popen.stderr is not None
         popen.stderr.close()  # nothing more is read from the client: never fills its pipe
         popen.stderr = None
-        name = self.name(key)
         main = self._runner_pid(name)
         return _Runner(key, name, popen, ours, main, _cgroups(main),
                        _host_sources(reply[len(READY):], key.paths))
@@ -409,19 +412,23 @@ class ContainerWarmRunners:
         """
         if not run.argv:
             raise StartError("a warm container attempt needs a command")
-        runner = self._runner(key)
-        if runner is None:
-            raise StartError(f"cannot start '{run.argv[0]}' warm: "
-                             f"{self.refused(key) or 'no warm runner'}")
-        try:
-            return self._fork(runner, run)
-        except OSError as exc:
-            if not runner.alive():
+        why = "no warm runner"
+        for _ in range(2):  # a runner that died since: once more, on a new one
+            runner = self._runner(key)
+            if runner is None:
+                why = self.refused(key) or why
+                break
+            try:
+                return self._fork(runner, run)
+            except OSError as exc:
+                why = str(exc)
+                if runner.alive():  # the attempt's own set-up failed, not its runner
+                    raise StartError(f"cannot start '{run.argv[0]}' warm: {exc}") from exc
                 with self._lock:
                     if self._runners.get(key) is runner:
                         del self._runners[key]
                 runner.retire()
-            raise StartError(f"cannot start '{run.argv[0]}' warm: {exc}") from exc
+        raise StartError(f"cannot start '{run.argv[0]}' warm: {why}")
 
     def _fork(self, runner: _Runner, run: ContainerRun) -> ContainerWarmHandle:
         made: list[int] = []
@@ -450,8 +457,12 @@ class ContainerWarmRunners:
             with runner.lock:
                 if runner.broken:
                     raise OSError("the runner retired")
-                socket.send_fds(runner.sock, [request], passed)
-                reply, fds = _receive(runner.sock, _REPLY_TIMEOUT)
+                try:
+                    socket.send_fds(runner.sock, [request], passed)
+                    reply, fds = _receive(runner.sock, _REPLY_TIMEOUT)
+                except OSError:
+                    runner.broken = True  # its socket failed: it is gone, or going
+                    raise
             for fd in passed:
                 os.close(fd)
                 made.remove(fd)
@@ -510,6 +521,10 @@ class ContainerWarmRunners:
 
     def reap(self, handle: ContainerWarmHandle) -> int:
         """The exit code the runner reported (``lost`` when it died first: 137)."""
+        with self._lock:
+            found = list(self._runners.values())
+        for runner in found:  # it runs no more (also when its end was seen first)
+            runner.running.discard(handle.pid)
         if handle.popen.returncode is not None:
             return handle.popen.returncode
         try:

@@ -539,6 +539,10 @@ class WarmRunners:
 
         A runner that died before reporting leaves the attempt ``lost`` (137).
         """
+        with self._lock:
+            runners = list(self._runners.values())
+        for runner in runners:  # it runs no more (also when its end was seen first)
+            runner.running.discard(handle.pid)
         if handle.popen.returncode is not None:
             return handle.popen.returncode
         try:
@@ -556,10 +560,6 @@ class WarmRunners:
         with contextlib.suppress(OSError):
             os.killpg(handle.pid, signal.SIGKILL)
         handle.popen.returncode = code
-        with self._lock:
-            runners = list(self._runners.values())
-        for runner in runners:
-            runner.running.discard(handle.pid)
         return code
 
     def release(self, handle: WarmHandle) -> None:
