@@ -174,4 +174,38 @@ def test_a_runner_container_killed_under_its_attempt_is_replaced(
     info = cosmo.wait_for(wf, ended, timeout=120)
     assert info["status"] == "COMPLETED", info
     assert info["tasks"][0]["retry"] == 1, info["tasks"]
-    assert [w["pid"] for w in _runners(cosmo)] not in ([], [runner["pid"]])
+    said = cosmo("logs", wf, "-t", "first", check=True).out
+    assert [w["pid"] for w in _runners(cosmo)] not in ([], [runner["pid"]]), said
+
+
+def test_a_file_the_image_lacks_starts_cold_and_leaves_nothing_for_the_next_attempt(
+        cosmo: Osmo, python_image: str, tmp_path: Path) -> None:
+    """A ``files:`` path the image does not have would be made on the runner container's
+    root, which every later attempt shares: that attempt starts cold instead, and the next
+    warm one does not see it."""
+    spec = f"""
+workflow:
+  name: warm-files
+  tasks:
+  - name: planter
+    type: warmtypes:probe
+    image: {python_image}
+    files:
+    - path: /usr/lib/planted/conf.txt
+      contents: from the planter
+  - name: after
+    type: warmtypes:probe
+    image: {python_image}
+    inputs: [{{task: planter}}]
+    files:
+    - path: /etc/hostname
+      contents: its own
+"""
+    wf = cosmo.submit(_project(tmp_path, spec), "--wait")
+    rows = tasks(cosmo, wf)
+    assert all(r["status"] == "COMPLETED" for r in rows.values()), rows
+    said = {name: cosmo("logs", wf, "-t", name, check=True).out for name in rows}
+    mark = "warm start: forked from a runner"
+    assert mark not in said["planter"] and mark in said["after"], said
+    (runner,) = _runners(cosmo)
+    assert not Path(f"/proc/{runner['pid']}/root/usr/lib/planted").exists()

@@ -91,6 +91,8 @@ __all__ = ["ContainerRuntime", "owner_id"]
 _GPU_SHM = 1 << 30  # bytes of /dev/shm for a GPU task (the engines' 64 MiB starves loaders)
 _THREADS = "OMP_NUM_THREADS"  # what a task's cpu request sets (``osmo.worker.taskenv``)
 _KEEP_IMAGE_VARIABLES = 256  # image ids whose variables are remembered
+_LAYOUT_ROOTS = ("/osmo/data/", "/osmo/run/")  # made in a runner container for its attempts
+_FRESH_ROOTS = ("/tmp/", "/dev/shm/")  # each warm attempt's own, empty
 _ENGINE_PATH = "/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin"  # with no ENV
 _LAYOUT = replace(DATA_LAYOUT, runner=RUNNER_PATHS)
 
@@ -256,13 +258,16 @@ class ContainerRuntime:
             return None
         if (run.cpus or run.memory) and not self._warm.can_limit(key):
             return None  # never an attempt without its limits: cold, as podman limits it
+        binds = tuple(m for m in run.mounts if not _in_code(m.target))  # the runner has those
+        if not all(self._warm.has(key, m.target) for m in binds
+                   if not m.target.startswith(_LAYOUT_ROOTS + _FRESH_ROOTS)):
+            return None  # a file it binds where the image has none: cold (see warm_runner)
         # what a cold container's process starts with: the engine's, the image's, its own
         uid = (run.user or "0").partition(":")[0]
         env = {"PATH": _ENGINE_PATH, "container": self.engine.engine.name,
                "HOME": "/root" if uid == "0" else "/", **self._image_variables(run.image),
                **run.env}
-        return WarmRun(key, replace(run, env=env, mounts=tuple(
-            m for m in run.mounts if not _in_code(m.target))))
+        return WarmRun(key, replace(run, env=env, mounts=binds))
 
     def _image_variables(self, image: str) -> dict[str, str]:
         """What ``image`` (an id: its variables never change) sets; empty if unknown."""

@@ -250,6 +250,14 @@ class ContainerWarmRunners:
         """Whether ``runner`` must be retired: over its memory, or its sources changed."""
         return (self.max_rss is not None and _rss(runner.main) > self.max_rss) or runner.stale()
 
+    def has(self, key: ContainerWarmKey, path: str) -> bool:
+        """Whether ``key``'s live runner container has ``path`` (not a symbolic link)."""
+        found = self.runner(key)
+        if found is None or not path.startswith("/"):
+            return False
+        shown = f"/proc/{found[1]}/root{path}"  # the runner's root, seen from here
+        return os.path.lexists(shown) and not os.path.islink(shown)
+
     def can_limit(self, key: ContainerWarmKey) -> bool:
         """Whether ``key``'s live runner can give its attempts cpu and memory limits."""
         with self._lock:

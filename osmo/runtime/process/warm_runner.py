@@ -122,6 +122,7 @@ MAP, MAPPED = b"map", b"mapped"
 """A container runner's request for its user namespace's maps, and the pool's answer."""
 _container = False  # set by main: this runner serves attempts in a container
 
+_LAYOUT_ROOTS = ("/osmo/data/", "/osmo/run/")  # a container attempt's layout (its mount points)
 _PR_SET_PDEATHSIG = 1
 _DESCRIPTORS = 4  # stdout, stderr, request pipe, status pipe
 _BINDS_MAX = 200  # a sandboxed attempt's folders, one descriptor each (SCM_RIGHTS: <= 253)
@@ -464,9 +465,12 @@ def _enclose_container(layout: dict[str, Any], relay: int, binds: Sequence[int],
     As :func:`_enclose`, in the pid 1 of a pid namespace of its own; returns only in the
     attempt's process (pid 2, the request's ``user``, no capability, ``no_new_privs``).
     ``layout``: ``binds`` (``[target, writable, folder]``, one detached mount each), ``cwd``
-    and ``user`` (``[uid, gid]``). Missing mount points of the binds are made on the
-    container's root first (empty folders and files, named as the targets: the only trace
-    an attempt leaves there), before the root turns read-only for this attempt.
+    and ``user`` (``[uid, gid]``). The mount points of osmo's layout (``/osmo/data``,
+    ``/osmo/run``) are made on the container's root first (empty, named by osmo: the same
+    for every attempt), before the root turns read-only for this attempt; any other target
+    must be in the image (or under ``/tmp`` or ``/dev/shm``, its own), or the attempt
+    fails: what one attempt made there every later one would see (the pool starts such an
+    attempt cold: ``osmo.runtime.container.runtime``).
     """
     if os.getpid() != 1:
         raise OSError("a container attempt's process is not its pid namespace's pid 1")
@@ -479,8 +483,11 @@ def _enclose_container(layout: dict[str, Any], relay: int, binds: Sequence[int],
     mounts.make_private()
     covers = _proc_covers()
     for target, _, folder in layout["binds"]:
-        with contextlib.suppress(OSError):  # under /tmp: made again on its tmpfs below
+        if target.startswith(_LAYOUT_ROOTS):  # osmo's own names, the same for every attempt
             _mount_point(target, folder)
+        elif not target.startswith(("/tmp/", "/dev/shm/")) and not os.path.lexists(target):
+            # made on the container's root, it would be there for every later attempt
+            raise OSError(f"{target} is not in the image: a warm attempt cannot add it")
     mounts.readonly_tree("/")
     mounts.mount_tmpfs("/tmp", 0o1777)
     mounts.mount_tmpfs("/dev/shm", 0o1777)
