@@ -76,6 +76,10 @@ from osmo.runtime.process.warm import (
     _pipe,
     _receive,
     _rss,
+    changed,
+    close_attempt,
+    reap_attempt,
+    signal_attempt,
 )
 from osmo.runtime.process.warm_runner import (
     CONTAINER_VARIABLE,
@@ -169,13 +173,7 @@ class _Runner:
 
     def stale(self) -> bool:
         """Whether a source file of its custom type changed since it imported it."""
-        for path, mtime in self.sources.items():
-            try:
-                if os.stat(path).st_mtime_ns != mtime:
-                    return True
-            except OSError:
-                return True
-        return False
+        return changed(self.sources)
 
     def retire(self) -> None:
         """No more attempts: it exits once those running ended."""
@@ -517,49 +515,17 @@ class ContainerWarmRunners:
         Its pid 1 takes no SIGTERM from outside (a namespace's init without a handler):
         the group, which its process shares, brings it there. Never raises.
         """
-        if handle.popen.returncode is not None or handle.pidfd < 0:
-            return
-        sig = signal.SIGKILL if force else signal.SIGTERM
-        try:
-            signal.pidfd_send_signal(handle.pidfd, sig)
-        except OSError:
-            return
-        with contextlib.suppress(OSError):
-            os.killpg(handle.pid, sig)
+        signal_attempt(handle, force=force)
 
     def reap(self, handle: ContainerWarmHandle) -> int:
         """The exit code the runner reported (``lost`` when it died first: 137)."""
         with self._lock:
-            found = list(self._runners.values())
-        for runner in found:  # it runs no more (also when its end was seen first)
-            runner.running.discard(handle.pid)
-        if handle.popen.returncode is not None:
-            return handle.popen.returncode
-        try:
-            data = os.read(handle.exit_fd, 64)
-        except OSError:
-            data = b""
-        text = data.strip()
-        if text.isdigit():
-            code = int(text)
-        else:
-            code = 128 + signal.SIGKILL
-            handle.lost = "its warm runner container ended while it ran"
-            with contextlib.suppress(OSError):
-                signal.pidfd_send_signal(handle.pidfd, signal.SIGKILL)
-        with contextlib.suppress(OSError):
-            os.killpg(handle.pid, signal.SIGKILL)
-        handle.popen.returncode = code
-        return code
+            running = [runner.running for runner in self._runners.values()]
+        return reap_attempt(handle, running, "its warm runner container ended while it ran")
 
     def release(self, handle: ContainerWarmHandle) -> None:
         """Close its descriptors and remove its cgroups (idempotent)."""
-        for name in ("exit_fd", "stdout_fd", "stderr_fd", "pidfd"):
-            fd = getattr(handle, name)
-            if fd >= 0:
-                with contextlib.suppress(OSError):
-                    os.close(fd)
-                setattr(handle, name, -1)
+        close_attempt(handle)
         _remove_groups(handle.cgroups)
         handle.cgroups = ()
 

@@ -209,13 +209,7 @@ class _Runner:
         return _rss(self.main or self.popen.pid)
 
     def stale(self) -> bool:
-        for path, mtime in self.sources.items():
-            try:
-                if os.stat(path).st_mtime_ns != mtime:
-                    return True
-            except OSError:
-                return True
-        return False
+        return changed(self.sources)
 
     def retire(self) -> None:
         """No more attempts: it exits once those running ended.
@@ -524,15 +518,7 @@ class WarmRunners:
 
     def kill(self, handle: WarmHandle, *, force: bool = False) -> None:
         """SIGTERM (SIGKILL when ``force``) to the child, then to its group. Never raises."""
-        if handle.popen.returncode is not None or handle.pidfd < 0:
-            return
-        sig = signal.SIGKILL if force else signal.SIGTERM
-        try:
-            signal.pidfd_send_signal(handle.pidfd, sig)
-        except OSError:
-            return  # it ended: its group is the runner's reaping business, or empty
-        with contextlib.suppress(OSError):
-            os.killpg(handle.pid, sig)
+        signal_attempt(handle, force=force)
 
     def reap(self, handle: WarmHandle) -> int:
         """The exit code the runner reported; what is left of the group is killed.
@@ -540,36 +526,77 @@ class WarmRunners:
         A runner that died before reporting leaves the attempt ``lost`` (137).
         """
         with self._lock:
-            runners = list(self._runners.values())
-        for runner in runners:  # it runs no more (also when its end was seen first)
-            runner.running.discard(handle.pid)
-        if handle.popen.returncode is not None:
-            return handle.popen.returncode
-        try:
-            data = os.read(handle.exit_fd, 64)
-        except (BlockingIOError, OSError):
-            data = b""
-        text = data.strip()
-        if text.isdigit():
-            code = int(text)
-        else:
-            code = 128 + signal.SIGKILL
-            handle.lost = "its warm runner ended while it ran"
-            with contextlib.suppress(OSError):
-                signal.pidfd_send_signal(handle.pidfd, signal.SIGKILL)
-        with contextlib.suppress(OSError):
-            os.killpg(handle.pid, signal.SIGKILL)
-        handle.popen.returncode = code
-        return code
+            running = [runner.running for runner in self._runners.values()]
+        return reap_attempt(handle, running, "its warm runner ended while it ran")
 
     def release(self, handle: WarmHandle) -> None:
         """Close its descriptors (idempotent)."""
-        for name in ("exit_fd", "stdout_fd", "stderr_fd", "pidfd"):
-            fd = getattr(handle, name)
-            if fd >= 0:
-                with contextlib.suppress(OSError):
-                    os.close(fd)
-                setattr(handle, name, -1)
+        close_attempt(handle)
+
+
+def changed(sources: Mapping[str, int]) -> bool:
+    """Whether a file of ``sources`` (path: mtime in ns) changed or went since."""
+    for path, mtime in sources.items():
+        try:
+            if os.stat(path).st_mtime_ns != mtime:
+                return True
+        except OSError:
+            return True
+    return False
+
+
+def signal_attempt(handle: WarmHandle, *, force: bool) -> None:
+    """SIGTERM (SIGKILL when ``force``) to a forked attempt, then to its group.
+
+    Through its pidfd: never a reused pid. Never raises.
+    """
+    if handle.popen.returncode is not None or handle.pidfd < 0:
+        return
+    sig = signal.SIGKILL if force else signal.SIGTERM
+    try:
+        signal.pidfd_send_signal(handle.pidfd, sig)
+    except OSError:
+        return  # it ended: its group is the runner's reaping business, or empty
+    with contextlib.suppress(OSError):
+        os.killpg(handle.pid, sig)
+
+
+def reap_attempt(handle: WarmHandle, running: Sequence[set[int]], lost: str) -> int:
+    """The exit code its runner wrote on the status pipe, once it ended.
+
+    What is left of its group is killed, and it leaves the runners' ``running`` sets. No
+    code (the runner died first): the attempt is ``lost`` (137), saying ``lost``.
+    """
+    for pids in running:  # it runs no more (also when its end was seen first)
+        pids.discard(handle.pid)
+    if handle.popen.returncode is not None:
+        return handle.popen.returncode
+    try:
+        data = os.read(handle.exit_fd, 64)
+    except OSError:
+        data = b""
+    text = data.strip()
+    if text.isdigit():
+        code = int(text)
+    else:
+        code = 128 + signal.SIGKILL
+        handle.lost = lost
+        with contextlib.suppress(OSError):
+            signal.pidfd_send_signal(handle.pidfd, signal.SIGKILL)
+    with contextlib.suppress(OSError):
+        os.killpg(handle.pid, signal.SIGKILL)
+    handle.popen.returncode = code
+    return code
+
+
+def close_attempt(handle: WarmHandle) -> None:
+    """Close a forked attempt's descriptors (idempotent)."""
+    for name in ("exit_fd", "stdout_fd", "stderr_fd", "pidfd"):
+        fd = getattr(handle, name)
+        if fd >= 0:
+            with contextlib.suppress(OSError):
+                os.close(fd)
+            setattr(handle, name, -1)
 
 
 def warm_key(launch: Launch, type_ref: str, version: str | None,
