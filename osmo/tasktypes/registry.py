@@ -128,6 +128,27 @@ def builtin_type(ref: str) -> bool:
     return shipped
 
 
+_entries_seen: dict[str, tuple[tuple[tuple[str, int], ...], str | None]] = {}
+
+
+def entry_target(ref: str) -> str | None:
+    """An installed type's ``module:attr`` (its entry point's; None: not installed, custom).
+
+    What a runner in a task's image imports: the image has osmo's code, not the node's
+    package metadata. Kept as :func:`builtin_type` keeps its answers.
+    """
+    if is_custom(ref):
+        return None
+    stamp = _path_stamp()
+    seen = _entries_seen.get(ref)
+    if seen is not None and seen[0] == stamp:
+        return seen[1]
+    ep = entry_points().get(ref)
+    target = f"{ep.module}:{ep.attr}" if ep is not None else None
+    _entries_seen[ref] = (stamp, target)
+    return target
+
+
 def _path_stamp() -> tuple[tuple[str, int], ...]:
     """Each ``sys.path`` folder with its mtime (-1: missing)."""
     stamp = []

@@ -42,7 +42,7 @@ from typing import Any
 
 from osmo.runtime.api import RunnerPaths
 from osmo.spec.model import InputSpec, TaskSpec
-from osmo.tasktypes.registry import entry_points, is_custom, shipped_packages
+from osmo.tasktypes.registry import entry_target, shipped_packages
 from osmo.tasktypes.runner import FORMAT
 
 __all__ = ["input_name", "osmo_paths", "runner_argv", "runner_env", "write_context"]
@@ -110,10 +110,9 @@ def write_context(path: Path, *, task: TaskSpec, inputs: Sequence[tuple[str, str
     }
     if shown is not None:
         data["image"] = task.image
-    if shown is not None and task.type and not is_custom(task.type):
-        found = entry_points().get(task.type)
-        if found is not None:
-            data["entry"] = f"{found.module}:{found.attr}"
+    entry = entry_target(task.type) if shown is not None and task.type else None
+    if entry is not None:
+        data["entry"] = entry
     temp = path.with_name(path.name + ".tmp")
     temp.write_text(json.dumps(data, indent=1, default=str), encoding="utf-8")
     os.replace(temp, path)

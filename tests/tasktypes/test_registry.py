@@ -12,6 +12,7 @@ from osmo.tasktypes.registry import (
     Resolver,
     TaskTypeError,
     builtin_type,
+    entry_target,
     list_types,
     ref_of,
     resolve,
@@ -123,3 +124,12 @@ def test_a_distribution_installed_later_is_seen_by_the_shipped_type_check(on_pat
     write(on_path / "shadow_types.py", GOOD)
     write_dist(on_path, "shadow-types", {"sim.rollout": "shadow_types:COUNT"})
     assert not builtin_type("sim.rollout")
+
+
+def test_an_installed_type_s_entry_point_is_what_a_runner_in_an_image_imports() -> None:
+    """In a task's image osmo's code is there, its package metadata is not: the runner is
+    told the installed type's ``module:attr``, which resolves to the same type."""
+    target = entry_target("sim.rollout")
+    assert target == "osmo_plugins.sim.rollout:ROLLOUT"
+    assert resolve(target) is resolve("sim.rollout")
+    assert entry_target("tasks:power") is None and entry_target("no.such.type") is None

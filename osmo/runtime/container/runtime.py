@@ -84,7 +84,7 @@ from osmo.runtime.container.warm import (
 from osmo.runtime.process.warm import RunnerInfo
 from osmo.scheduler.types import PrepareAttempt
 from osmo.spec.model import TaskSpec
-from osmo.tasktypes.registry import entry_points, is_custom, shipped_packages
+from osmo.tasktypes.registry import entry_target, shipped_packages
 
 __all__ = ["ContainerRuntime", "owner_id"]
 
@@ -248,12 +248,9 @@ class ContainerRuntime:
                 or task.type is None):
             return None
         resolved = task.resolved
-        entry = None
-        if not is_custom(task.type):
-            found = entry_points().get(task.type)
-            entry = f"{found.module}:{found.attr}" if found is not None else None
         key = ContainerWarmKey(run.image, task.type, resolved.version if resolved else None,
-                               tuple(resolved.paths) if resolved else (), entry=entry)
+                               tuple(resolved.paths) if resolved else (),
+                               entry=entry_target(task.type))
         if not self._warm.ready(key):
             return None
         if (run.cpus or run.memory) and not self._warm.can_limit(key):
