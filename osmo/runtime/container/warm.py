@@ -53,6 +53,7 @@ import os
 import signal
 import socket
 import subprocess
+import tempfile
 import threading
 import time
 from collections.abc import Mapping, Sequence
@@ -319,13 +320,17 @@ class ContainerWarmRunners:
             theirs.close()
             self._refuse(key, str(exc))
             return None
+        # the client's stderr: a file, never a pipe (a client that writes to a closed or full
+        # pipe, a syslog warning say, would end or stall while its container runs on)
+        err = tempfile.TemporaryFile()
         try:
             popen = subprocess.Popen(argv, env=self.engine.env, cwd="/",
                                      stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                                     stderr=subprocess.PIPE, start_new_session=True,
+                                     stderr=err, start_new_session=True,
                                      preexec_fn=child, pass_fds=(3,))
         except (OSError, subprocess.SubprocessError) as exc:
             ours.close()
+            err.close()
             self._refuse(key, f"cannot start a warm runner container: {exc}")
             return None
         finally:
@@ -346,13 +351,13 @@ class ContainerWarmRunners:
             why = reply.decode("utf-8", "replace").removeprefix("error: ")
             with contextlib.suppress(ProcessLookupError):
                 popen.kill()
-            _, err = popen.communicate()
-            self._refuse(key, why or err.decode("utf-8", "replace").strip()[-2000:]
-                         or "the warm runner container exited while importing")
+            popen.wait()
+            err.seek(0)
+            said = err.read()[-2000:].decode("utf-8", "replace").strip()
+            err.close()
+            self._refuse(key, why or said or "the warm runner container exited while importing")
             return None
-        assert popen.stderr is not None
-        popen.stderr.close()  # nothing more is read from the client: never fills its pipe
-        popen.stderr = None
+        err.close()  # (the client keeps its own descriptor of the unlinked file)
         main = self._runner_pid(name)
         return _Runner(key, name, popen, ours, main, _cgroups(main),
                        _host_sources(reply[len(READY):], key.paths))
