@@ -12,7 +12,8 @@ the pool. What it owns:
   ``osmo_plugins`` package, if installed, at ``/osmo/lib/osmo_plugins``), custom type
   folders at ``/osmo/types/N``, ``PYTHONPATH`` those then ``/osmo/lib``; labels
   ``osmo.owner=OWNER`` and ``osmo.warm=1`` (a restarted node's ``clean_orphans`` by owner
-  removes it); the name ``osmo-warm-<hash of owner and key>``. It runs as root in the
+  removes it); the name ``osmo-warm-<hash of owner and key>-<random>`` (a runner killed a
+  moment ago may still hold its name). It runs as root in the
   container with no capability and ``no-new-privileges``: the user namespace it makes
   for its attempts (every uid mapped to itself) is mapped by the pool (``map``), which
   has the ``CAP_SYS_ADMIN`` that needs; it holds no credential and no attempt's data.
@@ -36,7 +37,8 @@ the pool. What it owns:
   would need a leaf for the runner itself (no process may sit in an inner cgroup that has
   controllers enabled for children): the runner would move itself to ``RUNNER/runner``
   and each attempt get ``RUNNER/attempt-PID`` with ``memory.max`` and ``cpu.max``; not
-  done here (this machine has v1), so on v2 an attempt with limits fails to start.
+  done here (this machine has v1): on v2 :meth:`ContainerWarmRunners.can_limit` says no,
+  and the runtime starts an attempt with limits cold.
 
 Kill, reap and release keep ``osmo.runtime.api.ProcessHandle``'s contract as
 ``osmo.runtime.process.warm`` does (SIGTERM/SIGKILL through the pidfd, then the group;
@@ -211,6 +213,7 @@ class ContainerWarmRunners:
         self.hidden, self._cover = hidden, cover
         self._runners: dict[ContainerWarmKey, _Runner] = {}
         self._refused: dict[ContainerWarmKey, str] = {}
+        self._starting: dict[ContainerWarmKey, threading.Lock] = {}
         self._lock = threading.Lock()
         self._closed = False
 
@@ -234,16 +237,25 @@ class ContainerWarmRunners:
         with self._lock:
             if self._closed or key in self._refused:
                 return None
-            found = self._runners.get(key)
+            starting = self._starting.setdefault(key, threading.Lock())
+        with starting:  # one start per key; other keys, reaps and listings go on meanwhile
+            with self._lock:
+                found = self._runners.get(key)
             if found is not None and found.alive() and not self._worn(found):
                 return found
             if found is not None:
-                del self._runners[key]
+                with self._lock:
+                    if self._runners.get(key) is found:
+                        del self._runners[key]
                 found.retire()
-            made = self._spawn(key)
-            if made is not None:
-                self._runners[key] = made
-            return made
+            made = self._spawn(key)  # blocks while the runner imports its type
+            with self._lock:
+                if made is not None and not self._closed:
+                    self._runners[key] = made
+                    return made
+            if made is not None:  # the node closed meanwhile
+                made.retire()
+            return None
 
     def _worn(self, runner: _Runner) -> bool:
         """Whether ``runner`` must be retired: over its memory, or its sources changed."""
