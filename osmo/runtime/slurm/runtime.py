@@ -710,10 +710,11 @@ class SlurmRuntime:
                 self._waits(live, waiting_reason(live.job_id, info.state, info.reason))
             return
         self._waits(live, "")
-        if seen.phase is Phase.RUNNING and info is not None and info.nodes:
+        if seen.phase in (Phase.RUNNING, Phase.ENDED) and info is not None and info.nodes:
+            # (once; a job that ran between two reads is first seen ended: where it ran)
             self._say(live, f"{PROGRESS_PREFIX} Slurm job {live.job_id} RUNNING on "
                             f"{info.nodes}")
-        elif seen.phase is Phase.LOST and live.job.gang is None:
+        if seen.phase is Phase.LOST and live.job.gang is None:
             self._resubmit(live, seen.reason or "lost")
         elif seen.phase is Phase.LOST:  # a gang's: every member is lost, and runs again
             live.lost_as = f"job {live.job_id}: {seen.reason or 'lost'}"
