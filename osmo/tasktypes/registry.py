@@ -101,7 +101,25 @@ def shipped_packages() -> dict[str, Path]:
     return out
 
 
-_builtin_seen: dict[str, tuple[tuple[tuple[str, int], ...], bool]] = {}
+_entries_seen: dict[str, tuple[tuple[tuple[str, int], ...],
+                                importlib.metadata.EntryPoint | None]] = {}
+
+
+def _installed(ref: str) -> importlib.metadata.EntryPoint | None:
+    """The entry point of the installed type ``ref`` (None: none, or a custom type).
+
+    Kept while no folder of ``sys.path`` changed (their mtimes, which any distribution
+    installed or removed there changes: ``importlib.metadata`` keeps its own lookups by the
+    same rule), so a pool asks it for each attempt without reading every installed
+    distribution's entry points each time.
+    """
+    if is_custom(ref):
+        return None
+    stamp = _path_stamp()
+    seen = _entries_seen.get(ref)
+    if seen is None or seen[0] != stamp:
+        seen = _entries_seen[ref] = (stamp, entry_points().get(ref))
+    return seen[1]
 
 
 def builtin_type(ref: str) -> bool:
@@ -109,44 +127,20 @@ def builtin_type(ref: str) -> bool:
 
     Its import code is osmo's own, trusted as osmo is: a sandboxed warm runner may import it
     (``osmo.runtime.process.warm``). A custom type, or another distribution's, is not.
-
-    The answer is kept while no folder of ``sys.path`` changed (their mtimes, which any
-    distribution installed or removed there changes: ``importlib.metadata`` keeps its own
-    lookups by the same rule), so a sandboxed pool asks it for each attempt without reading
-    every installed distribution's entry points each time.
     """
-    if is_custom(ref):
-        return False
-    stamp = _path_stamp()
-    seen = _builtin_seen.get(ref)
-    if seen is not None and seen[0] == stamp:
-        return seen[1]
-    ep = entry_points().get(ref)
-    shipped = (ep is not None and ep.dist is not None and ep.dist.name == "osmo"
-               and ep.module.split(".", 1)[0] in _SHIPPED)
-    _builtin_seen[ref] = (stamp, shipped)
-    return shipped
-
-
-_entries_seen: dict[str, tuple[tuple[tuple[str, int], ...], str | None]] = {}
+    ep = _installed(ref)
+    return (ep is not None and ep.dist is not None and ep.dist.name == "osmo"
+            and ep.module.split(".", 1)[0] in _SHIPPED)
 
 
 def entry_target(ref: str) -> str | None:
     """An installed type's ``module:attr`` (its entry point's; None: not installed, custom).
 
     What a runner in a task's image imports: the image has osmo's code, not the node's
-    package metadata. Kept as :func:`builtin_type` keeps its answers.
+    package metadata.
     """
-    if is_custom(ref):
-        return None
-    stamp = _path_stamp()
-    seen = _entries_seen.get(ref)
-    if seen is not None and seen[0] == stamp:
-        return seen[1]
-    ep = entry_points().get(ref)
-    target = f"{ep.module}:{ep.attr}" if ep is not None else None
-    _entries_seen[ref] = (stamp, target)
-    return target
+    ep = _installed(ref)
+    return f"{ep.module}:{ep.attr}" if ep is not None else None
 
 
 def _path_stamp() -> tuple[tuple[str, int], ...]:

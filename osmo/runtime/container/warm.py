@@ -71,17 +71,17 @@ from osmo.runtime.process.groups import die_with_parent
 from osmo.runtime.process.proctable import process_start_time, start_clock
 from osmo.runtime.process.warm import (
     DEFAULT_IDLE,
+    ForkedProcess,
     RunnerInfo,
     WarmHandle,
-    _Forked,
-    _mount_proc,
-    _pidfd_pid,
-    _pipe,
-    _receive,
-    _rss,
     changed,
     close_attempt,
+    mount_proc,
+    pidfd_pid,
+    private_pipe,
     reap_attempt,
+    receive,
+    resident,
     signal_attempt,
 )
 from osmo.runtime.process.warm_runner import (
@@ -259,7 +259,7 @@ class ContainerWarmRunners:
 
     def _worn(self, runner: _Runner) -> bool:
         """Whether ``runner`` must be retired: over its memory, or its sources changed."""
-        return (self.max_rss is not None and _rss(runner.main) > self.max_rss) or runner.stale()
+        return (self.max_rss is not None and resident(runner.main) > self.max_rss) or runner.stale()
 
     def has(self, key: ContainerWarmKey, path: str) -> bool:
         """Whether ``key``'s live runner container has ``path`` (not a symbolic link)."""
@@ -281,7 +281,7 @@ class ContainerWarmRunners:
         with self._lock:
             found = [runner for runner in self._runners.values() if runner.alive()]
         return [RunnerInfo(f"{runner.key.type}@{runner.key.version}" if runner.key.version
-                           else runner.key.type, runner.main, _rss(runner.main),
+                           else runner.key.type, runner.main, resident(runner.main),
                            runner.started, len(runner.running)) for runner in found]
 
     def name(self, key: ContainerWarmKey) -> str:
@@ -348,11 +348,11 @@ class ContainerWarmRunners:
         finally:
             theirs.close()
         try:
-            reply, fds = _receive(ours, _READY_TIMEOUT)
+            reply, fds = receive(ours, _READY_TIMEOUT)
             if reply == MAP and fds:
                 _map_users(fds[0])
                 ours.send(MAPPED)
-                reply = _receive(ours, _READY_TIMEOUT)[0]
+                reply = receive(ours, _READY_TIMEOUT)[0]
             else:
                 for fd in fds:
                     os.close(fd)
@@ -459,10 +459,10 @@ class ContainerWarmRunners:
         relay: socket.socket | None = None
         pidfd = -1
         try:
-            out_r, out_w = _pipe(made)
-            err_r, err_w = _pipe(made)
-            req_r, req_w = _pipe(made)
-            status_r, status_w = _pipe(made)
+            out_r, out_w = private_pipe(made)
+            err_r, err_w = private_pipe(made)
+            req_r, req_w = private_pipe(made)
+            status_r, status_w = private_pipe(made)
             binds: list[list[object]] = []
             clones: list[int] = []
             for mount in run.mounts:
@@ -482,7 +482,7 @@ class ContainerWarmRunners:
                     raise OSError("the runner retired")
                 try:
                     socket.send_fds(runner.sock, [request], passed)
-                    reply, fds = _receive(runner.sock, _REPLY_TIMEOUT)
+                    reply, fds = receive(runner.sock, _REPLY_TIMEOUT)
                 except OSError:
                     runner.broken = True  # its socket failed: it is gone, or going
                     raise
@@ -495,12 +495,12 @@ class ContainerWarmRunners:
                 runner.broken = runner.broken or not reply
                 raise OSError(f"the runner answered {reply[:200]!r}")
             pidfd = fds[0]
-            pid = _pidfd_pid(pidfd)
+            pid = pidfd_pid(pidfd)
             if not pid:
                 raise OSError("the attempt ended before it started")
             if run.memory or run.cpus:  # before its process is forked (after its /proc)
                 groups = _limit(runner.cgroups, pid, run.memory, run.cpus)
-            _mount_proc(relay)
+            mount_proc(relay)
             relay.close()
             relay = None
             _write_request(req_w, run)
@@ -520,7 +520,7 @@ class ContainerWarmRunners:
             os.set_blocking(fd, False)
         runner.started += 1
         runner.running.add(pid)
-        handle = ContainerWarmHandle(pid, status_r, out_r, err_r, _Forked(pid), pidfd=pidfd,
+        handle = ContainerWarmHandle(pid, status_r, out_r, err_r, ForkedProcess(pid), pidfd=pidfd,
                                      runner=runner.main, cgroups=tuple(groups),
                                      container=runner.name)
         handle.started_at = process_start_time(pid) or started_at
@@ -555,7 +555,7 @@ def _map_users(pidfd: int) -> None:
     ``pidfd``.
     """
     try:
-        pid = _pidfd_pid(pidfd)
+        pid = pidfd_pid(pidfd)
         if not pid:
             raise OSError("the runner ended before its user namespace was mapped")
         for name in ("uid_map", "gid_map"):

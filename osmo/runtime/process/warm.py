@@ -82,8 +82,10 @@ from osmo.runtime.process.warm_runner import (
     SANDBOXED_VARIABLE,
 )
 
-__all__ = ["DEFAULT_IDLE", "RunnerInfo", "WarmHandle", "WarmKey", "WarmRunners", "WarmStart",
-           "commands_key", "warm_key"]
+__all__ = ["DEFAULT_IDLE", "ForkedProcess", "RunnerInfo", "WarmHandle", "WarmKey",
+           "WarmRunners", "WarmStart", "changed", "close_attempt", "commands_key", "mount_proc",
+           "pidfd_pid", "private_pipe", "reap_attempt", "receive", "resident", "signal_attempt",
+           "warm_key"]
 
 _log = logging.getLogger("osmo.worker.pool")
 
@@ -155,7 +157,7 @@ class RunnerInfo:
                 "running": self.running}
 
 
-class _Forked(subprocess.Popen[bytes]):
+class ForkedProcess(subprocess.Popen[bytes]):
     """Stands for a runner's child where a ``Popen`` is expected: it spawns nothing.
 
     The child is the runner's, not ours: its exit code comes from the runner's status pipe
@@ -206,7 +208,7 @@ class _Runner:
         return not self.broken and self.popen.poll() is None
 
     def rss(self) -> int:
-        return _rss(self.main or self.popen.pid)
+        return resident(self.main or self.popen.pid)
 
     def stale(self) -> bool:
         return changed(self.sources)
@@ -338,7 +340,7 @@ class WarmRunners:
         finally:
             theirs.close()
         try:
-            reply = _receive(ours, _READY_TIMEOUT)[0]
+            reply = receive(ours, _READY_TIMEOUT)[0]
         except OSError as exc:
             reply = f"error: {exc}".encode()
         if not reply.startswith(READY):
@@ -448,10 +450,10 @@ class WarmRunners:
     def _fork(self, runner: _Runner, launch: Launch) -> WarmHandle:
         made: list[int] = []
         try:
-            out_r, out_w = _pipe(made)
-            err_r, err_w = _pipe(made)
-            req_r, req_w = _pipe(made)
-            status_r, status_w = _pipe(made)
+            out_r, out_w = private_pipe(made)
+            err_r, err_w = private_pipe(made)
+            req_r, req_w = private_pipe(made)
+            status_r, status_w = private_pipe(made)
             request, extra, relay = b"fork", list[int](), None
             if isinstance(launch.run, WarmStart) and launch.run.view is not None:
                 request, extra, relay = self._enclosed(launch.run.view, made)
@@ -459,7 +461,7 @@ class WarmRunners:
             passed = [out_w, err_w, req_r, status_w, *extra]
             with runner.lock:
                 socket.send_fds(runner.sock, [request], passed)
-                reply, fds = _receive(runner.sock, _REPLY_TIMEOUT)
+                reply, fds = receive(runner.sock, _REPLY_TIMEOUT)
             for fd in passed:
                 os.close(fd)
                 made.remove(fd)
@@ -469,8 +471,8 @@ class WarmRunners:
                 raise OSError(f"the runner answered {reply[:200]!r}")
             pid, pidfd = int(reply), fds[0]
             if relay is not None:  # its pid is the runner's namespace's: ours is the pidfd's
-                pid = _pidfd_pid(pidfd) or pid
-                _mount_proc(relay)
+                pid = pidfd_pid(pidfd) or pid
+                mount_proc(relay)
                 relay.close()
             _write_request(req_w, launch)
             made.remove(req_w)
@@ -482,7 +484,7 @@ class WarmRunners:
             os.set_blocking(fd, False)
         runner.started += 1
         runner.running.add(pid)
-        handle = WarmHandle(pid, status_r, out_r, err_r, _Forked(pid), pidfd=pidfd,
+        handle = WarmHandle(pid, status_r, out_r, err_r, ForkedProcess(pid), pidfd=pidfd,
                             runner=runner.popen.pid)
         # the child was forked before the request (the runner's spare): its own start time
         handle.started_at = process_start_time(pid) or started_at
@@ -613,13 +615,13 @@ def commands_key() -> WarmKey:
     return WarmKey("", None, (), sys.executable, str(Path(__file__).resolve().parents[3]))
 
 
-def _mount_proc(relay: socket.socket) -> None:
+def mount_proc(relay: socket.socket) -> None:
     """Mount the proc context a sandboxed attempt's pid 1 sends, and send it the mount.
 
     A pid 1 that died first sends nothing: its attempt then reports its own failure.
     """
     try:
-        _, fds = _receive(relay, _REPLY_TIMEOUT)
+        _, fds = receive(relay, _REPLY_TIMEOUT)
     except OSError:
         return
     for context in fds:
@@ -635,7 +637,7 @@ def _mount_proc(relay: socket.socket) -> None:
         os.close(mounted)
 
 
-def _pidfd_pid(pidfd: int) -> int:
+def pidfd_pid(pidfd: int) -> int:
     """The pid (in our namespace) of the process ``pidfd`` refers to; 0 when gone."""
     try:
         for line in Path(f"/proc/self/fdinfo/{pidfd}").read_text().splitlines():
@@ -659,7 +661,8 @@ def _descendant(pid: int, depth: int) -> int:
     return pid
 
 
-def _pipe(made: list[int]) -> tuple[int, int]:
+def private_pipe(made: list[int]) -> tuple[int, int]:
+    """A close-on-exec pipe, its two ends added to ``made`` (closed if the start fails)."""
     read, write = os.pipe2(os.O_CLOEXEC)
     made += (read, write)
     return read, write
@@ -676,7 +679,7 @@ def _write_request(fd: int, launch: Launch) -> None:
         pass
 
 
-def _receive(sock: socket.socket, timeout: float) -> tuple[bytes, list[int]]:
+def receive(sock: socket.socket, timeout: float) -> tuple[bytes, list[int]]:
     """One datagram and its descriptors; ``b""`` when the runner is gone."""
     ready, _, _ = select.select([sock], [], [], timeout)
     if not ready:
@@ -685,7 +688,7 @@ def _receive(sock: socket.socket, timeout: float) -> tuple[bytes, list[int]]:
     return data, fds
 
 
-def _rss(pid: int) -> int:
+def resident(pid: int) -> int:
     """Resident memory of ``pid`` in bytes (0: gone)."""
     try:
         for line in Path(f"/proc/{pid}/status").read_text().splitlines():

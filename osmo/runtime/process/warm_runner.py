@@ -423,10 +423,7 @@ def _enclose(layout: dict[str, Any], relay: int, binds: Sequence[int], request: 
         raise OSError("a sandboxed attempt's process is not its pid namespace's pid 1")
     os.umask(0o022)
     mounts.unshare(mounts.NEWNS | mounts.NEWIPC | mounts.NEWUTS)
-    relay_sock = socket.socket(fileno=relay)
-    context = mounts.proc_context()  # in a mount namespace of the node's user namespace
-    socket.send_fds(relay_sock, [b"proc"], [context])
-    os.close(context)
+    relay_sock = _ask_proc(relay)  # in a mount namespace of the node's user namespace
     mounts.make_private()
     _fresh_dev(_devices())  # in bubblewrap's order: /dev, /tmp, the homes, covers, binds
     shown = _shown_under("/tmp", layout["hidden"])  # bound after /tmp, as cold: keep them
@@ -440,17 +437,8 @@ def _enclose(layout: dict[str, Any], relay: int, binds: Sequence[int], request: 
         mounts.mount_tmpfs(folder, 0o755)
     for file in layout["masked"]:
         mounts.bind("/dev/null", file, readonly=True)
-    for (path, _, folder), fd in zip(layout["binds"], binds, strict=True):
-        _mount_point(path, folder)
-        mounts.move(fd, path)
-        os.close(fd)
-    _, got, _, _ = socket.recv_fds(relay_sock, 16, 1)
-    relay_sock.close()
-    if not got:
-        raise OSError("the pool did not mount this attempt's /proc")
-    mounts.move(got[0], "/proc")
-    os.close(got[0])
-    mounts.bind("/proc/sys", "/proc/sys", readonly=True)
+    _move_binds(layout["binds"], binds)
+    _take_proc(relay_sock)
     task = os.fork()
     if task == 0:
         mounts.drop_privileges()
@@ -476,10 +464,7 @@ def _enclose_container(layout: dict[str, Any], relay: int, binds: Sequence[int],
         raise OSError("a container attempt's process is not its pid namespace's pid 1")
     os.umask(0o022)
     mounts.unshare(mounts.NEWNS | mounts.NEWIPC | mounts.NEWUTS)
-    relay_sock = socket.socket(fileno=relay)
-    context = mounts.proc_context()
-    socket.send_fds(relay_sock, [b"proc"], [context])
-    os.close(context)
+    relay_sock = _ask_proc(relay)
     mounts.make_private()
     covers = _proc_covers()
     for target, _, folder in layout["binds"]:
@@ -492,17 +477,8 @@ def _enclose_container(layout: dict[str, Any], relay: int, binds: Sequence[int],
     mounts.mount_tmpfs("/tmp", 0o1777)
     mounts.mount_tmpfs("/dev/shm", 0o1777)
     mounts.devpts("/dev/pts")
-    for (target, _, folder), fd in zip(layout["binds"], binds, strict=True):
-        _mount_point(target, folder)
-        mounts.move(fd, target)
-        os.close(fd)
-    _, got, _, _ = socket.recv_fds(relay_sock, 16, 1)
-    relay_sock.close()
-    if not got:
-        raise OSError("the pool did not mount this attempt's /proc")
-    mounts.move(got[0], "/proc")
-    os.close(got[0])
-    mounts.bind("/proc/sys", "/proc/sys", readonly=True)
+    _move_binds(layout["binds"], binds)
+    _take_proc(relay_sock)
     for path, folder in covers:
         if folder is None:
             mounts.bind(path, path, readonly=True)
@@ -519,6 +495,34 @@ def _enclose_container(layout: dict[str, Any], relay: int, binds: Sequence[int],
         mounts.drop_privileges(int(uid), int(gid))
         return str(layout["cwd"])
     _init(task, request)
+
+
+def _ask_proc(relay: int) -> socket.socket:
+    """Send the pool a proc context of this namespace on ``relay`` (it mounts it for us)."""
+    relay_sock = socket.socket(fileno=relay)
+    context = mounts.proc_context()
+    socket.send_fds(relay_sock, [b"proc"], [context])
+    os.close(context)
+    return relay_sock
+
+
+def _take_proc(relay_sock: socket.socket) -> None:
+    """Move the ``/proc`` the pool mounted in place, ``/proc/sys`` read-only; close the relay."""
+    _, got, _, _ = socket.recv_fds(relay_sock, 16, 1)
+    relay_sock.close()
+    if not got:
+        raise OSError("the pool did not mount this attempt's /proc")
+    mounts.move(got[0], "/proc")
+    os.close(got[0])
+    mounts.bind("/proc/sys", "/proc/sys", readonly=True)
+
+
+def _move_binds(binds: Sequence[Sequence[Any]], fds: Sequence[int]) -> None:
+    """Move each detached mount in ``fds`` to its ``[path, writable, folder]`` (closed)."""
+    for (path, _, folder), fd in zip(binds, fds, strict=True):
+        _mount_point(path, folder)
+        mounts.move(fd, path)
+        os.close(fd)
 
 
 def _proc_covers() -> list[tuple[str, bool | None]]:
